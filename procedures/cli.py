@@ -1,0 +1,103 @@
+"""The ``selfview`` operator command.
+
+Each subcommand lives in its own module under ``procedures/commands/`` and defines
+``register(subparsers) -> argparse.ArgumentParser`` that sets ``func(args) -> int`` on its parser.
+Modules are found at start-up, so adding a command never touches this file.
+
+Exit codes (stable; scripts may rely on them):
+  0 success, 1 unexpected internal error, 2 usage error, 3 bad configuration or input file,
+  4 device error or timeout, 5 calibration failed, 6 alarm raised by the monitor, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import pkgutil
+import sys
+
+from selfview import __version__
+from selfview.errors import (
+    AlarmError,
+    CalibrationError,
+    CalibrationFileError,
+    CellError,
+    ConfigError,
+    DeviceError,
+    DeviceTimeout,
+    ImageError,
+    LimitError,
+    ProtocolError,
+)
+
+EXIT_OK = 0
+EXIT_INTERNAL = 1
+EXIT_USAGE = 2
+EXIT_CONFIG = 3
+EXIT_DEVICE = 4
+EXIT_CALIBRATION = 5
+EXIT_ALARM = 6
+EXIT_INTERRUPTED = 130
+
+_EXIT_FOR = [
+    (AlarmError, EXIT_ALARM, "stop the cell and check the camera mount"),
+    ((CalibrationError, ImageError), EXIT_CALIBRATION, "check the picture (light, focus, plate and fingers in view)"),
+    ((ConfigError, CalibrationFileError), EXIT_CONFIG, "correct the file or argument named above"),
+    ((DeviceTimeout, ProtocolError, DeviceError, LimitError), EXIT_DEVICE, "check the device's cable, power and URL"),
+]
+
+
+def exit_code_for(exc: BaseException) -> tuple[int, str]:
+    """(exit code, what to do) for an exception reaching the command line."""
+    for types, code, hint in _EXIT_FOR:
+        if isinstance(exc, types):
+            return code, hint
+    return EXIT_INTERNAL, "this is a bug; please report it with the command line"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="selfview",
+        description=(
+            "Calibration and monitoring of a self-viewing eye-on-hand robot cell: a wrist camera that "
+            "keeps the gripper's fingertips in view. Without --real, commands run on the simulated cell."
+        ),
+        epilog=(
+            "Exit codes: 0 ok, 1 internal error, 2 usage, 3 configuration or file, 4 device, "
+            "5 calibration, 6 alarm, 130 interrupted."
+        ),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"selfview {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    import procedures.commands as pkg
+
+    for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue
+        mod = importlib.import_module(f"procedures.commands.{info.name}")
+        mod.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return EXIT_USAGE
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("selfview: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except CellError as exc:
+        code, hint = exit_code_for(exc)
+        print(f"selfview {args.command}: error: {exc}\n  what to do: {hint}", file=sys.stderr)
+        return code
+    except BrokenPipeError:
+        return EXIT_OK
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

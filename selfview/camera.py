@@ -1,0 +1,240 @@
+"""The paper's camera model (eq. 1-4) in the pixel units of ``CONVENTIONS.md``.
+
+Pixel (u, v) with integer values is the centre of a pixel (OpenCV convention). Sensor coordinates
+relative to the principal point (cx, cy), in pixel units:
+
+    X^ = aspect * (u - cx),  Y^ = v - cy                     (distorted, what the picture shows)
+    X = X^ (1 + kappa r^2),  Y = Y^ (1 + kappa r^2)          (eq. 4, r^2 = X^^2 + Y^^2)
+    X = f x / z,             Y = f y / z                     (eq. 3, camera coordinates in mm)
+
+The correction is explicit from distorted to undistorted; ``distort`` inverts it exactly by solving
+the cubic ``kappa r^3 + r - R = 0`` for the distorted radius r of an undistorted radius R.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from selfview.errors import CalibrationError, ConfigError
+
+__all__ = ["CameraModel", "undistort", "distort", "max_undistorted_radius"]
+
+
+def _as_points(a, dim: int, name: str) -> tuple[np.ndarray, bool]:
+    a = np.asarray(a, dtype=float)
+    single = a.ndim == 1
+    a = np.atleast_2d(a)
+    if a.shape[-1] != dim or a.ndim != 2:
+        raise ValueError(f"{name}: expected shape (N, {dim}) or ({dim},), got {np.shape(a)}")
+    return a, single
+
+
+def undistort(XY_hat, kappa: float) -> np.ndarray:
+    """Eq. 4: distorted sensor coordinates (N, 2) -> undistorted (N, 2), pixel units."""
+    XY_hat = np.asarray(XY_hat, dtype=float)
+    r2 = np.sum(XY_hat * XY_hat, axis=-1, keepdims=True)
+    return XY_hat * (1.0 + kappa * r2)
+
+
+def max_undistorted_radius(kappa: float) -> float:
+    """Largest undistorted radius a real distorted radius maps to (inf for kappa >= 0).
+
+    For kappa < 0, R(r) = r + kappa r^3 peaks at r = sqrt(-1 / (3 kappa)); beyond it no pixel sees the ray.
+    """
+    if kappa >= 0:
+        return np.inf
+    r = np.sqrt(-1.0 / (3.0 * kappa))
+    return float(r + kappa * r**3)
+
+
+def _distorted_radius(R: np.ndarray, kappa: float) -> np.ndarray:
+    """Solve kappa r^3 + r - R = 0 for the root r of the branch through r = 0 (vectorised)."""
+    R = np.asarray(R, dtype=float)
+    if kappa == 0.0:
+        return R.copy()
+    if kappa > 0:
+        # One real root (the cubic is monotonic): Cardano, depressed cubic r^3 + p r + q = 0.
+        p = 1.0 / kappa
+        q = -R / kappa
+        disc = np.sqrt((q / 2) ** 2 + (p / 3) ** 3)
+        r = np.cbrt(-q / 2 + disc) + np.cbrt(-q / 2 - disc)
+    else:
+        # Three real roots when R < R_max: take the one on the rising branch, trigonometric form.
+        Rmax = max_undistorted_radius(kappa)
+        if np.any(R > Rmax * (1 + 1e-12)):
+            raise CalibrationError(
+                f"point beyond the lens's field of view: undistorted radius {float(np.max(R)):.1f} px "
+                f"exceeds {Rmax:.1f} px reachable with kappa={kappa:.3e}"
+            )
+        p = 1.0 / kappa  # negative
+        m = 2.0 * np.sqrt(-p / 3.0)
+        arg = np.clip(3.0 * (-R / kappa) / (p * m), -1.0, 1.0)
+        # root k=1 of the trigonometric solution is the one on the branch through r = 0
+        r = m * np.cos(np.arccos(arg) / 3.0 - 2.0 * np.pi / 3.0)
+    # Newton polish: the closed forms lose digits through cancellation for small kappa r^2.
+    for _ in range(3):
+        g = kappa * r**3 + r - R
+        dg = 3 * kappa * r**2 + 1.0
+        r = r - g / dg
+    return r
+
+
+def distort(XY, kappa: float) -> np.ndarray:
+    """Inverse of eq. 4: undistorted sensor coordinates (N, 2) -> distorted (N, 2), pixel units.
+
+    Raises ``CalibrationError`` for a point the lens cannot image (kappa < 0, beyond the fold).
+    """
+    XY = np.asarray(XY, dtype=float)
+    R = np.sqrt(np.sum(XY * XY, axis=-1, keepdims=True))
+    r = _distorted_radius(R, kappa)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(R > 0, r / np.where(R > 0, R, 1.0), 1.0)
+    return XY * scale
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Interior orientation of the camera (eq. 3-4).
+
+    Attributes: ``f`` effective focal length [px]; ``kappa`` radial coefficient [px^-2];
+    ``cx, cy`` principal point [px]; ``aspect`` horizontal sampling factor (X^ = aspect (u - cx));
+    ``width, height`` picture size [px].
+    """
+
+    f: float
+    kappa: float = 0.0
+    cx: float = 383.5
+    cy: float = 287.5
+    aspect: float = 1.0
+    width: int = 768
+    height: int = 576
+
+    def __post_init__(self):
+        for name in ("f", "kappa", "cx", "cy", "aspect"):
+            v = getattr(self, name)
+            if not np.isfinite(v):
+                raise ConfigError(f"camera {name}: expected a finite number, got {v!r}")
+        if self.f <= 0:
+            raise ConfigError(f"camera f: expected a positive focal length in px, got {self.f!r}")
+        if self.aspect <= 0:
+            raise ConfigError(f"camera aspect: expected a positive ratio, got {self.aspect!r}")
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise ConfigError(f"camera size: expected positive width and height, got {self.width}x{self.height}")
+
+    def with_(self, **changes) -> "CameraModel":
+        """A copy with some parameters changed."""
+        return replace(self, **changes)
+
+    @property
+    def principal_point(self) -> tuple[float, float]:
+        return (self.cx, self.cy)
+
+    # --- pixels <-> sensor coordinates ---------------------------------------------------------
+    def pixel_to_sensor(self, uv) -> np.ndarray:
+        """Pixels (N, 2) -> distorted sensor coordinates X^, Y^ (N, 2)."""
+        uv, single = _as_points(uv, 2, "uv")
+        out = np.column_stack([self.aspect * (uv[:, 0] - self.cx), uv[:, 1] - self.cy])
+        return out[0] if single else out
+
+    def sensor_to_pixel(self, XY_hat) -> np.ndarray:
+        """Distorted sensor coordinates (N, 2) -> pixels (N, 2)."""
+        XY_hat, single = _as_points(XY_hat, 2, "XY_hat")
+        out = np.column_stack([XY_hat[:, 0] / self.aspect + self.cx, XY_hat[:, 1] + self.cy])
+        return out[0] if single else out
+
+    def undistort_pixels(self, uv) -> np.ndarray:
+        """Pixels (N, 2) -> undistorted sensor coordinates X, Y (N, 2) of eq. 3-4."""
+        return undistort(self.pixel_to_sensor(uv), self.kappa)
+
+    def distort_to_pixels(self, XY) -> np.ndarray:
+        """Undistorted sensor coordinates X, Y (N, 2) -> pixels (N, 2) (exact inverse of eq. 4)."""
+        return self.sensor_to_pixel(distort(XY, self.kappa))
+
+    def undistorted_pixels(self, uv) -> np.ndarray:
+        """Pixels (N, 2) -> where they would lie in a distortion-free picture, in pixels (N, 2)."""
+        return self.sensor_to_pixel(self.undistort_pixels(uv))
+
+    # --- 3-D ----------------------------------------------------------------------------------
+    def project_undistorted(self, p_C) -> np.ndarray:
+        """Camera-frame points (N, 3) [mm] -> undistorted sensor coordinates (N, 2) by eq. 3.
+
+        Raises ``CalibrationError`` for a point not in front of the camera (z <= 0)."""
+        p, single = _as_points(p_C, 3, "p_C")
+        z = p[:, 2]
+        if np.any(z <= 0):
+            raise CalibrationError(f"{int(np.sum(z <= 0))} point(s) lie behind or on the camera's plane (z <= 0)")
+        out = self.f * p[:, :2] / z[:, None]
+        return out[0] if single else out
+
+    def project(self, p_C) -> np.ndarray:
+        """Camera-frame points (N, 3) [mm] -> pixels (N, 2), distortion applied."""
+        p, single = _as_points(p_C, 3, "p_C")
+        uv = self.distort_to_pixels(self.project_undistorted(p))
+        return uv[0] if single else uv
+
+    def in_image(self, uv, margin: float = 0.0) -> np.ndarray:
+        """Boolean mask (N,): pixel centres inside the picture, at least ``margin`` px from its border."""
+        uv, _ = _as_points(uv, 2, "uv")
+        return (
+            (uv[:, 0] >= -0.5 + margin)
+            & (uv[:, 0] <= self.width - 0.5 - margin)
+            & (uv[:, 1] >= -0.5 + margin)
+            & (uv[:, 1] <= self.height - 0.5 - margin)
+        )
+
+    def rays(self, uv) -> np.ndarray:
+        """Pixels (N, 2) -> unit viewing directions (N, 3) in the camera frame."""
+        uv, single = _as_points(uv, 2, "uv")
+        XY = self.undistort_pixels(uv)
+        d = np.column_stack([XY / self.f, np.ones(len(XY))])
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return d[0] if single else d
+
+    def backproject_to_plane(self, uv, C_H_P, z_P=0.0, min_cos: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+        """Eq. 8: intersect the rays of pixels (N, 2) with the plane z = ``z_P`` of frame P.
+
+        ``C_H_P`` (4, 4) maps P to the camera; ``z_P`` is a scalar or (N,) per point [mm].
+        Returns (p_P (N, 3) in frame P with the given z, z_C (N,) depth of each point in the camera frame).
+        Raises ``CalibrationError`` when a ray runs parallel to the plane (seen edge-on) or meets it
+        behind the camera.
+        """
+        uv, single = _as_points(uv, 2, "uv")
+        H = np.asarray(C_H_P, dtype=float)
+        R, t = H[:3, :3], H[:3, 3]
+        XY = self.undistort_pixels(uv)
+        zP = np.broadcast_to(np.asarray(z_P, dtype=float), (len(uv),))
+        n = len(uv)
+        # Eq. 8, one 3x3 system per point: [r1 r2 -X/f; r4 r5 -Y/f; r7 r8 -1] [x y zc]^T = -r3 z - t
+        A = np.empty((n, 3, 3))
+        A[:, :, 0] = R[:, 0]
+        A[:, :, 1] = R[:, 1]
+        A[:, 0, 2] = -XY[:, 0] / self.f
+        A[:, 1, 2] = -XY[:, 1] / self.f
+        A[:, 2, 2] = -1.0
+        b = -(R[:, 2][None, :] * zP[:, None]) - t[None, :]
+        # Edge-on test: angle between ray and plane normal.
+        d = np.column_stack([XY / self.f, np.ones(n)])
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        cosang = np.abs(d @ R[:, 2])
+        if np.any(cosang < min_cos):
+            raise CalibrationError(
+                f"plane seen nearly edge-on: a viewing ray meets it at {np.degrees(np.arcsin(cosang.min())):.1f} deg"
+            )
+        sol = np.linalg.solve(A, b[..., None])[..., 0]
+        zc = sol[:, 2]
+        if np.any(zc <= 0):
+            raise CalibrationError("plane meets a viewing ray behind the camera")
+        pts = np.column_stack([sol[:, 0], sol[:, 1], zP])
+        return (pts[0], zc[0]) if single else (pts, zc)
+
+    def to_dict(self) -> dict:
+        return {
+            "f": float(self.f),
+            "kappa": float(self.kappa),
+            "principal_point": [float(self.cx), float(self.cy)],
+            "aspect": float(self.aspect),
+            "width": int(self.width),
+            "height": int(self.height),
+        }

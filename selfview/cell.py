@@ -1,0 +1,453 @@
+"""The cell description (``cell.yaml``) as typed, validated objects.
+
+The file is read as it is (``yaml.safe_load`` only). Unknown keys, missing keys, wrong types and
+impossible values raise ``ConfigError`` with a message that names the key path, the value and what was
+expected. Keys this project adds beyond the shared reference file have defaults.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from selfview.camera import CameraModel
+from selfview.errors import ConfigError
+from selfview.geometry import check_rigid
+
+__all__ = [
+    "POINT_NAMES",
+    "CameraSpec",
+    "PlateSpec",
+    "GripperSpec",
+    "MonitorLimits",
+    "Limit",
+    "ImageSpec",
+    "DisturbanceSpec",
+    "SimulationSpec",
+    "Cell",
+    "load_cell",
+    "parse_cell",
+    "default_cell_path",
+]
+
+#: The six fingertip calibration points of CONVENTIONS.md, in their order.
+POINT_NAMES: tuple[str, ...] = (
+    "A-inner-front",
+    "A-inner-back",
+    "B-inner-front",
+    "B-inner-back",
+    "A-outer-front",
+    "B-outer-front",
+)
+
+
+# --- validation helpers ---------------------------------------------------------------------------
+class _Section:
+    """Reads one mapping of the YAML document, tracking which keys were used."""
+
+    def __init__(self, data: Any, path: str):
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path or 'cell'}: expected a mapping, got {type(data).__name__} {data!r}")
+        self.data = data
+        self.path = path
+        self.used: set[str] = set()
+
+    def _key(self, key: str) -> str:
+        return f"{self.path}.{key}" if self.path else key
+
+    def has(self, key: str) -> bool:
+        return key in self.data
+
+    def raw(self, key: str, default: Any = ..., ) -> Any:
+        self.used.add(key)
+        if key not in self.data:
+            if default is ...:
+                raise ConfigError(f"{self._key(key)}: missing key")
+            return default
+        return self.data[key]
+
+    def section(self, key: str, default: Any = ...) -> "_Section":
+        v = self.raw(key, default)
+        return _Section({} if v is None else v, self._key(key))
+
+    def number(self, key: str, default: Any = ..., *, positive=False, nonneg=False, lo=None, hi=None) -> float:
+        v = self.raw(key, default)
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ConfigError(f"{self._key(key)}: expected a number, got {v!r}")
+        v = float(v)
+        if not np.isfinite(v):
+            raise ConfigError(f"{self._key(key)}: expected a finite number, got {v!r}")
+        if positive and v <= 0:
+            raise ConfigError(f"{self._key(key)}: expected a positive number, got {v!r}")
+        if nonneg and v < 0:
+            raise ConfigError(f"{self._key(key)}: expected a number >= 0, got {v!r}")
+        if lo is not None and v < lo:
+            raise ConfigError(f"{self._key(key)}: expected a number >= {lo}, got {v!r}")
+        if hi is not None and v > hi:
+            raise ConfigError(f"{self._key(key)}: expected a number <= {hi}, got {v!r}")
+        return v
+
+    def integer(self, key: str, default: Any = ..., *, positive=False) -> int:
+        v = self.raw(key, default)
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise ConfigError(f"{self._key(key)}: expected a whole number, got {v!r}")
+        if positive and v <= 0:
+            raise ConfigError(f"{self._key(key)}: expected a positive whole number, got {v!r}")
+        return int(v)
+
+    def string(self, key: str, default: Any = ..., choices=None) -> str:
+        v = self.raw(key, default)
+        if not isinstance(v, str):
+            raise ConfigError(f"{self._key(key)}: expected text, got {v!r}")
+        if choices is not None and v not in choices:
+            raise ConfigError(f"{self._key(key)}: expected one of {', '.join(choices)}, got {v!r}")
+        return v
+
+    def vector(self, key: str, n: int, default: Any = ...) -> tuple[float, ...]:
+        v = self.raw(key, default)
+        if (
+            not isinstance(v, (list, tuple))
+            or len(v) != n
+            or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)
+        ):
+            raise ConfigError(f"{self._key(key)}: expected a list of {n} numbers, got {v!r}")
+        out = tuple(float(x) for x in v)
+        if not all(np.isfinite(out)):
+            raise ConfigError(f"{self._key(key)}: expected finite numbers, got {v!r}")
+        return out
+
+    def transform(self, key: str, default: Any = ...) -> np.ndarray:
+        v = self.raw(key, default)
+        return check_rigid(v, self._key(key))
+
+    def done(self) -> None:
+        unknown = sorted(set(self.data) - self.used)
+        if unknown:
+            raise ConfigError(
+                f"{self.path or 'cell'}: unknown key(s) {', '.join(map(str, unknown))}; "
+                f"expected only {', '.join(sorted(self.used))}"
+            )
+
+
+# --- the typed description ------------------------------------------------------------------------
+@dataclass(frozen=True)
+class CameraSpec:
+    model: str
+    width: int
+    height: int
+    principal_point: tuple[float, float]
+    aspect: float
+    focal_guess: float
+    kappa_guess: float
+
+    def guess(self) -> CameraModel:
+        """Camera model from the guesses (a starting value; calibration measures f and kappa)."""
+        return CameraModel(
+            f=self.focal_guess,
+            kappa=self.kappa_guess,
+            cx=self.principal_point[0],
+            cy=self.principal_point[1],
+            aspect=self.aspect,
+            width=self.width,
+            height=self.height,
+        )
+
+    def model_with(self, f: float, kappa: float) -> CameraModel:
+        return self.guess().with_(f=float(f), kappa=float(kappa))
+
+
+@dataclass(frozen=True)
+class PlateSpec:
+    rows: int
+    cols: int
+    pitch: float
+    disc_diameter: float
+    size: tuple[float, float]
+    polarity: str
+
+    def disc_centres_W(self) -> np.ndarray:
+        """(rows*cols, 3) disc centres in W [mm], row-major (index = row * cols + col), grid centred on 0."""
+        r, c = np.mgrid[0 : self.rows, 0 : self.cols]
+        x = (c.ravel() - (self.cols - 1) / 2) * self.pitch
+        y = (r.ravel() - (self.rows - 1) / 2) * self.pitch
+        return np.column_stack([x, y, np.zeros_like(x)])
+
+
+@dataclass(frozen=True)
+class GripperSpec:
+    finger_width: float
+    finger_thickness: float
+    finger_length: float
+    states: dict[str, float]
+    calibrate_in: str
+
+    def gap(self, state: str) -> float:
+        try:
+            return self.states[state]
+        except KeyError:
+            raise ConfigError(f"gripper state {state!r}: expected one of {', '.join(self.states)}") from None
+
+    def points_G(self, state: str | None = None, gap: float | None = None) -> np.ndarray:
+        """(6, 3) nominal fingertip points in G [mm], in the order of ``POINT_NAMES``."""
+        g = self.gap(state or self.calibrate_in) if gap is None else float(gap)
+        w, t = self.finger_width, self.finger_thickness
+        return np.array(
+            [
+                [g / 2, -w / 2, 0.0],
+                [g / 2, w / 2, 0.0],
+                [-g / 2, -w / 2, 0.0],
+                [-g / 2, w / 2, 0.0],
+                [g / 2 + t, -w / 2, 0.0],
+                [-g / 2 - t, -w / 2, 0.0],
+            ]
+        )
+
+    def finger_boxes_G(self, gap: float) -> list[tuple[np.ndarray, np.ndarray]]:
+        """[(min corner, max corner)] of fingers A and B in G [mm] for a jaw gap."""
+        g, w, t, L = gap, self.finger_width, self.finger_thickness, self.finger_length
+        a = (np.array([g / 2, -w / 2, -L]), np.array([g / 2 + t, w / 2, 0.0]))
+        b = (np.array([-g / 2 - t, -w / 2, -L]), np.array([-g / 2, w / 2, 0.0]))
+        return [a, b]
+
+
+@dataclass(frozen=True)
+class Limit:
+    angle_deg: float
+    shift_mm: float
+
+
+@dataclass(frozen=True)
+class MonitorLimits:
+    update_limit: Limit
+    alarm_limit: Limit
+    max_rms_px: float = 1.5  # residual above which the model no longer fits (project default)
+
+
+@dataclass(frozen=True)
+class ImageSpec:
+    noise_gray: float
+    blur_px: float
+    paper: float
+    ink: float
+    foam: float
+    finger: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class DisturbanceSpec:
+    name: str
+    pivot_C: tuple[float, float, float]
+    axis_C: tuple[float, float, float]
+    axis_jitter_deg: float
+    tcp_shift_mm: float
+    tcp_shift_sd_mm: float
+
+
+@dataclass(frozen=True)
+class SimulationSpec:
+    true_f: float
+    true_kappa: float
+    mount_error_angle_deg: float
+    mount_error_shift_mm: float
+    image: ImageSpec
+    disturbances: dict[str, DisturbanceSpec]
+
+
+@dataclass(frozen=True)
+class Cell:
+    """The whole cell description. ``source`` is the file it came from, ``sha256`` its hash."""
+
+    camera: CameraSpec
+    plate: PlateSpec
+    gripper: GripperSpec
+    mount_guess_C_H_G: np.ndarray
+    monitor: MonitorLimits
+    simulation: SimulationSpec | None
+    source: str = "<memory>"
+    sha256: str = ""
+    raw: dict = field(default_factory=dict, repr=False)
+
+    def camera_guess(self) -> CameraModel:
+        return self.camera.guess()
+
+
+def _parse_camera(s: _Section) -> CameraSpec:
+    spec = CameraSpec(
+        model=str(s.raw("model", "")),
+        width=s.integer("width", positive=True),
+        height=s.integer("height", positive=True),
+        principal_point=s.vector("principal_point", 2),
+        aspect=s.number("aspect", 1.0, positive=True),
+        focal_guess=s.number("focal_guess", positive=True),
+        kappa_guess=s.number("kappa_guess", 0.0),
+    )
+    s.done()
+    cx, cy = spec.principal_point
+    if not (0 <= cx <= spec.width - 1 and 0 <= cy <= spec.height - 1):
+        raise ConfigError(
+            f"camera.principal_point: {list(spec.principal_point)} lies outside the "
+            f"{spec.width}x{spec.height} picture"
+        )
+    return spec
+
+
+def _parse_plate(s: _Section) -> PlateSpec:
+    spec = PlateSpec(
+        rows=s.integer("rows", positive=True),
+        cols=s.integer("cols", positive=True),
+        pitch=s.number("pitch", positive=True),
+        disc_diameter=s.number("disc_diameter", positive=True),
+        size=s.vector("size", 2),
+        polarity=s.string("polarity", "dark_on_light", choices=("dark_on_light", "light_on_dark")),
+    )
+    s.done()
+    if spec.rows * spec.cols < 5:
+        raise ConfigError(f"plate: {spec.rows}x{spec.cols} discs; Tsai's coplanar method needs at least 5")
+    if spec.disc_diameter >= spec.pitch:
+        raise ConfigError(
+            f"plate.disc_diameter: {spec.disc_diameter} mm; expected less than the pitch {spec.pitch} mm"
+        )
+    need = ((spec.cols - 1) * spec.pitch + spec.disc_diameter, (spec.rows - 1) * spec.pitch + spec.disc_diameter)
+    if spec.size[0] < need[0] or spec.size[1] < need[1]:
+        raise ConfigError(f"plate.size: {list(spec.size)} mm is smaller than the disc grid {list(need)} mm")
+    return spec
+
+
+def _parse_gripper(s: _Section) -> GripperSpec:
+    w = s.number("finger_width", positive=True)
+    t = s.number("finger_thickness", positive=True)
+    L = s.number("finger_length", positive=True)
+    st = s.section("states")
+    states = {}
+    for name in list(st.data):
+        states[str(name)] = st.number(name, positive=True)
+    st.done()
+    if not states:
+        raise ConfigError("gripper.states: expected at least one state with its jaw gap")
+    cal = s.string("calibrate_in", choices=tuple(states))
+    s.done()
+    return GripperSpec(finger_width=w, finger_thickness=t, finger_length=L, states=states, calibrate_in=cal)
+
+
+def _parse_limit(s: _Section) -> Limit:
+    lim = Limit(angle_deg=s.number("angle_deg", positive=True), shift_mm=s.number("shift_mm", positive=True))
+    s.done()
+    return lim
+
+
+def _parse_monitor(s: _Section) -> MonitorLimits:
+    up = _parse_limit(s.section("update_limit"))
+    al = _parse_limit(s.section("alarm_limit"))
+    rms = s.number("max_rms_px", 1.5, positive=True)
+    s.done()
+    if al.angle_deg < up.angle_deg or al.shift_mm < up.shift_mm:
+        raise ConfigError(
+            f"monitor.alarm_limit: {al} must not be below monitor.update_limit {up}"
+        )
+    return MonitorLimits(update_limit=up, alarm_limit=al, max_rms_px=rms)
+
+
+def _parse_simulation(s: _Section) -> SimulationSpec:
+    tc = s.section("true_camera")
+    f = tc.number("f", positive=True)
+    kappa = tc.number("kappa")
+    tc.done()
+    me = s.section("mount_error")
+    me_a = me.number("angle_deg", nonneg=True)
+    me_s = me.number("shift_mm", nonneg=True)
+    me.done()
+    im = s.section("image")
+    image = ImageSpec(
+        noise_gray=im.number("noise_gray", nonneg=True),
+        blur_px=im.number("blur_px", nonneg=True),
+        paper=im.number("paper", lo=0, hi=255),
+        ink=im.number("ink", lo=0, hi=255),
+        foam=im.number("foam", lo=0, hi=255),
+        finger=im.vector("finger", 3),
+    )
+    im.done()
+    for i, v in enumerate(image.finger):
+        if not 0 <= v <= 255:
+            raise ConfigError(f"simulation.image.finger[{i}]: expected a grey level 0..255, got {v}")
+    ds = s.section("disturbances")
+    dists = {}
+    for name in list(ds.data):
+        d = ds.section(name)
+        spec = DisturbanceSpec(
+            name=str(name),
+            pivot_C=d.vector("pivot_C", 3),
+            axis_C=d.vector("axis_C", 3),
+            axis_jitter_deg=d.number("axis_jitter_deg", nonneg=True),
+            tcp_shift_mm=d.number("tcp_shift_mm", nonneg=True),
+            tcp_shift_sd_mm=d.number("tcp_shift_sd_mm", nonneg=True),
+        )
+        d.done()
+        if np.linalg.norm(spec.axis_C) == 0:
+            raise ConfigError(f"simulation.disturbances.{name}.axis_C: expected a non-zero axis, got {list(spec.axis_C)}")
+        dists[str(name)] = spec
+    ds.done()
+    s.done()
+    return SimulationSpec(
+        true_f=f,
+        true_kappa=kappa,
+        mount_error_angle_deg=me_a,
+        mount_error_shift_mm=me_s,
+        image=image,
+        disturbances=dists,
+    )
+
+
+def parse_cell(data: Any, source: str = "<memory>", sha256: str = "") -> Cell:
+    """Build a ``Cell`` from an already parsed YAML mapping; raises ``ConfigError``."""
+    top = _Section(data, "")
+    camera = _parse_camera(top.section("camera"))
+    plate = _parse_plate(top.section("plate"))
+    gripper = _parse_gripper(top.section("gripper"))
+    mg = top.section("mount_guess")
+    C_H_G = mg.transform("C_H_G")
+    mg.done()
+    if C_H_G[2, 3] <= 0:
+        raise ConfigError(f"mount_guess.C_H_G: the TCP must lie in front of the camera (z > 0), got z={C_H_G[2, 3]}")
+    monitor = _parse_monitor(top.section("monitor"))
+    sim = _parse_simulation(top.section("simulation")) if top.has("simulation") else None
+    top.done()
+    return Cell(
+        camera=camera,
+        plate=plate,
+        gripper=gripper,
+        mount_guess_C_H_G=C_H_G,
+        monitor=monitor,
+        simulation=sim,
+        source=source,
+        sha256=sha256,
+        raw=data,
+    )
+
+
+def load_cell(path) -> Cell:
+    """Read and validate a cell description file; raises ``ConfigError`` naming what is wrong."""
+    p = Path(path)
+    try:
+        blob = p.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"cell description {str(p)!r}: cannot read ({exc.strerror or exc})") from exc
+    try:
+        data = yaml.safe_load(blob)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"cell description {str(p)!r}: not valid YAML ({exc})") from exc
+    if data is None:
+        raise ConfigError(f"cell description {str(p)!r}: the file is empty")
+    try:
+        return parse_cell(data, source=str(p), sha256=hashlib.sha256(blob).hexdigest())
+    except ConfigError as exc:
+        raise ConfigError(f"{p.name}: {exc}") from None
+
+
+def default_cell_path() -> Path:
+    """The reference cell that ships with the package (a copy of the shared ``cell.yaml``)."""
+    return Path(__file__).resolve().parent / "data" / "cell.yaml"
