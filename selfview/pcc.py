@@ -1,0 +1,143 @@
+"""The Plane Coincidence Constraint (paper, section 3, eq. 5-10).
+
+With the gripper parked on the plate, the fingertip contact plane (G's x-y plane) coincides with the
+plate's (W's x-y plane) and both z axes point the same way, so ``W_H_G`` is a rotation about z plus a
+translation in x-y (eq. 7). The fingertip points' pixels are back-projected onto the plate plane (eq. 8),
+eq. 10 is solved for (q1, q2, s_x, s_y) by least squares, (q1, q2) normalised, and
+``C_H_G = C_H_W W_H_G`` (eq. 6). No robot kinematics is involved.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from selfview.camera import CameraModel
+from selfview.cell import POINT_NAMES, GripperSpec
+from selfview.errors import CalibrationError
+
+__all__ = ["PCCResult", "solve_pcc", "measure_points_G", "points_G_for_state", "w_h_g_from_params"]
+
+
+@dataclass(frozen=True)
+class PCCResult:
+    """Result of the PCC solve.
+
+    ``W_H_G``, ``C_H_G`` (4, 4); ``p_W`` (N, 3) back-projected fingertip points in W [mm]; ``z_C`` (N,)
+    their depths; ``residuals_mm`` (N, 2) of eq. 10 (back-projected minus modelled, in the plate plane);
+    ``rms_mm``; ``q_norm`` the length of (q1, q2) before normalisation (1 for a consistent gripper model);
+    ``names`` the points used; ``points_G`` (N, 3) the G coordinates used.
+    """
+
+    W_H_G: np.ndarray
+    C_H_G: np.ndarray
+    p_W: np.ndarray
+    z_C: np.ndarray
+    residuals_mm: np.ndarray
+    rms_mm: float
+    q_norm: float
+    names: tuple[str, ...]
+    points_G: np.ndarray
+
+
+def w_h_g_from_params(q1: float, q2: float, sx: float, sy: float) -> np.ndarray:
+    """Eq. 7: (4, 4) ``W_H_G`` from (q1, q2) (normalised here) and (s_x, s_y) [mm]."""
+    n = np.hypot(q1, q2)
+    c, s = q1 / n, q2 / n
+    return np.array([[c, -s, 0.0, sx], [s, c, 0.0, sy], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+
+
+def solve_pcc(uv, points_G, C_H_W, camera: CameraModel, names=None) -> PCCResult:
+    """Solve eq. 8-10 for ``W_H_G`` and compose ``C_H_G = C_H_W W_H_G`` (eq. 6).
+
+    ``uv`` (N, 2) distorted pixels of the fingertip points, ``points_G`` (N, 3) their G coordinates [mm]
+    (z is their distance from the contact plane, normally 0), ``C_H_W`` (4, 4) the plate pose from camera
+    calibration, ``camera`` with the calibrated f and kappa.
+    Raises ``CalibrationError`` with fewer than two points, coincident points or non-finite input.
+    """
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+    pG = np.asarray(points_G, dtype=float).reshape(-1, 3)
+    names = tuple(names) if names is not None else tuple(f"p{i + 1}" for i in range(len(uv)))
+    if len(uv) != len(pG) or len(names) != len(uv):
+        raise CalibrationError(f"PCC: {len(uv)} pixels for {len(pG)} gripper points and {len(names)} names")
+    if len(uv) < 2:
+        raise CalibrationError(f"PCC needs at least 2 fingertip points (eq. 10), got {len(uv)}")
+    if not (np.all(np.isfinite(uv)) and np.all(np.isfinite(pG))):
+        raise CalibrationError("PCC: fingertip pixels or gripper points contain NaN or infinity")
+    spread = np.ptp(pG[:, :2], axis=0).max()
+    if spread < 1e-6:
+        raise CalibrationError("PCC: the gripper points coincide in the contact plane; their layout fixes no rotation")
+    # eq. 8: back-projection onto the plane z_W = z_G (the planes coincide)
+    p_W, z_C = camera.backproject_to_plane(uv, C_H_W, pG[:, 2])
+    # eq. 10: two rows per point in (q1, q2, s_x, s_y)
+    n = len(pG)
+    A = np.zeros((2 * n, 4))
+    A[0::2] = np.column_stack([pG[:, 0], -pG[:, 1], np.ones(n), np.zeros(n)])
+    A[1::2] = np.column_stack([pG[:, 1], pG[:, 0], np.zeros(n), np.ones(n)])
+    b = p_W[:, :2].reshape(-1)
+    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+    q_norm = float(np.hypot(sol[0], sol[1]))
+    if q_norm < 1e-9:
+        raise CalibrationError("PCC: the solve gave (q1, q2) = 0; the fingertip points do not fix a rotation")
+    W_H_G = w_h_g_from_params(*sol)
+    model = pG[:, :2] @ W_H_G[:2, :2].T + W_H_G[:2, 3]
+    res = p_W[:, :2] - model
+    return PCCResult(
+        W_H_G=W_H_G,
+        C_H_G=np.asarray(C_H_W, float) @ W_H_G,
+        p_W=p_W,
+        z_C=z_C,
+        residuals_mm=res,
+        rms_mm=float(np.sqrt(np.mean(np.sum(res**2, axis=1)))),
+        q_norm=q_norm,
+        names=names,
+        points_G=pG,
+    )
+
+
+def measure_points_G(p_W: np.ndarray, found: np.ndarray) -> dict[str, float]:
+    """Measure the gripper's dimensions from the six points back-projected into the contact plane.
+
+    As the paper notes (section 3), the inner four points form a rectangle centred on the TCP with edges
+    along G's axes, so their mutual distances give the jaw gap g and the finger width w; the outer points
+    give the finger thickness t. ``p_W`` (6, 3) in POINT_NAMES order, ``found`` (6,) bool.
+    Returns {'gap', 'width', 'thickness_A', 'thickness_B'} [mm] (thickness NaN where its point is missing).
+    Raises ``CalibrationError`` unless all four inner points were found.
+    """
+    p = np.asarray(p_W, float)[:, :2]
+    found = np.asarray(found, bool)
+    if not found[:4].all():
+        missing = [POINT_NAMES[i] for i in range(4) if not found[i]]
+        raise CalibrationError(f"measuring the gripper needs the four inner points; missing {', '.join(missing)}")
+    gap = 0.5 * (np.linalg.norm(p[0] - p[2]) + np.linalg.norm(p[1] - p[3]))
+    width = 0.5 * (np.linalg.norm(p[0] - p[1]) + np.linalg.norm(p[2] - p[3]))
+    tA = float(np.linalg.norm(p[4] - p[0])) if found[4] else float("nan")
+    tB = float(np.linalg.norm(p[5] - p[2])) if found[5] else float("nan")
+    return {"gap": float(gap), "width": float(width), "thickness_A": tA, "thickness_B": tB}
+
+
+def points_G_for_state(dims: dict[str, float], measured_state: str, gripper: GripperSpec) -> dict[str, np.ndarray]:
+    """(6, 3) G coordinates per gripper state from dimensions measured in ``measured_state``.
+
+    The other states' gaps are derived by the nominal difference of jaw gaps (the valve's end stops),
+    width and thickness are the same in every state. A thickness not measured falls back to the cell's.
+    """
+    out = {}
+    t_nom = gripper.finger_thickness
+    tA = dims["thickness_A"] if np.isfinite(dims.get("thickness_A", np.nan)) else t_nom
+    tB = dims["thickness_B"] if np.isfinite(dims.get("thickness_B", np.nan)) else t_nom
+    w = dims["width"]
+    for state, g_nom in gripper.states.items():
+        g = dims["gap"] + (g_nom - gripper.gap(measured_state))
+        out[state] = np.array(
+            [
+                [g / 2, -w / 2, 0.0],
+                [g / 2, w / 2, 0.0],
+                [-g / 2, -w / 2, 0.0],
+                [-g / 2, w / 2, 0.0],
+                [g / 2 + tA, -w / 2, 0.0],
+                [-g / 2 - tB, -w / 2, 0.0],
+            ]
+        )
+    return out
