@@ -1,0 +1,257 @@
+"""The paper's experiment (section 5): park, calibrate, disturb the camera, re-measure.
+
+One trial: with the gripper parked on the plate, calibrate off-line from a first picture; disturb the
+camera on its mount; take a second picture; apply the on-line methods (NP-U, NP-I, NP-R) from the first
+calibration and the fingertip corners of the second picture; run the off-line method on the second
+picture as the reference; compare the TCP position per camera axis. In simulation the truth is known
+too, and every estimate is also compared with it.
+
+The trial logic is independent of how pictures are obtained: it takes a ``TrialRig`` (park, grab,
+disturb, truth), which the engine implements with real or simulated devices, and which
+``DirectSimRig`` implements straight on a ``SimWorld`` for benchmarks and tests.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from procedures.paper import PAPER_SERIES, PAPER_TABLES
+from selfview.cell import POINT_NAMES, Cell
+from selfview.errors import CalibrationError, CellError
+from selfview.fingertips import find_fingertips
+from selfview.geometry import pose_difference
+from selfview.offline import OfflineResult, calibrate_offline
+from selfview.online import METHODS, estimate
+
+__all__ = ["TrialRig", "DirectSimRig", "TrialRecord", "run_trial", "summarise", "tables_markdown", "METHODS"]
+
+
+class TrialRig(Protocol):
+    """What a trial needs from the cell."""
+
+    def park(self) -> None: ...  # gripper parked on the plate, jaws in the calibration state, settled
+
+    def grab(self) -> np.ndarray: ...  # a (H, W) uint8 picture taken after everything settled
+
+    def disturb(self, series: str) -> dict: ...  # move the camera on its mount; what was done
+
+    def truth(self) -> dict | None: ...  # the simulator's truth (C_H_G, f, kappa, ...) or None on a real cell
+
+    def restore(self) -> None: ...  # undo the disturbance (simulation) or ask the operator to
+
+
+@dataclass
+class TrialRecord:
+    """One trial's figures (plain types, JSON-ready)."""
+
+    series: str
+    index: int
+    seed: int | None
+    disturbance: dict
+    offline_first: dict
+    offline_reference: dict
+    estimates: dict  # method -> {C_H_G, delta_deg, d_mm, rms_px, points_used, err_ref_mm [3], err_truth_mm [3]|None}
+    errors: dict  # method -> reason, for methods that could not run (e.g. 5P with a point missing)
+    reference_err_truth_mm: list | None
+    first_err_truth_mm: list | None
+    timings_ms: dict = field(default_factory=dict)
+
+
+def _tcp_err(C_H_G_est, C_H_G_ref) -> list[float]:
+    """Absolute TCP position error per camera axis (c_x, c_y, c_z) [mm], the paper's measure."""
+    return [float(v) for v in np.abs(np.asarray(C_H_G_est)[:3, 3] - np.asarray(C_H_G_ref)[:3, 3])]
+
+
+def run_trial(rig: TrialRig, cell: Cell, series: str, index: int, *, seed: int | None = None,
+              state: str | None = None, methods=METHODS) -> tuple[TrialRecord, dict]:
+    """One trial of the paper's protocol. Returns the record and the pictures/results for annotation."""
+    state = state or cell.gripper.calibrate_in
+    t0 = time.perf_counter()
+    rig.park()
+    img1 = rig.grab()
+    first: OfflineResult = calibrate_offline(img1, cell, state=state)
+    truth1 = rig.truth()
+    cal = first.calibration
+    disturbance = rig.disturb(series)
+    img2 = rig.grab()
+    truth2 = rig.truth()
+    t1 = time.perf_counter()
+    ft = find_fingertips(img2, cal.camera, cal.C_H_G, cell.gripper, cell.gripper.gap(state))
+    pG = cal.points_G[state]
+    estimates, errors = {}, {}
+    for m in methods:
+        try:
+            est = estimate(m, cal.C_H_G, pG, ft.uv, ft.found, cal.camera)
+        except CalibrationError as exc:
+            errors[m] = str(exc)
+            continue
+        estimates[m] = est
+    t2 = time.perf_counter()
+    ref: OfflineResult = calibrate_offline(img2, cell, state=state, C_H_G_guess=cal.C_H_G)
+    C_ref = ref.calibration.C_H_G
+    est_out = {}
+    for m, est in estimates.items():
+        est_out[m] = {
+            "C_H_G": est.C_H_G.tolist(),
+            "delta_deg": float(est.delta_deg),
+            "d_mm": float(est.d_mm),
+            "rms_px": float(est.rms_px),
+            "points_used": list(est.points_used),
+            "err_ref_mm": _tcp_err(est.C_H_G, C_ref),
+            "err_truth_mm": _tcp_err(est.C_H_G, truth2["C_H_G"]) if truth2 else None,
+            "rot_err_truth_deg": pose_difference(est.C_H_G, truth2["C_H_G"])[0] if truth2 else None,
+        }
+    rec = TrialRecord(
+        series=series,
+        index=index,
+        seed=seed,
+        disturbance=disturbance,
+        offline_first=_offline_brief(first),
+        offline_reference=_offline_brief(ref),
+        estimates=est_out,
+        errors=errors,
+        reference_err_truth_mm=_tcp_err(C_ref, truth2["C_H_G"]) if truth2 else None,
+        first_err_truth_mm=_tcp_err(cal.C_H_G, truth1["C_H_G"]) if truth1 else None,
+        timings_ms={
+            "offline_first_and_grabs": (t1 - t0) * 1e3,
+            "online_all_methods": (t2 - t1) * 1e3,
+            "offline_reference": (time.perf_counter() - t2) * 1e3,
+        },
+    )
+    rig.restore()
+    return rec, {"img1": img1, "img2": img2, "first": first, "reference": ref, "fingertips2": ft,
+                 "estimates": estimates, "truth1": truth1, "truth2": truth2}
+
+
+def _offline_brief(r: OfflineResult) -> dict:
+    s = r.summary()
+    return {k: s[k] for k in ("f", "kappa", "C_H_G", "C_H_W", "rms_px", "discs_used", "corners_found", "pcc_rms_mm")}
+
+
+def summarise(records: list[TrialRecord], methods=METHODS) -> dict:
+    """Per series and method: mean and max TCP error per axis against the reference and the truth."""
+    out: dict = {}
+    for series in sorted({r.series for r in records}):
+        rs = [r for r in records if r.series == series]
+        ser: dict = {"trials": len(rs), "methods": {}}
+        for m in methods:
+            ref = np.array([r.estimates[m]["err_ref_mm"] for r in rs if m in r.estimates])
+            tru = [r.estimates[m]["err_truth_mm"] for r in rs if m in r.estimates and r.estimates[m]["err_truth_mm"]]
+            entry = {"n": int(len(ref)), "failed": int(sum(m in r.errors for r in rs))}
+            if len(ref):
+                entry["reference"] = {"mean_mm": ref.mean(0).round(4).tolist(), "max_mm": ref.max(0).round(4).tolist()}
+            if tru:
+                t = np.array(tru)
+                entry["truth"] = {"mean_mm": t.mean(0).round(4).tolist(), "max_mm": t.max(0).round(4).tolist()}
+            ser["methods"][m] = entry
+        ref_tr = [r.reference_err_truth_mm for r in rs if r.reference_err_truth_mm]
+        if ref_tr:
+            t = np.array(ref_tr)
+            ser["offline_reference_vs_truth"] = {"mean_mm": t.mean(0).round(4).tolist(), "max_mm": t.max(0).round(4).tolist()}
+        shifts = [np.linalg.norm(r.disturbance.get("tcp_shift_C", [np.nan] * 3)) for r in rs]
+        ser["tcp_shift_mm"] = {"mean": float(np.nanmean(shifts)), "sd": float(np.nanstd(shifts))}
+        out[series] = ser
+    return out
+
+
+def tables_markdown(summary: dict, methods=METHODS) -> str:
+    """Tables 1 and 2 in the paper's layout, ours beside the paper's."""
+    lines = []
+
+    def fmt(v):
+        return " | ".join(f"{x:.2f}" for x in v)
+
+    for series, ser in summary.items():
+        if series == "failures":
+            continue
+        title = PAPER_SERIES.get(series, series)
+        sh = ser.get("tcp_shift_mm", {})
+        lines += [f"## {title}", "",
+                  f"{ser['trials']} trials; simulated TCP shift {sh.get('mean', float('nan')):.2f} "
+                  f"+- {sh.get('sd', float('nan')):.2f} mm.", ""]
+        for against in ("reference", "truth"):
+            head = ("against the off-line reference (the paper's measure)" if against == "reference"
+                    else "against the simulator's truth (which the paper could not have)")
+            lines += [f"### Errors {head}", "",
+                      "| method | mean c_x | mean c_y | mean c_z | max c_x | max c_y | max c_z | paper mean c_x | c_y | c_z | paper max c_x | c_y | c_z |",
+                      "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+            for m in methods:
+                e = ser["methods"].get(m, {})
+                if against not in e:
+                    continue
+                paper = PAPER_TABLES.get(series, {}).get(m)
+                p = f"{fmt(paper[0])} | {fmt(paper[1])}" if paper else " | ".join(["-"] * 6)
+                fail = f" ({e['failed']} failed)" if e.get("failed") else ""
+                lines.append(f"| {m}{fail} | {fmt(e[against]['mean_mm'])} | {fmt(e[against]['max_mm'])} | {p} |")
+            lines.append("")
+        if "offline_reference_vs_truth" in ser:
+            o = ser["offline_reference_vs_truth"]
+            lines += [f"Off-line reference against the truth: mean {fmt(o['mean_mm'])}, max {fmt(o['max_mm'])} mm.", ""]
+    for f in summary.get("failures", []):
+        lines.append(f"- trial {f['index']} of series {f['series']} (seed {f['seed']}) failed: {f['error']}")
+    return "\n".join(lines)
+
+
+class DirectSimRig:
+    """A trial rig straight on a simulated world and its renderer, without device channels.
+
+    For benchmarks and numerical tests; the engine's rig runs the same trial through the drivers.
+    """
+
+    def __init__(self, world, *, render_seed: int = 0):
+        from mocks.render import render
+
+        self._render = render
+        self.world = world
+        self._frame = render_seed * 1000
+
+    def park(self) -> None:
+        w = self.world
+        w.set_jaw(w.cell.gripper.gap(w.cell.gripper.calibrate_in), w.cell.gripper.calibrate_in)
+        w.park()
+
+    def grab(self) -> np.ndarray:
+        self._frame += 1
+        return self._render(self.world, seed=self._frame).image
+
+    def disturb(self, series: str) -> dict:
+        d = self.world.disturb(series)
+        return {"series": series, "angle_deg": d.angle_deg, "axis_C": d.axis_C.tolist(),
+                "tcp_shift_C": d.tcp_shift_C.tolist()}
+
+    def truth(self) -> dict:
+        return self.world.truth()
+
+    def restore(self) -> None:
+        self.world.reset_disturbance()
+
+
+def run_direct(cell: Cell, series_list=("cable", "tilt"), trials: int = 20, seed: int = 0,
+               progress=None) -> tuple[list[TrialRecord], dict]:
+    """The experiment straight on simulated worlds (one world per trial, seeded ``seed + k``).
+
+    Returns the records and the summary; trials that failed are listed in ``summary['failures']``."""
+    from mocks.world import SimWorld
+
+    records, failures = [], []
+    for series in series_list:
+        for k in range(trials):
+            s = seed + k + (0 if series == series_list[0] else 10_000 * (list(series_list).index(series)))
+            world = SimWorld(cell, seed=s)
+            try:
+                rec, _ = run_trial(DirectSimRig(world, render_seed=s), cell, series, k, seed=s)
+            except CellError as exc:
+                failures.append({"series": series, "index": k, "seed": s, "error": f"{type(exc).__name__}: {exc}"})
+                if progress:
+                    progress(series, k, trials, f"failed: {exc}")
+                continue
+            records.append(rec)
+            if progress:
+                progress(series, k, trials, None)
+    summary = summarise(records)
+    summary["failures"] = failures
+    return records, summary

@@ -1,0 +1,212 @@
+"""A run's results folder: results.json, tables.md, annotated pictures and the error plot.
+
+A run never overwrites an earlier run's folder: ``new_run_dir`` picks a fresh name.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import platform
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from selfview import __version__
+from selfview.cell import POINT_NAMES
+from selfview.geometry import transform_points
+
+__all__ = ["new_run_dir", "write_json", "annotate_offline", "annotate_online", "plot_errors", "environment"]
+
+
+def new_run_dir(out: str | os.PathLike | None, base: str | os.PathLike = "runs", prefix: str = "experiment") -> Path:
+    """A folder for a new run's results. ``out`` given: it must not exist yet or be empty (never
+    overwrite an earlier run); otherwise ``base/prefix-YYYYmmdd-HHMMSS[-k]``."""
+    if out is not None:
+        p = Path(out)
+        if p.exists() and (not p.is_dir() or any(p.iterdir())):
+            from selfview.errors import ConfigError
+
+            raise ConfigError(f"{p}: already holds an earlier run's results; choose a new --out folder")
+        p.mkdir(parents=True, exist_ok=True)
+        return p
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    b = Path(base)
+    b.mkdir(parents=True, exist_ok=True)
+    for k in range(1000):
+        p = b / (f"{prefix}-{stamp}" + (f"-{k}" if k else ""))
+        try:
+            p.mkdir()
+            return p
+        except FileExistsError:
+            continue
+    raise RuntimeError(f"no free run folder under {b}")
+
+
+def write_json(path: Path, obj) -> None:
+    tmp = Path(str(path) + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=1, allow_nan=True, default=_default))
+    os.replace(tmp, path)
+
+
+def _default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
+
+
+def environment() -> dict:
+    """Software and machine a run used, recorded beside its results."""
+    import cv2
+
+    out = {
+        "selfview": __version__,
+        "python": sys.version.split()[0],
+        "numpy": np.__version__,
+        "opencv": cv2.__version__,
+        "platform": platform.platform(),
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+    }
+    try:
+        import pymodbus
+        import serial
+
+        out["pymodbus"] = pymodbus.__version__
+        out["pyserial"] = serial.__version__
+    except ImportError:  # pragma: no cover
+        pass
+    return out
+
+
+def file_sha256(path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+# --- annotated pictures ---------------------------------------------------------------------------
+def _bgr(img):
+    import cv2
+
+    return cv2.cvtColor(np.asarray(img, np.uint8), cv2.COLOR_GRAY2BGR)
+
+
+def _pt(uv, scale):
+    return int(round((uv[0] + 0.5) * scale - 0.5)), int(round((uv[1] + 0.5) * scale - 0.5))
+
+
+def annotate_offline(image, result, path: Path, scale: int = 2) -> Path:
+    """Draw what the off-line calibration used and found: the detected discs with their grid indices
+    (green), the model's reprojection of each disc centre (red cross), the fingertip corners (yellow
+    circles), the gripper rectangle and the TCP with G's x and y axes (cyan/magenta)."""
+    import cv2
+
+    cam = result.calibration.camera
+    big = cv2.resize(_bgr(image), None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    det = result.discs
+    model = cam.project(transform_points(result.calibration.C_H_W, det.p_W))
+    for (u, v), (r, c), m in zip(det.uv, det.rc, model):
+        cv2.circle(big, _pt((u, v), scale), 3 * scale, (0, 200, 0), 1, cv2.LINE_AA)
+        cv2.drawMarker(big, _pt(m, scale), (0, 0, 255), cv2.MARKER_CROSS, 4 * scale, 1, cv2.LINE_AA)
+        cv2.putText(big, f"{r},{c}", _pt((u + 4, v - 4), scale), cv2.FONT_HERSHEY_PLAIN, 0.6 * scale / 2 * 2,
+                    (0, 160, 0), 1, cv2.LINE_AA)
+    _draw_gripper(big, cam, result.calibration.C_H_G, result.calibration.points_G[result.calibration.state], scale)
+    ft = result.fingertips
+    for i, nm in enumerate(POINT_NAMES):
+        if ft.found[i]:
+            cv2.circle(big, _pt(ft.uv[i], scale), 5 * scale, (0, 230, 230), 1, cv2.LINE_AA)
+            cv2.putText(big, str(i + 1), _pt((ft.uv[i][0] + 6, ft.uv[i][1] + 12), scale), cv2.FONT_HERSHEY_SIMPLEX,
+                        0.5, (0, 230, 230), 1, cv2.LINE_AA)
+    s = result.summary()
+    txt = (f"f={s['f']:.1f}px kappa={s['kappa']:.2e} rms={s['rms_px']:.3f}px discs={s['discs_used']} "
+           f"corners={len(s['corners_found'])}")
+    cv2.putText(big, txt, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 3, cv2.LINE_AA)
+    cv2.putText(big, txt, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.imwrite(str(path), big)
+    return path
+
+
+def _draw_gripper(big, cam, C_H_G, pG, scale, colour=(255, 255, 0)):
+    import cv2
+
+    rect = np.asarray(pG)[[0, 1, 3, 2, 0]]
+    try:
+        uv = cam.project(transform_points(C_H_G, rect))
+        tcp = cam.project(transform_points(C_H_G, np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0]], float)))
+    except Exception:  # a wildly wrong estimate may lie behind the camera: draw nothing for it
+        return
+    pts = np.array([_pt(p, scale) for p in uv], np.int32)
+    cv2.polylines(big, [pts], False, colour, 1, cv2.LINE_AA)
+    cv2.drawMarker(big, _pt(tcp[0], scale), colour, cv2.MARKER_TILTED_CROSS, 8 * scale, 2, cv2.LINE_AA)
+    cv2.arrowedLine(big, _pt(tcp[0], scale), _pt(tcp[1], scale), (255, 0, 255), 1, cv2.LINE_AA, tipLength=0.2)
+    cv2.arrowedLine(big, _pt(tcp[0], scale), _pt(tcp[2], scale), (255, 128, 0), 1, cv2.LINE_AA, tipLength=0.2)
+
+
+def annotate_online(image, camera, C_H_G_before, estimates: dict, fingertips, pG, path: Path, scale: int = 2) -> Path:
+    """Second picture of a trial: the fingertip corners found (yellow), the gripper where the first
+    calibration predicts it (grey) and where each on-line method puts it (one colour each)."""
+    import cv2
+
+    big = cv2.resize(_bgr(image), None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    _draw_gripper(big, camera, C_H_G_before, pG, scale, (160, 160, 160))
+    colours = [(0, 0, 255), (0, 128, 255), (0, 200, 0), (255, 0, 0), (255, 0, 255), (0, 255, 255), (128, 0, 128), (0, 100, 0)]
+    for k, (m, est) in enumerate(estimates.items()):
+        c = colours[k % len(colours)]
+        _draw_gripper(big, camera, est.C_H_G_orth, pG, scale, c)
+        cv2.putText(big, m, (10, 50 + 20 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.6, c, 2, cv2.LINE_AA)
+    for i in range(6):
+        if fingertips.found[i]:
+            cv2.circle(big, _pt(fingertips.uv[i], scale), 5 * scale, (0, 230, 230), 1, cv2.LINE_AA)
+    cv2.putText(big, "grey: before the disturbance", (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (200, 200, 200), 2, cv2.LINE_AA)
+    cv2.imwrite(str(path), big)
+    return path
+
+
+def plot_errors(summary: dict, path: Path, methods) -> Path:
+    """Bar chart: mean (bar) and max (whisker) TCP error per method and camera axis, per series,
+    against the off-line reference and against the truth; the paper's means as black ticks."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from procedures.paper import PAPER_TABLES
+
+    series = [s for s in summary if s != "failures"]
+    fig, axes = plt.subplots(len(series), 2, figsize=(13, 4.2 * len(series)), squeeze=False)
+    axis_names = ("c_x", "c_y", "c_z")
+    for i, s in enumerate(series):
+        for j, against in enumerate(("reference", "truth")):
+            ax = axes[i][j]
+            ms = [m for m in methods if against in summary[s]["methods"].get(m, {})]
+            x = np.arange(len(ms))
+            for k, an in enumerate(axis_names):
+                means = [summary[s]["methods"][m][against]["mean_mm"][k] for m in ms]
+                maxs = [summary[s]["methods"][m][against]["max_mm"][k] for m in ms]
+                xs = x + (k - 1) * 0.27
+                ax.bar(xs, means, width=0.25, label=f"{an} mean", color=f"C{k}")
+                ax.errorbar(xs, means, yerr=[np.zeros(len(ms)), np.subtract(maxs, means)], fmt="none",
+                            ecolor="k", elinewidth=0.8, capsize=2)
+                if against == "reference":
+                    pm = [PAPER_TABLES.get(s, {}).get(m, ((np.nan,) * 3,))[0][k] for m in ms]
+                    ax.scatter(xs, pm, marker="_", s=120, color="k", zorder=5,
+                               label="paper mean" if k == 0 else None)
+            ax.set_xticks(x)
+            ax.set_xticklabels(ms)
+            ax.set_ylabel("TCP error [mm]")
+            ax.set_yscale("symlog", linthresh=0.01)
+            ax.set_title(f"{s}: against the {'off-line reference' if against == 'reference' else 'truth'}")
+            ax.grid(axis="y", alpha=0.3)
+            ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,213 @@
+"""Off-line calibration from one picture (paper, section 3).
+
+The gripper is parked on the plate of discs. Tsai's coplanar method gives f, kappa and ``C_H_W``; the
+fingertip corners, back-projected onto the plate plane, give ``W_H_G`` by the Plane Coincidence
+Constraint, and ``C_H_G = C_H_W W_H_G``. No robot kinematics is involved.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from selfview.calfile import Calibration
+from selfview.camera import CameraModel
+from selfview.cell import POINT_NAMES, Cell
+from selfview.discs import DiscDetections, correct_disc_bias, detect_discs
+from selfview.errors import CalibrationError, ImageError
+from selfview.fingertips import FingertipResult, find_fingertips
+from selfview.geometry import inv_H, make_H, rot_z
+from selfview.pcc import PCCResult, measure_points_G, points_G_for_state, solve_pcc
+from selfview.tsai import TsaiResult, calibrate_coplanar
+
+__all__ = ["OfflineResult", "check_picture", "calibrate_offline", "predict_parked_C_H_G"]
+
+#: A picture whose grey levels spread less than this is blank (lens cap, no light, no signal).
+MIN_CONTRAST_GRAY = 20.0
+#: How far (deg) the plate's normal may be from the mount guess's approach axis before the picture
+#: cannot show the gripper parked on the plate.
+MAX_PLANE_DISAGREEMENT_DEG = 25.0
+
+
+@dataclass
+class OfflineResult:
+    """Everything one off-line calibration found; ``calibration`` is what gets saved."""
+
+    calibration: Calibration
+    tsai: TsaiResult
+    discs: DiscDetections
+    disc_uv_corrected: np.ndarray
+    fingertips: FingertipResult
+    pcc: PCCResult
+    dims: dict | None
+    timings_ms: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        """The figures a person or a script reads (plain types; units in the key names)."""
+        cal = self.calibration
+        return {
+            "f": cal.camera.f,
+            "kappa": cal.camera.kappa,
+            "principal_point": [cal.camera.cx, cal.camera.cy],
+            "C_H_W": cal.C_H_W.tolist(),
+            "C_H_G": cal.C_H_G.tolist(),
+            "points_G": {
+                nm: [float(v) for v in p] for nm, p in zip(POINT_NAMES, cal.points_G[cal.state])
+            },
+            "rms_px": float(self.tsai.rms_px),
+            "max_px": float(self.tsai.max_px),
+            "discs_used": int(len(self.discs.uv)),
+            "corners_found": [nm for nm, ok in zip(POINT_NAMES, self.fingertips.found) if ok],
+            "pcc_rms_mm": float(self.pcc.rms_mm),
+            "state": cal.state,
+            "timings_ms": {k: round(v, 2) for k, v in self.timings_ms.items()},
+        }
+
+
+def check_picture(image, width: int, height: int) -> np.ndarray:
+    """Return the picture as a 2-D uint8 array, or raise ``ImageError`` naming what is wrong."""
+    if image is None:
+        raise ImageError("no picture (the grabber or the file gave nothing)")
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        raise ImageError(f"picture has {img.shape[2]} colour channels; expected a grey picture")
+    if img.ndim != 2:
+        raise ImageError(f"picture has shape {img.shape}; expected a 2-D grey picture")
+    if img.shape != (height, width):
+        raise ImageError(
+            f"picture is {img.shape[1]}x{img.shape[0]} pixels; the cell's camera gives {width}x{height}"
+        )
+    if img.dtype != np.uint8:
+        raise ImageError(f"picture has {img.dtype} pixels; expected 8-bit grey")
+    lo, hi = np.percentile(img[::4, ::4], [1, 99])
+    if hi - lo < MIN_CONTRAST_GRAY:
+        raise ImageError(
+            f"picture is blank (grey levels {lo:.0f}..{hi:.0f}): check the light, the lens cap and the video signal"
+        )
+    return img
+
+
+def predict_parked_C_H_G(C_H_W: np.ndarray, C_H_G_guess: np.ndarray) -> np.ndarray:
+    """Where the gripper is, given the plate pose and a rough ``C_H_G`` (mount guess or last calibration).
+
+    Parked, G's x-y plane is W's (eq. 5-7), so the guess is projected onto that constraint: keep its turn
+    about z and its in-plane position, drop its tilt and height. Raises ``CalibrationError`` when the
+    plate plane and the guessed gripper plane disagree by more than ``MAX_PLANE_DISAGREEMENT_DEG``.
+    """
+    W_H_Gg = inv_H(C_H_W) @ np.asarray(C_H_G_guess, float)
+    tilt = np.degrees(np.arccos(np.clip(W_H_Gg[2, 2], -1.0, 1.0)))
+    if tilt > MAX_PLANE_DISAGREEMENT_DEG:
+        raise CalibrationError(
+            f"the plate's plane is {tilt:.0f} deg from the gripper's contact plane of the mount guess: "
+            "the gripper is not parked on the plate, or the mount guess is wrong"
+        )
+    q = np.arctan2(W_H_Gg[1, 0], W_H_Gg[0, 0])
+    W_H_G = rot_z(q)
+    W_H_G[:2, 3] = W_H_Gg[:2, 3]
+    return C_H_W @ W_H_G
+
+
+def calibrate_offline(
+    image,
+    cell: Cell,
+    *,
+    state: str | None = None,
+    mode: str = "full",
+    C_H_G_guess: np.ndarray | None = None,
+    points: str = "measured",
+    search_px: float = 60.0,
+    image_sha256: str | None = None,
+) -> OfflineResult:
+    """Off-line calibration of one picture of the gripper parked on the plate.
+
+    ``image`` (H, W) uint8; ``state`` the gripper state of the picture (default ``calibrate_in``);
+    ``mode`` Tsai's refinement ('tsai', 'full', 'full+centre'); ``C_H_G_guess`` where to look for the
+    fingertips (default the cell's mount guess); ``points``: 'measured' takes the gripper points' G
+    coordinates from the picture (the paper's way: the inner four form a rectangle centred on the TCP),
+    'cell' takes them from the cell description.
+    Raises ``ImageError`` (unusable picture) or ``CalibrationError`` (too few discs or corners, degenerate).
+    """
+    t0 = time.perf_counter()
+    timings = {}
+    cs = cell.camera
+    img = check_picture(image, cs.width, cs.height)
+    state = state or cell.gripper.calibrate_in
+    gap = cell.gripper.gap(state)
+    if points not in ("measured", "cell"):
+        raise CalibrationError(f"points: expected 'measured' or 'cell', got {points!r}")
+
+    det = detect_discs(img, cell.plate, camera=cs.guess())
+    timings["discs"] = (time.perf_counter() - t0) * 1e3
+
+    t = time.perf_counter()
+    kw = dict(cx=cs.principal_point[0], cy=cs.principal_point[1], aspect=cs.aspect, mode=mode,
+              width=cs.width, height=cs.height)
+    ts = calibrate_coplanar(det.p_W, det.uv, **kw)
+    # the image of a disc's centre is not the centroid of its ellipse: correct with the first pose, refit
+    uv_c = correct_disc_bias(det, ts.camera, ts.C_H_W, cell.plate)
+    ts = calibrate_coplanar(det.p_W, uv_c, **kw)
+    camera: CameraModel = ts.camera
+    timings["tsai"] = (time.perf_counter() - t) * 1e3
+
+    t = time.perf_counter()
+    guess = cell.mount_guess_C_H_G if C_H_G_guess is None else np.asarray(C_H_G_guess, float)
+    C_H_G_pred = predict_parked_C_H_G(ts.C_H_W, guess)
+    ft = find_fingertips(img, camera, C_H_G_pred, cell.gripper, gap, search_px=search_px)
+    timings["fingertips"] = (time.perf_counter() - t) * 1e3
+    found = np.asarray(ft.found, bool)
+    if found.sum() < 2:
+        why = "; ".join(f"{nm}: {r}" for nm, r, ok in zip(POINT_NAMES, ft.reasons, found) if not ok)
+        raise CalibrationError(
+            f"only {int(found.sum())} fingertip corner(s) found, the PCC needs at least 2 ({why})"
+        )
+
+    t = time.perf_counter()
+    dims = None
+    if points == "measured" and found[:4].all():
+        p_W, _ = camera.backproject_to_plane(np.where(found[:, None], ft.uv, 0.0)[found], ts.C_H_W, 0.0)
+        full = np.full((6, 3), np.nan)
+        full[found] = p_W
+        dims = measure_points_G(full, found)
+        per_state = points_G_for_state(dims, state, cell.gripper)
+    else:
+        per_state = {s: cell.gripper.points_G(s) for s in cell.gripper.states}
+    pG = per_state[state]
+    names = [nm for nm, ok in zip(POINT_NAMES, found) if ok]
+    pcc = solve_pcc(ft.uv[found], pG[found], ts.C_H_W, camera, names)
+    timings["pcc"] = (time.perf_counter() - t) * 1e3
+    timings["total"] = (time.perf_counter() - t0) * 1e3
+
+    sha = image_sha256 or hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest()
+    cal = Calibration(
+        camera=camera,
+        C_H_W=ts.C_H_W,
+        C_H_G=make_H(pcc.C_H_G[:3, :3], pcc.C_H_G[:3, 3]),
+        points_G=per_state,
+        state=state,
+        residuals={
+            "tsai_mode": mode,
+            "rms_px": float(ts.rms_px),
+            "max_px": float(ts.max_px),
+            "discs_used": int(len(det.uv)),
+            "corners_found": names,
+            "corner_edge_rms_px": {nm: float(ft.edge_rms_px[i]) for i, nm in enumerate(POINT_NAMES) if found[i]},
+            "pcc_rms_mm": float(pcc.rms_mm),
+            "pcc_q_norm": float(pcc.q_norm),
+            "points_from": "picture" if dims is not None else "cell",
+        },
+        image_sha256=sha,
+        cell_sha256=cell.sha256,
+    )
+    return OfflineResult(
+        calibration=cal,
+        tsai=ts,
+        discs=det,
+        disc_uv_corrected=uv_c,
+        fingertips=ft,
+        pcc=pcc,
+        dims=dims,
+        timings_ms=timings,
+    )
