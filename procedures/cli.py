@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import pkgutil
 import sys
 
@@ -69,6 +70,8 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"selfview {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="log more on stderr (-v: each step and decision, -vv: debugging)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     import procedures.commands as pkg
 
@@ -83,6 +86,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    level = {0: logging.ERROR, 1: logging.INFO}.get(args.verbose, logging.DEBUG)
+    logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s: %(message)s", stream=sys.stderr)
+    logging.getLogger().setLevel(level)
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE

@@ -1,0 +1,49 @@
+"""Options shared by the commands that run a procedure on a cell (simulated by default, or --real)."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from procedures.commands._common import add_cell_argument, load_cell_arg
+
+
+def add_session_arguments(p, *, seed_default: int = 0) -> None:
+    add_cell_argument(p)
+    g = p.add_argument_group("cell", "which devices; by default the simulated cell, every device on its real channel")
+    g.add_argument("--real", action="store_true", help="use the lab's devices named by --robot, --gripper, --camera")
+    g.add_argument("--robot", metavar="URL", help="VAL-II terminal: /dev/ttyS0, serial:///dev/ttyS0?baud=9600, socket://host:port")
+    g.add_argument("--gripper", metavar="URL", help="valve terminal: modbus-tcp://host:502?unit=1 or modbus-rtu:///dev/ttyUSB0?baud=19200")
+    g.add_argument("--camera", metavar="URL", help="frame grabber: v4l2:///dev/video0?input=1&std=pal, frames:///dir/img_%%03d.png")
+    g.add_argument("--seed", type=int, default=seed_default, help="seed of the simulated cell (default %(default)s)")
+    g.add_argument("--time-scale", type=float, default=0.02,
+                   help="simulated robot motions take this fraction of real time (default %(default)s)")
+    g.add_argument("--dry-run", action="store_true", help="print the steps, move nothing")
+
+
+def progress_printer(quiet: bool = False):
+    t0 = time.monotonic()
+
+    def say(msg: str) -> None:
+        if not quiet:
+            print(f"[{time.monotonic() - t0:7.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    return say
+
+
+def open_session(args, progress=None):
+    """A CellSession (not yet opened) for the command's arguments."""
+    from procedures.runs import CellSession
+
+    cell = load_cell_arg(args)
+    ask = None if not sys.stdin.isatty() else (lambda text: input(text + " "))
+    if args.real:
+        return cell, CellSession.real(cell, robot=args.robot, gripper=args.gripper, camera=args.camera,
+                                      dry_run=args.dry_run, ask=ask, progress=progress)
+    for nm in ("robot", "gripper", "camera"):
+        if getattr(args, nm):
+            from selfview.errors import ConfigError
+
+            raise ConfigError(f"--{nm} is for a real cell: add --real (without it the simulated cell is used)")
+    return cell, CellSession.simulated(cell, seed=args.seed, time_scale=args.time_scale, dry_run=args.dry_run,
+                                       ask=ask, progress=progress)

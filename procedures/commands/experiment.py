@@ -1,0 +1,72 @@
+"""``selfview experiment``: the paper's section 5 (Tables 1 and 2) on a simulated or real cell."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from procedures.commands._common import print_json
+from procedures.commands._session import add_session_arguments, open_session, progress_printer
+
+
+def register(sub):
+    p = sub.add_parser(
+        "experiment",
+        help="the paper's experiment: park, calibrate, disturb the camera, re-measure (Tables 1 and 2)",
+        description=(
+            "The paper's experiment (section 5). For each series (cable: the TCP moves about 1.5 mm along C x; "
+            "tilt: about 4.5 mm along C y), N trials of: park the gripper on the plate, calibrate off-line, disturb "
+            "the camera (simulation: through the simulated world; real cell: the operator pulls the cable and presses "
+            "Enter), take a second picture, apply 3P-U, 4P-U, 5P-U, 4P-R, 5P-R, 3P-I, 4P-I, 5P-I, run the off-line "
+            "method on the second picture as the reference, compare the TCP per camera axis. Prints both tables "
+            "(ours beside the paper's) and writes a results folder: results.json, tables.md, annotated pictures, "
+            "errors.png. A run never overwrites an earlier run's folder."
+        ),
+    )
+    add_session_arguments(p)
+    p.add_argument("--trials", type=int, default=20, help="trials per series (default %(default)s)")
+    p.add_argument("--series", nargs="+", default=["cable", "tilt"], help="series to run (default: cable tilt)")
+    p.add_argument("--out", metavar="DIR", help="results folder (must be new or empty; default runs/experiment-TIME)")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    from procedures.experiment import tables_markdown
+    from procedures.results import new_run_dir
+    from procedures.runs import write_experiment_folder
+    from selfview.errors import ConfigError
+
+    if args.trials < 1:
+        raise ConfigError(f"--trials: expected at least 1, got {args.trials}")
+    say = progress_printer(args.quiet)
+    cell, session = open_session(args, say)
+    folder = None if args.dry_run else new_run_dir(args.out)
+    total = args.trials * len(args.series)
+    t0 = time.monotonic()
+    done = [0]
+
+    def on_trial(series, k, n, rec):
+        done[0] += 1
+        el = time.monotonic() - t0
+        rem = el / done[0] * (total - done[0])
+        e4 = rec.estimates.get("4P-U", {}).get("err_ref_mm")
+        extra = f"; 4P-U vs reference {' '.join(f'{v:.3f}' for v in e4)} mm" if e4 else ""
+        say(f"{series} trial {k + 1} of {n} ({done[0]}/{total}), elapsed {el:.0f} s, remaining ~{rem:.0f} s{extra}")
+
+    with session:
+        out = session.experiment(series=tuple(args.series), trials=args.trials, on_trial=on_trial)
+    if args.dry_run:
+        return 0
+    records, summary, first = out
+    config = {"trials": args.trials, "series": list(args.series), "seed": args.seed, "real": args.real,
+              "time_scale": args.time_scale, "urls": vars(session.urls)}
+    results = write_experiment_folder(folder, records, summary, first, cell=cell, config=config)
+    if args.json:
+        print_json({"folder": str(folder), "summary": summary, "files": results["files"]})
+    else:
+        print(tables_markdown(summary))
+        print(f"results written to {folder}/ (results.json, tables.md, errors.png, annotated pictures)")
+    return 0

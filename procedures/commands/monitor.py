@@ -1,0 +1,74 @@
+"""``selfview monitor``: keep C_H_G true while the robot works (update, recalibrate or alarm per frame)."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from procedures.commands._session import add_session_arguments, open_session, progress_printer
+
+
+def register(sub):
+    p = sub.add_parser(
+        "monitor",
+        help="grab frames as the robot works, track the fingertips, update / recalibrate / raise the alarm",
+        description=(
+            "The on-line calibration (section 4). For each frame: find the fingertip corners near where the current "
+            "C_H_G predicts them, estimate the camera's motion (default 4P-U), and by the cell's monitor limits "
+            "apply the update, recalibrate (4P-R / 5P-R), or raise the alarm and stop the robot. Every decision is "
+            "printed with delta, d and the residual. With --drift (simulation) the camera creeps on its mount by "
+            "that many degrees per frame, to watch the policy at work."
+        ),
+    )
+    add_session_arguments(p)
+    p.add_argument("--calibration", required=True, metavar="CAL.yaml", help="calibration file to start from")
+    p.add_argument("--frames", type=int, default=20, help="frames to judge (default %(default)s)")
+    p.add_argument("--method", default="4P-U", choices=("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I"),
+                   help="update method (default %(default)s)")
+    p.add_argument("--drift", type=float, default=0.0, metavar="DEG",
+                   help="simulation: rotate the camera by DEG per frame about the cable axis")
+    p.add_argument("--apply", action="store_true", help="write the final C_H_G to the calibration file (history kept)")
+    p.add_argument("--json", action="store_true", help="print one JSON line per decision on stdout")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    from selfview.errors import ConfigError
+
+    if args.drift and args.real:
+        raise ConfigError("--drift moves the simulated camera; it has no meaning with --real")
+    say = progress_printer()
+    cell, session = open_session(args, say)
+
+    def show(rec):
+        if args.json:
+            print(json.dumps({k: v for k, v in rec.items() if k != "estimate"}, default=str), flush=True)
+        else:
+            def num(key):
+                v = rec.get(key)
+                return "  -  " if v is None else f"{v:.3f}"
+
+            print(f"frame {rec['frame']:3d}: {rec['action']:<11s} delta {num('delta_deg')} deg, d {num('d_mm')} mm, "
+                  f"rms {num('rms_px')} px - {rec['reason']}", flush=True)
+
+    with session:
+        disturb = None
+        if args.drift:
+            w = session.sim.world
+            axis = cell.simulation.disturbances["cable"]
+            disturb = lambda k: w.disturb_by_angle(axis.axis_C, args.drift, axis.pivot_C, series="drift")  # noqa: E731
+        records = session.monitor(args.calibration, frames=args.frames, method=args.method, disturb=disturb,
+                                  on_decision=show)
+    if args.apply:
+        from selfview.calfile import load_calibration, save_calibration
+
+        cal = load_calibration(args.calibration)
+        last = records[-1]
+        import numpy as np
+
+        cal.C_H_G = np.asarray(last["C_H_G"], float)
+        cal.updates.append({"by": "monitor", "frames": args.frames, "method": args.method})
+        save_calibration(cal, args.calibration)
+        print(f"C_H_G written to {args.calibration} (previous kept in its .history)", file=sys.stderr)
+    return 0

@@ -1,0 +1,43 @@
+"""``selfview park``: park the gripper on the plate and save the picture."""
+
+from __future__ import annotations
+
+from procedures.commands._common import print_json
+from procedures.commands._session import add_session_arguments, open_session, progress_printer
+
+
+def register(sub):
+    p = sub.add_parser(
+        "park",
+        help="park the gripper on the plate (approach, open, press, settle) and grab a picture",
+        description=(
+            "Approach above the plate's taught location, open the gripper and wait for its switch, descend in a "
+            "straight line until the fingertips press the plate (the foam lets it tilt into coincidence with the "
+            "fingertip plane), settle, grab a picture. The robot stays parked."
+        ),
+    )
+    add_session_arguments(p)
+    p.add_argument("--out", metavar="IMG.png", help="write the picture here")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    import cv2
+
+    from selfview.errors import DeviceError
+
+    say = progress_printer()
+    cell, session = open_session(args, say)
+    with session:
+        img = session.park()
+    if img is None:  # dry run
+        return 0
+    if args.out and not cv2.imwrite(args.out, img):
+        raise DeviceError(f"{args.out}: could not write the picture")
+    if args.json:
+        print_json({"picture": args.out, "size": [int(img.shape[1]), int(img.shape[0])], "mean_grey": float(img.mean())})
+    else:
+        print(f"parked; picture {img.shape[1]}x{img.shape[0]}" + (f" written to {args.out}" if args.out else ""))
+    return 0

@@ -1,0 +1,104 @@
+"""``selfview track``: on-line calibration from one new picture of the fingertips."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from procedures.commands._common import add_cell_argument, load_cell_arg, print_json
+
+METHOD_CHOICES = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R", "auto")
+
+
+def register(sub):
+    p = sub.add_parser(
+        "track",
+        help="on-line calibration from one picture: NP-U / NP-I / NP-R, or the update/recalibrate/alarm policy",
+        description=(
+            "Find the fingertip corners near where the calibration's C_H_G predicts them and estimate how far the "
+            "camera moved on its mount. Methods: NP-U the paper's differential update (eq. 11-17), NP-I the exact "
+            "iterative update, NP-R recalibration of the exterior orientation; 'auto' applies the cell's monitor "
+            "policy (update below update_limit, recalibrate below alarm_limit, else alarm: exit code 6 and nothing "
+            "written). With --apply the new C_H_G is written to the calibration file atomically, history kept."
+        ),
+    )
+    add_cell_argument(p)
+    p.add_argument("--calibration", required=True, metavar="CAL.yaml")
+    p.add_argument("--image", required=True, metavar="IMG")
+    p.add_argument("--method", default="4P-U", choices=METHOD_CHOICES, help="default %(default)s")
+    p.add_argument("--state", default=None, help="gripper state in the picture (default: the calibration's)")
+    p.add_argument("--apply", action="store_true", help="write the new C_H_G to the calibration file")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    from procedures.commands.calibrate import read_picture
+    from selfview.calfile import load_calibration, save_calibration
+    from selfview.cell import POINT_NAMES
+    from selfview.errors import AlarmError, ConfigError
+    from selfview.fingertips import find_fingertips
+    from selfview.offline import check_picture
+    from selfview.online import estimate
+    from selfview.policy import Monitor
+
+    cell = load_cell_arg(args)
+    cal = load_calibration(args.calibration)
+    state = args.state or cal.state
+    if state not in cal.points_G:
+        raise ConfigError(f"--state {state!r}: the calibration has points for {', '.join(cal.points_G)}")
+    img, _ = read_picture(args.image)
+    img = check_picture(img, cal.camera.width, cal.camera.height)
+    pG = cal.points_G[state]
+    gap = float(abs(pG[0, 0] - pG[2, 0]))
+    ft = find_fingertips(img, cal.camera, cal.C_H_G, cell.gripper, gap)
+    found_names = [nm for nm, ok in zip(POINT_NAMES, ft.found) if ok]
+    if args.method == "auto":
+        mon = Monitor(cal.C_H_G, cal.camera, pG, cell.monitor)
+        d = mon.step(ft.uv, ft.found)
+        out = {
+            "method": d.method or "auto",
+            "C_H_G": np.asarray(d.C_H_G).tolist(),
+            "delta_deg": d.delta_deg,
+            "d_mm": d.d_mm,
+            "decision": d.action,
+            "reason": d.reason,
+            "points_used": list(d.points_used or []),
+            "rms_px": d.rms_px,
+            "points_found": found_names,
+        }
+        new = None if d.action == "alarm" else np.asarray(d.C_H_G, float)
+    else:
+        est = estimate(args.method, cal.C_H_G, pG, ft.uv, ft.found, cal.camera)
+        decision = "recalibrate" if args.method.endswith("R") else "update"
+        out = {
+            "method": args.method,
+            "C_H_G": est.C_H_G.tolist(),
+            "C_H_G_orthonormal": est.C_H_G_orth.tolist(),
+            "delta_deg": est.delta_deg,
+            "d_mm": est.d_mm,
+            "decision": decision,
+            "points_used": list(est.points_used),
+            "rms_px": est.rms_px,
+            "points_found": found_names,
+        }
+        new = est.C_H_G_orth
+    if args.apply and new is not None:
+        cal.C_H_G = new
+        cal.updates.append({"by": "track", "method": out["method"], "decision": out["decision"],
+                            "delta_deg": float(out["delta_deg"]), "d_mm": float(out["d_mm"])})
+        save_calibration(cal, args.calibration)
+        out["applied"] = True
+    else:
+        out["applied"] = False
+    if args.json:
+        print_json(out)
+    else:
+        H = np.asarray(out["C_H_G"])
+        print(f"{out['method']}: {out['decision']}  delta {out['delta_deg']:.4f} deg  d {out['d_mm']:.4f} mm  "
+              f"rms {out['rms_px']:.3f} px  points {', '.join(out['points_used'])}")
+        print(f"  TCP in camera: x {H[0, 3]:+.3f}  y {H[1, 3]:+.3f}  z {H[2, 3]:+.3f} mm"
+              + ("  (written to the calibration file)" if out["applied"] else ""))
+    if out["decision"] == "alarm":
+        raise AlarmError(out.get("reason", "alarm"))
+    return 0

@@ -1,0 +1,315 @@
+"""The engine: executes a procedure's steps against the cell's devices, safely.
+
+A procedure describes steps (``Step``); the engine executes them. Before the first step it checks every
+planned motion against the robot's limits (``LimitError`` names the step; nothing has moved). With
+``dry_run`` it prints the steps and moves nothing. Each executed step is logged with its time and result.
+
+Safety: the procedure runs in a worker thread and the main thread watches it, so a Ctrl-C never lands
+in the middle of a write to a device. On Ctrl-C or on any error the engine stops the robot (VAL's
+ABORT, which the driver sends even while a motion is in flight), puts the gripper valve in its safe
+state, closes the devices, and reports the state it left the cell in.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from selfview.errors import CellError, ConfigError, LimitError
+from selfview.geometry import trans
+
+__all__ = ["Step", "Engine", "Cancelled", "CellDevices", "StepRecord"]
+
+log = logging.getLogger("selfview.engine")
+
+MOTION_KINDS = ("move", "moves", "appro", "depart", "ready")
+KINDS = MOTION_KINDS + ("speed", "define", "gripper", "grab", "wait", "ask", "disturb", "restore", "compute")
+
+
+class Cancelled(CellError):
+    """The operator interrupted the run (Ctrl-C)."""
+
+
+@dataclass
+class Step:
+    """One step of a procedure.
+
+    ``kind`` one of ``KINDS``; ``params`` its arguments (``target`` a location name or a (4, 4) pose for
+    motions, ``distance_mm`` for appro/depart, ``state`` for the gripper, ``seconds`` for wait, ``text`` for
+    ask, ``series`` for disturb, ``fn`` a callable taking the engine for compute); ``name`` stores the
+    step's result in ``engine.results``; ``note`` says what the step is for.
+    """
+
+    kind: str
+    params: dict = field(default_factory=dict)
+    name: str | None = None
+    note: str = ""
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ConfigError(f"step kind {self.kind!r}: expected one of {', '.join(KINDS)}")
+
+    def describe(self) -> str:
+        p = {k: v for k, v in self.params.items() if k != "fn"}
+        if isinstance(p.get("target"), np.ndarray):
+            p["target"] = "pose " + " ".join(f"{v:.1f}" for v in p["target"][:3, 3])
+        args = ", ".join(f"{k}={v}" for k, v in p.items())
+        out = f"{self.kind}({args})" if args else self.kind
+        if self.note:
+            out += f"  # {self.note}"
+        return out
+
+
+@dataclass
+class StepRecord:
+    index: int
+    step: str
+    started: float
+    seconds: float
+    ok: bool
+    result: str = ""
+
+
+@dataclass
+class CellDevices:
+    """The connected devices a run uses. ``disturber``: callable(series) -> dict that disturbs the
+    camera (the simulated world's; ``None`` on a real cell, where the engine asks the operator);
+    ``restorer`` likewise; ``truth``: callable() -> dict of the simulator's truth, or None."""
+
+    robot: Any = None
+    gripper: Any = None
+    camera: Any = None
+    disturber: Callable[[str], dict] | None = None
+    restorer: Callable[[], None] | None = None
+    truth: Callable[[], dict] | None = None
+
+
+class Engine:
+    """Executes steps on ``devices`` (``CellDevices``).
+
+    ``dry_run`` prints instead of executing; ``ask`` is how the operator is asked (default: ``input``;
+    in CI there is no operator and asking raises); ``progress`` a callable(str) for progress lines;
+    ``settle_s`` default wait for the cell to settle; ``abort_timeout_s`` how long cleanup waits.
+    """
+
+    def __init__(self, devices: CellDevices, *, dry_run: bool = False, ask: Callable[[str], str] | None = None,
+                 progress: Callable[[str], None] | None = None, abort_timeout_s: float = 10.0):
+        self.devices = devices
+        self.dry_run = dry_run
+        self._ask = ask
+        self.progress = progress or (lambda s: None)
+        self.abort_timeout_s = abort_timeout_s
+        self.results: dict[str, Any] = {}
+        self.records: list[StepRecord] = []
+        self.cancel = threading.Event()
+        self.cleanup_report: dict | None = None
+        self._n = 0
+
+    # --- planning -------------------------------------------------------------------------------
+    def check_plan(self, steps: list[Step]) -> None:
+        """Check every planned motion against the robot's limits before anything moves.
+
+        Named locations are read from the controller (POINT); appro targets are backed off along their
+        tool z; depart from the previous target. Raises ``LimitError`` naming the step."""
+        robot = self.devices.robot
+        if robot is None or not any(s.kind in MOTION_KINDS + ("speed",) for s in steps):
+            return
+        limits = robot.limits
+        last = None
+        for i, s in enumerate(steps):
+            try:
+                if s.kind == "speed":
+                    limits.check_speed(s.params["pct"], f"step {i + 1} SPEED")
+                    continue
+                if s.kind not in MOTION_KINDS or s.kind == "ready":
+                    last = None if s.kind == "ready" else last
+                    continue
+                if s.kind == "depart":
+                    if last is None:
+                        continue  # relative to wherever the robot is: checked by the driver when sent
+                    goal = last @ trans(0, 0, -float(s.params["distance_mm"]))
+                else:
+                    goal = self._pose_of(s.params["target"])
+                    if s.kind == "appro":
+                        goal = goal @ trans(0, 0, -float(s.params["distance_mm"]))
+                limits.check_position(goal[:3, 3], f"step {i + 1} {s.describe()}")
+                last = goal
+            except LimitError as exc:
+                raise LimitError(f"plan refused before anything moved: {exc}") from None
+
+    def _pose_of(self, target) -> np.ndarray:
+        if isinstance(target, str):
+            robot = self.devices.robot
+            pose = robot.location(target)
+            return robot.dialect.pose_to_H(pose)
+        H = np.asarray(target, float)
+        if H.shape == (6,):
+            return self.devices.robot.dialect.pose_to_H(H)
+        return H
+
+    # --- running --------------------------------------------------------------------------------
+    def run(self, body: Callable[["Engine"], Any], plan: list[Step] | None = None) -> Any:
+        """Run ``body(engine)`` (which calls ``engine.execute``) in a worker thread, safely.
+
+        ``plan`` lists the motions ``body`` will make, checked before it starts; with ``dry_run`` the
+        plan is printed and ``body`` not run. On error or Ctrl-C: cleanup (``cleanup``) and re-raise.
+        """
+        plan = plan or []
+        if self.dry_run:
+            for i, s in enumerate(plan):
+                self.progress(f"[dry-run] {i + 1:3d}. {s.describe()}")
+            return None
+        self.check_plan(plan)
+        box: dict[str, Any] = {}
+
+        def worker():
+            try:
+                box["result"] = body(self)
+            except BaseException as exc:  # handed to the main thread
+                box["error"] = exc
+
+        t = threading.Thread(target=worker, name="procedure", daemon=True)
+        t.start()
+        try:
+            while t.is_alive():
+                t.join(timeout=0.1)
+        except KeyboardInterrupt:
+            self.cancel.set()
+            self.progress("interrupted: stopping the robot")
+            self._abort_robot()
+            t.join(timeout=self.abort_timeout_s)
+            self.cleanup("interrupted by the operator (Ctrl-C)")
+            raise Cancelled("interrupted by the operator; " + self.state_sentence()) from None
+        if "error" in box:
+            exc = box["error"]
+            self.cleanup(f"{type(exc).__name__}: {exc}")
+            raise exc
+        return box.get("result")
+
+    def execute(self, step: Step) -> Any:
+        """Execute one step now (from inside ``run``'s body); logs it; stores a named result."""
+        if self.cancel.is_set():
+            raise Cancelled("run cancelled")
+        self._n += 1
+        t0 = time.monotonic()
+        wall = time.time()
+        try:
+            out = self._do(step)
+        except BaseException as exc:
+            self.records.append(StepRecord(self._n, step.describe(), wall, time.monotonic() - t0, False,
+                                           f"{type(exc).__name__}: {exc}"))
+            log.error("step %d %s failed: %s", self._n, step.describe(), exc)
+            raise
+        dt = time.monotonic() - t0
+        self.records.append(StepRecord(self._n, step.describe(), wall, dt, True, _brief(out)))
+        log.info("step %d %s ok in %.3f s", self._n, step.describe(), dt)
+        if step.name:
+            self.results[step.name] = out
+        return out
+
+    def _do(self, step: Step) -> Any:
+        d, p, k = self.devices, step.params, step.kind
+        if k in MOTION_KINDS or k in ("speed", "define"):
+            if d.robot is None:
+                raise ConfigError(f"step {step.describe()}: no robot configured")
+            if k == "move":
+                return d.robot.move(p["target"])
+            if k == "moves":
+                return d.robot.moves(p["target"])
+            if k == "appro":
+                return d.robot.appro(p["target"], p["distance_mm"])
+            if k == "depart":
+                return d.robot.depart(p["distance_mm"])
+            if k == "ready":
+                return d.robot.ready()
+            if k == "speed":
+                return d.robot.speed(p["pct"])
+            return d.robot.define(p["name"], p["pose"])
+        if k == "gripper":
+            if d.gripper is None:
+                raise ConfigError(f"step {step.describe()}: no gripper configured")
+            return d.gripper.move(p["state"])
+        if k == "grab":
+            if d.camera is None:
+                raise ConfigError(f"step {step.describe()}: no camera configured")
+            frame = d.camera.grab(after=time.monotonic(), average=int(p.get("average", 1)))
+            return frame.image
+        if k == "wait":
+            if self.cancel.wait(float(p["seconds"])):
+                raise Cancelled("run cancelled")
+            return None
+        if k == "ask":
+            return self.ask(p["text"])
+        if k == "disturb":
+            if d.disturber is not None:
+                return d.disturber(p["series"])
+            self.ask(f"Disturb the camera ({p['series']}): {p.get('instruction', 'pull the cable')}, then press Enter")
+            return {"series": p["series"], "by": "operator"}
+        if k == "restore":
+            if d.restorer is not None:
+                d.restorer()
+                return None
+            self.ask("Put the camera back on its mount as it was, then press Enter")
+            return None
+        if k == "compute":
+            return p["fn"](self)
+        raise ConfigError(f"step kind {k!r} has no executor")  # pragma: no cover
+
+    def ask(self, text: str) -> str:
+        if self._ask is None:
+            raise ConfigError(f"the procedure needs the operator ('{text}') but no operator is attached")
+        return self._ask(text)
+
+    # --- safety ---------------------------------------------------------------------------------
+    def _abort_robot(self) -> str:
+        robot = self.devices.robot
+        if robot is None or not getattr(robot, "connected", False):
+            return "no robot connected"
+        try:
+            robot.abort()
+            return "stopped (ABORT sent)"
+        except CellError as exc:
+            return f"ABORT failed: {exc}"
+        except Exception as exc:  # never let cleanup itself die
+            return f"ABORT failed: {type(exc).__name__}: {exc}"
+
+    def cleanup(self, reason: str) -> dict:
+        """Stop the robot, leave the gripper safe, close the devices; record and return what was done."""
+        rep: dict[str, str] = {"reason": reason}
+        rep["robot"] = self._abort_robot()
+        g = self.devices.gripper
+        if g is not None:
+            try:
+                g.safe()
+                rep["gripper"] = "valve set to its safe state"
+            except Exception as exc:
+                rep["gripper"] = f"could not set the safe state: {exc}"
+        for nm in ("camera", "gripper", "robot"):
+            dev = getattr(self.devices, nm)
+            if dev is not None:
+                try:
+                    dev.close()
+                except Exception as exc:
+                    rep[f"{nm}_close"] = f"close failed: {exc}"
+        self.cleanup_report = rep
+        log.warning("cleanup after %s: %s", reason, rep)
+        self.progress("cell left: " + self.state_sentence())
+        return rep
+
+    def state_sentence(self) -> str:
+        r = self.cleanup_report or {}
+        return "; ".join(f"{k}: {v}" for k, v in r.items() if k != "reason") or "no cleanup was needed"
+
+
+def _brief(out) -> str:
+    if out is None:
+        return ""
+    if isinstance(out, np.ndarray):
+        return f"array {out.shape} {out.dtype}"
+    s = str(out)
+    return s if len(s) < 120 else s[:117] + "..."

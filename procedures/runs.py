@@ -1,0 +1,354 @@
+"""What a lab does with the cell: park, calibrate, monitor, and the paper's experiment.
+
+Each procedure is a plan (the motions it will make, checked before anything moves, printed by
+``--dry-run``) and a body that executes steps through the ``Engine``. Devices are opened from URLs: the
+simulated cell's by default, the lab's with ``real=True``.
+
+Python API for lab scripts::
+
+    from procedures.runs import CellSession
+    with CellSession.simulated(cell, seed=1) as s:      # or CellSession.real(cell, robot=..., ...)
+        result = s.calibrate(out="calibration.yaml")     # park, grab, calibrate, save, depart
+        records = s.monitor(frames=50)                   # grab, track, update/recalibrate/alarm
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from procedures.engine import CellDevices, Engine, Step
+from procedures.experiment import TrialRecord, run_trial, summarise, tables_markdown
+from procedures.simcell import CellURLs, SimulatedCell
+from selfview.calfile import load_calibration, save_calibration
+from selfview.cell import Cell
+from selfview.errors import AlarmError, CalibrationError, ConfigError, ImageError
+from selfview.fingertips import find_fingertips
+from selfview.offline import OfflineResult, calibrate_offline
+from selfview.online import METHODS
+from selfview.policy import Monitor
+
+__all__ = ["RunSettings", "CellSession", "park_plan", "depart_plan"]
+
+log = logging.getLogger("selfview.procedures")
+
+
+@dataclass
+class RunSettings:
+    """How procedures move the cell. ``plate`` the taught location where the gripper presses the plate
+    (a few mm into the foam); ``approach_mm`` how far above it the approach ends; ``speed_pct`` the
+    monitor speed; ``settle_s`` the wait before a picture; ``work_locations`` where the monitor run
+    moves the robot between pictures."""
+
+    plate: str = "plate"
+    approach_mm: float = 60.0
+    speed_pct: float = 20.0
+    settle_s: float = 0.05
+    work_locations: tuple[str, ...] = ("above",)
+    average: int = 1
+
+
+def park_plan(s: RunSettings, state: str) -> list[Step]:
+    """Approach above the plate, open the gripper (confirmed), descend straight until the fingertips
+    press the plate (the foam lets it tilt into coincidence), settle."""
+    return [
+        Step("appro", {"target": s.plate, "distance_mm": s.approach_mm}, note="above the plate"),
+        Step("gripper", {"state": state}, note="jaws in the calibration state, confirmed by the switches"),
+        Step("moves", {"target": s.plate}, note="straight down: press the fingertips onto the plate"),
+        Step("wait", {"seconds": s.settle_s}, note="settle"),
+    ]
+
+
+def depart_plan(s: RunSettings) -> list[Step]:
+    return [Step("depart", {"distance_mm": s.approach_mm}, note="lift off the plate")]
+
+
+class CellSession:
+    """An open cell: devices connected, an engine, the cell description. Use as a context manager.
+
+    Build it with ``CellSession.simulated(cell, seed)`` (simulated devices on real channels) or
+    ``CellSession.real(cell, robot=URL, gripper=URL, camera=URL)``.
+    """
+
+    def __init__(self, cell: Cell, urls: CellURLs, *, sim: SimulatedCell | None = None,
+                 settings: RunSettings | None = None, dry_run: bool = False,
+                 ask: Callable[[str], str] | None = None, progress: Callable[[str], None] | None = None,
+                 timeout_s: float = 2.0):
+        self.cell = cell
+        self.urls = urls
+        self.sim = sim
+        self.settings = settings or RunSettings()
+        self.dry_run = dry_run
+        self.ask = ask
+        self.progress = progress or (lambda s: None)
+        self.timeout_s = timeout_s
+        self.devices: CellDevices | None = None
+        self.engine: Engine | None = None
+
+    @classmethod
+    def simulated(cls, cell: Cell, seed: int = 0, *, time_scale: float = 0.02, link: str = "pty", **kw) -> "CellSession":
+        sim = SimulatedCell(cell, seed=seed, time_scale=time_scale, link=link)
+        return cls(cell, CellURLs("", "", ""), sim=sim, **kw)
+
+    @classmethod
+    def real(cls, cell: Cell, *, robot: str, gripper: str, camera: str, **kw) -> "CellSession":
+        for nm, u in (("robot", robot), ("gripper", gripper), ("camera", camera)):
+            if not u:
+                raise ConfigError(f"--real needs a {nm} URL (--{nm} URL)")
+        return cls(cell, CellURLs(robot, gripper, camera), **kw)
+
+    # --- devices ----------------------------------------------------------------------------------
+    def open(self) -> "CellSession":
+        from drivers.frame_grabber_v4l2 import FrameGrabber
+        from drivers.pneumatic_gripper import PneumaticGripper
+        from drivers.puma_val_serial import PumaVAL
+
+        if self.sim is not None:
+            self.sim.start()
+            self.urls = self.sim.urls
+        cs = self.cell.camera
+        robot = PumaVAL(self.urls.robot, timeout_s=self.timeout_s)
+        gripper = PneumaticGripper(self.urls.gripper)
+        camera = FrameGrabber(self.urls.camera, width=cs.width, height=cs.height, timeout_s=self.timeout_s)
+        devs = CellDevices(robot=robot, gripper=gripper, camera=camera)
+        if self.sim is not None:
+            w = self.sim.world
+            devs.disturber = lambda series: _disturbance_dict(w.disturb(series))
+            devs.restorer = w.reset_disturbance
+            devs.truth = w.truth
+        self.devices = devs
+        if not self.dry_run:
+            try:
+                robot.connect()
+                gripper.connect()
+                camera.connect()
+            except BaseException:
+                self.close()
+                raise
+        self.engine = Engine(devs, dry_run=self.dry_run, ask=self.ask, progress=self.progress)
+        return self
+
+    def close(self) -> None:
+        if self.devices is not None:
+            for dev in (self.devices.camera, self.devices.gripper, self.devices.robot):
+                try:
+                    dev.close()
+                except Exception:  # closing is best effort; the cleanup report says what failed
+                    log.exception("closing %r", dev)
+        if self.sim is not None:
+            self.sim.stop()
+
+    def __enter__(self) -> "CellSession":
+        return self.open()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def describe_devices(self) -> dict:
+        """What each configured device reports (for ``selfview devices``)."""
+        d = self.devices
+        out = {"robot": {"url": self.urls.robot}, "gripper": {"url": self.urls.gripper},
+               "camera": {"url": self.urls.camera}}
+        w = d.robot.where()
+        out["robot"].update({"pose_xyzoat": list(w.pose), "joints_deg": list(w.joints)})
+        out["gripper"].update({"state": d.gripper.state(), "outputs": d.gripper.outputs()})
+        fr = d.camera.grab()
+        img = fr.image
+        out["camera"].update({"size": [int(img.shape[1]), int(img.shape[0])], "mean_grey": float(img.mean()),
+                              "source": getattr(d.camera.source, "description", "")})
+        return out
+
+    # --- procedures -------------------------------------------------------------------------------
+    def _run(self, body, plan):
+        return self.engine.run(body, plan)
+
+    def park(self, state: str | None = None) -> np.ndarray | None:
+        """Park the gripper on the plate and grab a picture of it (returned)."""
+        state = state or self.cell.gripper.calibrate_in
+        s = self.settings
+        plan = [Step("speed", {"pct": s.speed_pct})] + park_plan(s, state) + [Step("grab", {"average": s.average}, name="parked")]
+
+        def body(e: Engine):
+            for st in plan:
+                e.execute(st)
+            return e.results["parked"]
+
+        return self._run(body, plan)
+
+    def calibrate(self, out: str | Path = "calibration.yaml", state: str | None = None,
+                  mode: str = "full") -> OfflineResult | None:
+        """Park, grab, calibrate off-line, save the calibration file, depart.
+
+        The file is only written when the calibration succeeded; the previous one is kept."""
+        state = state or self.cell.gripper.calibrate_in
+        s = self.settings
+        grab = Step("grab", {"average": s.average}, name="picture", note="the calibration picture")
+        plan = [Step("speed", {"pct": s.speed_pct})] + park_plan(s, state) + [grab] + depart_plan(s)
+
+        def body(e: Engine):
+            for st in plan[:-1]:
+                e.execute(st)
+            res = e.execute(Step("compute", {"fn": lambda e: calibrate_offline(e.results["picture"], self.cell,
+                                                                                 state=state, mode=mode)},
+                                 name="offline", note="off-line calibration"))
+            e.execute(Step("compute", {"fn": lambda e: save_calibration(res.calibration, out)}, note=f"save {out}"))
+            e.execute(plan[-1])
+            return res
+
+        return self._run(body, plan)
+
+    def monitor(self, calibration: str | Path, frames: int = 20, *, method: str = "4P-U",
+                disturb: Callable[[int], None] | None = None, state: str | None = None,
+                on_decision: Callable[[dict], None] | None = None) -> list[dict]:
+        """Grab pictures as the robot works, track the fingertips, apply the policy to each.
+
+        The robot moves between ``settings.work_locations``; ``disturb(k)`` (simulation) may move the
+        camera before frame k. On an alarm the engine stops the robot and ``AlarmError`` is raised.
+        Returns the monitor's decision records."""
+        cal = load_calibration(calibration)
+        state = state or cal.state
+        pG = cal.points_G[state]
+        gap = float(np.mean(np.abs(pG[:4, 0])) * 2)
+        mon = Monitor(cal.C_H_G, cal.camera, pG, self.cell.monitor, update_method=method,
+                      raise_on_alarm=True)
+        s = self.settings
+        plan = [Step("speed", {"pct": s.speed_pct})] + [Step("move", {"target": loc}) for loc in s.work_locations]
+
+        def body(e: Engine):
+            e.execute(plan[0])
+            e.execute(Step("gripper", {"state": state}))
+            for k in range(frames):
+                e.execute(Step("move", {"target": s.work_locations[k % len(s.work_locations)]}))
+                if disturb is not None:
+                    disturb(k)
+                img = e.execute(Step("grab", {}))
+
+                def track(e, img=img):
+                    ft = find_fingertips(img, cal.camera, mon.C_H_G, self.cell.gripper, gap)
+                    return mon.step(ft.uv, ft.found)
+
+                try:
+                    e.execute(Step("compute", {"fn": track}, note=f"track frame {k + 1}"))
+                finally:
+                    if on_decision:
+                        on_decision(mon.records[-1])
+            return mon.records
+
+        try:
+            return self._run(body, plan)
+        except AlarmError:
+            self.monitor_records = mon.records
+            raise
+
+    def experiment(self, series=("cable", "tilt"), trials: int = 20, state: str | None = None,
+                   on_trial: Callable[[str, int, int, TrialRecord], None] | None = None):
+        """The paper's section 5 on this cell: per series, ``trials`` times park, calibrate, disturb,
+        re-measure with every on-line method and the off-line reference. Returns (records, summary,
+        artefacts of the first trial)."""
+        state = state or self.cell.gripper.calibrate_in
+        s = self.settings
+        for name in series:
+            if self.sim is not None and name not in self.cell.simulation.disturbances:
+                raise ConfigError(f"series {name!r}: expected one of {', '.join(self.cell.simulation.disturbances)}")
+        one = park_plan(s, state) + depart_plan(s)
+        plan = [Step("speed", {"pct": s.speed_pct})] + one * (len(series) * trials)
+        if self.dry_run:
+            plan = [Step("speed", {"pct": s.speed_pct})]
+            for name in series:
+                plan += park_plan(s, state) + [Step("grab", {}), Step("compute", {}, note="off-line calibration"),
+                                               Step("disturb", {"series": name}), Step("grab", {}),
+                                               Step("compute", {}, note="on-line methods and off-line reference"),
+                                               Step("restore", {})] + depart_plan(s)
+            plan.append(Step("wait", {"seconds": 0}, note=f"... {trials} trials per series"))
+        session = self
+
+        class Rig:
+            def __init__(self, e: Engine):
+                self.e = e
+
+            def park(self):
+                for st in park_plan(s, state):
+                    self.e.execute(st)
+
+            def grab(self):
+                return self.e.execute(Step("grab", {"average": s.average}))
+
+            def disturb(self, name):
+                return self.e.execute(Step("disturb", {"series": name}))
+
+            def truth(self):
+                t = session.devices.truth
+                return t() if t else None
+
+            def restore(self):
+                self.e.execute(Step("restore", {}))
+                for st in depart_plan(s):
+                    self.e.execute(st)
+
+        def body(e: Engine):
+            e.execute(plan[0])
+            records, failures, first = [], [], None
+            rig = Rig(e)
+            for name in series:
+                for k in range(trials):
+                    seed = None if self.sim is None else self.sim.seed
+                    try:
+                        rec, art = run_trial(rig, self.cell, name, k, seed=seed, state=state)
+                    except (CalibrationError, ImageError) as exc:
+                        # a picture that cannot be measured spoils one trial, not the run
+                        failures.append({"series": name, "index": k, "seed": seed, "error": f"{type(exc).__name__}: {exc}"})
+                        self.progress(f"{name} trial {k + 1}: failed ({exc}); the cell carries on")
+                        rig.restore()
+                        continue
+                    records.append(rec)
+                    if first is None:
+                        first = art
+                    if on_trial:
+                        on_trial(name, k, trials, rec)
+            summary = summarise(records)
+            summary["failures"] = failures
+            return records, summary, first
+
+        return self._run(body, plan)
+
+
+def _disturbance_dict(d) -> dict:
+    return {"series": d.series, "angle_deg": float(d.angle_deg), "axis_C": d.axis_C.tolist(),
+            "tcp_shift_C": d.tcp_shift_C.tolist()}
+
+
+def write_experiment_folder(folder: Path, records, summary, first, *, cell: Cell, config: dict) -> dict:
+    """results.json, tables.md, annotated pictures of the first trial and the error plot in ``folder``."""
+    from procedures.results import annotate_offline, annotate_online, environment, plot_errors, write_json
+
+    folder = Path(folder)
+    files = {}
+    if first is not None:
+        files["offline_annotated"] = annotate_offline(first["img1"], first["first"], folder / "trial1_offline.png").name
+        fr = first["first"].calibration
+        files["online_annotated"] = annotate_online(first["img2"], fr.camera, fr.C_H_G, first["estimates"],
+                                                    first["fingertips2"], fr.points_G[fr.state],
+                                                    folder / "trial1_online.png").name
+        import cv2
+
+        cv2.imwrite(str(folder / "trial1_picture1.png"), first["img1"])
+        cv2.imwrite(str(folder / "trial1_picture2.png"), first["img2"])
+    files["plot"] = plot_errors(summary, folder / "errors.png", METHODS).name
+    (folder / "tables.md").write_text(tables_markdown(summary) + "\n")
+    files["tables"] = "tables.md"
+    results = {
+        "config": config,
+        "cell": {"source": Path(cell.source).name, "sha256": cell.sha256},
+        "environment": environment(),
+        "summary": summary,
+        "trials": [r.__dict__ for r in records],
+        "files": files,
+    }
+    write_json(folder / "results.json", results)
+    return results
