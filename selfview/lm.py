@@ -1,13 +1,16 @@
 """A small Levenberg-Marquardt least-squares solver on numpy.
 
-Minimises ``sum(fun(x)**2)`` over ``x`` (P,) for a residual function returning (M,) with M >= P, using
-an analytic Jacobian when one is given and central differences otherwise. Marquardt's scaling (the
-largest column norms of the Jacobian seen so far, as MINPACK's ``lmdif`` does) makes the damping
-invariant to the parameters' units, so f [px], kappa [px^-2] and translations [mm] can share one
-vector. One SVD per Jacobian serves every damping trial of that iteration.
+Minimises ``sum(fun(x)**2)`` over ``x`` (P,) for a residual function returning (M,) with M >= P. It is
+the trust-region form of Levenberg-Marquardt that Moré described ("The Levenberg-Marquardt algorithm:
+implementation and theory", 1978) and MINPACK's ``lmder``/``lmdif`` implement, which Willson's Tsai
+calibration uses: a step bound ``delta`` in parameters scaled by the Jacobian's largest column norms so
+far, the damping found by a safeguarded Newton iteration on ``||D p(lambda)|| = delta``, and MINPACK's
+tests and constants (so, with the same residuals and tolerances, it stops where ``lmdif`` stops).
+The Jacobian is analytic when given, else central or (as lmdif) forward differences; one SVD of the
+scaled Jacobian per iteration serves every damping trial of that iteration.
 
 A residual function may return non-finite values for a parameter vector it cannot evaluate (a point
-behind the camera, beyond the lens's fold): such a trial step is rejected like one that raises the cost.
+behind the camera, beyond the lens's fold): such a trial step is rejected and the step bound shrinks.
 """
 
 from __future__ import annotations
@@ -19,10 +22,13 @@ import numpy as np
 
 from selfview.errors import CalibrationError
 
-__all__ = ["LMResult", "levenberg_marquardt", "numeric_jacobian"]
+__all__ = ["LMResult", "covariance", "levenberg_marquardt", "numeric_jacobian"]
 
 Residuals = Callable[[np.ndarray], np.ndarray]
 Jacobian = Callable[[np.ndarray], np.ndarray]
+
+_EPS = np.finfo(float).eps
+_DWARF = np.finfo(float).tiny
 
 
 @dataclass(frozen=True)
@@ -31,7 +37,8 @@ class LMResult:
 
     ``x`` (P,) solution; ``residuals`` (M,) and ``jacobian`` (M, P) at ``x``; ``cost`` the sum of
     squared residuals; ``iterations`` Jacobian evaluations; ``nfev`` residual evaluations;
-    ``converged`` whether a tolerance was met (False: ``max_iter`` ran out); ``message`` which one.
+    ``converged`` whether a tolerance was met (False: the evaluation budget ran out); ``message``
+    which test stopped it.
     """
 
     x: np.ndarray
@@ -44,134 +51,261 @@ class LMResult:
     message: str
 
     def covariance(self, sigma2: float | None = None) -> np.ndarray:
-        """(P, P) covariance of ``x``: ``sigma2 (J^T J)^-1``, by default with the residual variance
-        ``cost / (M - P)``. A pseudo-inverse keeps it finite when a parameter is undetermined."""
-        J = self.jacobian
-        m, p = J.shape
-        if sigma2 is None:
-            sigma2 = self.cost / max(m - p, 1)
-        return sigma2 * np.linalg.pinv(J.T @ J)
+        """(P, P) covariance of ``x`` (see ``covariance``), by default with the residual variance
+        ``cost / (M - P)``."""
+        m, p = self.jacobian.shape
+        return covariance(self.jacobian, self.cost / max(m - p, 1) if sigma2 is None else sigma2)
 
 
-def numeric_jacobian(fun: Residuals, x, r0=None, scale=None, rel_step: float | None = None) -> np.ndarray:
-    """(M, P) Jacobian of ``fun`` at ``x`` (P,) by central differences.
+def covariance(J, sigma2: float) -> np.ndarray:
+    """(P, P) covariance ``sigma2 (J^T J)^-1`` of a least-squares estimate with Jacobian ``J`` (M, P)
+    and residual variance ``sigma2``. Computed from the SVD of the column-scaled Jacobian (inverting
+    J^T J would square its condition); if the data do not determine some direction at all, every
+    entry is infinite."""
+    J = np.asarray(J, dtype=float)
+    m, p = J.shape
+    cn = np.linalg.norm(J, axis=0)
+    cn = np.where(cn > 0, cn, 1.0)
+    _, s, Vt = np.linalg.svd(J / cn, full_matrices=False)
+    if not (np.all(np.isfinite(s)) and s[-1] > _EPS * max(m, p) * s[0]):
+        return np.full((p, p), np.inf)
+    return sigma2 * ((Vt.T / (s * s)) @ Vt) / np.outer(cn, cn)
 
-    Each step is ``rel_step * max(|x_j|, scale_j)`` (``scale`` (P,) the typical size of each parameter,
-    default 1; ``rel_step`` default eps^(1/3)). ``r0`` is accepted for symmetry with forward schemes
-    and only fixes M. Raises ``CalibrationError`` if a residual is not finite.
+
+def numeric_jacobian(fun: Residuals, x, *, r0=None, method: str = "central", scale=None,
+                     rel_step: float | None = None) -> np.ndarray:
+    """(M, P) Jacobian of ``fun`` at ``x`` (P,) by finite differences.
+
+    ``method``: ``central`` (step eps^(1/3) relative) or ``forward`` (step sqrt(eps) relative, MINPACK's
+    ``fdjac2``; ``r0`` = ``fun(x)`` saves one evaluation). The step of parameter j is
+    ``rel_step * |x_j|``, or ``rel_step * scale_j`` where x_j is 0 (``scale`` (P,): each parameter's
+    typical size, default 1). Raises ``ValueError`` for an unknown method, ``CalibrationError`` if a
+    residual near ``x`` is not finite.
     """
-    x = np.asarray(x, dtype=float)
+    x = np.asarray(x, dtype=float).ravel()
     p = x.size
-    sc = np.ones(p) if scale is None else np.broadcast_to(np.asarray(scale, dtype=float), (p,))
-    h_rel = np.finfo(float).eps ** (1.0 / 3.0) if rel_step is None else float(rel_step)
-    h = h_rel * np.maximum(np.abs(x), np.abs(sc))
-    m = np.asarray(fun(x) if r0 is None else r0).size
-    J = np.empty((m, p))
+    if method not in ("central", "forward"):
+        raise ValueError(f"numeric_jacobian: method must be 'central' or 'forward', got {method!r}")
+    sc = np.ones(p) if scale is None else np.broadcast_to(np.abs(np.asarray(scale, dtype=float)), (p,))
+    if rel_step is None:
+        rel_step = _EPS ** (1.0 / 3.0) if method == "central" else np.sqrt(_EPS)
+    h = rel_step * np.where(x != 0, np.abs(x), sc)
+    if method == "forward":
+        f0 = np.asarray(fun(x) if r0 is None else r0, dtype=float).ravel()
+    cols = []
     for j in range(p):
         xp = x.copy()
-        xm = x.copy()
         xp[j] += h[j]
-        xm[j] -= h[j]
-        J[:, j] = (np.asarray(fun(xp), dtype=float) - np.asarray(fun(xm), dtype=float)) / (xp[j] - xm[j])
+        fp = np.asarray(fun(xp), dtype=float).ravel()
+        if method == "forward":
+            cols.append((fp - f0) / h[j])
+        else:
+            xm = x.copy()
+            xm[j] -= h[j]
+            cols.append((fp - np.asarray(fun(xm), dtype=float).ravel()) / (2.0 * h[j]))
+    J = np.column_stack(cols)
     if not np.all(np.isfinite(J)):
         raise CalibrationError("numeric Jacobian: the residual function is not finite near the current parameters")
     return J
 
 
+class _ScaledSVD:
+    """The SVD of the column-scaled Jacobian ``J D^-1 = U S V^T`` and ``c = U^T r``: every damped
+    step ``x(par)`` solving ``min ||J x - r||^2 + par ||D x||^2`` and every quantity of Moré's
+    iteration then costs O(P), so the many damping trials of an iteration need no factorisation."""
+
+    def __init__(self, J, r, d):
+        U, s, Vt = np.linalg.svd(J / d, full_matrices=False)
+        self.s, self.Vt, self.d = s, Vt, d
+        self.c = U.T @ r
+        # MINPACK's rank test is an exact zero on R's diagonal; a relative floor plays its part here.
+        self.rank_ok = s > _EPS * max(J.shape) * (s[0] if s.size else 0.0)
+
+    def z(self, par):
+        """Scaled step D x (in the basis V) for damping ``par``."""
+        s = self.s
+        if par == 0:
+            return np.where(self.rank_ok, self.c / np.where(self.rank_ok, s, 1.0), 0.0)
+        return s * self.c / (s * s + par)
+
+    def newton_norm2(self, zv, par):
+        """||y||^2 of Moré's Newton correction, y = S_par^-T D^2 x / ||D x||, in closed form."""
+        s2 = self.s * self.s + par
+        return float(np.sum(zv * zv / np.where(s2 > 0, s2, np.inf))) / float(zv @ zv)
+
+    def step(self, zv):
+        """Parameter step x (P,) from the scaled step in the V basis."""
+        return (self.Vt.T @ zv) / self.d
+
+
+def _lm_parameter(svd: _ScaledSVD, delta, par):
+    """Moré's safeguarded Newton iteration for the damping ``par`` whose step has ||D x|| within 10 %
+    of ``delta`` (MINPACK's ``lmpar``, on the SVD); returns (par, scaled step in the V basis)."""
+    zv = svd.z(0.0)
+    dxnorm = float(np.linalg.norm(zv))
+    fp = dxnorm - delta
+    if fp <= 0.1 * delta:
+        return 0.0, zv
+    parl = fp / delta / svd.newton_norm2(zv, 0.0) if np.all(svd.rank_ok) else 0.0
+    gnorm = float(np.linalg.norm(svd.s * svd.c))
+    paru = gnorm / delta
+    if paru == 0:
+        paru = _DWARF / min(delta, 0.1)
+    par = min(max(par, parl), paru)
+    if par == 0:
+        par = gnorm / dxnorm
+    for it in range(1, 11):
+        if par == 0:
+            par = max(_DWARF, 1e-3 * paru)
+        zv = svd.z(par)
+        dxnorm = float(np.linalg.norm(zv))
+        prev, fp = fp, dxnorm - delta
+        if abs(fp) <= 0.1 * delta or (parl == 0 and fp <= prev and prev < 0) or it == 10:
+            break
+        parc = fp / delta / svd.newton_norm2(zv, par)
+        if fp > 0:
+            parl = max(parl, par)
+        elif fp < 0:
+            paru = min(paru, par)
+        par = max(parl, par + parc)
+    return par, zv
+
+
 def levenberg_marquardt(
     fun: Residuals,
     x0,
-    jac: Jacobian | None = None,
+    jac: Jacobian | str | None = None,
     *,
-    max_iter: int = 100,
-    ftol: float = 1e-14,
+    ftol: float = 1e-12,
     xtol: float = 1e-12,
-    gtol: float = 1e-14,
-    lambda0: float = 1e-3,
+    gtol: float = 0.0,
+    max_nfev: int | None = None,
+    factor: float = 100.0,
     scale=None,
 ) -> LMResult:
-    """Minimise ``sum(fun(x)**2)`` from ``x0`` (P,) by Levenberg-Marquardt.
+    """Minimise ``sum(fun(x)**2)`` from ``x0`` (P,).
 
-    ``jac(x)`` returns the (M, P) Jacobian of the residuals; without it, central differences
-    (``scale`` (P,): typical parameter sizes for the difference steps). Stops when the relative cost
-    reduction of an accepted step is below ``ftol``, the scaled step is below ``xtol`` relative to
-    the scaled parameters, the scaled gradient's cosine with the residual is below ``gtol``, no step
-    can reduce the cost any more (a minimum to machine precision), or after ``max_iter`` Jacobians
-    (``converged`` False). Raises ``ValueError`` for M < P or a bad shape and ``CalibrationError`` when
-    the residuals are not finite at ``x0``.
+    ``jac(x)`` returns the (M, P) Jacobian of the residuals; ``None`` or ``"central"`` takes central
+    differences, ``"forward"`` forward differences as ``lmdif`` does (``scale`` (P,): typical
+    parameter sizes, for the steps of parameters that are 0; see ``numeric_jacobian``).
+    MINPACK's tests: converged when both the actual and the predicted relative reduction of the cost
+    are at most ``ftol``, when the step bound is at most ``xtol`` times the scaled parameters' norm,
+    or when the cosine between the residuals and any Jacobian column is at most ``gtol``; also when
+    a tolerance reaches machine precision. ``factor`` sets the first step bound
+    (``factor * ||D x0||``). Gives up after ``max_nfev`` residual evaluations (default 200 (P + 1))
+    with ``converged`` False.
+    Raises ``ValueError`` for M < P or a Jacobian of the wrong shape, ``CalibrationError`` when the
+    residuals are not finite at ``x0``.
     """
     x = np.array(x0, dtype=float).ravel()
-    p = x.size
-    if p == 0:
+    n = x.size
+    if n == 0:
         raise ValueError("levenberg_marquardt: no parameters")
+    max_nfev = 200 * (n + 1) if max_nfev is None else int(max_nfev)
     r = np.asarray(fun(x), dtype=float).ravel()
-    nfev = 1
-    if r.size < p:
-        raise ValueError(f"levenberg_marquardt: {r.size} residuals cannot determine {p} parameters")
+    m = r.size
+    if m < n:
+        raise ValueError(f"levenberg_marquardt: {m} residuals cannot determine {n} parameters")
     if not np.all(np.isfinite(r)):
         raise CalibrationError("least squares: the residuals are not finite at the start point")
-    cost = float(r @ r)
 
-    def jacobian(xv, rv):
-        if jac is None:
-            return numeric_jacobian(fun, xv, rv, scale)
-        J = np.asarray(jac(xv), dtype=float)
-        if J.shape != (r.size, p):
-            raise ValueError(f"levenberg_marquardt: Jacobian of shape {J.shape}, expected {(r.size, p)}")
+    if jac is None:
+        jac = "central"
+    numeric = isinstance(jac, str)
+    if numeric and jac not in ("central", "forward"):
+        raise ValueError(f"levenberg_marquardt: jac must be a callable, 'central' or 'forward', got {jac!r}")
+
+    def jacobian(xv):
+        if numeric:
+            J = numeric_jacobian(fun, xv, r0=r if jac == "forward" else None, method=jac, scale=scale)
+        else:
+            J = np.asarray(jac(xv), dtype=float)
+        if J.shape != (m, n):
+            raise ValueError(f"levenberg_marquardt: Jacobian of shape {J.shape}, expected {(m, n)}")
         return J
 
-    D = np.zeros(p)
-    lam = float(lambda0)
-    nu = 2.0
-    converged, message = False, f"no convergence in {max_iter} iterations"
-    J = jacobian(x, r)
-    it = 1
-    while True:
-        # Marquardt scaling: never shrink, so the trust region cannot collapse on a vanishing column.
-        cn = np.linalg.norm(J, axis=0)
-        D = np.maximum(D, np.where(cn > 0, cn, 1.0))
-        Js = J / D
-        g = Js.T @ r
-        if cost == 0.0 or np.max(np.abs(g)) <= gtol * np.sqrt(cost) * np.max(np.linalg.norm(Js, axis=0)):
-            converged, message = True, "gradient orthogonal to the residuals (gtol)"
+    extra = {"central": 2 * n, "forward": n}.get(jac, 0) if numeric else 0  # evaluations per Jacobian
+    nfev = 1
+    fnorm = float(np.linalg.norm(r))
+    par = 0.0
+    delta = xnorm = 0.0
+    d = np.zeros(n)
+    iterations = 0
+    converged, message = False, f"gave up after {max_nfev} residual evaluations"
+    J = None
+    J_at_x = False
+    done = False
+    while not done:
+        J = jacobian(x)
+        nfev += extra
+        J_at_x = True
+        iterations += 1
+        acnorm = np.linalg.norm(J, axis=0)
+        if iterations == 1:
+            d = np.where(acnorm > 0, acnorm, 1.0)
+            xnorm = float(np.linalg.norm(d * x))
+            delta = factor * xnorm if xnorm > 0 else factor
+        if fnorm > 0:
+            nz = acnorm > 0
+            gnorm = float(np.max(np.abs((J.T @ r)[nz] / (fnorm * acnorm[nz])), initial=0.0))
+        else:
+            gnorm = 0.0
+        if gnorm <= gtol:
+            converged, message = True, "residuals orthogonal to the Jacobian (gtol)"
             break
-        U, s, Vt = np.linalg.svd(Js, full_matrices=False)
-        Utr = U.T @ r
-        accepted = False
-        while not accepted:
-            # Damped step in scaled units: (Js^T Js + lam I) dz = -Js^T r, through the SVD of Js.
-            dz = -(Vt.T @ (s / (s * s + lam) * Utr))
-            step = dz / D
-            x_new = x + step
+        d = np.maximum(d, acnorm)
+        svd = _ScaledSVD(J, r, d)
+        while True:
+            par, zv = _lm_parameter(svd, delta, par)
+            p = -svd.step(zv)
+            x_new = x + p
+            pnorm = float(np.linalg.norm(zv))
+            if iterations == 1:
+                delta = min(delta, pnorm)
             r_new = np.asarray(fun(x_new), dtype=float).ravel()
             nfev += 1
-            cost_new = float(r_new @ r_new) if np.all(np.isfinite(r_new)) else np.inf
-            # Predicted reduction of the linear model, the gain ratio rho decides the damping.
-            Jdz = Js @ dz
-            predicted = -(2.0 * float(Jdz @ r) + float(Jdz @ Jdz))
-            if cost_new < cost:
-                rho = (cost - cost_new) / predicted if predicted > 0 else 0.0
-                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                nu = 2.0
-                accepted = True
-                small_f = (cost - cost_new) <= ftol * cost
-                small_x = np.linalg.norm(dz) <= xtol * (np.linalg.norm(D * x) + xtol)
-                x, r, cost = x_new, r_new, cost_new
-                if small_f or small_x:
-                    converged = True
-                    message = "relative cost reduction below ftol" if small_f else "relative step below xtol"
-            else:
-                lam *= nu
-                nu *= 2.0
-                if lam > 1e16 or np.linalg.norm(dz) <= np.finfo(float).eps * (np.linalg.norm(D * x) + 1e-300):
-                    converged, message = True, "no step reduces the cost further (minimum to machine precision)"
-                    break
-        if converged or it >= max_iter:
-            if accepted:
-                J = jacobian(x, r)
-            break
-        J = jacobian(x, r)
-        it += 1
+            fnorm1 = float(np.linalg.norm(r_new)) if np.all(np.isfinite(r_new)) else np.inf
+            actred = 1.0 - (fnorm1 / fnorm) ** 2 if 0.1 * fnorm1 < fnorm else -1.0
+            t1 = float(np.linalg.norm(svd.s * zv)) / fnorm  # ||J p|| / ||r||
+            t2 = np.sqrt(par) * pnorm / fnorm
+            prered = t1 * t1 + 2.0 * t2 * t2
+            dirder = -(t1 * t1 + t2 * t2)
+            ratio = actred / prered if prered != 0 else 0.0
+            if ratio <= 0.25:
+                temp = 0.5 if actred >= 0 else 0.5 * dirder / (dirder + 0.5 * actred)
+                if 0.1 * fnorm1 >= fnorm or temp < 0.1:
+                    temp = 0.1
+                delta = temp * min(delta, pnorm / 0.1)
+                par = par / temp
+            elif par == 0 or ratio >= 0.75:
+                delta = pnorm / 0.5
+                par = 0.5 * par
+            if ratio >= 1e-4:
+                x, r, fnorm = x_new, r_new, fnorm1
+                xnorm = float(np.linalg.norm(d * x))
+                J_at_x = False
+            small_f = abs(actred) <= ftol and prered <= ftol and ratio <= 2.0
+            small_x = delta <= xtol * xnorm
+            if small_f or small_x:
+                converged, done = True, True
+                message = " and ".join(
+                    m for m, hit in (("relative cost reduction at most ftol", small_f),
+                                     ("relative step bound at most xtol", small_x)) if hit
+                )
+                break
+            if nfev >= max_nfev:
+                done = True
+                break
+            if (abs(actred) <= _EPS and prered <= _EPS and ratio <= 2.0) or delta <= _EPS * xnorm or gnorm <= _EPS:
+                converged, message = True, "no further reduction possible at machine precision"
+                done = True
+                break
+            if ratio >= 1e-4:
+                break
+    if not J_at_x:
+        J = jacobian(x)
+        nfev += extra
     return LMResult(
-        x=x, residuals=r, jacobian=J, cost=cost, iterations=it, nfev=nfev, converged=converged, message=message
+        x=x, residuals=r, jacobian=J, cost=fnorm * fnorm, iterations=iterations, nfev=nfev,
+        converged=converged, message=message,
     )

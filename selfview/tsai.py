@@ -1,0 +1,583 @@
+"""Tsai's coplanar camera calibration (the paper's reference [8]), after Reg Willson's implementation.
+
+From N >= 5 plate points ``p_W`` (z = 0, mm) and their pictures ``uv`` (pixels), with the principal
+point and the aspect ratio known, find f [px], kappa [px^-2] and ``C_H_W`` (the paper's eq. 1-4 in the
+pixel units of ``selfview.camera``: ``X^ = aspect (u - cx)``, ``Y^ = v - cy``, ``X = X^ (1 + kappa r^2)``).
+
+The stages follow Willson's v3.0b3 (``cal_main.c``):
+  1. radial alignment: five unknowns ``U = (r1, r2, Tx, r4, r5) / Ty`` by linear least squares from
+     ``Y^ (r1 x + r2 y + Tx) = X^ (r4 x + r5 y + Ty)``;
+  2. ``|Ty|`` from U, its sign from the point farthest from the image centre;
+  3. R: r3, r6 from unit rows, the sign of r6 from ``r1 r4 + r2 r5``, the third row as the cross
+     product, the roll/pitch/yaw angles by Paul's formulas (R = Rz Ry Rx);
+  4. f and Tz by linear least squares from ``f y - Y^ Tz = Y^ w`` (kappa = 0); if f < 0, the other
+     solution for R (r3, r6, r7, r8 negated);
+  5a. f, Tz and kappa by Levenberg-Marquardt (``selfview.lm``) on the undistorted sensor-plane error,
+     as Willson's ``tsai`` run does (mode ``tsai`` stops here, on his path and tolerances);
+  5b. ``full``: pose, f and kappa, principal point fixed (the paper's assumption); ``full+centre``: the
+     principal point too; both minimise the distorted pixel error (the picture's own noise) with an
+     analytic Jacobian, to the minimum.
+
+Beyond Willson: the linear stage divides by Ty and fails when the plate's origin lies near the camera's
+y-z plane (his FAQ 3.3); the disc grid's origin is its centre, often in mid-picture, so the stages then
+run in a plate frame moved to the point farthest from the centre row, and the pose is moved back.
+Whether f can be separated from Tz is judged by the standard error of f that the data imply, a mirrored
+plate frame (camera on W's +z side) is refused, and so is a free principal point that one view cannot
+determine.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from selfview.camera import CameraModel, distort
+from selfview.errors import CalibrationError, CalibrationFileError, ConfigError
+from selfview.geometry import R_from_rotvec, R_from_rpy, make_H, transform_points
+from selfview.lm import covariance, levenberg_marquardt
+
+__all__ = ["MODES", "TsaiResult", "calibrate_coplanar", "load_willson_points", "residual_stats"]
+
+MODES = ("tsai", "full", "full+centre")
+
+#: A plate tilted further than this from square-on (angle between its normal and the optical axis)
+#: is refused as seen edge-on.
+EDGE_ON_LIMIT_DEG = 85.0
+#: Largest condition number of the column-equilibrated linear f/Tz system: above it the system is
+#: numerically singular (all points at one depth: plate square-on).
+F_TZ_COND_LIMIT = 1.0e6
+#: Largest standard error of f, relative to f, that the f/Tz/kappa stage may imply: above it the
+#: depths of the points differ too little (plate nearly square-on, or far for its size) for f to be
+#: separated from Tz. Willson's own far-away data (6.6 m) give 2.8 %.
+F_REL_SD_LIMIT = 0.05
+#: The same limit on the final refinement (pose, f, kappa and perhaps the principal point): one view
+#: of a plane hardly separates the principal point from f and the tilt unless the lens distorts.
+FULL_REL_SD_LIMIT = 0.10
+#: The smallest image noise [px] assumed when judging that separation, so that exact synthetic data
+#: of a square-on plate do not pass.
+SEPARABILITY_NOISE_PX = 0.02
+#: Willson's lmdif tolerances (cal_main.h): relative cost reduction and relative step.
+WILLSON_FTOL = 1.0e-5
+WILLSON_XTOL = 1.0e-7
+#: Tolerances of the f, Tz, kappa stage when it only starts a full refinement.
+INIT_FTOL = 1.0e-8
+INIT_XTOL = 1.0e-8
+#: Tolerances of the full refinements, tight enough to reach the minimum to machine precision.
+FULL_FTOL = 1.0e-12
+FULL_XTOL = 1.0e-10
+#: Residual evaluations the full refinement may spend (it needs 10 to 30 when the data determine it).
+FULL_MAX_NFEV = 400
+#: Smallest ratio of the second to the first singular value of the centred points (collinearity).
+COLLINEAR_LIMIT = 1.0e-3
+
+
+@dataclass(frozen=True)
+class TsaiResult:
+    """Result of ``calibrate_coplanar``.
+
+    ``camera`` the calibrated model (f [px], kappa [px^-2], principal point, aspect, size);
+    ``C_H_W`` (4, 4) plate -> camera, mm; ``residuals_px`` (N, 2) observed minus model in distorted
+    pixels; ``rms_px``, ``mean_px``, ``max_px``, ``sse_px2`` statistics of the per-point distances;
+    ``mode`` the refinement used; ``iterations`` Levenberg-Marquardt iterations over all stages.
+    """
+
+    camera: CameraModel
+    C_H_W: np.ndarray
+    residuals_px: np.ndarray
+    rms_px: float
+    mean_px: float
+    max_px: float
+    sse_px2: float
+    mode: str
+    iterations: int
+
+    @property
+    def errors_px(self) -> np.ndarray:
+        """(N,) distance between each observed and modelled point, pixels."""
+        return np.hypot(self.residuals_px[:, 0], self.residuals_px[:, 1])
+
+    def to_dict(self) -> dict:
+        """Plain numbers and lists (for JSON and YAML): f, kappa, principal point, aspect, size,
+        ``C_H_W`` (4x4 nested list) and the error statistics."""
+        return {
+            **self.camera.to_dict(),
+            "C_H_W": np.asarray(self.C_H_W, dtype=float).tolist(),
+            "rms_px": float(self.rms_px),
+            "mean_px": float(self.mean_px),
+            "max_px": float(self.max_px),
+            "sse_px2": float(self.sse_px2),
+            "mode": self.mode,
+            "n_points": int(len(self.residuals_px)),
+            "iterations": int(self.iterations),
+        }
+
+
+def residual_stats(residuals) -> tuple[float, float, float, float]:
+    """(rms, mean, max, sse) of the per-point distances of residuals (N, 2) [px, px^2]."""
+    d2 = np.sum(np.asarray(residuals, dtype=float) ** 2, axis=1)
+    d = np.sqrt(d2)
+    return float(np.sqrt(d2.mean())), float(d.mean()), float(d.max()), float(d2.sum())
+
+
+# --- input checks ------------------------------------------------------------------------------------
+def _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height):
+    try:
+        p = np.asarray(p_W, dtype=float)
+        q = np.asarray(uv, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise CalibrationError(f"coplanar calibration: points are not numbers ({exc})") from exc
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise CalibrationError(f"coplanar calibration: p_W must have shape (N, 3), got {p.shape}")
+    if q.ndim != 2 or q.shape[1] != 2:
+        raise CalibrationError(f"coplanar calibration: uv must have shape (N, 2), got {q.shape}")
+    if len(p) != len(q):
+        raise CalibrationError(f"coplanar calibration: {len(p)} plate points but {len(q)} image points")
+    for name, a in (("p_W", p), ("uv", q)):
+        bad = ~np.all(np.isfinite(a), axis=1)
+        if bad.any():
+            raise CalibrationError(
+                f"coplanar calibration: {name} has non-finite values (NaN or inf) at row(s) "
+                f"{np.flatnonzero(bad)[:10].tolist()}"
+            )
+    if len(p) < 5:
+        raise CalibrationError(f"coplanar calibration needs at least 5 points, got {len(p)}")
+    for name, v in (("cx", cx), ("cy", cy), ("aspect", aspect)):
+        if not np.isfinite(v):
+            raise ConfigError(f"coplanar calibration: {name} must be a finite number, got {v!r}")
+    if aspect <= 0:
+        raise ConfigError(f"coplanar calibration: aspect must be positive, got {aspect!r}")
+    if mode not in MODES:
+        raise ConfigError(f"coplanar calibration: mode must be one of {', '.join(MODES)}; got {mode!r}")
+    if int(width) <= 0 or int(height) <= 0:
+        raise ConfigError(f"coplanar calibration: picture size must be positive, got {width}x{height}")
+    extent = float(np.ptp(p[:, :2], axis=0).max())
+    zmax = float(np.abs(p[:, 2]).max())
+    if zmax > 1e-6 * max(extent, 1.0):
+        i = int(np.argmax(np.abs(p[:, 2])))
+        raise CalibrationError(
+            f"non-coplanar points in a coplanar call: z must be 0 on the plate, point {i} has z = {p[i, 2]:.6g} mm"
+        )
+    _check_spread(p[:, :2], "plate points", "collinear plate points: they do not span the plate's plane")
+    return p, q
+
+
+def _check_spread(xy: np.ndarray, what: str, cause: str) -> None:
+    c = xy - xy.mean(axis=0)
+    s = np.linalg.svd(c, compute_uv=False)
+    if s[0] == 0 or s[1] < COLLINEAR_LIMIT * s[0]:
+        ratio = 0.0 if s[0] == 0 else s[1] / s[0]
+        raise CalibrationError(f"{cause} (spread ratio of the {what} {ratio:.2e} < {COLLINEAR_LIMIT:.0e})")
+
+
+# --- linear stages (Willson's cc_compute_U ... cc_compute_approximate_f_and_Tz) ------------------------
+def _rpy_paul(r: np.ndarray) -> tuple[float, float, float]:
+    """Roll, pitch, yaw (rad) of a nearly orthonormal R = Rz Ry Rx by Paul's formulas, as Willson
+    reads them (rows 1-2 and r7 only, so an unnormalised third row does not enter)."""
+    r1, r2, r3, r4, r5, r6, r7 = r.ravel()[:7]
+    rz = np.arctan2(r4, r1)
+    sg, cg = np.sin(rz), np.cos(rz)
+    ry = np.arctan2(-r7, r1 * cg + r4 * sg)
+    rx = np.arctan2(r3 * sg - r6 * cg, r5 * cg - r2 * sg)
+    return float(rx), float(ry), float(rz)
+
+
+def _radial_alignment(xw, yw, Xd, Yd):
+    """Stages 1-3: (Tx, Ty, r (3, 3) as Willson forms it, not exactly orthonormal)."""
+    A = np.column_stack([Yd * xw, Yd * yw, Yd, -Xd * xw, -Xd * yw])
+    U, *_ = np.linalg.lstsq(A, Xd, rcond=None)
+    r1p, r2p, _, r4p, r5p = U
+    tiny = 1e-12 * max(np.abs(U[[0, 1, 3, 4]]).max(), 1e-300)
+    det = r1p * r5p - r4p * r2p
+    # A vanishing row or column of the 2x2 block makes the general formula 0/0 (Tsai 1987, eq. 10).
+    if abs(r1p) < tiny and abs(r2p) < tiny:
+        ty2 = 1.0 / (r4p**2 + r5p**2)
+    elif abs(r4p) < tiny and abs(r5p) < tiny:
+        ty2 = 1.0 / (r1p**2 + r2p**2)
+    elif abs(r1p) < tiny and abs(r4p) < tiny:
+        ty2 = 1.0 / (r2p**2 + r5p**2)
+    elif abs(r2p) < tiny and abs(r5p) < tiny:
+        ty2 = 1.0 / (r1p**2 + r4p**2)
+    else:
+        sr = r1p**2 + r2p**2 + r4p**2 + r5p**2
+        ty2 = (sr - np.sqrt(max(sr * sr - 4.0 * det * det, 0.0))) / (2.0 * det * det)
+    if not np.isfinite(ty2) or ty2 <= 0:
+        raise CalibrationError("radial alignment stage failed: no real Ty (points degenerate or mislabelled)")
+    # Sign of Ty: the point farthest from the image centre must project on the side it was seen.
+    k = int(np.argmax(Xd * Xd + Yd * Yd))
+    ty = np.sqrt(ty2)
+    x = (U[0] * xw[k] + U[1] * yw[k] + U[2]) * ty
+    y = (U[3] * xw[k] + U[4] * yw[k] + 1.0) * ty
+    if np.signbit(x) != np.signbit(Xd[k]) or np.signbit(y) != np.signbit(Yd[k]):
+        ty = -ty
+    tx = U[2] * ty
+    r1, r2, r4, r5 = U[0] * ty, U[1] * ty, U[3] * ty, U[4] * ty
+    r3 = np.sqrt(max(1.0 - r1 * r1 - r2 * r2, 0.0))
+    r6 = np.sqrt(max(1.0 - r4 * r4 - r5 * r5, 0.0))
+    if not np.signbit(r1 * r4 + r2 * r5):
+        r6 = -r6
+    row3 = np.cross([r1, r2, r3], [r4, r5, r6])
+    return float(tx), float(ty), np.array([[r1, r2, r3], [r4, r5, r6], row3])
+
+
+def _approximate_f_Tz(xw, yw, Yd, r, ty):
+    """Stage 4: (f, Tz, condition number of the column-equilibrated system), kappa taken as 0."""
+    yc = r[1, 0] * xw + r[1, 1] * yw + ty
+    w = r[2, 0] * xw + r[2, 1] * yw
+    A = np.column_stack([yc, -Yd])
+    norms = np.linalg.norm(A, axis=0)
+    if np.any(norms == 0):
+        return np.nan, np.nan, np.inf
+    s = np.linalg.svd(A / norms, compute_uv=False)
+    cond = float(s[0] / s[1]) if s[1] > 0 else np.inf
+    sol, *_ = np.linalg.lstsq(A, w * Yd, rcond=None)
+    return float(sol[0]), float(sol[1]), cond
+
+
+def _flip_R(r: np.ndarray) -> np.ndarray:
+    """The other solution for R (Willson): r3, r6, r7, r8 negated."""
+    r = r.copy()
+    r[0, 2], r[1, 2], r[2, 0], r[2, 1] = -r[0, 2], -r[1, 2], -r[2, 0], -r[2, 1]
+    return r
+
+
+def _linear_pose(xw, yw, Xd, Yd):
+    """Stages 1-4 in the given plate frame: (Tx, Ty, r, f, Tz, cond)."""
+    tx, ty, r = _radial_alignment(xw, yw, Xd, Yd)
+    f, tz, cond = _approximate_f_Tz(xw, yw, Yd, r, ty)
+    if not f >= 0:  # also NaN
+        r = _flip_R(r)
+        f, tz, cond = _approximate_f_Tz(xw, yw, Yd, r, ty)
+        if not f >= 0:
+            raise CalibrationError(
+                "no pose with a positive focal length fits: the plate coordinates may be left-handed or "
+                "the correspondences mislabelled"
+            )
+    return tx, ty, r, f, tz, cond
+
+
+# --- non-linear stages ---------------------------------------------------------------------------------
+class _FTzKappa:
+    """Stage 5a's model: pose from stages 1-3 (camera x, y of each point ``xc``, ``yc`` and its
+    depth less Tz, ``w``), residuals in undistorted sensor coordinates of the distorted points
+    (``Xd``, ``Yd``) as functions of (f, Tz, kappa)."""
+
+    def __init__(self, xc, yc, w, Xd, Yd):
+        self.xy = np.concatenate([xc, yc])
+        self.w2 = np.concatenate([w, w])
+        self.XYd = np.concatenate([Xd, Yd])
+        self.r2 = np.concatenate([Xd * Xd + Yd * Yd] * 2)
+
+    def residuals(self, x):
+        """(2N,) model minus observation: x residuals of all points, then y."""
+        return x[0] * self.xy / (self.w2 + x[1]) - self.XYd * (1.0 + x[2] * self.r2)
+
+    def jacobian(self, x):
+        zc = self.w2 + x[1]
+        return np.column_stack([self.xy / zc, -x[0] * self.xy / zc**2, -self.XYd * self.r2])
+
+    def distances(self, x):
+        """(N,) per-point distances: Willson's residuals."""
+        e = self.residuals(x).reshape(2, -1)
+        return np.hypot(e[0], e[1])
+
+    def f_relative_sd(self, x) -> float:
+        """Standard error of f relative to f at ``x``, from this stage's Jacobian and the residual
+        level (at least ``SEPARABILITY_NOISE_PX``): large when f and Tz trade against each other."""
+        e = self.residuals(x)
+        sigma2 = max(float(e @ e) / max(len(e) - 3, 1), SEPARABILITY_NOISE_PX**2)
+        return _relative_sd(covariance(self.jacobian(x), sigma2), x, 0)
+
+
+def _relative_sd(C: np.ndarray, x, i: int) -> float:
+    """Standard error of parameter i relative to its value, from covariance C (inf if undetermined)."""
+    with np.errstate(all="ignore"):
+        v = float(np.sqrt(C[i, i]) / abs(x[i]))
+    return v if np.isfinite(v) else np.inf
+
+
+def _refine_tsai(model: _FTzKappa, f, tz, kappa, willson: bool):
+    """Stage 5a: f, Tz, kappa minimising the undistorted sensor-plane error, pose from stages 1-3.
+
+    ``willson``: as his ``cc_compute_exact_f_and_Tz`` does it: one residual per point (its
+    distance), lmdif's forward-difference Jacobian and his tolerances. In a flat f-Tz valley the ftol
+    test stops short of the minimum at a point that depends on the path (1.5e-3 in f on his data),
+    so the path must be his. kappa's difference step at 0 is relative to 1 / r_max^2, independent of
+    units. Otherwise (to start the full refinement): x and y residuals, analytic Jacobian.
+    """
+    if willson:
+        return levenberg_marquardt(
+            model.distances, [f, tz, kappa], "forward", ftol=WILLSON_FTOL, xtol=WILLSON_XTOL,
+            scale=[1.0, 1.0, 1.0 / model.r2.max()],
+        )
+    return levenberg_marquardt(model.residuals, [f, tz, kappa], model.jacobian, ftol=INIT_FTOL, xtol=INIT_XTOL)
+
+
+def _left_jacobian(omega: np.ndarray) -> np.ndarray:
+    """Left Jacobian of SO(3) at rotation vector ``omega``: exp(omega + d) = exp(J_l d) exp(omega)."""
+    th = float(np.linalg.norm(omega))
+    K = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
+    if th < 1e-8:
+        return np.eye(3) + 0.5 * K
+    return np.eye(3) + (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * (K @ K)
+
+
+class _FullModel:
+    """Stage 5b's model: parameters x = (omega (3), t (3) [mm], f [px], kappa [px^-2] [, cx, cy]) with
+    R = exp(omega) R0; residuals in distorted pixels, model minus observation (u of all points, then
+    v), and their analytic Jacobian."""
+
+    def __init__(self, p_W, uv, R0, cx, cy, aspect, free_centre):
+        self.q = np.asarray(p_W, dtype=float) @ R0.T  # plate points rotated by R0, (N, 3)
+        self.uv = np.asarray(uv, dtype=float)
+        self.cx, self.cy, self.aspect, self.free_centre = cx, cy, aspect, free_centre
+        self._key, self._m = None, None
+
+    def model(self, x):
+        """Per-point arrays at ``x`` (cached for the Jacobian), or None where a point is behind the
+        camera or beyond the lens's fold."""
+        key = x.tobytes()
+        if key != self._key:
+            self._key, self._m = key, _project_full(self.q, x, self.cx, self.cy, self.aspect, self.free_centre)
+        return self._m
+
+    def residuals(self, x):
+        m = self.model(x)
+        if m is None:
+            return np.full(2 * len(self.q), np.nan)  # lets the solver reject the step
+        return np.concatenate([m["u"] - self.uv[:, 0], m["v"] - self.uv[:, 1]])
+
+    def jacobian(self, x):
+        m = self.model(x)
+        f_, k_ = x[6], x[7]
+        X, Y, Xh, Yh, z, d = m["X"], m["Y"], m["Xh"], m["Yh"], m["z"], m["d"]
+        rh2 = Xh * Xh + Yh * Yh
+        a = 1.0 + k_ * rh2
+        # d(distorted)/d(undistorted) = (a I + 2 k Xh Xh^T)^-1 = (I - c Xh Xh^T) / a  (eq. 4 inverted)
+        c = 2.0 * k_ / (a + 2.0 * k_ * rh2)
+        m01 = -c * Xh * Yh / a
+        Jl = _left_jacobian(x[:3])
+        rows = []
+        m00, m11 = (1.0 - c * Xh * Xh) / a, (1.0 - c * Yh * Yh) / a
+        for mu0, mu1 in ((m00 / self.aspect, m01 / self.aspect), (m01, m11)):
+            # d(pixel)/d(p_C) through eq. 3, X = f x / z, Y = f y / z
+            g = np.column_stack([mu0, mu1, -(mu0 * X + mu1 * Y) / f_]) * (f_ / z)[:, None]
+            rows.append(np.hstack([
+                _cross(d, g) @ Jl,  # g d p_C / d omega = g (-[R q]x) J_l(omega) = (R q x g) J_l
+                g,
+                ((mu0 * X + mu1 * Y) / f_)[:, None],
+                (-(mu0 * Xh + mu1 * Yh) * rh2)[:, None],
+            ]))
+        J = np.vstack(rows)
+        if self.free_centre:
+            n = len(self.q)
+            J = np.hstack([J, np.zeros((2 * n, 2))])
+            J[:n, -2] = 1.0
+            J[n:, -1] = 1.0
+        return J
+
+
+def _refine_full(p_W, uv, R0, t0, f, kappa, cx, cy, aspect, free_centre):
+    """Stage 5b, ``full``/``full+centre``: pose, f, kappa [, cx, cy] minimising the distorted pixel
+    error from R0, t0. Returns (LM result, R)."""
+    model = _FullModel(p_W, uv, R0, cx, cy, aspect, free_centre)
+    x0 = np.concatenate([np.zeros(3), t0, [f, kappa], [cx, cy] if free_centre else []])
+    res = levenberg_marquardt(
+        model.residuals, x0, model.jacobian, ftol=FULL_FTOL, xtol=FULL_XTOL, max_nfev=FULL_MAX_NFEV
+    )
+    return res, R_from_rotvec(res.x[:3]) @ R0
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (N, 3) arrays (np.cross costs more than the arithmetic here)."""
+    return np.column_stack([
+        a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+        a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+        a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
+    ])
+
+
+def _project_full(q, x, cx, cy, aspect, free_centre):
+    """Model of ``_refine_full`` at parameters ``x``: dict of per-point arrays, or None where the
+    model cannot see a point (behind the camera, beyond the lens's fold)."""
+    R = R_from_rotvec(x[:3])
+    d = q @ R.T
+    pc = d + x[3:6]
+    z = pc[:, 2]
+    if np.any(z <= 0):
+        return None
+    XY = x[6] * pc[:, :2] / z[:, None]
+    try:
+        XYh = distort(XY, x[7])
+    except CalibrationError:
+        return None
+    ccx, ccy = (x[8], x[9]) if free_centre else (cx, cy)
+    return {
+        "d": d, "z": z, "X": XY[:, 0], "Y": XY[:, 1], "Xh": XYh[:, 0], "Yh": XYh[:, 1],
+        "u": XYh[:, 0] / aspect + ccx, "v": XYh[:, 1] + ccy,
+    }
+
+
+# --- the calibration -----------------------------------------------------------------------------------
+def calibrate_coplanar(
+    p_W,
+    uv,
+    *,
+    cx: float,
+    cy: float,
+    aspect: float = 1.0,
+    mode: str = "full",
+    width: int = 768,
+    height: int = 576,
+    f_guess: float | None = None,
+    kappa_guess: float = 0.0,
+) -> TsaiResult:
+    """Tsai's coplanar calibration from plate points ``p_W`` (N, 3) [mm, z = 0] and their pixels
+    ``uv`` (N, 2), principal point (``cx``, ``cy``) [px] and ``aspect`` known.
+
+    ``mode``: ``tsai`` refines f, Tz, kappa as Tsai published it; ``full`` (default) pose, f and kappa;
+    ``full+centre`` also the principal point. ``width``, ``height`` [px] pass through to the camera.
+    ``kappa_guess`` [px^-2] is removed from the observations before the linear stages and starts the
+    refinement (0 reproduces Willson); ``f_guess`` [px], if given, starts the refinement in place of
+    the linear f (Tz re-solved for it).
+
+    Raises ``CalibrationError`` naming the cause: mismatched shapes, NaN, fewer than 5 points,
+    non-coplanar points, collinear points, the plate seen edge-on (image points collinear or tilted
+    beyond ``EDGE_ON_LIMIT_DEG``), f not separable from Tz (plate square-on or too far: the linear
+    f/Tz system singular, or the f/Tz/kappa stage implying a standard error of f above
+    ``F_REL_SD_LIMIT``; with the principal point free, ``FULL_REL_SD_LIMIT`` after the full
+    refinement), plate coordinates mirrored (the camera on W's +z side, against
+    ``CONVENTIONS.md``), no pose with f > 0, no convergence. ``ConfigError`` for a bad mode,
+    principal point, aspect or ``f_guess``.
+    """
+    p, q = _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height)
+    if f_guess is not None and not (np.isfinite(f_guess) and f_guess > 0):
+        raise ConfigError(f"coplanar calibration: f_guess must be a positive focal length in px, got {f_guess!r}")
+    xy = p[:, :2]
+    XYh = np.column_stack([aspect * (q[:, 0] - cx), q[:, 1] - cy])
+    _check_spread(XYh, "image points", "image points collinear: the plate is seen edge-on")
+    XYu = XYh * (1.0 + kappa_guess * np.sum(XYh * XYh, axis=1, keepdims=True))
+    Xd, Yd = XYu[:, 0], XYu[:, 1]
+
+    # Stages 1-4, in the given plate frame unless its origin lies too near the camera's y-z plane.
+    origin = np.zeros(2)
+    try:
+        tx, ty, r, f_lin, tz, cond = _linear_pose(xy[:, 0], xy[:, 1], Xd, Yd)
+        moved = abs(ty) < 0.25 * np.abs(r[1, 0] * xy[:, 0] + r[1, 1] * xy[:, 1] + ty).max()
+    except CalibrationError:
+        moved = True
+    if moved:
+        origin = xy[int(np.argmax(np.abs(Yd)))].copy()
+        xy = xy - origin
+        tx, ty, r, f_lin, tz, cond = _linear_pose(xy[:, 0], xy[:, 1], Xd, Yd)
+    R_lin = R_from_rpy(*_rpy_paul(r))
+    tilt = float(np.degrees(np.arccos(min(abs(R_lin[2, 2]), 1.0))))
+    if tilt > EDGE_ON_LIMIT_DEG:
+        raise CalibrationError(
+            f"plate seen nearly edge-on: tilted {tilt:.1f} deg from square-on (limit {EDGE_ON_LIMIT_DEG:g} deg)"
+        )
+    if not cond <= F_TZ_COND_LIMIT:
+        raise _inseparable(tilt, f"the linear f/Tz system is singular, condition number {cond:.3g}")
+    xc, yc, w = (r @ np.column_stack([xy, np.zeros(len(xy))]).T + np.array([[tx], [ty], [0.0]]))
+    if f_guess is not None:
+        f_lin = float(f_guess)
+        tz = float(Yd @ (f_lin * yc - w * Yd) / (Yd @ Yd))
+
+    # Stage 5a: Willson's three-parameter refinement, with the linear R as he keeps it.
+    stage = _FTzKappa(xc, yc, w, XYh[:, 0], XYh[:, 1])
+    lm = _refine_tsai(stage, f_lin, tz, kappa_guess, willson=mode == "tsai")
+    f, tz, kappa = (float(v) for v in lm.x)
+    rel_sd = stage.f_relative_sd(lm.x)
+    if not rel_sd <= F_REL_SD_LIMIT:
+        raise _inseparable(tilt, f"standard error of f {100 * rel_sd:.3g} % > {100 * F_REL_SD_LIMIT:g} %")
+    if not (lm.converged and f > 0 and np.all(w + tz > 0)):
+        raise CalibrationError(
+            f"Tsai refinement of f, Tz, kappa failed ({lm.message}; f = {f:.4g} px, Tz = {tz:.4g} mm)"
+        )
+    iterations = lm.iterations
+    C_H_W = make_H(R_lin, np.array([tx, ty, tz]) - R_lin @ np.array([origin[0], origin[1], 0.0]))
+    if float(R_lin[:, 2] @ C_H_W[:3, 3]) <= 0:
+        # The camera's position in W, -R^T t, has z >= 0: it sits on the side z points to.
+        raise CalibrationError(
+            "plate coordinates mirrored: the camera comes out on the +z side of the plate, but W must be "
+            "right-handed with z pointing into the plate, away from the camera (index the grid so that "
+            "x cross y points away from the camera)"
+        )
+    ccx, ccy = cx, cy
+    if mode == "tsai":
+        cam = CameraModel(f=f, kappa=kappa, cx=cx, cy=cy, aspect=aspect, width=int(width), height=int(height))
+        try:
+            residuals = q - cam.project(transform_points(C_H_W, p))
+        except CalibrationError as exc:
+            raise CalibrationError(f"Tsai's model does not reach every point: {exc}") from exc
+    else:
+        free = mode == "full+centre"
+        lm, R = _refine_full(p, q, R_lin, C_H_W[:3, 3], f, kappa, cx, cy, aspect, free)
+        iterations += lm.iterations
+        f, kappa = float(lm.x[6]), float(lm.x[7])
+        if free:
+            ccx, ccy = float(lm.x[8]), float(lm.x[9])
+        m, n = lm.jacobian.shape
+        rel_sd = _relative_sd(lm.covariance(max(lm.cost / (m - n), SEPARABILITY_NOISE_PX**2)), lm.x, 6)
+        if not rel_sd <= FULL_REL_SD_LIMIT:
+            what = "the principal point, f and the tilt" if free else "f and the pose"
+            raise CalibrationError(
+                f"one view of the plate cannot separate {what}: standard error of f {100 * rel_sd:.3g} % > "
+                f"{100 * FULL_REL_SD_LIMIT:g} %" + ("; fix the principal point (mode full)" if free else "")
+            )
+        if not (lm.converged and f > 0):
+            raise CalibrationError(f"full refinement failed ({lm.message}; f = {f:.4g} px)")
+        C_H_W = make_H(R, lm.x[3:6])
+        cam = CameraModel(f=f, kappa=kappa, cx=ccx, cy=ccy, aspect=aspect, width=int(width), height=int(height))
+        residuals = -lm.residuals.reshape(2, -1).T
+    rms, mean, mx, sse = residual_stats(residuals)
+    return TsaiResult(
+        camera=cam, C_H_W=C_H_W, residuals_px=residuals, rms_px=rms, mean_px=mean, max_px=mx, sse_px2=sse,
+        mode=mode, iterations=int(iterations),
+    )
+
+
+def _inseparable(tilt: float, detail: str) -> CalibrationError:
+    return CalibrationError(
+        f"f cannot be separated from Tz: the plate is seen nearly square-on (tilt {tilt:.1f} deg) or from too "
+        f"far for its size ({detail}); tilt the plate 30 deg or more, or bring it closer"
+    )
+
+
+def load_willson_points(path) -> tuple[np.ndarray, np.ndarray]:
+    """Read correspondences in Willson's format, one per line ``xw yw zw u v`` (mm, mm, mm, px, px);
+    blank lines and ``#`` comments are skipped. Returns (p_W (N, 3), uv (N, 2)).
+
+    Raises ``CalibrationFileError`` for a missing or unreadable file, a malformed line (naming its
+    number) or a file without points.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError as exc:
+        raise CalibrationFileError(f"{path}: no such points file") from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CalibrationFileError(f"{path}: cannot read the points file ({exc})") from exc
+    rows = []
+    for no, line in enumerate(text.splitlines(), start=1):
+        body = line.split("#", 1)[0].strip()
+        if not body:
+            continue
+        parts = body.split()
+        if len(parts) != 5:
+            raise CalibrationFileError(
+                f"{path}, line {no}: expected 5 numbers 'xw yw zw u v', got {len(parts)} field(s): "
+                f"{line.strip()!r}"
+            )
+        try:
+            vals = [float(s) for s in parts]
+        except ValueError as exc:
+            raise CalibrationFileError(f"{path}, line {no}: not a number in {line.strip()!r}") from exc
+        if not all(np.isfinite(vals)):
+            raise CalibrationFileError(f"{path}, line {no}: non-finite value in {line.strip()!r}")
+        rows.append(vals)
+    if not rows:
+        raise CalibrationFileError(f"{path}: no points (expected lines 'xw yw zw u v')")
+    a = np.array(rows)
+    return a[:, :3].copy(), a[:, 3:].copy()
