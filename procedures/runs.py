@@ -92,8 +92,9 @@ class CellSession:
         self.engine: Engine | None = None
 
     @classmethod
-    def simulated(cls, cell: Cell, seed: int = 0, *, time_scale: float = 0.02, link: str = "pty", **kw) -> "CellSession":
-        sim = SimulatedCell(cell, seed=seed, time_scale=time_scale, link=link)
+    def simulated(cls, cell: Cell, seed: int = 0, *, time_scale: float = 0.02, link: str = "pty",
+                  taught: dict | None = None, **kw) -> "CellSession":
+        sim = SimulatedCell(cell, seed=seed, time_scale=time_scale, link=link, taught=taught)
         return cls(cell, CellURLs("", "", ""), sim=sim, **kw)
 
     @classmethod

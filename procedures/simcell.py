@@ -32,11 +32,13 @@ class SimulatedCell:
     """Start the simulated devices of ``cell`` (seeded) and stop them on exit.
 
     ``time_scale`` shortens robot motions (1.0: real time); ``link`` 'pty' or 'tcp' for the robot;
-    ``travel_s`` the jaws' travel time. Use as a context manager; ``urls`` names the devices.
+    ``travel_s`` the jaws' travel time; ``taught`` the controller's taught locations (name -> (4, 4) pose;
+    default: 'plate', pressing the plate 4 mm into the foam, and 'above' it). Use as a context manager;
+    ``urls`` names the devices.
     """
 
     def __init__(self, cell: Cell, *, seed: int = 0, time_scale: float = 0.02, link: str = "pty",
-                 travel_s: float = 0.05):
+                 travel_s: float = 0.05, taught: dict | None = None):
         if link not in ("pty", "tcp"):
             from selfview.errors import ConfigError
 
@@ -47,6 +49,7 @@ class SimulatedCell:
         self.time_scale = float(time_scale)
         self.link = link
         self.travel_s = float(travel_s)
+        self.taught = taught
         self.robot_sim: ValController | None = None
         self.valve_sim: ValveTerminal | None = None
         self._attachment = None
@@ -55,7 +58,8 @@ class SimulatedCell:
     def start(self) -> "SimulatedCell":
         try:
             # a cell ready to work: the operator ran CAL after power-up
-            self.robot_sim = ValController(self.world, seed=self.seed, time_scale=self.time_scale, calibrated=True)
+            self.robot_sim = ValController(self.world, seed=self.seed, time_scale=self.time_scale,
+                                           calibrated=True, taught=self.taught)
             if self.link == "pty":
                 robot_url = self.robot_sim.start_pty()
             else:

@@ -1,0 +1,62 @@
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from procedures.cli import main
+
+REPO = Path(__file__).resolve().parents[2]
+METHODS = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R")
+
+
+def test_experiment_writes_its_results_folder(tmp_path, capsys):
+    out = tmp_path / "run"
+    code = main(["experiment", "--trials", "3", "--out", str(out), "--json", "--quiet", "--seed", "11"])
+    assert code == 0
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert printed["folder"] == str(out)
+    res = json.loads((out / "results.json").read_text())
+    for series in ("cable", "tilt"):
+        ser = res["summary"][series]
+        assert ser["trials"] + sum(f["series"] == series for f in res["summary"]["failures"]) == 3
+        ok = [m for m in METHODS if "reference" in ser["methods"][m]]
+        assert len(ok) >= 5  # most methods ran on most trials
+        for m in ok:
+            for against in ("reference", "truth"):
+                e = ser["methods"][m][against]
+                assert len(e["mean_mm"]) == 3 and len(e["max_mm"]) == 3
+                assert all(0 <= a <= b for a, b in zip(e["mean_mm"], e["max_mm"]))
+        # the on-line estimates of a 1.5 or 4.5 mm shift land within a fraction of a mm
+        assert max(ser["methods"]["4P-I"]["truth"]["mean_mm"]) < 0.2
+    assert res["config"]["seed"] == 11 and res["cell"]["sha256"]
+    assert res["environment"]["selfview"]
+    assert len(res["trials"]) >= 4
+    for f in ("tables.md", "errors.png", "trial1_offline.png", "trial1_online.png", "trial1_picture1.png"):
+        assert (out / f).stat().st_size > 0
+    tables = (out / "tables.md").read_text()
+    assert "Table 1" in tables and "Table 2" in tables and "| 4P-U" in tables
+    # a run never overwrites an earlier run's folder
+    assert main(["experiment", "--trials", "1", "--out", str(out), "--quiet"]) == 3
+    assert "already holds" in capsys.readouterr().err
+
+
+def test_bad_arguments_name_the_problem(capsys):
+    assert main(["experiment", "--trials", "0", "--quiet"]) == 3
+    assert "--trials" in capsys.readouterr().err
+    assert main(["experiment", "--robot", "/dev/ttyS0", "--quiet"]) == 3
+    assert "--real" in capsys.readouterr().err
+    assert main(["experiment", "--real", "--quiet"]) == 3
+    assert "robot URL" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("script, args, expect", [
+    ("offline_calibration.py", ["cal.yaml"], "saved to cal.yaml"),
+    ("monitoring_loop.py", ["6"], "frame 6:"),
+])
+def test_examples_run(tmp_path, script, args, expect):
+    r = subprocess.run([sys.executable, str(REPO / "examples" / script), *args], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert expect in r.stdout

@@ -1,0 +1,168 @@
+"""The engine and the procedures on the simulated cell, every device on its real channel."""
+
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from mocks.world import PLATE_BASE_POSE
+from procedures.engine import Cancelled, Engine, Step
+from procedures.runs import CellSession, RunSettings
+from selfview.calfile import load_calibration
+from selfview.errors import CalibrationError, ConfigError, DeviceError, DeviceTimeout, ImageError, LimitError
+from selfview.geometry import trans
+
+MOTIONS = ("DO MOVE", "DO MOVES", "DO APPRO", "DO DEPART", "DO DRIVE", "DO READY")
+
+
+def motions(session):
+    return [ln for ln in session.sim.robot_sim.received if ln.upper().startswith(MOTIONS)]
+
+
+def valve_is_safe(session):
+    # the default io map's safe state is all-off: both solenoids de-energised
+    return not any(session.sim.valve_sim.valve_outputs.values())
+
+
+@pytest.fixture
+def session(cell):
+    with CellSession.simulated(cell, seed=4, time_scale=0.01) as s:
+        yield s
+
+
+def test_calibrate_procedure_parks_calibrates_saves_and_departs(session, tmp_path):
+    out = tmp_path / "cal.yaml"
+    res = session.calibrate(out=out)
+    kinds = [r.step.split("(")[0] for r in session.engine.records]
+    assert kinds[:5] == ["speed", "appro", "gripper", "moves", "wait"]
+    assert kinds[-1] == "depart" and "grab" in kinds
+    assert all(r.ok for r in session.engine.records)
+    cal = load_calibration(out)
+    truth = session.sim.world.truth()
+    assert np.allclose(cal.C_H_G[:3, 3], np.asarray(truth["C_H_G"])[:3, 3], atol=0.15)
+    assert res.calibration.camera.f == pytest.approx(962.0, rel=2e-3)
+    assert not session.sim.world.parked  # departed
+
+
+def test_dry_run_moves_nothing(cell, capsys):
+    lines = []
+    with CellSession.simulated(cell, seed=1, time_scale=0.01, dry_run=True, progress=lines.append) as s:
+        assert s.park() is None
+        s.experiment(trials=2)
+        assert motions(s) == []
+    assert any("appro" in ln for ln in lines) and any("disturb" in ln for ln in lines)
+
+
+def test_a_plan_out_of_limits_is_refused_before_anything_moves(cell):
+    far = PLATE_BASE_POSE @ trans(0, 0, -60.0)
+    far[0, 3] = 900.0  # outside the driver's workspace box
+    taught = {"plate": far, "above": PLATE_BASE_POSE @ trans(0, 0, -60.0)}
+    with CellSession.simulated(cell, seed=2, time_scale=0.01, taught=taught) as s:
+        with pytest.raises(LimitError, match="plan refused before anything moved.*appro"):
+            s.park()
+        assert motions(s) == []
+        assert s.engine.records == []
+
+
+def _fault_cases():
+    def robot_error(s):
+        s.sim.robot_sim.inject("power_loss", at=0.5)
+
+    def gripper_timeout(s):
+        s.devices.gripper.close_jaws()
+        s.sim.valve_sim.stick_jaw(True)
+
+    def missing_frame(s):
+        src = s.devices.camera.source
+
+        def stalled(timeout_s):
+            time.sleep(timeout_s)
+            raise DeviceTimeout("sim camera: no frame within the timeout (stalled grabber)")
+
+        src.read = stalled
+
+    def calibration_failure(s):
+        # somebody took the plate away: the gripper descends onto nothing and the picture has no discs
+        s.sim.world.base_H_plate0 = trans(300.0, 0, 0) @ s.sim.world.base_H_plate0
+
+    return [
+        ("robot", robot_error, DeviceError),
+        ("gripper", gripper_timeout, DeviceTimeout),
+        ("frame", missing_frame, DeviceTimeout),
+        ("calibration", calibration_failure, (CalibrationError, ImageError)),
+    ]
+
+
+@pytest.mark.parametrize("kind, inject, exc", _fault_cases(), ids=[c[0] for c in _fault_cases()])
+def test_cleanup_after_a_fault_at_each_kind_of_step(cell, tmp_path, kind, inject, exc):
+    out = tmp_path / "cal.yaml"
+    with CellSession.simulated(cell, seed=5, time_scale=0.01) as s:
+        s.calibrate(out=out)  # a previous, good calibration
+        before = out.read_bytes()
+        inject(s)
+        n_before = len(s.sim.robot_sim.received)
+        with pytest.raises(exc):
+            s.calibrate(out=out)
+        rep = s.engine.cleanup_report
+        assert rep is not None and "ABORT" in rep["robot"]
+        assert "ABORT" in [ln.upper() for ln in s.sim.robot_sim.received[n_before:]]
+        assert not s.sim.robot_sim.moving.is_set()
+        assert valve_is_safe(s)
+        assert out.read_bytes() == before  # the previous calibration is intact
+        assert load_calibration(out).C_H_G.shape == (4, 4)
+
+
+def test_ctrl_c_stops_the_robot_and_leaves_the_gripper_safe(cell):
+    with CellSession.simulated(cell, seed=6, time_scale=1.0) as s:  # real-time motions: slow enough to interrupt
+        main = threading.get_ident()
+        timer = threading.Timer(0.6, lambda: signal.pthread_kill(main, signal.SIGINT))
+        timer.start()
+        t0 = time.monotonic()
+        try:
+            with pytest.raises(Cancelled, match="interrupted"):
+                s.park()
+        finally:
+            timer.cancel()
+        assert time.monotonic() - t0 < 8.0
+        assert "ABORT" in [ln.upper() for ln in s.sim.robot_sim.received]
+        assert not s.sim.robot_sim.moving.is_set()
+        assert valve_is_safe(s)
+        assert "interrupted" in s.engine.cleanup_report["reason"]
+
+
+def test_engine_rejects_unknown_steps_and_asks_only_with_an_operator():
+    with pytest.raises(ConfigError, match="step kind"):
+        Step("teleport")
+    e = Engine(devices=None.__class__ and __import__("procedures.engine").engine.CellDevices())
+    with pytest.raises(ConfigError, match="no operator"):
+        e.run(lambda eng: eng.execute(Step("ask", {"text": "pull the cable"})))
+    answers = []
+    e2 = Engine(__import__("procedures.engine").engine.CellDevices(), ask=lambda t: answers.append(t) or "")
+    e2.run(lambda eng: eng.execute(Step("disturb", {"series": "cable"})))
+    assert answers and "cable" in answers[0]
+
+
+def test_monitor_updates_then_recalibrates_then_raises_the_alarm(cell, tmp_path):
+    from selfview.errors import AlarmError
+
+    out = tmp_path / "cal.yaml"
+    with CellSession.simulated(cell, seed=7, time_scale=0.01) as s:
+        s.calibrate(out=out)
+        w = s.sim.world
+        spec = cell.simulation.disturbances["cable"]
+        # the camera creeps on its mount, faster and faster
+        steps = [0.15, 0.15, 0.15, 0.15, 0.6, 0.2, 0.2, 2.5, 3.0, 3.0]
+        n_rx = len(s.sim.robot_sim.received)
+        with pytest.raises(AlarmError):
+            s.monitor(out, frames=len(steps),
+                      disturb=lambda k: w.disturb_by_angle(spec.axis_C, steps[k], spec.pivot_C, series="creep"))
+        actions = [r["action"] for r in s.monitor_records if r["action"] != "calibrated"]
+        assert actions[0] == "update"
+        assert "recalibrate" in actions
+        assert actions[-1] == "alarm"
+        assert actions.index("recalibrate") < len(actions) - 1
+        assert "ABORT" in [ln.upper() for ln in s.sim.robot_sim.received[n_rx:]]
+        assert valve_is_safe(s)
