@@ -77,14 +77,13 @@ def environment() -> dict:
         "machine": platform.machine(),
         "cpus": os.cpu_count(),
     }
-    try:
-        import pymodbus
-        import serial
+    from importlib import metadata
 
-        out["pymodbus"] = pymodbus.__version__
-        out["pyserial"] = serial.__version__
-    except ImportError:  # pragma: no cover
-        pass
+    for dist in ("pymodbus", "pyserial", "matplotlib"):
+        try:  # read from the installed metadata: pymodbus stays imported by its one adapter module only
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:  # pragma: no cover
+            out[dist] = None
     return out
 
 

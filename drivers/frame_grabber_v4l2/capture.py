@@ -1,0 +1,305 @@
+"""Frame sources: the one module of the project that uses OpenCV's capture API (``cv2.VideoCapture``).
+
+A source yields raw frames with the moment they were exposed; ``FrameGrabber`` turns them into checked
+grey frames. Sources here: a V4L2 grabber card (``V4L2Source``), an image sequence or a video file
+(``RecordedSource``). Other schemes (the simulator's ``sim://``) are plugged in with
+``register_source``, so this package never imports what provides them.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+from collections.abc import Callable
+from typing import Protocol, runtime_checkable
+
+import cv2
+import numpy as np
+
+from drivers.frame_grabber_v4l2.url import GrabberUrl
+from drivers.frame_grabber_v4l2.v4l2 import V4L2Device, std_name
+from selfview.errors import ConfigError, DeviceError, DeviceTimeout, ImageError
+
+__all__ = [
+    "FrameSource",
+    "SourceFactory",
+    "EndOfStream",
+    "V4L2Source",
+    "RecordedSource",
+    "register_source",
+    "unregister_source",
+    "source_for",
+    "to_grey",
+]
+
+
+class EndOfStream(DeviceError):
+    """A recording has no more frames (and was not asked to loop)."""
+
+
+@runtime_checkable
+class FrameSource(Protocol):
+    """What ``FrameGrabber`` reads from.
+
+    ``read(timeout_s)`` returns ``(image, timestamp)``: a uint8 array (H, W) or (H, W, C) and the
+    monotonic time (s, ``time.monotonic``'s clock) at which its exposure started; it raises
+    DeviceTimeout if no frame arrives within ``timeout_s``. ``frame_period_s`` is the nominal time
+    between frames (None: unknown).
+    """
+
+    description: str
+    frame_period_s: float | None
+
+    def open(self) -> None: ...
+
+    def read(self, timeout_s: float) -> tuple[np.ndarray, float]: ...
+
+    def close(self) -> None: ...
+
+
+SourceFactory = Callable[[GrabberUrl], FrameSource]
+
+_registry: dict[str, SourceFactory] = {}
+_registry_lock = threading.Lock()
+
+
+def register_source(scheme: str, factory: SourceFactory) -> SourceFactory | None:
+    """Make ``scheme://`` URLs open ``factory(url)``; returns the factory it replaces (or None)."""
+    if scheme in ("v4l2", "frames", "file"):
+        raise ConfigError(f"register_source: {scheme!r} is built in")
+    with _registry_lock:
+        old = _registry.get(scheme)
+        _registry[scheme] = factory
+        return old
+
+
+def unregister_source(scheme: str, factory: SourceFactory | None = None) -> None:
+    """Forget ``scheme`` (only if it is still ``factory``, when one is given)."""
+    with _registry_lock:
+        if factory is None or _registry.get(scheme) is factory:
+            _registry.pop(scheme, None)
+
+
+def source_for(
+    url: GrabberUrl, sources: dict[str, SourceFactory] | None = None, *, timeout_s: float = 1.0
+) -> FrameSource:
+    """The source for a parsed URL: built in, from ``sources``, or from the registry. ``timeout_s``
+    bounds how long the V4L2 backend may wait for a frame."""
+    if url.scheme == "v4l2":
+        return V4L2Source(url, select_timeout_s=timeout_s)
+    if url.scheme in ("frames", "file"):
+        return RecordedSource(url)
+    factory = (sources or {}).get(url.scheme)
+    if factory is None:
+        with _registry_lock:
+            factory = _registry.get(url.scheme)
+    if factory is None:
+        known = sorted({"v4l2", "frames", "file"} | set(_registry) | set(sources or {}))
+        hint = " (sim:// needs a simulated world attached: mocks.sim_camera.attach_world)" if url.scheme == "sim" else ""
+        raise ConfigError(f"{url.url}: no frame source for scheme {url.scheme!r}{hint}; known: {', '.join(known)}")
+    return factory(url)
+
+
+def to_grey(image: np.ndarray, what: str = "frame") -> np.ndarray:
+    """A frame as a 2-D uint8 grey image: (H, W) kept, (H, W, 1) squeezed, BGR / BGRA converted."""
+    a = np.asarray(image)
+    if a.dtype != np.uint8:
+        raise ImageError(f"{what}: expected 8-bit pixels, got {a.dtype}")
+    if a.ndim == 2:
+        return a
+    if a.ndim == 3 and a.shape[2] == 1:
+        return a[:, :, 0]
+    if a.ndim == 3 and a.shape[2] == 3:
+        return cv2.cvtColor(a, cv2.COLOR_BGR2GRAY)
+    if a.ndim == 3 and a.shape[2] == 4:
+        return cv2.cvtColor(a, cv2.COLOR_BGRA2GRAY)
+    raise ImageError(f"{what}: expected a grey or BGR picture, got shape {a.shape}")
+
+
+class _Paced:
+    """Releases frames no faster than ``fps`` (None: as they come); times on the monotonic clock."""
+
+    def __init__(self, fps: float | None):
+        self.frame_period_s = None if fps is None else 1.0 / fps
+        self._next = 0.0
+
+    def wait(self, timeout_s: float, what: str) -> float:
+        now = time.monotonic()
+        if self.frame_period_s is None:
+            return now
+        due = max(now, self._next)
+        if due - now > timeout_s:
+            time.sleep(timeout_s)
+            raise DeviceTimeout(f"{what}: next frame due in {due - now:.3f} s, beyond timeout_s={timeout_s}")
+        if due > now:
+            time.sleep(due - now)
+        self._next = due + self.frame_period_s
+        return due
+
+
+class RecordedSource:
+    """An image sequence (``frames://``, OpenCV's CAP_IMAGES reader) or a video file (``file://``).
+
+    Each frame is stamped with the moment it is read (paced at ``fps`` when the URL gives one).
+    At the end of the recording: EndOfStream, or the first frame again with ``loop=1``.
+    """
+
+    def __init__(self, url: GrabberUrl):
+        self.url = url
+        self.description = url.url
+        self._pace = _Paced(url.fps)
+        self.frame_period_s = self._pace.frame_period_s
+        self._cap: cv2.VideoCapture | None = None
+        self.frames_read = 0
+
+    def _open_capture(self) -> cv2.VideoCapture:
+        path = self.url.path
+        if self.url.scheme == "frames":
+            folder = os.path.dirname(path) or "."
+            if not os.path.isdir(folder):
+                raise DeviceError(f"{self.url.url}: folder {folder} does not exist")
+            cap = cv2.VideoCapture(path, cv2.CAP_IMAGES)
+        else:
+            if not os.path.isfile(path):
+                raise DeviceError(f"{self.url.url}: video file {path} does not exist")
+            cap = cv2.VideoCapture(path, cv2.CAP_ANY)
+        if not cap.isOpened():
+            cap.release()
+            what = "no image matches the pattern" if self.url.scheme == "frames" else "OpenCV cannot decode the file"
+            raise DeviceError(f"{self.url.url}: cannot open ({what})")
+        return cap
+
+    def open(self) -> None:
+        if self._cap is None:
+            self._cap = self._open_capture()
+
+    def read(self, timeout_s: float) -> tuple[np.ndarray, float]:
+        if self._cap is None:
+            raise DeviceError(f"{self.url.url}: read before open")
+        ok, img = self._cap.read()
+        if not ok and self.url.loop and self.frames_read > 0:
+            self._cap.release()
+            self._cap = self._open_capture()
+            ok, img = self._cap.read()
+        if not ok or img is None:
+            raise EndOfStream(f"{self.url.url}: no more frames after {self.frames_read} (end of the recording)")
+        t = self._pace.wait(timeout_s, self.url.url)
+        self.frames_read += 1
+        return img, t
+
+    def close(self) -> None:
+        cap, self._cap = self._cap, None
+        if cap is not None:
+            cap.release()
+
+
+# V4L2 fourccs whose raw buffer holds the grey (luma) values without colour conversion: (bytes per
+# pixel, offset of the luma byte in a pixel).
+_RAW_GREY = {"GREY": (1, 0), "Y800": (1, 0), "YUYV": (2, 0), "YUY2": (2, 0), "UYVY": (2, 1)}
+
+
+class V4L2Source:
+    """A V4L2 capture device (an analogue CCIR grabber card) through OpenCV's V4L2 backend.
+
+    ``open()``: open the node for control ioctls, check it captures video, select the input and the
+    analogue standard (VIDIOC_S_INPUT, VIDIOC_S_STD), check a signal is present (VIDIOC_QUERYSTD),
+    set ``OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT`` (whole seconds, before the first capture), then open the
+    capture with size, pixel format, 1-2 buffers and no RGB conversion, and check OpenCV got them.
+    Frames come as the raw buffer; the luma bytes are picked out (GREY, YUYV, UYVY). Timestamps are
+    the driver's buffer timestamps (CLOCK_MONOTONIC), or the read time less one frame period.
+    """
+
+    def __init__(self, url: GrabberUrl, *, select_timeout_s: float = 1.0):
+        if url.fourcc not in _RAW_GREY:
+            raise ConfigError(
+                f"{url.url}: format={url.fourcc} cannot be read as grey without colour conversion; "
+                f"use one of {', '.join(_RAW_GREY)}"
+            )
+        self.url = url
+        self.description = url.url
+        self.select_timeout_s = select_timeout_s
+        self.frame_period_s = 1.0 / 25.0 if url.std is not None and url.std & 0x00FF06FF else 1.0 / 30.0
+        self.device = V4L2Device(url.path)
+        self.info: dict | None = None
+        self._cap: cv2.VideoCapture | None = None
+
+    def open(self) -> None:
+        if self._cap is not None:
+            return
+        u = self.url
+        self.device.open()
+        try:
+            self.info = self.device.querycap()
+            if u.input is not None:
+                self.device.set_input(u.input)
+            if u.std is not None:
+                self.device.set_std(u.std)
+            self.device.check_signal(u.std)
+            # OpenCV reads this once, at the first V4L2 frame of the process; whole seconds, >= 1.
+            os.environ.setdefault("OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT", str(max(1, math.ceil(self.select_timeout_s))))
+            cap = cv2.VideoCapture(u.path, cv2.CAP_V4L2)
+            if not cap.isOpened():
+                cap.release()
+                raise DeviceError(f"{u.url}: OpenCV's V4L2 backend cannot open {u.path} (busy?)")
+            try:
+                self._configure(cap)
+            except BaseException:
+                cap.release()
+                raise
+            self._cap = cap
+        except BaseException:
+            self.device.close()
+            raise
+
+    def _configure(self, cap: cv2.VideoCapture) -> None:
+        u = self.url
+        cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*u.fourcc))
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, u.width)
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, u.height)
+        cap.set(cv2.CAP_PROP_BUFFERSIZE, u.buffers)
+        cap.set(cv2.CAP_PROP_CONVERT_RGB, 0)
+        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        if (w, h) != (u.width, u.height):
+            raise ConfigError(f"{u.url}: the grabber gives {w}x{h}, not the configured {u.width}x{u.height}")
+        got = int(cap.get(cv2.CAP_PROP_FOURCC)) & 0xFFFFFFFF
+        name = got.to_bytes(4, "little").decode("ascii", errors="replace")
+        if name != u.fourcc:
+            raise ConfigError(f"{u.url}: the grabber gives pixel format {name!r}, not {u.fourcc}")
+        if int(cap.get(cv2.CAP_PROP_CONVERT_RGB)) != 0:
+            raise DeviceError(f"{u.url}: OpenCV would not switch RGB conversion off")
+
+    def _grey_from_raw(self, raw: np.ndarray) -> np.ndarray:
+        u = self.url
+        bpp, offset = _RAW_GREY[u.fourcc]
+        data = np.asarray(raw, dtype=np.uint8).reshape(-1)
+        if data.size < u.height * u.width * bpp or data.size % u.height:
+            raise ImageError(f"{u.url}: frame of {data.size} bytes, expected {u.height} rows of {u.width * bpp}")
+        rows = data.reshape(u.height, -1)  # rows may be padded (bytesperline > width * bpp)
+        return np.ascontiguousarray(rows[:, offset : u.width * bpp : bpp])
+
+    def read(self, timeout_s: float) -> tuple[np.ndarray, float]:
+        if self._cap is None:
+            raise DeviceError(f"{self.url.url}: read before open")
+        t0 = time.monotonic()
+        ok, raw = self._cap.read()
+        now = time.monotonic()
+        if not ok or raw is None:
+            self.device.check_signal(self.url.std)  # says "no signal" when that is why
+            raise DeviceTimeout(
+                f"{self.url.url}: no frame within {now - t0:.2f} s although the signal is "
+                f"{std_name(self.url.std or 0)} (grabber stalled?)"
+            )
+        if now - t0 > timeout_s:
+            raise DeviceTimeout(f"{self.url.url}: the frame took {now - t0:.2f} s, beyond timeout_s={timeout_s}")
+        ts = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+        if not (now - 5.0 < ts <= now):  # not a CLOCK_MONOTONIC buffer time stamp
+            ts = now - self.frame_period_s
+        return self._grey_from_raw(raw), ts
+
+    def close(self) -> None:
+        cap, self._cap = self._cap, None
+        if cap is not None:
+            cap.release()
+        self.device.close()

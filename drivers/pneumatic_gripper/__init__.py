@@ -1,0 +1,31 @@
+"""Pneumatic parallel-jaw gripper on a Modbus valve: driver, I/O map and URLs.
+
+Only ``drivers.pneumatic_gripper.modbus`` imports pymodbus (pinned to 3.11 in pyproject.toml).
+"""
+
+from drivers.pneumatic_gripper.gripper import GripperFault, JawReading, PneumaticGripper
+from drivers.pneumatic_gripper.iomap import JAW_STATES, IoMap, Point, from_reference, to_reference
+from drivers.pneumatic_gripper.modbus import (
+    ConnectionFailed,
+    ConnectionLost,
+    ModbusExceptionReply,
+    ModbusLink,
+)
+from drivers.pneumatic_gripper.url import ModbusUrl, parse_modbus_url
+
+__all__ = [
+    "PneumaticGripper",
+    "GripperFault",
+    "JawReading",
+    "IoMap",
+    "Point",
+    "JAW_STATES",
+    "from_reference",
+    "to_reference",
+    "ModbusLink",
+    "ModbusExceptionReply",
+    "ConnectionFailed",
+    "ConnectionLost",
+    "ModbusUrl",
+    "parse_modbus_url",
+]

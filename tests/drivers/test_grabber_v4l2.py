@@ -1,0 +1,179 @@
+"""The V4L2 side without a grabber card: ioctl request numbers, structure layouts, URL parsing, clear
+failures on a missing or wrong device node, and the raw-buffer-to-grey path."""
+
+from __future__ import annotations
+
+import ctypes
+import dataclasses
+import errno
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers.frame_grabber_v4l2 import FrameGrabber, V4L2Device, parse_grabber_url
+from drivers.frame_grabber_v4l2 import v4l2
+from drivers.frame_grabber_v4l2.capture import V4L2Source
+from selfview.errors import ConfigError, DeviceError, ImageError
+
+# The values <linux/videodev2.h> gives on x86-64 / arm64 (printed by a C program including it).
+KERNEL = {
+    "VIDIOC_QUERYCAP": 0x80685600,
+    "VIDIOC_G_STD": 0x80085617,
+    "VIDIOC_S_STD": 0x40085618,
+    "VIDIOC_ENUMINPUT": 0xC050561A,
+    "VIDIOC_G_INPUT": 0x80045626,
+    "VIDIOC_S_INPUT": 0xC0045627,
+    "VIDIOC_QUERYSTD": 0x8008563F,
+}
+
+
+def test_ioctl_numbers_match_the_kernel_header():
+    for name, value in KERNEL.items():
+        assert getattr(v4l2, name) == value, name
+    assert ctypes.sizeof(v4l2.v4l2_input) == 80 and v4l2.v4l2_input.status.offset == 56
+    assert v4l2.v4l2_input.std.offset == 48
+    assert ctypes.sizeof(v4l2.v4l2_capability) == 104
+
+
+def test_ioc_encoding_and_ranges():
+    assert v4l2.IOC(0, "V", 0, 0) == ord("V") << 8
+    assert v4l2.IOWR("V", 39, ctypes.c_int) == (3 << 30) | (4 << 16) | (ord("V") << 8) | 39
+    with pytest.raises(ValueError):
+        v4l2.IOC(4, "V", 0, 0)
+    with pytest.raises(ValueError):
+        v4l2.IOC(1, "V", 256, 0)
+    with pytest.raises(ValueError):
+        v4l2.IOC(1, "V", 0, 1 << 14)
+
+
+HEADER = Path("/usr/include/linux/videodev2.h")
+
+
+@pytest.mark.skipif(shutil.which("cc") is None or not HEADER.is_file(), reason="needs a C compiler and kernel headers")
+def test_ioctl_numbers_against_a_compiled_header(tmp_path):
+    names = list(KERNEL) + ["V4L2_STD_PAL", "V4L2_STD_NTSC", "V4L2_STD_SECAM"]
+    src = tmp_path / "v.c"
+    src.write_text(
+        "#include <stdio.h>\n#include <linux/videodev2.h>\nint main(void){\n"
+        + "".join(f'printf("%llu\\n", (unsigned long long){n});\n' for n in names)
+        + "return 0;}\n"
+    )
+    exe = tmp_path / "v"
+    subprocess.run(["cc", str(src), "-o", str(exe)], check=True, capture_output=True, timeout=60)
+    out = [int(x) for x in subprocess.run([str(exe)], check=True, capture_output=True, text=True, timeout=10).stdout.split()]
+    from drivers.frame_grabber_v4l2 import STANDARDS
+
+    ours = [getattr(v4l2, n) for n in KERNEL] + [STANDARDS["pal"], STANDARDS["ntsc"], STANDARDS["secam"]]
+    assert out == ours
+
+
+def test_v4l2_url_defaults_and_settings():
+    u = parse_grabber_url("v4l2:///dev/video0")
+    assert (u.path, u.input, u.std, u.width, u.height, u.fourcc, u.buffers) == (
+        "/dev/video0", None, 0xFF, 768, 576, "GREY", 2)
+    u = parse_grabber_url("v4l2:///dev/video2?input=1&std=ntsc&width=640&height=480&format=YUYV&buffers=1")
+    assert (u.input, u.std, u.width, u.height, u.fourcc, u.buffers) == (1, 0xB000, 640, 480, "YUYV", 1)
+    assert parse_grabber_url("v4l2:///dev/video0?std=0x000000ff").std == 0xFF
+
+
+def test_recorded_and_registered_urls():
+    u = parse_grabber_url("frames:///data/run/img_%03d.png?loop=1&fps=12.5")
+    assert (u.scheme, u.path, u.loop, u.fps) == ("frames", "/data/run/img_%03d.png", True, 12.5)
+    assert parse_grabber_url("frames:rel/img_%d.png").path == "rel/img_%d.png"
+    u = parse_grabber_url("file:///data/run.avi")
+    assert (u.scheme, u.path, u.loop, u.fps) == ("file", "/data/run.avi", False, None)
+    u = parse_grabber_url("sim://?fps=25&seed=3")
+    assert (u.scheme, u.path, u.params) == ("sim", "", {"fps": "25", "seed": "3"})
+
+
+@pytest.mark.parametrize(
+    "url, match",
+    [
+        ("/dev/video0", "expected SCHEME"),
+        ("v4l2:///dev/video0?norm=pal", "unknown parameter"),
+        ("v4l2:///dev/video0?std=hd", "std='hd'"),
+        ("v4l2:///dev/video0?width=10", "out of range"),
+        ("v4l2:///dev/video0?input=x", "not a whole number"),
+        ("v4l2:///dev/video0?format=GRAY8", "fourcc"),
+        ("v4l2:///dev/video0?buffers=3", "out of range"),
+        ("v4l2://video0", "device path"),
+        ("v4l2://", "missing the path"),
+        ("frames:///data/img.png", "printf number"),
+        ("frames:///data/img_%03d.png?loop=yes", "loop"),
+        ("file:///data/x.avi?fps=0", "out of range"),
+    ],
+)
+def test_bad_urls_name_the_problem(url, match):
+    with pytest.raises(ConfigError, match=match):
+        parse_grabber_url(url)
+
+
+def test_missing_device_fails_clearly():
+    g = FrameGrabber("v4l2:///dev/video-selfview-missing?input=1&std=pal")
+    with pytest.raises(DeviceError, match="no such video device"):
+        g.connect()
+    assert g.source is None
+    with pytest.raises(DeviceError, match="before connect"):
+        g.grab()
+
+
+def test_a_node_that_is_not_v4l2_fails_clearly():
+    with pytest.raises(DeviceError, match="not a V4L2 device"):
+        FrameGrabber("v4l2:///dev/null").connect()
+    with V4L2Device("/dev/null") as dev:  # the ioctls run for real and their errno is translated
+        assert dev.query_std() is None  # ENOTTY: the driver cannot tell
+        assert dev.input_status() is None
+        with pytest.raises(DeviceError, match="VIDIOC_S_INPUT"):
+            dev.set_input(1)
+        with pytest.raises(ConfigError, match="no analogue video standards"):
+            dev.set_std(0xFF)
+    with pytest.raises(DeviceError, match="closed device"):
+        dev.set_input(0)
+
+
+def test_signal_check_translation(monkeypatch):
+    dev = V4L2Device("/dev/video9")
+    monkeypatch.setattr(dev, "query_std", lambda: 0)
+    with pytest.raises(DeviceError, match="no video signal"):
+        dev.check_signal(0xFF)
+    monkeypatch.setattr(dev, "query_std", lambda: 0xB000)
+    monkeypatch.setattr(dev, "input_status", lambda: 0)
+    with pytest.raises(DeviceError, match="NTSC, but PAL"):
+        dev.check_signal(0xFF)
+    monkeypatch.setattr(dev, "query_std", lambda: 0x10)  # PAL-I
+    dev.check_signal(0xFF)
+    monkeypatch.setattr(dev, "input_status", lambda: v4l2.V4L2_IN_ST_NO_SIGNAL)
+    with pytest.raises(DeviceError, match="status 0x2"):
+        dev.check_signal(0xFF)
+
+
+def test_errno_of_a_busy_device(monkeypatch):
+    def busy(*a, **k):
+        raise OSError(errno.EBUSY, "Device or resource busy")
+
+    monkeypatch.setattr(v4l2.os, "open", busy)
+    with pytest.raises(DeviceError, match="busy"):
+        V4L2Device("/dev/video0").open()
+
+
+def test_raw_buffers_become_grey():
+    # OpenCV hands the raw buffer over (CONVERT_RGB=0) as one row of bytes; tiny frames for the test
+    src = V4L2Source(parse_grabber_url("v4l2:///dev/video0"))
+    base = src.url
+    src.url = dataclasses.replace(base, width=4, height=2)
+    raw = np.array([[1, 2, 3, 4, 0, 0, 5, 6, 7, 8, 0, 0]], np.uint8)  # rows padded to 6 bytes
+    assert np.array_equal(src._grey_from_raw(raw), [[1, 2, 3, 4], [5, 6, 7, 8]])
+    with pytest.raises(ImageError, match="bytes"):
+        src._grey_from_raw(np.zeros((1, 5), np.uint8))
+    src.url = dataclasses.replace(base, width=4, height=1, fourcc="YUYV")  # Y0 U Y1 V: luma at even bytes
+    assert np.array_equal(src._grey_from_raw(np.array([[10, 99, 11, 98, 12, 97, 13, 96]], np.uint8)), [[10, 11, 12, 13]])
+    src.url = dataclasses.replace(base, width=2, height=1, fourcc="UYVY")  # U Y0 V Y1: luma at odd bytes
+    assert np.array_equal(src._grey_from_raw(np.array([[99, 20, 98, 21]], np.uint8)), [[20, 21]])
+
+
+def test_formats_that_need_colour_conversion_are_refused():
+    with pytest.raises(ConfigError, match="MJPG"):
+        FrameGrabber("v4l2:///dev/video0?format=MJPG").connect()

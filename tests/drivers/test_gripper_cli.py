@@ -1,0 +1,60 @@
+"""``selfview gripper`` against the simulated terminal: actions, JSON, io maps, exit codes."""
+
+from __future__ import annotations
+
+import json
+import socket
+
+import pytest
+
+from mocks.valve_terminal import ValveTerminal
+from procedures.cli import EXIT_CONFIG, EXIT_DEVICE, main
+
+
+@pytest.fixture
+def terminal():
+    with ValveTerminal(travel_s=0.02) as t:
+        yield t
+
+
+def test_close_open_state(terminal, capsys):
+    assert main(["gripper", "--url", terminal.url, "close", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["state"] == "closed" and out["closed_sensor"] and not out["open_sensor"]
+    assert out["valve_outputs"] == {"open": False, "close": True} and out["action"] == "close"
+    assert terminal.position == 0.0
+    assert main(["gripper", "--url", terminal.url, "state"]) == 0
+    assert capsys.readouterr().out.strip() == "closed"
+    assert main(["gripper", "--url", terminal.url, "open"]) == 0
+    assert capsys.readouterr().out.strip() == "open"
+    assert main(["gripper", "--url", terminal.url, "safe"]) == 0
+    assert terminal.valve_outputs == {"open": False, "close": False}
+
+
+def test_io_map_file(tmp_path, capsys):
+    path = tmp_path / "festo.yaml"
+    path.write_text("open_valve: 40001.0\nclose_valve: 40001.1\nopen_sensor: 30001.0\nclosed_sensor: 30001.1\n")
+    from drivers.pneumatic_gripper import IoMap, Point
+
+    m = IoMap(open_valve=Point.parse("hr:0.0"), close_valve=Point.parse("hr:0.1"),
+              open_sensor=Point.parse("ir:0.0"), closed_sensor=Point.parse("ir:0.1"))
+    with ValveTerminal(io_map=m, travel_s=0.02) as t:
+        assert main(["gripper", "--url", t.url, "--io-map", str(path), "close"]) == 0
+        assert t.table("holding_register")[0] == 0b10
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("open_valve: 40001.0\nclose_valve: di:3\n")
+    assert main(["gripper", "--url", "modbus-tcp://127.0.0.1:1", "--io-map", str(bad), "state"]) == EXIT_CONFIG
+    assert "bad.yaml" in capsys.readouterr().err
+
+
+def test_exit_codes(terminal, capsys):
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    assert main(["gripper", "--url", f"modbus-tcp://127.0.0.1:{port}?unit=1", "state"]) == EXIT_DEVICE
+    assert "connection refused" in capsys.readouterr().err
+    assert main(["gripper", "--url", "modbus://127.0.0.1", "state"]) == EXIT_CONFIG
+    terminal.stick_jaw()
+    assert main(["gripper", "--url", terminal.url, "--timeout", "0.1", "close"]) == EXIT_DEVICE
+    assert "still 'open'" in capsys.readouterr().err
