@@ -1,0 +1,324 @@
+"""The VAL-II terminal dialect as data: what to send, how replies look, what the error texts mean.
+
+The real controller's details (echo, line endings, the prompt, the WHERE layout, the wording of error
+lines, the O/A/T Euler convention, the command syntax) are not documented precisely, so they live here
+as a ``ValDialect`` that a YAML file can adjust (``load_dialect``) without code changes. The driver
+and the simulator (``mocks/val_controller.py``) both format and parse through it.
+"""
+
+from __future__ import annotations
+
+import re
+import string
+from dataclasses import asdict, dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers.puma_val_serial._config import check_keys, read_yaml
+from drivers.puma_val_serial.errors import ERROR_CLASSES, ControllerError
+from selfview.errors import ConfigError, ProtocolError
+from selfview.geometry import VAL_OAT, EulerConvention, H_from_xyzoat, xyzoat_from_H
+
+__all__ = ["ValDialect", "DEFAULT_COMMANDS", "DEFAULT_ERRORS", "load_dialect"]
+
+#: Command line templates; ``{name}`` is a location name, every other field a number.
+DEFAULT_COMMANDS: dict[str, str] = {
+    "where": "WHERE",
+    "calibrate": "CAL",
+    "speed": "SPEED {pct}",
+    "here": "HERE {name}",
+    "point": "POINT {name}",
+    "define": "DO SET {name} = TRANS({x}, {y}, {z}, {o}, {a}, {t})",
+    "move": "DO MOVE {name}",
+    "moves": "DO MOVES {name}",
+    "appro": "DO APPRO {name}, {d}",
+    "depart": "DO DEPART {d}",
+    "drive": "DO DRIVE {joint}, {deg}, {speed}",
+    "ready": "DO READY",
+    "abort": "ABORT",
+}
+
+#: (controller text, error class) pairs. ``{joint}`` stands for a number. The simulator prints the
+#: first text listed for a class; the driver accepts every text (case-insensitive, anywhere in the line).
+DEFAULT_ERRORS: tuple[tuple[str, str], ...] = (
+    ("Arm power off", "ArmPowerOff"),
+    ("Location out of reach", "OutOfReach"),
+    ("Robot not calibrated", "NotCalibrated"),
+    ("Undefined location", "UndefinedLocation"),
+    ("Collision detected", "Collision"),
+    ("Motion aborted", "MotionAborted"),
+    ("Joint {joint} limit stop", "JointLimit"),
+    ("Illegal value", "InvalidArgument"),
+    ("Unrecognized command", "CommandRejected"),
+)
+
+_NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+
+
+def _template_regex(tpl: str, name_pattern: str) -> re.Pattern:
+    """A lenient regex for a command template: any case, blanks optional around punctuation and
+    required between words, fields as groups."""
+    atoms: list[tuple[str, str]] = []  # (kind, regex): kind 'w' word-like, 'p' punctuation, 's' blank
+    for lit, fld, _, _ in string.Formatter().parse(tpl):
+        for m in re.finditer(r"\s+|\w|[^\w\s]", lit):
+            t = m.group()
+            atoms.append(("s", "") if t.isspace() else ("w" if t.isalnum() else "p", re.escape(t)))
+        if fld:
+            atoms.append(("w", f"(?P<{fld}>{name_pattern if fld == 'name' else _NUMBER})"))
+    rx = ""
+    for i, (kind, a) in enumerate(atoms):
+        if kind == "s":
+            prev = atoms[i - 1][0] if i else "p"
+            nxt = atoms[i + 1][0] if i + 1 < len(atoms) else "p"
+            rx += r"\s+" if prev == "w" and nxt == "w" else r"\s*"
+        else:
+            if i and kind == "p" or (i and atoms[i - 1][0] == "p"):
+                rx += r"\s*"
+            rx += a
+    return re.compile(r"\s*" + rx + r"\s*", re.IGNORECASE)
+
+
+def _euler_from(v: Any) -> EulerConvention:
+    if isinstance(v, EulerConvention):
+        return v
+    check_keys(v, EulerConvention, "dialect.euler")
+    kw = {}
+    for k, val in v.items():
+        kw[k] = val if k == "sequence" else tuple(tuple(r) if isinstance(r, (list, tuple)) else float(r) for r in val)
+    return EulerConvention(**kw)
+
+
+@dataclass(frozen=True)
+class ValDialect:
+    """One controller's terminal dialect. Defaults: VAL-II on a PUMA 260 as reconstructed from public
+    drivers and transcripts.
+
+    ``prompt_silence_s`` is how long the line must stay quiet after a prompt (or a question) before it
+    counts as one: numbers contain ``.`` too, so a prompt is a ``.`` at the start of a line followed by
+    silence. ``field_width`` (characters per value in WHERE-style lines, right-aligned; None: values
+    separated by blanks) and ``decimals`` let the driver notice dropped characters.
+    """
+
+    name: str = "VAL-II PUMA 260"
+    echo: bool = True
+    host_eol: str = "\r"
+    controller_eol: str = "\r\n"
+    prompt: str = "."
+    prompt_silence_s: float = 0.01
+    confirm_question: str = "Are you sure (Y/N)?"
+    change_question: str = "Change?"
+    yes: str = "Y"
+    here_asks_change: bool = True
+    pose_header: tuple[str, ...] = ("X", "Y", "Z", "O", "A", "T")
+    joint_header: tuple[str, ...] = ("JT1", "JT2", "JT3", "JT4", "JT5", "JT6")
+    field_width: int | None = 9
+    decimals: int = 2
+    command_decimals: int = 3
+    name_pattern: str = r"[A-Za-z][A-Za-z0-9_]{0,14}"
+    scratch_location: str = "svtgt"
+    euler: EulerConvention = VAL_OAT
+    errors: tuple[tuple[str, str], ...] = DEFAULT_ERRORS
+    commands: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_COMMANDS))
+
+    def __post_init__(self):
+        for nm in ("host_eol", "controller_eol"):
+            if getattr(self, nm) not in ("\r", "\n", "\r\n"):
+                raise ConfigError(f"dialect.{nm}: expected CR, LF or CR LF, got {getattr(self, nm)!r}")
+        if len(self.prompt) != 1 or not self.prompt.isprintable() or self.prompt.isspace():
+            raise ConfigError(f"dialect.prompt: expected one printable character, got {self.prompt!r}")
+        if not (0.0 < self.prompt_silence_s <= 1.0):
+            raise ConfigError(f"dialect.prompt_silence_s: expected 0 < s <= 1, got {self.prompt_silence_s!r}")
+        for nm in ("confirm_question", "change_question"):
+            if not getattr(self, nm).rstrip().endswith("?"):
+                raise ConfigError(f"dialect.{nm}: a question must end in '?', got {getattr(self, nm)!r}")
+        if len(self.pose_header) != 6 or len(self.joint_header) != 6:
+            raise ConfigError("dialect.pose_header / joint_header: expected six names each")
+        if self.field_width is not None and not (isinstance(self.field_width, int) and self.field_width >= self.decimals + 3):
+            raise ConfigError(f"dialect.field_width: expected a whole number >= decimals + 3 or null, got {self.field_width!r}")
+        if not (0 <= self.decimals <= 6 and 0 <= self.command_decimals <= 6):
+            raise ConfigError("dialect.decimals / command_decimals: expected 0..6")
+        try:
+            re.compile(self.name_pattern)
+        except re.error as exc:
+            raise ConfigError(f"dialect.name_pattern: not a regular expression ({exc})") from exc
+        self.validate_name(self.scratch_location)
+        for text, cls in self.errors:
+            if cls not in ERROR_CLASSES:
+                raise ConfigError(f"dialect.errors: {text!r} maps to unknown class {cls!r}; expected one of {', '.join(ERROR_CLASSES)}")
+        unknown = set(self.commands) - set(DEFAULT_COMMANDS)
+        missing = set(DEFAULT_COMMANDS) - set(self.commands)
+        if unknown or missing:
+            raise ConfigError(
+                f"dialect.commands: unknown {sorted(unknown)} / missing {sorted(missing)}; "
+                f"expected exactly {', '.join(DEFAULT_COMMANDS)}"
+            )
+        for kind, tpl in self.commands.items():
+            want = {f for _, f, _, _ in string.Formatter().parse(DEFAULT_COMMANDS[kind]) if f}
+            got = {f for _, f, _, _ in string.Formatter().parse(tpl) if f}
+            if want != got:
+                raise ConfigError(f"dialect.commands.{kind}: {tpl!r} must use the fields {sorted(want)}, got {sorted(got)}")
+
+    # --- configuration -------------------------------------------------------------------------
+    @classmethod
+    def from_dict(cls, data: dict) -> "ValDialect":
+        """A dialect from a mapping of field names (``commands`` is merged over the defaults)."""
+        kw = dict(check_keys(data, cls, "dialect"))
+        if "euler" in kw:
+            kw["euler"] = _euler_from(kw["euler"])
+        if "commands" in kw:
+            if not isinstance(kw["commands"], dict):
+                raise ConfigError(f"dialect.commands: expected a mapping, got {kw['commands']!r}")
+            kw["commands"] = {**DEFAULT_COMMANDS, **{str(k): str(v) for k, v in kw["commands"].items()}}
+        for k in ("pose_header", "joint_header"):
+            if k in kw:
+                kw[k] = tuple(str(v) for v in kw[k])
+        if "errors" in kw:
+            try:
+                kw["errors"] = tuple((str(t), str(c)) for t, c in kw["errors"])
+            except (TypeError, ValueError):
+                raise ConfigError(f"dialect.errors: expected a list of [text, class] pairs, got {kw['errors']!r}") from None
+        try:
+            return cls(**kw)
+        except TypeError as exc:
+            raise ConfigError(f"dialect: {exc}") from exc
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["euler"] = asdict(self.euler)
+        return d
+
+    # --- lines and names -----------------------------------------------------------------------
+    def validate_name(self, name: str) -> str:
+        """``name`` if it is a valid location name, else ``ConfigError``."""
+        if not isinstance(name, str) or not re.fullmatch(self.name_pattern, name):
+            raise ConfigError(f"location name {name!r}: expected {self.name_pattern} (a letter, then letters or digits)")
+        return name
+
+    def encode_line(self, text: str) -> bytes:
+        """One host line as bytes, ended by ``host_eol``."""
+        if any(c in text for c in "\r\n") or not text.isascii():
+            raise ConfigError(f"command line {text!r}: expected printable ASCII without line breaks")
+        return (text + self.host_eol).encode("ascii")
+
+    def number(self, v: float, decimals: int | None = None) -> str:
+        """A number as the host writes it (``command_decimals``, trailing zeros dropped) or, with
+        ``decimals``, as the controller prints it; never '-0'."""
+        d = self.command_decimals if decimals is None else decimals
+        v = float(v)
+        if not np.isfinite(v):
+            raise ConfigError(f"value {v!r}: expected a finite number")
+        s = f"{v:.{d}f}"
+        if decimals is None and "." in s:  # a command: no trailing zeros (fewer bytes at 9600 baud)
+            s = s.rstrip("0").rstrip(".")
+        return s[1:] if s.startswith("-") and float(s) == 0 else s
+
+    def command(self, kind: str, **values) -> str:
+        """The command line of ``kind`` (a key of ``commands``) with its fields filled in."""
+        out = {}
+        for k, v in values.items():
+            if k == "name":
+                out[k] = self.validate_name(v)
+            elif k == "joint":
+                out[k] = str(int(v))
+            else:
+                out[k] = self.number(v)
+        return self.commands[kind].format(**out)
+
+    @cached_property
+    def _command_patterns(self) -> dict[str, re.Pattern]:
+        return {kind: _template_regex(tpl, self.name_pattern) for kind, tpl in self.commands.items()}
+
+    def parse_command(self, line: str) -> tuple[str, dict] | None:
+        """(kind, fields) of a host line, or None if it matches no template (used by the simulator)."""
+        for kind, rx in self._command_patterns.items():
+            m = rx.fullmatch(line)
+            if m:
+                return kind, {k: (v if k == "name" else float(v)) for k, v in m.groupdict().items()}
+        return None
+
+    # --- tables of values ----------------------------------------------------------------------
+    def format_header(self, names) -> str:
+        w = self.field_width
+        return "".join(f"{n:>{w}}" for n in names) if w else "  ".join(names)
+
+    def format_values(self, values) -> str:
+        w = self.field_width
+        parts = [self.number(v, self.decimals) for v in values]
+        return "".join(f"{p:>{w}}" for p in parts) if w else "  ".join(parts)
+
+    def parse_header(self, line: str, names) -> None:
+        """Check a header line (e.g. ``X Y Z O A T``, right-aligned in ``field_width`` columns);
+        ``ProtocolError`` if it differs."""
+        w = self.field_width
+        if [t.upper() for t in line.split()] != [n.upper() for n in names] or (w and len(line.rstrip()) != w * len(names)):
+            raise ProtocolError(f"expected the header {' '.join(names)!r}, got {line.rstrip()!r}")
+
+    def parse_values(self, line: str, n: int = 6) -> tuple[float, ...]:
+        """``n`` numbers of a values line; ``ProtocolError`` on a wrong count, width or format."""
+        body = line.rstrip()
+        w = self.field_width
+        if w:
+            if len(body) != n * w:
+                raise ProtocolError(f"expected {n} fields of {w} characters, got {len(body)} characters: {line!r}")
+            toks = [body[i * w : (i + 1) * w].strip() for i in range(n)]
+        else:
+            toks = body.split()
+        rx = rf"-?\d+\.\d{{{self.decimals}}}" if self.decimals else r"-?\d+"
+        if len(toks) != n or not all(re.fullmatch(rx, t) for t in toks):
+            raise ProtocolError(f"expected {n} numbers with {self.decimals} decimals, got {line!r}")
+        return tuple(float(t) for t in toks)
+
+    # --- errors and questions ------------------------------------------------------------------
+    @staticmethod
+    def error_text_of(line: str) -> str | None:
+        """The text of an error line ``*text*``, or None."""
+        s = line.strip()
+        if len(s) >= 2 and s[0] == "*" and s[-1] == "*":
+            return s.strip("*").strip()
+        return None
+
+    @cached_property
+    def _error_patterns(self) -> list[tuple[re.Pattern, type[ControllerError]]]:
+        out = []
+        for text, cls in sorted(self.errors, key=lambda tc: -len(tc[0])):
+            rx = re.sub(r"\\\{\w+\\\}", r"\\d+", re.escape(text))
+            rx = rx.replace(r"\ ", r"\s+")
+            out.append((re.compile(rx, re.IGNORECASE), ERROR_CLASSES[cls]))
+        return out
+
+    def error_for(self, text: str, command: str | None = None) -> ControllerError:
+        """The typed exception for a controller error text (``ControllerError`` if the table lacks it)."""
+        for rx, cls in self._error_patterns:
+            if rx.search(text):
+                return cls(text, command)
+        return ControllerError(text, command)
+
+    def error_text(self, cls_name: str, **values) -> str:
+        """The controller's wording for an error class (the simulator prints it)."""
+        for text, cls in self.errors:
+            if cls == cls_name:
+                return text.format(**values) if values else text
+        raise ConfigError(f"dialect.errors: no text for {cls_name!r}")
+
+    def is_question(self, text: str, question: str) -> bool:
+        return " ".join(text.split()).lower().endswith(" ".join(question.split()).lower())
+
+    # --- poses -----------------------------------------------------------------------------------
+    def pose_to_H(self, pose) -> np.ndarray:
+        """(4, 4) transform of a controller pose (x, y, z, o, a, t) in mm and degrees."""
+        return H_from_xyzoat(pose, self.euler)
+
+    def H_to_pose(self, H) -> tuple[float, ...]:
+        """Controller pose (x, y, z, o, a, t) of a (4, 4) transform."""
+        return xyzoat_from_H(H, self.euler)
+
+
+def load_dialect(path) -> ValDialect:
+    """A dialect from a YAML file of ``ValDialect`` fields; raises ``ConfigError`` naming the problem."""
+    try:
+        return ValDialect.from_dict(read_yaml(path, "dialect"))
+    except ConfigError as exc:
+        raise ConfigError(f"{Path(path).name}: {exc}") from None

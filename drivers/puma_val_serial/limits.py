@@ -1,0 +1,133 @@
+"""Client-side limits of the PUMA 260 driver and its motion-time model.
+
+Checked before a command is sent (``LimitError`` otherwise, nothing sent): the tool point must stay
+in a workspace box of the base frame, joint motions within the joint limits, speeds at or below a
+maximum. The same numbers bound how long the driver waits for a motion to finish.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.puma_val_serial._config import check_keys, read_yaml
+from selfview.errors import ConfigError, LimitError
+
+__all__ = ["ValLimits", "PUMA260_JOINT_LIMITS_DEG", "PUMA260_JOINT_SPEED_DEG_S", "VAL_READY_DEG"]
+
+#: VAL's READY position (JT1..JT6, degrees): the arm straight up.
+VAL_READY_DEG: tuple[float, ...] = (0.0, -90.0, 90.0, 0.0, 0.0, 0.0)
+
+#: Published joint ranges of the PUMA 260 (JT1..JT6, degrees).
+PUMA260_JOINT_LIMITS_DEG: tuple[tuple[float, float], ...] = (
+    (-90.0, 200.0),
+    (-240.0, 75.0),
+    (-145.0, 145.0),
+    (-185.0, 360.0),
+    (-120.0, 120.0),
+    (-360.0, 90.0),
+)
+#: Published top joint speeds (deg/s).
+PUMA260_JOINT_SPEED_DEG_S: tuple[float, ...] = (119.0, 119.0, 164.0, 577.0, 431.0, 397.0)
+
+
+@dataclass(frozen=True)
+class ValLimits:
+    """Limits the driver enforces, and the speeds it assumes to time motions.
+
+    ``workspace_mm``: ((xmin, xmax), (ymin, ymax), (zmin, zmax)) of the tool point in the base frame.
+    ``max_speed_pct``: the highest SPEED (and DRIVE speed) the driver sends.
+    ``cart_speed_mm_s`` / ``rot_speed_deg_s``: the slowest tool speeds at SPEED 100 that a motion is
+    assumed to reach; with ``timeout_factor`` and ``timeout_margin_s`` they bound the wait for the prompt.
+    ``assume_speed_pct``: the SPEED assumed before the driver has set one. ``calibrate_s``: CAL's duration.
+    ``ready_joints_deg``: the joints of VAL's READY position (to time ``DO READY``).
+    """
+
+    workspace_mm: tuple[tuple[float, float], ...] = ((-600.0, 600.0), (-600.0, 600.0), (0.0, 1000.0))
+    joint_limits_deg: tuple[tuple[float, float], ...] = PUMA260_JOINT_LIMITS_DEG
+    max_speed_pct: float = 50.0
+    joint_speed_deg_s: tuple[float, ...] = PUMA260_JOINT_SPEED_DEG_S
+    cart_speed_mm_s: float = 250.0
+    rot_speed_deg_s: float = 90.0
+    assume_speed_pct: float = 10.0
+    timeout_factor: float = 2.0
+    timeout_margin_s: float = 2.0
+    calibrate_s: float = 20.0
+    ready_joints_deg: tuple[float, ...] = VAL_READY_DEG
+
+    def __post_init__(self):
+        def pairs(name, n):
+            v = getattr(self, name)
+            try:
+                ok = len(v) == n and all(len(p) == 2 and float(p[0]) < float(p[1]) for p in v)
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise ConfigError(f"limits.{name}: expected {n} [min, max] pairs with min < max, got {v!r}")
+
+        pairs("workspace_mm", 3)
+        pairs("joint_limits_deg", 6)
+        if len(self.joint_speed_deg_s) != 6 or any(not float(v) > 0 for v in self.joint_speed_deg_s):
+            raise ConfigError(f"limits.joint_speed_deg_s: expected six positive speeds, got {self.joint_speed_deg_s!r}")
+        if not 0 < self.max_speed_pct <= 100:
+            raise ConfigError(f"limits.max_speed_pct: expected 0 < pct <= 100, got {self.max_speed_pct!r}")
+        if not 0 < self.assume_speed_pct <= 100:
+            raise ConfigError(f"limits.assume_speed_pct: expected 0 < pct <= 100, got {self.assume_speed_pct!r}")
+        for nm in ("cart_speed_mm_s", "rot_speed_deg_s", "timeout_factor", "calibrate_s"):
+            if not getattr(self, nm) > 0:
+                raise ConfigError(f"limits.{nm}: expected a positive number, got {getattr(self, nm)!r}")
+        if not self.timeout_margin_s >= 0:
+            raise ConfigError(f"limits.timeout_margin_s: expected >= 0, got {self.timeout_margin_s!r}")
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "ValLimits":
+        """Limits from a mapping of field names (missing ones keep their defaults)."""
+        kw = {}
+        for k, v in check_keys(data, cls, "limits").items():
+            try:
+                kw[k] = tuple(tuple(float(x) for x in p) if isinstance(p, (list, tuple)) else float(p) for p in v) if isinstance(v, (list, tuple)) else float(v)
+            except (TypeError, ValueError):
+                raise ConfigError(f"limits.{k}: expected numbers, got {v!r}") from None
+        return cls(**kw)
+
+    @classmethod
+    def load(cls, path) -> "ValLimits":
+        """Limits from a YAML file of field names; raises ``ConfigError`` naming the problem."""
+        return cls.from_dict(read_yaml(path, "limits"))
+
+    # --- checks (raise LimitError; nothing has been sent) ---------------------------------------
+    def check_position(self, p_mm, what: str) -> None:
+        """The tool point ``p_mm`` (3,) must lie in the workspace box."""
+        p = np.asarray(p_mm, dtype=float).reshape(3)
+        for axis, v, (lo, hi) in zip("xyz", p, self.workspace_mm):
+            if not lo <= v <= hi:
+                raise LimitError(f"{what}: {axis} = {v:.2f} mm is outside the workspace {lo:g}..{hi:g} mm; nothing was sent")
+
+    def check_speed(self, pct: float, what: str) -> float:
+        pct = float(pct)
+        if not np.isfinite(pct) or not 0 < pct <= self.max_speed_pct:
+            raise LimitError(f"{what}: speed {pct:g} % is outside 0 < speed <= {self.max_speed_pct:g} %; nothing was sent")
+        return pct
+
+    def check_joint(self, joint: int, value_deg: float, what: str) -> None:
+        lo, hi = self.joint_limits_deg[joint - 1]
+        if not lo <= value_deg <= hi:
+            raise LimitError(
+                f"{what}: JT{joint} would reach {value_deg:.2f} deg, outside its limits {lo:g}..{hi:g} deg; nothing was sent"
+            )
+
+    # --- motion time -------------------------------------------------------------------------------
+    def _bound(self, t_at_100: float, speed_pct: float | None) -> float:
+        s = (speed_pct if speed_pct else self.assume_speed_pct) / 100.0
+        return self.timeout_factor * t_at_100 / s + self.timeout_margin_s
+
+    def cartesian_timeout_s(self, distance_mm: float, angle_deg: float, speed_pct: float | None) -> float:
+        """Upper bound (s) on a motion of the tool by ``distance_mm`` and ``angle_deg`` at SPEED ``speed_pct``."""
+        return self._bound(abs(distance_mm) / self.cart_speed_mm_s + abs(angle_deg) / self.rot_speed_deg_s, speed_pct)
+
+    def joint_timeout_s(self, delta_deg, speed_pct: float | None, drive_pct: float = 100.0) -> float:
+        """Upper bound (s) on a joint motion by ``delta_deg`` (6,) at SPEED ``speed_pct`` (and DRIVE speed)."""
+        d = np.abs(np.asarray(delta_deg, dtype=float).reshape(6))
+        t = float(np.max(d / np.asarray(self.joint_speed_deg_s))) * 100.0 / drive_pct
+        return self._bound(t, speed_pct)

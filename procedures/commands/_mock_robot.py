@@ -1,0 +1,85 @@
+"""``selfview mock robot``: the simulated VAL-II controller with a PUMA 260, on a pty or TCP, until stopped."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from procedures.commands._common import add_cell_argument, load_cell_arg
+
+
+def _positive(text: str) -> float:
+    v = float(text)
+    if not v > 0:
+        raise ValueError(text)
+    return v
+
+
+def _nonneg(text: str) -> float:
+    v = float(text)
+    if not v >= 0:
+        raise ValueError(text)
+    return v
+
+
+def register(kinds):
+    p = kinds.add_parser(
+        "robot",
+        help="simulated VAL-II controller with a PUMA 260 (pty or TCP)",
+        description=(
+            "A simulated VAL-II controller speaking the terminal dialogue on a pseudo-terminal (open the printed "
+            "device path like /dev/ttyS0) or on TCP 127.0.0.1 (socket://127.0.0.1:PORT). It moves the simulated "
+            "cell's gripper; the taught locations 'above' and 'plate' lie over and on the calibration plate. "
+            "Prints the URL as the first line, then serves until Ctrl-C or --duration."
+        ),
+    )
+    p.add_argument("--link", choices=("pty", "tcp"), default="pty", help="pseudo-terminal (default) or TCP")
+    p.add_argument("--port", type=int, default=0, help="TCP port (default: a free one)")
+    p.add_argument("--duration", type=_positive, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulated world and of the faults")
+    p.add_argument("--time-scale", type=_nonneg, default=1.0, metavar="K", help="motion time factor (default 1: real time)")
+    p.add_argument("--pace", action="store_true", help="send reply bytes at --baud (8N1), like a real line")
+    p.add_argument("--baud", type=int, default=9600, help="pacing baud rate (default 9600)")
+    p.add_argument("--no-echo", action="store_true", help="do not echo command lines")
+    p.add_argument("--calibrated", action="store_true", help="start calibrated (no CAL needed)")
+    p.add_argument("--dialect", default=None, metavar="DIALECT.yaml", help="controller dialect")
+    add_cell_argument(p)
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    from drivers.puma_val_serial import load_dialect
+    from mocks.val_controller import ValController
+    from mocks.world import SimWorld
+
+    if not 0 <= args.port <= 65535:
+        raise SystemExit(f"selfview mock robot: --port {args.port} out of 0..65535")
+    if args.baud <= 0:
+        raise SystemExit(f"selfview mock robot: --baud {args.baud} must be positive")
+    world = SimWorld(load_cell_arg(args), seed=args.seed)
+    sim = ValController(
+        world,
+        seed=args.seed,
+        time_scale=args.time_scale,
+        pace_baud=args.baud if args.pace else None,
+        echo=False if args.no_echo else None,
+        dialect=load_dialect(args.dialect) if args.dialect else None,
+        calibrated=args.calibrated,
+    )
+    try:
+        if args.link == "pty":
+            url = sim.start_pty()
+        else:
+            sim.start_tcp(args.port)
+            url = sim.url
+        print(url, flush=True)
+        end = None if args.duration is None else time.monotonic() + args.duration
+        while end is None or time.monotonic() < end:
+            time.sleep(0.2 if end is None else max(0.0, min(0.2, end - time.monotonic())))
+    except KeyboardInterrupt:
+        pass
+    finally:
+        sim.stop()
+    print(f"selfview mock robot: received {len(sim.received)} lines; parked={world.parked}", file=sys.stderr)
+    return 0

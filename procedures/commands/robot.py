@@ -1,0 +1,143 @@
+"""``selfview robot``: command the PUMA 260 over VAL-II (a real controller's terminal port or the simulator)."""
+
+from __future__ import annotations
+
+import argparse
+
+from procedures.commands._common import print_json
+from selfview.errors import ConfigError
+
+_ACTIONS = {
+    "where": "print the pose (X Y Z O A T) and the joints",
+    "ready": "move to READY (arm straight up)",
+    "calibrate": "CAL (answers 'Are you sure' with Y)",
+    "speed": "set the monitor SPEED in percent",
+    "move": "joint-interpolated motion to NAME or to X Y Z O A T",
+    "moves": "straight-line motion to NAME or to X Y Z O A T",
+    "appro": "approach NAME (or X Y Z O A T) at a distance D mm along its tool z",
+    "depart": "back off D mm along the tool z",
+    "drive": "turn joint J by DEG at SPEED percent",
+    "abort": "stop the current motion",
+    "here": "record the current pose as location NAME",
+    "define": "define location NAME = X Y Z O A T",
+    "point": "show location NAME",
+}
+
+
+def _number(text: str, what: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise ConfigError(f"{what}: expected a number, got {text!r}") from None
+
+
+def _target(values: list[str], what: str):
+    """A location name or six numbers (x, y, z mm, o, a, t deg)."""
+    if len(values) == 1:
+        return values[0]
+    if len(values) == 6:
+        return tuple(_number(v, f"{what} {k}") for v, k in zip(values, "XYZOAT"))
+    raise ConfigError(f"{what}: expected a location name or six numbers X Y Z O A T, got {' '.join(values)!r}")
+
+
+def register(sub):
+    p = sub.add_parser(
+        "robot",
+        help="command the PUMA 260 over VAL-II (where, move, calibrate, ...)",
+        description=(
+            "Drive a VAL-II controller through its terminal port. --url is a device path (/dev/ttyS0, a pty), "
+            "socket://HOST:PORT, or spy://PATH?file=dump.txt for a traffic dump. Poses are the tool point in the "
+            "robot base frame: X Y Z in mm, O A T in degrees (VAL's Euler angles). Limits (workspace box, joint "
+            "limits, maximum speed) are checked before anything is sent."
+        ),
+    )
+    p.add_argument("--url", required=True, help="the controller's terminal port (path or URL)")
+    p.add_argument("--timeout", type=float, default=2.0, metavar="S", help="reply timeout of non-motion commands (default 2 s)")
+    p.add_argument("--baud", type=int, default=9600, help="baud rate of a real serial port (default 9600)")
+    p.add_argument("--dialect", default=None, metavar="DIALECT.yaml", help="controller dialect (echo, prompt, error texts, ...)")
+    p.add_argument("--limits", default=None, metavar="LIMITS.yaml", help="client-side limits (workspace_mm, max_speed_pct, ...)")
+    p.add_argument("--max-speed", type=float, default=None, metavar="PCT", help="override the limits' maximum speed")
+    actions = p.add_subparsers(dest="action", metavar="ACTION")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    a = {name: actions.add_parser(name, help=h, description=h, parents=[common]) for name, h in _ACTIONS.items()}
+    a["speed"].add_argument("pct", help="percent (0 < pct <= the maximum speed)")
+    for name in ("move", "moves"):
+        a[name].add_argument("target", nargs="+", metavar="NAME | X Y Z O A T")
+    a["appro"].add_argument("target", nargs="+", metavar="NAME | X Y Z O A T")
+    a["appro"].add_argument("distance", metavar="D", help="mm along the tool z")
+    a["depart"].add_argument("distance", metavar="D", help="mm along the tool z")
+    a["drive"].add_argument("joint", type=int, metavar="J", help="joint 1..6")
+    a["drive"].add_argument("deg", metavar="DEG")
+    a["drive"].add_argument("speed", metavar="SPEED", help="percent")
+    for name in ("here", "point", "define"):
+        a[name].add_argument("name", metavar="NAME")
+    a["define"].add_argument("pose", nargs=6, metavar="V", help="X Y Z O A T")
+    p.set_defaults(func=lambda args: run(args) if args.action else (p.print_help(), 2)[1])
+    return p
+
+
+def make_robot(args):
+    """The driver the arguments describe (not connected)."""
+    from dataclasses import replace
+
+    from drivers.puma_val_serial import PumaVAL, ValLimits, load_dialect
+
+    dialect = load_dialect(args.dialect) if args.dialect else None
+    limits = ValLimits.load(args.limits) if args.limits else ValLimits()
+    if args.max_speed is not None:
+        limits = replace(limits, max_speed_pct=args.max_speed)
+    return PumaVAL(args.url, dialect=dialect, limits=limits, timeout_s=args.timeout, baudrate=args.baud)
+
+
+def run(args) -> int:
+    robot = make_robot(args)
+    act = args.action
+    out: dict = {"command": act, "url": args.url}
+    with robot:
+        if act == "speed":
+            robot.speed(_number(args.pct, "SPEED"))
+            out["speed_pct"] = float(args.pct)
+        elif act == "calibrate":
+            robot.calibrate()
+        elif act == "ready":
+            robot.ready()
+        elif act in ("move", "moves"):
+            getattr(robot, act)(_target(args.target, act.upper()))
+        elif act == "appro":
+            robot.appro(_target(args.target, "APPRO"), _number(args.distance, "APPRO distance"))
+        elif act == "depart":
+            robot.depart(_number(args.distance, "DEPART distance"))
+        elif act == "drive":
+            robot.drive(args.joint, _number(args.deg, "DRIVE angle"), _number(args.speed, "DRIVE speed"))
+        elif act == "abort":
+            robot.abort()
+        elif act == "here":
+            out["location"] = {"name": args.name, "pose": list(robot.here(args.name))}
+        elif act == "point":
+            out["location"] = {"name": args.name, "pose": list(robot.location(args.name))}
+        elif act == "define":
+            robot.define(args.name, tuple(_number(v, f"{args.name} {k}") for v, k in zip(args.pose, "XYZOAT")))
+        if act not in ("abort", "speed", "define"):
+            w = robot.where()
+            out["where"] = w.to_dict()
+        else:
+            w = None
+    if args.json:
+        print_json(out)
+        return 0
+    d = robot.dialect
+    if "location" in out:
+        print(f"{out['location']['name']}:")
+        print(d.format_header(d.pose_header))
+        print(d.format_values(out["location"]["pose"]))
+    if w is not None:
+        print(d.format_header(d.pose_header))
+        print(d.format_values(w.pose))
+        print(d.format_header(d.joint_header))
+        print(d.format_values(w.joints))
+    elif act == "speed":
+        print(f"SPEED {out['speed_pct']:g}")
+    else:
+        print("ok")
+    return 0

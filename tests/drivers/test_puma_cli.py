@@ -1,0 +1,96 @@
+"""The ``selfview mock robot`` and ``selfview robot`` commands, end to end."""
+
+from __future__ import annotations
+
+import json
+import select
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from procedures.cli import main
+from tests.conftest import REPO
+
+
+@pytest.fixture
+def mock_robot():
+    """``selfview mock robot --link tcp --duration 5`` in a subprocess; yields the URL of its first line."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "procedures.cli", "mock", "robot", "--link", "tcp", "--duration", "5", "--time-scale", "0.02"],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        ready, _, _ = select.select([proc.stdout], [], [], 30.0)
+        assert ready, "the mock printed no URL within 30 s"
+        url = proc.stdout.readline().strip()
+        yield url, proc
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(5)
+        proc.stdout.close()
+        proc.stderr.close()
+
+
+def run_json(capsys, *argv) -> dict:
+    assert main(list(argv)) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_mock_robot_and_robot_where_json(mock_robot, capsys):
+    url, proc = mock_robot
+    assert url.startswith("socket://127.0.0.1:")
+    out = run_json(capsys, "robot", "--url", url, "where", "--json")
+    assert out["command"] == "where"
+    # the simulated world starts with the gripper 200 mm above the plate centre, pointing down
+    assert [out["where"]["pose"][k] for k in "xyz"] == pytest.approx([350.0, 0.0, 200.0], abs=0.01)
+    assert len(out["where"]["joints"]) == 6 and len(out["where"]["base_H_T"]) == 4
+
+    assert main(["robot", "--url", url, "calibrate"]) == 0
+    capsys.readouterr()
+    out = run_json(capsys, "robot", "--url", url, "move", "above", "--json")
+    assert out["where"]["pose"]["z"] == pytest.approx(80.0, abs=0.01)
+    out = run_json(capsys, "robot", "--url", url, "moves", "340", "10", "90", "0", "180", "0", "--json")
+    assert [out["where"]["pose"][k] for k in "xyz"] == pytest.approx([340.0, 10.0, 90.0], abs=0.01)
+
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(10) == 0
+    assert "received" in proc.stderr.read()
+
+
+def test_robot_cli_reports_an_unreachable_controller(capsys):
+    assert main(["robot", "--url", "socket://127.0.0.1:1", "--timeout", "0.2", "where"]) == 4
+    assert "cannot open" in capsys.readouterr().err
+
+
+def test_robot_cli_pty_in_process(cell, capsys):
+    from mocks.val_controller import ValController
+    from mocks.world import SimWorld
+
+    with ValController(SimWorld(cell, seed=2), time_scale=0.0, calibrated=True) as c:
+        c.start_pty()
+        out = run_json(capsys, "robot", "--url", c.url, "drive", "1", "5", "10", "--json")
+        assert out["where"]["joints"][0] == pytest.approx(c.joints[0], abs=0.006)
+        out = run_json(capsys, "robot", "--url", c.url, "point", "plate", "--json")
+        assert out["location"]["pose"][2] == pytest.approx(16.0)
+        assert main(["robot", "--url", c.url, "here", "h1"]) == 0
+        assert "h1:" in capsys.readouterr().out
+        assert "H1" in c.locations()
+        # refused before sending: exit 4 with the reason; a malformed number: exit 3
+        assert main(["robot", "--url", c.url, "speed", "90"]) == 4
+        assert "nothing was sent" in capsys.readouterr().err
+        assert main(["robot", "--url", c.url, "move", "350", "0", "x", "0", "180", "0"]) == 3
+        assert "MOVE Z: expected a number" in capsys.readouterr().err
+        assert main(["robot", "--url", c.url, "--max-speed", "90", "speed", "90"]) == 0
+        assert "SPEED 90" in capsys.readouterr().out
+        assert c.speed_pct == 90
+    assert [ln for ln in c.received if ln.startswith("SPEED")] == ["SPEED 90"]

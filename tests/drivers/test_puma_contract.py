@@ -1,0 +1,365 @@
+"""Contract tests: the PUMA VAL-II driver against the simulated controller over a real pseudo-terminal.
+
+By default the simulator serves the pty; with ``SELFVIEW_PUMA_URL`` set (and ``-m hardware``) the
+motion-free part runs against a real controller instead.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+import serial
+
+from drivers.puma_val_serial import (
+    ArmPowerOff,
+    Collision,
+    MotionAborted,
+    NotCalibrated,
+    OutOfReach,
+    PumaVAL,
+    ValLimits,
+)
+from mocks.val_controller import ValController
+from mocks.world import PLATE_BASE_POSE, SimWorld
+from selfview.errors import DeviceTimeout, LimitError, ProtocolError
+from selfview.geometry import H_from_xyzoat, pose_difference, trans
+
+SCALE = 0.02  # motions run at 1/50 of real time
+
+
+@pytest.fixture
+def world(cell):
+    return SimWorld(cell, seed=7)
+
+
+@pytest.fixture
+def sim(world):
+    c = ValController(world, seed=3, time_scale=SCALE)
+    c.start_pty()
+    yield c
+    c.stop()
+
+
+@pytest.fixture
+def robot(sim):
+    r = PumaVAL(sim.url, timeout_s=0.5)
+    r.connect()
+    yield r
+    r.close()
+
+
+def ready_robot(robot):
+    robot.calibrate()
+    robot.speed(50)
+    return robot
+
+
+def assert_pose(where, pose, tol_mm=0.01, tol_deg=0.02):
+    ang, dist = pose_difference(where.base_H_T, H_from_xyzoat(pose))
+    assert dist <= tol_mm and ang <= tol_deg, (where.pose, pose, ang, dist)
+
+
+# --- the contract ---------------------------------------------------------------------------------------
+def test_calibrate_speed_define_move_where(robot, sim):
+    with pytest.raises(NotCalibrated):
+        robot.move("above")
+    robot.calibrate()
+    assert sim.calibrated
+    robot.speed(40)
+    assert sim.speed_pct == 40
+    targets = [(350, 20, 100, 0, 180, 0), (300, -80, 150.5, 30, 150, -20), (250.25, 60, 220, -45, 120, 90)]
+    for i, pose in enumerate(targets):
+        robot.define(f"p{i}", pose)
+        robot.move(f"p{i}")
+        assert_pose(robot.where(), pose)
+        ang, dist = pose_difference(H_from_xyzoat(robot.location(f"p{i}")), H_from_xyzoat(pose))
+        assert dist < 0.006 and ang < 0.01
+    # the joints the controller reports are the ones its kinematics hold
+    np.testing.assert_allclose(robot.where().joints, sim.joints, atol=0.006)
+
+
+def test_where_reports_the_simulated_tool_pose(robot, sim, world):
+    w = robot.where()
+    ang, dist = pose_difference(w.base_H_T, sim.base_H_T)
+    assert dist < 0.01 and ang < 0.01
+    ang, dist = pose_difference(w.base_H_T, world.base_H_G)  # the world's TCP is the tool point
+    assert dist < 0.01 and ang < 0.01
+
+
+def test_straight_move_onto_the_plate_parks_and_depart_unparks(robot, world):
+    ready_robot(robot)
+    robot.move("above")
+    assert not world.parked
+    robot.moves("plate")
+    assert world.parked
+    # the foam tilted the plate into coincidence: W_H_G is a turn about z and an in-plane shift
+    W_H_G = world.W_H_G
+    assert abs(W_H_G[2, 3]) < 1e-9 and abs(W_H_G[2, 2] - 1.0) < 1e-9
+    robot.depart(40)
+    assert not world.parked
+    assert_pose(robot.where(), tuple(np.r_[350.0, 0.0, 16.0 + 40.0, robot.where().pose[3:]]))
+
+
+def test_appro_and_depart(robot):
+    ready_robot(robot)
+    pose = (320, 30, 60, 0, 180, 0)
+    robot.define("t1", pose)
+    robot.appro("t1", 50)
+    # the tool points down: 50 mm back along its z is 50 mm higher
+    assert_pose(robot.where(), (320, 30, 110, 0, 180, 0))
+    robot.depart(30)
+    assert_pose(robot.where(), (320, 30, 140, 0, 180, 0))
+
+
+def test_drive_and_ready(robot, sim):
+    ready_robot(robot)
+    j0 = np.array(robot.where().joints)
+    robot.drive(1, -12.5, 30)
+    np.testing.assert_allclose(robot.where().joints, j0 + [-12.5, 0, 0, 0, 0, 0], atol=0.006)
+    robot.ready()
+    np.testing.assert_allclose(robot.where().joints, [0, -90, 90, 0, 0, 0], atol=0.006)
+
+
+def test_here_and_point(robot, sim):
+    pose = robot.here("home")
+    assert "HOME" in sim.locations()
+    assert robot.location("home") == pose
+    assert_pose(robot.where(), pose, tol_mm=0.006)
+
+
+def test_abort_during_a_move_from_another_thread(robot, sim):
+    ready_robot(robot)
+    robot.ready()
+    robot.speed(5)  # slow: READY -> above takes ~10 s of simulated time, ~0.2 s of real time
+    start = robot.where()
+    result = {}
+
+    def mover():
+        try:
+            robot.move("above")
+        except Exception as exc:  # collected for the assertions below
+            result["exc"] = exc
+
+    t = threading.Thread(target=mover)
+    t.start()
+    deadline = time.monotonic() + 3.0
+    while pose_difference(sim.base_H_T, start.base_H_T)[1] < 5.0 and time.monotonic() < deadline:
+        time.sleep(0.002)
+    assert sim.moving.is_set()
+    robot.abort()
+    t.join(5.0)
+    assert not t.is_alive()
+    assert isinstance(result.get("exc"), MotionAborted)
+    stopped = robot.where()
+    target = PLATE_BASE_POSE @ trans(0, 0, -60)
+    assert pose_difference(stopped.base_H_T, start.base_H_T)[1] > 1.0  # it moved ...
+    assert pose_difference(stopped.base_H_T, target)[1] > 1.0  # ... but did not arrive
+    assert "ABORT" in sim.received
+    robot.speed(50)
+    robot.move("above")  # and works on
+    assert pose_difference(robot.where().base_H_T, target)[1] < 0.01
+
+
+# --- faults -----------------------------------------------------------------------------------------------
+def timed(fn):
+    t0 = time.monotonic()
+    try:
+        fn()
+    finally:
+        timed.elapsed = time.monotonic() - t0
+
+
+@pytest.mark.parametrize("mode", ["flip", "drop", "mixed"])
+def test_line_noise_is_a_protocol_error_and_the_driver_recovers(robot, sim, mode):
+    sim.inject("noise", count=2, mode=mode)
+    with pytest.raises(ProtocolError):
+        timed(robot.where)
+    assert timed.elapsed < robot.timeout_s + 1.0
+    assert_pose(robot.where(), robot.where().pose)
+    assert sim.received[-3:] == ["", "WHERE", "WHERE"]  # a resync (empty line) before the next command
+
+
+def test_a_reply_that_never_comes_is_a_timeout_and_the_driver_recovers(robot, sim):
+    sim.inject("no_reply")
+    with pytest.raises(DeviceTimeout):
+        timed(robot.where)
+    assert robot.timeout_s <= timed.elapsed < robot.timeout_s + 1.0
+    robot.where()
+
+
+def test_power_lost_mid_move(robot, sim):
+    ready_robot(robot)
+    start = robot.where()
+    sim.inject("power_loss", at=0.5)
+    with pytest.raises(ArmPowerOff) as ei:
+        robot.move("above")
+    assert ei.value.command == "DO MOVE above"
+    mid = robot.where()  # WHERE still works without arm power
+    assert pose_difference(mid.base_H_T, start.base_H_T)[1] > 1.0
+    with pytest.raises(ArmPowerOff):
+        robot.move("above")
+    sim.power_on()
+    robot.move("above")
+    assert pose_difference(robot.where().base_H_T, PLATE_BASE_POSE @ trans(0, 0, -60))[1] < 0.01
+
+
+def test_out_of_reach_targets(robot, sim):
+    ready_robot(robot)
+    before = sim.joints
+    with pytest.raises(OutOfReach):
+        robot.move((590, 0, 700, 0, 180, 0))  # in the client's box, beyond the arm's reach
+    sim.inject("out_of_reach")
+    with pytest.raises(OutOfReach):
+        robot.move("above")
+    np.testing.assert_array_equal(sim.joints, before)
+    robot.move("above")
+
+
+def test_asynchronous_error_line(robot, sim):
+    ready_robot(robot)
+    sim.inject("async_error")
+    message = b"\r\n*Arm power off*\r\n."
+    deadline = time.monotonic() + 3.0
+    while robot._port().in_waiting < len(message) and time.monotonic() < deadline:  # noqa: SLF001
+        time.sleep(0.005)
+    assert not sim.arm_power
+    with pytest.raises(ArmPowerOff) as ei:
+        robot.speed(20)
+    assert ei.value.command is None
+    assert "SPEED 20" not in sim.received  # raised before sending
+    robot.speed(20)
+    assert sim.speed_pct == 20
+
+
+def test_pressing_through_the_plate_is_a_collision(sim, world):
+    # a box reaching below the table top: only the simulated foam and plate stop the arm
+    robot = PumaVAL(sim.url, limits=ValLimits(workspace_mm=((-600, 600), (-600, 600), (-100, 1000))), timeout_s=0.5)
+    ready_robot(robot.connect())
+    robot.move("above")
+    robot.define("deep", PLATE_BASE_POSE @ trans(0, 0, 40))  # 40 mm into a plate on 15 mm of foam
+    with pytest.raises(Collision):
+        robot.moves("deep")
+    assert not sim.arm_power
+    depth = (np.linalg.inv(PLATE_BASE_POSE) @ world.base_H_G)[2, 3]
+    assert 15.0 < depth < 40.0  # stopped on contact, short of the target
+    robot.close()
+
+
+# --- limits -------------------------------------------------------------------------------------------------
+def test_the_robot_never_receives_a_command_that_breaks_a_limit(sim):
+    lim = ValLimits(workspace_mm=((100, 450), (-200, 200), (10, 400)), max_speed_pct=30)
+    with PumaVAL(sim.url, limits=lim, timeout_s=0.5) as robot:
+        robot.calibrate()
+        robot.speed(30)
+        robot.move("above")
+        attempts = [
+            lambda: robot.speed(31),
+            lambda: robot.define("far", (500, 0, 100, 0, 180, 0)),
+            lambda: robot.move((300, 250, 100, 0, 180, 0)),
+            lambda: robot.moves((300, 0, 5, 0, 180, 0)),
+            lambda: robot.appro("above", -80),
+            lambda: robot.depart(400),
+            lambda: robot.drive(1, 190, 10),
+            lambda: robot.drive(2, 1, 40),
+        ]
+        for attempt in attempts:
+            with pytest.raises(LimitError):
+                attempt()
+        robot.move((300, 0, 100, 0, 180, 0))  # and a legal one still goes
+    d = robot.dialect
+    for line in sim.received:
+        parsed = d.parse_command(line)
+        if parsed is None:
+            continue
+        kind, f = parsed
+        if kind == "speed":
+            assert f["pct"] <= 30
+        if kind == "define":
+            for v, (lo, hi) in zip((f["x"], f["y"], f["z"]), lim.workspace_mm):
+                assert lo <= v <= hi, line
+        assert kind not in ("depart", "drive", "appro"), line
+    assert [ln for ln in sim.received if ln.startswith("DO MOVE")] == ["DO MOVE above", "DO MOVE svtgt"]
+
+
+# --- other links and clients --------------------------------------------------------------------------------
+def test_an_independent_client_holds_a_terminal_dialogue(sim):
+    """Raw pyserial on the pty, as a person at a terminal would type."""
+    with serial.Serial(sim.url, 9600, timeout=0.02) as tty:
+
+        def say(line: bytes, until: bytes = b"\r\n.") -> str:
+            tty.write(line + b"\r")
+            buf = b""
+            deadline = time.monotonic() + 3.0
+            while not buf.endswith(until) and time.monotonic() < deadline:
+                buf += tty.read(256)
+            assert buf.endswith(until), buf
+            return buf.decode()
+
+        out = say(b"WHERE")
+        lines = out.split("\r\n")
+        assert lines[0] == "WHERE" and lines[1].split() == list("XYZOAT") and lines[3].split()[0] == "JT1"
+        assert [float(v) for v in lines[2].split()[:3]] == pytest.approx([350.0, 0.0, 200.0], abs=0.01)
+        assert "Are you sure (Y/N)? " in say(b"CAL", until=b"? ")
+        assert say(b"Y") == "Y\r\n."
+        assert "*Illegal value*" in say(b"SPEED 200")
+        assert "*Unrecognized command*" in say(b"FLY AWAY")
+        assert say(b"speed 60") == "speed 60\r\n."
+        say(b"DO MOVE above")
+        assert "Change? " in say(b"POINT above", until=b"? ")
+        assert "   100.00" in say(b",,100", until=b"? ")  # change Z only; asked again
+        assert say(b"", until=b"\r\n.").endswith("\r\n.")
+    assert sim.speed_pct == 60
+    assert sim.locations()["ABOVE"][2, 3] == pytest.approx(100.0)
+
+
+def test_tcp_link_and_reconnection(world):
+    with ValController(world, seed=1, time_scale=SCALE) as c:
+        c.start_tcp()
+        assert c.url.startswith("socket://127.0.0.1:")
+        with PumaVAL(c.url, timeout_s=0.5) as robot:
+            robot.speed(20)
+        with PumaVAL(c.url, timeout_s=0.5) as robot:  # the controller keeps its state across connections
+            robot.calibrate()
+            robot.move("above")
+            assert c.speed_pct == 20
+            assert pose_difference(robot.where().base_H_T, PLATE_BASE_POSE @ trans(0, 0, -60))[1] < 0.01
+
+
+def test_echo_off_and_lf_dialect(world):
+    from drivers.puma_val_serial import ValDialect
+
+    d = ValDialect(echo=False, controller_eol="\n")
+    with ValController(world, seed=1, time_scale=SCALE, dialect=d) as c:
+        c.start_pty()
+        with PumaVAL(c.url, dialect=d, timeout_s=0.5) as robot:
+            robot.calibrate()
+            robot.move("above")
+            assert robot.location("above") == pytest.approx(robot.where().pose, abs=0.006)
+
+
+def test_spy_url_dumps_the_traffic(sim, tmp_path):
+    dump = tmp_path / "traffic.txt"
+    with PumaVAL(f"spy://{sim.url}?file={dump}", timeout_s=0.5) as robot:
+        robot.where()
+    text = dump.read_text()
+    assert "WHERE" in text and "JT1" in text
+
+
+def test_paced_link_still_parses(world):
+    with ValController(world, seed=1, time_scale=SCALE, pace_baud=115200) as c:
+        c.start_pty()
+        with PumaVAL(c.url, timeout_s=1.0) as robot:
+            assert robot.where().pose[:3] == pytest.approx((350.0, 0.0, 200.0), abs=0.01)
+            assert robot.last_rx_bytes > 200
+
+
+@pytest.mark.hardware
+@pytest.mark.skipif(not os.environ.get("SELFVIEW_PUMA_URL"), reason="set SELFVIEW_PUMA_URL to a real controller")
+def test_real_controller_where():
+    with PumaVAL(os.environ["SELFVIEW_PUMA_URL"], timeout_s=2.0) as robot:
+        w = robot.where()
+        assert len(w.pose) == 6 and len(w.joints) == 6
