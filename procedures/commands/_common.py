@@ -46,3 +46,30 @@ def print_json(obj) -> None:
     json.dump(_finite(obj), sys.stdout, indent=None, separators=(",", ":"), allow_nan=False)
     sys.stdout.write("\n")
     sys.stdout.flush()
+
+
+def positive_seconds(text: str) -> float:
+    """argparse type: a number of seconds > 0."""
+    v = float(text)
+    if not v > 0:
+        raise ValueError(text)
+    return v
+
+
+def check_port(port: int, who: str) -> None:
+    if not 0 <= port <= 65535:
+        raise SystemExit(f"selfview {who}: --port {port} out of 0..65535")
+
+
+def serve_until(url: str, duration_s: float | None) -> None:
+    """Print ``url`` as the first line of stdout, then wait until ``duration_s`` has passed (forever if
+    None) or Ctrl-C; the caller stops its server in ``finally``."""
+    import time
+
+    print(url, flush=True)
+    end = None if duration_s is None else time.monotonic() + duration_s
+    try:
+        while end is None or time.monotonic() < end:
+            time.sleep(0.2 if end is None else max(0.0, min(0.2, end - time.monotonic())))
+    except KeyboardInterrupt:
+        pass

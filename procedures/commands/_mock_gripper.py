@@ -3,16 +3,9 @@
 from __future__ import annotations
 
 import sys
-import time
 
+from procedures.commands._common import check_port, positive_seconds, serve_until
 from procedures.commands.gripper import add_io_map_argument, load_io_map_arg
-
-
-def _positive(text: str) -> float:
-    v = float(text)
-    if not v > 0:
-        raise ValueError(text)
-    return v
 
 
 def register(kinds):
@@ -27,11 +20,11 @@ def register(kinds):
         ),
     )
     p.add_argument("--port", type=int, default=0, help="TCP port (default: a free one)")
-    p.add_argument("--duration", type=_positive, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument("--duration", type=positive_seconds, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--seed", type=int, default=0, help="seed of the travel-time jitter")
     p.add_argument("--travel", type=float, default=0.1, metavar="S", help="jaw travel time (default 0.1 s)")
     p.add_argument("--travel-sd", type=float, default=0.0, metavar="S", help="travel time jitter, sd (default 0)")
-    p.add_argument("--watchdog", type=_positive, default=1.0, metavar="S", help="connection watchdog (default 1 s)")
+    p.add_argument("--watchdog", type=positive_seconds, default=1.0, metavar="S", help="connection watchdog (default 1 s)")
     p.add_argument("--no-watchdog", action="store_true", help="never drop the outputs")
     p.add_argument("--unit", type=int, default=1, help="Modbus unit (device id), default 1")
     p.add_argument("--rtu", action="store_true", help="RTU frames over TCP (prints modbus-rtu+socket://...)")
@@ -43,8 +36,7 @@ def register(kinds):
 def run(args) -> int:
     from mocks.valve_terminal import ValveTerminal
 
-    if not 0 <= args.port <= 65535:
-        raise SystemExit(f"selfview mock gripper: --port {args.port} out of 0..65535")
+    check_port(args.port, "mock gripper")
     terminal = ValveTerminal(
         None,
         io_map=load_io_map_arg(args),
@@ -58,12 +50,7 @@ def run(args) -> int:
     )
     terminal.start()
     try:
-        print(terminal.url, flush=True)
-        end = None if args.duration is None else time.monotonic() + args.duration
-        while end is None or time.monotonic() < end:
-            time.sleep(0.2 if end is None else max(0.0, min(0.2, end - time.monotonic())))
-    except KeyboardInterrupt:
-        pass
+        serve_until(terminal.url, args.duration)
     finally:
         terminal.stop()
     print(

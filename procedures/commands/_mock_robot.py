@@ -3,16 +3,8 @@
 from __future__ import annotations
 
 import sys
-import time
 
-from procedures.commands._common import add_cell_argument, load_cell_arg
-
-
-def _positive(text: str) -> float:
-    v = float(text)
-    if not v > 0:
-        raise ValueError(text)
-    return v
+from procedures.commands._common import add_cell_argument, check_port, load_cell_arg, positive_seconds, serve_until
 
 
 def _nonneg(text: str) -> float:
@@ -35,7 +27,7 @@ def register(kinds):
     )
     p.add_argument("--link", choices=("pty", "tcp"), default="pty", help="pseudo-terminal (default) or TCP")
     p.add_argument("--port", type=int, default=0, help="TCP port (default: a free one)")
-    p.add_argument("--duration", type=_positive, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument("--duration", type=positive_seconds, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--seed", type=int, default=0, help="seed of the simulated world and of the faults")
     p.add_argument("--time-scale", type=_nonneg, default=1.0, metavar="K", help="motion time factor (default 1: real time)")
     p.add_argument("--pace", action="store_true", help="send reply bytes at --baud (8N1), like a real line")
@@ -53,8 +45,7 @@ def run(args) -> int:
     from mocks.val_controller import ValController
     from mocks.world import SimWorld
 
-    if not 0 <= args.port <= 65535:
-        raise SystemExit(f"selfview mock robot: --port {args.port} out of 0..65535")
+    check_port(args.port, "mock robot")
     if args.baud <= 0:
         raise SystemExit(f"selfview mock robot: --baud {args.baud} must be positive")
     world = SimWorld(load_cell_arg(args), seed=args.seed)
@@ -73,12 +64,7 @@ def run(args) -> int:
         else:
             sim.start_tcp(args.port)
             url = sim.url
-        print(url, flush=True)
-        end = None if args.duration is None else time.monotonic() + args.duration
-        while end is None or time.monotonic() < end:
-            time.sleep(0.2 if end is None else max(0.0, min(0.2, end - time.monotonic())))
-    except KeyboardInterrupt:
-        pass
+        serve_until(url, args.duration)
     finally:
         sim.stop()
     print(f"selfview mock robot: received {len(sim.received)} lines; parked={world.parked}", file=sys.stderr)
