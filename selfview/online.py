@@ -1,0 +1,545 @@
+"""On-line calibration (paper, section 4): how far the camera moved on its mount, from the fingertips.
+
+Three estimators of the new gripper-to-camera transform ``C'_H_G`` from N fingertip points ``p_G``
+(N, 3) [mm] and their observed, *distorted* pixels ``uv`` (N, 2), starting from the current ``C_H_G``:
+
+- ``NP-U`` ``differential_update``: the paper's linear update (eq. 13-17), one 6x6 solve.
+- ``NP-I`` ``iterative_update``: Gauss-Newton on SE(3) over the same residuals until the step is below
+  1e-9 mm, which removes the linearisation error of NP-U (the paper left it out for real-time reasons).
+- ``NP-R`` ``recalibrate``: exterior orientation from N >= 4 coplanar points (OpenCV's IPPE, the
+  solution nearest the current ``C_H_G``), refined by the same Gauss-Newton.
+
+The six motion parameters (eq. 11-12, 16): ``C'p = Delta* Cp``, i.e. ``Delta* ~ C'_H_C`` maps the old
+camera coordinates of a point fixed to the gripper to its new camera coordinates. (delta_x, delta_y,
+delta_z) [rad] is the small rotation and (d_x, d_y, d_z) [mm] the translation of that map, both in the
+old camera frame: a gripper point moves in the picture's camera frame by ``delta x p + d``. The camera
+frame itself moved the opposite way (``C_H_C' = Delta*^-1``: rotation -delta, shift about -d).
+
+Every estimator works in undistorted sensor coordinates X, Y (eq. 3-4: each observation is first
+corrected with the camera's kappa, as the paper requires) and reports the reprojection residual of its
+result in distorted pixels. Degenerate input raises ``CalibrationError`` naming the cause.
+"""
+
+from __future__ import annotations
+
+import math
+from itertools import chain
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from selfview.camera import CameraModel, distort
+from selfview.cell import POINT_NAMES
+from selfview.errors import CalibrationError, ConfigError
+from selfview.geometry import delta_star, make_H
+
+__all__ = [
+    "METHODS",
+    "MAX_CONDITION",
+    "MotionEstimate",
+    "differential_update",
+    "iterative_update",
+    "recalibrate",
+    "select_points",
+    "estimate",
+    "parse_method",
+]
+
+METHODS: tuple[str, ...] = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R")
+
+#: Largest condition number accepted for the column-scaled normal matrix of the six motion parameters.
+#: The reference cell's configurations give 5e3 (4P) to 3e4 (3P); the condition grows as the inverse
+#: square of the points' distance from a line, and three points 0.1 mm off a 56 mm line give 9e7, where
+#: 0.05 px of pixel noise already moves the TCP estimate by 0.7 mm (one standard deviation; 0.01 mm with
+#: the four inner corners): beyond 1e8 the estimate tells more about the noise than about the camera.
+MAX_CONDITION = 1e8
+
+_MIN_POINTS = {"U": 3, "I": 3, "R": 4}
+_KIND_NAME = {"U": "differential update", "I": "iterative update", "R": "recalibration"}
+
+
+@dataclass(frozen=True)
+class MotionEstimate:
+    """One on-line estimate of the gripper-to-camera transform.
+
+    ``C_H_G`` (4, 4) the updated transform (NP-U: ``Delta* C_H_G`` of eq. 13, not orthogonal);
+    ``C_H_G_orth`` the same with its rotation re-orthonormalised (identical for NP-I and NP-R);
+    ``motion`` (6,) (delta_x, delta_y, delta_z [rad], d_x, d_y, d_z [mm]) of ``C'p = Delta* Cp`` (module
+    docstring; NP-I and NP-R: the rotation vector and translation of ``C'_H_G C_H_G^-1``);
+    ``delta_deg``, ``d_mm`` the measures of eq. 14; ``residuals_px`` (N, 2) observed minus reprojected
+    distorted pixels of ``C_H_G``; ``rms_px`` the root mean square of their lengths; ``covariance``
+    (6, 6) of ``motion`` [rad, mm] as ``sigma^2 (J^T J)^-1`` with sigma^2 from the residuals (NaN when
+    N = 3 leaves no redundancy, unless a prior pixel noise was given); ``condition`` of the column-scaled
+    normal matrix; ``points_used`` the point names; ``iterations`` Gauss-Newton steps (1 for NP-U);
+    ``C_H_G_prior`` (4, 4) the transform the estimate started from.
+    """
+
+    method: str
+    C_H_G: np.ndarray
+    C_H_G_orth: np.ndarray
+    motion: np.ndarray
+    delta_deg: float
+    d_mm: float
+    residuals_px: np.ndarray
+    rms_px: float
+    covariance: np.ndarray
+    condition: float
+    points_used: tuple[str, ...]
+    iterations: int
+    C_H_G_prior: np.ndarray | None = None
+
+    def to_dict(self) -> dict:
+        """Plain JSON-ready summary (lists, degrees, mm, px; NaN as None)."""
+
+        def clean(a):
+            return [None if not np.isfinite(v) else float(v) for v in np.ravel(a)]
+
+        return {
+            "method": self.method,
+            "C_H_G": self.C_H_G.tolist(),
+            "C_H_G_orth": self.C_H_G_orth.tolist(),
+            "delta_deg": float(self.delta_deg),
+            "d_mm": float(self.d_mm),
+            "motion": clean(self.motion),
+            "points_used": list(self.points_used),
+            "rms_px": float(self.rms_px),
+            "residuals_px": self.residuals_px.tolist(),
+            "motion_sd": clean(np.sqrt(np.abs(np.diag(self.covariance)))),
+            "condition": float(self.condition),
+            "iterations": int(self.iterations),
+        }
+
+
+# --- input checks and shared pieces ------------------------------------------------------------------
+# The fingertip sets are small (N <= 6): per-point arithmetic runs on Python floats, which cost a
+# fraction of a numpy call each, and the 3x3 / 6x6 algebra goes through OpenCV, whose per-call cost at
+# these sizes is a fraction of numpy.linalg's. That is what keeps one solve near the 50 us target.
+def _prepare(C_H_G, p_G, uv, camera, names, kind: str):
+    """Validated float arrays (H (4, 4), P (N, 3), uv (N, 2)), the point names and the method label."""
+    if not isinstance(camera, CameraModel):
+        raise TypeError(f"camera: expected a selfview.camera.CameraModel, got {type(camera).__name__}")
+    H = np.asarray(C_H_G, dtype=float)
+    P = np.asarray(p_G, dtype=float)
+    uv = np.asarray(uv, dtype=float)
+    if H.shape != (4, 4):
+        raise ValueError(f"C_H_G: expected a (4, 4) transform, got shape {H.shape}")
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise ValueError(f"p_G: expected shape (N, 3), got {P.shape}")
+    if uv.shape != (len(P), 2):
+        raise ValueError(f"uv: expected shape ({len(P)}, 2) to match p_G, got {uv.shape}")
+    n = len(P)
+    if names is None:
+        names = POINT_NAMES[:n] if n <= len(POINT_NAMES) else tuple(f"point-{i + 1}" for i in range(n))
+    else:
+        names = tuple(str(s) for s in names)
+        if len(names) != n:
+            raise ValueError(f"names: expected {n} names for {n} points, got {len(names)}")
+    label = f"{n}P-{kind}"
+    need = _MIN_POINTS[kind]
+    if n < need:
+        raise CalibrationError(f"{label} ({_KIND_NAME[kind]}): needs at least {need} points, got {n}")
+    if not all(map(math.isfinite, chain(H.ravel().tolist(), P.ravel().tolist(), uv.ravel().tolist()))):
+        if not np.isfinite(H).all():
+            raise CalibrationError(f"{label}: C_H_G contains non-finite values")
+        for arr, what in ((uv, "observed pixel"), (P, "gripper point")):
+            bad = ~np.isfinite(arr).all(axis=1)
+            if bad.any():
+                which = ", ".join(names[i] for i in np.flatnonzero(bad))
+                raise CalibrationError(f"{label}: {what} of {which} is not finite (NaN: not found?)")
+    return H, P, uv, names, label
+
+
+def _undistort(camera: CameraModel, uv: np.ndarray) -> list[tuple[float, float, float, float]]:
+    """Eq. 4 per point: pixels (N, 2) -> [(X^, Y^, X, Y)], distorted and undistorted sensor coordinates."""
+    a, cx, cy, k = camera.aspect, camera.cx, camera.cy, camera.kappa
+    out = []
+    for u, v in uv.tolist():
+        Xh, Yh = a * (u - cx), v - cy
+        s = 1.0 + k * (Xh * Xh + Yh * Yh)
+        out.append((Xh, Yh, Xh * s, Yh * s))
+    return out
+
+
+def _pixel_residual(camera: CameraModel, Xh: float, Yh: float, X: float, Y: float) -> tuple[float, float]:
+    """Observed distorted sensor point (X^, Y^) minus the distorted image of a predicted undistorted
+    point (X, Y), in pixels (du, dv).
+
+    Inverts eq. 4 by Newton on kappa r^3 + r = R from the observed radius, which lies close; falls
+    back to the closed form of ``selfview.camera.distort`` (which raises beyond the lens's fold)."""
+    k = camera.kappa
+    R = math.hypot(X, Y)
+    r = math.hypot(Xh, Yh)
+    for _ in range(3):  # quadratic: 10 px off -> 1e-17 px in three steps (kappa 2e-7, r 400 px)
+        slope = 3.0 * k * r * r + 1.0
+        if slope <= 0.0:
+            break
+        r -= (k * r * r * r + r - R) / slope
+    if 3.0 * k * r * r + 1.0 > 0.0 and abs(k * r * r * r + r - R) <= 1e-9 * (1.0 + R):
+        s = r / R if R > 0.0 else 1.0
+        Xp, Yp = X * s, Y * s
+    else:
+        Xp, Yp = distort(np.array([[X, Y]]), k)[0].tolist()
+    return (Xh - Xp) / camera.aspect, Yh - Yp
+
+
+def _camera_points(H: np.ndarray, P_list, label: str) -> list[tuple[float, float, float]]:
+    """Eq. 15: gripper points [(x, y, z)] -> [(x, y, z)] in the camera; raises for a point behind it."""
+    (r11, r12, r13, t1), (r21, r22, r23, t2), (r31, r32, r33, t3) = H[:3].tolist()
+    out = []
+    for gx, gy, gz in P_list:
+        z = r31 * gx + r32 * gy + r33 * gz + t3
+        if not z > 0.0:
+            raise CalibrationError(f"{label}: a point lies behind the camera (z = {z:.3g} mm <= 0)")
+        out.append((r11 * gx + r12 * gy + r13 * gz + t1, r21 * gx + r22 * gy + r23 * gz + t2, z))
+    return out
+
+
+def _spread(P: np.ndarray) -> np.ndarray:
+    """(3,) singular values (descending) of the centred points (N, 3): their extent along the principal
+    axes [mm, times sqrt(N)]."""
+    Q = P - P.sum(axis=0) / len(P)
+    _, w = cv2.eigen(Q.T @ Q)[:2]
+    return np.sqrt(np.maximum(w.ravel(), 0.0))
+
+
+def _collinear_reason(P: np.ndarray, s: np.ndarray | None = None) -> str | None:
+    """Why points (N, 3) cannot fix a pose, or None: they coincide, or lie within 1 % of their extent
+    of one line. ``s`` their ``_spread`` if known."""
+    s = _spread(P) if s is None else s
+    if s[0] == 0.0:
+        return "all points coincide"
+    if s[1] <= 1e-2 * s[0]:
+        return f"the points are collinear (spread across the line {s[1] / s[0]:.2%} of the spread along it)"
+    return None
+
+
+def _inverse_normal(N: np.ndarray, P: np.ndarray, label: str) -> tuple[np.ndarray, float]:
+    """(N^-1 (6, 6), condition) of a normal matrix through its column-scaled (Jacobi) form.
+
+    Raises ``CalibrationError`` when the scaled condition exceeds ``MAX_CONDITION``, naming collinear
+    points when that is the cause."""
+    d = np.sqrt(N.diagonal())
+    if not min(d.tolist()) > 0.0:
+        raise CalibrationError(f"{label}: a motion parameter does not affect any observation")
+    dd = d[:, None] * d
+    # OpenCV's SVD inverse returns the inverse condition number (smallest / largest singular value)
+    inv_cond, Ns_inv = cv2.invert(N / dd, flags=cv2.DECOMP_SVD)
+    cond = 1.0 / inv_cond if inv_cond > 0.0 else math.inf
+    if not cond <= MAX_CONDITION:
+        why = _collinear_reason(P)
+        raise CalibrationError(
+            f"{label}: {why or 'ill-conditioned point configuration'}; condition number {cond:.3g} of the "
+            f"scaled normal system exceeds {MAX_CONDITION:.0e}, the motion would be meaningless"
+        )
+    return Ns_inv / dd, cond
+
+
+def _sigma2(rss: float, n_eq: int, prior_sigma_px: float | None) -> float:
+    """Variance of one residual component: the prior's, or rss / (2N - 6); NaN without redundancy."""
+    if prior_sigma_px is not None:
+        return float(prior_sigma_px) ** 2
+    dof = n_eq - 6
+    return rss / dof if dof > 0 else math.nan
+
+
+def _orthonormal(H: np.ndarray) -> np.ndarray:
+    """``geometry.orthonormalize`` of a (4, 4) transform (the nearest rotation, by SVD), through
+    OpenCV's 3x3 SVD: numpy's costs over ten times more per call at this size."""
+    _, U, Vt = cv2.SVDecomp(H[:3, :3])
+    R = U @ Vt
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0.0:
+        U[:, 2] = -U[:, 2]
+        R = U @ Vt
+    out = H.copy()
+    out[:3, :3] = R
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+def _estimate(method, H, H_orth, motion, res_px, cov, cond, names, iters, H0) -> MotionEstimate:
+    m = motion.tolist()
+    return MotionEstimate(
+        method=method,
+        C_H_G=H,
+        C_H_G_orth=H_orth,
+        motion=motion,
+        delta_deg=math.degrees(math.sqrt(m[0] ** 2 + m[1] ** 2 + m[2] ** 2)),  # eq. 14
+        d_mm=math.sqrt(m[3] ** 2 + m[4] ** 2 + m[5] ** 2),
+        residuals_px=np.array(res_px),
+        rms_px=math.sqrt(sum(du * du + dv * dv for du, dv in res_px) / len(res_px)),
+        covariance=cov,
+        condition=cond,
+        points_used=tuple(names),
+        iterations=iters,
+        C_H_G_prior=H0,
+    )
+
+
+# --- NP-U -------------------------------------------------------------------------------------------
+def _eq17(p_C, obs, f: float) -> np.ndarray:
+    """The two rows of eq. 17 per point, each divided by the point's precalculated depth z_i, as the
+    augmented matrix [A | b] (2N, 7).
+
+    The division keeps each equation and makes its residual a pixel (to first order: the paper's rows
+    are ``z' (X_obs - X_pred)``), so the least squares weighs the points as the reprojection error does
+    and its residual estimates the pixel noise; the paper leaves the weighting open."""
+    rows = []
+    for (x, y, z), (_, _, X, Y) in zip(p_C, obs):
+        iz = 1.0 / z
+        rows.append((-X * y * iz, (f * z + X * x) * iz, -f * y * iz, f * iz, 0.0, -X * iz, (-f * x + X * z) * iz))
+        rows.append(((-f * z - Y * y) * iz, Y * x * iz, f * x * iz, 0.0, f * iz, -Y * iz, (-f * y + Y * z) * iz))
+    return np.array(rows)
+
+
+def differential_update(
+    C_H_G, p_G, uv, camera: CameraModel, names=None, *, prior_sigma_px: float | None = None
+) -> MotionEstimate:
+    """``NP-U``: the paper's differential update from N >= 3 points (eq. 13-17).
+
+    ``C p_i = C_H_G G p_i`` (eq. 15) with the current ``C_H_G`` (4, 4); two rows of eq. 17 per point with
+    the undistorted sensor coordinates (X_i, Y_i) of ``uv`` (N, 2, distorted pixels); least squares for
+    (delta_x, delta_y, delta_z [rad], d_x, d_y, d_z [mm]), whose meaning the module docstring states;
+    delta and d of eq. 14; ``C'_H_G = Delta* C_H_G`` (eq. 13, left non-orthogonal as the paper leaves it;
+    ``C_H_G_orth`` re-orthonormalised). Its error grows with the square of the motion. The residuals
+    are those of eq. 16, ``Delta* C p_i``, reprojected. ``prior_sigma_px`` replaces the residuals'
+    estimate of the pixel noise in the covariance.
+
+    Raises ``CalibrationError`` for fewer than 3 points, non-finite input, points behind the camera,
+    collinear points or an ill-conditioned system; ``ValueError`` for arrays of the wrong shape.
+    """
+    H0, P, uv, names, label = _prepare(C_H_G, p_G, uv, camera, names, "U")
+    f = camera.f
+    obs = _undistort(camera, uv)
+    p_C = _camera_points(H0, P.tolist(), label)  # eq. 15
+    Ab = _eq17(p_C, obs, f)
+    M = Ab.T @ Ab  # [[A^T A, A^T b], [b^T A, b^T b]]
+    N_inv, cond = _inverse_normal(M[:6, :6], P, label)
+    x = N_inv @ M[:6, 6]
+    rss = max(float(M[6, 6] - x @ M[:6, 6]), 0.0)  # |b - A x|^2 at the least-squares solution
+    cov = _sigma2(rss, len(Ab), prior_sigma_px) * N_inv
+    dx, dy, dz, tx, ty, tz = x.tolist()
+    H = delta_star((dx, dy, dz), (tx, ty, tz)) @ H0  # eq. 13
+    res = []
+    for (px, py, pz), (Xh, Yh, _, _) in zip(p_C, obs):
+        # eq. 16: C'p_i = Delta* C p_i
+        xn, yn, zn = px - dz * py + dy * pz + tx, dz * px + py - dx * pz + ty, -dy * px + dx * py + pz + tz
+        if not zn > 0.0:
+            raise CalibrationError(f"{label}: the update moves a point behind the camera; the motion is not small")
+        res.append(_pixel_residual(camera, Xh, Yh, f * xn / zn, f * yn / zn))
+    return _estimate(label, H, _orthonormal(H), x, res, cov, cond, names, 1, H0)
+
+
+# --- NP-I (and the refinement of NP-R) --------------------------------------------------------------
+def _linearise(RT: np.ndarray, P_list, obs, f: float, label: str):
+    """At the pose RT = [R | t] (3, 4): the camera points [(x, y, z)] and [J | r] (2N, 7), the Jacobian
+    of the undistorted projections (eq. 3) under a left perturbation ``p -> p + omega x p + v``
+    (omega [rad], v [mm]) beside the residuals observed minus projected; rows X, Y per point."""
+    (r11, r12, r13, t1), (r21, r22, r23, t2), (r31, r32, r33, t3) = RT.tolist()
+    pts, rows = [], []
+    for (gx, gy, gz), (_, _, X, Y) in zip(P_list, obs):
+        x = r11 * gx + r12 * gy + r13 * gz + t1
+        y = r21 * gx + r22 * gy + r23 * gz + t2
+        z = r31 * gx + r32 * gy + r33 * gz + t3
+        if not z > 0.0:
+            raise CalibrationError(f"{label}: a point lies behind the camera (z = {z:.3g} mm <= 0)")
+        iz = 1.0 / z
+        fa, fc, fiz = f * x * iz, f * y * iz, f * iz
+        rows.append((-fa * y * iz, f + fa * x * iz, -fc, fiz, 0.0, -fa * iz, X - fa))
+        rows.append((-f - fc * y * iz, fc * x * iz, fa, 0.0, fiz, -fc * iz, Y - fc))
+        pts.append((x, y, z))
+    return pts, np.array(rows)
+
+
+def _gauss_newton(H0, H_start, P, obs, camera, names, label, tol, max_iter, prior_sigma_px) -> MotionEstimate:
+    """Minimise the undistorted-sensor reprojection error of the points P (N, 3) over C_H_G from
+    ``H_start`` by Gauss-Newton on SE(3) (left perturbation: the motion parameters of NP-U), damped
+    (Levenberg) only after a step that raised the cost. Stops when no point moves ``tol`` mm in a step."""
+    P_list = P.tolist()
+    RT = H_start[:3].copy()
+    lam, best, moved = 0.0, None, math.inf
+    for it in range(1, max_iter + 1):
+        pts, Jr = _linearise(RT, P_list, obs, camera.f, label)
+        M = Jr.T @ Jr  # [[J^T J, J^T r], [r^T J, r^T r]]
+        cost = float(M[6, 6])
+        if best is not None and cost > best[0] * (1.0 + 1e-12) + 1e-30:
+            cost, RT, pts, Jr, M = best  # the step raised the cost: go back and damp
+            lam = max(10.0 * lam, 1e-6)
+        else:
+            if best is None:
+                _inverse_normal(M[:6, :6], P, label)  # refuse a degenerate configuration before iterating
+            lam = 0.1 * lam if lam > 1e-9 else 0.0
+            best = (cost, RT, pts, Jr, M)
+        N = M[:6, :6] + lam * np.diag(M.diagonal()[:6]) if lam else M[:6, :6]
+        ok, step = cv2.solve(N, M[:6, 6], flags=cv2.DECOMP_CHOLESKY)
+        if not ok:
+            raise CalibrationError(f"{label}: the normal system became singular during the iteration")
+        w1, w2, w3, v1, v2, v3 = step.ravel().tolist()
+        # how far the step moves the points: |omega x p + v| [mm]
+        moved = max(
+            math.sqrt((w2 * z - w3 * y + v1) ** 2 + (w3 * x - w1 * z + v2) ** 2 + (w1 * y - w2 * x + v3) ** 2)
+            for x, y, z in pts
+        )
+        RT = cv2.Rodrigues(step[:3])[0] @ RT
+        RT[:, 3] += step[3:, 0]
+        if moved < tol:
+            break
+    else:
+        raise CalibrationError(
+            f"{label}: no convergence in {max_iter} iterations (the last step moved the points {moved:.3g} mm)"
+        )
+    H = np.vstack([RT, (0.0, 0.0, 0.0, 1.0)])
+    N_inv, cond = _inverse_normal(M[:6, :6], P, label)
+    r = (Jr[:, 6] - Jr[:, :6] @ step.ravel()).tolist()  # residual after the last, sub-tolerance step
+    cov = _sigma2(sum(v * v for v in r), len(r), prior_sigma_px) * N_inv
+    res = [
+        _pixel_residual(camera, Xh, Yh, X - r[2 * i], Y - r[2 * i + 1]) for i, (Xh, Yh, X, Y) in enumerate(obs)
+    ]
+    C_H_C = H @ cv2.invert(H0)[1]  # the total motion (H0 may be a non-orthogonal NP-U result)
+    motion = np.concatenate([cv2.Rodrigues(C_H_C[:3, :3])[0].ravel(), C_H_C[:3, 3]])
+    return _estimate(label, H, H, motion, res, cov, cond, names, it, H0)
+
+
+def iterative_update(
+    C_H_G,
+    p_G,
+    uv,
+    camera: CameraModel,
+    names=None,
+    tol: float = 1e-9,
+    max_iter: int = 50,
+    *,
+    prior_sigma_px: float | None = None,
+) -> MotionEstimate:
+    """``NP-I``: the exact update, Gauss-Newton on SE(3) from the current ``C_H_G`` (4, 4).
+
+    Minimises the residuals NP-U linearises, in undistorted sensor coordinates (eq. 3-4), so NP-I is
+    the exact solution of the same problem: the observations are corrected once and the Jacobian is
+    closed-form. (The distortion's local scale 1 + 3 kappa r^2 stays below 1.1 over the picture, so
+    weighing by distorted pixels would change the solution insignificantly.) Iterates until no point
+    moves more than ``tol`` mm in a step; orthogonal by construction. ``motion`` is the rotation vector
+    and translation of ``C'_H_G C_H_G^-1``: the parameters of NP-U (module docstring), exact.
+
+    Raises ``CalibrationError`` for fewer than 3 points, non-finite input, points behind the camera,
+    collinear points, an ill-conditioned system or no convergence in ``max_iter`` steps.
+    """
+    H0, P, uv, names, label = _prepare(C_H_G, p_G, uv, camera, names, "I")
+    obs = _undistort(camera, uv)
+    return _gauss_newton(H0, _orthonormal(H0), P, obs, camera, names, label, tol, max_iter, prior_sigma_px)
+
+
+# --- NP-R -------------------------------------------------------------------------------------------
+def _mean_point_distance(Ha: np.ndarray, Hb: np.ndarray, P_list) -> float:
+    """Mean distance [mm] between the camera coordinates of the points [(x, y, z)] under two transforms."""
+    (a1, a2, a3, a4), (b1, b2, b3, b4), (c1, c2, c3, c4) = (Ha[:3] - Hb[:3]).tolist()
+    total = 0.0
+    for x, y, z in P_list:
+        dx, dy, dz = a1 * x + a2 * y + a3 * z + a4, b1 * x + b2 * y + b3 * z + b4, c1 * x + c2 * y + c3 * z + c4
+        total += math.sqrt(dx * dx + dy * dy + dz * dz)
+    return total / len(P_list)
+
+
+def recalibrate(
+    C_H_G,
+    p_G,
+    uv,
+    camera: CameraModel,
+    names=None,
+    *,
+    tol: float = 1e-9,
+    max_iter: int = 50,
+    prior_sigma_px: float | None = None,
+) -> MotionEstimate:
+    """``NP-R``: exterior orientation of the camera with respect to the gripper from N >= 4 points.
+
+    Coplanar points (the fingertips all lie in z = 0 of G) go to OpenCV's IPPE (``solvePnPGeneric``)
+    as undistorted normalised coordinates (X/f, Y/f, corrected by our kappa model; identity camera
+    matrix, no OpenCV distortion); of its two solutions the one nearest the current ``C_H_G`` (mean
+    distance of the points) is refined by the Gauss-Newton of NP-I over all the points. Points that are
+    not coplanar start from SQPnP instead. ``motion`` as for NP-I, relative to ``C_H_G``.
+
+    Raises ``CalibrationError`` for fewer than 4 points, non-finite input, collinear points, no
+    solution, an ill-conditioned system or no convergence.
+    """
+    H0, P, uv, names, label = _prepare(C_H_G, p_G, uv, camera, names, "R")
+    s = _spread(P)
+    why = _collinear_reason(P, s)
+    if why:
+        raise CalibrationError(f"{label}: {why}; the exterior orientation is undetermined")
+    obs = _undistort(camera, uv)
+    # OpenCV gets the points in a frame F turned like the camera's current estimate, p_F = R0 p_G, so
+    # that the pose it solves for, C_H_F, is a small rotation: its IPPE turns garbage for exact data
+    # when the pose is within ~0.01 deg of a half turn (its matrix -> rotation vector conversion), and
+    # the reference cell's mount guess is exactly a half turn.
+    H_ref = _orthonormal(H0)
+    R0 = H_ref[:3, :3]
+    obj = (P @ R0.T).reshape(-1, 1, 3)
+    img = np.array([(X, Y) for _, _, X, Y in obs]).reshape(-1, 1, 2) / camera.f
+    flag = cv2.SOLVEPNP_IPPE if s[2] <= 1e-6 * s[0] else cv2.SOLVEPNP_SQPNP
+    try:
+        n_sol, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, np.eye(3), None, flags=flag)
+    except cv2.error as exc:
+        raise CalibrationError(f"{label}: OpenCV's solvePnPGeneric failed ({exc.err})") from exc
+    cands = [
+        make_H(cv2.Rodrigues(rv)[0] @ R0, tv.ravel())  # C_H_G = C_H_F F_H_G
+        for rv, tv in zip(rvecs[:n_sol], tvecs[:n_sol])
+        if np.isfinite(rv).all() and np.isfinite(tv).all()
+    ]
+    if not cands:
+        raise CalibrationError(f"{label}: the exterior orientation has no solution for these points")
+    P_list = P.tolist()
+    start = min(cands, key=lambda Hc: _mean_point_distance(Hc, H_ref, P_list))
+    return _gauss_newton(H0, start, P, obs, camera, names, label, tol, max_iter, prior_sigma_px)
+
+
+# --- methods by name ---------------------------------------------------------------------------------
+def parse_method(method: str) -> tuple[int, str]:
+    """(number of points, kind 'U' | 'I' | 'R') of a method name like '4P-U'; ``ConfigError`` if unknown."""
+    if method not in METHODS:
+        raise ConfigError(f"on-line method {method!r}: expected one of {', '.join(METHODS)}")
+    return int(method[0]), method[-1]
+
+
+def select_points(method: str, found) -> list[int]:
+    """Indices (0-based, into the six points of ``POINT_NAMES``) that ``method`` uses.
+
+    3P: points 1-3; 4P: 1-4; 5P: 1-5, or 1-4 and 6 when 5 is not found (CONVENTIONS.md). ``method`` may
+    be a full name ('4P-U') or just its count ('4P'); ``found`` (6,) bool. Raises ``CalibrationError``
+    naming the points that are needed but not found."""
+    found = np.asarray(found, dtype=bool)
+    if found.shape != (len(POINT_NAMES),):
+        raise ValueError(f"found: expected shape ({len(POINT_NAMES)},), got {found.shape}")
+    key = method[:2] if isinstance(method, str) else method
+    if key not in ("3P", "4P", "5P"):
+        raise ConfigError(f"on-line method {method!r}: expected 3P, 4P or 5P (e.g. one of {', '.join(METHODS)})")
+    n = int(key[0])
+    base = list(range(min(n, 4)))
+    missing = [POINT_NAMES[i] for i in base if not found[i]]
+    if n == 5:
+        extra = 4 if found[4] else 5 if found[5] else None
+        if extra is None:
+            missing.append(f"{POINT_NAMES[4]} or {POINT_NAMES[5]}")
+        else:
+            base.append(extra)
+    if missing:
+        raise CalibrationError(f"{method}: needs {', '.join(missing)}, not found")
+    return base
+
+
+def estimate(method: str, C_H_G, p_G6, uv6, found6, camera: CameraModel, **kwargs) -> MotionEstimate:
+    """Run the on-line method named ``method`` (one of ``METHODS``) on the six points.
+
+    ``p_G6`` (6, 3) gripper points [mm], ``uv6`` (6, 2) observed distorted pixels (NaN where not found),
+    ``found6`` (6,) bool; the method picks its points by ``select_points``. ``kwargs`` go to the solver
+    (``prior_sigma_px``; ``tol``, ``max_iter`` for I and R). Raises ``ConfigError`` for an unknown
+    method, ``CalibrationError`` as the solvers do."""
+    _, kind = parse_method(method)
+    p_G6 = np.asarray(p_G6, dtype=float)
+    uv6 = np.asarray(uv6, dtype=float)
+    if p_G6.shape != (6, 3) or uv6.shape != (6, 2):
+        raise ValueError(f"estimate: expected p_G6 (6, 3) and uv6 (6, 2), got {p_G6.shape} and {uv6.shape}")
+    idx = select_points(method, found6)
+    names = tuple(POINT_NAMES[i] for i in idx)
+    solver = {"U": differential_update, "I": iterative_update, "R": recalibrate}[kind]
+    return solver(C_H_G, p_G6[idx], uv6[idx], camera, names, **kwargs)

@@ -1,0 +1,379 @@
+"""The on-line policy (paper, section 4): update, recalibrate or raise the alarm.
+
+While the robot works each picture of the fingertips gives a differential estimate of how far the
+camera moved on its mount. The limits of ``monitor`` in the cell description decide what to do:
+
+- the change stays within ``update_limit`` (angle AND shift): apply the update;
+- it exceeds ``update_limit`` but stays within ``alarm_limit``: recalibrate (NP-R);
+- it exceeds ``alarm_limit``, fewer than 3 fingertips are found, or the residual exceeds
+  ``max_rms_px`` (the model no longer fits): raise the alarm and leave ``C_H_G`` unchanged.
+
+The change compared with the limits is delta and d of eq. 14 (the rotation angle and the translation of
+``C'_H_G C_H_G^-1``, the camera's motion; d is not the TCP's shift) since the LAST CALIBRATION (off-line, or the last
+recalibration), not since the previous frame: a camera that creeps 0.3 degrees per frame is
+recalibrated once the sum passes the update limit. A ``Monitor`` holds the current and the last
+calibrated ``C_H_G``, applies the policy frame by frame and logs every decision with its measures.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from selfview.camera import CameraModel
+from selfview.cell import POINT_NAMES, MonitorLimits
+from selfview.errors import AlarmError, CalibrationError, ConfigError
+from selfview.geometry import check_rigid, inv_H, orthonormalize, rotation_angle
+from selfview.online import MotionEstimate, estimate, parse_method, select_points
+
+__all__ = ["ACTIONS", "Decision", "Policy", "Monitor"]
+
+ACTIONS: tuple[str, ...] = ("update", "recalibrate", "alarm")
+
+_LOG = logging.getLogger("selfview.policy")
+_LEVEL = {"update": logging.INFO, "recalibrate": logging.WARNING, "alarm": logging.ERROR, "calibrated": logging.INFO}
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What the policy decided for one picture, and the measures that led to it.
+
+    ``action`` one of ``ACTIONS``; ``reason`` a sentence naming the measure and the limit;
+    ``delta_deg``, ``d_mm`` the change since the last calibration that was compared with the limits
+    (NaN when there was no estimate); ``rms_px`` the residual of the estimate judged last (NaN if none);
+    ``C_H_G`` (4, 4) the transform to use from now on: new for update (NP-U's result re-orthonormalised,
+    so that no error accumulates in a non-rigid matrix; eq. 13's own is ``estimate.C_H_G``) and for
+    recalibrate, unchanged for an alarm (None if the policy was not told the current one); ``method``
+    and ``points_used`` of the estimate ``C_H_G`` comes from (or that was judged); ``n_found``
+    fingertips found in the picture; ``estimate`` that estimate.
+    """
+
+    action: str
+    reason: str
+    delta_deg: float
+    d_mm: float
+    rms_px: float
+    C_H_G: np.ndarray | None
+    method: str | None = None
+    n_found: int = 0
+    points_used: tuple[str, ...] = ()
+    estimate: MotionEstimate | None = field(default=None, repr=False, compare=False)
+
+    def to_dict(self) -> dict:
+        """Plain JSON-ready record (NaN as None)."""
+
+        def num(v):
+            return None if v is None or not math.isfinite(v) else float(v)
+
+        return {
+            "action": self.action,
+            "reason": self.reason,
+            "delta_deg": num(self.delta_deg),
+            "d_mm": num(self.d_mm),
+            "rms_px": num(self.rms_px),
+            "method": self.method,
+            "n_found": int(self.n_found),
+            "points_used": list(self.points_used),
+            "condition": num(self.estimate.condition) if self.estimate is not None else None,
+            "C_H_G": None if self.C_H_G is None else np.asarray(self.C_H_G).tolist(),
+        }
+
+
+class Policy:
+    """The update / recalibrate / alarm rule of section 4 for the limits of one cell.
+
+    ``limits``: ``Cell.monitor`` (update_limit, alarm_limit: angle [deg] and shift [mm]; max_rms_px).
+    A limit is exceeded when either its angle or its shift is.
+    """
+
+    def __init__(self, limits: MonitorLimits):
+        if not isinstance(limits, MonitorLimits):
+            raise ConfigError(f"policy limits: expected selfview.cell.MonitorLimits, got {type(limits).__name__}")
+        self.limits = limits
+
+    @staticmethod
+    def change(C_H_G_new, C_H_G_ref) -> tuple[float, float]:
+        """(delta [deg], d [mm]) of eq. 14 for the motion ``C'_H_C = C_H_G_new C_H_G_ref^-1`` between two
+        (4, 4) transforms: its rotation angle and the length of its translation."""
+        new = orthonormalize(np.asarray(C_H_G_new, dtype=float))
+        M = new @ inv_H(orthonormalize(np.asarray(C_H_G_ref, dtype=float)))
+        return math.degrees(rotation_angle(M)), float(np.linalg.norm(M[:3, 3]))
+
+    def _exceeds(self, limit, delta_deg: float, d_mm: float) -> bool:
+        return delta_deg > limit.angle_deg or d_mm > limit.shift_mm
+
+    def classify(self, delta_deg: float, d_mm: float) -> str:
+        """'update', 'recalibrate' or 'alarm' for a change (deg, mm) since the last calibration."""
+        if self._exceeds(self.limits.alarm_limit, delta_deg, d_mm):
+            return "alarm"
+        if self._exceeds(self.limits.update_limit, delta_deg, d_mm):
+            return "recalibrate"
+        return "update"
+
+    def decide(
+        self,
+        estimate_U: MotionEstimate | None,
+        n_found: int,
+        *,
+        C_H_G=None,
+        C_H_G_calibrated=None,
+        recalibration: MotionEstimate | Callable[[], MotionEstimate] | None = None,
+        error: str | None = None,
+    ) -> Decision:
+        """Decide for one picture.
+
+        ``estimate_U`` the differential (NP-U, or NP-I) estimate from the current ``C_H_G`` (None when it
+        could not be computed: ``error`` says why); ``n_found`` fingertips found; ``C_H_G`` (4, 4) the
+        current transform (default: the estimate's starting one), returned unchanged on an alarm;
+        ``C_H_G_calibrated`` (4, 4) the last calibrated transform the limits refer to (default: the
+        current one, i.e. the estimate's own delta and d); ``recalibration`` an NP-R estimate, or a
+        callable computing it (called only when needed; a ``CalibrationError`` it raises becomes an
+        alarm). Without one a 'recalibrate' decision leaves ``C_H_G`` unchanged.
+        """
+        lim = self.limits
+        if C_H_G is None and estimate_U is not None:
+            C_H_G = estimate_U.C_H_G_prior
+        unchanged = None if C_H_G is None else np.asarray(C_H_G, dtype=float).copy()
+        nan = math.nan
+
+        def alarm(reason, delta=nan, d=nan, est=None):
+            return Decision(
+                "alarm",
+                reason,
+                delta,
+                d,
+                est.rms_px if est is not None else nan,
+                unchanged,
+                est.method if est is not None else None,
+                int(n_found),
+                est.points_used if est is not None else (),
+                est,
+            )
+
+        if n_found < 3:
+            return alarm(f"only {n_found} fingertip point(s) found; at least 3 are needed to follow the camera")
+        if estimate_U is None:
+            return alarm(f"no update estimate: {error or 'none was computed'}")
+        est = estimate_U
+        if not est.rms_px <= lim.max_rms_px:
+            return alarm(
+                f"{est.method} residual {est.rms_px:.3f} px exceeds max_rms_px {lim.max_rms_px} px: "
+                "the model no longer fits the fingertips",
+                est=est,
+            )
+        if C_H_G_calibrated is None:
+            delta, d = est.delta_deg, est.d_mm
+        else:
+            delta, d = self.change(est.C_H_G_orth, C_H_G_calibrated)
+        where = f"change since the last calibration {delta:.3f} deg / {d:.3f} mm ({est.method})"
+        action = self.classify(delta, d)
+        if action == "alarm":
+            a = lim.alarm_limit
+            return alarm(f"{where} exceeds the alarm limit {a.angle_deg} deg / {a.shift_mm} mm", delta, d, est)
+        u = lim.update_limit
+        if action == "update":
+            return Decision(
+                "update",
+                f"{where} within the update limit {u.angle_deg} deg / {u.shift_mm} mm",
+                delta,
+                d,
+                est.rms_px,
+                est.C_H_G_orth.copy(),
+                est.method,
+                int(n_found),
+                est.points_used,
+                est,
+            )
+        why = f"{where} exceeds the update limit {u.angle_deg} deg / {u.shift_mm} mm"
+        if recalibration is None:
+            return Decision(
+                "recalibrate", f"{why}; no recalibration supplied, C_H_G unchanged", delta, d, est.rms_px,
+                unchanged, est.method, int(n_found), est.points_used, est,
+            )
+        try:
+            est_R = recalibration() if callable(recalibration) else recalibration
+        except CalibrationError as exc:
+            return alarm(f"{why}, and the recalibration failed: {exc}", delta, d, est)
+        if not est_R.rms_px <= lim.max_rms_px:
+            return alarm(
+                f"{why}; the recalibration's residual {est_R.rms_px:.3f} px exceeds max_rms_px "
+                f"{lim.max_rms_px} px: the model no longer fits the fingertips",
+                delta,
+                d,
+                est_R,
+            )
+        ref = est_R.C_H_G_prior if C_H_G_calibrated is None else C_H_G_calibrated
+        delta_R, d_R = self.change(est_R.C_H_G, ref) if ref is not None else (est_R.delta_deg, est_R.d_mm)
+        if self.classify(delta_R, d_R) == "alarm":
+            a = lim.alarm_limit
+            return alarm(
+                f"{why}; the recalibration ({est_R.method}) measures {delta_R:.3f} deg / {d_R:.3f} mm, beyond "
+                f"the alarm limit {a.angle_deg} deg / {a.shift_mm} mm",
+                delta_R,
+                d_R,
+                est_R,
+            )
+        return Decision(
+            "recalibrate",
+            f"{why}; recalibrated by {est_R.method} ({delta_R:.3f} deg / {d_R:.3f} mm, "
+            f"residual {est_R.rms_px:.3f} px)",
+            delta,
+            d,
+            est_R.rms_px,
+            est_R.C_H_G.copy(),
+            est_R.method,
+            int(n_found),
+            est_R.points_used,
+            est_R,
+        )
+
+
+class Monitor:
+    """Keeps ``C_H_G`` true while the robot works: one policy decision per picture.
+
+    ``C_H_G`` (4, 4) the calibrated transform to start from (off-line calibration); ``camera`` its
+    interior orientation; ``p_G6`` (6, 3) the fingertip points [mm] for the gripper state in use
+    (``GripperSpec.points_G``); ``limits`` the cell's ``MonitorLimits`` or a ``Policy``.
+    ``update_method`` an NP-U or NP-I method (default '4P-U' as the paper; when its points are not all
+    found the same kind with fewer points is used, down to 3P). ``recalibration_method`` '4P-R', '5P-R'
+    or 'auto' (5P-R when a fifth point is found, else 4P-R). ``raise_on_alarm``: raise ``AlarmError``
+    after logging an alarm instead of returning the decision. Every decision is logged (``logger``,
+    default 'selfview.policy') and kept in ``records`` (plain dicts with the frame number).
+    """
+
+    def __init__(
+        self,
+        C_H_G,
+        camera: CameraModel,
+        p_G6,
+        limits: MonitorLimits | Policy,
+        *,
+        update_method: str = "4P-U",
+        recalibration_method: str = "auto",
+        raise_on_alarm: bool = False,
+        logger: logging.Logger | None = None,
+    ):
+        self.policy = limits if isinstance(limits, Policy) else Policy(limits)
+        n, kind = parse_method(update_method)
+        if kind not in ("U", "I"):
+            raise ConfigError(f"update_method {update_method!r}: expected an NP-U or NP-I method, e.g. 4P-U or 4P-I")
+        if recalibration_method != "auto" and parse_method(recalibration_method)[1] != "R":
+            raise ConfigError(
+                f"recalibration_method {recalibration_method!r}: expected 'auto', '4P-R' or '5P-R'"
+            )
+        if not isinstance(camera, CameraModel):
+            raise ConfigError(f"camera: expected a selfview.camera.CameraModel, got {type(camera).__name__}")
+        self.camera = camera
+        self.p_G6 = self._points(p_G6)
+        self.update_method = update_method
+        self.recalibration_method = recalibration_method
+        self.raise_on_alarm = bool(raise_on_alarm)
+        self.log = logger or _LOG
+        self.records: list[dict] = []
+        self.frame = 0
+        self.alarmed = False
+        self.C_H_G = check_rigid(C_H_G, "C_H_G")
+        self.C_H_G_calibrated = self.C_H_G.copy()
+        self._record("calibrated", "initial calibration", self.C_H_G)
+
+    @staticmethod
+    def _points(p_G6) -> np.ndarray:
+        p = np.asarray(p_G6, dtype=float)
+        if p.shape != (len(POINT_NAMES), 3) or not np.isfinite(p).all():
+            raise ConfigError(
+                f"p_G6: expected ({len(POINT_NAMES)}, 3) finite fingertip points in G [mm], got {p.shape}"
+            )
+        return p
+
+    def _record(self, action: str, reason: str, C_H_G, decision: Decision | None = None) -> dict:
+        rec = {"frame": self.frame}
+        if decision is not None:
+            rec.update(decision.to_dict())
+        else:
+            rec.update({"action": action, "reason": reason, "C_H_G": np.asarray(C_H_G).tolist()})
+        self.records.append(rec)
+        d = decision
+        if d is None:
+            self.log.log(_LEVEL[action], "frame %d: %s (%s)", self.frame, action, reason)
+        else:
+            self.log.log(
+                _LEVEL[d.action],
+                "frame %d: %s by %s: %s [delta %.4f deg, d %.4f mm, rms %.3f px, %d points found]",
+                self.frame, d.action, d.method, d.reason, d.delta_deg, d.d_mm, d.rms_px, d.n_found,
+            )
+        return rec
+
+    def calibrated(self, C_H_G, reason: str = "off-line calibration") -> None:
+        """Start again from a new calibration (off-line): the limits refer to it from now on."""
+        self.C_H_G = check_rigid(C_H_G, "C_H_G")
+        self.C_H_G_calibrated = self.C_H_G.copy()
+        self.alarmed = False
+        self._record("calibrated", reason, self.C_H_G)
+
+    def _update_method(self, found: np.ndarray) -> str:
+        n, kind = parse_method(self.update_method)
+        for k in range(n, 2, -1):
+            try:
+                select_points(f"{k}P", found)
+                return f"{k}P-{kind}"
+            except CalibrationError:
+                continue
+        return self.update_method  # its own error names the missing points
+
+    def _recalibration_method(self, found: np.ndarray) -> str:
+        if self.recalibration_method != "auto":
+            return self.recalibration_method
+        try:
+            select_points("5P", found)
+            return "5P-R"
+        except CalibrationError:
+            return "4P-R"
+
+    def step(self, uv6, found6, p_G6=None) -> Decision:
+        """Judge one picture: ``uv6`` (6, 2) observed distorted pixels of the fingertips (NaN where not
+        found), ``found6`` (6,) bool, ``p_G6`` the points if the gripper state changed. Applies the
+        decision (update: new ``C_H_G``; recalibrate: new ``C_H_G`` and new reference), logs and keeps
+        it, and returns it. Raises ``AlarmError`` on an alarm if ``raise_on_alarm``."""
+        self.frame += 1
+        p = self.p_G6 if p_G6 is None else self._points(p_G6)
+        uv = np.asarray(uv6, dtype=float)
+        if uv.shape != (len(POINT_NAMES), 2):
+            raise ValueError(f"uv6: expected shape ({len(POINT_NAMES)}, 2), got {uv.shape}")
+        found = np.asarray(found6, dtype=bool).reshape(-1)
+        if found.shape != (len(POINT_NAMES),):
+            raise ValueError(f"found6: expected shape ({len(POINT_NAMES)},), got {np.shape(found6)}")
+        found = found & np.isfinite(uv).all(axis=1)
+        n_found = int(found.sum())
+        est_U, err = None, None
+        if n_found >= 3:
+            try:
+                est_U = estimate(self._update_method(found), self.C_H_G, p, uv, found, self.camera)
+            except CalibrationError as exc:
+                err = str(exc)
+        C_H_G = self.C_H_G
+
+        def recalibration():
+            return estimate(self._recalibration_method(found), C_H_G, p, uv, found, self.camera)
+
+        decision = self.policy.decide(
+            est_U,
+            n_found,
+            C_H_G=self.C_H_G,
+            C_H_G_calibrated=self.C_H_G_calibrated,
+            recalibration=recalibration,
+            error=err,
+        )
+        if decision.action == "update":
+            self.C_H_G = decision.C_H_G.copy()
+        elif decision.action == "recalibrate" and decision.estimate is not None and decision.method.endswith("R"):
+            self.C_H_G = decision.C_H_G.copy()
+            self.C_H_G_calibrated = self.C_H_G.copy()
+        self.alarmed = decision.action == "alarm"
+        self._record(decision.action, decision.reason, decision.C_H_G, decision)
+        if self.alarmed and self.raise_on_alarm:
+            raise AlarmError(f"frame {self.frame}: {decision.reason}")
+        return decision

@@ -1,0 +1,195 @@
+"""The on-line policy: update below the update limit, recalibrate between the limits, alarm above."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from selfview.errors import AlarmError, CalibrationError, ConfigError
+from selfview.geometry import inv_H, is_rigid, rot_axis, transform_points, trans
+from selfview.online import differential_update, recalibrate
+from selfview.policy import Decision, Monitor, Policy
+
+F, KAPPA = 962.0, 1.9e-7
+PIVOT = (0.0, -15.0, -20.0)  # the cell's disturbance pivot in the camera frame
+
+
+@pytest.fixture
+def ref(cell):
+    return cell.mount_guess_C_H_G, cell.gripper.points_G("open"), cell.camera.guess().with_(f=F, kappa=KAPPA)
+
+
+def turned(C_H_G, angle_deg, axis=(0.0, 1.0, 0.0)):
+    return inv_H(rot_axis(axis, np.radians(angle_deg), PIVOT)) @ C_H_G
+
+
+def tcp_error(H, H_true) -> float:
+    return float(np.linalg.norm(H[:3, 3] - H_true[:3, 3]))
+
+
+def frame(H, P, cam):
+    return cam.project(transform_points(H, P)), np.ones(6, bool)
+
+
+@pytest.fixture
+def mon(cell, ref):
+    """A monitor with the cell's limits, calibrated at the mount guess, and the reference set-up."""
+    H0, P, cam = ref
+    return Monitor(H0, cam, P, cell.monitor), H0, P, cam
+
+
+def test_update_below_the_update_limit(cell, mon):
+    m, H0, P, cam = mon
+    H1 = turned(H0, 0.3)
+    d = m.step(*frame(H1, P, cam))
+    assert d.action == "update" and d.method == "4P-U"
+    assert d.delta_deg == pytest.approx(0.3, rel=1e-3) and d.d_mm < cell.monitor.update_limit.shift_mm
+    assert tcp_error(m.C_H_G, H1) < 0.005 and is_rigid(m.C_H_G, tol=1e-12)
+    assert np.array_equal(m.C_H_G_calibrated, H0)  # an update is not a calibration
+    assert "within the update limit" in d.reason
+
+
+def test_recalibrate_between_the_limits(mon):
+    m, H0, P, cam = mon
+    H1 = turned(H0, 2.5)
+    d = m.step(*frame(H1, P, cam))
+    assert d.action == "recalibrate" and d.method == "5P-R"
+    assert "exceeds the update limit" in d.reason
+    assert tcp_error(m.C_H_G, H1) < 1e-6
+    assert np.array_equal(m.C_H_G_calibrated, m.C_H_G)  # a recalibration is the new reference
+    # without the outer points the recalibration takes the four inner ones
+    H2 = turned(H1, 2.5, axis=(1.0, 0.0, 0.0))
+    uv, found = frame(H2, P, cam)
+    found[4:] = False
+    uv[4:] = np.nan
+    d2 = m.step(uv, found)
+    assert d2.action == "recalibrate" and d2.method == "4P-R" and d2.n_found == 4
+    assert tcp_error(m.C_H_G, H2) < 1e-6
+
+
+def test_alarm_above_the_alarm_limit_leaves_C_H_G(cell, mon):
+    m, H0, P, cam = mon
+    d = m.step(*frame(turned(H0, 8.0), P, cam))
+    assert d.action == "alarm" and "exceeds the alarm limit" in d.reason
+    assert d.delta_deg > cell.monitor.alarm_limit.angle_deg
+    assert np.array_equal(m.C_H_G, H0) and np.array_equal(d.C_H_G, H0) and m.alarmed
+    m2 = Monitor(H0, cam, P, cell.monitor, raise_on_alarm=True)
+    with pytest.raises(AlarmError, match="alarm limit"):
+        m2.step(*frame(turned(H0, 8.0), P, cam))
+    assert np.array_equal(m2.C_H_G, H0) and m2.records[-1]["action"] == "alarm"
+
+
+def test_alarm_when_fewer_than_three_points(mon):
+    m, H0, P, cam = mon
+    uv, found = frame(turned(H0, 0.2), P, cam)
+    found[[0, 2, 3, 5]] = False
+    d = m.step(uv, found)
+    assert d.action == "alarm" and "only 2 fingertip point(s) found" in d.reason
+    assert np.array_equal(m.C_H_G, H0) and d.n_found == 2
+
+
+def test_alarm_when_the_model_no_longer_fits(cell, mon):
+    m, H0, P, cam = mon
+    uv, found = frame(turned(H0, 0.2), P, cam)
+    uv[1] += (6.0, 4.0)  # a mislocated corner
+    d = m.step(uv, found)
+    assert d.action == "alarm" and "max_rms_px" in d.reason
+    assert d.rms_px > cell.monitor.max_rms_px
+    assert np.array_equal(m.C_H_G, H0)
+
+
+def test_limits_refer_to_the_last_calibration(mon):
+    """A camera creeping 0.4 deg per picture is updated twice, then recalibrated when the sum since
+    the last calibration passes the 1 deg update limit; after that the count starts again."""
+    m, H0, P, cam = mon
+    H = H0
+    actions, deltas = [], []
+    for _ in range(5):
+        H = turned(H, 0.4)
+        d = m.step(*frame(H, P, cam))
+        actions.append(d.action)
+        deltas.append(d.delta_deg)
+    assert actions == ["update", "update", "recalibrate", "update", "update"]
+    assert deltas[:3] == pytest.approx([0.4, 0.8, 1.2], abs=2e-3)
+    assert deltas[3:] == pytest.approx([0.4, 0.8], abs=2e-3)
+    assert tcp_error(m.C_H_G, H) < 0.005
+
+
+def test_every_decision_is_logged_with_its_measures(mon, caplog):
+    m, H0, P, cam = mon
+    with caplog.at_level(logging.INFO, logger="selfview.policy"):
+        for a in (0.3, 2.0, 9.0):
+            m.step(*frame(turned(H0, a), P, cam))
+    msgs = [r for r in caplog.records if r.name == "selfview.policy"]
+    assert [r.levelno for r in msgs] == [logging.INFO, logging.WARNING, logging.ERROR]
+    assert "frame 1: update by 4P-U" in msgs[0].getMessage() and "delta 0.3000 deg" in msgs[0].getMessage()
+    assert "frame 3: alarm" in msgs[2].getMessage()
+    assert [r["action"] for r in m.records] == ["calibrated", "update", "recalibrate", "alarm"]
+    rec = m.records[1]
+    keys = ("frame", "reason", "method", "n_found", "points_used", "delta_deg", "d_mm", "rms_px", "condition", "C_H_G")
+    assert set(keys) <= set(rec), rec
+    assert rec["frame"] == 1 and rec["n_found"] == 6 and rec["points_used"][0] == "A-inner-front"
+    m.calibrated(H0)
+    assert m.records[-1]["action"] == "calibrated" and np.array_equal(m.C_H_G_calibrated, H0)
+
+
+def test_iterative_update_method_and_fallback_to_fewer_points(cell, ref):
+    H0, P, cam = ref
+    m = Monitor(H0, cam, P, cell.monitor, update_method="4P-I")
+    H1 = turned(H0, 0.6)
+    d = m.step(*frame(H1, P, cam))
+    assert d.action == "update" and d.method == "4P-I" and tcp_error(m.C_H_G, H1) < 1e-6
+    uv, found = frame(H1, P, cam)
+    found[3] = False  # B-inner-back occluded: 4P cannot run, 3P can
+    d = m.step(uv, found)
+    assert d.method == "3P-I" and d.action == "update" and d.n_found == 5
+    assert d.estimate.delta_deg < 1e-6  # nothing moved since the last picture ...
+    assert d.delta_deg == pytest.approx(0.6, abs=1e-9)  # ... but 0.6 deg since the calibration
+
+
+def test_policy_decide_directly(cell, ref):
+    H0, P, cam = ref
+    pol = Policy(cell.monitor)
+    d = pol.decide(None, 4, C_H_G=H0, error="4P-U: the points are collinear")
+    assert isinstance(d, Decision) and d.action == "alarm" and "collinear" in d.reason
+    assert np.array_equal(d.C_H_G, H0) and np.isnan(d.delta_deg)
+    H1 = turned(H0, 2.0)
+    uv = cam.project(transform_points(H1, P))
+    est = differential_update(H0, P[:4], uv[:4], cam)
+    d = pol.decide(est, 6)  # no recalibration given: the decision says so and keeps C_H_G
+    assert d.action == "recalibrate" and "no recalibration supplied" in d.reason
+    assert np.array_equal(d.C_H_G, H0)
+
+    def failing():
+        raise CalibrationError("4P-R: needs B-inner-back, not found")
+
+    d = pol.decide(est, 6, recalibration=failing)
+    assert d.action == "alarm" and "recalibration failed: 4P-R: needs B-inner-back" in d.reason
+    d = pol.decide(est, 6, recalibration=recalibrate(H0, P[:4], uv[:4], cam))
+    assert d.action == "recalibrate" and tcp_error(d.C_H_G, H1) < 1e-6
+    # a pure shift beyond the shift limit recalibrates although the angle is nil
+    H2 = trans(2.5, 0.0, 0.0) @ H0
+    est2 = differential_update(H0, P[:4], cam.project(transform_points(H2, P[:4])), cam)
+    assert est2.delta_deg < 1e-6 and pol.decide(est2, 4).action == "recalibrate"
+    assert pol.classify(0.5, 1.0) == "update" and pol.classify(0.5, 10.5) == "alarm"
+
+
+def test_bad_configuration(cell, ref):
+    H0, P, cam = ref
+    with pytest.raises(ConfigError, match="update_method '4P-R'"):
+        Monitor(H0, cam, P, cell.monitor, update_method="4P-R")
+    with pytest.raises(ConfigError, match="expected one of"):
+        Monitor(H0, cam, P, cell.monitor, update_method="4P")
+    with pytest.raises(ConfigError, match="recalibration_method"):
+        Monitor(H0, cam, P, cell.monitor, recalibration_method="4P-U")
+    with pytest.raises(ConfigError, match="p_G6"):
+        Monitor(H0, cam, P[:4], cell.monitor)
+    with pytest.raises(ConfigError, match="C_H_G"):
+        Monitor(np.eye(3), cam, P, cell.monitor)
+    with pytest.raises(ConfigError, match="MonitorLimits"):
+        Policy({"update_limit": 1})
+    m = Monitor(H0, cam, P, cell.monitor)
+    with pytest.raises(ValueError, match="uv6"):
+        m.step(np.zeros((4, 2)), np.ones(6, bool))
