@@ -17,6 +17,10 @@ The stages follow Willson's v3.0b3 (``cal_main.c``):
   5b. ``full``: pose, f and kappa, principal point fixed (the paper's assumption); ``full+centre``: the
      principal point too; both minimise the distorted pixel error (the picture's own noise) with an
      analytic Jacobian, to the minimum.
+  5c. ``willson``: instead, the rest of Willson's ``coplanar_calibration_with_full_optimization``
+     chain: f, Tz, kappa, cx, cy with the pose re-solved linearly (distortion removed late, then
+     early), then pose, f, kappa, then all ten, each on the undistorted sensor-plane error with his
+     lmdif settings. It stops where his optimiser stops, not at a minimum (see ``_willson_full``).
 
 Beyond Willson: the linear stage divides by Ty and fails when the plate's origin lies near the camera's
 y-z plane (his FAQ 3.3); the disc grid's origin is its centre, often in mid-picture, so the stages then
@@ -28,6 +32,7 @@ determine.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,9 +43,13 @@ from selfview.errors import CalibrationError, CalibrationFileError, ConfigError
 from selfview.geometry import R_from_rotvec, R_from_rpy, make_H, transform_points
 from selfview.lm import covariance, levenberg_marquardt
 
-__all__ = ["MODES", "TsaiResult", "calibrate_coplanar", "load_willson_points", "residual_stats"]
+__all__ = [
+    "FREE_CENTRE_MODES", "MODES", "TsaiResult", "calibrate_coplanar", "load_willson_points", "residual_stats",
+]
 
-MODES = ("tsai", "full", "full+centre")
+MODES = ("tsai", "full", "full+centre", "willson")
+#: The modes that calibrate the principal point (the given one only starts them).
+FREE_CENTRE_MODES = ("full+centre", "willson")
 
 #: A plate tilted further than this from square-on (angle between its normal and the optical axis)
 #: is refused as seen edge-on.
@@ -61,6 +70,8 @@ SEPARABILITY_NOISE_PX = 0.02
 #: Willson's lmdif tolerances (cal_main.h): relative cost reduction and relative step.
 WILLSON_FTOL = 1.0e-5
 WILLSON_XTOL = 1.0e-7
+#: Willson's lmdif budget of residual evaluations per parameter (cal_main.h: MAXFEV = 1000 n).
+WILLSON_MAXFEV_PER_PARAM = 1000
 #: Tolerances of the f, Tz, kappa stage when it only starts a full refinement.
 INIT_FTOL = 1.0e-8
 INIT_XTOL = 1.0e-8
@@ -217,20 +228,23 @@ def _radial_alignment(xw, yw, Xd, Yd):
     r6 = np.sqrt(max(1.0 - r4 * r4 - r5 * r5, 0.0))
     if not np.signbit(r1 * r4 + r2 * r5):
         r6 = -r6
-    row3 = np.cross([r1, r2, r3], [r4, r5, r6])
+    row3 = [r2 * r6 - r3 * r5, r3 * r4 - r1 * r6, r1 * r5 - r2 * r4]  # row 1 x row 2
     return float(tx), float(ty), np.array([[r1, r2, r3], [r4, r5, r6], row3])
 
 
-def _approximate_f_Tz(xw, yw, Yd, r, ty):
-    """Stage 4: (f, Tz, condition number of the column-equilibrated system), kappa taken as 0."""
+def _approximate_f_Tz(xw, yw, Yd, r, ty, with_cond=True):
+    """Stage 4: (f, Tz, condition number of the column-equilibrated system (NaN unless
+    ``with_cond``)), kappa taken as 0."""
     yc = r[1, 0] * xw + r[1, 1] * yw + ty
     w = r[2, 0] * xw + r[2, 1] * yw
     A = np.column_stack([yc, -Yd])
-    norms = np.linalg.norm(A, axis=0)
-    if np.any(norms == 0):
-        return np.nan, np.nan, np.inf
-    s = np.linalg.svd(A / norms, compute_uv=False)
-    cond = float(s[0] / s[1]) if s[1] > 0 else np.inf
+    cond = np.nan
+    if with_cond:
+        norms = np.linalg.norm(A, axis=0)
+        if np.any(norms == 0):
+            return np.nan, np.nan, np.inf
+        s = np.linalg.svd(A / norms, compute_uv=False)
+        cond = float(s[0] / s[1]) if s[1] > 0 else np.inf
     sol, *_ = np.linalg.lstsq(A, w * Yd, rcond=None)
     return float(sol[0]), float(sol[1]), cond
 
@@ -242,13 +256,13 @@ def _flip_R(r: np.ndarray) -> np.ndarray:
     return r
 
 
-def _linear_pose(xw, yw, Xd, Yd):
-    """Stages 1-4 in the given plate frame: (Tx, Ty, r, f, Tz, cond)."""
+def _linear_pose(xw, yw, Xd, Yd, with_cond=True):
+    """Stages 1-4 in the given plate frame: (Tx, Ty, r, f, Tz, cond (NaN unless ``with_cond``))."""
     tx, ty, r = _radial_alignment(xw, yw, Xd, Yd)
-    f, tz, cond = _approximate_f_Tz(xw, yw, Yd, r, ty)
+    f, tz, cond = _approximate_f_Tz(xw, yw, Yd, r, ty, with_cond)
     if not f >= 0:  # also NaN
         r = _flip_R(r)
-        f, tz, cond = _approximate_f_Tz(xw, yw, Yd, r, ty)
+        f, tz, cond = _approximate_f_Tz(xw, yw, Yd, r, ty, with_cond)
         if not f >= 0:
             raise CalibrationError(
                 "no pose with a positive focal length fits: the plate coordinates may be left-handed or "
@@ -419,6 +433,129 @@ def _project_full(q, x, cx, cy, aspect, free_centre):
     }
 
 
+# --- Willson's full optimisation (mode "willson") --------------------------------------------------------
+class _LastTrial:
+    """Residuals of one of Willson's stages, ``fun(x)`` -> (residuals (N,), state), that remember the
+    state of their recent calls: his stages leave the pose of their last evaluation (the last trial
+    step, taken or not) in global state, and that pose starts the next stage."""
+
+    def __init__(self, fun, n_params: int):
+        self.fun = fun
+        self.calls: deque = deque(maxlen=n_params + 2)
+
+    def __call__(self, x):
+        r, state = self.fun(x)
+        self.calls.append((np.array(x, dtype=float), state))
+        return r
+
+    def last_trial_state(self, x):
+        """State of the last call that was not a forward-difference column at the solution ``x``
+        (``levenberg_marquardt`` differences once more after its last step; lmdif does not)."""
+        for xc, state in reversed(self.calls):
+            if np.count_nonzero(xc != x) != 1:
+                return state
+        return None
+
+
+class _WillsonStages:
+    """The residuals of Willson's stages after the f/Tz/kappa one, for plate points ``xy`` (N, 2) [mm,
+    z = 0] and distorted pixels ``uv`` (N, 2): per point, the distance between the projection and the
+    undistorted observation in the undistorted sensor plane [px] (his ``err[i] = hypot(...)``)."""
+
+    def __init__(self, xy, uv, aspect):
+        self.xy, self.uv, self.aspect = xy, uv, aspect
+
+    def _sensor(self, cx, cy, kappa):
+        """Distorted (X^, Y^) and undistorted (X, Y) sensor coordinates [px] of the observations."""
+        Xh = self.aspect * (self.uv[:, 0] - cx)
+        Yh = self.uv[:, 1] - cy
+        a = 1.0 + kappa * (Xh * Xh + Yh * Yh)  # eq. 4
+        return Xh, Yh, Xh * a, Yh * a
+
+    def five(self, p, early: bool):
+        """``p`` = (f [px], Tz [mm], kappa [px^-2], cx, cy [px]); Tx, Ty and R re-solved by stages 1-4
+        for this centre from the distorted (``early`` False) or undistorted observations. State: the
+        (Tx, Ty, r) it solved, None (and NaN residuals) where the linear stages fail."""
+        f, tz, kappa, cx, cy = p
+        Xh, Yh, X, Y = self._sensor(cx, cy, kappa)
+        try:
+            tx, ty, r, *_ = _linear_pose(self.xy[:, 0], self.xy[:, 1], *((X, Y) if early else (Xh, Yh)), False)
+        except CalibrationError:
+            return np.full(len(X), np.nan), None
+        xc, yc, w = r[:, :2] @ self.xy.T + np.array([[tx], [ty], [0.0]])
+        zc = w + tz
+        return np.hypot(f * xc / zc - X, f * yc / zc - Y), (tx, ty, r)
+
+    def pose(self, p, cx=None, cy=None):
+        """``p`` = (Rx, Ry, Rz [rad] of R = Rz Ry Rx, Tx, Ty, Tz [mm], kappa [px^-2], f [px][, cx, cy
+        [px]]); the centre (``cx``, ``cy``) unless ``p`` has it. State: None."""
+        if len(p) == 10:
+            cx, cy = p[8], p[9]
+        R = R_from_rpy(p[0], p[1], p[2])
+        pc = self.xy @ R[:, :2].T + p[3:6]
+        _, _, X, Y = self._sensor(cx, cy, p[6])
+        return np.hypot(p[7] * pc[:, 0] / pc[:, 2] - X, p[7] * pc[:, 1] / pc[:, 2] - Y), None
+
+
+def _willson_stage(fun, x0):
+    """One lmdif call as Willson makes it: forward differences (step sqrt(eps) |x_j|, or sqrt(eps)
+    where x_j = 0), ftol 1e-5, xtol 1e-7, gtol 0, factor 100, scaling by the Jacobian's column norms
+    (lmdif mode 1), at most 1000 evaluations per parameter counting the differences. Like him it
+    takes the point where lmdif stopped, also when the budget ran out."""
+    n = len(x0)
+    return levenberg_marquardt(
+        fun, x0, "forward", ftol=WILLSON_FTOL, xtol=WILLSON_XTOL, max_nfev=WILLSON_MAXFEV_PER_PARAM * n,
+        scale=np.ones(n),
+    )
+
+
+def _willson_full(p, uv, xy, origin, aspect, f, tz, kappa, cx, cy):
+    """Stages after Willson's f/Tz/kappa one (``coplanar_calibration_with_full_optimization`` of his
+    v3.0b3), from its f [px], Tz [mm], kappa [px^-2] and the given centre; plate points ``p`` (N, 3),
+    the same in the stages' plate frame ``xy`` (N, 2) whose origin is ``origin`` (2,) in W:
+      1. f, Tz, kappa, cx, cy, the pose re-solved linearly from the distorted observations;
+      2. the same, the linear stages on observations undistorted with the current kappa;
+      3. Rx, Ry, Rz, Tx, Ty, Tz, kappa, f from the pose of stage 2's last evaluation, centre fixed;
+      4. all ten parameters.
+    Every stage minimises the undistorted sensor-plane error with lmdif's forward differences and
+    ftol 1e-5: in the flat f-Tz valley of a far plate each stops on the ftol test short of the
+    minimum, at a point set by the path (a stage that spends its budget ends there, as his do).
+    Returns (C_H_W (4, 4), f, kappa, cx, cy, Levenberg-Marquardt iterations). Raises
+    ``CalibrationError`` if the linear stages fail where the five-parameter stages end, the result has
+    f <= 0 or a point behind the camera, or one view does not determine the centre
+    (``FULL_REL_SD_LIMIT``)."""
+    stages = _WillsonStages(xy, uv, aspect)
+    x, iterations = np.array([f, tz, kappa, cx, cy], dtype=float), 0
+    for early in (False, True):
+        fun = _LastTrial(lambda v, early=early: stages.five(v, early), 5)
+        lm = _willson_stage(fun, x)
+        x, iterations = lm.x, iterations + lm.iterations
+    f, tz, kappa, cx, cy = x
+    state = fun.last_trial_state(x) or stages.five(x, True)[1]
+    if state is None:
+        raise CalibrationError("Willson's full optimisation: the linear stages fail where the 5-parameter stages end")
+    tx, ty, r = state
+    lm = _willson_stage(lambda v: stages.pose(v, cx, cy)[0], np.array([*_rpy_paul(r), tx, ty, tz, kappa, f]))
+    iterations += lm.iterations
+    lm = _willson_stage(lambda v: stages.pose(v)[0], np.append(lm.x, [cx, cy]))
+    iterations += lm.iterations
+    R = R_from_rpy(*lm.x[:3])
+    C_H_W = make_H(R, lm.x[3:6] - R @ np.array([origin[0], origin[1], 0.0]))
+    kappa, f, cx, cy = (float(v) for v in lm.x[6:])
+    depth = transform_points(C_H_W, p)[:, 2]
+    if not (f > 0 and np.all(depth > 0)):
+        raise CalibrationError(
+            f"Willson's full optimisation failed: f = {f:.4g} px, nearest point at depth {depth.min():.4g} mm"
+        )
+    # whether one view determines the centre: judged on the distorted pixel error, as for full+centre
+    model = _FullModel(p, uv, R, cx, cy, aspect, True)
+    xf = np.concatenate([np.zeros(3), C_H_W[:3, 3], [f, kappa, cx, cy]])
+    e = model.residuals(xf)
+    if np.all(np.isfinite(e)):
+        _check_full_separable(model.jacobian(xf), float(e @ e), xf, True)
+    return C_H_W, f, kappa, cx, cy, iterations
+
+
 # --- the calibration -----------------------------------------------------------------------------------
 def calibrate_coplanar(
     p_W,
@@ -437,7 +574,25 @@ def calibrate_coplanar(
     ``uv`` (N, 2), principal point (``cx``, ``cy``) [px] and ``aspect`` known.
 
     ``mode``: ``tsai`` refines f, Tz, kappa as Tsai published it; ``full`` (default) pose, f and kappa;
-    ``full+centre`` also the principal point. ``width``, ``height`` [px] pass through to the camera.
+    ``full+centre`` also the principal point; ``willson`` reproduces Willson's full optimisation
+    (centre free) as his v3.0b3 runs it. ``width``, ``height`` [px] pass through to the camera.
+
+    ``willson`` reproduces where Willson's optimiser stops, not a minimum. After the ``tsai`` stages it
+    runs the rest of his chain (``_willson_full``): f, Tz, kappa and the centre with the pose re-solved
+    linearly (distortion removed late, then early), then pose, f and kappa, then all ten parameters.
+    Each stage minimises his objective, the distance between projection and undistorted observation
+    in the undistorted sensor plane (his log's "undistorted image plane error"; at his published
+    parameters it gives that block's figures to every digit), by lmdif's method with forward
+    differences, ftol 1e-5 and xtol 1e-7. A far plate (his is 6.3 m away) leaves a flat f-Tz valley
+    in which each stage stops on the ftol test short of its minimum, at a point its path sets. On his
+    ``cc_cd.dat`` this lands 0.07 % below his f (257.13 mm) and 0.2 px from his centre, with his
+    distorted error mean and sse to 2e-4 and Tz / f to 1e-5. Neither point is a minimum:
+    ``full+centre`` minimises the distorted pixel error (f 0.65 % above his, sse 1.21365 < his
+    1.21378 px^2), and his own objective's minimum lies 1.0 % above his f. Where a stage stops in such
+    a valley hangs on rounding: perturbing the pixels by 1e-12 (relative) moves the final f by 0.05 %
+    (median) to 0.2 % (99th percentile) here, and MINPACK's own lmdif scatters as much. Where the data
+    determine f (a near, tilted plate), ``willson`` ends near the ``full+centre`` fit.
+
     ``kappa_guess`` [px^-2] is removed from the observations before the linear stages and starts the
     refinement (0 reproduces Willson); ``f_guess`` [px], if given, starts the refinement in place of
     the linear f (Tz re-solved for it).
@@ -486,7 +641,7 @@ def calibrate_coplanar(
 
     # Stage 5a: Willson's three-parameter refinement, with the linear R as he keeps it.
     stage = _FTzKappa(xc, yc, w, XYh[:, 0], XYh[:, 1])
-    lm = _refine_tsai(stage, f_lin, tz, kappa_guess, willson=mode == "tsai")
+    lm = _refine_tsai(stage, f_lin, tz, kappa_guess, willson=mode in ("tsai", "willson"))
     f, tz, kappa = (float(v) for v in lm.x)
     rel_sd = stage.f_relative_sd(lm.x)
     if not rel_sd <= F_REL_SD_LIMIT:
@@ -505,8 +660,11 @@ def calibrate_coplanar(
             "x cross y points away from the camera)"
         )
     ccx, ccy = cx, cy
-    if mode == "tsai":
-        cam = CameraModel(f=f, kappa=kappa, cx=cx, cy=cy, aspect=aspect, width=int(width), height=int(height))
+    if mode == "willson":
+        C_H_W, f, kappa, ccx, ccy, its = _willson_full(p, q, xy, origin, aspect, f, tz, kappa, cx, cy)
+        iterations += its
+    if mode in ("tsai", "willson"):
+        cam = CameraModel(f=f, kappa=kappa, cx=ccx, cy=ccy, aspect=aspect, width=int(width), height=int(height))
         try:
             residuals = q - cam.project(transform_points(C_H_W, p))
         except CalibrationError as exc:
@@ -518,14 +676,7 @@ def calibrate_coplanar(
         f, kappa = float(lm.x[6]), float(lm.x[7])
         if free:
             ccx, ccy = float(lm.x[8]), float(lm.x[9])
-        m, n = lm.jacobian.shape
-        rel_sd = _relative_sd(lm.covariance(max(lm.cost / (m - n), SEPARABILITY_NOISE_PX**2)), lm.x, 6)
-        if not rel_sd <= FULL_REL_SD_LIMIT:
-            what = "the principal point, f and the tilt" if free else "f and the pose"
-            raise CalibrationError(
-                f"one view of the plate cannot separate {what}: standard error of f {100 * rel_sd:.3g} % > "
-                f"{100 * FULL_REL_SD_LIMIT:g} %" + ("; fix the principal point (mode full)" if free else "")
-            )
+        _check_full_separable(lm.jacobian, lm.cost, lm.x, free)
         if not (lm.converged and f > 0):
             raise CalibrationError(f"full refinement failed ({lm.message}; f = {f:.4g} px)")
         C_H_W = make_H(R, lm.x[3:6])
@@ -536,6 +687,20 @@ def calibrate_coplanar(
         camera=cam, C_H_W=C_H_W, residuals_px=residuals, rms_px=rms, mean_px=mean, max_px=mx, sse_px2=sse,
         mode=mode, iterations=int(iterations),
     )
+
+
+def _check_full_separable(J, cost: float, x, free: bool) -> None:
+    """Refuse a full refinement whose Jacobian ``J`` (2N, P) of the distorted pixel residuals at ``x``
+    (``_FullModel``'s parameters) and ``cost`` [px^2] imply a standard error of f above
+    ``FULL_REL_SD_LIMIT`` (``free``: the principal point was calibrated too)."""
+    m, n = J.shape
+    rel_sd = _relative_sd(covariance(J, max(cost / (m - n), SEPARABILITY_NOISE_PX**2)), x, 6)
+    if not rel_sd <= FULL_REL_SD_LIMIT:
+        what = "the principal point, f and the tilt" if free else "f and the pose"
+        raise CalibrationError(
+            f"one view of the plate cannot separate {what}: standard error of f {100 * rel_sd:.3g} % > "
+            f"{100 * FULL_REL_SD_LIMIT:g} %" + ("; fix the principal point (mode full)" if free else "")
+        )
 
 
 def _inseparable(tilt: float, detail: str) -> CalibrationError:

@@ -6,7 +6,7 @@ import numpy as np
 
 from procedures.commands._common import print_json
 from selfview.geometry import rpy_from_R
-from selfview.tsai import MODES, calibrate_coplanar, load_willson_points
+from selfview.tsai import FREE_CENTRE_MODES, MODES, calibrate_coplanar, load_willson_points
 
 
 def register(sub):
@@ -17,18 +17,22 @@ def register(sub):
             "Calibrate f, kappa and C_H_W by Tsai's coplanar method (Willson's implementation) from plate "
             "points and their pixels, one correspondence per line 'xw yw zw u v' (mm, mm, mm, px, px; "
             "zw = 0; '#' starts a comment). The principal point is given, not calibrated, unless "
-            "--mode full+centre."
+            "--mode full+centre or willson."
         ),
     )
     p.add_argument("--points", required=True, metavar="FILE", help="correspondences, one 'xw yw zw u v' per line")
     p.add_argument(
         "--principal-point", required=True, nargs=2, type=float, metavar=("CX", "CY"),
-        help="principal point in pixels (the start value with --mode full+centre)",
+        help="principal point in pixels (the start value with --mode full+centre or willson)",
     )
     p.add_argument("--aspect", type=float, default=1.0, help="horizontal factor: X^ = A (u - cx) (default 1)")
     p.add_argument(
         "--mode", choices=MODES, default="full",
-        help="tsai: f, Tz, kappa as Tsai published; full (default): pose, f, kappa; full+centre: also cx, cy",
+        help=(
+            "tsai: f, Tz, kappa as Tsai published; full (default): pose, f, kappa; full+centre: also cx, cy; "
+            "willson: Willson's full optimisation (centre free) as his v3.0b3 runs it, stopping where his "
+            "optimiser stops rather than at the minimum"
+        ),
     )
     p.add_argument(
         "--size", nargs=2, type=int, default=(768, 576), metavar=("W", "H"),
@@ -54,7 +58,7 @@ def run(args) -> int:
         f"Tsai coplanar calibration ({res.mode}) from {len(uv)} points of {args.points}",
         f"  f            = {cam.f:.4f} px",
         f"  kappa        = {cam.kappa:.6e} px^-2",
-        f"  principal pt = ({cam.cx:.3f}, {cam.cy:.3f}) px{'' if res.mode == 'full+centre' else ' (fixed)'}",
+        f"  principal pt = ({cam.cx:.3f}, {cam.cy:.3f}) px{'' if res.mode in FREE_CENTRE_MODES else ' (fixed)'}",
         f"  aspect       = {cam.aspect:g}",
         f"  T            = ({H[0, 3]:.4f}, {H[1, 3]:.4f}, {H[2, 3]:.4f}) mm",
         f"  R = Rz Ry Rx, (Rx, Ry, Rz) = ({rx:.6f}, {ry:.6f}, {rz:.6f}) deg",

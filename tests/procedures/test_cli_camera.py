@@ -53,6 +53,33 @@ def test_full_centre_reports_the_fitted_centre(cc_cd, capsys):
     assert np.hypot(res["principal_point"][0] - 262.156687, res["principal_point"][1] - 211.703998) < 0.5
 
 
+def test_willson_mode_reproduces_his_full_optimisation(cc_cd, capsys):
+    """ccal.log's full optimisation: f = 257.133427 mm, centre (262.156687, 211.703998), sse 1.213781."""
+    argv = ["camera", "--points", cc_cd, "--principal-point", "258", "204", "--mode", "willson", "--size", "576", "384"]
+    rc = main([*argv, "--json"])
+    res = json.loads(capsys.readouterr().out)
+    assert rc == EXIT_OK and res["mode"] == "willson" and res["n_points"] == 100
+    assert res["f"] * 0.023 == pytest.approx(257.133427, rel=2e-3)
+    assert np.hypot(res["principal_point"][0] - 262.156687, res["principal_point"][1] - 211.703998) < 0.5
+    assert res["kappa"] == pytest.approx(-5.954120e-4 * 0.023**2, rel=5e-3)
+    assert res["sse_px2"] == pytest.approx(1.213781, rel=3e-4)
+    assert res["width"] == 576 and res["height"] == 384
+    # the summary shows the fitted centre, not a fixed one
+    assert main(argv) == EXIT_OK
+    out = capsys.readouterr().out
+    assert "Tsai coplanar calibration (willson) from 100 points" in out and "(fixed)" not in out
+    cx, cy = (float(v) for v in out.split("principal pt = (")[1].split(")")[0].split(","))
+    assert (cx, cy) == pytest.approx(res["principal_point"], abs=1e-3)
+
+
+def test_help_lists_the_modes(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["camera", "--help"])
+    assert exc.value.code == 0
+    out = " ".join(capsys.readouterr().out.split())  # whatever width argparse wrapped to
+    assert all(m in out for m in ("tsai", "full+centre", "willson")) and "Willson's full optimisation" in out
+
+
 def test_malformed_file_names_the_line(tmp_path, capsys):
     f = tmp_path / "bad.dat"
     f.write_text("# header\n10 10 0 519.1 94.5\n10 30 0 483.4\n")
