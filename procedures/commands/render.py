@@ -1,0 +1,104 @@
+"""``selfview render``: one picture of the simulated wrist camera and its ground truth.
+
+The simulated cell is built from the cell description and a seed, the gripper parked on the plate
+(Plane Coincidence Constraint, eq. 5-7) with its jaws in the chosen state, the camera optionally
+disturbed on its mount; the picture goes to a PNG and its ground truth to a JSON file.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from procedures.commands._common import add_cell_argument, load_cell_arg, print_json
+from selfview.errors import ConfigError
+
+
+def register(sub):
+    p = sub.add_parser(
+        "render",
+        help="render the simulated wrist camera's picture of the parked gripper, with its ground truth",
+        description=(
+            "Build the simulated cell from CELL and --seed, park the gripper on the plate (or lift it "
+            "over the table with --free) with its jaws in --state, apply each --disturb to the camera "
+            "mount in order, and write the 8-bit grey picture (PNG) and its ground truth (JSON: f, kappa, "
+            "principal_point, C_H_G, C_H_W, discs [[row, col, u, v, visible], ...], corners {name: "
+            "[u, v, visible]}; mm and px). The same seed gives the same picture, byte for byte. Prints "
+            "a one-line JSON summary."
+        ),
+    )
+    add_cell_argument(p)
+    p.add_argument("--out", required=True, metavar="IMG.png", help="where to write the picture (PNG)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulated cell and of the sensor noise (default 0)")
+    p.add_argument("--state", default=None, metavar="STATE",
+                   help="gripper state whose jaw gap to use, e.g. open or closed (default: the cell's calibrate_in)")
+    p.add_argument("--disturb", action="append", default=[], metavar="SERIES",
+                   help="disturb the camera mount as simulation.disturbances.SERIES says (cable, tilt); repeatable")
+    p.add_argument("--free", action="store_true",
+                   help="lift the gripper off the plate over the textured table instead of parking it")
+    p.add_argument("--truth", default=None, metavar="TRUTH.json", help="where to write the ground truth (JSON)")
+    p.set_defaults(func=run)
+    return p
+
+
+def _writable(path: str, option: str) -> Path:
+    out = Path(path)
+    if not out.parent.is_dir():
+        raise ConfigError(f"{option} {path}: the folder {str(out.parent)!r} does not exist")
+    return out
+
+
+def _json_text(obj: dict) -> str:
+    """One JSON object, a top-level key per line (the values compact)."""
+    rows = [f" {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in obj.items()]
+    return "{\n" + ",\n".join(rows) + "\n}\n"
+
+
+def run(args) -> int:
+    import cv2
+
+    from mocks.render import LIFTED_W_H_G, render
+    from mocks.world import SimWorld
+
+    cell = load_cell_arg(args)
+    out = _writable(args.out, "--out")
+    if out.suffix.lower() != ".png":
+        raise ConfigError(f"--out {args.out}: expected a .png file name")
+    truth_path = _writable(args.truth, "--truth") if args.truth else None
+    state = args.state or cell.gripper.calibrate_in
+    gap = cell.gripper.gap(state)  # raises ConfigError naming the known states
+
+    world = SimWorld(cell, seed=args.seed)
+    if args.free:
+        world.set_tcp(world.base_H_plate0 @ LIFTED_W_H_G)
+    else:
+        world.park()
+    world.set_jaw(gap, state)
+    for series in args.disturb:
+        world.disturb(series)
+    result = render(world, seed=args.seed)
+
+    try:
+        ok = cv2.imwrite(str(out), result.image)
+    except cv2.error as exc:
+        raise ConfigError(f"--out {args.out}: cannot write the picture ({exc})") from exc
+    if not ok:
+        raise ConfigError(f"--out {args.out}: cannot write the picture")
+    if truth_path is not None:
+        try:
+            truth_path.write_text(_json_text(result.truth))
+        except OSError as exc:
+            raise ConfigError(f"--truth {args.truth}: cannot write the ground truth ({exc.strerror or exc})") from exc
+    print_json(
+        {
+            "out": str(out),
+            "truth": None if truth_path is None else str(truth_path),
+            "seed": args.seed,
+            "state": state,
+            "parked": not args.free,
+            "disturb": list(args.disturb),
+            "visible_discs": int(result.disc_visible.sum()),
+            "visible_corners": [n for n, v in result.truth["corners"].items() if v[2]],
+        }
+    )
+    return 0
