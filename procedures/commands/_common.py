@@ -73,3 +73,17 @@ def serve_until(url: str, duration_s: float | None) -> None:
             time.sleep(0.2 if end is None else max(0.0, min(0.2, end - time.monotonic())))
     except KeyboardInterrupt:
         pass
+
+
+def write_image(path, image, what: str = "--out") -> None:
+    """Write a picture with OpenCV; ``ConfigError`` naming ``what`` if it cannot be written."""
+    import cv2
+
+    from selfview.errors import ConfigError
+
+    try:
+        ok = cv2.imwrite(str(path), image)
+    except cv2.error as exc:
+        raise ConfigError(f"{what} {path}: cannot write the picture ({exc})") from exc
+    if not ok:
+        raise ConfigError(f"{what} {path}: cannot write the picture (no such folder, or an extension OpenCV cannot write)")

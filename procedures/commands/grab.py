@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from procedures.commands._common import add_cell_argument, load_cell_arg, print_json
+from procedures.commands._common import add_cell_argument, load_cell_arg, print_json, write_image
 from selfview.errors import ConfigError
 
 
@@ -31,7 +31,6 @@ def register(sub):
 
 
 def run(args) -> int:
-    import cv2
 
     from drivers.frame_grabber_v4l2 import FrameGrabber, parse_grabber_url
 
@@ -52,12 +51,7 @@ def run(args) -> int:
     finally:
         if attachment is not None:
             attachment.detach()
-    try:
-        ok = cv2.imwrite(str(out), frame.image)
-    except cv2.error as exc:
-        raise ConfigError(f"--out {out}: OpenCV cannot write it ({exc})") from exc
-    if not ok:
-        raise ConfigError(f"--out {out}: OpenCV cannot write a picture with that extension")
+    write_image(out, frame.image)
     info = {
         "url": args.url,
         "out": str(out),

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from procedures.commands._common import print_json
+from procedures.commands._common import print_json, write_image
 from procedures.commands._session import add_session_arguments, open_session, progress_printer
 
 
@@ -24,18 +24,14 @@ def register(sub):
 
 
 def run(args) -> int:
-    import cv2
-
-    from selfview.errors import DeviceError
-
     say = progress_printer()
     cell, session = open_session(args, say)
     with session:
         img = session.park()
     if img is None:  # dry run
         return 0
-    if args.out and not cv2.imwrite(args.out, img):
-        raise DeviceError(f"{args.out}: could not write the picture")
+    if args.out:
+        write_image(args.out, img)
     if args.json:
         print_json({"picture": args.out, "size": [int(img.shape[1]), int(img.shape[0])], "mean_grey": float(img.mean())})
     else:

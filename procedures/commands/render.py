@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from procedures.commands._common import add_cell_argument, load_cell_arg, print_json
+from procedures.commands._common import add_cell_argument, load_cell_arg, print_json, write_image
 from selfview.errors import ConfigError
 
 
@@ -55,7 +55,6 @@ def _json_text(obj: dict) -> str:
 
 
 def run(args) -> int:
-    import cv2
 
     from mocks.render import LIFTED_W_H_G, render
     from mocks.world import SimWorld
@@ -78,12 +77,7 @@ def run(args) -> int:
         world.disturb(series)
     result = render(world, seed=args.seed)
 
-    try:
-        ok = cv2.imwrite(str(out), result.image)
-    except cv2.error as exc:
-        raise ConfigError(f"--out {args.out}: cannot write the picture ({exc})") from exc
-    if not ok:
-        raise ConfigError(f"--out {args.out}: cannot write the picture")
+    write_image(out, result.image)
     if truth_path is not None:
         try:
             truth_path.write_text(_json_text(result.truth))
