@@ -1,0 +1,170 @@
+"""A worn PUMA 260: true link lengths and joint zeros off the published ones, and noisy joint encoders.
+
+The controller computes poses with the NOMINAL geometry (``mocks.puma260.Puma260Geometry()``): that is
+all a real controller knows. The arm itself follows a TRUE geometry whose six link lengths and six joint
+zeros differ from the nominal by ``KinematicErrors.link_mm`` and ``joint_offset_deg`` times a fixed
+seeded pattern in [-1, 1] (so one seed at growing error levels is the same robot wearing further), and
+each joint's encoder reads its true angle with a fresh Gaussian error of ``encoder_sd_deg``. The arm is
+at ``true.fk(q_true)``; the controller believes it is at ``nominal.fk(q_read)`` with
+``q_read = q_true + encoder error``. That difference is what classical hand/eye calibration inherits.
+
+``PerturbedPuma260`` is the arm; ``PerturbedValController`` serves it on the VAL-II simulator's real
+channel (WHERE and motion planning nominal, the simulated world moved by the true arm).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mocks.puma260 import ArmConfig, Puma260, Puma260Geometry
+from mocks.val_controller import ValController
+from selfview.errors import ConfigError
+
+__all__ = ["KinematicErrors", "WORN_PUMA", "LINKS", "Station", "PerturbedPuma260", "PerturbedValController"]
+
+#: The link lengths of ``Puma260Geometry`` that a worn or mis-built arm gets wrong.
+LINKS: tuple[str, ...] = ("shoulder_mm", "upper_arm_mm", "lateral_mm", "elbow_drop_mm", "forearm_mm", "flange_mm")
+
+
+@dataclass(frozen=True)
+class KinematicErrors:
+    """How far a simulated arm is from its nominal kinematics.
+
+    ``link_mm``: each link length is off by up to this [mm]; ``joint_offset_deg``: each joint's zero by
+    up to this [deg] (both times a seeded pattern in [-1, 1]); ``encoder_sd_deg``: standard deviation of
+    each joint reading [deg], drawn afresh at every reading.
+    """
+
+    link_mm: float = 0.0
+    joint_offset_deg: float = 0.0
+    encoder_sd_deg: float = 0.0
+
+    def __post_init__(self):
+        for nm in ("link_mm", "joint_offset_deg", "encoder_sd_deg"):
+            v = getattr(self, nm)
+            if not (isinstance(v, (int, float)) and np.isfinite(v) and v >= 0):
+                raise ConfigError(f"KinematicErrors.{nm}: expected a finite number >= 0, got {v!r}")
+
+    def scaled(self, level: float) -> "KinematicErrors":
+        """These errors times ``level`` (0: a perfect arm, 1: these bounds)."""
+        if not (np.isfinite(level) and level >= 0):
+            raise ConfigError(f"kinematic error level: expected a finite number >= 0, got {level!r}")
+        return KinematicErrors(self.link_mm * level, self.joint_offset_deg * level, self.encoder_sd_deg * level)
+
+    def to_dict(self) -> dict:
+        return {"link_mm": self.link_mm, "joint_offset_deg": self.joint_offset_deg, "encoder_sd_deg": self.encoder_sd_deg}
+
+
+#: A worn PUMA 260: link lengths within 1 mm, joint zeros within 0.2 deg, encoders 0.02 deg.
+WORN_PUMA = KinematicErrors(link_mm=1.0, joint_offset_deg=0.2, encoder_sd_deg=0.02)
+
+
+@dataclass(frozen=True)
+class Station:
+    """One robot pose: ``q_read`` (6,) the joints the controller reads [deg]; ``base_H_F_true`` (4, 4)
+    where the flange really is; ``base_H_F_nominal`` (4, 4) where the controller's kinematics puts it."""
+
+    q_read: np.ndarray
+    base_H_F_true: np.ndarray
+    base_H_F_nominal: np.ndarray
+
+
+class PerturbedPuma260:
+    """A PUMA 260 whose true geometry differs from the nominal one of its controller (module docstring).
+
+    ``errors`` the error bounds; ``seed`` fixes the error pattern and the encoder noise; ``nominal`` the
+    geometry the controller uses (default the published one); ``config`` the arm configuration of the
+    inverse kinematics. ``nominal`` and ``true`` are ``Puma260`` models; ``link_errors_mm`` and
+    ``joint_offset_errors_deg`` what was drawn.
+    """
+
+    def __init__(self, errors: KinematicErrors = KinematicErrors(), *, seed: int = 0,
+                 nominal: Puma260Geometry | None = None, config: ArmConfig | None = None):
+        if not isinstance(errors, KinematicErrors):
+            raise ConfigError(f"errors: expected a KinematicErrors, got {type(errors).__name__}")
+        nominal = nominal or Puma260Geometry()
+        config = config or ArmConfig()
+        self.errors = errors
+        self.seed = int(seed)
+        pattern = np.random.default_rng([self.seed, 0]).uniform(-1.0, 1.0, size=12)
+        self.link_errors_mm = {nm: float(errors.link_mm * u) for nm, u in zip(LINKS, pattern[:6])}
+        self.joint_offset_errors_deg = tuple(float(errors.joint_offset_deg * u) for u in pattern[6:])
+        changes = {nm: getattr(nominal, nm) + e for nm, e in self.link_errors_mm.items()}
+        changes["joint_offsets_deg"] = tuple(
+            o + e for o, e in zip(nominal.joint_offsets_deg, self.joint_offset_errors_deg)
+        )
+        self.nominal = Puma260(nominal, config)
+        self.true = Puma260(nominal.with_errors(**changes), config)
+        self._noise = np.random.default_rng([self.seed, 1])
+
+    def encoder_error_deg(self) -> np.ndarray:
+        """(6,) one fresh draw of the joint encoders' errors [deg]."""
+        return self._noise.normal(0.0, self.errors.encoder_sd_deg, size=6) if self.errors.encoder_sd_deg > 0 else np.zeros(6)
+
+    def move(self, base_H_F_target, q_near_deg=None) -> Station:
+        """Command the flange to ``base_H_F_target`` (4, 4): the controller solves its nominal inverse
+        kinematics and servos until the encoders read that; the arm ends where the true geometry puts
+        the true joints. Raises ``mocks.puma260.Unreachable`` for a target the nominal arm cannot reach."""
+        q_read = self.nominal.ik(base_H_F_target, q_near_deg)
+        q_true = q_read - self.encoder_error_deg()
+        return Station(q_read, self.true.fk(q_true), self.nominal.fk(q_read))
+
+    def observe(self, base_H_F_true, q_near_deg=None) -> Station:
+        """The arm standing with its flange truly at ``base_H_F_true`` (4, 4): what the controller reads
+        and reports there. Raises ``Unreachable`` for a pose the true arm cannot take."""
+        q_true = self.true.ik(base_H_F_true, q_near_deg)
+        q_read = q_true + self.encoder_error_deg()
+        return Station(q_read, np.asarray(base_H_F_true, dtype=float).copy(), self.nominal.fk(q_read))
+
+    def summary(self) -> dict:
+        """The drawn errors, plain numbers (mm, deg)."""
+        return {
+            **self.errors.to_dict(),
+            "seed": self.seed,
+            "link_errors_mm": {k: round(v, 6) for k, v in self.link_errors_mm.items()},
+            "joint_offset_errors_deg": [round(v, 6) for v in self.joint_offset_errors_deg],
+        }
+
+
+class PerturbedValController(ValController):
+    """The VAL-II simulator (same protocol, same channels) in front of a ``PerturbedPuma260``.
+
+    WHERE, the taught locations and motion planning use the arm's nominal kinematics, as a real
+    controller does; the simulated world is moved (and checked for contact) by the true geometry, with
+    fresh encoder errors at every update. Other arguments as ``ValController``.
+    """
+
+    def __init__(self, world=None, *, robot: PerturbedPuma260, **kwargs):
+        if not isinstance(robot, PerturbedPuma260):
+            raise ConfigError(f"robot: expected a PerturbedPuma260, got {type(robot).__name__}")
+        for nm in ("geometry", "config"):
+            if nm in kwargs:
+                raise ConfigError(f"PerturbedValController: {nm} comes from the robot's nominal model")
+        self.robot = robot
+        super().__init__(world, geometry=robot.nominal.geometry, config=robot.nominal.config, **kwargs)
+        if world is not None:
+            world.set_tcp(self._true_tool(self.joints))
+
+    def _true_tool(self, q_read, noise: bool = True) -> np.ndarray:
+        q_true = np.asarray(q_read, dtype=float) - (self.robot.encoder_error_deg() if noise else 0.0)
+        return self.robot.true.fk(q_true) @ self.tool
+
+    def _set_joints(self, q) -> str:
+        with self._state:
+            self._joints = np.asarray(q, dtype=float).copy()
+        if self.world is None:
+            return "free"
+        return self.world.set_tcp(self._true_tool(q))
+
+    def _first_contact(self, m, s0: float, s1: float, q_prev):
+        if self.world is None or s1 <= s0:
+            return None
+        n = int(np.ceil((s1 - s0) / self.contact_step))
+        q = q_prev
+        for s in np.linspace(s0, s1, n + 1)[1:]:
+            q = self._joints_at(m, s, q)
+            if self.world.contact(self._true_tool(q, noise=False)) == "collision":
+                return float(s), q
+        return None

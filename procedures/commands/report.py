@@ -1,0 +1,64 @@
+"""``selfview report``: rerun every benchmark, the experiment and Tsai on Willson's data; write one report."""
+
+from __future__ import annotations
+
+import sys
+
+from procedures.commands._common import print_json
+
+
+def register(sub):
+    p = sub.add_parser(
+        "report",
+        help="rerun every benchmark and study and write docs/RESULTS.md with its JSON and plots",
+        description=(
+            "Reruns every bench/ script (render, offline, online, robot, io, kinematics_vs_selfview, update_limit) as a "
+            "subprocess with a time limit each, the paper's experiment on the simulated cell (20 trials per series) and "
+            "Tsai's method on Willson's reference data, and writes RESULTS.md with speed (OpenCV's peers timed in the same "
+            "run, as ratios), accuracy, the AX=XB study, the update/recalibrate limit and the machine, and beside it "
+            "results/ with every JSON object, table and plot. A missing or failing benchmark is reported as such. "
+            "About 5 to 10 minutes on 2 cores; --quick runs every part at small sizes."
+        ),
+    )
+    p.add_argument("--out", default="docs/RESULTS.md", metavar="RESULTS.md", help="the report (default %(default)s)")
+    p.add_argument("--quick", action="store_true", help="small sizes everywhere (a smoke test, not evidence)")
+    p.add_argument("--only", metavar="NAME", nargs="+", help="run only these benchmarks (e.g. offline update_limit)")
+    p.add_argument("--trials", type=int, help="experiment trials per series (default 20, quick 2; 0 skips it)")
+    p.add_argument("--bench-dir", metavar="DIR", help="the bench/ folder (default ./bench, else the one beside the package)")
+    p.add_argument("--shared", metavar="DIR", help="the shared folder holding reference/tsai-willson")
+    p.add_argument("--jobs", type=int, default=2, help="processes for the experiment's two series (default 2)")
+    p.add_argument("--write-cell", metavar="CELL.yaml",
+                   help="also write the update limit measured in this run into that cell file (e.g. selfview/data/cell.yaml)")
+    p.add_argument("--json", action="store_true", help="print where everything went as one JSON object")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    from procedures.report import BENCHES, make_report
+    from selfview.errors import ConfigError
+
+    benches = BENCHES
+    if args.only:
+        known = {b.name: b for b in BENCHES}
+        unknown = [n for n in args.only if n not in known]
+        if unknown:
+            raise ConfigError(f"--only {' '.join(unknown)}: expected benchmark names among {', '.join(known)}")
+        benches = tuple(known[n] for n in args.only)
+    if args.trials is not None and args.trials < 0:
+        raise ConfigError(f"--trials: expected a number >= 0, got {args.trials}")
+
+    def say(msg):
+        if not args.json:
+            print(f"report: {msg}", file=sys.stderr, flush=True)
+
+    command = "selfview report " + " ".join(a for a in sys.argv[2:]) if sys.argv[1:2] == ["report"] else "selfview report"
+    res = make_report(args.out, quick=args.quick, benches=benches, bench_dir=args.bench_dir, shared=args.shared,
+                      trials=args.trials, jobs=args.jobs, progress=say, command=command.strip(),
+                      write_cell=args.write_cell)
+    if args.json:
+        print_json(res)
+    else:
+        print(f"wrote {res['markdown']} and {res['results']}/ in {res['seconds']:.0f} s: "
+              + ", ".join(f"{k} {v}" for k, v in res["runs"].items()))
+    return 0

@@ -1,0 +1,115 @@
+"""The worn PUMA 260: true geometry off the nominal one, encoder noise, and its VAL-II simulator."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drivers.puma_val_serial import PumaVAL
+from mocks.kinematic_errors import LINKS, WORN_PUMA, KinematicErrors, PerturbedPuma260, PerturbedValController
+from mocks.puma260 import Puma260Geometry, make_tool
+from mocks.val_controller import TOOL_LENGTH_MM
+from mocks.world import PLATE_BASE_POSE, SimWorld
+from selfview.errors import ConfigError
+from selfview.geometry import inv_H, pose_difference, trans
+
+TOOL = make_tool(TOOL_LENGTH_MM)
+ABOVE_F = PLATE_BASE_POSE @ trans(0.0, 0.0, -60.0) @ inv_H(TOOL)  # flange pose with the TCP above the plate
+
+
+def test_a_perfect_arm_is_its_nominal_model():
+    r = PerturbedPuma260(KinematicErrors(), seed=4)
+    assert r.true.geometry == r.nominal.geometry == Puma260Geometry()
+    s = r.move(ABOVE_F)
+    np.testing.assert_allclose(s.base_H_F_true, ABOVE_F, atol=1e-9)
+    np.testing.assert_allclose(s.base_H_F_nominal, ABOVE_F, atol=1e-9)
+    o = r.observe(ABOVE_F)
+    np.testing.assert_allclose(o.base_H_F_nominal, ABOVE_F, atol=1e-9)
+
+
+def test_the_error_pattern_is_seeded_and_scales_with_the_level():
+    half, full = PerturbedPuma260(WORN_PUMA.scaled(0.5), seed=7), PerturbedPuma260(WORN_PUMA, seed=7)
+    other = PerturbedPuma260(WORN_PUMA, seed=8)
+    for nm in LINKS:
+        assert half.link_errors_mm[nm] == pytest.approx(0.5 * full.link_errors_mm[nm])
+        assert abs(full.link_errors_mm[nm]) <= WORN_PUMA.link_mm
+        assert getattr(full.true.geometry, nm) == pytest.approx(getattr(Puma260Geometry(), nm) + full.link_errors_mm[nm])
+    np.testing.assert_allclose(half.joint_offset_errors_deg, 0.5 * np.array(full.joint_offset_errors_deg))
+    assert max(map(abs, full.joint_offset_errors_deg)) <= WORN_PUMA.joint_offset_deg
+    assert full.link_errors_mm != other.link_errors_mm
+    s = full.summary()
+    assert s["seed"] == 7 and s["link_mm"] == 1.0 and len(s["joint_offset_errors_deg"]) == 6
+
+
+def test_the_controller_believes_it_reached_the_target_the_arm_did_not():
+    r = PerturbedPuma260(WORN_PUMA, seed=3)
+    s = r.move(ABOVE_F)
+    np.testing.assert_allclose(s.base_H_F_nominal, ABOVE_F, atol=1e-9)  # its own kinematics say: arrived
+    np.testing.assert_allclose(r.nominal.fk(s.q_read), s.base_H_F_nominal, atol=1e-12)
+    rot, mm = pose_difference(s.base_H_F_true, ABOVE_F)
+    assert 0.3 < mm < 5.0 and 0.02 < rot < 0.6  # a worn arm: about a millimetre and a tenth of a degree
+
+
+def test_observing_a_true_pose_reports_it_through_the_nominal_kinematics():
+    r = PerturbedPuma260(WORN_PUMA, seed=3)
+    o = r.observe(ABOVE_F)
+    np.testing.assert_allclose(o.base_H_F_true, ABOVE_F)
+    np.testing.assert_allclose(r.nominal.fk(o.q_read), o.base_H_F_nominal, atol=1e-12)
+    np.testing.assert_allclose(r.true.fk(r.true.ik(ABOVE_F)), ABOVE_F, atol=1e-7)
+    assert 0.3 < pose_difference(o.base_H_F_nominal, ABOVE_F)[1] < 5.0
+
+
+def test_encoder_noise_has_its_standard_deviation():
+    r = PerturbedPuma260(KinematicErrors(encoder_sd_deg=0.02), seed=1)
+    q_true = r.true.ik(ABOVE_F)
+    reads = np.array([r.observe(ABOVE_F, q_true).q_read for _ in range(400)])
+    err = reads - q_true
+    assert np.all(np.abs(err.mean(axis=0)) < 0.005)
+    np.testing.assert_allclose(err.std(axis=0), 0.02, rtol=0.2)
+    # without noise the reading is exact
+    assert np.allclose(PerturbedPuma260(seed=1).observe(ABOVE_F, q_true).q_read, q_true)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"link_mm": -1.0}, "link_mm"), ({"joint_offset_deg": float("nan")}, "joint_offset_deg"),
+    ({"encoder_sd_deg": "0.02"}, "encoder_sd_deg"),
+])
+def test_bad_error_bounds_are_refused(kwargs, match):
+    with pytest.raises(ConfigError, match=match):
+        KinematicErrors(**kwargs)
+
+
+def test_bad_arguments_are_refused():
+    with pytest.raises(ConfigError, match="level"):
+        WORN_PUMA.scaled(-0.5)
+    with pytest.raises(ConfigError, match="expected a KinematicErrors"):
+        PerturbedPuma260({"link_mm": 1.0})
+    with pytest.raises(ConfigError, match="expected a PerturbedPuma260"):
+        PerturbedValController(None, robot=PerturbedPuma260().nominal)
+    with pytest.raises(ConfigError, match="geometry comes from the robot"):
+        PerturbedValController(None, robot=PerturbedPuma260(), geometry=Puma260Geometry())
+
+
+@pytest.mark.parametrize("errors", [KinematicErrors(), WORN_PUMA], ids=["perfect", "worn"])
+def test_the_val_simulator_reports_nominal_and_moves_the_world_truly(cell, errors):
+    world = SimWorld(cell, seed=2)
+    robot = PerturbedPuma260(errors, seed=5)
+    sim = PerturbedValController(world, robot=robot, time_scale=0.0, calibrated=True)
+    path = sim.start_pty()
+    try:
+        with PumaVAL(path, timeout_s=5.0) as arm:
+            arm.move("above")
+            where = arm.where()
+            true_tcp = world.base_H_G.copy()
+            # WHERE is the nominal kinematics at the joints read (printed to 0.01 deg); the world stands where
+            # the true arm put it
+            np.testing.assert_allclose(where.base_H_T, robot.nominal.fk(where.joints) @ TOOL, atol=0.2)
+            rot, mm = pose_difference(where.base_H_T, true_tcp)
+            if errors == KinematicErrors():
+                assert mm < 0.02 and rot < 1e-3
+            else:
+                assert 0.3 < mm < 5.0
+            arm.move("plate")  # 4 mm into the foam: the worn arm still parks the gripper
+        assert world.parked and abs(world.W_H_G[0, 3]) < 5.0
+    finally:
+        sim.stop()
