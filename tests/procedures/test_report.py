@@ -161,11 +161,11 @@ def test_write_cell_changes_only_the_update_limit(tmp_path, cell_path):
     after = p.read_text().splitlines()
     changed = [ln for ln in after if ln not in before]
     assert changed == ["  # update_limit measured by bench/update_limit.py: test evidence, again",
-                       "  update_limit: {angle_deg: 0.77, shift_mm: 0.33}"]
+                       "  update_limit: {angle_deg: 0.77, shift_mm: 2}"]  # the shift limit is the cell's own
     assert [ln for ln in before if ln not in after] == ["  update_limit: {angle_deg: 1.0, shift_mm: 2.0}"]
     assert len(after) == len(before) + 1
     lim = load_cell(p).monitor.update_limit
-    assert (lim.angle_deg, lim.shift_mm) == (0.77, 0.33)
+    assert (lim.angle_deg, lim.shift_mm) == (0.77, 2.0)
     q = tmp_path / "other.yaml"
     q.write_text("monitor: {}\n")
     with pytest.raises(ValueError, match="no line"):
@@ -192,7 +192,7 @@ def test_find_limit_on_a_quadratic_model_error():
     assert lim["binding_axis"] == "C z" and lim["per_axis_deg"]["C x"] is None
     assert lim["angle_deg"] == pytest.approx(np.sqrt(bound / 0.02), rel=1e-6)  # exact: log-log of a power law
     assert lim["shift_mm"] == pytest.approx(0.44 * lim["angle_deg"], rel=1e-6)
-    assert ul.cell_values(lim) == (float(f"{lim['angle_deg']:.2g}"), round(lim["shift_mm"], 2))
+    assert ul.cell_values(lim, 2.0) == (float(f"{lim['angle_deg']:.2g}"), 2.0)  # the cell keeps its shift limit
     none = ul.find_limit({"C x": tab["C x"]}, floor, 0.1)
     assert none["angle_deg"] is None and none["shift_mm"] is None
 

@@ -1,0 +1,147 @@
+"""``selfview calibrate`` and ``selfview track`` on rendered pictures: outputs, files, and failures."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from mocks.render import render
+from mocks.world import SimWorld
+from procedures.cli import main
+from selfview.calfile import history_dir, load_calibration
+
+
+@pytest.fixture(scope="module")
+def pictures(cell, tmp_path_factory):
+    d = tmp_path_factory.mktemp("pics")
+    w = SimWorld(cell, seed=21)
+    w.park()
+    cv2.imwrite(str(d / "parked.png"), render(w, seed=1).image)
+    truth1 = w.truth()
+    w.disturb("cable")
+    cv2.imwrite(str(d / "cable.png"), render(w, seed=2).image)
+    truth2 = w.truth()
+    w.reset_disturbance()
+    pivot = cell.simulation.disturbances["cable"].pivot_C
+    w.disturb_by_angle([0, 1, 0], 0.15, pivot)
+    cv2.imwrite(str(d / "nudge.png"), render(w, seed=4).image)
+    w.reset_disturbance()
+    w.disturb_by_angle([0, 1, 0], 2.5, pivot)
+    cv2.imwrite(str(d / "mid.png"), render(w, seed=5).image)
+    truth_mid = w.truth()
+    w.reset_disturbance()
+    np.save(d / "truth_mid.npy", np.asarray(truth_mid["C_H_G"]))
+    w.disturb_by_angle([0, 1, 0], 8.0, cell.simulation.disturbances["cable"].pivot_C)
+    cv2.imwrite(str(d / "far.png"), render(w, seed=3).image)
+    cv2.imwrite(str(d / "blank.png"), np.full((576, 768), 128, np.uint8))
+    cv2.imwrite(str(d / "small.png"), np.zeros((480, 640), np.uint8))
+    return d, truth1, truth2
+
+
+def run_json(capsys, argv):
+    code = main(argv)
+    out, err = capsys.readouterr()
+    return code, (json.loads(out) if code == 0 and "--json" in argv else out), err
+
+
+def test_calibrate_writes_the_file_and_prints_json(pictures, tmp_path, capsys):
+    d, truth, _ = pictures
+    cal = tmp_path / "cal.yaml"
+    code, out, err = run_json(capsys, ["calibrate", "--image", str(d / "parked.png"), "--out", str(cal), "--json"])
+    assert code == 0, err
+    for key in ("f", "kappa", "C_H_W", "C_H_G", "points_G", "rms_px", "discs_used", "corners_found"):
+        assert key in out
+    assert out["f"] == pytest.approx(962.0, rel=2e-3)
+    assert np.allclose(np.asarray(out["C_H_G"])[:3, 3], np.asarray(truth["C_H_G"])[:3, 3], atol=0.1)
+    assert set(out["points_G"]) == {"A-inner-front", "A-inner-back", "B-inner-front", "B-inner-back",
+                                    "A-outer-front", "B-outer-front"}
+    c = load_calibration(cal)
+    assert np.allclose(c.C_H_G, out["C_H_G"]) and c.image_sha256 and c.cell_sha256
+    assert set(c.points_G) == {"open", "closed"}
+    # a second calibration keeps the first in the history
+    code, out2, _ = run_json(capsys, ["calibrate", "--image", str(d / "parked.png"), "--out", str(cal), "--json"])
+    assert code == 0 and len(list(history_dir(cal).iterdir())) == 1
+
+
+@pytest.mark.parametrize("picture, code_expected, words", [
+    ("blank.png", 5, "blank"),
+    ("small.png", 5, "640x480"),
+    ("missing.png", 5, "cannot read"),
+])
+def test_calibrate_failures_write_nothing(pictures, tmp_path, capsys, picture, code_expected, words):
+    d, _, _ = pictures
+    cal = tmp_path / "cal.yaml"
+    code, _, err = run_json(capsys, ["calibrate", "--image", str(d / picture), "--out", str(cal)])
+    assert code == code_expected and words in err
+    assert not cal.exists()
+
+
+def test_calibrate_refuses_to_overwrite_a_foreign_file(pictures, tmp_path, capsys):
+    d, _, _ = pictures
+    cal = tmp_path / "cal.yaml"
+    cal.write_text("somebody: else's file\n")
+    code, _, err = run_json(capsys, ["calibrate", "--image", str(d / "parked.png"), "--out", str(cal)])
+    assert code == 3 and "not a selfview calibration" in err
+    assert cal.read_text() == "somebody: else's file\n"
+
+
+@pytest.fixture
+def calibrated(pictures, tmp_path, capsys):
+    d, _, _ = pictures
+    cal = tmp_path / "cal.yaml"
+    assert main(["calibrate", "--image", str(d / "parked.png"), "--out", str(cal)]) == 0
+    capsys.readouterr()
+    return cal
+
+
+@pytest.mark.parametrize("method", ["3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R"])
+def test_track_each_method(pictures, calibrated, capsys, method):
+    d, _, truth2 = pictures
+    code, out, err = run_json(capsys, ["track", "--calibration", str(calibrated), "--image", str(d / "cable.png"),
+                                       "--method", method, "--json"])
+    assert code == 0, err
+    for key in ("method", "C_H_G", "delta_deg", "d_mm", "decision", "points_used", "rms_px"):
+        assert key in out
+    assert out["method"] == method and len(out["points_used"]) == int(method[0])
+    assert np.allclose(np.asarray(out["C_H_G"])[:3, 3], np.asarray(truth2["C_H_G"])[:3, 3], atol=0.1)
+    assert out["applied"] is False
+
+
+def test_track_auto_follows_the_policy_and_apply_writes_atomically(pictures, calibrated, capsys, cell_path):
+    d, _, _ = pictures
+    before = load_calibration(calibrated).C_H_G
+    # the shared reference cell's limits: update below 1 deg / 2 mm, alarm above 5 deg / 10 mm
+    policy = ["--cell", str(cell_path), "track", "--calibration", str(calibrated), "--method", "auto", "--json"]
+    policy = policy[2:] + policy[:2]
+    code, out, err = run_json(capsys, policy + ["--image", str(d / "nudge.png")])
+    assert code == 0, err
+    assert out["decision"] == "update" and out["applied"] is False and out["delta_deg"] < 1.0
+    code, out, err = run_json(capsys, policy + ["--image", str(d / "mid.png"), "--apply"])
+    assert code == 0, err
+    assert out["decision"] == "recalibrate" and out["method"].endswith("-R") and out["applied"] is True
+    after = load_calibration(calibrated)
+    assert not np.allclose(after.C_H_G, before)
+    assert np.allclose(after.C_H_G[:3, 3], np.load(d / "truth_mid.npy")[:3, 3], atol=0.1)
+    assert after.updates and after.updates[-1]["by"] == "track"
+    assert len(list(history_dir(calibrated).iterdir())) == 1
+
+
+def test_track_auto_raises_the_alarm_for_a_large_move_and_writes_nothing(pictures, calibrated, capsys):
+    d, _, _ = pictures
+    before = calibrated.read_bytes()
+    code = main(["track", "--calibration", str(calibrated), "--image", str(d / "far.png"), "--method", "auto",
+                 "--apply"])
+    _, err = capsys.readouterr()
+    # 8 degrees: beyond the alarm limit, and the fingertips left their search windows; either way an alarm
+    assert code == 6 and ("alarm" in err.lower() or "fingertip" in err.lower())
+    assert calibrated.read_bytes() == before
+
+
+def test_track_with_a_corrupt_calibration_file(pictures, tmp_path, capsys):
+    d, _, _ = pictures
+    bad = tmp_path / "cal.yaml"
+    bad.write_text(yaml.safe_dump({"format": "selfview-calibration", "version": 1, "checksum": "sha256:0"}))
+    code = main(["track", "--calibration", str(bad), "--image", str(d / "cable.png")])
+    assert code == 3 and "checksum" in capsys.readouterr().err
