@@ -179,7 +179,7 @@ def plot_errors(summary: dict, path: Path, methods) -> Path:
 
     from procedures.paper import PAPER_TABLES
 
-    series = [s for s in summary if s != "failures"]
+    series = [s for s, v in summary.items() if isinstance(v, dict) and "methods" in v]
     fig, axes = plt.subplots(len(series), 2, figsize=(13, 4.2 * len(series)), squeeze=False)
     axis_names = ("c_x", "c_y", "c_z")
     for i, s in enumerate(series):
