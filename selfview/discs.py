@@ -1,0 +1,445 @@
+"""Disc detection on the calibration plate (the off-line calibration's first step, paper section 3).
+
+The plate is a ``rows x cols`` array of dark discs at ``pitch`` mm on a light sheet (CONVENTIONS.md).
+``detect_discs`` finds the whole discs in a picture, gives each a sub-pixel centre and indexes it on the
+grid; ``correct_disc_bias`` then removes the perspective (and lens) bias of those centres once a first
+pose of the plate is known.
+
+Why this sub-pixel centre: the grey-level centroid of the disc's *contrast* ``w = 1 - I / I_paper``, with
+the paper level ``I_paper`` a plane fitted to a ring just outside the disc, over a support wide enough to
+hold the blurred edge. A symmetric blur (focus, motion-free optics, the pixel's own area) moves ink but
+keeps its first moment, so the centroid is unbiased under blur, where edge-based ellipse fits shift
+with the blur and the edge detector; dividing by the local paper level makes the weight independent of
+a multiplicative light gradient across the disc. What it measures is the centroid of the disc's
+*distorted image*, which is not the image of the disc's centre: ``correct_disc_bias`` supplies that
+difference from the camera model and ``C_H_W``.
+
+Grid indexing: the survivors form a lattice; neighbour steps give its two directions, indices are
+propagated from a seed disc (tolerating missing discs), and W is oriented so that x (columns) points to
+growing u and y (rows) completes a right-handed frame whose z points away from the camera. When all
+columns (rows) are seen, W's origin is the grid centre exactly; otherwise the side where the grid ends
+is found by looking for blank paper one pitch beyond the last column (row), and failing that the seen
+columns (rows) are centred (``DiscDetections.index_basis`` says which). The hand/eye result does not
+depend on that choice (it cancels in ``C_H_G = C_H_W W_H_G``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from selfview.camera import CameraModel
+from selfview.cell import PlateSpec
+from selfview.errors import ImageError
+from selfview.geometry import transform_points
+
+__all__ = ["DiscDetections", "detect_discs", "correct_disc_bias", "disc_image_bias", "as_gray"]
+
+#: A pixel belongs to a disc candidate when it is this much darker than the paper around it (relative).
+DARK_FRACTION = 0.3
+#: Ring test: a ring pixel deviating from the fitted paper plane by more than this (relative) is not paper.
+RING_TOLERANCE = 0.12
+
+
+@dataclass
+class DiscDetections:
+    """Discs found in one picture, sorted by (row, col).
+
+    ``uv`` (N, 2) sub-pixel centres as measured (distorted pixels, centroid of each disc's image);
+    ``rc`` (N, 2) int grid indices (row, col), 0-based; ``p_W`` (N, 3) disc centres in W [mm], z = 0,
+    origin at the grid centre; ``area_px`` (N,) pixels above the darkness threshold; ``n_blobs`` how many
+    candidate blobs the picture held; ``rejected`` how many of them were dropped, by reason;
+    ``index_basis`` how the grid index was anchored per axis ('all seen', 'low end seen',
+    'high end seen', 'centred').
+    """
+
+    uv: np.ndarray
+    rc: np.ndarray
+    p_W: np.ndarray
+    area_px: np.ndarray
+    n_blobs: int
+    rejected: dict[str, int]
+    index_basis: dict[str, str] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+
+# --- picture checks -------------------------------------------------------------------------------
+def as_gray(image, camera: CameraModel | None = None, what: str = "picture") -> np.ndarray:
+    """The picture as a (H, W) float32 grey image (0..255 scale), checked.
+
+    Accepts (H, W), (H, W, 1), BGR (H, W, 3) or BGRA arrays of uint8, uint16 (scaled to 0..255) or
+    float. Raises ``ImageError`` for a picture that is not an image, of the wrong size for ``camera``,
+    or blank (its grey levels span less than 12 levels).
+    """
+    a = np.asarray(image)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    elif a.ndim == 3 and a.shape[2] in (3, 4):
+        a = a[..., :3].astype(np.float32) @ np.array([0.114, 0.587, 0.299], np.float32)  # BGR weights
+    if a.ndim != 2 or a.size == 0:
+        raise ImageError(f"{what}: expected a grey or BGR image, got an array of shape {np.shape(image)}")
+    if a.dtype == np.bool_ or not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)):
+        raise ImageError(f"{what}: expected integer or float pixels, got dtype {a.dtype}")
+    h, w = a.shape
+    if camera is not None and (h, w) != (int(camera.height), int(camera.width)):
+        raise ImageError(
+            f"{what} is {w}x{h} px but the camera model expects {int(camera.width)}x{int(camera.height)}"
+        )
+    g = a.astype(np.float32)
+    if a.dtype == np.uint16:
+        g /= 257.0
+    if not np.all(np.isfinite(g)):
+        raise ImageError(f"{what}: contains NaN or infinite pixels")
+    lo, hi = np.percentile(g[::3, ::3], [1, 99])
+    if hi - lo < 12:
+        raise ImageError(f"blank {what}: its grey levels span only {lo:.0f}..{hi:.0f}")
+    return g
+
+
+def _paper_level(work: np.ndarray) -> np.ndarray:
+    """Local level of the light background (H, W): a grey closing wider than a disc or a finger, taken at
+    a quarter of the resolution and smoothed."""
+    h, w = work.shape
+    small = cv2.resize(work, (max(8, w // 4), max(8, h // 4)), interpolation=cv2.INTER_AREA)
+    k = max(5, (max(small.shape) // 6) | 1)
+    closed = cv2.morphologyEx(small, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
+    closed = cv2.blur(closed, (k // 3 | 1, k // 3 | 1))
+    return cv2.resize(closed, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+# --- one blob -------------------------------------------------------------------------------------
+def _ellipse_misfit(blob: np.ndarray) -> tuple[float, float]:
+    """(solidity, max distance in px of the outline from its fitted ellipse) of a blob mask."""
+    contours, _ = cv2.findContours(blob.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    c = max(contours, key=len)
+    if len(c) < 6:
+        return 0.0, np.inf
+    hull = cv2.contourArea(cv2.convexHull(c))
+    solidity = float(blob.sum()) / max(hull + len(c) / 2.0, 1.0)  # contour runs through pixel centres
+    (ex, ey), (da, db), ang = cv2.fitEllipse(c)
+    if min(da, db) <= 0:
+        return solidity, np.inf
+    p = c[:, 0, :].astype(float) - (ex, ey)
+    t = np.radians(ang)
+    x = p[:, 0] * np.cos(t) + p[:, 1] * np.sin(t)
+    y = -p[:, 0] * np.sin(t) + p[:, 1] * np.cos(t)
+    rho = np.hypot(x / (da / 2), y / (db / 2))
+    return solidity, float(np.max(np.abs(rho - 1)) * (da + db) / 4)
+
+
+def _centroid(work, labels, k, bbox, area) -> tuple[str | None, np.ndarray | None]:
+    """Sub-pixel centre of blob ``k`` (contrast-weighted centroid over a support around it, paper level a
+    plane fitted to the ring around the support), or the reason it is not a whole, clean disc."""
+    x, y, w, h = bbox
+    H, W = work.shape
+    d = 2 * np.sqrt(area / np.pi)
+    m_in = int(np.clip(round(0.2 * d), 4, 10))
+    m_ring = int(np.clip(round(0.15 * d), 3, 8))
+    m = m_in + m_ring
+    x0, y0, x1, y1 = x - m, y - m, x + w + m, y + h + m
+    if x0 < 0 or y0 < 0 or x1 > W or y1 > H:
+        return "picture edge", None
+    lab = labels[y0:y1, x0:x1]
+    # distance (px) from the blob: the support holds the blurred edge, the ring beyond it is paper
+    dist = cv2.distanceTransform((lab != k).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+    outer = dist <= m
+    if np.any(outer & (lab != k) & (lab > 0)):
+        return "crowded", None
+    support = dist <= m_in
+    ring = outer & ~support
+    crop = work[y0:y1, x0:x1].astype(np.float64)
+    rv, ru = np.nonzero(ring)
+    cu, cv_ = (x1 - x0 - 1) / 2, (y1 - y0 - 1) / 2
+    A = np.column_stack([np.ones(len(ru)), ru - cu, rv - cv_])
+    z = crop[rv, ru]
+    coef = np.linalg.solve(A.T @ A, A.T @ z)
+    res = z - A @ coef
+    level = coef[0]
+    if level <= 0 or np.mean(np.abs(res) > RING_TOLERANCE * level) > 0.01:
+        return "occluded", None
+    sv, su = np.nonzero(support)
+    plane = coef[0] + coef[1] * (su - cu) + coef[2] * (sv - cv_)
+    wgt = 1.0 - crop[sv, su] / plane
+    s = wgt.sum()
+    if s <= 0.25 * area * DARK_FRACTION:
+        return "occluded", None
+    return None, np.array([(wgt * su).sum() / s + x0, (wgt * sv).sum() / s + y0])
+
+
+# --- lattice --------------------------------------------------------------------------------------
+def _seed(P: np.ndarray, dist: np.ndarray) -> tuple[int, np.ndarray, np.ndarray] | None:
+    """A disc near the middle whose neighbours confirm two lattice steps (a, b) both ways."""
+    order = np.argsort(np.linalg.norm(P - np.median(P, axis=0), axis=1))
+    for s in order:
+        nb = np.argsort(dist[s])[1:9]
+        a = P[nb[0]] - P[s]
+        la = np.linalg.norm(a)
+        if not np.any(np.linalg.norm(P[nb] - (P[s] - a), axis=1) < 0.25 * la):
+            continue
+        for j in nb[1:]:
+            b = P[j] - P[s]
+            lb = np.linalg.norm(b)
+            if abs(a @ b) > 0.8 * la * lb or not 0.5 < lb / la < 2.0:
+                continue
+            if np.any(np.linalg.norm(P[nb] - (P[s] - b), axis=1) < 0.25 * lb):
+                return int(s), a, b
+    return None
+
+
+def _propagate(P: np.ndarray) -> dict[int, tuple[int, int]]:
+    """Lattice index (i, j) of the points P (N, 2) reachable from a seed; steps are re-estimated
+    locally as the walk goes, so perspective and lens distortion are followed."""
+    dist = np.linalg.norm(P[:, None, :] - P[None, :, :], axis=2)
+    seed = _seed(P, dist)
+    if seed is None:
+        return {}
+    s, a, b = seed
+    index = {s: (0, 0)}
+    at = {(0, 0): s}
+    steps = {s: (a, b)}
+    queue = [s]
+    while queue:
+        p = queue.pop(0)
+        i, j = index[p]
+        for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            for jump in (1, 2):
+                key = (i + di * jump, j + dj * jump)
+                if key in at:
+                    break
+                back = at.get((i - di, j - dj))
+                step = (P[p] - P[back]) if back is not None else (steps[p][0] * di + steps[p][1] * dj)
+                pred = P[p] + jump * step
+                tol = 0.3 * np.linalg.norm(step)
+                dd = np.linalg.norm(P - pred, axis=1)
+                q = int(np.argmin(dd))
+                if dd[q] >= tol or q in index:
+                    continue
+                index[q] = key
+                at[key] = q
+                sa, sb = steps[p]
+                meas = (P[q] - P[p]) / jump
+                steps[q] = (meas * di if di else sa, meas * dj if dj else sb)
+                queue.append(q)
+                break
+    return index
+
+
+def _lattice_outliers(P, index) -> set[int]:
+    """Points off the midpoint of their two lattice neighbours along a line by > 15 % of a step."""
+    at = {v: k for k, v in index.items()}
+    bad = set()
+    for k, (i, j) in index.items():
+        for di, dj in ((1, 0), (0, 1)):
+            lo, hi = at.get((i - di, j - dj)), at.get((i + di, j + dj))
+            if lo is None or hi is None:
+                continue
+            step = np.linalg.norm(P[hi] - P[lo]) / 2
+            if np.linalg.norm(P[k] - (P[lo] + P[hi]) / 2) > 0.15 * step:
+                bad.add(k)
+    return bad
+
+
+def _mean_step(P, index, axis: int) -> np.ndarray:
+    at = {v: k for k, v in index.items()}
+    steps = []
+    for k, ij in index.items():
+        nxt = list(ij)
+        nxt[axis] += 1
+        q = at.get(tuple(nxt))
+        if q is not None:
+            steps.append(P[q] - P[k])
+    return np.mean(steps, axis=0) if steps else np.zeros(2)
+
+
+def _orient(P, index, plate: PlateSpec) -> np.ndarray:
+    """(N, 2) (col, row) lattice coordinates oriented as W: x to growing u, (x, y, z) right-handed with z
+    away from the camera, the column axis chosen so the extents fit the plate."""
+    keys = np.array([index[k] for k in sorted(index)])
+    A, B = _mean_step(P, index, 0), _mean_step(P, index, 1)
+    choices = [(0, A, 1, B), (1, B, 0, A)]
+    if abs(B[0]) / (np.linalg.norm(B) + 1e-9) > abs(A[0]) / (np.linalg.norm(A) + 1e-9):
+        choices.reverse()
+    for ci, cvec, ri, rvec in choices:
+        col = keys[:, ci] * (1 if cvec[0] >= 0 else -1)
+        csign = 1 if cvec[0] >= 0 else -1
+        cross = csign * (cvec[0] * rvec[1] - cvec[1] * rvec[0])
+        row = keys[:, ri] * (1 if cross > 0 else -1)
+        cr = np.column_stack([col, row])
+        ext = cr.max(0) - cr.min(0) + 1
+        if ext[0] <= plate.cols and ext[1] <= plate.rows:
+            return cr - cr.min(0)
+    raise ImageError(
+        f"the discs form a lattice of {ext[0]} x {ext[1]}, larger than the plate's {plate.cols} x {plate.rows}"
+    )
+
+
+def _grid_end(P_img, cr, axis, side, dark, r_px, shape) -> bool:
+    """True when one lattice step beyond the last column/row (``axis`` 0/1, ``side`` -1 low, +1 high)
+    the picture shows blank paper at two or more places and a disc at none."""
+    at = {tuple(k): n for n, k in enumerate(cr)}
+    edge = cr[:, axis].min() if side < 0 else cr[:, axis].max()
+    H, W = shape
+    empty = 0
+    for n in np.nonzero(cr[:, axis] == edge)[0]:
+        inner = cr[n].copy()
+        inner[axis] -= side
+        q = at.get(tuple(inner))
+        if q is None:
+            continue
+        pred = 2 * P_img[n] - P_img[q]
+        u, v = int(round(pred[0])), int(round(pred[1]))
+        rr = int(np.ceil(1.5 * r_px))
+        if u - rr < 0 or v - rr < 0 or u + rr >= W or v + rr >= H:
+            continue
+        patch = cv2.blur(dark[v - rr : v + rr + 1, u - rr : u + rr + 1], (5, 5))  # 5x5 means: noise-proof
+        if np.max(patch) > DARK_FRACTION / 2:
+            return False
+        empty += 1
+    return empty >= 2
+
+
+# --- the detector ---------------------------------------------------------------------------------
+def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, min_discs: int = 12) -> DiscDetections:
+    """Find, measure and index the whole discs of the calibration plate in a picture.
+
+    ``image`` (H, W) grey or BGR; ``plate`` the plate's description; ``camera`` (optional) checks the
+    picture's size and straightens the lattice (its kappa) before indexing. Returns ``DiscDetections``
+    (centres in distorted pixels, not yet bias-corrected: see ``correct_disc_bias``).
+    Raises ``ImageError`` for a blank picture, one of the wrong size, one without a plate (fewer than
+    ``min_discs`` whole discs) or one whose discs form no lattice.
+    """
+    img = as_gray(image, camera)
+    work = img if plate.polarity == "dark_on_light" else (float(img.max()) - img)
+    paper = _paper_level(work)
+    dark = 1.0 - work / np.maximum(paper, 1.0)
+    mask = (dark > DARK_FRACTION).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    H, W = img.shape
+    rejected: dict[str, int] = {}
+
+    def reject(reason):
+        rejected[reason] = rejected.get(reason, 0) + 1
+
+    cand = []
+    for k in range(1, n):
+        x, y, w, h, area = (int(v) for v in stats[k])
+        if area < 20:
+            reject("speck")
+        elif x == 0 or y == 0 or x + w == W or y + h == H:
+            reject("picture edge")
+        else:
+            cand.append(k)
+    if cand:
+        med = float(np.median(stats[cand, cv2.CC_STAT_AREA]))
+        keep = []
+        for k in cand:
+            area = stats[k, cv2.CC_STAT_AREA]
+            if area < 0.25 * med:
+                reject("speck")
+            elif area > 4 * med or area > 0.05 * H * W:
+                reject("too large")
+            else:
+                keep.append(k)
+        cand = keep
+    uv, areas = [], []
+    for k in cand:
+        x, y, w, h, area = (int(v) for v in stats[k])
+        blob = labels[y : y + h, x : x + w] == k
+        solidity, misfit = _ellipse_misfit(blob)
+        if solidity < 0.9 or misfit > 1.6:
+            reject("not elliptical")
+            continue
+        why, c = _centroid(work, labels, k, (x, y, w, h), area)
+        if why:
+            reject(why)
+            continue
+        uv.append(c)
+        areas.append(area)
+    n_blobs = n - 1
+    if len(uv) < min_discs:
+        why = ", ".join(f"{v} {k}" for k, v in sorted(rejected.items())) or "none"
+        raise ImageError(
+            f"no calibration plate in the picture: {len(uv)} whole disc(s) found, at least {min_discs} "
+            f"needed ({n_blobs} dark blobs; rejected: {why})"
+        )
+    uv = np.array(uv)
+    areas = np.array(areas)
+    P = camera.undistorted_pixels(uv) if camera is not None else uv
+    index = _propagate(P)
+    bad = _lattice_outliers(P, index)
+    for k in bad:
+        del index[k]
+    if len(index) < min_discs:
+        raise ImageError(
+            f"the discs do not form a lattice: {len(index)} of {len(uv)} whole discs fit one "
+            f"(at least {min_discs} needed)"
+        )
+    off = len(uv) - len(index)
+    if off:
+        rejected["off lattice"] = rejected.get("off lattice", 0) + off
+    ids = np.array(sorted(index))
+    cr = _orient(P[ids], {n_: index[k] for n_, k in enumerate(ids)}, plate)
+    r_px = float(np.sqrt(np.median(areas) / np.pi))
+    basis = {}
+    for axis, name, count in ((0, "cols", plate.cols), (1, "rows", plate.rows)):
+        ext = cr[:, axis].max() + 1
+        if ext == count:
+            basis[name] = "all seen"
+        elif _grid_end(uv[ids], cr, axis, -1, dark, r_px, (H, W)):
+            basis[name] = "low end seen"
+        elif _grid_end(uv[ids], cr, axis, +1, dark, r_px, (H, W)):
+            cr[:, axis] += count - ext
+            basis[name] = "high end seen"
+        else:
+            cr[:, axis] += (count - ext) // 2
+            basis[name] = "centred"
+    order = np.lexsort((cr[:, 0], cr[:, 1]))
+    cr = cr[order]
+    ids = ids[order]
+    rc = cr[:, ::-1].astype(int)
+    p_W = np.column_stack(
+        [
+            (rc[:, 1] - (plate.cols - 1) / 2) * plate.pitch,
+            (rc[:, 0] - (plate.rows - 1) / 2) * plate.pitch,
+            np.zeros(len(rc)),
+        ]
+    )
+    return DiscDetections(
+        uv=uv[ids], rc=rc, p_W=p_W, area_px=areas[ids].astype(float), n_blobs=n_blobs,
+        rejected=rejected, index_basis=basis,
+    )
+
+
+# --- perspective bias -----------------------------------------------------------------------------
+def disc_image_bias(camera: CameraModel, C_H_W, p_W, radius_mm: float, n_boundary: int = 256) -> np.ndarray:
+    """(N, 2) [px] centroid of each disc's distorted image minus the image of its centre.
+
+    ``p_W`` (N, 3) disc centres in W [mm], ``radius_mm`` the disc radius, ``C_H_W`` (4, 4). The image
+    region is the polygon through ``n_boundary`` projected boundary points; its area centroid comes from
+    the shoelace formula. Raises ``CalibrationError`` (from the camera model) for discs behind the camera.
+    """
+    p_W = np.atleast_2d(np.asarray(p_W, float))
+    t = np.arange(n_boundary) * (2 * np.pi / n_boundary)
+    ring = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)]) * radius_mm
+    pts = (p_W[:, None, :] + ring[None, :, :]).reshape(-1, 3)
+    poly = camera.project(transform_points(C_H_W, pts)).reshape(len(p_W), n_boundary, 2)
+    x, y = poly[..., 0], poly[..., 1]
+    x1, y1 = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
+    cross = x * y1 - x1 * y
+    a = cross.sum(1) / 2
+    cx = ((x + x1) * cross).sum(1) / (6 * a)
+    cy = ((y + y1) * cross).sum(1) / (6 * a)
+    centre = camera.project(transform_points(C_H_W, p_W))
+    return np.column_stack([cx, cy]) - centre
+
+
+def correct_disc_bias(det: DiscDetections, camera: CameraModel, C_H_W, plate: PlateSpec) -> np.ndarray:
+    """(N, 2) measured disc centres with the perspective/lens bias removed: ``det.uv`` minus
+    ``disc_image_bias`` for a first pose ``C_H_W`` (4, 4) and ``camera``. Pixels, distorted."""
+    if len(det.uv) == 0:
+        return det.uv.copy()
+    return det.uv - disc_image_bias(camera, C_H_W, det.p_W, plate.disc_diameter / 2)

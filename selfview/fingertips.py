@@ -1,0 +1,857 @@
+"""The six fingertip corners of CONVENTIONS.md in a picture (off-line step 3, and on-line tracking).
+
+From a predicted mount ``C_H_G_pred`` (the mount guess off-line, the last calibration on-line) the
+finger boxes are projected, and the predicted 3-D geometry decides which box edges show at each
+corner: an edge shows when at least one of its two faces turns towards the camera, as a silhouette
+against the background or as a crease between two differently lit faces. Then, per finger:
+
+1. coarse: the finger's visible edges near its tips, as a template of line segments, are slid over the
+   smoothed gradient within ``search_px`` (each edge scores the magnitude of its normal gradient
+   summed along it, so polarity does not matter); at a quarter of the resolution, then refined;
+2. fine, twice: each edge is crossed by profiles one pixel apart, sampled (bilinear) into the face
+   beside it, the way its shading stays nearly constant (a specular strip runs along a finger, not
+   across it). In each profile the step is located by the area (zeroth-moment) method: the position
+   where an ideal step between the two plateau levels holds the same grey-level sum. Under any
+   symmetric blur and the pixel's own area this is unbiased for a straight edge, and the plateaus'
+   slopes are allowed for. Over a textured background, whose level under the edge the plateaus do not
+   show, the peak of the rise is used instead (a Gaussian through its three largest differences).
+   Profile phases are dithered along the edge. The first pass takes steps of the expected polarity
+   within +-8 px; the second, within +-3 px of the first's line, takes either polarity (a disc of ink
+   behind the edge reverses it). Each face shows beside about three edges near the tip: an edge whose
+   face side disagrees with what the others see there found something else (the rim of a disc), and is
+   looked for again among steps that show that face. Profiles near another edge, with uneven plateaus
+   or more than one step are skipped;
+3. the crossings are undistorted (eq. 4) so the edges are straight, a line is fitted to each (a
+   consistent pair near the predicted direction, then Tukey reweighting), and the corner is the
+   least-squares intersection of its two or three lines, distorted back to pixels.
+
+A corner that is outside the picture, hidden (by the other finger, or by something else: no edge
+points near it and the faces beside it not showing their grey level there), or whose edges yield too
+few points is reported as not found with the reason, never extrapolated. Everything runs in small
+windows around the predictions.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from selfview.camera import CameraModel
+from selfview.cell import POINT_NAMES, GripperSpec
+from selfview.discs import as_gray
+from selfview.errors import CalibrationError
+from selfview.geometry import inv_H, transform_points
+
+__all__ = ["FingertipResult", "find_fingertips", "predict_fingertips", "visible_edges"]
+
+FINGERS = ("A", "B")
+#: finger of each point, in POINT_NAMES order
+POINT_FINGER = (0, 0, 1, 1, 0, 1)
+COARSE_CANDIDATES = 4  # best shifts at a quarter resolution refined at full resolution
+TEMPLATE_PX = 90.0  # how much of each edge, from its corner, the coarse template uses
+FIT_PX = 90.0  # how much of each edge, from its corner, the fine stage scans
+MIN_CONTRAST = 8.0  # grey levels between the two sides of an edge
+BLUR_MARGIN = 4  # px a step's window keeps from any other edge
+PLATEAU_PX = 3  # pixels on either side of an edge's transition that measure its grey levels
+# the fraction 2 Phi(1.5 / sigma) - 1 = erf(1.5 / (sigma sqrt 2)) of a Gaussian-blurred step that lies
+# within +-1.5 px of it, for blurs sigma (px), increasing fraction order for np.interp
+_BLUR_SIGMA = np.linspace(4.0, 0.3, 38)
+_BLUR_F = np.array([math.erf(1.5 / (s_ * math.sqrt(2))) for s_ in _BLUR_SIGMA])
+
+
+@dataclass
+class FingertipResult:
+    """Fingertip corners found in a picture, in ``POINT_NAMES`` order.
+
+    ``uv`` (6, 2) distorted pixels, NaN where not found; ``found`` (6,); ``reasons`` why a point was
+    not found (None where found); ``edge_rms_px`` (6,) RMS distance of the edge points from their fitted
+    lines (undistorted pixels), NaN if not found; ``names`` the point names; ``n_edge_points`` (6,)
+    edge points that the corner's lines rest on.
+    """
+
+    uv: np.ndarray
+    found: np.ndarray
+    reasons: list
+    edge_rms_px: np.ndarray
+    names: tuple
+    n_edge_points: np.ndarray | None = None
+
+
+# --- geometry -------------------------------------------------------------------------------------
+@dataclass
+class _Edge:
+    key: tuple  # (finger, axis, side of the first other axis, side of the second)
+    finger: int
+    a_G: np.ndarray  # one end (3,) [mm]
+    b_G: np.ndarray  # other end (3,)
+    into: list  # unit directions (3,) from the edge into each of its faces that the camera sees
+    faces: list  # those faces, as (finger, normal axis, side)
+
+    @property
+    def crease(self) -> bool:
+        """Both faces seen: an edge between two lit faces rather than a silhouette."""
+        return len(self.into) == 2
+
+
+def _box_edges(lo, hi, cam_G, finger: int) -> dict[tuple, _Edge]:
+    """The visible edges of a box (lo, hi) seen from ``cam_G`` (3,), keyed by axis and sides."""
+    edges = {}
+    eye = np.eye(3)
+    for axis in range(3):
+        b, c = [k for k in range(3) if k != axis]
+        for sb in (-1, 1):
+            for sc in (-1, 1):
+                into, faces = [], []
+                # the face normal to b (side sb) spans the edge's axis and c; likewise for c
+                for ax, side, other, oside in ((b, sb, c, sc), (c, sc, b, sb)):
+                    plane = hi[ax] if side > 0 else lo[ax]
+                    if side * (cam_G[ax] - plane) > 1e-9:
+                        into.append(-oside * eye[other])
+                        faces.append((finger, ax, side))
+                if not into:
+                    continue
+                a_G = np.where(np.arange(3) == axis, lo, 0.0)
+                a_G[b] = hi[b] if sb > 0 else lo[b]
+                a_G[c] = hi[c] if sc > 0 else lo[c]
+                b_G = a_G.copy()
+                b_G[axis] = hi[axis]
+                key = (finger, axis, sb, sc)
+                edges[key] = _Edge(key, finger, a_G, b_G, into, faces)
+    return edges
+
+
+def _corner_edges(p_G, lo, hi, finger, edges) -> list[tuple[_Edge, np.ndarray]]:
+    """Visible edges meeting at box corner ``p_G`` with their far ends: [(edge, far end (3,))]."""
+    out = []
+    side = [(-1 if abs(p_G[k] - lo[k]) < abs(p_G[k] - hi[k]) else 1) for k in range(3)]
+    for axis in range(3):
+        b, c = [k for k in range(3) if k != axis]
+        e = edges.get((finger, axis, side[b], side[c]))
+        if e is not None:
+            far = e.b_G if side[axis] < 0 else e.a_G
+            out.append((e, far))
+    return out
+
+
+def _hidden_by(p_C, boxes, C_H_G, skip: int) -> int | None:
+    """Index of a finger box (other than ``skip``) that hides camera point ``p_C``, or None."""
+    G_H_C = inv_H(C_H_G)
+    o = G_H_C[:3, 3]
+    d = G_H_C[:3, :3] @ p_C
+    for k, (lo, hi) in enumerate(boxes):
+        if k == skip:
+            continue
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (lo - o) / d, (hi - o) / d
+        t_near = np.max(np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2)))
+        t_far = np.min(np.where(np.isnan(t1), np.inf, np.maximum(t1, t2)))
+        if t_near < min(t_far, 1.0) - 1e-9 and t_near > 0:
+            return k
+    return None
+
+
+class _Model:
+    """The predicted finger geometry in the picture for one C_H_G."""
+
+    def __init__(self, camera: CameraModel, C_H_G, gripper: GripperSpec, gap_mm: float):
+        self.cam = camera
+        self.C_H_G = np.asarray(C_H_G, float)
+        self.boxes = gripper.finger_boxes_G(float(gap_mm))
+        self.points_G = gripper.points_G(gap=float(gap_mm))
+        cam_G = inv_H(self.C_H_G)[:3, 3]
+        self.edges: dict[tuple, _Edge] = {}
+        for f, (lo, hi) in enumerate(self.boxes):
+            self.edges.update(_box_edges(lo, hi, cam_G, f))
+        pts_C = transform_points(self.C_H_G, self.points_G)
+        if np.any(pts_C[:, 2] <= 0):
+            raise CalibrationError("C_H_G puts fingertip points behind the camera")
+        self.uv = camera.project(pts_C)
+        self.corner_edges = [
+            _corner_edges(self.points_G[k], *self.boxes[POINT_FINGER[k]], POINT_FINGER[k], self.edges) for k in range(6)
+        ]
+        self.hidden = [_hidden_by(pts_C[k], self.boxes, self.C_H_G, POINT_FINGER[k]) for k in range(6)]
+
+    def profile_dir(self, edge: _Edge, at_G) -> np.ndarray:
+        """Unit image direction (2,) to sample across ``edge`` near ``at_G``: into its visible face (the
+        way a face's shading stays nearly constant near the edge, e.g. along a specular strip), or from
+        one face into the other for a crease."""
+        dirs = []
+        for d in edge.into:
+            uv = self.cam.project(transform_points(self.C_H_G, np.vstack([at_G, at_G + d])))
+            v = uv[1] - uv[0]
+            dirs.append(v / (np.linalg.norm(v) + 1e-12))
+        out = dirs[0] - dirs[1] if len(dirs) == 2 else dirs[0]
+        return out / (np.linalg.norm(out) + 1e-12)
+
+    def polyline(self, start_G, end_G, max_px: float) -> np.ndarray:
+        """(M, 2) distorted pixels along the 3-D segment from ``start_G``, about 1 px apart, at most
+        ``max_px`` long in the picture; only the part in front of the camera."""
+        ends_C = transform_points(self.C_H_G, np.vstack([start_G, end_G]))
+        if ends_C[0, 2] <= 0:
+            return np.zeros((0, 2))
+        if ends_C[1, 2] <= 1.0:  # clip at 1 mm in front of the camera
+            s = (ends_C[0, 2] - 1.0) / (ends_C[0, 2] - ends_C[1, 2])
+            ends_C[1] = ends_C[0] + s * (ends_C[1] - ends_C[0])
+        # how much of the segment spans max_px (perspective only, 10 % spare for the lens)
+        t = np.linspace(0, 1, 33)[:, None]
+        coarse = self.cam.f * (ends_C[0, :2] + t * (ends_C[1, :2] - ends_C[0, :2])) / (
+            ends_C[0, 2] + t * (ends_C[1, 2] - ends_C[0, 2])
+        )
+        run = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(coarse, axis=0), axis=1))])
+        t_end = float(np.interp(1.1 * max_px + 2, run, t[:, 0])) if run[-1] > 1.1 * max_px + 2 else 1.0
+        n = int(np.clip(min(run[-1], 1.1 * max_px + 2) * 1.2, 4, 2000))
+        t = np.linspace(0, t_end, n)[:, None]
+        uv = self.cam.project(ends_C[0] + t * (ends_C[1] - ends_C[0]))
+        run = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(uv, axis=0), axis=1))])
+        return uv[run <= max_px]
+
+
+def visible_edges(camera: CameraModel, C_H_G, gripper: GripperSpec, gap_mm: float) -> dict[str, list[str]]:
+    """Which box edges show at each fingertip point (for reports): name -> ['x edge (silhouette)', ...]."""
+    m = _Model(camera, C_H_G, gripper, gap_mm)
+    return {
+        POINT_NAMES[k]: [
+            f"{'xyz'[e.key[1]]} edge ({'crease' if e.crease else 'silhouette'})" for e, _ in m.corner_edges[k]
+        ]
+        for k in range(6)
+    }
+
+
+def predict_fingertips(
+    camera: CameraModel, C_H_G, gripper: GripperSpec, gap_mm: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted fingertip points: (uv (6, 2) distorted pixels, in_view (6,) bool), POINT_NAMES order.
+
+    ``C_H_G`` (4, 4) the gripper in the camera frame, ``gap_mm`` the jaw gap. A point is in view when it
+    lies in the picture, the other finger does not hide it and at least two of its edges show.
+    Raises ``CalibrationError`` if a point lies behind the camera.
+    """
+    m = _Model(camera, C_H_G, gripper, gap_mm)
+    in_view = camera.in_image(m.uv) & np.array(
+        [m.hidden[k] is None and len(m.corner_edges[k]) >= 2 for k in range(6)]
+    )
+    return m.uv, in_view
+
+
+# --- coarse alignment -----------------------------------------------------------------------------
+def _template_score(G: np.ndarray, pts: list[np.ndarray], normals: np.ndarray, groups: list, span: int):
+    """Score of the shifts (dx, dy) in [0, 2 span]^2 of integer template points over a gradient image
+    G (2, H, W): per edge the sum of its normal gradient along it; edges of one group (the silhouette
+    of one face, normals turned into the face) add up with their signs, and the groups' magnitudes add.
+    The template's points already carry the offset that puts shift 0 at index ``span``.
+    Returns (score (2 span + 1, 2 span + 1), per-edge sums (E, 2 span + 1, 2 span + 1))."""
+    n = 2 * span + 1
+    sums = np.zeros((len(pts), n, n), np.float32)
+    for e, q in enumerate(pts):
+        Gn = normals[e, 0] * G[0] + normals[e, 1] * G[1]
+        acc = sums[e]
+        for qx, qy in q:
+            acc += Gn[qy : qy + n, qx : qx + n]
+    return _group_score(sums, groups), sums
+
+
+def _group_score(sums: np.ndarray, groups: list) -> np.ndarray:
+    """Per-edge sums (E, ...) -> score (...): summed with their signs within a group, magnitudes added."""
+    score = np.zeros(sums.shape[1:], np.float32)
+    for g in set(groups):
+        score += np.abs(sum(sums[e] for e in range(len(sums)) if groups[e] == g))
+    return score
+
+
+def _padded_gradient(img: np.ndarray, lo: np.ndarray, hi: np.ndarray, s: int, smooth: float) -> np.ndarray:
+    """(2, h, w) x and y gradient of the picture at 1/s of its resolution over the window [lo, hi) (in
+    those units; it may reach beyond the picture, where the gradient is zero), after a Gaussian blur."""
+    H, W = img.shape
+    clo = np.maximum(lo * s, 0)
+    chi = np.minimum(hi * s, (W, H))
+    crop = img[clo[1] : chi[1], clo[0] : chi[0]]
+    if s > 1:
+        crop = cv2.resize(crop, ((chi[0] - clo[0]) // s, (chi[1] - clo[1]) // s), interpolation=cv2.INTER_AREA)
+    crop = cv2.GaussianBlur(crop, (0, 0), smooth)
+    G = np.zeros((2, hi[1] - lo[1], hi[0] - lo[0]), np.float32)
+    off = clo // s - lo
+    ch, cw = crop.shape
+    G[0, off[1] : off[1] + ch, off[0] : off[0] + cw] = cv2.Sobel(crop, cv2.CV_32F, 1, 0) / 8
+    G[1, off[1] : off[1] + ch, off[0] : off[0] + cw] = cv2.Sobel(crop, cv2.CV_32F, 0, 1) / 8
+    return G
+
+
+def _coarse_shift(img: np.ndarray, polys: list[np.ndarray], search_px: float, into=None, groups=None):
+    """Best common 2-D shift (px) of the polylines over the picture's gradient within +-search_px, and
+    the sign of each polyline's normal gradient there (+1: brighter towards its left-hand normal).
+
+    Polarity is not known, but the silhouette of one face has one polarity all round it (against a
+    background that is about uniform): ``into`` (E, 2) the image direction into each edge's face,
+    ``groups`` (E,) which face's silhouette each edge belongs to (a crease: a group of its own). The
+    normal gradient summed along each edge, the sums of a group signed into its face and added, and
+    the groups' magnitudes summed make the score: first at a quarter of the resolution over the whole
+    range, then at full resolution within +-6 px of its best few maxima. Returns (shift (2,),
+    signs (E,)) or None if the template does not meet the picture."""
+    H, W = img.shape
+    pts = np.vstack(polys)
+    groups = list(range(len(polys))) if groups is None else list(groups)
+    normals = []
+    for e, poly in enumerate(polys):
+        t = poly[-1] - poly[0]
+        nrm = np.array([-t[1], t[0]]) / (np.linalg.norm(t) + 1e-12)
+        if into is not None and nrm @ into[e] < 0:
+            nrm = -nrm  # every normal into its face
+        normals.append(nrm)
+    normals = np.array(normals, np.float32)
+
+    # a quarter of the resolution over the whole range: the score map over shifts 4 (i - span)
+    s = 4
+    span = int(np.ceil(search_px / s)) + 1
+    lo = np.floor(pts.min(0) / s).astype(int) - span - 2
+    hi = np.ceil(pts.max(0) / s).astype(int) + span + 3
+    if np.any(np.minimum(hi * s, (W, H)) - np.maximum(lo * s, 0) < 4 * s):
+        return None
+    G = _padded_gradient(img, lo, hi, s, 1.0)
+    tpl = [np.unique(np.rint(p / s).astype(int), axis=0) - lo - span for p in polys]
+    score, _ = _template_score(G, tpl, normals, groups, span)
+    # it blurs the fingers' finer edges more than the rims of discs: refine its best few local maxima
+    peaks = (score == cv2.dilate(score, np.ones((5, 5), np.uint8))) & (score > 0)
+    iy, ix = np.nonzero(peaks)
+    order = np.argsort(score[iy, ix])[::-1][:COARSE_CANDIDATES]
+    if len(order) == 0:
+        return None
+    # full resolution: one gradient image over every candidate's reach, the template's points gathered
+    # at each shift within +-6 px of each candidate
+    centres = 4.0 * np.column_stack([ix[order] - span, iy[order] - span])
+    r = 6
+    lo = np.floor(pts.min(0) + centres.min(0)).astype(int) - r - 2
+    hi = np.ceil(pts.max(0) + centres.max(0)).astype(int) + r + 3
+    G = _padded_gradient(img, lo, hi, 1, 1.5)
+    dv, du = np.mgrid[-r : r + 1, -r : r + 1]
+    shifts = np.column_stack([du.ravel(), dv.ravel()])
+    best = None
+    for centre in centres:
+        sums = np.zeros((len(polys), len(shifts)), np.float32)
+        for e, poly in enumerate(polys):
+            q = np.unique(np.rint(poly + centre).astype(int), axis=0) - lo
+            x = q[None, :, 0] + shifts[:, None, 0]
+            y = q[None, :, 1] + shifts[:, None, 1]
+            sums[e] = (normals[e, 0] * G[0, y, x] + normals[e, 1] * G[1, y, x]).sum(1)
+        score = _group_score(sums, groups)
+        i = int(np.argmax(score))
+        if best is None or score[i] > best[0]:
+            best = (score[i], centre + shifts[i], sums[:, i])
+    _, shift, sums = best
+    # back to each polyline's own left-hand normal
+    left = np.array([[-(p[-1] - p[0])[1], (p[-1] - p[0])[0]] for p in polys])
+    signs = np.sign(sums) * np.sign(np.sum(left * normals, axis=1))
+    return shift, np.where(signs == 0, 1.0, signs)
+
+
+# --- fine edge points -----------------------------------------------------------------------------
+@dataclass
+class _Shading:
+    """An edge's blur and the slopes of its two plateaus along its profiles (from a first pass)."""
+
+    sigma: float | None = None  # blur along the profile (samples); None: not known, assume 1.6 px
+    g_lo: float = 0.0  # grey levels per profile step, on the profile's low side
+    g_hi: float = 0.0  # on its high side
+    contrast: float = 0.0  # typical grey-level step of the edge
+    expect: tuple = (None, None)  # grey levels the low and high side must show (a face's), or None
+    tol: float = np.inf  # how far from them
+
+
+@dataclass
+class _Steps:
+    pts: np.ndarray  # (E, 2) sub-pixel crossings, distorted pixels
+    levels: np.ndarray  # (E, 2) grey levels before and after the step along the profile
+    win_val: np.ndarray  # (E, L) each crossing's window of samples along its profile
+    win_x: np.ndarray  # (E, L) the samples' coordinates along the profile
+    plateau: int  # samples at either end of a window that measure the plateaus
+    stations: np.ndarray  # (S, 2) where profiles were scanned (not skipped), on the predicted edge
+    pdir: np.ndarray  # (2,) the profiles' direction
+    peaks: np.ndarray  # (E, 2) the crossings by the steepest rise instead of the area
+
+    @property
+    def scanned(self) -> int:
+        return len(self.stations)
+
+    def subset(self, keep: np.ndarray) -> "_Steps":
+        return _Steps(
+            self.pts[keep], self.levels[keep], self.win_val[keep], self.win_x[keep],
+            self.plateau, self.stations, self.pdir, self.peaks[keep],
+        )
+
+    def blur(self) -> float:
+        """The edge's blur sigma along the profile (samples), from the fraction of the step that the
+        four samples around the steepest rise span (2 Phi(1.5 / sigma) - 1 for a Gaussian edge); the
+        median over the crossings. Only sizes the windows: the area estimates do not need it."""
+        m = self.win_val.shape[1] // 2  # the step lies between samples m - 1 and m
+        span = (self.win_val[:, m + 1] - self.win_val[:, m - 2]) / (self.levels[:, 1] - self.levels[:, 0])
+        f = float(np.clip(np.median(span), 0.05, 0.999))
+        return float(np.interp(f, _BLUR_F, _BLUR_SIGMA))
+
+    def slopes(self) -> tuple[float, float]:
+        """Median over the crossings of each plateau's least-squares slope (grey levels per step)."""
+        out = []
+        for sl in (slice(0, self.plateau), slice(-self.plateau, None)):
+            x, v = self.win_x[:, sl], self.win_val[:, sl]
+            x = x - x.mean(1, keepdims=True)
+            out.append(float(np.median((x * (v - v.mean(1, keepdims=True))).sum(1) / (x * x).sum(1))))
+        return out[0], out[1]
+
+
+def _bilinear(img: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Grey levels at sub-pixel positions p (..., 2), bilinear; p must lie within [0, W-1) x [0, H-1)."""
+    x, y = p[..., 0], p[..., 1]
+    x0, y0 = np.floor(x).astype(np.intp), np.floor(y).astype(np.intp)
+    fx, fy = x - x0, y - y0
+    v00, v01 = img[y0, x0], img[y0, x0 + 1]
+    v10, v11 = img[y0 + 1, x0], img[y0 + 1, x0 + 1]
+    return (v00 * (1 - fx) + v01 * fx) * (1 - fy) + (v10 * (1 - fx) + v11 * fx) * fy
+
+
+def _edge_steps(img, poly, pdir, sign, others, search, shading: _Shading, both_signs=False, P=PLATEAU_PX) -> _Steps:
+    """Where the edge along ``poly`` (M, 2) crosses profiles sampled along ``pdir`` (2,), one per pixel of
+    its length (bilinear samples 1 px apart).
+
+    ``sign`` +1/-1: the grey level grows towards the polyline's left-hand normal (``both_signs``: either
+    way, as where ink lies behind a finger); ``others`` (K, 2) points of every other edge: profiles
+    that come within ``BLUR_MARGIN`` of them are skipped; ``search`` px either side of the polyline to
+    look for the step (where ``shading.expect`` names a face's grey level for a side, only steps that
+    show it there). Each crossing is the area (zeroth-moment) estimate: over the transition,
+    +-(3 sigma + 1) px around the strongest step, the ideal step between the two plateau levels
+    (measured on ``P`` samples beyond it, with the slopes of ``shading``) must hold the same grey-level
+    sum as the picture; ``_Steps.peaks`` holds the peak-of-the-rise estimate of the same crossings."""
+    H, W = img.shape
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    run = np.concatenate([[0.0], np.cumsum(seg)])
+    t = poly[-1] - poly[0]
+    n = np.array([-t[1], t[0]]) / (np.linalg.norm(t) + 1e-12)
+    cos = float(n @ pdir)
+    if abs(cos) < 0.5:  # a face seen too obliquely: sample straight across instead, towards the same side
+        pdir = n if cos >= 0 else -n
+        cos = float(n @ pdir)
+    step_sign = np.sign(cos) * sign  # sign of the grey level's change along the profile
+    cos = abs(cos)
+    sigma = shading.sigma if shading.sigma is not None else 1.6 / cos  # along the profile
+    h = int(np.clip(np.ceil(3 * sigma + 1), 2, 12))  # transition half-width (samples)
+    L = 2 * (h + P)
+    none = np.zeros((0, 2))
+    empty = _Steps(none, none, np.zeros((0, L)), np.zeros((0, L)), P, none, pdir, none)
+    if run[-1] < 2:
+        return empty
+    s = np.arange(0.5, run[-1], 1.0)
+    st = np.column_stack([np.interp(s, run, poly[:, 0]), np.interp(s, run, poly[:, 1])])
+    sr = int(np.ceil(search / cos))
+    R = sr + h + P + 1
+    ok = np.all((st - R - 1 >= 0) & (st + R + 1 < (W - 1, H - 1)), axis=1)  # the dither adds up to 0.5
+    if len(others):
+        lo, hi = st.min(0) - R - BLUR_MARGIN, st.max(0) + R + BLUR_MARGIN
+        o = others[np.all((others > lo) & (others < hi), axis=1)]
+        if len(o):
+            rel = o[None, :, :] - st[:, None, :]
+            tt = np.clip(rel @ pdir, -R, R)
+            dist2 = np.sum((rel - tt[..., None] * pdir) ** 2, axis=2)
+            ok &= np.min(dist2, axis=1) >= BLUR_MARGIN**2
+    st = st[ok]
+    if len(st) == 0:
+        return empty
+    j = np.arange(-R, R + 1)
+    # dither the profiles' sample phase along the edge (golden-ratio sequence), so that whatever bias a
+    # phase has averages out over the crossings instead of repeating on an edge the prediction fits
+    ph = (np.arange(len(st)) * 0.6180339887) % 1.0 - 0.5
+    pos = st[:, None, :] + (j[None, :] + ph[:, None])[..., None] * pdir[None, None, :]
+    prof = _bilinear(img, pos)
+    mid = slice(R - sr, R + sr + 1)
+    diff = prof[:, mid][:, 1:] - prof[:, mid][:, :-1]
+    score = np.abs(diff) if both_signs else diff * step_sign
+    # a step between samples i and i + 1 of ``mid``; where a face must show on a side, only steps that
+    # have its grey level there (the plateaus' middles) count
+    i = np.arange(diff.shape[1]) + (R - sr)
+    for side, off in ((0, -h - P // 2), (1, h + 1 + P // 2)):
+        if shading.expect[side] is not None:
+            score = np.where(np.abs(prof[:, i + off] - shading.expect[side]) <= shading.tol, score, -np.inf)
+    k = np.argmax(score, axis=1)
+    rows = np.arange(len(k))
+    peak = diff[rows, k]
+    sgn = np.sign(peak) if both_signs else np.full(len(k), step_sign)
+    at = k - sr  # the step lies between samples at and at + 1 (profile coordinates)
+    wi = (at + R)[:, None] + np.arange(-h - P + 1, h + P + 1)[None, :]
+    win = prof[rows[:, None], wi].astype(np.float64)
+    Am = win[:, :P].mean(1)
+    Bm = win[:, -P:].mean(1)
+    x_lo, x_hi = at - h + 0.5, at + h + 0.5  # the transition
+    x_A, x_B = x_lo - P / 2, x_hi + P / 2  # where the plateau means lie
+    S = win[:, P:-P].sum(1)
+    g_lo, g_hi = shading.g_lo, shading.g_hi
+    e = at + 0.5
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for _ in range(3):  # Newton: the ideal (sloped) step's sum over the transition = the measured sum
+            Ae = Am - g_lo * (x_A - e)
+            Be = Bm - g_hi * (x_B - e)
+            F = Ae * (e - x_lo) - g_lo * (e - x_lo) ** 2 / 2 + Be * (x_hi - e) + g_hi * (x_hi - e) ** 2 / 2 - S
+            e = e - F / (Ae - Be)
+    # the other estimate: the peak of the rise, a Gaussian through its three largest differences
+    # (indifferent to a textured background's level beside the edge)
+    kk = np.clip(k, 1, diff.shape[1] - 2)
+    lm, l0, lp = (np.log(np.maximum(diff[rows, kk + i] * sgn, 1e-3)) for i in (-1, 0, 1))
+    den = lm - 2 * l0 + lp
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e_peak = (kk - sr) + 0.5 + np.where(den < 0, 0.5 * (lm - lp) / den, np.nan)
+    contrast = np.abs(Bm - Am)
+    rough = np.maximum(np.ptp(win[:, :P], axis=1), np.ptp(win[:, -P:], axis=1))
+    slope_allow = (abs(g_lo) + abs(g_hi)) * P
+    good = (
+        ((Bm - Am) * sgn >= max(MIN_CONTRAST, 0.35 * shading.contrast))
+        & (np.abs(Am - (shading.expect[0] if shading.expect[0] is not None else Am)) <= shading.tol)
+        & (np.abs(Bm - (shading.expect[1] if shading.expect[1] is not None else Bm)) <= shading.tol)
+        & (rough <= 0.08 * contrast + 8 + slope_allow)
+        & (np.ptp(win, axis=1) <= 1.15 * contrast + 10 + slope_allow)  # one step only: no ink or other edge
+        & (np.abs(e - (at + 0.5)) < 1.5)
+        & (np.abs(e_peak - (at + 0.5)) < 1.0)
+        & (peak * sgn > 0)
+    )
+    return _Steps(
+        st[good] + (e + ph)[good, None] * pdir[None, :], np.column_stack([Am, Bm])[good], win[good],
+        (wi - R)[good].astype(float), P, st, pdir, st[good] + (e_peak + ph)[good, None] * pdir[None, :],
+    )
+
+
+def _line_tls(q: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float]:
+    """Weighted total-least-squares line through q (N, 2): unit normal n and c with n.q = c."""
+    m = (w[:, None] * q).sum(0) / w.sum()
+    d = q - m
+    sxx, syy, sxy = (w * d[:, 0] ** 2).sum(), (w * d[:, 1] ** 2).sum(), (w * d[:, 0] * d[:, 1]).sum()
+    ang = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # direction of the largest spread
+    n = np.array([-np.sin(ang), np.cos(ang)])
+    return n, float(n @ m)
+
+
+def _tukey(r: np.ndarray, floor: float) -> np.ndarray:
+    s = max(1.4826 * float(np.median(np.abs(r))), floor)
+    u = r / (4.685 * s)
+    return np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+
+
+def _fit_line(q: np.ndarray, t_pred: np.ndarray, iters: int = 3):
+    """Robust line through points q (N, 2) running near direction ``t_pred`` (2,): the pair of points
+    (within 10 degrees of it) with most points within 0.25 px, then Tukey reweighting (scale >= 0.05 px).
+    Returns (n, c, inlier mask) with n.q = c."""
+    N = len(q)
+    t_pred = t_pred / np.linalg.norm(t_pred)
+    rng = np.random.default_rng(N)  # deterministic
+    i = rng.integers(0, N, 40)
+    j = rng.integers(0, N, 40)
+    d = q[j] - q[i]
+    ln = np.linalg.norm(d, axis=1)
+    ok = (ln > 5.0) & (np.abs(d @ t_pred) > np.cos(np.radians(10)) * ln)
+    if np.any(ok):
+        nrm = np.column_stack([-d[ok, 1], d[ok, 0]]) / ln[ok, None]
+        res = q @ nrm.T - np.sum(nrm * q[i[ok]], axis=1)[None, :]
+        best = int(np.argmax(np.sum(np.abs(res) < 0.25, axis=0)))
+        w = (np.abs(res[:, best]) < 0.25).astype(float)
+    else:
+        w = np.ones(N)
+    for _ in range(iters):
+        n, c = _line_tls(q, w)
+        w = _tukey(q @ n - c, 0.05)
+        if w.sum() < 2:
+            break
+    return n, c, w > 0
+
+
+@dataclass
+class _Fit:
+    n: np.ndarray  # unit normal of the line n.q = c, undistorted pixels
+    c: float
+    q: np.ndarray  # the inlier crossings, undistorted pixels
+    shading: _Shading
+    scanned_q: np.ndarray  # (S, 2) where profiles were scanned, undistorted pixels
+    pdir: np.ndarray  # (2,) the profiles' direction
+    levels: np.ndarray  # (2,) median grey levels on the profiles' low and high side
+    reach: float  # how far from the edge (px along pdir) the plateaus were measured
+
+    @property
+    def scanned(self) -> int:
+        return len(self.scanned_q)
+
+
+def _fit_edge(img, cam, poly, pdir, sign, others, search, shading: _Shading, first: bool, both: bool, crease: bool):
+    """Crossings of one edge and a robust line through them (undistorted pixels): (_Fit, None) or
+    (None, the reason).
+
+    First pass: wide windows; the blur and the plateau slopes found on its inliers become the fit's
+    shading. Second pass: with that shading. ``both``: steps of either polarity (ink behind the edge
+    reverses it), else only of the polarity ``sign``."""
+    st = _edge_steps(img, poly, pdir, sign, others, search, shading, both, 5 if first else PLATEAU_PX)
+    need = max(6, int((0.15 if first else 0.3) * st.scanned))  # the first pass sees one polarity only
+    if len(st.pts) < need:
+        return None, f"too few edge points ({len(st.pts)} of {st.scanned} crossings)"
+    pred_q = cam.undistorted_pixels(poly[[0, -1]])
+    t = pred_q[1] - pred_q[0]
+    # the area estimates are exact for flat plateaus, the peaks hold up on a textured background: how
+    # much the background's level (the profiles' low side, off the face) wanders along the edge, beyond
+    # what the face's own level does (noise)
+    textured = first
+    if not first and not crease and len(st.levels) >= 12:
+        wander = np.median(np.abs(st.levels[6:] - st.levels[:-6]), axis=0) * 1.4826 / np.sqrt(2)
+        textured = bool(wander[0] > max(1.2, 1.5 * min(wander[1], 1.0)))
+    q = cam.undistorted_pixels(st.peaks if textured else st.pts)
+    n, c, inl = _fit_line(q, t)
+    if inl.sum() < need:
+        return None, f"too few edge points on a line ({int(inl.sum())} of {st.scanned} crossings)"
+    if abs(n @ t) / np.linalg.norm(t) > np.sin(np.radians(10)):
+        return None, "edge direction differs from the prediction by more than 10 degrees"
+    if first:
+        good = st.subset(inl)
+        contrast = float(np.median(np.abs(good.levels[:, 1] - good.levels[:, 0])))
+        shading = _Shading(good.blur(), *good.slopes(), contrast, shading.expect, shading.tol)
+    h_reach = st.win_x.shape[1] / 2 - st.plateau / 2 if len(st.win_x) else 0.0
+    return (
+        _Fit(
+            n, c, q[inl], shading, cam.undistorted_pixels(st.stations), st.pdir,
+            np.median(st.levels[inl], axis=0), h_reach,
+        ),
+        None,
+    )
+
+
+def _move_poly(cam, poly, fit: _Fit) -> np.ndarray:
+    """The polyline projected (undistorted) onto a fitted line and distorted back."""
+    q = cam.undistorted_pixels(poly)
+    q = q - ((q @ fit.n) - fit.c)[:, None] * fit.n[None, :]
+    return cam.distort_to_pixels(cam.pixel_to_sensor(q))
+
+
+# --- the finder -----------------------------------------------------------------------------------
+def find_fingertips(
+    image,
+    camera: CameraModel,
+    C_H_G_pred,
+    gripper: GripperSpec,
+    gap_mm: float,
+    *,
+    search_px: float = 60.0,
+    points=range(6),
+) -> FingertipResult:
+    """Locate the fingertip corners ``points`` (indices into POINT_NAMES) near their prediction from
+    ``C_H_G_pred`` (4, 4) with jaw gap ``gap_mm`` [mm], within ``search_px`` [px] of it. ``camera``
+    projects the prediction and undistorts the edge points (off-line the one Tsai's method just
+    calibrated, on-line the last calibration's); corners come back in distorted pixels.
+
+    Returns a ``FingertipResult``; points not found carry a reason and are NaN. Raises ``ImageError``
+    for a blank picture or one of the wrong size, ``CalibrationError`` if the prediction puts the
+    fingertips behind the camera.
+    """
+    img = as_gray(image, camera)
+    model = _Model(camera, C_H_G_pred, gripper, gap_mm)
+    want = sorted({int(k) for k in points})
+    if any(k < 0 or k > 5 for k in want):
+        raise ValueError(f"points: expected indices 0..5 into POINT_NAMES, got {list(points)}")
+    uv = np.full((6, 2), np.nan)
+    found = np.zeros(6, bool)
+    reasons: list = [None] * 6
+    rms = np.full(6, np.nan)
+    npts = np.zeros(6, int)
+    H, W = img.shape
+    for k in range(6):
+        if k not in want:
+            reasons[k] = "not requested"
+    for f in (0, 1):
+        ks = [k for k in want if POINT_FINGER[k] == f]
+        todo = []
+        for k in ks:
+            pu, pv = model.uv[k]
+            if pu < -search_px or pv < -search_px or pu > W - 1 + search_px or pv > H - 1 + search_px:
+                reasons[k] = f"outside the picture (predicted at {pu:.0f}, {pv:.0f})"
+            elif model.hidden[k] is not None:
+                reasons[k] = f"occluded by finger {FINGERS[model.hidden[k]]}"
+            elif len(model.corner_edges[k]) < 2:
+                reasons[k] = "fewer than two of its edges face the camera"
+            else:
+                todo.append(k)
+        if not todo:
+            continue
+        located = _locate_edges(img, camera, model, f, todo, search_px)
+        if located is None:
+            for k in todo:
+                reasons[k] = "outside the picture"
+            continue
+        fits, fails, shift = located
+        for k in todo:
+            res = _corner(img, camera, model, k, fits, fails, search_px, model.uv[k] + shift)
+            if isinstance(res, str):
+                reasons[k] = res
+            else:
+                uv[k], rms[k], npts[k] = res
+                found[k] = True
+    return FingertipResult(uv=uv, found=found, reasons=reasons, edge_rms_px=rms, names=POINT_NAMES, n_edge_points=npts)
+
+
+def _locate_edges(img, camera, model: _Model, f: int, todo: list[int], search_px: float):
+    """Fit the visible edges of finger ``f`` at the corners ``todo``: coarse alignment, then two passes
+    of crossings (the second around the first's lines, with their shading, either polarity).
+    Returns ({edge key: _Fit}, {edge key: reason}, the coarse shift (2,)) or None if the finger is not
+    in the picture."""
+    # the finger's edges at the wanted corners, each as a polyline from a corner outwards
+    polys: dict[tuple, np.ndarray] = {}
+    pdirs: dict[tuple, np.ndarray] = {}
+    for k in todo:
+        for e, far in model.corner_edges[k]:
+            if e.key not in polys:
+                poly = model.polyline(model.points_G[k], far, TEMPLATE_PX)
+                if len(poly) >= 4:
+                    polys[e.key] = poly
+                    pdirs[e.key] = model.profile_dir(e, model.points_G[k])
+    keys = list(polys)
+    groups = [("crease", k) if model.edges[k].crease else model.edges[k].faces[0] for k in keys]
+    coarse = (
+        _coarse_shift(img, [polys[e] for e in keys], search_px, np.array([pdirs[e] for e in keys]), groups)
+        if keys else None
+    )
+    if coarse is None:
+        return None
+    shift, signs = coarse
+    cur = {e: polys[e] + shift for e in keys}
+    sign = dict(zip(keys, signs))
+    # every visible edge of the finger that reaches the tip plane, from there as far as the scans go
+    reach = TEMPLATE_PX + 2 * search_px + 20
+    all_other = {
+        e.key: model.polyline(*((e.b_G, e.a_G) if e.b_G[2] > e.a_G[2] else (e.a_G, e.b_G)), reach) + shift
+        for e in model.edges.values()
+        if e.finger == f and max(e.a_G[2], e.b_G[2]) > -1e-9
+    }
+    fits: dict[tuple, _Fit] = {}
+    fails: dict[tuple, str] = {}
+
+    def run(key, first: bool, shading: _Shading, both: bool):
+        poly = cur[key][: max(4, int(len(cur[key]) * FIT_PX / TEMPLATE_PX))]
+        others = np.vstack([p for kk, p in all_other.items() if kk != key] or [np.zeros((0, 2))])
+        search = 8.0 if first else 3.0
+        fit, why = _fit_edge(
+            img, camera, poly, pdirs[key], sign[key], others, search, shading, first, both, model.edges[key].crease
+        )
+        if fit is None:
+            fails[key] = why
+            fits.pop(key, None)
+        else:
+            fits[key] = fit
+            fails.pop(key, None)
+
+    for key in keys:
+        run(key, True, _Shading(), False)
+    # each face shows near the tip on about three edges: an edge whose face side disagrees with the others
+    # found something else (the rim of a disc of ink), and one not found may lie over ink: look again
+    # among crossings of either polarity that show the face
+    expect = _face_levels(model, fits)
+    for key in keys:
+        exp, tol = _expected_sides(model.edges[key], expect, fits.get(key))
+        if key not in fits or any(x is not None and abs(lv - x) > tol for x, lv in zip(exp, fits[key].levels)):
+            if any(x is not None for x in exp):
+                run(key, True, _Shading(expect=exp, tol=tol), True)
+    expect = _face_levels(model, fits)
+    for key, fit in fits.items():  # centre the second pass on the first's lines
+        cur[key] = _move_poly(camera, cur[key], fit)
+        if key in all_other:
+            all_other[key] = _move_poly(camera, all_other[key], fit)
+    for key in keys:
+        if key in fits:
+            exp, tol = _expected_sides(model.edges[key], expect, fits[key])
+            sh = fits[key].shading
+            run(key, False, _Shading(sh.sigma, sh.g_lo, sh.g_hi, sh.contrast, exp, tol), True)
+    return fits, fails, shift
+
+
+def _face_levels(model: _Model, fits: dict) -> dict[tuple, list[tuple]]:
+    """Grey levels each face shows beside its fitted edges: {face: [(edge key, level, crossings)]}."""
+    out: dict[tuple, list[tuple]] = {}
+    for key, fit in fits.items():
+        e = model.edges[key]
+        # the profiles run into the first face; a crease's second face lies on their low side
+        for face, level in zip(e.faces, (fit.levels[1], fit.levels[0])):
+            out.setdefault(face, []).append((key, float(level), len(fit.q)))
+    return out
+
+
+def _expected_sides(edge: _Edge, levels: dict, fit: _Fit | None) -> tuple[tuple, float]:
+    """The grey levels the low and high side of an edge's profiles should show: the level of the face
+    there as the face's other edges see it (the median weighted by their crossings), and the tolerance
+    (from the edge's own contrast, or its faces' levels against the background's)."""
+    exp = [None, None]
+    for face, side in zip(edge.faces, (1, 0)):
+        others = sorted((lv, n) for k, lv, n in levels.get(face, []) if k != edge.key and lv == lv)
+        if others:
+            lv = np.array([o[0] for o in others])
+            cw = np.cumsum([o[1] for o in others])
+            exp[side] = float(lv[np.searchsorted(cw, cw[-1] / 2)])
+    # the contrast of the expected face against what lies beside it (the edge's other side)
+    if fit is not None and exp[1] is not None:
+        contrast = abs(exp[1] - float(fit.levels[0])) if exp[0] is None else abs(exp[1] - exp[0])
+    elif fit is not None:
+        contrast = abs(float(fit.levels[1] - fit.levels[0]))
+    else:
+        contrast = max((abs(a - b) for a in exp if a is not None for b in exp if b is not None), default=0.0)
+    tol = max(15.0, 0.3 * contrast)
+    return (exp[0], exp[1]), tol
+
+
+def _faces_reach_corner(img, camera, fit: _Fit, edge: _Edge, q_corner, gap: float) -> bool:
+    """Whether the face(s) beside an edge show their usual grey level all the way to the corner, where
+    no edge points were found (ink behind the edge rather than something in front of the corner)."""
+    t = np.array([-fit.n[1], fit.n[0]])
+    if (fit.q.mean(0) - q_corner) @ t < 0:
+        t = -t
+    along = q_corner[None, :] + np.arange(6.0, 6.0 + gap)[:, None] * t[None, :]
+    base = camera.distort_to_pixels(camera.pixel_to_sensor(along))
+    sides = [(+1, fit.levels[1])] + ([(-1, fit.levels[0])] if edge.crease else [])
+    H, W = img.shape
+    for sgn, level in sides:
+        p = base + sgn * fit.reach * fit.pdir[None, :]
+        inside = np.all((p >= 0) & (p < (W - 1, H - 1)), axis=1)
+        if inside.sum() < 0.7 * len(p):
+            return False
+        v = _bilinear(img, p[inside])
+        tol = max(10.0, 0.25 * abs(fit.levels[1] - fit.levels[0]))
+        if np.mean(np.abs(v - level) <= tol) < 0.7:
+            return False
+    return True
+
+
+def _corner(img, camera, model, k, fits, fails, search_px, aligned):
+    """Intersect the fitted edges at corner k: (uv (2,), rms, n points) or the reason it failed.
+    ``aligned`` (2,) where the coarse alignment put the corner."""
+    H, W = img.shape
+    lines = [(fits[e.key], e) for e, _ in model.corner_edges[k] if e.key in fits]
+    if len(lines) < 2 and not (2.0 <= aligned[0] <= W - 3.0 and 2.0 <= aligned[1] <= H - 3.0):
+        return f"outside the picture (at about {aligned[0]:.0f}, {aligned[1]:.0f})"
+    if len(lines) < 2:
+        bad = [fails.get(e.key, "not scanned") for e, _ in model.corner_edges[k] if e.key not in fits]
+        return "edges not found: " + "; ".join(bad)
+    N = np.array([ln.n for ln, _ in lines])
+    c = np.array([ln.c for ln, _ in lines])
+    sin = min(abs(N[i, 0] * N[j, 1] - N[i, 1] * N[j, 0]) for i in range(len(N)) for j in range(i + 1, len(N)))
+    if sin < np.sin(np.radians(10)):
+        return "its edges are nearly parallel in the picture"
+    q = np.linalg.lstsq(N, c, rcond=None)[0]
+    if len(lines) > 2:  # weigh each line by its uncertainty at the corner: scatter, count, lever arm
+        wts = []
+        for ln, _ in lines:
+            t = np.array([-ln.n[1], ln.n[0]])
+            s = ln.q @ t
+            r = ln.q @ ln.n - ln.c
+            lever = (q @ t - s.mean()) ** 2 / max(np.sum((s - s.mean()) ** 2), 1e-9)
+            var = max(float(np.mean(r**2)), 0.03**2) * (1 / len(s) + lever)
+            wts.append(1 / np.sqrt(var))
+        wts = np.array(wts)
+        q = np.linalg.lstsq(N * wts[:, None], c * wts, rcond=None)[0]
+    p = camera.distort_to_pixels(camera.pixel_to_sensor(q))
+    if not (1.0 <= p[0] <= W - 2.0 and 1.0 <= p[1] <= H - 2.0):
+        return f"outside the picture (at {p[0]:.0f}, {p[1]:.0f})"
+    if np.linalg.norm(p - model.uv[k]) > search_px * 1.5:
+        return f"found {np.linalg.norm(p - model.uv[k]):.0f} px from its prediction, beyond the search range"
+    # the edges must be seen up to near the corner, or the finger's faces must: otherwise it is hidden
+    for ln, e in lines:
+        gap = np.min(np.linalg.norm(ln.q - q, axis=1)) - np.min(np.linalg.norm(ln.scanned_q - q, axis=1))
+        if gap > 10.0 and not _faces_reach_corner(img, camera, ln, e, q, gap):
+            return f"occluded: no edge points within {gap:.0f} px of it"
+    r = np.concatenate([ln.q @ ln.n - ln.c for ln, _ in lines])
+    return p, float(np.sqrt(np.mean(r**2))), len(r)
