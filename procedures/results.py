@@ -160,13 +160,21 @@ def annotate_online(image, camera, C_H_G_before, estimates: dict, fingertips, pG
     for k, (m, est) in enumerate(estimates.items()):
         c = colours[k % len(colours)]
         _draw_gripper(big, camera, est.C_H_G_orth, pG, scale, c)
-        cv2.putText(big, m, (10, 50 + 20 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.6, c, 2, cv2.LINE_AA)
+        _label(big, m, (10, 50 + 20 * k), c)
     for i in range(6):
         if fingertips.found[i]:
             cv2.circle(big, _pt(fingertips.uv[i], scale), 5 * scale, (0, 230, 230), 1, cv2.LINE_AA)
-    cv2.putText(big, "grey: before the disturbance", (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (200, 200, 200), 2, cv2.LINE_AA)
+    _label(big, "grey: before the disturbance; colours: each method's estimate after it", (10, 24), (220, 220, 220))
     cv2.imwrite(str(path), big)
     return path
+
+
+def _label(img, text, org, colour):
+    """Text with a dark outline, legible over the light plate and the dark fingers alike."""
+    import cv2
+
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 4, cv2.LINE_AA)
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, 1, cv2.LINE_AA)
 
 
 def plot_errors(summary: dict, path: Path, methods) -> Path:
