@@ -20,7 +20,7 @@ from typing import Protocol
 import numpy as np
 
 from procedures.paper import PAPER_SERIES, PAPER_TABLES
-from selfview.cell import POINT_NAMES, Cell
+from selfview.cell import Cell
 from selfview.errors import CalibrationError, CellError
 from selfview.fingertips import find_fingertips
 from selfview.geometry import pose_difference
@@ -243,7 +243,7 @@ def run_direct(cell: Cell, series_list=("cable", "tilt"), trials: int = 20, seed
     records, failures = [], []
     for series in series_list:
         for k in range(trials):
-            s = seed + k + (0 if series == series_list[0] else 10_000 * (list(series_list).index(series)))
+            s = seed + k + 10_000 * list(series_list).index(series)  # seeds never repeat across series
             world = SimWorld(cell, seed=s)
             try:
                 rec, _ = run_trial(DirectSimRig(world, render_seed=s), cell, series, k, seed=s)

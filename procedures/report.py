@@ -208,23 +208,18 @@ def run_experiment(trials: int, *, jobs: int = 2, series=("cable", "tilt"), seed
             "tables_md": tables_markdown(summary), "seconds": time.monotonic() - t0}
 
 
-_NUM = r"([-+]?\d+\.\d+(?:e[-+]?\d+)?)"
-
-
 def _willson_log(text: str) -> dict[str, dict[str, float]]:
     """Willson's calibration sections by title: f, kappa1, Tx, Ty, Tz, Rx, Ry, Rz, Cx, Cy and the
-    distorted image-plane error's mean and max."""
+    distorted image-plane error's mean and max (as mean_px, max_px)."""
+    from selfview.tsai import parse_willson_log
+
+    keep = ("f", "kappa1", "Tx", "Ty", "Tz", "Rx", "Ry", "Rz", "Cx", "Cy")
     out = {}
-    for block in text.split("-" * 40):
-        title = re.search(r"^(Coplanar calibration.*?)\s*$", block, re.M)
-        if not title:
-            continue
-        vals = {k: float(m.group(1)) for k in ("f", "kappa1", "Tx", "Ty", "Tz", "Rx", "Ry", "Rz", "Cx", "Cy")
-                if (m := re.search(rf"\b{k} = {_NUM}", block))}
-        err = re.search(rf"distorted image plane error:\s*mean = {_NUM},\s*stddev = {_NUM},\s*max = {_NUM}", block)
-        if err:
-            vals["mean_px"], vals["max_px"] = float(err.group(1)), float(err.group(3))
-        out[title.group(1).strip()] = vals
+    for title, v in parse_willson_log(text).items():
+        vals = {k: v[k] for k in keep if k in v}
+        if "distorted_mean" in v:
+            vals["mean_px"], vals["max_px"] = v["distorted_mean"], v["distorted_max"]
+        out[title] = vals
     return out
 
 

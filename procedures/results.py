@@ -115,7 +115,7 @@ def annotate_offline(image, result, path: Path, scale: int = 2) -> Path:
     for (u, v), (r, c), m in zip(det.uv, det.rc, model):
         cv2.circle(big, _pt((u, v), scale), 3 * scale, (0, 200, 0), 1, cv2.LINE_AA)
         cv2.drawMarker(big, _pt(m, scale), (0, 0, 255), cv2.MARKER_CROSS, 4 * scale, 1, cv2.LINE_AA)
-        cv2.putText(big, f"{r},{c}", _pt((u + 4, v - 4), scale), cv2.FONT_HERSHEY_PLAIN, 0.6 * scale / 2 * 2,
+        cv2.putText(big, f"{r},{c}", _pt((u + 4, v - 4), scale), cv2.FONT_HERSHEY_PLAIN, 0.6 * scale,
                     (0, 160, 0), 1, cv2.LINE_AA)
     _draw_gripper(big, cam, result.calibration.C_H_G, result.calibration.points_G[result.calibration.state], scale)
     ft = result.fingertips

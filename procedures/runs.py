@@ -14,10 +14,8 @@ Python API for lab scripts::
 
 from __future__ import annotations
 
-import json
 import logging
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -31,6 +29,7 @@ from selfview.cell import Cell
 from selfview.errors import AlarmError, CalibrationError, ConfigError, ImageError
 from selfview.fingertips import find_fingertips
 from selfview.offline import OfflineResult, calibrate_offline
+from selfview.pcc import jaw_gap_of
 from selfview.online import METHODS
 from selfview.policy import Monitor
 
@@ -215,7 +214,7 @@ class CellSession:
         cal = load_calibration(calibration)
         state = state or cal.state
         pG = cal.points_G[state]
-        gap = float(np.mean(np.abs(pG[:4, 0])) * 2)
+        gap = jaw_gap_of(pG)
         mon = Monitor(cal.C_H_G, cal.camera, pG, self.cell.monitor, update_method=method,
                       raise_on_alarm=True)
         s = self.settings

@@ -167,7 +167,7 @@ def calibrate_offline(
     t = time.perf_counter()
     dims = None
     if points == "measured" and found[:4].all():
-        p_W, _ = camera.backproject_to_plane(np.where(found[:, None], ft.uv, 0.0)[found], ts.C_H_W, 0.0)
+        p_W, _ = camera.backproject_to_plane(ft.uv[found], ts.C_H_W, 0.0)
         full = np.full((6, 3), np.nan)
         full[found] = p_W
         dims = measure_points_G(full, found)

@@ -17,7 +17,7 @@ from selfview.camera import CameraModel
 from selfview.cell import POINT_NAMES, GripperSpec
 from selfview.errors import CalibrationError
 
-__all__ = ["PCCResult", "solve_pcc", "measure_points_G", "points_G_for_state", "w_h_g_from_params"]
+__all__ = ["PCCResult", "solve_pcc", "measure_points_G", "points_G_for_state", "w_h_g_from_params", "jaw_gap_of"]
 
 
 @dataclass(frozen=True)
@@ -115,6 +115,12 @@ def measure_points_G(p_W: np.ndarray, found: np.ndarray) -> dict[str, float]:
     tA = float(np.linalg.norm(p[4] - p[0])) if found[4] else float("nan")
     tB = float(np.linalg.norm(p[5] - p[2])) if found[5] else float("nan")
     return {"gap": float(gap), "width": float(width), "thickness_A": tA, "thickness_B": tB}
+
+
+def jaw_gap_of(points_G) -> float:
+    """The jaw gap g [mm] of (6, 3) gripper points in POINT_NAMES order: the inner four lie at x = +-g/2."""
+    p = np.asarray(points_G, float)
+    return float(np.mean(np.abs(p[:4, 0])) * 2)
 
 
 def points_G_for_state(dims: dict[str, float], measured_state: str, gripper: GripperSpec) -> dict[str, np.ndarray]:

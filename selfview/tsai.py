@@ -32,6 +32,8 @@ determine.
 
 from __future__ import annotations
 
+import re
+
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,7 +46,8 @@ from selfview.geometry import R_from_rotvec, R_from_rpy, make_H, transform_point
 from selfview.lm import covariance, levenberg_marquardt
 
 __all__ = [
-    "FREE_CENTRE_MODES", "MODES", "TsaiResult", "calibrate_coplanar", "load_willson_points", "residual_stats",
+    "FREE_CENTRE_MODES", "MODES", "TsaiResult", "calibrate_coplanar", "load_willson_points", "parse_willson_log",
+    "residual_stats",
 ]
 
 MODES = ("tsai", "full", "full+centre", "willson")
@@ -746,3 +749,32 @@ def load_willson_points(path) -> tuple[np.ndarray, np.ndarray]:
         raise CalibrationFileError(f"{path}: no points (expected lines 'xw yw zw u v')")
     a = np.array(rows)
     return a[:, :3].copy(), a[:, 3:].copy()
+
+
+_WILLSON_NUM = r"([-+]?\d+\.\d+(?:e[-+]?\d+)?)"
+
+
+def parse_willson_log(log_text: str) -> dict[str, dict[str, float]]:
+    """The calibration sections of a Willson log, by title, each as name -> value: f, kappa1, Tx, Ty,
+    Tz, Rx, Ry, Rz [deg], Cx, Cy and '<kind>_<stat>' for the error blocks (e.g. 'distorted_mean')."""
+    out = {}
+    for block in log_text.split("-" * 40):
+        m = re.search(r"^(Coplanar calibration.*?)\s*$", block, re.M)
+        if not m:
+            continue
+        vals: dict[str, float] = {}
+        for name in ("f", "kappa1", "Tx", "Ty", "Tz", "Rx", "Ry", "Rz", "Cx", "Cy"):
+            hit = re.search(rf"\b{name} = {_WILLSON_NUM}", block)
+            if hit:
+                vals[name] = float(hit.group(1))
+        for kind in ("distorted", "undistorted"):
+            hit = re.search(
+                rf"\n\s*{kind} image plane error:\s*\n\s*mean = {_WILLSON_NUM},\s*stddev = {_WILLSON_NUM},\s*max = {_WILLSON_NUM}"
+                rf"\s*\[pix\],\s*sse = {_WILLSON_NUM}",
+                block,
+            )
+            if hit:
+                for stat, v in zip(("mean", "stddev", "max", "sse"), hit.groups()):
+                    vals[f"{kind}_{stat}"] = float(v)
+        out[m.group(1).strip()] = vals
+    return out

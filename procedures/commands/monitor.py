@@ -36,6 +36,8 @@ def register(sub):
 def run(args) -> int:
     from selfview.errors import ConfigError
 
+    if args.frames < 1:
+        raise ConfigError(f"--frames: expected at least 1, got {args.frames}")
     if args.drift and args.real:
         raise ConfigError("--drift moves the simulated camera; it has no meaning with --real")
     say = progress_printer()

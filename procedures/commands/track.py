@@ -40,6 +40,7 @@ def run(args) -> int:
     from selfview.fingertips import find_fingertips
     from selfview.offline import check_picture
     from selfview.online import estimate
+    from selfview.pcc import jaw_gap_of
     from selfview.policy import Monitor
 
     cell = load_cell_arg(args)
@@ -50,7 +51,7 @@ def run(args) -> int:
     img, _ = read_picture(args.image)
     img = check_picture(img, cal.camera.width, cal.camera.height)
     pG = cal.points_G[state]
-    gap = float(abs(pG[0, 0] - pG[2, 0]))
+    gap = jaw_gap_of(pG)
     ft = find_fingertips(img, cal.camera, cal.C_H_G, cell.gripper, gap)
     found_names = [nm for nm, ok in zip(POINT_NAMES, ft.found) if ok]
     if args.method == "auto":

@@ -1,6 +1,5 @@
 """The engine and the procedures on the simulated cell, every device on its real channel."""
 
-import os
 import signal
 import threading
 import time
@@ -9,8 +8,8 @@ import numpy as np
 import pytest
 
 from mocks.world import PLATE_BASE_POSE
-from procedures.engine import Cancelled, Engine, Step
-from procedures.runs import CellSession, RunSettings
+from procedures.engine import Cancelled, CellDevices, Engine, Step
+from procedures.runs import CellSession
 from selfview.calfile import load_calibration
 from selfview.errors import CalibrationError, ConfigError, DeviceError, DeviceTimeout, ImageError, LimitError
 from selfview.geometry import trans
@@ -136,11 +135,11 @@ def test_ctrl_c_stops_the_robot_and_leaves_the_gripper_safe(cell):
 def test_engine_rejects_unknown_steps_and_asks_only_with_an_operator():
     with pytest.raises(ConfigError, match="step kind"):
         Step("teleport")
-    e = Engine(devices=None.__class__ and __import__("procedures.engine").engine.CellDevices())
+    e = Engine(CellDevices())
     with pytest.raises(ConfigError, match="no operator"):
         e.run(lambda eng: eng.execute(Step("ask", {"text": "pull the cable"})))
     answers = []
-    e2 = Engine(__import__("procedures.engine").engine.CellDevices(), ask=lambda t: answers.append(t) or "")
+    e2 = Engine(CellDevices(), ask=lambda t: answers.append(t) or "")
     e2.run(lambda eng: eng.execute(Step("disturb", {"series": "cable"})))
     assert answers and "cable" in answers[0]
 

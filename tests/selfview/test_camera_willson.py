@@ -7,42 +7,14 @@ f / dpy [px], kappa1 * dpy^2 [px^-2], centre (Cx, Cy), aspect dpx / (sx dpy), R 
 
 from __future__ import annotations
 
-import re
-
 import numpy as np
 import pytest
 
 from selfview.camera import CameraModel
 from selfview.geometry import R_from_rpy, make_H, transform_points
 from selfview.tsai import load_willson_points
+from selfview.tsai import parse_willson_log as willson_sections
 
-_NUM = r"([-+]?\d+\.\d+(?:e[-+]?\d+)?)"
-
-
-def willson_sections(log_text: str) -> dict[str, dict[str, float]]:
-    """The calibration sections of a Willson log, by title, each as name -> value: f, kappa1, Tx, Ty,
-    Tz, Rx, Ry, Rz [deg], Cx, Cy and '<kind>_<stat>' for the error blocks (e.g. 'distorted_mean')."""
-    out = {}
-    for block in log_text.split("-" * 40):
-        m = re.search(r"^(Coplanar calibration.*?)\s*$", block, re.M)
-        if not m:
-            continue
-        vals: dict[str, float] = {}
-        for name in ("f", "kappa1", "Tx", "Ty", "Tz", "Rx", "Ry", "Rz", "Cx", "Cy"):
-            hit = re.search(rf"\b{name} = {_NUM}", block)
-            if hit:
-                vals[name] = float(hit.group(1))
-        for kind in ("distorted", "undistorted"):
-            hit = re.search(
-                rf"\n\s*{kind} image plane error:\s*\n\s*mean = {_NUM},\s*stddev = {_NUM},\s*max = {_NUM}"
-                rf"\s*\[pix\],\s*sse = {_NUM}",
-                block,
-            )
-            if hit:
-                for stat, v in zip(("mean", "stddev", "max", "sse"), hit.groups()):
-                    vals[f"{kind}_{stat}"] = float(v)
-        out[m.group(1).strip()] = vals
-    return out
 
 
 def willson_camera(cpcc_path, width=576, height=384):
