@@ -310,7 +310,12 @@ def _speed(runs: dict[str, BenchRun]) -> list[str]:
                 if ours in med:
                     rows.append(f"| one {ours} solve [us] | {_f(med[ours])} | {peer}: {_f(med[peer])} | "
                                 f"{_f(med[peer] / med[ours])} |")
-        rows.append(f"| per-frame step: find the fingertips + 4P-I [ms] | {_f(on.data.get('per_frame_step_ms'))} | - | - |")
+        step = on.data.get("per_frame_step") or {}
+        rows.append(f"| per-frame step: the fingertips tracked from the last frame + 4P-I [ms] (target "
+                    f"{_f(on.data.get('target_step_ms'))}; {step.get('tracked_steps', '-')} of "
+                    f"{step.get('steps', '-')} steps tracked) | {_f(on.data.get('per_frame_step_ms'))} | - | - |")
+        rows.append(f"| a full search for the fingertips (the first frame, or when tracking does not hold) [ms] | "
+                    f"{_f(step.get('full_search_ms'))} | - | - |")
     if off and off.status == "ok":
         sp = off.data.get("speed", {})
         rows.append(f"| camera calibration of one picture [ms] (calibrate_coplanar vs cv2.calibrateCamera) | "

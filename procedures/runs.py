@@ -27,7 +27,7 @@ from procedures.simcell import CellURLs, SimulatedCell
 from selfview.calfile import load_calibration, save_calibration
 from selfview.cell import Cell
 from selfview.errors import AlarmError, CalibrationError, ConfigError, ImageError
-from selfview.fingertips import find_fingertips
+from selfview.tracking import FingertipTracker
 from selfview.offline import OfflineResult, calibrate_offline
 from selfview.pcc import jaw_gap_of
 from selfview.online import METHODS
@@ -220,6 +220,9 @@ class CellSession:
         s = self.settings
         plan = [Step("speed", {"pct": s.speed_pct})] + [Step("move", {"target": loc}) for loc in s.work_locations]
 
+        # the fingertips followed from frame to frame (searched for when the tracking does not hold)
+        tracker = FingertipTracker(cal.camera, self.cell.gripper, points=range(6))
+
         def body(e: Engine):
             e.execute(plan[0])
             e.execute(Step("gripper", {"state": state}))
@@ -230,7 +233,7 @@ class CellSession:
                 img = e.execute(Step("grab", {}))
 
                 def track(e, img=img):
-                    ft = find_fingertips(img, cal.camera, mon.C_H_G, self.cell.gripper, gap)
+                    ft = tracker.find(img, mon.C_H_G, gap)
                     return mon.step(ft.uv, ft.found)
 
                 try:

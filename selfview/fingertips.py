@@ -56,6 +56,7 @@ FIT_PX = 90.0  # how much of each edge, from its corner, the fine stage scans
 MIN_CONTRAST = 8.0  # grey levels between the two sides of an edge
 BLUR_MARGIN = 4  # px a step's window keeps from any other edge
 PLATEAU_PX = 3  # pixels on either side of an edge's transition that measure its grey levels
+MAX_EDGE_RMS_PX = 0.5  # edge points of a corner scattering more about its lines (typically 0.1) mean a wrong edge
 # the fraction 2 Phi(1.5 / sigma) - 1 = erf(1.5 / (sigma sqrt 2)) of a Gaussian-blurred step that lies
 # within +-1.5 px of it, for blurs sigma (px), increasing fraction order for np.interp
 _BLUR_SIGMA = np.linspace(4.0, 0.3, 38)
@@ -69,7 +70,8 @@ class FingertipResult:
     ``uv`` (6, 2) distorted pixels, NaN where not found; ``found`` (6,); ``reasons`` why a point was
     not found (None where found); ``edge_rms_px`` (6,) RMS distance of the edge points from their fitted
     lines (undistorted pixels), NaN if not found; ``names`` the point names; ``n_edge_points`` (6,)
-    edge points that the corner's lines rest on.
+    edge points that the corner's lines rest on; ``tracked`` True when ``selfview.tracking`` followed
+    the corners from the previous frame instead of searching for them.
     """
 
     uv: np.ndarray
@@ -78,6 +80,7 @@ class FingertipResult:
     edge_rms_px: np.ndarray
     names: tuple
     n_edge_points: np.ndarray | None = None
+    tracked: bool = False
 
 
 # --- geometry -------------------------------------------------------------------------------------
@@ -482,24 +485,10 @@ def _edge_steps(img, poly, pdir, sign, others, search, shading: _Shading, both_s
     x_lo, x_hi = at - h + 0.5, at + h + 0.5  # the transition
     x_A, x_B = x_lo - P / 2, x_hi + P / 2  # where the plateau means lie
     S = win[:, P:-P].sum(1)
-    g_lo, g_hi = shading.g_lo, shading.g_hi
-    e = at + 0.5
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for _ in range(3):  # Newton: the ideal (sloped) step's sum over the transition = the measured sum
-            Ae = Am - g_lo * (x_A - e)
-            Be = Bm - g_hi * (x_B - e)
-            F = Ae * (e - x_lo) - g_lo * (e - x_lo) ** 2 / 2 + Be * (x_hi - e) + g_hi * (x_hi - e) ** 2 / 2 - S
-            e = e - F / (Ae - Be)
-    # the other estimate: the peak of the rise, a Gaussian through its three largest differences
-    # (indifferent to a textured background's level beside the edge)
-    kk = np.clip(k, 1, diff.shape[1] - 2)
-    lm, l0, lp = (np.log(np.maximum(diff[rows, kk + i] * sgn, 1e-3)) for i in (-1, 0, 1))
-    den = lm - 2 * l0 + lp
-    with np.errstate(divide="ignore", invalid="ignore"):
-        e_peak = (kk - sr) + 0.5 + np.where(den < 0, 0.5 * (lm - lp) / den, np.nan)
+    e, e_peak = _step_estimates(at, x_lo, x_hi, x_A, x_B, Am, Bm, S, shading.g_lo, shading.g_hi, diff, k, sgn)
     contrast = np.abs(Bm - Am)
     rough = np.maximum(np.ptp(win[:, :P], axis=1), np.ptp(win[:, -P:], axis=1))
-    slope_allow = (abs(g_lo) + abs(g_hi)) * P
+    slope_allow = (abs(shading.g_lo) + abs(shading.g_hi)) * P
     good = (
         ((Bm - Am) * sgn >= max(MIN_CONTRAST, 0.35 * shading.contrast))
         & (np.abs(Am - (shading.expect[0] if shading.expect[0] is not None else Am)) <= shading.tol)
@@ -514,6 +503,31 @@ def _edge_steps(img, poly, pdir, sign, others, search, shading: _Shading, both_s
         st[good] + (e + ph)[good, None] * pdir[None, :], np.column_stack([Am, Bm])[good], win[good],
         (wi - R)[good].astype(float), P, st, pdir, st[good] + (e_peak + ph)[good, None] * pdir[None, :],
     )
+
+
+def _step_estimates(at, x_lo, x_hi, x_A, x_B, Am, Bm, S, g_lo, g_hi, diff, k, sgn):
+    """Two estimates (e, e_peak) per profile of where the step chosen between samples ``at`` and
+    ``at + 1`` crosses, in profile coordinates.
+
+    e, the area (zeroth-moment) estimate: where an ideal step between the plateau levels, sloped by
+    ``g_lo``, ``g_hi`` (grey levels per sample; ``Am``, ``Bm`` their means, centred at ``x_A``, ``x_B``),
+    holds the grey-level sum ``S`` of the transition [x_lo, x_hi] (Newton, three steps). e_peak, the
+    peak of the rise: a Gaussian through the three largest of the sample differences ``diff`` (M, D)
+    around the chosen one ``k`` (M,) of sign ``sgn`` (indifferent to a textured background's level
+    beside the edge); NaN where they make no peak."""
+    e = at + 0.5
+    rows = np.arange(len(k))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for _ in range(3):
+            Ae = Am - g_lo * (x_A - e)
+            Be = Bm - g_hi * (x_B - e)
+            F = Ae * (e - x_lo) - g_lo * (e - x_lo) ** 2 / 2 + Be * (x_hi - e) + g_hi * (x_hi - e) ** 2 / 2 - S
+            e = e - F / (Ae - Be)
+        kk = np.clip(k, 1, diff.shape[1] - 2)
+        lm, l0, lp = (np.log(np.maximum(diff[rows, kk + i] * sgn, 1e-3)) for i in (-1, 0, 1))
+        den = lm - 2 * l0 + lp
+        e_peak = at + (kk - k) + 0.5 + np.where(den < 0, 0.5 * (lm - lp) / den, np.nan)
+    return e, e_peak
 
 
 def _line_tls(q: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float]:
@@ -569,6 +583,7 @@ class _Fit:
     pdir: np.ndarray  # (2,) the profiles' direction
     levels: np.ndarray  # (2,) median grey levels on the profiles' low and high side
     reach: float  # how far from the edge (px along pdir) the plateaus were measured
+    textured: bool = False  # located by the peaks of the rise (a textured background), not the areas
 
     @property
     def scanned(self) -> int:
@@ -609,7 +624,7 @@ def _fit_edge(img, cam, poly, pdir, sign, others, search, shading: _Shading, fir
     return (
         _Fit(
             n, c, q[inl], shading, cam.undistorted_pixels(st.stations), st.pdir,
-            np.median(st.levels[inl], axis=0), h_reach,
+            np.median(st.levels[inl], axis=0), h_reach, textured,
         ),
         None,
     )
@@ -642,6 +657,12 @@ def find_fingertips(
     for a blank picture or one of the wrong size, ``CalibrationError`` if the prediction puts the
     fingertips behind the camera.
     """
+    return _search(image, camera, C_H_G_pred, gripper, gap_mm, search_px, points)[0]
+
+
+def _search(image, camera, C_H_G_pred, gripper, gap_mm, search_px, points):
+    """``find_fingertips``, also returning what ``selfview.tracking`` follows from frame to frame:
+    (result, the model, {edge key: _Fit} of the edges fitted, {point index: [edge keys of its lines]})."""
     img = as_gray(image, camera)
     model = _Model(camera, C_H_G_pred, gripper, gap_mm)
     want = sorted({int(k) for k in points})
@@ -653,6 +674,8 @@ def find_fingertips(
     rms = np.full(6, np.nan)
     npts = np.zeros(6, int)
     H, W = img.shape
+    all_fits: dict[tuple, _Fit] = {}
+    corner_keys: dict[int, list] = {}
     for k in range(6):
         if k not in want:
             reasons[k] = "not requested"
@@ -677,6 +700,7 @@ def find_fingertips(
                 reasons[k] = "outside the picture"
             continue
         fits, fails, shift = located
+        all_fits.update(fits)
         for k in todo:
             res = _corner(img, camera, model, k, fits, fails, search_px, model.uv[k] + shift)
             if isinstance(res, str):
@@ -684,7 +708,11 @@ def find_fingertips(
             else:
                 uv[k], rms[k], npts[k] = res
                 found[k] = True
-    return FingertipResult(uv=uv, found=found, reasons=reasons, edge_rms_px=rms, names=POINT_NAMES, n_edge_points=npts)
+                corner_keys[k] = [e.key for e, _ in model.corner_edges[k] if e.key in fits]
+    result = FingertipResult(
+        uv=uv, found=found, reasons=reasons, edge_rms_px=rms, names=POINT_NAMES, n_edge_points=npts
+    )
+    return result, model, all_fits, corner_keys
 
 
 def _locate_edges(img, camera, model: _Model, f: int, todo: list[int], search_px: float):
@@ -854,4 +882,7 @@ def _corner(img, camera, model, k, fits, fails, search_px, aligned):
         if gap > 10.0 and not _faces_reach_corner(img, camera, ln, e, q, gap):
             return f"occluded: no edge points within {gap:.0f} px of it"
     r = np.concatenate([ln.q @ ln.n - ln.c for ln, _ in lines])
-    return p, float(np.sqrt(np.mean(r**2))), len(r)
+    rms = float(np.sqrt(np.mean(r**2)))
+    if rms > MAX_EDGE_RMS_PX:  # the lines rest on something else than straight edges (a rim of ink)
+        return f"its edge points scatter by {rms:.2f} px about their lines: not the finger's edges"
+    return p, rms, len(r)

@@ -23,8 +23,9 @@ result in distorted pixels. Degenerate input raises ``CalibrationError`` naming 
 from __future__ import annotations
 
 import math
+from functools import partial
 from itertools import chain
-from dataclasses import dataclass
+from operator import attrgetter, mul
 
 import cv2
 import numpy as np
@@ -57,9 +58,29 @@ MAX_CONDITION = 1e8
 
 _MIN_POINTS = {"U": 3, "I": 3, "R": 4}
 _KIND_NAME = {"U": "differential update", "I": "iterative update", "R": "recalibration"}
+_DBL_EPSILON = float(np.finfo(float).eps)
 
 
-@dataclass(frozen=True)
+#: The attributes of a ``MotionEstimate``, in the order of its constructor's arguments.
+_FIELDS = (
+    "method",
+    "C_H_G",
+    "C_H_G_orth",
+    "motion",
+    "delta_deg",
+    "d_mm",
+    "residuals_px",
+    "rms_px",
+    "covariance",
+    "condition",
+    "points_used",
+    "iterations",
+    "C_H_G_prior",
+)
+#: The attributes that may be given as a callable and computed on first access.
+_DEFERRED = frozenset({"C_H_G_orth", "residuals_px", "covariance", "condition"})
+
+
 class MotionEstimate:
     """One on-line estimate of the gripper-to-camera transform.
 
@@ -73,21 +94,54 @@ class MotionEstimate:
     N = 3 leaves no redundancy, unless a prior pixel noise was given); ``condition`` of the column-scaled
     normal matrix; ``points_used`` the point names; ``iterations`` Gauss-Newton steps (1 for NP-U);
     ``C_H_G_prior`` (4, 4) the transform the estimate started from.
+
+    Immutable: every attribute is a read-only property. ``C_H_G_orth``, ``residuals_px``,
+    ``covariance`` and ``condition`` may be given as zero-argument callables, called once, on first
+    access. The solvers give them so: three SVDs (a 3x3 one, two 6x6 ones) and an array cost together
+    about as much as the whole NP-U solve, and a caller needs only some of them, if any.
     """
 
-    method: str
-    C_H_G: np.ndarray
-    C_H_G_orth: np.ndarray
-    motion: np.ndarray
-    delta_deg: float
-    d_mm: float
-    residuals_px: np.ndarray
-    rms_px: float
-    covariance: np.ndarray
-    condition: float
-    points_used: tuple[str, ...]
-    iterations: int
-    C_H_G_prior: np.ndarray | None = None
+    # Slots and read-only properties rather than a frozen dataclass: its __init__ sets each field
+    # through object.__setattr__, ~2 us for these 13 against ~0.4 us for plain slot stores (NP-U's
+    # budget is 50 us).
+    __slots__ = tuple(f"_{name}" for name in _FIELDS)
+
+    def __init__(
+        self,
+        method: str,
+        C_H_G: np.ndarray,
+        C_H_G_orth,
+        motion: np.ndarray,
+        delta_deg: float,
+        d_mm: float,
+        residuals_px,
+        rms_px: float,
+        covariance,
+        condition: float,
+        points_used: tuple[str, ...],
+        iterations: int,
+        C_H_G_prior: np.ndarray | None = None,
+    ):
+        self._method = method
+        self._C_H_G = C_H_G
+        self._C_H_G_orth = C_H_G_orth
+        self._motion = motion
+        self._delta_deg = delta_deg
+        self._d_mm = d_mm
+        self._residuals_px = residuals_px
+        self._rms_px = rms_px
+        self._covariance = covariance
+        self._condition = condition
+        self._points_used = points_used
+        self._iterations = iterations
+        self._C_H_G_prior = C_H_G_prior
+
+    def __repr__(self) -> str:
+        return "MotionEstimate(" + ", ".join(f"{name}={getattr(self, name)!r}" for name in _FIELDS) + ")"
+
+    def __reduce__(self):
+        # copy and pickle with the deferred attributes computed (their callables may be closures)
+        return MotionEstimate, tuple(getattr(self, name) for name in _FIELDS)
 
     def to_dict(self) -> dict:
         """Plain JSON-ready summary (lists, degrees, mm, px; NaN as None)."""
@@ -111,12 +165,42 @@ class MotionEstimate:
         }
 
 
+def _read_only(name: str) -> property:
+    """The property ``name`` of ``MotionEstimate`` over its slot ``_name``; a deferred attribute
+    replaces a callable by its value on first access."""
+    slot = f"_{name}"
+    if name not in _DEFERRED:
+        return property(attrgetter(slot))
+
+    def get(self):
+        value = getattr(self, slot)
+        if callable(value):
+            value = value()
+            setattr(self, slot, value)
+        return value
+
+    return property(get)
+
+
+for _name in _FIELDS:
+    _property = _read_only(_name)
+    _property.__set_name__(MotionEstimate, _name)  # names it in the error on assignment
+    setattr(MotionEstimate, _name, _property)
+del _name, _property
+
+
 # --- input checks and shared pieces ------------------------------------------------------------------
-# The fingertip sets are small (N <= 6): per-point arithmetic runs on Python floats, which cost a
-# fraction of a numpy call each, and the 3x3 / 6x6 algebra goes through OpenCV, whose per-call cost at
-# these sizes is a fraction of numpy.linalg's. That is what keeps one solve near the 50 us target.
+# Speed: NP-U must take under 50 us, about 35 trivial numpy calls on the target machine. A numpy or
+# OpenCV call costs 1-2 us whatever its size in a timing loop, up to twice that amid a solve; a Python
+# float operation a few tens of ns. So the per-point arithmetic (N <= 6) runs on Python floats (the
+# inputs become lists once, in _prepare); numpy builds only the (2N, 7) least-squares matrix and its
+# normal matrix, with np.dot rather than @ (the matmul ufunc costs more per call); OpenCV does the 6x6
+# algebra, at a fraction of numpy.linalg's cost per call. The diagnostics that need an SVD of their own
+# (condition number, covariance, C_H_G_orth) are computed when first read (MotionEstimate), and the
+# conditioning check gets by without one (_checked_inverse).
 def _prepare(C_H_G, p_G, uv, camera, names, kind: str):
-    """Validated float arrays (H (4, 4), P (N, 3), uv (N, 2)), the point names and the method label."""
+    """Validated input: float arrays H (4, 4), P (N, 3), uv (N, 2); the same as nested lists of Python
+    floats (Hl, Pl, uvl: what the per-point arithmetic reads); the point names and the method label."""
     if not isinstance(camera, CameraModel):
         raise TypeError(f"camera: expected a selfview.camera.CameraModel, got {type(camera).__name__}")
     H = np.asarray(C_H_G, dtype=float)
@@ -139,7 +223,10 @@ def _prepare(C_H_G, p_G, uv, camera, names, kind: str):
     need = _MIN_POINTS[kind]
     if n < need:
         raise CalibrationError(f"{label} ({_KIND_NAME[kind]}): needs at least {need} points, got {n}")
-    if not all(map(math.isfinite, chain(H.ravel().tolist(), P.ravel().tolist(), uv.ravel().tolist()))):
+    Hl, Pl, uvl = H.tolist(), P.tolist(), uv.tolist()
+    # One sum rather than a test per number: a NaN or an infinity anywhere makes the sum non-finite.
+    # (So can an overflow of huge finite values, which the exact checks then let through.)
+    if not math.isfinite(sum(chain(*Hl, *Pl, *uvl))):
         if not np.isfinite(H).all():
             raise CalibrationError(f"{label}: C_H_G contains non-finite values")
         for arr, what in ((uv, "observed pixel"), (P, "gripper point")):
@@ -147,45 +234,53 @@ def _prepare(C_H_G, p_G, uv, camera, names, kind: str):
             if bad.any():
                 which = ", ".join(names[i] for i in np.flatnonzero(bad))
                 raise CalibrationError(f"{label}: {what} of {which} is not finite (NaN: not found?)")
-    return H, P, uv, names, label
+    return H, P, uv, Hl, Pl, uvl, names, label
 
 
-def _undistort(camera: CameraModel, uv: np.ndarray) -> list[tuple[float, float, float, float]]:
-    """Eq. 4 per point: pixels (N, 2) -> [(X^, Y^, X, Y)], distorted and undistorted sensor coordinates."""
+def _undistort(camera: CameraModel, uv_list) -> list[tuple[float, float, float, float]]:
+    """Eq. 4 per point: pixels [(u, v)] -> [(X^, Y^, X, Y)], distorted and undistorted sensor coordinates."""
     a, cx, cy, k = camera.aspect, camera.cx, camera.cy, camera.kappa
     out = []
-    for u, v in uv.tolist():
+    for u, v in uv_list:
         Xh, Yh = a * (u - cx), v - cy
         s = 1.0 + k * (Xh * Xh + Yh * Yh)
         out.append((Xh, Yh, Xh * s, Yh * s))
     return out
 
 
-def _pixel_residual(camera: CameraModel, Xh: float, Yh: float, X: float, Y: float) -> tuple[float, float]:
-    """Observed distorted sensor point (X^, Y^) minus the distorted image of a predicted undistorted
-    point (X, Y), in pixels (du, dv).
+def _pixel_residuals(camera: CameraModel, obs, predicted) -> tuple[list[tuple[float, float]], float]:
+    """([(du, dv)], their root mean square length) in pixels: each observed distorted sensor point
+    (X^, Y^) (of ``obs`` [(X^, Y^, X, Y)]) minus the distorted image of its predicted undistorted point
+    (X, Y) (``predicted`` [(X, Y)]).
 
     Inverts eq. 4 by Newton on kappa r^3 + r = R from the observed radius, which lies close; falls
     back to the closed form of ``selfview.camera.distort`` (which raises beyond the lens's fold)."""
-    k = camera.kappa
-    R = math.hypot(X, Y)
-    r = math.hypot(Xh, Yh)
-    for _ in range(3):  # quadratic: 10 px off -> 1e-17 px in three steps (kappa 2e-7, r 400 px)
-        slope = 3.0 * k * r * r + 1.0
-        if slope <= 0.0:
-            break
-        r -= (k * r * r * r + r - R) / slope
-    if 3.0 * k * r * r + 1.0 > 0.0 and abs(k * r * r * r + r - R) <= 1e-9 * (1.0 + R):
-        s = r / R if R > 0.0 else 1.0
-        Xp, Yp = X * s, Y * s
-    else:
-        Xp, Yp = distort(np.array([[X, Y]]), k)[0].tolist()
-    return (Xh - Xp) / camera.aspect, Yh - Yp
+    k, k3, aspect = camera.kappa, 3.0 * camera.kappa, camera.aspect
+    out, sum_sq = [], 0.0
+    for (Xh, Yh, _, _), (X, Y) in zip(obs, predicted):
+        R = math.hypot(X, Y)
+        r = math.hypot(Xh, Yh)
+        # three steps, quadratic: 10 px off -> 1e-17 px (kappa 2e-7, r 400 px); a tuple costs less than range
+        for _ in (1, 2, 3):
+            slope = k3 * r * r + 1.0
+            if slope <= 0.0:
+                break
+            r -= (k * r * r * r + r - R) / slope
+        if k3 * r * r + 1.0 > 0.0 and abs(k * r * r * r + r - R) <= 1e-9 * (1.0 + R):
+            s = r / R if R > 0.0 else 1.0
+            Xp, Yp = X * s, Y * s
+        else:
+            Xp, Yp = distort(np.array([[X, Y]]), k)[0].tolist()
+        du, dv = (Xh - Xp) / aspect, Yh - Yp
+        out.append((du, dv))
+        sum_sq += du * du + dv * dv
+    return out, math.sqrt(sum_sq / len(out))
 
 
-def _camera_points(H: np.ndarray, P_list, label: str) -> list[tuple[float, float, float]]:
-    """Eq. 15: gripper points [(x, y, z)] -> [(x, y, z)] in the camera; raises for a point behind it."""
-    (r11, r12, r13, t1), (r21, r22, r23, t2), (r31, r32, r33, t3) = H[:3].tolist()
+def _camera_points(H_rows, P_list, label: str) -> list[tuple[float, float, float]]:
+    """Eq. 15: gripper points [(x, y, z)] -> [(x, y, z)] in the camera, with the rows of C_H_G as lists;
+    raises for a point behind the camera."""
+    (r11, r12, r13, t1), (r21, r22, r23, t2), (r31, r32, r33, t3) = H_rows[:3]
     out = []
     for gx, gy, gz in P_list:
         z = r31 * gx + r32 * gy + r33 * gz + t3
@@ -199,7 +294,7 @@ def _spread(P: np.ndarray) -> np.ndarray:
     """(3,) singular values (descending) of the centred points (N, 3): their extent along the principal
     axes [mm, times sqrt(N)]."""
     Q = P - P.sum(axis=0) / len(P)
-    _, w = cv2.eigen(Q.T @ Q)[:2]
+    _, w = cv2.eigen(np.dot(Q.T, Q))[:2]
     return np.sqrt(np.maximum(w.ravel(), 0.0))
 
 
@@ -214,25 +309,64 @@ def _collinear_reason(P: np.ndarray, s: np.ndarray | None = None) -> str | None:
     return None
 
 
-def _inverse_normal(N: np.ndarray, P: np.ndarray, label: str) -> tuple[np.ndarray, float]:
-    """(N^-1 (6, 6), condition) of a normal matrix through its column-scaled (Jacobi) form.
+def _rows_array(flat: list[float]) -> np.ndarray:
+    """The (2N, 7) matrix [A | b] from its rows concatenated in one flat list of floats.
 
-    Raises ``CalibrationError`` when the scaled condition exceeds ``MAX_CONDITION``, naming collinear
-    points when that is the cause."""
+    ``np.fromiter`` on a flat list costs under half of ``np.array`` on a list of row tuples."""
+    return np.fromiter(flat, float).reshape(-1, 7)
+
+
+def _scaled(N: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The column-scaled (Jacobi) form Ns = N / (d_i d_j), d_i = sqrt(N_ii), of a normal matrix N (6, 6)
+    with a positive diagonal, and the scale d_i d_j (6, 6)."""
     d = np.sqrt(N.diagonal())
-    if not min(d.tolist()) > 0.0:
-        raise CalibrationError(f"{label}: a motion parameter does not affect any observation")
     dd = d[:, None] * d
-    # OpenCV's SVD inverse returns the inverse condition number (smallest / largest singular value)
-    inv_cond, Ns_inv = cv2.invert(N / dd, flags=cv2.DECOMP_SVD)
-    cond = 1.0 / inv_cond if inv_cond > 0.0 else math.inf
+    return N / dd, dd
+
+
+def _condition(N: np.ndarray) -> float:
+    """Condition number of the column-scaled form of a normal matrix N (6, 6) with a positive diagonal:
+    the ratio of its extreme singular values (OpenCV's SVD without U and V), inf if singular."""
+    w = cv2.SVDecomp(_scaled(N)[0], flags=cv2.SVD_NO_UV)[0].ravel().tolist()
+    inv_cond = w[-1] / w[0] if w[0] > 0.0 else 0.0  # smallest / largest, as cv2.invert reports it
+    return 1.0 / inv_cond if inv_cond > 0.0 else math.inf
+
+
+def _checked_inverse(N: np.ndarray, P: np.ndarray, label: str) -> np.ndarray:
+    """N^-1 (6, 6) of a normal matrix by Cholesky, once the condition number of its column-scaled form
+    (``_condition``) is known not to exceed ``MAX_CONDITION``.
+
+    Raises ``CalibrationError`` otherwise, naming collinear points when that is the cause.
+
+    Speed: the check needs no SVD (~6 us) unless the points are close to a degenerate configuration.
+    The scaled form Ns has a unit diagonal, so its largest eigenvalue lies in [1, 6], and
+    t = trace(Ns^-1) = sum_i N_ii (N^-1)_ii lies in [1, 6] / (its smallest one): t / 6 <= cond <= 6 t.
+    A t that bounds the condition below MAX_CONDITION / 100 (a margin for the rounding of N^-1, then
+    below 1e-9 relative) settles it; any other goes to the exact ``_condition``."""
+    diagonal = N.diagonal().tolist()
+    if not min(diagonal) > 0.0:
+        raise CalibrationError(f"{label}: a motion parameter does not affect any observation")
+    ok, N_inv = cv2.invert(N, flags=cv2.DECOMP_CHOLESKY)  # ok = 0: not positive definite
+    # (sum over lists: numpy's trace of N * N_inv costs three times as much)
+    if ok and 0.0 < 6.0 * sum(map(mul, diagonal, N_inv.diagonal().tolist())) <= MAX_CONDITION / 100.0:
+        return N_inv
+    cond = _condition(N)
     if not cond <= MAX_CONDITION:
         why = _collinear_reason(P)
         raise CalibrationError(
-            f"{label}: {why or 'ill-conditioned point configuration'}; condition number {cond:.3g} of the "
-            f"scaled normal system exceeds {MAX_CONDITION:.0e}, the motion would be meaningless"
+            f"{label}: {why or 'ill-conditioned point configuration'}; condition number {cond:.3g} of "
+            f"the scaled normal system exceeds {MAX_CONDITION:.0e}, the motion would be meaningless"
         )
-    return Ns_inv / dd, cond
+    if not ok:  # well enough conditioned, but not positive definite to Cholesky
+        N_inv = _svd_inverse(N)
+    return N_inv
+
+
+def _svd_inverse(N: np.ndarray) -> np.ndarray:
+    """N^-1 (6, 6) of a normal matrix by OpenCV's SVD inverse of its column-scaled form: what the
+    covariances are computed with."""
+    Ns, dd = _scaled(N)
+    return cv2.invert(Ns, flags=cv2.DECOMP_SVD)[1] / dd
 
 
 def _sigma2(rss: float, n_eq: int, prior_sigma_px: float | None) -> float:
@@ -247,33 +381,35 @@ def _orthonormal(H: np.ndarray) -> np.ndarray:
     """``geometry.orthonormalize`` of a (4, 4) transform (the nearest rotation, by SVD), through
     OpenCV's 3x3 SVD: numpy's costs over ten times more per call at this size."""
     _, U, Vt = cv2.SVDecomp(H[:3, :3])
-    R = U @ Vt
+    R = np.dot(U, Vt)
     (a, b, c), (d, e, f), (g, h, i) = R.tolist()
     if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0.0:
         U[:, 2] = -U[:, 2]
-        R = U @ Vt
+        R = np.dot(U, Vt)
     out = H.copy()
     out[:3, :3] = R
     out[3] = (0.0, 0.0, 0.0, 1.0)
     return out
 
 
-def _estimate(method, H, H_orth, motion, res_px, cov, cond, names, iters, H0) -> MotionEstimate:
+def _estimate(method, H, H_orth, motion, res_px, rms_px, cov, cond, names, iters, H0) -> MotionEstimate:
+    """The ``MotionEstimate``; ``res_px`` the residuals as [(du, dv)]; ``H_orth``, ``cov`` and ``cond``
+    values or callables (deferred, see ``MotionEstimate``)."""
     m = motion.tolist()
     return MotionEstimate(
-        method=method,
-        C_H_G=H,
-        C_H_G_orth=H_orth,
-        motion=motion,
-        delta_deg=math.degrees(math.sqrt(m[0] ** 2 + m[1] ** 2 + m[2] ** 2)),  # eq. 14
-        d_mm=math.sqrt(m[3] ** 2 + m[4] ** 2 + m[5] ** 2),
-        residuals_px=np.array(res_px),
-        rms_px=math.sqrt(sum(du * du + dv * dv for du, dv in res_px) / len(res_px)),
-        covariance=cov,
-        condition=cond,
-        points_used=tuple(names),
-        iterations=iters,
-        C_H_G_prior=H0,
+        method,
+        H,
+        H_orth,
+        motion,
+        math.degrees(math.sqrt(m[0] ** 2 + m[1] ** 2 + m[2] ** 2)),  # eq. 14
+        math.sqrt(m[3] ** 2 + m[4] ** 2 + m[5] ** 2),
+        partial(np.array, res_px),
+        rms_px,
+        cov,
+        cond,
+        tuple(names),
+        iters,
+        H0,
     )
 
 
@@ -288,9 +424,9 @@ def _eq17(p_C, obs, f: float) -> np.ndarray:
     rows = []
     for (x, y, z), (_, _, X, Y) in zip(p_C, obs):
         iz = 1.0 / z
-        rows.append((-X * y * iz, (f * z + X * x) * iz, -f * y * iz, f * iz, 0.0, -X * iz, (-f * x + X * z) * iz))
-        rows.append(((-f * z - Y * y) * iz, Y * x * iz, f * x * iz, 0.0, f * iz, -Y * iz, (-f * y + Y * z) * iz))
-    return np.array(rows)
+        rows += (-X * y * iz, (f * z + X * x) * iz, -f * y * iz, f * iz, 0.0, -X * iz, (-f * x + X * z) * iz)
+        rows += ((-f * z - Y * y) * iz, Y * x * iz, f * x * iz, 0.0, f * iz, -Y * iz, (-f * y + Y * z) * iz)
+    return _rows_array(rows)
 
 
 def differential_update(
@@ -309,34 +445,40 @@ def differential_update(
     Raises ``CalibrationError`` for fewer than 3 points, non-finite input, points behind the camera,
     collinear points or an ill-conditioned system; ``ValueError`` for arrays of the wrong shape.
     """
-    H0, P, uv, names, label = _prepare(C_H_G, p_G, uv, camera, names, "U")
+    H0, P, _, Hl, Pl, uvl, names, label = _prepare(C_H_G, p_G, uv, camera, names, "U")
     f = camera.f
-    obs = _undistort(camera, uv)
-    p_C = _camera_points(H0, P.tolist(), label)  # eq. 15
+    obs = _undistort(camera, uvl)
+    p_C = _camera_points(Hl, Pl, label)  # eq. 15
     Ab = _eq17(p_C, obs, f)
-    M = Ab.T @ Ab  # [[A^T A, A^T b], [b^T A, b^T b]]
-    N_inv, cond = _inverse_normal(M[:6, :6], P, label)
-    x = N_inv @ M[:6, 6]
-    rss = max(float(M[6, 6] - x @ M[:6, 6]), 0.0)  # |b - A x|^2 at the least-squares solution
-    cov = _sigma2(rss, len(Ab), prior_sigma_px) * N_inv
+    M = np.dot(Ab.T, Ab)  # [[A^T A, A^T b], [b^T A, b^T b]]; np.dot: the same product as @, called faster
+    N = M[:6, :6]
+    x = np.dot(_checked_inverse(N, P, label), M[:6, 6])  # the least squares: N x = A^T b
     dx, dy, dz, tx, ty, tz = x.tolist()
-    H = delta_star((dx, dy, dz), (tx, ty, tz)) @ H0  # eq. 13
-    res = []
-    for (px, py, pz), (Xh, Yh, _, _) in zip(p_C, obs):
+    H = np.dot(delta_star((dx, dy, dz), (tx, ty, tz)), H0)  # eq. 13
+    predicted = []
+    for px, py, pz in p_C:
         # eq. 16: C'p_i = Delta* C p_i
         xn, yn, zn = px - dz * py + dy * pz + tx, dz * px + py - dx * pz + ty, -dy * px + dx * py + pz + tz
         if not zn > 0.0:
             raise CalibrationError(f"{label}: the update moves a point behind the camera; the motion is not small")
-        res.append(_pixel_residual(camera, Xh, Yh, f * xn / zn, f * yn / zn))
-    return _estimate(label, H, _orthonormal(H), x, res, cov, cond, names, 1, H0)
+        predicted.append((f * xn / zn, f * yn / zn))
+    res, rms = _pixel_residuals(camera, obs, predicted)
+
+    def covariance():  # deferred (MotionEstimate)
+        # |b - A x|^2 at the least-squares solution, from the residuals themselves (b^T b - x^T A^T b
+        # from the normal matrix would cancel to a few digits at small residuals)
+        r = np.dot(Ab[:, :6], x) - Ab[:, 6]
+        return _sigma2(float(np.dot(r, r)), len(Ab), prior_sigma_px) * _svd_inverse(N)
+
+    return _estimate(label, H, partial(_orthonormal, H), x, res, rms, covariance, partial(_condition, N), names, 1, H0)
 
 
 # --- NP-I (and the refinement of NP-R) --------------------------------------------------------------
-def _linearise(RT: np.ndarray, P_list, obs, f: float, label: str):
-    """At the pose RT = [R | t] (3, 4): the camera points [(x, y, z)] and [J | r] (2N, 7), the Jacobian
-    of the undistorted projections (eq. 3) under a left perturbation ``p -> p + omega x p + v``
+def _linearise(RT, P_list, obs, f: float, label: str):
+    """At the pose RT = [R | t] (3 rows of 4 floats): the camera points [(x, y, z)] and [J | r] (2N, 7),
+    the Jacobian of the undistorted projections (eq. 3) under a left perturbation ``p -> p + omega x p + v``
     (omega [rad], v [mm]) beside the residuals observed minus projected; rows X, Y per point."""
-    (r11, r12, r13, t1), (r21, r22, r23, t2), (r31, r32, r33, t3) = RT.tolist()
+    (r11, r12, r13, t1), (r21, r22, r23, t2), (r31, r32, r33, t3) = RT
     pts, rows = [], []
     for (gx, gy, gz), (_, _, X, Y) in zip(P_list, obs):
         x = r11 * gx + r12 * gy + r13 * gz + t1
@@ -346,29 +488,63 @@ def _linearise(RT: np.ndarray, P_list, obs, f: float, label: str):
             raise CalibrationError(f"{label}: a point lies behind the camera (z = {z:.3g} mm <= 0)")
         iz = 1.0 / z
         fa, fc, fiz = f * x * iz, f * y * iz, f * iz
-        rows.append((-fa * y * iz, f + fa * x * iz, -fc, fiz, 0.0, -fa * iz, X - fa))
-        rows.append((-f - fc * y * iz, fc * x * iz, fa, 0.0, fiz, -fc * iz, Y - fc))
+        rows += (-fa * y * iz, f + fa * x * iz, -fc, fiz, 0.0, -fa * iz, X - fa)
+        rows += (-f - fc * y * iz, fc * x * iz, fa, 0.0, fiz, -fc * iz, Y - fc)
         pts.append((x, y, z))
-    return pts, np.array(rows)
+    return pts, _rows_array(rows)
 
 
-def _gauss_newton(H0, H_start, P, obs, camera, names, label, tol, max_iter, prior_sigma_px) -> MotionEstimate:
-    """Minimise the undistorted-sensor reprojection error of the points P (N, 3) over C_H_G from
-    ``H_start`` by Gauss-Newton on SE(3) (left perturbation: the motion parameters of NP-U), damped
-    (Levenberg) only after a step that raised the cost. Stops when no point moves ``tol`` mm in a step."""
-    P_list = P.tolist()
-    RT = H_start[:3].copy()
+def _perturbed(RT, w1: float, w2: float, w3: float, v1: float, v2: float, v3: float) -> list[list[float]]:
+    """The pose [R | t] (3 rows of 4 floats) after the left perturbation (omega, v): ``Rot(omega) [R | t]``
+    with v added to t. Rot(omega) by Rodrigues' formula, evaluated as ``cv2.Rodrigues`` does; in Python
+    floats, because cv2.Rodrigues, a matrix product and a column update cost ~6 us at this size."""
+    th = math.sqrt(w1 * w1 + w2 * w2 + w3 * w3)
+    if th < _DBL_EPSILON:  # cv2.Rodrigues: the identity
+        R = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    else:
+        c, s = math.cos(th), math.sin(th)
+        c1, x, y, z = 1.0 - c, w1 / th, w2 / th, w3 / th
+        R = (
+            (c + c1 * (x * x), c1 * (x * y) - s * z, c1 * (x * z) + s * y),
+            (c1 * (x * y) + s * z, c + c1 * (y * y), c1 * (y * z) - s * x),
+            (c1 * (x * z) - s * y, c1 * (y * z) + s * x, c + c1 * (z * z)),
+        )
+    (p1, p2, p3, p4), (q1, q2, q3, q4), (s1, s2, s3, s4) = RT
+    return [
+        [a * p1 + b * q1 + c * s1, a * p2 + b * q2 + c * s2, a * p3 + b * q3 + c * s3, a * p4 + b * q4 + c * s4 + v]
+        for (a, b, c), v in zip(R, (v1, v2, v3))
+    ]
+
+
+def _largest_move(pts, w1: float, w2: float, w3: float, v1: float, v2: float, v3: float) -> float:
+    """How far [mm] the left perturbation (omega, v) moves the farthest of the points [(x, y, z)]: the
+    largest |omega x p + v|. (A plain loop with products: ``** 2`` in a generator costs twice as much.)"""
+    largest = 0.0
+    for x, y, z in pts:
+        a, b, c = w2 * z - w3 * y + v1, w3 * x - w1 * z + v2, w1 * y - w2 * x + v3
+        d2 = a * a + b * b + c * c
+        if d2 > largest:
+            largest = d2
+    return math.sqrt(largest)
+
+
+def _gauss_newton(H0, H_start, P, P_list, obs, camera, names, label, tol, max_iter, prior_sigma_px) -> MotionEstimate:
+    """Minimise the undistorted-sensor reprojection error of the points P (N, 3) (``P_list`` the same
+    as lists) over C_H_G from ``H_start`` by Gauss-Newton on SE(3) (left perturbation: the motion
+    parameters of NP-U), damped (Levenberg) only after a step that raised the cost. Stops when no point
+    moves ``tol`` mm in a step. The pose is carried as rows of Python floats between the steps."""
+    RT = H_start[:3].tolist()
     lam, best, moved = 0.0, None, math.inf
     for it in range(1, max_iter + 1):
         pts, Jr = _linearise(RT, P_list, obs, camera.f, label)
-        M = Jr.T @ Jr  # [[J^T J, J^T r], [r^T J, r^T r]]
-        cost = float(M[6, 6])
+        M = np.dot(Jr.T, Jr)  # [[J^T J, J^T r], [r^T J, r^T r]]
+        cost = M.item(6, 6)
         if best is not None and cost > best[0] * (1.0 + 1e-12) + 1e-30:
             cost, RT, pts, Jr, M = best  # the step raised the cost: go back and damp
             lam = max(10.0 * lam, 1e-6)
         else:
             if best is None:
-                _inverse_normal(M[:6, :6], P, label)  # refuse a degenerate configuration before iterating
+                _checked_inverse(M[:6, :6], P, label)  # refuse a degenerate configuration before iterating
             lam = 0.1 * lam if lam > 1e-9 else 0.0
             best = (cost, RT, pts, Jr, M)
         N = M[:6, :6] + lam * np.diag(M.diagonal()[:6]) if lam else M[:6, :6]
@@ -376,29 +552,26 @@ def _gauss_newton(H0, H_start, P, obs, camera, names, label, tol, max_iter, prio
         if not ok:
             raise CalibrationError(f"{label}: the normal system became singular during the iteration")
         w1, w2, w3, v1, v2, v3 = step.ravel().tolist()
-        # how far the step moves the points: |omega x p + v| [mm]
-        moved = max(
-            math.sqrt((w2 * z - w3 * y + v1) ** 2 + (w3 * x - w1 * z + v2) ** 2 + (w1 * y - w2 * x + v3) ** 2)
-            for x, y, z in pts
-        )
-        RT = cv2.Rodrigues(step[:3])[0] @ RT
-        RT[:, 3] += step[3:, 0]
+        moved = _largest_move(pts, w1, w2, w3, v1, v2, v3)
+        RT = _perturbed(RT, w1, w2, w3, v1, v2, v3)
         if moved < tol:
             break
     else:
         raise CalibrationError(
             f"{label}: no convergence in {max_iter} iterations (the last step moved the points {moved:.3g} mm)"
         )
-    H = np.vstack([RT, (0.0, 0.0, 0.0, 1.0)])
-    N_inv, cond = _inverse_normal(M[:6, :6], P, label)
-    r = (Jr[:, 6] - Jr[:, :6] @ step.ravel()).tolist()  # residual after the last, sub-tolerance step
-    cov = _sigma2(sum(v * v for v in r), len(r), prior_sigma_px) * N_inv
-    res = [
-        _pixel_residual(camera, Xh, Yh, X - r[2 * i], Y - r[2 * i + 1]) for i, (Xh, Yh, X, Y) in enumerate(obs)
-    ]
-    C_H_C = H @ cv2.invert(H0)[1]  # the total motion (H0 may be a non-orthogonal NP-U result)
+    H = np.array([*RT, (0.0, 0.0, 0.0, 1.0)])
+    N = M[:6, :6]
+    _checked_inverse(N, P, label)  # the final configuration must be well conditioned too
+    r = (Jr[:, 6] - np.dot(Jr[:, :6], step.ravel())).tolist()  # residual after the last, sub-tolerance step
+    res, rms = _pixel_residuals(camera, obs, [(X - r[2 * i], Y - r[2 * i + 1]) for i, (_, _, X, Y) in enumerate(obs)])
+    C_H_C = np.dot(H, cv2.invert(H0)[1])  # the total motion (H0 may be a non-orthogonal NP-U result)
     motion = np.concatenate([cv2.Rodrigues(C_H_C[:3, :3])[0].ravel(), C_H_C[:3, 3]])
-    return _estimate(label, H, H, motion, res, cov, cond, names, it, H0)
+
+    def covariance():  # deferred (MotionEstimate)
+        return _sigma2(sum(v * v for v in r), len(r), prior_sigma_px) * _svd_inverse(N)
+
+    return _estimate(label, H, H, motion, res, rms, covariance, partial(_condition, N), names, it, H0)
 
 
 def iterative_update(
@@ -424,9 +597,9 @@ def iterative_update(
     Raises ``CalibrationError`` for fewer than 3 points, non-finite input, points behind the camera,
     collinear points, an ill-conditioned system or no convergence in ``max_iter`` steps.
     """
-    H0, P, uv, names, label = _prepare(C_H_G, p_G, uv, camera, names, "I")
-    obs = _undistort(camera, uv)
-    return _gauss_newton(H0, _orthonormal(H0), P, obs, camera, names, label, tol, max_iter, prior_sigma_px)
+    H0, P, _, _, Pl, uvl, names, label = _prepare(C_H_G, p_G, uv, camera, names, "I")
+    obs = _undistort(camera, uvl)
+    return _gauss_newton(H0, _orthonormal(H0), P, Pl, obs, camera, names, label, tol, max_iter, prior_sigma_px)
 
 
 # --- NP-R -------------------------------------------------------------------------------------------
@@ -462,19 +635,19 @@ def recalibrate(
     Raises ``CalibrationError`` for fewer than 4 points, non-finite input, collinear points, no
     solution, an ill-conditioned system or no convergence.
     """
-    H0, P, uv, names, label = _prepare(C_H_G, p_G, uv, camera, names, "R")
+    H0, P, _, _, Pl, uvl, names, label = _prepare(C_H_G, p_G, uv, camera, names, "R")
     s = _spread(P)
     why = _collinear_reason(P, s)
     if why:
         raise CalibrationError(f"{label}: {why}; the exterior orientation is undetermined")
-    obs = _undistort(camera, uv)
+    obs = _undistort(camera, uvl)
     # OpenCV gets the points in a frame F turned like the camera's current estimate, p_F = R0 p_G, so
     # that the pose it solves for, C_H_F, is a small rotation: its IPPE turns garbage for exact data
     # when the pose is within ~0.01 deg of a half turn (its matrix -> rotation vector conversion), and
     # the reference cell's mount guess is exactly a half turn.
     H_ref = _orthonormal(H0)
     R0 = H_ref[:3, :3]
-    obj = (P @ R0.T).reshape(-1, 1, 3)
+    obj = np.dot(P, R0.T).reshape(-1, 1, 3)
     img = np.array([(X, Y) for _, _, X, Y in obs]).reshape(-1, 1, 2) / camera.f
     flag = cv2.SOLVEPNP_IPPE if s[2] <= 1e-6 * s[0] else cv2.SOLVEPNP_SQPNP
     try:
@@ -482,15 +655,14 @@ def recalibrate(
     except cv2.error as exc:
         raise CalibrationError(f"{label}: OpenCV's solvePnPGeneric failed ({exc.err})") from exc
     cands = [
-        make_H(cv2.Rodrigues(rv)[0] @ R0, tv.ravel())  # C_H_G = C_H_F F_H_G
+        make_H(np.dot(cv2.Rodrigues(rv)[0], R0), tv.ravel())  # C_H_G = C_H_F F_H_G
         for rv, tv in zip(rvecs[:n_sol], tvecs[:n_sol])
         if np.isfinite(rv).all() and np.isfinite(tv).all()
     ]
     if not cands:
         raise CalibrationError(f"{label}: the exterior orientation has no solution for these points")
-    P_list = P.tolist()
-    start = min(cands, key=lambda Hc: _mean_point_distance(Hc, H_ref, P_list))
-    return _gauss_newton(H0, start, P, obs, camera, names, label, tol, max_iter, prior_sigma_px)
+    start = min(cands, key=lambda Hc: _mean_point_distance(Hc, H_ref, Pl))
+    return _gauss_newton(H0, start, P, Pl, obs, camera, names, label, tol, max_iter, prior_sigma_px)
 
 
 # --- methods by name ---------------------------------------------------------------------------------

@@ -7,7 +7,7 @@ import pytest
 
 from selfview.cell import POINT_NAMES
 from selfview.errors import CalibrationError, ConfigError
-from selfview.geometry import R_from_rotvec, inv_H, is_rigid, make_H, rot_axis, transform_points, trans
+from selfview.geometry import R_from_rotvec, delta_star, inv_H, is_rigid, make_H, rot_axis, transform_points, trans
 from selfview.online import (
     MAX_CONDITION,
     METHODS,
@@ -227,6 +227,76 @@ def test_condition_reported_and_more_points_condition_better(ref):
     c3 = differential_update(H0, P[:3], uv[:3], cam).condition
     c4 = differential_update(H0, P[:4], uv[:4], cam).condition
     assert 1.0 < c4 < c3 < MAX_CONDITION / 1000
+
+
+def _plain_np_u(H0, P, uv, cam):
+    """NP-U written plainly with numpy, for comparison: eq. 4 and 15, the rows of eq. 17 divided by z,
+    least squares by SVD; (motion, condition of the column-scaled normal matrix, covariance)."""
+    f = cam.f
+    XY = cam.undistort_pixels(uv)
+    rows = []
+    for (x, y, z), (X, Y) in zip(transform_points(H0, P), XY):
+        rows.append(np.array([-X * y, f * z + X * x, -f * y, f, 0.0, -X, X * z - f * x]) / z)
+        rows.append(np.array([-f * z - Y * y, Y * x, f * x, 0.0, f, -Y, Y * z - f * y]) / z)
+    A, b = np.array(rows)[:, :6], np.array(rows)[:, 6]
+    motion = np.linalg.lstsq(A, b, rcond=None)[0]
+    s = np.linalg.svd(A / np.linalg.norm(A, axis=0), compute_uv=False)
+    rss = float(np.sum((b - A @ motion) ** 2))
+    return motion, (s[0] / s[-1]) ** 2, rss / (len(b) - 6) * np.linalg.inv(A.T @ A)
+
+
+@pytest.mark.parametrize("n", [4, 5, 6])
+def test_differential_matches_a_plain_implementation(ref, n):
+    """The fast NP-U (Python floats, Cholesky, deferred diagnostics) solves the same least squares."""
+    H0, P, cam = ref
+    H1 = turned(H0, (0.3, 1.0, -0.2), 1.5, (0.0, -15.0, -20.0))
+    uv = observe(H1, P[:n], cam) + np.random.default_rng(n).normal(scale=0.05, size=(n, 2))
+    e = differential_update(H0, P[:n], uv, cam)
+    motion, cond, cov = _plain_np_u(H0, P[:n], uv, cam)
+    assert np.allclose(e.motion, motion, rtol=1e-9, atol=1e-12)
+    assert e.condition == pytest.approx(cond, rel=1e-8)
+    assert np.allclose(e.covariance, cov, rtol=1e-6, atol=0.0)
+    assert np.allclose(e.C_H_G, delta_star(motion[:3], motion[3:]) @ H0, rtol=0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("solver", [differential_update, iterative_update])  # NP-R refuses near-collinear points first
+def test_condition_check_is_exact_at_the_limit(ref, solver):
+    """Four points off a line by a varying amount: the conditioning check (a cheap bound, the SVD only
+    near the limit) refuses exactly the configurations whose condition number exceeds MAX_CONDITION."""
+    H0, _, cam = ref
+    seen = set()
+    for off_mm in np.geomspace(0.05, 20.0, 25):
+        Q = np.array([[28.0, -6.0, 0.0], [0.0, -6.0 + off_mm, 0.0], [-28.0, -6.0, 0.0], [14.0, -6.0 - off_mm, 0.0]])
+        cond = _plain_np_u(H0, Q, observe(H0, Q, cam), cam)[1]
+        if cond > MAX_CONDITION:
+            with pytest.raises(CalibrationError, match="condition number"):
+                solver(H0, Q, observe(H0, Q, cam), cam)
+            seen.add("refused")
+        else:
+            e = solver(H0, Q, observe(H0, Q, cam), cam)
+            assert e.condition == pytest.approx(cond, rel=1e-6)
+            seen.add("exact" if 6.0 * cond > MAX_CONDITION / 100.0 else "bound")
+    assert seen == {"refused", "exact", "bound"}  # both sides of the limit, and both ways to accept
+
+
+def test_estimate_is_read_only_and_computes_deferred_diagnostics_once(ref):
+    import copy
+    import pickle
+
+    H0, P, cam = ref
+    H1 = turned(H0, (0, 1, 0), 0.5, (0.0, -15.0, -20.0))
+    e = differential_update(H0, P[:4], observe(H1, P[:4], cam), cam)
+    with pytest.raises(AttributeError, match="C_H_G"):
+        e.C_H_G = H1
+    with pytest.raises(AttributeError):
+        e.extra = 1
+    for name in ("C_H_G_orth", "residuals_px", "covariance"):
+        assert getattr(e, name) is getattr(e, name), name  # computed once, then kept
+    assert e.residuals_px.shape == (4, 2) and e.covariance.shape == (6, 6) and e.condition > 1.0
+    for c in (copy.copy(e), copy.deepcopy(e), pickle.loads(pickle.dumps(e))):
+        assert np.array_equal(c.C_H_G_orth, e.C_H_G_orth) and np.array_equal(c.covariance, e.covariance)
+        assert (c.method, c.points_used, c.condition, c.rms_px) == (e.method, e.points_used, e.condition, e.rms_px)
+    assert "MotionEstimate(method='4P-U'" in repr(e)
 
 
 # --- degenerate input ------------------------------------------------------------------------------
