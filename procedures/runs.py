@@ -234,7 +234,14 @@ class CellSession:
 
                 def track(e, img=img):
                     ft = tracker.find(img, mon.C_H_G, gap)
-                    return mon.step(ft.uv, ft.found)
+                    logged = len(mon.records)
+                    try:
+                        return mon.step(ft.uv, ft.found)
+                    finally:  # how the fingertips were found, beside the decision (an alarm too)
+                        if len(mon.records) > logged:
+                            mon.records[-1]["fingertips"] = (
+                                "tracked" if ft.tracked else f"searched ({tracker.last_failure or 'no earlier frame'})"
+                            )
 
                 try:
                     e.execute(Step("compute", {"fn": track}, note=f"track frame {k + 1}"))

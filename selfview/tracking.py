@@ -297,10 +297,14 @@ class FingertipTracker:
         e1 = eid[sub]
         n_ok = np.bincount(e1[ok], minlength=E)
         n_sub = np.bincount(e1[inside[sub]], minlength=E)  # those whose profiles lie in the picture
-        if np.any(n_ok < np.maximum(3, KEEP_FRACTION * n_sub)):
-            i = int(np.argmin(n_ok / np.maximum(n_sub, 1)))
+        # an edge near the picture's border may have too few such profiles: it is looked for near its
+        # last line only (the second pass and its checks tell whether it is still there)
+        located = n_sub >= 3
+        short = located & (n_ok < np.maximum(3, KEEP_FRACTION * n_sub))
+        if short.any():
+            i = int(np.flatnonzero(short)[0])
             return f"edge {st['keys'][i]} shows a step in only {n_ok[i]} of {n_sub[i]} profiles"
-        offset = _group_median(at[ok] + 0.5, e1[ok], E)
+        offset = np.where(located, _group_median(at[ok] + 0.5, e1[ok], E), 0.0)
         # 3. then, as the search's second pass, every profile within +-3 px of there (its line), the
         # profiles moved to be centred on it: (M, 2 R2 + 1) grey levels and their running sums (the
         # plateaus' and the transition's sums for windows of any width)

@@ -163,5 +163,8 @@ def test_monitor_updates_then_recalibrates_then_raises_the_alarm(cell, tmp_path)
         assert "recalibrate" in actions
         assert actions[-1] == "alarm"
         assert actions.index("recalibrate") < len(actions) - 1
+        # the fingertips were searched for in the first frame and after the big turns, tracked between
+        how = [r["fingertips"] for r in s.monitor_records if r["action"] != "calibrated"]
+        assert how[0] == "searched (no earlier frame)" and "tracked" in how[1:4], how
         assert "ABORT" in [ln.upper() for ln in s.sim.robot_sim.received[n_rx:]]
         assert valve_is_safe(s)
