@@ -52,7 +52,8 @@ def run(args) -> int:
                 return "  -  " if v is None else f"{v:.3f}"
 
             print(f"frame {rec['frame']:3d}: {rec['action']:<11s} delta {num('delta_deg')} deg, d {num('d_mm')} mm, "
-                  f"rms {num('rms_px')} px - {rec['reason']}", flush=True)
+                  f"rms {num('rms_px')} px - {rec['reason']}"
+                  + (f" [fingertips {rec['fingertips']}]" if rec.get("fingertips") else ""), flush=True)
 
     with session:
         disturb = None

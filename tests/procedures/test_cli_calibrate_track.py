@@ -145,3 +145,20 @@ def test_track_with_a_corrupt_calibration_file(pictures, tmp_path, capsys):
     bad.write_text(yaml.safe_dump({"format": "selfview-calibration", "version": 1, "checksum": "sha256:0"}))
     code = main(["track", "--calibration", str(bad), "--image", str(d / "cable.png")])
     assert code == 3 and "checksum" in capsys.readouterr().err
+
+
+def test_monitor_prints_each_decision_and_how_the_fingertips_were_found(tmp_path, capsys):
+    """``selfview park`` -> ``calibrate`` -> ``monitor`` on the simulated cell (one seed throughout): the
+    first frame's fingertips are searched for, the next ones tracked while the camera creeps."""
+    pic, cal = tmp_path / "parked.png", tmp_path / "cal.yaml"
+    assert main(["park", "--seed", "5", "--time-scale", "0.01", "--out", str(pic)]) == 0
+    assert main(["calibrate", "--image", str(pic), "--out", str(cal)]) == 0
+    capsys.readouterr()
+    code = main(["monitor", "--seed", "5", "--time-scale", "0.01", "--calibration", str(cal), "--frames", "3",
+                 "--drift", "0.05", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    recs = [json.loads(line) for line in out.splitlines() if line.strip()]
+    assert [r["frame"] for r in recs] == [1, 2, 3] and all(r["action"] == "update" for r in recs)
+    assert recs[0]["fingertips"] == "searched (no earlier frame)"
+    assert [r["fingertips"] for r in recs[1:]] == ["tracked", "tracked"]
