@@ -150,21 +150,3 @@ class PerturbedValController(ValController):
     def _true_tool(self, q_read, noise: bool = True) -> np.ndarray:
         q_true = np.asarray(q_read, dtype=float) - (self.robot.encoder_error_deg() if noise else 0.0)
         return self.robot.true.fk(q_true) @ self.tool
-
-    def _set_joints(self, q) -> str:
-        with self._state:
-            self._joints = np.asarray(q, dtype=float).copy()
-        if self.world is None:
-            return "free"
-        return self.world.set_tcp(self._true_tool(q))
-
-    def _first_contact(self, m, s0: float, s1: float, q_prev):
-        if self.world is None or s1 <= s0:
-            return None
-        n = int(np.ceil((s1 - s0) / self.contact_step))
-        q = q_prev
-        for s in np.linspace(s0, s1, n + 1)[1:]:
-            q = self._joints_at(m, s, q)
-            if self.world.contact(self._true_tool(q, noise=False)) == "collision":
-                return float(s), q
-        return None

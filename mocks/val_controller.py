@@ -651,12 +651,18 @@ class ValController:
         H = make_H(R, m.H0[:3, 3] + s * (m.H1[:3, 3] - m.H0[:3, 3]))
         return self.kin.ik(H @ inv_H(self.tool), q_prev)
 
+    def _true_tool(self, q, noise: bool = True) -> np.ndarray:
+        """Where the tool really is at the joint reading ``q`` (base frame): the controller's own model
+        here; a subclass with kinematic errors answers differently (``noise``: encoder noise on the
+        reading, off where a motion is checked for collisions)."""
+        return self.kin.fk(q) @ self.tool
+
     def _set_joints(self, q) -> str:
         with self._state:
             self._joints = np.asarray(q, dtype=float).copy()
         if self.world is None:
             return "free"
-        return self.world.set_tcp(self.kin.fk(q) @ self.tool)
+        return self.world.set_tcp(self._true_tool(q))
 
     def _first_contact(self, m: _Motion, s0: float, s1: float, q_prev) -> tuple[float, np.ndarray] | None:
         """The first point in (s0, s1] where the tool collides, checked every ``contact_step`` of the
@@ -667,7 +673,7 @@ class ValController:
         q = q_prev
         for s in np.linspace(s0, s1, n + 1)[1:]:
             q = self._joints_at(m, s, q)
-            if self.world.contact(self.kin.fk(q) @ self.tool) == "collision":
+            if self.world.contact(self._true_tool(q, noise=False)) == "collision":
                 return float(s), q
         return None
 

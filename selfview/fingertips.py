@@ -156,14 +156,31 @@ def _hidden_by(p_C, boxes, C_H_G, skip: int) -> int | None:
     return None
 
 
+def checked_prediction(C_H_G, gap_mm) -> tuple[np.ndarray, float]:
+    """(C_H_G (4, 4) float, gap [mm]) of a prediction; ``ValueError`` for a transform of another shape or
+    a jaw gap that is not a positive finite number, ``CalibrationError`` for a non-finite transform."""
+    H = np.asarray(C_H_G, dtype=float)
+    if H.shape != (4, 4):
+        raise ValueError(f"C_H_G_pred: expected a (4, 4) transform, got shape {H.shape}")
+    if not np.isfinite(H).all():
+        raise CalibrationError("C_H_G_pred contains non-finite values: no prediction to search from")
+    try:
+        gap = float(gap_mm)
+    except (TypeError, ValueError):
+        gap = math.nan
+    if not (math.isfinite(gap) and gap > 0.0):
+        raise ValueError(f"gap_mm: expected the jaw gap as a positive number of mm, got {gap_mm!r}")
+    return H, gap
+
+
 class _Model:
     """The predicted finger geometry in the picture for one C_H_G."""
 
     def __init__(self, camera: CameraModel, C_H_G, gripper: GripperSpec, gap_mm: float):
         self.cam = camera
-        self.C_H_G = np.asarray(C_H_G, float)
-        self.boxes = gripper.finger_boxes_G(float(gap_mm))
-        self.points_G = gripper.points_G(gap=float(gap_mm))
+        self.C_H_G, gap_mm = checked_prediction(C_H_G, gap_mm)
+        self.boxes = gripper.finger_boxes_G(gap_mm)
+        self.points_G = gripper.points_G(gap=gap_mm)
         cam_G = inv_H(self.C_H_G)[:3, 3]
         self.edges: dict[tuple, _Edge] = {}
         for f, (lo, hi) in enumerate(self.boxes):
@@ -655,7 +672,8 @@ def find_fingertips(
 
     Returns a ``FingertipResult``; points not found carry a reason and are NaN. Raises ``ImageError``
     for a blank picture or one of the wrong size, ``CalibrationError`` if the prediction puts the
-    fingertips behind the camera.
+    fingertips behind the camera or is not finite, ``ValueError`` for a transform that is not (4, 4) or a
+    jaw gap that is not a positive number.
     """
     return _search(image, camera, C_H_G_pred, gripper, gap_mm, search_px, points)[0]
 
@@ -822,15 +840,16 @@ def _expected_sides(edge: _Edge, levels: dict, fit: _Fit | None) -> tuple[tuple,
     return (exp[0], exp[1]), tol
 
 
-def _faces_reach_corner(img, camera, fit: _Fit, edge: _Edge, q_corner, gap: float) -> bool:
+def _faces_reach_corner(img, camera, fit: _Fit, crease: bool, q_corner, gap: float) -> bool:
     """Whether the face(s) beside an edge show their usual grey level all the way to the corner, where
-    no edge points were found (ink behind the edge rather than something in front of the corner)."""
+    no edge points were found (ink behind the edge rather than something in front of the corner).
+    ``crease``: the edge has a lit face on both sides (both are checked), else on its profiles' high side."""
     t = np.array([-fit.n[1], fit.n[0]])
     if (fit.q.mean(0) - q_corner) @ t < 0:
         t = -t
     along = q_corner[None, :] + np.arange(6.0, 6.0 + gap)[:, None] * t[None, :]
     base = camera.distort_to_pixels(camera.pixel_to_sensor(along))
-    sides = [(+1, fit.levels[1])] + ([(-1, fit.levels[0])] if edge.crease else [])
+    sides = [(+1, fit.levels[1])] + ([(-1, fit.levels[0])] if crease else [])
     H, W = img.shape
     for sgn, level in sides:
         p = base + sgn * fit.reach * fit.pdir[None, :]
@@ -879,7 +898,7 @@ def _corner(img, camera, model, k, fits, fails, search_px, aligned):
     # the edges must be seen up to near the corner, or the finger's faces must: otherwise it is hidden
     for ln, e in lines:
         gap = np.min(np.linalg.norm(ln.q - q, axis=1)) - np.min(np.linalg.norm(ln.scanned_q - q, axis=1))
-        if gap > 10.0 and not _faces_reach_corner(img, camera, ln, e, q, gap):
+        if gap > 10.0 and not _faces_reach_corner(img, camera, ln, e.crease, q, gap):
             return f"occluded: no edge points within {gap:.0f} px of it"
     r = np.concatenate([ln.q @ ln.n - ln.c for ln, _ in lines])
     rms = float(np.sqrt(np.mean(r**2)))

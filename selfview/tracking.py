@@ -48,6 +48,7 @@ from selfview.fingertips import (
     _Fit,
     _search,
     _step_estimates,
+    checked_prediction,
 )
 
 __all__ = ["FingertipTracker"]
@@ -232,11 +233,13 @@ class FingertipTracker:
         (4, 4) with jaw gap ``gap_mm`` [mm] when there is none or the tracking does not hold.
 
         Raises ``ImageError`` for a picture that is not one, blank or of the wrong size (from the
-        search), ``CalibrationError`` as ``find_fingertips`` does."""
+        search), ``CalibrationError`` and ``ValueError`` as ``find_fingertips`` does (a bad prediction
+        or jaw gap is refused before anything is tracked)."""
+        C_H_G_pred, gap_mm = checked_prediction(C_H_G_pred, gap_mm)
         st = self._state
         why = None
         if st is not None:
-            if abs(float(gap_mm) - st["gap"]) > 1e-6:
+            if abs(gap_mm - st["gap"]) > 1e-6:
                 why = f"the jaw gap changed ({st['gap']:.2f} -> {float(gap_mm):.2f} mm)"
             elif st["missing"] and st["age"] >= self.refresh_frames:
                 why = f"searching again for {', '.join(POINT_NAMES[k] for k in st['missing'])}"
@@ -360,7 +363,7 @@ class FingertipTracker:
                 if gap > CORNER_GAP_PX:
                     a, b = np.searchsorted(ei, [li, li + 1])
                     fit = _Fit(n2[li], c2[li], qi[a:b], None, None, st["pdir"][li], levels[li], st["reach"][li])
-                    if not _faces_reach_corner(img, cam, fit, _Crease(st["crease"][li]), corners[kpt], gap):
+                    if not _faces_reach_corner(img, cam, fit, bool(st["crease"][li]), corners[kpt], gap):
                         return f"no edge points within {gap:.0f} px of {POINT_NAMES[kpt]}"
         # the corners and the next frame's stations, distorted in one call
         q_next = _stations(st, corners, n2)
@@ -620,15 +623,6 @@ def _intersect(n, c, t, lines, s_mean, s_ss, r_ss, cnt):
             wts.append(1.0 / math.sqrt(var))
         q = solve(wts)
     return q
-
-
-class _Crease:
-    """What ``fingertips._faces_reach_corner`` asks of an edge."""
-
-    __slots__ = ("crease",)
-
-    def __init__(self, crease: bool):
-        self.crease = bool(crease)
 
 
 def _tukey(r: np.ndarray, groups: _Groups, floor: float) -> np.ndarray:

@@ -11,8 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from selfview.cell import POINT_NAMES
-from selfview.errors import ImageError
+from selfview.errors import CalibrationError, ImageError
 from selfview.fingertips import find_fingertips
 from selfview.tracking import FingertipTracker
 from tests.alt_render import render_world
@@ -162,4 +161,14 @@ def test_a_new_jaw_gap_a_blank_picture_and_bad_arguments(cell):
         FingertipTracker(w.camera, cell.gripper, track_px=float("nan"))
     with pytest.raises(TypeError, match="CameraModel"):
         FingertipTracker("camera", cell.gripper)
-    assert POINT_NAMES[0] == "A-inner-front"
+    # a bad prediction or jaw gap is refused, also while primed (it would not be used when tracking)
+    tr.find(img, w.C_H_G, w.jaw_gap_mm)
+    assert tr.primed
+    with pytest.raises(ValueError, match="jaw gap"):
+        tr.find(img, w.C_H_G, float("nan"))
+    with pytest.raises(ValueError, match="jaw gap"):
+        tr.find(img, w.C_H_G, -5.0)
+    with pytest.raises(ValueError, match=r"\(4, 4\) transform"):
+        tr.find(img, np.eye(3), w.jaw_gap_mm)
+    with pytest.raises(CalibrationError, match="non-finite"):
+        find_fingertips(img, w.camera, np.full((4, 4), np.nan), cell.gripper, w.jaw_gap_mm)
