@@ -8,8 +8,9 @@ took from the machine during the run (``steal_s``: a run with much of it ran slo
 of the whole per-frame step (the four inner fingertip corners in a 768x576 picture, tracked from the
 last frame by ``selfview.tracking.FingertipTracker`` or searched for when the tracking does not hold,
 + 4P-I) over a rendered sequence of a creeping camera, with the full search's time and the corners'
-errors beside it (``per_frame_step``). One run, one core: BLAS and OpenCV threads are limited to one
-and the process is pinned to one CPU.
+errors beside it (``per_frame_step``). ``compiled_kernels`` says whether the C kernels ran
+(``SELFVIEW_PURE_PYTHON=1`` times the pure-Python reference). One run, one core: BLAS and OpenCV
+threads are limited to one and the process is pinned to one CPU.
 
 The solvers' scene: the reference cell simulated (seed 3), the camera disturbed by one draw of the
 paper's 'cable' series (a typical one: the TCP moves 1.4 mm), the four inner corners projected exactly
@@ -43,6 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from mocks.world import SimWorld  # noqa: E402
 from selfview.cell import default_cell_path, load_cell  # noqa: E402
 from selfview.geometry import make_H, transform_points  # noqa: E402
+from selfview._native import status as native_status  # noqa: E402
 from selfview.online import differential_update, iterative_update, recalibrate  # noqa: E402
 
 TARGET_SOLVE_US = 50.0
@@ -214,6 +216,7 @@ def main(argv=None) -> int:
         "per_frame_step": step,
         "target_step_ms": TARGET_STEP_MS,
         "step_within_target": step["median_ms"] <= TARGET_STEP_MS,
+        "compiled_kernels": native_status(),
         "repeat": args.repeat,
         "number": args.number,
         "versions": {"numpy": np.__version__, "opencv": cv2.__version__, "python": sys.version.split()[0]},

@@ -30,6 +30,7 @@ from operator import attrgetter, mul
 import cv2
 import numpy as np
 
+from selfview import _native
 from selfview.camera import CameraModel, distort
 from selfview.cell import POINT_NAMES
 from selfview.errors import CalibrationError, ConfigError
@@ -197,7 +198,9 @@ del _name, _property
 # normal matrix, with np.dot rather than @ (the matmul ufunc costs more per call); OpenCV does the 6x6
 # algebra, at a fraction of numpy.linalg's cost per call. The diagnostics that need an SVD of their own
 # (condition number, covariance, C_H_G_orth) are computed when first read (MotionEstimate), and the
-# conditioning check gets by without one (_checked_inverse).
+# conditioning check gets by without one (_checked_inverse). Where the compiled kernel is built
+# (selfview._cnpu, see differential_update) it takes the common case of NP-U in a few us; this Python
+# code stays the reference it is tested against, and takes every other case.
 def _prepare(C_H_G, p_G, uv, camera, names, kind: str):
     """Validated input: float arrays H (4, 4), P (N, 3), uv (N, 2); the same as nested lists of Python
     floats (Hl, Pl, uvl: what the per-point arithmetic reads); the point names and the method label."""
@@ -213,12 +216,7 @@ def _prepare(C_H_G, p_G, uv, camera, names, kind: str):
     if uv.shape != (len(P), 2):
         raise ValueError(f"uv: expected shape ({len(P)}, 2) to match p_G, got {uv.shape}")
     n = len(P)
-    if names is None:
-        names = POINT_NAMES[:n] if n <= len(POINT_NAMES) else tuple(f"point-{i + 1}" for i in range(n))
-    else:
-        names = tuple(str(s) for s in names)
-        if len(names) != n:
-            raise ValueError(f"names: expected {n} names for {n} points, got {len(names)}")
+    names = _point_names(names, n)
     label = f"{n}P-{kind}"
     need = _MIN_POINTS[kind]
     if n < need:
@@ -235,6 +233,16 @@ def _prepare(C_H_G, p_G, uv, camera, names, kind: str):
                 which = ", ".join(names[i] for i in np.flatnonzero(bad))
                 raise CalibrationError(f"{label}: {what} of {which} is not finite (NaN: not found?)")
     return H, P, uv, Hl, Pl, uvl, names, label
+
+
+def _point_names(names, n: int) -> tuple[str, ...]:
+    """The names of n points: ``names`` as strings, or by default those of ``POINT_NAMES``."""
+    if names is None:
+        return POINT_NAMES[:n] if n <= len(POINT_NAMES) else tuple(f"point-{i + 1}" for i in range(n))
+    names = tuple(str(s) for s in names)
+    if len(names) != n:
+        raise ValueError(f"names: expected {n} names for {n} points, got {len(names)}")
+    return names
 
 
 def _undistort(camera: CameraModel, uv_list) -> list[tuple[float, float, float, float]]:
@@ -429,6 +437,48 @@ def _eq17(p_C, obs, f: float) -> np.ndarray:
     return _rows_array(rows)
 
 
+def _ls_covariance(Ab: np.ndarray, N: np.ndarray, x: np.ndarray, prior_sigma_px: float | None) -> np.ndarray:
+    """NP-U's covariance of the motion x (6,), the least-squares solution of [A | b] (2N, 7) with the
+    normal matrix N = A^T A (6, 6)."""
+    # |b - A x|^2 at the least-squares solution, from the residuals themselves (b^T b - x^T A^T b
+    # from the normal matrix would cancel to a few digits at small residuals)
+    r = np.dot(Ab[:, :6], x) - Ab[:, 6]
+    return _sigma2(float(np.dot(r, r)), len(Ab), prior_sigma_px) * _svd_inverse(N)
+
+
+class _KernelResult(tuple):
+    """(blob, N, x, prior_sigma_px, H) of one solve by the compiled kernel (``selfview._cnpu.np_u``):
+    its blob holds [A | b] (2N, 7) of eq. 17, then the residuals (N, 2); x the motion, H ``C'_H_G``.
+    The methods are the deferred attributes of its ``MotionEstimate``, computed as the Python code
+    computes them (the normal matrix by numpy from the same [A | b]).
+
+    (One tuple and four bound methods cost a third of four ``functools.partial``.)"""
+
+    __slots__ = ()
+
+    def _normal(self) -> tuple[np.ndarray, np.ndarray]:
+        blob, n = self[0], self[1]
+        Ab = np.frombuffer(blob, float, 14 * n).reshape(2 * n, 7)
+        return Ab, np.dot(Ab.T, Ab)[:6, :6]
+
+    def residuals(self) -> np.ndarray:
+        blob, n = self[0], self[1]
+        return np.frombuffer(blob, float, 2 * n, 112 * n).reshape(n, 2).copy()
+
+    def covariance(self) -> np.ndarray:
+        return _ls_covariance(*self._normal(), self[2], self[3])
+
+    def condition(self) -> float:
+        return _condition(self._normal()[1])
+
+    def orthonormal(self) -> np.ndarray:
+        return _orthonormal(self[4])
+
+
+#: The default point names by their number (``_point_names``), for the kernel's path.
+_DEFAULT_NAMES = {n: _point_names(None, n) for n in range(len(POINT_NAMES) + 1)}
+
+
 def differential_update(
     C_H_G, p_G, uv, camera: CameraModel, names=None, *, prior_sigma_px: float | None = None
 ) -> MotionEstimate:
@@ -445,6 +495,35 @@ def differential_update(
     Raises ``CalibrationError`` for fewer than 3 points, non-finite input, points behind the camera,
     collinear points or an ill-conditioned system; ``ValueError`` for arrays of the wrong shape.
     """
+    npu = _native.npu
+    if npu is not None and isinstance(camera, CameraModel):
+        # The compiled kernel computes what the code below computes (selfview/_native.py) in about a
+        # tenth of its time; it returns None for any case it leaves to that code (which raises the
+        # errors), which then starts from the arrays converted here (np.asarray returns them as they are).
+        C_H_G = np.asarray(C_H_G, dtype=float)
+        p_G = np.asarray(p_G, dtype=float)
+        uv = np.asarray(uv, dtype=float)
+        H, x = np.empty((4, 4)), np.empty(6)
+        out = npu.np_u(C_H_G, p_G, uv, camera, MAX_CONDITION, H, x)
+        if out is not None:
+            rms, delta_deg, d_mm, blob = out
+            n = len(p_G)
+            later = _KernelResult((blob, n, x, prior_sigma_px, H))
+            return MotionEstimate(
+                f"{n}P-U",
+                H,
+                later.orthonormal,
+                x,
+                delta_deg,
+                d_mm,
+                later.residuals,
+                rms,
+                later.covariance,
+                later.condition,
+                _DEFAULT_NAMES[n] if names is None and n in _DEFAULT_NAMES else _point_names(names, n),
+                1,
+                C_H_G,
+            )
     H0, P, _, Hl, Pl, uvl, names, label = _prepare(C_H_G, p_G, uv, camera, names, "U")
     f = camera.f
     obs = _undistort(camera, uvl)
@@ -463,13 +542,7 @@ def differential_update(
             raise CalibrationError(f"{label}: the update moves a point behind the camera; the motion is not small")
         predicted.append((f * xn / zn, f * yn / zn))
     res, rms = _pixel_residuals(camera, obs, predicted)
-
-    def covariance():  # deferred (MotionEstimate)
-        # |b - A x|^2 at the least-squares solution, from the residuals themselves (b^T b - x^T A^T b
-        # from the normal matrix would cancel to a few digits at small residuals)
-        r = np.dot(Ab[:, :6], x) - Ab[:, 6]
-        return _sigma2(float(np.dot(r, r)), len(Ab), prior_sigma_px) * _svd_inverse(N)
-
+    covariance = partial(_ls_covariance, Ab, N, x, prior_sigma_px)  # deferred (MotionEstimate)
     return _estimate(label, H, partial(_orthonormal, H), x, res, rms, covariance, partial(_condition, N), names, 1, H0)
 
 

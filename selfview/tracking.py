@@ -26,6 +26,12 @@ beyond ``track_px``, something covering a corner, a change of light beyond the l
 new jaw gap) the frame goes to the full search from the caller's prediction, which also gives the
 reasons for points it does not find, and the tracker starts again from its result. Profiles are
 sampled by bilinear interpolation (single precision), as exact as the search's.
+
+The numpy code here is the reference. When the C extension ``selfview._ctrack`` is built (see
+``selfview._native``), steps 2-3 and the line fits run in it instead (``_passes_native``,
+``_ctrack.lines``, ``_ctrack.line_stats``): the same operations in the same order and precision, the
+same results bit for bit (``tests/selfview/test_native_track.py`` compares the two on every kind of
+sequence). ``selfview._native.track`` is read at each frame; None runs the Python code.
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ import math
 import cv2
 import numpy as np
 
+from selfview import _native
 from selfview.camera import CameraModel
 from selfview.cell import POINT_NAMES, GripperSpec
 from selfview.discs import as_gray
@@ -56,6 +63,7 @@ __all__ = ["FingertipTracker"]
 MAX_TURN_DEG = 5.0  # an edge that turns more between two frames is searched for again
 KEEP_FRACTION = 0.35  # of the points the search found on an edge, that a tracked frame must find again
 CORNER_GAP_PX = 10.0  # edge points must come this close to the corner (beyond the first profile's)
+_CTRACK_API = 1  # the interface of selfview._ctrack this module calls (its API)
 
 
 class _Groups:
@@ -73,7 +81,8 @@ class _Groups:
         self.base = np.arange(n, dtype=float)
 
     def median(self, values: np.ndarray) -> np.ndarray:
-        """(n,) the median of ``values`` (K,) in each group, NaN for an empty one."""
+        """(n,) the median of ``values`` (K,) in each group, NaN for an empty one. (In C: ``trick_median``
+        in ``_ctrack.c``, the same shifted values, so the same result to the bit.)"""
         if len(values) == 0:
             return np.full(len(self.base), np.nan)
         span = float(values.max() - values.min()) + 1.0  # groups' keys lie apart by more than any spread
@@ -173,7 +182,7 @@ class FingertipTracker:
                 n[i], c[i] = -n[i], -c[i]
                 s = -s
             s_list.append(np.sort(s))
-            eid.append(np.full(len(s), i))
+            eid.append(np.full(len(s), i, dtype=np.int64))
             n_ref.append(len(fit.q))
         levels = np.array([fits[key].levels for key in keys], float)
         pdir = np.array([fits[key].pdir for key in keys], float)
@@ -181,7 +190,7 @@ class FingertipTracker:
         cos = np.maximum(np.abs(np.sum(n * pdir, axis=1)), 0.5)  # the search samples no more obliquely
         # each edge's transition half-width along its profiles, from the blur the search measured
         sigma = np.array([x.sigma if x.sigma is not None else 1.6 / cc for x, cc in zip(sh, cos)])
-        h = np.clip(np.ceil(3 * sigma + 1), 2, 12).astype(int)
+        h = np.clip(np.ceil(3 * sigma + 1), 2, 12).astype(np.int64)
         sr1 = np.ceil(self.track_px / cos)
         s_all = np.concatenate(s_list)
         eid_all = np.concatenate(eid)
@@ -198,6 +207,7 @@ class FingertipTracker:
             "eid": eid_all,
             "phase": phase,
             "pdir": pdir,
+            "pd": pdir[eid_all],  # each profile's direction (fixed while tracked)
             "levels": levels,
             "crease": np.array([model.edges[key].crease for key in keys]),
             "reach": np.array([fits[key].reach for key in keys], float),
@@ -209,8 +219,9 @@ class FingertipTracker:
             "sr1": sr1[eid_all],
             "sr2": int(np.ceil(3.0 / cos).max()),
             "R2": int(np.ceil(3.0 / cos).max()) + int(h.max()) + PLATEAU_PX + 1,
-            "sub": np.arange(0, len(eid_all), 4),
+            "sub": np.arange(0, len(eid_all), 4, dtype=np.int64),
             "n_ref": np.array(n_ref),
+            "need": np.maximum(6, KEEP_FRACTION * np.array(n_ref)),  # of them, to be found again
             "bounds": np.searchsorted(eid_all, np.arange(E + 1)),
             "points": tracked,
             # the wanted points the search did not find, with its reasons, and the frames since
@@ -278,68 +289,41 @@ class FingertipTracker:
         H, W = img.shape
         E = len(st["keys"])
         n0, c0, eid = st["n"], st["c"], st["eid"]
-        # 1. the stations, placed at the end of the last frame: on each edge's line, at the same
-        # distances from its anchor corner as where the search found the edge
-        anchor_q = np.array([st["q_corner"][k] for k in st["anchor"]])
-        q_st, pts = st["q_st"], st["pts"]
-        pd = st["pdir"][eid]
-        M = len(q_st)
-        R = st["R"]
-        # profiles that would reach beyond the picture are sampled inside it and not used
-        edge_lim = np.array([W - 1.0, H - 1.0])
-        inside = np.all((pts - R - 1 >= 0) & (pts + R + 1 < edge_lim), axis=1)
-        pts_in = np.clip(pts, R + 1, edge_lim - R - 1.001)
-        rows = _Rows(st)
-        # 2. first, where each edge lies now: on every fourth profile, the strongest allowed step
-        # within track_px of the last line, and per edge the median of their offsets along the profiles
-        sub = st["sub"]
-        prof1 = _profiles_coarse(img, pts_in[sub], pd[sub], R)
-        lim = R - st["hmax"] - PLATEAU_PX - 1
-        at, peak, _, _, ok = _candidates(prof1, R, rows.subset(sub), -lim, 2 * lim)
-        ok &= (np.abs(at + 0.5) <= st["sr1"][sub]) & (np.abs(peak) >= MIN_CONTRAST) & inside[sub]
-        e1 = eid[sub]
-        n_ok = np.bincount(e1[ok], minlength=E)
-        n_sub = np.bincount(e1[inside[sub]], minlength=E)  # those whose profiles lie in the picture
-        # an edge near the picture's border may have too few such profiles: it is looked for near its
-        # last line only (the second pass and its checks tell whether it is still there)
-        located = n_sub >= 3
-        short = located & (n_ok < np.maximum(3, KEEP_FRACTION * n_sub))
-        if short.any():
-            i = int(np.flatnonzero(short)[0])
-            return f"edge {st['keys'][i]} shows a step in only {n_ok[i]} of {n_sub[i]} profiles"
-        offset = np.where(located, _group_median(at[ok] + 0.5, e1[ok], E), 0.0)
-        # 3. then, as the search's second pass, every profile within +-3 px of there (its line), the
-        # profiles moved to be centred on it: (M, 2 R2 + 1) grey levels and their running sums (the
-        # plateaus' and the transition's sums for windows of any width)
-        R2 = st["R2"]
-        ph = st["phase"] + offset[eid]
-        reach = R2 + np.abs(ph) + 1.0
-        inside = np.all((pts - reach[:, None] >= 0) & (pts + reach[:, None] < edge_lim), axis=1)
-        prof = _profiles(img, np.clip(pts, reach[:, None], edge_lim - reach[:, None] - 0.001), pd, ph, R2)
-        cs = np.zeros((M, prof.shape[1] + 1))
-        np.cumsum(prof, axis=1, dtype=np.float64, out=cs[:, 1:])
-        second = _steps(prof, cs, st, rows, pts, pd, ph, R2, st["sr2"], inside)
+        q_st = st["q_st"]
+        # the compiled kernels (selfview._ctrack) when built, else the Python reference; both compute
+        # the same, bit for bit (tests/selfview/test_native_track.py)
+        nat = _native.track
+        if nat is not None and getattr(nat, "API", None) != _CTRACK_API:  # a stale build
+            nat = None
+        # 1.-3. the edges' crossings in this frame (the stations are placed at the end of the last
+        # frame: on each edge's line, at the same distances from its anchor corner as where the search
+        # found the edge)
+        second = _passes(st, img) if nat is None else _passes_native(nat, st, img)
+        if isinstance(second, str):
+            return second
         if np.any(np.bincount(second.eid, minlength=E) < 6):
             return "an edge shows fewer than 6 steps near where it was found"
         q2 = cam.undistorted_pixels(second.cross)
-        n2, c2, w2 = _robust_lines(q2, second.eid, E, n0, c0)
-        inl = w2 > 0
-        ei = second.eid[inl]
-        n_in = np.bincount(ei, minlength=E)
+        if nat is None:
+            n2, c2, w2 = _robust_lines(q2, second.eid, E, n0, c0)
+            n_in, levels, ei, s_in, s_mean, s_ss, r_ss = _line_stats(q2, second, w2, n2, c2, E)
+        else:
+            n2, c2, w2 = np.empty((E, 2)), np.empty(E), np.empty(len(q2))
+            nat.lines(q2, second.eid, n0, c0, n2, c2, w2)
+            n_in, levels = np.empty(E, np.int64), np.empty((E, 2))
+            s_mean, s_ss, r_ss = np.empty(E), np.empty(E), np.empty(E)
+            s_in, ei = np.empty(len(q2)), np.empty(len(q2), np.int64)
+            k_in = nat.line_stats(
+                q2, second.eid, w2, n2, c2, second.Am, second.Bm, n_in, levels, s_mean, s_ss, r_ss, s_in, ei
+            )
+            s_in, ei = s_in[:k_in], ei[:k_in]
+        anchor_q = np.array([st["q_corner"][k] for k in st["anchor"]])
         why = self._edge_checks(n_in, n0, n2, c2, anchor_q)
         if why:
             return why
-        qi = q2[inl]
-        levels = _group_median(np.concatenate([second.Am[inl], second.Bm[inl]]), np.concatenate([ei, ei + E]), 2 * E)
-        levels = levels.reshape(2, E).T  # (E, 2): the low and high side's median grey level
         # 4. the corners: the search's weighted intersection of their lines
         t2 = np.column_stack([-n2[:, 1], n2[:, 0]])
-        s_in = np.sum(qi * t2[ei], axis=1)
-        r_in = np.sum(qi * n2[ei], axis=1) - c2[ei]
         cnt = np.maximum(n_in, 1)
-        s_mean = np.bincount(ei, s_in, E) / cnt
-        s_ss = np.bincount(ei, (s_in - s_mean[ei]) ** 2, E)
-        r_ss = np.bincount(ei, r_in * r_in, E)
         corners = {}
         for kpt in st["points"]:
             qc = _intersect(n2, c2, t2, st["corner_lines"][kpt], s_mean, s_ss, r_ss, cnt)
@@ -362,6 +346,7 @@ class FingertipTracker:
                 gap = float(near_in[li] - near_st[li])
                 if gap > CORNER_GAP_PX:
                     a, b = np.searchsorted(ei, [li, li + 1])
+                    qi = q2[w2 > 0]
                     fit = _Fit(n2[li], c2[li], qi[a:b], None, None, st["pdir"][li], levels[li], st["reach"][li])
                     if not _faces_reach_corner(img, cam, fit, bool(st["crease"][li]), corners[kpt], gap):
                         return f"no edge points within {gap:.0f} px of {POINT_NAMES[kpt]}"
@@ -376,16 +361,20 @@ class FingertipTracker:
         found = np.zeros(6, bool)
         rms = np.full(6, np.nan)
         npts = np.zeros(6, int)
-        for kpt, p in zip(st["points"], uv_c):
+        n_in_l, r_ss_l = n_in.tolist(), r_ss.tolist()
+        for kpt, p in zip(st["points"], uv_c.tolist()):
             if not (1.0 <= p[0] <= W - 2.0 and 1.0 <= p[1] <= H - 2.0):
                 return f"{POINT_NAMES[kpt]} left the picture"
-            if math.hypot(*(p - st["uv"][kpt])) > self.track_px:
+            if math.hypot(p[0] - st["uv"][kpt][0], p[1] - st["uv"][kpt][1]) > self.track_px:
                 return f"{POINT_NAMES[kpt]} moved beyond {self.track_px:.0f} px"
             lines = st["corner_lines"][kpt]
             uv[kpt] = p
             found[kpt] = True
-            npts[kpt] = int(n_in[lines].sum())
-            rms[kpt] = math.sqrt(float(r_ss[lines].sum()) / npts[kpt])
+            ss = 0.0  # summed in order, as np.sum sums a few values
+            for li in lines:
+                ss += r_ss_l[li]
+            npts[kpt] = sum(n_in_l[li] for li in lines)
+            rms[kpt] = math.sqrt(ss / npts[kpt])
             if rms[kpt] > MAX_EDGE_RMS_PX:
                 return f"the edge points of {POINT_NAMES[kpt]} scatter by {rms[kpt]:.2f} px about its lines"
         # 5. what the next frame starts from
@@ -404,8 +393,7 @@ class FingertipTracker:
     def _edge_checks(self, n_in, n_old, n_new, c_new, anchor_q) -> str | None:
         """Why the edges found in this frame are not to be believed, or None."""
         st = self._state
-        need = np.maximum(6, KEEP_FRACTION * st["n_ref"])
-        bad = np.flatnonzero(n_in < need)
+        bad = np.flatnonzero(n_in < st["need"])
         if len(bad):
             i = int(bad[0])
             return f"edge {st['keys'][i]} kept {n_in[i]} of its {st['n_ref'][i]} points"
@@ -416,6 +404,112 @@ class FingertipTracker:
         if np.any(shift > self.track_px - 3.0):
             return f"an edge moved {float(shift.max()):.1f} px, beyond the profiles' reach"
         return None
+
+
+def _passes(st: dict, img: np.ndarray):
+    """Steps 1-3 of ``_track`` (the reference): the accepted crossings of the second pass
+    (``_StepsFound``), or why the frame cannot be tracked (a string)."""
+    H, W = img.shape
+    E = len(st["keys"])
+    eid = st["eid"]
+    pts = st["pts"]
+    pd = st["pd"]
+    M = len(pts)
+    R = st["R"]
+    # profiles that would reach beyond the picture are sampled inside it and not used
+    edge_lim = np.array([W - 1.0, H - 1.0])
+    inside = np.all((pts - R - 1 >= 0) & (pts + R + 1 < edge_lim), axis=1)
+    pts_in = np.clip(pts, R + 1, edge_lim - R - 1.001)
+    rows = _Rows(st)
+    # 2. first, where each edge lies now: on every fourth profile, the strongest allowed step
+    # within track_px of the last line, and per edge the median of their offsets along the profiles
+    sub = st["sub"]
+    prof1 = _profiles_coarse(img, pts_in[sub], pd[sub], R)
+    lim = R - st["hmax"] - PLATEAU_PX - 1
+    at, peak, _, _, ok = _candidates(prof1, R, rows.subset(sub), -lim, 2 * lim)
+    ok &= (np.abs(at + 0.5) <= st["sr1"][sub]) & (np.abs(peak) >= MIN_CONTRAST) & inside[sub]
+    e1 = eid[sub]
+    n_ok = np.bincount(e1[ok], minlength=E)
+    n_sub = np.bincount(e1[inside[sub]], minlength=E)  # those whose profiles lie in the picture
+    # an edge near the picture's border may have too few such profiles: it is looked for near its
+    # last line only (the second pass and its checks tell whether it is still there)
+    located = n_sub >= 3
+    short = located & (n_ok < np.maximum(3, KEEP_FRACTION * n_sub))
+    if short.any():
+        i = int(np.flatnonzero(short)[0])
+        return f"edge {st['keys'][i]} shows a step in only {n_ok[i]} of {n_sub[i]} profiles"
+    offset = np.where(located, _group_median(at[ok] + 0.5, e1[ok], E), 0.0)
+    # 3. then, as the search's second pass, every profile within +-3 px of there (its line), the
+    # profiles moved to be centred on it: (M, 2 R2 + 1) grey levels and their running sums (the
+    # plateaus' and the transition's sums for windows of any width)
+    R2 = st["R2"]
+    ph = st["phase"] + offset[eid]
+    reach = R2 + np.abs(ph) + 1.0
+    inside = np.all((pts - reach[:, None] >= 0) & (pts + reach[:, None] < edge_lim), axis=1)
+    prof = _profiles(img, np.clip(pts, reach[:, None], edge_lim - reach[:, None] - 0.001), pd, ph, R2)
+    cs = np.zeros((M, prof.shape[1] + 1))
+    np.cumsum(prof, axis=1, dtype=np.float64, out=cs[:, 1:])
+    return _steps(prof, cs, st, rows, pts, pd, ph, R2, st["sr2"], inside)
+
+
+def _passes_native(nat, st: dict, img: np.ndarray):
+    """``_passes`` by the compiled kernels ``nat`` (``selfview._ctrack``): the same result. The coarse
+    profiles are still OpenCV's remap, the peaks' logarithms numpy's (its float32 log is not the C
+    library's)."""
+    H, W = img.shape
+    eid, pts, pd, sub = st["eid"], st["pts"], st["pd"], st["sub"]
+    M = len(pts)
+    R = st["R"]
+    levels = np.ascontiguousarray(st["levels"])
+    # 2. the coarse pass: the maps of _profiles_coarse, OpenCV's remap, then in C _candidates, its tests,
+    # the counts, and the median offsets (into the second pass's phases)
+    mx = np.empty((len(sub), 2 * R + 1), np.float32)
+    my = np.empty_like(mx)
+    nat.coarse_maps(pts, pd, sub, R, W, H, mx, my)
+    prof1 = cv2.remap(img, mx, my, cv2.INTER_LINEAR)
+    lim = R - st["hmax"] - PLATEAU_PX - 1
+    ph = np.empty(M)
+    short = nat.coarse(
+        prof1, sub, pts, eid, st["h"], levels, st["crease"], st["sr1"], st["phase"],
+        W, H, R, lim, PLATEAU_PX, MIN_CONTRAST, KEEP_FRACTION, ph,
+    )  # fmt: skip
+    if short is not None:
+        i, n_ok, n_sub = short
+        return f"edge {st['keys'][i]} shows a step in only {n_ok} of {n_sub} profiles"
+    # 3. the second pass: _profiles, the running sums, _steps up to the peaks' logarithms in C; np.log;
+    # the peaks and the crossings in C
+    cand = np.empty(M, np.int64)
+    est = np.empty((M, 5))
+    logarg = np.empty((M, 3), np.float64 if img.dtype == np.float64 else np.float32)
+    G = nat.fine(
+        img, pts, pd, ph, eid, st["h"], levels, st["crease"], st["g"], st["R2"], st["sr2"], PLATEAU_PX, MIN_CONTRAST,
+        cand, est, logarg,
+    )  # fmt: skip
+    lg = np.log(logarg[:G])
+    cross, eid2, Am, Bm = np.empty((G, 2)), np.empty(G, np.int64), np.empty(G), np.empty(G)
+    K = nat.finish(cand[:G], est[:G], lg, pts, pd, ph, eid, st["textured"], cross, eid2, Am, Bm)
+    return _StepsFound(cross[:K], eid2[:K], Am[:K], Bm[:K])
+
+
+def _line_stats(q2, second: "_StepsFound", w2, n2, c2, E: int):
+    """What the corners need of the lines' inliers (w2 > 0): their count per edge n_in (E,), the faces'
+    median levels (E, 2), their edges ei and positions along the lines s_in (Kin,), the positions' mean
+    and sum of squares about it, and the residuals' sum of squares per edge (E,) (the reference of
+    ``_ctrack.line_stats``)."""
+    inl = w2 > 0
+    ei = second.eid[inl]
+    n_in = np.bincount(ei, minlength=E)
+    qi = q2[inl]
+    levels = _group_median(np.concatenate([second.Am[inl], second.Bm[inl]]), np.concatenate([ei, ei + E]), 2 * E)
+    levels = levels.reshape(2, E).T  # (E, 2): the low and high side's median grey level
+    t2 = np.column_stack([-n2[:, 1], n2[:, 0]])
+    s_in = np.sum(qi * t2[ei], axis=1)
+    r_in = np.sum(qi * n2[ei], axis=1) - c2[ei]
+    cnt = np.maximum(n_in, 1)
+    s_mean = np.bincount(ei, s_in, E) / cnt
+    s_ss = np.bincount(ei, (s_in - s_mean[ei]) ** 2, E)
+    r_ss = np.bincount(ei, r_in * r_in, E)
+    return n_in, levels, ei, s_in, s_mean, s_ss, r_ss
 
 
 def _pair_rounds(pairs: list) -> list[list]:
@@ -437,7 +531,8 @@ def _stations(st: dict, corners: dict, n: np.ndarray) -> np.ndarray:
     the distances ``st['s']`` from its anchor corner (``corners``: point index -> (2,))."""
     anchor_q = np.array([corners[k] for k in st["anchor"]])
     eid = st["eid"]
-    return anchor_q[eid] + st["s"][:, None] * np.column_stack([-n[eid, 1], n[eid, 0]])
+    t = np.column_stack([-n[:, 1], n[:, 0]])  # each edge's tangent, gathered per profile
+    return anchor_q[eid] + st["s"][:, None] * t[eid]
 
 
 class _StepsFound:
@@ -451,7 +546,8 @@ class _StepsFound:
 
 
 def _profiles(img: np.ndarray, pts: np.ndarray, pd: np.ndarray, phase: np.ndarray, R: int) -> np.ndarray:
-    """Bilinear grey levels (M, 2R + 1) at pts + (j + phase) pd, j = -R..R (inside the picture)."""
+    """Bilinear grey levels (M, 2R + 1) at pts + (j + phase) pd, j = -R..R (inside the picture).
+    (In C: ``sample_row`` of ``_ctrack.fine`` and ``_ctrack.profiles``, the same operations.)"""
     W = img.shape[1]
     off = np.arange(-R, R + 1, dtype=np.float64)[None, :] + phase[:, None]
     x = pts[:, 0:1] + off * pd[:, 0:1]
@@ -509,7 +605,8 @@ def _candidates(prof, R: int, rows: _Rows, start: int, width: int):
     from ``start`` (profile coordinate of the sample before the step), keeping only steps that
     show the face's grey level on its side (and a crease's other face on the other).
     Returns (at (M,), the step's grey-level difference (M,), the differences (M, width), the column
-    index (M,) of the chosen one among them, whether the profile has any allowed step (M,))."""
+    index (M,) of the chosen one among them, whether the profile has any allowed step (M,)).
+    (In C: ``candidates`` in ``_ctrack.c``, for ``_ctrack.coarse`` and ``_ctrack.fine``.)"""
     P = PLATEAU_PX
     flat = prof.ravel()
     L = prof.shape[1]
@@ -533,7 +630,8 @@ def _steps(prof, cs, st: dict, rows: "_Rows", pts, pd, phase, R: int, half: int,
     ``fingertips._edge_steps`` locates it: the strongest step of either polarity that shows the face's grey level on its
     side (and a crease's other face on the other), its crossing by the area method (sloped plateaus,
     each edge's own transition width) or, over a textured background, by the peak of the rise; the
-    search's acceptance tests. ``cs`` the running sums of ``prof``; ``use`` (M,) the profiles to use."""
+    search's acceptance tests. ``cs`` the running sums of ``prof``; ``use`` (M,) the profiles to use.
+    (In C: ``_ctrack.fine`` up to the peaks' logarithms, ``_ctrack.finish`` after them.)"""
     P = PLATEAU_PX
     start = -half
     at, peak, diff, k, ok = _candidates(prof, R, rows, start, 2 * half)
@@ -581,7 +679,7 @@ def _robust_lines(q: np.ndarray, gid: np.ndarray, E: int, n_prev: np.ndarray, c_
     sorted), from the lines (n_prev, c_prev) near which they were looked for: Tukey weights about the
     median offset from those, then three rounds of weighted total least squares and Tukey reweighting
     (scale >= 0.05 px), as the search's ``_fit_line`` ends. Returns (n (E, 2), c (E,), weights (K,):
-    > 0 for the inliers)."""
+    > 0 for the inliers). (In C: ``_ctrack.lines``.)"""
     groups = _Groups(gid, E)
     starts = np.searchsorted(gid, np.arange(E))
     r = np.sum(q * n_prev[gid], axis=1) - c_prev[gid]
