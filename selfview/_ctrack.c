@@ -1,5 +1,5 @@
 /* selfview._ctrack: the compiled kernels of the fingertip tracker's per-frame step
- * (selfview.tracking.FingertipTracker._track).
+ * (selfview.tracking.FingertipTracker._track), and a few of the full search's (selfview.fingertips).
  *
  * The Python code in selfview/tracking.py is the reference: each kernel computes what a chain of numpy
  * calls there computes, in the same order of operations and the same precision (float32 where numpy
@@ -19,6 +19,10 @@
  *   lines(q, gid, n_prev, c_prev, n, c, w)                     _robust_lines
  *   line_stats(q, gid, w, n, c, Am, Bm, n_in, levels, s_mean, s_ss, r_ss, s_in, ei)  -> Kin
  *   group_median(values, gid, n, out)                          _Groups.median
+ * and three of the full search's (selfview.fingertips.find_fingertips, its Python code the reference):
+ *   clear(st, others, pdir, R, margin, ok)                     the profiles clear of other edges (_edge_steps)
+ *   search_profiles(img, st, pdir, ph, R, out)                 _edge_steps's bilinear profiles
+ *   template_sums(Gn, q, n, out)                               _template_score's sums of one edge
  *
  * Every buffer is checked (type, number of dimensions, shape, lengths consistent with the others) and
  * every index into a buffer is checked before it is used: bad arguments raise TypeError or ValueError
@@ -39,7 +43,7 @@
 #pragma GCC optimize("fp-contract=off")
 #endif
 
-#define API_VERSION 1
+#define API_VERSION 2
 
 /* sizes given as arguments (profile half-lengths, windows) beyond this are refused: no overflow */
 #define MAX_SIZE ((Py_ssize_t)1 << 20)
@@ -1257,6 +1261,159 @@ fail:
 }
 
 /* ------------------------------------------------------------------------------------------------ */
+/* the search's kernels (selfview.fingertips, the reference there)                                  */
+
+/* clear(st, others, pdir, R, margin, ok): _edge_steps's test that no point of another edge comes within
+ * ``margin`` of a profile: per station s (S, 2) the least over others o (K, 2) of |rel - tt pdir|^2,
+ * rel = o - st, tt = clip(rel . pdir, -R, R). numpy computes rel @ pdir as it likes (BLAS may fuse), so
+ * the answer ok (S,) uint8 is 1 where that least is certainly >= margin^2, 0 where certainly below, 2
+ * where it lies within 1e-6 of it or is NaN (the caller decides those rows with numpy). */
+static PyObject *py_clear(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *o_st, *o_oth, *o_pd, *o_ok;
+    double R, margin;
+    BufSet bs = {.n = 0};
+    Py_buffer *b_st, *b_oth, *b_pd, *b_ok;
+    PyObject *result = NULL;
+    if (!PyArg_ParseTuple(args, "OOOddO:clear", &o_st, &o_oth, &o_pd, &R, &margin, &o_ok))
+        return NULL;
+    if (!(R >= 0.0 && R <= (double)MAX_SIZE && margin >= 0.0 && margin <= (double)MAX_SIZE)) {
+        PyErr_Format(PyExc_ValueError, "R, margin: expected 0 <= R, margin <= 2**20, got %g, %g", R, margin);
+        return NULL;
+    }
+    GET(b_st, o_st, "st", T_F64, 0, 2, -1, 2);
+    Py_ssize_t S = b_st->shape[0];
+    GET(b_oth, o_oth, "others", T_F64, 0, 2, -1, 2);
+    Py_ssize_t K = b_oth->shape[0];
+    GET(b_pd, o_pd, "pdir", T_F64, 0, 1, 2);
+    GET(b_ok, o_ok, "ok", T_U8, 1, 1, S);
+    const double *st = b_st->buf, *oth = b_oth->buf, *pd = b_pd->buf;
+    unsigned char *ok = b_ok->buf;
+    const double px = pd[0], py = pd[1], m2 = margin * margin, lo = m2 - 1e-6, hi = m2 + 1e-6;
+    for (Py_ssize_t s = 0; s < S; s++) {
+        const double sx = st[2 * s], sy = st[2 * s + 1];
+        unsigned char v = 1;
+        for (Py_ssize_t k = 0; k < K; k++) {
+            const double rx = oth[2 * k] - sx, ry = oth[2 * k + 1] - sy;
+            const double tt = np_clip(rx * px + ry * py, -R, R);
+            const double dx = rx - tt * px, dy = ry - tt * py;
+            const double d2 = dx * dx + dy * dy;
+            if (d2 < lo) {
+                v = 0;
+                break;
+            }
+            if (!(d2 >= hi))
+                v = 2; /* near the margin, or NaN: numpy decides */
+        }
+        ok[s] = v;
+    }
+    result = Py_None;
+    Py_INCREF(result);
+fail:
+    bufs_release(&bs);
+    return result;
+}
+
+/* search_profiles(img, st, pdir, ph, R, out): _edge_steps's profiles, _bilinear(img, pos) at
+ * pos = st + (j + ph) pdir, j = -R..R, for a float32 picture: float64 weights and sums, in its order
+ * (v00 (1 - fx) + v01 fx) (1 - fy) + (v10 (1 - fx) + v11 fx) fy; out (S, 2R + 1) float64. A sample
+ * outside [0, W - 1) x [0, H - 1) raises ValueError (the caller keeps its profiles inside). */
+static PyObject *py_search_profiles(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *o_img, *o_st, *o_pd, *o_ph, *o_out;
+    Py_ssize_t R;
+    BufSet bs = {.n = 0};
+    Py_buffer *b_img, *b_st, *b_pd, *b_ph, *b_out;
+    PyObject *result = NULL;
+    if (!PyArg_ParseTuple(args, "OOOOnO:search_profiles", &o_img, &o_st, &o_pd, &o_ph, &R, &o_out))
+        return NULL;
+    if (R < 0 || R > MAX_SIZE) {
+        PyErr_Format(PyExc_ValueError, "R: expected 0 <= R <= 2**20, got %zd", R);
+        return NULL;
+    }
+    GET(b_img, o_img, "img", T_F32, 0, 2, -1, -1);
+    GET(b_st, o_st, "st", T_F64, 0, 2, -1, 2);
+    Py_ssize_t S = b_st->shape[0], L = 2 * R + 1;
+    GET(b_pd, o_pd, "pdir", T_F64, 0, 1, 2);
+    GET(b_ph, o_ph, "ph", T_F64, 0, 1, S);
+    GET(b_out, o_out, "out", T_F64, 1, 2, S, L);
+    const float *a = b_img->buf;
+    const Py_ssize_t W = b_img->shape[1], H = b_img->shape[0];
+    const double *st = b_st->buf, *pd = b_pd->buf, *ph = b_ph->buf;
+    double *out = b_out->buf;
+    const double wlim = (double)(W - 1), hlim = (double)(H - 1);
+    for (Py_ssize_t s = 0; s < S; s++) {
+        for (Py_ssize_t j = 0; j < L; j++) {
+            const double t = (double)(j - R) + ph[s]; /* j[None, :] + ph[:, None] */
+            const double x = st[2 * s] + t * pd[0], y = st[2 * s + 1] + t * pd[1];
+            if (!(x >= 0.0 && x < wlim && y >= 0.0 && y < hlim)) {
+                PyErr_Format(PyExc_ValueError, "st, pdir, ph: sample %zd of profile %zd lies outside the %zdx%zd picture",
+                             j, s, W, H);
+                goto fail;
+            }
+            /* np.floor: for 0 <= x < W - 1 the truncation */
+            const Py_ssize_t ix = (Py_ssize_t)x, iy = (Py_ssize_t)y;
+            const double fx = x - (double)ix, fy = y - (double)iy;
+            const Py_ssize_t i00 = iy * W + ix;
+            const double v00 = a[i00], v01 = a[i00 + 1], v10 = a[i00 + W], v11 = a[i00 + W + 1];
+            out[s * L + j] = (v00 * (1 - fx) + v01 * fx) * (1 - fy) + (v10 * (1 - fx) + v11 * fx) * fy;
+        }
+    }
+    result = Py_None;
+    Py_INCREF(result);
+fail:
+    bufs_release(&bs);
+    return result;
+}
+
+/* template_sums(Gn, q, n, out): _template_score's sums of one edge, out (n, n) float32 += Gn[qy:qy + n,
+ * qx:qx + n] for each template point (qx, qy) of q (M, 2) in turn (float32 additions, in that order). */
+static PyObject *py_template_sums(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *o_g, *o_q, *o_out;
+    Py_ssize_t n;
+    BufSet bs = {.n = 0};
+    Py_buffer *b_g, *b_q, *b_out;
+    PyObject *result = NULL;
+    if (!PyArg_ParseTuple(args, "OOnO:template_sums", &o_g, &o_q, &n, &o_out))
+        return NULL;
+    if (n < 1 || n > MAX_SIZE) {
+        PyErr_Format(PyExc_ValueError, "n: expected 1 <= n <= 2**20, got %zd", n);
+        return NULL;
+    }
+    GET(b_g, o_g, "Gn", T_F32, 0, 2, -1, -1);
+    GET(b_q, o_q, "q", T_I64, 0, 2, -1, 2);
+    GET(b_out, o_out, "out", T_F32, 1, 2, n, n);
+    const float *g = b_g->buf;
+    const int64_t *q = b_q->buf;
+    float *out = b_out->buf;
+    const Py_ssize_t gh = b_g->shape[0], gw = b_g->shape[1], M = b_q->shape[0];
+    for (Py_ssize_t m = 0; m < M; m++)
+        if (q[2 * m] < 0 || q[2 * m + 1] < 0 || q[2 * m] > (int64_t)(gw - n) || q[2 * m + 1] > (int64_t)(gh - n)) {
+            PyErr_Format(PyExc_ValueError, "q: point %zd (%lld, %lld) puts a %zdx%zd window outside Gn (%zdx%zd)", m,
+                         (long long)q[2 * m], (long long)q[2 * m + 1], n, n, gw, gh);
+            goto fail;
+        }
+    for (Py_ssize_t m = 0; m < M; m++) {
+        const float *src = g + (Py_ssize_t)q[2 * m + 1] * gw + (Py_ssize_t)q[2 * m];
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const float *row = src + i * gw;
+            float *acc = out + i * n;
+            for (Py_ssize_t j = 0; j < n; j++)
+                acc[j] += row[j];
+        }
+    }
+    result = Py_None;
+    Py_INCREF(result);
+fail:
+    bufs_release(&bs);
+    return result;
+}
+
+/* ------------------------------------------------------------------------------------------------ */
 
 static PyMethodDef methods[] = {
     {"coarse_maps", py_coarse_maps, METH_VARARGS,
@@ -1275,6 +1432,12 @@ static PyMethodDef methods[] = {
      "line_stats(q, gid, w, n, c, Am, Bm, n_in, levels, s_mean, s_ss, r_ss, s_in, ei) -> Kin."},
     {"group_median", py_group_median, METH_VARARGS,
      "group_median(values, gid, n, out): the median per group, as tracking._Groups.median."},
+    {"clear", py_clear, METH_VARARGS,
+     "clear(st, others, pdir, R, margin, ok): fingertips._edge_steps's profiles clear of other edges (1, 0, 2: unsure)."},
+    {"search_profiles", py_search_profiles, METH_VARARGS,
+     "search_profiles(img, st, pdir, ph, R, out): fingertips._edge_steps's bilinear profiles (float64)."},
+    {"template_sums", py_template_sums, METH_VARARGS,
+     "template_sums(Gn, q, n, out): fingertips._template_score's sums of one edge (float32, in order)."},
     {NULL, NULL, 0, NULL},
 };
 

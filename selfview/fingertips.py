@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from selfview import _native
 from selfview.camera import CameraModel
 from selfview.cell import POINT_NAMES, GripperSpec
 from selfview.discs import as_gray
@@ -61,6 +62,15 @@ MAX_EDGE_RMS_PX = 0.5  # edge points of a corner scattering more about its lines
 # within +-1.5 px of it, for blurs sigma (px), increasing fraction order for np.interp
 _BLUR_SIGMA = np.linspace(4.0, 0.3, 38)
 _BLUR_F = np.array([math.erf(1.5 / (s_ * math.sqrt(2))) for s_ in _BLUR_SIGMA])
+_CTRACK_API = 2  # the interface of selfview._ctrack that this module and selfview.tracking call (its API)
+
+
+def _kernels():
+    """``selfview._ctrack`` when it is in use and of this interface (read at each call: a test may set
+    ``selfview._native.track`` to None), else None: the Python code here runs, the reference. The kernels
+    compute what the numpy code beside their calls computes, bit for bit (tests/selfview/test_native_search.py)."""
+    nat = _native.track
+    return nat if nat is not None and getattr(nat, "API", None) == _CTRACK_API else None
 
 
 @dataclass
@@ -265,9 +275,13 @@ def _template_score(G: np.ndarray, pts: list[np.ndarray], normals: np.ndarray, g
     Returns (score (2 span + 1, 2 span + 1), per-edge sums (E, 2 span + 1, 2 span + 1))."""
     n = 2 * span + 1
     sums = np.zeros((len(pts), n, n), np.float32)
+    nat = _kernels()
     for e, q in enumerate(pts):
         Gn = normals[e, 0] * G[0] + normals[e, 1] * G[1]
         acc = sums[e]
+        if nat is not None:  # the same float32 additions in the same order
+            nat.template_sums(Gn, np.ascontiguousarray(q, np.int64), n, acc)
+            continue
         for qx, qy in q:
             acc += Gn[qy : qy + n, qx : qx + n]
     return _group_score(sums, groups), sums
@@ -297,6 +311,17 @@ def _padded_gradient(img: np.ndarray, lo: np.ndarray, hi: np.ndarray, s: int, sm
     G[0, off[1] : off[1] + ch, off[0] : off[0] + cw] = cv2.Sobel(crop, cv2.CV_32F, 1, 0) / 8
     G[1, off[1] : off[1] + ch, off[0] : off[0] + cw] = cv2.Sobel(crop, cv2.CV_32F, 0, 1) / 8
     return G
+
+
+def _unique_rows(a: np.ndarray) -> np.ndarray:
+    """``np.unique(a, axis=0)`` of integer points a (M, 2), faster: the same rows in the same
+    (lexicographic) order, through one integer key per row."""
+    if len(a) == 0:
+        return np.unique(a, axis=0)
+    mn = a.min(0)
+    span = int(a[:, 1].max() - mn[1]) + 1
+    u = np.unique((a[:, 0] - mn[0]) * span + (a[:, 1] - mn[1]))
+    return np.column_stack([u // span + mn[0], u % span + mn[1]])
 
 
 def _coarse_shift(img: np.ndarray, polys: list[np.ndarray], search_px: float, into=None, groups=None):
@@ -330,7 +355,7 @@ def _coarse_shift(img: np.ndarray, polys: list[np.ndarray], search_px: float, in
     if np.any(np.minimum(hi * s, (W, H)) - np.maximum(lo * s, 0) < 4 * s):
         return None
     G = _padded_gradient(img, lo, hi, s, 1.0)
-    tpl = [np.unique(np.rint(p / s).astype(int), axis=0) - lo - span for p in polys]
+    tpl = [_unique_rows(np.rint(p / s).astype(int)) - lo - span for p in polys]
     score, _ = _template_score(G, tpl, normals, groups, span)
     # it blurs the fingers' finer edges more than the rims of discs: refine its best few local maxima
     peaks = (score == cv2.dilate(score, np.ones((5, 5), np.uint8))) & (score > 0)
@@ -347,14 +372,17 @@ def _coarse_shift(img: np.ndarray, polys: list[np.ndarray], search_px: float, in
     G = _padded_gradient(img, lo, hi, 1, 1.5)
     dv, du = np.mgrid[-r : r + 1, -r : r + 1]
     shifts = np.column_stack([du.ravel(), dv.ravel()])
+    # each edge's normal gradient over the window (the same float32 operations per pixel as on the
+    # gathered points), gathered at the template's points at every shift
+    Gn = [(normals[e, 0] * G[0] + normals[e, 1] * G[1]).ravel() for e in range(len(polys))]
+    gw = G.shape[2]
+    flat_shifts = shifts[:, 1] * gw + shifts[:, 0]
     best = None
     for centre in centres:
         sums = np.zeros((len(polys), len(shifts)), np.float32)
         for e, poly in enumerate(polys):
-            q = np.unique(np.rint(poly + centre).astype(int), axis=0) - lo
-            x = q[None, :, 0] + shifts[:, None, 0]
-            y = q[None, :, 1] + shifts[:, None, 1]
-            sums[e] = (normals[e, 0] * G[0, y, x] + normals[e, 1] * G[1, y, x]).sum(1)
+            q = _unique_rows(np.rint(poly + centre).astype(int)) - lo
+            sums[e] = Gn[e][(q[:, 1] * gw + q[:, 0])[None, :] + flat_shifts[:, None]].sum(1)
         score = _group_score(sums, groups)
         i = int(np.argmax(score))
         if best is None or score[i] > best[0]:
@@ -464,14 +492,22 @@ def _edge_steps(img, poly, pdir, sign, others, search, shading: _Shading, both_s
     sr = int(np.ceil(search / cos))
     R = sr + h + P + 1
     ok = np.all((st - R - 1 >= 0) & (st + R + 1 < (W - 1, H - 1)), axis=1)  # the dither adds up to 0.5
+    nat = _kernels() if img.dtype == np.float32 else None
     if len(others):
         lo, hi = st.min(0) - R - BLUR_MARGIN, st.max(0) + R + BLUR_MARGIN
         o = others[np.all((others > lo) & (others < hi), axis=1)]
         if len(o):
-            rel = o[None, :, :] - st[:, None, :]
-            tt = np.clip(rel @ pdir, -R, R)
-            dist2 = np.sum((rel - tt[..., None] * pdir) ** 2, axis=2)
-            ok &= np.min(dist2, axis=1) >= BLUR_MARGIN**2
+            if nat is not None:
+                # the same test; where the kernel's sums (rounded its own way) lie too near the margin
+                # to tell, numpy's over the same others decides
+                clear = np.empty(len(st), np.uint8)
+                nat.clear(st, np.ascontiguousarray(o, np.float64), pdir.astype(np.float64), float(R), float(BLUR_MARGIN), clear)
+                unsure = clear == 2
+                if unsure.any():
+                    clear[unsure] = _clear_of(st[unsure], o, pdir, R)
+                ok &= clear == 1
+            else:
+                ok &= _clear_of(st, o, pdir, R)
     st = st[ok]
     if len(st) == 0:
         return empty
@@ -479,8 +515,12 @@ def _edge_steps(img, poly, pdir, sign, others, search, shading: _Shading, both_s
     # dither the profiles' sample phase along the edge (golden-ratio sequence), so that whatever bias a
     # phase has averages out over the crossings instead of repeating on an edge the prediction fits
     ph = (np.arange(len(st)) * 0.6180339887) % 1.0 - 0.5
-    pos = st[:, None, :] + (j[None, :] + ph[:, None])[..., None] * pdir[None, None, :]
-    prof = _bilinear(img, pos)
+    if nat is not None:  # _bilinear(img, pos) below, the same operations
+        prof = np.empty((len(st), 2 * R + 1))
+        nat.search_profiles(img, np.ascontiguousarray(st), pdir.astype(np.float64), ph, R, prof)
+    else:
+        pos = st[:, None, :] + (j[None, :] + ph[:, None])[..., None] * pdir[None, None, :]
+        prof = _bilinear(img, pos)
     mid = slice(R - sr, R + sr + 1)
     diff = prof[:, mid][:, 1:] - prof[:, mid][:, :-1]
     score = np.abs(diff) if both_signs else diff * step_sign
@@ -520,6 +560,15 @@ def _edge_steps(img, poly, pdir, sign, others, search, shading: _Shading, both_s
         st[good] + (e + ph)[good, None] * pdir[None, :], np.column_stack([Am, Bm])[good], win[good],
         (wi - R)[good].astype(float), P, st, pdir, st[good] + (e_peak + ph)[good, None] * pdir[None, :],
     )
+
+
+def _clear_of(st: np.ndarray, o: np.ndarray, pdir: np.ndarray, R: int) -> np.ndarray:
+    """(S,) whether no point of o (K, 2) lies within ``BLUR_MARGIN`` of the profiles of +-R px along
+    ``pdir`` at the stations st (S, 2)."""
+    rel = o[None, :, :] - st[:, None, :]
+    tt = np.clip(rel @ pdir, -R, R)
+    dist2 = np.sum((rel - tt[..., None] * pdir) ** 2, axis=2)
+    return np.min(dist2, axis=1) >= BLUR_MARGIN**2
 
 
 def _step_estimates(at, x_lo, x_hi, x_A, x_B, Am, Bm, S, g_lo, g_hi, diff, k, sgn):
@@ -563,15 +612,30 @@ def _tukey(r: np.ndarray, floor: float) -> np.ndarray:
     return np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
 
 
+_PAIR_DRAWS: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _pair_draws(N: int) -> tuple[np.ndarray, np.ndarray]:
+    """The 40 pairs of point indices (i, j) that ``_fit_line`` tries for N points: drawn from a
+    generator seeded with N (deterministic), so kept once drawn (read-only)."""
+    ij = _PAIR_DRAWS.get(N)
+    if ij is None:
+        rng = np.random.default_rng(N)
+        ij = (rng.integers(0, N, 40), rng.integers(0, N, 40))
+        for a in ij:
+            a.flags.writeable = False
+        if len(_PAIR_DRAWS) < 4096:
+            _PAIR_DRAWS[N] = ij
+    return ij
+
+
 def _fit_line(q: np.ndarray, t_pred: np.ndarray, iters: int = 3):
     """Robust line through points q (N, 2) running near direction ``t_pred`` (2,): the pair of points
     (within 10 degrees of it) with most points within 0.25 px, then Tukey reweighting (scale >= 0.05 px).
     Returns (n, c, inlier mask) with n.q = c."""
     N = len(q)
     t_pred = t_pred / np.linalg.norm(t_pred)
-    rng = np.random.default_rng(N)  # deterministic
-    i = rng.integers(0, N, 40)
-    j = rng.integers(0, N, 40)
+    i, j = _pair_draws(N)
     d = q[j] - q[i]
     ln = np.linalg.norm(d, axis=1)
     ok = (ln > 5.0) & (np.abs(d @ t_pred) > np.cos(np.radians(10)) * ln)

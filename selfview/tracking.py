@@ -50,6 +50,7 @@ from selfview.fingertips import (
     MAX_EDGE_RMS_PX,
     MIN_CONTRAST,
     PLATEAU_PX,
+    _CTRACK_API,  # the interface of selfview._ctrack this module calls (its API), one for both modules
     FingertipResult,
     _faces_reach_corner,
     _Fit,
@@ -63,7 +64,6 @@ __all__ = ["FingertipTracker"]
 MAX_TURN_DEG = 5.0  # an edge that turns more between two frames is searched for again
 KEEP_FRACTION = 0.35  # of the points the search found on an edge, that a tracked frame must find again
 CORNER_GAP_PX = 10.0  # edge points must come this close to the corner (beyond the first profile's)
-_CTRACK_API = 1  # the interface of selfview._ctrack this module calls (its API)
 
 
 class _Groups:
