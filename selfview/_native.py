@@ -4,15 +4,16 @@ pure-Python reference.
 Two C extension modules, built by ``pip install`` when a C compiler is present (``setup.py``; a failed
 build leaves the package working on the Python code):
 
-- ``selfview._cnpu``: the paper's differential update (``online.differential_update``), eq. 15-17
-  and the least squares, for the common case (finite input, points in front of the camera, a system
-  well enough conditioned that the cheap bound settles it);
+- ``selfview._cnpu``: the on-line solves for the common case (finite input, points in front of the
+  camera, a system well enough conditioned that the cheap bound settles it): ``np_u``, the paper's
+  differential update (``online.differential_update``, eq. 15-17 and the least squares), and ``np_i``,
+  the Gauss-Newton on SE(3) of NP-I and of NP-R's refinement (``online._gauss_newton``);
 - ``selfview._ctrack``: the tracker's profile sampling, step location and robust line fits
   (``tracking.FingertipTracker``).
 
 Each computes what the Python code beside it computes, in the same order of operations, and hands any
-case it does not handle (bad input, a degenerate system) back to the Python code, which raises the
-errors. The Python code is the reference: the tests run both on the same input and compare them.
+case it does not handle (bad input, a degenerate system, no convergence) back to the Python code, which
+raises the errors. The Python code is the reference: the tests run both on the same input and compare them.
 
 Set ``SELFVIEW_PURE_PYTHON=1`` in the environment to run the Python code only. The modules are looked
 up when this module is first imported; ``npu`` and ``track`` are the modules or None, read at each call

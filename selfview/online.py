@@ -34,7 +34,7 @@ from selfview import _native
 from selfview.camera import CameraModel, distort
 from selfview.cell import POINT_NAMES
 from selfview.errors import CalibrationError, ConfigError
-from selfview.geometry import delta_star, make_H
+from selfview.geometry import delta_star
 
 __all__ = [
     "METHODS",
@@ -199,8 +199,9 @@ del _name, _property
 # algebra, at a fraction of numpy.linalg's cost per call. The diagnostics that need an SVD of their own
 # (condition number, covariance, C_H_G_orth) are computed when first read (MotionEstimate), and the
 # conditioning check gets by without one (_checked_inverse). Where the compiled kernel is built
-# (selfview._cnpu, see differential_update) it takes the common case of NP-U in a few us; this Python
-# code stays the reference it is tested against, and takes every other case.
+# (selfview._cnpu, see differential_update and _gauss_newton_native) it takes the common case of NP-U
+# and of the Gauss-Newton of NP-I and NP-R in a few us; this Python code stays the reference it is
+# tested against, and takes every other case.
 def _prepare(C_H_G, p_G, uv, camera, names, kind: str):
     """Validated input: float arrays H (4, 4), P (N, 3), uv (N, 2); the same as nested lists of Python
     floats (Hl, Pl, uvl: what the per-point arithmetic reads); the point names and the method label."""
@@ -222,6 +223,11 @@ def _prepare(C_H_G, p_G, uv, camera, names, kind: str):
     if n < need:
         raise CalibrationError(f"{label} ({_KIND_NAME[kind]}): needs at least {need} points, got {n}")
     Hl, Pl, uvl = H.tolist(), P.tolist(), uv.tolist()
+    if kind != "U":  # NP-I and NP-R start from, or choose by, the nearest rotation: it must not mirror
+        (a, b, c, _), (d, e, f, _), (g, h, i, _) = Hl[:3]
+        det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+        if not det > 0.0 and math.isfinite(det):
+            raise CalibrationError(f"{label}: C_H_G is no rigid motion (its 3x3 part has determinant {det:.3g})")
     # One sum rather than a test per number: a NaN or an infinity anywhere makes the sum non-finite.
     # (So can an overflow of huge finite values, which the exact checks then let through.)
     if not math.isfinite(sum(chain(*Hl, *Pl, *uvl))):
@@ -647,6 +653,58 @@ def _gauss_newton(H0, H_start, P, P_list, obs, camera, names, label, tol, max_it
     return _estimate(label, H, H, motion, res, rms, covariance, partial(_condition, N), names, it, H0)
 
 
+class _GaussNewtonKernelResult(tuple):
+    """(blob, N, prior_sigma_px) of one Gauss-Newton by the compiled kernel (``selfview._cnpu.np_i``):
+    its blob holds the normal matrix J^T J (6, 6) of the last accepted linearisation, the residuals
+    (N, 2) [px] and the linearised residuals (2N,) after the last step. The methods are the deferred
+    attributes of its ``MotionEstimate``, computed as ``_gauss_newton`` computes them."""
+
+    __slots__ = ()
+
+    def _normal(self) -> np.ndarray:
+        return np.frombuffer(self[0], float, 36).reshape(6, 6).copy()
+
+    def residuals(self) -> np.ndarray:
+        blob, n = self[0], self[1]
+        return np.frombuffer(blob, float, 2 * n, 288).reshape(n, 2).copy()
+
+    def covariance(self) -> np.ndarray:
+        blob, n = self[0], self[1]
+        r = np.frombuffer(blob, float, 2 * n, 288 + 16 * n).tolist()
+        return _sigma2(sum(v * v for v in r), len(r), self[2]) * _svd_inverse(self._normal())
+
+    def condition(self) -> float:
+        return _condition(self._normal())
+
+
+def _gauss_newton_native(kind, H0, H_start, P, uv, camera, names, tol, max_iter, prior_sigma_px):
+    """``_gauss_newton`` by the compiled kernel, from ``H_start`` (4, 4) or, if None, from ``H0`` (4, 4)
+    made orthonormal: the ``MotionEstimate`` (method ``NP-<kind>``), or None for a case the kernel
+    leaves to the Python code (which raises the errors)."""
+    H, x = np.empty((4, 4)), np.empty(6)
+    out = _native.npu.np_i(H0, H_start, P, uv, camera, MAX_CONDITION, tol, max_iter, H, x)
+    if out is None:
+        return None
+    rms, delta_deg, d_mm, iterations, blob = out
+    n = len(P)
+    later = _GaussNewtonKernelResult((blob, n, prior_sigma_px))
+    return MotionEstimate(
+        f"{n}P-{kind}",
+        H,
+        H,
+        x,
+        delta_deg,
+        d_mm,
+        later.residuals,
+        rms,
+        later.covariance,
+        later.condition,
+        _DEFAULT_NAMES[n] if names is None and n in _DEFAULT_NAMES else _point_names(names, n),
+        iterations,
+        H0,
+    )
+
+
 def iterative_update(
     C_H_G,
     p_G,
@@ -670,12 +728,22 @@ def iterative_update(
     Raises ``CalibrationError`` for fewer than 3 points, non-finite input, points behind the camera,
     collinear points, an ill-conditioned system or no convergence in ``max_iter`` steps.
     """
+    if _native.npu is not None and isinstance(camera, CameraModel):
+        # the compiled Gauss-Newton (as in differential_update: None hands the case to the code below)
+        C_H_G = np.asarray(C_H_G, dtype=float)
+        p_G = np.asarray(p_G, dtype=float)
+        est = _gauss_newton_native("I", C_H_G, None, p_G, np.asarray(uv, dtype=float), camera, names, tol, max_iter,
+                                   prior_sigma_px)
+        if est is not None:
+            return est
     H0, P, _, _, Pl, uvl, names, label = _prepare(C_H_G, p_G, uv, camera, names, "I")
     obs = _undistort(camera, uvl)
     return _gauss_newton(H0, _orthonormal(H0), P, Pl, obs, camera, names, label, tol, max_iter, prior_sigma_px)
 
 
 # --- NP-R -------------------------------------------------------------------------------------------
+_EYE3 = np.eye(3)  # the camera matrix of normalised coordinates (OpenCV only reads it)
+
 def _mean_point_distance(Ha: np.ndarray, Hb: np.ndarray, P_list) -> float:
     """Mean distance [mm] between the camera coordinates of the points [(x, y, z)] under two transforms."""
     (a1, a2, a3, a4), (b1, b2, b3, b4), (c1, c2, c3, c4) = (Ha[:3] - Hb[:3]).tolist()
@@ -708,7 +776,7 @@ def recalibrate(
     Raises ``CalibrationError`` for fewer than 4 points, non-finite input, collinear points, no
     solution, an ill-conditioned system or no convergence.
     """
-    H0, P, _, _, Pl, uvl, names, label = _prepare(C_H_G, p_G, uv, camera, names, "R")
+    H0, P, uv, _, Pl, uvl, names, label = _prepare(C_H_G, p_G, uv, camera, names, "R")
     s = _spread(P)
     why = _collinear_reason(P, s)
     if why:
@@ -721,20 +789,30 @@ def recalibrate(
     H_ref = _orthonormal(H0)
     R0 = H_ref[:3, :3]
     obj = np.dot(P, R0.T).reshape(-1, 1, 3)
-    img = np.array([(X, Y) for _, _, X, Y in obs]).reshape(-1, 1, 2) / camera.f
+    f = camera.f
+    img = np.array([(X / f, Y / f) for _, _, X, Y in obs]).reshape(-1, 1, 2)
     flag = cv2.SOLVEPNP_IPPE if s[2] <= 1e-6 * s[0] else cv2.SOLVEPNP_SQPNP
     try:
-        n_sol, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, np.eye(3), None, flags=flag)
+        n_sol, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, _EYE3, None, flags=flag)
     except cv2.error as exc:
         raise CalibrationError(f"{label}: OpenCV's solvePnPGeneric failed ({exc.err})") from exc
-    cands = [
-        make_H(np.dot(cv2.Rodrigues(rv)[0], R0), tv.ravel())  # C_H_G = C_H_F F_H_G
-        for rv, tv in zip(rvecs[:n_sol], tvecs[:n_sol])
-        if np.isfinite(rv).all() and np.isfinite(tv).all()
-    ]
+    cands = []
+    for rv, tv in zip(rvecs[:n_sol], tvecs[:n_sol]):
+        t = tv.ravel().tolist()
+        if not math.isfinite(sum(rv.ravel().tolist()) + sum(t)):
+            continue
+        Hc = np.empty((4, 4))  # C_H_G = C_H_F F_H_G
+        Hc[:3, :3] = np.dot(cv2.Rodrigues(rv)[0], R0)
+        Hc[:3, 3] = t
+        Hc[3] = (0.0, 0.0, 0.0, 1.0)
+        cands.append(Hc)
     if not cands:
         raise CalibrationError(f"{label}: the exterior orientation has no solution for these points")
     start = min(cands, key=lambda Hc: _mean_point_distance(Hc, H_ref, Pl))
+    if _native.npu is not None:
+        est = _gauss_newton_native("R", H0, start, P, uv, camera, names, tol, max_iter, prior_sigma_px)
+        if est is not None:
+            return est
     return _gauss_newton(H0, start, P, Pl, obs, camera, names, label, tol, max_iter, prior_sigma_px)
 
 
