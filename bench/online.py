@@ -210,6 +210,8 @@ def main(argv=None) -> int:
         "tcp_error_mm": {k: round(v, 6) for k, v in errors.items()},
         "target_solve_us": TARGET_SOLVE_US,
         "4P-U_within_target": times["4P-U"] <= TARGET_SOLVE_US,
+        "4P-I_within_target": times["4P-I"] <= TARGET_SOLVE_US,
+        "4P-R_within_target": times["4P-R"] <= TARGET_SOLVE_US,
         "numpy_op_us": round(numpy_op_us, 3),
         "steal_s": None if steal0 is None else round((steal_ticks() - steal0) / 100.0, 2),
         "per_frame_step_ms": step["median_ms"],

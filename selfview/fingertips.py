@@ -7,7 +7,9 @@ against the background or as a crease between two differently lit faces. Then, p
 
 1. coarse: the finger's visible edges near its tips, as a template of line segments, are slid over the
    smoothed gradient within ``search_px`` (each edge scores the magnitude of its normal gradient
-   summed along it, so polarity does not matter); at a quarter of the resolution, then refined;
+   summed along it, so polarity does not matter); at a quarter of the resolution, then refined at
+   full resolution around its best local maxima and along its ridges (the template sliding along the
+   fingers' long sides, where only the short edges at the tip tell the shifts apart);
 2. fine, twice: each edge is crossed by profiles one pixel apart, sampled (bilinear) into the face
    beside it, the way its shading stays nearly constant (a specular strip runs along a finger, not
    across it). In each profile the step is located by the area (zeroth-moment) method: the position
@@ -52,6 +54,8 @@ FINGERS = ("A", "B")
 #: finger of each point, in POINT_NAMES order
 POINT_FINGER = (0, 0, 1, 1, 0, 1)
 COARSE_CANDIDATES = 4  # best shifts at a quarter resolution refined at full resolution
+RIDGE_CANDIDATES = 8  # at most so many more, along ridges of the quarter-resolution score (_ridge_cells)
+RIDGE_FRACTION = 0.75  # of the best score, that they reach
 TEMPLATE_PX = 90.0  # how much of each edge, from its corner, the coarse template uses
 FIT_PX = 90.0  # how much of each edge, from its corner, the fine stage scans
 MIN_CONTRAST = 8.0  # grey levels between the two sides of an edge
@@ -324,6 +328,33 @@ def _unique_rows(a: np.ndarray) -> np.ndarray:
     return np.column_stack([u // span + mn[0], u % span + mn[1]])
 
 
+def _ridge_cells(score: np.ndarray, taken: np.ndarray) -> np.ndarray:
+    """The cells (row, col) of the quarter-resolution score map to refine: ``taken`` (K, 2), its best
+    local maxima, then, best first, cells scoring at least ``RIDGE_FRACTION`` of the best that are not
+    next to a cell already chosen (their +-6 px refinement reaches the neighbours'), at most
+    ``RIDGE_CANDIDATES`` more.
+
+    A template slid along its own long edges (a finger's sides) keeps their score: the map has a ridge
+    there, on which only the short edges at the tip (the ones that fix the corners) tell the shifts
+    apart, and at a quarter of the resolution they count for little, less than the rim of a disc of
+    ink beside them. The local maxima keep one point of such a ridge, not necessarily the right one
+    (the full resolution tells them apart): the ridge is sampled along its length instead."""
+    flat = score.ravel()
+    best = float(flat.max())
+    idx = np.nonzero(flat >= RIDGE_FRACTION * best)[0]
+    idx = idx[np.argsort(flat[idx], kind="stable")[::-1]]
+    rows, cols = np.divmod(idx, score.shape[1])
+    out = [tuple(t) for t in np.asarray(taken, int)]
+    extra = 0
+    for y, x in zip(rows.tolist(), cols.tolist()):
+        if extra >= RIDGE_CANDIDATES:
+            break
+        if all(max(abs(y - ty), abs(x - tx)) >= 2 for ty, tx in out):
+            out.append((y, x))
+            extra += 1
+    return np.array(out, int).reshape(-1, 2)
+
+
 def _coarse_shift(img: np.ndarray, polys: list[np.ndarray], search_px: float, into=None, groups=None):
     """Best common 2-D shift (px) of the polylines over the picture's gradient within +-search_px, and
     the sign of each polyline's normal gradient there (+1: brighter towards its left-hand normal).
@@ -357,15 +388,17 @@ def _coarse_shift(img: np.ndarray, polys: list[np.ndarray], search_px: float, in
     G = _padded_gradient(img, lo, hi, s, 1.0)
     tpl = [_unique_rows(np.rint(p / s).astype(int)) - lo - span for p in polys]
     score, _ = _template_score(G, tpl, normals, groups, span)
-    # it blurs the fingers' finer edges more than the rims of discs: refine its best few local maxima
+    # it blurs the fingers' finer edges more than the rims of discs: refine its best few local maxima,
+    # and the cells along a ridge of the map (see _ridge_cells)
     peaks = (score == cv2.dilate(score, np.ones((5, 5), np.uint8))) & (score > 0)
     iy, ix = np.nonzero(peaks)
     order = np.argsort(score[iy, ix])[::-1][:COARSE_CANDIDATES]
     if len(order) == 0:
         return None
+    cells = _ridge_cells(score, np.column_stack([iy[order], ix[order]]))
     # full resolution: one gradient image over every candidate's reach, the template's points gathered
     # at each shift within +-6 px of each candidate
-    centres = 4.0 * np.column_stack([ix[order] - span, iy[order] - span])
+    centres = 4.0 * np.column_stack([cells[:, 1] - span, cells[:, 0] - span])
     r = 6
     lo = np.floor(pts.min(0) + centres.min(0)).astype(int) - r - 2
     hi = np.ceil(pts.max(0) + centres.max(0)).astype(int) + r + 3
