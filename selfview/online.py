@@ -485,6 +485,26 @@ class _KernelResult(tuple):
 _DEFAULT_NAMES = {n: _point_names(None, n) for n in range(len(POINT_NAMES) + 1)}
 
 
+def _kernel_estimate(method, H, H_orth, x, delta_deg, d_mm, rms, later, names, n, iterations, H0) -> MotionEstimate:
+    """The ``MotionEstimate`` of a solve by a compiled kernel: ``later`` (``_KernelResult`` or
+    ``_GaussNewtonKernelResult``) gives the deferred residuals, covariance and condition."""
+    return MotionEstimate(
+        method,
+        H,
+        H_orth,
+        x,
+        delta_deg,
+        d_mm,
+        later.residuals,
+        rms,
+        later.covariance,
+        later.condition,
+        _DEFAULT_NAMES[n] if names is None and n in _DEFAULT_NAMES else _point_names(names, n),
+        iterations,
+        H0,
+    )
+
+
 def differential_update(
     C_H_G, p_G, uv, camera: CameraModel, names=None, *, prior_sigma_px: float | None = None
 ) -> MotionEstimate:
@@ -515,21 +535,7 @@ def differential_update(
             rms, delta_deg, d_mm, blob = out
             n = len(p_G)
             later = _KernelResult((blob, n, x, prior_sigma_px, H))
-            return MotionEstimate(
-                f"{n}P-U",
-                H,
-                later.orthonormal,
-                x,
-                delta_deg,
-                d_mm,
-                later.residuals,
-                rms,
-                later.covariance,
-                later.condition,
-                _DEFAULT_NAMES[n] if names is None and n in _DEFAULT_NAMES else _point_names(names, n),
-                1,
-                C_H_G,
-            )
+            return _kernel_estimate(f"{n}P-U", H, later.orthonormal, x, delta_deg, d_mm, rms, later, names, n, 1, C_H_G)
     H0, P, _, Hl, Pl, uvl, names, label = _prepare(C_H_G, p_G, uv, camera, names, "U")
     f = camera.f
     obs = _undistort(camera, uvl)
@@ -688,21 +694,7 @@ def _gauss_newton_native(kind, H0, H_start, P, uv, camera, names, tol, max_iter,
     rms, delta_deg, d_mm, iterations, blob = out
     n = len(P)
     later = _GaussNewtonKernelResult((blob, n, prior_sigma_px))
-    return MotionEstimate(
-        f"{n}P-{kind}",
-        H,
-        H,
-        x,
-        delta_deg,
-        d_mm,
-        later.residuals,
-        rms,
-        later.covariance,
-        later.condition,
-        _DEFAULT_NAMES[n] if names is None and n in _DEFAULT_NAMES else _point_names(names, n),
-        iterations,
-        H0,
-    )
+    return _kernel_estimate(f"{n}P-{kind}", H, H, x, delta_deg, d_mm, rms, later, names, n, iterations, H0)
 
 
 def iterative_update(
@@ -725,8 +717,8 @@ def iterative_update(
     moves more than ``tol`` mm in a step; orthogonal by construction. ``motion`` is the rotation vector
     and translation of ``C'_H_G C_H_G^-1``: the parameters of NP-U (module docstring), exact.
 
-    Raises ``CalibrationError`` for fewer than 3 points, non-finite input, points behind the camera,
-    collinear points, an ill-conditioned system or no convergence in ``max_iter`` steps.
+    Raises ``CalibrationError`` for fewer than 3 points, non-finite input, a mirroring ``C_H_G``, points
+    behind the camera, collinear points, an ill-conditioned system or no convergence in ``max_iter`` steps.
     """
     if _native.npu is not None and isinstance(camera, CameraModel):
         # the compiled Gauss-Newton (as in differential_update: None hands the case to the code below)
@@ -743,6 +735,7 @@ def iterative_update(
 
 # --- NP-R -------------------------------------------------------------------------------------------
 _EYE3 = np.eye(3)  # the camera matrix of normalised coordinates (OpenCV only reads it)
+_EYE3.flags.writeable = False
 
 def _mean_point_distance(Ha: np.ndarray, Hb: np.ndarray, P_list) -> float:
     """Mean distance [mm] between the camera coordinates of the points [(x, y, z)] under two transforms."""
@@ -773,8 +766,8 @@ def recalibrate(
     distance of the points) is refined by the Gauss-Newton of NP-I over all the points. Points that are
     not coplanar start from SQPnP instead. ``motion`` as for NP-I, relative to ``C_H_G``.
 
-    Raises ``CalibrationError`` for fewer than 4 points, non-finite input, collinear points, no
-    solution, an ill-conditioned system or no convergence.
+    Raises ``CalibrationError`` for fewer than 4 points, non-finite input, a mirroring ``C_H_G``,
+    collinear points, no solution, an ill-conditioned system or no convergence.
     """
     H0, P, uv, _, Pl, uvl, names, label = _prepare(C_H_G, p_G, uv, camera, names, "R")
     s = _spread(P)

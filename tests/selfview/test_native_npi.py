@@ -155,6 +155,7 @@ def test_np_i_from_a_non_orthogonal_prior(monkeypatch):
     """After an NP-U update (eq. 13 leaves the rotation non-orthogonal) the kernel starts from its
     nearest rotation, as the reference does, and measures the motion from the non-orthogonal prior."""
     rng = np.random.default_rng(7)
+    handled = 0
     for _ in range(20):
         H0, P, uv, cam = scene(rng, 4)
         try:
@@ -165,8 +166,10 @@ def test_np_i_from_a_non_orthogonal_prior(monkeypatch):
         native, reference, used = run_both(monkeypatch, iterative_update, H_u, P, uv, cam)
         if used == [True]:
             check_agreement(native, reference, P, uv, cam)
+            handled += 1
         else:
             assert_same_outcome(native, reference)
+    assert handled >= 10  # the kernel took most of them: the test is not vacuous
 
 
 def test_exact_data_recovers_the_disturbance(monkeypatch):
