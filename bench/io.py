@@ -22,13 +22,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").is_file():
+    # run as a file in a source tree: import the tree it lies in (installed, selfview is on the path)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from drivers.frame_grabber_v4l2 import FrameGrabber  # noqa: E402
-from drivers.pneumatic_gripper import PneumaticGripper  # noqa: E402
-from mocks.sim_camera import attach_world  # noqa: E402
-from mocks.valve_terminal import ValveTerminal  # noqa: E402
-from mocks.world import SimWorld  # noqa: E402
+from selfview.drivers.frame_grabber_v4l2 import FrameGrabber  # noqa: E402
+from selfview.drivers.pneumatic_gripper import PneumaticGripper  # noqa: E402
+from selfview.mocks.sim_camera import attach_world  # noqa: E402
+from selfview.mocks.valve_terminal import ValveTerminal  # noqa: E402
+from selfview.mocks.world import SimWorld  # noqa: E402
 from selfview import __version__  # noqa: E402
 from selfview.cell import default_cell_path, load_cell  # noqa: E402
 

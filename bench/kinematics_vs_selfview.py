@@ -1,13 +1,13 @@
 """Study: classical hand/eye calibration (AX = XB) against the self-viewing method as the robot wears.
 
-Per seed, one simulated cell (``mocks.world.SimWorld``: its own true mount and camera) and one worn
-PUMA 260 (``mocks.kinematic_errors``: a fixed pattern of link-length and joint-zero errors, scaled by the
+Per seed, one simulated cell (``selfview.mocks.world.SimWorld``: its own true mount and camera) and one worn
+PUMA 260 (``selfview.mocks.kinematic_errors``: a fixed pattern of link-length and joint-zero errors, scaled by the
 error level, and encoder noise). The levels scale the worn robot ``WORN_PUMA`` (link lengths +-1 mm,
 joint zeros +-0.2 deg, encoder noise 0.02 deg sd) by 0, 0.25, 0.5, 0.75, 1 (default).
 
 AX = XB: the gripper stands at 20 stations above the plate (60-120 mm over it, tilted 15-25 deg about a
 random horizontal axis, turned up to 40 deg about the vertical, aimed so the camera sees the plate);
-each station's picture is rendered (``mocks.render``) and kept if it shows >= 20 whole discs with every
+each station's picture is rendered (``selfview.mocks.render``) and kept if it shows >= 20 whole discs with every
 row and column seen. The camera pose ``C_H_W`` comes from each picture (``selfview.discs.detect_discs``
 and ``selfview.handeye.plate_pose``: the discs' exterior orientation with f and kappa FIXED at the values
 of this level's off-line calibration, so that both methods share one interior orientation and the
@@ -45,13 +45,15 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").is_file():
+    # run as a file in a source tree: import the tree it lies in (installed, selfview is on the path)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mocks.kinematic_errors import WORN_PUMA, PerturbedPuma260  # noqa: E402
-from mocks.puma260 import Unreachable, make_tool  # noqa: E402
-from mocks.render import render  # noqa: E402
-from mocks.val_controller import TOOL_LENGTH_MM  # noqa: E402
-from mocks.world import PLATE_BASE_POSE, SimWorld  # noqa: E402
+from selfview.mocks.kinematic_errors import WORN_PUMA, PerturbedPuma260  # noqa: E402
+from selfview.mocks.puma260 import Unreachable, make_tool  # noqa: E402
+from selfview.mocks.render import render  # noqa: E402
+from selfview.mocks.val_controller import TOOL_LENGTH_MM  # noqa: E402
+from selfview.mocks.world import PLATE_BASE_POSE, SimWorld  # noqa: E402
 from selfview.cell import default_cell_path, load_cell  # noqa: E402
 from selfview.discs import detect_discs  # noqa: E402
 from selfview.errors import CellError  # noqa: E402

@@ -44,10 +44,12 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").is_file():
+    # run as a file in a source tree: import the tree it lies in (installed, selfview is on the path)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mocks.render import render  # noqa: E402
-from mocks.world import SimWorld  # noqa: E402
+from selfview.mocks.render import render  # noqa: E402
+from selfview.mocks.world import SimWorld  # noqa: E402
 from selfview.camera import CameraModel  # noqa: E402
 from selfview.cell import POINT_NAMES, default_cell_path, load_cell  # noqa: E402
 from selfview.errors import CellError  # noqa: E402

@@ -39,9 +39,11 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").is_file():
+    # run as a file in a source tree: import the tree it lies in (installed, selfview is on the path)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mocks.world import SimWorld  # noqa: E402
+from selfview.mocks.world import SimWorld  # noqa: E402
 from selfview.cell import default_cell_path, load_cell  # noqa: E402
 from selfview.geometry import make_H, transform_points  # noqa: E402
 from selfview._native import status as native_status  # noqa: E402
@@ -92,7 +94,7 @@ def per_frame_step(cell, world, C_H_G_before, frames: int = 10, rounds: int = 10
     so that every step sees a picture one creep from the last. Also reported: how many steps were
     tracked, and the corners' error against the renderer's truth for the tracker and for the full
     search on the same pictures."""
-    from mocks.render import render
+    from selfview.mocks.render import render
     from selfview.errors import CalibrationError
     from selfview.fingertips import find_fingertips
     from selfview.online import estimate

@@ -18,13 +18,15 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").is_file():
+    # run as a file in a source tree: import the tree it lies in (installed, selfview is on the path)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mocks.render import LIFTED_W_H_G, render  # noqa: E402
-from mocks.world import SimWorld  # noqa: E402
+from selfview.mocks.render import LIFTED_W_H_G, render  # noqa: E402
+from selfview.mocks.world import SimWorld  # noqa: E402
 from selfview.cell import default_cell_path, load_cell  # noqa: E402
 
 

@@ -15,8 +15,8 @@ import statistics
 import sys
 import time
 
-from drivers.puma_val_serial import PumaVAL, ValDialect
-from mocks.val_controller import ValController
+from selfview.drivers.puma_val_serial import PumaVAL, ValDialect
+from selfview.mocks.val_controller import ValController
 
 
 def round_trips(pace_baud: int | None, n: int) -> tuple[list[float], int]:

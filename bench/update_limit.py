@@ -5,7 +5,7 @@ Per seed, one simulated cell with the gripper parked on the plate is calibrated 
 picture (``calibrate_offline``). Then, for each axis (C x, C y, C z, and one random axis per seed)
 through the mount's pivot (``simulation.disturbances.cable.pivot_C``) and each angle (12 values
 log-spaced from 0.1 to 10 deg), the camera is turned on its mount (``SimWorld.disturb_by_angle``), a
-picture rendered (``mocks.render``), the fingertip corners found (``find_fingertips``), and 4P-U, 4P-I
+picture rendered (``selfview.mocks.render``), the fingertip corners found (``find_fingertips``), and 4P-U, 4P-I
 and 4P-R estimate the new ``C_H_G`` from the off-line calibration; each is compared with the truth
 (TCP position and rotation error). The finder is pointed at the current pose as a frame-by-frame
 tracker would point it (the previous frame's estimate: here the true pose moved by a random tracking
@@ -48,10 +48,12 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").is_file():
+    # run as a file in a source tree: import the tree it lies in (installed, selfview is on the path)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mocks.render import render  # noqa: E402
-from mocks.world import SimWorld, random_small_rotation  # noqa: E402
+from selfview.mocks.render import render  # noqa: E402
+from selfview.mocks.world import SimWorld, random_small_rotation  # noqa: E402
 from selfview.cell import default_cell_path, load_cell  # noqa: E402
 from selfview.fingertips import find_fingertips  # noqa: E402
 from selfview.geometry import make_H, pose_difference  # noqa: E402

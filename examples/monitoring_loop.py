@@ -11,7 +11,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from procedures.runs import CellSession
+from selfview.procedures.runs import CellSession
 from selfview.cell import default_cell_path, load_cell
 from selfview.errors import AlarmError
 

@@ -9,7 +9,7 @@ camera="v4l2:///dev/video0?input=1&std=pal")``.
 
 import sys
 
-from procedures.runs import CellSession
+from selfview.procedures.runs import CellSession
 from selfview.cell import default_cell_path, load_cell
 
 out = sys.argv[1] if len(sys.argv) > 1 else "calibration.yaml"

@@ -1,6 +1,6 @@
 """A worn PUMA 260: true link lengths and joint zeros off the published ones, and noisy joint encoders.
 
-The controller computes poses with the NOMINAL geometry (``mocks.puma260.Puma260Geometry()``): that is
+The controller computes poses with the NOMINAL geometry (``selfview.mocks.puma260.Puma260Geometry()``): that is
 all a real controller knows. The arm itself follows a TRUE geometry whose six link lengths and six joint
 zeros differ from the nominal by ``KinematicErrors.link_mm`` and ``joint_offset_deg`` times a fixed
 seeded pattern in [-1, 1] (so one seed at growing error levels is the same robot wearing further), and
@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocks.puma260 import ArmConfig, Puma260, Puma260Geometry
-from mocks.val_controller import ValController
+from selfview.mocks.puma260 import ArmConfig, Puma260, Puma260Geometry
+from selfview.mocks.val_controller import ValController
 from selfview.errors import ConfigError
 
 __all__ = ["KinematicErrors", "WORN_PUMA", "LINKS", "Station", "PerturbedPuma260", "PerturbedValController"]
@@ -106,7 +106,7 @@ class PerturbedPuma260:
     def move(self, base_H_F_target, q_near_deg=None) -> Station:
         """Command the flange to ``base_H_F_target`` (4, 4): the controller solves its nominal inverse
         kinematics and servos until the encoders read that; the arm ends where the true geometry puts
-        the true joints. Raises ``mocks.puma260.Unreachable`` for a target the nominal arm cannot reach."""
+        the true joints. Raises ``selfview.mocks.puma260.Unreachable`` for a target the nominal arm cannot reach."""
         q_read = self.nominal.ik(base_H_F_target, q_near_deg)
         q_true = q_read - self.encoder_error_deg()
         return Station(q_read, self.true.fk(q_true), self.nominal.fk(q_read))

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from drivers.puma_val_serial.limits import PUMA260_JOINT_LIMITS_DEG, PUMA260_JOINT_SPEED_DEG_S, VAL_READY_DEG
+from selfview.drivers.puma_val_serial.limits import PUMA260_JOINT_LIMITS_DEG, PUMA260_JOINT_SPEED_DEG_S, VAL_READY_DEG
 from selfview.geometry import make_H, trans
 
 __all__ = ["Puma260Geometry", "ArmConfig", "Puma260", "Unreachable", "READY_DEG", "make_tool"]

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from mocks.world import SimWorld
+from selfview.mocks.world import SimWorld
 from selfview.camera import CameraModel, max_undistorted_radius
 from selfview.cell import POINT_NAMES, ImageSpec, PlateSpec
 from selfview.errors import ConfigError

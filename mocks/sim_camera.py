@@ -25,10 +25,10 @@ from collections.abc import Callable
 
 import numpy as np
 
-from drivers.frame_grabber_v4l2.capture import register_source, unregister_source
-from drivers.frame_grabber_v4l2.url import GrabberUrl
-from mocks.render import RenderResult, render
-from mocks.world import SimWorld
+from selfview.drivers.frame_grabber_v4l2.capture import register_source, unregister_source
+from selfview.drivers.frame_grabber_v4l2.url import GrabberUrl
+from selfview.mocks.render import RenderResult, render
+from selfview.mocks.world import SimWorld
 from selfview.errors import ConfigError, DeviceError, DeviceTimeout
 
 __all__ = ["SimCamera", "attach_world", "Attachment"]
@@ -37,11 +37,11 @@ _PARAMS = {"fps", "seed", "noise", "exact", "blur", "gain", "supersample"}
 
 
 class SimCamera:
-    """A frame source (``drivers.frame_grabber_v4l2.FrameSource``) that renders ``world``.
+    """A frame source (``selfview.drivers.frame_grabber_v4l2.FrameSource``) that renders ``world``.
 
     ``fps``: frame rate (CCIR: 25). ``seed``: seeds the per-frame noise seeds. ``noise``: add sensor
     noise. ``exact``: render each frame in full. ``blur_px``, ``gain``, ``supersample``: as
-    ``mocks.render.render``. ``clock`` / ``sleep``: the monotonic clock and how to wait on it.
+    ``selfview.mocks.render.render``. ``clock`` / ``sleep``: the monotonic clock and how to wait on it.
     """
 
     def __init__(

@@ -1,11 +1,11 @@
 """A simulated VAL-II controller with a PUMA 260, serving its terminal dialogue on a pty or on TCP.
 
-The dialogue follows the dialect (``drivers.puma_val_serial.dialect``): commands end with CR (a stray
+The dialogue follows the dialect (``selfview.drivers.puma_val_serial.dialect``): commands end with CR (a stray
 LF is ignored), replies are lines ending CR LF, the prompt is ``.`` at the start of a line, errors are
 ``*text*`` lines from the dialect's table, ``CAL`` asks ``Are you sure (Y/N)?``, ``POINT`` and ``HERE``
 show the location and ask ``Change?``. The controller keeps arm power, calibration, SPEED, named
 locations (tool-point poses in the base frame B) and the joints; ``WHERE`` comes from the PUMA 260
-forward kinematics (``mocks.puma260``) with a TOOL of ``tool_length_mm`` along the flange z, Cartesian
+forward kinematics (``selfview.mocks.puma260``) with a TOOL of ``tool_length_mm`` along the flange z, Cartesian
 targets go through inverse kinematics in the configuration 'front, above, noflip'. Motions take the
 time of a trapezoidal profile at SPEED % (multiplied by ``time_scale``), can be stopped by ``ABORT``,
 and move the simulated world's TCP at every tick (``SimWorld.set_tcp``), so pressing the gripper onto
@@ -33,17 +33,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.puma_val_serial.dialect import ValDialect
-from drivers.puma_val_serial.errors import ArmPowerOff
-from mocks.puma260 import READY_DEG, ArmConfig, Puma260, Puma260Geometry, Unreachable, make_tool
-from mocks.world import PLATE_BASE_POSE, SimWorld
+from selfview.drivers.puma_val_serial.dialect import ValDialect
+from selfview.drivers.puma_val_serial.errors import ArmPowerOff
+from selfview.mocks.puma260 import READY_DEG, ArmConfig, Puma260, Puma260Geometry, Unreachable, make_tool
+from selfview.mocks.world import PLATE_BASE_POSE, SimWorld
 from selfview.errors import ConfigError
 from selfview.geometry import R_from_rotvec, inv_H, make_H, rotation_angle, rotvec_from_R, trans
 
 __all__ = ["ValController", "FAULTS", "trapezoid_time", "trapezoid_fraction", "TOOL_LENGTH_MM"]
 
 #: Flange to TCP along the flange z (mm): force/torque sensor, gripper body and 60 mm fingers. With it
-#: the taught locations above and on the plate (mocks.world.PLATE_BASE_POSE) are reachable.
+#: the taught locations above and on the plate (selfview.mocks.world.PLATE_BASE_POSE) are reachable.
 TOOL_LENGTH_MM = 170.0
 FAULTS = ("noise", "no_reply", "power_loss", "out_of_reach", "async_error")
 _POLL_S = 0.02

@@ -29,7 +29,7 @@ from pymodbus.datastore.context import ModbusBaseDeviceContext
 from pymodbus.framer import FramerType
 from pymodbus.server import ModbusTcpServer
 
-from drivers.pneumatic_gripper.iomap import IoMap, Point
+from selfview.drivers.pneumatic_gripper.iomap import IoMap, Point
 from selfview.errors import ConfigError, DeviceError
 
 __all__ = ["ValveTerminal"]

@@ -73,12 +73,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="log more on stderr (-v: each step and decision, -vv: debugging)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    import procedures.commands as pkg
+    import selfview.procedures.commands as pkg
 
     for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
             continue
-        mod = importlib.import_module(f"procedures.commands.{info.name}")
+        mod = importlib.import_module(f"selfview.procedures.commands.{info.name}")
         mod.register(sub)
     return parser
 

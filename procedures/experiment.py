@@ -19,7 +19,7 @@ from typing import Protocol
 
 import numpy as np
 
-from procedures.paper import PAPER_SERIES, PAPER_TABLES
+from selfview.procedures.paper import PAPER_SERIES, PAPER_TABLES
 from selfview.cell import Cell
 from selfview.errors import CalibrationError, CellError
 from selfview.fingertips import find_fingertips
@@ -206,7 +206,7 @@ class DirectSimRig:
     """
 
     def __init__(self, world, *, render_seed: int = 0):
-        from mocks.render import render
+        from selfview.mocks.render import render
 
         self._render = render
         self.world = world
@@ -238,7 +238,7 @@ def run_direct(cell: Cell, series_list=("cable", "tilt"), trials: int = 20, seed
     """The experiment straight on simulated worlds (one world per trial, seeded ``seed + k``).
 
     Returns the records and the summary; trials that failed are listed in ``summary['failures']``."""
-    from mocks.world import SimWorld
+    from selfview.mocks.world import SimWorld
 
     records, failures = [], []
     for series in series_list:

@@ -3,7 +3,7 @@
 ``make_report`` runs each ``bench/`` script (``BENCHES``) as a subprocess with a timeout of its own and
 collects the one JSON object it prints; a script that is missing, fails, times out or prints no JSON is
 recorded as such, never dropped. In the same run it carries out the paper's experiment on the simulated
-cell (``procedures.experiment.run_direct``, both series in parallel), Tsai's calibration on Willson's
+cell (``selfview.procedures.experiment.run_direct``, both series in parallel), Tsai's calibration on Willson's
 reference points (``selfview.tsai``), and notes the machine. It writes ``RESULTS.md`` and, beside it in
 ``results/``, every JSON object, the studies' tables and the plots. Every figure in the report is read
 from that run's results; none is typed in.
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from procedures.results import environment, plot_errors, write_json
+from selfview.procedures.results import environment, plot_errors, write_json
 from selfview.errors import ConfigError
 from selfview.online import METHODS
 
@@ -80,25 +80,29 @@ class BenchRun:
 
 
 def find_bench_dir(start: Path | None = None) -> Path | None:
-    """The ``bench/`` folder: in ``start`` (default the working directory) or beside this package."""
-    for base in (Path(start) if start else Path.cwd(), _REPO):
-        if (base / "bench").is_dir():
-            return base / "bench"
-    return None
+    """The benchmarks' folder: ``start`` if given, else the installed project's own (``selfview.bench``),
+    wherever the command is started."""
+    if start is not None:
+        return Path(start) if Path(start).is_dir() else None
+    import selfview.bench
+
+    return Path(selfview.bench.__file__).resolve().parent
 
 
-def find_reference_dir(shared: Path | None = None) -> Path | None:
-    """Willson's reference data (``reference/tsai-willson``) in ``shared``, ``$SELFVIEW_SHARED`` or the
-    shared folder beside the repository; None if none holds it."""
-    cands = [Path(shared)] if shared else []
-    if os.environ.get("SELFVIEW_SHARED"):
-        cands.append(Path(os.environ["SELFVIEW_SHARED"]))
-    cands += [Path.cwd().parent / "shared", _REPO.parent / "shared"]
-    for c in cands:
-        d = c / "reference" / "tsai-willson"
-        if (d / "cc_cd.dat").is_file():
-            return d
-    return None
+def _bench_root(bench_dir: Path) -> Path:
+    """The folder to put on the path so that ``selfview.bench`` is ``bench_dir``: site-packages for an
+    installed project (``.../selfview/bench``), the repository for a source tree (``<repo>/bench``)."""
+    bench_dir = Path(bench_dir).resolve()
+    return bench_dir.parent.parent if bench_dir.parent.name == "selfview" else bench_dir.parent
+
+
+def find_reference_dir(reference: Path | None = None) -> Path | None:
+    """Willson's reference data: ``reference`` if given, else the copy shipped with the package
+    (``selfview/data/reference/tsai-willson``); None if the folder does not hold it."""
+    import selfview
+
+    d = Path(reference) if reference else Path(selfview.__file__).resolve().parent / "data" / "reference" / "tsai-willson"
+    return d if (d / "cc_cd.dat").is_file() else None
 
 
 def _json_object(stdout: str) -> dict | None:
@@ -125,7 +129,7 @@ def run_bench(bench: Bench, bench_dir: Path | None, results_dir: Path, *, quick:
     args = [a.replace(_OUT, str(results_dir)) for a in (bench.quick_args if quick else bench.args)] + list(extra_args)
     cmd = [python, str(script), *args]
     env = dict(os.environ)
-    root = str(Path(bench_dir).resolve().parent)
+    root = str(_bench_root(bench_dir))
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     limit = bench.timeout_s if timeout_s is None else timeout_s
     t0 = time.monotonic()
@@ -168,7 +172,7 @@ def machine() -> dict:
 def _experiment_series(cell_path: str, series: str, trials: int, seed: int):
     """One series, trial by trial (world seeds ``seed + k``, as ``run_direct`` gives them): a trial that
     fails, even by a fault of a module under study, is listed as failed and the series goes on."""
-    from procedures.experiment import run_direct
+    from selfview.procedures.experiment import run_direct
     from selfview.cell import load_cell
 
     cell = load_cell(cell_path)
@@ -190,7 +194,7 @@ def run_experiment(trials: int, *, jobs: int = 2, series=("cable", "tilt"), seed
     """The paper's experiment on the reference cell, ``trials`` per series, the series in parallel
     (each with the seeds ``run_direct`` gives it in a joint run). Returns the summary, its tables
     (ours beside the paper's) and the time taken."""
-    from procedures.experiment import summarise, tables_markdown
+    from selfview.procedures.experiment import summarise, tables_markdown
     from selfview.cell import default_cell_path
 
     t0 = time.monotonic()
@@ -373,7 +377,7 @@ def _experiment(exp: dict | None) -> list[str]:
     if "failed" in exp:
         return lines + [f"Failed: {exp['failed']}", ""]
     s = exp["summary"]
-    lines += [f"`procedures.experiment.run_direct`, {exp['trials_per_series']} trials per series, in "
+    lines += [f"`selfview.procedures.experiment.run_direct`, {exp['trials_per_series']} trials per series, in "
               f"{exp['seconds']:.0f} s; errors per camera axis (c_x, c_y, c_z) in mm. "
               f"Plot: `results/experiment_errors.png`.", "", _demote(exp["tables_md"], 2), ""]
     if not s.get("failures"):
@@ -384,7 +388,7 @@ def _experiment(exp: dict | None) -> list[str]:
 def _willson(w: dict | None) -> list[str]:
     lines = ["### Tsai's method on Willson's reference data", ""]
     if not w:
-        return lines + ["Not available: Willson's data (`reference/tsai-willson`) not found; pass --shared.", ""]
+        return lines + ["Not available: Willson's data (`reference/tsai-willson`) not found; pass --reference.", ""]
     lines += [f"`selfview.tsai.calibrate_coplanar` on `cc_cd.dat` ({w['points']} coplanar points) beside the runs "
               f"published in `ccal.log`; f in mm and kappa1 in mm^-2 through his pixel size {w['pixel_mm']:g} mm.", "",
               "| mode (published run) | | f [mm] | kappa1 [mm^-2] | Tx | Ty | Tz [mm] | Rx | Ry | Rz [deg] | Cx | Cy | mean / max error [px] |",
@@ -481,7 +485,7 @@ def render_markdown(runs: dict[str, BenchRun], mach: dict, exp: dict | None, wil
 
 
 def make_report(out: Path, *, quick: bool = False, benches=BENCHES, bench_dir: Path | None = None,
-                shared: Path | None = None, trials: int | None = None, jobs: int = 2, progress=None,
+                reference: Path | None = None, trials: int | None = None, jobs: int = 2, progress=None,
                 command: str = "selfview report", write_cell: Path | None = None) -> dict:
     """Rerun the benchmarks, the experiment and Willson's check; write ``out`` (RESULTS.md) and
     ``out.parent/results/``. ``quick`` uses each benchmark's small arguments and 2 trials per series
@@ -505,7 +509,7 @@ def make_report(out: Path, *, quick: bool = False, benches=BENCHES, bench_dir: P
         extra = ()
         if write_cell and b.name == "update_limit" and bench_dir is not None:
             # relative to the folder the script runs in, so that no path of this machine lands in its JSON
-            extra = ("--write-cell", os.path.relpath(Path(write_cell).resolve(), Path(bench_dir).resolve().parent))
+            extra = ("--write-cell", os.path.relpath(Path(write_cell).resolve(), _bench_root(bench_dir)))
         runs[b.name] = run_bench(b, bench_dir, results, quick=quick, extra_args=extra)
         say(f"bench/{b.script}: {runs[b.name].status} ({runs[b.name].seconds:.0f} s)")
     n = trials if trials is not None else (2 if quick else 20)
@@ -519,7 +523,7 @@ def make_report(out: Path, *, quick: bool = False, benches=BENCHES, bench_dir: P
         write_json(results / "experiment.json", {k: v for k, v in exp.items() if k != "tables_md"})
         if "summary" in exp:
             plot_errors(exp["summary"], results / "experiment_errors.png", METHODS)
-    willson = willson_check(find_reference_dir(shared))
+    willson = willson_check(find_reference_dir(reference))
     if willson:
         write_json(results / "willson.json", willson)
     mach = machine()

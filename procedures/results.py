@@ -185,7 +185,7 @@ def plot_errors(summary: dict, path: Path, methods) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from procedures.paper import PAPER_TABLES
+    from selfview.procedures.paper import PAPER_TABLES
 
     series = [s for s, v in summary.items() if isinstance(v, dict) and "methods" in v]
     fig, axes = plt.subplots(len(series), 2, figsize=(13, 4.2 * len(series)), squeeze=False)

@@ -6,7 +6,7 @@ simulated cell's by default, the lab's with ``real=True``.
 
 Python API for lab scripts::
 
-    from procedures.runs import CellSession
+    from selfview.procedures.runs import CellSession
     with CellSession.simulated(cell, seed=1) as s:      # or CellSession.real(cell, robot=..., ...)
         result = s.calibrate(out="calibration.yaml")     # park, grab, calibrate, save, depart
         records = s.monitor(frames=50)                   # grab, track, update/recalibrate/alarm
@@ -21,9 +21,9 @@ from typing import Callable
 
 import numpy as np
 
-from procedures.engine import CellDevices, Engine, Step
-from procedures.experiment import TrialRecord, run_trial, summarise, tables_markdown
-from procedures.simcell import CellURLs, SimulatedCell
+from selfview.procedures.engine import CellDevices, Engine, Step
+from selfview.procedures.experiment import TrialRecord, run_trial, summarise, tables_markdown
+from selfview.procedures.simcell import CellURLs, SimulatedCell
 from selfview.calfile import load_calibration, save_calibration
 from selfview.cell import Cell
 from selfview.errors import AlarmError, CalibrationError, ConfigError, ImageError
@@ -105,9 +105,9 @@ class CellSession:
 
     # --- devices ----------------------------------------------------------------------------------
     def open(self) -> "CellSession":
-        from drivers.frame_grabber_v4l2 import FrameGrabber
-        from drivers.pneumatic_gripper import PneumaticGripper
-        from drivers.puma_val_serial import PumaVAL
+        from selfview.drivers.frame_grabber_v4l2 import FrameGrabber
+        from selfview.drivers.pneumatic_gripper import PneumaticGripper
+        from selfview.drivers.puma_val_serial import PumaVAL
 
         if self.sim is not None:
             self.sim.start()
@@ -335,7 +335,7 @@ def _disturbance_dict(d) -> dict:
 
 def write_experiment_folder(folder: Path, records, summary, first, *, cell: Cell, config: dict) -> dict:
     """results.json, tables.md, annotated pictures of the first trial and the error plot in ``folder``."""
-    from procedures.results import annotate_offline, annotate_online, environment, plot_errors, write_json
+    from selfview.procedures.results import annotate_offline, annotate_online, environment, plot_errors, write_json
 
     folder = Path(folder)
     files = {}

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from mocks.sim_camera import attach_world
-from mocks.val_controller import ValController
-from mocks.valve_terminal import ValveTerminal
-from mocks.world import SimWorld
+from selfview.mocks.sim_camera import attach_world
+from selfview.mocks.val_controller import ValController
+from selfview.mocks.valve_terminal import ValveTerminal
+from selfview.mocks.world import SimWorld
 from selfview.cell import Cell
 
 __all__ = ["SimulatedCell", "CellURLs"]

@@ -6,6 +6,17 @@ imports nothing from ``drivers``, ``mocks`` or ``procedures``.
 """
 
 from importlib import metadata as _metadata
+from pathlib import Path as _Path
+
+# The repository keeps drivers/, mocks/, procedures/ and bench/ beside selfview/ (a layout its users fixed);
+# an install maps them to selfview.drivers, selfview.mocks, selfview.procedures and selfview.bench
+# (pyproject.toml, [tool.setuptools.package-dir]). Imported from a source tree (a checkout or a copy of
+# one, installed or not), the same names resolve to the folders beside this one, so that a copy of the
+# tree runs its own code.
+_TREE = _Path(__file__).resolve().parent.parent
+if not (_Path(__file__).resolve().parent / "drivers").is_dir() and (_TREE / "pyproject.toml").is_file() \
+        and (_TREE / "drivers" / "__init__.py").is_file():
+    __path__.append(str(_TREE))  # noqa: F821 (a package's __path__)
 
 try:
     __version__ = _metadata.version("selfview")

@@ -1,7 +1,7 @@
 """An independent renderer of the self-viewing cell, used only by the image-pipeline tests.
 
 The project's own renderer lives in ``mocks/render.py``; the image pipeline must also be judged on
-pictures it did not make, so this one follows ``../shared/spec/`` with a deliberately different
+pictures it did not make, so this one follows the conventions (``tests/data/spec/CONVENTIONS.md``) with a deliberately different
 technique and look:
 
 - per-pixel ray casting: the viewing ray of a (sub-)pixel position is exact, because eq. 4 maps
@@ -390,7 +390,7 @@ def render(
 
 
 def render_world(world, *, plate: bool | None = None, options: AltOptions | None = None, **kw) -> AltPicture:
-    """Render the true state of a ``mocks.world.SimWorld``; the plate is shown while parked (or as told)."""
+    """Render the true state of a ``selfview.mocks.world.SimWorld``; the plate is shown while parked (or as told)."""
     with world.lock:
         show = world.parked if plate is None else plate
         return render(
@@ -423,7 +423,7 @@ def case(cell_path: str, seed: int, *, turn_deg: float | None = None, online: st
     (``turn_deg`` fixes the turn), or with ``online`` ('cable' or 'tilt') lifted off the plate over the
     table and its camera disturbed by that series. ``options`` (name, value) pairs of ``AltOptions``;
     the noise seed is the world's."""
-    from mocks.world import SimWorld  # tests only: the renderer itself does not need the world
+    from selfview.mocks.world import SimWorld  # tests only: the renderer itself does not need the world
     from selfview.cell import load_cell
 
     cell = load_cell(cell_path)

@@ -1,8 +1,7 @@
-"""Shared fixtures: where the shared reference material is, the reference cell, a seeded world."""
+"""Fixtures: the reference material in tests/data, the reference cell, a seeded world."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -11,23 +10,25 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
-def shared_dir() -> Path:
-    """The shared material beside the repository (``../shared``), or ``$SELFVIEW_SHARED``."""
-    env = os.environ.get("SELFVIEW_SHARED")
-    p = Path(env) if env else REPO.parent / "shared"
-    if not (p / "spec" / "cell.yaml").is_file():
-        raise RuntimeError(f"shared material not found at {p}; set SELFVIEW_SHARED to its folder")
-    return p
+DATA = REPO / "tests" / "data"  # reference material copied into the repository: see its README
 
 
 @pytest.fixture(scope="session")
-def shared() -> Path:
-    return shared_dir()
+def willson_dir() -> Path:
+    """Reg Willson's Tsai v3.0b3 data and logs, shipped as package data (the report reads them too)."""
+    return REPO / "selfview" / "data" / "reference" / "tsai-willson"
 
 
 @pytest.fixture(scope="session")
-def cell_path(shared) -> Path:
-    return shared / "spec" / "cell.yaml"
+def niftycal_dir() -> Path:
+    """NiftyCal's real dot-grid detections."""
+    return DATA / "niftycal-dots"
+
+
+@pytest.fixture(scope="session")
+def cell_path() -> Path:
+    """The reference cell exactly as the project's conventions publish it (``tests/data/spec/cell.yaml``)."""
+    return DATA / "spec" / "cell.yaml"
 
 
 @pytest.fixture(scope="session")

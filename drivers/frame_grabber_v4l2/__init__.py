@@ -1,9 +1,9 @@
 """The CCIR frame grabber over V4L2, and the same interface on recordings and registered sources.
 
-Only ``drivers.frame_grabber_v4l2.capture`` uses OpenCV's capture API (``cv2.VideoCapture``).
+Only ``selfview.drivers.frame_grabber_v4l2.capture`` uses OpenCV's capture API (``cv2.VideoCapture``).
 """
 
-from drivers.frame_grabber_v4l2.capture import (
+from selfview.drivers.frame_grabber_v4l2.capture import (
     EndOfStream,
     FrameSource,
     RecordedSource,
@@ -14,9 +14,9 @@ from drivers.frame_grabber_v4l2.capture import (
     to_grey,
     unregister_source,
 )
-from drivers.frame_grabber_v4l2.grabber import Frame, FrameGrabber, field_image
-from drivers.frame_grabber_v4l2.url import STANDARDS, GrabberUrl, parse_grabber_url
-from drivers.frame_grabber_v4l2.v4l2 import V4L2Device
+from selfview.drivers.frame_grabber_v4l2.grabber import Frame, FrameGrabber, field_image
+from selfview.drivers.frame_grabber_v4l2.url import STANDARDS, GrabberUrl, parse_grabber_url
+from selfview.drivers.frame_grabber_v4l2.v4l2 import V4L2Device
 
 __all__ = [
     "Frame",

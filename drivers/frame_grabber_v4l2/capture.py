@@ -18,8 +18,8 @@ from typing import Protocol, runtime_checkable
 import cv2
 import numpy as np
 
-from drivers.frame_grabber_v4l2.url import GrabberUrl
-from drivers.frame_grabber_v4l2.v4l2 import V4L2Device, std_name
+from selfview.drivers.frame_grabber_v4l2.url import GrabberUrl
+from selfview.drivers.frame_grabber_v4l2.v4l2 import V4L2Device, std_name
 from selfview.errors import ConfigError, DeviceError, DeviceTimeout, ImageError
 
 __all__ = [
@@ -97,7 +97,7 @@ def source_for(
             factory = _registry.get(url.scheme)
     if factory is None:
         known = sorted({"v4l2", "frames", "file"} | set(_registry) | set(sources or {}))
-        hint = " (sim:// needs a simulated world attached: mocks.sim_camera.attach_world)" if url.scheme == "sim" else ""
+        hint = " (sim:// needs a simulated world attached: selfview.mocks.sim_camera.attach_world)" if url.scheme == "sim" else ""
         raise ConfigError(f"{url.url}: no frame source for scheme {url.scheme!r}{hint}; known: {', '.join(known)}")
     return factory(url)
 

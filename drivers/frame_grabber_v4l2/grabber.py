@@ -1,6 +1,6 @@
 """The frame grabber: checked grey frames, taken after a given moment, averaged or as one field.
 
-``FrameGrabber(url)`` reads from the source the URL names (``drivers.frame_grabber_v4l2.url``): the
+``FrameGrabber(url)`` reads from the source the URL names (``selfview.drivers.frame_grabber_v4l2.url``): the
 CCIR grabber card over V4L2, a recorded image sequence or video file, or a registered source such as
 the simulator's ``sim://``. Whatever the source, a grab
 
@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.frame_grabber_v4l2.capture import FrameSource, SourceFactory, source_for, to_grey
-from drivers.frame_grabber_v4l2.url import GrabberUrl, parse_grabber_url
+from selfview.drivers.frame_grabber_v4l2.capture import FrameSource, SourceFactory, source_for, to_grey
+from selfview.drivers.frame_grabber_v4l2.url import GrabberUrl, parse_grabber_url
 from selfview.errors import ConfigError, DeviceError, DeviceTimeout, ImageError
 
 __all__ = ["Frame", "FrameGrabber"]

@@ -1,17 +1,17 @@
 """Pneumatic parallel-jaw gripper on a Modbus valve: driver, I/O map and URLs.
 
-Only ``drivers.pneumatic_gripper.modbus`` imports pymodbus (pinned to 3.11 in pyproject.toml).
+Only ``selfview.drivers.pneumatic_gripper.modbus`` imports pymodbus (pinned to 3.11 in pyproject.toml).
 """
 
-from drivers.pneumatic_gripper.gripper import GripperFault, JawReading, PneumaticGripper
-from drivers.pneumatic_gripper.iomap import JAW_STATES, IoMap, Point, from_reference, to_reference
-from drivers.pneumatic_gripper.modbus import (
+from selfview.drivers.pneumatic_gripper.gripper import GripperFault, JawReading, PneumaticGripper
+from selfview.drivers.pneumatic_gripper.iomap import JAW_STATES, IoMap, Point, from_reference, to_reference
+from selfview.drivers.pneumatic_gripper.modbus import (
     ConnectionFailed,
     ConnectionLost,
     ModbusExceptionReply,
     ModbusLink,
 )
-from drivers.pneumatic_gripper.url import ModbusUrl, parse_modbus_url
+from selfview.drivers.pneumatic_gripper.url import ModbusUrl, parse_modbus_url
 
 __all__ = [
     "PneumaticGripper",

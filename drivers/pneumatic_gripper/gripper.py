@@ -25,8 +25,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from drivers.pneumatic_gripper.iomap import IoMap, Point
-from drivers.pneumatic_gripper.modbus import ConnectionLost, ModbusExceptionReply, ModbusLink
+from selfview.drivers.pneumatic_gripper.iomap import IoMap, Point
+from selfview.drivers.pneumatic_gripper.modbus import ConnectionLost, ModbusExceptionReply, ModbusLink
 from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout
 
 __all__ = ["PneumaticGripper", "GripperFault", "JawReading"]
@@ -77,7 +77,7 @@ def _span_reads(points: list[Point]) -> list[tuple[str, int, int]]:
 class PneumaticGripper:
     """Driver of a pneumatic gripper on a Modbus valve (terminal).
 
-    ``url``: a Modbus URL (``drivers.pneumatic_gripper.url``). ``io_map``: where the solenoids and reed
+    ``url``: a Modbus URL (``selfview.drivers.pneumatic_gripper.url``). ``io_map``: where the solenoids and reed
     switches are (default: double solenoid on coils 0 (open) and 1 (close), switches on discrete inputs
     0 (open) and 1 (closed)). ``timeout_s``: how long a jaw motion may take to confirm.
     ``request_timeout_s`` / ``retries``: per Modbus request. ``poll_s``: background poll period

@@ -27,7 +27,7 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.framer import FramerType
 
-from drivers.pneumatic_gripper.url import ModbusUrl, parse_modbus_url
+from selfview.drivers.pneumatic_gripper.url import ModbusUrl, parse_modbus_url
 from selfview.errors import ConfigError, DeviceError, DeviceTimeout, ProtocolError
 
 __all__ = [

@@ -5,9 +5,9 @@ client-side limits checked before anything is sent; the ``ControllerError`` fami
 the controller's ``*text*`` lines.
 """
 
-from drivers.puma_val_serial.dialect import DEFAULT_COMMANDS, DEFAULT_ERRORS, ValDialect, load_dialect
-from drivers.puma_val_serial.driver import PumaVAL, Where
-from drivers.puma_val_serial.errors import (
+from selfview.drivers.puma_val_serial.dialect import DEFAULT_COMMANDS, DEFAULT_ERRORS, ValDialect, load_dialect
+from selfview.drivers.puma_val_serial.driver import PumaVAL, Where
+from selfview.drivers.puma_val_serial.errors import (
     ArmPowerOff,
     Collision,
     CommandRejected,
@@ -19,7 +19,7 @@ from drivers.puma_val_serial.errors import (
     OutOfReach,
     UndefinedLocation,
 )
-from drivers.puma_val_serial.limits import ValLimits
+from selfview.drivers.puma_val_serial.limits import ValLimits
 
 __all__ = [
     "PumaVAL",

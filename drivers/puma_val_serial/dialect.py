@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers.puma_val_serial._config import check_keys, read_yaml
-from drivers.puma_val_serial.errors import ERROR_CLASSES, ControllerError
+from selfview.drivers.puma_val_serial._config import check_keys, read_yaml
+from selfview.drivers.puma_val_serial.errors import ERROR_CLASSES, ControllerError
 from selfview.errors import ConfigError, ProtocolError
 from selfview.geometry import VAL_OAT, EulerConvention, H_from_xyzoat, xyzoat_from_H
 

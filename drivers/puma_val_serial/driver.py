@@ -25,8 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 import serial
 
-from drivers.puma_val_serial.dialect import ValDialect
-from drivers.puma_val_serial.limits import ValLimits
+from selfview.drivers.puma_val_serial.dialect import ValDialect
+from selfview.drivers.puma_val_serial.limits import ValLimits
 from selfview.errors import ConfigError, DeviceError, DeviceTimeout, ProtocolError
 from selfview.geometry import check_rigid, rotation_angle, trans
 

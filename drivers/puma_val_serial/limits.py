@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.puma_val_serial._config import check_keys, read_yaml
+from selfview.drivers.puma_val_serial._config import check_keys, read_yaml
 from selfview.errors import ConfigError, LimitError
 
 __all__ = ["ValLimits", "PUMA260_JOINT_LIMITS_DEG", "PUMA260_JOINT_SPEED_DEG_S", "VAL_READY_DEG"]

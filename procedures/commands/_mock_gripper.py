@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import sys
 
-from procedures.commands._common import check_port, positive_seconds, serve_until
-from procedures.commands.gripper import add_io_map_argument, load_io_map_arg
+from selfview.procedures.commands._common import check_port, positive_seconds, serve_until
+from selfview.procedures.commands.gripper import add_io_map_argument, load_io_map_arg
 
 
 def register(kinds):
@@ -34,7 +34,7 @@ def register(kinds):
 
 
 def run(args) -> int:
-    from mocks.valve_terminal import ValveTerminal
+    from selfview.mocks.valve_terminal import ValveTerminal
 
     check_port(args.port, "mock gripper")
     terminal = ValveTerminal(

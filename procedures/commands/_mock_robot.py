@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from procedures.commands._common import add_cell_argument, check_port, load_cell_arg, positive_seconds, serve_until
+from selfview.procedures.commands._common import add_cell_argument, check_port, load_cell_arg, positive_seconds, serve_until
 
 
 def _nonneg(text: str) -> float:
@@ -41,9 +41,9 @@ def register(kinds):
 
 
 def run(args) -> int:
-    from drivers.puma_val_serial import load_dialect
-    from mocks.val_controller import ValController
-    from mocks.world import SimWorld
+    from selfview.drivers.puma_val_serial import load_dialect
+    from selfview.mocks.val_controller import ValController
+    from selfview.mocks.world import SimWorld
 
     check_port(args.port, "mock robot")
     if args.baud <= 0:

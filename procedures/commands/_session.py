@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 import time
 
-from procedures.commands._common import add_cell_argument, load_cell_arg
+from selfview.procedures.commands._common import add_cell_argument, load_cell_arg
 
 
 def add_session_arguments(p, *, seed_default: int = 0) -> None:
@@ -33,7 +33,7 @@ def progress_printer(quiet: bool = False):
 
 def open_session(args, progress=None):
     """A CellSession (not yet opened) for the command's arguments."""
-    from procedures.runs import CellSession
+    from selfview.procedures.runs import CellSession
 
     cell = load_cell_arg(args)
     ask = None if not sys.stdin.isatty() else (lambda text: input(text + " "))

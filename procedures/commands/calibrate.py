@@ -10,7 +10,7 @@ import hashlib
 import sys
 from pathlib import Path
 
-from procedures.commands._common import add_cell_argument, load_cell_arg, print_json
+from selfview.procedures.commands._common import add_cell_argument, load_cell_arg, print_json
 from selfview.errors import ImageError
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from procedures.commands._common import print_json
+from selfview.procedures.commands._common import print_json
 from selfview.geometry import rpy_from_R
 from selfview.tsai import FREE_CENTRE_MODES, MODES, calibrate_coplanar, load_willson_points
 

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from procedures.commands._common import print_json
-from procedures.commands._session import add_session_arguments, open_session
+from selfview.procedures.commands._common import print_json
+from selfview.procedures.commands._session import add_session_arguments, open_session
 
 
 def register(sub):

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import time
 
-from procedures.commands._common import print_json
-from procedures.commands._session import add_session_arguments, open_session, progress_printer
+from selfview.procedures.commands._common import print_json
+from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
 
 
 def register(sub):
@@ -33,9 +33,9 @@ def register(sub):
 
 
 def run(args) -> int:
-    from procedures.experiment import tables_markdown
-    from procedures.results import new_run_dir
-    from procedures.runs import write_experiment_folder
+    from selfview.procedures.experiment import tables_markdown
+    from selfview.procedures.results import new_run_dir
+    from selfview.procedures.runs import write_experiment_folder
     from selfview.errors import ConfigError
 
     if args.trials < 1:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from procedures.commands._common import add_cell_argument, load_cell_arg, print_json, write_image
+from selfview.procedures.commands._common import add_cell_argument, load_cell_arg, print_json, write_image
 from selfview.errors import ConfigError
 
 
@@ -32,15 +32,15 @@ def register(sub):
 
 def run(args) -> int:
 
-    from drivers.frame_grabber_v4l2 import FrameGrabber, parse_grabber_url
+    from selfview.drivers.frame_grabber_v4l2 import FrameGrabber, parse_grabber_url
 
     out = Path(args.out)
     if not out.parent.is_dir():
         raise ConfigError(f"--out {out}: folder {out.parent} does not exist")
     attachment = None
     if parse_grabber_url(args.url).scheme == "sim":
-        from mocks.sim_camera import attach_world
-        from mocks.world import SimWorld
+        from selfview.mocks.sim_camera import attach_world
+        from selfview.mocks.world import SimWorld
 
         world = SimWorld(load_cell_arg(args), seed=args.seed)
         world.park()

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import yaml
 
-from procedures.commands._common import print_json
+from selfview.procedures.commands._common import print_json
 from selfview.errors import ConfigError
 
 
@@ -23,7 +23,7 @@ def add_io_map_argument(p) -> None:
 
 
 def load_io_map_arg(args):
-    from drivers.pneumatic_gripper import IoMap
+    from selfview.drivers.pneumatic_gripper import IoMap
 
     if args.io_map is None:
         return IoMap()
@@ -64,7 +64,7 @@ def register(sub):
 
 
 def run(args) -> int:
-    from drivers.pneumatic_gripper import PneumaticGripper
+    from selfview.drivers.pneumatic_gripper import PneumaticGripper
 
     gripper = PneumaticGripper(
         args.url,

@@ -14,7 +14,7 @@ def register(sub):
         ),
     )
     kinds = p.add_subparsers(dest="device", metavar="DEVICE")
-    from procedures.commands import _mock_gripper, _mock_robot
+    from selfview.procedures.commands import _mock_gripper, _mock_robot
 
     _mock_robot.register(kinds)
     _mock_gripper.register(kinds)

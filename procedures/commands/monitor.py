@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import sys
 
-from procedures.commands._session import add_session_arguments, open_session, progress_printer
+from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
 
 
 def register(sub):

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from procedures.commands._common import print_json, write_image
-from procedures.commands._session import add_session_arguments, open_session, progress_printer
+from selfview.procedures.commands._common import print_json, write_image
+from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
 
 
 def register(sub):

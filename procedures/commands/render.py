@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from procedures.commands._common import add_cell_argument, load_cell_arg, print_json, write_image
+from selfview.procedures.commands._common import add_cell_argument, load_cell_arg, print_json, write_image
 from selfview.errors import ConfigError
 
 
@@ -56,8 +56,8 @@ def _json_text(obj: dict) -> str:
 
 def run(args) -> int:
 
-    from mocks.render import LIFTED_W_H_G, render
-    from mocks.world import SimWorld
+    from selfview.mocks.render import LIFTED_W_H_G, render
+    from selfview.mocks.world import SimWorld
 
     cell = load_cell_arg(args)
     out = _writable(args.out, "--out")

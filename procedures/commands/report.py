@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from procedures.commands._common import print_json
+from selfview.procedures.commands._common import print_json
 
 
 def register(sub):
@@ -24,8 +24,8 @@ def register(sub):
     p.add_argument("--quick", action="store_true", help="small sizes everywhere (a smoke test, not evidence)")
     p.add_argument("--only", metavar="NAME", nargs="+", help="run only these benchmarks (e.g. offline update_limit)")
     p.add_argument("--trials", type=int, help="experiment trials per series (default 20, quick 2; 0 skips it)")
-    p.add_argument("--bench-dir", metavar="DIR", help="the bench/ folder (default ./bench, else the one beside the package)")
-    p.add_argument("--shared", metavar="DIR", help="the shared folder holding reference/tsai-willson")
+    p.add_argument("--bench-dir", metavar="DIR", help="a bench/ folder to run instead of the installed project's own")
+    p.add_argument("--reference", metavar="DIR", help="the folder of Willson's data (default: the copy shipped with selfview)")
     p.add_argument("--jobs", type=int, default=2, help="processes for the experiment's two series (default 2)")
     p.add_argument("--write-cell", metavar="CELL.yaml",
                    help="also write the update limit measured in this run into that cell file (e.g. selfview/data/cell.yaml)")
@@ -35,7 +35,7 @@ def register(sub):
 
 
 def run(args) -> int:
-    from procedures.report import BENCHES, make_report
+    from selfview.procedures.report import BENCHES, make_report
     from selfview.errors import ConfigError
 
     benches = BENCHES
@@ -53,7 +53,7 @@ def run(args) -> int:
             print(f"report: {msg}", file=sys.stderr, flush=True)
 
     command = "selfview report " + " ".join(a for a in sys.argv[2:]) if sys.argv[1:2] == ["report"] else "selfview report"
-    res = make_report(args.out, quick=args.quick, benches=benches, bench_dir=args.bench_dir, shared=args.shared,
+    res = make_report(args.out, quick=args.quick, benches=benches, bench_dir=args.bench_dir, reference=args.reference,
                       trials=args.trials, jobs=args.jobs, progress=say, command=command.strip(),
                       write_cell=args.write_cell)
     if args.json:

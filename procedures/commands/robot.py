@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from procedures.commands._common import print_json
+from selfview.procedures.commands._common import print_json
 from selfview.errors import ConfigError
 
 _ACTIONS = {
@@ -81,7 +81,7 @@ def make_robot(args):
     """The driver the arguments describe (not connected)."""
     from dataclasses import replace
 
-    from drivers.puma_val_serial import PumaVAL, ValLimits, load_dialect
+    from selfview.drivers.puma_val_serial import PumaVAL, ValLimits, load_dialect
 
     dialect = load_dialect(args.dialect) if args.dialect else None
     limits = ValLimits.load(args.limits) if args.limits else ValLimits()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from procedures.commands._common import add_cell_argument, load_cell_arg, print_json
+from selfview.procedures.commands._common import add_cell_argument, load_cell_arg, print_json
 
 METHOD_CHOICES = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R", "auto")
 
@@ -33,7 +33,7 @@ def register(sub):
 
 
 def run(args) -> int:
-    from procedures.commands.calibrate import read_picture
+    from selfview.procedures.commands.calibrate import read_picture
     from selfview.calfile import load_calibration, save_calibration
     from selfview.cell import POINT_NAMES
     from selfview.errors import AlarmError, ConfigError

@@ -7,7 +7,7 @@ import json
 import cv2
 import numpy as np
 
-from procedures.cli import EXIT_CALIBRATION, EXIT_CONFIG, EXIT_DEVICE, main
+from selfview.procedures.cli import EXIT_CALIBRATION, EXIT_CONFIG, EXIT_DEVICE, main
 
 
 def test_grab_from_a_sequence_with_average(tmp_path, capsys):
@@ -28,8 +28,8 @@ def test_grab_from_the_simulated_cell(tmp_path, capsys):
     assert main(["grab", "--url", "sim://?noise=0", "--out", str(out), "--seed", "4"]) == 0
     img = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
     assert img.shape == (576, 768) and img.dtype == np.uint8
-    from mocks.render import render
-    from mocks.world import SimWorld
+    from selfview.mocks.render import render
+    from selfview.mocks.world import SimWorld
     from selfview.cell import default_cell_path, load_cell
 
     world = SimWorld(load_cell(default_cell_path()), seed=4)

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.frame_grabber_v4l2 import (
+from selfview.drivers.frame_grabber_v4l2 import (
     EndOfStream,
     FrameGrabber,
     field_image,

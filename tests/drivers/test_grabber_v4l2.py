@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.frame_grabber_v4l2 import FrameGrabber, V4L2Device, parse_grabber_url
-from drivers.frame_grabber_v4l2 import v4l2
-from drivers.frame_grabber_v4l2.capture import V4L2Source
+from selfview.drivers.frame_grabber_v4l2 import FrameGrabber, V4L2Device, parse_grabber_url
+from selfview.drivers.frame_grabber_v4l2 import v4l2
+from selfview.drivers.frame_grabber_v4l2.capture import V4L2Source
 from selfview.errors import ConfigError, DeviceError, ImageError
 
 # The values <linux/videodev2.h> gives on x86-64 / arm64 (printed by a C program including it).
@@ -64,7 +64,7 @@ def test_ioctl_numbers_against_a_compiled_header(tmp_path):
     exe = tmp_path / "v"
     subprocess.run(["cc", str(src), "-o", str(exe)], check=True, capture_output=True, timeout=60)
     out = [int(x) for x in subprocess.run([str(exe)], check=True, capture_output=True, text=True, timeout=10).stdout.split()]
-    from drivers.frame_grabber_v4l2 import STANDARDS
+    from selfview.drivers.frame_grabber_v4l2 import STANDARDS
 
     ours = [getattr(v4l2, n) for n in KERNEL] + [STANDARDS["pal"], STANDARDS["ntsc"], STANDARDS["secam"]]
     assert out == ours

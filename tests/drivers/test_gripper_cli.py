@@ -7,8 +7,8 @@ import socket
 
 import pytest
 
-from mocks.valve_terminal import ValveTerminal
-from procedures.cli import EXIT_CONFIG, EXIT_DEVICE, main
+from selfview.mocks.valve_terminal import ValveTerminal
+from selfview.procedures.cli import EXIT_CONFIG, EXIT_DEVICE, main
 
 
 @pytest.fixture
@@ -34,7 +34,7 @@ def test_close_open_state(terminal, capsys):
 def test_io_map_file(tmp_path, capsys):
     path = tmp_path / "festo.yaml"
     path.write_text("open_valve: 40001.0\nclose_valve: 40001.1\nopen_sensor: 30001.0\nclosed_sensor: 30001.1\n")
-    from drivers.pneumatic_gripper import IoMap, Point
+    from selfview.drivers.pneumatic_gripper import IoMap, Point
 
     m = IoMap(open_valve=Point.parse("hr:0.0"), close_valve=Point.parse("hr:0.1"),
               open_sensor=Point.parse("ir:0.0"), closed_sensor=Point.parse("ir:0.1"))

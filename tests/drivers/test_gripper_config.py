@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from drivers.pneumatic_gripper import IoMap, JawReading, Point, from_reference, parse_modbus_url, to_reference
-from drivers.pneumatic_gripper.gripper import GripperFault, PneumaticGripper
+from selfview.drivers.pneumatic_gripper import IoMap, JawReading, Point, from_reference, parse_modbus_url, to_reference
+from selfview.drivers.pneumatic_gripper.gripper import GripperFault, PneumaticGripper
 from selfview.errors import ConfigError
 
 
@@ -150,7 +150,7 @@ def test_bad_driver_settings(kw):
 
 
 def test_reads_are_grouped_within_modbus_limits():
-    from drivers.pneumatic_gripper.gripper import _span_reads
+    from selfview.drivers.pneumatic_gripper.gripper import _span_reads
 
     pts = [Point.parse(t) for t in ("di:1", "di:0", "ir:3.1", "ir:3.2", "ir:200.0", "di:2500", "coil:4")]
     assert _span_reads(pts) == [

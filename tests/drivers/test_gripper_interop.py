@@ -9,7 +9,7 @@ import pytest
 
 pyModbusTCP_server = pytest.importorskip("pyModbusTCP.server", reason="test extra pyModbusTCP not installed")
 
-from drivers.pneumatic_gripper import IoMap, ModbusExceptionReply, PneumaticGripper, Point  # noqa: E402
+from selfview.drivers.pneumatic_gripper import IoMap, ModbusExceptionReply, PneumaticGripper, Point  # noqa: E402
 
 
 class GripperBank(pyModbusTCP_server.DataBank):

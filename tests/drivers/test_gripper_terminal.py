@@ -11,9 +11,9 @@ import time
 
 import pytest
 
-from drivers.pneumatic_gripper import ConnectionLost, GripperFault, IoMap, PneumaticGripper, Point
-from mocks.valve_terminal import ValveTerminal
-from mocks.world import SimWorld
+from selfview.drivers.pneumatic_gripper import ConnectionLost, GripperFault, IoMap, PneumaticGripper, Point
+from selfview.mocks.valve_terminal import ValveTerminal
+from selfview.mocks.world import SimWorld
 from selfview.errors import DeviceTimeout
 
 TRAVEL_S = 0.04
@@ -129,7 +129,7 @@ def test_broken_switch_is_a_fault_and_a_shorted_one_too(terminal):
 
 
 def test_exception_replies_on_demand(terminal):
-    from drivers.pneumatic_gripper import ModbusExceptionReply
+    from selfview.drivers.pneumatic_gripper import ModbusExceptionReply
 
     with PneumaticGripper(terminal.url) as g:
         terminal.fail_requests(6)

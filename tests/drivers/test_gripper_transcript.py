@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from drivers.pneumatic_gripper import (
+from selfview.drivers.pneumatic_gripper import (
     ConnectionFailed,
     ConnectionLost,
     GripperFault,
@@ -346,7 +346,7 @@ def test_refused_connection_is_typed():
 def test_rtu_serial_client_path(device):
     """The modbus-rtu:///dev/tty... path (pymodbus's serial client on pyserial) on real RTU frames: pyserial
     opens its socket:// URL like a port (a pseudo-terminal would not take pymodbus's inter-byte timeout)."""
-    from drivers.pneumatic_gripper import ModbusLink, ModbusUrl
+    from selfview.drivers.pneumatic_gripper import ModbusLink, ModbusUrl
 
     d = device([(rtu("01 0000 0002"), rtu("01 01 02")), (rtu("02 0000 0002"), rtu("02 01 02"))], framing="rtu")
     link = ModbusLink(ModbusUrl(url="test", transport="rtu", device=f"socket://127.0.0.1:{d.port}", baud=115200))

@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from procedures.cli import main
+from selfview.procedures.cli import main
 from tests.conftest import REPO
 
 
@@ -18,7 +18,7 @@ from tests.conftest import REPO
 def mock_robot():
     """``selfview mock robot --link tcp --duration 5`` in a subprocess; yields the URL of its first line."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "procedures.cli", "mock", "robot", "--link", "tcp", "--duration", "5", "--time-scale", "0.02"],
+        [sys.executable, "-m", "selfview.procedures.cli", "mock", "robot", "--link", "tcp", "--duration", "5", "--time-scale", "0.02"],
         cwd=REPO,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -73,8 +73,8 @@ def test_robot_cli_reports_an_unreachable_controller(capsys):
 
 
 def test_robot_cli_pty_in_process(cell, capsys):
-    from mocks.val_controller import ValController
-    from mocks.world import SimWorld
+    from selfview.mocks.val_controller import ValController
+    from selfview.mocks.world import SimWorld
 
     with ValController(SimWorld(cell, seed=2), time_scale=0.0, calibrated=True) as c:
         c.start_pty()

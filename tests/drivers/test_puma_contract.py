@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import serial
 
-from drivers.puma_val_serial import (
+from selfview.drivers.puma_val_serial import (
     ArmPowerOff,
     Collision,
     MotionAborted,
@@ -23,8 +23,8 @@ from drivers.puma_val_serial import (
     PumaVAL,
     ValLimits,
 )
-from mocks.val_controller import ValController
-from mocks.world import PLATE_BASE_POSE, SimWorld
+from selfview.mocks.val_controller import ValController
+from selfview.mocks.world import PLATE_BASE_POSE, SimWorld
 from selfview.errors import DeviceTimeout, LimitError, ProtocolError
 from selfview.geometry import H_from_xyzoat, pose_difference, trans
 
@@ -330,7 +330,7 @@ def test_tcp_link_and_reconnection(world):
 
 
 def test_echo_off_and_lf_dialect(world):
-    from drivers.puma_val_serial import ValDialect
+    from selfview.drivers.puma_val_serial import ValDialect
 
     d = ValDialect(echo=False, controller_eol="\n")
     with ValController(world, seed=1, time_scale=SCALE, dialect=d) as c:

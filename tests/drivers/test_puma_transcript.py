@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-from drivers.puma_val_serial import (
+from selfview.drivers.puma_val_serial import (
     ArmPowerOff,
     CommandRejected,
     ControllerError,

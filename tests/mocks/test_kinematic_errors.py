@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.puma_val_serial import PumaVAL
-from mocks.kinematic_errors import LINKS, WORN_PUMA, KinematicErrors, PerturbedPuma260, PerturbedValController
-from mocks.puma260 import Puma260Geometry, make_tool
-from mocks.val_controller import TOOL_LENGTH_MM
-from mocks.world import PLATE_BASE_POSE, SimWorld
+from selfview.drivers.puma_val_serial import PumaVAL
+from selfview.mocks.kinematic_errors import LINKS, WORN_PUMA, KinematicErrors, PerturbedPuma260, PerturbedValController
+from selfview.mocks.puma260 import Puma260Geometry, make_tool
+from selfview.mocks.val_controller import TOOL_LENGTH_MM
+from selfview.mocks.world import PLATE_BASE_POSE, SimWorld
 from selfview.errors import ConfigError
 from selfview.geometry import inv_H, pose_difference, trans
 

@@ -15,9 +15,9 @@ import cv2
 import numpy as np
 import pytest
 
-import mocks.render as rmod
-from mocks.render import LIFTED_W_H_G, RenderResult, disc_image_centroids, render
-from mocks.world import SimWorld
+import selfview.mocks.render as rmod
+from selfview.mocks.render import LIFTED_W_H_G, RenderResult, disc_image_centroids, render
+from selfview.mocks.world import SimWorld
 from selfview.camera import CameraModel
 from selfview.cell import POINT_NAMES
 from selfview.errors import ConfigError

@@ -8,10 +8,10 @@ import time
 import numpy as np
 import pytest
 
-from drivers.frame_grabber_v4l2 import FrameGrabber, parse_grabber_url
-from mocks.render import render
-from mocks.sim_camera import SimCamera, attach_world
-from mocks.world import SimWorld
+from selfview.drivers.frame_grabber_v4l2 import FrameGrabber, parse_grabber_url
+from selfview.mocks.render import render
+from selfview.mocks.sim_camera import SimCamera, attach_world
+from selfview.mocks.world import SimWorld
 from selfview.errors import ConfigError, DeviceTimeout
 
 
@@ -132,8 +132,8 @@ def test_bad_sim_urls(world, url):
 
 def test_the_picture_follows_the_gripper_valve(world, cell):
     """Close the jaws through Modbus; a frame exposed after the switch confirmed shows them closed."""
-    from drivers.pneumatic_gripper import PneumaticGripper
-    from mocks.valve_terminal import ValveTerminal
+    from selfview.drivers.pneumatic_gripper import PneumaticGripper
+    from selfview.mocks.valve_terminal import ValveTerminal
 
     with ValveTerminal(world, travel_s=0.05) as terminal, PneumaticGripper(terminal.url) as gripper, \
             attach_world(world, fps=100, noise=False), FrameGrabber("sim://") as grabber:

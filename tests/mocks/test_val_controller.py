@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import serial
 
-from mocks.puma260 import READY_DEG, ArmConfig, Puma260, Puma260Geometry, Unreachable, make_tool
-from mocks.val_controller import TOOL_LENGTH_MM, ValController, trapezoid_fraction, trapezoid_time
-from mocks.world import PLATE_BASE_POSE, SimWorld
+from selfview.mocks.puma260 import READY_DEG, ArmConfig, Puma260, Puma260Geometry, Unreachable, make_tool
+from selfview.mocks.val_controller import TOOL_LENGTH_MM, ValController, trapezoid_fraction, trapezoid_time
+from selfview.mocks.world import PLATE_BASE_POSE, SimWorld
 from selfview.errors import ConfigError
 from selfview.geometry import inv_H
 

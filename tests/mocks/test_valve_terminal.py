@@ -8,8 +8,8 @@ import time
 
 import pytest
 
-from drivers.pneumatic_gripper import IoMap, Point
-from mocks.valve_terminal import ValveTerminal
+from selfview.drivers.pneumatic_gripper import IoMap, Point
+from selfview.mocks.valve_terminal import ValveTerminal
 from selfview.errors import ConfigError, DeviceError
 from tests.drivers.test_gripper_transcript import crc16  # Modbus CRC-16, written from the specification
 
@@ -228,7 +228,7 @@ def test_bad_settings_are_refused():
 
 
 def test_world_follows_the_jaws(cell):
-    from mocks.world import SimWorld
+    from selfview.mocks.world import SimWorld
 
     world = SimWorld(cell, seed=0)
     with ValveTerminal(world, travel_s=0.3, watchdog_s=None) as t:

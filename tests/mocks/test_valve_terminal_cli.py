@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from drivers.pneumatic_gripper import PneumaticGripper
+from selfview.drivers.pneumatic_gripper import PneumaticGripper
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -23,7 +23,7 @@ def first_line(proc: subprocess.Popen, timeout_s: float) -> str:
 
 def test_mock_gripper_serves_until_interrupted():
     proc = subprocess.Popen(
-        [sys.executable, "-m", "procedures.cli", "mock", "gripper", "--duration", "60", "--travel", "0.02"],
+        [sys.executable, "-m", "selfview.procedures.cli", "mock", "gripper", "--duration", "60", "--travel", "0.02"],
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     try:
@@ -43,7 +43,7 @@ def test_mock_gripper_serves_until_interrupted():
 
 def test_mock_gripper_duration_and_rtu():
     proc = subprocess.Popen(
-        [sys.executable, "-m", "procedures.cli", "mock", "gripper", "--duration", "0.5", "--rtu"],
+        [sys.executable, "-m", "selfview.procedures.cli", "mock", "gripper", "--duration", "0.5", "--rtu"],
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     try:

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from mocks.world import PLATE_BASE_POSE, SimWorld
+from selfview.mocks.world import PLATE_BASE_POSE, SimWorld
 from selfview.errors import ConfigError
 from selfview.geometry import inv_H, pose_difference, rot_z, transform_points
 

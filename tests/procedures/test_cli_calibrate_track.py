@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import yaml
 
-from mocks.render import render
-from mocks.world import SimWorld
-from procedures.cli import main
+from selfview.mocks.render import render
+from selfview.mocks.world import SimWorld
+from selfview.procedures.cli import main
 from selfview.calfile import history_dir, load_calibration
 
 

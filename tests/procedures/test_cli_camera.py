@@ -7,12 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from procedures.cli import EXIT_CALIBRATION, EXIT_CONFIG, EXIT_OK, main
+from selfview.procedures.cli import EXIT_CALIBRATION, EXIT_CONFIG, EXIT_OK, main
 
 
 @pytest.fixture
-def cc_cd(shared):
-    return str(shared / "reference" / "tsai-willson" / "cc_cd.dat")
+def cc_cd(willson_dir):
+    return str(willson_dir / "cc_cd.dat")
 
 
 def test_json_output_on_willsons_data(cc_cd, capsys):

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from procedures.cli import main
+from selfview.procedures.cli import main
 
 REPO = Path(__file__).resolve().parents[2]
 METHODS = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R")

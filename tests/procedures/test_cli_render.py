@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from mocks.render import render
-from mocks.world import SimWorld
-from procedures.cli import EXIT_CONFIG, main
+from selfview.mocks.render import render
+from selfview.mocks.world import SimWorld
+from selfview.procedures.cli import EXIT_CONFIG, main
 from selfview.cell import POINT_NAMES
 
 

@@ -7,9 +7,9 @@ import time
 import numpy as np
 import pytest
 
-from mocks.world import PLATE_BASE_POSE
-from procedures.engine import Cancelled, CellDevices, Engine, Step
-from procedures.runs import CellSession
+from selfview.mocks.world import PLATE_BASE_POSE
+from selfview.procedures.engine import Cancelled, CellDevices, Engine, Step
+from selfview.procedures.runs import CellSession
 from selfview.calfile import load_calibration
 from selfview.errors import CalibrationError, ConfigError, DeviceError, DeviceTimeout, ImageError, LimitError
 from selfview.geometry import trans

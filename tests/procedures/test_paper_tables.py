@@ -9,8 +9,8 @@ Table 2: 0.02 / 0.01 / 0.21 mm, 0.00 read as 0.01); against the simulator's trut
 import numpy as np
 import pytest
 
-from procedures.experiment import run_direct
-from procedures.paper import PAPER_TABLES
+from selfview.procedures.experiment import run_direct
+from selfview.procedures.paper import PAPER_TABLES
 
 
 @pytest.mark.slow

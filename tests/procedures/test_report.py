@@ -12,8 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from procedures.cli import main
-from procedures.report import Bench, BenchRun, make_report, render_markdown, run_bench, willson_check
+from selfview.procedures.cli import main
+from selfview.procedures.report import (Bench, BenchRun, find_bench_dir, find_reference_dir, make_report, render_markdown,
+                                        run_bench, willson_check)
 from selfview.cell import default_cell_path, load_cell
 from selfview.geometry import R_from_rotvec, inv_H, make_H, rot_z
 
@@ -83,8 +84,8 @@ def test_a_bench_that_overruns_is_killed_with_its_children(fake_benches, tmp_pat
     assert not _alive(pid)
 
 
-def test_willson_check_reproduces_his_tsai_run(shared):
-    w = willson_check(shared / "reference" / "tsai-willson")
+def test_willson_check_reproduces_his_tsai_run():
+    w = willson_check(find_reference_dir())
     tsai = next(r for r in w["runs"] if r["mode"] == "tsai")
     ours, his = tsai["ours"], tsai["willson"]
     assert ours["f"] == pytest.approx(his["f"], rel=1e-4) and ours["Tz"] == pytest.approx(his["Tz"], rel=1e-4)
@@ -94,11 +95,11 @@ def test_willson_check_reproduces_his_tsai_run(shared):
     assert willson_check(None) is None
 
 
-def test_make_report_writes_every_section_from_the_run(fake_benches, tmp_path, shared):
+def test_make_report_writes_every_section_from_the_run(fake_benches, tmp_path):
     out = tmp_path / "docs" / "RESULTS.md"
     benches = (Bench("good", "fake speed figures"), Bench("broken", "fails"), Bench("offline", "not written yet"))
     said = []
-    res = make_report(out, quick=True, benches=benches, bench_dir=fake_benches, shared=shared, trials=1, jobs=2,
+    res = make_report(out, quick=True, benches=benches, bench_dir=fake_benches, trials=1, jobs=2,
                       progress=said.append, command="selfview report --test")
     assert res["runs"] == {"good": "ok", "broken": "failed", "offline": "not available"}
     text = out.read_text()
@@ -229,3 +230,17 @@ def test_quick_report_runs_the_studies_end_to_end(tmp_path):
     assert (tmp_path / "results" / "kinematics_vs_selfview.png").stat().st_size > 10_000
     assert (tmp_path / "results" / "update_limit.png").stat().st_size > 10_000
     assert ul["limit"]["noise_floor"]["n"] > 0 and "## The limit between updating and recalibrating" in text
+
+
+def test_report_runs_the_installed_projects_own_benchmarks_wherever_started(tmp_path, monkeypatch):
+    """Started from any folder (here one holding a bench/ of its own), the report runs selfview's benchmarks."""
+    import selfview.bench
+
+    (tmp_path / "bench").mkdir()
+    (tmp_path / "bench" / "online.py").write_text("print('{}')\n")
+    monkeypatch.chdir(tmp_path)
+    d = find_bench_dir()
+    assert d == Path(selfview.bench.__file__).resolve().parent
+    assert (d / "online.py").read_text() != "print('{}')\n" and (d / "offline.py").is_file()
+    assert find_reference_dir() is not None and (find_reference_dir() / "ccal.log").is_file()
+    assert find_reference_dir(tmp_path) is None  # a folder without Willson's data is no reference

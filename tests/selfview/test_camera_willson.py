@@ -29,8 +29,8 @@ def willson_camera(cpcc_path, width=576, height=384):
 
 
 @pytest.fixture(scope="module")
-def willson(shared):
-    d = shared / "reference" / "tsai-willson"
+def willson(willson_dir):
+    d = willson_dir
     p_W, uv = load_willson_points(d / "cc_cd.dat")
     sections = willson_sections((d / "ccal.log").read_text())
     return d, p_W, uv, sections

@@ -200,8 +200,8 @@ def test_as_gray_checks(cell):
 
 
 def test_on_the_project_renderer(cell_path):
-    render_mod = pytest.importorskip("mocks.render")
-    from mocks.world import SimWorld
+    render_mod = pytest.importorskip("selfview.mocks.render")
+    from selfview.mocks.world import SimWorld
     from selfview.cell import load_cell
 
     cell = load_cell(cell_path)

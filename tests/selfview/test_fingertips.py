@@ -161,8 +161,8 @@ def test_subset_of_points_and_bad_input(cell_path):
 
 
 def test_on_the_project_renderer(cell_path):
-    render_mod = pytest.importorskip("mocks.render")
-    from mocks.world import SimWorld
+    render_mod = pytest.importorskip("selfview.mocks.render")
+    from selfview.mocks.world import SimWorld
     from selfview.cell import load_cell
 
     cell = load_cell(cell_path)
@@ -205,10 +205,10 @@ def _statistics(pictures, cell):
 @pytest.mark.parametrize("renderer", ["alt", "project"])
 def test_statistics_over_30_seeds(cell, renderer):
     """The figures of the report: both renderers, 30 parked pictures each, the cell's noise and blur."""
-    from mocks.world import SimWorld
+    from selfview.mocks.world import SimWorld
 
     if renderer == "project":
-        render_mod = pytest.importorskip("mocks.render")
+        render_mod = pytest.importorskip("selfview.mocks.render")
     pictures = []
     for seed in range(30):
         w = SimWorld(cell, seed)
@@ -230,7 +230,7 @@ def test_corners_beside_ink_at_the_tip(cell, renderer):
     tip, which there count for less than the disc's rim beside them; the search must still reach the
     corners, not the rim 15 px below. The independent renderer shows it with lighter fingers (less
     contrast against the paper than the ink has)."""
-    from mocks.world import SimWorld
+    from selfview.mocks.world import SimWorld
 
     w = SimWorld(cell, 5)
     w.set_jaw(cell.gripper.gap(cell.gripper.calibrate_in), cell.gripper.calibrate_in)
@@ -238,7 +238,7 @@ def test_corners_beside_ink_at_the_tip(cell, renderer):
     pred = w.C_H_G.copy()  # the mount before the disturbance
     w.disturb("cable")
     if renderer == "project":
-        render_mod = pytest.importorskip("mocks.render")
+        render_mod = pytest.importorskip("selfview.mocks.render")
         pic = render_mod.render(w, seed=5002)  # the experiment's picture
     else:
         pic = render_world(w, seed=5, finger_albedo=(0.7, 0.7))

@@ -127,7 +127,7 @@ def test_bad_input_names_what_is_wrong(rng):
 
 
 def test_plate_pose_with_a_fixed_camera(cell):
-    from mocks.render import disc_image_centroids
+    from selfview.mocks.render import disc_image_centroids
     from selfview.discs import DiscDetections
 
     cam = cell.camera.guess().with_(f=962.0, kappa=1.9e-7)

@@ -175,7 +175,7 @@ def test_np_i_from_a_non_orthogonal_prior(monkeypatch):
 def test_exact_data_recovers_the_disturbance(monkeypatch):
     """Noise-free points of a camera turned by up to 10 degrees: the kernel finds the truth to 1e-9 mm."""
     rng = np.random.default_rng(11)
-    from mocks.world import SimWorld
+    from selfview.mocks.world import SimWorld
     from tests.selfview.test_native_npu import CELL
 
     for k in range(10):

@@ -48,7 +48,7 @@ if NPU is None:
         allow_module_level=True,
     )
 
-from mocks.world import SimWorld  # noqa: E402
+from selfview.mocks.world import SimWorld  # noqa: E402
 
 EPS = float(np.finfo(float).eps)
 CELL = load_cell(default_cell_path())

@@ -87,8 +87,8 @@ def test_occluded_and_outside(nat, monkeypatch, cell_path):
 
 @pytest.mark.parametrize("seed,online", [(0, None), (5, None), (9, None), (2, "tilt"), (3, "cable")])
 def test_project_renderer(nat, monkeypatch, cell, seed, online):
-    render_mod = pytest.importorskip("mocks.render")
-    from mocks.world import SimWorld
+    render_mod = pytest.importorskip("selfview.mocks.render")
+    from selfview.mocks.world import SimWorld
 
     w = SimWorld(cell, seed)
     w.park()

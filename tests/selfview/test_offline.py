@@ -8,8 +8,8 @@ The targets (issue: off-line calibration) on the reference cell's noise and blur
 import numpy as np
 import pytest
 
-from mocks.render import render
-from mocks.world import SimWorld
+from selfview.mocks.render import render
+from selfview.mocks.world import SimWorld
 from selfview.errors import CalibrationError, ImageError
 from selfview.geometry import pose_difference
 from selfview.offline import calibrate_offline

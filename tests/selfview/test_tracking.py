@@ -20,13 +20,13 @@ from tests.alt_render import render_world
 def _render(renderer: str, world, seed: int, **kw):
     if renderer == "alt":
         return render_world(world, seed=seed, **kw)
-    from mocks.render import render
+    from selfview.mocks.render import render
 
     return render(world, seed=seed)
 
 
 def _world(cell, seed: int, parked: bool):
-    from mocks.world import SimWorld
+    from selfview.mocks.world import SimWorld
 
     w = SimWorld(cell, seed)
     w.park()

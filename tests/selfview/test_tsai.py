@@ -64,8 +64,8 @@ CAM = CameraModel(f=962.0, kappa=1.9e-7)  # the reference cell's camera (CONVENT
 
 # --- Willson's published run -----------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def willson(shared):
-    d = shared / "reference" / "tsai-willson"
+def willson(willson_dir):
+    d = willson_dir
     p_W, uv = load_willson_points(d / "cc_cd.dat")
     return p_W, uv, willson_sections((d / "ccal.log").read_text())
 
@@ -143,13 +143,13 @@ def test_willson_mode_reproduces_willsons_full_optimisation(willson):
     assert best.sse_px2 < res.sse_px2 - 1e-5
 
 
-def test_willsons_objective_matches_his_log_and_his_result_is_not_its_minimum(willson, shared):
+def test_willsons_objective_matches_his_log_and_his_result_is_not_its_minimum(willson, willson_dir):
     """Of the error statistics his log prints, the undistorted sensor-plane error is the one his stages
     minimise: the 'willson' residuals at his published parameters give that block to every digit. Yet
     his point is not its minimum: refining all ten parameters further lowers it and raises f by ~1 %."""
     p_W, uv, logs = willson
     log = logs[FULL_LOG]
-    cam, H = willson_camera(shared / "reference" / "tsai-willson" / "cc_cpcc.dat")
+    cam, H = willson_camera(willson_dir / "cc_cpcc.dat")
     stages = _WillsonStages(p_W[:, :2], uv, cam.aspect)
     x = np.array([*rpy_from_R(H), *H[:3, 3], cam.kappa, cam.f, cam.cx, cam.cy])
     e, _ = stages.pose(x)
@@ -184,8 +184,8 @@ def test_full_mode_fits_better_than_tsai_mode(willson):
 
 
 # --- NiftyCal's real dot grid ----------------------------------------------------------------------------
-def niftycal_points(shared, side):
-    d = shared / "reference" / "niftycal-dots"
+def niftycal_points(niftycal_dir, side):
+    d = niftycal_dir
     model = {int(r[0]): r[1:] for r in np.loadtxt(d / "model.txt")}
     det = np.loadtxt(d / f"1479224185706804480_{side}.txt")
     p_W = np.array([model[int(i)] for i in det[:, 0]])
@@ -196,8 +196,8 @@ def niftycal_points(shared, side):
 # README: a Tsai-model fit with the centre fixed at (959.5, 539.5) gives f near 1667 px, kappa near
 # 1.0e-7 px^-2, residual near 0.8 px; NiftyCal's own values (centre free): left 1676.49, right 1660.21.
 @pytest.mark.parametrize("side,niftycal_f", [("left", 1676.49), ("right", 1660.21)])
-def test_niftycal_dot_grid(shared, side, niftycal_f):
-    p_W, uv = niftycal_points(shared, side)
+def test_niftycal_dot_grid(niftycal_dir, side, niftycal_f):
+    p_W, uv = niftycal_points(niftycal_dir, side)
     res = calibrate_coplanar(p_W, uv, cx=959.5, cy=539.5, width=1920, height=1080)
     assert res.camera.f == pytest.approx(1667.0, rel=0.01)
     assert res.camera.f == pytest.approx(niftycal_f, rel=0.01)
