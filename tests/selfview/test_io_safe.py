@@ -50,6 +50,12 @@ def test_colour_pictures_become_grey(tmp_path, grey):
 
 
 def test_a_huge_png_is_refused_from_its_header(tmp_path):
+    small = tmp_path / "over_a_small_bound.png"  # the bound is the caller's: checked first, cheaply
+    small.write_bytes(png_header_only(2000, 1000, zlib.compress(b"\0" * 1000)))
+    with pytest.raises(ImageError, match="2000 x 1000 pixels.*refused before decoding"):
+        read_picture(small, max_side=1500)
+    with pytest.raises(ImageError, match="refused before decoding"):
+        read_picture(small, max_pixels=1_000_000)
     # 30000 x 30000 pixels of zeros compress to well under a megabyte; the header is all that is read
     p = tmp_path / "bomb.png"
     p.write_bytes(png_header_only(30000, 30000, zlib.compress(b"\0" * 300_000)))
