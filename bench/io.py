@@ -3,6 +3,9 @@
 - gripper: open/close-to-confirmed latency against the simulated valve terminal, minus the stroke's
   simulated travel time (what the driver and Modbus add), and the Modbus request round trip (one FC2
   read), for Modbus TCP and RTU frames over TCP;
+- pictures: the checked reader (``selfview.io_safe.read_picture``: header size check, then OpenCV's
+  decoder) against ``cv2.imread`` on a 768 x 576 PNG, and the time to refuse a 0.3 MB PNG whose header
+  says 30000 x 30000 (refused from the header; OpenCV would decode 900 Mpx);
 - frames per second from ``sim://`` (cached render: the world at rest; and a world that changes every
   frame, so each frame is rendered) and from ``frames://`` (768 x 576 PNG sequence).
 
@@ -110,6 +113,46 @@ def bench_frames(frames: int) -> dict:
     return {"fps": round(frames / dt, 2), "frames": frames, "size": [768, 576]}
 
 
+def bench_pictures(repeats: int) -> dict:
+    import struct
+    import zlib
+
+    from selfview.io_safe import read_picture
+    from selfview.errors import ImageError
+
+    rng = np.random.default_rng(0)
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "x.png"
+        cv2.imwrite(str(p), np.clip(rng.normal(128, 30, (576, 768)), 0, 255).astype(np.uint8))
+        out = {}
+        for name, fn in (("checked_ms", lambda: read_picture(p)), ("cv2_imread_ms", lambda: cv2.imread(str(p), 0))):
+            t = []
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                fn()
+                t.append(time.perf_counter() - t0)
+            out[name] = round(1000 * float(np.median(t)), 3)
+
+        def chunk(kind, data):
+            return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+        bomb = Path(d) / "bomb.png"
+        ihdr = struct.pack(">IIBBBBB", 30000, 30000, 8, 0, 0, 0, 0)
+        bomb.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 30_000_000))
+                         + chunk(b"IEND", b""))
+        t0 = time.perf_counter()
+        try:
+            read_picture(bomb)
+            refused = False
+        except ImageError:
+            refused = True
+        out["bomb_png_bytes"] = bomb.stat().st_size
+        out["bomb_30000x30000_refused"] = refused
+        out["bomb_refusal_ms"] = round(1000 * (time.perf_counter() - t0), 3)
+    out["size"] = [768, 576]
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--strokes", type=int, default=20)
@@ -126,6 +169,7 @@ def main(argv=None) -> int:
         "gripper_rtu_over_tcp": bench_gripper("rtu", a.strokes, a.requests, a.travel),
         "sim": bench_sim(a.frames),
         "frames": bench_frames(a.frames),
+        "pictures": bench_pictures(a.frames),
     }
     json.dump(result, sys.stdout)
     sys.stdout.write("\n")

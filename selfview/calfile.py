@@ -6,9 +6,11 @@ points per state, the residuals, the picture's SHA-256, the time, the software v
 hash and a checksum over all of it.
 
 Nothing is lost: a write goes to a temporary file in the same folder, is fsync'ed and renamed over the
-old one (atomic on POSIX), and the previous file is first copied into ``<name>.history/``. A file that is
-corrupt, altered, foreign or of an unknown version is refused with ``CalibrationFileError``, and is
-never overwritten.
+old one (atomic on POSIX, ``selfview.io_safe.atomic_write``), keeping its permissions, and the previous
+file is first copied into ``<name>.history/``. The new document is read back and checked before anything
+is written. A file that is corrupt, altered, foreign, of an unknown version, hostile (YAML aliases, deep
+nesting, huge numbers) or holding non-finite numbers is refused with ``CalibrationFileError``, and is
+never overwritten; so is a write that fails (full disk, size limit, missing folder), naming the path.
 """
 
 from __future__ import annotations
@@ -16,8 +18,8 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import json
-import os
-import tempfile
+import math
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,6 +32,7 @@ from selfview.camera import CameraModel
 from selfview.cell import POINT_NAMES
 from selfview.errors import CalibrationFileError, ConfigError
 from selfview.geometry import check_rigid
+from selfview.io_safe import atomic_write, load_yaml, short_repr
 
 __all__ = ["Calibration", "save_calibration", "load_calibration", "history_dir", "FORMAT", "VERSION"]
 
@@ -90,7 +93,8 @@ class Calibration:
             raise CalibrationFileError(f"{source}: not a selfview calibration file (no 'format: {FORMAT}')")
         if doc.get("version") != VERSION:
             raise CalibrationFileError(
-                f"{source}: calibration file version {doc.get('version')!r}; this selfview reads version {VERSION}"
+                f"{source}: calibration file version {short_repr(doc.get('version'))}; this selfview reads "
+                f"version {VERSION}"
             )
         want = doc.get("checksum")
         body = {k: v for k, v in doc.items() if k != "checksum"}
@@ -110,9 +114,14 @@ class Calibration:
                 width=int(cam["width"]),
                 height=int(cam["height"]),
             )
+            for name in ("f", "kappa", "cx", "cy", "aspect"):
+                if not math.isfinite(getattr(camera, name)):
+                    raise ValueError(f"camera {name} is {getattr(camera, name)}, not a finite number")
             pts = {}
             for st, d in doc["gripper"]["points_G"].items():
                 pts[st] = np.array([d[nm] for nm in POINT_NAMES], dtype=float).reshape(6, 3)
+                if not np.all(np.isfinite(pts[st])):
+                    raise ValueError(f"gripper points_G {short_repr(st)} holds a non-finite number")
             return cls(
                 camera=camera,
                 C_H_W=check_rigid(doc["C_H_W"], f"{source}: C_H_W"),
@@ -126,8 +135,9 @@ class Calibration:
                 software=str(doc.get("software", "")).removeprefix("selfview "),
                 updates=list(doc.get("updates") or []),
             )
-        except (KeyError, TypeError, ValueError, IndexError, ConfigError) as exc:
-            raise CalibrationFileError(f"{source}: malformed calibration file ({exc})") from exc
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError, OverflowError, ConfigError) as exc:
+            what = f"missing key {exc}" if isinstance(exc, KeyError) else f"{type(exc).__name__}: {exc}"
+            raise CalibrationFileError(f"{source}: malformed calibration file ({short_repr(what, 200)[1:-1]})") from None
 
 
 def _now() -> str:
@@ -171,15 +181,12 @@ def load_calibration(path) -> Calibration:
     """Read and verify a calibration file; raises ``CalibrationFileError`` naming the fault."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        blob = p.read_bytes()
     except FileNotFoundError:
         raise CalibrationFileError(f"{p}: no such calibration file (run 'selfview calibrate' first)") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CalibrationFileError(f"{p}: cannot read the calibration file ({exc})") from exc
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise CalibrationFileError(f"{p}: corrupt calibration file, not valid YAML ({exc})") from exc
+    except OSError as exc:
+        raise CalibrationFileError(f"{p}: cannot read the calibration file ({exc.strerror or exc})") from exc
+    doc = load_yaml(blob, str(p), error=CalibrationFileError, what="calibration file")
     return Calibration.from_document(doc, source=str(p))
 
 
@@ -190,43 +197,35 @@ def save_calibration(cal: Calibration, path, *, keep_history: bool = True) -> Pa
     calibration: it may be somebody else's file. Returns the path of the history copy, or None.
     """
     p = Path(path)
+    if not p.parent.is_dir():
+        why = "does not exist (it is not created)" if not p.parent.exists() else "is a file, not a folder"
+        raise CalibrationFileError(f"{p}: cannot write the calibration file: the folder {p.parent} {why}")
+    text = yaml.safe_dump(cal.to_document(), sort_keys=False, default_flow_style=None, width=120)
+    # check what we are about to write reads back, before it replaces anything
+    Calibration.from_document(load_yaml(text, str(p), error=CalibrationFileError), source=str(p))
     kept = None
     if p.exists():
         load_calibration(p)  # refuse to replace a corrupt or foreign file
         if keep_history:
             hd = history_dir(p)
-            hd.mkdir(exist_ok=True)
-            blob = p.read_bytes()
+            try:
+                hd.mkdir(exist_ok=True)
+            except FileExistsError:
+                raise CalibrationFileError(
+                    f"{hd}: cannot keep the previous calibration: a file of that name exists where its history "
+                    f"folder belongs; {p} is unchanged"
+                ) from None
+            except OSError as exc:
+                raise CalibrationFileError(
+                    f"{hd}: cannot create the history folder ({exc.strerror or exc}); {p} is unchanged"
+                ) from None
+            try:
+                blob = p.read_bytes()
+            except OSError as exc:
+                raise CalibrationFileError(f"{p}: cannot read the previous calibration ({exc.strerror or exc})") from None
             stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
             kept = hd / f"{stamp}-{hashlib.sha256(blob).hexdigest()[:8]}{p.suffix or '.yaml'}"
-            _atomic_write(kept, blob)
-    text = yaml.safe_dump(cal.to_document(), sort_keys=False, default_flow_style=None, width=120)
-    # check what we are about to write reads back, before it replaces anything
-    Calibration.from_document(yaml.safe_load(text), source=str(p))
-    _atomic_write(p, text.encode("utf-8"))
+            atomic_write(kept, blob, error=CalibrationFileError, what="history copy of the calibration file",
+                         mode=stat.S_IMODE(p.stat().st_mode))
+    atomic_write(p, text.encode("utf-8"), error=CalibrationFileError, what="calibration file")
     return kept
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    try:  # make the rename itself durable
-        dfd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-    except OSError:
-        pass

@@ -1,6 +1,7 @@
 """The cell description (``cell.yaml``) as typed, validated objects.
 
-The file is read as it is (``yaml.safe_load`` only). Unknown keys, missing keys, wrong types and
+The file is read as it is (safe YAML only, through ``selfview.io_safe.load_yaml``: no aliases, bounded size and
+depth). Unknown keys, missing keys, wrong types and
 impossible values raise ``ConfigError`` with a message that names the key path, the value and what was
 expected. Keys this project adds beyond the shared reference file have defaults.
 """
@@ -13,11 +14,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from selfview.camera import CameraModel
 from selfview.errors import ConfigError
 from selfview.geometry import check_rigid
+from selfview.io_safe import load_yaml, short_repr
 
 __all__ = [
     "POINT_NAMES",
@@ -52,7 +53,7 @@ class _Section:
 
     def __init__(self, data: Any, path: str):
         if not isinstance(data, dict):
-            raise ConfigError(f"{path or 'cell'}: expected a mapping, got {type(data).__name__} {data!r}")
+            raise ConfigError(f"{path or 'cell'}: expected a mapping, got {type(data).__name__} {short_repr(data)}")
         self.data = data
         self.path = path
         self.used: set[str] = set()
@@ -78,8 +79,11 @@ class _Section:
     def number(self, key: str, default: Any = ..., *, positive=False, nonneg=False, lo=None, hi=None) -> float:
         v = self.raw(key, default)
         if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise ConfigError(f"{self._key(key)}: expected a number, got {v!r}")
-        v = float(v)
+            raise ConfigError(f"{self._key(key)}: expected a number, got {short_repr(v)}")
+        try:
+            v = float(v)
+        except OverflowError:
+            raise ConfigError(f"{self._key(key)}: the number {short_repr(v)} is too large") from None
         if not np.isfinite(v):
             raise ConfigError(f"{self._key(key)}: expected a finite number, got {v!r}")
         if positive and v <= 0:
@@ -115,15 +119,21 @@ class _Section:
             or len(v) != n
             or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)
         ):
-            raise ConfigError(f"{self._key(key)}: expected a list of {n} numbers, got {v!r}")
-        out = tuple(float(x) for x in v)
+            raise ConfigError(f"{self._key(key)}: expected a list of {n} numbers, got {short_repr(v)}")
+        try:
+            out = tuple(float(x) for x in v)
+        except OverflowError:
+            raise ConfigError(f"{self._key(key)}: a number of {short_repr(v)} is too large") from None
         if not all(np.isfinite(out)):
             raise ConfigError(f"{self._key(key)}: expected finite numbers, got {v!r}")
         return out
 
     def transform(self, key: str, default: Any = ...) -> np.ndarray:
         v = self.raw(key, default)
-        return check_rigid(v, self._key(key))
+        try:
+            return check_rigid(v, self._key(key))
+        except OverflowError:
+            raise ConfigError(f"{self._key(key)}: a number is too large for a transform") from None
 
     def done(self) -> None:
         unknown = sorted(set(self.data) - self.used)
@@ -436,10 +446,7 @@ def load_cell(path) -> Cell:
         blob = p.read_bytes()
     except OSError as exc:
         raise ConfigError(f"cell description {str(p)!r}: cannot read ({exc.strerror or exc})") from exc
-    try:
-        data = yaml.safe_load(blob)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"cell description {str(p)!r}: not valid YAML ({exc})") from exc
+    data = load_yaml(blob, f"cell description {str(p)!r}", error=ConfigError, what="file")
     if data is None:
         raise ConfigError(f"cell description {str(p)!r}: the file is empty")
     try:

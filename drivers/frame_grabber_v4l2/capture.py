@@ -8,6 +8,7 @@ grey frames. Sources here: a V4L2 grabber card (``V4L2Source``), an image sequen
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import threading
@@ -19,8 +20,11 @@ import cv2
 import numpy as np
 
 from selfview.drivers.frame_grabber_v4l2.url import GrabberUrl
-from selfview.drivers.frame_grabber_v4l2.v4l2 import V4L2Device, std_name
+from selfview.drivers.frame_grabber_v4l2 import v4l2 as _v4l2
+from selfview.drivers.frame_grabber_v4l2.v4l2 import FIELD_NAMES, V4L2Device, fields_per_buffer, std_name
 from selfview.errors import ConfigError, DeviceError, DeviceTimeout, ImageError
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "FrameSource",
@@ -197,7 +201,29 @@ class RecordedSource:
 
 # V4L2 fourccs whose raw buffer holds the grey (luma) values without colour conversion: (bytes per
 # pixel, offset of the luma byte in a pixel).
-_RAW_GREY = {"GREY": (1, 0), "Y800": (1, 0), "YUYV": (2, 0), "YUY2": (2, 0), "UYVY": (2, 1)}
+_RAW_GREY = {"GREY": (1, 0), "YUYV": (2, 0), "UYVY": (2, 1)}
+
+
+def exposure_start(
+    ts: float,
+    now: float,
+    *,
+    tstamp: str | None,
+    buffer_s: float,
+    frame_period_s: float,
+    buffers: int,
+) -> float:
+    """When the exposure of a dequeued buffer started, on the monotonic clock.
+
+    ``ts`` the buffer's timestamp (s), ``now`` the time it was read; ``tstamp`` the buffer's timestamp
+    source: 'end' (V4L2_BUF_FLAG_TSTAMP_SRC_EOF, V4L2's default and bttv's: the last byte of the frame),
+    'start' (TSTAMP_SRC_SOE) or None (unknown: taken as 'end'); ``buffer_s`` how long the buffer's fields
+    take (one frame period for a frame of two fields, half of it for a single field). A timestamp that is
+    not a plausible monotonic time is replaced by the most pessimistic one: ``buffers`` + 1 frame periods
+    before the read (a frame may have waited in every buffer)."""
+    if not (now - 5.0 < ts <= now):
+        return now - (buffers + 1) * frame_period_s - buffer_s
+    return ts if tstamp == "start" else ts - buffer_s
 
 
 class V4L2Source:
@@ -206,9 +232,12 @@ class V4L2Source:
     ``open()``: open the node for control ioctls, check it captures video, select the input and the
     analogue standard (VIDIOC_S_INPUT, VIDIOC_S_STD), check a signal is present (VIDIOC_QUERYSTD),
     set ``OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT`` (whole seconds, before the first capture), then open the
-    capture with size, pixel format, 1-2 buffers and no RGB conversion, and check OpenCV got them.
-    Frames come as the raw buffer; the luma bytes are picked out (GREY, YUYV, UYVY). Timestamps are
-    the driver's buffer timestamps (CLOCK_MONOTONIC), or the read time less one frame period.
+    capture with size, pixel format, 1-2 buffers and no RGB conversion, and check OpenCV got them;
+    read the field order back (VIDIOC_G_FMT) and check it fits the height. Frames come as the raw
+    buffer; the luma bytes are picked out (GREY, YUYV, UYVY). After the first frame the buffers the
+    driver really allocated are counted (VIDIOC_QUERYBUF: bttv allocates at least 2 whatever is asked)
+    and their timestamp source read from the flags. A frame's time is the start of its exposure:
+    ``exposure_start`` from the buffer's timestamp (V4L2's default stamps the END of the frame).
     """
 
     def __init__(self, url: GrabberUrl, *, select_timeout_s: float = 1.0):
@@ -224,6 +253,10 @@ class V4L2Source:
         self.device = V4L2Device(url.path)
         self.info: dict | None = None
         self._cap: cv2.VideoCapture | None = None
+        self.field: int | None = None  # the capture format's field order (enum v4l2_field), None: not told
+        self.buffer_s = self.frame_period_s  # how long one buffer's fields take
+        self.buffers: int | None = None  # buffers the driver allocated (read back after the first frame)
+        self.tstamp: str | None = None  # 'end' or 'start' of the frame (from the buffer flags), None: unknown
 
     def open(self) -> None:
         if self._cap is not None:
@@ -245,6 +278,7 @@ class V4L2Source:
                 raise DeviceError(f"{u.url}: OpenCV's V4L2 backend cannot open {u.path} (busy?)")
             try:
                 self._configure(cap)
+                self._check_field()
             except BaseException:
                 cap.release()
                 raise
@@ -270,6 +304,41 @@ class V4L2Source:
         if int(cap.get(cv2.CAP_PROP_CONVERT_RGB)) != 0:
             raise DeviceError(f"{u.url}: OpenCV would not switch RGB conversion off")
 
+    def _check_field(self) -> None:
+        u = self.url
+        self.field = self.device.field_order()
+        if self.field is None:  # not told: a frame of two fields, the longer (safer) duration
+            self.buffer_s = self.frame_period_s
+            return
+        name = FIELD_NAMES.get(self.field, str(self.field))
+        try:
+            n = fields_per_buffer(self.field)
+        except ValueError as exc:
+            raise DeviceError(f"{u.url}: the driver reports {exc}") from None
+        if self.field == 1:  # NONE: progressive frames
+            self.buffer_s = self.frame_period_s
+            return
+        lines = 288 if self.frame_period_s == 1.0 / 25.0 else 240  # active lines of one field
+        if n == 1 and u.height > lines:
+            raise ConfigError(
+                f"{u.url}: field order {name} gives single fields of at most {lines} lines, but height={u.height}; "
+                f"ask for height<={lines} or a driver set to INTERLACED"
+            )
+        self.buffer_s = self.frame_period_s * n / 2.0
+
+    def _read_buffers(self) -> None:
+        """After streaming started: how many buffers the driver allocated, and their timestamp source."""
+        n, flags = self.device.buffers()
+        self.buffers = n or None
+        if n and n != self.url.buffers:
+            log.warning("%s: asked for %d buffer(s), the driver allocated %d: frames may be up to %d periods old",
+                        self.url.url, self.url.buffers, n, n)
+        if flags is not None:
+            src = flags & _v4l2.V4L2_BUF_FLAG_TSTAMP_SRC_MASK
+            self.tstamp = "start" if src == _v4l2.V4L2_BUF_FLAG_TSTAMP_SRC_SOE else "end"
+            if flags & _v4l2.V4L2_BUF_FLAG_TIMESTAMP_MASK != _v4l2.V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC:
+                self.tstamp = "not monotonic"
+
     def _grey_from_raw(self, raw: np.ndarray) -> np.ndarray:
         u = self.url
         bpp, offset = _RAW_GREY[u.fourcc]
@@ -293,10 +362,15 @@ class V4L2Source:
             )
         if now - t0 > timeout_s:
             raise DeviceTimeout(f"{self.url.url}: the frame took {now - t0:.2f} s, beyond timeout_s={timeout_s}")
+        if self.buffers is None:
+            self._read_buffers()
         ts = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
-        if not (now - 5.0 < ts <= now):  # not a CLOCK_MONOTONIC buffer time stamp
-            ts = now - self.frame_period_s
-        return self._grey_from_raw(raw), ts
+        if self.tstamp == "not monotonic":
+            ts = math.nan  # not comparable with time.monotonic(): the pessimistic estimate below
+        buffers = self.buffers if self.buffers is not None else max(self.url.buffers, 2)
+        start = exposure_start(ts, now, tstamp=self.tstamp, buffer_s=self.buffer_s,
+                               frame_period_s=self.frame_period_s, buffers=buffers)
+        return self._grey_from_raw(raw), start
 
     def close(self) -> None:
         cap, self._cap = self._cap, None

@@ -4,7 +4,7 @@
   device (an analogue CCIR frame grabber card). ``input`` (0-based video input, default: leave as set),
   ``std`` (pal, ntsc, secam, pal-m, pal-n, pal-nc, pal-60, or a number such as 0xff; default pal),
   ``width`` x ``height`` (default 768 x 576: square pixels need a square-pixel grabber), ``format``
-  (a V4L2 fourcc, default GREY), ``buffers`` (driver buffers, 1 or 2, default 2: few, so frames are fresh).
+  (a V4L2 fourcc, default GREY; Windows names such as Y800 or YUY2 are refused with the V4L2 name), ``buffers`` (driver buffers, 1 or 2, default 2: few, so frames are fresh).
 - ``frames:///dir/img_%03d.png`` - a numbered image sequence (OpenCV's image-sequence reader);
   ``frames:rel/dir/img_%03d.png`` is relative to the working directory. ``loop=1`` starts over at the end.
 - ``file:///path/x.avi`` (or ``file:rel/x.avi``) - a video file; ``loop=1`` likewise.
@@ -23,7 +23,7 @@ from urllib.parse import parse_qsl
 
 from selfview.errors import ConfigError
 
-__all__ = ["GrabberUrl", "parse_grabber_url", "STANDARDS"]
+__all__ = ["GrabberUrl", "parse_grabber_url", "STANDARDS", "FOURCC_ALIASES"]
 
 #: V4L2 analogue video standards (linux/videodev2.h, v4l2_std_id bits).
 STANDARDS: dict[str, int] = {
@@ -34,6 +34,20 @@ STANDARDS: dict[str, int] = {
     "pal-60": 0x00000800,
     "ntsc": 0x0000B000,  # NTSC M, M-JP, M-KR
     "secam": 0x00FF0000,
+}
+
+#: Names other systems give V4L2's formats (DirectShow, FourCC.org, GStreamer): name -> the V4L2 fourcc.
+FOURCC_ALIASES: dict[str, str] = {
+    "Y800": "GREY",
+    "Y8": "GREY",
+    "GRAY": "GREY",
+    "GRAY8": "GREY",
+    "YUY2": "YUYV",
+    "YUNV": "YUYV",
+    "V422": "YUYV",
+    "UYNV": "UYVY",
+    "Y422": "UYVY",
+    "HDYC": "UYVY",
 }
 
 _KNOWN = {
@@ -125,6 +139,12 @@ def parse_grabber_url(url: str) -> GrabberUrl:
         kw["width"] = _int(url, "width", params.get("width", "768"), 16, 8192)
         kw["height"] = _int(url, "height", params.get("height", "576"), 16, 8192)
         fourcc = params.get("format", "GREY")
+        if fourcc.upper() in FOURCC_ALIASES:
+            right = FOURCC_ALIASES[fourcc.upper()]
+            raise ConfigError(
+                f"{url}: format={fourcc} is not a V4L2 fourcc (it is the Windows/FourCC.org name); V4L2 calls this "
+                f"format {right}: use format={right}"
+            )
         if len(fourcc) != 4 or not fourcc.isascii():
             raise ConfigError(f"{url}: format={fourcc!r}; expected a 4-character V4L2 fourcc such as GREY or YUYV")
         kw["fourcc"] = fourcc

@@ -29,6 +29,10 @@ __all__ = [
     "VIDIOC_G_INPUT",
     "VIDIOC_S_INPUT",
     "VIDIOC_QUERYSTD",
+    "VIDIOC_G_FMT",
+    "VIDIOC_QUERYBUF",
+    "FIELD_NAMES",
+    "fields_per_buffer",
     "V4L2Device",
     "std_name",
 ]
@@ -87,6 +91,62 @@ class v4l2_input(ctypes.Structure):
     ]
 
 
+class v4l2_pix_format(ctypes.Structure):
+    _fields_ = [
+        (name, ctypes.c_uint32)
+        for name in ("width", "height", "pixelformat", "field", "bytesperline", "sizeimage", "colorspace", "priv",
+                     "flags", "ycbcr_enc", "quantization", "xfer_func")
+    ]
+
+
+class _v4l2_format_union(ctypes.Union):
+    # the kernel's union holds structures with pointers (v4l2_window): pointer alignment
+    _fields_ = [("pix", v4l2_pix_format), ("raw_data", ctypes.c_uint8 * 200), ("_align", ctypes.c_void_p)]
+
+
+class v4l2_format(ctypes.Structure):
+    _fields_ = [("type", ctypes.c_uint32), ("fmt", _v4l2_format_union)]
+
+
+class timeval(ctypes.Structure):
+    _fields_ = [("tv_sec", ctypes.c_long), ("tv_usec", ctypes.c_long)]
+
+
+class v4l2_timecode(ctypes.Structure):
+    _fields_ = [
+        ("type", ctypes.c_uint32),
+        ("flags", ctypes.c_uint32),
+        ("frames", ctypes.c_uint8),
+        ("seconds", ctypes.c_uint8),
+        ("minutes", ctypes.c_uint8),
+        ("hours", ctypes.c_uint8),
+        ("userbits", ctypes.c_uint8 * 4),
+    ]
+
+
+class _v4l2_buffer_m(ctypes.Union):
+    _fields_ = [("offset", ctypes.c_uint32), ("userptr", ctypes.c_ulong), ("planes", ctypes.c_void_p),
+                ("fd", ctypes.c_int32)]
+
+
+class v4l2_buffer(ctypes.Structure):
+    _fields_ = [
+        ("index", ctypes.c_uint32),
+        ("type", ctypes.c_uint32),
+        ("bytesused", ctypes.c_uint32),
+        ("flags", ctypes.c_uint32),
+        ("field", ctypes.c_uint32),
+        ("timestamp", timeval),
+        ("timecode", v4l2_timecode),
+        ("sequence", ctypes.c_uint32),
+        ("memory", ctypes.c_uint32),
+        ("m", _v4l2_buffer_m),
+        ("length", ctypes.c_uint32),
+        ("reserved2", ctypes.c_uint32),
+        ("request_fd", ctypes.c_int32),
+    ]
+
+
 v4l2_std_id = ctypes.c_uint64
 
 VIDIOC_QUERYCAP = IOR("V", 0, v4l2_capability)
@@ -96,6 +156,40 @@ VIDIOC_ENUMINPUT = IOWR("V", 26, v4l2_input)
 VIDIOC_G_INPUT = IOR("V", 38, ctypes.c_int)
 VIDIOC_S_INPUT = IOWR("V", 39, ctypes.c_int)
 VIDIOC_QUERYSTD = IOR("V", 63, v4l2_std_id)
+VIDIOC_G_FMT = IOWR("V", 4, v4l2_format)
+VIDIOC_QUERYBUF = IOWR("V", 9, v4l2_buffer)
+
+V4L2_BUF_TYPE_VIDEO_CAPTURE = 1
+V4L2_BUF_FLAG_TIMESTAMP_MASK = 0x0000E000
+V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC = 0x00002000
+V4L2_BUF_FLAG_TSTAMP_SRC_MASK = 0x00070000
+V4L2_BUF_FLAG_TSTAMP_SRC_EOF = 0x00000000  # V4L2's default: the time the last byte of the frame arrived
+V4L2_BUF_FLAG_TSTAMP_SRC_SOE = 0x00010000  # the time the exposure started
+
+#: enum v4l2_field
+FIELD_NAMES = {
+    0: "ANY",
+    1: "NONE",
+    2: "TOP",
+    3: "BOTTOM",
+    4: "INTERLACED",
+    5: "SEQ_TB",
+    6: "SEQ_BT",
+    7: "ALTERNATE",
+    8: "INTERLACED_TB",
+    9: "INTERLACED_BT",
+}
+
+
+def fields_per_buffer(field: int) -> int:
+    """How many video fields one buffer of this field order holds: 1 (NONE, a progressive frame, counted
+    as one frame period by the caller), 2 (both fields: INTERLACED*, SEQ_*), or 1 field (TOP, BOTTOM,
+    ALTERNATE). Raises ValueError for ANY (not a format a driver may return) or an unknown value."""
+    if field in (4, 5, 6, 8, 9):
+        return 2
+    if field in (1, 2, 3, 7):
+        return 1
+    raise ValueError(f"field order {FIELD_NAMES.get(field, field)} is not one a capture format may have")
 
 V4L2_CAP_VIDEO_CAPTURE = 0x00000001
 V4L2_CAP_DEVICE_CAPS = 0x80000000
@@ -230,6 +324,34 @@ class V4L2Device:
             if exc.errno == errno.EBUSY:
                 raise DeviceError(f"{self.path}: cannot set standard {std_name(std)}: device busy") from None
             raise DeviceError(f"{self.path}: VIDIOC_S_STD({std_name(std)}) failed: {exc.strerror}") from None
+
+    def field_order(self) -> int | None:
+        """VIDIOC_G_FMT: the capture format's field order (enum v4l2_field), or None if the driver does not say."""
+        fmt = v4l2_format(type=V4L2_BUF_TYPE_VIDEO_CAPTURE)
+        try:
+            self._ioctl(VIDIOC_G_FMT, fmt, "VIDIOC_G_FMT")
+        except OSError as exc:
+            if exc.errno in (errno.ENOTTY, errno.EINVAL):
+                return None
+            raise DeviceError(f"{self.path}: VIDIOC_G_FMT failed: {exc.strerror}") from None
+        return int(fmt.fmt.pix.field)
+
+    def buffers(self, most: int = 32) -> tuple[int, int | None]:
+        """VIDIOC_QUERYBUF over indices 0, 1, ...: (how many capture buffers the driver allocated, the
+        first buffer's flags), after streaming started. (0, None) when the driver tells nothing."""
+        count, flags = 0, None
+        for i in range(most):
+            buf = v4l2_buffer(index=i, type=V4L2_BUF_TYPE_VIDEO_CAPTURE)
+            try:
+                self._ioctl(VIDIOC_QUERYBUF, buf, "VIDIOC_QUERYBUF")
+            except OSError as exc:
+                if exc.errno in (errno.EINVAL, errno.ENOTTY, errno.EBUSY):
+                    break
+                raise DeviceError(f"{self.path}: VIDIOC_QUERYBUF failed: {exc.strerror}") from None
+            count += 1
+            if flags is None:
+                flags = int(buf.flags)
+        return count, flags
 
     def query_std(self) -> int | None:
         """VIDIOC_QUERYSTD: the standards the input's signal fits (0: no signal), or None if the driver

@@ -3,7 +3,7 @@
 Only ``selfview.drivers.pneumatic_gripper.modbus`` imports pymodbus (pinned to 3.11 in pyproject.toml).
 """
 
-from selfview.drivers.pneumatic_gripper.gripper import GripperFault, JawReading, PneumaticGripper
+from selfview.drivers.pneumatic_gripper.gripper import GripperFault, JawReading, PneumaticGripper, SafeReport
 from selfview.drivers.pneumatic_gripper.iomap import JAW_STATES, IoMap, Point, from_reference, to_reference
 from selfview.drivers.pneumatic_gripper.modbus import (
     ConnectionFailed,
@@ -17,6 +17,7 @@ __all__ = [
     "PneumaticGripper",
     "GripperFault",
     "JawReading",
+    "SafeReport",
     "IoMap",
     "Point",
     "JAW_STATES",

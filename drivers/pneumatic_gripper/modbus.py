@@ -206,8 +206,10 @@ class ModbusLink:
             self._lock.release()
 
     # --- requests -----------------------------------------------------------------------------
-    def _request(self, what: str, function: int, call):
+    def _request(self, what: str, function: int, call, *, reconnect: bool = True):
         with self._locked(what):
+            if not reconnect and self._client is None:
+                raise ConnectionLost(f"{self.url.url}: {what}: not connected (this request does not reconnect)")
             self._ensure_connected()
             client = self._client
             try:
@@ -245,9 +247,10 @@ class ModbusLink:
                 )
             return rsp
 
-    def read(self, kind: str, address: int, count: int = 1) -> list:
+    def read(self, kind: str, address: int, count: int = 1, *, reconnect: bool = True) -> list:
         """Read ``count`` values of one table from ``address``: coils (FC1) or discrete inputs (FC2) as
-        bools, holding (FC3) or input (FC4) registers as ints 0..65535."""
+        bools, holding (FC3) or input (FC4) registers as ints 0..65535. ``reconnect=False``: raise
+        ConnectionLost instead of opening a closed transport."""
         if kind not in _READS:
             raise ConfigError(f"Modbus read: unknown table {kind!r}; expected one of {', '.join(_READS)}")
         function, name, method, field = _READS[kind]
@@ -255,6 +258,7 @@ class ModbusLink:
             f"read {name} {address}+{count}",
             function,
             lambda c, u: getattr(c, method)(address, count=count, device_id=u),
+            reconnect=reconnect,
         )
         values = list(getattr(rsp, field))
         # bit replies are padded to whole bytes; register replies must match exactly

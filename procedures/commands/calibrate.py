@@ -6,32 +6,17 @@ With ``--image`` it calibrates a picture file; without it, it runs the ``calibra
 
 from __future__ import annotations
 
-import hashlib
 import sys
-from pathlib import Path
 
 from selfview.procedures.commands._common import add_cell_argument, load_cell_arg, print_json
-from selfview.errors import ImageError
 
 
 def read_picture(path) -> tuple:
-    """(grey picture as a 2-D uint8 array, SHA-256 of the file) or ``ImageError`` naming the file."""
-    import cv2
-    import numpy as np
+    """(grey picture as a 2-D uint8 array, SHA-256 of the file) or ``ImageError`` naming the file; the
+    picture's size is checked in its header before it is decoded (``selfview.io_safe.read_picture``)."""
+    from selfview.io_safe import read_picture as checked_read
 
-    p = Path(path)
-    try:
-        blob = p.read_bytes()
-    except OSError as exc:
-        raise ImageError(f"{p}: cannot read the picture ({exc.strerror or exc})") from exc
-    img = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ImageError(f"{p}: not a picture OpenCV can decode")
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-    if img.dtype != np.uint8:
-        raise ImageError(f"{p}: {img.dtype} pixels; expected an 8-bit grey picture")
-    return img, hashlib.sha256(blob).hexdigest()
+    return checked_read(path)
 
 
 def register(sub):

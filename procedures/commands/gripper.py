@@ -5,8 +5,6 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import yaml
-
 from selfview.procedures.commands._common import print_json
 from selfview.errors import ConfigError
 
@@ -27,14 +25,15 @@ def load_io_map_arg(args):
 
     if args.io_map is None:
         return IoMap()
+    from selfview.io_safe import load_yaml
+
     path = Path(args.io_map)
     try:
-        # every value as text: a YAML number would turn 40001.10 into 40001.1 and 00001 into 1
-        data = yaml.load(path.read_text(), Loader=yaml.BaseLoader)
+        blob = path.read_bytes()
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read the io map ({exc.strerror or exc})") from exc
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML ({exc})") from exc
+    # every value as text: a YAML number would turn 40001.10 into 40001.1 and 00001 into 1
+    data = load_yaml(blob, str(path), error=ConfigError, text_only=True, what="io map")
     try:
         return IoMap.from_dict(data or {})
     except ConfigError as exc:

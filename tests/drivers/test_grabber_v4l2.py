@@ -27,6 +27,8 @@ KERNEL = {
     "VIDIOC_G_INPUT": 0x80045626,
     "VIDIOC_S_INPUT": 0xC0045627,
     "VIDIOC_QUERYSTD": 0x8008563F,
+    "VIDIOC_G_FMT": 0xC0D05604,
+    "VIDIOC_QUERYBUF": 0xC0585609,
 }
 
 
@@ -36,6 +38,10 @@ def test_ioctl_numbers_match_the_kernel_header():
     assert ctypes.sizeof(v4l2.v4l2_input) == 80 and v4l2.v4l2_input.status.offset == 56
     assert v4l2.v4l2_input.std.offset == 48
     assert ctypes.sizeof(v4l2.v4l2_capability) == 104
+    assert ctypes.sizeof(v4l2.v4l2_format) == 208 and v4l2.v4l2_format.fmt.offset == 8
+    assert ctypes.sizeof(v4l2.v4l2_buffer) == 88
+    assert (v4l2.v4l2_buffer.timestamp.offset, v4l2.v4l2_buffer.sequence.offset, v4l2.v4l2_buffer.m.offset,
+            v4l2.v4l2_buffer.length.offset) == (24, 56, 64, 72)
 
 
 def test_ioc_encoding_and_ranges():
@@ -177,3 +183,117 @@ def test_raw_buffers_become_grey():
 def test_formats_that_need_colour_conversion_are_refused():
     with pytest.raises(ConfigError, match="MJPG"):
         FrameGrabber("v4l2:///dev/video0?format=MJPG").connect()
+
+
+# --- issue 18 #19, #20 and the std range ---------------------------------------------------------------
+@pytest.mark.parametrize("std", ["0", "0x10000000000000000", "-1", "-0xff"])
+def test_std_numbers_outside_a_v4l2_std_id_are_refused(std):
+    with pytest.raises(ConfigError, match="not a v4l2_std_id"):
+        parse_grabber_url(f"v4l2:///dev/video0?std={std}")
+    assert parse_grabber_url("v4l2:///dev/video0?std=0xffffffffffffffff").std == (1 << 64) - 1  # the largest
+
+
+@pytest.mark.parametrize("alias, right", [("Y800", "GREY"), ("YUY2", "YUYV"), ("y800", "GREY"), ("HDYC", "UYVY")])
+def test_windows_fourcc_names_are_refused_with_the_v4l2_name(alias, right):
+    with pytest.raises(ConfigError, match=f"not a V4L2 fourcc.*use format={right}"):
+        parse_grabber_url(f"v4l2:///dev/video0?format={alias}")
+    assert parse_grabber_url(f"v4l2:///dev/video0?format={right}").fourcc == right
+
+
+def test_exposure_start_from_the_buffer_timestamp():
+    from selfview.drivers.frame_grabber_v4l2.capture import exposure_start
+
+    kw = dict(buffer_s=0.04, frame_period_s=0.04, buffers=2)
+    # V4L2's default (and bttv's): the timestamp is the END of the frame, one frame period after its start
+    assert exposure_start(100.0, 100.01, tstamp="end", **kw) == pytest.approx(99.96, abs=1e-12)
+    assert exposure_start(100.0, 100.01, tstamp=None, **kw) == pytest.approx(99.96, abs=1e-12)
+    assert exposure_start(100.0, 100.01, tstamp="start", **kw) == 100.0
+    # not a monotonic time: as old as a frame can be (waited in both buffers, plus its own duration)
+    assert exposure_start(5e9, 100.0, tstamp="end", **kw) == pytest.approx(100.0 - 0.12 - 0.04, abs=1e-12)
+    assert exposure_start(float("nan"), 100.0, tstamp="end", **kw) == pytest.approx(99.84, abs=1e-12)
+
+
+class FakeCapture:
+    """OpenCV's capture as V4L2Source uses it: raw buffers, and the buffer timestamp in ms."""
+
+    def __init__(self, frames, width, height):
+        self.frames = list(frames)  # [(timestamp s, grey level)]
+        self.size = (height, width)
+        self.ts = 0.0
+
+    def read(self):
+        ts, level = self.frames.pop(0)
+        self.ts = ts
+        return True, np.full((1, self.size[0] * self.size[1]), level, np.uint8)
+
+    def get(self, prop):
+        import cv2
+
+        assert prop == cv2.CAP_PROP_POS_MSEC
+        return self.ts * 1000.0
+
+    def release(self):
+        pass
+
+
+def test_a_frame_ending_after_settling_but_exposed_before_is_dropped(monkeypatch):
+    """Issue 18 #19: a frame whose END-of-frame stamp lies after the moment the robot settled was still
+    exposed (mostly) before it: dropped; the next one, exposed entirely after, is taken."""
+    import time
+
+    g = FrameGrabber("v4l2:///dev/video0?width=16&height=16", black_level=None, saturation_level=None)
+    src = V4L2Source(g.url)
+    monkeypatch.setattr(src.device, "buffers", lambda: (2, v4l2.V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC))  # EOF stamps
+    settled = time.monotonic() - 0.5
+    src._cap = FakeCapture([(settled + 0.005, 10), (settled + 0.045, 20), (settled + 0.085, 30)], 16, 16)
+    g.source = src
+    f = g.grab(after=settled)
+    # the first frame ended 5 ms after settling: exposed from 35 ms before; the second ended 45 ms after,
+    # so it started 5 ms after settling
+    assert g.dropped_last == 1 and int(f.image[0, 0]) == 20
+    assert f.timestamp == pytest.approx(settled + 0.005, abs=1e-6)
+    assert src.tstamp == "end" and src.buffers == 2
+
+
+def test_start_of_exposure_stamps_are_taken_as_they_are(monkeypatch):
+    import time
+
+    g = FrameGrabber("v4l2:///dev/video0?width=16&height=16&buffers=1", black_level=None, saturation_level=None)
+    src = V4L2Source(g.url)
+    flags = v4l2.V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC | v4l2.V4L2_BUF_FLAG_TSTAMP_SRC_SOE
+    monkeypatch.setattr(src.device, "buffers", lambda: (2, flags))  # bttv: at least 2, whatever was asked
+    settled = time.monotonic() - 0.5
+    src._cap = FakeCapture([(settled + 0.005, 10)], 16, 16)
+    g.source = src
+    f = g.grab(after=settled)
+    assert g.dropped_last == 0 and f.timestamp == pytest.approx(settled + 0.005, abs=1e-6)
+    assert src.tstamp == "start" and src.buffers == 2  # the count read back, not the one asked for
+
+
+@pytest.mark.parametrize(
+    "field, height, buffer_s, error",
+    [
+        (4, 576, 0.04, None),  # INTERLACED: both fields, one frame period
+        (8, 576, 0.04, None),  # INTERLACED_TB
+        (1, 576, 0.04, None),  # NONE: progressive frames
+        (7, 288, 0.02, None),  # ALTERNATE: one field per buffer
+        (7, 576, None, "at most 288 lines"),
+        (2, 576, None, "at most 288 lines"),
+        (0, 576, None, "ANY"),
+        (42, 576, None, "42"),
+    ],
+)
+def test_field_order_is_read_and_checked(monkeypatch, field, height, buffer_s, error):
+    src = V4L2Source(parse_grabber_url(f"v4l2:///dev/video0?height={height}"))
+    monkeypatch.setattr(src.device, "field_order", lambda: field)
+    if error is None:
+        src._check_field()
+        assert src.buffer_s == pytest.approx(buffer_s, abs=1e-12)
+    else:
+        with pytest.raises((ConfigError, DeviceError), match=error):
+            src._check_field()
+
+
+def test_field_order_and_buffers_on_a_node_that_is_not_v4l2():
+    with V4L2Device("/dev/null") as dev:
+        assert dev.field_order() is None and dev.buffers() == (0, None)

@@ -48,11 +48,12 @@ def test_io_map_file(tmp_path, capsys):
 
 
 def test_exit_codes(terminal, capsys):
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    assert main(["gripper", "--url", f"modbus-tcp://127.0.0.1:{port}?unit=1", "state"]) == EXIT_DEVICE
+    # a port taken from the OS and kept bound without listening: connections to it are refused, and no
+    # other program can take it meanwhile
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        assert main(["gripper", "--url", f"modbus-tcp://127.0.0.1:{port}?unit=1", "state"]) == EXIT_DEVICE
     assert "connection refused" in capsys.readouterr().err
     assert main(["gripper", "--url", "modbus://127.0.0.1", "state"]) == EXIT_CONFIG
     terminal.stick_jaw()

@@ -149,19 +149,33 @@ def test_silent_and_dropped(terminal):
         c.close()
 
 
+class StepClock:
+    """A clock the test moves by hand: the terminal's model time (watchdog, travel) without sleeps."""
+
+    def __init__(self):
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
 def test_watchdog_drops_outputs_when_the_master_is_silent():
-    with ValveTerminal(travel_s=0.0, watchdog_s=0.3) as t:
+    clock = StepClock()
+    with ValveTerminal(travel_s=0.0, watchdog_s=0.3, clock=clock) as t:
         c = RawClient(t.port)
         try:
             c.ask("05 0001 FF00")
-            for _ in range(12):  # a master that keeps talking keeps its outputs
-                time.sleep(0.05)
+            for _ in range(12):  # a master that keeps talking (every 0.25 s < 0.3 s) keeps its outputs
+                clock.now += 0.25
+                t.advance()
                 c.ask("02 0000 0002")
             assert t.watchdog_trips == 0 and t.valve_outputs["close"]
-            end = time.monotonic() + 2.0
-            while t.watchdog_trips == 0 and time.monotonic() < end:
-                time.sleep(0.02)
-            assert t.watchdog_trips == 1
+            clock.now += 0.29
+            t.advance()
+            assert t.watchdog_trips == 0  # not yet: silent for 0.29 s
+            clock.now += 0.02
+            t.advance()
+            assert t.watchdog_trips == 1  # silent for 0.31 s
             assert c.ask("01 0000 0002") == bytes.fromhex("01 01 00")
             assert c.ask("02 0000 0002") == bytes.fromhex("02 01 02")  # a double valve holds: still closed
         finally:

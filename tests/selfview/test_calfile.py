@@ -91,3 +91,217 @@ def test_unknown_version_and_missing_file(tmp_path, rng):
         load_calibration(p)
     with pytest.raises(CalibrationFileError, match="no such calibration file"):
         load_calibration(tmp_path / "none.yaml")
+
+
+# --- hostile files (issue 18 #12) -------------------------------------------------------------------
+def _rechecksummed(p, doc):
+    """Write ``doc`` with a valid checksum, as somebody re-checksumming an edited file would."""
+    from selfview.calfile import _checksum
+
+    body = {k: v for k, v in doc.items() if k != "checksum"}
+    doc = dict(body, checksum=_checksum(body))
+    p.write_text(yaml.safe_dump(doc, sort_keys=False))
+
+
+ALIAS_BOMB = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
+    f"{chr(98 + i)}: &{chr(98 + i)} [{', '.join(['*' + chr(97 + i)] * 9)}]\n" for i in range(8)
+)
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (ALIAS_BOMB, "alias"),  # 9**9 strings once expanded
+        ("a: " + "[" * 5000 + "]" * 5000 + "\n", "nested deeper"),
+        ("format: selfview-calibration\nversion: " + "9" * 5000 + "\n", "cannot be read"),
+        ("x: " + "y" * (2 << 20) + "\n", "bytes"),
+        (b"\xff\xfe\x00garbage", "not UTF-8"),
+    ],
+    ids=["alias-bomb", "deep-nesting", "huge-integer", "huge-file", "not-utf8"],
+)
+def test_hostile_yaml_is_refused_at_once(tmp_path, rng, content, message):
+    p = tmp_path / "cal.yaml"
+    (p.write_bytes if isinstance(content, bytes) else p.write_text)(content)
+    with pytest.raises(CalibrationFileError, match=message) as e:
+        load_calibration(p)
+    assert str(p) in str(e.value) and len(str(e.value)) < 600
+    with pytest.raises(CalibrationFileError):
+        save_calibration(make_cal(rng), p)  # never replaced
+    assert p.read_bytes() == (content if isinstance(content, bytes) else content.encode())
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda d: d["gripper"]["points_G"]["open"].__setitem__("A-inner-front", [float("nan"), 0.0, 1.0]), "non-finite"),
+        (lambda d: d["gripper"]["points_G"]["open"].__setitem__("B-outer-front", [float("inf"), 0.0, 1.0]), "non-finite"),
+        (lambda d: d["camera"].__setitem__("f", float("nan")), "camera f"),
+        (lambda d: d["camera"].__setitem__("kappa", 10**400), "OverflowError"),
+        (lambda d: d["gripper"].__setitem__("points_G", [1, 2]), "AttributeError"),
+        (lambda d: d.__setitem__("camera", "a text"), "TypeError"),
+        (lambda d: d["C_H_G"][0].__setitem__(3, float("nan")), "non-finite"),
+    ],
+    ids=["nan-point", "inf-point", "nan-f", "huge-int", "points-list", "camera-text", "nan-transform"],
+)
+def test_wrong_values_in_a_rechecksummed_file_are_refused(tmp_path, rng, edit, message):
+    p = tmp_path / "cal.yaml"
+    save_calibration(make_cal(rng), p)
+    doc = yaml.safe_load(p.read_text())
+    edit(doc)
+    _rechecksummed(p, doc)
+    with pytest.raises(CalibrationFileError, match=message) as e:
+        load_calibration(p)
+    assert str(p) in str(e.value)
+
+
+def test_cli_maps_a_hostile_calibration_file_to_exit_3(tmp_path, capsys):
+    from selfview.procedures.cli import EXIT_CONFIG, main
+
+    p = tmp_path / "bomb.yaml"
+    p.write_text(ALIAS_BOMB)
+    img = tmp_path / "x.png"
+    import cv2
+
+    cv2.imwrite(str(img), np.full((576, 768), 100, np.uint8))
+    assert main(["track", "--calibration", str(p), "--image", str(img)]) == EXIT_CONFIG
+    err = capsys.readouterr().err
+    assert "bomb.yaml" in err and "alias" in err and "Traceback" not in err
+
+
+# --- writes (issue 18 #13) ----------------------------------------------------------------------------
+def test_a_write_that_fails_half_way_leaves_the_old_file(tmp_path, rng, monkeypatch):
+    """A full disk in the middle of the write: the error names the path and the cause, the old file is
+    intact (the writer never writes in place), no temporary file is left."""
+    import errno
+
+    from selfview import io_safe
+
+    p = tmp_path / "cal.yaml"
+    save_calibration(make_cal(rng, f=950.0), p)
+    old = p.read_bytes()
+    real = io_safe._write_all
+
+    def half_then_full(fd, data):
+        real(fd, data[: len(data) // 2])
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(io_safe, "_write_all", half_then_full)
+    with pytest.raises(CalibrationFileError, match="no space left") as e:
+        save_calibration(make_cal(rng, f=960.0), p, keep_history=False)
+    assert str(p) in str(e.value)
+    assert p.read_bytes() == old and load_calibration(p).camera.f == 950.0
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["cal.yaml"]
+
+
+_CRASH = r"""
+import os, signal, sys
+import numpy as np
+from selfview import io_safe
+from selfview.calfile import save_calibration, load_calibration
+cal = load_calibration(sys.argv[1])
+import dataclasses
+cal.camera = dataclasses.replace(cal.camera, f=975.0)
+real = io_safe._write_all
+def crash(fd, data):
+    real(fd, data[: len(data) // 2])
+    os.kill(os.getpid(), signal.SIGKILL)  # the power fails half-way through the write
+io_safe._write_all = crash
+save_calibration(cal, sys.argv[1], keep_history=False)
+"""
+
+
+def test_a_crash_in_the_middle_of_a_write_leaves_the_old_file(tmp_path, rng):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    p = tmp_path / "cal.yaml"
+    save_calibration(make_cal(rng, f=950.0), p)
+    old = p.read_bytes()
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    r = subprocess.run([sys.executable, "-c", _CRASH, str(p)], capture_output=True, text=True, timeout=60, env=env)
+    assert r.returncode == -signal.SIGKILL, r.stderr
+    assert p.read_bytes() == old  # no half file under the name, ever
+    assert load_calibration(p).camera.f == 950.0
+    save_calibration(make_cal(rng, f=960.0), p)  # and the next write goes through
+    assert load_calibration(p).camera.f == 960.0
+
+
+def test_a_file_size_limit_is_a_clear_error(tmp_path, rng):
+    import os
+    import resource
+    import subprocess
+    import sys
+
+    p = tmp_path / "cal.yaml"
+    save_calibration(make_cal(rng, f=950.0), p)
+    old = p.read_bytes()
+    code = (
+        "import sys\nfrom selfview.calfile import load_calibration, save_calibration\n"
+        "from selfview.errors import CalibrationFileError\n"
+        "cal = load_calibration(sys.argv[1]); cal.residuals = {'note': 'x' * 100000}\n"
+        "try:\n    save_calibration(cal, sys.argv[1], keep_history=False)\n"
+        "except CalibrationFileError as e:\n    print(e); sys.exit(3)\n"
+    )
+    limit = len(old) + 1000
+
+    def small_files():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    r = subprocess.run([sys.executable, "-c", code, str(p)], capture_output=True, text=True, timeout=60,
+                       preexec_fn=small_files, env=env)
+    assert r.returncode == 3, r.stderr
+    assert str(p) in r.stdout and "file too large" in r.stdout
+    assert p.read_bytes() == old and sorted(x.name for x in tmp_path.iterdir()) == ["cal.yaml"]
+
+
+def test_history_that_is_a_file_and_out_under_a_file(tmp_path, rng):
+    p = tmp_path / "cal.yaml"
+    save_calibration(make_cal(rng, f=950.0), p)
+    old = p.read_bytes()
+    history_dir(p).write_text("not a folder")
+    with pytest.raises(CalibrationFileError, match="history folder") as e:
+        save_calibration(make_cal(rng, f=960.0), p)
+    assert str(history_dir(p)) in str(e.value) and p.read_bytes() == old
+    blocker = tmp_path / "afile"
+    blocker.write_text("x")
+    with pytest.raises(CalibrationFileError, match="is a file, not a folder") as e:
+        save_calibration(make_cal(rng), blocker / "cal.yaml")
+    assert str(blocker) in str(e.value)
+
+
+def test_missing_folders_are_not_created(tmp_path, rng):
+    target = tmp_path / "no" / "such" / "cal.yaml"
+    with pytest.raises(CalibrationFileError, match="does not exist"):
+        save_calibration(make_cal(rng), target)
+    assert not (tmp_path / "no").exists()
+
+
+@pytest.mark.parametrize("mode", [0o644, 0o640, 0o600])
+def test_replacing_keeps_the_permissions(tmp_path, rng, mode):
+    import os
+    import stat
+
+    p = tmp_path / "cal.yaml"
+    save_calibration(make_cal(rng, f=950.0), p)
+    os.chmod(p, mode)
+    ino = os.stat(p).st_ino
+    kept = save_calibration(make_cal(rng, f=960.0), p)
+    st = os.stat(p)
+    assert stat.S_IMODE(st.st_mode) == mode
+    assert st.st_ino != ino  # replaced by a rename, not rewritten in place
+    assert stat.S_IMODE(os.stat(kept).st_mode) == mode
+
+
+def test_a_calibration_that_does_not_read_back_is_never_written(tmp_path, rng):
+    """The new document is checked before it replaces anything (and before the history copy)."""
+    p = tmp_path / "cal.yaml"
+    save_calibration(make_cal(rng, f=950.0), p)
+    old = p.read_bytes()
+    bad = make_cal(rng, f=960.0)
+    bad.points_G["open"] = np.full((6, 3), np.nan)
+    with pytest.raises(CalibrationFileError, match="non-finite"):
+        save_calibration(bad, p)
+    assert p.read_bytes() == old and not history_dir(p).exists()

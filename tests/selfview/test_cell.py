@@ -118,3 +118,47 @@ def test_file_errors(tmp_path):
     p.write_text("- 1\n- 2\n")
     with pytest.raises(ConfigError, match="expected a mapping"):
         load_cell(p)
+
+
+# --- hostile files (issue 18 #12) -------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("a: &a [x, x, x, x, x, x, x, x, x]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a, *a]\n"
+         "c: &c [*b, *b, *b, *b, *b, *b, *b, *b, *b]\nd: [*c, *c, *c, *c, *c, *c, *c, *c, *c]\n", "alias"),
+        ("camera: " + "{a: " * 3000 + "1" + "}" * 3000 + "\n", "nested deeper"),
+        ("camera: " + "7" * 6000 + "\n", "cannot be read"),
+    ],
+    ids=["alias-bomb", "deep-nesting", "huge-integer"],
+)
+def test_hostile_cell_files_are_refused_at_once(tmp_path, text, message):
+    p = tmp_path / "cell.yaml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match=message) as e:
+        load_cell(p)
+    assert "cell.yaml" in str(e.value) and len(str(e.value)) < 600
+
+
+def test_huge_numbers_and_wrong_types_in_a_cell_file(tmp_path, raw):
+    for edit, message in [
+        (lambda d: d["plate"].__setitem__("pitch", 10**400), "too large"),
+        (lambda d: d["mount_guess"].__setitem__("C_H_G", [[10**400] * 4 for _ in range(4)]), "too large"),
+        (lambda d: d.__setitem__("gripper", [1, 2]), "expected a mapping"),
+        (lambda d: d["camera"].__setitem__("principal_point", [float("nan"), 1.0]), "finite"),
+    ]:
+        doc = copy.deepcopy(raw)
+        edit(doc)
+        p = tmp_path / "cell.yaml"
+        p.write_text(yaml.safe_dump(doc))
+        with pytest.raises(ConfigError, match=message):
+            load_cell(p)
+
+
+def test_cli_maps_a_hostile_cell_file_to_exit_3(tmp_path, capsys):
+    from selfview.procedures.cli import EXIT_CONFIG, main
+
+    p = tmp_path / "bomb.yaml"
+    p.write_text("a: &a [x, x, x]\nb: [*a, *a, *a]\n")
+    assert main(["render", "--cell", str(p), "--out", str(tmp_path / "x.png")]) == EXIT_CONFIG
+    err = capsys.readouterr().err
+    assert "bomb.yaml" in err and "alias" in err and "Traceback" not in err

@@ -1,0 +1,276 @@
+"""Reading and writing files that may be hostile or may fail half-way: YAML documents, pictures, atomic writes.
+
+- ``load_yaml``: a YAML document read with no aliases (a 491-byte alias bomb expands to gigabytes in
+  anything that walks it: a checksum's ``json.dumps``, an error message's ``repr``), a bounded size and a
+  bounded nesting depth (deep nesting would end in RecursionError). Refusals name the file, the line and
+  the cause, as the caller's error class (``ConfigError``, ``CalibrationFileError``).
+- ``read_picture``: the picture's size is read from its header before anything is decoded (PNG, JPEG, BMP,
+  PGM/PPM), so a small file that would decode to 30000 x 30000 pixels is refused at once; an empty,
+  truncated, unknown or undecodable file is an ``ImageError`` naming the file.
+- ``atomic_write``: the new content goes to a temporary file in the same folder, is flushed to disk and
+  renamed over the old file (atomic on POSIX), so a crash or a full disk leaves either the old file or the
+  new one, never half a file. The replaced file's permission bits are kept; a missing folder is not
+  created; every OSError becomes the caller's error class naming the path and the cause, and the
+  temporary file is removed.
+
+Core module: imports nothing from drivers, mocks or procedures.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import os
+import secrets
+import stat
+import struct
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from selfview.errors import CellError, ConfigError, ImageError
+
+__all__ = ["load_yaml", "read_picture", "picture_size", "atomic_write", "MAX_YAML_BYTES", "MAX_YAML_DEPTH",
+           "MAX_PICTURE_SIDE", "MAX_PICTURE_PIXELS"]
+
+#: Largest YAML document read (cell and calibration files are a few kB).
+MAX_YAML_BYTES = 1 << 20
+#: Deepest nesting of mappings and sequences accepted (the files here nest 4 deep).
+MAX_YAML_DEPTH = 32
+#: Largest picture side and pixel count decoded (the CCIR camera gives 768 x 576).
+MAX_PICTURE_SIDE = 16384
+MAX_PICTURE_PIXELS = 64_000_000
+
+
+# --- YAML -----------------------------------------------------------------------------------------
+class _Refused(Exception):
+    pass
+
+
+def _strict(base: type) -> type:
+    class Strict(base):  # type: ignore[misc, valid-type]
+        _depth = 0
+
+        def compose_node(self, parent, index):
+            if self.check_event(yaml.AliasEvent):
+                ev = self.peek_event()
+                raise _Refused(
+                    f"line {ev.start_mark.line + 1}: YAML alias '*{ev.anchor}' refused (aliases are not used by "
+                    "selfview's files, and can expand a small file into gigabytes)"
+                )
+            self._depth += 1
+            try:
+                if self._depth > MAX_YAML_DEPTH:
+                    mark = self.peek_event().start_mark
+                    raise _Refused(f"line {mark.line + 1}: nested deeper than {MAX_YAML_DEPTH} levels")
+                return super().compose_node(parent, index)
+            finally:
+                self._depth -= 1
+
+    Strict.__name__ = f"Strict{base.__name__}"
+    return Strict
+
+
+_LOADERS = {"safe": _strict(yaml.SafeLoader), "base": _strict(yaml.BaseLoader)}
+
+
+def load_yaml(data: bytes | str, source: str, *, error: type[CellError] = ConfigError, text_only: bool = False,
+              what: str = "file"):
+    """Parse one YAML document with no aliases, at most ``MAX_YAML_BYTES`` and ``MAX_YAML_DEPTH`` deep.
+
+    ``text_only`` keeps every scalar as text (``yaml.BaseLoader``). Raises ``error`` naming ``source``."""
+    size = len(data)
+    if size > MAX_YAML_BYTES:
+        raise error(f"{source}: {what} of {size} bytes, more than the {MAX_YAML_BYTES} accepted")
+    if isinstance(data, bytes):
+        try:
+            data = data.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise error(f"{source}: {what} is not UTF-8 text (byte {exc.start})") from None
+    loader = _LOADERS["base" if text_only else "safe"](data)
+    try:
+        return loader.get_single_data()
+    except _Refused as exc:
+        raise error(f"{source}: {what} refused: {exc}") from None
+    except yaml.YAMLError as exc:
+        raise error(f"{source}: {what} is not valid YAML ({_short(str(exc), 300)})") from None
+    except (ValueError, OverflowError, RecursionError, MemoryError) as exc:
+        # e.g. an integer of more digits than Python converts, a date out of range
+        raise error(f"{source}: {what} holds a value that cannot be read ({type(exc).__name__}: "
+                    f"{_short(str(exc), 200)})") from None
+    finally:
+        loader.dispose()
+
+
+def _short(text: str, n: int = 80) -> str:
+    return text if len(text) <= n else text[: n - 3] + "..."
+
+
+def short_repr(value, n: int = 80) -> str:
+    """``repr`` cut to ``n`` characters (for messages about values read from a file)."""
+    return _short(repr(value), n)
+
+
+# --- pictures -------------------------------------------------------------------------------------
+def picture_size(head: bytes) -> tuple[str, int, int]:
+    """(format, width, height) from the first bytes of a PNG, JPEG, BMP or PGM/PPM file; raises
+    ValueError saying why it cannot tell."""
+    if not head:
+        raise ValueError("the file is empty")
+    if head[:8] == b"\x89PNG\r\n\x1a\n":
+        if len(head) < 24 or head[12:16] != b"IHDR":
+            raise ValueError("PNG without its IHDR header (truncated?)")
+        w, h = struct.unpack(">II", head[16:24])
+        return "PNG", w, h
+    if head[:2] == b"\xff\xd8":
+        i = 2
+        while i + 4 <= len(head):
+            if head[i] != 0xFF:
+                raise ValueError(f"JPEG marker expected at byte {i}")
+            marker = head[i + 1]
+            if marker == 0xFF:  # fill byte
+                i += 1
+                continue
+            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+                i += 2
+                continue
+            (length,) = struct.unpack(">H", head[i + 2 : i + 4])
+            if marker in (0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF):
+                if i + 9 > len(head):
+                    break
+                h, w = struct.unpack(">HH", head[i + 5 : i + 9])
+                return "JPEG", w, h
+            if marker == 0xDA or length < 2:
+                raise ValueError("JPEG without a frame header before its data")
+            i += 2 + length
+        raise ValueError("JPEG frame header not found in the file (truncated?)")
+    if head[:2] == b"BM":
+        if len(head) < 26:
+            raise ValueError("BMP header truncated")
+        (hsize,) = struct.unpack("<I", head[14:18])
+        if hsize == 12:
+            w, h = struct.unpack("<HH", head[18:22])
+        else:
+            w, h = struct.unpack("<ii", head[18:26])
+        return "BMP", abs(w), abs(h)
+    if head[:1] == b"P" and head[1:2] in (b"2", b"3", b"5", b"6"):
+        fields: list[bytes] = []
+        for line in head[2:].split(b"\n"):
+            line = line.split(b"#", 1)[0]
+            fields += line.split()
+            if len(fields) >= 2:
+                break
+        try:
+            return "PNM", int(fields[0]), int(fields[1])
+        except (IndexError, ValueError):
+            raise ValueError("PGM/PPM header without a width and height") from None
+    raise ValueError(f"not a PNG, JPEG, BMP or PGM/PPM picture (starts with {head[:8].hex(' ')})")
+
+
+def read_picture(path, *, max_side: int = MAX_PICTURE_SIDE, max_pixels: int = MAX_PICTURE_PIXELS,
+                 what: str = "picture") -> tuple[np.ndarray, str]:
+    """(grey picture as a 2-D uint8 array, SHA-256 of the file); ``ImageError`` naming the file for an
+    unreadable, empty, unknown, oversized (checked in the header, before decoding) or undecodable one."""
+    import cv2
+
+    p = Path(path)
+    try:
+        blob = p.read_bytes()
+    except OSError as exc:
+        raise ImageError(f"{p}: cannot read the {what} ({exc.strerror or exc})") from exc
+    try:
+        fmt, w, h = picture_size(blob[:65536])
+    except ValueError as exc:
+        raise ImageError(f"{p}: not a usable {what}: {exc}") from None
+    if w <= 0 or h <= 0:
+        raise ImageError(f"{p}: {fmt} header says {w} x {h} pixels")
+    if w > max_side or h > max_side or w * h > max_pixels:
+        raise ImageError(
+            f"{p}: {fmt} header says {w} x {h} pixels, beyond the {max_side} px side / {max_pixels} pixel bound; "
+            "refused before decoding"
+        )
+    try:
+        img = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise ImageError(f"{p}: OpenCV cannot decode the {fmt} {what} ({_short(str(exc).strip(), 200)})") from None
+    if img is None:
+        raise ImageError(f"{p}: OpenCV cannot decode the {fmt} {what} (truncated or corrupt?)")
+    if img.ndim == 3:
+        if img.shape[2] not in (3, 4):
+            raise ImageError(f"{p}: {img.shape[2]} channels; expected a grey or colour picture")
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    if img.dtype != np.uint8:
+        raise ImageError(f"{p}: {img.dtype} pixels; expected an 8-bit grey picture")
+    if img.shape != (h, w):
+        raise ImageError(f"{p}: decoded to {img.shape[1]} x {img.shape[0]}, but its header says {w} x {h}")
+    return img, hashlib.sha256(blob).hexdigest()
+
+
+# --- atomic writes --------------------------------------------------------------------------------
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        n = os.write(fd, view)
+        view = view[n:]
+
+
+def _cause(exc: OSError) -> str:
+    if exc.errno == errno.ENOSPC:
+        return "no space left on the device"
+    if exc.errno == errno.EFBIG:
+        return "file too large (a file-size limit)"
+    if exc.errno == errno.EDQUOT:
+        return "disk quota exceeded"
+    return exc.strerror or str(exc)
+
+
+def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, what: str = "file",
+                 mode: int | None = None) -> None:
+    """Replace ``path`` with ``data`` atomically (see the module doc). Permission bits: the replaced
+    file's, else ``mode``, else 0o666 less the umask. Raises ``error`` naming the path and the cause; the
+    old file is then untouched and no temporary file is left."""
+    path = Path(path)
+    folder = path.parent
+    if not folder.exists():
+        raise error(f"{path}: cannot write the {what}: the folder {folder} does not exist (it is not created)")
+    if not folder.is_dir():
+        raise error(f"{path}: cannot write the {what}: {folder} is a file, not a folder")
+    try:
+        old_mode = stat.S_IMODE(os.stat(path).st_mode)
+    except FileNotFoundError:
+        old_mode = mode
+    except OSError as exc:
+        raise error(f"{path}: cannot write the {what}: {_cause(exc)}") from None
+    if path.is_dir():
+        raise error(f"{path}: cannot write the {what}: a folder of that name exists")
+    tmp = folder / f".{path.name}.{secrets.token_hex(6)}.tmp"
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666 if old_mode is None else old_mode)
+    except OSError as exc:
+        raise error(f"{path}: cannot write the {what}: {_cause(exc)}") from None
+    try:
+        try:
+            _write_all(fd, data)
+            if old_mode is not None:
+                os.fchmod(fd, old_mode)  # the replaced file's permissions, whatever the umask
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except BaseException as exc:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        if isinstance(exc, OSError):
+            raise error(f"{path}: cannot write the {what}: {_cause(exc)}; the previous file is unchanged") from None
+        raise
+    try:  # make the rename itself durable
+        dfd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    except OSError:
+        pass

@@ -1,0 +1,127 @@
+"""selfview.io_safe: pictures checked in their header before decoding (issue 18 #14), the strict YAML
+reader, and the atomic writer's refusals."""
+
+from __future__ import annotations
+
+import struct
+import zlib
+
+import cv2
+import numpy as np
+import pytest
+
+from selfview.errors import ConfigError, ImageError
+from selfview.io_safe import atomic_write, load_yaml, picture_size, read_picture
+
+
+def png_header_only(width: int, height: int, idat: bytes = b"") -> bytes:
+    """A PNG whose IHDR claims width x height (8-bit grey), with a valid CRC, followed by ``idat``."""
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
+
+
+@pytest.fixture
+def grey():
+    rng = np.random.default_rng(5)
+    return rng.integers(0, 256, size=(37, 53), dtype=np.uint8)
+
+
+@pytest.mark.parametrize("ext", [".png", ".jpg", ".bmp", ".pgm"])
+def test_header_sizes_of_real_files(tmp_path, grey, ext):
+    p = tmp_path / f"x{ext}"
+    assert cv2.imwrite(str(p), grey)
+    fmt, w, h = picture_size(p.read_bytes())
+    assert (w, h) == (53, 37)
+    img, sha = read_picture(p)
+    assert img.shape == (37, 53) and len(sha) == 64
+    if ext != ".jpg":
+        assert np.array_equal(img, grey)  # lossless formats round-trip exactly
+
+
+def test_colour_pictures_become_grey(tmp_path, grey):
+    p = tmp_path / "c.png"
+    cv2.imwrite(str(p), cv2.merge([grey, grey, grey]))
+    img, _ = read_picture(p)
+    assert np.array_equal(img, grey)
+
+
+def test_a_huge_png_is_refused_from_its_header(tmp_path):
+    small = tmp_path / "over_a_small_bound.png"  # the bound is the caller's: checked first, cheaply
+    small.write_bytes(png_header_only(2000, 1000, zlib.compress(b"\0" * 1000)))
+    with pytest.raises(ImageError, match="2000 x 1000 pixels.*refused before decoding"):
+        read_picture(small, max_side=1500)
+    with pytest.raises(ImageError, match="refused before decoding"):
+        read_picture(small, max_pixels=1_000_000)
+    # 30000 x 30000 pixels of zeros compress to well under a megabyte; the header is all that is read
+    p = tmp_path / "bomb.png"
+    p.write_bytes(png_header_only(30000, 30000, zlib.compress(b"\0" * 300_000)))
+    with pytest.raises(ImageError, match=r"30000 x 30000 pixels.*refused before decoding") as e:
+        read_picture(p)
+    assert str(p) in str(e.value)
+    p.write_bytes(png_header_only(40000, 40000))
+    with pytest.raises(ImageError, match="40000 x 40000"):
+        read_picture(p)
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (b"", "empty"),
+        (b"hello, this is text\n", "not a PNG, JPEG, BMP or PGM/PPM"),
+        (b"\x89PNG\r\n\x1a\n\0\0", "IHDR"),
+        (b"\xff\xd8\xff\xe0\x00\x10JFIF", "frame header"),
+        (b"P5\n# only a comment\n", "width and height"),
+    ],
+    ids=["empty", "text", "png-cut", "jpeg-cut", "pgm-cut"],
+)
+def test_unreadable_pictures_name_the_file(tmp_path, content, message):
+    p = tmp_path / "bad.png"
+    p.write_bytes(content)
+    with pytest.raises(ImageError, match=message) as e:
+        read_picture(p)
+    assert str(p) in str(e.value)
+
+
+def test_a_truncated_picture_is_an_image_error(tmp_path, grey):
+    p = tmp_path / "cut.png"
+    cv2.imwrite(str(p), grey)
+    p.write_bytes(p.read_bytes()[:60])
+    with pytest.raises(ImageError, match="cannot decode"):
+        read_picture(p)
+    with pytest.raises(ImageError, match="cannot read"):
+        read_picture(tmp_path / "none.png")
+    with pytest.raises(ImageError, match="header says 0 x"):
+        p.write_bytes(png_header_only(0, 10))
+        read_picture(p)
+
+
+def test_cli_exit_5_for_bad_pictures(tmp_path, capsys):
+    from selfview.procedures.cli import EXIT_CALIBRATION, main
+
+    for name, content in [("zero.png", b""), ("huge.png", png_header_only(40000, 40000))]:
+        p = tmp_path / name
+        p.write_bytes(content)
+        assert main(["calibrate", "--image", str(p), "--out", str(tmp_path / "cal.yaml")]) == EXIT_CALIBRATION
+        err = capsys.readouterr().err
+        assert name in err and "Traceback" not in err
+    assert not (tmp_path / "cal.yaml").exists()
+
+
+def test_yaml_reader_keeps_text_when_asked():
+    assert load_yaml("a: 00001\nb: 40001.10\n", "m.yaml", text_only=True) == {"a": "00001", "b": "40001.10"}
+    assert load_yaml("a: 1\n", "m.yaml") == {"a": 1}
+    with pytest.raises(ConfigError, match="m.yaml.*alias"):
+        load_yaml("a: &x 1\nb: *x\n", "m.yaml")
+
+
+def test_atomic_write_refuses_a_folder_target(tmp_path):
+    (tmp_path / "d").mkdir()
+    with pytest.raises(ConfigError, match="a folder of that name"):
+        atomic_write(tmp_path / "d", b"x")
+    atomic_write(tmp_path / "f.txt", b"abc")
+    assert (tmp_path / "f.txt").read_bytes() == b"abc"
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["d", "f.txt"]
