@@ -38,7 +38,7 @@ import numpy as np
 
 
 
-__all__ = ["AltOptions", "AltPicture", "Case", "case", "grid_symmetry", "render", "render_world"]
+__all__ = ["AltOptions", "AltPicture", "Case", "case", "disc_centroids", "grid_symmetry", "render", "render_world"]
 
 # Surface labels: discs are DISC0 + index, finger faces FINGER0 + 6 * finger + face, occluders OCC0 + i.
 NOTHING, TABLE, FOAM, PAPER = 0, 1, 2, 3
@@ -394,9 +394,30 @@ def _disc_truth(scene: _Scene) -> tuple[np.ndarray, ...]:
         return nan, nan.copy(), np.zeros(n, bool), np.zeros(n, bool)
     centres = _disc_centres(pl)
     uv = cam.project(_apply(scene.C_H_W, centres))
+    centroid = _centroids(cam, scene.C_H_W, centres, pl.disc_diameter / 2)
+    R = pl.disc_diameter / 2
+    # visibility from the boundary (and two inner rings and the centre)
+    t = np.arange(72) * 2 * np.pi / 72
+    ring = np.column_stack([R * np.cos(t), R * np.sin(t), np.zeros_like(t)])
+    probe = np.vstack([ring, 0.5 * ring, [[0.0, 0.0, 0.0]]])
+    pts_C = _apply(scene.C_H_W, (centres[:, None, :] + probe[None]).reshape(-1, 3))
+    ok = (cam.in_image(cam.project(pts_C), margin=0.5) & ~scene.blocked(pts_C)).reshape(n, -1)
+    visible = np.all(ok[:, : len(ring)], axis=1)
+    seen = np.any(ok, axis=1)
+    return uv, centroid, visible, seen
+
+
+def disc_centroids(camera, C_H_W, plate) -> np.ndarray:
+    """(rows*cols, 2) the centroid [px] of each disc's distorted image (where a dark blob's centroid lies),
+    by this module's own projection and an area integral (not the project's boundary polygon): the
+    camera as plain numbers (f, kappa, cx, cy, aspect), ``plate`` its rows, cols, pitch, disc_diameter."""
+    return _centroids(_Camera(camera), np.asarray(C_H_W, float), _disc_centres(plate), float(plate.disc_diameter) / 2)
+
+
+def _centroids(cam: _Camera, C_H_W: np.ndarray, centres: np.ndarray, R: float) -> np.ndarray:
+    n = len(centres)
     # centroid of the image region: integrate u |J| and |J| over the disc in W (Gauss-Legendre in the
     # radius, uniform in the angle; J the Jacobian of W (x, y) -> distorted pixels by central differences)
-    R = pl.disc_diameter / 2
     xg, wg = np.polynomial.legendre.leggauss(12)
     rho = (xg + 1) / 2 * R
     w_rho = wg / 2 * R * rho
@@ -408,22 +429,13 @@ def _disc_truth(scene: _Scene) -> tuple[np.ndarray, ...]:
 
     def proj(xy):
         p = np.column_stack([xy, np.zeros(len(xy))])
-        return cam.project(_apply(scene.C_H_W, p))
+        return cam.project(_apply(C_H_W, p))
 
     q = (centres[:, None, :2] + off[None]).reshape(-1, 2)
     ju = (proj(q + [h, 0]) - proj(q - [h, 0])) / (2 * h)
     jv = (proj(q + [0, h]) - proj(q - [0, h])) / (2 * h)
     det = (np.abs(ju[:, 0] * jv[:, 1] - ju[:, 1] * jv[:, 0]) * np.tile(wq, n)).reshape(n, -1)
-    centroid = np.einsum("kq,kqi->ki", det, proj(q).reshape(n, -1, 2)) / det.sum(1)[:, None]
-    # visibility from the boundary (and two inner rings and the centre)
-    t = np.arange(72) * 2 * np.pi / 72
-    ring = np.column_stack([R * np.cos(t), R * np.sin(t), np.zeros_like(t)])
-    probe = np.vstack([ring, 0.5 * ring, [[0.0, 0.0, 0.0]]])
-    pts_C = _apply(scene.C_H_W, (centres[:, None, :] + probe[None]).reshape(-1, 3))
-    ok = (cam.in_image(cam.project(pts_C), margin=0.5) & ~scene.blocked(pts_C)).reshape(n, -1)
-    visible = np.all(ok[:, : len(ring)], axis=1)
-    seen = np.any(ok, axis=1)
-    return uv, centroid, visible, seen
+    return np.einsum("kq,kqi->ki", det, proj(q).reshape(n, -1, 2)) / det.sum(1)[:, None]
 
 
 def render(camera, C_H_G, C_H_W, gap_mm: float, cell, options: AltOptions | None = None, **kw) -> AltPicture:
