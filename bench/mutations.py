@@ -105,7 +105,7 @@ MUTATIONS: tuple[Mutation, ...] = (
         "selfview/discs.py",
         "min_discs: int = 12) -> DiscDetections:",
         "min_discs: int = 60) -> DiscDetections:",
-        ("tests/selfview/test_discs.py::test_the_minimum_disc_count",),
+        ("tests/selfview/test_discs.py::test_the_minimum_disc_count", "tests/selfview/test_offline.py::test_robustness"),
         "the minimum disc count raised from 12 to 60: the standard pictures are refused",
     ),
     Mutation(
