@@ -347,7 +347,7 @@ def test_kernel_direct_call_fills_the_outputs():
     # a start given: the same minimum
     H_s = np.empty((4, 4))
     assert NPU.np_i(args[0], reference.C_H_G, *args[2:8], H_s, np.empty(6)) is not None
-    assert np.abs(H_s - reference.C_H_G).max() < 1e-10
+    assert np.abs(H_s - reference.C_H_G).max() < 1e-9  # the same minimum: 1e-9 rad, 1e-9 mm
 
 
 def _fallback_variants():
