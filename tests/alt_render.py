@@ -17,6 +17,15 @@ technique and look:
 It returns its own ground truth: projected disc centres, which discs are whole and unoccluded, the
 centroid of each disc's (distorted) image by area integration, and the six fingertip corner pixels with
 their visibility. Lengths in mm, pixels with integer values at pixel centres.
+
+Independence: nothing here comes from the project's camera model or geometry (``selfview.camera``,
+``selfview.geometry``, the cell's geometry helpers). The camera is taken as plain numbers (f, kappa, cx,
+cy, aspect, width, height: any principal point and aspect) and projected with this module's own code
+from the conventions (``X^ = aspect (u - cx)``, ``Y^ = v - cy``, ``X = X^ (1 + kappa r^2)``, ``X = f x / z``;
+the inverse of the radial correction by Newton's method on the radius); the disc grid, the finger blocks
+and the six fingertip points are built here from the spec's formulas and the cell's plain numbers (rows,
+cols, pitch, disc diameter, sheet size; finger width, thickness, length). A slip in the project's
+convention (say, half a pixel in the principal point) then shows as a disagreement with this truth.
 """
 
 from __future__ import annotations
@@ -27,11 +36,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from selfview.camera import CameraModel
-from selfview.cell import Cell
-from selfview.geometry import inv_H, make_H, transform_points, trans
 
-__all__ = ["AltOptions", "AltPicture", "Case", "case", "grid_symmetry", "render", "render_world"]
+
+__all__ = ["AltOptions", "AltPicture", "Case", "case", "disc_centroids", "grid_symmetry", "render", "render_world"]
 
 # Surface labels: discs are DISC0 + index, finger faces FINGER0 + 6 * finger + face, occluders OCC0 + i.
 NOTHING, TABLE, FOAM, PAPER = 0, 1, 2, 3
@@ -76,11 +83,112 @@ class AltPicture:
     disc_seen: np.ndarray  # (rows*cols,) some of the disc visible
     corner_uv: np.ndarray  # (6, 2) fingertip points, POINT_NAMES order
     corner_visible: np.ndarray  # (6,) inside the picture and not hidden
-    camera: CameraModel
+    camera: object  # the camera rendered, as given (its f, kappa, cx, cy, aspect, width, height were used)
     C_H_G: np.ndarray
     C_H_W: np.ndarray | None
     gap_mm: float
     labels: np.ndarray = field(repr=False, default=None)  # (H, W) surface label at pixel centres
+
+
+# --- the camera and the geometry, from the conventions and the cell's numbers --------------------------
+class _Camera:
+    """The camera of CONVENTIONS.md from plain numbers: eq. 1-4, both ways."""
+
+    NEWTON_STEPS = 40  # the radius's Newton iteration: quadratic, converged in a handful; bounded
+
+    def __init__(self, camera):
+        self.f = float(camera.f)
+        self.kappa = float(camera.kappa)
+        self.cx, self.cy = float(camera.cx), float(camera.cy)
+        self.aspect = float(camera.aspect)
+        self.width, self.height = int(camera.width), int(camera.height)
+
+    def undistort_pixels(self, uv: np.ndarray) -> np.ndarray:
+        """Distorted pixels (M, 2) -> undistorted sensor coordinates (X, Y) (M, 2), explicit (eq. 4)."""
+        uv = np.asarray(uv, float)
+        Xh = self.aspect * (uv[:, 0] - self.cx)
+        Yh = uv[:, 1] - self.cy
+        k = 1.0 + self.kappa * (Xh * Xh + Yh * Yh)
+        return np.column_stack([Xh * k, Yh * k])
+
+    def project(self, p_C: np.ndarray) -> np.ndarray:
+        """Camera points (M, 3) [mm] -> distorted pixels (M, 2): perspective, then the radius r^ of the
+        distorted sensor point solved from r^ (1 + kappa r^^2) = r by Newton's method (NaN where the
+        correction cannot be inverted)."""
+        p = np.asarray(p_C, float).reshape(-1, 3)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            X = self.f * p[:, 0] / p[:, 2]
+            Y = self.f * p[:, 1] / p[:, 2]
+        r = np.hypot(X, Y)
+        rh = r.copy()
+        for _ in range(self.NEWTON_STEPS):
+            g = rh + self.kappa * rh**3 - r
+            dg = 1.0 + 3.0 * self.kappa * rh * rh
+            with np.errstate(divide="ignore", invalid="ignore"):
+                step = g / dg
+            rh = rh - step
+            if not np.any(np.abs(step) > 1e-13 * (1.0 + r)):
+                break
+        bad = ~(1.0 + 3.0 * self.kappa * rh * rh > 0) | ~(p[:, 2] > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = np.where(r > 0, rh / np.where(r > 0, r, 1.0), 1.0)
+        uv = np.column_stack([X * s / self.aspect + self.cx, Y * s + self.cy])
+        uv[bad] = np.nan
+        return uv
+
+    def in_image(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """(M,) pixel positions inside the picture (pixel centres at integers), ``margin`` px from its border."""
+        uv = np.asarray(uv, float)
+        with np.errstate(invalid="ignore"):
+            return (
+                (uv[:, 0] >= -0.5 + margin) & (uv[:, 0] <= self.width - 0.5 - margin)
+                & (uv[:, 1] >= -0.5 + margin) & (uv[:, 1] <= self.height - 0.5 - margin)
+            )  # fmt: skip
+
+
+def _hom(R: np.ndarray, t) -> np.ndarray:
+    H = np.eye(4)
+    H[:3, :3] = R
+    H[:3, 3] = t
+    return H
+
+
+def _inv(H: np.ndarray) -> np.ndarray:
+    R = H[:3, :3]
+    return _hom(R.T, -R.T @ H[:3, 3])
+
+
+def _apply(H: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Points p (M, 3) mapped by the 4x4 H."""
+    p = np.asarray(p, float).reshape(-1, 3)
+    return p @ H[:3, :3].T + H[:3, 3]
+
+
+def _disc_centres(plate) -> np.ndarray:
+    """(rows*cols, 3) disc centres in W: index row * cols + col, x along a row (growing column), y along a
+    column (growing row), the grid centred on W's origin, z = 0."""
+    rows, cols, pitch = int(plate.rows), int(plate.cols), float(plate.pitch)
+    k = np.arange(rows * cols)
+    x = (k % cols - (cols - 1) / 2) * pitch
+    y = (k // cols - (rows - 1) / 2) * pitch
+    return np.column_stack([x, y, np.zeros(len(k))])
+
+
+def _finger_boxes(gripper, gap: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """[(min, max)] of fingers A (+x) and B (-x) in G: A in x [g/2, g/2 + t], y [-w/2, w/2], z [-L, 0]."""
+    g, w = float(gap), float(gripper.finger_width)
+    t, L = float(gripper.finger_thickness), float(gripper.finger_length)
+    return [
+        (np.array([g / 2, -w / 2, -L]), np.array([g / 2 + t, w / 2, 0.0])),
+        (np.array([-g / 2 - t, -w / 2, -L]), np.array([-g / 2, w / 2, 0.0])),
+    ]
+
+
+def _fingertips(gripper, gap: float) -> np.ndarray:
+    """(6, 3) the fingertip points of the spec's table, in its order (A/B inner front/back, outer fronts)."""
+    g, w, t = float(gap), float(gripper.finger_width), float(gripper.finger_thickness)
+    return np.array([[g / 2, -w / 2, 0], [g / 2, w / 2, 0], [-g / 2, -w / 2, 0], [-g / 2, w / 2, 0],
+                     [g / 2 + t, -w / 2, 0], [-g / 2 - t, -w / 2, 0]], float)  # fmt: skip
 
 
 # --- procedural textures --------------------------------------------------------------------------
@@ -137,8 +245,8 @@ def _slab(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray):
 
 
 class _Scene:
-    def __init__(self, camera: CameraModel, C_H_G, C_H_W, gap_mm: float, cell: Cell, opt: AltOptions):
-        self.cam = camera
+    def __init__(self, camera, C_H_G, C_H_W, gap_mm: float, cell, opt: AltOptions):
+        self.cam = _Camera(camera)
         self.opt = opt
         self.C_H_G = np.asarray(C_H_G, float)
         self.C_H_W = None if C_H_W is None else np.asarray(C_H_W, float)
@@ -151,11 +259,11 @@ class _Scene:
         if opt.C_H_T is not None:
             self.C_H_T = np.asarray(opt.C_H_T, float)
         elif self.C_H_W is not None:
-            self.C_H_T = self.C_H_W @ trans(0, 0, 40.0)
+            self.C_H_T = self.C_H_W @ _hom(np.eye(3), (0, 0, 40.0))
         else:
-            self.C_H_T = self.C_H_G @ trans(0, 0, 120.0)
-        self.boxes = self.gripper.finger_boxes_G(self.gap) if opt.fingers else []
-        self.G_H_C = inv_H(self.C_H_G)
+            self.C_H_T = self.C_H_G @ _hom(np.eye(3), (0, 0, 120.0))
+        self.boxes = _finger_boxes(self.gripper, self.gap) if opt.fingers else []
+        self.G_H_C = _inv(self.C_H_G)
 
     def rays(self, uv: np.ndarray) -> np.ndarray:
         XY = self.cam.undistort_pixels(uv)
@@ -249,7 +357,7 @@ class _Scene:
             t = (n @ p0) / (d @ n)
         t = np.where(np.isfinite(t) & (t > 0), t, np.inf)
         tt = np.where(np.isfinite(t), t, 0.0)
-        p_P = _affine(inv_H(C_H_P), d * tt[:, None])
+        p_P = _affine(_inv(C_H_P), d * tt[:, None])
         return t, p_P
 
     def blocked(self, p_C: np.ndarray) -> np.ndarray:
@@ -269,7 +377,7 @@ class _Scene:
         return out
 
 
-def _illumination(cam: CameraModel, opt: AltOptions) -> np.ndarray:
+def _illumination(cam: _Camera, opt: AltOptions) -> np.ndarray:
     v, u = np.mgrid[0 : cam.height, 0 : cam.width].astype(float)
     xu = (u - (cam.width - 1) / 2) / cam.width
     yv = (v - (cam.height - 1) / 2) / cam.height
@@ -284,11 +392,32 @@ def _disc_truth(scene: _Scene) -> tuple[np.ndarray, ...]:
     nan = np.full((n, 2), np.nan)
     if scene.C_H_W is None:
         return nan, nan.copy(), np.zeros(n, bool), np.zeros(n, bool)
-    centres = pl.disc_centres_W()
-    uv = cam.project(transform_points(scene.C_H_W, centres))
+    centres = _disc_centres(pl)
+    uv = cam.project(_apply(scene.C_H_W, centres))
+    centroid = _centroids(cam, scene.C_H_W, centres, pl.disc_diameter / 2)
+    R = pl.disc_diameter / 2
+    # visibility from the boundary (and two inner rings and the centre)
+    t = np.arange(72) * 2 * np.pi / 72
+    ring = np.column_stack([R * np.cos(t), R * np.sin(t), np.zeros_like(t)])
+    probe = np.vstack([ring, 0.5 * ring, [[0.0, 0.0, 0.0]]])
+    pts_C = _apply(scene.C_H_W, (centres[:, None, :] + probe[None]).reshape(-1, 3))
+    ok = (cam.in_image(cam.project(pts_C), margin=0.5) & ~scene.blocked(pts_C)).reshape(n, -1)
+    visible = np.all(ok[:, : len(ring)], axis=1)
+    seen = np.any(ok, axis=1)
+    return uv, centroid, visible, seen
+
+
+def disc_centroids(camera, C_H_W, plate) -> np.ndarray:
+    """(rows*cols, 2) the centroid [px] of each disc's distorted image (where a dark blob's centroid lies),
+    by this module's own projection and an area integral (not the project's boundary polygon): the
+    camera as plain numbers (f, kappa, cx, cy, aspect), ``plate`` its rows, cols, pitch, disc_diameter."""
+    return _centroids(_Camera(camera), np.asarray(C_H_W, float), _disc_centres(plate), float(plate.disc_diameter) / 2)
+
+
+def _centroids(cam: _Camera, C_H_W: np.ndarray, centres: np.ndarray, R: float) -> np.ndarray:
+    n = len(centres)
     # centroid of the image region: integrate u |J| and |J| over the disc in W (Gauss-Legendre in the
     # radius, uniform in the angle; J the Jacobian of W (x, y) -> distorted pixels by central differences)
-    R = pl.disc_diameter / 2
     xg, wg = np.polynomial.legendre.leggauss(12)
     rho = (xg + 1) / 2 * R
     w_rho = wg / 2 * R * rho
@@ -300,34 +429,26 @@ def _disc_truth(scene: _Scene) -> tuple[np.ndarray, ...]:
 
     def proj(xy):
         p = np.column_stack([xy, np.zeros(len(xy))])
-        return cam.project(transform_points(scene.C_H_W, p))
+        return cam.project(_apply(C_H_W, p))
 
     q = (centres[:, None, :2] + off[None]).reshape(-1, 2)
     ju = (proj(q + [h, 0]) - proj(q - [h, 0])) / (2 * h)
     jv = (proj(q + [0, h]) - proj(q - [0, h])) / (2 * h)
     det = (np.abs(ju[:, 0] * jv[:, 1] - ju[:, 1] * jv[:, 0]) * np.tile(wq, n)).reshape(n, -1)
-    centroid = np.einsum("kq,kqi->ki", det, proj(q).reshape(n, -1, 2)) / det.sum(1)[:, None]
-    # visibility from the boundary (and two inner rings and the centre)
-    t = np.arange(72) * 2 * np.pi / 72
-    ring = np.column_stack([R * np.cos(t), R * np.sin(t), np.zeros_like(t)])
-    probe = np.vstack([ring, 0.5 * ring, [[0.0, 0.0, 0.0]]])
-    pts_C = transform_points(scene.C_H_W, (centres[:, None, :] + probe[None]).reshape(-1, 3))
-    ok = (cam.in_image(cam.project(pts_C), margin=0.5) & ~scene.blocked(pts_C)).reshape(n, -1)
-    visible = np.all(ok[:, : len(ring)], axis=1)
-    seen = np.any(ok, axis=1)
-    return uv, centroid, visible, seen
+    return np.einsum("kq,kqi->ki", det, proj(q).reshape(n, -1, 2)) / det.sum(1)[:, None]
 
 
-def render(
-    camera: CameraModel, C_H_G, C_H_W, gap_mm: float, cell: Cell, options: AltOptions | None = None, **kw
-) -> AltPicture:
+def render(camera, C_H_G, C_H_W, gap_mm: float, cell, options: AltOptions | None = None, **kw) -> AltPicture:
     """Render one picture of the cell: the plate at ``C_H_W`` (or none), the fingers at ``C_H_G`` with jaw
-    gap ``gap_mm``. Options as an ``AltOptions`` or keyword arguments overriding its defaults."""
+    gap ``gap_mm``. ``camera``: anything with the numbers f, kappa, cx, cy, aspect, width, height; ``cell``:
+    anything with ``plate`` (rows, cols, pitch, disc_diameter, size) and ``gripper`` (finger_width,
+    finger_thickness, finger_length). Options as an ``AltOptions`` or keyword arguments overriding its
+    defaults."""
     opt = options or AltOptions()
     if kw:
         opt = AltOptions(**{**opt.__dict__, **kw})
     scene = _Scene(camera, C_H_G, C_H_W, gap_mm, cell, opt)
-    H, W = camera.height, camera.width
+    H, W = scene.cam.height, scene.cam.width
     v, u = np.mgrid[0:H, 0:W]
     label, grey = scene.cast(np.column_stack([u.ravel(), v.ravel()]).astype(float))
     label = label.reshape(H, W)
@@ -355,7 +476,7 @@ def render(
             _, g = scene.cast(np.column_stack([su.ravel(), sv.ravel()]))
             acc[a : a + chunk] = g.reshape(len(pu), S * S).mean(1)
         grey[mv, mu] = acc
-    img = grey * _illumination(camera, opt)
+    img = grey * _illumination(scene.cam, opt)
     if opt.blur_sigma > 0:
         img = cv2.GaussianBlur(img, (0, 0), opt.blur_sigma, borderType=cv2.BORDER_REFLECT)
     img = img * opt.gain
@@ -369,10 +490,10 @@ def render(
         assert ok
         img8 = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
     disc_uv, disc_centroid, disc_visible, disc_seen = _disc_truth(scene)
-    pts_G = cell.gripper.points_G(gap=gap_mm)
-    pts_C = transform_points(scene.C_H_G, pts_G)
-    corner_uv = camera.project(pts_C)
-    corner_visible = camera.in_image(corner_uv, margin=0.5) & (~scene.blocked(pts_C) if opt.fingers else False)
+    pts_G = _fingertips(cell.gripper, gap_mm)
+    pts_C = _apply(scene.C_H_G, pts_G)
+    corner_uv = scene.cam.project(pts_C)
+    corner_visible = scene.cam.in_image(corner_uv, margin=0.5) & (~scene.blocked(pts_C) if opt.fingers else False)
     return AltPicture(
         image=img8,
         disc_uv=disc_uv,
@@ -410,7 +531,7 @@ class Case:
     the fingertips are predicted from (the cell's mount guess while parked, the mount before the
     disturbance on-line); ``pic`` the picture and its truth."""
 
-    cell: Cell
+    cell: object
     world: object
     C_H_G_pred: np.ndarray
     pic: AltPicture
@@ -446,10 +567,10 @@ def grid_symmetry(det, plate, truth_uv):
     k = np.argmin(d, axis=1)
     assert np.all(d[np.arange(len(k)), k] < 1.0), "a detection lies off every disc"
     assert len(set(k.tolist())) == len(k), "two detections on one disc"
-    a, b = det.p_W[:, :2], plate.disc_centres_W()[k, :2]
+    a, b = det.p_W[:, :2], _disc_centres(plate)[k, :2]
     U, _, Vt = np.linalg.svd((a - a.mean(0)).T @ (b - b.mean(0)))
     R = (U @ Vt).T
     R3 = np.eye(3)
     R3[:2, :2] = R
-    H = make_H(R3, np.r_[b.mean(0) - R @ a.mean(0), 0.0])
+    H = _hom(R3, np.r_[b.mean(0) - R @ a.mean(0), 0.0])
     return k, H

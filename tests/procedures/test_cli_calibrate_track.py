@@ -1,6 +1,8 @@
 """``selfview calibrate`` and ``selfview track`` on rendered pictures: outputs, files, and failures."""
 
 import json
+import os
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -109,9 +111,11 @@ def test_track_each_method(pictures, calibrated, capsys, method):
     assert out["applied"] is False
 
 
-def test_track_auto_follows_the_policy_and_apply_writes_atomically(pictures, calibrated, capsys, cell_path):
+def test_track_auto_follows_the_policy_and_apply_writes_atomically(pictures, calibrated, capsys, cell_path,
+                                                                   monkeypatch):
     d, _, _ = pictures
     before = load_calibration(calibrated).C_H_G
+    before_bytes = calibrated.read_bytes()
     # the shared reference cell's limits: update below 1 deg / 2 mm, alarm above 5 deg / 10 mm
     policy = ["--cell", str(cell_path), "track", "--calibration", str(calibrated), "--method", "auto", "--json"]
     policy = policy[2:] + policy[:2]
@@ -125,7 +129,28 @@ def test_track_auto_follows_the_policy_and_apply_writes_atomically(pictures, cal
     assert not np.allclose(after.C_H_G, before)
     assert np.allclose(after.C_H_G[:3, 3], np.load(d / "truth_mid.npy")[:3, 3], atol=0.1)
     assert after.updates and after.updates[-1]["by"] == "track"
-    assert len(list(history_dir(calibrated).iterdir())) == 1
+    kept = list(history_dir(calibrated).iterdir())
+    assert len(kept) == 1 and kept[0].read_bytes() == before_bytes  # the previous file, byte for byte
+    assert not [p.name for p in calibrated.parent.iterdir() if p.name.endswith(".tmp")]  # no temporary left
+    # atomic: when the final rename onto the file fails, the command fails and the file is as it was
+    now = calibrated.read_bytes()
+    real_replace = os.replace
+
+    def failing_replace(src, dst, *a, **kw):
+        if Path(dst) == calibrated:
+            raise OSError(28, "No space left on device")
+        return real_replace(src, dst, *a, **kw)
+
+    monkeypatch.setattr(os, "replace", failing_replace)
+    try:  # (the command may report the failure or let the OSError out; either way it must not succeed)
+        code = main(policy + ["--image", str(d / "mid.png"), "--apply"])
+        err = capsys.readouterr()[1]
+    except OSError as exc:
+        code, err = None, str(exc)
+    monkeypatch.setattr(os, "replace", real_replace)
+    assert code != 0 and "No space left on device" in err, (code, err)
+    assert calibrated.read_bytes() == now
+    assert not [p.name for p in calibrated.parent.iterdir() if p.name.endswith(".tmp")]
 
 
 def test_track_auto_raises_the_alarm_for_a_large_move_and_writes_nothing(pictures, calibrated, capsys):

@@ -83,8 +83,12 @@ def check_agreement(native: MotionEstimate, reference: MotionEstimate, P, uv, ca
     assert native.method == reference.method and native.points_used == reference.points_used
     assert native.C_H_G_orth is native.C_H_G
     assert np.array_equal(native.C_H_G_prior, reference.C_H_G_prior)
-    if native.iterations == reference.iterations:  # the same path: the rounding of the normal equations
-        tol_H, tol_motion, tol_px, tol_rel = 1e-11, 1e-10, 1e-9, 1e-8
+    if native.iterations == reference.iterations:
+        # the same steps: agreement far below the data's noise but not at one CPU's rounding (the kernel may
+        # fuse multiply-adds, numpy's BLAS sums in its own order): the pose's rotation entries to 1e-9
+        # (1e-9 rad) and its translation to 1e-9 mm, the motion (rad, mm) likewise, pixels to 1e-6 px,
+        # the condition number and covariance relative 1e-6
+        tol_H, tol_motion, tol_px, tol_rel = 1e-9, 1e-9, 1e-6, 1e-6
     else:  # stopped elsewhere within the tolerance of the same minimum
         tol_H, tol_motion, tol_px, tol_rel = 1e-7, 1e-5, 1e-5, 1e-5
     assert np.abs(native.C_H_G - reference.C_H_G).max() <= tol_H
@@ -336,13 +340,14 @@ def test_kernel_direct_call_fills_the_outputs():
         reference = iterative_update(args[0], args[2], args[3], args[4])
     finally:
         _native.npu = saved
-    assert np.allclose(args[8], reference.C_H_G, rtol=0, atol=1e-11)
-    assert np.allclose(args[9], reference.motion, rtol=0, atol=1e-10)
-    assert rms == pytest.approx(reference.rms_px, abs=1e-9)
+    # the same minimum: rotation entries to 1e-9 rad, translation and motion to 1e-9 (mm, rad), rms to 1e-6 px
+    assert np.allclose(args[8], reference.C_H_G, rtol=0, atol=1e-9)
+    assert np.allclose(args[9], reference.motion, rtol=0, atol=1e-9)
+    assert rms == pytest.approx(reference.rms_px, abs=1e-6)
     # a start given: the same minimum
     H_s = np.empty((4, 4))
     assert NPU.np_i(args[0], reference.C_H_G, *args[2:8], H_s, np.empty(6)) is not None
-    assert np.abs(H_s - reference.C_H_G).max() < 1e-10
+    assert np.abs(H_s - reference.C_H_G).max() < 1e-9  # the same minimum: 1e-9 rad, 1e-9 mm
 
 
 def _fallback_variants():

@@ -2,8 +2,9 @@
 ``template_sums``) against the pure-Python reference (``selfview.fingertips``).
 
 ``find_fingertips`` runs twice on the same pictures, with the kernels and with ``selfview._native.track``
-set to None (the Python code): the corners, their RMS and point counts must be bit-identical, the
-found/not-found decisions and every reason the same. Pictures of both renderers (the project's and the
+set to None (the Python code): the corners and their RMS within 1e-6 px, the point counts, the
+found/not-found decisions and every reason the same (tolerances of the quantity, not bit identity: the
+kernels and numpy round in another order, and which rounding each gets depends on the CPU). Pictures of both renderers (the project's and the
 independent ``tests/alt_render.py``): parked and lifted, several seeds, blur, gain, light gradient, an
 occluder, a picture without fingers, points outside the picture. Then the kernels one by one, against
 the numpy code they replace, and bad arguments refused with an error naming them.
@@ -22,11 +23,13 @@ from selfview import _native
 from selfview.fingertips import find_fingertips
 from selfview.geometry import transform_points
 from tests.alt_render import case, render_world
+from tests.selfview.test_native_track import TOL_GREY, TOL_PX
 from tests.selfview.test_native_track import nat  # noqa: F401  (the fixture)
 
 
 def _both(monkeypatch, nat, image, camera, pred, gripper, gap, **kw):
-    """find_fingertips with the kernels and with the Python code; asserts they agree bit for bit."""
+    """find_fingertips with the kernels and with the Python code; asserts they agree (decisions, reasons
+    and counts exactly; corners and edge RMS to a millionth of a pixel)."""
     monkeypatch.setattr(_native, "track", nat)
     a = find_fingertips(image, camera, pred, gripper, gap, **kw)
     monkeypatch.setattr(_native, "track", None)
@@ -34,8 +37,8 @@ def _both(monkeypatch, nat, image, camera, pred, gripper, gap, **kw):
     monkeypatch.setattr(_native, "track", nat)
     assert a.reasons == b.reasons
     assert np.array_equal(a.found, b.found)
-    assert np.array_equal(a.uv, b.uv, equal_nan=True), np.abs(a.uv - b.uv)
-    assert np.array_equal(a.edge_rms_px, b.edge_rms_px, equal_nan=True)
+    np.testing.assert_allclose(a.uv, b.uv, rtol=0, atol=TOL_PX, equal_nan=True)
+    np.testing.assert_allclose(a.edge_rms_px, b.edge_rms_px, rtol=0, atol=TOL_PX, equal_nan=True)
     assert np.array_equal(a.n_edge_points, b.n_edge_points)
     return a
 
@@ -119,7 +122,8 @@ def test_search_profiles_is_bilinear(nat):
         nat.search_profiles(img, st, pdir, ph, R, out)
         j = np.arange(-R, R + 1)
         pos = st[:, None, :] + (j[None, :] + ph[:, None])[..., None] * pdir[None, None, :]
-        assert np.array_equal(out, F._bilinear(img, pos))
+        # bilinear grey levels: to a ten-thousandth of an 8-bit step
+        np.testing.assert_allclose(out, F._bilinear(img, pos), rtol=0, atol=TOL_GREY)
     with pytest.raises(ValueError, match="outside"):
         nat.search_profiles(img, np.array([[2.0, 30.0]]), np.array([1.0, 0.0]), np.zeros(1), R, np.empty((1, 15)))
     with pytest.raises(TypeError, match="img"):
@@ -174,6 +178,7 @@ def test_template_sums_in_order(nat, monkeypatch):
     a = F._template_score(G, pts, normals, groups, span)
     monkeypatch.setattr(_native, "track", None)
     b = F._template_score(G, pts, normals, groups, span)
+    # exactly: element-wise float32 additions in the same order (nothing to fuse or reorder), by construction
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
     out = np.zeros((25, 25), np.float32)
     with pytest.raises(ValueError, match="q: point"):

@@ -1,21 +1,48 @@
 """Off-line calibration from one picture, end to end, on pictures of two independent renderers.
 
-The targets (issue: off-line calibration) on the reference cell's noise and blur: f within 0.2 %, kappa within
-3 %, TCP position of C_H_G within 0.02 mm across and 0.08 mm along the optical axis, rotation within
-0.02 degrees (medians); robustness cases calibrate within twice those figures or fail with a clear reason.
+The issue's targets (f within 0.2 %, kappa within 3 %, TCP position of C_H_G within 0.02 mm across and
+0.08 mm along the optical axis, rotation within 0.02 degrees) are met with room to spare; the tests bound
+each figure by what the pipeline achieves, with a stated margin, so that losing a step fails a test.
+Measured on the reference cell (bench-style runs of these very cases; medians over the seeds):
+
+=============================  =======  =======  ========  ========  ========
+figure                         f_rel    kappa    across    along     rot
+=============================  =======  =======  ========  ========  ========
+project renderer, 30 seeds     9.3e-5   7.1e-4   0.0029    0.0100    0.0035
+  95th percentile              1.7e-4   2.4e-3   0.0091    0.0182    0.0106
+  without the disc-bias step   1.9e-4   5.7e-4   0.0031    0.0104    0.0151
+independent renderer, 8 seeds  1.2e-4   1.1e-3   0.0023    0.0121    0.0043
+  without the disc-bias step   2.5e-4   1.1e-3   0.0026    0.0105    0.0154
+robustness, sharp, worst case  1.6e-4   3.1e-3   0.0118    0.0183    0.0077
+robustness, blur 1.5 px, worst 1.0e-4   2.1e-3   0.0355    0.0289    0.0279
+=============================  =======  =======  ========  ========  ========
+
+(mm, degrees; f and kappa relative). Margin: twice the measured figure (seed-to-seed spread, other
+platforms' rounding), so the disc-bias correction's removal (rotation error x4) fails the medians and the
+sharp robustness cases. A robustness case meets its bound; none is allowed to refuse its picture.
 """
 
 import numpy as np
 import pytest
 
 from selfview.mocks.render import render
-from selfview.mocks.world import SimWorld
 from selfview.errors import CalibrationError, ImageError
+from selfview.mocks.world import SimWorld
 from selfview.geometry import pose_difference
 from selfview.offline import calibrate_offline
 from tests import alt_render
 
-TARGET = {"f_rel": 0.002, "kappa_rel": 0.03, "across_mm": 0.02, "along_mm": 0.08, "rot_deg": 0.02}
+TARGET = {"f_rel": 0.002, "kappa_rel": 0.03, "across_mm": 0.02, "along_mm": 0.08, "rot_deg": 0.02}  # the issue's
+MARGIN = 2.0
+# what the pipeline achieves (the table above), each bound being MARGIN times the measured figure
+ACHIEVED_MEDIAN = {"f_rel": 9.3e-5, "kappa_rel": 7.1e-4, "across_mm": 0.0029, "along_mm": 0.0100, "rot_deg": 0.0035}
+ACHIEVED_P95 = {"f_rel": 1.7e-4, "kappa_rel": 2.4e-3, "across_mm": 0.0091, "along_mm": 0.0182, "rot_deg": 0.0106}
+ACHIEVED_ALT = {"f_rel": 1.24e-4, "kappa_rel": 1.05e-3, "across_mm": 0.0023, "along_mm": 0.0121, "rot_deg": 0.0043}
+ACHIEVED_ROBUST = {"f_rel": 1.64e-4, "kappa_rel": 3.13e-3, "across_mm": 0.0118, "along_mm": 0.0183, "rot_deg": 0.0077}
+# out of focus (blur 1.5 px instead of 0.6) the edges of the discs and fingertips soften: measured f 1.0e-4,
+# kappa 2.1e-3, across 0.0355, along 0.0289, rot 0.0279; bound by twice that, but never looser than twice
+# the issue's targets
+ACHIEVED_BLURRED = {"f_rel": 1.04e-4, "kappa_rel": 2.12e-3, "across_mm": 0.0355, "along_mm": 0.0289, "rot_deg": 0.0279}
 
 
 def errors(res, world):
@@ -35,8 +62,15 @@ def medians(rows):
     return {k: float(np.median([r[k] for r in rows])) for k in TARGET}
 
 
-def within(errs, factor=1.0):
-    return {k: v for k, v in errs.items() if v > factor * TARGET[k]}
+def beyond(errs, achieved, cap=None):
+    """The figures of ``errs`` above MARGIN times ``achieved`` (or above ``cap`` where that is tighter)."""
+    bound = {k: MARGIN * v if cap is None else min(MARGIN * v, cap[k]) for k, v in achieved.items()}
+    return {k: (v, bound[k]) for k, v in errs.items() if not v <= bound[k]}
+
+
+def test_the_bounds_are_within_the_targets():
+    for achieved in (ACHIEVED_MEDIAN, ACHIEVED_ALT):
+        assert all(MARGIN * achieved[k] <= TARGET[k] for k in TARGET)
 
 
 @pytest.mark.slow
@@ -47,9 +81,9 @@ def test_accuracy_over_30_seeds_on_the_project_renderer(cell):
         w.park()
         rows.append(errors(calibrate_offline(render(w, seed=seed).image, cell), w))
     med = medians(rows)
-    assert within(med) == {}, f"medians {med}"
+    assert beyond(med, ACHIEVED_MEDIAN) == {}, f"medians {med}"
     p95 = {k: float(np.percentile([r[k] for r in rows], 95)) for k in TARGET}
-    assert within(p95, 3.0) == {}, f"95th percentiles {p95}"
+    assert beyond(p95, ACHIEVED_P95) == {}, f"95th percentiles {p95}"
 
 
 @pytest.mark.slow
@@ -61,7 +95,7 @@ def test_accuracy_on_an_independent_renderer(cell):
         pic = alt_render.render_world(w, seed=seed)
         rows.append(errors(calibrate_offline(pic.image, cell), w))
     med = medians(rows)
-    assert within(med, 2.0) == {}, f"medians {med}"
+    assert beyond(med, ACHIEVED_ALT) == {}, f"medians {med}"
 
 
 def _robust_world(cell, case, seed):
@@ -98,13 +132,13 @@ def test_robustness(cell, renderer, case, kw):
     else:
         opt = {"gain": kw.get("gain", 1.0), "blur_sigma": kw.get("blur_px", 0.6)}
         img = alt_render.render_world(w, seed=5, **opt).image
-    try:
-        res = calibrate_offline(img, cell)
-    except (CalibrationError, ImageError) as exc:  # a clear reason is an accepted outcome
-        assert len(str(exc)) > 20
-        pytest.skip(f"{case}: refused with a reason: {exc}")
-    bad = within(errors(res, w), 2.0)
-    assert bad == {}, f"{case}: beyond twice the targets: {bad}"
+    # every case is calibrated (none refuses its picture: a refusal fails here with its reason)
+    res = calibrate_offline(img, cell)
+    if case == "out_of_focus":
+        bad = beyond(errors(res, w), ACHIEVED_BLURRED, cap={k: 2.0 * v for k, v in TARGET.items()})
+    else:
+        bad = beyond(errors(res, w), ACHIEVED_ROBUST)
+    assert bad == {}, f"{case}: (error, bound) beyond the bound: {bad}"
 
 
 def test_unusable_pictures_fail_clearly(cell):

@@ -193,3 +193,23 @@ def test_bad_configuration(cell, ref):
     m = Monitor(H0, cam, P, cell.monitor)
     with pytest.raises(ValueError, match="uv6"):
         m.step(np.zeros((4, 2)), np.ones(6, bool))
+
+
+def test_a_recalibration_beyond_the_alarm_limit_raises_the_alarm(cell, ref):
+    """NP-U measures a change between the limits, but the recalibration it calls for measures more than the
+    alarm limit (the differential update underestimates a large move): the alarm, C_H_G unchanged."""
+    H0, P, cam = ref
+    pol = Policy(cell.monitor)
+    assert cell.monitor.update_limit.angle_deg < 2.0 < cell.monitor.alarm_limit.angle_deg < 7.0
+    est = differential_update(H0, P[:4], cam.project(transform_points(turned(H0, 2.0), P[:4])), cam)
+    assert pol.classify(est.delta_deg, est.d_mm) == "recalibrate"
+    H_far = turned(H0, 7.0)
+    est_R = recalibrate(H0, P[:4], cam.project(transform_points(H_far, P[:4])), cam)
+    assert tcp_error(est_R.C_H_G, H_far) < 1e-6  # the recalibration itself is right: 7 degrees
+    d = pol.decide(est, 6, recalibration=est_R)
+    assert d.action == "alarm" and "beyond the alarm limit" in d.reason, d.reason
+    assert np.array_equal(d.C_H_G, H0) and d.delta_deg > cell.monitor.alarm_limit.angle_deg
+    # the same recalibration within the alarm limit is applied
+    H_mid = turned(H0, 3.0)
+    d = pol.decide(est, 6, recalibration=recalibrate(H0, P[:4], cam.project(transform_points(H_mid, P[:4])), cam))
+    assert d.action == "recalibrate" and tcp_error(d.C_H_G, H_mid) < 1e-6
