@@ -641,6 +641,11 @@ class PumaVAL:
             self._motion_outcome = (True, f"the controller stopped the motion: *{exc.text}*")
             raise
         except BaseException as exc:
+            with self._write_lock:
+                started = self._motion_active
+            if not started:  # the line was never executed (a corrupted echo, a failed write)
+                self._motion_outcome = (True, "the motion never started")
+                raise
             res = self._stop_after_fault()
             self._motion_outcome = (res.confirmed, res.detail)
             raise _noted(exc, str(res)) from exc.__cause__
