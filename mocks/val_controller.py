@@ -45,7 +45,7 @@ __all__ = ["ValController", "FAULTS", "trapezoid_time", "trapezoid_fraction", "T
 #: Flange to TCP along the flange z (mm): force/torque sensor, gripper body and 60 mm fingers. With it
 #: the taught locations above and on the plate (selfview.mocks.world.PLATE_BASE_POSE) are reachable.
 TOOL_LENGTH_MM = 170.0
-FAULTS = ("noise", "no_reply", "power_loss", "out_of_reach", "async_error")
+FAULTS = ("noise", "no_reply", "power_loss", "out_of_reach", "async_error", "stall")
 _CTRL_U = b"\x15"
 _POLL_S = 0.02
 
@@ -275,6 +275,7 @@ class ValController:
         self.moving = threading.Event()
         self.received: list[str] = []  # every line the controller received, in order
         self.program_running = False  # a VAL program runs: the prompt is the dialect's program prompt
+        self._stalled = False  # the 'stall' fault: output is dropped
         self.url: str | None = None
         self.arm_power = bool(arm_power)
         self.calibrated = bool(calibrated)
@@ -322,7 +323,9 @@ class ValController:
         'noise' (count=3, mode='flip'|'drop'|'mixed'): corrupt the next reply; 'no_reply': swallow the
         next line; 'power_loss' (at=None: a seeded fraction 0.3..0.7): lose arm power during the next
         motion; 'out_of_reach': refuse the next motion target; 'async_error' (text=arm power off): print
-        an error line unasked as soon as the controller is idle.
+        an error line unasked as soon as the controller is idle; 'stall' (after_s=0.0): from ``after_s``
+        (simulated) into the next motion on, nothing reaches the host (the reply line is cut; the
+        controller goes on reading and executing) until ``resume()``.
         """
         if fault not in FAULTS:
             raise ConfigError(f"fault {fault!r}: expected one of {', '.join(FAULTS)}")
@@ -336,6 +339,11 @@ class ValController:
             params["at"] = float(self.rng.uniform(0.3, 0.7)) if at is None else float(at)
         with self._state:
             self._faults[fault] = params
+
+    def resume(self) -> None:
+        """End a 'stall': replies reach the host again."""
+        with self._state:
+            self._stalled = False
 
     def _take_fault(self, fault: str) -> dict | None:
         with self._state:
@@ -441,6 +449,8 @@ class ValController:
         self._send_bytes(link, text.encode("ascii", errors="replace"))
 
     def _send_bytes(self, link, raw: bytes) -> None:
+        if self._stalled:
+            return
         data = bytearray(raw)
         noise = self._faults.get("noise")
         if noise is not None:
@@ -780,6 +790,7 @@ class ValController:
         """Execute a motion in (scaled) real time; the reply lines after the echo."""
         self._send(link, head)
         loss = self._take_fault("power_loss")
+        stall = self._take_fault("stall")
         t0 = time.monotonic()
         status, q, s_done = "done", self.joints, 0.0
         lost = False  # the client went away: the arm goes on to its target, as a real controller's does
@@ -788,6 +799,9 @@ class ValController:
             while True:
                 t_sim = (time.monotonic() - t0) / self.time_scale if self.time_scale > 0 else m.T
                 s = m.frac(min(t_sim, m.T))
+                if stall is not None and t_sim >= float(stall.get("after_s", 0.0)):
+                    with self._state:
+                        self._stalled = True
                 if loss is not None and s >= loss["at"]:
                     s, status = loss["at"], "power"
                 try:
