@@ -46,7 +46,6 @@ __all__ = ["ValController", "FAULTS", "trapezoid_time", "trapezoid_fraction", "T
 #: the taught locations above and on the plate (selfview.mocks.world.PLATE_BASE_POSE) are reachable.
 TOOL_LENGTH_MM = 170.0
 FAULTS = ("noise", "no_reply", "power_loss", "out_of_reach", "async_error", "stall")
-_CTRL_U = b"\x15"
 _POLL_S = 0.02
 
 
