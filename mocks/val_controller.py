@@ -1,9 +1,14 @@
 """A simulated VAL-II controller with a PUMA 260, serving its terminal dialogue on a pty or on TCP.
 
-The dialogue follows the dialect (``selfview.drivers.puma_val_serial.dialect``): commands end with CR (a stray
-LF is ignored), replies are lines ending CR LF, the prompt is ``.`` at the start of a line, errors are
-``*text*`` lines from the dialect's table, ``CAL`` asks ``Are you sure (Y/N)?``, ``POINT`` and ``HERE``
-show the location and ask ``Change?``. The controller keeps arm power, calibration, SPEED, named
+The dialogue follows the dialect's data (``selfview.drivers.puma_val_serial.dialect``), formatted by this
+module's own code (never the driver's): characters are echoed as they are typed (echo on), CR ends and
+executes a line (a stray LF is ignored), CTRL-U erases the line typed so far; a line with a byte >= 0x80
+or a control character is answered ``*Unrecognized command*`` and the controller goes on. Replies are
+lines ending CR LF, the prompt is ``.`` at the start of a line (``*`` while ``program_running``), errors
+are ``*text*`` lines from the dialect's table, ``CAL`` asks ``Are you sure (Y/N)?``, ``POINT`` and ``HERE``
+show the location and ask ``Change?``, ``STATUS`` prints the monitor speed. A motion goes on to its
+target when the client leaves (on a pty and on TCP alike, as the real controller's does); type-ahead
+during a motion is read (``ABORT`` stops it) and echoed once the controller is idle again. The controller keeps arm power, calibration, SPEED, named
 locations (tool-point poses in the base frame B) and the joints; ``WHERE`` comes from the PUMA 260
 forward kinematics (``selfview.mocks.puma260``) with a TOOL of ``tool_length_mm`` along the flange z, Cartesian
 targets go through inverse kinematics in the configuration 'front, above, noflip'. Motions take the
@@ -12,8 +17,8 @@ and move the simulated world's TCP at every tick (``SimWorld.set_tcp``), so pres
 the plate parks it and pressing too far is a collision.
 
 Faults on demand (``inject``), each drawn from the controller's seeded generator: line noise (flipped
-or dropped characters in the next reply), a reply that never comes, arm power lost mid-move, an
-out-of-reach target, an asynchronous error line.
+or dropped characters in the next reply or echo), a reply that never comes, arm power lost mid-move, an
+out-of-reach target, an asynchronous error line, a reply line that goes dead during a motion (``stall``).
 
 Every loop is bounded: reads poll with a timeout and check the stop event; threads are daemons joined
 by ``stop()``. The TCP server binds 127.0.0.1 only.

@@ -194,9 +194,9 @@ class Engine:
         except KeyboardInterrupt:
             self.cancel.set()
             self.progress("interrupted: stopping the robot")
-            self._abort_robot()
+            first = self._abort_robot()  # at once, while the motion may still run
             t.join(timeout=self.abort_timeout_s)
-            self.cleanup("interrupted by the operator (Ctrl-C)")
+            self.cleanup("interrupted by the operator (Ctrl-C)", first_abort=first)
             raise Cancelled("interrupted by the operator; " + self.state_sentence()) from None
         if "error" in box:
             exc = box["error"]
@@ -296,9 +296,14 @@ class Engine:
             return "ABORT sent (no confirmation available)", False
         return str(res), bool(getattr(res, "confirmed", False))
 
-    def cleanup(self, reason: str) -> dict:
-        """Stop the robot, leave the gripper safe, close the devices; record and return what was done."""
+    def cleanup(self, reason: str, first_abort: tuple[str, bool] | None = None) -> dict:
+        """Stop the robot, leave the gripper safe, close the devices; record and return what was done.
+
+        ``first_abort``: the (report, confirmed) of an ABORT already sent at the interrupt; the cleanup
+        sends its own as well (an ABORT more is harmless) and reports both."""
         rep: dict[str, Any] = {"reason": reason}
+        if first_abort is not None:
+            rep["robot_at_interrupt"] = first_abort[0]
         rep["robot"], rep["robot_stopped"] = self._abort_robot()
         g = self.devices.gripper
         if g is not None:

@@ -132,6 +132,8 @@ def test_ctrl_c_stops_the_robot_and_leaves_the_gripper_safe(cell):
         assert valve_is_safe(s)
         rep = s.engine.cleanup_report
         assert "interrupted" in rep["reason"] and rep["robot"].startswith("ABORT sent and confirmed")
+        # the ABORT written at the interrupt stopped the motion itself
+        assert rep["robot_at_interrupt"] == "ABORT sent and confirmed (the controller answered *Motion aborted*)"
 
 
 def test_ctrl_c_during_selfview_park_exits_130(cell, capsys, monkeypatch):
