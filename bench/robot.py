@@ -2,7 +2,10 @@
 
 Prints one JSON object: the median round trip with the simulator pacing its bytes at 9600 baud (8N1,
 10 bits a byte), the time the reply's bytes alone need at that rate, their ratio (target < 1.1: the
-driver adds little beyond the wire), and the median round trip without pacing.
+driver adds little beyond the wire), and the median round trip without pacing. The round trip
+includes the typed line's echo, compared before the CR that executes it. Also the time a motion's
+checks cost at that rate (an instant motion on the simulator: POINT, WHERE, the motion's prompt, a
+CR answered, a WHERE at the target), which the driver adds to every motion.
 
     python bench/robot.py [--n 30] [--baud 9600]
 """
@@ -36,6 +39,23 @@ def round_trips(pace_baud: int | None, n: int) -> tuple[list[float], int]:
         sim.stop()
 
 
+def motion_overhead(pace_baud: int, n: int) -> list[float]:
+    """``n`` instant motions (time_scale 0) between two taught locations, each with its checks (s)."""
+    sim = ValController(None, seed=0, time_scale=0.0, pace_baud=pace_baud, calibrated=True)
+    try:
+        path = sim.start_pty()
+        with PumaVAL(path, timeout_s=5.0) as robot:
+            robot.speed(50)
+            times = []
+            for k in range(n):
+                t0 = time.perf_counter()
+                robot.move(("above", "plate")[k % 2])
+                times.append(time.perf_counter() - t0)
+            return times
+    finally:
+        sim.stop()
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=30, help="round trips per setting (default 30)")
@@ -43,6 +63,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     paced, nbytes = round_trips(args.baud, args.n)
     free, _ = round_trips(None, args.n)
+    moves = motion_overhead(args.baud, max(3, args.n // 3))
     wire_s = nbytes * 10.0 / args.baud
     med = statistics.median(paced)
     print(
@@ -60,6 +81,8 @@ def main(argv=None) -> int:
                 "unpaced_median_s": round(statistics.median(free), 5),
                 "unpaced_max_s": round(max(free), 5),
                 "prompt_silence_s": ValDialect().prompt_silence_s,
+                "paced_checked_motion_median_s": round(statistics.median(moves), 4),
+                "paced_checked_motion_max_s": round(max(moves), 4),
             }
         )
     )

@@ -1,9 +1,14 @@
 """A simulated VAL-II controller with a PUMA 260, serving its terminal dialogue on a pty or on TCP.
 
-The dialogue follows the dialect (``selfview.drivers.puma_val_serial.dialect``): commands end with CR (a stray
-LF is ignored), replies are lines ending CR LF, the prompt is ``.`` at the start of a line, errors are
-``*text*`` lines from the dialect's table, ``CAL`` asks ``Are you sure (Y/N)?``, ``POINT`` and ``HERE``
-show the location and ask ``Change?``. The controller keeps arm power, calibration, SPEED, named
+The dialogue follows the dialect's data (``selfview.drivers.puma_val_serial.dialect``), formatted by this
+module's own code (never the driver's): characters are echoed as they are typed (echo on), CR ends and
+executes a line (a stray LF is ignored), CTRL-U erases the line typed so far; a line with a byte >= 0x80
+or a control character is answered ``*Unrecognized command*`` and the controller goes on. Replies are
+lines ending CR LF, the prompt is ``.`` at the start of a line (``*`` while ``program_running``), errors
+are ``*text*`` lines from the dialect's table, ``CAL`` asks ``Are you sure (Y/N)?``, ``POINT`` and ``HERE``
+show the location and ask ``Change?``, ``STATUS`` prints the monitor speed. A motion goes on to its
+target when the client leaves (on a pty and on TCP alike, as the real controller's does); type-ahead
+during a motion is read (``ABORT`` stops it) and echoed once the controller is idle again. The controller keeps arm power, calibration, SPEED, named
 locations (tool-point poses in the base frame B) and the joints; ``WHERE`` comes from the PUMA 260
 forward kinematics (``selfview.mocks.puma260``) with a TOOL of ``tool_length_mm`` along the flange z, Cartesian
 targets go through inverse kinematics in the configuration 'front, above, noflip'. Motions take the
@@ -12,8 +17,8 @@ and move the simulated world's TCP at every tick (``SimWorld.set_tcp``), so pres
 the plate parks it and pressing too far is a collision.
 
 Faults on demand (``inject``), each drawn from the controller's seeded generator: line noise (flipped
-or dropped characters in the next reply), a reply that never comes, arm power lost mid-move, an
-out-of-reach target, an asynchronous error line.
+or dropped characters in the next reply or echo), a reply that never comes, arm power lost mid-move, an
+out-of-reach target, an asynchronous error line, a reply line that goes dead during a motion (``stall``).
 
 Every loop is bounded: reads poll with a timeout and check the stop event; threads are daemons joined
 by ``stop()``. The TCP server binds 127.0.0.1 only.
@@ -45,7 +50,7 @@ __all__ = ["ValController", "FAULTS", "trapezoid_time", "trapezoid_fraction", "T
 #: Flange to TCP along the flange z (mm): force/torque sensor, gripper body and 60 mm fingers. With it
 #: the taught locations above and on the plate (selfview.mocks.world.PLATE_BASE_POSE) are reachable.
 TOOL_LENGTH_MM = 170.0
-FAULTS = ("noise", "no_reply", "power_loss", "out_of_reach", "async_error")
+FAULTS = ("noise", "no_reply", "power_loss", "out_of_reach", "async_error", "stall")
 _POLL_S = 0.02
 
 
@@ -169,20 +174,44 @@ class _Disconnected(Exception):
 
 
 class _Input:
-    """Bytes from the host split into lines: CR ends a line, LF is ignored."""
+    """Bytes from the host split into lines: CR ends a line, LF is ignored, CTRL-U (``cancel``) erases
+    the line typed so far. ``echoed`` counts the bytes of the first line already echoed; ``fresh``
+    is set when an echoed line was erased (the terminal then starts a new line)."""
 
-    def __init__(self):
+    def __init__(self, cancel: bytes = b"\x15"):
         self.buf = bytearray()
+        self.cancel = cancel[0]
+        self.echoed = 0
+        self.fresh = False
 
     def feed(self, data: bytes) -> None:
-        self.buf += data.replace(b"\n", b"")
+        for b in data:
+            if b == 0x0A:
+                continue
+            if b == self.cancel:
+                cut = self.buf.rfind(b"\r") + 1
+                if cut == 0 and self.echoed:
+                    self.fresh = True
+                    self.echoed = 0
+                del self.buf[cut:]
+            else:
+                self.buf.append(b)
 
-    def pop(self) -> str | None:
+    def pending_echo(self) -> bytes:
+        """The bytes of the first line typed since the last echo (not its CR)."""
+        end = self.buf.find(b"\r")
+        upto = len(self.buf) if end < 0 else end
+        out = bytes(self.buf[self.echoed : upto])
+        self.echoed = upto
+        return out
+
+    def pop(self) -> bytes | None:
         i = self.buf.find(b"\r")
         if i < 0:
             return None
-        line = bytes(self.buf[:i]).decode("ascii", errors="replace")
+        line = bytes(self.buf[:i])
         del self.buf[: i + 1]
+        self.echoed = 0
         return line
 
 
@@ -249,6 +278,8 @@ class ValController:
         self._faults: dict[str, dict] = {}
         self.moving = threading.Event()
         self.received: list[str] = []  # every line the controller received, in order
+        self.program_running = False  # a VAL program runs: the prompt is the dialect's program prompt
+        self._stalled = False  # the 'stall' fault: output is dropped
         self.url: str | None = None
         self.arm_power = bool(arm_power)
         self.calibrated = bool(calibrated)
@@ -296,7 +327,9 @@ class ValController:
         'noise' (count=3, mode='flip'|'drop'|'mixed'): corrupt the next reply; 'no_reply': swallow the
         next line; 'power_loss' (at=None: a seeded fraction 0.3..0.7): lose arm power during the next
         motion; 'out_of_reach': refuse the next motion target; 'async_error' (text=arm power off): print
-        an error line unasked as soon as the controller is idle.
+        an error line unasked as soon as the controller is idle; 'stall' (after_s=0.0): from ``after_s``
+        (simulated) into the next motion on, nothing reaches the host (the reply line is cut; the
+        controller goes on reading and executing) until ``resume()``.
         """
         if fault not in FAULTS:
             raise ConfigError(f"fault {fault!r}: expected one of {', '.join(FAULTS)}")
@@ -310,6 +343,11 @@ class ValController:
             params["at"] = float(self.rng.uniform(0.3, 0.7)) if at is None else float(at)
         with self._state:
             self._faults[fault] = params
+
+    def resume(self) -> None:
+        """End a 'stall': replies reach the host again."""
+        with self._state:
+            self._stalled = False
 
     def _take_fault(self, fault: str) -> dict | None:
         with self._state:
@@ -377,9 +415,10 @@ class ValController:
                 link.close()
 
     def _serve(self, link) -> None:
-        inp = _Input()
+        inp = _Input(self.dialect.cancel_line.encode("ascii"))
         try:
             while not self._stop.is_set():
+                self._echo_typed(link, inp)
                 line = inp.pop()
                 if line is None:
                     data = link.read(_POLL_S)
@@ -399,9 +438,24 @@ class ValController:
         except _Disconnected:
             return
 
+    def _echo_typed(self, link, inp: _Input) -> None:
+        """Echo what was typed since the last echo, as a terminal does (nothing with echo off)."""
+        fresh, inp.fresh = inp.fresh, False
+        typed = inp.pending_echo()
+        if not self.echo:
+            return
+        out = (self._eol().encode("ascii") if fresh else b"") + typed
+        if out:
+            self._send_bytes(link, out)
+
     # --- output ---------------------------------------------------------------------------------------
     def _send(self, link, text: str) -> None:
-        data = bytearray(text.encode("ascii"))
+        self._send_bytes(link, text.encode("ascii", errors="replace"))
+
+    def _send_bytes(self, link, raw: bytes) -> None:
+        if self._stalled:
+            return
+        data = bytearray(raw)
         noise = self._faults.get("noise")
         if noise is not None:
             data = self._corrupt(data, noise)
@@ -442,9 +496,10 @@ class ValController:
     def _lines(self, *lines: str) -> str:
         return "".join(ln + self._eol() for ln in lines)
 
-    def _head(self, line: str) -> str:
-        """What starts a reply: the echoed line (echo on) or just the new line."""
-        return (line if self.echo else "") + self._eol()
+    def _prompt(self) -> str:
+        with self._state:
+            running = self.program_running
+        return self.dialect.program_prompt if running else self.dialect.prompt
 
     def _error(self, cls: str, **values) -> str:
         return f"*{self.dialect.error_text(cls, **values)}*"
@@ -454,11 +509,13 @@ class ValController:
         self._send(link, text + " ")
         deadline = time.monotonic() + self.question_timeout_s
         while not self._stop.is_set() and time.monotonic() < deadline:
-            line = inp.pop()
-            if line is not None:
+            self._echo_typed(link, inp)
+            raw = inp.pop()
+            if raw is not None:
+                line = raw.decode("ascii", errors="replace")
                 self.received.append(line)
-                self._send(link, (line if self.echo else "") + self._eol())
-                return line
+                self._send(link, self._eol())
+                return line if raw.isascii() else "\ufffd"
             data = link.read(_POLL_S)
             if data is None:
                 raise _Disconnected()
@@ -473,19 +530,21 @@ class ValController:
             if isinstance(self.dialect.error_for(text), ArmPowerOff):
                 with self._state:
                     self.arm_power = False
-            self._send(link, self._eol() + f"*{text}*" + self._eol() + self.dialect.prompt)
+            self._send(link, self._eol() + f"*{text}*" + self._eol() + self._prompt())
 
     # --- commands -------------------------------------------------------------------------------------
-    def _handle(self, link, inp: _Input, line: str) -> None:
+    def _handle(self, link, inp: _Input, raw: bytes) -> None:
+        line = raw.decode("ascii", errors="replace")
         self.received.append(line)
         if self._take_fault("no_reply") is not None:
             return
-        head = self._head(line)
-        prompt = self.dialect.prompt
+        head = self._eol()  # the characters were echoed as they came; the line end now
+        prompt = self._prompt()
         if not line.strip():
             self._send(link, self._eol() + prompt)
             return
-        parsed = self.dialect.parse_command(line)
+        # a byte >= 0x80 or a control character: the controller cannot read the line, says so, goes on
+        parsed = self.dialect.parse_command(line) if all(0x20 <= b < 0x7F for b in raw) else None
         if parsed is None:
             self._send(link, head + self._lines(self._error("CommandRejected")) + prompt)
             return
@@ -493,15 +552,45 @@ class ValController:
         handler = getattr(self, f"_cmd_{kind}")
         out = handler(link, inp, head, **f)
         if out is not None:
-            self._send(link, out + prompt)
+            self._send(link, out + self._prompt())
+
+    # --- reply formatting (the simulator's own code, from the dialect's data) ------------------------------
+    def _row(self, cells) -> str:
+        """Cells right-aligned in the dialect's field width (or two blanks apart without one)."""
+        w = self.dialect.field_width
+        return "".join(c.rjust(w) for c in cells) if w else "  ".join(cells)
+
+    def _num(self, v: float) -> str:
+        txt = "%.*f" % (self.dialect.decimals, float(v))
+        return txt[1:] if txt.startswith("-") and not any(ch in "123456789" for ch in txt) else txt
+
+    def _values_row(self, header, columns, values) -> str:
+        by = {c.upper(): v for c, v in zip(columns, values)}
+        return self._row([self._num(by.get(h.upper(), 0.0)) for h in header])
 
     def _pose_lines(self, H) -> list[str]:
         d = self.dialect
-        return [d.format_header(d.pose_header), d.format_values(d.H_to_pose(H))]
+        return [self._row(d.pose_header), self._values_row(d.pose_header, d.pose_columns, d.H_to_pose(H))]
 
     def _cmd_where(self, link, inp, head):
         d = self.dialect
-        return head + self._lines(*self._pose_lines(self.base_H_T), d.format_header(d.joint_header), d.format_values(self.joints))
+        rows = {
+            "pose_header": self._row(d.pose_header),
+            "pose": self._values_row(d.pose_header, d.pose_columns, d.H_to_pose(self.base_H_T)),
+            "joint_header": self._row(d.joint_header),
+            "joints": self._values_row(d.joint_header, d.joint_columns, self.joints),
+        }
+        return head + self._lines(*(rows[k] for k in d.where_lines))
+
+    def _cmd_status(self, link, inp, head):
+        with self._state:
+            speed, power, cal, running = self.speed_pct, self.arm_power, self.calibrated, self.program_running
+        return head + self._lines(
+            f"Program: {'running' if running else 'none'}",
+            f"Monitor speed: {speed:g}",
+            f"Arm power: {'on' if power else 'off'}",
+            f"Calibrated: {'yes' if cal else 'no'}",
+        )
 
     def _cmd_calibrate(self, link, inp, head):
         self._send(link, head)
@@ -691,25 +780,32 @@ class ValController:
             line = inp.pop()
             if line is None:
                 break
-            if not hit and " ".join(line.split()).upper() == abort:
+            text = line.decode("ascii", errors="replace")
+            if not hit and " ".join(text.split()).upper() == abort:
                 hit = True
-                self.received.append(line)
+                self.received.append(text)
             else:
-                kept += line.encode("ascii", errors="replace") + b"\r"
-        inp.buf[:0] = kept  # type-ahead stays queued for after the motion
+                kept += line + b"\r"
+        inp.buf[:0] = kept  # type-ahead stays queued (and unechoed) for after the motion
+        inp.echoed = 0
         return hit
 
     def _run(self, link, inp: _Input, head: str, m: _Motion) -> str:
         """Execute a motion in (scaled) real time; the reply lines after the echo."""
         self._send(link, head)
         loss = self._take_fault("power_loss")
+        stall = self._take_fault("stall")
         t0 = time.monotonic()
         status, q, s_done = "done", self.joints, 0.0
+        lost = False  # the client went away: the arm goes on to its target, as a real controller's does
         self.moving.set()
         try:
             while True:
                 t_sim = (time.monotonic() - t0) / self.time_scale if self.time_scale > 0 else m.T
                 s = m.frac(min(t_sim, m.T))
+                if stall is not None and t_sim >= float(stall.get("after_s", 0.0)):
+                    with self._state:
+                        self._stalled = True
                 if loss is not None and s >= loss["at"]:
                     s, status = loss["at"], "power"
                 try:
@@ -723,13 +819,19 @@ class ValController:
                     status = "collision"
                 if status != "done" or t_sim >= m.T:
                     break
-                if self._poll_abort(link, inp) or self._stop.is_set():
+                try:
+                    aborted = not lost and self._poll_abort(link, inp)
+                except _Disconnected:
+                    lost, aborted = True, False
+                if aborted or self._stop.is_set():
                     status = "aborted"
                     break
                 remaining = (m.T - t_sim) * self.time_scale
                 time.sleep(min(self.tick_s, max(remaining, 0.0)))
         finally:
             self.moving.clear()
+        if lost:
+            raise _Disconnected()
         if status == "done":
             return ""
         if status == "aborted":

@@ -18,6 +18,7 @@ import pkgutil
 import sys
 
 from selfview import __version__
+from selfview.procedures.engine import Cancelled
 from selfview.errors import (
     AlarmError,
     CalibrationError,
@@ -41,6 +42,7 @@ EXIT_ALARM = 6
 EXIT_INTERRUPTED = 130
 
 _EXIT_FOR = [
+    (Cancelled, EXIT_INTERRUPTED, "the run was interrupted; the cell was left as stated above"),
     (AlarmError, EXIT_ALARM, "stop the cell and check the camera mount"),
     ((CalibrationError, ImageError), EXIT_CALIBRATION, "check the picture (light, focus, plate and fingers in view)"),
     ((ConfigError, CalibrationFileError), EXIT_CONFIG, "correct the file or argument named above"),

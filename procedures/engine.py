@@ -6,8 +6,10 @@ planned motion against the robot's limits (``LimitError`` names the step; nothin
 
 Safety: the procedure runs in a worker thread and the main thread watches it, so a Ctrl-C never lands
 in the middle of a write to a device. On Ctrl-C or on any error the engine stops the robot (VAL's
-ABORT, which the driver sends even while a motion is in flight), puts the gripper valve in its safe
-state, closes the devices, and reports the state it left the cell in.
+ABORT, which the driver writes at once, even while a motion is in flight, then confirms), puts the
+gripper valve in its safe state, closes the devices, and reports the state it left the cell in:
+whether the controller confirmed the ABORT, and what failed. No step of the cleanup can stop the
+next: a failed (or raising) ABORT still leaves the valve made safe and every device closed.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ __all__ = ["Step", "Engine", "Cancelled", "CellDevices", "StepRecord"]
 
 log = logging.getLogger("selfview.engine")
 
-MOTION_KINDS = ("move", "moves", "appro", "depart", "ready")
+MOTION_KINDS = ("move", "moves", "appro", "depart", "drive", "ready")
 KINDS = MOTION_KINDS + ("speed", "define", "gripper", "grab", "wait", "ask", "disturb", "restore", "compute")
 
 
@@ -40,7 +42,7 @@ class Step:
     """One step of a procedure.
 
     ``kind`` one of ``KINDS``; ``params`` its arguments (``target`` a location name or a (4, 4) pose for
-    motions, ``distance_mm`` for appro/depart, ``state`` for the gripper, ``seconds`` for wait, ``text`` for
+    motions, ``distance_mm`` for appro/depart, ``joint``, ``deg``, ``speed`` for drive, ``state`` for the gripper, ``seconds`` for wait, ``text`` for
     ask, ``series`` for disturb, ``fn`` a callable taking the engine for compute); ``name`` stores the
     step's result in ``engine.results``; ``note`` says what the step is for.
     """
@@ -115,7 +117,9 @@ class Engine:
         """Check every planned motion against the robot's limits before anything moves.
 
         Named locations are read from the controller (POINT); appro targets are backed off along their
-        tool z; depart from the previous target. Raises ``LimitError`` naming the step."""
+        tool z; depart from the previous target; READY's tool point comes from the driver's kinematics;
+        a drive is checked by the driver against the joints it reads just before sending. Raises
+        ``LimitError`` naming the step."""
         robot = self.devices.robot
         if robot is None or not any(s.kind in MOTION_KINDS + ("speed",) for s in steps):
             return
@@ -126,8 +130,17 @@ class Engine:
                 if s.kind == "speed":
                     limits.check_speed(s.params["pct"], f"step {i + 1} SPEED")
                     continue
-                if s.kind not in MOTION_KINDS or s.kind == "ready":
-                    last = None if s.kind == "ready" else last
+                if s.kind == "ready":
+                    ready_pose = getattr(robot, "ready_pose", None)
+                    last = ready_pose() if ready_pose is not None else None
+                    if last is not None:
+                        limits.check_position(last[:3, 3], f"step {i + 1} {s.describe()}")
+                    continue
+                if s.kind == "drive":
+                    limits.check_speed(s.params["speed"], f"step {i + 1} DRIVE")
+                    last = None
+                    continue
+                if s.kind not in MOTION_KINDS:
                     continue
                 if s.kind == "depart":
                     if last is None:
@@ -181,9 +194,9 @@ class Engine:
         except KeyboardInterrupt:
             self.cancel.set()
             self.progress("interrupted: stopping the robot")
-            self._abort_robot()
+            first = self._abort_robot()  # at once, while the motion may still run
             t.join(timeout=self.abort_timeout_s)
-            self.cleanup("interrupted by the operator (Ctrl-C)")
+            self.cleanup("interrupted by the operator (Ctrl-C)", first_abort=first)
             raise Cancelled("interrupted by the operator; " + self.state_sentence()) from None
         if "error" in box:
             exc = box["error"]
@@ -225,6 +238,8 @@ class Engine:
                 return d.robot.appro(p["target"], p["distance_mm"])
             if k == "depart":
                 return d.robot.depart(p["distance_mm"])
+            if k == "drive":
+                return d.robot.drive(p["joint"], p["deg"], p["speed"])
             if k == "ready":
                 return d.robot.ready()
             if k == "speed":
@@ -266,29 +281,37 @@ class Engine:
         return self._ask(text)
 
     # --- safety ---------------------------------------------------------------------------------
-    def _abort_robot(self) -> str:
+    def _abort_robot(self) -> tuple[str, bool]:
+        """Stop the robot: (what the report says, whether the stop was confirmed). Never raises."""
         robot = self.devices.robot
-        if robot is None or not getattr(robot, "connected", False):
-            return "no robot connected"
+        if robot is None:
+            return "no robot", True
+        if not getattr(robot, "connected", False):
+            return "not connected (no ABORT possible)", False
         try:
-            robot.abort()
-            return "stopped (ABORT sent)"
-        except CellError as exc:
-            return f"ABORT failed: {exc}"
-        except Exception as exc:  # never let cleanup itself die
-            return f"ABORT failed: {type(exc).__name__}: {exc}"
+            res = robot.abort()
+        except Exception as exc:  # never let cleanup itself die: the valve and the closes still follow
+            return f"ABORT failed: {type(exc).__name__}: {exc}", False
+        if res is None:  # a robot whose abort() reports nothing
+            return "ABORT sent (no confirmation available)", False
+        return str(res), bool(getattr(res, "confirmed", False))
 
-    def cleanup(self, reason: str) -> dict:
-        """Stop the robot, leave the gripper safe, close the devices; record and return what was done."""
-        rep: dict[str, str] = {"reason": reason}
-        rep["robot"] = self._abort_robot()
+    def cleanup(self, reason: str, first_abort: tuple[str, bool] | None = None) -> dict:
+        """Stop the robot, leave the gripper safe, close the devices; record and return what was done.
+
+        ``first_abort``: the (report, confirmed) of an ABORT already sent at the interrupt; the cleanup
+        sends its own as well (an ABORT more is harmless) and reports both."""
+        rep: dict[str, Any] = {"reason": reason}
+        if first_abort is not None:
+            rep["robot_at_interrupt"] = first_abort[0]
+        rep["robot"], rep["robot_stopped"] = self._abort_robot()
         g = self.devices.gripper
         if g is not None:
             try:
                 g.safe()
                 rep["gripper"] = "valve set to its safe state"
-            except Exception as exc:
-                rep["gripper"] = f"could not set the safe state: {exc}"
+            except Exception as exc:  # reported; the closes below still run
+                rep["gripper"] = f"could not set the safe state: {type(exc).__name__}: {exc}"
         for nm in ("camera", "gripper", "robot"):
             dev = getattr(self.devices, nm)
             if dev is not None:
@@ -303,7 +326,7 @@ class Engine:
 
     def state_sentence(self) -> str:
         r = self.cleanup_report or {}
-        return "; ".join(f"{k}: {v}" for k, v in r.items() if k != "reason") or "no cleanup was needed"
+        return "; ".join(f"{k}: {v}" for k, v in r.items() if k not in ("reason", "robot_stopped")) or "no cleanup was needed"
 
 
 def _brief(out) -> str:

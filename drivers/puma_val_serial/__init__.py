@@ -5,8 +5,9 @@ client-side limits checked before anything is sent; the ``ControllerError`` fami
 the controller's ``*text*`` lines.
 """
 
-from selfview.drivers.puma_val_serial.dialect import DEFAULT_COMMANDS, DEFAULT_ERRORS, ValDialect, load_dialect
-from selfview.drivers.puma_val_serial.driver import PumaVAL, Where
+from selfview.drivers.puma_val_serial.dialect import DEFAULT_COMMANDS, DEFAULT_ERRORS, OAT_CONVENTIONS, ValDialect, load_dialect
+from selfview.drivers.puma_val_serial.driver import AbortResult, PumaVAL, Where
+from selfview.drivers.puma_val_serial.kinematics import PumaKinematics
 from selfview.drivers.puma_val_serial.errors import (
     ArmPowerOff,
     Collision,
@@ -17,6 +18,7 @@ from selfview.drivers.puma_val_serial.errors import (
     MotionAborted,
     NotCalibrated,
     OutOfReach,
+    ProgramRunning,
     UndefinedLocation,
 )
 from selfview.drivers.puma_val_serial.limits import ValLimits
@@ -24,6 +26,10 @@ from selfview.drivers.puma_val_serial.limits import ValLimits
 __all__ = [
     "PumaVAL",
     "Where",
+    "AbortResult",
+    "PumaKinematics",
+    "OAT_CONVENTIONS",
+    "ProgramRunning",
     "ValDialect",
     "ValLimits",
     "load_dialect",

@@ -1,9 +1,27 @@
 """The VAL-II terminal dialect as data: what to send, how replies look, what the error texts mean.
 
-The real controller's details (echo, line endings, the prompt, the WHERE layout, the wording of error
+The real controller's details (echo, line endings, the prompts, the WHERE layout, the wording of error
 lines, the O/A/T Euler convention, the command syntax) are not documented precisely, so they live here
 as a ``ValDialect`` that a YAML file can adjust (``load_dialect``) without code changes. The driver
-and the simulator (``mocks/val_controller.py``) both format and parse through it.
+formats and parses through it; the simulator (``mocks/val_controller.py``) reads the same data but
+formats its replies with its own code, so a bug in the driver's formatting cannot hide in both.
+
+O/A/T. The default is the convention of Unimation's VAL, which VAL-II keeps (the sources, best first):
+
+- Unimation, *User's Guide to VAL* (1977-1980), on location data: "With all three angles zero, the hand
+  points in the negative Y direction with the fingers in a horizontal plane"; O is a rotation about the
+  vertical, A tilts the approach direction up or down, T turns the hand about its approach direction.
+  A vertical tool therefore has A = +-90. VAL's READY position (the arm straight up, tool up) prints
+  O = 90, A = -90, T = 0 in this convention, the values seen on PUMA controllers at READY.
+- VAL-II kept VAL's location syntax (``TRANS(x, y, z, o, a, t)``, ``WHERE``'s ``X Y Z O A T``); its
+  reference manual (Unimation, *User's Guide to VAL II*, 1986) was not available to check the signs.
+- Adept's V+, VAL-II's successor, changed to plain ZYZ (yaw, pitch, roll) with the tool pointing up at
+  (0, 0, 0) and down at (0, 180, 0): the ``vplus`` entry of ``OAT_CONVENTIONS``.
+
+As an ``EulerConvention``: ``R = Rz(O) Rx(A) Ry(-T) R0`` with ``R0`` the hand at zero (approach -Y,
+fingers' closing axis along +X, both horizontal). A real arm's first WHERE names a wrong choice: the
+driver checks WHERE's pose against the kinematics of its own joint angles and says which convention of
+``OAT_CONVENTIONS`` fits (``PumaVAL.where``).
 """
 
 from __future__ import annotations
@@ -22,7 +40,19 @@ from selfview.drivers.puma_val_serial.errors import ERROR_CLASSES, ControllerErr
 from selfview.errors import ConfigError, ProtocolError
 from selfview.geometry import VAL_OAT, EulerConvention, H_from_xyzoat, xyzoat_from_H
 
-__all__ = ["ValDialect", "DEFAULT_COMMANDS", "DEFAULT_ERRORS", "load_dialect"]
+__all__ = ["ValDialect", "DEFAULT_COMMANDS", "DEFAULT_ERRORS", "OAT_CONVENTIONS", "load_dialect"]
+
+#: O/A/T conventions by name (see the module's docstring for the sources).
+OAT_CONVENTIONS: dict[str, EulerConvention] = {
+    # VAL (Unimation 1977): all zero = approach along -Y, fingers horizontal; R = Rz(O) Rx(A) Ry(-T) R0
+    "val": EulerConvention(
+        sequence="zxy",
+        signs=(1.0, 1.0, -1.0),
+        tool=((0.0, 1.0, 0.0), (0.0, 0.0, -1.0), (-1.0, 0.0, 0.0)),
+    ),
+    # Adept V+ (VAL-II's successor): ZYZ, the tool up at (0, 0, 0), down at (0, 180, 0)
+    "vplus": VAL_OAT,
+}
 
 #: Command line templates; ``{name}`` is a location name, every other field a number.
 DEFAULT_COMMANDS: dict[str, str] = {
@@ -39,6 +69,7 @@ DEFAULT_COMMANDS: dict[str, str] = {
     "drive": "DO DRIVE {joint}, {deg}, {speed}",
     "ready": "DO READY",
     "abort": "ABORT",
+    "status": "STATUS",
 }
 
 #: (controller text, error class) pairs. ``{joint}`` stands for a number. The simulator prints the
@@ -96,10 +127,22 @@ class ValDialect:
     """One controller's terminal dialect. Defaults: VAL-II on a PUMA 260 as reconstructed from public
     drivers and transcripts.
 
+    ``prompt`` is the monitor's prompt, ``program_prompt`` the one VAL prints while a program runs
+    (``*``): a driver that meets it says so (``ProgramRunning``) instead of timing out.
     ``prompt_silence_s`` is how long the line must stay quiet after a prompt (or a question) before it
     counts as one: numbers contain ``.`` too, so a prompt is a ``.`` at the start of a line followed by
     silence. ``field_width`` (characters per value in WHERE-style lines, right-aligned; None: values
     separated by blanks) and ``decimals`` let the driver notice dropped characters.
+
+    The WHERE layout: ``where_lines`` the reply's lines in order (``pose_header``, ``pose``,
+    ``joint_header``, ``joints``); ``pose_header`` / ``joint_header`` every column the controller prints
+    (more than six allowed); ``pose_columns`` / ``joint_columns`` the six the driver reads, by name.
+
+    ``echo``: the controller echoes each character as it is typed (a full-duplex terminal). The driver
+    then sends a command without its line end, compares the echo in full, and only then sends the
+    line end that executes it; on a difference it sends ``cancel_line`` (VAL-II's CTRL-U, which erases
+    the line typed so far) and nothing runs. ``status_speed`` finds the monitor speed in the reply to
+    ``STATUS`` (the speed is read back after ``SPEED``).
     """
 
     name: str = "VAL-II PUMA 260"
@@ -107,19 +150,25 @@ class ValDialect:
     host_eol: str = "\r"
     controller_eol: str = "\r\n"
     prompt: str = "."
+    program_prompt: str = "*"
     prompt_silence_s: float = 0.01
+    cancel_line: str = "\x15"
+    status_speed: str = r"monitor\s+speed\s*[:=]?\s*(?P<pct>\d+(?:\.\d+)?)"
     confirm_question: str = "Are you sure (Y/N)?"
     change_question: str = "Change?"
     yes: str = "Y"
     here_asks_change: bool = True
     pose_header: tuple[str, ...] = ("X", "Y", "Z", "O", "A", "T")
     joint_header: tuple[str, ...] = ("JT1", "JT2", "JT3", "JT4", "JT5", "JT6")
+    pose_columns: tuple[str, ...] = ("X", "Y", "Z", "O", "A", "T")
+    joint_columns: tuple[str, ...] = ("JT1", "JT2", "JT3", "JT4", "JT5", "JT6")
+    where_lines: tuple[str, ...] = ("pose_header", "pose", "joint_header", "joints")
     field_width: int | None = 9
     decimals: int = 2
     command_decimals: int = 3
     name_pattern: str = r"[A-Za-z][A-Za-z0-9_]{0,14}"
     scratch_location: str = "svtgt"
-    euler: EulerConvention = VAL_OAT
+    euler: EulerConvention = OAT_CONVENTIONS["val"]
     errors: tuple[tuple[str, str], ...] = DEFAULT_ERRORS
     commands: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_COMMANDS))
 
@@ -127,15 +176,35 @@ class ValDialect:
         for nm in ("host_eol", "controller_eol"):
             if getattr(self, nm) not in ("\r", "\n", "\r\n"):
                 raise ConfigError(f"dialect.{nm}: expected CR, LF or CR LF, got {getattr(self, nm)!r}")
-        if len(self.prompt) != 1 or not self.prompt.isprintable() or self.prompt.isspace():
-            raise ConfigError(f"dialect.prompt: expected one printable character, got {self.prompt!r}")
+        for nm in ("prompt", "program_prompt"):
+            v = getattr(self, nm)
+            if len(v) != 1 or not v.isprintable() or v.isspace():
+                raise ConfigError(f"dialect.{nm}: expected one printable character, got {v!r}")
+        if self.prompt == self.program_prompt:
+            raise ConfigError("dialect.program_prompt: must differ from the prompt")
+        if len(self.cancel_line) != 1 or self.cancel_line.isprintable() or self.cancel_line in "\r\n":
+            raise ConfigError(f"dialect.cancel_line: expected one control character (CTRL-U is '\\x15'), got {self.cancel_line!r}")
+        try:
+            if "pct" not in re.compile(self.status_speed).groupindex:
+                raise ConfigError(f"dialect.status_speed: needs a group (?P<pct>...), got {self.status_speed!r}")
+        except re.error as exc:
+            raise ConfigError(f"dialect.status_speed: not a regular expression ({exc})") from exc
         if not (0.0 < self.prompt_silence_s <= 1.0):
             raise ConfigError(f"dialect.prompt_silence_s: expected 0 < s <= 1, got {self.prompt_silence_s!r}")
         for nm in ("confirm_question", "change_question"):
             if not getattr(self, nm).rstrip().endswith("?"):
                 raise ConfigError(f"dialect.{nm}: a question must end in '?', got {getattr(self, nm)!r}")
-        if len(self.pose_header) != 6 or len(self.joint_header) != 6:
-            raise ConfigError("dialect.pose_header / joint_header: expected six names each")
+        for cols, hdr in (("pose_columns", "pose_header"), ("joint_columns", "joint_header")):
+            c, h = getattr(self, cols), getattr(self, hdr)
+            if len(c) != 6 or len({n.upper() for n in c}) != 6:
+                raise ConfigError(f"dialect.{cols}: expected six distinct names, got {list(c)}")
+            missing = [n for n in c if n.upper() not in [x.upper() for x in h]]
+            if missing or len({x.upper() for x in h}) != len(h):
+                raise ConfigError(f"dialect.{hdr}: expected distinct names including {list(c)}, got {list(h)}")
+        if sorted(self.where_lines) != sorted(("pose_header", "pose", "joint_header", "joints")) or \
+                self.where_lines.index("pose_header") > self.where_lines.index("pose") or \
+                self.where_lines.index("joint_header") > self.where_lines.index("joints"):
+            raise ConfigError(f"dialect.where_lines: expected pose_header, pose, joint_header, joints (each header before its values), got {list(self.where_lines)}")
         if self.field_width is not None and not (isinstance(self.field_width, int) and self.field_width >= self.decimals + 3):
             raise ConfigError(f"dialect.field_width: expected a whole number >= decimals + 3 or null, got {self.field_width!r}")
         if not (0 <= self.decimals <= 6 and 0 <= self.command_decimals <= 6):
@@ -167,12 +236,17 @@ class ValDialect:
         """A dialect from a mapping of field names (``commands`` is merged over the defaults)."""
         kw = dict(check_keys(data, cls, "dialect"))
         if "euler" in kw:
-            kw["euler"] = _euler_from(kw["euler"])
+            if isinstance(kw["euler"], str):
+                if kw["euler"] not in OAT_CONVENTIONS:
+                    raise ConfigError(f"dialect.euler: {kw['euler']!r} is not one of {', '.join(OAT_CONVENTIONS)} (or give sequence, signs, ...)")
+                kw["euler"] = OAT_CONVENTIONS[kw["euler"]]
+            else:
+                kw["euler"] = _euler_from(kw["euler"])
         if "commands" in kw:
             if not isinstance(kw["commands"], dict):
                 raise ConfigError(f"dialect.commands: expected a mapping, got {kw['commands']!r}")
             kw["commands"] = {**DEFAULT_COMMANDS, **{str(k): str(v) for k, v in kw["commands"].items()}}
-        for k in ("pose_header", "joint_header"):
+        for k in ("pose_header", "joint_header", "pose_columns", "joint_columns", "where_lines"):
             if k in kw:
                 kw[k] = tuple(str(v) for v in kw[k])
         if "errors" in kw:
@@ -270,6 +344,36 @@ class ValDialect:
         if len(toks) != n or not all(re.fullmatch(rx, t) for t in toks):
             raise ProtocolError(f"expected {n} numbers with {self.decimals} decimals, got {line!r}")
         return tuple(float(t) for t in toks)
+
+    def _pick(self, values, header, columns) -> tuple[float, ...]:
+        up = [h.upper() for h in header]
+        return tuple(values[up.index(c.upper())] for c in columns)
+
+    def parse_where(self, lines: list[str]) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """(pose x..t, joints JT1..JT6) of WHERE's reply lines, as ``where_lines`` lays them out;
+        ``ProtocolError`` on a different layout."""
+        if len(lines) != len(self.where_lines):
+            raise ProtocolError(f"WHERE: expected {len(self.where_lines)} lines ({', '.join(self.where_lines)}), got {lines!r}")
+        by = dict(zip(self.where_lines, lines))
+        self.parse_header(by["pose_header"], self.pose_header)
+        self.parse_header(by["joint_header"], self.joint_header)
+        pose = self._pick(self.parse_values(by["pose"], len(self.pose_header)), self.pose_header, self.pose_columns)
+        joints = self._pick(self.parse_values(by["joints"], len(self.joint_header)), self.joint_header, self.joint_columns)
+        return pose, joints
+
+    def parse_location(self, lines: list[str]) -> tuple[float, ...]:
+        """The pose (x..t) of a location's reply (its pose header and values line)."""
+        if len(lines) != 2:
+            raise ProtocolError(f"expected a pose header and its values, got {lines!r}")
+        self.parse_header(lines[0], self.pose_header)
+        return self._pick(self.parse_values(lines[1], len(self.pose_header)), self.pose_header, self.pose_columns)
+
+    def speed_of_status(self, lines: list[str]) -> float:
+        """The monitor speed (percent) in the reply to STATUS; ``ProtocolError`` if absent or twice."""
+        found = [m.group("pct") for ln in lines for m in [re.search(self.status_speed, ln, re.IGNORECASE)] if m]
+        if len(found) != 1:
+            raise ProtocolError(f"STATUS: expected one monitor speed ({self.status_speed}), got {lines!r}")
+        return float(found[0])
 
     # --- errors and questions ------------------------------------------------------------------
     @staticmethod

@@ -1,16 +1,34 @@
 """The PUMA 260 over VAL-II's terminal port: typed commands, checked replies, limits before sending.
 
 The link is whatever ``serial.serial_for_url`` opens (a real port, a pty path, ``socket://``,
-``spy://`` for a traffic dump, ``loop://``) or an already open serial-like object. Each command is one
-line ended by CR; the reply ends with the prompt, a ``.`` at the start of a line followed by silence
-(``dialect.prompt_silence_s``), or with a question (a line ending in ``?`` followed by silence) that the
-method expecting it answers. Error lines ``*text*`` raise the typed ``ControllerError`` of the dialect's
+``spy://`` for a traffic dump, ``loop://``) or an already open serial-like object.
+
+A command is typed without its line end; the controller echoes each character, the driver compares
+the echo with the command in full and only then sends the CR that executes it. A corrupted command
+is erased (``dialect.cancel_line``, CTRL-U) and never runs (``ProtocolError``). (With a dialect
+without echo nothing can be verified before it runs.) The reply ends with the prompt, a ``.`` at the
+start of a line followed by silence (``dialect.prompt_silence_s``), or with a question that the
+method expecting it answers; ``*`` at the start of a line is VAL's prompt while a program runs
+(``ProgramRunning``). Error lines ``*text*`` raise the typed ``ControllerError`` of the dialect's
 table; garbage or a missing prompt raises ``ProtocolError`` and the driver resynchronises (CR, drain
 to prompt and silence) before its next command; silence raises ``DeviceTimeout``.
 
-Threads: one command is in flight at a time (``_cmd_lock``). Every line goes out whole in one write
-under ``_write_lock``, so ``abort()`` from another thread can send ``ABORT`` while a motion waits for
-its prompt; the waiting motion then reads the controller's answer and raises ``MotionAborted``.
+Checks beyond the bytes: ``WHERE``'s pose must equal the forward kinematics of the joint angles it
+prints (``PumaKinematics``; read again on a mismatch). A motion is complete only when the prompt
+follows it, an empty line is answered by a prompt (a busy controller does not answer: one noise ``.``
+cannot end a motion) and ``WHERE`` puts the arm at its target. A named target is read from the
+controller (``POINT``) before its limit check, never taken from a cache. ``SPEED`` is read back
+(``STATUS``). The wait for a motion follows from its distance, the speed read from the controller
+and the arm's limits (``ValLimits``), plus a margin.
+
+Stopping: ``ABORT`` is written first and unconditionally (after a CTRL-U that erases any half-typed
+line), then confirmed by reading the controller's answer. The driver does so itself when a motion's
+wait fails in any way (timeout, garbage, a failed check, an interrupt); ``abort()`` does so from any
+thread and returns an ``AbortResult`` saying whether the stop was confirmed.
+
+Threads: one command is in flight at a time (``_cmd_lock``); bytes go out under ``_write_lock``, so
+``abort()`` from another thread can write ``ABORT`` while a motion waits; the waiting motion then
+reads the controller's answer and raises ``MotionAborted``.
 Frames: poses are the tool point T in the robot base frame B, ``base_H_T``; mm and degrees.
 """
 
@@ -19,18 +37,21 @@ from __future__ import annotations
 import re
 import threading
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
 import serial
 
-from selfview.drivers.puma_val_serial.dialect import ValDialect
+from selfview.drivers.puma_val_serial.dialect import OAT_CONVENTIONS, ValDialect
+from selfview.drivers.puma_val_serial.errors import ControllerError, MotionAborted, ProgramRunning
+from selfview.drivers.puma_val_serial.kinematics import PumaKinematics
 from selfview.drivers.puma_val_serial.limits import ValLimits
-from selfview.errors import ConfigError, DeviceError, DeviceTimeout, ProtocolError
-from selfview.geometry import check_rigid, rotation_angle, trans
+from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout, ProtocolError
+from selfview.geometry import H_from_xyzoat, check_rigid, rotation_angle, trans
 
-__all__ = ["PumaVAL", "Where"]
+__all__ = ["PumaVAL", "Where", "AbortResult"]
 
 _PRINTABLE = set(range(0x20, 0x7F)) | {0x07, 0x09, 0x0A, 0x0D}  # BEL and TAB occur on real terminals
 
@@ -52,6 +73,30 @@ class Where:
         }
 
 
+@dataclass(frozen=True)
+class AbortResult:
+    """What ``abort()`` achieved: ``written`` ABORT went out; ``confirmed`` the controller answered it
+    (``*Motion aborted*`` or its prompt: nothing moves); ``detail`` says how (or why not)."""
+
+    written: bool
+    confirmed: bool
+    detail: str
+
+    def __str__(self) -> str:
+        if not self.written:
+            return f"ABORT not written: {self.detail}"
+        return f"ABORT sent and confirmed ({self.detail})" if self.confirmed else f"ABORT sent, NOT confirmed: {self.detail}"
+
+
+def _noted(exc: BaseException, note: str) -> BaseException:
+    """``exc`` with ``note`` appended to its message (the driver's own error types), else ``exc``."""
+    if type(exc) in (DeviceTimeout, ProtocolError, DeviceError, ProgramRunning):
+        new = type(exc)(f"{exc}; {note}")
+        new.__cause__ = exc
+        return new
+    return exc
+
+
 @dataclass
 class _Segment:
     lines: list[str]
@@ -68,7 +113,8 @@ class PumaVAL:
 
     ``url_or_port``: a pyserial URL or device path, or an open serial-like object (read, write,
     in_waiting, timeout). ``timeout_s``: the wait for a non-motion reply; motions wait as long as
-    ``limits`` estimates from distance and speed. Constructing does no I/O.
+    ``limits`` estimates from distance and speed. ``kinematics``: the arm and its TOOL, to check WHERE.
+    Constructing does no I/O.
     """
 
     def __init__(
@@ -77,6 +123,7 @@ class PumaVAL:
         *,
         dialect: ValDialect | None = None,
         limits: ValLimits | None = None,
+        kinematics: PumaKinematics | None = None,
         timeout_s: float = 2.0,
         baudrate: int = 9600,
     ):
@@ -93,6 +140,7 @@ class PumaVAL:
         self._given = None if isinstance(url_or_port, str) else url_or_port
         self.dialect = dialect or ValDialect()
         self.limits = limits or ValLimits()
+        self.kinematics = kinematics or PumaKinematics()
         self.timeout_s = float(timeout_s)
         self.baudrate = baudrate
         self._ser = None
@@ -103,8 +151,8 @@ class PumaVAL:
         self._abort_sent = threading.Event()
         self._motion_done = threading.Event()
         self._motion_done.set()
+        self._motion_outcome: tuple[bool, str] = (True, "no motion")
         self._speed_pct: float | None = None
-        self._locations: dict[str, np.ndarray] = {}
         self.last_rx_bytes = 0  # bytes received for the last command (benchmarks)
 
     def __repr__(self) -> str:
@@ -115,10 +163,11 @@ class PumaVAL:
     def connected(self) -> bool:
         return self._ser is not None
 
-    def connect(self) -> "PumaVAL":
+    def connect(self, *, sync: bool = True) -> "PumaVAL":
         """Open the link and synchronise with the controller (CR, wait for the prompt). Idempotent.
 
-        Raises ``DeviceError`` if the port cannot be opened, ``ConfigError`` for an unknown URL scheme,
+        ``sync=False`` only opens the link (to ABORT a controller that may be busy). Raises
+        ``DeviceError`` if the port cannot be opened, ``ConfigError`` for an unknown URL scheme,
         ``DeviceTimeout`` if no prompt comes within ``timeout_s``.
         """
         with self._locked("connect"):
@@ -141,7 +190,10 @@ class PumaVAL:
             try:
                 ser.timeout = self.dialect.prompt_silence_s
                 self._ser = ser
-                self._resync()
+                if sync:
+                    self._resync()
+                else:
+                    self._need_resync = True
             except BaseException:
                 self._ser = None
                 if self._given is None:
@@ -181,24 +233,57 @@ class PumaVAL:
             raise DeviceError(f"robot link {self.url or self._given!r} is not open; call connect() first")
         return self._ser
 
-    def _write_line(self, text: str, *, motion: bool = False) -> None:
-        """Write one whole line in one call, under the write lock."""
-        data = self.dialect.encode_line(text)
+    def _write_raw(self, data: bytes, what: str, *, motion: bool = False) -> None:
+        """Write ``data`` in one call under the write lock; ``motion``: this write starts a motion."""
         with self._write_lock:
             ser = self._port()
             if motion:
                 self._abort_sent.clear()
                 self._motion_done.clear()
+                self._motion_outcome = (False, "the motion is running")
+                self._motion_active = True
             try:
                 ser.write(data)
             except serial.SerialTimeoutException as exc:
                 self._need_resync = True
-                raise DeviceTimeout(f"writing {text!r}: the link took no data within {self.timeout_s:g} s") from exc
+                raise DeviceTimeout(f"writing {what!r}: the link took no data within {self.timeout_s:g} s") from exc
             except (serial.SerialException, OSError) as exc:
                 self._need_resync = True
-                raise DeviceError(f"writing {text!r}: {exc}") from exc
-            if motion:
-                self._motion_active = True
+                raise DeviceError(f"writing {what!r}: {exc}") from exc
+
+    def _read_echo(self, n: int, deadline: float) -> bytes:
+        """The next ``n`` bytes (the echo of a typed line), and whatever else has arrived with them."""
+        buf = bytearray()
+        while len(buf) < n:
+            chunk = self._read()
+            buf += chunk
+            if not chunk and time.monotonic() >= deadline:
+                break
+        if self._port().in_waiting:
+            buf += self._read()
+        return bytes(buf)
+
+    def _send_line(self, text: str, deadline: float, *, motion: bool = False) -> None:
+        """Type ``text`` and execute it: with echo, the line goes out without its line end, its echo is
+        compared in full, and only a faithful echo is followed by the line end (else CTRL-U erases it)."""
+        d = self.dialect
+        data = d.encode_line(text)
+        body, eol = data[: len(data) - len(d.host_eol)], d.host_eol.encode("ascii")
+        if body and d.echo:
+            self._write_raw(body, text)
+            echo = self._read_echo(len(body), deadline)
+            if echo != body:  # the whole line, byte for byte: 'SPEED 02' is not 'SPEED 20'
+                self._need_resync = True
+                try:
+                    self._write_raw(d.cancel_line.encode("ascii"), "<cancel line>")
+                except CellError:
+                    pass
+                raise ProtocolError(
+                    f"the echo of {text!r} came back as {echo!r}: the line was erased before its line end; nothing ran"
+                )
+            self._write_raw(eol, text, motion=motion)
+        else:
+            self._write_raw(body + eol, text, motion=motion)
 
     def _read(self):
         ser = self._port()
@@ -210,10 +295,16 @@ class PumaVAL:
             raise DeviceError(f"robot link failed while reading: {exc}") from exc
 
     def _terminator(self, buf: bytearray) -> str | None:
+        """How ``buf`` ends: 'prompt' or 'program' (a prompt character alone at the start of a line),
+        'question' (a line ending in '?'), or None."""
         cut = max(buf.rfind(b"\r"), buf.rfind(b"\n"))
+        if cut < 0:
+            return None  # a prompt counts only at the start of a line, after the command's own output
         tail = bytes(buf[cut + 1 :])
         if tail == self.dialect.prompt.encode():
             return "prompt"
+        if tail == self.dialect.program_prompt.encode():
+            return "program"
         if tail.rstrip().endswith(b"?"):
             return "question"
         return None
@@ -228,6 +319,12 @@ class PumaVAL:
                 self.last_rx_bytes += len(chunk)
             else:
                 end = self._terminator(buf)
+                if end == "program":
+                    self._need_resync = True
+                    raise ProgramRunning(
+                        f"after {command!r} the controller prompts {self.dialect.program_prompt!r}: a VAL program is "
+                        "running; stop it on the controller before commanding the arm from the terminal"
+                    )
                 if end is not None:
                     return self._split(buf, end, command, strict)
             if time.monotonic() >= deadline:
@@ -276,13 +373,13 @@ class PumaVAL:
         self._drain()
         deadline = time.monotonic() + self.timeout_s
         self._need_resync = True
-        self._write_line("")
+        self._send_line("", deadline)
         for _ in range(4):  # a pending question (Y/N, Change?) takes the empty line as its answer
             seg = self._read_segment(deadline, "<resync: CR>", self.timeout_s, strict=False)
             if seg.end == "prompt":
                 self._need_resync = False
                 return
-            self._write_line("")
+            self._send_line("", deadline)
         raise ProtocolError("resynchronising: the controller kept asking questions instead of prompting")
 
     def _prepare(self) -> None:
@@ -318,30 +415,26 @@ class PumaVAL:
         budget = self.timeout_s if timeout_s is None else float(timeout_s)
         self._prepare()
         self.last_rx_bytes = 0
+        echo_deadline = time.monotonic() + self.timeout_s
+        echoes = {_norm(command)} if command else set()
+        self._send_line(command, echo_deadline, motion=motion)
         deadline = time.monotonic() + budget
-        echoes = {_norm(command)}
-        try:
-            self._write_line(command, motion=motion)
-            lines: list[str] = []
-            for _ in range(16):
-                seg = self._read_segment(deadline, command, budget)
-                lines += seg.lines
-                if seg.end == "prompt":
-                    return self._checked(lambda: self._classify(lines, command, echoes)[0])
-                answer = next((a for q, a in answers if self.dialect.is_question(seg.question, q)), None)
-                if answer is None:
-                    self._need_resync = True
-                    raise ProtocolError(f"unexpected question {seg.question!r} after {command!r}")
-                if answer:
-                    echoes.add(_norm(answer))
-                self._write_line(answer)
-            self._need_resync = True
-            raise ProtocolError(f"{command!r}: the controller asked more than 16 questions")
-        finally:
-            if motion:
-                with self._write_lock:
-                    self._motion_active = False
-                self._motion_done.set()
+        shown = command or "<CR>"
+        lines: list[str] = []
+        for _ in range(16):
+            seg = self._read_segment(deadline, shown, budget)
+            lines += seg.lines
+            if seg.end == "prompt":
+                return self._checked(lambda: self._classify(lines, command, echoes)[0])
+            answer = next((a for q, a in answers if self.dialect.is_question(seg.question, q)), None)
+            if answer is None:
+                self._need_resync = True
+                raise ProtocolError(f"unexpected question {seg.question!r} after {shown!r}")
+            if answer:
+                echoes.add(_norm(answer))
+            self._send_line(answer, time.monotonic() + self.timeout_s)
+        self._need_resync = True
+        raise ProtocolError(f"{shown!r}: the controller asked more than 16 questions")
 
     def _exchange(self, command: str, **kw) -> list[str]:
         with self._locked(command):
@@ -360,23 +453,111 @@ class PumaVAL:
             self._need_resync = True
             raise ProtocolError(f"unexpected reply to {command!r}: {content[:3]!r}")
 
-    # --- parsing ------------------------------------------------------------------------------------
-    def _parse_where(self, content: list[str]) -> Where:
+    # --- stopping --------------------------------------------------------------------------------------
+    def _write_abort(self) -> str | None:
+        """Write CTRL-U and ABORT now, whatever state the dialogue is in; None, or why it could not."""
         d = self.dialect
-        if len(content) != 4:
-            raise ProtocolError(f"WHERE: expected 4 lines (pose header, values, joint header, values), got {content!r}")
-        d.parse_header(content[0], d.pose_header)
-        pose = d.parse_values(content[1])
-        d.parse_header(content[2], d.joint_header)
-        joints = d.parse_values(content[3])
-        return Where(pose=pose, joints=joints, base_H_T=d.pose_to_H(pose))
+        data = (d.cancel_line + d.command("abort") + d.host_eol).encode("ascii")
+        with self._write_lock:
+            self._abort_sent.set()
+            ser = self._ser
+            if ser is None:
+                return "the link is closed"
+            try:
+                ser.write(data)
+            except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+                return f"writing ABORT failed: {exc}"
+        return None
 
-    def _parse_location(self, content: list[str], command: str) -> tuple[float, ...]:
-        d = self.dialect
-        if len(content) != 2:
-            raise ProtocolError(f"{command!r}: expected a pose header and its values, got {content!r}")
-        d.parse_header(content[0], d.pose_header)
-        return d.parse_values(content[1])
+    def _confirm_abort(self, budget_s: float) -> tuple[bool, str]:
+        """Read the controller's answer to ABORT (the command lock held): (confirmed, how)."""
+        deadline = time.monotonic() + budget_s
+        buf = bytearray()
+        try:
+            while True:
+                chunk = self._read()
+                buf += chunk
+                if not chunk:
+                    end = self._terminator(buf)
+                    if end == "prompt":
+                        text = buf.decode("ascii", errors="replace")
+                        errors = [self.dialect.error_text_of(ln) for ln in re.split(r"\r\n|\r|\n", text)]
+                        errors = [e for e in errors if e]
+                        if any(isinstance(self.dialect.error_for(e), MotionAborted) for e in errors):
+                            return True, "the controller answered *Motion aborted*"
+                        return True, "the controller answered with its prompt" + (f" after *{errors[0]}*" if errors else "")
+                    if time.monotonic() >= deadline:
+                        return False, f"no prompt within {budget_s:g} s after ABORT (received {bytes(buf[-60:])!r})"
+        except CellError as exc:
+            return False, f"reading the answer to ABORT failed: {exc}"
+        finally:
+            self._need_resync = True
+
+    def _stop_after_fault(self) -> AbortResult:
+        """A motion's wait failed: ABORT first, unconditionally, then confirm (the command lock held)."""
+        why = self._write_abort()
+        if why is not None:
+            return AbortResult(False, False, why)
+        ok, how = self._confirm_abort(self.timeout_s)
+        return AbortResult(True, ok, how)
+
+    def abort(self) -> AbortResult:
+        """Stop the arm: write ``ABORT`` at once (never after a resynchronisation), then confirm it.
+
+        Works from any thread: a motion waiting in another thread reads the controller's answer (and
+        raises ``MotionAborted``); otherwise this reads it. Never raises for a failed stop: the
+        ``AbortResult`` says whether ABORT went out and whether the controller confirmed it.
+        """
+        why = self._write_abort()
+        if why is not None:
+            return AbortResult(False, False, why)
+        with self._write_lock:
+            in_motion = self._motion_active
+        if in_motion:
+            if not self._motion_done.wait(timeout=self.timeout_s * 2):
+                return AbortResult(True, False, f"the motion's wait did not end within {self.timeout_s * 2:g} s")
+            ok, how = self._motion_outcome
+            return AbortResult(True, ok, how)
+        if not self._cmd_lock.acquire(timeout=self.timeout_s):
+            return AbortResult(True, False, f"another command held the line for {self.timeout_s:g} s")
+        try:
+            ok, how = self._confirm_abort(self.timeout_s)
+        finally:
+            self._cmd_lock.release()
+        return AbortResult(True, ok, how)
+
+    # --- WHERE and its cross-check -------------------------------------------------------------------
+    def _where_error(self, pose, joints, euler=None) -> tuple[float, float]:
+        """(mm, deg) between WHERE's pose and the kinematics of its joints (under ``euler``)."""
+        H = H_from_xyzoat(pose, euler or self.dialect.euler)
+        K = self.kinematics.tool(joints)
+        return float(np.linalg.norm(H[:3, 3] - K[:3, 3])), float(np.degrees(rotation_angle(H[:3, :3].T @ K[:3, :3])))
+
+    def _where_locked(self, attempts: int = 3) -> Where:
+        kin, d = self.kinematics, self.dialect
+        cmd = d.command("where")
+        last = None
+        for _ in range(attempts):
+            content = self._exchange_locked(cmd)
+            pose, joints = self._checked(lambda: d.parse_where(content))
+            mm, deg = self._where_error(pose, joints)
+            if mm <= kin.where_tol_mm and deg <= kin.where_tol_deg:
+                return Where(pose=pose, joints=joints, base_H_T=d.pose_to_H(pose))
+            last = (pose, joints, mm, deg)
+        pose, joints, mm, deg = last
+        if mm <= kin.where_tol_mm:  # the position fits: is it the O/A/T convention?
+            for name, conv in OAT_CONVENTIONS.items():
+                if conv != d.euler and self._where_error(pose, joints, conv)[1] <= kin.where_tol_deg:
+                    raise ConfigError(
+                        f"WHERE: the controller's O/A/T {pose[3:]} fit the joint angles {joints} under the {name!r} "
+                        f"convention, not the dialect's (off by {deg:.2f} deg): set 'euler: {name}' in the dialect file"
+                    )
+        self._need_resync = True
+        raise ProtocolError(
+            f"WHERE: the pose {pose} lies {mm:.2f} mm / {deg:.2f} deg from the kinematics of its own joint angles "
+            f"{joints} in {attempts} readings (tolerance {kin.where_tol_mm:g} mm / {kin.where_tol_deg:g} deg): a corrupted "
+            "reply, or a TOOL / O/A/T convention other than the driver's (kinematics.tool_mm, dialect.euler)"
+        )
 
     # --- targets and limits ---------------------------------------------------------------------------
     def _as_H(self, target, what: str) -> np.ndarray:
@@ -390,67 +571,153 @@ class PumaVAL:
             return self.dialect.pose_to_H(a)
         raise ConfigError(f"{what}: expected a location name, 6 numbers (x, y, z, o, a, t) or a 4x4 transform, got {target!r}")
 
-    def _resolve(self, target, what: str) -> tuple[str, np.ndarray]:
-        """(location name, base_H_T) of a target; a pose is first defined as the scratch location."""
+    def _resolve_locked(self, target, what: str) -> tuple[str, np.ndarray]:
+        """(location name, base_H_T) of a target, read from the controller now (a stale copy never
+        passes the limit check); a pose is first defined as the scratch location."""
         if isinstance(target, str):
             name = self.dialect.validate_name(target)
-            H = self._locations.get(name.upper())
-            if H is None:
-                H = self.dialect.pose_to_H(self.location(name))
-            return name, H
+            return name, self.dialect.pose_to_H(self._location_locked(name))
         H = self._as_H(target, what)
         self.limits.check_position(H[:3, 3], what)
         name = self.dialect.scratch_location
-        self.define(name, H)
+        self._define_locked(name, H)
         return name, H
+
+    def _speed_locked(self) -> float:
+        """The monitor speed, read from the controller if the driver has not set or read it."""
+        if self._speed_pct is None:
+            self._speed_pct = self._read_speed_locked()
+        return self._speed_pct
+
+    def _read_speed_locked(self) -> float:
+        cmd = self.dialect.command("status")
+        content = self._exchange_locked(cmd)
+        return self._checked(lambda: self.dialect.speed_of_status(content))
 
     def _motion_timeout(self, from_H: np.ndarray, to_H: np.ndarray) -> float:
         dist = float(np.linalg.norm(to_H[:3, 3] - from_H[:3, 3]))
         ang = float(np.degrees(rotation_angle(from_H[:3, :3].T @ to_H[:3, :3])))
-        return self.limits.cartesian_timeout_s(dist, ang, self._speed_pct) + self.timeout_s
+        return self.limits.cartesian_timeout_s(dist, ang, self._speed_locked())
 
-    def _motion(self, command: str, timeout_s: float) -> None:
-        self._expect_nothing(self._exchange(command, timeout_s=timeout_s, motion=True), command)
+    def _arrived_at(self, goal_H: np.ndarray):
+        lim = self.limits
+
+        def check(w: Where) -> str | None:
+            mm = float(np.linalg.norm(w.base_H_T[:3, 3] - goal_H[:3, 3]))
+            deg = float(np.degrees(rotation_angle(w.base_H_T[:3, :3].T @ goal_H[:3, :3])))
+            if mm > lim.arrival_tol_mm or deg > lim.arrival_tol_deg:
+                return f"{mm:.2f} mm / {deg:.2f} deg from its target"
+            return None
+
+        return check
+
+    def _arrived_at_joints(self, goal_q) -> Callable:
+        tol = self.limits.arrival_tol_joint_deg
+
+        def check(w: Where) -> str | None:
+            err = np.abs(np.asarray(w.joints) - np.asarray(goal_q))
+            if err.max() > tol:
+                return f"JT{int(np.argmax(err)) + 1} {err.max():.2f} deg from its target"
+            return None
+
+        return check
+
+    def _motion_locked(self, command: str, timeout_s: float, arrived) -> None:
+        """Execute a motion and make sure it is over: its prompt, a prompt for an empty line (a busy
+        controller gives none), a WHERE at the target. On any failure of the wait: ABORT, confirmed."""
+        t_end = time.monotonic() + timeout_s
+        try:
+            self._expect_nothing(self._exchange_locked(command, timeout_s=timeout_s, motion=True), command)
+            rest = max(t_end - time.monotonic(), 0.0) + self.timeout_s
+            self._expect_nothing(self._exchange_locked("", timeout_s=rest), f"<CR after {command}>")
+            miss = arrived(self._where_locked())
+            if miss is not None:
+                raise ProtocolError(f"{command!r}: the controller prompted, but WHERE puts the arm {miss}")
+            self._motion_outcome = (True, "the motion had ended at its target")
+        except MotionAborted:
+            self._motion_outcome = (True, "the controller answered *Motion aborted*")
+            raise
+        except ControllerError as exc:  # the controller stopped (or refused) the motion itself
+            self._motion_outcome = (True, f"the controller stopped the motion: *{exc.text}*")
+            raise
+        except BaseException as exc:
+            with self._write_lock:
+                started = self._motion_active
+            if not started:  # the line was never executed (a corrupted echo, a failed write)
+                self._motion_outcome = (True, "the motion never started")
+                raise
+            res = self._stop_after_fault()
+            self._motion_outcome = (res.confirmed, res.detail)
+            raise _noted(exc, str(res)) from exc.__cause__
+        finally:
+            with self._write_lock:
+                self._motion_active = False
+            self._motion_done.set()
 
     # --- commands -----------------------------------------------------------------------------------------
     def calibrate(self) -> None:
-        """``CAL``, answering its ``Are you sure (Y/N)?`` with yes; waits for the calibration to end."""
+        """``CAL``, answering its ``Are you sure (Y/N)?`` with yes; waits for the calibration to end.
+
+        CAL turns every joint a little: refused (``LimitError``) if the tool point is outside the workspace."""
         cmd = self.dialect.command("calibrate")
-        content = self._exchange(
-            cmd, timeout_s=self.limits.calibrate_s + self.timeout_s, answers=[(self.dialect.confirm_question, self.dialect.yes)]
-        )
-        self._expect_nothing(content, cmd)
+        with self._locked(cmd):
+            here = self._where_locked()
+            self.limits.check_position(here.base_H_T[:3, 3], "CAL (from the current position)")
+            content = self._exchange_locked(
+                cmd, timeout_s=self.limits.calibrate_s + self.timeout_s, answers=[(self.dialect.confirm_question, self.dialect.yes)]
+            )
+            self._expect_nothing(content, cmd)
 
     def speed(self, pct: float) -> None:
-        """``SPEED pct``: the monitor speed in percent; ``LimitError`` above ``limits.max_speed_pct``."""
+        """``SPEED pct``: the monitor speed in percent, read back (``STATUS``); ``LimitError`` above
+        ``limits.max_speed_pct`` (nothing sent), ``ProtocolError`` if the controller holds another speed."""
         pct = self.limits.check_speed(pct, "SPEED")
         cmd = self.dialect.command("speed", pct=pct)
-        self._expect_nothing(self._exchange(cmd), cmd)
-        self._speed_pct = pct
+        with self._locked(cmd):
+            self._speed_pct = None
+            self._expect_nothing(self._exchange_locked(cmd), cmd)
+            got = self._read_speed_locked()
+            self._speed_pct = got
+            if abs(got - pct) > 0.5 * 10.0 ** -self.dialect.command_decimals:
+                self._need_resync = True
+                raise ProtocolError(f"{cmd!r}: the controller reads back SPEED {got:g}, not {pct:g}")
+
+    def speed_now(self) -> float:
+        """The monitor speed read from the controller (``STATUS``)."""
+        with self._locked("STATUS"):
+            self._speed_pct = self._read_speed_locked()
+            return self._speed_pct
 
     def where(self) -> Where:
-        """``WHERE``: the tool point's pose (x, y, z, o, a, t), ``base_H_T`` and the six joints."""
-        content = self._exchange(self.dialect.command("where"))
-        return self._checked(lambda: self._parse_where(content))
+        """``WHERE``: the tool point's pose (x, y, z, o, a, t), ``base_H_T`` and the six joints, checked
+        against the kinematics of those joints (read again on a mismatch; ``ProtocolError`` after three,
+        ``ConfigError`` naming the O/A/T convention that would fit)."""
+        with self._locked("WHERE"):
+            return self._where_locked()
 
     def here(self, name: str) -> tuple[float, ...]:
         """``HERE name``: record the current pose as a location; returns it (x, y, z, o, a, t)."""
         cmd = self.dialect.command("here", name=name)
-        content = self._exchange(cmd, answers=[(self.dialect.change_question, "")])
-        if content:
-            pose = self._checked(lambda: self._parse_location(content, cmd))
-        else:
-            pose = self.location(name)
-        self._locations[name.upper()] = self.dialect.pose_to_H(pose)
-        return pose
+        with self._locked(cmd):
+            content = self._exchange_locked(cmd, answers=[(self.dialect.change_question, "")])
+            if content:
+                return self._checked(lambda: self.dialect.parse_location(content))
+            return self._location_locked(name)
+
+    def _location_locked(self, name: str) -> tuple[float, ...]:
+        cmd = self.dialect.command("point", name=name)
+        content = self._exchange_locked(cmd, answers=[(self.dialect.change_question, "")])
+        return self._checked(lambda: self.dialect.parse_location(content))
 
     def location(self, name: str) -> tuple[float, ...]:
         """``POINT name`` answered with an empty line: the stored pose (x, y, z, o, a, t), unchanged."""
-        cmd = self.dialect.command("point", name=name)
-        content = self._exchange(cmd, answers=[(self.dialect.change_question, "")])
-        pose = self._checked(lambda: self._parse_location(content, cmd))
-        self._locations[name.upper()] = self.dialect.pose_to_H(pose)
-        return pose
+        with self._locked("POINT"):
+            return self._location_locked(name)
+
+    def _define_locked(self, name: str, H) -> None:
+        x, y, z, o, a, t = self.dialect.H_to_pose(H)
+        cmd = self.dialect.command("define", name=name, x=x, y=y, z=z, o=o, a=a, t=t)
+        self._expect_nothing(self._exchange_locked(cmd), cmd)
 
     def define(self, name: str, pose) -> None:
         """``DO SET name = TRANS(...)`` from a pose (x, y, z, o, a, t) or a (4, 4) ``base_H_T``.
@@ -460,50 +727,52 @@ class PumaVAL:
         self.dialect.validate_name(name)
         H = self._as_H(pose, f"location {name}")
         self.limits.check_position(H[:3, 3], f"location {name}")
-        x, y, z, o, a, t = self.dialect.H_to_pose(H)
-        cmd = self.dialect.command("define", name=name, x=x, y=y, z=z, o=o, a=a, t=t)
-        self._expect_nothing(self._exchange(cmd), cmd)
-        self._locations[name.upper()] = H
+        with self._locked("DO SET"):
+            self._define_locked(name, H)
+
+    def _to_target(self, kind: str, target, distance_mm: float | None = None) -> None:
+        what = f"{kind.upper()} target"
+        if distance_mm is not None:
+            d = float(distance_mm)
+            if not np.isfinite(d):
+                raise ConfigError(f"{kind.upper()} distance: expected a finite number of mm, got {distance_mm!r}")
+        with self._locked(kind.upper()):
+            name, H = self._resolve_locked(target, what)
+            goal = H if distance_mm is None else H @ trans(0.0, 0.0, -d)
+            label = f"{kind.upper()} {name}" + ("" if distance_mm is None else f", {d:g}")
+            self.limits.check_position(goal[:3, 3], label)
+            here = self._where_locked().base_H_T
+            fields = {"name": name} if distance_mm is None else {"name": name, "d": d}
+            self._motion_locked(self.dialect.command(kind, **fields), self._motion_timeout(here, goal), self._arrived_at(goal))
 
     def move(self, target) -> None:
         """``DO MOVE``: joint-interpolated motion to a location name, a pose or a (4, 4) transform."""
-        name, H = self._resolve(target, "MOVE target")
-        self.limits.check_position(H[:3, 3], f"MOVE {name}")
-        here = self.where().base_H_T
-        self._motion(self.dialect.command("move", name=name), self._motion_timeout(here, H))
+        self._to_target("move", target)
 
     def moves(self, target) -> None:
         """``DO MOVES``: straight-line motion to a location name, a pose or a (4, 4) transform."""
-        name, H = self._resolve(target, "MOVES target")
-        self.limits.check_position(H[:3, 3], f"MOVES {name}")
-        here = self.where().base_H_T
-        self._motion(self.dialect.command("moves", name=name), self._motion_timeout(here, H))
+        self._to_target("moves", target)
 
     def appro(self, target, distance_mm: float) -> None:
         """``DO APPRO name, d``: to the location backed off ``distance_mm`` along its tool z."""
-        d = float(distance_mm)
-        if not np.isfinite(d):
-            raise ConfigError(f"APPRO distance: expected a finite number of mm, got {distance_mm!r}")
-        name, H = self._resolve(target, "APPRO target")
-        goal = H @ trans(0.0, 0.0, -d)
-        self.limits.check_position(goal[:3, 3], f"APPRO {name}, {d:g}")
-        here = self.where().base_H_T
-        self._motion(self.dialect.command("appro", name=name, d=d), self._motion_timeout(here, goal))
+        self._to_target("appro", target, distance_mm)
 
     def depart(self, distance_mm: float) -> None:
         """``DO DEPART d``: back the tool off ``distance_mm`` along its own z (away from what it approached)."""
         d = float(distance_mm)
         if not np.isfinite(d):
             raise ConfigError(f"DEPART distance: expected a finite number of mm, got {distance_mm!r}")
-        here = self.where().base_H_T
-        goal = here @ trans(0.0, 0.0, -d)
-        self.limits.check_position(goal[:3, 3], f"DEPART {d:g}")
-        self._motion(self.dialect.command("depart", d=d), self._motion_timeout(here, goal))
+        with self._locked("DEPART"):
+            here = self._where_locked().base_H_T
+            goal = here @ trans(0.0, 0.0, -d)
+            self.limits.check_position(goal[:3, 3], f"DEPART {d:g}")
+            self._motion_locked(self.dialect.command("depart", d=d), self._motion_timeout(here, goal), self._arrived_at(goal))
 
     def drive(self, joint: int, delta_deg: float, speed_pct: float) -> None:
         """``DO DRIVE j, deg, speed``: turn one joint by ``delta_deg`` at ``speed_pct`` % of the monitor speed.
 
-        ``LimitError`` if the joint would leave its limits or the speed is too high (nothing sent).
+        ``LimitError`` if the joint would leave its limits, the tool the workspace, or the speed is too
+        high (nothing sent).
         """
         if isinstance(joint, bool) or not isinstance(joint, (int, np.integer)) or not 1 <= joint <= 6:
             raise ConfigError(f"DRIVE joint: expected 1..6, got {joint!r}")
@@ -511,46 +780,28 @@ class PumaVAL:
         if not np.isfinite(delta):
             raise ConfigError(f"DRIVE angle: expected a finite number of degrees, got {delta_deg!r}")
         sp = self.limits.check_speed(speed_pct, "DRIVE")
-        now = self.where().joints
-        self.limits.check_joint(int(joint), now[joint - 1] + delta, f"DRIVE {joint}, {delta:g}")
-        dq = np.zeros(6)
-        dq[joint - 1] = delta
-        timeout = self.limits.joint_timeout_s(dq, self._speed_pct, drive_pct=sp) + self.timeout_s
-        self._motion(self.dialect.command("drive", joint=int(joint), deg=delta, speed=sp), timeout)
+        with self._locked("DRIVE"):
+            now = np.asarray(self._where_locked().joints)
+            what = f"DRIVE {joint}, {delta:g}"
+            self.limits.check_joint(int(joint), now[joint - 1] + delta, what)
+            goal = now.copy()
+            goal[joint - 1] += delta
+            self.limits.check_position(self.kinematics.tool(goal)[:3, 3], what)
+            dq = goal - now
+            timeout = self.limits.joint_timeout_s(dq, self._speed_locked(), drive_pct=sp)
+            self._motion_locked(self.dialect.command("drive", joint=int(joint), deg=delta, speed=sp), timeout,
+                                self._arrived_at_joints(goal))
+
+    def ready_pose(self) -> np.ndarray:
+        """base_H_T (4, 4) at VAL's READY position (the arm straight up), from the driver's kinematics."""
+        return self.kinematics.tool(self.limits.ready_joints_deg)
 
     def ready(self) -> None:
-        """``DO READY``: to VAL's READY position (arm straight up)."""
-        now = np.asarray(self.where().joints)
-        timeout = self.limits.joint_timeout_s(np.asarray(self.limits.ready_joints_deg) - now, self._speed_pct) + self.timeout_s
-        self._motion(self.dialect.command("ready"), timeout)
-
-    def abort(self) -> None:
-        """``ABORT``: stop a motion that another thread is waiting on, or send ABORT to an idle controller.
-
-        Never waits for the command lock while a motion is in flight: the line goes out under the write
-        lock, and the waiting motion raises ``MotionAborted``. ``DeviceTimeout`` if the motion does not
-        end within ``timeout_s``.
-        """
-        cmd = self.dialect.command("abort")
-        deadline = time.monotonic() + self.timeout_s
-        while True:
-            with self._write_lock:
-                in_motion = self._motion_active
-                if in_motion:
-                    self._abort_sent.set()
-                    try:
-                        self._port().write(self.dialect.encode_line(cmd))
-                    except (serial.SerialException, OSError) as exc:
-                        raise DeviceError(f"writing {cmd!r}: {exc}") from exc
-            if in_motion:
-                if not self._motion_done.wait(timeout=max(0.0, deadline - time.monotonic())):
-                    raise DeviceTimeout(f"ABORT: the motion did not end within {self.timeout_s:g} s")
-                return
-            if self._cmd_lock.acquire(timeout=0.01):
-                try:
-                    self._expect_nothing(self._exchange_locked(cmd), cmd)
-                finally:
-                    self._cmd_lock.release()
-                return
-            if time.monotonic() >= deadline:
-                raise DeviceTimeout(f"ABORT: another command held the line for {self.timeout_s:g} s")
+        """``DO READY``: to VAL's READY position (arm straight up); ``LimitError`` if READY's tool point
+        lies outside the workspace (nothing sent)."""
+        goal = np.asarray(self.limits.ready_joints_deg, dtype=float)
+        self.limits.check_position(self.ready_pose()[:3, 3], "READY")
+        with self._locked("READY"):
+            now = np.asarray(self._where_locked().joints)
+            timeout = self.limits.joint_timeout_s(goal - now, self._speed_locked())
+            self._motion_locked(self.dialect.command("ready"), timeout, self._arrived_at_joints(goal))

@@ -19,6 +19,7 @@ __all__ = [
     "JointLimit",
     "InvalidArgument",
     "CommandRejected",
+    "ProgramRunning",
     "ERROR_CLASSES",
 ]
 
@@ -68,6 +69,11 @@ class InvalidArgument(ControllerError):
 
 class CommandRejected(ControllerError):
     """The controller did not understand the command line."""
+
+
+class ProgramRunning(DeviceError):
+    """The controller prompts with its program prompt (``*``): a VAL program is running and the
+    terminal's commands wait or are refused. Stop the program on the controller first."""
 
 
 #: Class names usable in a dialect's error table.

@@ -42,6 +42,9 @@ class ValLimits:
     assumed to reach; with ``timeout_factor`` and ``timeout_margin_s`` they bound the wait for the prompt.
     ``assume_speed_pct``: the SPEED assumed before the driver has set one. ``calibrate_s``: CAL's duration.
     ``ready_joints_deg``: the joints of VAL's READY position (to time ``DO READY``).
+    ``arrival_tol_mm`` / ``arrival_tol_deg`` / ``arrival_tol_joint_deg``: how close the WHERE after a
+    motion must be to its target for the motion to count as complete (the prompt alone can be faked by
+    one noise byte).
     """
 
     workspace_mm: tuple[tuple[float, float], ...] = ((-600.0, 600.0), (-600.0, 600.0), (0.0, 1000.0))
@@ -55,6 +58,9 @@ class ValLimits:
     timeout_margin_s: float = 2.0
     calibrate_s: float = 20.0
     ready_joints_deg: tuple[float, ...] = VAL_READY_DEG
+    arrival_tol_mm: float = 1.0
+    arrival_tol_deg: float = 0.5
+    arrival_tol_joint_deg: float = 0.05
 
     def __post_init__(self):
         def pairs(name, n):
@@ -74,7 +80,8 @@ class ValLimits:
             raise ConfigError(f"limits.max_speed_pct: expected 0 < pct <= 100, got {self.max_speed_pct!r}")
         if not 0 < self.assume_speed_pct <= 100:
             raise ConfigError(f"limits.assume_speed_pct: expected 0 < pct <= 100, got {self.assume_speed_pct!r}")
-        for nm in ("cart_speed_mm_s", "rot_speed_deg_s", "timeout_factor", "calibrate_s"):
+        for nm in ("cart_speed_mm_s", "rot_speed_deg_s", "timeout_factor", "calibrate_s", "arrival_tol_mm",
+                   "arrival_tol_deg", "arrival_tol_joint_deg"):
             if not getattr(self, nm) > 0:
                 raise ConfigError(f"limits.{nm}: expected a positive number, got {getattr(self, nm)!r}")
         if not self.timeout_margin_s >= 0:

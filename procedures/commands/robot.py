@@ -1,4 +1,8 @@
-"""``selfview robot``: command the PUMA 260 over VAL-II (a real controller's terminal port or the simulator)."""
+"""``selfview robot``: command the PUMA 260 over VAL-II (a real controller's terminal port or the simulator).
+
+Every motion (move, moves, appro, depart, drive, ready) goes through the engine: its plan is checked
+against the limits first, and on any error or Ctrl-C the engine writes ABORT (confirmed or reported
+as not) before the command ends (exit 130 for Ctrl-C)."""
 
 from __future__ import annotations
 
@@ -56,6 +60,8 @@ def register(sub):
     p.add_argument("--baud", type=int, default=9600, help="baud rate of a real serial port (default 9600)")
     p.add_argument("--dialect", default=None, metavar="DIALECT.yaml", help="controller dialect (echo, prompt, error texts, ...)")
     p.add_argument("--limits", default=None, metavar="LIMITS.yaml", help="client-side limits (workspace_mm, max_speed_pct, ...)")
+    p.add_argument("--kinematics", default=None, metavar="KIN.yaml",
+                   help="the arm's link lengths and TOOL (tool_mm), to check WHERE's pose against its joints")
     p.add_argument("--max-speed", type=float, default=None, metavar="PCT", help="override the limits' maximum speed")
     actions = p.add_subparsers(dest="action", metavar="ACTION")
     common = argparse.ArgumentParser(add_help=False)
@@ -81,44 +87,76 @@ def make_robot(args):
     """The driver the arguments describe (not connected)."""
     from dataclasses import replace
 
-    from selfview.drivers.puma_val_serial import PumaVAL, ValLimits, load_dialect
+    from selfview.drivers.puma_val_serial import PumaKinematics, PumaVAL, ValLimits, load_dialect
 
     dialect = load_dialect(args.dialect) if args.dialect else None
     limits = ValLimits.load(args.limits) if args.limits else ValLimits()
+    kinematics = PumaKinematics.load(args.kinematics) if getattr(args, "kinematics", None) else None
     if args.max_speed is not None:
         limits = replace(limits, max_speed_pct=args.max_speed)
-    return PumaVAL(args.url, dialect=dialect, limits=limits, timeout_s=args.timeout, baudrate=args.baud)
+    return PumaVAL(args.url, dialect=dialect, limits=limits, kinematics=kinematics, timeout_s=args.timeout,
+                   baudrate=args.baud)
+
+
+def _motion_step(args):
+    """The engine step of a motion action."""
+    from selfview.procedures.engine import Step
+
+    act = args.action
+    if act == "ready":
+        return Step("ready")
+    if act in ("move", "moves"):
+        return Step(act, {"target": _target(args.target, act.upper())})
+    if act == "appro":
+        return Step("appro", {"target": _target(args.target, "APPRO"), "distance_mm": _number(args.distance, "APPRO distance")})
+    if act == "depart":
+        return Step("depart", {"distance_mm": _number(args.distance, "DEPART distance")})
+    return Step("drive", {"joint": args.joint, "deg": _number(args.deg, "DRIVE angle"),
+                          "speed": _number(args.speed, "DRIVE speed")})
+
+
+def _run_motion(robot, step) -> None:
+    """One motion through the engine: plan checked first; ABORT and a report on any error or Ctrl-C."""
+    import sys
+
+    from selfview.procedures.engine import CellDevices, Engine
+
+    engine = Engine(CellDevices(robot=robot), progress=lambda msg: print(f"selfview robot: {msg}", file=sys.stderr))
+    engine.run(lambda e: e.execute(step), [step])
 
 
 def run(args) -> int:
     robot = make_robot(args)
     act = args.action
     out: dict = {"command": act, "url": args.url}
+    step = _motion_step(args) if act in ("move", "moves", "appro", "depart", "drive", "ready") else None
+    if act == "abort":  # the controller may be busy: no resynchronising CR, ABORT first
+        robot.connect(sync=False)
+        try:
+            res = robot.abort()
+        finally:
+            robot.close()
+        out["abort"] = {"written": res.written, "confirmed": res.confirmed, "detail": res.detail}
+        if args.json:
+            print_json(out)
+        else:
+            print(str(res))
+        return 0 if res.confirmed else 4
     with robot:
-        if act == "speed":
+        if step is not None:
+            _run_motion(robot, step)
+        elif act == "speed":
             robot.speed(_number(args.pct, "SPEED"))
             out["speed_pct"] = float(args.pct)
         elif act == "calibrate":
             robot.calibrate()
-        elif act == "ready":
-            robot.ready()
-        elif act in ("move", "moves"):
-            getattr(robot, act)(_target(args.target, act.upper()))
-        elif act == "appro":
-            robot.appro(_target(args.target, "APPRO"), _number(args.distance, "APPRO distance"))
-        elif act == "depart":
-            robot.depart(_number(args.distance, "DEPART distance"))
-        elif act == "drive":
-            robot.drive(args.joint, _number(args.deg, "DRIVE angle"), _number(args.speed, "DRIVE speed"))
-        elif act == "abort":
-            robot.abort()
         elif act == "here":
             out["location"] = {"name": args.name, "pose": list(robot.here(args.name))}
         elif act == "point":
             out["location"] = {"name": args.name, "pose": list(robot.location(args.name))}
         elif act == "define":
             robot.define(args.name, tuple(_number(v, f"{args.name} {k}") for v, k in zip(args.pose, "XYZOAT")))
-        if act not in ("abort", "speed", "define"):
+        if act not in ("speed", "define"):
             w = robot.where()
             out["where"] = w.to_dict()
         else:

@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from selfview.procedures.cli import main
@@ -59,7 +60,7 @@ def test_mock_robot_and_robot_where_json(mock_robot, capsys):
     capsys.readouterr()
     out = run_json(capsys, "robot", "--url", url, "move", "above", "--json")
     assert out["where"]["pose"]["z"] == pytest.approx(80.0, abs=0.01)
-    out = run_json(capsys, "robot", "--url", url, "moves", "340", "10", "90", "0", "180", "0", "--json")
+    out = run_json(capsys, "robot", "--url", url, "moves", "340", "10", "90", "90", "90", "0", "--json")
     assert [out["where"]["pose"][k] for k in "xyz"] == pytest.approx([340.0, 10.0, 90.0], abs=0.01)
 
     proc.send_signal(signal.SIGINT)
@@ -68,7 +69,13 @@ def test_mock_robot_and_robot_where_json(mock_robot, capsys):
 
 
 def test_robot_cli_reports_an_unreachable_controller(capsys):
-    assert main(["robot", "--url", "socket://127.0.0.1:1", "--timeout", "0.2", "where"]) == 4
+    import socket
+
+    # a port the OS gave us, kept bound and not listening: a connection is refused, deterministically
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as held:
+        held.bind(("127.0.0.1", 0))
+        port = held.getsockname()[1]
+        assert main(["robot", "--url", f"socket://127.0.0.1:{port}", "--timeout", "0.2", "where"]) == 4
     assert "cannot open" in capsys.readouterr().err
 
 
@@ -94,3 +101,58 @@ def test_robot_cli_pty_in_process(cell, capsys):
         assert "SPEED 90" in capsys.readouterr().out
         assert c.speed_pct == 90
     assert [ln for ln in c.received if ln.startswith("SPEED")] == ["SPEED 90"]
+
+
+def test_robot_cli_motion_goes_through_the_engine_and_ctrl_c_aborts_it(cell, capsys):
+    import threading
+
+    from selfview.mocks.val_controller import ValController
+    from selfview.mocks.world import SimWorld
+
+    with ValController(SimWorld(cell, seed=2), time_scale=1.0, calibrated=True, speed_pct=5.0) as c:
+        c.start_pty()
+        target = c.locations()["ABOVE"]
+        main_thread = threading.get_ident()
+        # Ctrl-C as soon as the arm moves (an event, not a clock)
+        ctrl_c = threading.Thread(target=lambda: c.moving.wait(30.0) and signal.pthread_kill(main_thread, signal.SIGINT))
+        ctrl_c.start()
+        try:
+            code = main(["robot", "--url", c.url, "move", "above"])
+        finally:
+            ctrl_c.join(30.0)
+        err = capsys.readouterr().err
+        assert code == 130, err
+        assert "this is a bug" not in err and "ABORT sent and confirmed" in err
+        assert "ABORT" in c.received and not c.moving.is_set()
+        assert np.linalg.norm(c.base_H_T[:3, 3] - target[:3, 3]) > 1.0  # stopped short of its target
+
+
+def test_robot_cli_with_the_reply_line_stalled_mid_motion_writes_abort_and_gives_up_in_its_bound(cell, capsys, tmp_path):
+    from selfview.mocks.val_controller import ValController
+    from selfview.mocks.world import SimWorld
+
+    limits = tmp_path / "limits.yaml"
+    limits.write_text("timeout_factor: 1.0\ntimeout_margin_s: 0.5\n")
+    with ValController(SimWorld(cell, seed=2), time_scale=0.0, calibrated=True) as c:
+        c.start_pty()
+        c.inject("stall")  # the reply line goes dead as the motion starts
+        code = main(["robot", "--url", c.url, "--timeout", "0.5", "--limits", str(limits), "move", "above"])
+        err = capsys.readouterr().err
+        assert code == 4, err
+        assert "ABORT sent, NOT confirmed" in err
+        rx = c.received
+        # the wait came from the speed read from the controller, and ABORT followed the motion directly
+        assert rx.index("STATUS") < rx.index("DO MOVE above") < rx.index("ABORT")
+        assert "" not in rx[rx.index("DO MOVE above") : rx.index("ABORT")]  # no resynchronising CR first
+
+
+def test_robot_cli_abort_while_another_client_moves_the_arm(cell, capsys):
+    from selfview.mocks.val_controller import ValController
+    from selfview.mocks.world import SimWorld
+
+    with ValController(SimWorld(cell, seed=2), time_scale=0.0) as c:
+        c.start_pty()
+        assert main(["robot", "--url", c.url, "abort", "--json"]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out["abort"]["written"] and out["abort"]["confirmed"]
+        assert c.received == ["ABORT"]  # ABORT first: no CR before it

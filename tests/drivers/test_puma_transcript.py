@@ -24,25 +24,55 @@ from selfview.drivers.puma_val_serial import (
     ValLimits,
     load_dialect,
 )
+from selfview.drivers.puma_val_serial import OAT_CONVENTIONS, ProgramRunning
 from selfview.errors import ConfigError, DeviceTimeout, LimitError, ProtocolError
-from selfview.geometry import H_from_xyzoat, R_from_rpy, rotation_angle
+from selfview.geometry import H_from_xyzoat, R_from_rpy, inv_H, rotation_angle, trans
+from selfview.mocks.puma260 import READY_DEG, Puma260, make_tool
+from selfview.mocks.val_controller import TOOL_LENGTH_MM
 
 CRLF = b"\r\n"
 HDR = b"        X        Y        Z        O        A        T"
 JHDR = b"      JT1      JT2      JT3      JT4      JT5      JT6"
+VAL = ValDialect()
+KIN = Puma260()  # the simulator's kinematics, not the driver's: the transcripts are built independently
+TOOL = make_tool(TOOL_LENGTH_MM)
 
 
 def vals(*v) -> bytes:
     return "".join(f"{x:9.2f}" for x in v).encode()
 
 
-POSE = (350.0, 20.0, 100.0, 0.0, 180.0, 0.0)
-JOINTS = (24.07, -143.39, 24.5, -180.0, 61.11, -155.93)
+def pose_of(joints) -> tuple[float, ...]:
+    """The tool point's pose (VAL's O/A/T) that a controller prints beside ``joints``, to 2 decimals."""
+    return tuple(round(v, 2) for v in VAL.H_to_pose(KIN.fk(joints) @ TOOL))
 
 
-def where_reply(pose=POSE, joints=JOINTS, *, echo=True, eol=CRLF) -> bytes:
-    head = b"WHERE" + eol if echo else eol
-    return head + eol.join([HDR, vals(*pose), JHDR, vals(*joints)]) + eol + b"."
+def joints_at(H, near=None) -> tuple[float, ...]:
+    return tuple(round(float(v), 2) for v in KIN.ik(np.asarray(H) @ inv_H(TOOL), near if near is not None else JOINTS))
+
+
+# every angle non-zero, so a convention that drops or swaps one cannot pass
+JOINTS = (24.07, -143.39, 24.5, -170.12, 61.11, -155.93)
+POSE = pose_of(JOINTS)
+
+
+def where_reply(joints=JOINTS, pose=None, *, eol=CRLF) -> bytes:
+    """What follows WHERE's line end: the pose and joints (the pose from the joints unless given)."""
+    pose = pose_of(joints) if pose is None else pose
+    return eol + eol.join([HDR, vals(*pose), JHDR, vals(*joints)]) + eol + b"."
+
+
+def typed(line: bytes, reply) -> list:
+    """A command typed without its CR (echoed back), then the CR and the reply."""
+    return [(line, line), (b"\r", reply)]
+
+
+def where(joints=JOINTS, pose=None) -> list:
+    return typed(b"WHERE", where_reply(joints, pose))
+
+
+def status(pct) -> list:
+    return typed(b"STATUS", CRLF + b"Program: none\r\nMonitor speed: " + str(pct).encode() + b"\r\nArm power: on\r\n.")
 
 
 class ScriptedPort:
@@ -52,6 +82,7 @@ class ScriptedPort:
     def __init__(self, script):
         self.script = list(script)
         self.written: list[bytes] = []
+        self.write_times: list[float] = []
         self.timeout = 0.01
         self._rx = bytearray()
         self._pending: list[tuple[float, bytes]] = []
@@ -60,6 +91,7 @@ class ScriptedPort:
     def write(self, data: bytes) -> int:
         with self._cv:
             self.written.append(bytes(data))
+            self.write_times.append(time.monotonic())
             if not self.script:
                 raise AssertionError(f"unscripted write {data!r}")
             expected, reply = self.script.pop(0)
@@ -159,73 +191,129 @@ def test_command_before_connect_is_a_device_error():
 # --- WHERE in its variants -----------------------------------------------------------------------------
 def check_where(w):
     assert w.pose == POSE and w.joints == JOINTS
-    np.testing.assert_allclose(w.base_H_T, H_from_xyzoat(POSE), atol=1e-12)
+    assert all(v != 0 for v in w.pose + w.joints)
+    np.testing.assert_allclose(w.base_H_T, VAL.pose_to_H(POSE), atol=1e-12)
 
 
-def test_where_with_echo_and_crlf():
-    r, port = robot([(b"WHERE\r", where_reply())])
+def test_where_typed_echoed_then_executed():
+    r, port = robot(where())
     check_where(r.where())
-    assert port.written == [b"\r", b"WHERE\r"]
+    assert port.written == [b"\r", b"WHERE", b"\r"]
 
 
 def test_where_without_echo_and_with_lf_endings():
-    r, port = robot([(b"WHERE\r", where_reply(echo=False, eol=b"\n"))])
+    d = ValDialect(echo=False, controller_eol="\n")
+    r, port = robot([(b"WHERE\r", where_reply(eol=b"\n"))], dialect=d)
     check_where(r.where())
+    assert port.written == [b"\r", b"WHERE\r"]  # no echo to compare: typed and executed at once
 
 
 def test_where_with_a_pause_inside_a_number_is_not_a_prompt():
     whole = where_reply()
-    cut = whole.index(b"350.") + 4  # the line stops at "350." for far longer than the prompt silence
-    r, port = robot([(b"WHERE\r", [(0.0, whole[:cut]), (0.08, whole[cut:])])])
+    cut = whole.index(b"337.") + 4  # the line stops at "337." for far longer than the prompt silence
+    r, port = robot([(b"WHERE", b"WHERE"), (b"\r", [(0.0, whole[:cut]), (0.08, whole[cut:])])])
     check_where(r.where())
 
 
 def test_prompt_right_after_the_last_number():
     reply = where_reply()
     assert reply.endswith(b"-155.93\r\n.")
-    r, _ = robot([(b"WHERE\r", [(0.0, reply[:-1]), (0.03, reply[-1:])])])
+    r, _ = robot([(b"WHERE", b"WHERE"), (b"\r", [(0.0, reply[:-1]), (0.03, reply[-1:])])])
     check_where(r.where())
 
 
 @pytest.mark.parametrize(
     "old, new, match",
-    [(b"   350.00", b"  350.00", "fields of 9 characters"), (b"        Z", b"       Z", "expected the header")],
+    [(b"   337.04", b"  337.04", "fields of 9 characters"), (b"        Z", b"       Z", "expected the header")],
     ids=["in a value", "in a header"],
 )
 def test_where_with_a_dropped_character_is_a_protocol_error_then_resync(old, new, match):
     bad = where_reply().replace(old, new, 1)
-    r, port = robot([(b"WHERE\r", bad), SYNC, (b"WHERE\r", where_reply())])
+    r, port = robot([*typed(b"WHERE", bad), SYNC, *where()])
     with pytest.raises(ProtocolError, match=match):
         r.where()
     check_where(r.where())
-    assert port.written == [b"\r", b"WHERE\r", b"\r", b"WHERE\r"]
+    assert port.written == [b"\r", b"WHERE", b"\r", b"\r", b"WHERE", b"\r"]
 
 
 def test_garbage_bytes_are_a_protocol_error_then_resync():
     bad = bytearray(where_reply())
     bad[30] ^= 0x80
-    r, port = robot([(b"WHERE\r", bytes(bad)), SYNC, (b"WHERE\r", where_reply())])
+    r, port = robot([*typed(b"WHERE", bytes(bad)), SYNC, *where()])
     with pytest.raises(ProtocolError, match="garbage"):
         r.where()
     check_where(r.where())
 
 
 def test_missing_prompt_is_a_protocol_error():
-    r, port = robot([(b"WHERE\r", where_reply()[:-1] + b"#"), SYNC, (b"WHERE\r", where_reply())])
+    r, port = robot([*typed(b"WHERE", where_reply()[:-1] + b"#"), SYNC, *where()])
     with pytest.raises(ProtocolError, match="without the prompt"):
         r.where()
     check_where(r.where())
-    assert port.written[-2:] == [b"\r", b"WHERE\r"]
+    assert port.written[-3:] == [b"\r", b"WHERE", b"\r"]
 
 
 def test_silence_is_a_device_timeout_then_resync():
-    r, port = robot([(b"WHERE\r", b""), SYNC, (b"WHERE\r", where_reply())])
-    t0 = time.monotonic()
+    r, port = robot([*typed(b"WHERE", b""), SYNC, *where()])
     with pytest.raises(DeviceTimeout, match="no reply to 'WHERE'"):
         r.where()
-    assert time.monotonic() - t0 < r.timeout_s + 1.0  # ends within its timeout (+ slack), never hangs
     check_where(r.where())
-    assert port.written == [b"\r", b"WHERE\r", b"\r", b"WHERE\r"]
+    assert port.written == [b"\r", b"WHERE", b"\r", b"\r", b"WHERE", b"\r"]
+
+
+def test_the_program_prompt_is_named_instead_of_a_timeout():
+    r, port = robot([*typed(b"WHERE", CRLF + b"*")], timeout_s=5.0)
+    t0 = time.monotonic()
+    with pytest.raises(ProgramRunning, match="program is running"):
+        r.where()
+    assert time.monotonic() - t0 < r.timeout_s  # said at once, not after the 5 s wait
+
+
+# --- WHERE's pose against the kinematics of its own joints ---------------------------------------------
+def swapped(pose, i, a, b) -> tuple:
+    """``pose`` with two digits of value ``i`` swapped (a digit swap on the line)."""
+    txt = list(f"{pose[i]:.2f}")
+    txt[a], txt[b] = txt[b], txt[a]
+    return pose[:i] + (float("".join(txt)),) + pose[i + 1 :]
+
+
+@pytest.mark.parametrize("where_bad", ["pose", "joints"])
+def test_a_digit_swap_in_where_is_read_again(where_bad):
+    bad_pose = swapped(POSE, 0, 1, 2) if where_bad == "pose" else POSE  # 337.04 -> 373.04
+    bad_joints = swapped(JOINTS, 1, 1, 2) if where_bad == "joints" else JOINTS  # -143.39 -> -134.39
+    r, port = robot([*where(bad_joints, bad_pose), *where()])
+    check_where(r.where())
+    assert port.written.count(b"WHERE") == 2
+
+
+def test_where_that_never_agrees_with_its_joints_is_refused():
+    bad = swapped(POSE, 2, 1, 2)  # z 102.64 -> 120.64
+    r, port = robot([*where(JOINTS, bad)] * 3 + [SYNC, *where()])
+    with pytest.raises(ProtocolError, match="from the kinematics of its own joint angles"):
+        r.where()
+    check_where(r.where())
+
+
+def test_a_wrong_oat_convention_is_named_on_the_first_where():
+    # a controller printing O/A/T the V+ way, a driver expecting VAL's: refused before anything moves
+    vplus = ValDialect(euler=OAT_CONVENTIONS["vplus"])
+    pose = tuple(round(v, 2) for v in vplus.H_to_pose(KIN.fk(JOINTS) @ TOOL))
+    r, _ = robot([*where(JOINTS, pose)] * 3)
+    with pytest.raises(ConfigError, match="'vplus' convention.*euler: vplus"):
+        r.where()
+    r2, _ = robot(where(JOINTS, pose), dialect=vplus)
+    assert r2.where().joints == JOINTS
+
+
+def test_the_where_layout_is_dialect_data():
+    # a controller that prints a seventh column (here a hand opening) in the joint line
+    d = ValDialect(joint_header=("JT1", "JT2", "JT3", "JT4", "JT5", "JT6", "HAND"))
+    reply = CRLF + CRLF.join([HDR, vals(*POSE), JHDR + b"     HAND", vals(*JOINTS, 12.5)]) + CRLF + b"."
+    r, _ = robot(typed(b"WHERE", reply), dialect=d)
+    check_where(r.where())
+    r2, _ = robot(typed(b"WHERE", reply) + [SYNC])
+    with pytest.raises(ProtocolError, match="expected the header"):
+        r2.where()  # the default layout refuses it, naming why
 
 
 # --- error lines ----------------------------------------------------------------------------------------
@@ -237,7 +325,7 @@ def test_error_lines_map_through_the_table():
         (b"*Unrecognized command*", CommandRejected),
         (b"*Bad karma*", ControllerError),
     ]
-    script = [(b"SPEED 10\r", b"SPEED 10\r\n" + line + b"\r\n.") for line, _ in cases]
+    script = [x for line, _ in cases for x in typed(b"SPEED 10", CRLF + line + b"\r\n.")]
     r, port = robot(script)
     for line, cls in cases:
         with pytest.raises(cls) as ei:
@@ -247,7 +335,7 @@ def test_error_lines_map_through_the_table():
 
 
 def test_asynchronous_error_line_is_raised_before_the_next_command_is_sent():
-    r, port = robot([(b"WHERE\r", where_reply())])
+    r, port = robot(where())
     port.push(b"\r\n*Arm power off*\r\n.")
     with pytest.raises(ArmPowerOff) as ei:
         r.where()
@@ -258,51 +346,94 @@ def test_asynchronous_error_line_is_raised_before_the_next_command_is_sent():
 
 # --- commands, byte for byte ---------------------------------------------------------------------------
 def test_calibrate_answers_the_question_with_yes():
-    r, port = robot([(b"CAL\r", b"CAL\r\nAre you sure (Y/N)? "), (b"Y\r", [(0.0, b"Y\r\n"), (0.05, b".")])])
+    script = [*where(), (b"CAL", b"CAL"), (b"\r", CRLF + b"Are you sure (Y/N)? "), (b"Y", b"Y"), (b"\r", [(0.0, CRLF), (0.05, b".")])]
+    r, port = robot(script)
     r.calibrate()
-    assert port.written == [b"\r", b"CAL\r", b"Y\r"]
+    assert port.written[-4:] == [b"CAL", b"\r", b"Y", b"\r"]
 
 
 def test_calibrate_without_echo():
-    r, port = robot([(b"CAL\r", b"\r\nAre you sure (Y/N)? "), (b"Y\r", b"\r\n.")])
+    d = ValDialect(echo=False)
+    r, port = robot([(b"WHERE\r", where_reply()), (b"CAL\r", b"\r\nAre you sure (Y/N)? "), (b"Y\r", b"\r\n.")], dialect=d)
     r.calibrate()
     assert port.written[-2:] == [b"CAL\r", b"Y\r"]
 
 
+def test_calibrate_and_ready_outside_the_workspace_are_refused():
+    lim = ValLimits(workspace_mm=((-600, 600), (-600, 600), (0, 900)))  # READY's tool point is at z = 965
+    r, port = robot([*where(READY_DEG)], limits=lim)
+    with pytest.raises(LimitError, match="READY"):
+        r.ready()
+    with pytest.raises(LimitError, match="CAL"):
+        r.calibrate()  # from READY, outside this box
+    assert b"CAL" not in port.written and not any(w.startswith(b"DO READY") for w in port.written)
+
+
 def test_unexpected_question_is_a_protocol_error_and_resync_answers_it():
-    r, port = robot([(b"SPEED 20\r", b"SPEED 20\r\nReally (Y/N)? "), (b"\r", b"\r\n."), (b"SPEED 20\r", b"SPEED 20\r\n.")])
+    script = [*typed(b"SPEED 20", CRLF + b"Really (Y/N)? "), (b"\r", b"\r\n."), *typed(b"SPEED 20", b"\r\n."), *status(20)]
+    r, port = robot(script)
     with pytest.raises(ProtocolError, match="unexpected question"):
         r.speed(20)
     r.speed(20)
-    assert port.written == [b"\r", b"SPEED 20\r", b"\r", b"SPEED 20\r"]
 
 
-def test_speed_and_its_limit():
-    r, port = robot([(b"SPEED 30\r", b"SPEED 30\r\n."), (b"SPEED 12.5\r", b"\r\n.")], limits=ValLimits(max_speed_pct=40))
+def test_speed_is_read_back_and_limited():
+    script = [*typed(b"SPEED 30", b"\r\n."), *status(30), *typed(b"SPEED 12.5", b"\r\n."), *status(12.5)]
+    r, port = robot(script, limits=ValLimits(max_speed_pct=40))
     r.speed(30)
     r.speed(12.5)
     for bad in (41, 0, -5, float("nan")):
         with pytest.raises(LimitError, match="nothing was sent"):
             r.speed(bad)
-    assert port.written == [b"\r", b"SPEED 30\r", b"SPEED 12.5\r"]
+    assert [w for w in port.written if w.startswith(b"SPEED")] == [b"SPEED 30", b"SPEED 12.5"]
+
+
+def test_a_speed_the_controller_does_not_hold_is_an_error():
+    r, port = robot([*typed(b"SPEED 20", b"\r\n."), *status(2)])
+    with pytest.raises(ProtocolError, match="reads back SPEED 2, not 20"):
+        r.speed(20)
+
+
+def test_an_echo_that_differs_after_its_first_word_is_erased_before_it_runs():
+    # 'SPEED 02' for 'SPEED 20': the first word matches, the line does not; CTRL-U, never CR
+    r, port = robot([(b"SPEED 20", b"SPEED 02"), (b"\x15", b""), SYNC, *typed(b"SPEED 20", b"\r\n."), *status(20)])
+    with pytest.raises(ProtocolError, match="echo of 'SPEED 20' came back as b'SPEED 02'.*nothing ran"):
+        r.speed(20)
+    assert port.written == [b"\r", b"SPEED 20", b"\x15"]  # no CR after the corrupted line
+    r.speed(20)
+
+
+def test_a_corrupted_motion_command_never_runs():
+    p1 = VAL.pose_to_H(POSE)
+    script = [*typed(b"POINT p1", point_reply(POSE)), (b"\r", b"\r\n."), *where(), *status(20)]
+    script += [(b"DO APPRO p1, 50", b"DO APPRO p1, 20"), (b"\x15", b"")]
+    r, port = robot(script)
+    with pytest.raises(ProtocolError, match="nothing ran"):
+        r.appro("p1", 50)
+    assert port.written[-2:] == [b"DO APPRO p1, 50", b"\x15"]  # no CR, and no ABORT: nothing started
+    assert p1 is not None
 
 
 def test_speed_with_unexpected_text_is_a_protocol_error():
-    r, port = robot([(b"SPEED 30\r", b"SPEED 30\r\nhello\r\n."), SYNC])
+    r, port = robot([*typed(b"SPEED 30", b"\r\nhello\r\n."), SYNC])
     with pytest.raises(ProtocolError, match="unexpected reply"):
         r.speed(30)
 
 
-def point_reply(name: bytes, pose, *, echo=True) -> bytes:
-    return (name if echo else b"") + CRLF + HDR + CRLF + vals(*pose) + CRLF + b"Change? "
+def point_reply(pose) -> bytes:
+    return CRLF + HDR + CRLF + vals(*pose) + CRLF + b"Change? "
+
+
+def define_line(name: str, pose) -> bytes:
+    return VAL.command("define", name=name, **dict(zip("xyzoat", VAL.H_to_pose(VAL.pose_to_H(pose))))).encode()
 
 
 def test_define_from_pose_and_from_matrix():
-    line = b"DO SET p1 = TRANS(350, 20, 100, 0, 90, 0)\r"
-    r, port = robot([(line, line[:-1] + b"\r\n."), (line, b"\r\n.")])
-    r.define("p1", (350, 20, 100, 0, 90, 0))
-    r.define("p1", H_from_xyzoat((350, 20, 100, 0, 90, 0)))
-    assert port.written == [b"\r", line, line]
+    line = b"DO SET p1 = TRANS(350, 20, 100, 30, 60, 40)"
+    r, port = robot([*typed(line, b"\r\n."), *typed(line, b"\r\n.")])
+    r.define("p1", (350, 20, 100, 30, 60, 40))
+    r.define("p1", VAL.pose_to_H((350, 20, 100, 30, 60, 40)))
+    assert port.written == [b"\r", line, b"\r", line, b"\r"]
 
 
 def test_define_rejects_bad_names_poses_and_points_outside_the_box():
@@ -314,75 +445,89 @@ def test_define_rejects_bad_names_poses_and_points_outside_the_box():
     with pytest.raises(ConfigError, match="not a rigid transform"):
         r.define("p1", np.diag([1.0, 1.0, 2.0, 1.0]))
     with pytest.raises(LimitError, match="x = 900.00 mm"):
-        r.define("p1", (900, 0, 100, 0, 180, 0))
+        r.define("p1", (900, 0, 100, 30, 60, 40))
     assert port.written == [b"\r"]
 
 
 def test_point_reads_a_location_and_answers_change_with_an_empty_line():
-    r, port = robot([(b"POINT p1\r", point_reply(b"POINT p1", POSE)), (b"\r", b"\r\n.")])
+    r, port = robot([*typed(b"POINT p1", point_reply(POSE)), (b"\r", b"\r\n.")])
     assert r.location("p1") == POSE
-    assert port.written == [b"\r", b"POINT p1\r", b"\r"]
+    assert port.written == [b"\r", b"POINT p1", b"\r", b"\r"]
 
 
 def test_here_records_and_returns_the_pose():
-    r, port = robot([(b"HERE p2\r", point_reply(b"HERE p2", POSE, echo=False)), (b"\r", b"\r\n.")])
+    r, port = robot([*typed(b"HERE p2", point_reply(POSE)), (b"\r", b"\r\n.")])
     assert r.here("p2") == POSE
 
 
-def motion_script(cmd: bytes, *, prefix=()):
-    return [*prefix, (b"WHERE\r", where_reply()), (cmd, [(0.0, cmd[:-1] + CRLF), (0.05, b".")])]
+# --- motions ------------------------------------------------------------------------------------------------
+def point(name: bytes, pose=POSE) -> list:
+    return [*typed(b"POINT " + name, point_reply(pose)), (b"\r", b"\r\n.")]
 
 
-def test_move_to_a_defined_location():
-    define = b"DO SET p1 = TRANS(350, 20, 100, 0, 180, 0)\r"
-    r, port = robot(motion_script(b"DO MOVE p1\r", prefix=[(define, b"\r\n.")]))
-    r.define("p1", POSE)
+def motion(cmd: bytes, arrive=JOINTS, *, start=JOINTS, speed=20) -> list:
+    """WHERE (start), STATUS (once), the motion (prompt after 50 ms), CR answered, WHERE at the end."""
+    out = [*where(start)]
+    if speed is not None:
+        out += status(speed)
+    out += [(cmd, cmd), (b"\r", [(0.0, CRLF), (0.05, b".")]), (b"\r", b"\r\n."), *where(arrive)]
+    return out
+
+
+def test_move_reads_its_target_from_the_controller_each_time():
+    r, port = robot([*point(b"p1"), *motion(b"DO MOVE p1"), *point(b"p1"), *motion(b"DO MOVE p1", speed=None)])
     r.move("p1")
-    assert port.written == [b"\r", define, b"WHERE\r", b"DO MOVE p1\r"]
+    r.move("p1")
+    assert port.written.count(b"POINT p1") == 2  # never a cached copy
 
 
-def test_move_to_an_unknown_name_reads_it_first_and_moves_to_a_pose_through_the_scratch_location():
-    scratch = b"DO SET svtgt = TRANS(300, 0, 150, 0, 180, 0)\r"
-    script = [(b"POINT far\r", point_reply(b"POINT far", POSE)), (b"\r", b"\r\n.")]
-    script += motion_script(b"DO MOVE far\r")
-    script += motion_script(b"DO MOVES svtgt\r", prefix=[(scratch, b"\r\n.")])
-    r, port = robot(script)
-    r.move("far")
-    r.moves((300, 0, 150, 0, 180, 0))
-    assert port.written[1:] == [b"POINT far\r", b"\r", b"WHERE\r", b"DO MOVE far\r", scratch, b"WHERE\r", b"DO MOVES svtgt\r"]
+def test_a_relocated_target_outside_the_box_is_refused():
+    far = (POSE[0] + 400.0,) + POSE[1:]
+    r, port = robot([*point(b"p1"), *motion(b"DO MOVE p1"), *point(b"p1", far)])
+    r.move("p1")
+    with pytest.raises(LimitError, match="outside the workspace"):
+        r.move("p1")  # re-taught on the controller since: read again, refused
+    assert port.written.count(b"DO MOVE p1") == 1
+
+
+def test_moves_to_a_pose_goes_through_the_scratch_location():
+    target = (300.0, 0.0, 150.0, 90.0, 90.0, 0.0)
+    q = joints_at(VAL.pose_to_H(target))
+    r, port = robot([*typed(define_line("svtgt", target), b"\r\n."), *motion(b"DO MOVES svtgt", arrive=q)])
+    r.moves(target)
+    assert b"DO MOVES svtgt" in port.written
 
 
 def test_appro_depart_drive_ready_bytes():
-    define = b"DO SET p1 = TRANS(350, 20, 100, 0, 180, 0)\r"
-    script = [(define, b"\r\n.")]
-    script += motion_script(b"DO APPRO p1, 30\r")
-    script += motion_script(b"DO DEPART 50\r")
-    script += motion_script(b"DO DRIVE 2, -10.5, 20\r")
-    script += motion_script(b"DO READY\r")
+    goal = VAL.pose_to_H(POSE) @ trans(0, 0, -30)
+    q_appro = joints_at(goal)
+    q_depart = joints_at(VAL.pose_to_H(pose_of(q_appro)) @ trans(0, 0, -50), q_appro)
+    q_drive = tuple(round(v, 2) for v in np.add(q_depart, (0, -10.5, 0, 0, 0, 0)))
+    script = point(b"p1") + motion(b"DO APPRO p1, 30", arrive=q_appro)
+    script += [*where(q_appro), (b"DO DEPART 50", b"DO DEPART 50"), (b"\r", [(0.0, CRLF), (0.05, b".")]), (b"\r", b"\r\n."), *where(q_depart)]
+    script += motion(b"DO DRIVE 2, -10.5, 20", arrive=q_drive, start=q_depart, speed=None)
+    script += motion(b"DO READY", arrive=READY_DEG, start=q_drive, speed=None)
     r, port = robot(script)
-    r.define("p1", POSE)
     r.appro("p1", 30)
     r.depart(50)
     r.drive(2, -10.5, 20)
     r.ready()
-    assert [w for w in port.written if w.startswith(b"DO ") and not w.startswith(b"DO SET")] == [
-        b"DO APPRO p1, 30\r",
-        b"DO DEPART 50\r",
-        b"DO DRIVE 2, -10.5, 20\r",
-        b"DO READY\r",
+    assert [w for w in port.written if w.startswith(b"DO ")] == [
+        b"DO APPRO p1, 30",
+        b"DO DEPART 50",
+        b"DO DRIVE 2, -10.5, 20",
+        b"DO READY",
     ]
 
 
 def test_motion_limits_are_checked_before_sending():
-    define = b"DO SET p1 = TRANS(350, 20, 100, 0, 180, 0)\r"
     lim = ValLimits(workspace_mm=((-400, 400), (-400, 400), (20, 600)), max_speed_pct=30)
-    script = [(define, b"\r\n."), (b"WHERE\r", where_reply()), (b"WHERE\r", where_reply())]
-    r, port = robot(script, limits=lim)
-    r.define("p1", POSE)
-    with pytest.raises(LimitError, match="z = 0.00 mm"):
-        r.appro("p1", -100)  # tool z points down: -100 along it is 100 mm lower
-    with pytest.raises(LimitError, match="z = 700.00 mm"):
-        r.depart(600)  # from z = 100 up by 600 mm
+    low = (POSE[0], POSE[1], 60.0) + POSE[3:]
+    r, port = robot([*point(b"p1", low), *where(), *where()], limits=lim)
+    with pytest.raises(LimitError, match="outside the workspace"):
+        r.appro("p1", -100)  # -100 along a tool z that points down is ~100 mm lower: below z = 20
+    with pytest.raises(LimitError, match=r"DEPART 600: z = 69\d.\d\d mm"):
+        r.depart(600)  # the tool z points (nearly) down: 600 mm back along it is ~590 mm up
     with pytest.raises(LimitError, match="JT1 would reach 224.07"):
         r.drive(1, 200, 10)
     with pytest.raises(LimitError, match="speed 50"):
@@ -390,24 +535,76 @@ def test_motion_limits_are_checked_before_sending():
     with pytest.raises(ConfigError, match="DRIVE joint"):
         r.drive(7, 10, 10)
     with pytest.raises(LimitError, match="x = 500.00"):
-        r.move((500, 0, 100, 0, 180, 0))
+        r.move((500, 0, 100, 90, 90, 0))
     assert not any(w.startswith((b"DO APPRO", b"DO DEPART", b"DO DRIVE", b"DO MOVE")) for w in port.written)
 
 
-def test_idle_abort():
-    r, port = robot([(b"ABORT\r", b"ABORT\r\n.")])
-    r.abort()
-    assert port.written == [b"\r", b"ABORT\r"]
+def test_one_noise_prompt_does_not_end_a_motion():
+    # a '.' at the start of a line 10 ms into the move; the real end comes 0.3 s later
+    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE p1", b"DO MOVE p1")]
+    script += [(b"\r", [(0.0, CRLF), (0.01, b".")])]  # the noise: looks like the prompt
+    script += [(b"\r", [(0.3, b"."), (0.0, CRLF + b".")])]  # our CR waits behind the motion's real end
+    script += where()
+    r, port = robot(script)
+    t0 = time.monotonic()
+    r.move("p1")
+    i = port.written.index(b"DO MOVE p1")
+    assert port.written[i + 1 : i + 4] == [b"\r", b"\r", b"WHERE"]
+    assert port.write_times[i + 3] - t0 >= 0.3  # WHERE only after the controller's real prompt
+
+
+def test_a_prompt_with_the_arm_short_of_its_target_is_an_error_and_aborts():
+    elsewhere = tuple(round(v, 2) for v in np.add(JOINTS, (8.0, 0, 0, 0, 0, 0)))
+    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE p1", b"DO MOVE p1"), (b"\r", [(0.0, CRLF), (0.01, b".")])]
+    script += [(b"\r", b"\r\n."), *where(elsewhere), (b"\x15ABORT\r", b"ABORT\r\n*Motion aborted*\r\n.")]
+    r, port = robot(script)
+    with pytest.raises(ProtocolError, match="WHERE puts the arm .* from its target.*ABORT sent and confirmed"):
+        r.move("p1")
+    assert port.written[-1] == b"\x15ABORT\r"
+
+
+def test_a_motion_that_outlasts_its_wait_is_aborted_first_thing():
+    lim = ValLimits(timeout_factor=0.001, timeout_margin_s=0.2)  # a wait far shorter than the motion
+    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE p1", b"DO MOVE p1"), (b"\r", CRLF)]
+    script += [(b"\x15ABORT\r", b"ABORT\r\n*Motion aborted*\r\n.")]
+    r, port = robot(script, limits=lim)
+    with pytest.raises(DeviceTimeout, match="ABORT sent and confirmed"):
+        r.move("p1")
+    # ABORT went out right after the motion's CR: no resynchronising CR before it
+    assert port.written[-3:] == [b"DO MOVE p1", b"\r", b"\x15ABORT\r"]
+
+
+def test_an_abort_that_gets_no_answer_says_so():
+    lim = ValLimits(timeout_factor=0.001, timeout_margin_s=0.2)
+    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE p1", b"DO MOVE p1"), (b"\r", CRLF)]
+    script += [(b"\x15ABORT\r", b"")]  # the reply path has stalled
+    r, port = robot(script, limits=lim)
+    with pytest.raises(DeviceTimeout, match="ABORT sent, NOT confirmed"):
+        r.move("p1")
+    assert port.written[-1] == b"\x15ABORT\r"
+
+
+def test_idle_abort_is_written_at_once_and_confirmed():
+    r, port = robot([(b"\x15ABORT\r", b"ABORT\r\n.")])
+    res = r.abort()
+    assert res.written and res.confirmed and "prompt" in res.detail
+    assert port.written == [b"\r", b"\x15ABORT\r"]
+
+
+def test_abort_on_a_closed_link_is_reported_not_raised():
+    r, port = robot([])
+    r.close()
+    res = r.abort()
+    assert not res.written and "closed" in str(res)
 
 
 def test_abort_from_another_thread_interrupts_a_waiting_move():
     # the controller echoes the move, then stays silent until it reads ABORT
-    define = b"DO SET p1 = TRANS(350, 20, 100, 0, 180, 0)\r"
-    script = [(define, b"\r\n."), (b"WHERE\r", where_reply()), (b"DO MOVE p1\r", b"DO MOVE p1\r\n")]
-    script += [(b"ABORT\r", b"ABORT\r\n*Motion aborted*\r\n.")]
+    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE p1", b"DO MOVE p1"), (b"\r", CRLF)]
+    script += [(b"\x15ABORT\r", b"ABORT\r\n*Motion aborted*\r\n.")]
     r, port = robot(script, timeout_s=1.0)
-    r.define("p1", POSE)
     result = {}
+    sent = threading.Event()
 
     def mover():
         try:
@@ -415,16 +612,24 @@ def test_abort_from_another_thread_interrupts_a_waiting_move():
         except Exception as exc:  # collected for the assertion below
             result["exc"] = exc
 
+    orig = port.write
+
+    def spy(data):
+        n = orig(data)
+        if data == b"\r" and port.written[-2:-1] == [b"DO MOVE p1"]:
+            sent.set()
+        return n
+
+    port.write = spy
     t = threading.Thread(target=mover)
     t.start()
-    deadline = time.monotonic() + 2
-    while b"DO MOVE p1\r" not in port.written and time.monotonic() < deadline:
-        time.sleep(0.005)
-    r.abort()
-    t.join(2)
+    assert sent.wait(5.0)
+    res = r.abort()
+    t.join(5.0)
     assert not t.is_alive()
     assert isinstance(result.get("exc"), MotionAborted)
-    assert port.written[-2:] == [b"DO MOVE p1\r", b"ABORT\r"]
+    assert res.confirmed and "Motion aborted" in res.detail
+    assert port.written[-2:] == [b"\r", b"\x15ABORT\r"]
 
 
 # --- the dialect is data -----------------------------------------------------------------------------
@@ -438,26 +643,43 @@ def test_dialect_from_yaml_changes_commands_errors_and_layout(tmp_path):
         "euler: {sequence: zyx}\n"
     )
     d = load_dialect(f)
-    reply = b"\r\nX Y Z O A T\r\n350.00 20.00 100.00 10.00 30.00 40.00\r\nJT1 JT2 JT3 JT4 JT5 JT6\r\n1.00 2.00 3.00 4.00 5.00 6.00\r\n."
+    pose = tuple(round(v, 2) for v in d.H_to_pose(KIN.fk(JOINTS) @ TOOL))
+    body = " ".join(f"{v:.2f}" for v in pose) + "\r\n" + "JT1 JT2 JT3 JT4 JT5 JT6\r\n" + " ".join(f"{v:.2f}" for v in JOINTS)
+    reply = b"\r\nX Y Z O A T\r\n" + body.encode() + b"\r\n."
     r, port = robot([(b"W\r", reply), (b"SP 5\r", b"\r\n*Power is off*\r\n.")], dialect=d)
     w = r.where()
-    assert w.pose == (350.0, 20.0, 100.0, 10.0, 30.0, 40.0) and w.joints == (1.0, 2.0, 3.0, 4.0, 5.0, 6.0)
-    zyx = R_from_rpy(np.radians(40), np.radians(30), np.radians(10))  # Rz(O) Ry(A) Rx(T)
-    np.testing.assert_allclose(w.base_H_T[:3, :3], zyx, atol=1e-12)
-    assert np.degrees(rotation_angle(w.base_H_T[:3, :3].T @ H_from_xyzoat(w.pose)[:3, :3])) > 10  # not VAL's zyz
+    assert w.pose == pose and w.joints == JOINTS
+    o, a, t = (np.radians(v) for v in pose[3:])
+    np.testing.assert_allclose(w.base_H_T[:3, :3], R_from_rpy(t, a, o), atol=1e-12)  # Rz(O) Ry(A) Rx(T)
+    assert np.degrees(rotation_angle(w.base_H_T[:3, :3].T @ VAL.pose_to_H(w.pose)[:3, :3])) > 10  # not VAL's
     with pytest.raises(ArmPowerOff):
         r.speed(5)
     assert port.written == [b"\r", b"W\r", b"SP 5\r"]
+
+
+def test_named_oat_conventions():
+    assert ValDialect.from_dict({"euler": "vplus"}).euler == OAT_CONVENTIONS["vplus"]
+    val = ValDialect()
+    # VAL: all zero = the hand along -Y, fingers horizontal; READY (tool up) is O 90, A -90, T 0
+    np.testing.assert_allclose(val.pose_to_H((0, 0, 0, 0, 0, 0))[:3, 2], [0, -1, 0], atol=1e-12)
+    np.testing.assert_allclose(val.H_to_pose(KIN.fk(READY_DEG) @ TOOL)[3:], (90, -90, 0), atol=1e-9)
+    np.testing.assert_allclose(val.pose_to_H((0, 0, 0, 90, 90, 0))[:3, 2], [0, 0, -1], atol=1e-12)  # tool down
+    with pytest.raises(ConfigError, match="not one of val, vplus"):
+        ValDialect.from_dict({"euler": "kuka"})
 
 
 @pytest.mark.parametrize(
     "data, match",
     [
         ({"prompt": ".."}, "dialect.prompt"),
+        ({"program_prompt": "."}, "must differ"),
         ({"errors": [["x", "NoSuchError"]]}, "unknown class"),
         ({"commands": {"move": "DO MOVE"}}, "must use the fields"),
         ({"colour": 1}, "unknown key"),
         ({"euler": {"sequence": "zzy"}}, "euler sequence"),
+        ({"joint_header": ["J1", "J2", "J3", "J4", "J5", "J6"]}, "joint_header"),
+        ({"where_lines": ["pose", "pose_header", "joint_header", "joints"]}, "where_lines"),
+        ({"status_speed": "speed (\\d+)"}, "status_speed"),
     ],
 )
 def test_bad_dialects_are_named(data, match):
@@ -480,3 +702,19 @@ def test_limits_from_yaml(tmp_path):
         ValLimits.load(f)
     with pytest.raises(ConfigError, match="cannot read"):
         ValLimits.load(tmp_path / "missing.yaml")
+
+
+def test_kinematics_agree_with_the_simulators_and_load_from_yaml(tmp_path, rng):
+    from selfview.drivers.puma_val_serial import PumaKinematics
+
+    k = PumaKinematics()
+    lims = np.array(KIN.geometry.joint_limits_deg)
+    for q in rng.uniform(lims[:, 0], lims[:, 1], size=(50, 6)):
+        # two implementations of one chain: agreement to a micrometre
+        assert np.abs(k.tool(q)[:3, 3] - (KIN.fk(q) @ TOOL)[:3, 3]).max() < 1e-3
+    f = tmp_path / "kin.yaml"
+    f.write_text("tool_mm: [0, 0, 120]\n")
+    assert PumaKinematics.load(f).tool_mm == (0.0, 0.0, 120.0)
+    f.write_text("tool_mm: [0, 0]\n")
+    with pytest.raises(ConfigError, match="tool_mm"):
+        PumaKinematics.load(f)

@@ -177,8 +177,8 @@ def test_straight_moves_stay_on_the_line(term_sim, monkeypatch):
     seen = []
     real = c.world.set_tcp
     monkeypatch.setattr(c.world, "set_tcp", lambda H: (seen.append(np.array(H)), real(H))[1])
-    t.say(b"DO SET a = TRANS(300, -60, 120, 0, 180, 0)")
-    t.say(b"DO SET b = TRANS(380, 60, 60, 0, 150, 30)")
+    t.say(b"DO SET a = TRANS(300, -60, 120, 90, 90, 0)")  # VAL's O/A/T: the tool down
+    t.say(b"DO SET b = TRANS(380, 60, 60, 90, 60, 30)")
     t.say(b"DO MOVE a")
     seen.clear()
     t.say(b"DO MOVES b")
@@ -241,3 +241,80 @@ def test_bad_settings_are_named(cell):
             ValController(None).start_tcp(int(c.url.rsplit(":", 1)[1]))
     finally:
         c.stop()
+
+
+def test_characters_are_echoed_as_typed_and_ctrl_u_erases_the_line(term_sim):
+    c, t = term_sim(calibrated=True)
+    t.tty.write(b"SPEED 33")  # typed, not yet executed
+    buf = b""
+    deadline = time.monotonic() + 3.0
+    while buf != b"SPEED 33" and time.monotonic() < deadline:
+        buf += t.tty.read(64)
+    assert buf == b"SPEED 33" and c.speed_pct == 50.0
+    assert t.say(b"\x15") == b"\r\n\r\n."  # erased: a fresh line, then the empty line's prompt
+    assert c.speed_pct == 50.0 and "SPEED 33" not in c.received
+    assert t.say(b"SPEED 22") == b"SPEED 22\r\n." and c.speed_pct == 22.0
+    assert b"Monitor speed: 22" in t.say(b"STATUS")
+    t.close()
+
+
+def test_a_byte_above_0x7f_gets_an_error_and_the_controller_goes_on(term_sim):
+    c, t = term_sim()
+    out = t.say(b"WH\xc5RE")
+    assert b"*Unrecognized command*" in out and out.endswith(b"\r\n.")
+    assert t.say(b"WHERE").endswith(b"\r\n.")  # the server thread is alive
+    assert all(th.is_alive() for th in c._threads)  # noqa: SLF001
+    t.close()
+
+
+def test_a_byte_above_0x7f_on_tcp_too(cell):
+    import socket
+
+    with ValController(None, time_scale=0.0) as c:
+        port = c.start_tcp()
+        for _ in range(2):  # a second client is served after the first one's bad byte
+            with socket.create_connection(("127.0.0.1", port), timeout=5.0) as s:
+                s.sendall(b"SPEED \xff\r")
+                buf = b""
+                while not buf.endswith(b"\r\n."):
+                    chunk = s.recv(256)
+                    assert chunk, buf
+                    buf += chunk
+                assert b"*Unrecognized command*" in buf
+
+
+def test_the_program_prompt(term_sim):
+    c, t = term_sim()
+    c.program_running = True
+    assert t.say(b"WHERE", until=b"\r\n*").endswith(b"\r\n*")
+    t.close()
+
+
+def test_the_arm_goes_on_when_a_tcp_client_leaves_mid_motion(cell):
+    import socket
+
+    world = SimWorld(cell, seed=0)
+    with ValController(world, time_scale=0.2, calibrated=True) as c:
+        port = c.start_tcp()
+        target = c.locations()["ABOVE"]
+        s = socket.create_connection(("127.0.0.1", port), timeout=5.0)
+        s.sendall(b"DO MOVE above\r")
+        assert c.moving.wait(5.0)
+        s.close()  # the client goes away while the arm moves
+        deadline = time.monotonic() + 10.0
+        while c.moving.is_set() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        # as on a pty (and on the real controller): the arm reached its target
+        np.testing.assert_allclose(c.base_H_T[:3, 3], target[:3, 3], atol=1e-6)
+
+
+def test_replies_are_formatted_by_the_simulators_own_code(term_sim, monkeypatch):
+    from selfview.drivers.puma_val_serial import ValDialect
+
+    # a bug in the driver's formatting must not be shared by the simulator
+    monkeypatch.setattr(ValDialect, "format_values", lambda self, values: "BROKEN")
+    monkeypatch.setattr(ValDialect, "format_header", lambda self, names: "BROKEN")
+    c, t = term_sim()
+    out = t.say(b"WHERE")
+    assert b"BROKEN" not in out and b"       X        Y" in out
+    t.close()

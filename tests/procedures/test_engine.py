@@ -106,7 +106,7 @@ def test_cleanup_after_a_fault_at_each_kind_of_step(cell, tmp_path, kind, inject
         with pytest.raises(exc):
             s.calibrate(out=out)
         rep = s.engine.cleanup_report
-        assert rep is not None and "ABORT" in rep["robot"]
+        assert rep is not None and rep["robot"].startswith("ABORT sent and confirmed") and rep["robot_stopped"], rep
         assert "ABORT" in [ln.upper() for ln in s.sim.robot_sim.received[n_before:]]
         assert not s.sim.robot_sim.moving.is_set()
         assert valve_is_safe(s)
@@ -117,19 +117,76 @@ def test_cleanup_after_a_fault_at_each_kind_of_step(cell, tmp_path, kind, inject
 def test_ctrl_c_stops_the_robot_and_leaves_the_gripper_safe(cell):
     with CellSession.simulated(cell, seed=6, time_scale=1.0) as s:  # real-time motions: slow enough to interrupt
         main = threading.get_ident()
-        timer = threading.Timer(0.6, lambda: signal.pthread_kill(main, signal.SIGINT))
-        timer.start()
-        t0 = time.monotonic()
+        sim = s.sim.robot_sim
+        # Ctrl-C as soon as the arm moves: an event, not a clock
+        ctrl_c = threading.Thread(target=lambda: sim.moving.wait(30.0) and signal.pthread_kill(main, signal.SIGINT))
+        ctrl_c.start()
         try:
             with pytest.raises(Cancelled, match="interrupted"):
                 s.park()
         finally:
-            timer.cancel()
-        assert time.monotonic() - t0 < 8.0
-        assert "ABORT" in [ln.upper() for ln in s.sim.robot_sim.received]
-        assert not s.sim.robot_sim.moving.is_set()
+            ctrl_c.join(30.0)
+        assert "ABORT" in [ln.upper() for ln in sim.received]
+        assert not sim.moving.is_set()
+        assert not s.sim.world.parked  # stopped before it reached the plate
         assert valve_is_safe(s)
-        assert "interrupted" in s.engine.cleanup_report["reason"]
+        rep = s.engine.cleanup_report
+        assert "interrupted" in rep["reason"] and rep["robot"].startswith("ABORT sent and confirmed")
+        # the ABORT written at the interrupt stopped the motion itself
+        assert rep["robot_at_interrupt"] == "ABORT sent and confirmed (the controller answered *Motion aborted*)"
+
+
+def test_ctrl_c_during_selfview_park_exits_130(cell, capsys, monkeypatch):
+    from selfview.procedures.cli import main as cli
+
+    started = threading.Event()
+    real = Engine.execute
+
+    def execute(self, step):
+        if step.kind in ("appro", "moves"):
+            started.set()
+        return real(self, step)
+
+    monkeypatch.setattr(Engine, "execute", execute)
+    main = threading.get_ident()
+    ctrl_c = threading.Thread(target=lambda: started.wait(60.0) and signal.pthread_kill(main, signal.SIGINT))
+    ctrl_c.start()
+    try:
+        code = cli(["park", "--time-scale", "1.0", "--seed", "3"])
+    finally:
+        ctrl_c.join(60.0)
+    err = capsys.readouterr().err
+    assert code == 130, err
+    assert "this is a bug" not in err and "ABORT sent" in err
+
+
+def _stall_robot_replies(s):
+    s.sim.robot_sim.inject("stall")  # the reply line dies as the next motion starts
+
+
+def _abort_raises(s):
+    def broken():
+        raise RuntimeError("the link driver crashed")
+
+    s.devices.robot.abort = broken
+    s.sim.robot_sim.inject("power_loss", at=0.5)
+
+
+@pytest.mark.parametrize("fault, says", [(_stall_robot_replies, "ABORT sent, NOT confirmed"),
+                                         (_abort_raises, "ABORT failed: RuntimeError: the link driver crashed")],
+                         ids=["abort-unconfirmed", "abort-raises"])
+def test_an_abort_that_fails_in_the_cleanup_still_leaves_the_valve_safe_and_closes(cell, fault, says):
+    with CellSession.simulated(cell, seed=5, time_scale=0.0) as s:
+        s.devices.robot.timeout_s = 0.3  # short waits: the stalled line never answers
+        fault(s)
+        with pytest.raises((DeviceError, DeviceTimeout)):
+            s.park()
+        rep = s.engine.cleanup_report
+        assert rep["robot"].startswith(says) and rep["robot_stopped"] is False, rep
+        assert says in s.engine.state_sentence()
+        assert valve_is_safe(s) and rep["gripper"] == "valve set to its safe state"
+        assert not s.devices.robot.connected and not s.devices.gripper.connected
+        assert not s.sim.robot_sim.moving.is_set()
 
 
 def test_engine_rejects_unknown_steps_and_asks_only_with_an_operator():
