@@ -51,29 +51,34 @@ class Mutation:
 
 
 MUTATIONS: tuple[Mutation, ...] = (
+    # --- the seven that survived the first mutation check (issue 14) -----------------------------------------
     Mutation(
         "val-echo-first-word",
         "drivers/puma_val_serial/driver.py",
-        "            if not body or _norm(body) in echoes:\n",
-        "            if not body or _norm(body).split()[0] in {e.split()[0] for e in echoes if e}:\n",
-        ("tests/drivers/test_puma_transcript.py", "tests/drivers/test_puma_contract.py"),
-        "the VAL echo matched on its first word only: a reply line starting with the command's word is dropped",
+        "            if echo != body:  # the whole line, byte for byte: 'SPEED 02' is not 'SPEED 20'\n",
+        '            if echo.split(b" ")[:1] != body.split(b" ")[:1]:\n',
+        ("tests/drivers/test_puma_transcript.py::test_an_echo_that_differs_after_its_first_word_is_erased_before_it_runs",
+         "tests/drivers/test_puma_transcript.py::test_a_corrupted_motion_command_never_runs"),
+        "the VAL echo compared on its first word only: 'SPEED 02' passes for 'SPEED 20' and runs",
     ),
     Mutation(
         "calfile-written-in-place",
-        "selfview/calfile.py",
-        '    _atomic_write(p, text.encode("utf-8"))\n',
-        '    p.write_bytes(text.encode("utf-8"))\n',
-        ("tests/selfview/test_calfile_atomic.py",
-         "tests/procedures/test_cli_calibrate_track.py::test_track_auto_follows_the_policy_and_apply_writes_atomically"),
+        "selfview/io_safe.py",
+        '    tmp = folder / f".{path.name}.{secrets.token_hex(6)}.tmp"\n    try:\n'
+        "        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666 if old_mode is None else old_mode)\n",
+        "    tmp = path\n    try:\n"
+        "        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666 if old_mode is None else old_mode)\n",
+        ("tests/selfview/test_calfile_atomic.py", "tests/selfview/test_calfile.py::test_a_write_that_fails_half_way_leaves_the_old_file",
+         "tests/selfview/test_calfile.py::test_a_crash_in_the_middle_of_a_write_leaves_the_old_file"),
         "the calibration writer writes the file in place (a failure midway leaves a torn file)",
     ),
     Mutation(
         "calfile-written-before-read-back",
         "selfview/calfile.py",
-        '    Calibration.from_document(yaml.safe_load(text), source=str(p))\n    _atomic_write(p, text.encode("utf-8"))\n',
-        '    _atomic_write(p, text.encode("utf-8"))\n    Calibration.from_document(yaml.safe_load(text), source=str(p))\n',
-        ("tests/selfview/test_calfile_atomic.py",),
+        "    # check what we are about to write reads back, before it replaces anything\n",
+        '    atomic_write(p, text.encode("utf-8"), error=CalibrationFileError, what="calibration file")\n',
+        ("tests/selfview/test_calfile.py::test_a_calibration_that_does_not_read_back_is_never_written",
+         "tests/selfview/test_calfile_atomic.py"),
         "the file replaced before the check that it reads back",
     ),
     Mutation(
@@ -81,23 +86,23 @@ MUTATIONS: tuple[Mutation, ...] = (
         "selfview/policy.py",
         '        if self.classify(delta_R, d_R) == "alarm":\n',
         "        if False:\n",
-        ("tests/selfview/test_policy.py",),
+        ("tests/selfview/test_policy.py::test_a_recalibration_beyond_the_alarm_limit_raises_the_alarm",),
         "a recalibration that itself measures more than the alarm limit is applied",
     ),
     Mutation(
         "abort-failure-escapes-cleanup",
         "procedures/engine.py",
-        "        except Exception as exc:  # never let cleanup itself die\n",
-        "        except ZeroDivisionError as exc:  # never let cleanup itself die\n",
-        ("tests/procedures/test_engine.py",),
-        "an ABORT that fails with anything but a CellError escapes the engine's cleanup",
+        "        except Exception as exc:  # never let cleanup itself die: the valve and the closes still follow\n",
+        "        except CellError as exc:\n",
+        ("tests/procedures/test_engine.py::test_an_abort_that_fails_in_the_cleanup_still_leaves_the_valve_safe_and_closes",),
+        "an ABORT that fails with anything but a CellError escapes the engine's cleanup (valve not made safe)",
     ),
     Mutation(
         "v4l2-std-range-unchecked",
         "drivers/frame_grabber_v4l2/url.py",
-        '    if not 0 < v < 1 << 64:\n        raise ConfigError(f"{url}: std={text!r} is not a v4l2_std_id")\n',
-        "",
-        ("tests/drivers/test_grabber_v4l2.py",),
+        "    if not 0 < v < 1 << 64:\n",
+        "    if False:\n",
+        ("tests/drivers/test_grabber_v4l2.py::test_std_numbers_outside_a_v4l2_std_id_are_refused",),
         "std=0 or a number beyond 64 bits accepted as a video standard",
     ),
     Mutation(
@@ -108,6 +113,7 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("tests/selfview/test_discs.py::test_the_minimum_disc_count", "tests/selfview/test_offline.py::test_robustness"),
         "the minimum disc count raised from 12 to 60: the standard pictures are refused",
     ),
+    # --- the independence of the test renderer and the off-line pipeline's steps ----------------------------
     Mutation(
         "camera-half-pixel-shift",
         "selfview/camera.py",
@@ -125,6 +131,112 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("tests/selfview/test_offline.py::test_accuracy_on_an_independent_renderer",
          "tests/selfview/test_offline.py::test_accuracy_over_30_seeds_on_the_project_renderer"),
         "the off-line calibration without its disc-bias correction",
+    ),
+    # --- one per safety rule: the robot (issue 18) ------------------------------------------------------------
+    Mutation(
+        "abort-after-resync",
+        "drivers/puma_val_serial/driver.py",
+        '        """A motion\'s wait failed: ABORT first, unconditionally, then confirm (the command lock held)."""\n',
+        '        """A motion\'s wait failed."""\n        self._resync()\n',
+        ("tests/drivers/test_puma_transcript.py::test_a_motion_that_outlasts_its_wait_is_aborted_first_thing",
+         "tests/drivers/test_puma_transcript.py::test_an_abort_that_gets_no_answer_says_so"),
+        "after a motion's wait fails, the driver resynchronises (CR, wait for a prompt) before writing ABORT",
+    ),
+    Mutation(
+        "abort-unconfirmed-reported-as-stop",
+        "procedures/engine.py",
+        '        return str(res), bool(getattr(res, "confirmed", False))\n',
+        "        return str(res), True\n",
+        ("tests/procedures/test_engine.py::test_an_abort_that_fails_in_the_cleanup_still_leaves_the_valve_safe_and_closes",),
+        "the engine reports an unconfirmed ABORT as a stopped robot",
+    ),
+    Mutation(
+        "where-crosscheck-removed",
+        "drivers/puma_val_serial/driver.py",
+        "            if mm <= kin.where_tol_mm and deg <= kin.where_tol_deg:\n",
+        "            if True:\n",
+        ("tests/drivers/test_puma_transcript.py::test_a_digit_swap_in_where_is_read_again",
+         "tests/drivers/test_puma_transcript.py::test_a_wrong_oat_convention_is_named_on_the_first_where"),
+        "a WHERE whose pose disagrees with the kinematics of its own joints is accepted (digit swaps pass)",
+    ),
+    Mutation(
+        "location-not-reread",
+        "drivers/puma_val_serial/driver.py",
+        "            return name, self.dialect.pose_to_H(self._location_locked(name))\n",
+        '            cached = self.__dict__.setdefault("_stale", {})\n'
+        "            if name.upper() not in cached:\n"
+        "                cached[name.upper()] = self.dialect.pose_to_H(self._location_locked(name))\n"
+        "            return name, cached[name.upper()]\n",
+        ("tests/drivers/test_puma_transcript.py::test_a_relocated_target_outside_the_box_is_refused",),
+        "a named location's limit check uses a cached copy (a re-taught location passes unchecked)",
+    ),
+    Mutation(
+        "motion-ends-at-a-noise-prompt",
+        "drivers/puma_val_serial/driver.py",
+        '            self._expect_nothing(self._exchange_locked("", timeout_s=rest), f"<CR after {command}>")\n',
+        "            pass\n",
+        ("tests/drivers/test_puma_transcript.py::test_one_noise_prompt_does_not_end_a_motion",),
+        "a motion counts as complete at the first prompt character (one noise byte ends it early)",
+    ),
+    Mutation(
+        "ctrl-c-not-130",
+        "procedures/cli.py",
+        '    (Cancelled, EXIT_INTERRUPTED, "the run was interrupted; the cell was left as stated above"),\n',
+        "",
+        ("tests/procedures/test_engine.py::test_ctrl_c_during_selfview_park_exits_130",),
+        "Ctrl-C during a procedure exits 1 ('this is a bug') instead of 130",
+    ),
+    # --- one per safety rule: the gripper, files and pictures (issue 18) --------------------------------------
+    Mutation(
+        "poller-feeds-watchdog-after-failure",
+        "drivers/pneumatic_gripper/gripper.py",
+        "            if self._halted is not None or self._lost is not None:\n"
+        "                return  # the safe-state rule: after a failure nothing feeds the watchdog until connect()\n"
+        "            self._read_raw(reconnect=False)\n",
+        "            self._read_raw()\n",
+        ("tests/drivers/test_gripper_terminal.py::test_no_watchdog_feed_after_a_failed_command",),
+        "the poller reconnects and keeps the valve terminal's watchdog fed after the driver gave up",
+    ),
+    Mutation(
+        "reed-contradiction-accepted",
+        "drivers/pneumatic_gripper/gripper.py",
+        "        if self.open_sensor and self.closed_sensor:\n"
+        '            raise GripperFault("both reed switches (open and closed) are on: a switch is broken or mis-wired")\n',
+        "",
+        ("tests/drivers/test_gripper_transcript.py::test_both_switches_on_is_a_fault",),
+        "both reed switches on is taken as a jaw state",
+    ),
+    Mutation(
+        "one-reading-confirms-a-stroke",
+        "drivers/pneumatic_gripper/gripper.py",
+        "                if seen_target:  # two consecutive readings agree: a single corrupted reply cannot confirm\n",
+        "                if True:\n",
+        ("tests/drivers/test_gripper_transcript.py::test_one_flipped_bit_neither_confirms_nor_faults",),
+        "a single (possibly corrupted) reading confirms a jaw motion",
+    ),
+    Mutation(
+        "yaml-aliases-accepted",
+        "selfview/io_safe.py",
+        "            if self.check_event(yaml.AliasEvent):\n",
+        "            if False and self.check_event(yaml.AliasEvent):\n",
+        ("tests/selfview/test_calfile.py::test_hostile_yaml_is_refused_at_once",),
+        "YAML aliases accepted in calibration and cell files (a 491-byte alias bomb hangs the command)",
+    ),
+    Mutation(
+        "picture-size-unchecked",
+        "selfview/io_safe.py",
+        "    if w > max_side or h > max_side or w * h > max_pixels:\n",
+        "    if False:\n",
+        ("tests/selfview/test_io_safe.py::test_a_huge_png_is_refused_from_its_header",),
+        "a picture is decoded whatever size its header declares",
+    ),
+    Mutation(
+        "end-of-frame-stamp-as-exposure",
+        "drivers/frame_grabber_v4l2/capture.py",
+        '    return ts if tstamp == "start" else ts - buffer_s\n',
+        "    return ts\n",
+        ("tests/drivers/test_grabber_v4l2.py::test_a_frame_ending_after_settling_but_exposed_before_is_dropped",),
+        "V4L2's end-of-frame timestamp taken as the start of exposure (a frame exposed before settling passes)",
     ),
 )
 
