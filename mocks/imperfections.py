@@ -113,6 +113,13 @@ class Imperfections:
     #: Standard deviation per axis of a translation (slip) of the camera on its mount added to the
     #: rotation [mm] (the paper's Table 2 series: "loosened the camera attachment"). Realistic: 0.2 mm.
     slip_sd_mm: float = 0.0
+    #: How far the pivot of every disturbance lies in front of the configured one along the optical axis
+    #: (towards the gripper) [mm]: a camera clamped to the wrist in front of it turns about the clamp. The
+    #: paper's Table 2 (4P-U's c_z 0.21 mm, three times 4P-R's 0.07) needs a rotation of about 3.5 deg
+    #: for its 4.5 mm TCP shift (bench/update_limit.py: 4P-U's model error about C x), i.e. a pivot about
+    #: 70 mm from the TCP; the reference cell's pivot lies 130 mm from it. Not in ``realistic`` (no
+    #: measurement of a mount); ``paper-like`` takes it from the paper.
+    pivot_shift_mm: float = 0.0
 
     def __post_init__(self):
         for f in fields(self):
@@ -154,7 +161,7 @@ PARTS: dict[str, tuple[str, ...]] = {
     "interlace": ("field_shift_px",),
     "grabber": ("line_jitter_px", "pll_shear_px", "analog_noise_gray"),
     "light": ("light_gradient", "vignetting", "flicker"),
-    "disturbance": ("pivot_sd_mm", "slip_sd_mm"),
+    "disturbance": ("pivot_sd_mm", "slip_sd_mm", "pivot_shift_mm"),
 }
 
 REALISTIC = Imperfections(
@@ -254,6 +261,7 @@ class RealisedImperfections:
     def disturbance(self, pivot_C) -> tuple[np.ndarray, np.ndarray]:
         """The pivot of one disturbance (3,) and the camera's slip (3,) [mm, camera frame]."""
         pivot = np.asarray(pivot_C, float) + self.rng.normal(0.0, 1.0, 3) * self.imp.pivot_sd_mm
+        pivot[2] += self.imp.pivot_shift_mm
         slip = self.rng.normal(0.0, 1.0, 3) * self.imp.slip_sd_mm
         return pivot, slip
 
@@ -291,22 +299,27 @@ def chamfer_cuts(lo, hi, radius: float) -> list[tuple[np.ndarray, float, int]]:
 
 
 def picture_effects(value: np.ndarray, imp: Imperfections, real: RealisedImperfections | None, seed,
-                    margin: int, width: int, height: int) -> np.ndarray:
+                    margin: int, width: int, height: int, noise: bool = True) -> tuple[np.ndarray, dict]:
     """Apply the grabber's and the light's imperfections to the optical picture ``value`` (Hm, Wm) float,
     pixel (u, v) at [v + margin, u + margin], after the optics' blur and before the sensor noise and
-    quantisation. Returns the new array (the same one when nothing is switched on).
+    quantisation. Returns the new array (the same one when nothing is switched on) and what was drawn
+    (JSON-ready: ``flicker_gain``, ``field_shift_px`` (du, dv) of the odd lines, ``line_shift_px`` per
+    picture line (jitter and shear), ``analog_noise_gray``).
 
     - light: ``value *= (1 + g x)(1 - vig r^2) * (1 + flicker N)``, x in -1/2..1/2 across the width,
       r = 1 at the picture's corners;
     - interlace: the odd lines sample the optical picture moved by the field shift (du, dv);
     - grabber: each line moved along u by its jitter plus the PLL shear (linear in v), then the analogue
       noise (correlated along the line) added.
-    Draws from ``numpy.random.default_rng([seed, 0xF1E1D])`` (None: fresh draws).
+    Shifts are how far the picture's content moves (+u: right, +v: down). ``noise=False`` leaves out
+    the analogue noise. Draws from ``numpy.random.default_rng([seed, 0xF1E1D])`` (None: fresh draws).
     """
     light = imp.light_gradient or imp.vignetting or imp.flicker
     geometric = imp.field_shift_px or imp.line_jitter_px or imp.pll_shear_px
-    if not (light or geometric or imp.analog_noise_gray):
-        return value
+    analog = imp.analog_noise_gray if noise else 0.0
+    if not (light or geometric or analog):
+        return value, {}
+    drawn: dict = {}
     rng = np.random.default_rng(None if seed is None else [int(seed), 0xF1E1D])
     Hm, Wm = value.shape
     m = int(margin)
@@ -317,6 +330,7 @@ def picture_effects(value: np.ndarray, imp: Imperfections, real: RealisedImperfe
         r2 = (xn**2 + yn**2) / 0.5
         gain = 1.0 + imp.flicker * float(rng.normal())
         value = value * ((1.0 + imp.light_gradient * xn) * (1.0 - imp.vignetting * r2) * gain)
+        drawn["flicker_gain"] = gain
     if geometric:
         import cv2
 
@@ -326,16 +340,19 @@ def picture_effects(value: np.ndarray, imp: Imperfections, real: RealisedImperfe
         rows = np.arange(Hm) - m
         du = jitter + shear * (rows - (height - 1) / 2) / height
         odd = (rows % 2) == 1
-        map_x = uu + m + du[:, None] - np.where(odd, field[0], 0.0)[:, None]
+        map_x = uu + m - du[:, None] - np.where(odd, field[0], 0.0)[:, None]
         map_y = vv + m - np.where(odd, field[1], 0.0)[:, None]
+        drawn["field_shift_px"] = field.tolist()
+        drawn["line_shift_px"] = du[m : m + height].tolist()
         value = cv2.remap(value.astype(np.float32), map_x.astype(np.float32), map_y.astype(np.float32),
                           cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT).astype(np.float64)
-    if imp.analog_noise_gray:
+    if analog:
         import cv2
 
         white = rng.normal(0.0, 1.0, value.shape)
         k = cv2.getGaussianKernel(9, 1.0, cv2.CV_64F)
         corr = cv2.sepFilter2D(white, cv2.CV_64F, k, np.ones((1, 1)), borderType=cv2.BORDER_REFLECT)
-        corr *= imp.analog_noise_gray / np.sqrt(float(np.sum(k**2)))
+        corr *= analog / np.sqrt(float(np.sum(k**2)))
         value = value + corr
-    return value
+        drawn["analog_noise_gray"] = float(analog)
+    return value, drawn

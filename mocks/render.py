@@ -677,7 +677,7 @@ def render(world: SimWorld, *, seed: int | None = 0, noise: bool = True, blur_px
     if sigma > 0:
         k = cv2.getGaussianKernel(2 * int(np.ceil(4 * sigma)) + 1, sigma, cv2.CV_64F)
         value = cv2.sepFilter2D(value, cv2.CV_64F, k, k, borderType=cv2.BORDER_REFLECT)
-    value = picture_effects(value, scene.imperfections, scene.imperfect, seed, m, W, H)  # a real cell's grabber, light
+    value, effects = picture_effects(value, scene.imperfections, scene.imperfect, seed, m, W, H, noise)  # grabber, light
     img = gain * value[m : m + H, m : m + W]
     if noise and spec.noise_gray > 0:
         img = img + np.random.default_rng(seed).normal(0.0, spec.noise_gray, img.shape)
@@ -690,6 +690,8 @@ def render(world: SimWorld, *, seed: int | None = 0, noise: bool = True, blur_px
         "noise_seed": seed, "noise": bool(noise), "noise_gray": float(spec.noise_gray), "blur_px": sigma,
         "gain": float(gain), "supersample": n, "width": W, "height": H,
     }
+    if not scene.imperfections.ideal:
+        truth["render"]["imperfections"] = {**scene.imperfections.as_dict(), **effects}
     return RenderResult(image, truth, disc_uv, disc_visible, corner_uv, corner_visible)
 
 

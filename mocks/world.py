@@ -130,7 +130,8 @@ class SimWorld:
             axis = R_from_rotvec(perp * jit) @ axis
             target = spec.tcp_shift_mm + spec.tcp_shift_sd_mm * self.rng.normal() if shift_mm is None else shift_mm
             target = abs(float(target))
-            if self.imperfections.pivot_sd_mm or self.imperfections.slip_sd_mm:
+            imp = self.imperfections
+            if imp.pivot_sd_mm or imp.slip_sd_mm or imp.pivot_shift_mm:
                 pivot, slip = self.imperfect.disturbance(spec.pivot_C)
                 rot = self._apply_rotation(series, axis, pivot, target)
                 self._C_H_Ccur = self._C_H_Ccur @ inv_H(rot.C_H_Cnew)  # one disturbance: rotation and slip
