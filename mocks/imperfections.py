@@ -113,13 +113,13 @@ class Imperfections:
     #: Standard deviation per axis of a translation (slip) of the camera on its mount added to the
     #: rotation [mm] (the paper's Table 2 series: "loosened the camera attachment"). Realistic: 0.2 mm.
     slip_sd_mm: float = 0.0
-    #: How far the pivot of every disturbance lies in front of the configured one along the optical axis
-    #: (towards the gripper) [mm]: a camera clamped to the wrist in front of it turns about the clamp. The
-    #: paper's Table 2 (4P-U's c_z 0.21 mm, three times 4P-R's 0.07) needs a rotation of about 3.5 deg
-    #: for its 4.5 mm TCP shift (bench/update_limit.py: 4P-U's model error about C x), i.e. a pivot about
-    #: 70 mm from the TCP; the reference cell's pivot lies 130 mm from it. Not in ``realistic`` (no
+    #: Standard deviation of a roll of the camera about its optical axis per mm of the disturbance's TCP
+    #: shift [deg/mm]: a loosened or cable-pulled attachment twists as it tilts. The paper's Table 2 (4P-U's
+    #: c_z 0.21 mm, three times 4P-R's 0.07, after a 4.5 mm shift) needs a roll of about 3.5 deg (the
+    #: linearisation error of 4P-U about the optical axis, bench/update_limit.py: 0.14 mm at 2.8 deg, 0.31
+    #: at 4.3 deg), while about the tilt axis it stays under 0.02 mm: 0.8 deg/mm. Not in ``realistic`` (no
     #: measurement of a mount); ``paper-like`` takes it from the paper.
-    pivot_shift_mm: float = 0.0
+    roll_deg_per_mm: float = 0.0
 
     def __post_init__(self):
         for f in fields(self):
@@ -161,7 +161,7 @@ PARTS: dict[str, tuple[str, ...]] = {
     "interlace": ("field_shift_px",),
     "grabber": ("line_jitter_px", "pll_shear_px", "analog_noise_gray"),
     "light": ("light_gradient", "vignetting", "flicker"),
-    "disturbance": ("pivot_sd_mm", "slip_sd_mm", "pivot_shift_mm"),
+    "disturbance": ("pivot_sd_mm", "slip_sd_mm", "roll_deg_per_mm"),
 }
 
 REALISTIC = Imperfections(
@@ -258,12 +258,13 @@ class RealisedImperfections:
         ])
 
     # disturbance
-    def disturbance(self, pivot_C) -> tuple[np.ndarray, np.ndarray]:
-        """The pivot of one disturbance (3,) and the camera's slip (3,) [mm, camera frame]."""
+    def disturbance(self, pivot_C) -> tuple[np.ndarray, np.ndarray, float]:
+        """The pivot of one disturbance (3,) and the camera's slip (3,) [mm, camera frame], and its roll
+        about the optical axis per mm of TCP shift [deg/mm]."""
         pivot = np.asarray(pivot_C, float) + self.rng.normal(0.0, 1.0, 3) * self.imp.pivot_sd_mm
-        pivot[2] += self.imp.pivot_shift_mm
         slip = self.rng.normal(0.0, 1.0, 3) * self.imp.slip_sd_mm
-        return pivot, slip
+        roll_per_mm = float(self.rng.normal()) * self.imp.roll_deg_per_mm
+        return pivot, slip, roll_per_mm
 
 
 def realise(imp: Imperfections, cell: Cell, seed: int) -> RealisedImperfections:
