@@ -131,12 +131,12 @@ class SimWorld:
             target = spec.tcp_shift_mm + spec.tcp_shift_sd_mm * self.rng.normal() if shift_mm is None else shift_mm
             target = abs(float(target))
             imp = self.imperfections
-            if imp.pivot_sd_mm or imp.slip_sd_mm or imp.roll_deg_per_mm:
+            if imp.pivot_sd_mm or imp.slip_sd_mm or imp.roll_deg_per_mm2:
                 pivot, slip, roll = self.imperfect.disturbance(spec.pivot_C)
                 rot = self._apply_rotation(series, axis, pivot, target)
                 self._C_H_Ccur = self._C_H_Ccur @ inv_H(rot.C_H_Cnew)  # one disturbance: rotation, roll, slip
                 self.disturbances.pop()
-                twist = rot_axis(np.array([0.0, 0.0, 1.0]), np.radians(roll * target), (0.0, 0.0, 0.0))
+                twist = rot_axis(np.array([0.0, 0.0, 1.0]), np.radians(roll * target**2), (0.0, 0.0, 0.0))
                 return self._commit(series, rot.C_H_Cnew @ twist @ trans(*slip), axis)
             return self._apply_rotation(series, axis, np.asarray(spec.pivot_C, float), target)
 
