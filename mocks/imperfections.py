@@ -132,6 +132,11 @@ class Imperfections:
     def ideal(self) -> bool:
         return all(getattr(self, f.name) == 0 for f in fields(self))
 
+    @property
+    def per_frame(self) -> bool:
+        """Whether every frame differs beyond the sensor noise (interlace, line jitter, analogue noise, flicker)."""
+        return bool(self.field_shift_px or self.line_jitter_px or self.analog_noise_gray or self.flicker)
+
     def only(self, part: str) -> "Imperfections":
         """This profile with every part but ``part`` (a key of ``PARTS``) switched off."""
         if part not in PARTS:

@@ -33,6 +33,8 @@ def parked(cell, seed, imp=None):
 def test_profiles_and_parts(cell):
     assert PROFILES["ideal"].ideal and not REAL.ideal and not PROFILES["paper-like"].ideal
     assert resolve(None) == resolve("ideal") == Imperfections()
+    # the simulated camera renders every frame in full when frames differ beyond the sensor noise
+    assert REAL.per_frame and not Imperfections(light_gradient=0.1, pll_shear_px=0.3).per_frame
     with pytest.raises(ConfigError, match="paper-like"):
         resolve("paperlike")
     with pytest.raises(ConfigError, match="plate_scale"):
