@@ -184,10 +184,10 @@ PROFILES: dict[str, Imperfections] = {
     "ideal": Imperfections(),
     "realistic": REALISTIC,
     #: the realistic cell with the fingers at the coarse end of their tolerances (sd 0.3 mm: ISO 2768-1
-    #: class c allows +-0.5 mm on 6-30 mm; worn jaws), edges broken by 0.3 mm, the sheet bowed by 0.3 mm,
-    #: and the attachment's roll the paper's Table 2 implies (bench/error_budget.py, docs/RESULTS.md)
-    "paper-like": replace(REALISTIC, finger_dim_sd_mm=0.3, finger_edge_radius_mm=0.3, plate_bow_mm=0.3,
-                          roll_deg_per_mm2=0.17),
+    #: class c allows +-0.5 mm on 6-30 mm; worn jaws) and the attachment's roll the paper's Table 2
+    #: implies (bench/error_budget.py, docs/RESULTS.md). A sheet bowed by 0.3 mm or edges broken by 0.3 mm
+    #: raise Table 2's 4P-R c_z (the reference's) far above the paper's 0.07 mm: they stay realistic.
+    "paper-like": replace(REALISTIC, finger_dim_sd_mm=0.3, roll_deg_per_mm2=0.17),
 }
 
 
