@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from selfview.mocks.imperfections import chamfer_cuts, picture_effects
 from selfview.mocks.world import SimWorld
 from selfview.camera import CameraModel, max_undistorted_radius
 from selfview.cell import POINT_NAMES, ImageSpec, PlateSpec
@@ -102,7 +103,8 @@ class RenderResult:
 class _Box:
     """An axis-aligned box ``lo``..``hi`` (mm) of frame P, ``C_H_P`` (4, 4), with a label per face."""
 
-    def __init__(self, C_H_P: np.ndarray, lo, hi, face_labels):
+    def __init__(self, C_H_P: np.ndarray, lo, hi, face_labels, cuts=()):
+        self.cuts = list(cuts)  # chamfers (imperfections.chamfer_cuts): [(n (3,), c, face)], n . p <= c in P
         self.R = np.asarray(C_H_P, float)[:3, :3]
         self.t = np.asarray(C_H_P, float)[:3, 3]
         self.o = -self.R.T @ self.t  # the projection centre in P
@@ -146,6 +148,16 @@ class _Box:
                 t_near = np.where(later, t_min, t_near)
                 face = np.where(later, 2 * k + (d < 0), face)  # entering through lo (normal -k) when d > 0
                 t_far = np.minimum(t_far, np.maximum(t1, t2))
+            for n, c, fc in self.cuts:  # the chamfers: half-spaces n . (o + t d) <= c
+                nx, ny, nz = (float(self.R[r] @ n) for r in range(3))
+                dn = nx * x + ny * y + nz
+                tc = (c - float(np.dot(n, o))) / dn
+                later = (dn < 0) & (tc > t_near)
+                t_near = np.where(later, tc, t_near)
+                face = np.where(later, fc, face)
+                t_far = np.where(dn > 0, np.minimum(t_far, tc), t_far)
+                if float(np.dot(n, o)) > c:
+                    t_far = np.where(dn == 0, -np.inf, t_far)
         return np.where((t_near <= t_far) & (t_near > 0), t_near, np.inf), face
 
     def visible_faces(self) -> np.ndarray:
@@ -204,16 +216,28 @@ class _Scene:
             C_H_W = world.C_H_W
             C_H_B = world.C_H_B
             gap = float(world.jaw_gap_mm)
+            points_G, finger_boxes = world.points_G(), world.finger_boxes_G(gap)
+            imp, self.imperfect = world.imperfections, world.imperfect
             self.world_truth = world.truth()
             world_seed = world.seed
         cell = world.cell
         self.C_H_G, self.C_H_W = C_H_G, C_H_W
         self.plate: PlateSpec = cell.plate
-        self.points_C = transform_points(C_H_G, cell.gripper.points_G(gap=gap))
+        self.imperfections = imp
+        self.points_C = transform_points(C_H_G, points_G)
         self.fingers = [
-            _Box(C_H_G, lo, hi, _FINGER0 + 6 * i + np.arange(6))
-            for i, (lo, hi) in enumerate(cell.gripper.finger_boxes_G(gap))
+            _Box(C_H_G, lo, hi, _FINGER0 + 6 * i + np.arange(6), chamfer_cuts(lo, hi, imp.finger_edge_radius_mm))
+            for i, (lo, hi) in enumerate(finger_boxes)
         ]
+        # the printed discs' centres on the sheet's plane (W, z = 0): a disc lifted by the bow is drawn
+        # where the camera's ray through it meets the plane, so its image is where the lifted disc's is
+        self.disc_centres_W = None
+        if imp.plate_scale or imp.plate_dot_sd_mm or imp.plate_bow_mm:
+            lifted_C = transform_points(C_H_W, self.imperfect.disc_centres_W)
+            n, c0 = C_H_W[:3, 2], float(C_H_W[:3, 2] @ C_H_W[:3, 3])
+            on_plane_C = lifted_C * (c0 / (lifted_C @ n))[:, None]
+            self.disc_centres_W = transform_points(np.linalg.inv(C_H_W), on_plane_C)
+            self.disc_centres_W[:, 2] = 0.0
         sx, sy = cell.plate.size
         board = [_BOARD_SIDE] * 6
         board[4] = _PRINT  # the z = 0 face, towards the camera side
@@ -267,6 +291,11 @@ class _Scene:
         p = self.plate
         c = np.clip(np.rint(xw / p.pitch + (p.cols - 1) / 2), 0, p.cols - 1)
         r = np.clip(np.rint(yw / p.pitch + (p.rows - 1) / 2), 0, p.rows - 1)
+        if self.disc_centres_W is not None:  # an imperfect print (imperfections.py): each disc where it is
+            k = (r * p.cols + c).astype(np.intp)
+            dx, dy = xw - self.disc_centres_W[k, 0], yw - self.disc_centres_W[k, 1]
+            rad = p.disc_diameter / 2 * (1.0 + self.imperfect.scale)
+            return dx * dx + dy * dy <= rad**2
         dx = xw - (c - (p.cols - 1) / 2) * p.pitch
         dy = yw - (r - (p.rows - 1) / 2) * p.pitch
         return dx * dx + dy * dy <= (p.disc_diameter / 2) ** 2
@@ -347,10 +376,12 @@ def _project(camera: CameraModel, p_C: np.ndarray, z_min: float = 1e-6) -> np.nd
     return out
 
 
-def _circle_W(plate: PlateSpec, n: int) -> np.ndarray:
-    """(rows*cols, n, 3) points on every disc's rim in W [mm]."""
+def _circle_W(plate: PlateSpec, n: int, scene: "_Scene | None" = None) -> np.ndarray:
+    """(rows*cols, n, 3) points on every disc's rim in W [mm] (as printed in ``scene``'s world)."""
     a = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
     rim = (plate.disc_diameter / 2) * np.column_stack([np.cos(a), np.sin(a), np.zeros(n)])
+    if scene is not None and scene.disc_centres_W is not None:
+        return scene.disc_centres_W[:, None, :] + (1.0 + scene.imperfect.scale) * rim[None, :, :]
     return plate.disc_centres_W()[:, None, :] + rim[None, :, :]
 
 
@@ -448,7 +479,7 @@ def _rim_points(scene: _Scene, lo, hi, step: float) -> np.ndarray:
     z_near = float(np.min(transform_points(scene.C_H_W, plate.disc_centres_W())[:, 2]))
     r_px = cam.f * r / max(z_near - r, 1.0)
     n = int(min(np.ceil(1.5 * 2 * np.pi * r_px / step), 20000))
-    rim = transform_points(scene.C_H_W, _circle_W(plate, n).reshape(-1, 3))
+    rim = transform_points(scene.C_H_W, _circle_W(plate, n, scene).reshape(-1, 3))
     rim = rim[rim[:, 2] > 1e-3]
     XY = cam.f * rim[:, :2] / rim[:, 2:3]
     return XY[np.all((XY >= lo) & (XY <= hi), axis=1)]
@@ -646,6 +677,7 @@ def render(world: SimWorld, *, seed: int | None = 0, noise: bool = True, blur_px
     if sigma > 0:
         k = cv2.getGaussianKernel(2 * int(np.ceil(4 * sigma)) + 1, sigma, cv2.CV_64F)
         value = cv2.sepFilter2D(value, cv2.CV_64F, k, k, borderType=cv2.BORDER_REFLECT)
+    value, effects = picture_effects(value, scene.imperfections, scene.imperfect, seed, m, W, H, noise)  # grabber, light
     img = gain * value[m : m + H, m : m + W]
     if noise and spec.noise_gray > 0:
         img = img + np.random.default_rng(seed).normal(0.0, spec.noise_gray, img.shape)
@@ -658,6 +690,8 @@ def render(world: SimWorld, *, seed: int | None = 0, noise: bool = True, blur_px
         "noise_seed": seed, "noise": bool(noise), "noise_gray": float(spec.noise_gray), "blur_px": sigma,
         "gain": float(gain), "supersample": n, "width": W, "height": H,
     }
+    if not scene.imperfections.ideal:
+        truth["render"]["imperfections"] = {**scene.imperfections.as_dict(), **effects}
     return RenderResult(image, truth, disc_uv, disc_visible, corner_uv, corner_visible)
 
 
@@ -670,9 +704,9 @@ def _finger_depth(scene: _Scene, x, y) -> np.ndarray:
 def _disc_truth(scene: _Scene, n_rim: int = 720) -> tuple[np.ndarray, np.ndarray]:
     """Projected disc centres (N, 2) and whether each disc is whole in the picture and uncovered (N,)."""
     cam, plate = scene.camera, scene.plate
-    centres_C = transform_points(scene.C_H_W, plate.disc_centres_W())
+    centres_C = transform_points(scene.C_H_W, plate.disc_centres_W() if scene.disc_centres_W is None else scene.disc_centres_W)
     uv = _project(cam, centres_C)
-    rim = transform_points(scene.C_H_W, _circle_W(plate, n_rim).reshape(-1, 3))
+    rim = transform_points(scene.C_H_W, _circle_W(plate, n_rim, scene).reshape(-1, 3))
     rim_uv = _project(cam, rim)
     inside = cam.in_image(np.nan_to_num(rim_uv, nan=-1e9)).reshape(-1, n_rim).all(axis=1)
     visible = inside & scene.print_seen

@@ -146,7 +146,7 @@ class SimCamera:
                 self.sleep(t_k - now)
             self._k = k
             seed = int(self._rng.integers(0, 2**63 - 1))
-            if self.exact:
+            if self.exact or self.world.imperfections.per_frame:  # a real grabber: each frame its own draws
                 res = render(self.world, seed=seed, noise=self.noise, **self.render_kw)
                 self.renders += 1
                 image = res.image

@@ -17,12 +17,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from selfview.mocks.imperfections import realise as realise_imperfections
+from selfview.mocks.imperfections import resolve as resolve_imperfections
 from selfview.camera import CameraModel
 from selfview.cell import Cell
 from selfview.errors import ConfigError
 from selfview.geometry import (
     R_from_rotvec,
     inv_H,
+    trans,
     make_H,
     rot_axis,
     rot_z,
@@ -68,7 +71,7 @@ class SimWorld:
     offsets, disturbances). Thread-safe: devices call it from their server threads.
     """
 
-    def __init__(self, cell: Cell, seed: int = 0):
+    def __init__(self, cell: Cell, seed: int = 0, imperfections=None):
         if cell.simulation is None:
             raise ConfigError(f"{cell.source}: the simulated cell needs a 'simulation' section")
         self.cell = cell
@@ -91,6 +94,10 @@ class SimWorld:
         self.base_H_plate0: np.ndarray = PLATE_BASE_POSE.copy()
         self.W_H_G: np.ndarray | None = None  # set while parked on the plate
         self.version = 0  # bumped on every change, so a camera can tell a new scene
+        # a real cell's imperfections (mocks/imperfections.py; None or 'ideal': none), drawn from their
+        # own generator so that they change nothing else in the world
+        self.imperfections = resolve_imperfections(imperfections)
+        self.imperfect = realise_imperfections(self.imperfections, cell, self.seed)
 
     # --- camera and mount -----------------------------------------------------------------------
     @property
@@ -123,6 +130,14 @@ class SimWorld:
             axis = R_from_rotvec(perp * jit) @ axis
             target = spec.tcp_shift_mm + spec.tcp_shift_sd_mm * self.rng.normal() if shift_mm is None else shift_mm
             target = abs(float(target))
+            imp = self.imperfections
+            if imp.pivot_sd_mm or imp.slip_sd_mm or imp.roll_deg_per_mm2:
+                pivot, slip, roll = self.imperfect.disturbance(spec.pivot_C)
+                rot = self._apply_rotation(series, axis, pivot, target)
+                self._C_H_Ccur = self._C_H_Ccur @ inv_H(rot.C_H_Cnew)  # one disturbance: rotation, roll, slip
+                self.disturbances.pop()
+                twist = rot_axis(np.array([0.0, 0.0, 1.0]), np.radians(roll * target**2), (0.0, 0.0, 0.0))
+                return self._commit(series, rot.C_H_Cnew @ twist @ trans(*slip), axis)
             return self._apply_rotation(series, axis, np.asarray(spec.pivot_C, float), target)
 
     def disturb_by_angle(self, axis_C, angle_deg: float, pivot_C=(0.0, -15.0, -20.0), series: str = "custom") -> Disturbance:
@@ -266,7 +281,11 @@ class SimWorld:
 
     def points_G(self) -> np.ndarray:
         """(6, 3) true fingertip points in G for the current jaw gap."""
-        return self.cell.gripper.points_G(gap=self.jaw_gap_mm)
+        return self.imperfect.points_G(self.cell.gripper, self.jaw_gap_mm)
+
+    def finger_boxes_G(self, gap: float | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The true fingers' boxes [(lo, hi)] in G [mm] for a jaw gap (default: the current one)."""
+        return self.imperfect.finger_boxes_G(self.cell.gripper, self.jaw_gap_mm if gap is None else gap)
 
     def truth(self) -> dict:
         """The ground truth a test or a report compares against (plain lists, mm, px)."""

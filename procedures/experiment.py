@@ -234,9 +234,11 @@ class DirectSimRig:
 
 
 def run_direct(cell: Cell, series_list=("cable", "tilt"), trials: int = 20, seed: int = 0,
-               progress=None) -> tuple[list[TrialRecord], dict]:
+               progress=None, profile=None) -> tuple[list[TrialRecord], dict]:
     """The experiment straight on simulated worlds (one world per trial, seeded ``seed + k``).
 
+    ``profile``: the simulated cell's imperfections (``selfview.mocks.imperfections``: a profile name
+    such as 'ideal' or 'paper-like', or an ``Imperfections``; None: ideal).
     Returns the records and the summary; trials that failed are listed in ``summary['failures']``."""
     from selfview.mocks.world import SimWorld
 
@@ -244,7 +246,7 @@ def run_direct(cell: Cell, series_list=("cable", "tilt"), trials: int = 20, seed
     for series in series_list:
         for k in range(trials):
             s = seed + k + 10_000 * list(series_list).index(series)  # seeds never repeat across series
-            world = SimWorld(cell, seed=s)
+            world = SimWorld(cell, seed=s, imperfections=profile)
             try:
                 rec, _ = run_trial(DirectSimRig(world, render_seed=s), cell, series, k, seed=s)
             except CellError as exc:

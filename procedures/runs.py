@@ -92,8 +92,8 @@ class CellSession:
 
     @classmethod
     def simulated(cls, cell: Cell, seed: int = 0, *, time_scale: float = 0.02, link: str = "pty",
-                  taught: dict | None = None, **kw) -> "CellSession":
-        sim = SimulatedCell(cell, seed=seed, time_scale=time_scale, link=link, taught=taught)
+                  taught: dict | None = None, profile=None, **kw) -> "CellSession":
+        sim = SimulatedCell(cell, seed=seed, time_scale=time_scale, link=link, taught=taught, profile=profile)
         return cls(cell, CellURLs("", "", ""), sim=sim, **kw)
 
     @classmethod

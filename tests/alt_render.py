@@ -70,6 +70,12 @@ class AltOptions:
     fingers: bool = True
     C_H_T: np.ndarray | None = None  # table plane z = 0; default 40 mm beyond the plate or 120 mm beyond the TCP
     seed: int = 0
+    # a real CCIR grabber (issue 17; magnitudes and sources in selfview.mocks.imperfections), see _grabber
+    field_shift_px: tuple[float, float] = (0.0, 0.0)  # motion of the picture between the even and odd field
+    line_jitter_px: float = 0.0  # sd of each line's horizontal shift
+    pll_shear_px: float = 0.0  # horizontal shift from the first line to the last
+    analog_noise: float = 0.0  # sd of noise smeared along the line (grey levels)
+    flicker_gain: float = 1.0  # this frame's brightness against the mean
 
 
 @dataclass
@@ -385,6 +391,37 @@ def _illumination(cam: _Camera, opt: AltOptions) -> np.ndarray:
     return (1 + opt.gradient[0] * xu + opt.gradient[1] * yv) * (1 - opt.vignetting * r2)
 
 
+def _grabber(img: np.ndarray, opt: AltOptions) -> np.ndarray:
+    """A CCIR camera and grabber's imperfections on the optical picture (H, W) float, by linear
+    interpolation along each line and between lines (a different technique from the project renderer's
+    resampling): the odd lines sample the picture moved by ``field_shift_px`` (the second field, 20 ms
+    later); each line is moved along u by a seeded N(0, line_jitter_px) plus the PLL shear (linear from 0
+    on the first line to ``pll_shear_px`` on the last); then noise of sd ``analog_noise`` averaged over 3
+    neighbours along the line, and the flicker gain."""
+    du_f, dv_f = opt.field_shift_px
+    if not (du_f or dv_f or opt.line_jitter_px or opt.pll_shear_px or opt.analog_noise or opt.flicker_gain != 1.0):
+        return img
+    rng = np.random.default_rng(opt.seed + 15485863)
+    H, W = img.shape
+    out = img.copy()
+    if dv_f:
+        rows = np.arange(1, H, 2)
+        src = np.clip(rows - dv_f, 0, H - 1)
+        r0 = np.floor(src).astype(int)
+        r1 = np.minimum(r0 + 1, H - 1)
+        a = (src - r0)[:, None]
+        out[1::2] = (1 - a) * img[r0] + a * img[r1]
+    shift = rng.normal(0.0, opt.line_jitter_px, H) + opt.pll_shear_px * np.arange(H) / max(H - 1, 1)
+    shift[1::2] += du_f
+    u = np.arange(W, dtype=float)
+    for v in np.flatnonzero(shift):
+        out[v] = np.interp(u - shift[v], u, out[v])
+    if opt.analog_noise:
+        n = rng.normal(0.0, opt.analog_noise * np.sqrt(3.0), (H, W + 2))
+        out = out + (n[:, :-2] + n[:, 1:-1] + n[:, 2:]) / 3.0
+    return out * opt.flicker_gain
+
+
 def _disc_truth(scene: _Scene) -> tuple[np.ndarray, ...]:
     """Projected centres, area centroids of the distorted disc images, whole-and-visible, partly seen."""
     pl, cam = scene.plate, scene.cam
@@ -479,6 +516,7 @@ def render(camera, C_H_G, C_H_W, gap_mm: float, cell, options: AltOptions | None
     img = grey * _illumination(scene.cam, opt)
     if opt.blur_sigma > 0:
         img = cv2.GaussianBlur(img, (0, 0), opt.blur_sigma, borderType=cv2.BORDER_REFLECT)
+    img = _grabber(img, opt)
     img = img * opt.gain
     if opt.noise > 0:
         nrng = np.random.default_rng(opt.seed)

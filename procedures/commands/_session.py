@@ -8,7 +8,7 @@ import time
 from selfview.procedures.commands._common import add_cell_argument, load_cell_arg
 
 
-def add_session_arguments(p, *, seed_default: int = 0) -> None:
+def add_session_arguments(p, *, seed_default: int = 0, profile_default: str = "ideal") -> None:
     add_cell_argument(p)
     g = p.add_argument_group("cell", "which devices; by default the simulated cell, every device on its real channel")
     g.add_argument("--real", action="store_true", help="use the lab's devices named by --robot, --gripper, --camera")
@@ -18,6 +18,9 @@ def add_session_arguments(p, *, seed_default: int = 0) -> None:
     g.add_argument("--seed", type=int, default=seed_default, help="seed of the simulated cell (default %(default)s)")
     g.add_argument("--time-scale", type=float, default=0.02,
                    help="simulated robot motions take this fraction of real time (default %(default)s)")
+    g.add_argument("--profile", default=profile_default, metavar="NAME",
+                   help="the simulated cell's imperfections: ideal (a perfect cell), realistic (a real CCIR cell's, "
+                        "each at its published magnitude), paper-like (the paper's cell) (default %(default)s)")
     g.add_argument("--dry-run", action="store_true", help="print the steps, move nothing")
 
 
@@ -45,5 +48,8 @@ def open_session(args, progress=None):
             from selfview.errors import ConfigError
 
             raise ConfigError(f"--{nm} is for a real cell: add --real (without it the simulated cell is used)")
+    from selfview.mocks.imperfections import resolve
+
+    resolve(args.profile)  # a clear error for an unknown profile before anything starts
     return cell, CellSession.simulated(cell, seed=args.seed, time_scale=args.time_scale, dry_run=args.dry_run,
-                                       ask=ask, progress=progress)
+                                       ask=ask, progress=progress, profile=args.profile)

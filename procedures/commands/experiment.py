@@ -22,7 +22,8 @@ def register(sub):
             "errors.png. A run never overwrites an earlier run's folder."
         ),
     )
-    add_session_arguments(p)
+    # a real cell's imperfections by default: the figures a lab should expect (--profile ideal: a perfect cell)
+    add_session_arguments(p, profile_default="realistic")
     p.add_argument("--trials", type=int, default=20, help="trials per series (default %(default)s)")
     p.add_argument("--series", nargs="+", default=["cable", "tilt"], help="series to run (default: cable tilt)")
     p.add_argument("--out", metavar="DIR", help="results folder (must be new or empty; default runs/experiment-TIME)")
@@ -61,6 +62,7 @@ def run(args) -> int:
         return 0
     records, summary, first = out
     config = {"trials": args.trials, "series": list(args.series), "seed": args.seed, "real": args.real,
+              "profile": None if args.real else args.profile,
               "time_scale": args.time_scale, "urls": vars(session.urls)}
     results = write_experiment_folder(folder, records, summary, first, cell=cell, config=config)
     if args.json:

@@ -36,6 +36,8 @@ def register(sub):
                    help="disturb the camera mount as simulation.disturbances.SERIES says (cable, tilt); repeatable")
     p.add_argument("--free", action="store_true",
                    help="lift the gripper off the plate over the textured table instead of parking it")
+    p.add_argument("--profile", default="ideal", metavar="NAME",
+                   help="the simulated cell's imperfections: ideal, realistic, paper-like (default %(default)s)")
     p.add_argument("--truth", default=None, metavar="TRUTH.json", help="where to write the ground truth (JSON)")
     p.set_defaults(func=run)
     return p
@@ -67,7 +69,7 @@ def run(args) -> int:
     state = args.state or cell.gripper.calibrate_in
     gap = cell.gripper.gap(state)  # raises ConfigError naming the known states
 
-    world = SimWorld(cell, seed=args.seed)
+    world = SimWorld(cell, seed=args.seed, imperfections=args.profile)
     if args.free:
         world.set_tcp(world.base_H_plate0 @ LIFTED_W_H_G)
     else:

@@ -13,7 +13,9 @@ METHODS = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R")
 
 def test_experiment_writes_its_results_folder(tmp_path, capsys):
     out = tmp_path / "run"
-    code = main(["experiment", "--trials", "3", "--out", str(out), "--json", "--quiet", "--seed", "11"])
+    # the perfect cell: its figures are the method's own (the default, realistic, adds a real cell's errors)
+    code = main(["experiment", "--trials", "3", "--out", str(out), "--json", "--quiet", "--seed", "11",
+                 "--profile", "ideal"])
     assert code == 0
     printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert printed["folder"] == str(out)
@@ -30,7 +32,7 @@ def test_experiment_writes_its_results_folder(tmp_path, capsys):
                 assert all(0 <= a <= b for a, b in zip(e["mean_mm"], e["max_mm"]))
         # the on-line estimates of a 1.5 or 4.5 mm shift land within a fraction of a mm
         assert max(ser["methods"]["4P-I"]["truth"]["mean_mm"]) < 0.2
-    assert res["config"]["seed"] == 11 and res["cell"]["sha256"]
+    assert res["config"]["seed"] == 11 and res["config"]["profile"] == "ideal" and res["cell"]["sha256"]
     assert res["environment"]["selfview"]
     assert len(res["trials"]) >= 4
     for f in ("tables.md", "errors.png", "trial1_offline.png", "trial1_online.png", "trial1_picture1.png"):
@@ -49,6 +51,8 @@ def test_bad_arguments_name_the_problem(capsys):
     assert "--real" in capsys.readouterr().err
     assert main(["experiment", "--real", "--quiet"]) == 3
     assert "robot URL" in capsys.readouterr().err
+    assert main(["experiment", "--profile", "perfect", "--quiet"]) == 3
+    assert "paper-like" in capsys.readouterr().err  # names the profiles there are
 
 
 @pytest.mark.parametrize("script, args, expect", [
@@ -60,3 +64,20 @@ def test_examples_run(tmp_path, script, args, expect):
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert expect in r.stdout
+
+
+def test_profile_option_where_a_simulated_cell_is_built():
+    """``selfview experiment`` runs the realistic cell by default; the commands that build a simulated
+    cell take ``--profile`` (ideal by default) and pass it to the world."""
+    from selfview.procedures.cli import build_parser
+    from selfview.procedures.simcell import SimulatedCell
+    from selfview.cell import default_cell_path, load_cell
+
+    p = build_parser()
+    assert p.parse_args(["experiment"]).profile == "realistic"
+    for cmd in ("park", "monitor", "devices", "render"):
+        extra = {"render": ["--out", "x.png"], "monitor": ["--calibration", "cal.yaml"]}.get(cmd, [])
+        assert p.parse_args([cmd, *extra]).profile == "ideal"
+        assert p.parse_args([cmd, *extra, "--profile", "paper-like"]).profile == "paper-like"
+    sim = SimulatedCell(load_cell(default_cell_path()), seed=2, profile="paper-like")
+    assert sim.world.imperfections.finger_dim_sd_mm > 0
