@@ -280,14 +280,34 @@ def judge_corners(result, frame: Frame) -> dict:
 def measure_sequence(seq: Sequence, cell, methods=("search", "tracker")) -> dict:
     """Run each method over the sequence's disturbed frames; per method a list of per-frame verdicts."""
     from selfview.fingertips import find_fingertips
-    from selfview.tracking import FingertipTracker
+    from selfview.tracking import FingertipTracker, SilhouetteTracker
 
     out = {}
     if seq.kind == "disc":
         fr = seq.frames[0]
-        res = find_fingertips(fr.image, seq.camera, seq.C_H_G_pred, cell.gripper, seq.gap)
-        out["search"] = [judge_corners(res, fr)]
+        for m, model in (("search", False), ("model-search", True)):
+            if m in methods:
+                res = find_fingertips(fr.image, seq.camera, seq.C_H_G_pred, cell.gripper, seq.gap, model=model)
+                out[m] = [judge_corners(res, fr)]
         return out
+    if "model-search" in methods:
+        out["model-search"] = [
+            judge_pose(find_fingertips(fr.image, seq.camera, seq.C_H_G_pred, cell.gripper, seq.gap,
+                                       points=ONLINE_POINTS, model=True), seq, fr)
+            for fr in seq.frames[1:]
+        ]
+    if "model-tracker" in methods:
+        tr = SilhouetteTracker(seq.camera, cell.gripper, points=ONLINE_POINTS)
+        tr.find(seq.frames[0].image, seq.C_H_G_pred, seq.gap)
+        verdicts = []
+        for fr in seq.frames[1:]:
+            t0 = time.perf_counter()
+            res = tr.find(fr.image, seq.C_H_G_pred, seq.gap)
+            v = judge_pose(res, seq, fr)
+            v["tracked"] = bool(res.tracked)
+            v["ms"] = (time.perf_counter() - t0) * 1e3
+            verdicts.append(v)
+        out["model-tracker"] = verdicts
     if "search" in methods:
         out["search"] = [
             judge_pose(find_fingertips(fr.image, seq.camera, seq.C_H_G_pred, cell.gripper, seq.gap,
@@ -349,7 +369,8 @@ def tabulate(rows: list[dict]) -> dict:
             if r["verdict"] != "missed" and r.get("err_mm") is not None:
                 t["_err"].append(r["err_mm"])
     for t in table.values():
-        e = np.array(t.pop("_err")) if t["_err"] else None
+        e = t.pop("_err")
+        e = np.array(e) if e else None
         t["found_pct"] = round(100.0 * t["found"] / max(t["frames"], 1), 2)
         if e is not None and e.ndim == 2:
             t["4P-I_tcp_err_mean_mm"] = [round(float(v), 4) for v in e.mean(axis=0)]
@@ -365,7 +386,7 @@ def main(argv=None) -> int:
     ap.add_argument("--renderers", default="mocks,alt")
     ap.add_argument("--disc", type=int, default=10, help="parked pictures beside/on a disc per renderer")
     ap.add_argument("--occluded", type=int, default=6, help="trials with a cable across a finger (alt renderer)")
-    ap.add_argument("--methods", default="search,tracker")
+    ap.add_argument("--methods", default="search,tracker,model-search,model-tracker")
     ap.add_argument("--frames-out", default=None, help="also write every frame's verdict to this JSON file")
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)

@@ -55,7 +55,7 @@ def run(args) -> int:
     ft = find_fingertips(img, cal.camera, cal.C_H_G, cell.gripper, gap)
     found_names = [nm for nm, ok in zip(POINT_NAMES, ft.found) if ok]
     if args.method == "auto":
-        mon = Monitor(cal.C_H_G, cal.camera, pG, cell.monitor)
+        mon = Monitor(cal.C_H_G, cal.camera, pG, cell.monitor, max_missed_frames=1)  # one picture: no next frame
         d = mon.step(ft.uv, ft.found)
         out = {
             "method": d.method or "auto",
