@@ -257,6 +257,8 @@ def judge_pose(result, seq: Sequence, frame: Frame) -> dict:
         return out
     err = np.abs(est.C_H_G[:3, 3] - frame.C_H_G[:3, 3])
     out["err_mm"] = err.tolist()
+    if getattr(result, "C_H_G", None) is not None:  # method E: the model's own pose
+        out["err_E_mm"] = np.abs(np.asarray(result.C_H_G)[:3, 3] - frame.C_H_G[:3, 3]).tolist()
     out["verdict"] = "wrong" if float(err.max()) > WRONG_MM else "found"
     return out
 
@@ -363,14 +365,25 @@ def tabulate(rows: list[dict]) -> dict:
     table: dict = {}
     for r in rows:
         for key in (("all", r["method"]), (r["renderer"], r["family"], r["method"]), ("family", r["family"], r["method"])):
-            t = table.setdefault(" / ".join(key), {"frames": 0, "found": 0, "missed": 0, "wrong": 0, "_err": []})
+            t = table.setdefault(" / ".join(key), {"frames": 0, "found": 0, "missed": 0, "wrong": 0, "_err": [],
+                                                   "_errE": [], "_ms": []})
             t["frames"] += 1
             t[r["verdict"]] += 1
             if r["verdict"] != "missed" and r.get("err_mm") is not None:
                 t["_err"].append(r["err_mm"])
+            if r["verdict"] != "missed" and r.get("err_E_mm") is not None:
+                t["_errE"].append(r["err_E_mm"])
+            if r.get("ms") is not None:
+                t["_ms"].append(r["ms"])
     for t in table.values():
         e = t.pop("_err")
         e = np.array(e) if e else None
+        eE, ms = t.pop("_errE"), t.pop("_ms")
+        if eE:
+            t["E_tcp_err_mean_mm"] = [round(float(v), 4) for v in np.mean(eE, axis=0)]
+            t["E_tcp_err_max_mm"] = round(float(np.max(eE)), 4)
+        if ms:
+            t["step_ms_median"] = round(float(np.median(ms)), 2)
         t["found_pct"] = round(100.0 * t["found"] / max(t["frames"], 1), 2)
         if e is not None and e.ndim == 2:
             t["4P-I_tcp_err_mean_mm"] = [round(float(v), 4) for v in e.mean(axis=0)]

@@ -118,8 +118,24 @@ class _EdgeSet:
     into_G: list  # per edge: unit directions into those faces (G)
 
 
+_EDGE_CACHE: dict = {}
+
+
 def _visible_edges(boxes, C_H_G) -> _EdgeSet:
+    """The edges of the boxes that show from the camera at ``C_H_G`` (cached: they change only when the
+    camera crosses the plane of a face)."""
     cam_G = inv_H(C_H_G)[:3, 3]
+    b = np.asarray(boxes, float).reshape(-1, 3)
+    key = (b.tobytes(), tuple(np.sign(cam_G[None, :] - b).ravel().astype(int)))
+    hit = _EDGE_CACHE.get(key)
+    if hit is None:
+        if len(_EDGE_CACHE) > 64:
+            _EDGE_CACHE.clear()
+        hit = _EDGE_CACHE[key] = _visible_edges_of(boxes, cam_G)
+    return hit
+
+
+def _visible_edges_of(boxes, cam_G) -> _EdgeSet:
     eye = np.eye(3)
     a, b, fin, faces, into = [], [], [], [], []
     for f, (lo, hi) in enumerate(boxes):
@@ -189,12 +205,22 @@ def _sample(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _Sam
     t = (np.arange(len(edge)) - starts[edge] + 0.5) / counts[edge]
     seg = es.b_G - es.a_G
     p = es.a_G[edge] + t[:, None] * seg[edge]
-    dirs = seg / np.linalg.norm(seg, axis=1, keepdims=True)
-    d_in = np.array([ins[0] for ins in es.into_G])
-    pc = transform_points(C_H_G, np.vstack([p, p + 0.05 * d_in[edge], p + 0.05 * dirs[edge]]))
     n = len(edge)
-    uv_all = cam.project(pc)
-    uv, uv_in, uv_t = uv_all[:n], uv_all[n : 2 * n], uv_all[2 * n :]
+    # the samples, and one point per edge a step into its first face (which side the face lies on)
+    mids = np.flatnonzero(counts > 0)
+    d_in = np.array([ins[0] for ins in es.into_G])
+    m_G = 0.5 * (es.a_G[mids] + es.b_G[mids])
+    uv_all = cam.project(transform_points(C_H_G, np.vstack([p, m_G, m_G + 0.05 * d_in[mids]])))
+    uv = uv_all[:n]
+    side = np.zeros((E, 2))
+    side[mids] = uv_all[n + len(mids) :] - uv_all[n : n + len(mids)]
+    # tangents from neighbouring samples of the same edge (forward differences, the last one backward)
+    tan = np.zeros_like(uv)
+    nxt = np.r_[edge[1:] == edge[:-1], False]
+    tan[nxt] = uv[1:][nxt[:-1]] - uv[:-1][nxt[:-1]]
+    last = ~nxt
+    prv = np.r_[False, edge[1:] == edge[:-1]]
+    tan[last & prv] = uv[last & prv] - uv[np.flatnonzero(last & prv) - 1]
     keep = cam.in_image(uv, margin=margin)
     fin = es.finger[edge]
     for f in (0, 1):
@@ -204,10 +230,9 @@ def _sample(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _Sam
             keep[m] &= ~_blocked(o, p[m] - o[None], np.asarray(lo, float), np.asarray(hi, float))
     if not np.any(keep):
         return empty
-    tan = uv_t - uv
     tan /= np.linalg.norm(tan, axis=1, keepdims=True) + 1e-12
     nrm = np.column_stack([-tan[:, 1], tan[:, 0]])
-    sgn = np.sign(np.sum(nrm * (uv_in - uv), axis=1))
+    sgn = np.sign(np.sum(nrm * side[edge], axis=1))
     nrm *= np.where(sgn == 0, 1.0, sgn)[:, None]
     return _Samples(p[keep], edge[keep], uv[keep], nrm[keep], es.faces)
 
@@ -377,7 +402,7 @@ def _solve(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6):
         except np.linalg.LinAlgError:
             break
         H = _motion(dxi) @ H
-        if np.max(np.abs(dxi[:3])) < 1e-8 and np.max(np.abs(dxi[3:])) < 1e-6:
+        if np.max(np.abs(dxi[:3])) < 1e-7 and np.max(np.abs(dxi[3:])) < 1e-5:  # ~1e-4 px
             break
     return H, w, r, pick, JtWJ, sigma
 
@@ -477,7 +502,6 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
         return SilhouetteFit(H_, nan6.copy(), np.zeros(6, bool), False, reason, gf, np.asarray(ff, float), rms,
                              np.full(3, np.nan), n_s, app, [reason] * 6)
 
-    es = _visible_edges(boxes, H)
     w = r = s = None
     JtWJ = np.zeros((6, 6))
     sigma = SCALE_FLOOR_PX
@@ -507,7 +531,7 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
         q = q.reshape(uvc.shape)
         floor = max(SCALE_FLOOR_PX, R / 6.0) if i < len(rounds) - 1 else SCALE_FLOOR_PX
         last = i == len(rounds) - 1
-        H, w, r, pick, JtWJ, sigma = _solve(camera, es, s, q, H, floor, iters=6 if last else 3)
+        H, w, r, pick, JtWJ, sigma = _solve(camera, es, s, q, H, floor, iters=5 if last else 3)
     good = w > 0.5
     n_s = len(s.edge)
     gf = float(good.mean()) if n_s else 0.0
@@ -563,12 +587,14 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
         res.tcp_sd_mm = tcp_sd
         res.covariance = cov
         return res
-    # the faces' levels at the fit, for the next frame: the median beside the supporting samples
+    # the faces' levels at the fit, for the next frame
     new_app = app.copy()
     seen = lev[np.arange(n_s), pick]
-    for e in np.unique(s.edge[good]):
-        m = good & (s.edge == e) & np.isfinite(seen)
-        if m.sum() >= 5:
-            new_app.levels[es.faces[e][0]] = float(np.median(seen[m]))
+    m = good & np.isfinite(seen)
+    E = len(es.faces)
+    cnt = np.bincount(s.edge[m], minlength=E)
+    tot = np.bincount(s.edge[m], weights=seen[m], minlength=E)
+    for e in np.flatnonzero(cnt >= 5):  # the mean beside each edge's supporting samples
+        new_app.levels[es.faces[e][0]] = float(tot[e] / cnt[e])
     return SilhouetteFit(H, np.where(found[:, None], uv6, np.nan), found, True, None, gf, ff, rms, tcp_sd, n_s,
                          new_app, reasons, cov)

@@ -761,7 +761,8 @@ class SilhouetteTracker:
     Like ``FingertipTracker`` (``find(image, C_H_G_pred, gap_mm)`` returns a ``FingertipResult``;
     ``searches``, ``tracked_frames``, ``last_failure``, ``reset()``, ``primed``), but every frame fits the
     whole silhouette of both fingers: from the last fitted pose with the short ranges ``track_rounds``
-    [px] (the camera moves little between frames), with the faces' grey levels of the last fit. When
+    [px] (the camera moves little between frames), with the faces' grey levels of the last fit; once more
+    within 3 px of the new pose when the fingertips moved more than ``refine_px`` [px]. When
     that fit is not believed (its quality under the thresholds: the reason is ``last_failure``), the frame
     is searched: fits with the full ranges from the last pose and from ``C_H_G_pred``, then from the
     pose the corner search (``selfview.fingertips``) gives. A frame where none holds reports every point
@@ -770,7 +771,7 @@ class SilhouetteTracker:
     """
 
     def __init__(self, camera: CameraModel, gripper: GripperSpec, *, points=range(4), search_px: float = 60.0,
-                 track_rounds=(8.0, 4.0, 2.5), appearance=None):
+                 track_rounds=(8.0,), refine_px: float = 2.0, appearance=None):
         if not isinstance(camera, CameraModel):
             raise TypeError(f"camera: expected a selfview.camera.CameraModel, got {type(camera).__name__}")
         want = sorted({int(k) for k in points})
@@ -784,6 +785,7 @@ class SilhouetteTracker:
         self.points = tuple(want)
         self.search_px = float(search_px)
         self.track_rounds = rounds
+        self.refine_px = float(refine_px)
         self.searches = 0
         self.tracked_frames = 0
         self.lost_frames = 0
@@ -807,7 +809,11 @@ class SilhouetteTracker:
         from selfview.silhouette import fit_silhouette
 
         C_H_G_pred, gap_mm = checked_prediction(C_H_G_pred, gap_mm)
-        img = as_gray(image, self.camera)  # float32, checked
+        a = np.asarray(image)
+        if a.dtype == np.uint8 and a.shape == (int(self.camera.height), int(self.camera.width)):
+            img = a.astype(np.float32)  # a grabber's frame: no other check needed per frame
+        else:
+            img = as_gray(image, self.camera)  # float32, checked
         why = None
         if self._H is not None and self._gap is not None and abs(gap_mm - self._gap) > 1e-6:
             why = f"the jaw gap changed ({self._gap:.2f} -> {gap_mm:.2f} mm)"
@@ -815,6 +821,11 @@ class SilhouetteTracker:
         if self._H is not None:
             fit = fit_silhouette(img, self.camera, self._H, self.gripper, gap_mm, appearance=self._app,
                                  rounds=self.track_rounds, points=self.points)
+            if fit.C_H_G is not None and self._moved_px(fit.C_H_G, gap_mm) > self.refine_px:
+                # a larger step than usual: once more with a short range around the new pose
+                again = fit_silhouette(img, self.camera, fit.C_H_G, self.gripper, gap_mm, appearance=fit.appearance,
+                                       rounds=(min(self.track_rounds[-1], 3.0),), points=self.points)
+                fit = again if again.ok or not fit.ok else fit
             if fit.ok:
                 self._take(fit, gap_mm)
                 self.tracked_frames += 1
@@ -841,6 +852,15 @@ class SilhouetteTracker:
         else:
             self.lost_frames += 1
         return res
+
+    def _moved_px(self, H, gap_mm: float) -> float:
+        """How far [px] the fingertip points moved in the picture from the last pose to ``H``."""
+        from selfview.geometry import transform_points
+
+        p = self.gripper.points_G(gap=gap_mm)
+        a = self.camera.project_undistorted(transform_points(self._H, p))
+        b = self.camera.project_undistorted(transform_points(H, p))
+        return float(np.max(np.linalg.norm(a - b, axis=1)))
 
     def _take(self, fit, gap_mm: float) -> None:
         self._H = fit.C_H_G.copy()

@@ -6,7 +6,7 @@ import numpy as np
 
 from selfview.procedures.commands._common import add_cell_argument, load_cell_arg, print_json
 
-METHOD_CHOICES = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R", "auto")
+METHOD_CHOICES = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R", "E", "auto")
 
 
 def register(sub):
@@ -18,7 +18,9 @@ def register(sub):
             "camera moved on its mount. Methods: NP-U the paper's differential update (eq. 11-17), NP-I the exact "
             "iterative update, NP-R recalibration of the exterior orientation; 'auto' applies the cell's monitor "
             "policy (update below update_limit, recalibrate below alarm_limit, else alarm: exit code 6 and nothing "
-            "written). With --apply the new C_H_G is written to the calibration file atomically, history kept."
+            "written). E: the model-based estimate, the camera's motion fitted to all the edge samples of both "
+            "fingers' silhouettes at once (hundreds of constraints instead of 4 corners; needs --measure model). "
+            "With --apply the new C_H_G is written to the calibration file atomically, history kept."
         ),
     )
     add_cell_argument(p)
@@ -73,6 +75,28 @@ def run(args) -> int:
             "quality": ft.quality,
         }
         new = None if d.action == "alarm" else np.asarray(d.C_H_G, float)
+    elif args.method == "E":
+        if ft.lost is not None:
+            raise CalibrationError(f"fingertips not found: {ft.lost}")
+        if ft.C_H_G is None:
+            raise ConfigError("--method E is the model's own estimate: it needs --measure model")
+        from selfview.geometry import pose_difference
+
+        H = np.asarray(ft.C_H_G, float)
+        M = H @ np.linalg.inv(cal.C_H_G)  # the camera's motion C'_H_C
+        out = {
+            "method": "E",
+            "C_H_G": H.tolist(),
+            "C_H_G_orthonormal": H.tolist(),
+            "delta_deg": float(pose_difference(H, cal.C_H_G)[0]),
+            "d_mm": float(np.linalg.norm(M[:3, 3])),
+            "decision": "update",
+            "points_used": [],
+            "rms_px": float(ft.quality["rms_px"]),
+            "points_found": found_names,
+            "quality": ft.quality,
+        }
+        new = H
     else:
         if ft.lost is not None:
             raise CalibrationError(f"fingertips not found: {ft.lost}")

@@ -233,6 +233,12 @@ def test_selfview_track_over_a_photograph_reports_the_pose_and_its_quality(tmp_p
     assert len(out["points_used"]) == 4
     # the calibration's own error is in it too (off-line, plain background: some 0.01-0.05 mm)
     assert np.all(_tcp_err(out["C_H_G"], w.C_H_G) < 0.1)
+    assert main(["track", "--calibration", str(cal), "--image", str(moved), "--method", "E", "--json"]) == 0
+    e = json.loads(capsys.readouterr().out)
+    assert e["method"] == "E" and e["quality"]["ok"] and np.all(_tcp_err(e["C_H_G"], w.C_H_G) < 0.1)
+    assert main(["track", "--calibration", str(cal), "--image", str(moved), "--method", "E",
+                 "--measure", "corners"]) == 3
+    assert "needs --measure model" in capsys.readouterr().err
     cv2.imwrite(str(moved), np.where(np.arange(768)[None, :] % 9 < 4, 60, 170).astype(np.uint8).repeat(576, 0))
     assert main(["track", "--calibration", str(cal), "--image", str(moved), "--method", "4P-I"]) == 5
     assert "fingertips not found: lost" in capsys.readouterr().err
