@@ -19,7 +19,10 @@ about this object: its exact shape, its faces' grey levels, and that it moves li
    the distances of the samples from the projected model lines, in undistorted sensor coordinates where
    the edges are straight; each sample takes its candidate closest to its line at each iteration, and
    its weight is Tukey's of that distance over a robust scale (1.48 MAD, floored). Rounds of
-   sampling shrink R (e.g. 24, 10, 5, 3 px) around the last pose.
+   sampling shrink R (e.g. 24, 10, 5, 3 px) around the last pose. A first range of 16 px or more
+   starts with a vote: the image shift that most samples' candidates agree with (within 1.5 px),
+   applied as a small turn of the camera, so a start tens of pixels off does not lock onto the
+   nearest wrong edges.
 4. The corners are the model's points at the fitted pose, so a tip edge weak against the background is
    carried by the long edges and the model. Quality: the share of samples that support the fit (weight
    over one half), per finger too, the residual RMS of those, and the pose's covariance (the TCP's
@@ -38,9 +41,8 @@ import cv2
 import numpy as np
 
 from selfview.camera import CameraModel
-from selfview.cell import POINT_NAMES, GripperSpec
+from selfview.cell import GripperSpec
 from selfview.discs import as_gray
-from selfview.errors import CalibrationError
 from selfview.geometry import R_from_rotvec, inv_H, make_H, transform_points
 
 __all__ = ["Appearance", "SilhouetteFit", "fit_silhouette", "learn_appearance", "MIN_GOOD_FRACTION"]
