@@ -361,9 +361,11 @@ def _tukey(r, c):
     return np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
 
 
-def _solve(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6):
+def _solve(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, start_floor: float | None = None):
     """IRLS of the camera motion on the candidates q (S, C, 2) (undistorted sensor coordinates, NaN:
-    none). Returns (C_H_G, weights (S,), residuals (S,), picked candidate (S,), J^T W J (6, 6), scale)."""
+    none). The scale's floor falls from ``start_floor`` (default ``floor``) by half each iteration down
+    to ``floor``, so that far candidates are weighed before the fit settles on the nearest ones.
+    Returns (C_H_G, weights (S,), residuals (S,), picked candidate (S,), J^T W J (6, 6), scale)."""
     used = np.unique(s.edge)
     pos = np.searchsorted(used, s.edge)
     H = C_H_G.copy()
@@ -385,7 +387,8 @@ def _solve(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6):
             return H, np.zeros(S), r, pick, JtWJ, sigma
         qs = np.where(has[:, None], q[rows, pick], 0.0)
         mad = float(np.median(np.abs(r[has])))
-        sigma = max(1.4826 * mad, floor)
+        fl = floor if start_floor is None else max(floor, start_floor * 0.5**it)
+        sigma = max(1.4826 * mad, fl)
         w = np.where(has, _tukey(np.where(has, r, 0.0), 4.685 * sigma), 0.0)
         # r = n . (q - A): dr = dn . (q - A) - n . dA, dn = perp((I - t t') (dB - dA) / L)
         dBA = dB - dA  # (E, 2, 6)
@@ -404,7 +407,7 @@ def _solve(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6):
         except np.linalg.LinAlgError:
             break
         H = _motion(dxi) @ H
-        if np.max(np.abs(dxi[:3])) < 1e-7 and np.max(np.abs(dxi[3:])) < 1e-5:  # ~1e-4 px
+        if fl <= floor and np.max(np.abs(dxi[:3])) < 1e-7 and np.max(np.abs(dxi[3:])) < 1e-5:  # ~1e-4 px
             break
     return H, w, r, pick, JtWJ, sigma
 
@@ -533,7 +536,8 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
         q = q.reshape(uvc.shape)
         floor = max(SCALE_FLOOR_PX, R / 6.0) if i < len(rounds) - 1 else SCALE_FLOOR_PX
         last = i == len(rounds) - 1
-        H, w, r, pick, JtWJ, sigma = _solve(camera, es, s, q, H, floor, iters=5 if last else 3)
+        H, w, r, pick, JtWJ, sigma = _solve(camera, es, s, q, H, floor, iters=6 if last else 3,
+                                            start_floor=max(floor, R / 6.0))
     good = w > 0.5
     n_s = len(s.edge)
     gf = float(good.mean()) if n_s else 0.0
