@@ -19,6 +19,11 @@ run from a source tree). Three kinds of picture:
   until one is), measured by the full search from the cell's mount guess; all six corners;
 - ``occluded`` (independent renderer only): the online pictures with a cable (a thin box) across one finger.
 
+Methods (``--methods``): ``search`` and ``tracker`` the corner search (``find_fingertips``) and the
+corner tracker (``FingertipTracker``) as they were before the model; ``model-search``
+(``find_fingertips(..., model=True)``) and ``model-tracker`` (``SilhouetteTracker``) the model-based
+measurement, whose own pose is also scored as method E (``E_tcp_err_*``). The same frames for all four.
+
 Each measured frame is one of: ``found`` (marked good and right), ``missed`` (not marked good: points
 not found, 4P-I refused, or the measurement's own quality check said "not found"), ``wrong`` (marked
 good but the pose more than ``WRONG_MM`` off in some axis of the TCP, or, for ``disc``, a found corner
