@@ -8,7 +8,10 @@ took from the machine during the run (``steal_s``: a run with much of it ran slo
 of the whole per-frame step (the four inner fingertip corners in a 768x576 picture, tracked from the
 last frame by ``selfview.tracking.FingertipTracker`` or searched for when the tracking does not hold,
 + 4P-I) over a rendered sequence of a creeping camera, with the full search's time and the corners'
-errors beside it (``per_frame_step``). ``compiled_kernels`` says whether the C kernels ran
+errors beside it (``per_frame_step``), and as a fraction of a 40 ms CCIR frame. ``trackers_plain`` and
+``trackers_cluttered`` (scikit-image's gravel laid 40 mm beyond the fingertips, defocused) time both
+trackers on one sequence each, the corner tracker and the model-based ``SilhouetteTracker``, with their
+full searches (``model_step``). ``compiled_kernels`` says whether the C kernels ran
 (``SELFVIEW_PURE_PYTHON=1`` times the pure-Python reference). One run, one core: BLAS and OpenCV
 threads are limited to one and the process is pinned to one CPU.
 
@@ -51,6 +54,7 @@ from selfview.online import differential_update, iterative_update, recalibrate  
 
 TARGET_SOLVE_US = 50.0
 TARGET_STEP_MS = 5.0
+FRAME_MS = 40.0  # a CCIR frame
 
 
 def steal_ticks() -> int | None:
@@ -158,10 +162,81 @@ def per_frame_step(cell, world, C_H_G_before, frames: int = 10, rounds: int = 10
     }
 
 
+def model_step(cell, world, C_H_G_before, *, backdrop=None, frames: int = 8, rounds: int = 3,
+               creep_deg: float = 0.02) -> dict:
+    """The per-frame step of both trackers on one rendered sequence, as ``per_frame_step`` builds it
+    (``backdrop``: a ``selfview.mocks.render.Backdrop``, a photograph laid as the table 40 mm beyond the
+    fingertips, else the plain scene): the corner tracker (``FingertipTracker``) and the model-based one
+    (``SilhouetteTracker``: the whole silhouette fitted, a quality per frame), each + 4P-I; medians [ms]
+    and as a fraction of a 40 ms CCIR frame; frames measured (found / missed). Also the full searches'
+    times: the corner search, and the model-based search after a lost track (the silhouette fitted with
+    the full ranges from the last pose)."""
+    from selfview.mocks.render import render
+    from selfview.errors import CalibrationError
+    from selfview.fingertips import find_fingertips, model_measurement
+    from selfview.online import estimate
+    from selfview.tracking import FingertipTracker, SilhouetteTracker
+
+    gap = world.jaw_gap_mm
+    cam = world.camera
+    p_G6 = cell.gripper.points_G(gap=gap)
+    rng = np.random.default_rng(11)
+    pics, truths = [], []
+    for i in range(frames):
+        if i:
+            world.disturb_by_angle(rng.normal(size=3), creep_deg, series="creep")
+        pics.append(render(world, seed=200 + i, backdrop=backdrop).image)
+        truths.append(world.C_H_G)
+    out = {}
+    order = (list(range(1, frames)) + list(range(frames - 2, -1, -1))) * rounds
+    for name, tracker in (("corners", FingertipTracker(cam, cell.gripper, points=range(4))),
+                          ("model", SilhouetteTracker(cam, cell.gripper, points=range(4)))):
+        tracker.find(pics[0], C_H_G_before, gap)
+        ms, err, found, missed = [], [], 0, 0
+        for i in order:
+            t0 = time.perf_counter()
+            ft = tracker.find(pics[i], C_H_G_before, gap)
+            est = None
+            if ft.lost is None:
+                try:
+                    est = estimate("4P-I", C_H_G_before, p_G6, ft.uv, ft.found, cam)
+                except CalibrationError:
+                    est = None
+            ms.append((time.perf_counter() - t0) * 1e3)
+            if est is None:
+                missed += 1
+            else:
+                found += 1
+                err.append(np.abs(est.C_H_G[:3, 3] - truths[i][:3, 3]))
+        med = statistics.median(ms)
+        out[name] = {
+            "median_ms": round(med, 3), "p95_ms": round(float(np.percentile(ms, 95)), 3),
+            "frame_fraction": round(med / FRAME_MS, 4), "steps": len(ms), "found": found, "missed": missed,
+            "tracked_steps": tracker.tracked_frames,
+            "4P-I_tcp_err_mean_mm": [round(float(v), 4) for v in np.mean(err, axis=0)] if err else None,
+        }
+    # the full searches on the last picture, from the mount before the disturbance / from the last pose
+    t0 = time.perf_counter()
+    full = find_fingertips(pics[-1], cam, C_H_G_before, cell.gripper, gap, points=range(4))
+    out["corners"]["full_search_ms"] = round((time.perf_counter() - t0) * 1e3, 3)
+    out["corners"]["full_search_found"] = int(full.found[:4].sum())
+    times = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        res, fit = model_measurement(pics[-1], cam, C_H_G_before, cell.gripper, gap, range(4), starts=[truths[0]])
+        times.append((time.perf_counter() - t0) * 1e3)
+    out["model"]["full_search_ms"] = round(statistics.median(times), 3)
+    out["model"]["full_search_frame_fraction"] = round(statistics.median(times) / FRAME_MS, 4)
+    out["model"]["full_search_found"] = int(res.found[:4].sum())
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=300, help="batches per solver (median over them)")
     ap.add_argument("--number", type=int, default=20, help="calls per batch")
+    ap.add_argument("--no-photo", dest="photo", action="store_false",
+                    help="skip the cluttered sequence (it needs scikit-image's photographs: the test extra)")
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)
     if hasattr(os, "sched_setaffinity"):
@@ -198,6 +273,20 @@ def main(argv=None) -> int:
     small = np.ones(8)
     numpy_op_us = median_us(lambda: small * 2.0, args.repeat, 200)
     step = per_frame_step(cell, world, C_H_G_before)
+    from selfview.mocks.render import Backdrop
+    from selfview.bench.clutter import load_photo
+
+    C_now = world.C_H_G
+    plain = model_step(cell, world, C_now)
+    cluttered = None
+    try:
+        photo = load_photo("gravel") if args.photo else None
+    except RuntimeError as exc:  # scikit-image (the test extra) not installed
+        photo, cluttered = None, {"skipped": str(exc)}
+    if photo is not None:
+        cluttered = model_step(cell, world, world.C_H_G,
+                               backdrop=Backdrop(photo, mm_per_px=180.0 / max(photo.shape), distance_mm=40.0,
+                                                 defocus_px=1.5))
     out = {
         "benchmark": "online solve",
         "scene": {
@@ -218,6 +307,10 @@ def main(argv=None) -> int:
         "steal_s": None if steal0 is None else round((steal_ticks() - steal0) / 100.0, 2),
         "per_frame_step_ms": step["median_ms"],
         "per_frame_step": step,
+        "frame_ms": FRAME_MS,
+        "per_frame_step_frame_fraction": round(step["median_ms"] / FRAME_MS, 4),
+        "trackers_plain": plain,
+        "trackers_cluttered": cluttered,
         "target_step_ms": TARGET_STEP_MS,
         "step_within_target": step["median_ms"] <= TARGET_STEP_MS,
         "compiled_kernels": native_status(),

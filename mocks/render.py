@@ -33,9 +33,10 @@ from selfview.mocks.world import SimWorld
 from selfview.camera import CameraModel, max_undistorted_radius
 from selfview.cell import POINT_NAMES, ImageSpec, PlateSpec
 from selfview.errors import ConfigError
-from selfview.geometry import trans, transform_points
+from selfview.geometry import rot_x, rot_z, trans, transform_points
 
 __all__ = [
+    "Backdrop",
     "RenderResult",
     "render",
     "disc_image_centroids",
@@ -77,6 +78,53 @@ _N_LABELS = _FINGER0 + 12
 _PRINT_BIT = 16
 _LABEL_BITS = np.array([0, 0, 2, 2, _PRINT_BIT, _PRINT_BIT, _PRINT_BIT, 1] + [4] * 6 + [8] * 6, np.uint8)
 _FACE_NORMALS = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], float)
+
+
+@dataclass(frozen=True)
+class Backdrop:
+    """A picture laid as the table behind the fingertips, in place of the plate, its foam and the table.
+
+    ``image`` (h, w) grey levels 0..255 (e.g. a photograph; a colour one is converted), ``mm_per_px`` its
+    scale on the table, centred on the plate's origin and mirrored beyond its border. The table is the
+    plane ``distance_mm`` beyond the plate's printed plane (where the fingertips stand while parked), along
+    W's z (away from the camera), tilted by ``tilt_deg`` about W's x and turned by ``turn_deg`` about its
+    normal. ``defocus_px`` the Gaussian sigma [px of the picture] of the table's defocus (the fingers stay
+    as sharp as ``blur_px`` makes everything); ``contrast`` scales the grey levels about 128.
+    """
+
+    image: np.ndarray
+    mm_per_px: float = 0.2
+    distance_mm: float = 40.0
+    defocus_px: float = 0.0
+    tilt_deg: float = 0.0
+    turn_deg: float = 0.0
+    contrast: float = 1.0
+
+    def check(self) -> None:
+        img = np.asarray(self.image)
+        if img.ndim not in (2, 3) or min(img.shape[:2]) < 8:
+            raise ConfigError(f"backdrop image: expected a grey or colour picture of at least 8x8, got shape {img.shape}")
+        for name, lo, hi in (("mm_per_px", 1e-3, 100.0), ("distance_mm", 0.5, 2000.0), ("defocus_px", 0.0, 20.0),
+                             ("tilt_deg", -60.0, 60.0), ("turn_deg", -360.0, 360.0), ("contrast", 0.0, 4.0)):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and lo <= v <= hi):
+                raise ConfigError(f"backdrop {name}: expected {lo:g}..{hi:g}, got {v!r}")
+
+    def C_H_T(self, C_H_W: np.ndarray) -> np.ndarray:
+        """The table's frame T in the camera frame: its plane z_T = 0, x_T, y_T the picture's axes."""
+        return C_H_W @ trans(0.0, 0.0, self.distance_mm) @ rot_x(np.radians(self.tilt_deg)) @ rot_z(np.radians(self.turn_deg))
+
+    def texture(self, depth_mm: float, f_px: float) -> np.ndarray:
+        """The picture as float32 grey levels, its defocus applied in its own pixels (the table's depth
+        ``depth_mm`` and the focal length ``f_px`` give mm per picture pixel there)."""
+        img = np.asarray(self.image)
+        if img.ndim == 3:
+            img = cv2.cvtColor(np.ascontiguousarray(img[..., :3]).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+        tex = (128.0 + self.contrast * (img.astype(np.float32) - 128.0)).astype(np.float32)
+        sigma = self.defocus_px * depth_mm / f_px / self.mm_per_px
+        if sigma > 0.05:
+            tex = cv2.GaussianBlur(tex, (0, 0), sigma, borderType=cv2.BORDER_REFLECT_101)
+        return tex
 
 
 @dataclass
@@ -209,7 +257,7 @@ class _Plane:
 class _Scene:
     """The cell as the camera sees it at one instant: surfaces, their grey levels and the table texture."""
 
-    def __init__(self, world: SimWorld, spec: ImageSpec):
+    def __init__(self, world: SimWorld, spec: ImageSpec, backdrop: Backdrop | None = None):
         with world.lock:
             self.camera: CameraModel = world.camera
             C_H_G = world.C_H_G
@@ -247,11 +295,23 @@ class _Scene:
         h = FOAM_SIZE_MM / 2
         self.foam = _Box(C_H_W, (-h, -h, FOAM_GAP_MM), (h, h, FOAM_GAP_MM + FOAM_THICKNESS_MM), foam)
         self.boxes = [self.board, self.foam, *self.fingers]
+        self.traced = self.boxes  # the boxes rays can meet (a backdrop takes the plate and foam away)
         self.sheet = _Plane(C_H_W)
         self.table = _Plane(C_H_B)
         # discs are printed on the side the camera looks at; from behind the sheet is plain paper
         self.print_seen = bool(self.board.o[2] < 0)
         self.texture = _table_texture(world_seed)
+        self.tex_map = (_TABLE_X0, _TABLE_Y0, _TABLE_RES)  # table mm -> texel: origin x, y and mm per texel
+        if backdrop is not None:
+            self.traced = list(self.fingers)
+            self.print_seen = False
+            self.table = _Plane(backdrop.C_H_T(C_H_W))
+            depth = float(self.table.depth(np.zeros(1), np.zeros(1))[0])
+            depth = depth if np.isfinite(depth) else float(backdrop.C_H_T(C_H_W)[2, 3])
+            self.texture = backdrop.texture(depth, float(self.camera.f))
+            h, w = self.texture.shape
+            r = float(backdrop.mm_per_px)
+            self.tex_map = (-0.5 * w * r, -0.5 * h * r, r)
         # grey level of every label; table pixels are looked up in the texture instead
         levels = np.zeros(_N_LABELS)
         levels[[_ROOM, _FOAM_TOP, _FOAM_SIDE, _PAPER, _INK, _BOARD_SIDE]] = (
@@ -270,7 +330,7 @@ class _Scene:
         ``boxes`` limits the search to some of ``self.boxes`` (the table is always there)."""
         t_best = self.table.depth(x, y).astype(x.dtype)
         label = np.where(np.isfinite(t_best), _TABLE, _ROOM).astype(np.int16)
-        for box in self.boxes if boxes is None else boxes:
+        for box in self.traced if boxes is None else [b for b in boxes if any(b is t for t in self.traced)]:
             idx = box.rays_near(x, y)
             if idx is not None and idx.size == 0:
                 continue
@@ -320,7 +380,7 @@ class _Scene:
     def texture_at(self, xb, yb) -> np.ndarray:
         """Table texture at table points (x_B, y_B) [mm] (any shape), bilinear."""
         shape = np.shape(xb)
-        tx, ty = _texel(np.ravel(xb), np.ravel(yb))
+        tx, ty = _texel(np.ravel(xb), np.ravel(yb), self.tex_map)
         n = tx.size
         cols = 1024
         rows = max(1, -(-n // cols))
@@ -332,10 +392,12 @@ class _Scene:
         return out.ravel()[:n].astype(float).reshape(shape)
 
 
-def _texel(xb, yb) -> tuple[np.ndarray, np.ndarray]:
-    """Table coordinates [mm] -> texel coordinates (float32), clipped far outside to keep cv2 in range."""
-    tx = np.clip((np.asarray(xb) - _TABLE_X0) / _TABLE_RES, -1e5, 1e5).astype(np.float32)
-    ty = np.clip((np.asarray(yb) - _TABLE_Y0) / _TABLE_RES, -1e5, 1e5).astype(np.float32)
+def _texel(xb, yb, tex_map=(_TABLE_X0, _TABLE_Y0, _TABLE_RES)) -> tuple[np.ndarray, np.ndarray]:
+    """Table coordinates [mm] -> texel coordinates (float32), clipped far outside to keep cv2 in range;
+    ``tex_map`` (x0, y0, mm per texel)."""
+    x0, y0, res = tex_map
+    tx = np.clip((np.asarray(xb) - x0) / res, -1e5, 1e5).astype(np.float32)
+    ty = np.clip((np.asarray(yb) - y0) / res, -1e5, 1e5).astype(np.float32)
     return tx, ty
 
 
@@ -459,6 +521,8 @@ def _edge_bits(scene: _Scene, shape: tuple[int, int], m: int) -> np.ndarray:
     r2 = float(np.max(np.sum(cam.pixel_to_sensor(border) ** 2, axis=1)))
     step = _EDGE_STEP_PX * min(1.0, 1.0 + 3.0 * cam.kappa * r2)
     for k, box in enumerate(scene.boxes):
+        if not any(box is t for t in scene.traced):
+            continue
         pts = []
         for p0, p1 in box.edges_C():
             seg = _clip_segment(cam.f, p0, p1, lo, hi)
@@ -468,7 +532,8 @@ def _edge_bits(scene: _Scene, shape: tuple[int, int], m: int) -> np.ndarray:
                 pts.append(a + np.linspace(0, 1, n)[:, None] * (b - a))
         if pts:
             _mark(bits, cam, np.concatenate(pts), m, np.uint8(1 << k))
-    _mark(bits, cam, _rim_points(scene, lo, hi, step), m, np.uint8(_PRINT_BIT))
+    if scene.print_seen:
+        _mark(bits, cam, _rim_points(scene, lo, hi, step), m, np.uint8(_PRINT_BIT))
     return bits
 
 
@@ -553,7 +618,7 @@ def _shade_table(scene: _Scene, value, label, x, y, n: int) -> None:
         return
     Hm, Wm = label.shape
     t = scene.table.depth(x, y)
-    tx, ty = _texel(*scene.table.coords(x, y, np.where(np.isfinite(t), t, 0.0)))
+    tx, ty = _texel(*scene.table.coords(x, y, np.where(np.isfinite(t), t, 0.0)), scene.tex_map)
     band = max(1, _CHUNK * 8 // (n * n * Wm))
     for r0 in range(int(rows[0]), int(rows[-1]) + 1, band):
         r1 = min(r0 + band, Hm)
@@ -642,7 +707,8 @@ def _check_args(world, blur_px, gain, supersample, image_spec) -> ImageSpec:
 
 
 def render(world: SimWorld, *, seed: int | None = 0, noise: bool = True, blur_px: float | None = None,
-           gain: float = 1.0, supersample: int = 4, image_spec: ImageSpec | None = None) -> RenderResult:
+           gain: float = 1.0, supersample: int = 4, image_spec: ImageSpec | None = None,
+           backdrop: Backdrop | None = None) -> RenderResult:
     """Render the wrist camera's (H, W) uint8 picture of ``world`` now, with its ground truth.
 
     ``seed`` seeds the sensor noise (same seed, same bytes; None draws fresh noise); ``noise=False``
@@ -650,12 +716,18 @@ def render(world: SimWorld, *, seed: int | None = 0, noise: bool = True, blur_px
     px); ``gain`` scales the brightness before the noise, which is
     ``numpy.random.default_rng(seed).normal(0, noise_gray, (H, W))``; ``supersample`` n, 4..16: where an
     edge crosses a pixel at least (2 n)^2 rays (89 for n = 4), on the textured table an n x n grid;
-    ``image_spec`` replaces the cell's ``simulation.image``. Raises ``ConfigError`` for a bad argument.
+    ``image_spec`` replaces the cell's ``simulation.image``; ``backdrop`` (a ``Backdrop``) lays a picture as
+    the table behind the fingertips instead of the plate, its foam and the seeded table. Raises
+    ``ConfigError`` for a bad argument.
     """
     spec = _check_args(world, blur_px, gain, supersample, image_spec)
+    if backdrop is not None:
+        if not isinstance(backdrop, Backdrop):
+            raise ConfigError(f"render backdrop: expected a selfview.mocks.render.Backdrop, got {type(backdrop).__name__}")
+        backdrop.check()
     n = int(supersample)
     sigma = float(spec.blur_px if blur_px is None else blur_px)
-    scene = _Scene(world, spec)
+    scene = _Scene(world, spec, backdrop)
     cam = scene.camera
     W, H = int(cam.width), int(cam.height)
     m = int(np.ceil(4 * sigma)) + 2  # render beyond the border so the blur sees the scene there

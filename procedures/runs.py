@@ -26,8 +26,8 @@ from selfview.procedures.experiment import TrialRecord, run_trial, summarise, ta
 from selfview.procedures.simcell import CellURLs, SimulatedCell
 from selfview.calfile import load_calibration, save_calibration
 from selfview.cell import Cell
-from selfview.errors import AlarmError, CalibrationError, ConfigError, ImageError
-from selfview.tracking import FingertipTracker
+from selfview.errors import AlarmError, CalibrationError, ConfigError, DeviceTimeout, ImageError
+from selfview.tracking import SilhouetteTracker
 from selfview.offline import OfflineResult, calibrate_offline
 from selfview.pcc import jaw_gap_of
 from selfview.online import METHODS
@@ -220,8 +220,9 @@ class CellSession:
         s = self.settings
         plan = [Step("speed", {"pct": s.speed_pct})] + [Step("move", {"target": loc}) for loc in s.work_locations]
 
-        # the fingertips followed from frame to frame (searched for when the tracking does not hold)
-        tracker = FingertipTracker(cal.camera, self.cell.gripper, points=range(6))
+        # the fingertips followed from frame to frame by the model-based measurement (searched for when the
+        # tracking does not hold; a frame whose fit is not believed is a missed frame, never an update)
+        tracker = SilhouetteTracker(cal.camera, self.cell.gripper, points=range(6))
 
         def body(e: Engine):
             e.execute(plan[0])
@@ -230,18 +231,30 @@ class CellSession:
                 e.execute(Step("move", {"target": s.work_locations[k % len(s.work_locations)]}))
                 if disturb is not None:
                     disturb(k)
-                img = e.execute(Step("grab", {}))
+                try:
+                    img = e.execute(Step("grab", {}))
+                except DeviceTimeout as exc:  # no picture: a missed frame (the alarm after max_missed_frames)
+                    try:
+                        mon.missed(f"no picture: {exc}")
+                    finally:
+                        mon.records[-1]["fingertips"] = "no picture"
+                        if on_decision:
+                            on_decision(mon.records[-1])
+                    tracker.reset()
+                    continue
 
                 def track(e, img=img):
                     ft = tracker.find(img, mon.C_H_G, gap)
                     logged = len(mon.records)
                     try:
-                        return mon.step(ft.uv, ft.found)
+                        return mon.step(ft.uv, ft.found, lost=ft.lost)
                     finally:  # how the fingertips were found, beside the decision (an alarm too)
                         if len(mon.records) > logged:
                             mon.records[-1]["fingertips"] = (
                                 "tracked" if ft.tracked else f"searched ({tracker.last_failure or 'no earlier frame'})"
                             )
+                            if ft.quality is not None:
+                                mon.records[-1]["quality"] = ft.quality
 
                 try:
                     e.execute(Step("compute", {"fn": track}, note=f"track frame {k + 1}"))

@@ -236,6 +236,8 @@ class MonitorLimits:
     update_limit: Limit
     alarm_limit: Limit
     max_rms_px: float = 1.5  # residual above which the model no longer fits (project default)
+    # consecutive frames without the fingertips (not found, lost, or no picture) before the alarm
+    max_missed_frames: int = 3
 
 
 @dataclass(frozen=True)
@@ -354,12 +356,13 @@ def _parse_monitor(s: _Section) -> MonitorLimits:
     up = _parse_limit(s.section("update_limit"))
     al = _parse_limit(s.section("alarm_limit"))
     rms = s.number("max_rms_px", 1.5, positive=True)
+    missed = s.integer("max_missed_frames", 3, positive=True)
     s.done()
     if al.angle_deg < up.angle_deg or al.shift_mm < up.shift_mm:
         raise ConfigError(
             f"monitor.alarm_limit: {al} must not be below monitor.update_limit {up}"
         )
-    return MonitorLimits(update_limit=up, alarm_limit=al, max_rms_px=rms)
+    return MonitorLimits(update_limit=up, alarm_limit=al, max_rms_px=rms, max_missed_frames=missed)
 
 
 def _parse_simulation(s: _Section) -> SimulationSpec:

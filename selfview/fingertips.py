@@ -85,7 +85,11 @@ class FingertipResult:
     not found (None where found); ``edge_rms_px`` (6,) RMS distance of the edge points from their fitted
     lines (undistorted pixels), NaN if not found; ``names`` the point names; ``n_edge_points`` (6,)
     edge points that the corner's lines rest on; ``tracked`` True when ``selfview.tracking`` followed
-    the corners from the previous frame instead of searching for them.
+    the corners from the previous frame instead of searching for them. From the model-based measurement
+    (``find_fingertips(..., model=True)``, ``selfview.tracking.SilhouetteTracker``) also: ``quality`` the
+    fit's quality (``selfview.silhouette.SilhouetteFit.quality``: share of good edge samples, residual,
+    the TCP's standard deviation), ``lost`` why the frame says "not found" (None: it does not), and
+    ``C_H_G`` the fitted pose (None if none was believed).
     """
 
     uv: np.ndarray
@@ -95,6 +99,14 @@ class FingertipResult:
     names: tuple
     n_edge_points: np.ndarray | None = None
     tracked: bool = False
+    quality: dict | None = None
+    lost: str | None = None
+    C_H_G: np.ndarray | None = None
+
+    @property
+    def quality_ok(self) -> bool:
+        """False when the measurement itself says the fingertips are lost (the frame is a missed one)."""
+        return self.lost is None
 
 
 # --- geometry -------------------------------------------------------------------------------------
@@ -761,18 +773,88 @@ def find_fingertips(
     *,
     search_px: float = 60.0,
     points=range(6),
+    model: bool = False,
+    appearance=None,
 ) -> FingertipResult:
     """Locate the fingertip corners ``points`` (indices into POINT_NAMES) near their prediction from
     ``C_H_G_pred`` (4, 4) with jaw gap ``gap_mm`` [mm], within ``search_px`` [px] of it. ``camera``
     projects the prediction and undistorts the edge points (off-line the one Tsai's method just
     calibrated, on-line the last calibration's); corners come back in distorted pixels.
 
+    ``model=True``: the model-based measurement (``selfview.silhouette``): the whole silhouette of both
+    fingers fitted from the best start (the prediction, or the pose the corners found here give), the
+    corners the model's points at the fitted pose; the result's ``quality``, ``lost`` and ``C_H_G`` say
+    how well it fits, and a fit below the thresholds reports every point as not found with the reason.
+    ``appearance`` (``selfview.silhouette.Appearance``) the faces' grey levels, if known (else read at the start).
+
     Returns a ``FingertipResult``; points not found carry a reason and are NaN. Raises ``ImageError``
     for a blank picture or one of the wrong size, ``CalibrationError`` if the prediction puts the
     fingertips behind the camera or is not finite, ``ValueError`` for a transform that is not (4, 4) or a
     jaw gap that is not a positive number.
     """
-    return _search(image, camera, C_H_G_pred, gripper, gap_mm, search_px, points)[0]
+    result = _search(image, camera, C_H_G_pred, gripper, gap_mm, search_px, points)[0]
+    if not model:
+        return result
+    return model_measurement(image, camera, C_H_G_pred, gripper, gap_mm, points, result, appearance)[0]
+
+
+def _pose_from_corners(camera, C_H_G_pred, gripper, gap_mm, res: FingertipResult):
+    """The pose the found corners give (NP-I from the prediction on them), or None (fewer than 3)."""
+    from selfview.online import iterative_update
+
+    k = np.flatnonzero(res.found)
+    if len(k) < 3:
+        return None
+    try:
+        return iterative_update(C_H_G_pred, gripper.points_G(gap=gap_mm)[k], res.uv[k], camera).C_H_G_orth
+    except CalibrationError:
+        return None
+
+
+def _fit_result(fit, searched: FingertipResult | None, points) -> FingertipResult:
+    want = {int(k) for k in points}
+    if fit.ok:
+        reasons = [None if fit.found[k] else (fit.reasons[k] or "not found") for k in range(6)]
+        reasons = [r if k in want else "not requested" for k, r in enumerate(reasons)]
+        found = fit.found & np.array([k in want for k in range(6)])
+        uv = np.where(found[:, None], fit.uv, np.nan)
+        return FingertipResult(uv=uv, found=found, reasons=reasons, edge_rms_px=np.where(found, fit.rms_px, np.nan),
+                               names=POINT_NAMES, n_edge_points=np.where(found, fit.n_samples, 0),
+                               quality=fit.quality(), C_H_G=fit.C_H_G)
+    why = fit.reason or "the silhouette does not fit"
+    reasons = [why if k in want else "not requested" for k in range(6)]
+    return FingertipResult(uv=np.full((6, 2), np.nan), found=np.zeros(6, bool), reasons=reasons,
+                           edge_rms_px=np.full(6, np.nan), names=POINT_NAMES, n_edge_points=np.zeros(6, int),
+                           quality=fit.quality(), lost=why)
+
+
+def model_measurement(image, camera, C_H_G_pred, gripper, gap_mm, points=range(6), searched=None, appearance=None,
+                      starts=None, rounds=None):
+    """The model-based measurement from the prediction and, if the corner search ``searched`` found three
+    or more corners, from the pose they give; the believed fit with the larger share of good samples
+    wins. Returns (FingertipResult, SilhouetteFit)."""
+    from selfview.silhouette import fit_silhouette, learn_appearance
+
+    C_H_G_pred, gap_mm = checked_prediction(C_H_G_pred, gap_mm)
+    cands = list(starts) if starts is not None else [C_H_G_pred]
+    if searched is not None:
+        H = _pose_from_corners(camera, C_H_G_pred, gripper, gap_mm, searched)
+        if H is not None:
+            cands.insert(0, H)
+    if not cands:
+        cands = [C_H_G_pred]
+    if appearance is None or not appearance.levels:
+        # the faces' levels where the fingers most likely are: at the found corners' pose, else the first start
+        appearance = learn_appearance(image, camera, cands[0], gripper, gap_mm)
+    best = None
+    for H in cands:
+        kw = {} if rounds is None else {"rounds": rounds}
+        fit = fit_silhouette(image, camera, H, gripper, gap_mm, appearance=appearance, points=points, **kw)
+        if best is None or (fit.ok, fit.good_fraction) > (best.ok, best.good_fraction):
+            best = fit
+        if fit.ok and fit.good_fraction > 0.8:
+            break
+    return _fit_result(best, searched, points), best
 
 
 def _search(image, camera, C_H_G_pred, gripper, gap_mm, search_px, points):

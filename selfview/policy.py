@@ -8,6 +8,12 @@ camera moved on its mount. The limits of ``monitor`` in the cell description dec
 - it exceeds ``alarm_limit``, fewer than 3 fingertips are found, or the residual exceeds
   ``max_rms_px`` (the model no longer fits): raise the alarm and leave ``C_H_G`` unchanged.
 
+A ``Monitor`` following a sequence tells a missed frame from an alarm: a frame whose measurement says
+it has lost the fingertips (its quality under the thresholds, ``lost``), in which fewer than 3 are
+found, or for which no picture came (``Monitor.missed``) is a *missed* frame: never an update,
+``C_H_G`` unchanged, the fingertips searched for again in the next one; only
+``monitor.max_missed_frames`` consecutive missed frames raise the alarm.
+
 The change compared with the limits is delta and d of eq. 14 (the rotation angle and the translation of
 ``C'_H_G C_H_G^-1``, the camera's motion; d is not the TCP's shift) since the LAST CALIBRATION (off-line, or the last
 recalibration), not since the previous frame: a camera that creeps 0.3 degrees per frame is
@@ -32,10 +38,11 @@ from selfview.online import MotionEstimate, estimate, parse_method, select_point
 
 __all__ = ["ACTIONS", "Decision", "Policy", "Monitor"]
 
-ACTIONS: tuple[str, ...] = ("update", "recalibrate", "alarm")
+ACTIONS: tuple[str, ...] = ("update", "recalibrate", "alarm", "missed")
 
 _LOG = logging.getLogger("selfview.policy")
-_LEVEL = {"update": logging.INFO, "recalibrate": logging.WARNING, "alarm": logging.ERROR, "calibrated": logging.INFO}
+_LEVEL = {"update": logging.INFO, "recalibrate": logging.WARNING, "alarm": logging.ERROR, "calibrated": logging.INFO,
+          "missed": logging.WARNING}
 
 
 @dataclass(frozen=True)
@@ -243,6 +250,9 @@ class Monitor:
     or 'auto' (5P-R when a fifth point is found, else 4P-R). ``raise_on_alarm``: raise ``AlarmError``
     after logging an alarm instead of returning the decision. Every decision is logged (``logger``,
     default 'selfview.policy') and kept in ``records`` (plain dicts with the frame number).
+    ``max_missed_frames`` (default: the limits' ``max_missed_frames``, the cell's
+    ``monitor.max_missed_frames``) consecutive missed frames raise the alarm; ``missed_in_a_row`` counts
+    them.
     """
 
     def __init__(
@@ -256,8 +266,14 @@ class Monitor:
         recalibration_method: str = "auto",
         raise_on_alarm: bool = False,
         logger: logging.Logger | None = None,
+        max_missed_frames: int | None = None,
     ):
         self.policy = limits if isinstance(limits, Policy) else Policy(limits)
+        n_miss = getattr(self.policy.limits, "max_missed_frames", 3) if max_missed_frames is None else max_missed_frames
+        if isinstance(n_miss, bool) or not isinstance(n_miss, (int, np.integer)) or n_miss < 1:
+            raise ConfigError(f"max_missed_frames: expected a positive whole number of frames, got {n_miss!r}")
+        self.max_missed_frames = int(n_miss)
+        self.missed_in_a_row = 0
         n, kind = parse_method(update_method)
         if kind not in ("U", "I"):
             raise ConfigError(f"update_method {update_method!r}: expected an NP-U or NP-I method, e.g. 4P-U or 4P-I")
@@ -333,11 +349,36 @@ class Monitor:
         except CalibrationError:
             return "4P-R"
 
-    def step(self, uv6, found6, p_G6=None) -> Decision:
+    def missed(self, reason: str) -> Decision:
+        """A frame without the fingertips (no picture, or the measurement lost them: ``reason``): never an
+        update; the alarm once ``max_missed_frames`` such frames came in a row. Logs and keeps the
+        decision and returns it (raises ``AlarmError`` on the alarm if ``raise_on_alarm``)."""
+        self.frame += 1
+        return self._missed(str(reason), 0)
+
+    def _missed(self, why: str, n_found: int) -> Decision:
+        self.missed_in_a_row += 1
+        k, n = self.missed_in_a_row, self.max_missed_frames
+        nan = math.nan
+        if k >= n:
+            d = Decision("alarm", f"{k} frames in a row without the fingertips (monitor.max_missed_frames {n}); "
+                         f"the last: {why}", nan, nan, nan, self.C_H_G.copy(), None, n_found)
+        else:
+            d = Decision("missed", f"fingertips not found ({k} of {n} missed frames before the alarm): {why}",
+                         nan, nan, nan, self.C_H_G.copy(), None, n_found)
+        self.alarmed = d.action == "alarm"
+        self._record(d.action, d.reason, d.C_H_G, d)
+        if self.alarmed and self.raise_on_alarm:
+            raise AlarmError(f"frame {self.frame}: {d.reason}")
+        return d
+
+    def step(self, uv6, found6, p_G6=None, *, lost: str | None = None) -> Decision:
         """Judge one picture: ``uv6`` (6, 2) observed distorted pixels of the fingertips (NaN where not
-        found), ``found6`` (6,) bool, ``p_G6`` the points if the gripper state changed. Applies the
-        decision (update: new ``C_H_G``; recalibrate: new ``C_H_G`` and new reference), logs and keeps
-        it, and returns it. Raises ``AlarmError`` on an alarm if ``raise_on_alarm``."""
+        found), ``found6`` (6,) bool, ``p_G6`` the points if the gripper state changed, ``lost`` why the
+        measurement says it lost the fingertips (its quality under its thresholds; None: it did not).
+        A lost frame, or one with fewer than 3 points found, is a missed frame (``missed``). Otherwise
+        applies the decision (update: new ``C_H_G``; recalibrate: new ``C_H_G`` and new reference),
+        logs and keeps it, and returns it. Raises ``AlarmError`` on an alarm if ``raise_on_alarm``."""
         self.frame += 1
         p = self.p_G6 if p_G6 is None else self._points(p_G6)
         uv = np.asarray(uv6, dtype=float)
@@ -348,6 +389,12 @@ class Monitor:
             raise ValueError(f"found6: expected shape ({len(POINT_NAMES)},), got {np.shape(found6)}")
         found = found & np.isfinite(uv).all(axis=1)
         n_found = int(found.sum())
+        if lost is not None:
+            return self._missed(str(lost), n_found)
+        if n_found < 3:
+            return self._missed(f"only {n_found} fingertip point(s) found; at least 3 are needed to follow the camera",
+                                n_found)
+        self.missed_in_a_row = 0
         est_U, err = None, None
         if n_found >= 3:
             try:

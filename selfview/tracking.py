@@ -59,7 +59,7 @@ from selfview.fingertips import (
     checked_prediction,
 )
 
-__all__ = ["FingertipTracker"]
+__all__ = ["FingertipTracker", "SilhouetteTracker"]
 
 MAX_TURN_DEG = 5.0  # an edge that turns more between two frames is searched for again
 KEEP_FRACTION = 0.35  # of the points the search found on an edge, that a tracked frame must find again
@@ -750,3 +750,120 @@ def _lines_tls(q: np.ndarray, w: np.ndarray, starts: np.ndarray, n_prev: np.ndar
     flip = np.sum(nrm * n_prev, axis=1) < 0
     nrm[flip] = -nrm[flip]
     return nrm, nrm[:, 0] * mx + nrm[:, 1] * my
+
+
+WIDE_ROUNDS = (60.0, 24.0, 10.0, 5.0, 3.0)  # a search's fit from a start that may be far off [px]
+
+
+class SilhouetteTracker:
+    """The fingertips of a sequence of pictures by the model-based measurement (``selfview.silhouette``).
+
+    Like ``FingertipTracker`` (``find(image, C_H_G_pred, gap_mm)`` returns a ``FingertipResult``;
+    ``searches``, ``tracked_frames``, ``last_failure``, ``reset()``, ``primed``), but every frame fits the
+    whole silhouette of both fingers: from the last fitted pose with the short ranges ``track_rounds``
+    [px] (the camera moves little between frames), with the faces' grey levels of the last fit; once more
+    within 3 px of the new pose when the fingertips moved more than ``refine_px`` [px]. When
+    that fit is not believed (its quality under the thresholds: the reason is ``last_failure``), the frame
+    is searched: fits with the full ranges from the last pose and from ``C_H_G_pred``, then from the
+    pose the corner search (``selfview.fingertips``) gives. A frame where none holds reports every point
+    as not found, with the reason in ``result.lost``: a missed frame, never a pose. Every result carries
+    the fit's ``quality``. Python only (no compiled kernel mirrors it).
+    """
+
+    def __init__(self, camera: CameraModel, gripper: GripperSpec, *, points=range(4), search_px: float = 60.0,
+                 track_rounds=(8.0,), refine_px: float = 2.0, appearance=None):
+        if not isinstance(camera, CameraModel):
+            raise TypeError(f"camera: expected a selfview.camera.CameraModel, got {type(camera).__name__}")
+        want = sorted({int(k) for k in points})
+        if not want or any(k < 0 or k > 5 for k in want):
+            raise ValueError(f"points: expected indices 0..5 into POINT_NAMES, got {list(points)}")
+        rounds = tuple(float(r) for r in track_rounds)
+        if not rounds or any(not (1.0 <= r <= 60.0) for r in rounds):
+            raise ValueError(f"track_rounds: expected search ranges of 1..60 px, got {track_rounds!r}")
+        self.camera = camera
+        self.gripper = gripper
+        self.points = tuple(want)
+        self.search_px = float(search_px)
+        self.track_rounds = rounds
+        self.refine_px = float(refine_px)
+        self.searches = 0
+        self.tracked_frames = 0
+        self.lost_frames = 0
+        self.last_failure: str | None = None
+        self.last_fit = None
+        self._app0 = appearance
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the last pose: the next frame is searched for."""
+        self._H = None
+        self._gap = None
+        self._app = self._app0
+
+    @property
+    def primed(self) -> bool:
+        return self._H is not None
+
+    def find(self, image, C_H_G_pred, gap_mm: float) -> FingertipResult:
+        from selfview.fingertips import _fit_result, model_measurement
+        from selfview.silhouette import fit_silhouette
+
+        C_H_G_pred, gap_mm = checked_prediction(C_H_G_pred, gap_mm)
+        a = np.asarray(image)
+        if a.dtype == np.uint8 and a.shape == (int(self.camera.height), int(self.camera.width)):
+            img = a.astype(np.float32)  # a grabber's frame: no other check needed per frame
+        else:
+            img = as_gray(image, self.camera)  # float32, checked
+        why = None
+        if self._H is not None and self._gap is not None and abs(gap_mm - self._gap) > 1e-6:
+            why = f"the jaw gap changed ({self._gap:.2f} -> {gap_mm:.2f} mm)"
+            self.reset()
+        if self._H is not None:
+            fit = fit_silhouette(img, self.camera, self._H, self.gripper, gap_mm, appearance=self._app,
+                                 rounds=self.track_rounds, points=self.points)
+            if fit.C_H_G is not None and self._moved_px(fit.C_H_G, gap_mm) > self.refine_px:
+                # a larger step than usual: once more with a short range around the new pose
+                again = fit_silhouette(img, self.camera, fit.C_H_G, self.gripper, gap_mm, appearance=fit.appearance,
+                                       rounds=(min(self.track_rounds[-1], 3.0),), points=self.points)
+                fit = again if again.ok or not fit.ok else fit
+            if fit.ok:
+                self._take(fit, gap_mm)
+                self.tracked_frames += 1
+                self.last_failure = None
+                res = _fit_result(fit, None, self.points)
+                res.tracked = True
+                return res
+            why = fit.reason
+        self.last_failure = why
+        starts = ([self._H] if self._H is not None else []) + [C_H_G_pred]
+        res, fit = model_measurement(img, self.camera, C_H_G_pred, self.gripper, gap_mm, self.points,
+                                     appearance=self._app, starts=starts)
+        if not fit.ok:
+            # the corner search's pose (three corners or more), and fits reaching as far as it searches
+            searched = _search(img, self.camera, C_H_G_pred, self.gripper, gap_mm, self.search_px, range(6))[0]
+            res2, fit2 = model_measurement(img, self.camera, C_H_G_pred, self.gripper, gap_mm, self.points,
+                                           searched=searched, appearance=self._app, starts=[],
+                                           rounds=WIDE_ROUNDS)
+            if fit2.ok:
+                res, fit = res2, fit2
+        self.searches += 1
+        if fit.ok:
+            self._take(fit, gap_mm)
+        else:
+            self.lost_frames += 1
+        return res
+
+    def _moved_px(self, H, gap_mm: float) -> float:
+        """How far [px] the fingertip points moved in the picture from the last pose to ``H``."""
+        from selfview.geometry import transform_points
+
+        p = self.gripper.points_G(gap=gap_mm)
+        a = self.camera.project_undistorted(transform_points(self._H, p))
+        b = self.camera.project_undistorted(transform_points(H, p))
+        return float(np.max(np.linalg.norm(a - b, axis=1)))
+
+    def _take(self, fit, gap_mm: float) -> None:
+        self._H = fit.C_H_G.copy()
+        self._gap = float(gap_mm)
+        self._app = fit.appearance
+        self.last_fit = fit

@@ -69,6 +69,11 @@ class AltOptions:
     supersample: int = 4
     fingers: bool = True
     C_H_T: np.ndarray | None = None  # table plane z = 0; default 40 mm beyond the plate or 120 mm beyond the TCP
+    # a picture (h, w) grey 0..255 laid on the table instead of its mottled texture, centred on the table's
+    # origin at table_mm_per_px, mirrored beyond its border; table_defocus_mm: its blur (Gaussian sigma) on the table
+    table_image: np.ndarray | None = None
+    table_mm_per_px: float = 0.2
+    table_defocus_mm: float = 0.0
     seed: int = 0
     # a real CCIR grabber (issue 17; magnitudes and sources in selfview.mocks.imperfections), see _grabber
     field_shift_px: tuple[float, float] = (0.0, 0.0)  # motion of the picture between the even and odd field
@@ -270,6 +275,26 @@ class _Scene:
             self.C_H_T = self.C_H_G @ _hom(np.eye(3), (0, 0, 120.0))
         self.boxes = _finger_boxes(self.gripper, self.gap) if opt.fingers else []
         self.G_H_C = _inv(self.C_H_G)
+        self.table_img = None
+        if opt.table_image is not None:
+            tex = np.asarray(opt.table_image, np.float32)
+            if tex.ndim != 2:
+                raise ValueError(f"table_image: expected a grey (h, w) picture, got shape {tex.shape}")
+            s = opt.table_defocus_mm / opt.table_mm_per_px
+            self.table_img = cv2.GaussianBlur(tex, (0, 0), s, borderType=cv2.BORDER_REFLECT_101) if s > 0.05 else tex
+
+    def _table_picture(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The table picture's grey level at table points (x, y) [mm], bilinear."""
+        h, w = self.table_img.shape
+        n, cols = len(x), 4096  # cv2.remap takes maps under 32767 wide: rows of 4096
+        rows = max(1, -(-n // cols))
+        mx = np.zeros(rows * cols, np.float32)
+        my = np.zeros(rows * cols, np.float32)
+        mx[:n] = x / self.opt.table_mm_per_px + 0.5 * w - 0.5
+        my[:n] = y / self.opt.table_mm_per_px + 0.5 * h - 0.5
+        out = cv2.remap(self.table_img, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_REFLECT_101)
+        return out.ravel()[:n].astype(float)
 
     def rays(self, uv: np.ndarray) -> np.ndarray:
         XY = self.cam.undistort_pixels(uv)
@@ -324,6 +349,8 @@ class _Scene:
             x, y = p_tab[sel, 0], p_tab[sel, 1]
             stain = self.table_tex(x * 0.37 + 211.0, y * 0.37 - 57.0) > 0.45  # a few sharp stains
             grey[sel] = opt.table + opt.table_contrast * self.table_tex(x, y) - 40.0 * stain
+            if self.table_img is not None:
+                grey[sel] = self._table_picture(x, y)
         if self.C_H_W is not None:
             sel = label == FOAM
             grey[sel] = opt.foam + 18.0 * self.foam_tex(p_W[sel, 0], p_W[sel, 1])

@@ -16,7 +16,11 @@ def register(sub):
             "The on-line calibration (section 4). For each frame: find the fingertip corners near where the current "
             "C_H_G predicts them, estimate the camera's motion (default 4P-U), and by the cell's monitor limits "
             "apply the update, recalibrate (4P-R / 5P-R), or raise the alarm and stop the robot. Every decision is "
-            "printed with delta, d and the residual. With --drift (simulation) the camera creeps on its mount by "
+            "printed with delta, d and the residual. The fingertips are measured by fitting both fingers' whole "
+            "silhouette; a frame where that fit is not believed (its quality is printed with --json), where fewer "
+            "than 3 fingertips show, or where no picture came is a missed frame: C_H_G unchanged, the fingertips "
+            "searched for again, and the alarm only after the cell's monitor.max_missed_frames (default 3) missed "
+            "frames in a row. With --drift (simulation) the camera creeps on its mount by "
             "that many degrees per frame, to watch the policy at work."
         ),
     )

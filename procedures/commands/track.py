@@ -6,7 +6,7 @@ import numpy as np
 
 from selfview.procedures.commands._common import add_cell_argument, load_cell_arg, print_json
 
-METHOD_CHOICES = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R", "auto")
+METHOD_CHOICES = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R", "E", "auto")
 
 
 def register(sub):
@@ -18,7 +18,9 @@ def register(sub):
             "camera moved on its mount. Methods: NP-U the paper's differential update (eq. 11-17), NP-I the exact "
             "iterative update, NP-R recalibration of the exterior orientation; 'auto' applies the cell's monitor "
             "policy (update below update_limit, recalibrate below alarm_limit, else alarm: exit code 6 and nothing "
-            "written). With --apply the new C_H_G is written to the calibration file atomically, history kept."
+            "written). E: the model-based estimate, the camera's motion fitted to all the edge samples of both "
+            "fingers' silhouettes at once (hundreds of constraints instead of 4 corners; needs --measure model). "
+            "With --apply the new C_H_G is written to the calibration file atomically, history kept."
         ),
     )
     add_cell_argument(p)
@@ -26,6 +28,9 @@ def register(sub):
     p.add_argument("--image", required=True, metavar="IMG")
     p.add_argument("--method", default="4P-U", choices=METHOD_CHOICES, help="default %(default)s")
     p.add_argument("--state", default=None, help="gripper state in the picture (default: the calibration's)")
+    p.add_argument("--measure", default="model", choices=("model", "corners"),
+                   help="how the fingertips are measured: 'model' fits the whole silhouette of both fingers and says "
+                        "when it has lost them (default); 'corners' the corner search alone")
     p.add_argument("--apply", action="store_true", help="write the new C_H_G to the calibration file")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
@@ -36,7 +41,7 @@ def run(args) -> int:
     from selfview.procedures.commands.calibrate import read_picture
     from selfview.calfile import load_calibration, save_calibration
     from selfview.cell import POINT_NAMES
-    from selfview.errors import AlarmError, ConfigError
+    from selfview.errors import AlarmError, CalibrationError, ConfigError
     from selfview.fingertips import find_fingertips
     from selfview.offline import check_picture
     from selfview.online import estimate
@@ -52,11 +57,11 @@ def run(args) -> int:
     img = check_picture(img, cal.camera.width, cal.camera.height)
     pG = cal.points_G[state]
     gap = jaw_gap_of(pG)
-    ft = find_fingertips(img, cal.camera, cal.C_H_G, cell.gripper, gap)
+    ft = find_fingertips(img, cal.camera, cal.C_H_G, cell.gripper, gap, model=args.measure == "model")
     found_names = [nm for nm, ok in zip(POINT_NAMES, ft.found) if ok]
     if args.method == "auto":
-        mon = Monitor(cal.C_H_G, cal.camera, pG, cell.monitor)
-        d = mon.step(ft.uv, ft.found)
+        mon = Monitor(cal.C_H_G, cal.camera, pG, cell.monitor, max_missed_frames=1)  # one picture: no next frame
+        d = mon.step(ft.uv, ft.found, lost=ft.lost)
         out = {
             "method": d.method or "auto",
             "C_H_G": np.asarray(d.C_H_G).tolist(),
@@ -67,9 +72,34 @@ def run(args) -> int:
             "points_used": list(d.points_used or []),
             "rms_px": d.rms_px,
             "points_found": found_names,
+            "quality": ft.quality,
         }
         new = None if d.action == "alarm" else np.asarray(d.C_H_G, float)
+    elif args.method == "E":
+        if ft.lost is not None:
+            raise CalibrationError(f"fingertips not found: {ft.lost}")
+        if ft.C_H_G is None:
+            raise ConfigError("--method E is the model's own estimate: it needs --measure model")
+        from selfview.geometry import pose_difference
+
+        H = np.asarray(ft.C_H_G, float)
+        M = H @ np.linalg.inv(cal.C_H_G)  # the camera's motion C'_H_C
+        out = {
+            "method": "E",
+            "C_H_G": H.tolist(),
+            "C_H_G_orthonormal": H.tolist(),
+            "delta_deg": float(pose_difference(H, cal.C_H_G)[0]),
+            "d_mm": float(np.linalg.norm(M[:3, 3])),
+            "decision": "update",
+            "points_used": [],
+            "rms_px": float(ft.quality["rms_px"]),
+            "points_found": found_names,
+            "quality": ft.quality,
+        }
+        new = H
     else:
+        if ft.lost is not None:
+            raise CalibrationError(f"fingertips not found: {ft.lost}")
         est = estimate(args.method, cal.C_H_G, pG, ft.uv, ft.found, cal.camera)
         decision = "recalibrate" if args.method.endswith("R") else "update"
         out = {
@@ -82,6 +112,7 @@ def run(args) -> int:
             "points_used": list(est.points_used),
             "rms_px": est.rms_px,
             "points_found": found_names,
+            "quality": ft.quality,
         }
         new = est.C_H_G_orth
     if args.apply and new is not None:

@@ -209,8 +209,10 @@ def test_monitor_updates_then_recalibrates_then_raises_the_alarm(cell, tmp_path)
         s.calibrate(out=out)
         w = s.sim.world
         spec = cell.simulation.disturbances["cable"]
-        # the camera creeps on its mount, faster and faster
-        steps = [0.15, 0.15, 0.15, 0.15, 0.6, 0.2, 0.2, 2.5, 3.0, 3.0]
+        # the camera creeps on its mount, faster and faster; once the fingertips leave the picture (or their
+        # fit is not believed) the frames are missed ones, and the cell's max_missed_frames (3) of them in a
+        # row raise the alarm, if the alarm limit has not already
+        steps = [0.15, 0.15, 0.15, 0.15, 0.6, 0.2, 0.2, 2.5, 3.0, 3.0, 3.0]
         n_rx = len(s.sim.robot_sim.received)
         with pytest.raises(AlarmError):
             s.monitor(out, frames=len(steps),

@@ -81,13 +81,41 @@ def test_alarm_above_the_alarm_limit_leaves_C_H_G(cell, mon):
     assert np.array_equal(m2.C_H_G, H0) and m2.records[-1]["action"] == "alarm"
 
 
-def test_alarm_when_fewer_than_three_points(mon):
+def test_fewer_than_three_points_is_a_missed_frame_and_the_alarm_comes_after_the_configured_count(cell, mon):
     m, H0, P, cam = mon
+    assert m.max_missed_frames == cell.monitor.max_missed_frames == 3  # the cell's default
     uv, found = frame(turned(H0, 0.2), P, cam)
     found[[0, 2, 3, 5]] = False
+    for k in range(1, 3):
+        d = m.step(uv, found)
+        assert d.action == "missed" and "only 2 fingertip point(s) found" in d.reason and f"{k} of 3" in d.reason
+        assert np.array_equal(m.C_H_G, H0) and d.n_found == 2 and not m.alarmed
     d = m.step(uv, found)
-    assert d.action == "alarm" and "only 2 fingertip point(s) found" in d.reason
-    assert np.array_equal(m.C_H_G, H0) and d.n_found == 2
+    assert d.action == "alarm" and "3 frames in a row" in d.reason and "only 2 fingertip point(s)" in d.reason
+    assert np.array_equal(m.C_H_G, H0) and m.alarmed
+
+
+def test_lost_frames_and_missing_pictures_count_together_and_a_good_frame_resets_the_count(cell, mon):
+    from dataclasses import replace
+
+    m, H0, P, cam = mon
+    m5 = Monitor(H0, cam, P, replace(cell.monitor, max_missed_frames=5), raise_on_alarm=True)
+    uv, found = frame(turned(H0, 0.2), P, cam)
+    # a lost frame is never an update, even with all six points in it
+    for _ in range(4):
+        assert m5.step(uv, found, lost="lost: 20 % of the edge samples support the fit").action == "missed"
+    assert np.array_equal(m5.C_H_G, H0) and m5.missed_in_a_row == 4
+    assert m5.step(uv, found).action == "update" and m5.missed_in_a_row == 0
+    for _ in range(4):
+        assert m5.missed("no picture: grab timed out").action == "missed"
+    with pytest.raises(AlarmError, match="5 frames in a row.*edge residual"):
+        m5.step(uv, found, lost="lost: edge residual 0.9 px")
+    assert [r["action"] for r in m5.records].count("missed") == 8 and m5.records[-1]["action"] == "alarm"
+    # one missed frame allowed: the first lost frame is the alarm
+    m1 = Monitor(H0, cam, P, cell.monitor, max_missed_frames=1)
+    assert m1.step(uv, found, lost="lost").action == "alarm"
+    with pytest.raises(ConfigError, match="max_missed_frames"):
+        Monitor(H0, cam, P, cell.monitor, max_missed_frames=0)
 
 
 def test_alarm_when_the_model_no_longer_fits(cell, mon):

@@ -1,0 +1,606 @@
+"""Model-based fingertip measurement: the whole visible silhouette of both fingers fitted at once.
+
+Where ``selfview.fingertips`` finds each corner from the short stretches of its own edges, this fits the
+known shape of the two finger prisms to every edge of them that shows, the long sides too, the way ViSP's
+moving edges (``vpMe``) feed its model-based tracker (``vpMbEdgeTracker``), with what we know better
+about this object: its exact shape, its faces' grey levels, and that it moves little between frames.
+
+1. The visible box edges of both fingers at the current ``C_H_G`` (an edge shows when one of its two faces
+   turns towards the camera; stretches the other finger hides are left out) are sampled every
+   ``STEP_PX`` along their whole length in the picture.
+2. Each sample looks along the edge's image normal within +-R px for steps: local maxima of the
+   derivative of a bilinear profile. A step is a candidate only if it has the expected polarity and
+   the finger's own appearance on its face side: the face's grey level there (learnt from the
+   picture where the fingers were found, and updated frame to frame) within ``LEVEL_TOL``, and a
+   contrast to the other side of at least ``MIN_CONTRAST`` (at a crease, both faces' levels). Up to
+   ``CANDIDATES`` per sample are kept, the closest to the face's level first, each located to a
+   fraction of a pixel (a parabola through the derivative's peak).
+3. The pose: ``C_H_G`` moved by a small camera motion (rotation vector, translation) that minimises
+   the distances of the samples from the projected model lines, in undistorted sensor coordinates where
+   the edges are straight; each sample takes its candidate closest to its line at each iteration, and
+   its weight is Tukey's of that distance over a robust scale (1.48 MAD, floored). Rounds of
+   sampling shrink R (e.g. 24, 10, 5, 3 px) around the last pose. A first range of 16 px or more
+   starts with a vote: the image shift that most samples' candidates agree with (within 1.5 px),
+   applied as a small turn of the camera, so a start tens of pixels off does not lock onto the
+   nearest wrong edges.
+4. The corners are the model's points at the fitted pose, so a tip edge weak against the background is
+   carried by the long edges and the model. Quality: the share of samples that support the fit (weight
+   over one half), per finger too, the residual RMS of those, and the pose's covariance (the TCP's
+   standard deviation in the camera frame). Below the thresholds the fit is reported as not found with
+   the reason (``ok`` False), never as a pose.
+
+Pure numpy/OpenCV, in Python only: no compiled kernel mirrors it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from selfview.camera import CameraModel
+from selfview.cell import GripperSpec
+from selfview.discs import as_gray
+from selfview.geometry import R_from_rotvec, inv_H, make_H, transform_points
+
+__all__ = ["Appearance", "SilhouetteFit", "fit_silhouette", "learn_appearance", "MIN_GOOD_FRACTION"]
+
+STEP_PX = 4.0  # samples along each edge
+PLATEAU_PX = 3  # px each side of a step that show its two grey levels
+MIN_CONTRAST = 8.0  # grey levels between the two sides of a step
+LEVEL_TOL = 0.18  # a face's grey level may change this much (fraction, at least LEVEL_TOL_GREY)
+LEVEL_TOL_GREY = 12.0
+CANDIDATES = 3
+ROUNDS = (24.0, 10.0, 5.0, 3.0)  # the search range R of each round of sampling [px]
+SCALE_FLOOR_PX = 0.35  # robust scale's floor in the last round
+MIN_GOOD_FRACTION = 0.5  # of the samples (and of each finger's), that support the fit
+MAX_RMS_PX = 0.6  # of the supporting samples' distances
+MAX_TCP_SD_MM = 0.02  # the fitted pose's TCP standard deviation (any camera axis)
+BORDER_PX = 3.0
+MIN_FINGER_SAMPLES = 25  # a finger with fewer samples in the picture is not judged on its own
+
+
+@dataclass
+class Appearance:
+    """Grey levels of the finger faces the camera sees: {(finger, normal axis, side): level}."""
+
+    levels: dict = field(default_factory=dict)
+
+    def copy(self) -> "Appearance":
+        return Appearance(dict(self.levels))
+
+
+@dataclass
+class SilhouetteFit:
+    """The fitted silhouette: ``C_H_G`` (4, 4) the pose that fits (None if it could not be fitted),
+    ``uv`` (6, 2) the model's points there (distorted pixels), ``found`` (6,) in the picture and not
+    hidden, when ``ok``; ``ok`` whether the fit is believed; ``reason`` why not; ``good_fraction`` of the
+    samples that support it, ``finger_fraction`` (2,) per finger; ``rms_px``; ``tcp_sd_mm`` (3,) the
+    TCP's standard deviation (camera axes); ``n_samples``; ``appearance`` the faces' levels measured at
+    the fit (for the next frame); ``reasons`` per point."""
+
+    C_H_G: np.ndarray | None
+    uv: np.ndarray
+    found: np.ndarray
+    ok: bool
+    reason: str | None
+    good_fraction: float
+    finger_fraction: np.ndarray
+    rms_px: float
+    tcp_sd_mm: np.ndarray
+    n_samples: int
+    appearance: Appearance
+    reasons: list
+    covariance: np.ndarray | None = None
+
+    def quality(self) -> dict:
+        def num(v):
+            return None if v is None or not math.isfinite(v) else round(float(v), 5)
+
+        return {
+            "ok": bool(self.ok),
+            "reason": self.reason,
+            "good_fraction": num(self.good_fraction),
+            "finger_fraction": [num(v) for v in self.finger_fraction],
+            "rms_px": num(self.rms_px),
+            "tcp_sd_mm": [num(v) for v in self.tcp_sd_mm],
+            "n_samples": int(self.n_samples),
+        }
+
+
+# --- the model's edges -----------------------------------------------------------------------------
+@dataclass
+class _EdgeSet:
+    a_G: np.ndarray  # (E, 3) one end
+    b_G: np.ndarray  # (E, 3) the other
+    finger: np.ndarray  # (E,)
+    faces: list  # per edge: [(finger, axis, side), ...] seen (1: silhouette, 2: crease)
+    into_G: list  # per edge: unit directions into those faces (G)
+
+
+_EDGE_CACHE: dict = {}
+
+
+def _visible_edges(boxes, C_H_G) -> _EdgeSet:
+    """The edges of the boxes that show from the camera at ``C_H_G`` (cached: they change only when the
+    camera crosses the plane of a face)."""
+    cam_G = inv_H(C_H_G)[:3, 3]
+    b = np.asarray(boxes, float).reshape(-1, 3)
+    key = (b.tobytes(), tuple(np.sign(cam_G[None, :] - b).ravel().astype(int)))
+    hit = _EDGE_CACHE.get(key)
+    if hit is None:
+        if len(_EDGE_CACHE) > 64:
+            _EDGE_CACHE.clear()
+        hit = _EDGE_CACHE[key] = _visible_edges_of(boxes, cam_G)
+    return hit
+
+
+def _visible_edges_of(boxes, cam_G) -> _EdgeSet:
+    eye = np.eye(3)
+    a, b, fin, faces, into = [], [], [], [], []
+    for f, (lo, hi) in enumerate(boxes):
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        for axis in range(3):
+            j, k = [m for m in range(3) if m != axis]
+            for sj in (-1, 1):
+                for sk in (-1, 1):
+                    fs, ins = [], []
+                    for ax, side, other, oside in ((j, sj, k, sk), (k, sk, j, sj)):
+                        plane = hi[ax] if side > 0 else lo[ax]
+                        if side * (cam_G[ax] - plane) > 1e-9:
+                            fs.append((f, ax, side))
+                            ins.append(-oside * eye[other])
+                    if not fs:
+                        continue
+                    p = np.where(np.arange(3) == axis, lo, 0.0)
+                    p[j] = hi[j] if sj > 0 else lo[j]
+                    p[k] = hi[k] if sk > 0 else lo[k]
+                    q = p.copy()
+                    q[axis] = hi[axis]
+                    a.append(p)
+                    b.append(q)
+                    fin.append(f)
+                    faces.append(fs)
+                    into.append(ins)
+    return _EdgeSet(np.array(a), np.array(b), np.array(fin), faces, into)
+
+
+def _blocked(o, d, lo, hi) -> np.ndarray:
+    """(M,) whether rays o + t d (G, t in (0, 1)) pass through the box (lo, hi) before t = 1."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (lo[None] - o[None]) / d
+        t2 = (hi[None] - o[None]) / d
+    tn = np.nanmax(np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2)), axis=1)
+    tf = np.nanmin(np.where(np.isnan(t1), np.inf, np.maximum(t1, t2)), axis=1)
+    return (tn < np.minimum(tf, 1.0) - 1e-6) & (tn > 1e-6) & (np.minimum(tf, 1.0) - tn > 1e-4)
+
+
+@dataclass
+class _Samples:
+    p_G: np.ndarray  # (S, 3)
+    edge: np.ndarray  # (S,)
+    uv: np.ndarray  # (S, 2) predicted, distorted px
+    n: np.ndarray  # (S, 2) unit image normal, towards the first face
+    faces: list  # per edge, as _EdgeSet
+
+
+def _sample(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _Samples:
+    """Points every STEP_PX along the visible edges, in the picture and not hidden by the other finger."""
+    G_H_C = inv_H(C_H_G)
+    o = G_H_C[:3, 3]
+    empty = _Samples(np.zeros((0, 3)), np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2)), es.faces)
+    ends = transform_points(C_H_G, np.vstack([es.a_G, es.b_G]))
+    E = len(es.a_G)
+    front = (ends[:E, 2] > 1.0) & (ends[E:, 2] > 1.0)
+    if not np.any(front):
+        return empty
+    uv_a = np.full((E, 2), np.nan)
+    uv_b = np.full((E, 2), np.nan)
+    uv_a[front] = cam.project(ends[:E][front])
+    uv_b[front] = cam.project(ends[E:][front])
+    length = np.where(front, np.linalg.norm(uv_b - uv_a, axis=1), 0.0)
+    counts = np.where(front, np.clip(length / STEP_PX, 2, 400).astype(int), 0)
+    edge = np.repeat(np.arange(E), counts)
+    starts = np.cumsum(counts) - counts
+    t = (np.arange(len(edge)) - starts[edge] + 0.5) / counts[edge]
+    seg = es.b_G - es.a_G
+    p = es.a_G[edge] + t[:, None] * seg[edge]
+    n = len(edge)
+    # the samples, and one point per edge a step into its first face (which side the face lies on)
+    mids = np.flatnonzero(counts > 0)
+    d_in = np.array([ins[0] for ins in es.into_G])
+    m_G = 0.5 * (es.a_G[mids] + es.b_G[mids])
+    uv_all = cam.project(transform_points(C_H_G, np.vstack([p, m_G, m_G + 0.05 * d_in[mids]])))
+    uv = uv_all[:n]
+    side = np.zeros((E, 2))
+    side[mids] = uv_all[n + len(mids) :] - uv_all[n : n + len(mids)]
+    # tangents from neighbouring samples of the same edge (forward differences, the last one backward)
+    tan = np.zeros_like(uv)
+    nxt = np.r_[edge[1:] == edge[:-1], False]
+    tan[nxt] = uv[1:][nxt[:-1]] - uv[:-1][nxt[:-1]]
+    last = ~nxt
+    prv = np.r_[False, edge[1:] == edge[:-1]]
+    tan[last & prv] = uv[last & prv] - uv[np.flatnonzero(last & prv) - 1]
+    keep = cam.in_image(uv, margin=margin)
+    fin = es.finger[edge]
+    for f in (0, 1):
+        m = keep & (fin == f)
+        if np.any(m):
+            lo, hi = boxes[1 - f]
+            keep[m] &= ~_blocked(o, p[m] - o[None], np.asarray(lo, float), np.asarray(hi, float))
+    if not np.any(keep):
+        return empty
+    tan /= np.linalg.norm(tan, axis=1, keepdims=True) + 1e-12
+    nrm = np.column_stack([-tan[:, 1], tan[:, 0]])
+    sgn = np.sign(np.sum(nrm * side[edge], axis=1))
+    nrm *= np.where(sgn == 0, 1.0, sgn)[:, None]
+    return _Samples(p[keep], edge[keep], uv[keep], nrm[keep], es.faces)
+
+
+def _remap(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``img`` (float32) at (x, y) of any shape (border replicated)."""
+    shape = x.shape
+    n, cols = x.size, 4096
+    rows = max(1, -(-n // cols))
+    mx = np.zeros(rows * cols, np.float32)
+    my = np.zeros(rows * cols, np.float32)
+    mx[:n], my[:n] = x.ravel(), y.ravel()
+    out = cv2.remap(img, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.ravel()[:n].reshape(shape)
+
+
+def _level_ok(measured, level) -> np.ndarray:
+    return np.abs(measured - level) <= np.maximum(LEVEL_TOL * level, LEVEL_TOL_GREY)
+
+
+def _candidates(img, s: _Samples, R: float, app: Appearance, n_cand: int = CANDIDATES):
+    """Per sample up to CANDIDATES offsets [px] along its normal (NaN: none): (S, C) offsets, (S, C) face
+    levels seen beside them, (S, C) contrasts."""
+    S = len(s.edge)
+    Ri = int(math.ceil(R))
+    P = PLATEAU_PX
+    offs = np.arange(-Ri - P - 1, Ri + P + 2, dtype=np.float32)  # profile positions
+    x = s.uv[:, 0:1] + offs[None] * s.n[:, 0:1]
+    y = s.uv[:, 1:2] + offs[None] * s.n[:, 1:2]
+    prof = _remap(img, x.astype(np.float32), y.astype(np.float32))  # (S, L)
+    D = 0.5 * (prof[:, 2:] - prof[:, :-2])  # derivative at offs[1:-1]
+    pos = offs[1:-1]
+    A = np.abs(D)
+    peak = (A[:, 1:-1] >= A[:, :-2]) & (A[:, 1:-1] > A[:, 2:])
+    pk_pos = pos[1:-1]
+    inside = np.abs(pk_pos) <= R
+    peak &= inside[None]
+    # grey levels beside each peak: the face side (+n) and the other (-n), 2..P px away
+    L = prof.shape[1]
+    idx = np.arange(1, A.shape[1] - 1) + 1  # index into prof of each peak position
+    face = np.zeros((S, len(idx)), np.float32)
+    other = np.zeros((S, len(idx)), np.float32)
+    for k in range(2, P + 1):
+        face += prof[:, np.clip(idx + k, 0, L - 1)]
+        other += prof[:, np.clip(idx - k, 0, L - 1)]
+    face /= P - 1
+    other /= P - 1
+    contrast = face - other
+    ok = peak & (np.abs(contrast) >= MIN_CONTRAST)
+    # appearance: the face's level on the face side (at a crease the second face's on the other)
+    lev1 = np.full(S, np.nan)
+    lev2 = np.full(S, np.nan)
+    for e in np.unique(s.edge):
+        fs = s.faces[e]
+        m = s.edge == e
+        lev1[m] = app.levels.get(fs[0], np.nan)
+        if len(fs) == 2:
+            lev2[m] = app.levels.get(fs[1], np.nan)
+    has1 = np.isfinite(lev1)
+    ok &= ~has1[:, None] | _level_ok(face, lev1[:, None])
+    has2 = np.isfinite(lev2)
+    ok &= ~has2[:, None] | _level_ok(other, lev2[:, None])
+    # polarity: the derivative's sign is the face side's minus the other side's
+    Dp = D[:, 1:-1]
+    ok &= np.sign(Dp) == np.sign(contrast)
+    # rank: closeness to the face's level (without a level learnt: contrast)
+    score = np.where(has1[:, None], np.abs(face - np.where(has1, lev1, 0)[:, None]), -np.abs(contrast))
+    score = np.where(ok, score, np.inf)
+    C = min(n_cand, score.shape[1])
+    order = np.argsort(score, axis=1)[:, :C]
+    rows = np.arange(S)[:, None]
+    good = np.isfinite(score[rows, order])
+    # sub-pixel: parabola through |D| at the peak and its neighbours
+    j = order + 1  # index into A
+    a0, a1, a2 = A[rows, j - 1], A[rows, j], A[rows, j + 1]
+    den = a0 - 2 * a1 + a2
+    frac = np.where(np.abs(den) > 1e-9, 0.5 * (a0 - a2) / np.where(np.abs(den) > 1e-9, den, 1.0), 0.0)
+    off = pos[j] + np.clip(frac, -0.5, 0.5)
+    off = np.where(good, off, np.nan)
+    return off, np.where(good, face[rows, order], np.nan), np.where(good, contrast[rows, order], np.nan)
+
+
+def _motion(xi) -> np.ndarray:
+    return make_H(R_from_rotvec(xi[:3]), xi[3:])
+
+
+def _lines(cam: CameraModel, es: _EdgeSet, used: np.ndarray, C_H_G, jac: bool = False):
+    """Projected model lines (undistorted sensor coordinates) of edges ``used``: ends A (E, 2), unit
+    normals (E, 2), offsets (E,); with ``jac`` also the derivatives of A and of B (E, 2, 6) under a
+    camera motion (rotation vector, translation) applied on the left of ``C_H_G``."""
+    pa = transform_points(C_H_G, es.a_G[used])
+    pb = transform_points(C_H_G, es.b_G[used])
+    f = cam.f
+    a = f * pa[:, :2] / pa[:, 2:3]
+    b = f * pb[:, :2] / pb[:, 2:3]
+    t = b - a
+    L = np.linalg.norm(t, axis=1)
+    t = t / L[:, None]
+    n = np.column_stack([-t[:, 1], t[:, 0]])
+    if not jac:
+        return a, n, np.sum(n * a, axis=1)
+
+    def dproj(p):
+        # d(f x/z, f y/z)/dp (E, 2, 3) times dp/dxi = [-[p]x, I] (E, 3, 6)
+        x, y, z = p[:, 0], p[:, 1], p[:, 2]
+        Jp = np.zeros((len(p), 2, 3))
+        Jp[:, 0, 0] = f / z
+        Jp[:, 0, 2] = -f * x / z**2
+        Jp[:, 1, 1] = f / z
+        Jp[:, 1, 2] = -f * y / z**2
+        M = np.zeros((len(p), 3, 6))
+        M[:, 0, 1], M[:, 0, 2] = z, -y
+        M[:, 1, 0], M[:, 1, 2] = -z, x
+        M[:, 2, 0], M[:, 2, 1] = y, -x
+        M[:, 0, 3] = M[:, 1, 4] = M[:, 2, 5] = 1.0
+        return Jp @ M
+
+    return a, n, np.sum(n * a, axis=1), dproj(pa), dproj(pb), t, L
+
+
+def _tukey(r, c):
+    u = r / c
+    return np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+
+
+def _solve(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, start_floor: float | None = None):
+    """IRLS of the camera motion on the candidates q (S, C, 2) (undistorted sensor coordinates, NaN:
+    none). The scale's floor falls from ``start_floor`` (default ``floor``) by half each iteration down
+    to ``floor``, so that far candidates are weighed before the fit settles on the nearest ones.
+    Returns (C_H_G, weights (S,), residuals (S,), picked candidate (S,), J^T W J (6, 6), scale)."""
+    used = np.unique(s.edge)
+    pos = np.searchsorted(used, s.edge)
+    H = C_H_G.copy()
+    S = len(s.edge)
+    w = np.zeros(S)
+    r = np.full(S, np.nan)
+    pick = np.zeros(S, int)
+    JtWJ = np.zeros((6, 6))
+    sigma = floor
+    rows = np.arange(S)
+    for it in range(iters):
+        a, n0, c0, dA, dB, t, L = _lines(cam, es, used, H, jac=True)
+        rc = np.einsum("sci,si->sc", q, n0[pos]) - c0[pos][:, None]  # (S, C)
+        rc = np.where(np.isfinite(rc), rc, np.inf)
+        pick = np.argmin(np.abs(rc), axis=1)
+        r = rc[rows, pick]
+        has = np.isfinite(r)
+        if has.sum() < 12:
+            return H, np.zeros(S), r, pick, JtWJ, sigma
+        qs = np.where(has[:, None], q[rows, pick], 0.0)
+        mad = float(np.median(np.abs(r[has])))
+        fl = floor if start_floor is None else max(floor, start_floor * 0.5**it)
+        sigma = max(1.4826 * mad, fl)
+        w = np.where(has, _tukey(np.where(has, r, 0.0), 4.685 * sigma), 0.0)
+        # r = n . (q - A): dr = dn . (q - A) - n . dA, dn = perp((I - t t') (dB - dA) / L)
+        dBA = dB - dA  # (E, 2, 6)
+        dt = (dBA - t[:, :, None] * np.einsum("ei,eik->ek", t, dBA)[:, None, :]) / L[:, None, None]
+        dn = np.stack([-dt[:, 1, :], dt[:, 0, :]], axis=1)  # (E, 2, 6)
+        qa = qs - a[pos]
+        J = np.einsum("si,sik->sk", qa, dn[pos]) - np.einsum("si,sik->sk", n0[pos], dA[pos])
+        rr = np.where(has, r, 0.0)
+        Jw = J * w[:, None]
+        JtWJ = Jw.T @ J
+        g = Jw.T @ rr
+        d = np.sqrt(np.maximum(np.diag(JtWJ), 1e-12))
+        A = JtWJ / np.outer(d, d) + 1e-6 * np.eye(6)
+        try:
+            dxi = -np.linalg.solve(A, g / d) / d
+        except np.linalg.LinAlgError:
+            break
+        H = _motion(dxi) @ H
+        if fl <= floor and np.max(np.abs(dxi[:3])) < 1e-7 and np.max(np.abs(dxi[3:])) < 1e-5:  # ~1e-4 px
+            break
+    return H, w, r, pick, JtWJ, sigma
+
+
+def _coarse_shift(off: np.ndarray, nrm: np.ndarray, R: float, cell: float = 2.0, tol: float = 1.5) -> np.ndarray:
+    """The image shift (2,) [px] within +-R that the most samples agree with: sample i agrees with d when
+    one of its candidates lies at n_i . d (within ``tol``). A vote over a grid of ``cell`` px, then the
+    mean of the agreeing samples' constraints (least squares) around the best cell."""
+    g = np.arange(-R, R + cell / 2, cell)
+    dx, dy = np.meshgrid(g, g)
+    d = np.column_stack([dx.ravel(), dy.ravel()])  # (D, 2)
+    proj = nrm @ d.T  # (S, D)
+    has = np.isfinite(off)
+    agree = np.zeros(proj.shape, bool)
+    for c in range(off.shape[1]):
+        o = np.where(has[:, c], off[:, c], np.inf)
+        agree |= np.abs(proj - o[:, None]) <= tol
+    votes = agree.sum(axis=0)
+    best = d[int(np.argmax(votes))]
+    # refine: the agreeing samples' nearest candidates, least squares n . d = off
+    pb = nrm @ best
+    r = np.where(has, off - pb[:, None], np.inf)
+    k = np.argmin(np.abs(r), axis=1)
+    rows = np.arange(len(off))
+    ok = np.abs(r[rows, k]) <= tol
+    if ok.sum() >= 6:
+        A = nrm[ok]
+        b = off[rows[ok], k[ok]]
+        sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+        if np.all(np.abs(sol - best) <= 2 * cell):
+            return sol
+    return best
+
+
+def learn_appearance(image, camera: CameraModel, C_H_G, gripper: GripperSpec, gap_mm: float) -> Appearance:
+    """The grey level of every visible finger face at ``C_H_G``: the median over its part within the
+    picture, 2 px inside its edges (use a pose that fits, e.g. where the fingertips were found)."""
+    img = as_gray(image, camera)
+    boxes = gripper.finger_boxes_G(gap_mm)
+    cam_G = inv_H(np.asarray(C_H_G, float))[:3, 3]
+    app = Appearance()
+    H, W = img.shape
+    for f, (lo, hi) in enumerate(boxes):
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        for ax in range(3):
+            for side in (-1, 1):
+                plane = hi[ax] if side > 0 else lo[ax]
+                if side * (cam_G[ax] - plane) <= 1e-9:
+                    continue
+                j, k = [m for m in range(3) if m != ax]
+                # a grid over the face, 12 % in from its sides
+                u, v = np.meshgrid(np.linspace(0.12, 0.88, 9), np.linspace(0.02, 0.98, 60))
+                p = np.zeros((u.size, 3))
+                p[:, ax] = plane
+                p[:, j] = lo[j] + u.ravel() * (hi[j] - lo[j])
+                p[:, k] = lo[k] + v.ravel() * (hi[k] - lo[k])
+                pc = transform_points(C_H_G, p)
+                if np.any(pc[:, 2] <= 0):
+                    continue
+                uv = camera.project(pc)
+                inside = camera.in_image(uv, margin=2)
+                G_H_C = inv_H(np.asarray(C_H_G, float))
+                o = G_H_C[:3, 3]
+                olo, ohi = boxes[1 - f]
+                inside &= ~_blocked(o, p - o[None], np.asarray(olo, float), np.asarray(ohi, float))
+                if inside.sum() < 10:
+                    continue
+                # the face's width in the picture must allow 2 px inside its edges
+                vals = _remap(img.astype(np.float32), uv[inside, 0].astype(np.float32), uv[inside, 1].astype(np.float32))
+                app.levels[(f, ax, side)] = float(np.median(vals))
+    return app
+
+
+def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec, gap_mm: float, *,
+                   appearance: Appearance | None = None, rounds=ROUNDS, points=range(6)) -> SilhouetteFit:
+    """Fit the fingers' silhouette to ``image`` from the pose ``C_H_G_pred`` (4, 4), jaw gap ``gap_mm``.
+
+    ``appearance`` the faces' grey levels (``learn_appearance``, or the last fit's); without one they are
+    read at the prediction (good enough when it is within a few px). ``rounds`` the search ranges [px] of
+    the rounds of sampling (the first must reach as far as the prediction may be off). ``points``: the
+    fingertip points reported as found when the fit holds. Returns a ``SilhouetteFit``; never raises for
+    a fit that fails (``ok`` False and the reason)."""
+    a = np.asarray(image)
+    if a.dtype == np.float32 and a.shape == (int(camera.height), int(camera.width)):
+        img = a  # already checked by the caller (a tracker's frame)
+    else:
+        img = as_gray(image, camera)
+    H0 = np.asarray(C_H_G_pred, float)
+    boxes = gripper.finger_boxes_G(gap_mm)
+    p_G6 = gripper.points_G(gap=gap_mm)
+    app = appearance.copy() if appearance is not None and appearance.levels else learn_appearance(
+        img, camera, H0, gripper, gap_mm)
+    H = H0.copy()
+    nan6 = np.full((6, 2), np.nan)
+
+    def fail(reason, n_s=0, gf=0.0, ff=(0.0, 0.0), rms=math.nan, H_=None):
+        return SilhouetteFit(H_, nan6.copy(), np.zeros(6, bool), False, reason, gf, np.asarray(ff, float), rms,
+                             np.full(3, np.nan), n_s, app, [reason] * 6)
+
+    w = r = s = None
+    JtWJ = np.zeros((6, 6))
+    sigma = SCALE_FLOOR_PX
+    es = _visible_edges(boxes, H)
+    rounds = tuple(rounds)
+    if rounds[0] >= 16.0:
+        # far from the start: first the image shift most samples agree with (a vote), as a small turn
+        s = _sample(camera, es, boxes, H, margin=BORDER_PX)
+        if len(s.edge) < 20:
+            return fail(f"too few edge samples in the picture ({len(s.edge)})", len(s.edge))
+        off, _, _ = _candidates(img, s, rounds[0], app, n_cand=8)
+        du, dv = _coarse_shift(off, s.n, rounds[0])
+        H = _motion(np.array([-dv / camera.f, du / camera.f, 0.0, 0.0, 0.0, 0.0])) @ H
+        rounds = tuple(r for r in rounds[1:]) or (3.0,)
+        es = _visible_edges(boxes, H)
+    for i, R in enumerate(rounds):
+        s = _sample(camera, es, boxes, H, margin=BORDER_PX)
+        if len(s.edge) < 20:
+            return fail(f"too few edge samples in the picture ({len(s.edge)})", len(s.edge))
+        off, lev, _ = _candidates(img, s, R, app)
+        uvc = s.uv[:, None, :] + off[..., None] * s.n[:, None, :]
+        flat = uvc.reshape(-1, 2)
+        okc = np.isfinite(flat).all(axis=1)
+        q = np.full(flat.shape, np.nan)
+        if okc.any():
+            q[okc] = camera.undistort_pixels(flat[okc])
+        q = q.reshape(uvc.shape)
+        floor = max(SCALE_FLOOR_PX, R / 6.0) if i < len(rounds) - 1 else SCALE_FLOOR_PX
+        last = i == len(rounds) - 1
+        H, w, r, pick, JtWJ, sigma = _solve(camera, es, s, q, H, floor, iters=6 if last else 3,
+                                            start_floor=max(floor, R / 6.0))
+    good = w > 0.5
+    n_s = len(s.edge)
+    gf = float(good.mean()) if n_s else 0.0
+    fing = es.finger[s.edge]
+    # per finger, of those with enough samples in the picture (a finger may leave it)
+    ff = np.array([float(good[fing == f].mean()) if np.sum(fing == f) >= MIN_FINGER_SAMPLES else math.nan
+                   for f in (0, 1)])
+    rms = float(np.sqrt(np.mean(r[good] ** 2))) if good.any() else math.nan
+    # covariance of the motion and the TCP's standard deviation
+    cov = None
+    tcp_sd = np.full(3, np.nan)
+    if good.sum() > 6:
+        s2 = float(np.sum(w[good] * r[good] ** 2) / max(good.sum() - 6, 1))
+        try:
+            cov = s2 * np.linalg.inv(JtWJ)
+            # the TCP (G's origin) in C moves by [-t_x] dθ + dt under the motion
+            t = H[:3, 3]
+            Jt = np.hstack([-np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]), np.eye(3)])
+            tcp_sd = np.sqrt(np.maximum(np.diag(Jt @ cov @ Jt.T), 0.0))
+        except np.linalg.LinAlgError:
+            cov = None
+    uv6 = nan6.copy()
+    pts_C = transform_points(H, p_G6)
+    found = np.zeros(6, bool)
+    reasons: list = [None] * 6
+    want = {int(k) for k in points}
+    if np.all(pts_C[:, 2] > 0):
+        uv6 = camera.project(pts_C)
+    G_H_C = inv_H(H)
+    o = G_H_C[:3, 3]
+    for k in range(6):
+        f = 0 if k in (0, 1, 4) else 1
+        if k not in want:
+            reasons[k] = "not requested"
+        elif not camera.in_image(uv6[k:k + 1], margin=0.5)[0]:
+            reasons[k] = "outside the picture"
+        elif _blocked(o, (p_G6[k] - o)[None], *[np.asarray(v, float) for v in boxes[1 - f]])[0]:
+            reasons[k] = f"occluded by finger {'AB'[1 - f]}"
+        else:
+            found[k] = True
+    why = None
+    if gf < MIN_GOOD_FRACTION:
+        why = f"lost: {100 * gf:.0f} % of {n_s} edge samples support the fit (needs {100 * MIN_GOOD_FRACTION:.0f} %)"
+    elif np.nanmin(ff, initial=1.0) < MIN_GOOD_FRACTION:
+        f = int(np.nanargmin(ff))
+        why = f"lost: {100 * ff[f]:.0f} % of finger {'AB'[f]}'s edge samples support the fit"
+    elif not (rms <= MAX_RMS_PX):
+        why = f"lost: edge residual {rms:.2f} px over {MAX_RMS_PX} px"
+    elif not (np.nanmax(tcp_sd) <= MAX_TCP_SD_MM):
+        why = f"lost: TCP uncertain by {np.nanmax(tcp_sd):.3f} mm (over {MAX_TCP_SD_MM} mm)"
+    if why is not None:
+        res = fail(why, n_s, gf, ff, rms, H)
+        res.tcp_sd_mm = tcp_sd
+        res.covariance = cov
+        return res
+    # the faces' levels at the fit, for the next frame
+    new_app = app.copy()
+    seen = lev[np.arange(n_s), pick]
+    m = good & np.isfinite(seen)
+    E = len(es.faces)
+    cnt = np.bincount(s.edge[m], minlength=E)
+    tot = np.bincount(s.edge[m], weights=seen[m], minlength=E)
+    for e in np.flatnonzero(cnt >= 5):  # the mean beside each edge's supporting samples
+        new_app.levels[es.faces[e][0]] = float(tot[e] / cnt[e])
+    return SilhouetteFit(H, np.where(found[:, None], uv6, np.nan), found, True, None, gf, ff, rms, tcp_sd, n_s,
+                         new_app, reasons, cov)
