@@ -1,0 +1,660 @@
+"""Multi-view calibration of the interior orientation: f, kappa, principal point and aspect.
+
+Tsai's coplanar method, as the paper uses it, takes the principal point (cx, cy) and the horizontal
+scale factor ``aspect`` as known. One picture of a plane hardly separates them from f and the plate's
+tilt; several pictures of the plate from different poses do. ``calibrate_intrinsics`` finds f, kappa,
+cx, cy, aspect and every view's plate pose ``C_H_W`` jointly by Levenberg-Marquardt (``selfview.lm``)
+on the same disc centres as the off-line calibration (``selfview.discs``: sub-pixel centroids, then
+their perspective/lens bias removed with the current model, refitted), minimising the distorted pixel
+error of the camera model of ``selfview.camera``.
+
+Uncertainty: the covariance of the parameters is ``s^2 (J^T J)^-1`` with ``s^2`` the residual variance
+(sum of squares over the degrees of freedom); the 1-sigma of f, kappa, cx, cy, aspect is the square root
+of its diagonal. The projection uncertainty at a pixel q is the 1-sigma length (sqrt of the trace) of the
+2-D covariance of the pixel where q's ray lands under the intrinsics' covariance (pose marginalised);
+being in the camera frame it does not depend on the range.
+
+Stop rule: the views pin the centre when sigma(cx) and sigma(cy) are both below ``STOP_CENTRE_PX`` and
+the aspect when sigma(aspect) / aspect is below ``STOP_ASPECT_REL``. When they do not, the information a
+further view of a given kind would add (its Jacobian at the current estimate, its own pose eliminated by
+the Schur complement) says how many more views of that kind would.
+
+Cross-check: the views are split in two halves (alternately, in order), each calibrated apart; the halves
+agree when every parameter differs by at most ``AGREE_SIGMAS`` times their combined 1-sigma.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from selfview.camera import CameraModel, distort
+from selfview.cell import PlateSpec
+from selfview.discs import DiscDetections, detect_discs, disc_image_bias
+from selfview.errors import CalibrationError, ImageError
+from selfview.tsai import _cross, _left_jacobian
+from selfview.geometry import R_from_rotvec, make_H, rot_axis, rotvec_from_R, trans, transform_points
+
+__all__ = [
+    "INTRINSIC_NAMES", "IntrinsicsResult", "ViewFit", "calibrate_intrinsics", "detect_views", "fit_views",
+    "projection_sigma_px", "MIN_VIEWS", "STOP_CENTRE_PX", "STOP_ASPECT_REL",
+]
+
+INTRINSIC_NAMES = ("f", "kappa", "cx", "cy", "aspect")
+#: Fewest usable views a joint calibration accepts (and each half of the cross-check).
+MIN_VIEWS = 4
+MIN_VIEWS_HALF = 3
+#: Stop rule: the centre pinned to sigma below this in each axis [px], the aspect to this relative sigma.
+STOP_CENTRE_PX = 0.3
+STOP_ASPECT_REL = 0.0005
+#: The halves of the cross-check agree when no parameter differs by more than this many combined sigmas.
+AGREE_SIGMAS = 3.0
+#: A disc centre this many residual RMS (and at least ``OUTLIER_MIN_PX``) from the model is dropped.
+OUTLIER_RMS = 4.0
+OUTLIER_MIN_PX = 0.5
+#: A view whose residual RMS exceeds this [px] after the fit does not belong to the set (another
+#: plate, a moved camera, a blurred picture) and is dropped.
+VIEW_MAX_RMS_PX = 1.5
+#: Bias-correction rounds (centroid -> image of the centre) after the first fit.
+BIAS_ROUNDS = 2
+#: Above this sigma of the centre [px] the views do not determine it at all.
+UNDETERMINED_CENTRE_PX = 5.0
+#: Most further views the advice considers per kind.
+MAX_MORE_VIEWS = 60
+#: Finite-difference steps of the numeric Jacobian: f (relative), kappa [px^-2], cx, cy [px], aspect,
+#: rotation [rad], translation [mm].
+_STEP = np.array([1e-6, 1e-12, 1e-4, 1e-4, 1e-7])
+_POSE_STEP = np.array([1e-7, 1e-7, 1e-7, 1e-5, 1e-5, 1e-5])
+
+
+# --- the model ------------------------------------------------------------------------------------
+def _project(intr, R, t, p_W) -> np.ndarray:
+    """(N, 2) distorted pixels of plate points ``p_W`` (N, 3) seen at pose (R, t) by intrinsics
+    ``intr`` = (f, kappa, cx, cy, aspect); NaN where a point is behind the camera or beyond the fold."""
+    f, kappa, cx, cy, aspect = intr
+    pc = p_W @ R.T + t
+    z = pc[:, 2]
+    if np.any(z <= 0) or f <= 0 or aspect <= 0:
+        return np.full((len(p_W), 2), np.nan)
+    XY = f * pc[:, :2] / z[:, None]
+    try:
+        XYh = distort(XY, kappa)
+    except CalibrationError:
+        return np.full((len(p_W), 2), np.nan)
+    return np.column_stack([XYh[:, 0] / aspect + cx, XYh[:, 1] + cy])
+
+
+class _Joint:
+    """Parameters x = (f, kappa, cx, cy, aspect, then per view omega (3), t (3)) with view k's rotation
+    exp(omega_k) R0_k; residuals model minus observation, per view (u then v of its points)."""
+
+    def __init__(self, p_W: list, uv: list, R0: list):
+        self.p_W, self.uv, self.R0 = p_W, uv, R0
+        self.n = [len(p) for p in p_W]
+        self.off = np.concatenate([[0], np.cumsum([2 * k for k in self.n])])
+
+    def view(self, x, k) -> np.ndarray:
+        j = 5 + 6 * k
+        R = R_from_rotvec(x[j : j + 3]) @ self.R0[k]
+        m = _project(x[:5], R, x[j + 3 : j + 6], self.p_W[k])
+        return (m - self.uv[k]).T.ravel()
+
+    def residuals(self, x) -> np.ndarray:
+        return np.concatenate([self.view(x, k) for k in range(len(self.p_W))])
+
+    def jacobian(self, x) -> np.ndarray:
+        """Analytic (as ``selfview.tsai``'s full model, with cx, cy and the aspect added)."""
+        f, kappa, cx, cy, aspect = x[:5]
+        J = np.zeros((int(self.off[-1]), len(x)))
+        for k in range(len(self.p_W)):
+            j = 5 + 6 * k
+            d = self.p_W[k] @ (R_from_rotvec(x[j : j + 3]) @ self.R0[k]).T
+            pc = d + x[j + 3 : j + 6]
+            z = pc[:, 2]
+            if np.any(z <= 0):
+                raise CalibrationError("intrinsics: a disc lies behind the camera near the current parameters")
+            X, Y = f * pc[:, 0] / z, f * pc[:, 1] / z
+            XYh = distort(np.column_stack([X, Y]), kappa)
+            Xh, Yh = XYh[:, 0], XYh[:, 1]
+            rh2 = Xh * Xh + Yh * Yh
+            a = 1.0 + kappa * rh2
+            c = 2.0 * kappa / (a + 2.0 * kappa * rh2)
+            m00, m11, m01 = (1.0 - c * Xh * Xh) / a, (1.0 - c * Yh * Yh) / a, -c * Xh * Yh / a
+            Jl = _left_jacobian(x[j : j + 3])
+            n = len(z)
+            r0 = self.off[k]
+            for row, (mu0, mu1), extra in ((0, (m00 / aspect, m01 / aspect), 1), (1, (m01, m11), 0)):
+                g = np.column_stack([mu0, mu1, -(mu0 * X + mu1 * Y) / f]) * (f / z)[:, None]
+                rows = slice(r0 + row * n, r0 + (row + 1) * n)
+                J[rows, 0] = (mu0 * X + mu1 * Y) / f
+                J[rows, 1] = -(mu0 * Xh + mu1 * Yh) * rh2
+                J[rows, j : j + 3] = _cross(d, g) @ Jl
+                J[rows, j + 3 : j + 6] = g
+            J[r0 : r0 + n, 2] = 1.0
+            J[r0 + n : r0 + 2 * n, 3] = 1.0
+            J[r0 : r0 + n, 4] = -Xh / aspect**2
+        if not np.all(np.isfinite(J)):
+            raise CalibrationError("intrinsics: the model cannot see every disc near the current parameters")
+        return J
+
+    def pose(self, x, k) -> np.ndarray:
+        j = 5 + 6 * k
+        return make_H(R_from_rotvec(x[j : j + 3]) @ self.R0[k], x[j + 3 : j + 6])
+
+
+@dataclass
+class ViewFit:
+    """One view in the joint fit: ``name``; ``C_H_W`` (4, 4); ``discs`` used; ``rms_px`` of its residuals;
+    ``tilt_deg`` angle between the plate's normal and the optical axis; ``distance_mm`` to the plate's
+    origin; ``dropped`` disc centres dropped as outliers."""
+
+    name: str
+    C_H_W: np.ndarray
+    discs: int
+    rms_px: float
+    tilt_deg: float
+    distance_mm: float
+    dropped: int = 0
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "discs": self.discs, "rms_px": float(self.rms_px), "tilt_deg": float(self.tilt_deg),
+                "distance_mm": float(self.distance_mm), "dropped": self.dropped,
+                "C_H_W": np.asarray(self.C_H_W).tolist()}
+
+
+@dataclass
+class _Fit:
+    camera: CameraModel
+    cov5: np.ndarray
+    cov_full: np.ndarray
+    jac: np.ndarray
+    s2: float
+    rms_px: float
+    views: list
+    uv_used: list
+    p_W_used: list
+
+
+@dataclass
+class _LMOut:
+    x: np.ndarray
+    residuals: np.ndarray
+    jacobian: np.ndarray
+    cost: float
+    converged: bool
+    message: str
+
+
+def _normal(J, r, off) -> tuple[np.ndarray, np.ndarray]:
+    """J^T J and J^T r of the joint problem, view by view (``off`` its row offsets): each view's rows
+    touch only the 5 intrinsics and its own 6 pose parameters, so the products stay small."""
+    p = J.shape[1]
+    A = np.zeros((p, p))
+    g = np.zeros(p)
+    for k in range(len(off) - 1):
+        cols = np.r_[0:5, 5 + 6 * k : 11 + 6 * k]
+        Jk = J[off[k] : off[k + 1]][:, cols]
+        A[np.ix_(cols, cols)] += Jk.T @ Jk
+        g[cols] += Jk.T @ r[off[k] : off[k + 1]]
+    return A, g
+
+
+def _lm_normal(fun, jac, x0, off, *, max_iter: int = 100, rtol: float = 1e-12) -> _LMOut:
+    """Levenberg-Marquardt on the normal equations, damping scaled by their diagonal (Marquardt).
+
+    The joint problem has 5 + 6 V parameters and thousands of residuals; ``selfview.lm``'s SVD of the
+    whole Jacobian per iteration costs far more than the (5 + 6 V)-square normal equations here, and the
+    problem is well scaled once the columns are. Stops when the cost's relative decrease or the step's
+    relative size falls below ``rtol``."""
+    x = np.asarray(x0, float).copy()
+    r = fun(x)
+    if not np.all(np.isfinite(r)):
+        raise CalibrationError("intrinsics: the model cannot see every disc at the starting parameters")
+    cost = float(r @ r)
+    lam = 1e-3
+    J = jac(x)
+    converged, message = False, f"no convergence in {max_iter} iterations"
+    for _ in range(max_iter):
+        A, g = _normal(J, r, off)
+        dA = np.sqrt(np.where(np.diag(A) > 0, np.diag(A), 1.0))
+        As = A / np.outer(dA, dA)
+        gs = g / dA
+        improved = False
+        for _ in range(30):
+            try:
+                step = -np.linalg.solve(As + lam * np.eye(len(x)), gs) / dA
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            xn = x + step
+            rn = fun(xn)
+            cn = float(rn @ rn) if np.all(np.isfinite(rn)) else np.inf
+            if cn <= cost:
+                improved = True
+                break
+            lam *= 10
+        if not improved:
+            converged, message = True, "no further decrease"
+            break
+        rel = (cost - cn) / max(cost, 1e-300)
+        small = float(np.linalg.norm(step * dA)) <= rtol * max(float(np.linalg.norm(x * dA)), 1e-300)
+        x, r, cost = xn, rn, cn
+        lam = max(lam / 10, 1e-12)
+        J = jac(x)
+        if rel <= rtol or small:
+            converged, message = True, "relative decrease of the cost or of the step below tolerance"
+            break
+    return _LMOut(x, r, J, cost, converged, message)
+
+
+def _covariance(J, s2, off) -> np.ndarray:
+    """``s2 (J^T J)^-1`` with the columns scaled (inf everywhere if J is rank-deficient)."""
+    A, _ = _normal(J, np.zeros(len(J)), off)
+    d = np.sqrt(np.where(np.diag(A) > 0, np.diag(A), 1.0))
+    As = A / np.outer(d, d)
+    w = np.linalg.eigvalsh(As)
+    if not (np.all(np.isfinite(w)) and w[0] > 1e-14 * w[-1]):
+        return np.full(A.shape, np.inf)
+    return s2 * np.linalg.inv(As) / np.outer(d, d)
+
+
+def _initial_pose(p_W, uv, camera: CameraModel) -> np.ndarray:
+    """A first ``C_H_W`` of one view: planar PnP (IPPE) on the undistorted pixels of ``camera``."""
+    und = camera.undistorted_pixels(uv)
+    K = np.array([[camera.f / camera.aspect, 0, camera.cx], [0, camera.f, camera.cy], [0, 0, 1.0]])
+    ok, rv, tv = cv2.solvePnP(p_W.astype(np.float64), und.astype(np.float64), K, None, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        raise CalibrationError("intrinsics: no first pose for a view (planar PnP failed)")
+    H = make_H(cv2.Rodrigues(rv)[0], tv.ravel())
+    if H[2, 3] <= 0:
+        raise CalibrationError("intrinsics: a view's plate lies behind the camera")
+    return H
+
+
+def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list) -> _Fit:
+    """Joint LM from ``camera0`` and ``poses0``; drops outlying discs once and refits."""
+    keep = [np.ones(len(p), bool) for p in p_W]
+    for attempt in range(2):
+        P = [p[k] for p, k in zip(p_W, keep)]
+        U = [u[k] for u, k in zip(uv, keep)]
+        model = _Joint(P, U, [H[:3, :3] for H in poses0])
+        x0 = np.concatenate([[camera0.f, camera0.kappa, camera0.cx, camera0.cy, camera0.aspect],
+                             *[np.concatenate([np.zeros(3), H[:3, 3]]) for H in poses0]])
+        res = _lm_normal(model.residuals, model.jacobian, x0, model.off)
+        poses0 = [model.pose(res.x, k) for k in range(len(P))]
+        camera0 = camera0.with_(f=float(res.x[0]), kappa=float(res.x[1]), cx=float(res.x[2]), cy=float(res.x[3]),
+                                aspect=float(res.x[4]))
+        dist = [np.hypot(*model.view(res.x, k).reshape(2, -1)) for k in range(len(P))]
+        rms = float(np.sqrt(np.mean(np.concatenate(dist) ** 2)))
+        if attempt == 1:
+            break
+        lim = max(OUTLIER_RMS * rms, OUTLIER_MIN_PX)
+        changed = False
+        for k, d in enumerate(dist):
+            idx = np.flatnonzero(keep[k])
+            bad = idx[d > lim]
+            if len(bad):
+                keep[k][bad] = False
+                changed = True
+        if not changed:
+            break
+    if not (res.converged and res.x[0] > 0 and res.x[4] > 0):
+        raise CalibrationError(f"intrinsics: the joint fit did not converge ({res.message})")
+    m, n = res.jacobian.shape
+    s2 = res.cost / max(m - n, 1)
+    cov = _covariance(res.jacobian, s2, model.off)
+    views = []
+    for k in range(len(P)):
+        H = poses0[k]
+        tilt = float(np.degrees(np.arccos(min(1.0, abs(H[2, 2])))))
+        views.append(ViewFit(names[k], H, int(keep[k].sum()), float(np.sqrt(np.mean(dist[k] ** 2))), tilt,
+                             float(np.linalg.norm(H[:3, 3])), int((~keep[k]).sum())))
+    return _Fit(camera0, cov[:5, :5], cov, res.jacobian, float(s2), rms, views, U, P)
+
+
+def _bias_corrected(dets, camera, poses, plate) -> list:
+    return [d.uv - disc_image_bias(camera, H, d.p_W, plate.disc_diameter / 2) for d, H in zip(dets, poses)]
+
+
+def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel, names: list[str] | None = None,
+              *, bias: bool = True) -> _Fit:
+    """The joint fit of views' disc detections from ``camera0`` (a starting camera): first poses by
+    planar PnP, a fit on the centroids, then ``BIAS_ROUNDS`` rounds of bias correction and refit
+    (``bias=False``: the centroids as measured)."""
+    names = names or [f"view {i + 1}" for i in range(len(dets))]
+    poses = [_initial_pose(d.p_W, d.uv, camera0) for d in dets]
+    fit = _solve([d.p_W for d in dets], [d.uv for d in dets], camera0, poses, names)
+    for _ in range(BIAS_ROUNDS if bias else 0):
+        poses = [v.C_H_W for v in fit.views]
+        uv = _bias_corrected(dets, fit.camera, poses, plate)
+        fit = _solve([d.p_W for d in dets], uv, fit.camera, poses, names)
+    return fit
+
+
+def detect_views(images, plate: PlateSpec, camera: CameraModel, names=None, *, skip_unusable: bool = False):
+    """Disc detections of each picture. Returns (detections, names kept, skipped [{name, reason}]).
+
+    A picture without the plate raises ``ImageError`` naming it, unless ``skip_unusable``."""
+    names = list(names) if names is not None else [f"view {i + 1}" for i in range(len(images))]
+    dets, kept, skipped = [], [], []
+    for img, nm in zip(images, names):
+        try:
+            dets.append(detect_discs(img, plate, camera=camera))
+            kept.append(nm)
+        except ImageError as exc:
+            if not skip_unusable:
+                raise ImageError(f"{nm}: {exc}") from None
+            skipped.append({"name": nm, "reason": str(exc)})
+    return dets, kept, skipped
+
+
+# --- uncertainty figures --------------------------------------------------------------------------
+def _pixel_jacobian(camera: CameraModel, uv) -> np.ndarray:
+    """(2, 5) derivative of where the ray of pixel ``uv`` lands, w.r.t. (f, kappa, cx, cy, aspect)."""
+    xy = camera.undistort_pixels(np.atleast_2d(uv))[0] / camera.f
+    p = np.array([[xy[0], xy[1], 1.0]])
+    x = np.array([camera.f, camera.kappa, camera.cx, camera.cy, camera.aspect])
+    J = np.zeros((2, 5))
+    for i in range(5):
+        h = _STEP[i] * (abs(x[i]) if i == 0 else 1.0)
+        xp, xm = x.copy(), x.copy()
+        xp[i] += h
+        xm[i] -= h
+        J[:, i] = (_project(xp, np.eye(3), np.zeros(3), p)[0] - _project(xm, np.eye(3), np.zeros(3), p)[0]) / (2 * h)
+    return J
+
+
+def projection_sigma_px(camera: CameraModel, cov5: np.ndarray) -> dict:
+    """1-sigma [px] of the projection at the picture's centre and its four corners (see the module)."""
+    W, H = camera.width, camera.height
+    pts = {"centre": ((W - 1) / 2, (H - 1) / 2), "top_left": (0.0, 0.0), "top_right": (W - 1.0, 0.0),
+           "bottom_left": (0.0, H - 1.0), "bottom_right": (W - 1.0, H - 1.0)}
+    out = {}
+    for nm, q in pts.items():
+        J = _pixel_jacobian(camera, q)
+        out[nm] = float(np.sqrt(max(np.trace(J @ cov5 @ J.T), 0.0)))
+    return out
+
+
+def _sigmas(cov5) -> dict:
+    d = np.sqrt(np.clip(np.diag(cov5), 0, None))
+    return {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, d)}
+
+
+def _stop_met(sig: dict, aspect: float) -> bool:
+    return bool(max(sig["cx"], sig["cy"]) < STOP_CENTRE_PX and sig["aspect"] / aspect < STOP_ASPECT_REL)
+
+
+#: Kinds of further views the advice weighs: (label, tilt of the plate from square-on [deg]).
+VIEW_KINDS = (("tilted 35 deg", 35.0), ("tilted 20 deg", 20.0), ("square-on", 0.0))
+
+
+def _view_information(camera: CameraModel, plate: PlateSpec, distance: float, tilt_deg: float, azimuth_deg: float,
+                      s2: float) -> np.ndarray | None:
+    """(5, 5) information on the intrinsics that one view of the plate adds, its pose eliminated: the
+    plate's centre at ``distance`` on the optical axis, tilted ``tilt_deg`` about an in-plane axis at
+    ``azimuth_deg``; the discs that fall in the picture."""
+    a = np.radians(azimuth_deg)
+    H = trans(0, 0, distance) @ rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt_deg))
+    p = plate.disc_centres_W()
+    x = np.array([camera.f, camera.kappa, camera.cx, camera.cy, camera.aspect])
+    uv = _project(x, H[:3, :3], H[:3, 3], p)
+    ok = np.all(np.isfinite(uv), axis=1)
+    ok[ok] = camera.in_image(uv[ok], margin=10)
+    if ok.sum() < 8:
+        return None
+    model = _Joint([p[ok]], [uv[ok]], [H[:3, :3]])
+    J = model.jacobian(np.concatenate([x, np.zeros(3), H[:3, 3]]))
+    A = _normal(J, np.zeros(len(J)), model.off)[0] / s2
+    Aii, Aip, App = A[:5, :5], A[:5, 5:], A[5:, 5:]
+    return Aii - Aip @ np.linalg.solve(App, Aip.T)
+
+
+def more_views_advice(fit: _Fit, plate: PlateSpec) -> dict:
+    """How many more views of each kind (``VIEW_KINDS``) would meet the stop rule, from the covariance."""
+    try:
+        info0 = np.linalg.inv(fit.cov5)
+    except np.linalg.LinAlgError:
+        info0 = np.zeros((5, 5))
+    if not np.all(np.isfinite(info0)):
+        info0 = np.zeros((5, 5))
+    dist = float(np.median([v.distance_mm for v in fit.views]))
+    out = {}
+    for label, tilt in VIEW_KINDS:
+        info = info0.copy()
+        need = None
+        for n in range(1, MAX_MORE_VIEWS + 1):
+            add = _view_information(fit.camera, plate, dist, tilt, 90.0 * (n - 1) + 45.0 * ((n - 1) // 4), fit.s2)
+            if add is None:
+                break
+            info += add
+            try:
+                cov = np.linalg.inv(info)
+            except np.linalg.LinAlgError:
+                continue
+            if np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0) and _stop_met(_sigmas(cov), fit.camera.aspect):
+                need = n
+                break
+        out[label] = need
+    return {"distance_mm": dist, "views_needed": out}
+
+
+# --- the result -----------------------------------------------------------------------------------
+@dataclass
+class IntrinsicsResult:
+    """A joint calibration of the interior orientation from several views (see the module)."""
+
+    camera: CameraModel
+    covariance: np.ndarray  # (5, 5) of INTRINSIC_NAMES
+    sigma: dict
+    rms_px: float
+    views: list
+    skipped: list
+    projection_sigma_px: dict
+    stop_rule: dict
+    cross_check: dict
+    residual_sigma_px: float = 0.0
+    extras: dict = field(default_factory=dict)
+
+    @property
+    def views_used(self) -> int:
+        return len(self.views)
+
+    def summary(self) -> dict:
+        c = self.camera
+        return {
+            "f": c.f, "kappa": c.kappa, "principal_point": [c.cx, c.cy], "aspect": c.aspect,
+            "width": c.width, "height": c.height,
+            "sigma": dict(self.sigma),
+            "covariance": np.asarray(self.covariance).tolist(),
+            "rms_px": self.rms_px,
+            "views_used": self.views_used,
+            "views": [v.to_dict() for v in self.views],
+            "views_skipped": list(self.skipped),
+            "projection_sigma_px": dict(self.projection_sigma_px),
+            "stop_rule": self.stop_rule,
+            "cross_check": self.cross_check,
+        }
+
+
+def _cross_check(dets, names, plate, fit: _Fit) -> dict:
+    n = len(dets)
+    if n < 2 * MIN_VIEWS_HALF:
+        return {"done": False, "why": f"{n} views; the cross-check needs {2 * MIN_VIEWS_HALF} (two halves of "
+                                      f"{MIN_VIEWS_HALF})"}
+    halves = []
+    for idx in (range(0, n, 2), range(1, n, 2)):
+        idx = list(idx)
+        try:
+            h = fit_views([dets[i] for i in idx], plate, fit.camera, [names[i] for i in idx])
+        except CalibrationError as exc:
+            return {"done": False, "why": f"a half could not be calibrated: {exc}"}
+        halves.append(h)
+    a, b = halves
+    xa = np.array([a.camera.f, a.camera.kappa, a.camera.cx, a.camera.cy, a.camera.aspect])
+    xb = np.array([b.camera.f, b.camera.kappa, b.camera.cx, b.camera.cy, b.camera.aspect])
+    comb = np.sqrt(np.diag(a.cov5) + np.diag(b.cov5))
+    ratio = np.abs(xa - xb) / comb
+    agree = bool(np.all(np.isfinite(ratio)) and np.all(ratio <= AGREE_SIGMAS))
+    return {
+        "done": True,
+        "agree": agree,
+        "halves": [{nm: float(v) for nm, v in zip(INTRINSIC_NAMES, x)} for x in (xa, xb)],
+        "difference": {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, xa - xb)},
+        "combined_sigma": {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, comb)},
+        "ratio": {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, ratio)},
+        "limit_sigmas": AGREE_SIGMAS,
+    }
+
+
+def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, names=None, *,
+                         skip_unusable: bool = False, cross_check: bool = True, detections=None) -> IntrinsicsResult:
+    """Joint calibration of f, kappa, cx, cy, aspect and each view's ``C_H_W`` from pictures of the plate.
+
+    ``images`` (H, W) pictures (or ``detections``, a list of ``DiscDetections``, instead); ``plate`` the
+    plate; ``camera_guess`` the starting camera (the cell's nominal one: its size checks the pictures);
+    ``names`` per picture, for messages; ``skip_unusable``: a picture without the plate is skipped (and
+    listed) instead of refused. Raises ``ImageError`` (a picture without the plate, of the wrong size) or
+    ``CalibrationError`` (fewer than ``MIN_VIEWS`` usable views; views that do not determine the centre,
+    all seen square-on; no convergence).
+    """
+    if detections is None:
+        dets, names, skipped = detect_views(images, plate, camera_guess, names, skip_unusable=skip_unusable)
+    else:
+        dets = list(detections)
+        names = list(names) if names is not None else [f"view {i + 1}" for i in range(len(dets))]
+        skipped = []
+    if len(dets) < MIN_VIEWS:
+        raise CalibrationError(
+            f"intrinsics: {len(dets)} usable view(s) of the plate; at least {MIN_VIEWS} are needed (12 or more, "
+            "tilted 20-40 deg in different directions, pin the centre and the aspect)"
+        )
+    fit = fit_views(dets, plate, camera_guess, names)
+    # a view that does not fit the others: drop it and refit
+    bad = [k for k, v in enumerate(fit.views) if v.rms_px > VIEW_MAX_RMS_PX]
+    if bad and len(dets) - len(bad) >= MIN_VIEWS:
+        for k in bad:
+            skipped.append({"name": names[k], "reason": f"does not fit the other views (residual rms "
+                                                        f"{fit.views[k].rms_px:.2f} px > {VIEW_MAX_RMS_PX} px)"})
+        keep = [k for k in range(len(dets)) if k not in bad]
+        dets, names = [dets[k] for k in keep], [names[k] for k in keep]
+        fit = fit_views(dets, plate, fit.camera, names)
+    sig = _sigmas(fit.cov5)
+    tilts = [v.tilt_deg for v in fit.views]
+    if not (np.all(np.isfinite(fit.cov5)) and max(sig["cx"], sig["cy"]) < UNDETERMINED_CENTRE_PX):
+        raise CalibrationError(
+            f"intrinsics: the {len(dets)} views do not determine the principal point (sigma "
+            f"{max(sig['cx'], sig['cy']):.3g} px): they see the plate {min(tilts):.0f}-{max(tilts):.0f} deg from "
+            "square-on; take views tilted 20-40 deg in different directions"
+        )
+    met = _stop_met(sig, fit.camera.aspect)
+    stop = {
+        "met": met,
+        "sigma_centre_px": max(sig["cx"], sig["cy"]),
+        "sigma_aspect_pct": 100 * sig["aspect"] / fit.camera.aspect,
+        "limit_centre_px": STOP_CENTRE_PX,
+        "limit_aspect_pct": 100 * STOP_ASPECT_REL,
+    }
+    if not met:
+        adv = more_views_advice(fit, plate)
+        stop["more_views"] = adv
+        best = [(n, k) for k, n in adv["views_needed"].items() if n is not None]
+        if best:
+            n, k = min(best)
+            stop["advice"] = (f"{n} more view(s) {k} (plate about {adv['distance_mm']:.0f} mm away, tilt axes turning "
+                              f"by 90 deg from view to view) would pin the centre to < {STOP_CENTRE_PX} px and the "
+                              f"aspect to < {100 * STOP_ASPECT_REL:g} %")
+        else:
+            stop["advice"] = f"more than {MAX_MORE_VIEWS} further views of any kind would be needed"
+    xc = _cross_check(dets, names, plate, fit) if cross_check else {"done": False, "why": "not asked for"}
+    return IntrinsicsResult(
+        camera=fit.camera, covariance=fit.cov5, sigma=sig, rms_px=fit.rms_px, views=fit.views, skipped=skipped,
+        projection_sigma_px=projection_sigma_px(fit.camera, fit.cov5), stop_rule=stop, cross_check=xc,
+        residual_sigma_px=float(np.sqrt(fit.s2)),
+    )
+
+
+# --- views the robot can take ---------------------------------------------------------------------
+#: Ranges of the planned views: lift of the fingertips off the plate [mm], tilt of the gripper about
+#: axes in the plate [deg], turn about the approach axis [deg]; the fingertips stay this far [mm] above
+#: the plate; the camera should see the plate this far from square-on [deg].
+LIFT_MM = (15.0, 120.0)
+MAX_TILT_DEG = 40.0
+MAX_TURN_DEG = 45.0
+CLEARANCE_MM = 8.0
+CAMERA_TILT_DEG = 35.0
+
+
+def _fingers_clear(W_H_G, gripper, gap) -> float:
+    """Height [mm] of the lowest finger corner above the plate (W's z points into the plate)."""
+    corners = []
+    for lo, hi in gripper.finger_boxes_G(gap):
+        for x in (lo[0], hi[0]):
+            for y in (lo[1], hi[1]):
+                for z in (lo[2], hi[2]):
+                    corners.append((x, y, z))
+    return float(-np.max(transform_points(W_H_G, np.array(corners))[:, 2]))
+
+
+def plan_view_poses(cell, n: int = 12, *, state: str | None = None, C_H_G=None) -> list[dict]:
+    """``n`` gripper poses relative to the plate for the views of ``calibrate_intrinsics``.
+
+    Each is the gripper tilted (at most ``MAX_TILT_DEG``) about an axis in the plate through the point
+    under the TCP, lifted along its approach axis (``LIFT_MM``, more when the fingers need it to clear
+    the plate by ``CLEARANCE_MM``) and turned about it (at most ``MAX_TURN_DEG``), chosen so that the
+    camera (mount ``C_H_G``, default the cell's guess) sees the plate about ``CAMERA_TILT_DEG`` from
+    square-on from directions turning round the plate, at lifts spread over the range, with the plate's
+    centre in the picture. Returns [{W_H_G (4, 4), lift_mm, tilt_deg, axis_deg, turn_deg,
+    camera_tilt_deg, camera_azimuth_deg}]. Raises ``CalibrationError`` when no pose fits.
+    """
+    if n < 1:
+        raise CalibrationError(f"view plan: expected at least one view, got {n}")
+    C_H_G = cell.mount_guess_C_H_G if C_H_G is None else np.asarray(C_H_G, float)
+    gap = cell.gripper.gap(state or cell.gripper.calibrate_in)
+    cam = cell.camera.guess()
+    cands = []
+    for tilt in np.arange(0.0, MAX_TILT_DEG + 1e-9, 5.0):
+        for axis in np.arange(0.0, 360.0, 22.5 if tilt else 360.0):
+            for turn in (-MAX_TURN_DEG, -20.0, 0.0, 20.0, MAX_TURN_DEG):
+                a = np.radians(axis)
+                Rt = rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt))
+                W_H_C = Rt @ make_H(R_from_rotvec((0, 0, np.radians(turn))), (0, 0, 0)) @ np.linalg.inv(C_H_G)
+                d = W_H_C[:3, 2]  # optical axis in W
+                ctilt = float(np.degrees(np.arccos(np.clip(d[2], -1, 1))))
+                caz = float(np.degrees(np.arctan2(d[1], d[0])) % 360.0)
+                cands.append((tilt, axis, turn, ctilt, caz))
+    cands = np.array(cands)
+    lifts = np.linspace(LIFT_MM[0] + 15.0, LIFT_MM[1], 4)
+    out = []
+    for i in range(n):
+        az = (360.0 * i / n + 45.0 * (i % 2)) % 360.0
+        want_tilt = CAMERA_TILT_DEG if i % 6 != 5 else 15.0
+        daz = np.abs((cands[:, 4] - az + 180.0) % 360.0 - 180.0)
+        score = np.abs(cands[:, 3] - want_tilt) + 0.3 * daz
+        for j in np.argsort(score):
+            tilt, axis, turn, ctilt, caz = cands[j]
+            a = np.radians(axis)
+            Rt = rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt))
+            Rz = make_H(R_from_rotvec((0, 0, np.radians(turn))), (0, 0, 0))
+            want = float(lifts[(i * 3) % len(lifts)])
+            found = None
+            for lift in sorted(np.arange(LIFT_MM[0], LIFT_MM[1] + 1e-9, 5.0), key=lambda v: abs(v - want)):
+                W_H_G = Rt @ trans(0, 0, -lift) @ Rz
+                if _fingers_clear(W_H_G, cell.gripper, gap) < CLEARANCE_MM:
+                    continue
+                C_H_W = C_H_G @ np.linalg.inv(W_H_G)
+                if not cam.in_image(cam.project(transform_points(C_H_W, np.zeros((1, 3)))), margin=60)[0]:
+                    continue
+                found = lift
+                break
+            if found is None:
+                continue
+            lift = float(found)
+            out.append({"W_H_G": W_H_G, "lift_mm": lift, "tilt_deg": float(tilt), "axis_deg": float(axis),
+                        "turn_deg": float(turn), "camera_tilt_deg": float(ctilt), "camera_azimuth_deg": float(caz)})
+            break
+        else:
+            raise CalibrationError(f"view plan: no pose for view {i + 1} keeps the fingers clear and the plate in view")
+    return out
