@@ -658,3 +658,157 @@ def plan_view_poses(cell, n: int = 12, *, state: str | None = None, C_H_G=None) 
         else:
             raise CalibrationError(f"view plan: no pose for view {i + 1} keeps the fingers clear and the plate in view")
     return out
+
+
+# --- one picture: is the nominal camera wrong? how sure is the TCP? --------------------------------
+#: Accuracy targets of the off-line calibration [mm]: TCP across and along the optical axis.
+TARGET_ACROSS_MM = 0.02
+TARGET_ALONG_MM = 0.08
+#: The picture shows the camera's centre and aspect differ from the assumed ones when the chi-square of
+#: the difference (3 degrees of freedom) exceeds this (p = 1e-4 for a right camera).
+CAMERA_CHI2_LIMIT = 21.1
+
+
+def _one_view(result, camera: CameraModel):
+    """(model, x, s2, J) of the one-view problem at the off-line result: all five intrinsics and the pose."""
+    ts = result.tsai
+    H = ts.C_H_W
+    model = _Joint([result.discs.p_W], [result.disc_uv_corrected], [H[:3, :3]])
+    c = ts.camera
+    x = np.concatenate([[c.f, c.kappa, camera.cx, camera.cy, camera.aspect], np.zeros(3), H[:3, 3]])
+    return model, x
+
+
+def _tcp_of(result, cell, cam: CameraModel, C_H_W) -> np.ndarray:
+    from selfview.pcc import solve_pcc
+
+    ft = result.fingertips
+    found = np.asarray(ft.found, bool)
+    cal = result.calibration
+    pG = cal.points_G[cal.state][found]
+    return solve_pcc(ft.uv[found], pG, C_H_W, cam).C_H_G[:3, 3]
+
+
+def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
+    """Does the picture of an off-line calibration (``selfview.offline.OfflineResult``) show that the
+    assumed camera's principal point or aspect (``camera``, default the cell's nominal one) is wrong by
+    enough to cost more than the accuracy targets?
+
+    One view with f, kappa, cx, cy, aspect and the pose all free; the difference of (cx, cy, aspect) from
+    the assumed ones is significant when its chi-square exceeds ``CAMERA_CHI2_LIMIT``; its cost is how far
+    the TCP moves when the picture is calibrated again with the picture's own centre and aspect.
+    Returns {significant, chi2, centre_offset_px [dx, dy], aspect, aspect_sigma, centre_sigma_px,
+    tcp_shift_mm [3], costly, warning (str or None)}.
+    """
+    from selfview.tsai import calibrate_coplanar
+
+    cam0 = camera or cell.camera.guess()
+    model, x0 = _one_view(result, cam0)
+    out = {"significant": False, "costly": False, "warning": None}
+    try:
+        res = _lm_normal(model.residuals, model.jacobian, x0, model.off)
+    except (CalibrationError, np.linalg.LinAlgError) as exc:
+        out["why"] = f"the one-view fit failed: {exc}"
+        return out
+    m, n = res.jacobian.shape
+    s2 = res.cost / max(m - n, 1)
+    cov = _covariance(res.jacobian, s2, model.off)
+    d = res.x[2:5] - np.array([cam0.cx, cam0.cy, cam0.aspect])
+    C3 = cov[2:5, 2:5]
+    if not (res.converged and np.all(np.isfinite(C3))):
+        out["why"] = "one picture does not determine the centre and the aspect"
+        return out
+    try:
+        chi2 = float(d @ np.linalg.solve(C3, d))
+    except np.linalg.LinAlgError:
+        out["why"] = "one picture does not determine the centre and the aspect"
+        return out
+    sig = np.sqrt(np.diag(C3))
+    out.update(chi2=chi2, centre_offset_px=[float(d[0]), float(d[1])], centre_sigma_px=[float(sig[0]), float(sig[1])],
+               aspect=float(res.x[4]), aspect_sigma=float(sig[2]), assumed_aspect=float(cam0.aspect),
+               significant=bool(chi2 > CAMERA_CHI2_LIMIT))
+    if not out["significant"]:
+        return out
+    try:
+        ts = calibrate_coplanar(result.discs.p_W, result.disc_uv_corrected, cx=float(res.x[2]), cy=float(res.x[3]),
+                                aspect=float(res.x[4]), mode="full", width=cam0.width, height=cam0.height)
+        shift = _tcp_of(result, cell, ts.camera, ts.C_H_W) - result.calibration.C_H_G[:3, 3]
+    except CalibrationError as exc:
+        out["why"] = f"recalibrating with the picture's own centre failed: {exc}"
+        return out
+    across, along = float(np.hypot(shift[0], shift[1])), float(abs(shift[2]))
+    out.update(tcp_shift_mm=[float(v) for v in shift], costly=bool(across > TARGET_ACROSS_MM or along > TARGET_ALONG_MM))
+    if out["costly"]:
+        out["warning"] = (
+            f"the picture shows the camera's principal point {np.hypot(d[0], d[1]):.1f} px from the assumed "
+            f"({cam0.cx:.1f}, {cam0.cy:.1f}) (offset {d[0]:+.1f}, {d[1]:+.1f} px, +- {sig[0]:.1f}, {sig[1]:.1f}) and its "
+            f"aspect {res.x[4]:.4f} +- {sig[2]:.4f} instead of {cam0.aspect:.4f}; that moves the TCP by "
+            f"{across:.3f} mm across and {along:.3f} mm along the optical axis (targets {TARGET_ACROSS_MM} and "
+            f"{TARGET_ALONG_MM} mm): measure the camera with 'selfview intrinsics' and calibrate with "
+            "--camera CAMERA.yaml"
+        )
+    return out
+
+
+def tcp_sigma(result, cell, camera_cov3: np.ndarray | None = None) -> dict:
+    """1-sigma of the TCP in camera axes [mm] of an off-line calibration, from the covariance of the camera
+    calibration and the PCC together.
+
+    Three parts, propagated to ``C_H_G``'s translation by its derivatives (central differences through
+    Tsai's pose and ``selfview.pcc.solve_pcc``): the picture's own noise in the disc centres (the
+    covariance of f, kappa and the plate pose, scaled by the residual); the uncertainty of the principal
+    point and aspect (``camera_cov3`` (3, 3) of cx, cy, aspect, from a camera file; None: taken as exact),
+    through the pose and f they shift and directly; the fingertip corners' (each from two line fits: the
+    edge points' RMS over sqrt(n/2) per axis). Returns {tcp_sigma_mm [3], parts {...}}.
+    """
+    cal = result.calibration
+    cam = cal.camera
+    model, x = _one_view(result, cam)
+    r = model.residuals(x)
+    J = model.jacobian(x)
+    m = len(r)
+    p_idx = np.r_[0:2, 5:11]
+    Jp, Jt = J[:, p_idx], J[:, 2:5]
+    s2 = float(r @ r) / max(m - len(p_idx), 1)
+    N = Jp.T @ Jp
+    Ninv = np.linalg.inv(N)
+    cov_p = s2 * Ninv
+    dp_dt = -Ninv @ Jp.T @ Jt
+    R0 = result.tsai.C_H_W[:3, :3]
+    ft = result.fingertips
+    found = np.asarray(ft.found, bool)
+    pG = cal.points_G[cal.state][found]
+    from selfview.pcc import solve_pcc
+
+    def tcp(xv, uv=None):
+        c = cam.with_(f=float(xv[0]), kappa=float(xv[1]), cx=float(xv[2]), cy=float(xv[3]), aspect=float(xv[4]))
+        H = make_H(R_from_rotvec(xv[5:8]) @ R0, xv[8:11])
+        return solve_pcc(ft.uv[found] if uv is None else uv, pG, H, c).C_H_G[:3, 3]
+
+    steps = np.r_[_STEP[0] * x[0], _STEP[1:], _POSE_STEP]
+    G = np.zeros((3, 11))
+    for i in range(11):
+        xp, xm = x.copy(), x.copy()
+        xp[i] += steps[i]
+        xm[i] -= steps[i]
+        G[:, i] = (tcp(xp) - tcp(xm)) / (2 * steps[i])
+    Gp = G[:, p_idx]
+    parts = {"picture": Gp @ cov_p @ Gp.T}
+    if camera_cov3 is not None:
+        Gt = G[:, 2:5] + Gp @ dp_dt
+        parts["camera_file"] = Gt @ np.asarray(camera_cov3, float) @ Gt.T
+    uv = ft.uv[found]
+    n_edge = ft.n_edge_points[found] if ft.n_edge_points is not None else np.full(len(uv), 20)
+    sc = np.nan_to_num(ft.edge_rms_px[found], nan=0.1) / np.sqrt(np.maximum(np.asarray(n_edge, float), 2) / 2)
+    Cc = np.zeros((3, 3))
+    for k in range(len(uv)):
+        for a in range(2):
+            up, um = uv.copy(), uv.copy()
+            up[k, a] += 1e-3
+            um[k, a] -= 1e-3
+            g = (tcp(x, up) - tcp(x, um)) / 2e-3
+            Cc += np.outer(g, g) * sc[k] ** 2
+    parts["corners"] = Cc
+    total = sum(parts.values())
+    return {"tcp_sigma_mm": [float(v) for v in np.sqrt(np.clip(np.diag(total), 0, None))],
+            "parts": {k: [float(v) for v in np.sqrt(np.clip(np.diag(c), 0, None))] for k, c in parts.items()}}
