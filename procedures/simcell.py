@@ -33,19 +33,20 @@ class SimulatedCell:
 
     ``time_scale`` shortens robot motions (1.0: real time); ``link`` 'pty' or 'tcp' for the robot;
     ``travel_s`` the jaws' travel time; ``taught`` the controller's taught locations (name -> (4, 4) pose;
-    default: 'plate', pressing the plate 4 mm into the foam, and 'above' it). Use as a context manager;
-    ``urls`` names the devices.
+    default: 'plate', pressing the plate 4 mm into the foam, and 'above' it); ``camera`` the true camera's
+    principal point and aspect (``selfview.mocks.world.draw_camera``: 'ideal' the cell's nominal ones,
+    'realistic' drawn from a real camera's ranges). Use as a context manager; ``urls`` names the devices.
     """
 
     def __init__(self, cell: Cell, *, seed: int = 0, time_scale: float = 0.02, link: str = "pty",
-                 travel_s: float = 0.05, taught: dict | None = None):
+                 travel_s: float = 0.05, taught: dict | None = None, camera="ideal"):
         if link not in ("pty", "tcp"):
             from selfview.errors import ConfigError
 
             raise ConfigError(f"robot link {link!r}: expected 'pty' or 'tcp'")
         self.cell = cell
         self.seed = int(seed)
-        self.world = SimWorld(cell, seed=self.seed)
+        self.world = SimWorld(cell, seed=self.seed, camera=camera)
         self.time_scale = float(time_scale)
         self.link = link
         self.travel_s = float(travel_s)

@@ -582,7 +582,9 @@ def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, na
 #: the plate; the camera should see the plate this far from square-on [deg].
 LIFT_MM = (15.0, 120.0)
 MAX_TILT_DEG = 40.0
-MAX_TURN_DEG = 45.0
+MAX_TURN_DEG = 90.0
+#: With a direction to lean towards (the robot's base), the wrist may move at most this far from it [deg].
+LEAN_TOLERANCE_DEG = 60.0
 CLEARANCE_MM = 8.0
 CAMERA_TILT_DEG = 35.0
 
@@ -598,7 +600,7 @@ def _fingers_clear(W_H_G, gripper, gap) -> float:
     return float(-np.max(transform_points(W_H_G, np.array(corners))[:, 2]))
 
 
-def plan_view_poses(cell, n: int = 12, *, state: str | None = None, C_H_G=None) -> list[dict]:
+def plan_view_poses(cell, n: int = 12, *, state: str | None = None, C_H_G=None, lean_W=None) -> list[dict]:
     """``n`` gripper poses relative to the plate for the views of ``calibrate_intrinsics``.
 
     Each is the gripper tilted (at most ``MAX_TILT_DEG``) about an axis in the plate through the point
@@ -606,7 +608,9 @@ def plan_view_poses(cell, n: int = 12, *, state: str | None = None, C_H_G=None) 
     the plate by ``CLEARANCE_MM``) and turned about it (at most ``MAX_TURN_DEG``), chosen so that the
     camera (mount ``C_H_G``, default the cell's guess) sees the plate about ``CAMERA_TILT_DEG`` from
     square-on from directions turning round the plate, at lifts spread over the range, with the plate's
-    centre in the picture. Returns [{W_H_G (4, 4), lift_mm, tilt_deg, axis_deg, turn_deg,
+    centre in the picture. ``lean_W`` (2,): a direction in the plate (x, y of W) towards the robot's base;
+    tilts then move the wrist within ``LEAN_TOLERANCE_DEG`` of it (a tilt away from the base takes the
+    wrist out of a small arm's reach). Returns [{W_H_G (4, 4), lift_mm, tilt_deg, axis_deg, turn_deg,
     camera_tilt_deg, camera_azimuth_deg}]. Raises ``CalibrationError`` when no pose fits.
     """
     if n < 1:
@@ -614,12 +618,17 @@ def plan_view_poses(cell, n: int = 12, *, state: str | None = None, C_H_G=None) 
     C_H_G = cell.mount_guess_C_H_G if C_H_G is None else np.asarray(C_H_G, float)
     gap = cell.gripper.gap(state or cell.gripper.calibrate_in)
     cam = cell.camera.guess()
+    lean = None if lean_W is None else np.asarray(lean_W, float)[:2] / np.linalg.norm(np.asarray(lean_W, float)[:2])
     cands = []
     for tilt in np.arange(0.0, MAX_TILT_DEG + 1e-9, 5.0):
         for axis in np.arange(0.0, 360.0, 22.5 if tilt else 360.0):
-            for turn in (-MAX_TURN_DEG, -20.0, 0.0, 20.0, MAX_TURN_DEG):
-                a = np.radians(axis)
-                Rt = rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt))
+            a = np.radians(axis)
+            Rt = rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt))
+            if lean is not None and tilt > 0:
+                wrist = -Rt[:2, 2]  # where the wrist moves, horizontally
+                if wrist @ lean < np.cos(np.radians(LEAN_TOLERANCE_DEG)) * np.linalg.norm(wrist):
+                    continue
+            for turn in np.arange(-MAX_TURN_DEG, MAX_TURN_DEG + 1e-9, 22.5):
                 W_H_C = Rt @ make_H(R_from_rotvec((0, 0, np.radians(turn))), (0, 0, 0)) @ np.linalg.inv(C_H_G)
                 d = W_H_C[:3, 2]  # optical axis in W
                 ctilt = float(np.degrees(np.arccos(np.clip(d[2], -1, 1))))
@@ -628,12 +637,15 @@ def plan_view_poses(cell, n: int = 12, *, state: str | None = None, C_H_G=None) 
     cands = np.array(cands)
     lifts = np.linspace(LIFT_MM[0] + 15.0, LIFT_MM[1], 4)
     out = []
+    used: set[int] = set()
     for i in range(n):
         az = (360.0 * i / n + 45.0 * (i % 2)) % 360.0
         want_tilt = CAMERA_TILT_DEG if i % 6 != 5 else 15.0
         daz = np.abs((cands[:, 4] - az + 180.0) % 360.0 - 180.0)
         score = np.abs(cands[:, 3] - want_tilt) + 0.3 * daz
         for j in np.argsort(score):
+            if int(j) in used:
+                continue
             tilt, axis, turn, ctilt, caz = cands[j]
             a = np.radians(axis)
             Rt = rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt))
@@ -652,6 +664,7 @@ def plan_view_poses(cell, n: int = 12, *, state: str | None = None, C_H_G=None) 
             if found is None:
                 continue
             lift = float(found)
+            used.add(int(j))
             out.append({"W_H_G": W_H_G, "lift_mm": lift, "tilt_deg": float(tilt), "axis_deg": float(axis),
                         "turn_deg": float(turn), "camera_tilt_deg": float(ctilt), "camera_azimuth_deg": float(caz)})
             break

@@ -16,6 +16,9 @@ def add_session_arguments(p, *, seed_default: int = 0) -> None:
     g.add_argument("--gripper", metavar="URL", help="valve terminal: modbus-tcp://host:502?unit=1 or modbus-rtu:///dev/ttyUSB0?baud=19200")
     g.add_argument("--camera", metavar="URL", help="frame grabber: v4l2:///dev/video0?input=1&std=pal, frames:///dir/img_%%03d.png")
     g.add_argument("--seed", type=int, default=seed_default, help="seed of the simulated cell (default %(default)s)")
+    g.add_argument("--sim-camera", choices=("ideal", "realistic"), default="ideal",
+                   help="the simulated camera: ideal (the cell's nominal principal point and aspect; default) or "
+                        "realistic (drawn from a real camera's ranges: centre up to 15 px off, aspect 0.97-1.07)")
     g.add_argument("--time-scale", type=float, default=0.02,
                    help="simulated robot motions take this fraction of real time (default %(default)s)")
     g.add_argument("--dry-run", action="store_true", help="print the steps, move nothing")
@@ -46,4 +49,4 @@ def open_session(args, progress=None):
 
             raise ConfigError(f"--{nm} is for a real cell: add --real (without it the simulated cell is used)")
     return cell, CellSession.simulated(cell, seed=args.seed, time_scale=args.time_scale, dry_run=args.dry_run,
-                                       ask=ask, progress=progress)
+                                       ask=ask, progress=progress, camera=getattr(args, "sim_camera", "ideal"))
