@@ -207,7 +207,9 @@ class CellSession:
                          state: str | None = None, mode: str = "full") -> OfflineResult | None:
         """``calibrate`` with a measured camera (``selfview intrinsics``): park, grab, calibrate off-line
         with ``camera``'s principal point and aspect (None: the cell's nominal ones), save the calibration
-        file (recording ``camera_file`` {path, sha256}), depart. Nothing is written on a failure."""
+        file (recording ``camera_file`` {path, sha256}), depart. Nothing is written on a failure; the
+        previous file's history copy is left in ``calibration_kept``."""
+        self.calibration_kept = None
         state = state or self.cell.gripper.calibrate_in
         s = self.settings
         grab = Step("grab", {"average": s.average}, name="picture", note="the calibration picture")
@@ -219,7 +221,8 @@ class CellSession:
             res = e.execute(Step("compute", {"fn": lambda e: calibrate_offline(
                 e.results["picture"], self.cell, state=state, mode=mode, camera=camera, camera_file=camera_file)},
                 name="offline", note="off-line calibration"))
-            e.execute(Step("compute", {"fn": lambda e: save_calibration(res.calibration, out)}, note=f"save {out}"))
+            self.calibration_kept = e.execute(Step("compute", {"fn": lambda e: save_calibration(res.calibration, out)},
+                                                   note=f"save {out}"))
             e.execute(plan[-1])
             return res
 

@@ -8,13 +8,21 @@ import time
 from selfview.procedures.commands._common import add_cell_argument, load_cell_arg
 
 
-def add_session_arguments(p, *, seed_default: int = 0) -> None:
+def add_session_arguments(p, *, seed_default: int = 0, camera_file: bool = False) -> None:
+    """The cell options. ``camera_file``: ``--camera`` also takes a camera file (CAMERA.yaml, from
+    ``selfview intrinsics``) and may be given twice; ``camera_arguments`` sorts the values."""
     add_cell_argument(p)
     g = p.add_argument_group("cell", "which devices; by default the simulated cell, every device on its real channel")
     g.add_argument("--real", action="store_true", help="use the lab's devices named by --robot, --gripper, --camera")
     g.add_argument("--robot", metavar="URL", help="VAL-II terminal: /dev/ttyS0, serial:///dev/ttyS0?baud=9600, socket://host:port")
     g.add_argument("--gripper", metavar="URL", help="valve terminal: modbus-tcp://host:502?unit=1 or modbus-rtu:///dev/ttyUSB0?baud=19200")
-    g.add_argument("--camera", metavar="URL", help="frame grabber: v4l2:///dev/video0?input=1&std=pal, frames:///dir/img_%%03d.png")
+    if camera_file:
+        g.add_argument("--camera", metavar="URL|CAMERA.yaml", action="append", default=None,
+                       help="a camera file measured by 'selfview intrinsics' (its principal point and aspect replace the "
+                            "nominal ones), and/or with --real the frame grabber's URL (v4l2:///dev/video0?input=1&std=pal, "
+                            "frames:///dir/img_%%03d.png); may be given twice")
+    else:
+        g.add_argument("--camera", metavar="URL", help="frame grabber: v4l2:///dev/video0?input=1&std=pal, frames:///dir/img_%%03d.png")
     g.add_argument("--seed", type=int, default=seed_default, help="seed of the simulated cell (default %(default)s)")
     g.add_argument("--sim-camera", choices=("ideal", "realistic"), default="ideal",
                    help="the simulated camera: ideal (the cell's nominal principal point and aspect; default) or "
@@ -22,6 +30,19 @@ def add_session_arguments(p, *, seed_default: int = 0) -> None:
     g.add_argument("--time-scale", type=float, default=0.02,
                    help="simulated robot motions take this fraction of real time (default %(default)s)")
     g.add_argument("--dry-run", action="store_true", help="print the steps, move nothing")
+
+
+def camera_arguments(values) -> tuple[str | None, str | None]:
+    """(grabber URL, camera file) from the values of an appending ``--camera``: a value with '://' or
+    starting with /dev/ is a URL, any other a camera file. ``ConfigError`` for two of one kind."""
+    from selfview.errors import ConfigError
+
+    urls, files = [], []
+    for v in values or []:
+        (urls if ("://" in v or v.startswith("/dev/")) else files).append(v)
+    if len(urls) > 1 or len(files) > 1:
+        raise ConfigError(f"--camera given {len(values)} times: expected at most one grabber URL and one camera file")
+    return (urls[0] if urls else None), (files[0] if files else None)
 
 
 def progress_printer(quiet: bool = False):
