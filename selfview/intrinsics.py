@@ -59,6 +59,10 @@ OUTLIER_MIN_PX = 0.5
 VIEW_MAX_RMS_PX = 1.5
 #: Bias-correction rounds (centroid -> image of the centre) after the first fit.
 BIAS_ROUNDS = 2
+#: Views whose plate normals (in the camera frame) all lie within this of their mean direction [deg] see
+#: parallel planes (the gripper straight down, only lifted and turned; or all square-on): they cannot pin
+#: the principal point (Zhang: parallel planes add no constraint on the interior orientation).
+PARALLEL_DEG = 5.0
 #: Above this sigma of the centre [px] the views do not determine it at all.
 UNDETERMINED_CENTRE_PX = 5.0
 #: Most further views the advice considers per kind.
@@ -325,6 +329,17 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
     (``bias=False``: the centroids as measured)."""
     names = names or [f"view {i + 1}" for i in range(len(dets))]
     poses = [_initial_pose(d.p_W, d.uv, camera0) for d in dets]
+    normals = np.array([H[:3, 2] for H in poses])
+    mean = normals.sum(0) / np.linalg.norm(normals.sum(0))
+    spread = float(np.degrees(np.arccos(np.clip(normals @ mean, -1, 1))).max())
+    if spread < PARALLEL_DEG:
+        tilts = [float(np.degrees(np.arccos(min(1.0, abs(H[2, 2]))))) for H in poses]
+        raise CalibrationError(
+            f"intrinsics: the {len(dets)} views do not determine the principal point: they all see the plate from "
+            f"one direction (its normal within {spread:.1f} deg in every view, {min(tilts):.0f}-{max(tilts):.0f} deg "
+            f"from square-on), as when the gripper only looks straight down; take views with the gripper tilted "
+            "20-40 deg about different axes in the plate"
+        )
     fit = _solve([d.p_W for d in dets], [d.uv for d in dets], camera0, poses, names)
     for _ in range(BIAS_ROUNDS if bias else 0):
         poses = [v.C_H_W for v in fit.views]
@@ -586,7 +601,8 @@ MAX_TURN_DEG = 90.0
 #: With a direction to lean towards (the robot's base), the wrist may move at most this far from it [deg].
 LEAN_TOLERANCE_DEG = 60.0
 CLEARANCE_MM = 8.0
-CAMERA_TILT_DEG = 35.0
+#: The camera sees the plate at most this far from square-on [deg] (the discs stay measurable).
+MAX_CAMERA_TILT_DEG = 60.0
 
 
 def _fingers_clear(W_H_G, gripper, gap) -> float:
@@ -606,9 +622,11 @@ def plan_view_poses(cell, n: int = 12, *, state: str | None = None, C_H_G=None, 
     Each is the gripper tilted (at most ``MAX_TILT_DEG``) about an axis in the plate through the point
     under the TCP, lifted along its approach axis (``LIFT_MM``, more when the fingers need it to clear
     the plate by ``CLEARANCE_MM``) and turned about it (at most ``MAX_TURN_DEG``), chosen so that the
-    camera (mount ``C_H_G``, default the cell's guess) sees the plate about ``CAMERA_TILT_DEG`` from
-    square-on from directions turning round the plate, at lifts spread over the range, with the plate's
-    centre in the picture. ``lean_W`` (2,): a direction in the plate (x, y of W) towards the robot's base;
+    plate's normal, in the gripper's (and so the camera's) frame, is tilted 25-40 deg in directions turning
+    round from view to view (views that differ only by a turn about the approach axis or a lift see
+    parallel planes, which cannot pin the principal point), at lifts spread over the range, the camera
+    (mount ``C_H_G``, default the cell's guess) seeing the plate at most ``MAX_CAMERA_TILT_DEG`` from
+    square-on with its centre in the picture. ``lean_W`` (2,): a direction in the plate (x, y of W) towards the robot's base;
     tilts then move the wrist within ``LEAN_TOLERANCE_DEG`` of it (a tilt away from the base takes the
     wrist out of a small arm's reach). Returns [{W_H_G (4, 4), lift_mm, tilt_deg, axis_deg, turn_deg,
     camera_tilt_deg, camera_azimuth_deg}]. Raises ``CalibrationError`` when no pose fits.
@@ -633,20 +651,25 @@ def plan_view_poses(cell, n: int = 12, *, state: str | None = None, C_H_G=None, 
                 d = W_H_C[:3, 2]  # optical axis in W
                 ctilt = float(np.degrees(np.arccos(np.clip(d[2], -1, 1))))
                 caz = float(np.degrees(np.arctan2(d[1], d[0])) % 360.0)
-                cands.append((tilt, axis, turn, ctilt, caz))
+                # the plate's normal in the gripper frame (rigidly tied to the camera): only its direction
+                # tells views apart for the interior orientation; a turn alone does not change it
+                nG = (np.linalg.inv(Rt @ make_H(R_from_rotvec((0, 0, np.radians(turn))), (0, 0, 0))))[:3, 2]
+                naz = float(np.degrees(np.arctan2(nG[1], nG[0])) % 360.0)
+                if ctilt <= MAX_CAMERA_TILT_DEG:
+                    cands.append((tilt, axis, turn, ctilt, caz, naz))
     cands = np.array(cands)
     lifts = np.linspace(LIFT_MM[0] + 15.0, LIFT_MM[1], 4)
     out = []
     used: set[int] = set()
     for i in range(n):
         az = (360.0 * i / n + 45.0 * (i % 2)) % 360.0
-        want_tilt = CAMERA_TILT_DEG if i % 6 != 5 else 15.0
-        daz = np.abs((cands[:, 4] - az + 180.0) % 360.0 - 180.0)
-        score = np.abs(cands[:, 3] - want_tilt) + 0.3 * daz
+        want_tilt = (35.0, 25.0, 40.0, 30.0)[i % 4]
+        daz = np.abs((cands[:, 5] - az + 180.0) % 360.0 - 180.0)
+        score = np.abs(cands[:, 0] - want_tilt) + 0.3 * daz
         for j in np.argsort(score):
             if int(j) in used:
                 continue
-            tilt, axis, turn, ctilt, caz = cands[j]
+            tilt, axis, turn, ctilt, caz, _ = cands[j]
             a = np.radians(axis)
             Rt = rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt))
             Rz = make_H(R_from_rotvec((0, 0, np.radians(turn))), (0, 0, 0))
