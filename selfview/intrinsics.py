@@ -602,7 +602,7 @@ MAX_TURN_DEG = 90.0
 LEAN_TOLERANCE_DEG = 60.0
 CLEARANCE_MM = 8.0
 #: The camera sees the plate at most this far from square-on [deg] (the discs stay measurable).
-MAX_CAMERA_TILT_DEG = 60.0
+MAX_CAMERA_TILT_DEG = 48.0
 
 
 def _fingers_clear(W_H_G, gripper, gap) -> float:
