@@ -321,10 +321,11 @@ class CellSession:
             raise
 
     def experiment(self, series=("cable", "tilt"), trials: int = 20, state: str | None = None,
-                   on_trial: Callable[[str, int, int, TrialRecord], None] | None = None):
+                   on_trial: Callable[[str, int, int, TrialRecord], None] | None = None, camera=None):
         """The paper's section 5 on this cell: per series, ``trials`` times park, calibrate, disturb,
         re-measure with every on-line method and the off-line reference. Returns (records, summary,
-        artefacts of the first trial)."""
+        artefacts of the first trial). ``camera``: a measured camera for the off-line calibrations
+        (``selfview.intrinsics``; None: the cell's nominal one)."""
         state = state or self.cell.gripper.calibrate_in
         s = self.settings
         for name in series:
@@ -373,7 +374,7 @@ class CellSession:
                 for k in range(trials):
                     seed = None if self.sim is None else self.sim.seed
                     try:
-                        rec, art = run_trial(rig, self.cell, name, k, seed=seed, state=state)
+                        rec, art = run_trial(rig, self.cell, name, k, seed=seed, state=state, camera=camera)
                     except (CalibrationError, ImageError) as exc:
                         # a picture that cannot be measured spoils one trial, not the run
                         failures.append({"series": name, "index": k, "seed": seed, "error": f"{type(exc).__name__}: {exc}"})
