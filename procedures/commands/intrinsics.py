@@ -23,7 +23,7 @@ def register(sub):
             "Joint calibration of f, kappa, the principal point, the aspect and every view's plate pose from "
             "several pictures of the plate (the off-line calibration's bias-corrected disc centres), with the "
             "uncertainty from the covariance scaled by the residual. It says whether the views pin the centre "
-            "(sigma < 0.3 px) and the aspect (sigma < 0.05 %%), and if not how many more views of which kind "
+            "(sigma < 0.3 px) and the aspect (sigma < 0.05 %), and if not how many more views of which kind "
             "would; it cross-checks two halves of the views. --out writes a camera file (atomically, the "
             "previous one kept in OUT.history/) for 'selfview calibrate --camera'; it is only written when the "
             "stop rule is met (or with --force). Without --images the robot takes the views."
@@ -64,7 +64,7 @@ def run(args) -> int:
     from selfview.procedures.commands.calibrate import read_picture
 
     _check_args(args)
-    say = progress_printer(quiet=args.json and False)
+    say = progress_printer()
     if args.images:
         cell = load_cell(args.cell or default_cell_path())
         images, names, pictures = [], [], []
