@@ -23,6 +23,11 @@ Study 3, the camera check (``camera_check``) on ``--pictures`` parked pictures (
 cameras and as many of the nominal camera: how often it warns, and on how many of the realistic cameras
 whose nominal calibration misses the targets.
 
+Study 4, the check's reach: parked pictures of cameras a little off the nominal one (centre 0.5 to 4 px
+off, aspect 0.1 to 1 % off), each with whether the nominal calibration misses the targets and whether the
+check warned: one picture pins the centre only to a few tenths of a pixel, so small errors that still
+cost more than 0.02 mm may pass unwarned (the reason to run ``selfview intrinsics`` on every new camera).
+
 Prints one JSON object.
 
     python bench/intrinsics.py [--cameras 10] [--pictures 30] [--jobs 2] [--quick]
@@ -158,10 +163,17 @@ def one_camera(seed: int) -> dict:
     return out
 
 
+#: Study 4's cameras: offsets of the centre [px] (along u) and aspects.
+SMALL = ([{"principal_point": [383.5 + d, 287.5]} for d in (0.5, 1.0, 2.0, 4.0)]
+         + [{"aspect": a} for a in (1.001, 1.003, 1.01)])
+
+
 def one_picture(args) -> dict:
     seed, kind = args
     cell = load_cell(default_cell_path())
     w = SimWorld(cell, seed=seed, camera=kind)
+    if isinstance(kind, dict):
+        kind = "small: " + ", ".join(f"{k} {v}" for k, v in kind.items())
     w.park()
     pic = _render(w, w.C_H_W, 7 + seed)
     try:
@@ -256,6 +268,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     seeds = list(range(args.cameras))
     work = [(100 + s, k) for k in ("ideal", "realistic") for s in range(args.pictures)]
+    work += [(200 + i, k) for i, k in enumerate(SMALL)]
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as ex:
             per_camera = list(ex.map(one_camera, seeds))
@@ -277,6 +290,9 @@ def main(argv=None) -> int:
         "issue_targets": ISSUE,
         "tcp_targets_mm": {"across": TARGET_ACROSS_MM, "along": TARGET_ALONG_MM},
         "camera_check": rates(pics),
+        "camera_check_small_errors": [
+            {k: p.get(k) for k in ("kind", "across_mm", "along_mm", "misses_targets", "warned", "chi2", "error")}
+            for p in pics if str(p["kind"]).startswith("small")],
         "mrcal": mrcal_note,
         "opencv_flags": " | ".join(CV_FLAGS) + " (fx, fy, cx, cy free)",
         "per_camera": per_camera,
