@@ -3,10 +3,11 @@
 Tsai's coplanar method, as the paper uses it, takes the principal point (cx, cy) and the horizontal
 scale factor ``aspect`` as known. One picture of a plane hardly separates them from f and the plate's
 tilt; several pictures of the plate from different poses do. ``calibrate_intrinsics`` finds f, kappa,
-cx, cy, aspect and every view's plate pose ``C_H_W`` jointly by Levenberg-Marquardt (``selfview.lm``)
-on the same disc centres as the off-line calibration (``selfview.discs``: sub-pixel centroids, then
-their perspective/lens bias removed with the current model, refitted), minimising the distorted pixel
-error of the camera model of ``selfview.camera``.
+cx, cy, aspect and every view's plate pose ``C_H_W`` jointly by Levenberg-Marquardt with an analytic
+Jacobian (on the normal equations, assembled view by view: ``selfview.lm``'s SVD of the whole Jacobian
+per iteration costs far more for 5 + 6 V parameters), on the same disc centres as the off-line
+calibration (``selfview.discs``: sub-pixel centroids, then their perspective/lens bias removed with the
+current model, refitted), minimising the distorted pixel error of the camera model of ``selfview.camera``.
 
 Uncertainty: the covariance of the parameters is ``s^2 (J^T J)^-1`` with ``s^2`` the residual variance
 (sum of squares over the degrees of freedom); the 1-sigma of f, kappa, cx, cy, aspect is the square root
@@ -35,7 +36,7 @@ from selfview.cell import PlateSpec
 from selfview.discs import DiscDetections, detect_discs, disc_image_bias
 from selfview.errors import CalibrationError, ImageError
 from selfview.tsai import _cross, _left_jacobian
-from selfview.geometry import R_from_rotvec, make_H, rot_axis, rotvec_from_R, trans, transform_points
+from selfview.geometry import R_from_rotvec, make_H, rot_axis, trans, transform_points
 
 __all__ = [
     "INTRINSIC_NAMES", "IntrinsicsResult", "ViewFit", "calibrate_intrinsics", "detect_views", "fit_views",

@@ -6,7 +6,6 @@ import json
 import cv2
 import numpy as np
 import pytest
-import yaml
 
 from selfview.calfile import load_calibration
 from selfview.camfile import CameraFile, load_camera_file, save_camera_file

@@ -62,7 +62,7 @@ def test_both_renderers_draw_the_discs_where_the_offset_camera_puts_them(cell):
         det = detect_discs(pic.image, cell.plate, camera=w.camera)
         bias = disc_image_bias(w.camera, w.C_H_W, det.p_W, cell.plate.disc_diameter / 2)
         # the detector's grid index may differ from the plate's by whole rows/columns: match by nearest
-        true_uv = w.camera.project(transform_points(w.C_H_W, cell.plate.disc_centres_W())) if name else None
+        true_uv = w.camera.project(transform_points(w.C_H_W, cell.plate.disc_centres_W()))
         d = np.linalg.norm((det.uv - bias)[:, None, :] - true_uv[None, :, :], axis=2).min(axis=1)
         assert np.median(d) < 0.1, name  # px: the centroids follow the offset camera
 
