@@ -17,7 +17,7 @@ from selfview.calfile import Calibration
 from selfview.camera import CameraModel
 from selfview.cell import POINT_NAMES, Cell
 from selfview.discs import DiscDetections, correct_disc_bias, detect_discs
-from selfview.errors import CalibrationError, ImageError
+from selfview.errors import CalibrationError, ConfigError, ImageError
 from selfview.fingertips import FingertipResult, find_fingertips
 from selfview.geometry import inv_H, make_H, rot_z
 from selfview.pcc import PCCResult, measure_points_G, points_G_for_state, solve_pcc
@@ -120,6 +120,8 @@ def calibrate_offline(
     points: str = "measured",
     search_px: float = 60.0,
     image_sha256: str | None = None,
+    camera: CameraModel | None = None,
+    camera_file: dict | None = None,
 ) -> OfflineResult:
     """Off-line calibration of one picture of the gripper parked on the plate.
 
@@ -128,23 +130,33 @@ def calibrate_offline(
     fingertips (default the cell's mount guess); ``points``: 'measured' takes the gripper points' G
     coordinates from the picture (the paper's way: the inner four form a rectangle centred on the TCP),
     'cell' takes them from the cell description.
-    Raises ``ImageError`` (unusable picture) or ``CalibrationError`` (too few discs or corners, degenerate).
+    ``camera`` a measured camera (``selfview intrinsics``): its principal point and aspect replace the
+    cell's nominal ones (f and kappa are still measured from the picture, it only starts them);
+    ``camera_file`` {path, sha256} of the file it came from, recorded in the calibration's residuals
+    under ``camera_file`` (absent: the cell's nominal camera).
+    Raises ``ImageError`` (unusable picture), ``ConfigError`` (a camera for another picture size) or
+    ``CalibrationError`` (too few discs or corners, degenerate).
     """
     t0 = time.perf_counter()
     timings = {}
     cs = cell.camera
+    if camera is not None and (int(camera.width), int(camera.height)) != (cs.width, cs.height):
+        raise ConfigError(
+            f"the camera file was measured on {camera.width}x{camera.height} pictures; this cell's camera gives "
+            f"{cs.width}x{cs.height}: it belongs to another camera or grabber setting"
+        )
+    nominal = cs.guess() if camera is None else camera
     img = check_picture(image, cs.width, cs.height)
     state = state or cell.gripper.calibrate_in
     gap = cell.gripper.gap(state)
     if points not in ("measured", "cell"):
         raise CalibrationError(f"points: expected 'measured' or 'cell', got {points!r}")
 
-    det = detect_discs(img, cell.plate, camera=cs.guess())
+    det = detect_discs(img, cell.plate, camera=nominal)
     timings["discs"] = (time.perf_counter() - t0) * 1e3
 
     t = time.perf_counter()
-    kw = dict(cx=cs.principal_point[0], cy=cs.principal_point[1], aspect=cs.aspect, mode=mode,
-              width=cs.width, height=cs.height)
+    kw = dict(cx=nominal.cx, cy=nominal.cy, aspect=nominal.aspect, mode=mode, width=cs.width, height=cs.height)
     ts = calibrate_coplanar(det.p_W, det.uv, **kw)
     # the image of a disc's centre is not the centroid of its ellipse: correct with the first pose, refit
     uv_c = correct_disc_bias(det, ts.camera, ts.C_H_W, cell.plate)
@@ -197,6 +209,7 @@ def calibrate_offline(
             "pcc_rms_mm": float(pcc.rms_mm),
             "pcc_q_norm": float(pcc.q_norm),
             "points_from": "picture" if dims is not None else "cell",
+            **({"camera_file": dict(camera_file)} if camera_file else {}),
         },
         image_sha256=sha,
         cell_sha256=cell.sha256,
