@@ -21,7 +21,8 @@ import numpy as np
 import yaml
 
 from selfview import __version__
-from selfview.calfile import _atomic_write, _checksum, _plain, history_dir
+from selfview.calfile import _checksum, _plain, replace_keeping_history
+from selfview.io_safe import load_yaml
 from selfview.camera import CameraModel
 from selfview.errors import CalibrationFileError, ConfigError
 
@@ -112,10 +113,7 @@ def load_camera_file(path) -> CameraFile:
         raise CalibrationFileError(f"{p}: no such camera file (run 'selfview intrinsics --out {p.name}' first)") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise CalibrationFileError(f"{p}: cannot read the camera file ({exc})") from exc
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise CalibrationFileError(f"{p}: corrupt camera file, not valid YAML ({exc})") from exc
+    doc = load_yaml(text, str(p), error=CalibrationFileError, what="camera file")
     return CameraFile.from_document(doc, source=str(p))
 
 
@@ -127,17 +125,7 @@ def save_camera_file(cf: CameraFile, path, *, keep_history: bool = True) -> Path
     """Write ``cf`` to ``path`` atomically, the previous file kept in ``<name>.history/``; refuses
     (nothing written) to replace a file that is not a valid camera file. Returns the history copy."""
     p = Path(path)
-    kept = None
-    if p.exists():
-        load_camera_file(p)
-        if keep_history:
-            hd = history_dir(p)
-            hd.mkdir(exist_ok=True)
-            blob = p.read_bytes()
-            stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
-            kept = hd / f"{stamp}-{hashlib.sha256(blob).hexdigest()[:8]}{p.suffix or '.yaml'}"
-            _atomic_write(kept, blob)
     text = yaml.safe_dump(cf.to_document(), sort_keys=False, default_flow_style=None, width=120)
-    CameraFile.from_document(yaml.safe_load(text), source=str(p))
-    _atomic_write(p, text.encode("utf-8"))
-    return kept
+    # what we are about to write must read back, before it replaces anything
+    CameraFile.from_document(load_yaml(text, str(p), error=CalibrationFileError, what="camera file"), source=str(p))
+    return replace_keeping_history(p, text, load_camera_file, what="camera file", keep_history=keep_history)
