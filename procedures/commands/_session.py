@@ -8,9 +8,10 @@ import time
 from selfview.procedures.commands._common import add_cell_argument, load_cell_arg
 
 
-def add_session_arguments(p, *, seed_default: int = 0, profile_default: str = "ideal", camera_file: bool = False) -> None:
-    """The cell options. ``profile_default`` the simulated cell's imperfections when --profile is not
-    given. ``camera_file``: ``--camera`` also takes a camera file (CAMERA.yaml, from ``selfview
+def add_session_arguments(p, *, seed_default: int = 0, profile_default: str = "ideal", sim_camera_default: str = "ideal",
+                          camera_file: bool = False) -> None:
+    """The cell options. ``profile_default`` the simulated cell's imperfections and ``sim_camera_default``
+    its camera when --profile / --sim-camera are not given. ``camera_file``: ``--camera`` also takes a camera file (CAMERA.yaml, from ``selfview
     intrinsics``) and may be given twice; ``camera_arguments`` sorts the values."""
     add_cell_argument(p)
     g = p.add_argument_group("cell", "which devices; by default the simulated cell, every device on its real channel")
@@ -25,9 +26,10 @@ def add_session_arguments(p, *, seed_default: int = 0, profile_default: str = "i
     else:
         g.add_argument("--camera", metavar="URL", help="frame grabber: v4l2:///dev/video0?input=1&std=pal, frames:///dir/img_%%03d.png")
     g.add_argument("--seed", type=int, default=seed_default, help="seed of the simulated cell (default %(default)s)")
-    g.add_argument("--sim-camera", choices=("ideal", "realistic"), default="ideal",
-                   help="the simulated camera: ideal (the cell's nominal principal point and aspect; default) or "
-                        "realistic (drawn from a real camera's ranges: centre up to 15 px off, aspect 0.97-1.07)")
+    g.add_argument("--sim-camera", choices=("ideal", "realistic"), default=sim_camera_default,
+                   help="the simulated camera: ideal (the cell's nominal principal point and aspect) or realistic "
+                        "(drawn from a real camera's ranges: centre up to 15 px off, aspect 0.97-1.07) "
+                        "(default %(default)s)")
     g.add_argument("--time-scale", type=float, default=0.02,
                    help="simulated robot motions take this fraction of real time (default %(default)s)")
     g.add_argument("--profile", default=profile_default, metavar="NAME",
