@@ -63,6 +63,10 @@ BENCHES: tuple[Bench, ...] = (
     Bench("update_limit", "the update/recalibrate limit", ("--out", _OUT), ("--quick", "--out", _OUT), 420.0),
     Bench("error_budget", "a real cell's imperfections: the error budget of Tables 1 and 2", ("--out", _OUT),
           ("--quick", "--out", _OUT), 2400.0),
+    Bench("intrinsics", "multi-view intrinsics vs cv2.calibrateCamera (and mrcal where installed)", (), ("--quick",),
+          1200.0),
+    Bench("clutter", "fingertips over real photographs: found / missed / wrong-but-marked-good", (),
+          ("--trials", "1", "--steps", "2", "--disc", "3", "--occluded", "2"), 1200.0),
 )
 
 
