@@ -530,9 +530,19 @@ def _guarded(fn, share, seed, i, deadline, tally):
         tally.notes[f"{fn.__name__}: campaign error {_err_text(exc)} at {traceback.format_exc().splitlines()[-3].strip()}"] += 1
 
 
+def _build(cls, seed: int, tally: Tally):
+    """A new rig (three tries: a loaded machine can miss a first exchange)."""
+    for attempt in range(3):
+        try:
+            return cls(seed + 7919 * attempt)
+        except CellError as exc:
+            tally.notes[f"{cls.__name__}: a new rig failed its first exchange ({type(exc).__name__}); tried again"] += 1
+    return cls(seed + 7919 * 3)
+
+
 def _val_worker(n: int, seed: int, index: int, deadline: float, tally: Tally) -> None:
     rng = np.random.default_rng([seed, 1, index])
-    rig = ValRig(seed * 1000 + index)
+    rig = _build(ValRig, seed * 1000 + index, tally)
     rebuilt = 0
     try:
         lengths = _clean_lengths(rig, rng)
@@ -547,15 +557,15 @@ def _val_worker(n: int, seed: int, index: int, deadline: float, tally: Tally) ->
             try:
                 if settle:
                     _val_settle(rig)
-            except _RigDead as exc:
-                tally.notes["val: rig rebuilt (" + str(exc) + ")"] += 1
+            except (_RigDead, CellError) as exc:
+                tally.notes["val: rig rebuilt (" + (str(exc) if isinstance(exc, _RigDead) else type(exc).__name__) + ")"] += 1
                 if rig.proxy.error is not None:
                     tally.notes[f"val: proxy error {_err_text(rig.proxy.error)}"] += 1
                 if not any(t.is_alive() for t in rig.sim._threads):
                     tally.notes["val: the simulator's server thread died (issue 18 item 10)"] += 1
                 rig.stop()
                 rebuilt += 1
-                rig = ValRig(seed * 1000 + index + 17 * rebuilt)
+                rig = _build(ValRig, seed * 1000 + index + 17 * rebuilt, tally)
     finally:
         rig.stop()
 
@@ -698,7 +708,7 @@ def run_modbus(n: int, seed: int, deadline: float, tally: Tally, workers: int = 
 
 def _modbus_worker(n: int, seed: int, index: int, deadline: float, tally: Tally) -> None:
     rng = np.random.default_rng([seed, 2, index])
-    rig = ModbusRig(seed * 1000 + index)
+    rig = _build(ModbusRig, seed * 1000 + index, tally)
     rebuilt = 0
     try:
         lengths = _modbus_lengths(rig)
@@ -715,7 +725,7 @@ def _modbus_worker(n: int, seed: int, index: int, deadline: float, tally: Tally)
                 tally.notes["modbus: rig rebuilt (" + str(exc) + ")"] += 1
                 rig.stop()
                 rebuilt += 1
-                rig = ModbusRig(seed * 1000 + index + 17 * rebuilt)
+                rig = _build(ModbusRig, seed * 1000 + index + 17 * rebuilt, tally)
     finally:
         rig.stop()
 
