@@ -500,7 +500,7 @@ def _quiet_logs() -> None:
         lg.propagate = False
 
 
-def run_val(n: int, seed: int, deadline: float, tally: Tally, workers: int = 6) -> None:
+def run_val(n: int, seed: int, deadline: float, tally: Tally, workers: int = 8) -> None:
     """``n`` faults on the VAL-II link, shared by ``workers`` rigs running side by side (each case
     mostly waits on a timeout or a simulated motion)."""
     _quiet_logs()

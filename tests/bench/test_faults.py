@@ -37,6 +37,9 @@ KNOWN_DEFECTS = {
     "val.h2d.cutoff": "item 1",
     # a stalled command line reaches the controller after the driver gave up, and runs (item 1)
     "val.h2d.stall": "item 1",
+    # a reply stalled during WHERE: once in 230 the engine's run did not return within 15 s (not analysed;
+    # the cleanup's ABORT goes through the resync of item 1)
+    "val.d2h.stall": "item 1?",
     # the gripper: corrupted read replies accepted as a jaw state or valve outputs (item 9)
     "modbus.d2h.bitflip": "item 9 (also: pymodbus's struct.error escapes the driver as a traceback)",
     "modbus.d2h.dup": "item 9",
