@@ -29,7 +29,10 @@ about this object: its exact shape, its faces' grey levels, and that it moves li
    standard deviation in the camera frame). Below the thresholds the fit is reported as not found with
    the reason (``ok`` False), never as a pose.
 
-Pure numpy/OpenCV, in Python only: no compiled kernel mirrors it.
+Speed: the costly steps have a fast path (``_candidates``, ``_solve``, ``_coarse_shift``; the IRLS in
+the compiled kernel ``selfview._csil`` when built, its numpy code ``_solve_py`` the reference) beside the
+first implementation (``*_ref``), which ``REFERENCE = True`` selects; the tests hold them to the same
+measurement (corners within 0.01 px, the TCP within 1e-4 mm).
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from selfview import _native
 from selfview.camera import CameraModel
 from selfview.cell import GripperSpec
 from selfview.discs import as_gray
@@ -525,6 +529,24 @@ def _solve(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, start_f
     (the same function of the motion, its derivatives in closed form)."""
     if REFERENCE:
         return _solve_ref(cam, es, s, q, C_H_G, floor, iters, start_floor)
+    kernel = _native.sil
+    if kernel is not None:
+        used, pos = np.unique(s.edge, return_inverse=True)
+        S = len(s.edge)
+        H = np.empty((4, 4))
+        w, r = np.empty(S), np.empty(S)
+        pick = np.empty(S, np.int64)
+        JtWJ = np.empty((6, 6))
+        code, sigma = kernel.solve(np.ascontiguousarray(q, float), pos.astype(np.int64), es.a_G[used], es.b_G[used],
+                                   np.ascontiguousarray(C_H_G, float), float(cam.f), float(floor), int(iters),
+                                   -1.0 if start_floor is None else float(start_floor), H, w, r, pick, JtWJ)
+        if code != 2:
+            return H, w, r, pick.astype(int), JtWJ, sigma
+    return _solve_py(cam, es, s, q, C_H_G, floor, iters, start_floor)
+
+
+def _solve_py(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, start_floor: float | None = None):
+    """``_solve`` in numpy (the compiled kernel's reference)."""
     used, pos = np.unique(s.edge, return_inverse=True)
     a_G, b_G = es.a_G[used], es.b_G[used]
     f = float(cam.f)
