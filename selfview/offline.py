@@ -18,7 +18,7 @@ from selfview.camera import CameraModel
 from selfview.cell import POINT_NAMES, Cell
 from selfview.discs import DiscDetections, correct_disc_bias, detect_discs
 from selfview.errors import CalibrationError, ImageError
-from selfview.fingertips import FingertipResult, find_fingertips
+from selfview.fingertips import FingertipResult, find_fingertips, model_measurement
 from selfview.geometry import inv_H, make_H, rot_z
 from selfview.pcc import PCCResult, measure_points_G, points_G_for_state, solve_pcc
 from selfview.tsai import TsaiResult, calibrate_coplanar
@@ -110,6 +110,12 @@ def predict_parked_C_H_G(C_H_W: np.ndarray, C_H_G_guess: np.ndarray) -> np.ndarr
     return C_H_W @ W_H_G
 
 
+def _misses_a_corner(ft: FingertipResult) -> bool:
+    """Whether the corner search left a corner unfound that is neither outside the picture nor hidden."""
+    return any(not ok and not (r and (r.startswith("outside") or r.startswith("occluded")))
+               for ok, r in zip(ft.found, ft.reasons))
+
+
 def calibrate_offline(
     image,
     cell: Cell,
@@ -120,6 +126,7 @@ def calibrate_offline(
     points: str = "measured",
     search_px: float = 60.0,
     image_sha256: str | None = None,
+    measurement: str = "auto",
 ) -> OfflineResult:
     """Off-line calibration of one picture of the gripper parked on the plate.
 
@@ -128,6 +135,11 @@ def calibrate_offline(
     fingertips (default the cell's mount guess); ``points``: 'measured' takes the gripper points' G
     coordinates from the picture (the paper's way: the inner four form a rectangle centred on the TCP),
     'cell' takes them from the cell description.
+    ``measurement``: how the fingertip corners are measured: 'corners' the corner search
+    (``find_fingertips``), 'model' the model-based measurement (the whole silhouette of both fingers
+    fitted, ``find_fingertips(..., model=True)``), 'auto' (default) the corner search, and the model
+    where the corner search misses a corner in the picture (a fingertip beside a disc, a weak tip edge)
+    and the model's fit holds: then the model's corners (the found ones are not mixed with them).
     Raises ``ImageError`` (unusable picture) or ``CalibrationError`` (too few discs or corners, degenerate).
     """
     t0 = time.perf_counter()
@@ -155,7 +167,14 @@ def calibrate_offline(
     t = time.perf_counter()
     guess = cell.mount_guess_C_H_G if C_H_G_guess is None else np.asarray(C_H_G_guess, float)
     C_H_G_pred = predict_parked_C_H_G(ts.C_H_W, guess)
+    if measurement not in ("auto", "corners", "model"):
+        raise CalibrationError(f"measurement: expected 'auto', 'corners' or 'model', got {measurement!r}")
     ft = find_fingertips(img, camera, C_H_G_pred, cell.gripper, gap, search_px=search_px)
+    measured_by = "corners"
+    if measurement == "model" or (measurement == "auto" and _misses_a_corner(ft)):
+        res, fit = model_measurement(img, camera, C_H_G_pred, cell.gripper, gap, range(6), searched=ft)
+        if measurement == "model" or (fit.ok and res.found.sum() > ft.found.sum()):
+            ft, measured_by = res, "model"
     timings["fingertips"] = (time.perf_counter() - t) * 1e3
     found = np.asarray(ft.found, bool)
     if found.sum() < 2:
@@ -197,6 +216,7 @@ def calibrate_offline(
             "pcc_rms_mm": float(pcc.rms_mm),
             "pcc_q_norm": float(pcc.q_norm),
             "points_from": "picture" if dims is not None else "cell",
+            "corners_measured_by": measured_by,
         },
         image_sha256=sha,
         cell_sha256=cell.sha256,

@@ -172,10 +172,11 @@ def _visible_edges_of(boxes, cam_G) -> _EdgeSet:
 
 
 def _blocked(o, d, lo, hi) -> np.ndarray:
-    """(M,) whether rays o + t d (G, t in (0, 1)) pass through the box (lo, hi) before t = 1."""
+    """(M,) whether rays o + t d (G, t in (0, 1)) pass through the box (lo, hi) (each (3,), or (M, 3): one
+    box per ray) before t = 1."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        t1 = (lo[None] - o[None]) / d
-        t2 = (hi[None] - o[None]) / d
+        t1 = (lo - o) / d
+        t2 = (hi - o) / d
     tn = np.nanmax(np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2)), axis=1)
     tf = np.nanmin(np.where(np.isnan(t1), np.inf, np.maximum(t1, t2)), axis=1)
     return (tn < np.minimum(tf, 1.0) - 1e-6) & (tn > 1e-6) & (np.minimum(tf, 1.0) - tn > 1e-4)
@@ -202,8 +203,10 @@ def _sample(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _Sam
         return empty
     uv_a = np.full((E, 2), np.nan)
     uv_b = np.full((E, 2), np.nan)
-    uv_a[front] = cam.project(ends[:E][front])
-    uv_b[front] = cam.project(ends[E:][front])
+    nf = int(front.sum())
+    uv_ab = cam.project(np.vstack([ends[:E][front], ends[E:][front]]))  # point by point: one call for both
+    uv_a[front] = uv_ab[:nf]
+    uv_b[front] = uv_ab[nf:]
     length = np.where(front, np.linalg.norm(uv_b - uv_a, axis=1), 0.0)
     counts = np.where(front, np.clip(length / STEP_PX, 2, 400).astype(int), 0)
     edge = np.repeat(np.arange(E), counts)
@@ -229,11 +232,12 @@ def _sample(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _Sam
     tan[last & prv] = uv[last & prv] - uv[np.flatnonzero(last & prv) - 1]
     keep = cam.in_image(uv, margin=margin)
     fin = es.finger[edge]
-    for f in (0, 1):
-        m = keep & (fin == f)
-        if np.any(m):
-            lo, hi = boxes[1 - f]
-            keep[m] &= ~_blocked(o, p[m] - o[None], np.asarray(lo, float), np.asarray(hi, float))
+    if np.any(keep):
+        # each sample against the other finger's box (one call: the same arithmetic row by row)
+        box = np.asarray(boxes, float)  # (2, 2, 3): finger, lo/hi
+        k = np.flatnonzero(keep)
+        other = 1 - fin[k]
+        keep[k] &= ~_blocked(o, p[k] - o[None], box[other, 0], box[other, 1])
     if not np.any(keep):
         return empty
     tan /= np.linalg.norm(tan, axis=1, keepdims=True) + 1e-12
@@ -777,14 +781,17 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
         uv6 = camera.project(pts_C)
     G_H_C = inv_H(H)
     o = G_H_C[:3, 3]
+    other6 = np.array([1, 1, 0, 0, 1, 0])  # the other finger of each point
+    box = np.asarray(boxes, float)
+    inside6 = camera.in_image(uv6, margin=0.5)
+    hidden6 = _blocked(o, p_G6 - o[None], box[other6, 0], box[other6, 1])
     for k in range(6):
-        f = 0 if k in (0, 1, 4) else 1
         if k not in want:
             reasons[k] = "not requested"
-        elif not camera.in_image(uv6[k:k + 1], margin=0.5)[0]:
+        elif not inside6[k]:
             reasons[k] = "outside the picture"
-        elif _blocked(o, (p_G6[k] - o)[None], *[np.asarray(v, float) for v in boxes[1 - f]])[0]:
-            reasons[k] = f"occluded by finger {'AB'[1 - f]}"
+        elif hidden6[k]:
+            reasons[k] = f"occluded by finger {'AB'[other6[k]]}"
         else:
             found[k] = True
     why = None
