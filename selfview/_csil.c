@@ -1,4 +1,4 @@
-/* selfview._csil: the compiled IRLS of the model-based fingertip measurement (selfview.silhouette._solve).
+/* selfview._csil: the compiled IRLS and vote of the model-based fingertip measurement (selfview.silhouette).
  *
  * The Python function ``silhouette._solve_py`` is the reference: this computes the same iterations (the
  * homogeneous model lines l = A x B of the edges, each sample's candidate nearest its line, Tukey's weights
@@ -7,6 +7,10 @@
  * results agree with the reference to rounding, not bit for bit (the tests compare them at a tolerance
  * with a physical meaning).
  *
+ *   vote(off, nrm, g, tol, votes)
+ *     the vote of silhouette._coarse_shift (its numpy code the reference): votes (G * G,) int64 [iy * G + ix]
+ *     the samples (off (S, C) candidates, NaN: none; nrm (S, 2)) with a candidate within tol of
+ *     nrm . (g[ix], g[iy]); the same comparisons, n . d summed without the matrix product's rounding.
  *   solve(q, pos, a_G, b_G, H, f, floor, iters, start_floor, H_out, w, r, pick, JtWJ) -> (code, sigma)
  *     q (S, C, 2) float64 candidates (undistorted sensor coordinates, NaN: none); pos (S,) int64 the
  *     row of each sample's edge in a_G, b_G (E, 3) float64 (the edges' ends in G); H (4, 4) float64 the
@@ -362,10 +366,71 @@ fail:
     return NULL;
 }
 
+/* The vote of silhouette._coarse_shift: votes[iy * G + ix] = how many samples have a candidate within tol
+ * of n . (g[ix], g[iy]) (candidates NaN: none). */
+static PyObject *py_vote(PyObject *self, PyObject *args)
+{
+    PyObject *o_off, *o_n, *o_g, *o_v;
+    double tol;
+    BufSet bs = {.n = 0};
+    Py_buffer *b_off, *b_n, *b_g, *b_v;
+    double *cand = NULL;
+    if (!PyArg_ParseTuple(args, "OOOdO:vote", &o_off, &o_n, &o_g, &tol, &o_v))
+        return NULL;
+    GET(b_off, o_off, "off", T_F64, 0, 2, -1, -1);
+    const Py_ssize_t S = b_off->shape[0], C = b_off->shape[1];
+    GET(b_n, o_n, "nrm", T_F64, 0, 2, S, 2);
+    GET(b_g, o_g, "g", T_F64, 0, 1, -1);
+    const Py_ssize_t G = b_g->shape[0];
+    GET(b_v, o_v, "votes", T_I64, 1, 1, G * G);
+    if (!(tol >= 0.0) || G < 1 || G > 4096) {
+        PyErr_SetString(PyExc_ValueError, "tol, g: expected tol >= 0 and 1..4096 grid values");
+        goto fail;
+    }
+    const double *off = b_off->buf, *nrm = b_n->buf, *g = b_g->buf;
+    int64_t *votes = b_v->buf;
+    cand = PyMem_Malloc(sizeof(double) * (size_t)(C > 0 ? C : 1));
+    if (!cand) {
+        PyErr_NoMemory();
+        goto fail;
+    }
+    for (Py_ssize_t i = 0; i < G * G; i++)
+        votes[i] = 0;
+    for (Py_ssize_t s = 0; s < S; s++) {
+        Py_ssize_t k = 0;
+        for (Py_ssize_t c = 0; c < C; c++)
+            if (isfinite(off[s * C + c]))
+                cand[k++] = off[s * C + c];
+        if (!k)
+            continue;
+        const double nx = nrm[2 * s], ny = nrm[2 * s + 1];
+        for (Py_ssize_t iy = 0; iy < G; iy++) {
+            const double py = ny * g[iy];
+            for (Py_ssize_t ix = 0; ix < G; ix++) {
+                const double p = nx * g[ix] + py;
+                for (Py_ssize_t c = 0; c < k; c++)
+                    if (fabs(p - cand[c]) <= tol) {
+                        votes[iy * G + ix]++;
+                        break;
+                    }
+            }
+        }
+    }
+    PyMem_Free(cand);
+    bufs_release(&bs);
+    Py_RETURN_NONE;
+fail:
+    PyMem_Free(cand);
+    bufs_release(&bs);
+    return NULL;
+}
+
 static PyMethodDef methods[] = {
     {"solve", py_solve, METH_VARARGS,
      "solve(q, pos, a_G, b_G, H, f, floor, iters, start_floor, H_out, w, r, pick, JtWJ) -> (code, sigma): "
      "the IRLS of silhouette._solve (code 0 done, 1 too few samples, 2 singular: run the reference)."},
+    {"vote", py_vote, METH_VARARGS,
+     "vote(off, nrm, g, tol, votes): the vote of silhouette._coarse_shift over the grid g x g."},
     {NULL, NULL, 0, NULL},
 };
 

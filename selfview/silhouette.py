@@ -618,14 +618,26 @@ def _solve_py(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, star
 
 
 def _coarse_shift(off: np.ndarray, nrm: np.ndarray, R: float, cell: float = 2.0, tol: float = 1.5) -> np.ndarray:
-    """``_coarse_shift_ref`` with each candidate column compared only on the samples that have one."""
+    """``_coarse_shift_ref``, the vote in the compiled kernel ``selfview._csil`` when built (its numpy
+    code ``_votes_py`` the reference: each candidate column compared only on the samples that have one)."""
     if REFERENCE:
         return _coarse_shift_ref(off, nrm, R, cell, tol)
     g = np.arange(-R, R + cell / 2, cell)
     dx, dy = np.meshgrid(g, g)
     d = np.column_stack([dx.ravel(), dy.ravel()])
-    proj = nrm @ d.T  # (S, D)
     has = np.isfinite(off)
+    kernel = _native.sil
+    if kernel is not None:
+        votes = np.empty(len(d), np.int64)
+        kernel.vote(np.ascontiguousarray(off, float), np.ascontiguousarray(nrm, float), g, float(tol), votes)
+    else:
+        votes = _votes_py(off, has, nrm @ d.T, tol)
+    return _refine_shift(off, has, nrm, d[int(np.argmax(votes))], cell, tol)
+
+
+def _votes_py(off, has, proj, tol):
+    """The vote of ``_coarse_shift`` in numpy (the compiled kernel's reference): (D,) per grid cell the
+    samples with a candidate within ``tol`` of proj (S, D)."""
     agree = np.zeros(proj.shape, bool)
     tmp = np.empty(proj.shape)
     hit = np.empty(proj.shape, bool)
@@ -641,8 +653,11 @@ def _coarse_shift(off: np.ndarray, nrm: np.ndarray, R: float, cell: float = 2.0,
         else:
             i = np.flatnonzero(m)
             agree[i] |= np.abs(proj[i] - off[i, c:c + 1]) <= tol
-    votes = agree.sum(axis=0)
-    best = d[int(np.argmax(votes))]
+    return np.count_nonzero(agree, axis=0)
+
+
+def _refine_shift(off, has, nrm, best, cell, tol):
+    """``_coarse_shift``'s refinement around the best cell ``best`` (2,)."""
     pb = nrm @ best
     r = np.where(has, off - pb[:, None], np.inf)
     k = np.argmin(np.abs(r), axis=1)
