@@ -250,6 +250,11 @@ def _sample(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _Sam
 def _remap(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Bilinear samples of ``img`` (float32) at (x, y) of any shape (border replicated)."""
     shape = x.shape
+    if x.ndim == 2 and 0 < x.shape[0] < 32768 and 0 < x.shape[1] < 32768 and x.dtype == np.float32 \
+            and y.dtype == np.float32:
+        # (S, L) maps as they are (each output pixel depends on its own map entries only: the same values)
+        return cv2.remap(img, np.ascontiguousarray(x), np.ascontiguousarray(y), cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE)
     n, cols = x.size, 4096
     rows = max(1, -(-n // cols))
     mx = np.zeros(rows * cols, np.float32)
