@@ -1,6 +1,8 @@
 """The simulated cell's true state, shared by every simulated device.
 
-One ``SimWorld`` owns what a real cell would hold physically: the true camera (f, kappa), the true
+One ``SimWorld`` owns what a real cell would hold physically: the true camera (f, kappa, and the
+principal point and aspect, which a real camera and grabber pair do not keep at their nominal values:
+``camera='ideal'`` keeps the cell's nominal ones, ``'realistic'`` draws them, see ``draw_camera``), the true
 mount ``C_H_G`` (drawn within ``simulation.mount_error`` of the mount guess), disturbances of the camera
 on its mount, the jaw gap, the robot's TCP pose in its base frame, and the plate lying on foam. Devices
 simulated elsewhere (the VAL-II controller, the valve terminal, the camera) read and change it under its
@@ -32,7 +34,8 @@ from selfview.geometry import (
     transform_points,
 )
 
-__all__ = ["SimWorld", "Disturbance", "random_small_rotation", "PLATE_BASE_POSE"]
+__all__ = ["SimWorld", "Disturbance", "random_small_rotation", "draw_camera", "CAMERA_KINDS", "PLATE_BASE_POSE",
+           "REALISTIC_OFFSET_PX", "REALISTIC_ASPECT"]
 
 #: Where the plate's centre lies in the robot base frame when nobody presses on it (mm): on foam
 #: on the table in front of the robot, W's z pointing down into the plate.
@@ -40,6 +43,45 @@ PLATE_BASE_POSE = make_H(np.diag([1.0, -1.0, -1.0]), (350.0, 0.0, 20.0))
 #: How far the foam lets the plate sink and tilt before the gripper hits the table (mm, degrees).
 FOAM_TRAVEL_MM = 15.0
 FOAM_TILT_DEG = 12.0
+
+#: The simulated camera's kinds: 'ideal' (the cell's nominal principal point and aspect) or 'realistic'.
+CAMERA_KINDS = ("ideal", "realistic")
+#: A realistic camera's principal point lies up to this far from the nominal one (px, uniform over the
+#: disc), and its aspect is uniform in this range: CCIR camera and grabber pairs are that far from
+#: nominal (Willson's calibrations list centres 8 to 30 px off and sx from 1.028 to 1.108).
+REALISTIC_OFFSET_PX = 15.0
+REALISTIC_ASPECT = (0.97, 1.07)
+
+
+def draw_camera(nominal: CameraModel, kind="ideal", seed: int = 0) -> CameraModel:
+    """The true camera of a simulated cell: ``nominal`` (f, kappa already the true ones) with its
+    principal point and aspect as ``kind`` says.
+
+    ``kind``: 'ideal' (``nominal`` unchanged), 'realistic' (offset uniform over a disc of radius
+    ``REALISTIC_OFFSET_PX``, aspect uniform in ``REALISTIC_ASPECT``, drawn from their own generator
+    seeded by ``seed``, so the world's other draws do not change), or a mapping with
+    ``principal_point`` [cx, cy] and/or ``aspect`` (explicit values), or a ``CameraModel``.
+    Raises ``ConfigError`` for anything else.
+    """
+    if isinstance(kind, CameraModel):
+        return kind
+    if isinstance(kind, dict):
+        unknown = set(kind) - {"principal_point", "aspect"}
+        if unknown:
+            raise ConfigError(f"simulated camera: unknown key(s) {', '.join(sorted(unknown))}; "
+                              "expected principal_point, aspect")
+        cx, cy = kind.get("principal_point", nominal.principal_point)
+        return nominal.with_(cx=float(cx), cy=float(cy), aspect=float(kind.get("aspect", nominal.aspect)))
+    if kind == "ideal":
+        return nominal
+    if kind == "realistic":
+        rng = np.random.default_rng([int(seed), 15_015])
+        r = REALISTIC_OFFSET_PX * np.sqrt(rng.uniform())
+        a = rng.uniform(0, 2 * np.pi)
+        return nominal.with_(cx=nominal.cx + r * np.cos(a), cy=nominal.cy + r * np.sin(a),
+                             aspect=float(rng.uniform(*REALISTIC_ASPECT)))
+    raise ConfigError(f"simulated camera {kind!r}: expected one of {', '.join(CAMERA_KINDS)}, "
+                      "a mapping {principal_point, aspect} or a CameraModel")
 
 
 def random_small_rotation(rng: np.random.Generator, max_angle_rad: float) -> np.ndarray:
@@ -68,10 +110,12 @@ class SimWorld:
     """The true state of a simulated self-viewing cell.
 
     ``cell`` must have a ``simulation`` section. ``seed`` fixes every random draw (mount, parking
-    offsets, disturbances). Thread-safe: devices call it from their server threads.
+    offsets, disturbances, the camera). ``camera``: the true camera's principal point and aspect
+    (``draw_camera``; default 'ideal', the cell's nominal ones). Thread-safe: devices call it from their
+    server threads.
     """
 
-    def __init__(self, cell: Cell, seed: int = 0, imperfections=None):
+    def __init__(self, cell: Cell, seed: int = 0, imperfections=None, *, camera="ideal"):
         if cell.simulation is None:
             raise ConfigError(f"{cell.source}: the simulated cell needs a 'simulation' section")
         self.cell = cell
@@ -79,7 +123,8 @@ class SimWorld:
         self.rng = np.random.default_rng(self.seed)
         self.lock = threading.RLock()
         sim = cell.simulation
-        self.camera: CameraModel = cell.camera.guess().with_(f=sim.true_f, kappa=sim.true_kappa)
+        self.camera: CameraModel = draw_camera(cell.camera.guess().with_(f=sim.true_f, kappa=sim.true_kappa),
+                                               camera, self.seed)
         # The true mount: the guess moved by a random rotation and shift within the configured error.
         R_err = random_small_rotation(self.rng, np.radians(sim.mount_error_angle_deg))
         shift = self.rng.normal(size=3)
@@ -294,6 +339,7 @@ class SimWorld:
                 "f": self.camera.f,
                 "kappa": self.camera.kappa,
                 "principal_point": [self.camera.cx, self.camera.cy],
+                "aspect": self.camera.aspect,
                 "C_H_G": self.C_H_G.tolist(),
                 "C_H_W": self.C_H_W.tolist(),
                 "W_H_G": None if self.W_H_G is None else self.W_H_G.tolist(),

@@ -67,13 +67,16 @@ def _tcp_err(C_H_G_est, C_H_G_ref) -> list[float]:
 
 
 def run_trial(rig: TrialRig, cell: Cell, series: str, index: int, *, seed: int | None = None,
-              state: str | None = None, methods=METHODS) -> tuple[TrialRecord, dict]:
-    """One trial of the paper's protocol. Returns the record and the pictures/results for annotation."""
+              state: str | None = None, methods=METHODS, camera=None) -> tuple[TrialRecord, dict]:
+    """One trial of the paper's protocol. Returns the record and the pictures/results for annotation.
+
+    ``camera`` a measured camera (``selfview.intrinsics``) whose principal point and aspect the off-line
+    calibrations use; None: the cell's nominal ones."""
     state = state or cell.gripper.calibrate_in
     t0 = time.perf_counter()
     rig.park()
     img1 = rig.grab()
-    first: OfflineResult = calibrate_offline(img1, cell, state=state)
+    first: OfflineResult = calibrate_offline(img1, cell, state=state, camera=camera)
     truth1 = rig.truth()
     cal = first.calibration
     disturbance = rig.disturb(series)
@@ -91,7 +94,7 @@ def run_trial(rig: TrialRig, cell: Cell, series: str, index: int, *, seed: int |
             continue
         estimates[m] = est
     t2 = time.perf_counter()
-    ref: OfflineResult = calibrate_offline(img2, cell, state=state, C_H_G_guess=cal.C_H_G)
+    ref: OfflineResult = calibrate_offline(img2, cell, state=state, C_H_G_guess=cal.C_H_G, camera=camera)
     C_ref = ref.calibration.C_H_G
     est_out = {}
     for m, est in estimates.items():
@@ -233,22 +236,54 @@ class DirectSimRig:
         self.world.reset_disturbance()
 
 
+def measure_intrinsics_direct(world, views: int = 12, render_seed: int = 0):
+    """``selfview.intrinsics`` on a simulated world without device channels: the gripper through the
+    planned views above the plate (``plan_view_poses``, from the plate's taught pressing pose), a picture
+    at each by the project's renderer. The world is left unparked. Returns the ``IntrinsicsResult``."""
+    from selfview.geometry import inv_H, trans
+    from selfview.intrinsics import calibrate_intrinsics, plan_view_poses
+    from selfview.mocks.render import render
+    from selfview.mocks.world import PLATE_BASE_POSE
+
+    cell = world.cell
+    plate = PLATE_BASE_POSE @ trans(0.0, 0.0, 4.0)
+    lean = (inv_H(plate) @ np.array([0.0, 0.0, 0.0, 1.0]))[:2]
+    imgs = []
+    for i, v in enumerate(plan_view_poses(cell, views, lean_W=lean)):
+        world.set_tcp(plate @ v["W_H_G"])
+        imgs.append(render(world, seed=render_seed * 100 + i).image)
+    world.unpark()
+    return calibrate_intrinsics(imgs, cell.plate, cell.camera.guess(), skip_unusable=True)
+
+
 def run_direct(cell: Cell, series_list=("cable", "tilt"), trials: int = 20, seed: int = 0,
-               progress=None, profile=None) -> tuple[list[TrialRecord], dict]:
+               progress=None, profile=None, camera="ideal") -> tuple[list[TrialRecord], dict]:
     """The experiment straight on simulated worlds (one world per trial, seeded ``seed + k``).
 
     ``profile``: the simulated cell's imperfections (``selfview.mocks.imperfections``: a profile name
-    such as 'ideal' or 'paper-like', or an ``Imperfections``; None: ideal).
+    such as 'ideal' or 'paper-like', or an ``Imperfections``; None: ideal). ``camera`` the simulated
+    camera (``selfview.mocks.world.draw_camera``): 'ideal' (the cell's nominal one), or 'realistic': one
+    camera drawn for the run (seed ``seed``), measured once by ``measure_intrinsics_direct`` as a lab
+    would with a new camera, every trial's world with that camera and its calibrations with the
+    measured one (``summary['camera']``).
     Returns the records and the summary; trials that failed are listed in ``summary['failures']``."""
     from selfview.mocks.world import SimWorld
 
+    true_cam, measured, cam_info = "ideal", None, None
+    if camera != "ideal":
+        w0 = SimWorld(cell, seed=seed, imperfections=profile, camera=camera)
+        true_cam = w0.camera
+        intr = measure_intrinsics_direct(w0, render_seed=seed)
+        measured = intr.camera
+        cam_info = {"truth": true_cam.to_dict(), "measured": measured.to_dict(), "sigma": intr.sigma,
+                    "views_used": intr.views_used, "stop_rule_met": intr.stop_rule["met"]}
     records, failures = [], []
     for series in series_list:
         for k in range(trials):
             s = seed + k + 10_000 * list(series_list).index(series)  # seeds never repeat across series
-            world = SimWorld(cell, seed=s, imperfections=profile)
+            world = SimWorld(cell, seed=s, imperfections=profile, camera=true_cam)
             try:
-                rec, _ = run_trial(DirectSimRig(world, render_seed=s), cell, series, k, seed=s)
+                rec, _ = run_trial(DirectSimRig(world, render_seed=s), cell, series, k, seed=s, camera=measured)
             except CellError as exc:
                 failures.append({"series": series, "index": k, "seed": s, "error": f"{type(exc).__name__}: {exc}"})
                 if progress:
@@ -259,4 +294,6 @@ def run_direct(cell: Cell, series_list=("cable", "tilt"), trials: int = 20, seed
                 progress(series, k, trials, None)
     summary = summarise(records)
     summary["failures"] = failures
+    if cam_info is not None:
+        summary["camera"] = cam_info
     return records, summary

@@ -92,8 +92,9 @@ class CellSession:
 
     @classmethod
     def simulated(cls, cell: Cell, seed: int = 0, *, time_scale: float = 0.02, link: str = "pty",
-                  taught: dict | None = None, profile=None, **kw) -> "CellSession":
-        sim = SimulatedCell(cell, seed=seed, time_scale=time_scale, link=link, taught=taught, profile=profile)
+                  taught: dict | None = None, profile=None, camera="ideal", **kw) -> "CellSession":
+        sim = SimulatedCell(cell, seed=seed, time_scale=time_scale, link=link, taught=taught, profile=profile,
+                            camera=camera)
         return cls(cell, CellURLs("", "", ""), sim=sim, **kw)
 
     @classmethod
@@ -203,6 +204,70 @@ class CellSession:
 
         return self._run(body, plan)
 
+    def calibrate_camera(self, out: str | Path = "calibration.yaml", *, camera=None, camera_file: dict | None = None,
+                         state: str | None = None, mode: str = "full") -> OfflineResult | None:
+        """``calibrate`` with a measured camera (``selfview intrinsics``): park, grab, calibrate off-line
+        with ``camera``'s principal point and aspect (None: the cell's nominal ones), save the calibration
+        file (recording ``camera_file`` {path, sha256}), depart. Nothing is written on a failure; the
+        previous file's history copy is left in ``calibration_kept``."""
+        self.calibration_kept = None
+        state = state or self.cell.gripper.calibrate_in
+        s = self.settings
+        grab = Step("grab", {"average": s.average}, name="picture", note="the calibration picture")
+        plan = [Step("speed", {"pct": s.speed_pct})] + park_plan(s, state) + [grab] + depart_plan(s)
+
+        def body(e: Engine):
+            for st in plan[:-1]:
+                e.execute(st)
+            res = e.execute(Step("compute", {"fn": lambda e: calibrate_offline(
+                e.results["picture"], self.cell, state=state, mode=mode, camera=camera, camera_file=camera_file)},
+                name="offline", note="off-line calibration"))
+            self.calibration_kept = e.execute(Step("compute", {"fn": lambda e: save_calibration(res.calibration, out)},
+                                                   note=f"save {out}"))
+            e.execute(plan[-1])
+            return res
+
+        return self._run(body, plan)
+
+    def intrinsics_views(self, views: int = 12, state: str | None = None) -> tuple[list, list[dict]] | None:
+        """Take the pictures for ``selfview.intrinsics``: from above the plate, the robot moves in straight
+        lines through ``views`` planned poses (``selfview.intrinsics.plan_view_poses``: lifted 15-120 mm,
+        tilted up to 40 deg about axes in the plate, turned about the approach axis, the fingers clear of
+        the plate), grabs a picture at each, and goes back above the plate. Every pose is checked against
+        the robot's limits before the first motion. Returns (pictures, the poses' descriptions), or None
+        in a dry run."""
+        from selfview.geometry import trans
+        from selfview.intrinsics import plan_view_poses
+
+        state = state or self.cell.gripper.calibrate_in
+        s = self.settings
+        if self.dry_run:
+            plate_H, lean = None, None
+        else:
+            robot = self.devices.robot
+            plate_H = robot.dialect.pose_to_H(robot.location(s.plate))
+            lean = (np.linalg.inv(plate_H) @ np.array([0.0, 0.0, 0.0, 1.0]))[:2]  # towards the robot's base
+        poses = plan_view_poses(self.cell, views, state=state, lean_W=lean)
+        plan = [Step("speed", {"pct": s.speed_pct}),
+                Step("appro", {"target": s.plate, "distance_mm": s.approach_mm}, note="above the plate"),
+                Step("gripper", {"state": state}, note="jaws as in the calibration")]
+        for i, v in enumerate(poses):
+            target = f"{s.plate} view {i + 1}" if plate_H is None else plate_H @ v["W_H_G"]
+            plan += [Step("moves", {"target": target},
+                          note=f"view {i + 1}: lift {v['lift_mm']:.0f} mm, tilt {v['tilt_deg']:.0f} deg about "
+                               f"{v['axis_deg']:.0f} deg, turn {v['turn_deg']:+.0f} deg"),
+                     Step("wait", {"seconds": s.settle_s}, note="settle"),
+                     Step("grab", {"average": s.average}, name=f"view{i + 1}")]
+        above = f"{s.plate} approach" if plate_H is None else plate_H @ trans(0, 0, -s.approach_mm)
+        plan.append(Step("moves", {"target": above}, note="back above the plate"))
+
+        def body(e: Engine):
+            for st in plan:
+                e.execute(st)
+            return [e.results[f"view{i + 1}"] for i in range(len(poses))], poses
+
+        return self._run(body, plan)
+
     def monitor(self, calibration: str | Path, frames: int = 20, *, method: str = "4P-U",
                 disturb: Callable[[int], None] | None = None, state: str | None = None,
                 on_decision: Callable[[dict], None] | None = None) -> list[dict]:
@@ -270,10 +335,11 @@ class CellSession:
             raise
 
     def experiment(self, series=("cable", "tilt"), trials: int = 20, state: str | None = None,
-                   on_trial: Callable[[str, int, int, TrialRecord], None] | None = None):
+                   on_trial: Callable[[str, int, int, TrialRecord], None] | None = None, camera=None):
         """The paper's section 5 on this cell: per series, ``trials`` times park, calibrate, disturb,
         re-measure with every on-line method and the off-line reference. Returns (records, summary,
-        artefacts of the first trial)."""
+        artefacts of the first trial). ``camera``: a measured camera for the off-line calibrations
+        (``selfview.intrinsics``; None: the cell's nominal one)."""
         state = state or self.cell.gripper.calibrate_in
         s = self.settings
         for name in series:
@@ -322,7 +388,7 @@ class CellSession:
                 for k in range(trials):
                     seed = None if self.sim is None else self.sim.seed
                     try:
-                        rec, art = run_trial(rig, self.cell, name, k, seed=seed, state=state)
+                        rec, art = run_trial(rig, self.cell, name, k, seed=seed, state=state, camera=camera)
                     except (CalibrationError, ImageError) as exc:
                         # a picture that cannot be measured spoils one trial, not the run
                         failures.append({"series": name, "index": k, "seed": seed, "error": f"{type(exc).__name__}: {exc}"})

@@ -35,18 +35,20 @@ class SimulatedCell:
     ``travel_s`` the jaws' travel time; ``taught`` the controller's taught locations (name -> (4, 4) pose;
     default: 'plate', pressing the plate 4 mm into the foam, and 'above' it). ``profile`` the world's
     imperfections (``selfview.mocks.imperfections``: 'ideal' (default), 'realistic', 'paper-like' or an
-    ``Imperfections``). Use as a context manager; ``urls`` names the devices.
+    ``Imperfections``); ``camera`` the true camera's principal point and aspect
+    (``selfview.mocks.world.draw_camera``: 'ideal' the cell's nominal ones, 'realistic' drawn from a real
+    camera's ranges). Use as a context manager; ``urls`` names the devices.
     """
 
     def __init__(self, cell: Cell, *, seed: int = 0, time_scale: float = 0.02, link: str = "pty",
-                 travel_s: float = 0.05, taught: dict | None = None, profile=None):
+                 travel_s: float = 0.05, taught: dict | None = None, profile=None, camera="ideal"):
         if link not in ("pty", "tcp"):
             from selfview.errors import ConfigError
 
             raise ConfigError(f"robot link {link!r}: expected 'pty' or 'tcp'")
         self.cell = cell
         self.seed = int(seed)
-        self.world = SimWorld(cell, seed=self.seed, imperfections=profile)
+        self.world = SimWorld(cell, seed=self.seed, imperfections=profile, camera=camera)
         self.time_scale = float(time_scale)
         self.link = link
         self.travel_s = float(travel_s)

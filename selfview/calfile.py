@@ -197,22 +197,31 @@ def save_calibration(cal: Calibration, path, *, keep_history: bool = True) -> Pa
     calibration: it may be somebody else's file. Returns the path of the history copy, or None.
     """
     p = Path(path)
-    if not p.parent.is_dir():
-        why = "does not exist (it is not created)" if not p.parent.exists() else "is a file, not a folder"
-        raise CalibrationFileError(f"{p}: cannot write the calibration file: the folder {p.parent} {why}")
     text = yaml.safe_dump(cal.to_document(), sort_keys=False, default_flow_style=None, width=120)
     # check what we are about to write reads back, before it replaces anything
     Calibration.from_document(load_yaml(text, str(p), error=CalibrationFileError), source=str(p))
+    return replace_keeping_history(p, text, load_calibration, what="calibration file", keep_history=keep_history)
+
+
+def replace_keeping_history(p: Path, text: str, load_existing, *, what: str, keep_history: bool = True) -> Path | None:
+    """Replace ``p`` with ``text`` atomically, the previous file first checked with ``load_existing`` (it
+    raises for a corrupt or foreign file, and nothing is written) and kept in ``<name>.history/``.
+    Every failure is ``CalibrationFileError`` naming the path and the cause, with ``p`` unchanged.
+    Returns the history copy, or None."""
+    p = Path(p)
+    if not p.parent.is_dir():
+        why = "does not exist (it is not created)" if not p.parent.exists() else "is a file, not a folder"
+        raise CalibrationFileError(f"{p}: cannot write the {what}: the folder {p.parent} {why}")
     kept = None
     if p.exists():
-        load_calibration(p)  # refuse to replace a corrupt or foreign file
+        load_existing(p)  # refuse to replace a corrupt or foreign file
         if keep_history:
             hd = history_dir(p)
             try:
                 hd.mkdir(exist_ok=True)
             except FileExistsError:
                 raise CalibrationFileError(
-                    f"{hd}: cannot keep the previous calibration: a file of that name exists where its history "
+                    f"{hd}: cannot keep the previous {what}: a file of that name exists where its history "
                     f"folder belongs; {p} is unchanged"
                 ) from None
             except OSError as exc:
@@ -222,10 +231,10 @@ def save_calibration(cal: Calibration, path, *, keep_history: bool = True) -> Pa
             try:
                 blob = p.read_bytes()
             except OSError as exc:
-                raise CalibrationFileError(f"{p}: cannot read the previous calibration ({exc.strerror or exc})") from None
+                raise CalibrationFileError(f"{p}: cannot read the previous {what} ({exc.strerror or exc})") from None
             stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
             kept = hd / f"{stamp}-{hashlib.sha256(blob).hexdigest()[:8]}{p.suffix or '.yaml'}"
-            atomic_write(kept, blob, error=CalibrationFileError, what="history copy of the calibration file",
+            atomic_write(kept, blob, error=CalibrationFileError, what=f"history copy of the {what}",
                          mode=stat.S_IMODE(p.stat().st_mode))
-    atomic_write(p, text.encode("utf-8"), error=CalibrationFileError, what="calibration file")
+    atomic_write(p, text.encode("utf-8"), error=CalibrationFileError, what=what)
     return kept

@@ -17,7 +17,7 @@ from selfview.calfile import Calibration
 from selfview.camera import CameraModel
 from selfview.cell import POINT_NAMES, Cell
 from selfview.discs import DiscDetections, correct_disc_bias, detect_discs
-from selfview.errors import CalibrationError, ImageError
+from selfview.errors import CalibrationError, ConfigError, ImageError
 from selfview.fingertips import FingertipResult, find_fingertips, model_measurement
 from selfview.geometry import inv_H, make_H, rot_z
 from selfview.pcc import PCCResult, measure_points_G, points_G_for_state, solve_pcc
@@ -126,6 +126,8 @@ def calibrate_offline(
     points: str = "measured",
     search_px: float = 60.0,
     image_sha256: str | None = None,
+    camera: CameraModel | None = None,
+    camera_file: dict | None = None,
     measurement: str = "auto",
 ) -> OfflineResult:
     """Off-line calibration of one picture of the gripper parked on the plate.
@@ -135,28 +137,40 @@ def calibrate_offline(
     fingertips (default the cell's mount guess); ``points``: 'measured' takes the gripper points' G
     coordinates from the picture (the paper's way: the inner four form a rectangle centred on the TCP),
     'cell' takes them from the cell description.
+    ``camera`` a measured camera (``selfview intrinsics``): its principal point and aspect replace the
+    cell's nominal ones (f and kappa are still measured from the picture, it only starts them);
+    ``camera_file`` {path, sha256} of the file it came from, recorded in the calibration's residuals
+    under ``camera_file`` (absent: the cell's nominal camera).
     ``measurement``: how the fingertip corners are measured: 'corners' the corner search
     (``find_fingertips``), 'model' the model-based measurement (the whole silhouette of both fingers
     fitted, ``find_fingertips(..., model=True)``), 'auto' (default) the corner search, and the model
     where the corner search misses a corner in the picture (a fingertip beside a disc, a weak tip edge)
     and the model's fit holds: then the model's corners (the found ones are not mixed with them).
-    Raises ``ImageError`` (unusable picture) or ``CalibrationError`` (too few discs or corners, degenerate).
+    Raises ``ImageError`` (unusable picture), ``ConfigError`` (a camera for another picture size) or
+    ``CalibrationError`` (too few discs or corners, degenerate).
     """
     t0 = time.perf_counter()
     timings = {}
     cs = cell.camera
+    if camera is not None and (int(camera.width), int(camera.height)) != (cs.width, cs.height):
+        raise ConfigError(
+            f"the camera file was measured on {camera.width}x{camera.height} pictures; this cell's camera gives "
+            f"{cs.width}x{cs.height}: it belongs to another camera or grabber setting"
+        )
+    nominal = cs.guess() if camera is None else camera
     img = check_picture(image, cs.width, cs.height)
     state = state or cell.gripper.calibrate_in
     gap = cell.gripper.gap(state)
     if points not in ("measured", "cell"):
         raise CalibrationError(f"points: expected 'measured' or 'cell', got {points!r}")
+    if measurement not in ("auto", "corners", "model"):
+        raise CalibrationError(f"measurement: expected 'auto', 'corners' or 'model', got {measurement!r}")
 
-    det = detect_discs(img, cell.plate, camera=cs.guess())
+    det = detect_discs(img, cell.plate, camera=nominal)
     timings["discs"] = (time.perf_counter() - t0) * 1e3
 
     t = time.perf_counter()
-    kw = dict(cx=cs.principal_point[0], cy=cs.principal_point[1], aspect=cs.aspect, mode=mode,
-              width=cs.width, height=cs.height)
+    kw = dict(cx=nominal.cx, cy=nominal.cy, aspect=nominal.aspect, mode=mode, width=cs.width, height=cs.height)
     ts = calibrate_coplanar(det.p_W, det.uv, **kw)
     # the image of a disc's centre is not the centroid of its ellipse: correct with the first pose, refit
     uv_c = correct_disc_bias(det, ts.camera, ts.C_H_W, cell.plate)
@@ -167,8 +181,6 @@ def calibrate_offline(
     t = time.perf_counter()
     guess = cell.mount_guess_C_H_G if C_H_G_guess is None else np.asarray(C_H_G_guess, float)
     C_H_G_pred = predict_parked_C_H_G(ts.C_H_W, guess)
-    if measurement not in ("auto", "corners", "model"):
-        raise CalibrationError(f"measurement: expected 'auto', 'corners' or 'model', got {measurement!r}")
     ft = find_fingertips(img, camera, C_H_G_pred, cell.gripper, gap, search_px=search_px)
     measured_by = "corners"
     if measurement == "model" or (measurement == "auto" and _misses_a_corner(ft)):
@@ -217,6 +229,7 @@ def calibrate_offline(
             "pcc_q_norm": float(pcc.q_norm),
             "points_from": "picture" if dims is not None else "cell",
             "corners_measured_by": measured_by,
+            **({"camera_file": dict(camera_file)} if camera_file else {}),
         },
         image_sha256=sha,
         cell_sha256=cell.sha256,

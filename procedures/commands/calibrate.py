@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import sys
 
-from selfview.procedures.commands._common import add_cell_argument, load_cell_arg, print_json
+from selfview.procedures.commands._common import load_cell_arg, print_json
+from selfview.procedures.commands._session import add_session_arguments, camera_arguments, open_session, progress_printer
 
 
 def read_picture(path) -> tuple:
@@ -27,11 +28,16 @@ def register(sub):
             "Off-line calibration (the paper's section 3). Tsai's coplanar method on the plate's discs gives f, kappa "
             "and the plate pose C_H_W; the fingertip corners and the Plane Coincidence Constraint give the "
             "gripper-to-camera transform C_H_G, with no robot kinematics. The result is written atomically to "
-            "--out; a previous file is kept in OUT.history/. On any failure nothing is written."
+            "--out; a previous file is kept in OUT.history/. On any failure nothing is written. With --image it "
+            "calibrates a picture file; without, it runs the calibrate procedure on the cell (park, grab, "
+            "calibrate, save, depart; the simulated cell, or --real --robot URL --gripper URL --camera URL). "
+            "--camera CAMERA.yaml (from 'selfview intrinsics') replaces the cell's nominal principal point and "
+            "aspect by the measured ones; without it, a picture that shows them wrong by more than the accuracy "
+            "targets gives a warning."
         ),
     )
-    add_cell_argument(p)
-    p.add_argument("--image", required=True, metavar="IMG", help="picture of the gripper parked on the plate")
+    add_session_arguments(p, camera_file=True)
+    p.add_argument("--image", metavar="IMG", help="picture of the gripper parked on the plate (default: take it on the cell)")
     p.add_argument("--state", default=None, help="gripper state in the picture (default: the cell's calibrate_in)")
     p.add_argument("--out", default="calibration.yaml", metavar="CAL.yaml", help="calibration file to write")
     p.add_argument(
@@ -47,25 +53,73 @@ def register(sub):
     return p
 
 
+def _camera_file(path, cell):
+    """(camera model, {path, sha256}, (3, 3) covariance of cx, cy, aspect) of a camera file, checked
+    against the cell's picture size."""
+    from selfview.camfile import file_sha256, load_camera_file
+
+    cf = load_camera_file(path)
+    cf.check_size(cell.camera.width, cell.camera.height, f"camera file {path}")
+    return cf.camera, {"path": str(path), "sha256": file_sha256(path)}, cf.covariance[2:5, 2:5]
+
+
 def run(args) -> int:
     from selfview.calfile import save_calibration
+    from selfview.errors import ConfigError
+    from selfview.intrinsics import camera_check, tcp_sigma
     from selfview.offline import calibrate_offline
 
+    url, cam_path = camera_arguments(args.camera)
+    args.camera = url
     cell = load_cell_arg(args)
-    img, sha = read_picture(args.image)
-    res = calibrate_offline(img, cell, state=args.state, mode=args.mode, points=args.points, image_sha256=sha)
-    kept = save_calibration(res.calibration, args.out)
+    camera = camera_file = cov3 = None
+    if cam_path:
+        camera, camera_file, cov3 = _camera_file(cam_path, cell)
+    if args.image:
+        if args.real or url:
+            raise ConfigError("--image calibrates a picture file; --real and a grabber URL are for the cell: give one of them")
+        img, sha = read_picture(args.image)
+        res = calibrate_offline(img, cell, state=args.state, mode=args.mode, points=args.points, image_sha256=sha,
+                                camera=camera, camera_file=camera_file)
+        kept = save_calibration(res.calibration, args.out)
+        source = args.image
+    else:
+        say = progress_printer()
+        cell, session = open_session(args, say)
+        with session:
+            res = session.calibrate_camera(args.out, camera=camera, camera_file=camera_file, state=args.state,
+                                           mode=args.mode)
+        if res is None:  # dry run
+            return 0
+        kept = session.calibration_kept
+        source = "the cell's picture"
     s = res.summary()
     s["out"] = str(args.out)
     s["previous_kept_as"] = str(kept) if kept else None
+    s["camera_file"] = camera_file
+    warnings = []
+    chk = camera_check(res, cell, camera)
+    if chk.get("warning"):
+        w = chk["warning"]
+        if camera is not None:
+            w = "the picture disagrees with the camera file " + str(cam_path) + ": " + w
+        warnings.append(w)
+    s["camera_check"] = {k: v for k, v in chk.items() if k != "warning"}
+    s["tcp_sigma_mm"] = tcp_sigma(res, cell, cov3)["tcp_sigma_mm"]
+    s["warnings"] = warnings
+    for w in warnings:
+        print(f"selfview calibrate: warning: {w}", file=sys.stderr)
     if args.json:
         print_json(s)
         return 0
     H = res.calibration.C_H_G
+    sg = s["tcp_sigma_mm"]
     lines = [
-        f"calibrated {args.image} ({s['discs_used']} discs, corners {', '.join(s['corners_found'])})",
+        f"calibrated {source} ({s['discs_used']} discs, corners {', '.join(s['corners_found'])})"
+        + (f" with the camera of {cam_path}" if cam_path else " with the cell's nominal camera"),
         f"  f = {s['f']:.2f} px   kappa = {s['kappa']:.4e} px^-2   residual rms {s['rms_px']:.3f} px, max {s['max_px']:.3f} px",
         f"  TCP in camera: x {H[0, 3]:+.3f}  y {H[1, 3]:+.3f}  z {H[2, 3]:+.3f} mm   PCC residual {s['pcc_rms_mm']:.3f} mm",
+        f"  TCP 1-sigma:   x {sg[0]:.4f}  y {sg[1]:.4f}  z {sg[2]:.4f} mm",
         "  C_H_G =",
         *(f"    [{' '.join(f'{v:+.6f}' for v in row)}]" for row in H),
         f"written to {args.out}" + (f" (previous kept as {kept})" if kept else ""),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import time
 
 from selfview.procedures.commands._common import print_json
@@ -22,13 +23,18 @@ def register(sub):
             "errors.png. A run never overwrites an earlier run's folder."
         ),
     )
-    # a real cell's imperfections by default: the figures a lab should expect (--profile ideal: a perfect cell)
-    add_session_arguments(p, profile_default="realistic")
+    # a real cell's imperfections and a camera that is not the nominal one by default, measured first as a
+    # lab would with a new camera: the figures a lab should expect (--profile ideal --sim-camera ideal: a
+    # perfect cell)
+    add_session_arguments(p, profile_default="realistic", sim_camera_default="realistic")
     p.add_argument("--trials", type=int, default=20, help="trials per series (default %(default)s)")
     p.add_argument("--series", nargs="+", default=["cable", "tilt"], help="series to run (default: cable tilt)")
     p.add_argument("--out", metavar="DIR", help="results folder (must be new or empty; default runs/experiment-TIME)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.add_argument("--intrinsics", action=argparse.BooleanOptionalAction, default=None,
+                   help="measure the camera first (the robot takes the views of 'selfview intrinsics') and calibrate "
+                        "with it, as a lab does with a new camera (default: on with --sim-camera realistic)")
     p.set_defaults(func=run)
     return p
 
@@ -56,14 +62,33 @@ def run(args) -> int:
         extra = f"; 4P-U vs reference {' '.join(f'{v:.3f}' for v in e4)} mm" if e4 else ""
         say(f"{series} trial {k + 1} of {n} ({done[0]}/{total}), elapsed {el:.0f} s, remaining ~{rem:.0f} s{extra}")
 
+    intrinsics = args.intrinsics if args.intrinsics is not None else (args.sim_camera == "realistic" and not args.real)
+    cam_info = None
     with session:
-        out = session.experiment(series=tuple(args.series), trials=args.trials, on_trial=on_trial)
+        camera = None
+        if intrinsics:
+            from selfview.intrinsics import calibrate_intrinsics
+
+            got = session.intrinsics_views(12)
+            if got is not None:
+                intr = calibrate_intrinsics(got[0], cell.plate, cell.camera.guess(), skip_unusable=True)
+                camera = intr.camera
+                cam_info = {"measured": camera.to_dict(), "sigma": intr.sigma, "views_used": intr.views_used,
+                            "stop_rule_met": intr.stop_rule["met"]}
+                say(f"camera measured from {intr.views_used} views: centre ({camera.cx:.2f}, {camera.cy:.2f}) px, "
+                    f"aspect {camera.aspect:.5f}, f {camera.f:.2f} px")
+        out = session.experiment(series=tuple(args.series), trials=args.trials, on_trial=on_trial, camera=camera)
     if args.dry_run:
         return 0
     records, summary, first = out
+    if cam_info is not None:
+        if session.sim is not None:
+            cam_info["truth"] = session.sim.world.camera.to_dict()
+        summary["camera"] = cam_info
     config = {"trials": args.trials, "series": list(args.series), "seed": args.seed, "real": args.real,
               "profile": None if args.real else args.profile,
-              "time_scale": args.time_scale, "urls": vars(session.urls)}
+              "time_scale": args.time_scale, "urls": vars(session.urls), "sim_camera": args.sim_camera,
+              "intrinsics": bool(intrinsics)}
     results = write_experiment_folder(folder, records, summary, first, cell=cell, config=config)
     if args.json:
         print_json({"folder": str(folder), "summary": summary, "files": results["files"]})

@@ -15,7 +15,7 @@ def test_experiment_writes_its_results_folder(tmp_path, capsys):
     out = tmp_path / "run"
     # the perfect cell: its figures are the method's own (the default, realistic, adds a real cell's errors)
     code = main(["experiment", "--trials", "3", "--out", str(out), "--json", "--quiet", "--seed", "11",
-                 "--profile", "ideal"])
+                 "--profile", "ideal", "--sim-camera", "ideal"])
     assert code == 0
     printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert printed["folder"] == str(out)
@@ -75,6 +75,7 @@ def test_profile_option_where_a_simulated_cell_is_built():
 
     p = build_parser()
     assert p.parse_args(["experiment"]).profile == "realistic"
+    assert p.parse_args(["experiment"]).sim_camera == "realistic"  # a new camera, measured first as a lab would
     for cmd in ("park", "monitor", "devices", "render"):
         extra = {"render": ["--out", "x.png"], "monitor": ["--calibration", "cal.yaml"]}.get(cmd, [])
         assert p.parse_args([cmd, *extra]).profile == "ideal"

@@ -1,0 +1,318 @@
+"""Benchmark: multi-view intrinsics (f, kappa, principal point, aspect) against cv2.calibrateCamera and mrcal.
+
+Study 1, intrinsics (``--cameras`` simulated cameras, default 10, each drawn realistic: principal point up
+to 15 px off, aspect 0.97-1.07): the robot's 12 planned views (``selfview.intrinsics.plan_view_poses``)
+rendered by the project's independent test renderer (``tests/alt_render.py``, in a source tree; the
+project's renderer otherwise, said in the output), the discs detected once per view, and on those same
+detections:
+  - ours: ``calibrate_intrinsics`` (bias-corrected centres, joint LM, covariance scaled by the residual);
+  - ``cv2.calibrateCamera`` (extended, for its standard deviations): centre and aspect free (fx, fy, cx,
+    cy), one radial term (CALIB_ZERO_TANGENT_DIST | CALIB_FIX_K2 | CALIB_FIX_K3), started from the cell's
+    guess, on the raw disc centres and, as a second variant, on our bias-corrected ones; its f is fy, its
+    aspect fy / fx (u = X^ / aspect + cx in ours), its kappa the paper's kappa closest to its k1 over the
+    picture (``bench/offline.py``'s ``kappa_equivalent``);
+  - mrcal where it is installed (``import mrcal``); skipped with a note otherwise.
+Per method: median centre error [px], aspect and f errors [%] against the truth, the RMS of the errors over
+the RMS of the reported sigmas per parameter (1 = honest sigmas), and the median time.
+
+Study 2, one parked picture per camera (the independent renderer): the TCP error of ``calibrate_offline``
+with the measured camera (``--camera``) and with the cell's nominal one, across and along the optical
+axis [mm], against the targets 0.02 and 0.08 mm; with the measured camera also the reported
+``tcp_sigma_mm`` and the errors' RMS over it per camera axis.
+
+Study 3, the camera check (``camera_check``) on ``--pictures`` parked pictures (default 30) of realistic
+cameras and as many of the nominal camera: how often it warns, and on how many of the realistic cameras
+whose nominal calibration misses the targets.
+
+Study 4, the check's reach: parked pictures of cameras a little off the nominal one (centre 0.5 to 4 px
+off, aspect 0.1 to 1 % off), each with whether the nominal calibration misses the targets and whether the
+check warned: one picture pins the centre only to a few tenths of a pixel, so small errors that still
+cost more than 0.02 mm may pass unwarned (the reason to run ``selfview intrinsics`` on every new camera).
+
+Prints one JSON object.
+
+    python bench/intrinsics.py [--cameras 10] [--pictures 30] [--jobs 2] [--quick]
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from concurrent.futures import ProcessPoolExecutor  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").is_file():
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from selfview.cell import default_cell_path, load_cell  # noqa: E402
+from selfview.errors import CellError  # noqa: E402
+from selfview.geometry import inv_H  # noqa: E402
+from selfview.intrinsics import (  # noqa: E402
+    TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics, camera_check, detect_views, plan_view_poses, tcp_sigma,
+)
+from selfview.discs import disc_image_bias  # noqa: E402
+from selfview.mocks.world import SimWorld  # noqa: E402
+from selfview.offline import calibrate_offline  # noqa: E402
+
+try:  # the independent renderer lives beside the tests, in a source tree
+    from tests import alt_render as _alt
+except ImportError:  # pragma: no cover - an installed copy without the tests
+    _alt = None
+
+#: Where the robot's base lies from the reference simulated cell's plate (W's -x).
+LEAN = (-1.0, 0.0)
+CV_FLAGS = ("CALIB_USE_INTRINSIC_GUESS", "CALIB_ZERO_TANGENT_DIST", "CALIB_FIX_K2", "CALIB_FIX_K3")
+ISSUE = {"centre_px": 0.3, "aspect_pct": 0.05, "f_pct": 0.05, "sigma_factor": 2.0}
+
+
+def _render(world, C_H_W, seed):
+    """The independent renderer's picture of the world's camera and gripper with the plate at ``C_H_W``."""
+    return _alt.render(world.camera, world.C_H_G, C_H_W, world.jaw_gap_mm, world.cell, seed=seed).image
+
+
+def _kappa_equivalent(K, dist, w, h, aspect):
+    from selfview.bench.offline import kappa_equivalent
+
+    return kappa_equivalent(K, dist, w, h, aspect)
+
+
+def _cv2(dets, uvs, cam0, size):
+    obj = [d.p_W.astype(np.float32) for d in dets]
+    img = [u.astype(np.float32).reshape(-1, 1, 2) for u in uvs]
+    K0 = np.array([[cam0.f, 0, cam0.cx], [0, cam0.f, cam0.cy], [0, 0, 1.0]])
+    flags = 0
+    for nm in CV_FLAGS:
+        flags |= getattr(cv2, nm)
+    t = time.perf_counter()
+    rms, K, dist, _, _, sd_int, _, _ = cv2.calibrateCameraExtended(obj, img, size, K0, np.zeros(5), flags=flags)
+    dt = time.perf_counter() - t
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    sd = np.ravel(sd_int)
+    aspect = fy / fx
+    return {
+        "f": fy, "cx": cx, "cy": cy, "aspect": aspect,
+        "kappa": _kappa_equivalent(K, dist.ravel(), size[0], size[1], aspect),
+        "sigma": {"f": sd[1], "cx": sd[2], "cy": sd[3], "aspect": aspect * np.hypot(sd[0] / fx, sd[1] / fy)},
+        "rms_px": rms, "seconds": dt,
+    }
+
+
+def _errors(est, truth):
+    return {
+        "centre_px": float(np.hypot(est["cx"] - truth.cx, est["cy"] - truth.cy)),
+        "d": {"f": est["f"] - truth.f, "cx": est["cx"] - truth.cx, "cy": est["cy"] - truth.cy,
+              "aspect": est["aspect"] - truth.aspect},
+        "aspect_pct": float(100 * abs(est["aspect"] / truth.aspect - 1)),
+        "f_pct": float(100 * abs(est["f"] / truth.f - 1)),
+        "kappa_pct": float(100 * abs(est["kappa"] / truth.kappa - 1)),
+    }
+
+
+def one_camera(seed: int) -> dict:
+    cell = load_cell(default_cell_path())
+    w = SimWorld(cell, seed=seed, camera="realistic")
+    cam0 = cell.camera.guess()
+    plan = plan_view_poses(cell, 12, lean_W=LEAN)
+    imgs = [_render(w, w.C_H_G @ inv_H(v["W_H_G"]), 1000 * seed + i) for i, v in enumerate(plan)]
+    dets, names, skipped = detect_views(imgs, cell.plate, cam0, skip_unusable=True)
+    out = {"seed": seed, "truth": {"f": w.camera.f, "kappa": w.camera.kappa, "cx": w.camera.cx, "cy": w.camera.cy,
+                                   "aspect": w.camera.aspect},
+           "views_detected": len(dets), "views_skipped": skipped}
+    try:
+        t = time.perf_counter()
+        r = calibrate_intrinsics(None, cell.plate, cam0, names, detections=dets)
+        dt = time.perf_counter() - t
+    except CellError as exc:
+        out["error"] = f"{type(exc).__name__}: {exc}"
+        return out
+    c = r.camera
+    ours = {"f": c.f, "cx": c.cx, "cy": c.cy, "aspect": c.aspect, "kappa": c.kappa,
+            "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect")}, "rms_px": r.rms_px, "seconds": dt,
+            "stop_rule_met": r.stop_rule["met"], "cross_check_agree": r.cross_check.get("agree"),
+            "views_used": r.views_used}
+    out["selfview"] = {**ours, **_errors(ours, w.camera)}
+    size = (cam0.width, cam0.height)
+    raw = _cv2(dets, [d.uv for d in dets], cam0, size)
+    out["cv2_raw"] = {**raw, **_errors(raw, w.camera)}
+    corrected = [d.uv - disc_image_bias(c, v.C_H_W, d.p_W, cell.plate.disc_diameter / 2) for d, v in zip(dets, r.views)]
+    cor = _cv2(dets, corrected, cam0, size)
+    out["cv2_bias_corrected"] = {**cor, **_errors(cor, w.camera)}
+    # study 2: one parked picture, calibrated with the measured camera and with the nominal one
+    w.park()
+    pic = _render(w, w.C_H_W, 1000 * seed + 999)
+    truth = w.C_H_G[:3, 3]
+    for key, camera in (("tcp_with_camera", c), ("tcp_nominal", None)):
+        try:
+            res = calibrate_offline(pic, cell, camera=camera)
+            e = res.calibration.C_H_G[:3, 3] - truth
+            out[key] = {"across_mm": float(np.hypot(e[0], e[1])), "along_mm": float(abs(e[2])),
+                        "err_mm": [float(v) for v in e]}
+            if camera is not None:
+                out[key]["tcp_sigma_mm"] = tcp_sigma(res, cell, r.covariance[2:5, 2:5])["tcp_sigma_mm"]
+            if camera is None:
+                out[key]["warned"] = camera_check(res, cell)["warning"] is not None
+        except CellError as exc:
+            out[key] = {"error": f"{type(exc).__name__}: {exc}"}
+    return out
+
+
+#: Study 4's cameras: offsets of the centre [px] (along u) and aspects.
+SMALL = ([{"principal_point": [383.5 + d, 287.5]} for d in (0.5, 1.0, 2.0, 4.0)]
+         + [{"aspect": a} for a in (1.001, 1.003, 1.01)])
+
+
+def one_picture(args) -> dict:
+    seed, kind = args
+    cell = load_cell(default_cell_path())
+    w = SimWorld(cell, seed=seed, camera=kind)
+    if isinstance(kind, dict):
+        kind = "small: " + ", ".join(f"{k} {v}" for k, v in kind.items())
+    w.park()
+    pic = _render(w, w.C_H_W, 7 + seed)
+    try:
+        res = calibrate_offline(pic, cell)
+    except CellError as exc:
+        return {"seed": seed, "kind": kind, "error": f"{type(exc).__name__}: {exc}"}
+    e = res.calibration.C_H_G[:3, 3] - w.C_H_G[:3, 3]
+    chk = camera_check(res, cell)
+    across, along = float(np.hypot(e[0], e[1])), float(abs(e[2]))
+    return {"seed": seed, "kind": kind, "across_mm": across, "along_mm": along,
+            "misses_targets": bool(across > TARGET_ACROSS_MM or along > TARGET_ALONG_MM),
+            "warned": chk["warning"] is not None, "chi2": chk.get("chi2"),
+            "offset_px": float(np.hypot(w.camera.cx - 383.5, w.camera.cy - 287.5)), "aspect": w.camera.aspect}
+
+
+def _median(v):
+    v = [x for x in v if x is not None and np.isfinite(x)]
+    return float(statistics.median(v)) if v else None
+
+
+def table(per_camera):
+    ok = [p for p in per_camera if "selfview" in p]
+    out = {}
+    for m in ("selfview", "cv2_raw", "cv2_bias_corrected"):
+        rows = [p[m] for p in ok]
+        if not rows:
+            continue
+        entry = {
+            "median_centre_err_px": _median([r["centre_px"] for r in rows]),
+            "median_aspect_err_pct": _median([r["aspect_pct"] for r in rows]),
+            "median_f_err_pct": _median([r["f_pct"] for r in rows]),
+            "median_kappa_err_pct": _median([r["kappa_pct"] for r in rows]),
+            "median_seconds": _median([r["seconds"] for r in rows]),
+            "median_sigma": {k: _median([r["sigma"][k] for r in rows]) for k in ("f", "cx", "cy", "aspect")},
+        }
+        # observed spread (RMS of the errors) over the RMS of the reported sigmas, per parameter
+        entry["spread_over_sigma"] = {
+            k: float(np.sqrt(np.mean([r["d"][k] ** 2 for r in rows])) / np.sqrt(np.mean([r["sigma"][k] ** 2 for r in rows])))
+            for k in ("f", "cx", "cy", "aspect")
+        }
+        out[m] = entry
+    s = out.get("selfview")
+    if s:
+        out["selfview_meets_issue"] = {
+            "centre": s["median_centre_err_px"] < ISSUE["centre_px"],
+            "aspect": s["median_aspect_err_pct"] < ISSUE["aspect_pct"],
+            "f": s["median_f_err_pct"] < ISSUE["f_pct"],
+            "sigmas_within_factor_2": all(1 / ISSUE["sigma_factor"] <= v <= ISSUE["sigma_factor"]
+                                          for v in s["spread_over_sigma"].values()),
+        }
+    for key in ("tcp_with_camera", "tcp_nominal"):
+        rows = [p[key] for p in ok if key in p and "error" not in p[key]]
+        if rows:
+            out[key] = {"median_across_mm": _median([r["across_mm"] for r in rows]),
+                        "median_along_mm": _median([r["along_mm"] for r in rows]),
+                        "max_across_mm": max(r["across_mm"] for r in rows),
+                        "max_along_mm": max(r["along_mm"] for r in rows), "n": len(rows)}
+            if key == "tcp_with_camera":
+                # the TCP errors' RMS per camera axis over the RMS of the reported tcp_sigma_mm (1 = honest)
+                e = np.array([r["err_mm"] for r in rows])
+                sg = np.array([r["tcp_sigma_mm"] for r in rows])
+                out[key]["spread_over_tcp_sigma"] = [float(v) for v in np.sqrt((e**2).mean(0)) / np.sqrt((sg**2).mean(0))]
+                out[key]["median_tcp_sigma_mm"] = [float(v) for v in np.median(sg, axis=0)]
+    return out
+
+
+def rates(pics):
+    out = {}
+    for kind in ("ideal", "realistic"):
+        rows = [p for p in pics if p["kind"] == kind and "error" not in p]
+        costly = [p for p in rows if p["misses_targets"]]
+        out[kind] = {
+            "pictures": len(rows), "failed": sum(1 for p in pics if p["kind"] == kind and "error" in p),
+            "warned": sum(p["warned"] for p in rows),
+            "warning_rate": (sum(p["warned"] for p in rows) / len(rows)) if rows else None,
+            "miss_targets": len(costly),
+            "warned_when_missing_targets": (sum(p["warned"] for p in costly) / len(costly)) if costly else None,
+            "max_chi2": max((p["chi2"] or 0.0) for p in rows) if rows else None,
+        }
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cameras", type=int, default=10, help="simulated cameras for the intrinsics table (default 10)")
+    ap.add_argument("--pictures", type=int, default=30, help="parked pictures per kind for the warning rates (default 30)")
+    ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
+    ap.add_argument("--quick", action="store_true", help="a small run: 2 cameras, 4 pictures per kind")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.cameras, args.pictures = 2, 4
+    if args.cameras < 1 or args.pictures < 1:
+        ap.error("expected --cameras >= 1 and --pictures >= 1")
+    if _alt is None:
+        print(json.dumps({"benchmark": "intrinsics", "skipped": "the independent renderer (tests/alt_render.py) is "
+                                                                 "not beside this copy: run from a source tree"}))
+        return 0
+    t0 = time.perf_counter()
+    seeds = list(range(args.cameras))
+    work = [(100 + s, k) for k in ("ideal", "realistic") for s in range(args.pictures)]
+    work += [(200 + i, k) for i, k in enumerate(SMALL)]
+    if args.jobs > 1:
+        with ProcessPoolExecutor(args.jobs) as ex:
+            per_camera = list(ex.map(one_camera, seeds))
+            pics = list(ex.map(one_picture, work))
+    else:
+        per_camera = [one_camera(s) for s in seeds]
+        pics = [one_picture(a) for a in work]
+    try:
+        import mrcal  # noqa: F401
+
+        mrcal_note = "installed but not wired in this benchmark"
+    except ImportError:
+        mrcal_note = "mrcal is not installed (Debian's python3-mrcal): skipped"
+    out = {
+        "benchmark": "multi-view intrinsics vs cv2.calibrateCamera (and mrcal)",
+        "renderer": "tests/alt_render.py (independent)",
+        "views_per_camera": 12,
+        "intrinsics": table(per_camera),
+        "issue_targets": ISSUE,
+        "tcp_targets_mm": {"across": TARGET_ACROSS_MM, "along": TARGET_ALONG_MM},
+        "camera_check": rates(pics),
+        "camera_check_small_errors": [
+            {k: p.get(k) for k in ("kind", "across_mm", "along_mm", "misses_targets", "warned", "chi2", "error")}
+            for p in pics if str(p["kind"]).startswith("small")],
+        "mrcal": mrcal_note,
+        "opencv_flags": " | ".join(CV_FLAGS) + " (fx, fy, cx, cy free)",
+        "per_camera": per_camera,
+        "pictures": pics,
+        "seconds": round(time.perf_counter() - t0, 1),
+        "versions": {"numpy": np.__version__, "opencv": cv2.__version__, "python": sys.version.split()[0]},
+    }
+    print(json.dumps(out, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,158 @@
+"""``selfview intrinsics``: measure the camera (f, kappa, principal point, aspect) from several views of the plate.
+
+With ``--images`` it calibrates picture files; without, the robot takes the views on the cell (simulated
+by default, or ``--real``): from above the plate it moves through a planned set of poses (checked against
+the limits before the first motion), grabs a picture at each and goes back above the plate.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import sys
+from pathlib import Path
+
+from selfview.procedures.commands._common import print_json
+from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
+
+
+def register(sub):
+    p = sub.add_parser(
+        "intrinsics",
+        help="measure the camera (f, kappa, principal point, aspect, with uncertainties) from several views of the plate",
+        description=(
+            "Joint calibration of f, kappa, the principal point, the aspect and every view's plate pose from "
+            "several pictures of the plate (the off-line calibration's bias-corrected disc centres), with the "
+            "uncertainty from the covariance scaled by the residual. It says whether the views pin the centre "
+            "(sigma < 0.3 px) and the aspect (sigma < 0.05 %), and if not how many more views of which kind "
+            "would; it cross-checks two halves of the views. --out writes a camera file (atomically, the "
+            "previous one kept in OUT.history/) for 'selfview calibrate --camera'; it is only written when the "
+            "stop rule is met (or with --force). Without --images the robot takes the views."
+        ),
+    )
+    add_session_arguments(p)
+    p.add_argument("--images", nargs="+", metavar="IMG", help="pictures of the plate from different poses (no devices)")
+    p.add_argument("--views", type=int, default=12, help="views the robot takes on the cell (default %(default)s)")
+    p.add_argument("--skip-unusable", action="store_true",
+                   help="skip a picture without the plate (listed in the output) instead of refusing the set")
+    p.add_argument("--out", metavar="CAMERA.yaml", help="write the camera file here")
+    p.add_argument("--force", action="store_true", help="write --out even when the stop rule is not met")
+    p.add_argument("--save-views", metavar="DIR", help="on the cell: write the pictures taken into DIR")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.set_defaults(func=run)
+    return p
+
+
+def _check_args(args) -> None:
+    from selfview.errors import ConfigError
+
+    if args.images and args.real:
+        raise ConfigError("--images calibrates picture files; --real takes the views on the cell: give one of them")
+    if args.views < 1:
+        raise ConfigError(f"--views: expected a positive number of views, got {args.views}")
+    if args.out:
+        out = Path(args.out)
+        if out.exists() and out.is_dir():
+            raise ConfigError(f"--out {out}: is a folder; expected a camera file name")
+
+
+def run(args) -> int:
+    from selfview import __version__
+    from selfview.camfile import CameraFile, save_camera_file
+    from selfview.cell import default_cell_path, load_cell
+    from selfview.intrinsics import calibrate_intrinsics
+    from selfview.procedures.commands._common import write_image
+    from selfview.procedures.commands.calibrate import read_picture
+
+    _check_args(args)
+    say = progress_printer()
+    if args.images:
+        cell = load_cell(args.cell or default_cell_path())
+        images, names, pictures = [], [], []
+        for path in args.images:
+            img, sha = read_picture(path)
+            images.append(img)
+            names.append(str(path))
+            pictures.append({"name": Path(path).name, "sha256": sha})
+        source = "pictures"
+    else:
+        cell, session = open_session(args, say)
+        with session:
+            got = session.intrinsics_views(args.views)
+        if got is None:  # dry run
+            return 0
+        images, poses = got
+        import hashlib
+
+        import numpy as np
+
+        names = [f"view {i + 1}" for i in range(len(images))]
+        pictures = [{"name": nm, "sha256": hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest()}
+                    for nm, img in zip(names, images)]
+        if args.save_views:
+            folder = Path(args.save_views)
+            folder.mkdir(parents=True, exist_ok=True)
+            for i, img in enumerate(images):
+                write_image(folder / f"view_{i + 1:02d}.png", img, "--save-views")
+        source = "cell (real)" if args.real else f"simulated cell (seed {args.seed}, camera {args.sim_camera})"
+    res = calibrate_intrinsics(images, cell.plate, cell.camera.guess(), names, skip_unusable=args.skip_unusable or not args.images)
+    s = res.summary()
+    s["source"] = source
+    warnings = []
+    for sk in res.skipped:
+        warnings.append(f"{sk['name']} not used: {sk['reason']}")
+    if not res.stop_rule["met"]:
+        warnings.append("stop rule not met: sigma of the centre {:.3f} px (limit {}), of the aspect {:.4f} % (limit {} %); {}".format(
+            res.stop_rule["sigma_centre_px"], res.stop_rule["limit_centre_px"], res.stop_rule["sigma_aspect_pct"],
+            res.stop_rule["limit_aspect_pct"], res.stop_rule.get("advice", "")))
+    xc = res.cross_check
+    if xc.get("done") and not xc.get("agree"):
+        worst = max(xc["ratio"], key=xc["ratio"].get)
+        warnings.append(f"the two halves of the views disagree: {worst} differs by {xc['ratio'][worst]:.1f} combined sigmas "
+                        f"(limit {xc['limit_sigmas']:g}); a view may be blurred, or the camera moved between views")
+    s["warnings"] = warnings
+    if not args.images and getattr(session, "sim", None) is not None:
+        t = session.sim.world.camera
+        s["truth"] = {"f": t.f, "kappa": t.kappa, "principal_point": [t.cx, t.cy], "aspect": t.aspect}
+    for w in warnings:
+        print(f"selfview intrinsics: warning: {w}", file=sys.stderr)
+    written = None
+    if args.out:
+        if res.stop_rule["met"] or args.force:
+            cf = CameraFile(
+                res.camera, res.sigma, res.covariance,
+                figures={k: s[k] for k in ("rms_px", "views_used", "projection_sigma_px", "stop_rule", "cross_check")},
+                provenance={"pictures": pictures, "source": source, "cell_sha256": cell.sha256,
+                            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                            "software": f"selfview {__version__}"},
+            )
+            kept = save_camera_file(cf, args.out)
+            written = str(args.out)
+            s["previous_kept_as"] = str(kept) if kept else None
+        else:
+            s["out"] = None
+    s["out"] = written
+    if args.json:
+        print_json(s)
+    else:
+        c = res.camera
+        sg = res.sigma
+        ps = res.projection_sigma_px
+        lines = [
+            f"camera from {res.views_used} views ({source}), residual rms {res.rms_px:.3f} px",
+            f"  f      = {c.f:.3f} +- {sg['f']:.3f} px",
+            f"  kappa  = {c.kappa:.4e} +- {sg['kappa']:.1e} px^-2",
+            f"  centre = ({c.cx:.2f}, {c.cy:.2f}) +- ({sg['cx']:.2f}, {sg['cy']:.2f}) px",
+            f"  aspect = {c.aspect:.5f} +- {sg['aspect']:.5f}",
+            f"  projection uncertainty: centre {ps['centre']:.3f} px, corners "
+            + ", ".join(f"{ps[k]:.3f}" for k in ("top_left", "top_right", "bottom_left", "bottom_right")) + " px",
+            "  stop rule: " + ("met" if res.stop_rule["met"] else "NOT met: " + res.stop_rule.get("advice", "")),
+            "  cross-check: " + (("halves agree" if xc["agree"] else "halves DISAGREE") if xc.get("done") else xc["why"]),
+        ]
+        if written:
+            lines.append(f"written to {written}")
+        elif args.out:
+            lines.append(f"{args.out} not written: the stop rule is not met (take the views advised, or --force)")
+        print("\n".join(lines))
+    if args.out and not written:
+        return 5
+    return 0

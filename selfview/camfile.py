@@ -1,0 +1,131 @@
+"""Camera files: a camera's measured interior orientation, its uncertainty and where it came from.
+
+A camera file is a YAML document (``format: selfview-camera``, ``version: 1``) written by ``selfview
+intrinsics``: f, kappa, principal point, aspect and picture size; their 1-sigma and covariance; the
+residual, the stop rule and the cross-check; provenance (the pictures' SHA-256, the time, the software
+and Python/NumPy/OpenCV versions, the cell file's hash) and a checksum over all of it. It is written
+like a calibration file (``selfview.calfile``): atomically, the previous file kept in ``<name>.history/``,
+and a foreign or altered file is refused (``CalibrationFileError``) and never overwritten.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import platform
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from selfview import __version__
+from selfview.calfile import _checksum, _plain, replace_keeping_history
+from selfview.io_safe import load_yaml
+from selfview.camera import CameraModel
+from selfview.errors import CalibrationFileError, ConfigError
+
+__all__ = ["CameraFile", "load_camera_file", "save_camera_file", "FORMAT", "VERSION", "INTRINSIC_NAMES"]
+
+FORMAT = "selfview-camera"
+VERSION = 1
+INTRINSIC_NAMES = ("f", "kappa", "cx", "cy", "aspect")
+
+
+@dataclass
+class CameraFile:
+    """A measured camera: ``camera``; ``sigma`` name -> 1-sigma (f, kappa, cx, cy, aspect); ``covariance``
+    (5, 5) in that order; ``figures`` what the calibration reported (rms_px, views_used, stop rule,
+    cross-check, projection uncertainty); ``provenance`` (pictures, created, software, versions, cell)."""
+
+    camera: CameraModel
+    sigma: dict
+    covariance: np.ndarray
+    figures: dict = field(default_factory=dict)
+    provenance: dict = field(default_factory=dict)
+
+    def to_document(self) -> dict:
+        prov = dict(self.provenance)
+        prov.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+        prov.setdefault("software", f"selfview {__version__}")
+        prov.setdefault("versions", _versions())
+        doc = {
+            "format": FORMAT,
+            "version": VERSION,
+            "camera": self.camera.to_dict(),
+            "sigma": {k: float(self.sigma[k]) for k in INTRINSIC_NAMES},
+            "covariance": [[float(v) for v in row] for row in np.asarray(self.covariance, float)],
+            "figures": _plain(self.figures),
+            "provenance": _plain(prov),
+        }
+        doc["checksum"] = _checksum(doc)
+        return doc
+
+    @classmethod
+    def from_document(cls, doc: Any, source: str = "<memory>") -> "CameraFile":
+        if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+            raise CalibrationFileError(f"{source}: not a selfview camera file (no 'format: {FORMAT}'; "
+                                       "write one with 'selfview intrinsics --out')")
+        if doc.get("version") != VERSION:
+            raise CalibrationFileError(
+                f"{source}: camera file version {doc.get('version')!r}; this selfview reads version {VERSION}")
+        body = {k: v for k, v in doc.items() if k != "checksum"}
+        if doc.get("checksum") != _checksum(body):
+            raise CalibrationFileError(f"{source}: checksum mismatch; the camera file was altered or corrupted "
+                                       "(measure again with 'selfview intrinsics', or restore it from its .history folder)")
+        try:
+            c = doc["camera"]
+            camera = CameraModel(f=float(c["f"]), kappa=float(c["kappa"]), cx=float(c["principal_point"][0]),
+                                 cy=float(c["principal_point"][1]), aspect=float(c["aspect"]),
+                                 width=int(c["width"]), height=int(c["height"]))
+            sigma = {k: float(doc["sigma"][k]) for k in INTRINSIC_NAMES}
+            cov = np.array(doc["covariance"], dtype=float).reshape(5, 5)
+        except (KeyError, TypeError, ValueError, IndexError, ConfigError) as exc:
+            raise CalibrationFileError(f"{source}: malformed camera file ({exc})") from exc
+        return cls(camera, sigma, cov, dict(doc.get("figures") or {}), dict(doc.get("provenance") or {}))
+
+    def check_size(self, width: int, height: int, source: str = "camera file") -> None:
+        """``ConfigError`` unless the file's picture size is ``width`` x ``height``."""
+        c = self.camera
+        if (int(c.width), int(c.height)) != (int(width), int(height)):
+            raise ConfigError(f"{source} was measured on {c.width}x{c.height} pictures; this cell's camera gives "
+                              f"{width}x{height}: it belongs to another camera or grabber setting")
+
+
+def _versions() -> dict:
+    out = {"python": platform.python_version(), "numpy": np.__version__}
+    try:
+        import cv2
+
+        out["opencv"] = cv2.__version__
+    except ImportError:  # pragma: no cover - OpenCV is a dependency
+        pass
+    return out
+
+
+def load_camera_file(path) -> CameraFile:
+    """Read and verify a camera file; ``CalibrationFileError`` naming the fault."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CalibrationFileError(f"{p}: no such camera file (run 'selfview intrinsics --out {p.name}' first)") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CalibrationFileError(f"{p}: cannot read the camera file ({exc})") from exc
+    doc = load_yaml(text, str(p), error=CalibrationFileError, what="camera file")
+    return CameraFile.from_document(doc, source=str(p))
+
+
+def file_sha256(path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def save_camera_file(cf: CameraFile, path, *, keep_history: bool = True) -> Path | None:
+    """Write ``cf`` to ``path`` atomically, the previous file kept in ``<name>.history/``; refuses
+    (nothing written) to replace a file that is not a valid camera file. Returns the history copy."""
+    p = Path(path)
+    text = yaml.safe_dump(cf.to_document(), sort_keys=False, default_flow_style=None, width=120)
+    # what we are about to write must read back, before it replaces anything
+    CameraFile.from_document(load_yaml(text, str(p), error=CalibrationFileError, what="camera file"), source=str(p))
+    return replace_keeping_history(p, text, load_camera_file, what="camera file", keep_history=keep_history)

@@ -1,0 +1,851 @@
+"""Multi-view calibration of the interior orientation: f, kappa, principal point and aspect.
+
+Tsai's coplanar method, as the paper uses it, takes the principal point (cx, cy) and the horizontal
+scale factor ``aspect`` as known. One picture of a plane hardly separates them from f and the plate's
+tilt; several pictures of the plate from different poses do. ``calibrate_intrinsics`` finds f, kappa,
+cx, cy, aspect and every view's plate pose ``C_H_W`` jointly by Levenberg-Marquardt with an analytic
+Jacobian (on the normal equations, assembled view by view: ``selfview.lm``'s SVD of the whole Jacobian
+per iteration costs far more for 5 + 6 V parameters), on the same disc centres as the off-line
+calibration (``selfview.discs``: sub-pixel centroids, then their perspective/lens bias removed with the
+current model, refitted), minimising the distorted pixel error of the camera model of ``selfview.camera``.
+
+Uncertainty: the covariance of the parameters is ``s^2 (J^T J)^-1`` with ``s^2`` the residual variance
+(sum of squares over the degrees of freedom); the 1-sigma of f, kappa, cx, cy, aspect is the square root
+of its diagonal. The projection uncertainty at a pixel q is the 1-sigma length (sqrt of the trace) of the
+2-D covariance of the pixel where q's ray lands under the intrinsics' covariance (pose marginalised);
+being in the camera frame it does not depend on the range.
+
+Stop rule: the views pin the centre when sigma(cx) and sigma(cy) are both below ``STOP_CENTRE_PX`` and
+the aspect when sigma(aspect) / aspect is below ``STOP_ASPECT_REL``. When they do not, the information a
+further view of a given kind would add (its Jacobian at the current estimate, its own pose eliminated by
+the Schur complement) says how many more views of that kind would.
+
+Cross-check: the views are split in two halves (alternately, in order), each calibrated apart; the halves
+agree when every parameter differs by at most ``AGREE_SIGMAS`` times their combined 1-sigma.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from selfview.camera import CameraModel, distort
+from selfview.cell import PlateSpec
+from selfview.discs import DiscDetections, detect_discs, disc_image_bias
+from selfview.errors import CalibrationError, ImageError
+from selfview.tsai import _cross, _left_jacobian
+from selfview.geometry import R_from_rotvec, make_H, rot_axis, trans, transform_points
+
+__all__ = [
+    "INTRINSIC_NAMES", "IntrinsicsResult", "ViewFit", "calibrate_intrinsics", "detect_views", "fit_views",
+    "projection_sigma_px", "MIN_VIEWS", "STOP_CENTRE_PX", "STOP_ASPECT_REL",
+]
+
+INTRINSIC_NAMES = ("f", "kappa", "cx", "cy", "aspect")
+#: Fewest usable views a joint calibration accepts (and each half of the cross-check).
+MIN_VIEWS = 4
+MIN_VIEWS_HALF = 3
+#: Stop rule: the centre pinned to sigma below this in each axis [px], the aspect to this relative sigma.
+STOP_CENTRE_PX = 0.3
+STOP_ASPECT_REL = 0.0005
+#: The halves of the cross-check agree when no parameter differs by more than this many combined sigmas.
+AGREE_SIGMAS = 3.0
+#: A disc centre this many residual RMS (and at least ``OUTLIER_MIN_PX``) from the model is dropped.
+OUTLIER_RMS = 4.0
+OUTLIER_MIN_PX = 0.5
+#: A view whose residual RMS exceeds this [px] after the fit does not belong to the set (another
+#: plate, a moved camera, a blurred picture) and is dropped.
+VIEW_MAX_RMS_PX = 1.5
+#: Bias-correction rounds (centroid -> image of the centre) after the first fit.
+BIAS_ROUNDS = 2
+#: Views whose plate normals (in the camera frame) all lie within this of their mean direction [deg] see
+#: parallel planes (the gripper straight down, only lifted and turned; or all square-on): they cannot pin
+#: the principal point (Zhang: parallel planes add no constraint on the interior orientation).
+PARALLEL_DEG = 5.0
+#: Above this sigma of the centre [px] the views do not determine it at all.
+UNDETERMINED_CENTRE_PX = 5.0
+#: Most further views the advice considers per kind.
+MAX_MORE_VIEWS = 60
+#: Finite-difference steps of the numeric Jacobian: f (relative), kappa [px^-2], cx, cy [px], aspect,
+#: rotation [rad], translation [mm].
+_STEP = np.array([1e-6, 1e-12, 1e-4, 1e-4, 1e-7])
+_POSE_STEP = np.array([1e-7, 1e-7, 1e-7, 1e-5, 1e-5, 1e-5])
+
+
+# --- the model ------------------------------------------------------------------------------------
+def _project(intr, R, t, p_W) -> np.ndarray:
+    """(N, 2) distorted pixels of plate points ``p_W`` (N, 3) seen at pose (R, t) by intrinsics
+    ``intr`` = (f, kappa, cx, cy, aspect); NaN where a point is behind the camera or beyond the fold."""
+    f, kappa, cx, cy, aspect = intr
+    pc = p_W @ R.T + t
+    z = pc[:, 2]
+    if np.any(z <= 0) or f <= 0 or aspect <= 0:
+        return np.full((len(p_W), 2), np.nan)
+    XY = f * pc[:, :2] / z[:, None]
+    try:
+        XYh = distort(XY, kappa)
+    except CalibrationError:
+        return np.full((len(p_W), 2), np.nan)
+    return np.column_stack([XYh[:, 0] / aspect + cx, XYh[:, 1] + cy])
+
+
+class _Joint:
+    """Parameters x = (f, kappa, cx, cy, aspect, then per view omega (3), t (3)) with view k's rotation
+    exp(omega_k) R0_k; residuals model minus observation, per view (u then v of its points)."""
+
+    def __init__(self, p_W: list, uv: list, R0: list):
+        self.p_W, self.uv, self.R0 = p_W, uv, R0
+        self.n = [len(p) for p in p_W]
+        self.off = np.concatenate([[0], np.cumsum([2 * k for k in self.n])])
+
+    def view(self, x, k) -> np.ndarray:
+        j = 5 + 6 * k
+        R = R_from_rotvec(x[j : j + 3]) @ self.R0[k]
+        m = _project(x[:5], R, x[j + 3 : j + 6], self.p_W[k])
+        return (m - self.uv[k]).T.ravel()
+
+    def residuals(self, x) -> np.ndarray:
+        return np.concatenate([self.view(x, k) for k in range(len(self.p_W))])
+
+    def jacobian(self, x) -> np.ndarray:
+        """Analytic (as ``selfview.tsai``'s full model, with cx, cy and the aspect added)."""
+        f, kappa, cx, cy, aspect = x[:5]
+        J = np.zeros((int(self.off[-1]), len(x)))
+        for k in range(len(self.p_W)):
+            j = 5 + 6 * k
+            d = self.p_W[k] @ (R_from_rotvec(x[j : j + 3]) @ self.R0[k]).T
+            pc = d + x[j + 3 : j + 6]
+            z = pc[:, 2]
+            if np.any(z <= 0):
+                raise CalibrationError("intrinsics: a disc lies behind the camera near the current parameters")
+            X, Y = f * pc[:, 0] / z, f * pc[:, 1] / z
+            XYh = distort(np.column_stack([X, Y]), kappa)
+            Xh, Yh = XYh[:, 0], XYh[:, 1]
+            rh2 = Xh * Xh + Yh * Yh
+            a = 1.0 + kappa * rh2
+            c = 2.0 * kappa / (a + 2.0 * kappa * rh2)
+            m00, m11, m01 = (1.0 - c * Xh * Xh) / a, (1.0 - c * Yh * Yh) / a, -c * Xh * Yh / a
+            Jl = _left_jacobian(x[j : j + 3])
+            n = len(z)
+            r0 = self.off[k]
+            for row, (mu0, mu1), extra in ((0, (m00 / aspect, m01 / aspect), 1), (1, (m01, m11), 0)):
+                g = np.column_stack([mu0, mu1, -(mu0 * X + mu1 * Y) / f]) * (f / z)[:, None]
+                rows = slice(r0 + row * n, r0 + (row + 1) * n)
+                J[rows, 0] = (mu0 * X + mu1 * Y) / f
+                J[rows, 1] = -(mu0 * Xh + mu1 * Yh) * rh2
+                J[rows, j : j + 3] = _cross(d, g) @ Jl
+                J[rows, j + 3 : j + 6] = g
+            J[r0 : r0 + n, 2] = 1.0
+            J[r0 + n : r0 + 2 * n, 3] = 1.0
+            J[r0 : r0 + n, 4] = -Xh / aspect**2
+        if not np.all(np.isfinite(J)):
+            raise CalibrationError("intrinsics: the model cannot see every disc near the current parameters")
+        return J
+
+    def pose(self, x, k) -> np.ndarray:
+        j = 5 + 6 * k
+        return make_H(R_from_rotvec(x[j : j + 3]) @ self.R0[k], x[j + 3 : j + 6])
+
+
+@dataclass
+class ViewFit:
+    """One view in the joint fit: ``name``; ``C_H_W`` (4, 4); ``discs`` used; ``rms_px`` of its residuals;
+    ``tilt_deg`` angle between the plate's normal and the optical axis; ``distance_mm`` to the plate's
+    origin; ``dropped`` disc centres dropped as outliers."""
+
+    name: str
+    C_H_W: np.ndarray
+    discs: int
+    rms_px: float
+    tilt_deg: float
+    distance_mm: float
+    dropped: int = 0
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "discs": self.discs, "rms_px": float(self.rms_px), "tilt_deg": float(self.tilt_deg),
+                "distance_mm": float(self.distance_mm), "dropped": self.dropped,
+                "C_H_W": np.asarray(self.C_H_W).tolist()}
+
+
+@dataclass
+class _Fit:
+    camera: CameraModel
+    cov5: np.ndarray
+    cov_full: np.ndarray
+    jac: np.ndarray
+    s2: float
+    rms_px: float
+    views: list
+    uv_used: list
+    p_W_used: list
+
+
+@dataclass
+class _LMOut:
+    x: np.ndarray
+    residuals: np.ndarray
+    jacobian: np.ndarray
+    cost: float
+    converged: bool
+    message: str
+
+
+def _normal(J, r, off) -> tuple[np.ndarray, np.ndarray]:
+    """J^T J and J^T r of the joint problem, view by view (``off`` its row offsets): each view's rows
+    touch only the 5 intrinsics and its own 6 pose parameters, so the products stay small."""
+    p = J.shape[1]
+    A = np.zeros((p, p))
+    g = np.zeros(p)
+    for k in range(len(off) - 1):
+        cols = np.r_[0:5, 5 + 6 * k : 11 + 6 * k]
+        Jk = J[off[k] : off[k + 1]][:, cols]
+        A[np.ix_(cols, cols)] += Jk.T @ Jk
+        g[cols] += Jk.T @ r[off[k] : off[k + 1]]
+    return A, g
+
+
+def _lm_normal(fun, jac, x0, off, *, max_iter: int = 100, rtol: float = 1e-12) -> _LMOut:
+    """Levenberg-Marquardt on the normal equations, damping scaled by their diagonal (Marquardt).
+
+    The joint problem has 5 + 6 V parameters and thousands of residuals; ``selfview.lm``'s SVD of the
+    whole Jacobian per iteration costs far more than the (5 + 6 V)-square normal equations here, and the
+    problem is well scaled once the columns are. Stops when the cost's relative decrease or the step's
+    relative size falls below ``rtol``."""
+    x = np.asarray(x0, float).copy()
+    r = fun(x)
+    if not np.all(np.isfinite(r)):
+        raise CalibrationError("intrinsics: the model cannot see every disc at the starting parameters")
+    cost = float(r @ r)
+    lam = 1e-3
+    J = jac(x)
+    converged, message = False, f"no convergence in {max_iter} iterations"
+    for _ in range(max_iter):
+        A, g = _normal(J, r, off)
+        dA = np.sqrt(np.where(np.diag(A) > 0, np.diag(A), 1.0))
+        As = A / np.outer(dA, dA)
+        gs = g / dA
+        improved = False
+        for _ in range(30):
+            try:
+                step = -np.linalg.solve(As + lam * np.eye(len(x)), gs) / dA
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            xn = x + step
+            rn = fun(xn)
+            cn = float(rn @ rn) if np.all(np.isfinite(rn)) else np.inf
+            if cn <= cost:
+                improved = True
+                break
+            lam *= 10
+        if not improved:
+            converged, message = True, "no further decrease"
+            break
+        rel = (cost - cn) / max(cost, 1e-300)
+        small = float(np.linalg.norm(step * dA)) <= rtol * max(float(np.linalg.norm(x * dA)), 1e-300)
+        x, r, cost = xn, rn, cn
+        lam = max(lam / 10, 1e-12)
+        J = jac(x)
+        if rel <= rtol or small:
+            converged, message = True, "relative decrease of the cost or of the step below tolerance"
+            break
+    return _LMOut(x, r, J, cost, converged, message)
+
+
+def _covariance(J, s2, off) -> np.ndarray:
+    """``s2 (J^T J)^-1`` with the columns scaled (inf everywhere if J is rank-deficient)."""
+    A, _ = _normal(J, np.zeros(len(J)), off)
+    d = np.sqrt(np.where(np.diag(A) > 0, np.diag(A), 1.0))
+    As = A / np.outer(d, d)
+    w = np.linalg.eigvalsh(As)
+    if not (np.all(np.isfinite(w)) and w[0] > 1e-14 * w[-1]):
+        return np.full(A.shape, np.inf)
+    return s2 * np.linalg.inv(As) / np.outer(d, d)
+
+
+def _initial_pose(p_W, uv, camera: CameraModel) -> np.ndarray:
+    """A first ``C_H_W`` of one view: planar PnP (IPPE) on the undistorted pixels of ``camera``."""
+    und = camera.undistorted_pixels(uv)
+    K = np.array([[camera.f / camera.aspect, 0, camera.cx], [0, camera.f, camera.cy], [0, 0, 1.0]])
+    ok, rv, tv = cv2.solvePnP(p_W.astype(np.float64), und.astype(np.float64), K, None, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        raise CalibrationError("intrinsics: no first pose for a view (planar PnP failed)")
+    H = make_H(cv2.Rodrigues(rv)[0], tv.ravel())
+    if H[2, 3] <= 0:
+        raise CalibrationError("intrinsics: a view's plate lies behind the camera")
+    return H
+
+
+def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list) -> _Fit:
+    """Joint LM from ``camera0`` and ``poses0``; drops outlying discs once and refits."""
+    keep = [np.ones(len(p), bool) for p in p_W]
+    for attempt in range(2):
+        P = [p[k] for p, k in zip(p_W, keep)]
+        U = [u[k] for u, k in zip(uv, keep)]
+        model = _Joint(P, U, [H[:3, :3] for H in poses0])
+        x0 = np.concatenate([[camera0.f, camera0.kappa, camera0.cx, camera0.cy, camera0.aspect],
+                             *[np.concatenate([np.zeros(3), H[:3, 3]]) for H in poses0]])
+        res = _lm_normal(model.residuals, model.jacobian, x0, model.off)
+        poses0 = [model.pose(res.x, k) for k in range(len(P))]
+        camera0 = camera0.with_(f=float(res.x[0]), kappa=float(res.x[1]), cx=float(res.x[2]), cy=float(res.x[3]),
+                                aspect=float(res.x[4]))
+        dist = [np.hypot(*model.view(res.x, k).reshape(2, -1)) for k in range(len(P))]
+        rms = float(np.sqrt(np.mean(np.concatenate(dist) ** 2)))
+        if attempt == 1:
+            break
+        lim = max(OUTLIER_RMS * rms, OUTLIER_MIN_PX)
+        changed = False
+        for k, d in enumerate(dist):
+            idx = np.flatnonzero(keep[k])
+            bad = idx[d > lim]
+            if len(bad):
+                keep[k][bad] = False
+                changed = True
+        if not changed:
+            break
+    if not (res.converged and res.x[0] > 0 and res.x[4] > 0):
+        raise CalibrationError(f"intrinsics: the joint fit did not converge ({res.message})")
+    m, n = res.jacobian.shape
+    s2 = res.cost / max(m - n, 1)
+    cov = _covariance(res.jacobian, s2, model.off)
+    views = []
+    for k in range(len(P)):
+        H = poses0[k]
+        tilt = float(np.degrees(np.arccos(min(1.0, abs(H[2, 2])))))
+        views.append(ViewFit(names[k], H, int(keep[k].sum()), float(np.sqrt(np.mean(dist[k] ** 2))), tilt,
+                             float(np.linalg.norm(H[:3, 3])), int((~keep[k]).sum())))
+    return _Fit(camera0, cov[:5, :5], cov, res.jacobian, float(s2), rms, views, U, P)
+
+
+def _bias_corrected(dets, camera, poses, plate) -> list:
+    return [d.uv - disc_image_bias(camera, H, d.p_W, plate.disc_diameter / 2) for d, H in zip(dets, poses)]
+
+
+def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel, names: list[str] | None = None,
+              *, bias: bool = True) -> _Fit:
+    """The joint fit of views' disc detections from ``camera0`` (a starting camera): first poses by
+    planar PnP, a fit on the centroids, then ``BIAS_ROUNDS`` rounds of bias correction and refit
+    (``bias=False``: the centroids as measured)."""
+    names = names or [f"view {i + 1}" for i in range(len(dets))]
+    poses = [_initial_pose(d.p_W, d.uv, camera0) for d in dets]
+    normals = np.array([H[:3, 2] for H in poses])
+    mean = normals.sum(0) / np.linalg.norm(normals.sum(0))
+    spread = float(np.degrees(np.arccos(np.clip(normals @ mean, -1, 1))).max())
+    if spread < PARALLEL_DEG:
+        tilts = [float(np.degrees(np.arccos(min(1.0, abs(H[2, 2]))))) for H in poses]
+        raise CalibrationError(
+            f"intrinsics: the {len(dets)} views do not determine the principal point: they all see the plate from "
+            f"one direction (its normal within {spread:.1f} deg in every view, {min(tilts):.0f}-{max(tilts):.0f} deg "
+            f"from square-on), as when the gripper only looks straight down; take views with the gripper tilted "
+            "20-40 deg about different axes in the plate"
+        )
+    fit = _solve([d.p_W for d in dets], [d.uv for d in dets], camera0, poses, names)
+    for _ in range(BIAS_ROUNDS if bias else 0):
+        poses = [v.C_H_W for v in fit.views]
+        uv = _bias_corrected(dets, fit.camera, poses, plate)
+        fit = _solve([d.p_W for d in dets], uv, fit.camera, poses, names)
+    return fit
+
+
+def detect_views(images, plate: PlateSpec, camera: CameraModel, names=None, *, skip_unusable: bool = False):
+    """Disc detections of each picture. Returns (detections, names kept, skipped [{name, reason}]).
+
+    A picture without the plate raises ``ImageError`` naming it, unless ``skip_unusable``."""
+    names = list(names) if names is not None else [f"view {i + 1}" for i in range(len(images))]
+    dets, kept, skipped = [], [], []
+    for img, nm in zip(images, names):
+        try:
+            dets.append(detect_discs(img, plate, camera=camera))
+            kept.append(nm)
+        except ImageError as exc:
+            if not skip_unusable:
+                raise ImageError(f"{nm}: {exc}") from None
+            skipped.append({"name": nm, "reason": str(exc)})
+    return dets, kept, skipped
+
+
+# --- uncertainty figures --------------------------------------------------------------------------
+def _pixel_jacobian(camera: CameraModel, uv) -> np.ndarray:
+    """(2, 5) derivative of where the ray of pixel ``uv`` lands, w.r.t. (f, kappa, cx, cy, aspect)."""
+    xy = camera.undistort_pixels(np.atleast_2d(uv))[0] / camera.f
+    p = np.array([[xy[0], xy[1], 1.0]])
+    x = np.array([camera.f, camera.kappa, camera.cx, camera.cy, camera.aspect])
+    J = np.zeros((2, 5))
+    for i in range(5):
+        h = _STEP[i] * (abs(x[i]) if i == 0 else 1.0)
+        xp, xm = x.copy(), x.copy()
+        xp[i] += h
+        xm[i] -= h
+        J[:, i] = (_project(xp, np.eye(3), np.zeros(3), p)[0] - _project(xm, np.eye(3), np.zeros(3), p)[0]) / (2 * h)
+    return J
+
+
+def projection_sigma_px(camera: CameraModel, cov5: np.ndarray) -> dict:
+    """1-sigma [px] of the projection at the picture's centre and its four corners (see the module)."""
+    W, H = camera.width, camera.height
+    pts = {"centre": ((W - 1) / 2, (H - 1) / 2), "top_left": (0.0, 0.0), "top_right": (W - 1.0, 0.0),
+           "bottom_left": (0.0, H - 1.0), "bottom_right": (W - 1.0, H - 1.0)}
+    out = {}
+    for nm, q in pts.items():
+        J = _pixel_jacobian(camera, q)
+        out[nm] = float(np.sqrt(max(np.trace(J @ cov5 @ J.T), 0.0)))
+    return out
+
+
+def _sigmas(cov5) -> dict:
+    d = np.sqrt(np.clip(np.diag(cov5), 0, None))
+    return {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, d)}
+
+
+def _stop_met(sig: dict, aspect: float) -> bool:
+    return bool(max(sig["cx"], sig["cy"]) < STOP_CENTRE_PX and sig["aspect"] / aspect < STOP_ASPECT_REL)
+
+
+#: Kinds of further views the advice weighs: (label, tilt of the plate from square-on [deg]).
+VIEW_KINDS = (("tilted 35 deg", 35.0), ("tilted 20 deg", 20.0), ("square-on", 0.0))
+
+
+def _view_information(camera: CameraModel, plate: PlateSpec, distance: float, tilt_deg: float, azimuth_deg: float,
+                      s2: float) -> np.ndarray | None:
+    """(5, 5) information on the intrinsics that one view of the plate adds, its pose eliminated: the
+    plate's centre at ``distance`` on the optical axis, tilted ``tilt_deg`` about an in-plane axis at
+    ``azimuth_deg``; the discs that fall in the picture."""
+    a = np.radians(azimuth_deg)
+    H = trans(0, 0, distance) @ rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt_deg))
+    p = plate.disc_centres_W()
+    x = np.array([camera.f, camera.kappa, camera.cx, camera.cy, camera.aspect])
+    uv = _project(x, H[:3, :3], H[:3, 3], p)
+    ok = np.all(np.isfinite(uv), axis=1)
+    ok[ok] = camera.in_image(uv[ok], margin=10)
+    if ok.sum() < 8:
+        return None
+    model = _Joint([p[ok]], [uv[ok]], [H[:3, :3]])
+    J = model.jacobian(np.concatenate([x, np.zeros(3), H[:3, 3]]))
+    A = _normal(J, np.zeros(len(J)), model.off)[0] / s2
+    Aii, Aip, App = A[:5, :5], A[:5, 5:], A[5:, 5:]
+    return Aii - Aip @ np.linalg.solve(App, Aip.T)
+
+
+def more_views_advice(fit: _Fit, plate: PlateSpec) -> dict:
+    """How many more views of each kind (``VIEW_KINDS``) would meet the stop rule, from the covariance."""
+    try:
+        info0 = np.linalg.inv(fit.cov5)
+    except np.linalg.LinAlgError:
+        info0 = np.zeros((5, 5))
+    if not np.all(np.isfinite(info0)):
+        info0 = np.zeros((5, 5))
+    dist = float(np.median([v.distance_mm for v in fit.views]))
+    out = {}
+    for label, tilt in VIEW_KINDS:
+        info = info0.copy()
+        need = None
+        for n in range(1, MAX_MORE_VIEWS + 1):
+            add = _view_information(fit.camera, plate, dist, tilt, 90.0 * (n - 1) + 45.0 * ((n - 1) // 4), fit.s2)
+            if add is None:
+                break
+            info += add
+            try:
+                cov = np.linalg.inv(info)
+            except np.linalg.LinAlgError:
+                continue
+            if np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0) and _stop_met(_sigmas(cov), fit.camera.aspect):
+                need = n
+                break
+        out[label] = need
+    return {"distance_mm": dist, "views_needed": out}
+
+
+# --- the result -----------------------------------------------------------------------------------
+@dataclass
+class IntrinsicsResult:
+    """A joint calibration of the interior orientation from several views (see the module)."""
+
+    camera: CameraModel
+    covariance: np.ndarray  # (5, 5) of INTRINSIC_NAMES
+    sigma: dict
+    rms_px: float
+    views: list
+    skipped: list
+    projection_sigma_px: dict
+    stop_rule: dict
+    cross_check: dict
+    residual_sigma_px: float = 0.0
+    extras: dict = field(default_factory=dict)
+
+    @property
+    def views_used(self) -> int:
+        return len(self.views)
+
+    def summary(self) -> dict:
+        c = self.camera
+        return {
+            "f": c.f, "kappa": c.kappa, "principal_point": [c.cx, c.cy], "aspect": c.aspect,
+            "width": c.width, "height": c.height,
+            "sigma": dict(self.sigma),
+            "covariance": np.asarray(self.covariance).tolist(),
+            "rms_px": self.rms_px,
+            "views_used": self.views_used,
+            "views": [v.to_dict() for v in self.views],
+            "views_skipped": list(self.skipped),
+            "projection_sigma_px": dict(self.projection_sigma_px),
+            "stop_rule": self.stop_rule,
+            "cross_check": self.cross_check,
+        }
+
+
+def _cross_check(dets, names, plate, fit: _Fit) -> dict:
+    n = len(dets)
+    if n < 2 * MIN_VIEWS_HALF:
+        return {"done": False, "why": f"{n} views; the cross-check needs {2 * MIN_VIEWS_HALF} (two halves of "
+                                      f"{MIN_VIEWS_HALF})"}
+    halves = []
+    for idx in (range(0, n, 2), range(1, n, 2)):
+        idx = list(idx)
+        try:
+            h = fit_views([dets[i] for i in idx], plate, fit.camera, [names[i] for i in idx])
+        except CalibrationError as exc:
+            return {"done": False, "why": f"a half could not be calibrated: {exc}"}
+        halves.append(h)
+    a, b = halves
+    xa = np.array([a.camera.f, a.camera.kappa, a.camera.cx, a.camera.cy, a.camera.aspect])
+    xb = np.array([b.camera.f, b.camera.kappa, b.camera.cx, b.camera.cy, b.camera.aspect])
+    comb = np.sqrt(np.diag(a.cov5) + np.diag(b.cov5))
+    ratio = np.abs(xa - xb) / comb
+    agree = bool(np.all(np.isfinite(ratio)) and np.all(ratio <= AGREE_SIGMAS))
+    return {
+        "done": True,
+        "agree": agree,
+        "halves": [{nm: float(v) for nm, v in zip(INTRINSIC_NAMES, x)} for x in (xa, xb)],
+        "difference": {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, xa - xb)},
+        "combined_sigma": {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, comb)},
+        "ratio": {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, ratio)},
+        "limit_sigmas": AGREE_SIGMAS,
+    }
+
+
+def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, names=None, *,
+                         skip_unusable: bool = False, cross_check: bool = True, detections=None) -> IntrinsicsResult:
+    """Joint calibration of f, kappa, cx, cy, aspect and each view's ``C_H_W`` from pictures of the plate.
+
+    ``images`` (H, W) pictures (or ``detections``, a list of ``DiscDetections``, instead); ``plate`` the
+    plate; ``camera_guess`` the starting camera (the cell's nominal one: its size checks the pictures);
+    ``names`` per picture, for messages; ``skip_unusable``: a picture without the plate is skipped (and
+    listed) instead of refused. Raises ``ImageError`` (a picture without the plate, of the wrong size) or
+    ``CalibrationError`` (fewer than ``MIN_VIEWS`` usable views; views that do not determine the centre,
+    all seen square-on; no convergence).
+    """
+    if detections is None:
+        dets, names, skipped = detect_views(images, plate, camera_guess, names, skip_unusable=skip_unusable)
+    else:
+        dets = list(detections)
+        names = list(names) if names is not None else [f"view {i + 1}" for i in range(len(dets))]
+        skipped = []
+    if len(dets) < MIN_VIEWS:
+        raise CalibrationError(
+            f"intrinsics: {len(dets)} usable view(s) of the plate; at least {MIN_VIEWS} are needed (12 or more, "
+            "tilted 20-40 deg in different directions, pin the centre and the aspect)"
+        )
+    fit = fit_views(dets, plate, camera_guess, names)
+    # a view that does not fit the others: drop it and refit
+    bad = [k for k, v in enumerate(fit.views) if v.rms_px > VIEW_MAX_RMS_PX]
+    if bad and len(dets) - len(bad) >= MIN_VIEWS:
+        for k in bad:
+            skipped.append({"name": names[k], "reason": f"does not fit the other views (residual rms "
+                                                        f"{fit.views[k].rms_px:.2f} px > {VIEW_MAX_RMS_PX} px)"})
+        keep = [k for k in range(len(dets)) if k not in bad]
+        dets, names = [dets[k] for k in keep], [names[k] for k in keep]
+        fit = fit_views(dets, plate, fit.camera, names)
+    sig = _sigmas(fit.cov5)
+    tilts = [v.tilt_deg for v in fit.views]
+    if not (np.all(np.isfinite(fit.cov5)) and max(sig["cx"], sig["cy"]) < UNDETERMINED_CENTRE_PX):
+        raise CalibrationError(
+            f"intrinsics: the {len(dets)} views do not determine the principal point (sigma "
+            f"{max(sig['cx'], sig['cy']):.3g} px): they see the plate {min(tilts):.0f}-{max(tilts):.0f} deg from "
+            "square-on; take views tilted 20-40 deg in different directions"
+        )
+    met = _stop_met(sig, fit.camera.aspect)
+    stop = {
+        "met": met,
+        "sigma_centre_px": max(sig["cx"], sig["cy"]),
+        "sigma_aspect_pct": 100 * sig["aspect"] / fit.camera.aspect,
+        "limit_centre_px": STOP_CENTRE_PX,
+        "limit_aspect_pct": 100 * STOP_ASPECT_REL,
+    }
+    if not met:
+        adv = more_views_advice(fit, plate)
+        stop["more_views"] = adv
+        best = [(n, k) for k, n in adv["views_needed"].items() if n is not None]
+        if best:
+            n, k = min(best)
+            stop["advice"] = (f"{n} more view(s) {k} (plate about {adv['distance_mm']:.0f} mm away, tilt axes turning "
+                              f"by 90 deg from view to view) would pin the centre to < {STOP_CENTRE_PX} px and the "
+                              f"aspect to < {100 * STOP_ASPECT_REL:g} %")
+        else:
+            stop["advice"] = f"more than {MAX_MORE_VIEWS} further views of any kind would be needed"
+    xc = _cross_check(dets, names, plate, fit) if cross_check else {"done": False, "why": "not asked for"}
+    return IntrinsicsResult(
+        camera=fit.camera, covariance=fit.cov5, sigma=sig, rms_px=fit.rms_px, views=fit.views, skipped=skipped,
+        projection_sigma_px=projection_sigma_px(fit.camera, fit.cov5), stop_rule=stop, cross_check=xc,
+        residual_sigma_px=float(np.sqrt(fit.s2)),
+    )
+
+
+# --- views the robot can take ---------------------------------------------------------------------
+#: Ranges of the planned views: lift of the fingertips off the plate [mm], tilt of the gripper about
+#: axes in the plate [deg], turn about the approach axis [deg]; the fingertips stay this far [mm] above
+#: the plate; the camera should see the plate this far from square-on [deg].
+LIFT_MM = (15.0, 120.0)
+MAX_TILT_DEG = 40.0
+MAX_TURN_DEG = 90.0
+#: With a direction to lean towards (the robot's base), the wrist may move at most this far from it [deg].
+LEAN_TOLERANCE_DEG = 60.0
+CLEARANCE_MM = 8.0
+#: The camera sees the plate at most this far from square-on [deg] (the discs stay measurable).
+MAX_CAMERA_TILT_DEG = 48.0
+
+
+def _fingers_clear(W_H_G, gripper, gap) -> float:
+    """Height [mm] of the lowest finger corner above the plate (W's z points into the plate)."""
+    corners = []
+    for lo, hi in gripper.finger_boxes_G(gap):
+        for x in (lo[0], hi[0]):
+            for y in (lo[1], hi[1]):
+                for z in (lo[2], hi[2]):
+                    corners.append((x, y, z))
+    return float(-np.max(transform_points(W_H_G, np.array(corners))[:, 2]))
+
+
+def plan_view_poses(cell, n: int = 12, *, state: str | None = None, C_H_G=None, lean_W=None) -> list[dict]:
+    """``n`` gripper poses relative to the plate for the views of ``calibrate_intrinsics``.
+
+    Each is the gripper tilted (at most ``MAX_TILT_DEG``) about an axis in the plate through the point
+    under the TCP, lifted along its approach axis (``LIFT_MM``, more when the fingers need it to clear
+    the plate by ``CLEARANCE_MM``) and turned about it (at most ``MAX_TURN_DEG``), chosen so that the
+    plate's normal, in the gripper's (and so the camera's) frame, is tilted 25-40 deg in directions turning
+    round from view to view (views that differ only by a turn about the approach axis or a lift see
+    parallel planes, which cannot pin the principal point), at lifts spread over the range, the camera
+    (mount ``C_H_G``, default the cell's guess) seeing the plate at most ``MAX_CAMERA_TILT_DEG`` from
+    square-on with its centre in the picture. ``lean_W`` (2,): a direction in the plate (x, y of W) towards the robot's base;
+    tilts then move the wrist within ``LEAN_TOLERANCE_DEG`` of it (a tilt away from the base takes the
+    wrist out of a small arm's reach). Returns [{W_H_G (4, 4), lift_mm, tilt_deg, axis_deg, turn_deg,
+    camera_tilt_deg, camera_azimuth_deg}]. Raises ``CalibrationError`` when no pose fits.
+    """
+    if n < 1:
+        raise CalibrationError(f"view plan: expected at least one view, got {n}")
+    C_H_G = cell.mount_guess_C_H_G if C_H_G is None else np.asarray(C_H_G, float)
+    gap = cell.gripper.gap(state or cell.gripper.calibrate_in)
+    cam = cell.camera.guess()
+    lean = None if lean_W is None else np.asarray(lean_W, float)[:2] / np.linalg.norm(np.asarray(lean_W, float)[:2])
+    cands = []
+    for tilt in np.arange(0.0, MAX_TILT_DEG + 1e-9, 5.0):
+        for axis in np.arange(0.0, 360.0, 22.5 if tilt else 360.0):
+            a = np.radians(axis)
+            Rt = rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt))
+            if lean is not None and tilt > 0:
+                wrist = -Rt[:2, 2]  # where the wrist moves, horizontally
+                if wrist @ lean < np.cos(np.radians(LEAN_TOLERANCE_DEG)) * np.linalg.norm(wrist):
+                    continue
+            for turn in np.arange(-MAX_TURN_DEG, MAX_TURN_DEG + 1e-9, 22.5):
+                W_H_C = Rt @ make_H(R_from_rotvec((0, 0, np.radians(turn))), (0, 0, 0)) @ np.linalg.inv(C_H_G)
+                d = W_H_C[:3, 2]  # optical axis in W
+                ctilt = float(np.degrees(np.arccos(np.clip(d[2], -1, 1))))
+                caz = float(np.degrees(np.arctan2(d[1], d[0])) % 360.0)
+                # the plate's normal in the gripper frame (rigidly tied to the camera): only its direction
+                # tells views apart for the interior orientation; a turn alone does not change it
+                nG = (np.linalg.inv(Rt @ make_H(R_from_rotvec((0, 0, np.radians(turn))), (0, 0, 0))))[:3, 2]
+                naz = float(np.degrees(np.arctan2(nG[1], nG[0])) % 360.0)
+                if ctilt <= MAX_CAMERA_TILT_DEG:
+                    cands.append((tilt, axis, turn, ctilt, caz, naz))
+    cands = np.array(cands)
+    lifts = np.linspace(LIFT_MM[0] + 15.0, LIFT_MM[1], 4)
+    out = []
+    used: set[int] = set()
+    for i in range(n):
+        az = (360.0 * i / n + 45.0 * (i % 2)) % 360.0
+        want_tilt = (35.0, 25.0, 40.0, 30.0)[i % 4]
+        daz = np.abs((cands[:, 5] - az + 180.0) % 360.0 - 180.0)
+        score = np.abs(cands[:, 0] - want_tilt) + 0.3 * daz
+        for j in np.argsort(score):
+            if int(j) in used:
+                continue
+            tilt, axis, turn, ctilt, caz, _ = cands[j]
+            a = np.radians(axis)
+            Rt = rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt))
+            Rz = make_H(R_from_rotvec((0, 0, np.radians(turn))), (0, 0, 0))
+            want = float(lifts[(i * 3) % len(lifts)])
+            found = None
+            for lift in sorted(np.arange(LIFT_MM[0], LIFT_MM[1] + 1e-9, 5.0), key=lambda v: abs(v - want)):
+                W_H_G = Rt @ trans(0, 0, -lift) @ Rz
+                if _fingers_clear(W_H_G, cell.gripper, gap) < CLEARANCE_MM:
+                    continue
+                C_H_W = C_H_G @ np.linalg.inv(W_H_G)
+                if not cam.in_image(cam.project(transform_points(C_H_W, np.zeros((1, 3)))), margin=60)[0]:
+                    continue
+                found = lift
+                break
+            if found is None:
+                continue
+            lift = float(found)
+            used.add(int(j))
+            out.append({"W_H_G": W_H_G, "lift_mm": lift, "tilt_deg": float(tilt), "axis_deg": float(axis),
+                        "turn_deg": float(turn), "camera_tilt_deg": float(ctilt), "camera_azimuth_deg": float(caz)})
+            break
+        else:
+            raise CalibrationError(f"view plan: no pose for view {i + 1} keeps the fingers clear and the plate in view")
+    return out
+
+
+# --- one picture: is the nominal camera wrong? how sure is the TCP? --------------------------------
+#: Accuracy targets of the off-line calibration [mm]: TCP across and along the optical axis.
+TARGET_ACROSS_MM = 0.02
+TARGET_ALONG_MM = 0.08
+#: The picture shows the camera's centre and aspect differ from the assumed ones when the chi-square of
+#: the difference (3 degrees of freedom) exceeds this (p = 1e-4 for a right camera).
+CAMERA_CHI2_LIMIT = 21.1
+
+
+def _one_view(result, camera: CameraModel):
+    """(model, x, s2, J) of the one-view problem at the off-line result: all five intrinsics and the pose."""
+    ts = result.tsai
+    H = ts.C_H_W
+    model = _Joint([result.discs.p_W], [result.disc_uv_corrected], [H[:3, :3]])
+    c = ts.camera
+    x = np.concatenate([[c.f, c.kappa, camera.cx, camera.cy, camera.aspect], np.zeros(3), H[:3, 3]])
+    return model, x
+
+
+def _tcp_of(result, cell, cam: CameraModel, C_H_W) -> np.ndarray:
+    from selfview.pcc import solve_pcc
+
+    ft = result.fingertips
+    found = np.asarray(ft.found, bool)
+    cal = result.calibration
+    pG = cal.points_G[cal.state][found]
+    return solve_pcc(ft.uv[found], pG, C_H_W, cam).C_H_G[:3, 3]
+
+
+def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
+    """Does the picture of an off-line calibration (``selfview.offline.OfflineResult``) show that the
+    assumed camera's principal point or aspect (``camera``, default the cell's nominal one) is wrong by
+    enough to cost more than the accuracy targets?
+
+    One view with f, kappa, cx, cy, aspect and the pose all free; the difference of (cx, cy, aspect) from
+    the assumed ones is significant when its chi-square exceeds ``CAMERA_CHI2_LIMIT``; its cost is how far
+    the TCP moves when the picture is calibrated again with the picture's own centre and aspect.
+    Returns {significant, chi2, centre_offset_px [dx, dy], aspect, aspect_sigma, centre_sigma_px,
+    tcp_shift_mm [3], costly, warning (str or None)}.
+    """
+    from selfview.tsai import calibrate_coplanar
+
+    cam0 = camera or cell.camera.guess()
+    model, x0 = _one_view(result, cam0)
+    out = {"significant": False, "costly": False, "warning": None}
+    try:
+        res = _lm_normal(model.residuals, model.jacobian, x0, model.off)
+    except (CalibrationError, np.linalg.LinAlgError) as exc:
+        out["why"] = f"the one-view fit failed: {exc}"
+        return out
+    m, n = res.jacobian.shape
+    s2 = res.cost / max(m - n, 1)
+    cov = _covariance(res.jacobian, s2, model.off)
+    d = res.x[2:5] - np.array([cam0.cx, cam0.cy, cam0.aspect])
+    C3 = cov[2:5, 2:5]
+    if not (res.converged and np.all(np.isfinite(C3))):
+        out["why"] = "one picture does not determine the centre and the aspect"
+        return out
+    try:
+        chi2 = float(d @ np.linalg.solve(C3, d))
+    except np.linalg.LinAlgError:
+        out["why"] = "one picture does not determine the centre and the aspect"
+        return out
+    sig = np.sqrt(np.diag(C3))
+    out.update(chi2=chi2, centre_offset_px=[float(d[0]), float(d[1])], centre_sigma_px=[float(sig[0]), float(sig[1])],
+               aspect=float(res.x[4]), aspect_sigma=float(sig[2]), assumed_aspect=float(cam0.aspect),
+               significant=bool(chi2 > CAMERA_CHI2_LIMIT))
+    if not out["significant"]:
+        return out
+    try:
+        ts = calibrate_coplanar(result.discs.p_W, result.disc_uv_corrected, cx=float(res.x[2]), cy=float(res.x[3]),
+                                aspect=float(res.x[4]), mode="full", width=cam0.width, height=cam0.height)
+        shift = _tcp_of(result, cell, ts.camera, ts.C_H_W) - result.calibration.C_H_G[:3, 3]
+    except CalibrationError as exc:
+        out["why"] = f"recalibrating with the picture's own centre failed: {exc}"
+        return out
+    across, along = float(np.hypot(shift[0], shift[1])), float(abs(shift[2]))
+    out.update(tcp_shift_mm=[float(v) for v in shift], costly=bool(across > TARGET_ACROSS_MM or along > TARGET_ALONG_MM))
+    if out["costly"]:
+        out["warning"] = (
+            f"the picture shows the camera's principal point {np.hypot(d[0], d[1]):.1f} px from the assumed "
+            f"({cam0.cx:.1f}, {cam0.cy:.1f}) (offset {d[0]:+.1f}, {d[1]:+.1f} px, +- {sig[0]:.1f}, {sig[1]:.1f}) and its "
+            f"aspect {res.x[4]:.4f} +- {sig[2]:.4f} instead of {cam0.aspect:.4f}; that moves the TCP by "
+            f"{across:.3f} mm across and {along:.3f} mm along the optical axis (targets {TARGET_ACROSS_MM} and "
+            f"{TARGET_ALONG_MM} mm): measure the camera with 'selfview intrinsics' and calibrate with "
+            "--camera CAMERA.yaml"
+        )
+    return out
+
+
+def tcp_sigma(result, cell, camera_cov3: np.ndarray | None = None) -> dict:
+    """1-sigma of the TCP in camera axes [mm] of an off-line calibration, from the covariance of the camera
+    calibration and the PCC together.
+
+    Three parts, propagated to ``C_H_G``'s translation by its derivatives (central differences through
+    Tsai's pose and ``selfview.pcc.solve_pcc``): the picture's own noise in the disc centres (the
+    covariance of f, kappa and the plate pose, scaled by the residual); the uncertainty of the principal
+    point and aspect (``camera_cov3`` (3, 3) of cx, cy, aspect, from a camera file; None: taken as exact),
+    through the pose and f they shift and directly; the fingertip corners' (each from two line fits: the
+    edge points' RMS over sqrt(n/2) per axis). Returns {tcp_sigma_mm [3], parts {...}}.
+    """
+    cal = result.calibration
+    cam = cal.camera
+    model, x = _one_view(result, cam)
+    r = model.residuals(x)
+    J = model.jacobian(x)
+    m = len(r)
+    p_idx = np.r_[0:2, 5:11]
+    Jp, Jt = J[:, p_idx], J[:, 2:5]
+    s2 = float(r @ r) / max(m - len(p_idx), 1)
+    N = Jp.T @ Jp
+    Ninv = np.linalg.inv(N)
+    cov_p = s2 * Ninv
+    dp_dt = -Ninv @ Jp.T @ Jt
+    R0 = result.tsai.C_H_W[:3, :3]
+    ft = result.fingertips
+    found = np.asarray(ft.found, bool)
+    pG = cal.points_G[cal.state][found]
+    from selfview.pcc import solve_pcc
+
+    def tcp(xv, uv=None):
+        c = cam.with_(f=float(xv[0]), kappa=float(xv[1]), cx=float(xv[2]), cy=float(xv[3]), aspect=float(xv[4]))
+        H = make_H(R_from_rotvec(xv[5:8]) @ R0, xv[8:11])
+        return solve_pcc(ft.uv[found] if uv is None else uv, pG, H, c).C_H_G[:3, 3]
+
+    steps = np.r_[_STEP[0] * x[0], _STEP[1:], _POSE_STEP]
+    G = np.zeros((3, 11))
+    for i in range(11):
+        xp, xm = x.copy(), x.copy()
+        xp[i] += steps[i]
+        xm[i] -= steps[i]
+        G[:, i] = (tcp(xp) - tcp(xm)) / (2 * steps[i])
+    Gp = G[:, p_idx]
+    parts = {"picture": Gp @ cov_p @ Gp.T}
+    if camera_cov3 is not None:
+        Gt = G[:, 2:5] + Gp @ dp_dt
+        parts["camera_file"] = Gt @ np.asarray(camera_cov3, float) @ Gt.T
+    uv = ft.uv[found]
+    n_edge = ft.n_edge_points[found] if ft.n_edge_points is not None else np.full(len(uv), 20)
+    sc = np.nan_to_num(ft.edge_rms_px[found], nan=0.1) / np.sqrt(np.maximum(np.asarray(n_edge, float), 2) / 2)
+    Cc = np.zeros((3, 3))
+    for k in range(len(uv)):
+        for a in range(2):
+            up, um = uv.copy(), uv.copy()
+            up[k, a] += 1e-3
+            um[k, a] -= 1e-3
+            g = (tcp(x, up) - tcp(x, um)) / 2e-3
+            Cc += np.outer(g, g) * sc[k] ** 2
+    parts["corners"] = Cc
+    total = sum(parts.values())
+    return {"tcp_sigma_mm": [float(v) for v in np.sqrt(np.clip(np.diag(total), 0, None))],
+            "parts": {k: [float(v) for v in np.sqrt(np.clip(np.diag(c), 0, None))] for k, c in parts.items()}}
