@@ -18,7 +18,7 @@ from selfview.camera import CameraModel
 from selfview.cell import POINT_NAMES, Cell
 from selfview.discs import DiscDetections, correct_disc_bias, detect_discs
 from selfview.errors import CalibrationError, ConfigError, ImageError
-from selfview.fingertips import FingertipResult, find_fingertips
+from selfview.fingertips import FingertipResult, find_fingertips, model_measurement
 from selfview.geometry import inv_H, make_H, rot_z
 from selfview.pcc import PCCResult, measure_points_G, points_G_for_state, solve_pcc
 from selfview.tsai import TsaiResult, calibrate_coplanar
@@ -110,6 +110,12 @@ def predict_parked_C_H_G(C_H_W: np.ndarray, C_H_G_guess: np.ndarray) -> np.ndarr
     return C_H_W @ W_H_G
 
 
+def _misses_a_corner(ft: FingertipResult) -> bool:
+    """Whether the corner search left a corner unfound that is neither outside the picture nor hidden."""
+    return any(not ok and not (r and (r.startswith("outside") or r.startswith("occluded")))
+               for ok, r in zip(ft.found, ft.reasons))
+
+
 def calibrate_offline(
     image,
     cell: Cell,
@@ -122,6 +128,7 @@ def calibrate_offline(
     image_sha256: str | None = None,
     camera: CameraModel | None = None,
     camera_file: dict | None = None,
+    measurement: str = "auto",
 ) -> OfflineResult:
     """Off-line calibration of one picture of the gripper parked on the plate.
 
@@ -134,6 +141,11 @@ def calibrate_offline(
     cell's nominal ones (f and kappa are still measured from the picture, it only starts them);
     ``camera_file`` {path, sha256} of the file it came from, recorded in the calibration's residuals
     under ``camera_file`` (absent: the cell's nominal camera).
+    ``measurement``: how the fingertip corners are measured: 'corners' the corner search
+    (``find_fingertips``), 'model' the model-based measurement (the whole silhouette of both fingers
+    fitted, ``find_fingertips(..., model=True)``), 'auto' (default) the corner search, and the model
+    where the corner search misses a corner in the picture (a fingertip beside a disc, a weak tip edge)
+    and the model's fit holds: then the model's corners (the found ones are not mixed with them).
     Raises ``ImageError`` (unusable picture), ``ConfigError`` (a camera for another picture size) or
     ``CalibrationError`` (too few discs or corners, degenerate).
     """
@@ -151,6 +163,8 @@ def calibrate_offline(
     gap = cell.gripper.gap(state)
     if points not in ("measured", "cell"):
         raise CalibrationError(f"points: expected 'measured' or 'cell', got {points!r}")
+    if measurement not in ("auto", "corners", "model"):
+        raise CalibrationError(f"measurement: expected 'auto', 'corners' or 'model', got {measurement!r}")
 
     det = detect_discs(img, cell.plate, camera=nominal)
     timings["discs"] = (time.perf_counter() - t0) * 1e3
@@ -168,6 +182,11 @@ def calibrate_offline(
     guess = cell.mount_guess_C_H_G if C_H_G_guess is None else np.asarray(C_H_G_guess, float)
     C_H_G_pred = predict_parked_C_H_G(ts.C_H_W, guess)
     ft = find_fingertips(img, camera, C_H_G_pred, cell.gripper, gap, search_px=search_px)
+    measured_by = "corners"
+    if measurement == "model" or (measurement == "auto" and _misses_a_corner(ft)):
+        res, fit = model_measurement(img, camera, C_H_G_pred, cell.gripper, gap, range(6), searched=ft)
+        if measurement == "model" or (fit.ok and res.found.sum() > ft.found.sum()):
+            ft, measured_by = res, "model"
     timings["fingertips"] = (time.perf_counter() - t) * 1e3
     found = np.asarray(ft.found, bool)
     if found.sum() < 2:
@@ -209,6 +228,7 @@ def calibrate_offline(
             "pcc_rms_mm": float(pcc.rms_mm),
             "pcc_q_norm": float(pcc.q_norm),
             "points_from": "picture" if dims is not None else "cell",
+            "corners_measured_by": measured_by,
             **({"camera_file": dict(camera_file)} if camera_file else {}),
         },
         image_sha256=sha,

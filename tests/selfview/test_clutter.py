@@ -242,3 +242,43 @@ def test_selfview_track_over_a_photograph_reports_the_pose_and_its_quality(tmp_p
     cv2.imwrite(str(moved), np.where(np.arange(768)[None, :] % 9 < 4, 60, 170).astype(np.uint8).repeat(576, 0))
     assert main(["track", "--calibration", str(cal), "--image", str(moved), "--method", "4P-I"]) == 5
     assert "fingertips not found: lost" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("renderer", ["mocks", "alt"])
+def test_offline_calibration_takes_the_model_where_the_corner_search_misses_corners(renderer, monkeypatch):
+    """The issue's parked picture: a fingertip beside a disc and the corner search finding 3 of the 6
+    corners, none of finger B (forced here by hiding finger B's corners from the corner search's result).
+    ``calibrate_offline`` (measurement 'auto') then measures by the model: all six corners within
+    CORNER_TOL_PX and C_H_G within the off-line targets (0.02 mm across, 0.08 mm along the axis); the
+    corner search alone ('corners') is left with three. An unknown measurement is refused by name."""
+    from dataclasses import replace
+
+    import selfview.offline as offline
+    from selfview.errors import CalibrationError
+
+    cell = _cell()
+    seq, _ = clutter.disc_picture(cell, renderer, 901, on=False)
+    fr = seq.frames[0]
+    real = offline.find_fingertips
+
+    def without_finger_b(*a, **kw):
+        res = real(*a, **kw)
+        if kw.get("model"):
+            return res
+        drop = np.array([False, False, True, True, False, True])
+        return replace(res, found=res.found & ~drop, uv=np.where(drop[:, None], np.nan, res.uv),
+                       reasons=[("no step along its edges" if d else r) for d, r in zip(drop, res.reasons)])
+
+    monkeypatch.setattr(offline, "find_fingertips", without_finger_b)
+    res = offline.calibrate_offline(fr.image, cell)
+    assert res.calibration.residuals["corners_measured_by"] == "model"
+    vis = fr.corner_visible
+    assert vis.sum() == 6 and res.fingertips.found.all()
+    assert np.all(np.linalg.norm(res.fingertips.uv - fr.corner_uv, axis=1) < CORNER_TOL_PX)
+    d = res.calibration.C_H_G[:3, 3] - fr.C_H_G[:3, 3]
+    assert np.hypot(d[0], d[1]) < 0.02 and abs(d[2]) < 0.08, d
+    alone = offline.calibrate_offline(fr.image, cell, measurement="corners")
+    assert alone.calibration.residuals["corners_measured_by"] == "corners"
+    assert alone.fingertips.found.sum() == 3
+    with pytest.raises(CalibrationError, match="measurement: expected 'auto', 'corners' or 'model'"):
+        offline.calibrate_offline(fr.image, cell, measurement="edges")

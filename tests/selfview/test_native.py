@@ -26,14 +26,14 @@ def _status_with(env_value: str | None) -> dict:
 
 
 def test_pure_python_switch_turns_every_kernel_off():
-    assert _status_with("1") == {"_cnpu": False, "_ctrack": False}
-    assert _status_with("yes") == {"_cnpu": False, "_ctrack": False}
+    assert _status_with("1") == {"_cnpu": False, "_ctrack": False, "_csil": False}
+    assert _status_with("yes") == {"_cnpu": False, "_ctrack": False, "_csil": False}
 
 
 def test_kernels_load_unless_switched_off():
     expect = {
         name: any((ROOT / "selfview" / f"{name}{suffix}").exists() for suffix in EXTENSION_SUFFIXES)
-        for name in ("_cnpu", "_ctrack")
+        for name in ("_cnpu", "_ctrack", "_csil")
     }
     assert _status_with(None) == expect
     assert _status_with("0") == expect
@@ -47,4 +47,4 @@ def test_ci_requires_the_kernels():
         pytest.skip("SELFVIEW_REQUIRE_NATIVE is not set")
     if os.environ.get(_native.PURE_PYTHON_ENV, "").strip() not in ("", "0"):
         pytest.skip("SELFVIEW_PURE_PYTHON is set")
-    assert _native.status() == {"_cnpu": True, "_ctrack": True}
+    assert _native.status() == {"_cnpu": True, "_ctrack": True, "_csil": True}

@@ -1,0 +1,155 @@
+"""The model-based measurement's fast path against its reference.
+
+``selfview.silhouette`` keeps the first implementation of its three costly steps (the candidates along
+each sample's normal, the IRLS of the camera motion, the vote for the image shift) as ``*_ref``, and
+``silhouette.REFERENCE = True`` makes every fit use them; the fast path's IRLS and vote run in the compiled
+kernel ``selfview._csil`` when it is built, their numpy code (``_solve_py``, ``_votes_py``) the kernel's
+reference. The fast path, with the kernel and without, must give the same measurement:
+on the same frames, both renderers, plain and over a photograph, tracked and searched, the corners
+within CORNER_TOL_PX and the fitted pose's TCP within TCP_TOL_MM of the reference's, the same verdict
+(found or lost) and the same number of supporting samples. The tolerances are far below anything
+physical (the corners' own noise is ~0.02 px, the TCP's ~0.005 mm) and far above rounding, so that a
+reordered sum passes and a changed choice of candidate, weight or step fails.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+
+import selfview.silhouette as sil
+from selfview import _native
+from selfview.bench import clutter
+from selfview.cell import default_cell_path, load_cell
+from selfview.fingertips import model_measurement
+from selfview.tracking import WIDE_ROUNDS, SilhouetteTracker
+
+CORNER_TOL_PX = 0.01
+TCP_TOL_MM = 1e-4
+
+
+@functools.lru_cache(maxsize=None)
+def _cell():
+    return load_cell(default_cell_path())
+
+
+@functools.lru_cache(maxsize=None)
+def _sequence(renderer: str, photo: str | None):
+    return clutter.online_sequence(_cell(), renderer, photo, "cable", 131, 40.0, 1.5, steps=3)
+
+
+def _run(seq, reference: bool, monkeypatch):
+    """The tracker over the sequence, then searches of the last frame (the default rounds from the last
+    frame's prediction, and the wide rounds from the mount before the disturbance)."""
+    monkeypatch.setattr(sil, "REFERENCE", reference)
+    cell = _cell()
+    tr = SilhouetteTracker(seq.camera, cell.gripper, points=range(4))
+    out = []
+    for fr in seq.frames:
+        res = tr.find(fr.image, seq.C_H_G_pred, seq.gap)
+        out.append((res, tr.last_fit))
+    last = seq.frames[-1].image
+    for rounds in (None, WIDE_ROUNDS):
+        out.append(model_measurement(last, seq.camera, seq.C_H_G_pred, cell.gripper, seq.gap, range(4),
+                                     rounds=rounds))
+    return out, tr.tracked_frames
+
+
+@pytest.mark.parametrize("renderer,photo,kernel", [("mocks", None, True), ("mocks", "gravel", True), ("alt", None, True),
+                                                   ("alt", "coffee", True), ("alt", "coffee", False)])
+def test_fast_silhouette_fit_matches_the_reference(renderer, photo, kernel, monkeypatch):
+    if not kernel:
+        monkeypatch.setattr(_native, "sil", None)  # the fast path's numpy code
+    seq = _sequence(renderer, photo)
+    ref, tracked_ref = _run(seq, True, monkeypatch)
+    fast, tracked_fast = _run(seq, False, monkeypatch)
+    assert tracked_ref == tracked_fast and tracked_fast >= 2
+    for (r0, f0), (r1, f1) in zip(ref, fast):
+        assert (r0.lost is None) == (r1.lost is None)
+        assert np.array_equal(r0.found, r1.found)
+        assert f0.ok == f1.ok and f0.n_samples == f1.n_samples
+        if r0.lost is None:
+            assert np.all(np.linalg.norm(r0.uv[r0.found] - r1.uv[r1.found], axis=1) < CORNER_TOL_PX)
+            assert np.all(np.abs(r0.C_H_G[:3, 3] - r1.C_H_G[:3, 3]) < TCP_TOL_MM)
+            assert abs(f0.good_fraction - f1.good_fraction) <= 1.0 / f0.n_samples
+            assert abs(f0.rms_px - f1.rms_px) < 1e-3
+
+
+def test_fast_steps_match_their_references_on_one_frame(monkeypatch):
+    """Each fast step on the same input as its reference: the candidates (offsets to 1e-4 px, the same
+    ones missing), the IRLS (the pose's TCP to TCP_TOL_MM, the weights to 1e-6), the vote (the shift to
+    0.01 px)."""
+    cell = _cell()
+    seq = _sequence("alt", "coffee")
+    fr = seq.frames[2]
+    img = fr.image.astype(np.float32)
+    boxes = cell.gripper.finger_boxes_G(seq.gap)
+    H0 = fr.C_H_G.copy()
+    H0[:3, 3] += (0.3, -0.2, 0.5)  # a start some px off
+    app = sil.learn_appearance(img, seq.camera, fr.C_H_G, cell.gripper, seq.gap)
+    es = sil._visible_edges(boxes, H0)
+    s = sil._sample(seq.camera, es, boxes, H0, margin=sil.BORDER_PX)
+    assert len(s.edge) > 100
+    for R, n in ((8.0, sil.CANDIDATES), (24.0, 8)):
+        a = sil._candidates_ref(img, s, R, app, n)
+        b = sil._candidates(img, s, R, app, n)
+        for x, y in zip(a, b):
+            assert np.array_equal(np.isnan(x), np.isnan(y))
+            assert np.nanmax(np.abs(x - y)) < 1e-4
+        off = b[0]
+        assert np.abs(sil._coarse_shift_ref(off, s.n, R) - sil._coarse_shift(off, s.n, R)).max() < 0.01
+        if _native.sil is not None:
+            # the kernel's vote against its numpy reference: n . d is rounded otherwise (no matrix
+            # product), so a sample exactly at tol from a cell may count on one side only
+            g = np.arange(-R, R + 1.0, 2.0)
+            dx, dy = np.meshgrid(g, g)
+            d = np.column_stack([dx.ravel(), dy.ravel()])
+            votes = np.empty(len(d), np.int64)
+            _native.sil.vote(off.astype(float), s.n, g, 1.5, votes)
+            ref_votes = sil._votes_py(off, np.isfinite(off), s.n @ d.T, 1.5)
+            assert np.abs(votes - ref_votes).max() <= 1 and votes.max() > 0.5 * len(off)
+    off, _, _ = sil._candidates(img, s, 8.0, app)
+    uvc = s.uv[:, None, :] + off[..., None] * s.n[:, None, :]
+    flat = uvc.reshape(-1, 2)
+    okc = np.isfinite(flat).all(axis=1)
+    q = np.full(flat.shape, np.nan)
+    q[okc] = seq.camera.undistort_pixels(flat[okc])
+    q = q.reshape(uvc.shape)
+    Ha, wa, ra, pa, Ja, sa = sil._solve_ref(seq.camera, es, s, q, H0, 0.35, iters=6, start_floor=1.3)
+    Hb, wb, rb, pb, Jb, sb = sil._solve(seq.camera, es, s, q, H0, 0.35, iters=6, start_floor=1.3)
+    assert np.abs(Ha[:3, 3] - Hb[:3, 3]).max() < TCP_TOL_MM
+    assert np.abs(Ha[:3, 3] - H0[:3, 3]).max() > 0.05  # the fit did move the pose
+    assert np.array_equal(pa, pb) and np.abs(wa - wb).max() < 1e-6 and abs(sa - sb) < 1e-6
+    assert np.allclose(Ja, Jb, rtol=1e-6, atol=1e-9 * np.abs(Ja).max())
+    # the numpy code of the fast IRLS (the compiled kernel's reference) agrees as well
+    Hc, wc, rc, pc, Jc, sc = sil._solve_py(seq.camera, es, s, q, H0, 0.35, iters=6, start_floor=1.3)
+    assert np.abs(Hc[:3, 3] - Hb[:3, 3]).max() < TCP_TOL_MM and np.array_equal(pb, pc)
+    assert np.abs(wb - wc).max() < 1e-6 and abs(sb - sc) < 1e-6
+
+
+@pytest.mark.skipif(_native.sil is None, reason="the compiled kernel selfview._csil is not built")
+def test_the_kernel_refuses_bad_arguments_by_name():
+    k = _native.sil
+    S, C, E = 20, 3, 2
+    q = np.zeros((S, C, 2))
+    pos = np.zeros(S, np.int64)
+    ab = np.ones((E, 3))
+    H = np.eye(4)
+    outs = (np.empty((4, 4)), np.empty(S), np.empty(S), np.empty(S, np.int64), np.empty((6, 6)))
+    with pytest.raises(TypeError, match="pos: expected a int64 array"):
+        k.solve(q, pos.astype(np.int32), ab, ab, H, 800.0, 0.35, 6, -1.0, *outs)
+    with pytest.raises(ValueError, match="pos: sample 3 names edge 7"):
+        bad = pos.copy()
+        bad[3] = 7
+        k.solve(q, bad, ab, ab, H, 800.0, 0.35, 6, -1.0, *outs)
+    with pytest.raises(ValueError, match="w: dimension 0 is 19"):
+        k.solve(q, pos, ab, ab, H, 800.0, 0.35, 6, -1.0, outs[0], np.empty(S - 1), *outs[2:])
+    with pytest.raises(TypeError, match="q: expected a C-contiguous"):
+        k.solve(q[:, ::-1], pos, ab, ab, H, 800.0, 0.35, 6, -1.0, *outs)
+    with pytest.raises(ValueError, match="votes: dimension 0 is 8"):
+        k.vote(np.zeros((S, C)), np.zeros((S, 2)), np.arange(3.0), 1.5, np.empty(8, np.int64))
+    # no sample with a candidate: the reference's early return (weights zero), code 1
+    code, sigma = k.solve(np.full((S, C, 2), np.nan), pos, ab, ab, H, 800.0, 0.35, 6, -1.0, *outs)
+    assert code == 1 and not outs[1].any() and np.array_equal(outs[0], H)
