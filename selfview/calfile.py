@@ -117,15 +117,24 @@ class Calibration:
             for name in ("f", "kappa", "cx", "cy", "aspect"):
                 if not math.isfinite(getattr(camera, name)):
                     raise ValueError(f"camera {name} is {getattr(camera, name)}, not a finite number")
+            _plausible_camera(camera)
             pts = {}
             for st, d in doc["gripper"]["points_G"].items():
                 pts[st] = np.array([d[nm] for nm in POINT_NAMES], dtype=float).reshape(6, 3)
                 if not np.all(np.isfinite(pts[st])):
                     raise ValueError(f"gripper points_G {short_repr(st)} holds a non-finite number")
+                if np.max(np.abs(pts[st])) > MAX_LENGTH_MM:
+                    raise ValueError(f"gripper points_G {short_repr(st)} lie over {MAX_LENGTH_MM:g} mm from the TCP")
+            C_H_W = check_rigid(doc["C_H_W"], f"{source}: C_H_W")
+            C_H_G = check_rigid(doc["C_H_G"], f"{source}: C_H_G")
+            for name, H in (("C_H_W", C_H_W), ("C_H_G", C_H_G)):
+                if np.linalg.norm(H[:3, 3]) > MAX_LENGTH_MM:
+                    raise ValueError(f"{name} puts its origin over {MAX_LENGTH_MM:g} mm from the camera")
+            _plausible_figures(doc.get("residuals") or {}, "residuals")
             return cls(
                 camera=camera,
-                C_H_W=check_rigid(doc["C_H_W"], f"{source}: C_H_W"),
-                C_H_G=check_rigid(doc["C_H_G"], f"{source}: C_H_G"),
+                C_H_W=C_H_W,
+                C_H_G=C_H_G,
                 points_G=pts,
                 state=str(doc["gripper"]["state"]),
                 residuals=dict(doc.get("residuals") or {}),
@@ -138,6 +147,37 @@ class Calibration:
         except (KeyError, TypeError, ValueError, IndexError, AttributeError, OverflowError, ConfigError) as exc:
             what = f"missing key {exc}" if isinstance(exc, KeyError) else f"{type(exc).__name__}: {exc}"
             raise CalibrationFileError(f"{source}: malformed calibration file ({short_repr(what, 200)[1:-1]})") from None
+
+
+#: Far beyond any self-viewing cell (a wrist camera sees its fingertips from a few hundred mm): a length
+#: over this in a calibration file is a corrupted number, not a measurement.
+MAX_LENGTH_MM = 10_000.0
+
+
+def _plausible_camera(cam: CameraModel) -> None:
+    """Refuse camera values no camera has (a corrupted number that still parses): ``ValueError`` naming it."""
+    if not 0 < cam.width <= 16384 or not 0 < cam.height <= 16384:
+        raise ValueError(f"camera size {cam.width} x {cam.height} px is not a picture size")
+    if not 1.0 <= cam.f <= 1e5:
+        raise ValueError(f"camera f = {cam.f} px is not a focal length (1 to 100000 px)")
+    if abs(cam.kappa) * (cam.width ** 2 + cam.height ** 2) / 4 > 1.0:
+        raise ValueError(f"camera kappa = {cam.kappa} px^-2 is not a lens distortion (it more than doubles the corners' radius)")
+    if not (-0.5 <= cam.cx <= cam.width - 0.5 and -0.5 <= cam.cy <= cam.height - 0.5):
+        raise ValueError(f"camera principal point ({cam.cx}, {cam.cy}) lies outside the {cam.width} x {cam.height} picture")
+    if not 0.5 <= cam.aspect <= 2.0:
+        raise ValueError(f"camera aspect = {cam.aspect} is not a pixel aspect (0.5 to 2)")
+
+
+def _plausible_figures(x, where: str) -> None:
+    """Every number in a nested figure (residuals: px, mm, counts) finite and under 1e6."""
+    if isinstance(x, dict):
+        for k, v in x.items():
+            _plausible_figures(v, f"{where}.{k}")
+    elif isinstance(x, (list, tuple)):
+        for i, v in enumerate(x):
+            _plausible_figures(v, f"{where}[{i}]")
+    elif isinstance(x, (int, float)) and not isinstance(x, bool) and not (math.isfinite(x) and abs(x) < 1e6):
+        raise ValueError(f"{short_repr(where, 80)} is {short_repr(x, 40)}, not a plausible figure")
 
 
 def _now() -> str:

@@ -48,6 +48,9 @@ POINT_NAMES: tuple[str, ...] = (
 
 
 # --- validation helpers ---------------------------------------------------------------------------
+#: The largest magnitude any number of a cell file may have (lengths in mm, angles in degrees, grey levels).
+MAX_NUMBER = 1e9
+
 class _Section:
     """Reads one mapping of the YAML document, tracking which keys were used."""
 
@@ -86,6 +89,8 @@ class _Section:
             raise ConfigError(f"{self._key(key)}: the number {short_repr(v)} is too large") from None
         if not np.isfinite(v):
             raise ConfigError(f"{self._key(key)}: expected a finite number, got {v!r}")
+        if abs(v) > MAX_NUMBER:  # no length, angle, level or limit of a cell comes near: a corrupted number
+            raise ConfigError(f"{self._key(key)}: the number {v!r} is not a plausible value (over {MAX_NUMBER:g})")
         if positive and v <= 0:
             raise ConfigError(f"{self._key(key)}: expected a positive number, got {v!r}")
         if nonneg and v < 0:
@@ -294,11 +299,13 @@ def _parse_camera(s: _Section) -> CameraSpec:
         width=s.integer("width", positive=True),
         height=s.integer("height", positive=True),
         principal_point=s.vector("principal_point", 2),
-        aspect=s.number("aspect", 1.0, positive=True),
-        focal_guess=s.number("focal_guess", positive=True),
-        kappa_guess=s.number("kappa_guess", 0.0),
+        aspect=s.number("aspect", 1.0, lo=0.5, hi=2.0),
+        focal_guess=s.number("focal_guess", lo=1.0, hi=1e5),
+        kappa_guess=s.number("kappa_guess", 0.0, lo=-1e-4, hi=1e-4),
     )
     s.done()
+    if spec.width > 16384 or spec.height > 16384:
+        raise ConfigError(f"camera: {spec.width} x {spec.height} px is not a picture size (at most 16384 a side)")
     cx, cy = spec.principal_point
     if not (0 <= cx <= spec.width - 1 and 0 <= cy <= spec.height - 1):
         raise ConfigError(

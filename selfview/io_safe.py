@@ -88,8 +88,9 @@ def load_yaml(data: bytes | str, source: str, *, error: type[CellError] = Config
             data = data.decode("utf-8")
         except UnicodeDecodeError as exc:
             raise error(f"{source}: {what} is not UTF-8 text (byte {exc.start})") from None
-    loader = _LOADERS["base" if text_only else "safe"](data)
     try:
+        # the reader refuses non-printable characters as it is built: inside the try, like every YAML error
+        loader = _LOADERS["base" if text_only else "safe"](data)
         return loader.get_single_data()
     except _Refused as exc:
         raise error(f"{source}: {what} refused: {exc}") from None

@@ -56,6 +56,10 @@ __all__ = ["PumaVAL", "Where", "AbortResult"]
 _PRINTABLE = set(range(0x20, 0x7F)) | {0x07, 0x09, 0x0A, 0x0D}  # BEL and TAB occur on real terminals
 
 
+#: How many times a location is read at most, looking for two replies in a row that agree.
+LOCATION_READS = 4
+
+
 @dataclass(frozen=True)
 class Where:
     """The robot's pose as ``WHERE`` reports it: ``pose`` (x, y, z mm, o, a, t deg) of the tool point,
@@ -705,9 +709,19 @@ class PumaVAL:
             return self._location_locked(name)
 
     def _location_locked(self, name: str) -> tuple[float, ...]:
+        """``POINT name`` until two replies in a row agree (at most ``LOCATION_READS``): a serial line has no
+        checksum, and a location prints no joint angles to check it against, so one corrupted digit would
+        otherwise pass every later check (the limit check included)."""
         cmd = self.dialect.command("point", name=name)
-        content = self._exchange_locked(cmd, answers=[(self.dialect.change_question, "")])
-        return self._checked(lambda: self.dialect.parse_location(content))
+        last = None
+        for _ in range(LOCATION_READS):
+            content = self._exchange_locked(cmd, answers=[(self.dialect.change_question, "")])
+            pose = self._checked(lambda: self.dialect.parse_location(content))
+            if last is not None and pose == last:
+                return pose
+            last = pose
+        raise ProtocolError(f"{cmd}: no two replies in a row agree in {LOCATION_READS} reads (line noise?); "
+                            f"nothing was moved")
 
     def location(self, name: str) -> tuple[float, ...]:
         """``POINT name`` answered with an empty line: the stored pose (x, y, z, o, a, t), unchanged."""

@@ -405,7 +405,7 @@ def test_an_echo_that_differs_after_its_first_word_is_erased_before_it_runs():
 
 def test_a_corrupted_motion_command_never_runs():
     p1 = VAL.pose_to_H(POSE)
-    script = [*typed(b"POINT p1", point_reply(POSE)), (b"\r", b"\r\n."), *where(), *status(20)]
+    script = [*point(b"p1"), *where(), *status(20)]
     script += [(b"DO APPRO p1, 50", b"DO APPRO p1, 20"), (b"\x15", b"")]
     r, port = robot(script)
     with pytest.raises(ProtocolError, match="nothing ran"):
@@ -450,9 +450,19 @@ def test_define_rejects_bad_names_poses_and_points_outside_the_box():
 
 
 def test_point_reads_a_location_and_answers_change_with_an_empty_line():
-    r, port = robot([*typed(b"POINT p1", point_reply(POSE)), (b"\r", b"\r\n.")])
+    r, port = robot(point(b"p1"))
     assert r.location("p1") == POSE
-    assert port.written == [b"\r", b"POINT p1", b"\r", b"\r"]
+    assert port.written == [b"\r", b"POINT p1", b"\r", b"\r", b"POINT p1", b"\r", b"\r"]  # read until two agree
+
+
+def test_a_corrupted_location_is_read_again_until_two_replies_agree():
+    bad = (POSE[0] + 180.0,) + POSE[1:]  # one digit of X changed on the line
+    once = lambda pose: [*typed(b"POINT p1", point_reply(pose)), (b"\r", b"\r\n.")]  # noqa: E731
+    r, port = robot([*once(bad), *once(POSE), *once(POSE)])
+    assert r.location("p1") == POSE
+    r, port = robot([*once(bad), *once(POSE), *once(bad), *once(POSE)])
+    with pytest.raises(ProtocolError, match="no two replies in a row agree"):
+        r.location("p1")
 
 
 def test_here_records_and_returns_the_pose():
@@ -462,7 +472,8 @@ def test_here_records_and_returns_the_pose():
 
 # --- motions ------------------------------------------------------------------------------------------------
 def point(name: bytes, pose=POSE) -> list:
-    return [*typed(b"POINT " + name, point_reply(pose)), (b"\r", b"\r\n.")]
+    """A location read: POINT until two replies in a row agree (twice when the line is clean)."""
+    return [*typed(b"POINT " + name, point_reply(pose)), (b"\r", b"\r\n.")] * 2
 
 
 def motion(cmd: bytes, arrive=JOINTS, *, start=JOINTS, speed=20) -> list:
@@ -478,7 +489,7 @@ def test_move_reads_its_target_from_the_controller_each_time():
     r, port = robot([*point(b"p1"), *motion(b"DO MOVE p1"), *point(b"p1"), *motion(b"DO MOVE p1", speed=None)])
     r.move("p1")
     r.move("p1")
-    assert port.written.count(b"POINT p1") == 2  # never a cached copy
+    assert port.written.count(b"POINT p1") == 4  # never a cached copy (each read twice)
 
 
 def test_a_relocated_target_outside_the_box_is_refused():

@@ -305,3 +305,26 @@ def test_a_calibration_that_does_not_read_back_is_never_written(tmp_path, rng):
     with pytest.raises(CalibrationFileError, match="non-finite"):
         save_calibration(bad, p)
     assert p.read_bytes() == old and not history_dir(p).exists()
+
+
+@pytest.mark.parametrize("where, value", [
+    (("camera", "f"), 1e30), (("camera", "aspect"), 18446744073709551616), (("camera", "kappa"), 0.5),
+    (("camera", "principal_point", 0), -4000.0), (("camera", "width"), 2 ** 40),
+    (("C_H_G", 0, 3), 1e12), (("residuals", "rms_px"), float("nan")),
+])
+def test_values_no_camera_or_cell_has_are_refused_even_with_a_good_checksum(tmp_path, where, value):
+    """A corrupted number that still parses and is re-checksummed (the fault campaign's huge_number and
+    nan cases) is refused by its physical range, naming the value."""
+    from selfview.calfile import _checksum
+
+    p = tmp_path / "cal.yaml"
+    save_calibration(make_cal(np.random.default_rng(3)), p)
+    doc = yaml.safe_load(p.read_text())
+    node = doc
+    for k in where[:-1]:
+        node = node[k]
+    node[where[-1]] = value
+    doc["checksum"] = _checksum({k: v for k, v in doc.items() if k != "checksum"})
+    p.write_text(yaml.safe_dump(doc, sort_keys=False))
+    with pytest.raises(CalibrationFileError, match="not a|outside|over|plausible"):
+        load_calibration(p)

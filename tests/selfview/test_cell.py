@@ -162,3 +162,18 @@ def test_cli_maps_a_hostile_cell_file_to_exit_3(tmp_path, capsys):
     assert main(["render", "--cell", str(p), "--out", str(tmp_path / "x.png")]) == EXIT_CONFIG
     err = capsys.readouterr().err
     assert "bomb.yaml" in err and "alias" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("line, value", [("focal_guess: 950.0", "focal_guess: 1.8446744073709552e+19"),
+                                         ("aspect: 1.0", "aspect: 40.0"), ("pitch: 9.0", "pitch: 1.0e+30")])
+def test_numbers_no_cell_has_are_refused(tmp_path, cell_path, line, value):
+    """A number that parses but is no plausible cell value (the fault campaign's huge_number) is refused."""
+    from selfview.cell import load_cell
+    from selfview.errors import ConfigError
+
+    text = cell_path.read_text()
+    assert line in text
+    p = tmp_path / "cell.yaml"
+    p.write_text(text.replace(line, value, 1))
+    with pytest.raises(ConfigError, match="plausible|expected a number"):
+        load_cell(p)
