@@ -67,6 +67,8 @@ BENCHES: tuple[Bench, ...] = (
           1200.0),
     Bench("clutter", "fingertips over real photographs: found / missed / wrong-but-marked-good", (),
           ("--trials", "1", "--steps", "2", "--disc", "3", "--occluded", "2"), 1200.0),
+    Bench("faults", "fault campaign: corrupted links, hostile files and pictures, Ctrl-C", ("--faults", "10000"),
+          ("--quick",), 900.0),
 )
 
 

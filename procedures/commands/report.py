@@ -13,7 +13,7 @@ def register(sub):
         help="rerun every benchmark and study and write docs/RESULTS.md with its JSON and plots",
         description=(
             "Reruns every bench/ script (render, offline, online, robot, io, kinematics_vs_selfview, update_limit, error_budget, "
-            "intrinsics, clutter) as a "
+            "intrinsics, clutter, faults) as a "
             "subprocess with a time limit each, the paper's experiment on the simulated cell (20 trials per series) and "
             "Tsai's method on Willson's reference data, and writes RESULTS.md with speed (OpenCV's peers timed in the same "
             "run, as ratios), accuracy, the AX=XB study, the update/recalibrate limit and the machine, and beside it "
