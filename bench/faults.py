@@ -663,6 +663,10 @@ def modbus_case(rig: ModbusRig, op: str, fault: str, direction: str, at: int, rn
     elif at_end["stray"]:
         outcome, seen = "unsafe", f"{what}: coil(s) {at_end['stray']} energised, which the driver never commands"
     elif err is not None:
+        if energised and rig.io_map.safe_state == "all-off" and not _safe_confirmed(engine):
+            # the driver could not reach the terminal to make it safe (a stalled or cut link) and said so:
+            # what then keeps the cell safe is the terminal's watchdog, which the driver no longer feeds
+            energised = _energised_after_watchdog(sim, rig)
         if energised and rig.io_map.safe_state == "all-off":
             report = (engine.cleanup_report or {}).get("gripper", "")
             outcome, seen = "unsafe", f"{what}: valve {energised} energised after the driver gave up ({_err_text(err)[:100]}; cleanup: {report})"
@@ -966,6 +970,25 @@ class FileFaults:
             _set(doc, p, float(v) * float(rng.choice([1.001, 0.999, 1.01, 0.99, 1.1, 0.9])))
             return dump(doc)
         raise ValueError(fault)
+
+
+def _safe_confirmed(engine) -> bool:
+    """Whether the engine's cleanup confirmed the valve's safe state (the driver's own report)."""
+    report = str((engine.cleanup_report or {}).get("gripper", ""))
+    return "NOT confirmed" not in report and "could not" not in report
+
+
+def _energised_after_watchdog(sim, rig) -> dict:
+    """The valve outputs once the terminal's watchdog period has passed with the proxy out of the way
+    (disarmed): the driver must have stopped feeding it, so the outputs drop; still energised is unsafe."""
+    wd = getattr(sim, "watchdog_s", None) or 0.0
+    deadline = time.monotonic() + 3.0 * wd + 0.5
+    while time.monotonic() < deadline:
+        out = {k: v for k, v in sim.valve_outputs.items() if v}
+        if not out:
+            return {}
+        time.sleep(0.05)
+    return {k: v for k, v in sim.valve_outputs.items() if v}
 
 
 def _draw(kinds, weights, rng) -> str:

@@ -104,6 +104,7 @@ class Calibration:
                 f"from its .history folder)"
             )
         try:
+            _check_types(doc)
             cam = doc["camera"]
             camera = CameraModel(
                 f=float(cam["f"]),
@@ -131,6 +132,14 @@ class Calibration:
                 if np.linalg.norm(H[:3, 3]) > MAX_LENGTH_MM:
                     raise ValueError(f"{name} puts its origin over {MAX_LENGTH_MM:g} mm from the camera")
             _plausible_figures(doc.get("residuals") or {}, "residuals")
+            for key, kind in (("residuals", dict), ("updates", list)):
+                if not isinstance(doc.get(key) or kind(), kind):
+                    raise ValueError(f"{key} is {short_repr(doc.get(key), 60)}, expected a {kind.__name__}")
+            if not all(isinstance(u, dict) for u in doc.get("updates") or []):
+                raise ValueError("updates holds an entry that is not a record")
+            for key in ("image_sha256", "cell_sha256", "created", "software"):
+                if not isinstance(doc.get(key, ""), str):
+                    raise ValueError(f"{key} is {short_repr(doc.get(key), 60)}, expected text")
             return cls(
                 camera=camera,
                 C_H_W=C_H_W,
@@ -166,6 +175,62 @@ def _plausible_camera(cam: CameraModel) -> None:
         raise ValueError(f"camera principal point ({cam.cx}, {cam.cy}) lies outside the {cam.width} x {cam.height} picture")
     if not 0.5 <= cam.aspect <= 2.0:
         raise ValueError(f"camera aspect = {cam.aspect} is not a pixel aspect (0.5 to 2)")
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _check_types(doc: dict) -> None:
+    """Every field of a calibration document of the type it is written with (a re-checksummed file whose
+    number became a flag, a list grew an element or a state name became a list is refused): ``ValueError``."""
+    cam = doc["camera"]
+    for k in ("f", "kappa", "aspect"):
+        if not _is_number(cam[k]):
+            raise ValueError(f"camera {k} is {short_repr(cam[k], 40)}, not a number")
+    pp = cam["principal_point"]
+    if not (isinstance(pp, list) and len(pp) == 2 and all(_is_number(x) for x in pp)):
+        raise ValueError(f"camera principal_point is {short_repr(pp, 60)}, not two numbers")
+    for k in ("width", "height"):
+        if not isinstance(cam[k], int) or isinstance(cam[k], bool):
+            raise ValueError(f"camera {k} is {short_repr(cam[k], 40)}, not a whole number")
+    for name in ("C_H_W", "C_H_G"):
+        H = doc[name]
+        if not (isinstance(H, list) and len(H) == 4 and all(isinstance(r, list) and len(r) == 4 and
+                                                          all(_is_number(x) for x in r) for r in H)):
+            raise ValueError(f"{name} is not a 4x4 matrix of numbers")
+    grip = doc["gripper"]
+    pts = grip["points_G"]
+    if not isinstance(pts, dict) or not pts:
+        raise ValueError("gripper points_G is not a table of jaw states")
+    for st, table in pts.items():
+        if not (isinstance(table, dict) and set(table) == set(POINT_NAMES) and all(
+                isinstance(v, list) and len(v) == 3 and all(_is_number(x) for x in v) for v in table.values())):
+            raise ValueError(f"gripper points_G {short_repr(st, 30)} is not the six named points of three numbers")
+    if not isinstance(grip["state"], str) or grip["state"] not in pts:
+        raise ValueError(f"gripper state {short_repr(grip['state'], 40)} is not one of the jaw states {sorted(pts)}")
+    _figure_types(doc.get("residuals") or {}, "residuals")
+
+
+def _figure_types(res: dict, where: str) -> None:
+    """The figures the off-line calibration writes, each of its type (other keys, from other tools or
+    later versions, are taken as they are: they are shown, never computed with)."""
+    if not isinstance(res, dict):
+        raise ValueError(f"{where} is not a table of figures")
+    names = set(POINT_NAMES)
+    checks = {
+        "rms_px": _is_number, "max_px": _is_number, "pcc_rms_mm": _is_number, "pcc_q_norm": _is_number,
+        "discs_used": lambda v: isinstance(v, int) and not isinstance(v, bool),
+        "tsai_mode": lambda v: isinstance(v, str),
+        "points_from": lambda v: v in ("picture", "cell"),
+        "corners_measured_by": lambda v: v in ("corners", "model"),
+        "corners_found": lambda v: isinstance(v, list) and all(isinstance(x, str) and x in names for x in v),
+        "corner_edge_rms_px": lambda v: isinstance(v, dict) and all(k in names and _is_number(x) for k, x in v.items()),
+        "camera_file": lambda v: isinstance(v, dict) and all(isinstance(v.get(k), str) for k in ("path", "sha256")),
+    }
+    for key, ok in checks.items():
+        if key in res and not ok(res[key]):
+            raise ValueError(f"{where}.{key} is {short_repr(res[key], 60)}, not what the calibration writes there")
 
 
 def _plausible_figures(x, where: str) -> None:

@@ -107,6 +107,8 @@ class _Section:
             raise ConfigError(f"{self._key(key)}: expected a whole number, got {v!r}")
         if positive and v <= 0:
             raise ConfigError(f"{self._key(key)}: expected a positive whole number, got {v!r}")
+        if abs(v) > MAX_NUMBER:
+            raise ConfigError(f"{self._key(key)}: the number {short_repr(v)} is not a plausible value (over {MAX_NUMBER:g})")
         return int(v)
 
     def string(self, key: str, default: Any = ..., choices=None) -> str:
@@ -131,6 +133,9 @@ class _Section:
             raise ConfigError(f"{self._key(key)}: a number of {short_repr(v)} is too large") from None
         if not all(np.isfinite(out)):
             raise ConfigError(f"{self._key(key)}: expected finite numbers, got {v!r}")
+        if any(abs(x) > MAX_NUMBER for x in out):
+            raise ConfigError(f"{self._key(key)}: {short_repr(v)} holds a number that is not a plausible value "
+                              f"(over {MAX_NUMBER:g})")
         return out
 
     def transform(self, key: str, default: Any = ...) -> np.ndarray:

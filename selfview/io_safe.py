@@ -88,6 +88,7 @@ def load_yaml(data: bytes | str, source: str, *, error: type[CellError] = Config
             data = data.decode("utf-8")
         except UnicodeDecodeError as exc:
             raise error(f"{source}: {what} is not UTF-8 text (byte {exc.start})") from None
+    loader = None
     try:
         # the reader refuses non-printable characters as it is built: inside the try, like every YAML error
         loader = _LOADERS["base" if text_only else "safe"](data)
@@ -101,7 +102,8 @@ def load_yaml(data: bytes | str, source: str, *, error: type[CellError] = Config
         raise error(f"{source}: {what} holds a value that cannot be read ({type(exc).__name__}: "
                     f"{_short(str(exc), 200)})") from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
 
 
 def _short(text: str, n: int = 80) -> str:

@@ -49,7 +49,7 @@ from dataclasses import dataclass
 
 from selfview.drivers.pneumatic_gripper.iomap import IoMap, Point
 from selfview.drivers.pneumatic_gripper.modbus import ConnectionLost, ModbusExceptionReply, ModbusLink
-from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout
+from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout, ProtocolError
 
 __all__ = ["PneumaticGripper", "GripperFault", "JawReading", "SafeReport"]
 
@@ -380,9 +380,17 @@ class PneumaticGripper:
         return out
 
     def outputs(self) -> dict[str, bool]:
-        """Read the solenoid outputs now: {'open': bool, 'close': bool} for the solenoids present."""
+        """Read the solenoid outputs now: {'open': bool, 'close': bool} for the solenoids present. Modbus
+        TCP has no checksum, so the outputs are read until two readings in a row agree (at most 4 reads;
+        ``ProtocolError`` if they never do)."""
         try:
-            return self._read_outputs()
+            last = None
+            for _ in range(4):
+                now = self._read_outputs()
+                if now == last:
+                    return now
+                last = now
+            raise ProtocolError(f"{self.url}: valve outputs: no two readings in a row agree in 4 reads (line noise?)")
         except CellError as exc:
             self._note_failure(exc)
             if isinstance(exc, ModbusExceptionReply):

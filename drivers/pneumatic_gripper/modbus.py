@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import struct
 import threading
 from collections.abc import Callable
 from contextlib import contextmanager
@@ -227,6 +228,10 @@ class ModbusLink:
             except ModbusException as exc:
                 self._drop()
                 raise ProtocolError(f"{self.url.url}: {what}: {exc}") from exc
+            except (struct.error, ValueError, IndexError) as exc:
+                # a corrupted reply that pymodbus's decoder trips over (e.g. a flipped length byte)
+                self._drop()
+                raise ProtocolError(f"{self.url.url}: {what}: undecodable reply ({exc})") from exc
             if rsp is None:
                 self._drop()
                 raise ProtocolError(f"{self.url.url}: {what}: no decodable reply")
