@@ -34,6 +34,7 @@ __all__ = ["Bench", "BenchRun", "BENCHES", "find_bench_dir", "find_reference_dir
 
 _REPO = Path(__file__).resolve().parents[1]
 _OUT = "{out}"  # replaced by the results folder in a bench's arguments
+KEPT = "figures kept from the previous run"  # a benchmark not rerun by ``--keep``
 
 
 @dataclass(frozen=True)
@@ -504,7 +505,8 @@ def render_markdown(runs: dict[str, BenchRun], mach: dict, exp: dict | None, wil
              f"{mach['numpy']}, OpenCV {mach['opencv']}, matplotlib {mach.get('matplotlib')}; {mach['platform']}; "
              f"selfview {mach['selfview']}.", "",
              "| benchmark | status | seconds |", "|---|---|---|"]
-    lines += [f"| `bench/{r.name}.py` | {r.status} | {r.seconds:.1f} |" for r in runs.values()]
+    lines += [f"| `bench/{r.name}.py` | {r.status}{' (' + KEPT + ')' if r.detail == KEPT else ''} | "
+              f"{'-' if r.detail == KEPT else f'{r.seconds:.1f}'} |" for r in runs.values()]
     lines += [""]
     lines += _section(_speed, runs)
     lines += ["## Accuracy", ""]
@@ -519,7 +521,7 @@ def render_markdown(runs: dict[str, BenchRun], mach: dict, exp: dict | None, wil
 
 def make_report(out: Path, *, quick: bool = False, benches=BENCHES, bench_dir: Path | None = None,
                 reference: Path | None = None, trials: int | None = None, jobs: int = 2, progress=None,
-                command: str = "selfview report", write_cell: Path | None = None) -> dict:
+                command: str = "selfview report", write_cell: Path | None = None, keep: bool = False) -> dict:
     """Rerun the benchmarks, the experiment and Willson's check; write ``out`` (RESULTS.md) and
     ``out.parent/results/``. ``quick`` uses each benchmark's small arguments and 2 trials per series
     (``trials`` overrides). ``write_cell``: the update limit measured in this run is written into that
@@ -537,6 +539,13 @@ def make_report(out: Path, *, quick: bool = False, benches=BENCHES, bench_dir: P
     results.mkdir(parents=True, exist_ok=True)
     bench_dir = Path(bench_dir) if bench_dir else find_bench_dir()
     runs = {}
+    rerun = {b.name for b in benches}
+    if keep:  # every benchmark not rerun now keeps the figures stored by the last run, and says so
+        for b in BENCHES:
+            stored = results / f"{b.name}.json"
+            if b.name not in rerun and stored.is_file():
+                runs[b.name] = BenchRun(b.name, b.title, "ok", json.loads(stored.read_text(encoding="utf-8")),
+                                        0.0, [], KEPT)
     for b in benches:
         say(f"bench/{b.script} ...")
         extra = ()
@@ -547,6 +556,12 @@ def make_report(out: Path, *, quick: bool = False, benches=BENCHES, bench_dir: P
         say(f"bench/{b.script}: {runs[b.name].status} ({runs[b.name].seconds:.0f} s)")
     n = trials if trials is not None else (2 if quick else 20)
     exp = None
+    if keep and n == 0 and (results / "experiment.json").is_file():
+        from selfview.procedures.experiment import tables_markdown
+
+        exp = json.loads((results / "experiment.json").read_text(encoding="utf-8"))
+        if "summary" in exp:
+            exp["tables_md"] = tables_markdown(exp["summary"])
     if n > 0:
         say(f"experiment: {n} trials per series ...")
         try:

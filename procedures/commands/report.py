@@ -30,6 +30,9 @@ def register(sub):
     p.add_argument("--jobs", type=int, default=2, help="processes for the experiment's two series (default 2)")
     p.add_argument("--write-cell", metavar="CELL.yaml",
                    help="also write the update limit measured in this run into that cell file (e.g. selfview/data/cell.yaml)")
+    p.add_argument("--keep", action="store_true",
+                   help="with --only (and --trials 0): keep the stored figures of every part not rerun (results/*.json "
+                        "beside --out), so that one benchmark can be refreshed without rerunning the others")
     p.add_argument("--json", action="store_true", help="print where everything went as one JSON object")
     p.set_defaults(func=run)
     return p
@@ -56,7 +59,7 @@ def run(args) -> int:
     command = "selfview report " + " ".join(a for a in sys.argv[2:]) if sys.argv[1:2] == ["report"] else "selfview report"
     res = make_report(args.out, quick=args.quick, benches=benches, bench_dir=args.bench_dir, reference=args.reference,
                       trials=args.trials, jobs=args.jobs, progress=say, command=command.strip(),
-                      write_cell=args.write_cell)
+                      write_cell=args.write_cell, keep=args.keep)
     if args.json:
         print_json(res)
     else:

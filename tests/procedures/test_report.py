@@ -244,3 +244,17 @@ def test_report_runs_the_installed_projects_own_benchmarks_wherever_started(tmp_
     assert (d / "online.py").read_text() != "print('{}')\n" and (d / "offline.py").is_file()
     assert find_reference_dir() is not None and (find_reference_dir() / "ccal.log").is_file()
     assert find_reference_dir(tmp_path) is None  # a folder without Willson's data is no reference
+
+
+def test_keep_refreshes_one_benchmark_and_keeps_the_others_figures(fake_benches, tmp_path):
+    """--keep: the benchmarks not rerun keep their stored JSON, marked as kept in the report."""
+    out = tmp_path / "docs" / "RESULTS.md"
+    (tmp_path / "docs" / "results").mkdir(parents=True)
+    stored = {"speed": {"solve_us": 99.0}, "ok": True, "args": ["stored"]}
+    (tmp_path / "docs" / "results" / "online.json").write_text(json.dumps(stored))
+    benches = (Bench("good", "a good one", ("--out", "{out}")),)
+    res = make_report(out, benches=benches, bench_dir=fake_benches, trials=0, keep=True)
+    assert res["runs"]["good"] == "ok" and res["runs"]["online"] == "ok"
+    text = out.read_text()
+    assert "`bench/online.py` | ok (figures kept from the previous run)" in text
+    assert json.loads((tmp_path / "docs" / "results" / "online.json").read_text()) == stored
