@@ -5,13 +5,32 @@ scale factor ``aspect`` as known. One picture of a plane hardly separates them f
 tilt; several pictures of the plate from different poses do. ``calibrate_intrinsics`` finds f, kappa,
 cx, cy, aspect and every view's plate pose ``C_H_W`` jointly by Levenberg-Marquardt with an analytic
 Jacobian (on the normal equations, assembled view by view: ``selfview.lm``'s SVD of the whole Jacobian
-per iteration costs far more for 5 + 6 V parameters), on the same disc centres as the off-line
+per iteration costs far more for 5 + 6 V (+ 2 N - 1 of the plate's shape) parameters), on the same disc centres as the off-line
 calibration (``selfview.discs``: sub-pixel centroids, then their perspective/lens bias removed with the
 current model, refitted), minimising the distorted pixel error of the camera model of ``selfview.camera``.
 
+The printed plate is not the specified one (``plate_model``, default 'bow+dots'; 'flat' takes the plate
+as specified). A laser print's discs are each off by 10-20 um, the same in every view: a fixed pattern
+that no number of views averages out, and that a fit on the nominal plate turns into a principal point
+1-4 px off with a sigma of 0.5 px. Paper laid on a board bows by some tenths of a mm. As mrcal estimates
+a board's deformation (and a bundle adjustment its target's points), the fit here adds the plate's shape
+to the unknowns: a bow z = b_xx xn^2 + b_xy xn yn + b_yy yn^2 (xn, yn the disc's nominal position over
+the grid's half-width; three terms, so a cylindrical cockle along any direction is one of them; the
+constant and linear terms are the pose's), and each disc's in-plane position correction, gauge-fixed:
+the corrections are parametrised on the complement of the grid's similarity transforms, so they cannot
+move, turn or scale the grid as a whole (a move or turn is the views' poses; a uniform scale is the
+plates' distances). The plate's scale is therefore NOT measured: a plate printed uniformly 0.2 % large is
+seen exactly as the specified plate 0.2 % further away; the intrinsics do not depend on it, the poses'
+translations carry it, and the plate's printed pitch must be measured apart if they matter. The
+corrections have a Gaussian prior per axis (starting at ``PLATE_DOT_PRIOR_MM``, then estimated from the
+fitted corrections, within ``PLATE_DOT_SD_RANGE_MM``) that keeps few views well-posed. The disc detector
+orients each picture's grid by the picture, so first every view's disc indices are turned onto one
+physical grid (``_align_views``: the turn under which its dot pattern matches the other views').
+
 Uncertainty: the covariance of the parameters is ``s^2 (J^T J)^-1`` with ``s^2`` the residual variance
-(sum of squares over the degrees of freedom); the 1-sigma of f, kappa, cx, cy, aspect is the square root
-of its diagonal. The projection uncertainty at a pixel q is the 1-sigma length (sqrt of the trace) of the
+(sum of squares over the degrees of freedom; the plate's prior rows count as observations, weighed by the
+noise of the previous fit, so the covariance is the posterior one); the 1-sigma of f, kappa, cx, cy,
+aspect is the square root of its diagonal, the plate's shape marginalised. The projection uncertainty at a pixel q is the 1-sigma length (sqrt of the trace) of the
 2-D covariance of the pixel where q's ray lands under the intrinsics' covariance (pose marginalised);
 being in the camera frame it does not depend on the range.
 
@@ -450,7 +469,8 @@ def _bias_corrected(dets, camera, poses, plate) -> list:
 #: by 90, 180 or 270 deg. A printed plate's dot errors are the same in every view: a view's turn is the one
 #: under which its high-passed disc errors correlate best with the other views' (at least
 #: ``ALIGN_MIN_CORR``, and by ``ALIGN_MIN_MARGIN`` over the next turn); else its indices are kept as found
-#: (the dots are then below the noise and a turn matters little).
+#: (the dots are then below the noise and a turn matters little). When fewer than half the views can be
+#: turned so, 'bow+dots' falls back to 'bow' (the summary's ``plate_shape['model']`` says which was fitted).
 ALIGN_MIN_CORR = 0.4
 ALIGN_MIN_MARGIN = 0.2
 ALIGN_MIN_COMMON = 10
@@ -573,6 +593,11 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
         fit = _solve([d.p_W for d in dets], uv, camera0, poses, names)
         uv = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate)
         dets, turns = _align_views(dets, uv, fit, plate)
+        if plate_model == "bow+dots" and sum(t is not None for t in turns) < max(2, (len(dets) + 1) // 2):
+            # the dot pattern is not seen in most views (a print better than the noise shows): per-disc
+            # corrections could not be tied to the physical discs, and on the pictures' own grids they
+            # would take up what is fixed in the picture (a grabber's shear) as a deformation of the plate
+            plate_model = "bow"
         poses = [_initial_pose(d.p_W, u, fit.camera) for d, u in zip(dets, uv)]
         camera0 = fit.camera
     P = [d.p_W for d in dets]
@@ -720,6 +745,7 @@ class IntrinsicsResult:
     stop_rule: dict
     cross_check: dict
     residual_sigma_px: float = 0.0
+    plate_shape: dict = field(default_factory=dict)
     extras: dict = field(default_factory=dict)
 
     @property
@@ -740,7 +766,25 @@ class IntrinsicsResult:
             "projection_sigma_px": dict(self.projection_sigma_px),
             "stop_rule": self.stop_rule,
             "cross_check": self.cross_check,
+            "plate_shape": self.plate_shape,
         }
+
+
+def _plate_summary(fit: _Fit) -> dict:
+    """What the fit found of the printed plate: its model, the bow's coefficients [mm] (z at the grid's
+    half-width: xx, xy, yy) with their 1-sigma, the discs' position error sd [mm] and rms of their fitted
+    corrections, each view's turn of its disc indices onto the plate's grid [deg] (None: kept as found)."""
+    out = {"model": fit.plate_model, "turns_deg": list(fit.turns)}
+    if fit.plate_model == "flat":
+        return out
+    nb = 3
+    out["bow_mm"] = [float(v) for v in fit.shape[:nb]]
+    out["bow_sigma_mm"] = [float(v) for v in np.sqrt(np.clip(np.diag(fit.shape_cov)[:nb], 0, None))]
+    if fit.plate_model == "bow+dots":
+        u = fit.shape[nb:]
+        out["dot_sd_mm"] = float(fit.dot_sd_mm)
+        out["dot_rms_mm"] = float(np.sqrt(u @ u / (len(u) + 4)))
+    return out
 
 
 def _cross_check(dets, names, plate, fit: _Fit) -> dict:
@@ -752,7 +796,7 @@ def _cross_check(dets, names, plate, fit: _Fit) -> dict:
     for idx in (range(0, n, 2), range(1, n, 2)):
         idx = list(idx)
         try:
-            h = fit_views([dets[i] for i in idx], plate, fit.camera, [names[i] for i in idx])
+            h = fit_views([dets[i] for i in idx], plate, fit.camera, [names[i] for i in idx], plate_model=fit.plate_model)
         except CalibrationError as exc:
             return {"done": False, "why": f"a half could not be calibrated: {exc}"}
         halves.append(h)
@@ -774,7 +818,8 @@ def _cross_check(dets, names, plate, fit: _Fit) -> dict:
 
 
 def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, names=None, *,
-                         skip_unusable: bool = False, cross_check: bool = True, detections=None) -> IntrinsicsResult:
+                         skip_unusable: bool = False, cross_check: bool = True, detections=None,
+                         plate_model: str = "bow+dots") -> IntrinsicsResult:
     """Joint calibration of f, kappa, cx, cy, aspect and each view's ``C_H_W`` from pictures of the plate.
 
     ``images`` (H, W) pictures (or ``detections``, a list of ``DiscDetections``, instead); ``plate`` the
@@ -795,7 +840,7 @@ def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, na
             f"intrinsics: {len(dets)} usable view(s) of the plate; at least {MIN_VIEWS} are needed (12 or more, "
             "tilted 20-40 deg in different directions, pin the centre and the aspect)"
         )
-    fit = fit_views(dets, plate, camera_guess, names)
+    fit = fit_views(dets, plate, camera_guess, names, plate_model=plate_model)
     # a view that does not fit the others: drop it and refit
     bad = [k for k, v in enumerate(fit.views) if v.rms_px > VIEW_MAX_RMS_PX]
     if bad and len(dets) - len(bad) >= MIN_VIEWS:
@@ -804,7 +849,7 @@ def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, na
                                                         f"{fit.views[k].rms_px:.2f} px > {VIEW_MAX_RMS_PX} px)"})
         keep = [k for k in range(len(dets)) if k not in bad]
         dets, names = [dets[k] for k in keep], [names[k] for k in keep]
-        fit = fit_views(dets, plate, fit.camera, names)
+        fit = fit_views(dets, plate, fit.camera, names, plate_model=plate_model)
     sig = _sigmas(fit.cov5)
     tilts = [v.tilt_deg for v in fit.views]
     if not (np.all(np.isfinite(fit.cov5)) and max(sig["cx"], sig["cy"]) < UNDETERMINED_CENTRE_PX):
@@ -836,7 +881,7 @@ def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, na
     return IntrinsicsResult(
         camera=fit.camera, covariance=fit.cov5, sigma=sig, rms_px=fit.rms_px, views=fit.views, skipped=skipped,
         projection_sigma_px=projection_sigma_px(fit.camera, fit.cov5), stop_rule=stop, cross_check=xc,
-        residual_sigma_px=float(np.sqrt(fit.s2)),
+        residual_sigma_px=float(np.sqrt(fit.s2)), plate_shape=_plate_summary(fit),
     )
 
 
