@@ -526,7 +526,7 @@ def _align_views(dets, uvs, fit: _Fit, plate: PlateSpec):
     order = sorted(range(len(dets)), key=lambda k: (fields[k] is None, not anchored[k], -len(dets[k])))
     acc, cnt = np.zeros((n_disc, 2)), np.zeros(n_disc)
     out, turns = list(dets), [None] * len(dets)
-    for i, k in enumerate(order):
+    for k in order:
         if fields[k] is None or not anchored[k]:
             continue
         best = []
@@ -545,7 +545,9 @@ def _align_views(dets, uvs, fit: _Fit, plate: PlateSpec):
             else:
                 corr = np.nan
             best.append((corr, q, dq, idx, e))
-        if i == 0:
+        if not cnt.any():  # the first usable view sets the grid
+            if not best:
+                continue
             choice = best[0]
             turns[k] = 0.0
         else:
