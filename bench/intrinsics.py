@@ -15,6 +15,13 @@ detections:
 Per method: median centre error [px], aspect and f errors [%] against the truth, the RMS of the errors over
 the RMS of the reported sigmas per parameter (1 = honest sigmas), and the median time.
 
+Study 1 again per further ``--profile`` (issue 17's imperfections: a profile name of
+``selfview.mocks.imperfections.PROFILES``, or ``PROFILE:PART`` for one part alone, e.g.
+``realistic:plate``): the same cameras and planned views with the cell's imperfections, rendered by the
+project's renderer (the independent one draws only the specified plate and no grabber), under
+``profiles``; there ours is also run with the plate taken as specified (``selfview_flat_plate``,
+``plate_model='flat'``: the fit before the plate's shape was added) and the fitted plate shape is listed.
+
 Study 2, one parked picture per camera (the independent renderer): the TCP error of ``calibrate_offline``
 with the measured camera (``--camera``) and with the cell's nominal one, across and along the optical
 axis [mm], against the targets 0.02 and 0.08 mm; with the measured camera also the reported
@@ -31,7 +38,7 @@ cost more than 0.02 mm may pass unwarned (the reason to run ``selfview intrinsic
 
 Prints one JSON object.
 
-    python bench/intrinsics.py [--cameras 10] [--pictures 30] [--jobs 2] [--quick]
+    python bench/intrinsics.py [--cameras 10] [--pictures 30] [--jobs 2] [--quick] [--profile ideal realistic ...]
 """
 
 from __future__ import annotations
@@ -56,13 +63,16 @@ if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from selfview.cell import default_cell_path, load_cell  # noqa: E402
-from selfview.errors import CellError  # noqa: E402
+from selfview.errors import CellError, ConfigError  # noqa: E402
 from selfview.geometry import inv_H  # noqa: E402
 from selfview.intrinsics import (  # noqa: E402
     TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics, camera_check, detect_views, plan_view_poses, tcp_sigma,
 )
 from selfview.discs import disc_image_bias  # noqa: E402
-from selfview.mocks.world import SimWorld  # noqa: E402
+from selfview.geometry import trans  # noqa: E402
+from selfview.mocks.imperfections import PROFILES  # noqa: E402
+from selfview.mocks.render import render as _project_render  # noqa: E402
+from selfview.mocks.world import PLATE_BASE_POSE, SimWorld  # noqa: E402
 from selfview.offline import calibrate_offline  # noqa: E402
 
 try:  # the independent renderer lives beside the tests, in a source tree
@@ -167,6 +177,59 @@ def one_camera(seed: int) -> dict:
     return out
 
 
+def _imperfections(profile: str):
+    """A profile name or PROFILE:PART -> ``Imperfections``."""
+    name, _, part = profile.partition(":")
+    if name not in PROFILES:
+        raise ValueError(f"profile {profile!r}: expected one of {', '.join(PROFILES)} (or PROFILE:PART)")
+    return PROFILES[name].only(part) if part else PROFILES[name]
+
+
+def one_camera_profile(args) -> dict:
+    """Study 1 on a cell with imperfections (the project's renderer; see the module)."""
+    seed, profile = args
+    cell = load_cell(default_cell_path())
+    w = SimWorld(cell, seed=seed, imperfections=_imperfections(profile), camera="realistic")
+    cam0 = cell.camera.guess()
+    plate = PLATE_BASE_POSE @ trans(0.0, 0.0, 4.0)
+    lean = (inv_H(plate) @ np.array([0.0, 0.0, 0.0, 1.0]))[:2]
+    imgs = []
+    for i, v in enumerate(plan_view_poses(cell, 12, lean_W=lean)):
+        w.set_tcp(plate @ v["W_H_G"])
+        imgs.append(_project_render(w, seed=1000 * seed + i).image)
+    dets, names, skipped = detect_views(imgs, cell.plate, cam0, skip_unusable=True)
+    out = {"seed": seed, "profile": profile,
+           "truth": {"f": w.camera.f, "kappa": w.camera.kappa, "cx": w.camera.cx, "cy": w.camera.cy,
+                     "aspect": w.camera.aspect},
+           "views_detected": len(dets), "views_skipped": skipped}
+    flat = None
+    for key, model in (("selfview", "bow+dots"), ("selfview_flat_plate", "flat")):
+        try:
+            t = time.perf_counter()
+            r = calibrate_intrinsics(None, cell.plate, cam0, names, detections=dets, plate_model=model)
+            dt = time.perf_counter() - t
+        except CellError as exc:
+            out[key] = {"error": f"{type(exc).__name__}: {exc}"}
+            continue
+        c = r.camera
+        ours = {"f": c.f, "cx": c.cx, "cy": c.cy, "aspect": c.aspect, "kappa": c.kappa,
+                "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect")}, "rms_px": r.rms_px, "seconds": dt,
+                "stop_rule_met": r.stop_rule["met"], "cross_check_agree": r.cross_check.get("agree"),
+                "views_used": r.views_used, "plate_shape": r.plate_shape}
+        out[key] = {**ours, **_errors(ours, w.camera)}
+        if model == "flat":
+            flat = r
+    size = (cam0.width, cam0.height)
+    raw = _cv2(dets, [d.uv for d in dets], cam0, size)
+    out["cv2_raw"] = {**raw, **_errors(raw, w.camera)}
+    if flat is not None:  # the flat fit's poses are on the detections' own grids
+        corrected = [d.uv - disc_image_bias(flat.camera, v.C_H_W, d.p_W, cell.plate.disc_diameter / 2)
+                     for d, v in zip(dets, flat.views)]
+        cor = _cv2(dets, corrected, cam0, size)
+        out["cv2_bias_corrected"] = {**cor, **_errors(cor, w.camera)}
+    return out
+
+
 #: Study 4's cameras: offsets of the centre [px] (along u) and aspects.
 SMALL = ([{"principal_point": [383.5 + d, 287.5]} for d in (0.5, 1.0, 2.0, 4.0)]
          + [{"aspect": a} for a in (1.001, 1.003, 1.01)])
@@ -199,10 +262,10 @@ def _median(v):
 
 
 def table(per_camera):
-    ok = [p for p in per_camera if "selfview" in p]
+    ok = [p for p in per_camera if "selfview" in p and "error" not in p["selfview"]]
     out = {}
-    for m in ("selfview", "cv2_raw", "cv2_bias_corrected"):
-        rows = [p[m] for p in ok]
+    for m in ("selfview", "selfview_flat_plate", "cv2_raw", "cv2_bias_corrected"):
+        rows = [p[m] for p in ok if m in p and "error" not in p[m]]
         if not rows:
             continue
         entry = {
@@ -266,7 +329,16 @@ def main(argv=None) -> int:
     ap.add_argument("--pictures", type=int, default=30, help="parked pictures per kind for the warning rates (default 30)")
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
     ap.add_argument("--quick", action="store_true", help="a small run: 2 cameras, 4 pictures per kind")
+    ap.add_argument("--profile", nargs="+", default=["ideal", "realistic"],
+                    help="simulated cells for study 1: 'ideal' (the independent renderer, and studies 2-4) and "
+                         "imperfection profiles or PROFILE:PART, e.g. realistic:plate (default: ideal realistic)")
     args = ap.parse_args(argv)
+    for prof in args.profile:
+        if prof != "ideal":
+            try:
+                _imperfections(prof)
+            except (ValueError, ConfigError) as exc:  # an unknown profile or part
+                ap.error(str(exc))
     if args.quick:
         args.cameras, args.pictures = 2, 4
     if args.cameras < 1 or args.pictures < 1:
@@ -277,15 +349,30 @@ def main(argv=None) -> int:
         return 0
     t0 = time.perf_counter()
     seeds = list(range(args.cameras))
-    work = [(100 + s, k) for k in ("ideal", "realistic") for s in range(args.pictures)]
-    work += [(200 + i, k) for i, k in enumerate(SMALL)]
+    ideal = "ideal" in args.profile
+    work = [(100 + s, k) for k in ("ideal", "realistic") for s in range(args.pictures)] if ideal else []
+    work += [(200 + i, k) for i, k in enumerate(SMALL)] if ideal else []
+    others = [p for p in dict.fromkeys(args.profile) if p != "ideal"]
+    pwork = [(s, p) for p in others for s in seeds]
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as ex:
-            per_camera = list(ex.map(one_camera, seeds))
+            per_camera = list(ex.map(one_camera, seeds)) if ideal else []
             pics = list(ex.map(one_picture, work))
+            per_profile = list(ex.map(one_camera_profile, pwork))
     else:
-        per_camera = [one_camera(s) for s in seeds]
+        per_camera = [one_camera(s) for s in seeds] if ideal else []
         pics = [one_picture(a) for a in work]
+        per_profile = [one_camera_profile(a) for a in pwork]
+    profiles = {}
+    for p in others:
+        rows = [r for r in per_profile if r["profile"] == p]
+        shapes = [r["selfview"]["plate_shape"] for r in rows if "selfview" in r and "plate_shape" in r["selfview"]]
+        profiles[p] = {
+            "renderer": "selfview.mocks.render (the project's: the independent one has no imperfections)",
+            "intrinsics": table(rows),
+            "plate_models_fitted": {m: sum(1 for sh in shapes if sh.get("model") == m) for m in ("bow+dots", "bow", "flat")},
+            "per_camera": rows,
+        }
     try:
         import mrcal  # noqa: F401
 
@@ -296,7 +383,8 @@ def main(argv=None) -> int:
         "benchmark": "multi-view intrinsics vs cv2.calibrateCamera (and mrcal)",
         "renderer": "tests/alt_render.py (independent)",
         "views_per_camera": 12,
-        "intrinsics": table(per_camera),
+        "intrinsics": table(per_camera) if ideal else None,
+        "profiles": profiles,
         "issue_targets": ISSUE,
         "tcp_targets_mm": {"across": TARGET_ACROSS_MM, "along": TARGET_ALONG_MM},
         "camera_check": rates(pics),

@@ -5,13 +5,32 @@ scale factor ``aspect`` as known. One picture of a plane hardly separates them f
 tilt; several pictures of the plate from different poses do. ``calibrate_intrinsics`` finds f, kappa,
 cx, cy, aspect and every view's plate pose ``C_H_W`` jointly by Levenberg-Marquardt with an analytic
 Jacobian (on the normal equations, assembled view by view: ``selfview.lm``'s SVD of the whole Jacobian
-per iteration costs far more for 5 + 6 V parameters), on the same disc centres as the off-line
+per iteration costs far more for 5 + 6 V (+ 2 N - 1 of the plate's shape) parameters), on the same disc centres as the off-line
 calibration (``selfview.discs``: sub-pixel centroids, then their perspective/lens bias removed with the
 current model, refitted), minimising the distorted pixel error of the camera model of ``selfview.camera``.
 
+The printed plate is not the specified one (``plate_model``, default 'bow+dots'; 'flat' takes the plate
+as specified). A laser print's discs are each off by 10-20 um, the same in every view: a fixed pattern
+that no number of views averages out, and that a fit on the nominal plate turns into a principal point
+1-4 px off with a sigma of 0.5 px. Paper laid on a board bows by some tenths of a mm. As mrcal estimates
+a board's deformation (and a bundle adjustment its target's points), the fit here adds the plate's shape
+to the unknowns: a bow z = b_xx xn^2 + b_xy xn yn + b_yy yn^2 (xn, yn the disc's nominal position over
+the grid's half-width; three terms, so a cylindrical cockle along any direction is one of them; the
+constant and linear terms are the pose's), and each disc's in-plane position correction, gauge-fixed:
+the corrections are parametrised on the complement of the grid's similarity transforms, so they cannot
+move, turn or scale the grid as a whole (a move or turn is the views' poses; a uniform scale is the
+plates' distances). The plate's scale is therefore NOT measured: a plate printed uniformly 0.2 % large is
+seen exactly as the specified plate 0.2 % further away; the intrinsics do not depend on it, the poses'
+translations carry it, and the plate's printed pitch must be measured apart if they matter. The
+corrections have a Gaussian prior per axis (starting at ``PLATE_DOT_PRIOR_MM``, then estimated from the
+fitted corrections, within ``PLATE_DOT_SD_RANGE_MM``) that keeps few views well-posed. The disc detector
+orients each picture's grid by the picture, so first every view's disc indices are turned onto one
+physical grid (``_align_views``: the turn under which its dot pattern matches the other views').
+
 Uncertainty: the covariance of the parameters is ``s^2 (J^T J)^-1`` with ``s^2`` the residual variance
-(sum of squares over the degrees of freedom); the 1-sigma of f, kappa, cx, cy, aspect is the square root
-of its diagonal. The projection uncertainty at a pixel q is the 1-sigma length (sqrt of the trace) of the
+(sum of squares over the degrees of freedom; the plate's prior rows count as observations, weighed by the
+noise of the previous fit, so the covariance is the posterior one); the 1-sigma of f, kappa, cx, cy,
+aspect is the square root of its diagonal, the plate's shape marginalised. The projection uncertainty at a pixel q is the 1-sigma length (sqrt of the trace) of the
 2-D covariance of the pixel where q's ray lands under the intrinsics' covariance (pose marginalised);
 being in the camera frame it does not depend on the range.
 
@@ -60,6 +79,8 @@ OUTLIER_MIN_PX = 0.5
 VIEW_MAX_RMS_PX = 1.5
 #: Bias-correction rounds (centroid -> image of the centre) after the first fit.
 BIAS_ROUNDS = 2
+#: Further refits, at most, until the noise that weighs the plate's prior settles (within 20 %).
+NOISE_ROUNDS = 4
 #: Views whose plate normals (in the camera frame) all lie within this of their mean direction [deg] see
 #: parallel planes (the gripper straight down, only lifted and turned; or all square-on): they cannot pin
 #: the principal point (Zhang: parallel planes add no constraint on the interior orientation).
@@ -91,31 +112,127 @@ def _project(intr, R, t, p_W) -> np.ndarray:
     return np.column_stack([XYh[:, 0] / aspect + cx, XYh[:, 1] + cy])
 
 
-class _Joint:
-    """Parameters x = (f, kappa, cx, cy, aspect, then per view omega (3), t (3)) with view k's rotation
-    exp(omega_k) R0_k; residuals model minus observation, per view (u then v of its points)."""
+#: Plate models of the joint fit (``plate_model``): 'flat' (the plate as specified, every disc exactly
+#: where the spec puts it), 'bow' (plus a smooth out-of-plane deformation), 'bow+dots' (plus each disc's
+#: in-plane position; the default).
+PLATE_MODELS = ("flat", "bow", "bow+dots")
+#: Prior 1-sigma of each disc's in-plane position error per axis [mm], to start with: a laser print places
+#: a disc's edge to about half a 600-dpi dot (10-20 um). The fit then estimates it from the discs'
+#: corrections themselves (a variance component, by expectation-maximisation: the mean square of the
+#: corrections plus their posterior variance), within ``PLATE_DOT_SD_RANGE_MM``: a well-printed plate is
+#: then not given freedom it does not need (which would cost the centre's precision), a poorly printed one
+#: gets what it needs.
+PLATE_DOT_PRIOR_MM = 0.02
+PLATE_DOT_SD_RANGE_MM = (0.0005, 0.05)
+#: Prior 1-sigma of each bow coefficient [mm] (the height the bow reaches at the grid's half-width):
+#: paper on a board cockles by 0.1-0.5 mm; 1 mm is weak.
+PLATE_BOW_PRIOR_MM = 1.0
 
-    def __init__(self, p_W: list, uv: list, R0: list):
+
+def _similarity_complement(p0: np.ndarray) -> np.ndarray:
+    """(2N, 2N - 4) orthonormal basis of the in-plane corrections (dx, dy interleaved per disc) that do not
+    move, turn or scale the grid as a whole: the complement of its similarity transforms about its centre."""
+    c = p0[:, :2] - p0[:, :2].mean(0)
+    n = len(c)
+    modes = np.zeros((2 * n, 4))
+    modes[0::2, 0] = 1.0
+    modes[1::2, 1] = 1.0
+    modes[0::2, 2], modes[1::2, 2] = -c[:, 1], c[:, 0]
+    modes[0::2, 3], modes[1::2, 3] = c[:, 0], c[:, 1]
+    q, _ = np.linalg.qr(modes)
+    u, _, _ = np.linalg.svd(np.eye(2 * n) - q @ q.T)
+    return u[:, : 2 * n - 4]
+
+
+class _PlateShape:
+    """The printed plate's shape as parameters: a bow z = b0 xn^2 + b1 xn yn + b2 yn^2 (xn, yn the disc's
+    nominal position over the grid's half-width; constant and linear terms are the pose's) and the discs'
+    in-plane corrections ``B u`` (``_similarity_complement``), all discs of the grid indexed row * cols + col."""
+
+    def __init__(self, plate: PlateSpec, model: str, prior_w: float, dot_sd_mm: float = PLATE_DOT_PRIOR_MM):
+        if model not in PLATE_MODELS:
+            raise CalibrationError(f"intrinsics: plate model {model!r}: expected one of {', '.join(PLATE_MODELS)}")
+        self.cols = plate.cols
+        p0 = plate.disc_centres_W()
+        half = max(float(np.abs(p0[:, :2]).max()), 1e-9)
+        xn, yn = p0[:, 0] / half, p0[:, 1] / half
+        self.Q = np.column_stack([xn * xn, xn * yn, yn * yn]) if model != "flat" else np.zeros((len(p0), 0))
+        self.B = _similarity_complement(p0) if model == "bow+dots" else np.zeros((2 * len(p0), 0))
+        self.nb, self.nu = self.Q.shape[1], self.B.shape[1]
+        self.n = self.nb + self.nu
+        # prior rows, in the residuals' units (px): w_b b and w_u u, w = pixel noise / prior sd
+        self.w = np.r_[np.full(self.nb, prior_w / PLATE_BOW_PRIOR_MM), np.full(self.nu, prior_w / dot_sd_mm)]
+
+    def index(self, rc) -> np.ndarray:
+        return np.asarray(rc)[:, 0] * self.cols + np.asarray(rc)[:, 1]
+
+    def offsets(self, y, idx) -> np.ndarray:
+        """(n, 3) displacement of discs ``idx`` from their nominal places for shape parameters ``y``."""
+        d = np.zeros((len(idx), 3))
+        if self.nb:
+            d[:, 2] = self.Q[idx] @ y[: self.nb]
+        if self.nu:
+            du = self.B @ y[self.nb :]
+            d[:, 0], d[:, 1] = du[2 * idx], du[2 * idx + 1]
+        return d
+
+    def dp_dy(self, idx) -> np.ndarray:
+        """(n, 3, n_shape) derivative of the discs' positions w.r.t. the shape parameters."""
+        D = np.zeros((len(idx), 3, self.n))
+        D[:, 2, : self.nb] = self.Q[idx]
+        D[:, 0, self.nb :] = self.B[2 * idx]
+        D[:, 1, self.nb :] = self.B[2 * idx + 1]
+        return D
+
+
+class _Joint:
+    """Parameters x = (f, kappa, cx, cy, aspect, then per view omega (3), t (3), then the plate's shape
+    (``_PlateShape``: bow, disc corrections) if ``shape``) with view k's rotation exp(omega_k) R0_k;
+    residuals model minus observation, per view (u then v of its points), then the shape's prior rows.
+    ``blocks`` [(first row, end row, columns)] lists which columns each group of rows touches."""
+
+    def __init__(self, p_W: list, uv: list, R0: list, shape: _PlateShape | None = None, idx: list | None = None):
         self.p_W, self.uv, self.R0 = p_W, uv, R0
         self.n = [len(p) for p in p_W]
         self.off = np.concatenate([[0], np.cumsum([2 * k for k in self.n])])
+        self.shape = shape if shape is not None and shape.n else None
+        self.idx = idx
+        V = len(p_W)
+        self.n_params = 5 + 6 * V + (self.shape.n if self.shape else 0)
+        sc = np.arange(5 + 6 * V, self.n_params)
+        self.blocks = [(int(self.off[k]), int(self.off[k + 1]), np.r_[0:5, 5 + 6 * k : 11 + 6 * k, sc])
+                       for k in range(V)]
+        if self.shape:
+            self.blocks.append((int(self.off[-1]), int(self.off[-1]) + self.shape.n, sc))
+        self.m_data = int(self.off[-1])
+
+    def points(self, x, k) -> np.ndarray:
+        if not self.shape:
+            return self.p_W[k]
+        return self.p_W[k] + self.shape.offsets(x[5 + 6 * len(self.p_W) :], self.idx[k])
 
     def view(self, x, k) -> np.ndarray:
         j = 5 + 6 * k
         R = R_from_rotvec(x[j : j + 3]) @ self.R0[k]
-        m = _project(x[:5], R, x[j + 3 : j + 6], self.p_W[k])
+        m = _project(x[:5], R, x[j + 3 : j + 6], self.points(x, k))
         return (m - self.uv[k]).T.ravel()
 
     def residuals(self, x) -> np.ndarray:
-        return np.concatenate([self.view(x, k) for k in range(len(self.p_W))])
+        r = [self.view(x, k) for k in range(len(self.p_W))]
+        if self.shape:
+            r.append(self.shape.w * x[5 + 6 * len(self.p_W) :])
+        return np.concatenate(r)
 
     def jacobian(self, x) -> np.ndarray:
-        """Analytic (as ``selfview.tsai``'s full model, with cx, cy and the aspect added)."""
+        """Analytic (as ``selfview.tsai``'s full model, with cx, cy, the aspect and the plate's shape added)."""
         f, kappa, cx, cy, aspect = x[:5]
-        J = np.zeros((int(self.off[-1]), len(x)))
-        for k in range(len(self.p_W)):
+        V = len(self.p_W)
+        s0 = 5 + 6 * V
+        J = np.zeros((int(self.off[-1]) + (self.shape.n if self.shape else 0), len(x)))
+        for k in range(V):
             j = 5 + 6 * k
-            d = self.p_W[k] @ (R_from_rotvec(x[j : j + 3]) @ self.R0[k]).T
+            R = R_from_rotvec(x[j : j + 3]) @ self.R0[k]
+            d = self.points(x, k) @ R.T
             pc = d + x[j + 3 : j + 6]
             z = pc[:, 2]
             if np.any(z <= 0):
@@ -130,6 +247,7 @@ class _Joint:
             Jl = _left_jacobian(x[j : j + 3])
             n = len(z)
             r0 = self.off[k]
+            D = self.shape.dp_dy(self.idx[k]) if self.shape else None
             for row, (mu0, mu1), extra in ((0, (m00 / aspect, m01 / aspect), 1), (1, (m01, m11), 0)):
                 g = np.column_stack([mu0, mu1, -(mu0 * X + mu1 * Y) / f]) * (f / z)[:, None]
                 rows = slice(r0 + row * n, r0 + (row + 1) * n)
@@ -137,9 +255,13 @@ class _Joint:
                 J[rows, 1] = -(mu0 * Xh + mu1 * Yh) * rh2
                 J[rows, j : j + 3] = _cross(d, g) @ Jl
                 J[rows, j + 3 : j + 6] = g
+                if D is not None:
+                    J[rows, s0:] = np.einsum("na,nas->ns", g @ R, D)
             J[r0 : r0 + n, 2] = 1.0
             J[r0 + n : r0 + 2 * n, 3] = 1.0
             J[r0 : r0 + n, 4] = -Xh / aspect**2
+        if self.shape:
+            J[int(self.off[-1]) :, s0:] = np.diag(self.shape.w)
         if not np.all(np.isfinite(J)):
             raise CalibrationError("intrinsics: the model cannot see every disc near the current parameters")
         return J
@@ -180,6 +302,12 @@ class _Fit:
     views: list
     uv_used: list
     p_W_used: list
+    plate_model: str = "flat"
+    shape: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    shape_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    prior_noise_px: float = 0.0
+    dot_sd_mm: float = PLATE_DOT_PRIOR_MM
+    turns: list = field(default_factory=list)
 
 
 @dataclass
@@ -192,21 +320,20 @@ class _LMOut:
     message: str
 
 
-def _normal(J, r, off) -> tuple[np.ndarray, np.ndarray]:
-    """J^T J and J^T r of the joint problem, view by view (``off`` its row offsets): each view's rows
-    touch only the 5 intrinsics and its own 6 pose parameters, so the products stay small."""
+def _normal(J, r, blocks) -> tuple[np.ndarray, np.ndarray]:
+    """J^T J and J^T r of the joint problem, block by block (``_Joint.blocks``): each view's rows touch
+    only the 5 intrinsics, its own 6 pose parameters and the plate's shape, so the products stay small."""
     p = J.shape[1]
     A = np.zeros((p, p))
     g = np.zeros(p)
-    for k in range(len(off) - 1):
-        cols = np.r_[0:5, 5 + 6 * k : 11 + 6 * k]
-        Jk = J[off[k] : off[k + 1]][:, cols]
+    for r0, r1, cols in blocks:
+        Jk = J[r0:r1][:, cols]
         A[np.ix_(cols, cols)] += Jk.T @ Jk
-        g[cols] += Jk.T @ r[off[k] : off[k + 1]]
+        g[cols] += Jk.T @ r[r0:r1]
     return A, g
 
 
-def _lm_normal(fun, jac, x0, off, *, max_iter: int = 100, rtol: float = 1e-12) -> _LMOut:
+def _lm_normal(fun, jac, x0, blocks, *, max_iter: int = 100, rtol: float = 1e-12) -> _LMOut:
     """Levenberg-Marquardt on the normal equations, damping scaled by their diagonal (Marquardt).
 
     The joint problem has 5 + 6 V parameters and thousands of residuals; ``selfview.lm``'s SVD of the
@@ -222,7 +349,7 @@ def _lm_normal(fun, jac, x0, off, *, max_iter: int = 100, rtol: float = 1e-12) -
     J = jac(x)
     converged, message = False, f"no convergence in {max_iter} iterations"
     for _ in range(max_iter):
-        A, g = _normal(J, r, off)
+        A, g = _normal(J, r, blocks)
         dA = np.sqrt(np.where(np.diag(A) > 0, np.diag(A), 1.0))
         As = A / np.outer(dA, dA)
         gs = g / dA
@@ -254,9 +381,9 @@ def _lm_normal(fun, jac, x0, off, *, max_iter: int = 100, rtol: float = 1e-12) -
     return _LMOut(x, r, J, cost, converged, message)
 
 
-def _covariance(J, s2, off) -> np.ndarray:
+def _covariance(J, s2, blocks) -> np.ndarray:
     """``s2 (J^T J)^-1`` with the columns scaled (inf everywhere if J is rank-deficient)."""
-    A, _ = _normal(J, np.zeros(len(J)), off)
+    A, _ = _normal(J, np.zeros(len(J)), blocks)
     d = np.sqrt(np.where(np.diag(A) > 0, np.diag(A), 1.0))
     As = A / np.outer(d, d)
     w = np.linalg.eigvalsh(As)
@@ -278,17 +405,30 @@ def _initial_pose(p_W, uv, camera: CameraModel) -> np.ndarray:
     return H
 
 
-def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list) -> _Fit:
-    """Joint LM from ``camera0`` and ``poses0``; drops outlying discs once and refits."""
+def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list, *, rc: list | None = None,
+           plate: PlateSpec | None = None, plate_model: str = "flat", shape0=None, noise_px: float = 0.05,
+           dot_sd_mm: float = PLATE_DOT_PRIOR_MM) -> _Fit:
+    """Joint LM from ``camera0``, ``poses0`` (and the plate's shape ``shape0``); drops outlying discs once
+    and refits. ``plate_model`` (``PLATE_MODELS``; needs ``rc`` and ``plate``): what of the plate's shape is
+    fitted; ``noise_px`` the disc centres' noise that weighs the shape's prior against the pixels."""
+    shape = None
+    if plate_model != "flat":
+        if rc is None or plate is None:
+            raise CalibrationError("intrinsics: fitting the plate's shape needs the discs' grid indices and the plate")
+        shape = _PlateShape(plate, plate_model, float(noise_px), float(dot_sd_mm))
+    ns = shape.n if shape else 0
+    y0 = np.zeros(ns) if shape0 is None or len(shape0) != ns else np.asarray(shape0, float)
     keep = [np.ones(len(p), bool) for p in p_W]
     for attempt in range(2):
         P = [p[k] for p, k in zip(p_W, keep)]
         U = [u[k] for u, k in zip(uv, keep)]
-        model = _Joint(P, U, [H[:3, :3] for H in poses0])
+        idx = [shape.index(r[k]) for r, k in zip(rc, keep)] if shape else None
+        model = _Joint(P, U, [H[:3, :3] for H in poses0], shape, idx)
         x0 = np.concatenate([[camera0.f, camera0.kappa, camera0.cx, camera0.cy, camera0.aspect],
-                             *[np.concatenate([np.zeros(3), H[:3, 3]]) for H in poses0]])
-        res = _lm_normal(model.residuals, model.jacobian, x0, model.off)
+                             *[np.concatenate([np.zeros(3), H[:3, 3]]) for H in poses0], y0])
+        res = _lm_normal(model.residuals, model.jacobian, x0, model.blocks)
         poses0 = [model.pose(res.x, k) for k in range(len(P))]
+        y0 = res.x[len(res.x) - ns :] if ns else y0
         camera0 = camera0.with_(f=float(res.x[0]), kappa=float(res.x[1]), cx=float(res.x[2]), cy=float(res.x[3]),
                                 aspect=float(res.x[4]))
         dist = [np.hypot(*model.view(res.x, k).reshape(2, -1)) for k in range(len(P))]
@@ -298,8 +438,8 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list)
         lim = max(OUTLIER_RMS * rms, OUTLIER_MIN_PX)
         changed = False
         for k, d in enumerate(dist):
-            idx = np.flatnonzero(keep[k])
-            bad = idx[d > lim]
+            idx_k = np.flatnonzero(keep[k])
+            bad = idx_k[d > lim]
             if len(bad):
                 keep[k][bad] = False
                 changed = True
@@ -308,26 +448,133 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list)
     if not (res.converged and res.x[0] > 0 and res.x[4] > 0):
         raise CalibrationError(f"intrinsics: the joint fit did not converge ({res.message})")
     m, n = res.jacobian.shape
-    s2 = res.cost / max(m - n, 1)
-    cov = _covariance(res.jacobian, s2, model.off)
+    s2 = res.cost / max(m - n, 1)  # the prior rows count as observations of the shape's parameters
+    cov = _covariance(res.jacobian, s2, model.blocks)
     views = []
     for k in range(len(P)):
         H = poses0[k]
         tilt = float(np.degrees(np.arccos(min(1.0, abs(H[2, 2])))))
         views.append(ViewFit(names[k], H, int(keep[k].sum()), float(np.sqrt(np.mean(dist[k] ** 2))), tilt,
                              float(np.linalg.norm(H[:3, 3])), int((~keep[k]).sum())))
-    return _Fit(camera0, cov[:5, :5], cov, res.jacobian, float(s2), rms, views, U, P)
+    return _Fit(camera0, cov[:5, :5], cov, res.jacobian, float(s2), rms, views, U, P, plate_model,
+                np.asarray(y0, float), cov[n - ns :, n - ns :] if ns else np.zeros((0, 0)), float(noise_px), float(dot_sd_mm))
 
 
 def _bias_corrected(dets, camera, poses, plate) -> list:
     return [d.uv - disc_image_bias(camera, H, d.p_W, plate.disc_diameter / 2) for d, H in zip(dets, poses)]
 
 
+#: Alignment of the views' disc indices: the disc detector orients each picture's grid by the picture (x
+#: towards growing u), so on a square grid without a marker one view's disc (r, c) may be another's turned
+#: by 90, 180 or 270 deg. A printed plate's dot errors are the same in every view: a view's turn is the one
+#: under which its high-passed disc errors correlate best with the other views' (at least
+#: ``ALIGN_MIN_CORR``, and by ``ALIGN_MIN_MARGIN`` over the next turn); else its indices are kept as found
+#: (the dots are then below the noise and a turn matters little). When fewer than half the views can be
+#: turned so, 'bow+dots' falls back to 'bow' (the summary's ``plate_shape['model']`` says which was fitted).
+ALIGN_MIN_CORR = 0.4
+ALIGN_MIN_MARGIN = 0.2
+ALIGN_MIN_COMMON = 10
+
+
+def _dot_field(det, uv, camera: CameraModel, H) -> np.ndarray | None:
+    """(N, 2) a view's residuals carried back onto the plate [mm] (each disc's apparent in-plane position
+    error), less their fit by a quadratic field (pose, camera and bow errors are smooth over the plate);
+    None with too few discs."""
+    if len(uv) < 15:
+        return None
+    x = np.array([camera.f, camera.kappa, camera.cx, camera.cy, camera.aspect])
+    R, t = H[:3, :3], H[:3, 3]
+    p = det.p_W
+    m = _project(x, R, t, p)
+    h = 0.01
+    jx = (_project(x, R, t, p + [h, 0, 0]) - m) / h
+    jy = (_project(x, R, t, p + [0, h, 0]) - m) / h
+    Jp = np.stack([jx, jy], axis=2)  # (N, 2 px, 2 mm)
+    r = uv - m
+    if not (np.all(np.isfinite(Jp)) and np.all(np.isfinite(r))):
+        return None
+    d = np.linalg.solve(Jp, r[:, :, None])[:, :, 0]
+    sc = max(float(np.abs(p[:, :2]).max()), 1e-9)
+    xn, yn = p[:, 0] / sc, p[:, 1] / sc
+    Bm = np.column_stack([np.ones_like(xn), xn, yn, xn * xn, xn * yn, yn * yn])
+    coef, *_ = np.linalg.lstsq(Bm, d, rcond=None)
+    return d - Bm @ coef
+
+
+def _turned(det, k: int, plate: PlateSpec):
+    """``det`` with its grid turned by k * 90 deg about the grid's centre (None when it leaves the grid)."""
+    from dataclasses import replace
+
+    c = np.column_stack([det.rc[:, 1] - (plate.cols - 1) / 2, det.rc[:, 0] - (plate.rows - 1) / 2])
+    for _ in range(k % 4):
+        c = np.column_stack([-c[:, 1], c[:, 0]])
+    col, row = c[:, 0] + (plate.cols - 1) / 2, c[:, 1] + (plate.rows - 1) / 2
+    if not (np.allclose(col, np.round(col)) and np.allclose(row, np.round(row))):
+        return None
+    rc = np.column_stack([np.round(row), np.round(col)]).astype(det.rc.dtype)
+    if rc.min() < 0 or rc[:, 0].max() >= plate.rows or rc[:, 1].max() >= plate.cols:
+        return None
+    p0 = plate.disc_centres_W()
+    return replace(det, rc=rc, p_W=p0[rc[:, 0] * plate.cols + rc[:, 1]].copy())
+
+
+def _align_views(dets, uvs, fit: _Fit, plate: PlateSpec):
+    """(detections re-indexed on one physical grid, [turn in deg per view or None when kept as found])."""
+    n_disc = plate.rows * plate.cols
+    fields = [_dot_field(d, u, fit.camera, v.C_H_W) for d, u, v in zip(dets, uvs, fit.views)]
+    anchored = [all(b != "centred" for b in d.index_basis.values()) for d in dets]
+    order = sorted(range(len(dets)), key=lambda k: (fields[k] is None, not anchored[k], -len(dets[k])))
+    acc, cnt = np.zeros((n_disc, 2)), np.zeros(n_disc)
+    out, turns = list(dets), [None] * len(dets)
+    for k in order:
+        if fields[k] is None or not anchored[k]:
+            continue
+        best = []
+        for q in range(4):
+            dq = _turned(dets[k], q, plate)
+            if dq is None:
+                continue
+            e = fields[k]
+            for _ in range(q):
+                e = np.column_stack([-e[:, 1], e[:, 0]])
+            idx = dq.rc[:, 0] * plate.cols + dq.rc[:, 1]
+            com = cnt[idx] > 0
+            if com.sum() >= ALIGN_MIN_COMMON:
+                ref = acc[idx[com]] / cnt[idx[com], None]
+                corr = float(np.sum(ref * e[com]) / np.sqrt(np.sum(ref**2) * np.sum(e[com] ** 2) + 1e-300))
+            else:
+                corr = np.nan
+            best.append((corr, q, dq, idx, e))
+        if not cnt.any():  # the first usable view sets the grid
+            if not best:
+                continue
+            choice = best[0]
+            turns[k] = 0.0
+        else:
+            scored = sorted([b for b in best if np.isfinite(b[0])], key=lambda b: -b[0])
+            if not scored:
+                continue
+            second = scored[1][0] if len(scored) > 1 else -1.0
+            if scored[0][0] < ALIGN_MIN_CORR or scored[0][0] - second < ALIGN_MIN_MARGIN:
+                continue
+            choice = scored[0]
+            turns[k] = 90.0 * choice[1]
+        _, q, dq, idx, e = choice
+        out[k] = dq
+        acc[idx] += e
+        cnt[idx] += 1
+    return out, turns
+
+
 def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel, names: list[str] | None = None,
-              *, bias: bool = True) -> _Fit:
+              *, bias: bool = True, plate_model: str = "bow+dots") -> _Fit:
     """The joint fit of views' disc detections from ``camera0`` (a starting camera): first poses by
     planar PnP, a fit on the centroids, then ``BIAS_ROUNDS`` rounds of bias correction and refit
-    (``bias=False``: the centroids as measured)."""
+    (``bias=False``: the centroids as measured). ``plate_model`` (``PLATE_MODELS``): what of the printed
+    plate's shape is fitted with the camera. The shape's prior is weighed with the previous fit's noise
+    (its residual sigma); the fit is repeated (at most ``NOISE_ROUNDS`` times) until that noise settles."""
+    if plate_model not in PLATE_MODELS:
+        raise CalibrationError(f"intrinsics: plate model {plate_model!r}: expected one of {', '.join(PLATE_MODELS)}")
     names = names or [f"view {i + 1}" for i in range(len(dets))]
     poses = [_initial_pose(d.p_W, d.uv, camera0) for d in dets]
     normals = np.array([H[:3, 2] for H in poses])
@@ -341,11 +588,39 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
             f"from square-on), as when the gripper only looks straight down; take views with the gripper tilted "
             "20-40 deg about different axes in the plate"
         )
-    fit = _solve([d.p_W for d in dets], [d.uv for d in dets], camera0, poses, names)
-    for _ in range(BIAS_ROUNDS if bias else 0):
-        poses = [v.C_H_W for v in fit.views]
-        uv = _bias_corrected(dets, fit.camera, poses, plate)
-        fit = _solve([d.p_W for d in dets], uv, fit.camera, poses, names)
+    uv = [d.uv for d in dets]
+    turns = [0.0] * len(dets)
+    if plate_model != "flat":
+        # a first camera on the plate as specified, then the views' discs on one physical grid
+        fit = _solve([d.p_W for d in dets], uv, camera0, poses, names)
+        uv = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate)
+        dets, turns = _align_views(dets, uv, fit, plate)
+        if plate_model == "bow+dots" and sum(t is not None for t in turns) < max(2, (len(dets) + 1) // 2):
+            # the dot pattern is not seen in most views (a print better than the noise shows): per-disc
+            # corrections could not be tied to the physical discs, and on the pictures' own grids they
+            # would take up what is fixed in the picture (a grabber's shear) as a deformation of the plate
+            plate_model = "bow"
+        poses = [_initial_pose(d.p_W, u, fit.camera) for d, u in zip(dets, uv)]
+        camera0 = fit.camera
+    P = [d.p_W for d in dets]
+    rc = [d.rc for d in dets]
+    kw = {"rc": rc, "plate": plate, "plate_model": plate_model}
+    fit = _solve(P, uv, camera0, poses, names, **kw)
+    for rnd in range(BIAS_ROUNDS + NOISE_ROUNDS if bias else NOISE_ROUNDS):
+        noise, sd = float(np.sqrt(fit.s2)), fit.dot_sd_mm
+        if plate_model == "bow+dots":
+            nb = 3
+            u, cu = fit.shape[nb:], fit.shape_cov[nb:, nb:]
+            sd = float(np.sqrt((u @ u + np.trace(cu)) / len(u))) if np.all(np.isfinite(cu)) else sd
+            sd = float(np.clip(sd, *PLATE_DOT_SD_RANGE_MM))
+        if rnd >= (BIAS_ROUNDS if bias else 0):
+            if plate_model == "flat" or (abs(noise / fit.prior_noise_px - 1.0) < 0.2 and abs(sd / fit.dot_sd_mm - 1.0) < 0.2):
+                break
+        else:
+            uv = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate)
+        fit = _solve(P, uv, fit.camera, [v.C_H_W for v in fit.views], names, shape0=fit.shape, noise_px=noise,
+                     dot_sd_mm=sd, **kw)
+    fit.turns = turns
     return fit
 
 
@@ -423,7 +698,7 @@ def _view_information(camera: CameraModel, plate: PlateSpec, distance: float, ti
         return None
     model = _Joint([p[ok]], [uv[ok]], [H[:3, :3]])
     J = model.jacobian(np.concatenate([x, np.zeros(3), H[:3, 3]]))
-    A = _normal(J, np.zeros(len(J)), model.off)[0] / s2
+    A = _normal(J, np.zeros(len(J)), model.blocks)[0] / s2
     Aii, Aip, App = A[:5, :5], A[:5, 5:], A[5:, 5:]
     return Aii - Aip @ np.linalg.solve(App, Aip.T)
 
@@ -472,6 +747,7 @@ class IntrinsicsResult:
     stop_rule: dict
     cross_check: dict
     residual_sigma_px: float = 0.0
+    plate_shape: dict = field(default_factory=dict)
     extras: dict = field(default_factory=dict)
 
     @property
@@ -492,7 +768,25 @@ class IntrinsicsResult:
             "projection_sigma_px": dict(self.projection_sigma_px),
             "stop_rule": self.stop_rule,
             "cross_check": self.cross_check,
+            "plate_shape": self.plate_shape,
         }
+
+
+def _plate_summary(fit: _Fit) -> dict:
+    """What the fit found of the printed plate: its model, the bow's coefficients [mm] (z at the grid's
+    half-width: xx, xy, yy) with their 1-sigma, the discs' position error sd [mm] and rms of their fitted
+    corrections, each view's turn of its disc indices onto the plate's grid [deg] (None: kept as found)."""
+    out = {"model": fit.plate_model, "turns_deg": list(fit.turns)}
+    if fit.plate_model == "flat":
+        return out
+    nb = 3
+    out["bow_mm"] = [float(v) for v in fit.shape[:nb]]
+    out["bow_sigma_mm"] = [float(v) for v in np.sqrt(np.clip(np.diag(fit.shape_cov)[:nb], 0, None))]
+    if fit.plate_model == "bow+dots":
+        u = fit.shape[nb:]
+        out["dot_sd_mm"] = float(fit.dot_sd_mm)
+        out["dot_rms_mm"] = float(np.sqrt(u @ u / (len(u) + 4)))
+    return out
 
 
 def _cross_check(dets, names, plate, fit: _Fit) -> dict:
@@ -504,7 +798,7 @@ def _cross_check(dets, names, plate, fit: _Fit) -> dict:
     for idx in (range(0, n, 2), range(1, n, 2)):
         idx = list(idx)
         try:
-            h = fit_views([dets[i] for i in idx], plate, fit.camera, [names[i] for i in idx])
+            h = fit_views([dets[i] for i in idx], plate, fit.camera, [names[i] for i in idx], plate_model=fit.plate_model)
         except CalibrationError as exc:
             return {"done": False, "why": f"a half could not be calibrated: {exc}"}
         halves.append(h)
@@ -526,7 +820,8 @@ def _cross_check(dets, names, plate, fit: _Fit) -> dict:
 
 
 def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, names=None, *,
-                         skip_unusable: bool = False, cross_check: bool = True, detections=None) -> IntrinsicsResult:
+                         skip_unusable: bool = False, cross_check: bool = True, detections=None,
+                         plate_model: str = "bow+dots") -> IntrinsicsResult:
     """Joint calibration of f, kappa, cx, cy, aspect and each view's ``C_H_W`` from pictures of the plate.
 
     ``images`` (H, W) pictures (or ``detections``, a list of ``DiscDetections``, instead); ``plate`` the
@@ -547,7 +842,7 @@ def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, na
             f"intrinsics: {len(dets)} usable view(s) of the plate; at least {MIN_VIEWS} are needed (12 or more, "
             "tilted 20-40 deg in different directions, pin the centre and the aspect)"
         )
-    fit = fit_views(dets, plate, camera_guess, names)
+    fit = fit_views(dets, plate, camera_guess, names, plate_model=plate_model)
     # a view that does not fit the others: drop it and refit
     bad = [k for k, v in enumerate(fit.views) if v.rms_px > VIEW_MAX_RMS_PX]
     if bad and len(dets) - len(bad) >= MIN_VIEWS:
@@ -556,7 +851,7 @@ def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, na
                                                         f"{fit.views[k].rms_px:.2f} px > {VIEW_MAX_RMS_PX} px)"})
         keep = [k for k in range(len(dets)) if k not in bad]
         dets, names = [dets[k] for k in keep], [names[k] for k in keep]
-        fit = fit_views(dets, plate, fit.camera, names)
+        fit = fit_views(dets, plate, fit.camera, names, plate_model=plate_model)
     sig = _sigmas(fit.cov5)
     tilts = [v.tilt_deg for v in fit.views]
     if not (np.all(np.isfinite(fit.cov5)) and max(sig["cx"], sig["cy"]) < UNDETERMINED_CENTRE_PX):
@@ -588,7 +883,7 @@ def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, na
     return IntrinsicsResult(
         camera=fit.camera, covariance=fit.cov5, sigma=sig, rms_px=fit.rms_px, views=fit.views, skipped=skipped,
         projection_sigma_px=projection_sigma_px(fit.camera, fit.cov5), stop_rule=stop, cross_check=xc,
-        residual_sigma_px=float(np.sqrt(fit.s2)),
+        residual_sigma_px=float(np.sqrt(fit.s2)), plate_shape=_plate_summary(fit),
     )
 
 
@@ -743,13 +1038,13 @@ def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
     model, x0 = _one_view(result, cam0)
     out = {"significant": False, "costly": False, "warning": None}
     try:
-        res = _lm_normal(model.residuals, model.jacobian, x0, model.off)
+        res = _lm_normal(model.residuals, model.jacobian, x0, model.blocks)
     except (CalibrationError, np.linalg.LinAlgError) as exc:
         out["why"] = f"the one-view fit failed: {exc}"
         return out
     m, n = res.jacobian.shape
     s2 = res.cost / max(m - n, 1)
-    cov = _covariance(res.jacobian, s2, model.off)
+    cov = _covariance(res.jacobian, s2, model.blocks)
     d = res.x[2:5] - np.array([cam0.cx, cam0.cy, cam0.aspect])
     C3 = cov[2:5, 2:5]
     if not (res.converged and np.all(np.isfinite(C3))):
