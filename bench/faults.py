@@ -53,6 +53,7 @@ import resource
 import select
 import shutil
 import signal
+import re
 import socket
 import struct
 import subprocess
@@ -170,7 +171,7 @@ class ValRig:
     """The VAL-II simulator on TCP, the corrupting proxy, the driver on socket://, an engine per step."""
 
     def __init__(self, seed: int):
-        from selfview.drivers.puma_val_serial import PumaVAL, ValLimits
+        from selfview.drivers.puma_val_serial import ValLimits
         from selfview.drivers.puma_val_serial.limits import PUMA260_JOINT_SPEED_DEG_S
         from selfview.mocks.val_controller import ValController
 
@@ -527,7 +528,8 @@ def _guarded(fn, share, seed, i, deadline, tally):
     except Exception as exc:  # a fault of the campaign itself: said in the JSON, never hidden
         import traceback
 
-        tally.notes[f"{fn.__name__}: campaign error {_err_text(exc)} at {traceback.format_exc().splitlines()[-3].strip()}"] += 1
+        where = _no_machine_paths(traceback.format_exc().splitlines()[-3].strip())
+        tally.notes[f"{fn.__name__}: campaign error {_err_text(exc)} at {where}"] += 1
 
 
 def _build(cls, seed: int, tally: Tally):
@@ -989,6 +991,11 @@ def _energised_after_watchdog(sim, rig) -> dict:
             return {}
         time.sleep(0.05)
     return {k: v for k, v in sim.valve_outputs.items() if v}
+
+
+def _no_machine_paths(text: str) -> str:
+    """A traceback line with its file named from the project's own folders (no path of this machine)."""
+    return re.sub(r'"[^"]*?/((?:selfview|drivers|mocks|procedures|bench)/[^"/]+(?:/[^"/]+)*)"', r'"\1"', text)
 
 
 def _draw(kinds, weights, rng) -> str:

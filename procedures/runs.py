@@ -187,22 +187,7 @@ class CellSession:
         """Park, grab, calibrate off-line, save the calibration file, depart.
 
         The file is only written when the calibration succeeded; the previous one is kept."""
-        state = state or self.cell.gripper.calibrate_in
-        s = self.settings
-        grab = Step("grab", {"average": s.average}, name="picture", note="the calibration picture")
-        plan = [Step("speed", {"pct": s.speed_pct})] + park_plan(s, state) + [grab] + depart_plan(s)
-
-        def body(e: Engine):
-            for st in plan[:-1]:
-                e.execute(st)
-            res = e.execute(Step("compute", {"fn": lambda e: calibrate_offline(e.results["picture"], self.cell,
-                                                                                 state=state, mode=mode)},
-                                 name="offline", note="off-line calibration"))
-            e.execute(Step("compute", {"fn": lambda e: save_calibration(res.calibration, out)}, note=f"save {out}"))
-            e.execute(plan[-1])
-            return res
-
-        return self._run(body, plan)
+        return self.calibrate_camera(out, state=state, mode=mode)
 
     def calibrate_camera(self, out: str | Path = "calibration.yaml", *, camera=None, camera_file: dict | None = None,
                          state: str | None = None, mode: str = "full") -> OfflineResult | None:
