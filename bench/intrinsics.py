@@ -376,7 +376,7 @@ def main(argv=None) -> int:
     try:
         import mrcal  # noqa: F401
 
-        mrcal_note = "installed but not wired in this benchmark"
+        mrcal_note = "mrcal is installed, but this benchmark does not run it yet: no mrcal figures"
     except ImportError:
         mrcal_note = "mrcal is not installed (Debian's python3-mrcal): skipped"
     out = {

@@ -14,7 +14,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-from selfview.cell import POINT_NAMES
 from selfview.errors import ConfigError
 from selfview.geometry import transform_points
 from selfview.mocks.imperfections import PARTS, PROFILES, Imperfections, chamfer_cuts, resolve
