@@ -259,32 +259,37 @@ class EulerConvention:
         return tuple(out)
 
 
+def _third_angle(R, a, b, i, j, k):
+    """The last angle c of R = E_i(a) E_j(b) E_k(c), from what is left of R after a and b.
+
+    Taking c from the residue keeps the three angles consistent with R wherever a is ill-conditioned:
+    near the middle angle's singularity (Tait-Bryan b = +-90, proper b = 0 or 180) a and c separately
+    rest on entries of R that are only rounding noise, and computing both from them (as this code once
+    did) gave O/A/T up to 18 degrees away from R with the tool pointing straight down."""
+    M = (_rot3(i, a) @ _rot3(j, b)).T @ R
+    u, v = (k + 1) % 3, (k + 2) % 3
+    return np.arctan2(M[v, u], M[u, u])
+
+
 def _proper_euler(R, i, j):
     # R = E_i(a) E_j(b) E_i(c), with the third axis m completing i, j
     m = 3 - i - j
     par = 1.0 if (i, j, m) in ((0, 1, 2), (1, 2, 0), (2, 0, 1)) else -1.0
-    # Rotate the problem into the canonical z-y-z (or x-y-x ...) frame by a permutation
     sb = np.hypot(R[i, j], R[i, m])
     b = np.arctan2(sb, R[i, i])
-    if sb < 1e-10:
-        a = 0.0
-        c = np.arctan2(par * R[m, j], R[j, j]) if b < 1 else np.arctan2(-par * R[m, j], R[j, j])
-        return a, b, c
-    a = np.arctan2(R[j, i], -par * R[m, i])
-    c = np.arctan2(R[i, j], par * R[i, m])
-    return a, b, c
+    a = 0.0 if sb < 1e-9 else np.arctan2(R[j, i], -par * R[m, i])  # gimbal lock: c takes all of a + c
+    return a, b, _third_angle(R, a, b, i, j, i)
 
 
 def _tait_bryan(R, i, j, k):
     par = 1.0 if (i, j, k) in ((0, 1, 2), (1, 2, 0), (2, 0, 1)) else -1.0
-    # R = E_i(a) E_j(b) E_k(c)
-    b = np.arcsin(np.clip(par * R[i, k], -1.0, 1.0))
-    if abs(np.cos(b)) < 1e-10:
-        a = np.arctan2(par * R[k, j], R[j, j])
-        return a, b, 0.0
-    a = np.arctan2(-par * R[j, k], R[k, k])
-    c = np.arctan2(-par * R[i, j], R[i, i])
-    return a, b, c
+    # R = E_i(a) E_j(b) E_k(c). b from atan2, not arcsin: arcsin of an entry that rounding left at
+    # 1 - 1e-16 puts b 1e-8 rad short of 90 degrees, so a gimbal lock was never recognised
+    cb = np.hypot(R[i, i], R[i, j])
+    b = np.arctan2(par * R[i, k], cb)
+    # gimbal lock: a takes all of the first and last rotation (c = 0)
+    a = np.arctan2(par * R[k, j], R[j, j]) if cb < 1e-9 else np.arctan2(-par * R[j, k], R[k, k])
+    return a, b, _third_angle(R, a, b, i, j, k)
 
 
 VAL_OAT = EulerConvention()

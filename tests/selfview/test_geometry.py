@@ -105,6 +105,25 @@ def test_euler_conventions_round_trip(seq, rng):
     assert np.allclose(H_from_xyzoat(xyzoat_from_H(H), EulerConvention("zyz")), H, atol=1e-9)
 
 
+@pytest.mark.parametrize("seq", ["zyz", "zxz", "xyx", "zyx", "xyz", "zxy", "yxz"])
+def test_euler_angles_at_and_near_the_middle_angles_singularity_map_back_to_the_rotation(seq, rng):
+    # VAL's O/A/T (a z-x-y set) with the tool straight down is A = 90: the angles of a rotation whose
+    # entries rounding left at 1 - 1e-16 once came back up to 18 degrees away from it
+    conv = EulerConvention(sequence=seq)
+    lock = (0.0, 180.0) if seq[0] == seq[2] else (90.0, -90.0)
+    worst = 0.0
+    for mid in lock:
+        for off in (0.0, 1e-9, -1e-9, 1e-7, -1e-5, 1e-3):
+            for _ in range(40):
+                a = (rng.uniform(-180, 180), mid + off, rng.choice([rng.uniform(-180, 180), 180.0, -180.0]))
+                # through a product, so the entries carry rounding as a robot's forward kinematics do
+                R = conv.to_R(a) @ R_from_rotvec([0.0, 0.0, 0.3]) @ R_from_rotvec([0.0, 0.0, -0.3])
+                back = conv.from_R(R)
+                assert all(-180.0 <= v <= 180.0 for v in back)
+                worst = max(worst, np.linalg.norm(rotvec_from_R(conv.to_R(back).T @ R)))
+    assert worst < 1e-9  # rad: the floating-point floor, far below WHERE's 0.005 deg (9e-5 rad) print step
+
+
 def test_euler_convention_is_adjustable_by_data():
     flipped = EulerConvention(sequence="zyz", signs=(1, -1, 1), offsets_deg=(90, 0, 0))
     H1 = H_from_xyzoat([0, 0, 0, 0, 30, 0], flipped)
