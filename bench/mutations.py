@@ -153,7 +153,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "where-crosscheck-removed",
         "drivers/puma_val_serial/driver.py",
-        "            if mm <= kin.where_tol_mm and deg <= kin.where_tol_deg:\n",
+        "            if fit.consistent:\n",
         "            if True:\n",
         ("tests/drivers/test_puma_transcript.py::test_a_digit_swap_in_where_is_read_again",
          "tests/drivers/test_puma_transcript.py::test_a_wrong_oat_convention_is_named_on_the_first_where"),

@@ -574,11 +574,12 @@ class ValController:
 
     def _cmd_where(self, link, inp, head):
         d = self.dialect
+        q = self.joints  # one reading: the pose is computed from the very joint angles printed beside it
         rows = {
             "pose_header": self._row(d.pose_header),
-            "pose": self._values_row(d.pose_header, d.pose_columns, d.H_to_pose(self.base_H_T)),
+            "pose": self._values_row(d.pose_header, d.pose_columns, d.H_to_pose(self.kin.fk(q) @ self.tool)),
             "joint_header": self._row(d.joint_header),
-            "joints": self._values_row(d.joint_header, d.joint_columns, self.joints),
+            "joints": self._values_row(d.joint_header, d.joint_columns, q),
         }
         return head + self._lines(*(rows[k] for k in d.where_lines))
 

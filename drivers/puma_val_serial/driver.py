@@ -14,7 +14,8 @@ table; garbage or a missing prompt raises ``ProtocolError`` and the driver resyn
 to prompt and silence) before its next command; silence raises ``DeviceTimeout``.
 
 Checks beyond the bytes: ``WHERE``'s pose must equal the forward kinematics of the joint angles it
-prints (``PumaKinematics``; read again on a mismatch). A motion is complete only when the prompt
+prints, up to what the rounding of the printed numbers explains (``PumaKinematics.where_fit``; read
+again on a mismatch). A motion is complete only when the prompt
 follows it, an empty line is answered by a prompt (a busy controller does not answer: one noise ``.``
 cannot end a motion) and ``WHERE`` puts the arm at its target. A named target is read from the
 controller (``POINT``) before its limit check, never taken from a cache. ``SPEED`` is read back
@@ -49,7 +50,7 @@ from selfview.drivers.puma_val_serial.errors import ControllerError, MotionAbort
 from selfview.drivers.puma_val_serial.kinematics import PumaKinematics
 from selfview.drivers.puma_val_serial.limits import ValLimits
 from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout, ProtocolError
-from selfview.geometry import H_from_xyzoat, check_rigid, rotation_angle, trans
+from selfview.geometry import check_rigid, rotation_angle, trans
 
 __all__ = ["PumaVAL", "Where", "AbortResult"]
 
@@ -531,36 +532,34 @@ class PumaVAL:
         return AbortResult(True, ok, how)
 
     # --- WHERE and its cross-check -------------------------------------------------------------------
-    def _where_error(self, pose, joints, euler=None) -> tuple[float, float]:
-        """(mm, deg) between WHERE's pose and the kinematics of its joints (under ``euler``)."""
-        H = H_from_xyzoat(pose, euler or self.dialect.euler)
-        K = self.kinematics.tool(joints)
-        return float(np.linalg.norm(H[:3, 3] - K[:3, 3])), float(np.degrees(rotation_angle(H[:3, :3].T @ K[:3, :3])))
+    def _where_fit(self, pose, joints, euler=None):
+        """WHERE's pose against the kinematics of its joints (under ``euler``), at WHERE's print precision."""
+        return self.kinematics.where_fit(pose, joints, euler or self.dialect.euler, self.dialect.decimals)
 
     def _where_locked(self, attempts: int = 3) -> Where:
-        kin, d = self.kinematics, self.dialect
+        d = self.dialect
         cmd = d.command("where")
         last = None
         for _ in range(attempts):
             content = self._exchange_locked(cmd)
             pose, joints = self._checked(lambda: d.parse_where(content))
-            mm, deg = self._where_error(pose, joints)
-            if mm <= kin.where_tol_mm and deg <= kin.where_tol_deg:
+            fit = self._where_fit(pose, joints)
+            if fit.consistent:
                 return Where(pose=pose, joints=joints, base_H_T=d.pose_to_H(pose))
-            last = (pose, joints, mm, deg)
-        pose, joints, mm, deg = last
-        if mm <= kin.where_tol_mm:  # the position fits: is it the O/A/T convention?
-            for name, conv in OAT_CONVENTIONS.items():
-                if conv != d.euler and self._where_error(pose, joints, conv)[1] <= kin.where_tol_deg:
-                    raise ConfigError(
-                        f"WHERE: the controller's O/A/T {pose[3:]} fit the joint angles {joints} under the {name!r} "
-                        f"convention, not the dialect's (off by {deg:.2f} deg): set 'euler: {name}' in the dialect file"
-                    )
+            last = (pose, joints, fit)
+        pose, joints, fit = last
+        for name, conv in OAT_CONVENTIONS.items():  # is it the O/A/T convention?
+            if conv != d.euler and self._where_fit(pose, joints, conv).consistent:
+                raise ConfigError(
+                    f"WHERE: the controller's O/A/T {pose[3:]} fit the joint angles {joints} under the {name!r} "
+                    f"convention, not the dialect's (off by {fit.deg:.2f} deg): set 'euler: {name}' in the dialect file"
+                )
         self._need_resync = True
         raise ProtocolError(
-            f"WHERE: the pose {pose} lies {mm:.2f} mm / {deg:.2f} deg from the kinematics of its own joint angles "
-            f"{joints} in {attempts} readings (tolerance {kin.where_tol_mm:g} mm / {kin.where_tol_deg:g} deg): a corrupted "
-            "reply, or a TOOL / O/A/T convention other than the driver's (kinematics.tool_mm, dialect.euler)"
+            f"WHERE: the pose {pose} lies {fit.mm:.3f} mm / {fit.deg:.3f} deg from the kinematics of its own joint angles "
+            f"{joints} in {attempts} readings, {fit.ratio:.1f} times what printing both to {d.decimals} decimals can "
+            f"explain (up to {fit.bound_mm:.3f} mm / {fit.bound_deg:.3f} deg here): a corrupted reply, or a TOOL / O/A/T "
+            "convention other than the driver's (kinematics.tool_mm, dialect.euler)"
         )
 
     # --- targets and limits ---------------------------------------------------------------------------
