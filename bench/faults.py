@@ -580,13 +580,16 @@ class ModbusRig:
     """The valve terminal behind the proxy; the gripper driver (poller on, as a session runs it)."""
 
     def __init__(self, seed: int):
-        from selfview.drivers.pneumatic_gripper import PneumaticGripper
+        from selfview.drivers.pneumatic_gripper import IoMap, PneumaticGripper
         from selfview.mocks.valve_terminal import ValveTerminal
 
         self.sim = ValveTerminal(None, seed=seed, travel_s=0.02, watchdog_s=1.0).start()
         self.proxy = FaultProxy(self.sim.port, serial=False, seed=seed).start()
         self.url = f"modbus-tcp://127.0.0.1:{self.proxy.port}?unit=1"
-        self.gripper = PneumaticGripper(self.url, timeout_s=0.3, request_timeout_s=0.1, poll_s=0.1)
+        # the simulated terminal serves this gripper alone: a coil a corrupted write switched on is
+        # switched off again (io map stray_coils; a shared terminal's default is to report it)
+        self.gripper = PneumaticGripper(self.url, io_map=IoMap(stray_coils="switch-off"), timeout_s=0.3,
+                                        request_timeout_s=0.1, poll_s=0.1)
         self.io_map = self.gripper.io_map
         self.gripper.connect()
 
@@ -644,7 +647,7 @@ def modbus_case(rig: ModbusRig, op: str, fault: str, direction: str, at: int, rn
 
     def snap():
         coils = sim.table("coil")
-        return {"state": rig.truth_state(), "outputs": sim.valve_outputs,
+        return {"state": rig.truth_state(), "outputs": sim.valve_outputs, "halted": g.halted,
                 "stray": [i for i, v in enumerate(coils) if v and i not in valve_coils]}
 
     status, value, at_end = _call(lambda: engine.run(lambda e: e.execute(step), [step]), 15.0, snap)
@@ -679,7 +682,8 @@ def modbus_case(rig: ModbusRig, op: str, fault: str, direction: str, at: int, rn
         if at_end["state"] != target:
             outcome, seen = "wrong_value", f"{what}: reported {target!r}, the reed switches say {at_end['state']!r}"
         elif at_end["outputs"] != want:
-            outcome, seen = "unsafe", f"{what}: reported {target!r} with the valve outputs {at_end['outputs']} (commanded {want})"
+            outcome, seen = "unsafe", (f"{what}: reported {target!r} with the valve outputs {at_end['outputs']} (commanded "
+                                       f"{want}; driver halted: {at_end['halted']})")
         else:
             outcome, seen = "no_effect", ""
     elif op == "state":
@@ -836,6 +840,8 @@ FILE_WEIGHTS = {"alias_bomb": 0.1, "deep_nesting": 0.15}
 INVISIBLE = {
     "calfile": "a plausible number changed and the checksum recomputed: nothing tells it from a real calibration",
     "cellfile": "a cell file has no checksum: a plausible number changed (a digit, a bit) is taken as written",
+    "calfile.residuals": "the residual figures (shown, never computed with) replaced by another well-typed table and "
+                         "the checksum recomputed: the loader checks their types, not their history",
 }
 
 
@@ -1015,10 +1021,15 @@ def file_outcome(res: dict, clean_fp: str, kind: str) -> tuple[str, str, str | N
     if res["fp"] == clean_fp:
         return "no_effect", "", None
     try:
-        plausible = _plausible_change(json.loads(clean_fp), json.loads(res["fp"]))
+        clean, got = json.loads(clean_fp), json.loads(res["fp"])
+        plausible = _plausible_change(clean, got)
     except ValueError:
+        clean = got = None
         plausible = False
     why = INVISIBLE[kind.split(".")[0]] if plausible else None
+    if (why is None and kind.split(".")[0] == "calfile" and isinstance(clean, dict) and isinstance(got, dict)
+            and clean.keys() == got.keys() and all(clean[k] == got[k] for k in clean if k != "residuals")):
+        why = INVISIBLE["calfile.residuals"]
     return "wrong_value", f"loaded a content that differs from the file's truth ({res['fp'][:160]}...)", why
 
 

@@ -192,10 +192,36 @@ MUTATIONS: tuple[Mutation, ...] = (
         "drivers/pneumatic_gripper/gripper.py",
         "            if self._halted is not None or self._lost is not None:\n"
         "                return  # the safe-state rule: after a failure nothing feeds the watchdog until connect()\n"
-        "            self._read_raw(reconnect=False)\n",
-        "            self._read_raw()\n",
+        "            try:\n"
+        "                self._read_raw(reconnect=False)\n",
+        "            try:\n"
+        "                self._read_raw()\n",
         ("tests/drivers/test_gripper_terminal.py::test_no_watchdog_feed_after_a_failed_command",),
         "the poller reconnects and keeps the valve terminal's watchdog fed after the driver gave up",
+    ),
+    Mutation(
+        "stroke-outputs-not-read-back",
+        "drivers/pneumatic_gripper/gripper.py",
+        "                        self._confirm_outputs(want, target)\n",
+        "                        pass\n",
+        ("tests/drivers/test_gripper_transcript.py::test_stroke_with_outputs_reset_by_the_terminal_is_a_fault",),
+        "a stroke is confirmed by the reed switches while the terminal has reset the valve outputs",
+    ),
+    Mutation(
+        "stroke-confirmed-after-the-poller-gave-up",
+        "drivers/pneumatic_gripper/gripper.py",
+        "        while True:\n            self._check_undisturbed(target)\n",
+        "        while True:\n",
+        ("tests/drivers/test_gripper_transcript.py::test_poller_losing_the_link_during_a_stroke_fails_the_stroke",),
+        "a stroke reconnects and confirms after the poller lost the link and the safe state is being applied",
+    ),
+    Mutation(
+        "stray-coil-left-on",
+        "drivers/pneumatic_gripper/gripper.py",
+        "            self.link.write_coil(address, False)\n",
+        "            pass\n",
+        ("tests/drivers/test_gripper_transcript.py::test_write_echo_naming_another_coil_switches_it_off_on_a_dedicated_terminal",),
+        "a coil a corrupted write switched on is left on though the io map says the terminal is this gripper's alone",
     ),
     Mutation(
         "reed-contradiction-accepted",

@@ -33,6 +33,7 @@ from selfview.cell import POINT_NAMES
 from selfview.errors import CalibrationFileError, ConfigError
 from selfview.geometry import check_rigid
 from selfview.io_safe import atomic_write, load_yaml, short_repr
+from selfview.tsai import MODES as TSAI_MODES
 
 __all__ = ["Calibration", "save_calibration", "load_calibration", "history_dir", "FORMAT", "VERSION"]
 
@@ -126,6 +127,7 @@ class Calibration:
                     raise ValueError(f"gripper points_G {short_repr(st)} holds a non-finite number")
                 if np.max(np.abs(pts[st])) > MAX_LENGTH_MM:
                     raise ValueError(f"gripper points_G {short_repr(st)} lie over {MAX_LENGTH_MM:g} mm from the TCP")
+                _check_fingertip_shape(pts[st], f"gripper points_G {short_repr(st, 30)}")
             C_H_W = check_rigid(doc["C_H_W"], f"{source}: C_H_W")
             C_H_G = check_rigid(doc["C_H_G"], f"{source}: C_H_G")
             for name, H in (("C_H_W", C_H_W), ("C_H_G", C_H_G)):
@@ -209,7 +211,49 @@ def _check_types(doc: dict) -> None:
             raise ValueError(f"gripper points_G {short_repr(st, 30)} is not the six named points of three numbers")
     if not isinstance(grip["state"], str) or grip["state"] not in pts:
         raise ValueError(f"gripper state {short_repr(grip['state'], 40)} is not one of the jaw states {sorted(pts)}")
-    _figure_types(doc.get("residuals") or {}, "residuals")
+    _check_provenance_types(doc)
+    _figure_types(doc.get("residuals", {}), "residuals")
+
+
+#: How far the fingertip points may be from the shape CONVENTIONS gives them (two mirrored blocks, the
+#: six corners in the tip plane z = 0, points 1-4 a rectangle centred on the TCP) [mm]: measured fingers
+#: differ from it by tenths of a millimetre; a point replaced by another number moves by millimetres.
+SHAPE_TOLERANCE_MM = 2.0
+
+
+def _check_fingertip_shape(table: np.ndarray, where: str) -> None:
+    """The six points (6x3, in CONVENTIONS' order) of one jaw state of the shape CONVENTIONS defines, within ``SHAPE_TOLERANCE_MM``:
+    ``ValueError`` naming what is off."""
+    aif, aib, bif, bib, aof, bof = P = np.asarray(table, dtype=float).reshape(6, 3)
+    checks = (
+        ("the points out of the tip plane z = 0", float(np.max(np.abs(P[:, 2])))),
+        ("the rectangle of points 1-4 off the TCP", float(np.linalg.norm((aif + aib + bif + bib)[:2] / 4))),
+        ("the fingers' widths unequal", abs(np.linalg.norm(aib - aif) - np.linalg.norm(bib - bif))),
+        ("the gap unequal at front and back", abs(np.linalg.norm(bif - aif) - np.linalg.norm(bib - aib))),
+        ("the fingers' thicknesses unequal", abs(np.linalg.norm(aof - aif) - np.linalg.norm(bof - bif))),
+        ("finger A not on the +x side", max(0.0, -min(aif[0], aib[0], aof[0] - aif[0]))),
+    )
+    for what, off in checks:
+        if not off <= SHAPE_TOLERANCE_MM:
+            raise ValueError(f"{where}: {what} by {off:.2f} mm (more than {SHAPE_TOLERANCE_MM:g} mm: not a fingertip "
+                             "shape; see CONVENTIONS' fingertip points)")
+
+
+def _check_provenance_types(doc: dict) -> None:
+    """The fields that say where a calibration came from: recorded, never computed with, but a file whose
+    hash became another string or whose version became a flag is not the file it was."""
+    if type(doc.get("version")) is not int:  # True == 1 in Python
+        raise ValueError(f"version is {short_repr(doc.get('version'), 40)}, not a whole number")
+    for k in ("image_sha256", "cell_sha256"):
+        v = doc.get(k, "")
+        if not (isinstance(v, str) and (v == "" or (len(v) == 64 and all(c in "0123456789abcdef" for c in v)))):
+            raise ValueError(f"{k} is {short_repr(v, 80)}, not a SHA-256 in hex (or empty)")
+    for k in ("created", "software"):
+        if k in doc and not isinstance(doc[k], str):
+            raise ValueError(f"{k} is {short_repr(doc[k], 40)}, not text")
+    ups = doc.get("updates", [])
+    if not (isinstance(ups, list) and all(isinstance(u, dict) for u in ups)):
+        raise ValueError(f"updates is {short_repr(ups, 60)}, not a list of records")
 
 
 def _figure_types(res: dict, where: str) -> None:
@@ -221,7 +265,7 @@ def _figure_types(res: dict, where: str) -> None:
     checks = {
         "rms_px": _is_number, "max_px": _is_number, "pcc_rms_mm": _is_number, "pcc_q_norm": _is_number,
         "discs_used": lambda v: isinstance(v, int) and not isinstance(v, bool),
-        "tsai_mode": lambda v: isinstance(v, str),
+        "tsai_mode": lambda v: v in TSAI_MODES,
         "points_from": lambda v: v in ("picture", "cell"),
         "corners_measured_by": lambda v: v in ("corners", "model"),
         "corners_found": lambda v: isinstance(v, list) and all(isinstance(x, str) and x in names for x in v),

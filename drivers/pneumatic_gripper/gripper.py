@@ -10,7 +10,10 @@ ever reports a state it has read from both reed switches:
 - ``state()`` reads both switches now.
 - A motion is confirmed by two consecutive readings of the target (its switch on, the other off): one
   reply with a flipped bit cannot confirm it. A reading with both switches on, or one that disagrees
-  with the commanded direction in ``state()``, is read once more before it is believed.
+  with the commanded direction in ``state()``, is read once more before it is believed. Then the valve
+  outputs are read back (until two readings agree): a stroke the switches confirm while the terminal
+  has reset its outputs (its watchdog tripped during a stalled or dropped exchange) is a ``GripperFault``,
+  never a success. The safe state's read-back and ``outputs()`` read the same way.
 - A background poller reads the switches every ``poll_s`` (keeping the terminal's connection watchdog
   fed) on the open connection only: it never reconnects.
 
@@ -48,7 +51,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from selfview.drivers.pneumatic_gripper.iomap import IoMap, Point
-from selfview.drivers.pneumatic_gripper.modbus import ConnectionLost, ModbusExceptionReply, ModbusLink
+from selfview.drivers.pneumatic_gripper.modbus import ConnectionLost, ModbusExceptionReply, ModbusLink, WriteEchoMismatch
 from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout, ProtocolError
 
 __all__ = ["PneumaticGripper", "GripperFault", "JawReading", "SafeReport"]
@@ -175,6 +178,7 @@ class PneumaticGripper:
         self._stop = threading.Event()
         self._poller: threading.Thread | None = None
         self._halted: str | None = None  # why the driver gave up (safe-state rule), until connect()
+        self._gave_up = False  # the safe state was tried after giving up, since the last connect()
         self._halt_lock = threading.Lock()
         self.safe_report: SafeReport | None = None  # the latest attempt at the safe state
 
@@ -195,6 +199,7 @@ class PneumaticGripper:
             self._explicit_connect = False
         self._lost = None
         self._halted = None
+        self._gave_up = False
         if self.poll_s is not None and (self._poller is None or not self._poller.is_alive()):
             self._stop.clear()
             self._poller = threading.Thread(target=self._poll_loop, name=f"gripper-poll {self.url}", daemon=True)
@@ -258,6 +263,8 @@ class PneumaticGripper:
         if not self._halt_lock.acquire(blocking=False):
             return None
         try:
+            if self._gave_up and self.safe_report is not None:
+                return self.safe_report  # tried once since connect(): reconnecting again would feed the watchdog
             # under the link's lock, so that no poll can slip in between the decision and the attempt
             try:
                 with self.link._locked("give up"):
@@ -266,6 +273,7 @@ class PneumaticGripper:
                 self._halted = reason
             self._last = None
             report = self._try_safe(reason)
+            self._gave_up = True
             self.link.close()  # silence: a terminal watching its master sees none
             return report
         finally:
@@ -277,7 +285,7 @@ class PneumaticGripper:
         try:
             self._write_outputs(want, note=False)
             written = True
-            outputs = self._read_outputs()
+            outputs = self._read_outputs_agreed()
         except CellError as exc:
             error = f"{type(exc).__name__}: {exc}"
         except OSError as exc:  # never let the attempt itself escape
@@ -303,6 +311,9 @@ class PneumaticGripper:
                 new = type(exc)(msg)
         except Exception:  # an exception type with another constructor: keep it as it is
             return exc
+        for k, v in vars(exc).items():  # what the error carries besides its message (an echo's addresses)
+            if not hasattr(new, k) or getattr(new, k) in ("", ()):
+                setattr(new, k, v)
         new.safe_report = report
         new.__cause__ = exc
         return new
@@ -343,14 +354,36 @@ class PneumaticGripper:
             r = self.read()
         return r
 
+    def _read_agreed(self, expect: str | None, reads: int = 4) -> JawReading:
+        """A reading that either agrees with ``expect`` (the commanded direction; a reply corrupted into
+        it is as likely as the truth) or is repeated by the next one: with no command to compare with
+        (the valve holds the jaws where they are), two readings in a row must agree. ``ProtocolError``
+        when none do in ``reads`` reads."""
+        prev = None
+        for _ in range(reads):
+            r = self.read()
+            both = r.open_sensor and r.closed_sensor
+            if not both and expect is not None and r.state == expect:
+                return r
+            if prev is not None and (r.open_sensor, r.closed_sensor) == (prev.open_sensor, prev.closed_sensor):
+                return r
+            prev = r
+        raise ProtocolError(f"{self.url}: reed switches: no two readings in a row agree in {reads} reads (line noise?)")
+
     def _expected(self) -> str | None:
         return None if self._commanded is None else self.io_map.direction(self._commanded)
 
     def state(self) -> str:
-        """Read the switches now: 'open', 'closed' or 'between'. A reading that disagrees with the
-        commanded direction, or has both switches on, is read again. Raises GripperFault if both
-        stay on, and the link's errors (ConnectionLost, DeviceTimeout, ModbusExceptionReply, ...)."""
-        return self._read_checked(self._expected()).state
+        """Read the switches now: 'open', 'closed' or 'between'. A reading that agrees with the commanded
+        direction is believed; any other (both switches on, another state, or no direction commanded) is
+        believed once the next reading repeats it. Raises GripperFault if both stay on, and the link's
+        errors (ConnectionLost, DeviceTimeout, ModbusExceptionReply, ...)."""
+        try:
+            r = self._read_agreed(self._expected())
+        except ProtocolError as exc:
+            self._note_failure(exc)
+            raise self._failed(exc, "reading the reed switches") from exc
+        return r.state
 
     @property
     def last_state(self) -> str | None:
@@ -379,18 +412,23 @@ class PneumaticGripper:
         self.valve_outputs = out
         return out
 
+    def _read_outputs_agreed(self, reads: int = 4) -> dict[str, bool]:
+        """The solenoid outputs, read until two readings in a row agree (Modbus TCP has no checksum: one
+        reply with a flipped bit cannot pass); ``ProtocolError`` when none agree in ``reads`` reads."""
+        last = None
+        for _ in range(reads):
+            now = self._read_outputs()
+            if now == last:
+                return now
+            last = now
+        raise ProtocolError(f"{self.url}: valve outputs: no two readings in a row agree in {reads} reads (line noise?)")
+
     def outputs(self) -> dict[str, bool]:
         """Read the solenoid outputs now: {'open': bool, 'close': bool} for the solenoids present. Modbus
         TCP has no checksum, so the outputs are read until two readings in a row agree (at most 4 reads;
         ``ProtocolError`` if they never do)."""
         try:
-            last = None
-            for _ in range(4):
-                now = self._read_outputs()
-                if now == last:
-                    return now
-                last = now
-            raise ProtocolError(f"{self.url}: valve outputs: no two readings in a row agree in 4 reads (line noise?)")
+            return self._read_outputs_agreed()
         except CellError as exc:
             self._note_failure(exc)
             if isinstance(exc, ModbusExceptionReply):
@@ -422,6 +460,11 @@ class PneumaticGripper:
                     self.link.write_register(address, (old & ~touched & 0xFFFF) | set_bits)
             for a in coils_on:
                 self.link.write_coil(a, True)
+        except WriteEchoMismatch as exc:
+            if note:
+                self._note_failure(exc)
+            self.valve_outputs = None
+            raise self._stray_write(exc) from exc
         except CellError as exc:
             if note:
                 self._note_failure(exc)
@@ -429,6 +472,29 @@ class PneumaticGripper:
             raise
         self._commanded = dict(want)
         self.valve_outputs = dict(want)
+
+    def _stray_write(self, exc: WriteEchoMismatch) -> CellError:
+        """The error for a write whose echo names another coil switched on: with ``stray_coils:
+        switch-off`` that coil is switched off again (and read back) first; either way the error says
+        which coil and what became of it."""
+        address, value = exc.echoed
+        own = {p.address for p in self.io_map.valves.values() if p.kind == "coil"}
+        if exc.table != "coil" or value is not True or not isinstance(address, int) or address in own:
+            return exc
+        if self.io_map.stray_coils != "switch-off":
+            return WriteEchoMismatch(
+                f"{exc}; coil {address}, which this gripper does not own, may have been switched on by the corrupted "
+                "request: check it (io map stray_coils: report)", exc.table, exc.sent, exc.echoed)
+        try:
+            self.link.write_coil(address, False)
+            (now,) = self.link.read("coil", address, 1)
+            (again,) = self.link.read("coil", address, 1)
+            done = "switched off again and read back off" if not (now or again) else "still reads ON after switching it off"
+        except CellError as exc2:
+            done = f"NOT switched off ({type(exc2).__name__}: {exc2})"
+        log.error("%s: a corrupted write switched on coil %d: %s", self.url, address, done)
+        return WriteEchoMismatch(f"{exc}; coil {address}, not this gripper's, was switched on by the corrupted request: {done}",
+                                 exc.table, exc.sent, exc.echoed)
 
     def _move(self, target: str) -> str:
         what = f"{'open' if target == 'open' else 'close'}_jaws"
@@ -439,17 +505,22 @@ class PneumaticGripper:
             raise self._failed(exc, what) from exc
 
     def _move_confirmed(self, target: str) -> str:
-        self._write_outputs(self.io_map.drive(target))
+        want = self.io_map.drive(target)
+        self._write_outputs(want)
         other = "closed" if target == "open" else "open"
         deadline = self.clock() + self.timeout_s
         seen_target = False
         while True:
+            self._check_undisturbed(target)
             r = self._read_raw()
             if r.open_sensor and r.closed_sensor:
                 r = self._read_raw()  # one flipped bit is not a broken switch: read once more
             state = r.state  # raises GripperFault when both switches are still on
             if state == target:
                 if seen_target:  # two consecutive readings agree: a single corrupted reply cannot confirm
+                    with self.link._locked("confirm the stroke"):
+                        self._confirm_outputs(want, target)
+                        self._check_undisturbed(target)
                     return state
                 seen_target = True
                 continue
@@ -467,6 +538,27 @@ class PneumaticGripper:
             f"{self.url}: jaws still '{other}' {self.timeout_s} s after the valve was switched to '{target}': "
             "no air, valve not switching, or jaws stuck"
         )
+
+    def _confirm_outputs(self, want: dict[str, bool], target: str) -> None:
+        """The end of a stroke: the valve must still hold the commanded outputs. A terminal resets its
+        outputs when its watchdog trips (the master silent through a stalled or dropped link) or when it
+        restarts; the jaws of a double solenoid valve then stay where they are, so the reed switches alone
+        would confirm a stroke the valve no longer holds (and a spring-return valve is about to undo)."""
+        got = self._read_outputs_agreed()
+        if got != want:
+            raise GripperFault(
+                f"{self.url}: jaws reached '{target}' but the valve outputs read back as {got}, not the commanded "
+                f"{want}: the terminal reset them during the stroke (its watchdog, or a restart)"
+            )
+
+    def _check_undisturbed(self, target: str) -> None:
+        """Nothing else happened to the link during the stroke: the poller did not give up (it would make
+        the valve safe right after this call returned) and the link was not silently re-established (what
+        the terminal did meanwhile is unknown)."""
+        if self._halted is not None:
+            raise ConnectionLost(f"{self.url}: '{target}' not confirmed: the driver gave up during the stroke ({self._halted})")
+        if self._lost is not None:
+            raise ConnectionLost(f"{self.url}: '{target}' not confirmed: the link was lost during the stroke ({self._lost})")
 
     def open_jaws(self) -> str:
         """Open the jaws and wait for the open switch (``timeout_s``). Returns 'open'. On any failure
@@ -506,21 +598,34 @@ class PneumaticGripper:
         with self.link._locked("poll"):
             if self._halted is not None or self._lost is not None:
                 return  # the safe-state rule: after a failure nothing feeds the watchdog until connect()
-            self._read_raw(reconnect=False)
+            try:
+                self._read_raw(reconnect=False)
+            except CellError as exc:
+                if not isinstance(exc, (GripperFault, ModbusExceptionReply)):
+                    # the link failed: the driver gives up before it lets go of the link, so that a jaw
+                    # command waiting for it cannot reconnect and report a stroke the safe state undoes
+                    self._last = None
+                    self._lost = f"{type(exc).__name__}: {exc}"
+                    self._halted = f"the poller lost the link: {type(exc).__name__}: {exc}"
+                raise
+
+    def _poll_step(self) -> None:
+        """One poll, and what follows a failure (the poller's loop body)."""
+        try:
+            self._poll_once()
+            self.poll_error = None
+        except GripperFault as exc:  # the switches contradict each other: the link is fine
+            self.poll_error = exc
+        except CellError as exc:
+            self.poll_error = exc
+            self._note_failure(exc)
+            if not isinstance(exc, ModbusExceptionReply):
+                self._give_up(f"the poller lost the link: {type(exc).__name__}: {exc}")
+        except Exception as exc:  # a bug must not kill the poller silently
+            log.exception("%s: gripper poller", self.url)
+            self.poll_error = exc
+        self.polls += 1
 
     def _poll_loop(self) -> None:
         while not self._stop.wait(self.poll_s):
-            try:
-                self._poll_once()
-                self.poll_error = None
-            except GripperFault as exc:  # the switches contradict each other: the link is fine
-                self.poll_error = exc
-            except CellError as exc:
-                self.poll_error = exc
-                self._note_failure(exc)
-                if not isinstance(exc, ModbusExceptionReply):
-                    self._give_up(f"the poller lost the link: {type(exc).__name__}: {exc}")
-            except Exception as exc:  # a bug must not kill the poller silently
-                log.exception("%s: gripper poller", self.url)
-                self.poll_error = exc
-            self.polls += 1
+            self._poll_step()

@@ -128,6 +128,7 @@ def to_reference(point: Point) -> str:
 
 _SAFE = ("all-off", "open", "closed")
 _REGISTER_WRITE = ("read-modify-write", "mask")
+_STRAY = ("report", "switch-off")
 
 
 @dataclass(frozen=True)
@@ -143,6 +144,13 @@ class IoMap:
       holds its position, a single valve springs back), ``open`` or ``closed``.
     - ``register_write``: how a solenoid bit inside a holding register is written: ``read-modify-write``
       (FC3 then FC6; every device has them) or ``mask`` (FC22 Mask Write Register, atomic).
+    - ``stray_coils``: what the driver does when a write's echo shows that the device switched *on* a coil
+      this map does not own (a request corrupted on its way: Modbus TCP has no checksum of its own).
+      ``report`` (default): the error names the coil and says to check it; the driver leaves it alone,
+      since on a shared terminal it may be another valve's, held on by its owner. ``switch-off``: the
+      terminal's other coils serve nothing that must stay energised (a terminal for this gripper alone),
+      so the driver switches that coil off at once and reads it back. The fail-safe of such a terminal
+      (its watchdog) is all coils off, which is what this restores.
     """
 
     open_valve: Point | None = Point("coil", 0)
@@ -151,6 +159,7 @@ class IoMap:
     closed_sensor: Point = Point("discrete_input", 1)
     safe_state: str = "all-off"
     register_write: str = "read-modify-write"
+    stray_coils: str = "report"
 
     def __post_init__(self):
         valves = [p for p in (self.open_valve, self.close_valve) if p is not None]
@@ -171,6 +180,8 @@ class IoMap:
             raise ConfigError("io map: a sensor shares its point with a solenoid")
         if self.safe_state not in _SAFE:
             raise ConfigError(f"io map safe_state {self.safe_state!r}: expected one of {', '.join(_SAFE)}")
+        if self.stray_coils not in _STRAY:
+            raise ConfigError(f"io map stray_coils {self.stray_coils!r}: expected one of {', '.join(_STRAY)}")
         if self.register_write not in _REGISTER_WRITE:
             raise ConfigError(
                 f"io map register_write {self.register_write!r}: expected one of {', '.join(_REGISTER_WRITE)}"
@@ -220,7 +231,7 @@ class IoMap:
             raise ConfigError(f"io map: unknown key(s) {', '.join(unknown)}; expected {', '.join(sorted(names))}")
         kw = {}
         for k, v in data.items():
-            if k in ("safe_state", "register_write"):
+            if k in ("safe_state", "register_write", "stray_coils"):
                 kw[k] = v
             elif k in ("open_valve", "close_valve") and (v is None or str(v).strip().lower() in ("", "null", "~", "none")):
                 kw[k] = None

@@ -36,6 +36,7 @@ __all__ = [
     "ModbusExceptionReply",
     "ConnectionFailed",
     "ConnectionLost",
+    "WriteEchoMismatch",
     "EXCEPTION_NAMES",
 ]
 
@@ -81,6 +82,18 @@ class ConnectionFailed(DeviceError):
 
 class ConnectionLost(DeviceError):
     """The connection dropped; whatever the device did meanwhile is unknown."""
+
+
+class WriteEchoMismatch(ProtocolError):
+    """A write's reply echoes another address or value than the request's. Modbus TCP has no checksum of
+    its own: either the request was corrupted on its way and the device executed what the echo says
+    (``echoed``: (address, value)), or the reply was corrupted and the device executed ``sent``."""
+
+    def __init__(self, message: str, table: str = "", sent: tuple = (), echoed: tuple = ()):
+        super().__init__(message)
+        self.table = table
+        self.sent = sent
+        self.echoed = echoed
 
 
 class ModbusLink:
@@ -272,18 +285,18 @@ class ModbusLink:
             raise ProtocolError(f"{self.url.url}: asked {count} {name} at {address}, got {len(values)}")
         return [bool(v) for v in values[:count]] if field == "bits" else [int(v) for v in values]
 
-    def _check_echo(self, what: str, rsp, expected: tuple) -> None:
+    def _check_echo(self, what: str, rsp, expected: tuple, table: str) -> None:
         got = tuple(getattr(rsp, name, None) for name in ("address", "value"))
         if got != expected:
             self.close()
-            raise ProtocolError(f"{self.url.url}: {what}: the reply echoes {got}, not {expected}")
+            raise WriteEchoMismatch(f"{self.url.url}: {what}: the reply echoes {got}, not {expected}", table, expected, got)
 
     def write_coil(self, address: int, value: bool) -> None:
         """FC5 Write Single Coil (the reply must echo address and value)."""
         what = f"write coil {address}={int(bool(value))}"
         rsp = self._request(what, 5, lambda c, u: c.write_coil(address, bool(value), device_id=u))
         rsp.value = bool(rsp.bits[0]) if getattr(rsp, "bits", None) else None
-        self._check_echo(what, rsp, (address, bool(value)))
+        self._check_echo(what, rsp, (address, bool(value)), "coil")
 
     def write_register(self, address: int, value: int) -> None:
         """FC6 Write Single Register, value 0..65535 (the reply must echo address and value)."""
@@ -292,7 +305,7 @@ class ModbusLink:
         what = f"write register {address}={int(value):#06x}"
         rsp = self._request(what, 6, lambda c, u: c.write_register(address, int(value), device_id=u))
         rsp.value = rsp.registers[0] if getattr(rsp, "registers", None) else None
-        self._check_echo(what, rsp, (address, int(value)))
+        self._check_echo(what, rsp, (address, int(value)), "holding_register")
 
     def mask_write_register(self, address: int, and_mask: int, or_mask: int) -> None:
         """FC22 Mask Write Register: new = (old AND and_mask) OR (or_mask AND NOT and_mask)."""
@@ -303,4 +316,4 @@ class ModbusLink:
             lambda c, u: c.mask_write_register(address=address, and_mask=and_mask, or_mask=or_mask, device_id=u),
         )
         rsp.value = (getattr(rsp, "and_mask", None), getattr(rsp, "or_mask", None))
-        self._check_echo(what, rsp, (address, (and_mask, or_mask)))
+        self._check_echo(what, rsp, (address, (and_mask, or_mask)), "holding_register")

@@ -15,7 +15,7 @@ def add_io_map_argument(p) -> None:
         default=None,
         metavar="MAP.yaml",
         help="where the solenoids and reed switches are (keys open_valve, close_valve, open_sensor, "
-        "closed_sensor, safe_state, register_write; points as coil:0, di:1, hr:0.3 or 40001.3). "
+        "closed_sensor, safe_state, register_write, stray_coils; points as coil:0, di:1, hr:0.3 or 40001.3). "
         "Default: coils 0 (open) and 1 (close), discrete inputs 0 (open) and 1 (closed)",
     )
 

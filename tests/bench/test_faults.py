@@ -21,11 +21,6 @@ TARGET_ZERO = ("hang", "traceback", "unsafe", "lost_file")
 #: fault kind -> why it may still miss a target: what no software check on this side of the link can see
 #: or prevent (every issue-18 defect the first campaign found is fixed and held to the targets here)
 KNOWN_DEFECTS = {
-    # Modbus TCP has no checksum: a bit flipped in a write request's address or value reaches the terminal
-    # as a valid request for another coil, which the driver never commands (RTU's CRC catches it)
-    "modbus.h2d.bitflip": "no checksum on Modbus TCP: a corrupted write address energises another coil",
-    "modbus.h2d.stray_byte": "likewise",
-    "modbus.h2d.nonascii": "likewise",
     # the serial link cut during a motion: no ABORT can be written any more; the controller's own stop
     # (its E-stop chain, a lost-host watchdog where configured) is what remains
     "val.d2h.cutoff": "a cut link: ABORT cannot reach the controller",
@@ -41,16 +36,6 @@ KNOWN_DEFECTS = {
     # changed is taken as written: every field that is computed with is type- and range-checked
     "calfile.wrong_type": "informational fields of a re-checksummed file",
     "cli.calfile.wrong_type": "likewise",
-    # the jaw reported where its reed switches are while a cut or dropped byte left the valve's outputs
-    # elsewhere (1 in ~3000 Modbus faults; the switches, not the outputs, say where the jaw is)
-    "modbus.d2h.drop": "reported state from the switches, outputs lost with the link",
-    "modbus.h2d.cutoff": "likewise",
-    # the same open defect (issue 18), seen once each in the final 9,011-fault run: a stroke confirmed by
-    # two switch readings while the terminal had reset the outputs; the driver does not yet read the
-    # outputs back after a stroke (until it does, a short run may meet it by chance)
-    "modbus.d2h.bitflip": "open: stroke confirmed with the outputs reset (outputs not read back after a stroke)",
-    "modbus.d2h.cutoff": "likewise",
-    "modbus.h2d.stall": "likewise",
 }
 
 

@@ -90,11 +90,12 @@ def test_bad_points(text, match):
 def test_io_map_from_dict_and_back():
     m = IoMap.from_dict(
         {"open_valve": None, "close_valve": "40001.0", "open_sensor": "30001.0", "closed_sensor": "ir:0.1",
-         "safe_state": "open", "register_write": "mask"}
+         "safe_state": "open", "register_write": "mask", "stray_coils": "switch-off"}
     )
     assert m.solenoid == "single" and m.valves == {"close": Point("holding_register", 0, 0)}
     assert m.to_dict() == {"open_valve": None, "close_valve": "hr:0.0", "open_sensor": "ir:0.0",
-                           "closed_sensor": "ir:0.1", "safe_state": "open", "register_write": "mask"}
+                           "closed_sensor": "ir:0.1", "safe_state": "open", "register_write": "mask",
+                           "stray_coils": "switch-off"}
     assert IoMap.from_dict(m.to_dict()) == m
     assert IoMap().solenoid == "double"
 
@@ -109,6 +110,7 @@ def test_io_map_from_dict_and_back():
         ({"open_sensor": "coil:1"}, "shares its point"),
         ({"safe_state": "off"}, "safe_state"),
         ({"register_write": "fc22"}, "register_write"),
+        ({"stray_coils": "ignore"}, "stray_coils"),
         ({"valve": "coil:0"}, "unknown key"),
         ({"open_valve": "coil"}, "open_valve"),
     ],

@@ -149,11 +149,12 @@ CONNECT_OPEN = [
 
 def safe_on_link(tid: int) -> list:
     """The driver's safe-state attempt on an open link (default io map, safe = all-off): both coils off,
-    then the outputs read back."""
+    then the outputs read back until two readings agree."""
     return [
         (mbap(tid, "05 0000 0000"), mbap(tid, "05 0000 0000")),
         (mbap(tid + 1, "05 0001 0000"), mbap(tid + 1, "05 0001 0000")),
         (mbap(tid + 2, "01 0000 0002"), mbap(tid + 2, "01 01 00")),
+        (mbap(tid + 3, "01 0000 0002"), mbap(tid + 3, "01 01 00")),
     ]
 
 
@@ -180,6 +181,8 @@ def test_close_jaws_breaks_before_make_and_confirms(device):
             (mbap(5, "02 0000 0002"), mbap(5, "02 01 00")),  # travelling: neither switch
             (mbap(6, "02 0000 0002"), mbap(6, "02 01 02")),  # closed switch on ...
             (mbap(7, "02 0000 0002"), mbap(7, "02 01 02")),  # ... and again: confirmed
+            (mbap(8, "01 0000 0002"), mbap(8, "01 01 02")),  # FC1: the valve still holds 'close' ...
+            (mbap(9, "01 0000 0002"), mbap(9, "01 01 02")),  # ... read until two readings agree
         ]
     )
     g = PneumaticGripper(d.url, poll_s=None, confirm_poll_s=0.001)
@@ -202,6 +205,8 @@ def test_holding_register_bits_read_modify_write(device):
             (mbap(4, "06 0000 8002"), mbap(4, "06 0000 8002")),  # ... and write, bit 15 kept
             (mbap(5, "04 0002 0001"), mbap(5, "04 02 0020")),  # closed switch
             (mbap(6, "04 0002 0001"), mbap(6, "04 02 0020")),  # twice
+            (mbap(7, "03 0000 0001"), mbap(7, "03 02 8002")),  # the outputs read back ...
+            (mbap(8, "03 0000 0001"), mbap(8, "03 02 8002")),  # ... twice
         ]
     )
     with PneumaticGripper(d.url, io_map=m, poll_s=None) as g:
@@ -219,6 +224,8 @@ def test_mask_write_open_transcript(device):
             (mbap(3, "16 0007 FFF3 0004"), mbap(3, "16 0007 FFF3 0004")),
             (mbap(4, "02 000A 0003"), mbap(4, "02 01 01")),
             (mbap(5, "02 000A 0003"), mbap(5, "02 01 01")),
+            (mbap(6, "03 0007 0001"), mbap(6, "03 02 0004")),  # bit 2 (open) on, bit 3 (close) off
+            (mbap(7, "03 0007 0001"), mbap(7, "03 02 0004")),
         ]
     )
     with PneumaticGripper(d.url, io_map=m, poll_s=None) as g:
@@ -235,7 +242,8 @@ def test_single_solenoid_safe_state(device):
             (mbap(1, "01 0003 0001"), mbap(1, "01 01 01")),
             (mbap(2, "02 0000 0002"), mbap(2, "02 01 02")),
             (mbap(3, "05 0003 0000"), mbap(3, "05 0003 0000")),  # safe(): de-energise ...
-            (mbap(4, "01 0003 0001"), mbap(4, "01 01 00")),  # ... and read it back
+            (mbap(4, "01 0003 0001"), mbap(4, "01 01 00")),  # ... and read it back ...
+            (mbap(5, "01 0003 0001"), mbap(5, "01 01 00")),  # ... until two readings agree
         ]
     )
     with PneumaticGripper(d.url, io_map=m, poll_s=None) as g:
@@ -254,6 +262,8 @@ def test_rtu_frames_over_socket(device):
             (rtu("05 0000 FF00"), rtu("05 0000 FF00")),
             (rtu("02 0000 0002"), rtu("02 01 01")),
             (rtu("02 0000 0002"), rtu("02 01 01")),
+            (rtu("01 0000 0002"), rtu("01 01 01")),
+            (rtu("01 0000 0002"), rtu("01 01 01")),
         ],
         framing="rtu",
     )
@@ -269,6 +279,7 @@ def test_exception_reply_is_typed_and_keeps_the_link(device):
         + [
             (mbap(3, "02 0000 0002"), mbap(3, "82 04")),  # server device failure
             (mbap(4, "02 0000 0002"), mbap(4, "02 01 01")),
+            (mbap(5, "02 0000 0002"), mbap(5, "02 01 01")),  # nothing commanded yet: two readings agree
         ]
     )
     with PneumaticGripper(d.url, poll_s=None) as g:
@@ -326,6 +337,46 @@ def test_wrong_write_echo_is_a_protocol_error(device):
     d.check()
 
 
+#: close_jaws() whose second write reaches the device with bit 4 of its address flipped: the device
+#: switches coil 17 on and echoes that
+CORRUPTED_CLOSE = CONNECT_OPEN + [
+    (mbap(3, "05 0000 0000"), mbap(3, "05 0000 0000")),
+    (mbap(4, "05 0001 FF00"), mbap(4, "05 0011 FF00")),
+]
+
+
+def test_write_echo_naming_another_coil_is_reported_on_a_shared_terminal(device):
+    """Issue 18: Modbus TCP has no checksum. A write whose echo names another coil switched on: by
+    default (a terminal shared with other valves) the driver leaves that coil alone and names it."""
+    d = device(CORRUPTED_CLOSE + SAFE_AFTER_RECONNECT)
+    with PneumaticGripper(d.url, poll_s=None) as g:
+        with pytest.raises(ProtocolError, match="coil 17, which this gripper does not own, may have been switched on") as e:
+            g.close_jaws()
+        assert e.value.echoed == (17, True) and e.value.sent == (1, True)
+        assert g.safe_report.confirmed
+    d.check()
+
+
+def test_write_echo_naming_another_coil_switches_it_off_on_a_dedicated_terminal(device):
+    """With ``stray_coils: switch-off`` the coil the corrupted request switched on is switched off at
+    once (on a new connection: the mismatch dropped the old one) and read back, then the safe state."""
+    d = device(
+        CORRUPTED_CLOSE
+        + [
+            (mbap(1, "01 0000 0002"), mbap(1, "01 01 00")),  # the new connection reads the outputs ...
+            (mbap(2, "05 0011 0000"), mbap(2, "05 0011 0000")),  # ... coil 17 off ...
+            (mbap(3, "01 0011 0001"), mbap(3, "01 01 00")),  # ... read back ...
+            (mbap(4, "01 0011 0001"), mbap(4, "01 01 00")),  # ... twice
+        ]
+        + safe_on_link(5)
+    )
+    with PneumaticGripper(d.url, io_map=IoMap(stray_coils="switch-off"), poll_s=None) as g:
+        with pytest.raises(ProtocolError, match="coil 17, not this gripper's, .* switched off again and read back off"):
+            g.close_jaws()
+        assert g.safe_report.confirmed
+    d.check()
+
+
 def test_reply_from_another_unit_is_ignored_until_timeout(device):
     # as on a shared RTU bus: a frame for another unit is not ours; the device counts as silent
     d = device(CONNECT_OPEN + [(mbap(3, "02 0000 0002"), mbap(3, "02 01 01", unit=9))] + SAFE_AFTER_RECONNECT)
@@ -368,16 +419,95 @@ def test_one_flipped_bit_neither_confirms_nor_faults(device):
             (mbap(8, "02 0000 0002"), mbap(8, "02 01 03")),  # a flipped bit: both on ...
             (mbap(9, "02 0000 0002"), mbap(9, "02 01 00")),  # ... read again: travelling
             (mbap(10, "02 0000 0002"), mbap(10, "02 01 02")),  # arrived
-            (mbap(11, "02 0000 0002"), mbap(11, "02 01 02")),  # confirmed
+            (mbap(11, "02 0000 0002"), mbap(11, "02 01 02")),  # confirmed by the switches
+            (mbap(12, "01 0000 0002"), mbap(12, "01 01 00")),  # a flipped bit: outputs look reset ...
+            (mbap(13, "01 0000 0002"), mbap(13, "01 01 02")),  # ... read again: 'close' held ...
+            (mbap(14, "01 0000 0002"), mbap(14, "01 01 02")),  # ... and again: two agree
             # state(): the reading disagrees with the command (a flipped bit turned 'closed' into
             # 'between'), so it is read again
-            (mbap(12, "02 0000 0002"), mbap(12, "02 01 00")),
-            (mbap(13, "02 0000 0002"), mbap(13, "02 01 02")),
+            (mbap(15, "02 0000 0002"), mbap(15, "02 01 00")),
+            (mbap(16, "02 0000 0002"), mbap(16, "02 01 02")),
         ]
     )
     with PneumaticGripper(d.url, poll_s=None, confirm_poll_s=0.001, timeout_s=5.0) as g:
         assert g.close_jaws() == "closed"
         assert g.state() == "closed"
+    d.check()
+
+
+def test_stroke_with_outputs_reset_by_the_terminal_is_a_fault(device):
+    """Issue 18: the terminal's watchdog resets the outputs during a stroke (the master was silent
+    through a stalled exchange). A double valve then holds the jaws where they got to, so both switch
+    readings confirm the target; the outputs read back say the valve no longer holds it: a GripperFault,
+    then the safe state, never a success."""
+    d = device(
+        CONNECT_OPEN
+        + [
+            (mbap(3, "05 0000 0000"), mbap(3, "05 0000 0000")),
+            (mbap(4, "05 0001 FF00"), mbap(4, "05 0001 FF00")),
+            (mbap(5, "02 0000 0002"), mbap(5, "02 01 02")),
+            (mbap(6, "02 0000 0002"), mbap(6, "02 01 02")),  # the switches confirm 'closed' ...
+            (mbap(7, "01 0000 0002"), mbap(7, "01 01 00")),  # ... but the outputs are off ...
+            (mbap(8, "01 0000 0002"), mbap(8, "01 01 00")),  # ... twice: reset by the terminal
+        ]
+        + safe_on_link(9)
+    )
+    with PneumaticGripper(d.url, poll_s=None, confirm_poll_s=0.001) as g:
+        with pytest.raises(GripperFault, match="reset them during the stroke") as e:
+            g.close_jaws()
+        assert "safe state confirmed" in str(e.value)
+        assert g.last_state is None and g.halted is not None
+        with pytest.raises(ConnectionLost):  # the driver gave up: no jaw command until connect()
+            g.open_jaws()
+    d.check()
+
+
+def test_poller_losing_the_link_during_a_stroke_fails_the_stroke(device, monkeypatch):
+    """Issue 18: the poller's request fails while a jaw command waits between its switch readings. The
+    driver gives up (safe state, once) before anything else can use the link, and the stroke fails:
+    it never reconnects to report a jaw position the safe state is about to undo."""
+    d = device(
+        CONNECT_OPEN
+        + [
+            (mbap(3, "05 0000 0000"), mbap(3, "05 0000 0000")),
+            (mbap(4, "05 0001 FF00"), mbap(4, "05 0001 FF00")),
+            (mbap(5, "02 0000 0002"), mbap(5, "02 01 00")),  # travelling
+            (mbap(6, "02 0000 0002"), HANG_UP),  # the poller's read: the link drops
+        ]
+        + SAFE_AFTER_RECONNECT  # the safe state, tried once, on a new connection
+    )
+    from selfview.drivers.pneumatic_gripper import gripper as mod
+
+    g = PneumaticGripper(d.url, poll_s=None, confirm_poll_s=0.001)
+    polled = []
+
+    def sleep_with_a_poll(seconds):  # the poller's turn comes while the stroke waits
+        if not polled:
+            polled.append(True)
+            g._poll_step()
+
+    with g:
+        monkeypatch.setattr(mod.time, "sleep", sleep_with_a_poll)
+        with pytest.raises(ConnectionLost, match="gave up during the stroke"):
+            g.close_jaws()
+        assert g.halted is not None and g.safe_report.confirmed and not g.connected
+        assert g.last_state is None
+    d.check()
+
+
+def test_state_with_nothing_commanded_needs_two_agreeing_readings(device):
+    """Issue 18: with no direction commanded (the valve holds the jaws), a reply with a flipped bit is
+    not believed alone: the state is the one two readings in a row agree on."""
+    d = device(
+        CONNECT_OPEN
+        + [
+            (mbap(3, "02 0000 0002"), mbap(3, "02 01 00")),  # a flipped bit: 'between' ...
+            (mbap(4, "02 0000 0002"), mbap(4, "02 01 01")),  # ... not repeated: 'open' ...
+            (mbap(5, "02 0000 0002"), mbap(5, "02 01 01")),  # ... repeated: believed
+        ]
+    )
+    with PneumaticGripper(d.url, poll_s=None) as g:
+        assert g.state() == "open"
     d.check()
 
 

@@ -140,8 +140,17 @@ def test_hostile_yaml_is_refused_at_once(tmp_path, rng, content, message):
         (lambda d: d["gripper"].__setitem__("points_G", [1, 2]), "points_G is not a table of jaw states"),
         (lambda d: d.__setitem__("camera", "a text"), "TypeError"),
         (lambda d: d["C_H_G"][0].__setitem__(3, float("nan")), "non-finite"),
+        # issue 18: well-typed values that are not what a calibration writes there
+        (lambda d: d["gripper"]["points_G"]["open"].__setitem__("A-inner-back", [1, 2, 3]), "not a fingertip shape"),
+        (lambda d: d["gripper"]["points_G"]["closed"].__setitem__("B-outer-front", [-13.0, -6.0, 2.5]), "tip plane"),
+        (lambda d: d.__setitem__("version", True), "version is True"),
+        (lambda d: d.__setitem__("image_sha256", "a string"), "not a SHA-256"),
+        (lambda d: d.__setitem__("residuals", None), "residuals is not a table"),
+        (lambda d: d.__setitem__("updates", {"x": 1}), "updates is"),
+        (lambda d: d["residuals"].__setitem__("tsai_mode", "a string"), "tsai_mode"),
     ],
-    ids=["nan-point", "inf-point", "nan-f", "huge-int", "points-list", "camera-text", "nan-transform"],
+    ids=["nan-point", "inf-point", "nan-f", "huge-int", "points-list", "camera-text", "nan-transform",
+         "point-moved", "point-off-plane", "version-flag", "sha-text", "residuals-null", "updates-table", "tsai-mode"],
 )
 def test_wrong_values_in_a_rechecksummed_file_are_refused(tmp_path, rng, edit, message):
     p = tmp_path / "cal.yaml"
