@@ -840,6 +840,8 @@ FILE_WEIGHTS = {"alias_bomb": 0.1, "deep_nesting": 0.15}
 INVISIBLE = {
     "calfile": "a plausible number changed and the checksum recomputed: nothing tells it from a real calibration",
     "cellfile": "a cell file has no checksum: a plausible number changed (a digit, a bit) is taken as written",
+    "cellfile.text": "a cell file has no checksum: a free-text field (the camera's model name) changed is taken as "
+                     "written; nothing is computed with it",
     "calfile.residuals": "the residual figures (shown, never computed with) replaced by another well-typed table and "
                          "the checksum recomputed: the loader checks their types, not their history",
 }
@@ -861,6 +863,25 @@ def _plausible_change(a, b) -> bool:
     if not (math.isfinite(x) and math.isfinite(y)) or x * y < 0:
         return False
     return x == 0 == y or (x != 0 and y != 0 and 0.1 <= y / x <= 10)
+
+
+def _text_change_only(a, b) -> bool:
+    """True if fingerprint ``b`` differs from ``a`` only in leaves that are text, not numbers, on both sides."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_text_change_only(a[k], b[k]) for k in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_text_change_only(x, y) for x, y in zip(a, b))
+    if a == b:
+        return True
+    if not (isinstance(a, str) and isinstance(b, str)):
+        return False
+    for x in (a, b):
+        try:
+            float(x)
+            return False
+        except ValueError:
+            pass
+    return True
 
 
 def _leaves(doc, path=()):
@@ -1030,6 +1051,8 @@ def file_outcome(res: dict, clean_fp: str, kind: str) -> tuple[str, str, str | N
     if (why is None and kind.split(".")[0] == "calfile" and isinstance(clean, dict) and isinstance(got, dict)
             and clean.keys() == got.keys() and all(clean[k] == got[k] for k in clean if k != "residuals")):
         why = INVISIBLE["calfile.residuals"]
+    if why is None and kind.split(".")[0] == "cellfile" and clean is not None and _text_change_only(clean, got):
+        why = INVISIBLE["cellfile.text"]
     return "wrong_value", f"loaded a content that differs from the file's truth ({res['fp'][:160]}...)", why
 
 

@@ -141,9 +141,13 @@ class _Section:
     def transform(self, key: str, default: Any = ...) -> np.ndarray:
         v = self.raw(key, default)
         try:
-            return check_rigid(v, self._key(key))
+            H = check_rigid(v, self._key(key))
         except OverflowError:
             raise ConfigError(f"{self._key(key)}: a number is too large for a transform") from None
+        if np.max(np.abs(H[:3, 3])) > MAX_NUMBER:  # a rotation is bounded by being one; a translation is not
+            raise ConfigError(f"{self._key(key)}: the translation {short_repr(H[:3, 3].tolist())} mm is not a plausible "
+                              f"value (over {MAX_NUMBER:g})")
+        return H
 
     def done(self) -> None:
         unknown = sorted(set(self.data) - self.used)

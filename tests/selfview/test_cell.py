@@ -165,7 +165,9 @@ def test_cli_maps_a_hostile_cell_file_to_exit_3(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("line, value", [("focal_guess: 950.0", "focal_guess: 1.8446744073709552e+19"),
-                                         ("aspect: 1.0", "aspect: 40.0"), ("pitch: 9.0", "pitch: 1.0e+30")])
+                                         ("aspect: 1.0", "aspect: 40.0"), ("pitch: 9.0", "pitch: 1.0e+30"),
+                                         # a transform's translation (its rotation is bounded by being one)
+                                         ("- [-1.0,  0.0,     0.0,     0.0]", "- [-1.0,  0.0,     0.0,  1.0e+30]")])
 def test_numbers_no_cell_has_are_refused(tmp_path, cell_path, line, value):
     """A number that parses but is no plausible cell value (the fault campaign's huge_number) is refused."""
     from selfview.cell import load_cell
