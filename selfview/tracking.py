@@ -811,7 +811,7 @@ class SilhouetteTracker:
         C_H_G_pred, gap_mm = checked_prediction(C_H_G_pred, gap_mm)
         a = np.asarray(image)
         if a.dtype == np.uint8 and a.shape == (int(self.camera.height), int(self.camera.width)):
-            img = a.astype(np.float32)  # a grabber's frame: no other check needed per frame
+            img = a  # a grabber's frame: no other check needed per frame (float32 where the search needs it)
         else:
             img = as_gray(image, self.camera)  # float32, checked
         why = None
@@ -835,6 +835,7 @@ class SilhouetteTracker:
                 return res
             why = fit.reason
         self.last_failure = why
+        img = img.astype(np.float32, copy=False)
         starts = ([self._H] if self._H is not None else []) + [C_H_G_pred]
         res, fit = model_measurement(img, self.camera, C_H_G_pred, self.gripper, gap_mm, self.points,
                                      appearance=self._app, starts=starts)
