@@ -1,6 +1,27 @@
-/* selfview._csil: the compiled IRLS and vote of the model-based fingertip measurement (selfview.silhouette).
+/* selfview._csil: the compiled per-round steps of the model-based fingertip measurement (selfview.silhouette):
+ * the sampling of the model's edges, the candidates along each sample's normal, the IRLS and the vote.
  *
- * The Python function ``silhouette._solve_py`` is the reference: this computes the same iterations (the
+ *   sample(a_G, b_G, d_in, finger, box, H, cam, margin, step, p, edge, uv, nrm) -> S, or -1
+ *     silhouette._sample_py (the reference): points every ``step`` px along the edges a_G -> b_G (E, 3)
+ *     whose ends lie 1 mm or more in front of the camera at H (C_H_G), projected with cam (7,): f, kappa,
+ *     cx, cy, aspect, width, height of camera.CameraModel (eq. 3, then the distorted radius by the same
+ *     closed forms and Newton polish as camera._distorted_radius), kept when in the picture ``margin`` px
+ *     inside its border and not behind the other finger's box (box (2, 2, 3): finger, lo/hi; finger (E,)
+ *     int64), with unit normals towards each edge's first face (d_in (E, 3): into it, G). Outputs: the
+ *     first S rows of p (Smax, 3) [G], edge (Smax,) int64, uv (Smax, 2) [px], nrm (Smax, 2); Smax at
+ *     least 400 per edge. -1: a point the Python code refuses (behind the camera, beyond the lens's fold),
+ *     which the caller then hands to it to raise its error.
+ *   candidates(img, uv, nrm, lev1, lev2, R, gates, cam, off, face, contrast, q)
+ *     silhouette._candidates_np (the reference) and the candidates' undistorted sensor coordinates
+ *     (camera.undistort_pixels): img (H, W) float32 or uint8; per sample uv, nrm (S, 2), the levels of
+ *     its first and second face lev1, lev2 (S,) (NaN: none learnt); R the range [px]; gates (4,): the
+ *     plateau [px], the least contrast, the level tolerance (fraction) and its floor [grey]. The profile
+ *     is read as cv2.remap reads it (INTER_LINEAR, BORDER_REPLICATE: the position rounded to 1/32 px,
+ *     single-precision weights) and every step from there in single precision as numpy computes it, so
+ *     the levels agree to float rounding; equal scores rank by position (numpy's sort leaves their order
+ *     open). Outputs (S, C): off [px along nrm], face, contrast (NaN: none), q (S, C, 2).
+ *
+ * The Python function ``silhouette._solve_py`` is the reference of solve: this computes the same iterations (the
  * homogeneous model lines l = A x B of the edges, each sample's candidate nearest its line, Tukey's weights
  * over 1.4826 MAD floored, the scaled Gauss-Newton step with the 1e-6 ridge, the camera motion applied on
  * the left, the same stopping rule), in double precision; sums are taken in another order than numpy's, so

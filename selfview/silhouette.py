@@ -29,10 +29,15 @@ about this object: its exact shape, its faces' grey levels, and that it moves li
    standard deviation in the camera frame). Below the thresholds the fit is reported as not found with
    the reason (``ok`` False), never as a pose.
 
-Speed: the costly steps have a fast path (``_candidates``, ``_solve``, ``_coarse_shift``; the IRLS in
-the compiled kernel ``selfview._csil`` when built, its numpy code ``_solve_py`` the reference) beside the
-first implementation (``*_ref``), which ``REFERENCE = True`` selects; the tests hold them to the same
-measurement (corners within 0.01 px, the TCP within 1e-4 mm).
+Speed: the costly steps have a fast path (``_sample``, ``_candidates``, ``_solve``, ``_coarse_shift``)
+beside the first implementation (``*_ref``), which ``REFERENCE = True`` selects; the tests hold them to
+the same measurement (corners within 0.01 px, the TCP within 1e-4 mm). The fast path runs in the
+compiled kernel ``selfview._csil`` when built, its numpy code the kernel's reference: the sampling of the
+edges (``_sample_py``; the kernel projects with the camera model's own formulas, and hands a camera it
+does not mirror, or a point the model refuses, to the numpy code), the candidates along the normals
+with their undistorted coordinates (``_candidates_np``; the profile read as ``cv2.remap`` reads it, at
+1/32 px), the IRLS (``_solve_py``) and the vote (``_votes_py``). A tracker's 8-bit frame goes to the
+kernel as it is (the same levels as float32).
 """
 
 from __future__ import annotations

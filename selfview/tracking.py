@@ -767,7 +767,8 @@ class SilhouetteTracker:
     is searched: fits with the full ranges from the last pose and from ``C_H_G_pred``, then from the
     pose the corner search (``selfview.fingertips``) gives. A frame where none holds reports every point
     as not found, with the reason in ``result.lost``: a missed frame, never a pose. Every result carries
-    the fit's ``quality``. Python only (no compiled kernel mirrors it).
+    the fit's ``quality``. The fit's sampling, candidates, IRLS and vote run in the compiled kernel
+    ``selfview._csil`` when built (``selfview.silhouette``: its numpy code the reference).
     """
 
     def __init__(self, camera: CameraModel, gripper: GripperSpec, *, points=range(4), search_px: float = 60.0,

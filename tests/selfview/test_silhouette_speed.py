@@ -9,7 +9,8 @@ on the same frames, both renderers, plain and over a photograph, tracked and sea
 within CORNER_TOL_PX and the fitted pose's TCP within TCP_TOL_MM of the reference's, the same verdict
 (found or lost) and the same number of supporting samples. The tolerances are far below anything
 physical (the corners' own noise is ~0.02 px, the TCP's ~0.005 mm) and far above rounding, so that a
-reordered sum passes and a changed choice of candidate, weight or step fails.
+reordered sum passes and a changed choice of candidate, weight or step fails. The kernel's sampling and
+candidates are also compared with their numpy code step by step (below).
 """
 
 from __future__ import annotations
