@@ -130,19 +130,46 @@ static Py_buffer *get_buf(BufSet *s, PyObject *o, const char *name, int kind, in
             goto fail;                                                                                   \
     } while (0)
 
-static int cmp_double(const void *a, const void *b)
+/* the k-th smallest of v[0..n) (Hoare's selection; v is reordered: v[k] holds it, v[0..k) the ones not above it) */
+static double select_kth(double *v, Py_ssize_t n, Py_ssize_t k)
 {
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
+    Py_ssize_t lo = 0, hi = n - 1;
+    while (lo < hi) {
+        const double pivot = v[lo + (hi - lo) / 2];
+        Py_ssize_t i = lo, j = hi;
+        while (i <= j) {
+            while (v[i] < pivot)
+                i++;
+            while (v[j] > pivot)
+                j--;
+            if (i <= j) {
+                const double t = v[i];
+                v[i] = v[j];
+                v[j] = t;
+                i++;
+                j--;
+            }
+        }
+        if (k <= j)
+            hi = j;
+        else if (k >= i)
+            lo = i;
+        else
+            break;
+    }
+    return v[k];
 }
 
-/* np.median of n finite values (the buffer is reordered) */
+/* np.median of n finite values (the buffer is reordered): the middle one, or the mean of the two middle ones */
 static double median(double *v, Py_ssize_t n)
 {
-    qsort(v, (size_t)n, sizeof(double), cmp_double);
+    const double upper = select_kth(v, n, n / 2);
     if (n % 2)
-        return v[n / 2];
-    return 0.5 * (v[n / 2 - 1] + v[n / 2]);
+        return upper;
+    double lower = v[0];
+    for (Py_ssize_t i = 1; i < n / 2; i++)
+        lower = v[i] > lower ? v[i] : lower;
+    return 0.5 * (lower + upper);
 }
 
 /* geometry.R_from_rotvec */
