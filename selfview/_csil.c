@@ -11,6 +11,10 @@
  *     first S rows of p (Smax, 3) [G], edge (Smax,) int64, uv (Smax, 2) [px], nrm (Smax, 2); Smax at
  *     least 400 per edge. -1: a point the Python code refuses (behind the camera, beyond the lens's fold),
  *     which the caller then hands to it to raise its error.
+ *   points(p_G, other, box, H, cam, margin, uv, inside, hidden) -> 1, or 0
+ *     the fingertip points p_G (N, 3) at H: their pixels uv (N, 2), whether inside the picture ``margin`` px
+ *     within its border, whether hidden by the box of finger other (N,) int64 (int64 0/1 each). 0: a point
+ *     behind the camera or beyond the lens's fold (the caller runs the Python code).
  *   candidates(img, uv, nrm, lev1, lev2, R, gates, cam, off, face, contrast, q)
  *     silhouette._candidates_np (the reference) and the candidates' undistorted sensor coordinates
  *     (camera.undistort_pixels): img (H, W) float32 or uint8; per sample uv, nrm (S, 2), the levels of
@@ -892,6 +896,69 @@ fail:
     return NULL;
 }
 
+/* points(p_G, other, box, H, cam, margin, uv, inside, hidden) -> 1, or 0
+ *   the model's points p_G (N, 3) at H (C_H_G): their pixels uv (N, 2) (camera.CameraModel.project),
+ *   inside (N,) int64 whether in the picture ``margin`` px inside its border (camera.in_image), hidden (N,)
+ *   int64 whether behind the box of finger other (N,) int64 (silhouette._blocked). 0: a point behind the
+ *   camera or beyond the lens's fold (nothing usable written: the caller runs the Python code). */
+static PyObject *py_points(PyObject *self, PyObject *args)
+{
+    PyObject *o_p, *o_oth, *o_box, *o_H, *o_cam, *o_uv, *o_in, *o_hid;
+    double margin;
+    BufSet bs = {.n = 0};
+    Py_buffer *b_p, *b_oth, *b_box, *b_H, *b_cam, *b_uv, *b_in, *b_hid;
+    if (!PyArg_ParseTuple(args, "OOOOOdOOO:points", &o_p, &o_oth, &o_box, &o_H, &o_cam, &margin, &o_uv, &o_in, &o_hid))
+        return NULL;
+    GET(b_p, o_p, "p_G", T_F64, 0, 2, -1, 3);
+    const Py_ssize_t N = b_p->shape[0];
+    GET(b_oth, o_oth, "other", T_I64, 0, 1, N);
+    GET(b_box, o_box, "box", T_F64, 0, 3, 2, 2, 3);
+    GET(b_H, o_H, "H", T_F64, 0, 2, 4, 4);
+    GET(b_cam, o_cam, "cam", T_F64, 0, 1, 7);
+    GET(b_uv, o_uv, "uv", T_F64, 1, 2, N, 2);
+    GET(b_in, o_in, "inside", T_I64, 1, 1, N);
+    GET(b_hid, o_hid, "hidden", T_I64, 1, 1, N);
+    const int64_t *oth = b_oth->buf;
+    for (Py_ssize_t i = 0; i < N; i++)
+        if (oth[i] != 0 && oth[i] != 1) {
+            PyErr_Format(PyExc_ValueError, "other: point %zd names finger %lld, expected 0 or 1", i, (long long)oth[i]);
+            goto fail;
+        }
+    if (!isfinite(margin)) {
+        PyErr_SetString(PyExc_ValueError, "margin: expected a finite number");
+        goto fail;
+    }
+    Cam c;
+    if (!get_cam(b_cam->buf, &c))
+        goto fail;
+    const double *pG = b_p->buf, *H = b_H->buf, *box = b_box->buf;
+    double *uv = b_uv->buf;
+    int64_t *ins = b_in->buf, *hid = b_hid->buf;
+    double o[3];
+    for (int i = 0; i < 3; i++)
+        o[i] = -(H[i] * H[3] + H[4 + i] * H[7] + H[8 + i] * H[11]);
+    for (Py_ssize_t i = 0; i < N; i++) {
+        double pc[3];
+        apply_H(H, pG + 3 * i, pc);
+        if (!project(&c, pc, uv + 2 * i)) {
+            bufs_release(&bs);
+            return PyLong_FromLong(0);
+        }
+    }
+    for (Py_ssize_t i = 0; i < N; i++) {
+        const double *u = uv + 2 * i, *p = pG + 3 * i, *lo = box + 6 * oth[i];
+        ins[i] = u[0] >= -0.5 + margin && u[0] <= c.width - 0.5 - margin && u[1] >= -0.5 + margin &&
+                 u[1] <= c.height - 0.5 - margin;
+        const double d[3] = {p[0] - o[0], p[1] - o[1], p[2] - o[2]};
+        hid[i] = blocked(o, d, lo, lo + 3);
+    }
+    bufs_release(&bs);
+    return PyLong_FromLong(1);
+fail:
+    bufs_release(&bs);
+    return NULL;
+}
+
 static PyMethodDef methods[] = {
     {"solve", py_solve, METH_VARARGS,
      "solve(q, pos, a_G, b_G, H, f, floor, iters, start_floor, H_out, w, r, pick, JtWJ) -> (code, sigma): "
@@ -901,6 +968,9 @@ static PyMethodDef methods[] = {
     {"sample", py_sample, METH_VARARGS,
      "sample(a_G, b_G, d_in, finger, box, H, cam, margin, step, p, edge, uv, nrm) -> S: silhouette._sample_py "
      "(-1: a point the kernel does not project: run the Python code)."},
+    {"points", py_points, METH_VARARGS,
+     "points(p_G, other, box, H, cam, margin, uv, inside, hidden) -> 1, or 0 (run the Python code): the model's "
+     "points in the picture, inside it, hidden by the other finger."},
     {"candidates", py_candidates, METH_VARARGS,
      "candidates(img, uv, nrm, lev1, lev2, R, gates, cam, off, face, contrast, q): silhouette._candidates and "
      "the candidates' undistorted sensor coordinates."},

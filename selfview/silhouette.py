@@ -754,6 +754,37 @@ def _refine_shift(off, has, nrm, best, cell, tol):
     return best
 
 
+_OTHER6 = np.array([1, 1, 0, 0, 1, 0], np.int64)  # the other finger of each fingertip point
+
+
+def _points_seen(camera: CameraModel, H, p_G6, box):
+    """The fingertip points p_G6 (6, 3) at ``H``: their pixels (6, 2) (NaN when one lies behind the camera),
+    whether each is in the picture (half a pixel inside its border) and whether the other finger hides it
+    (``box`` (2, 2, 3): the fingers' boxes, lo/hi); in the compiled kernel when built (``_points_seen_py``
+    the reference)."""
+    kernel = _native.sil
+    cp = None if REFERENCE or kernel is None else _cam_params(camera)
+    if cp is not None:
+        uv, inside, hidden = np.empty((6, 2)), np.empty(6, np.int64), np.empty(6, np.int64)
+        if kernel.points(np.ascontiguousarray(p_G6, float), _OTHER6, np.ascontiguousarray(box, float),
+                         np.ascontiguousarray(H, float), cp, 0.5, uv, inside, hidden):
+            return uv, inside.astype(bool), hidden.astype(bool)
+    return _points_seen_py(camera, H, p_G6, box)
+
+
+def _points_seen_py(camera: CameraModel, H, p_G6, box):
+    """``_points_seen`` in numpy."""
+    uv6 = np.full((6, 2), np.nan)
+    pts_C = transform_points(H, p_G6)
+    if np.all(pts_C[:, 2] > 0):
+        uv6 = camera.project(pts_C)
+    o = inv_H(H)[:3, 3]
+    box = np.asarray(box, float)
+    inside6 = camera.in_image(uv6, margin=0.5)
+    hidden6 = _blocked(o, p_G6 - o[None], box[_OTHER6, 0], box[_OTHER6, 1])
+    return uv6, inside6, hidden6
+
+
 def learn_appearance(image, camera: CameraModel, C_H_G, gripper: GripperSpec, gap_mm: float) -> Appearance:
     """The grey level of every visible finger face at ``C_H_G``: the median over its part within the
     picture, 2 px inside its edges (use a pose that fits, e.g. where the fingertips were found)."""
@@ -852,45 +883,39 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
                                             start_floor=max(floor, R / 6.0))
     good = w > 0.5
     n_s = len(s.edge)
-    gf = float(good.mean()) if n_s else 0.0
     fing = es.finger[s.edge]
+    n_good = int(np.count_nonzero(good))
+    gf = n_good / n_s if n_s else 0.0
     # per finger, of those with enough samples in the picture (a finger may leave it)
-    ff = np.array([float(good[fing == f].mean()) if np.sum(fing == f) >= MIN_FINGER_SAMPLES else math.nan
-                   for f in (0, 1)])
-    rms = float(np.sqrt(np.mean(r[good] ** 2))) if good.any() else math.nan
+    n_f = np.bincount(fing, minlength=2)
+    ff = np.where(n_f >= MIN_FINGER_SAMPLES, np.bincount(fing[good], minlength=2) / np.maximum(n_f, 1), math.nan)
+    rms = float(np.sqrt(np.mean(r[good] ** 2))) if n_good else math.nan
     # covariance of the motion and the TCP's standard deviation
     cov = None
     tcp_sd = np.full(3, np.nan)
-    if good.sum() > 6:
-        s2 = float(np.sum(w[good] * r[good] ** 2) / max(good.sum() - 6, 1))
+    if n_good > 6:
+        s2 = float(np.sum(w[good] * r[good] ** 2) / max(n_good - 6, 1))
         try:
             cov = s2 * np.linalg.inv(JtWJ)
             # the TCP (G's origin) in C moves by [-t_x] dθ + dt under the motion
             t = H[:3, 3]
-            Jt = np.hstack([-np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]), np.eye(3)])
+            Jt = np.zeros((3, 6))  # [-[t]x, I]
+            Jt[0, 1], Jt[0, 2], Jt[1, 0], Jt[1, 2], Jt[2, 0], Jt[2, 1] = t[2], -t[1], -t[2], t[0], t[1], -t[0]
+            Jt[0, 3] = Jt[1, 4] = Jt[2, 5] = 1.0
             tcp_sd = np.sqrt(np.maximum(np.diag(Jt @ cov @ Jt.T), 0.0))
         except np.linalg.LinAlgError:
             cov = None
-    uv6 = nan6.copy()
-    pts_C = transform_points(H, p_G6)
     found = np.zeros(6, bool)
     reasons: list = [None] * 6
     want = {int(k) for k in points}
-    if np.all(pts_C[:, 2] > 0):
-        uv6 = camera.project(pts_C)
-    G_H_C = inv_H(H)
-    o = G_H_C[:3, 3]
-    other6 = np.array([1, 1, 0, 0, 1, 0])  # the other finger of each point
-    box = np.asarray(boxes, float)
-    inside6 = camera.in_image(uv6, margin=0.5)
-    hidden6 = _blocked(o, p_G6 - o[None], box[other6, 0], box[other6, 1])
+    uv6, inside6, hidden6 = _points_seen(camera, H, p_G6, np.asarray(boxes, float).reshape(2, 2, 3))
     for k in range(6):
         if k not in want:
             reasons[k] = "not requested"
         elif not inside6[k]:
             reasons[k] = "outside the picture"
         elif hidden6[k]:
-            reasons[k] = f"occluded by finger {'AB'[other6[k]]}"
+            reasons[k] = f"occluded by finger {'AB'[_OTHER6[k]]}"
         else:
             found[k] = True
     why = None
