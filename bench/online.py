@@ -10,8 +10,10 @@ last frame by ``selfview.tracking.FingertipTracker`` or searched for when the tr
 + 4P-I) over a rendered sequence of a creeping camera, with the full search's time and the corners'
 errors beside it (``per_frame_step``), and as a fraction of a 40 ms CCIR frame. ``trackers_plain`` and
 ``trackers_cluttered`` (scikit-image's gravel laid 40 mm beyond the fingertips, defocused) time both
-trackers on one sequence each, the corner tracker and the model-based ``SilhouetteTracker``, with their
-full searches (``model_step``). ``compiled_kernels`` says whether the C kernels ran
+trackers on one sequence each, the corner tracker and the model-based ``SilhouetteTracker``, their steps
+taken in turn, with their full searches (``model_step``); over the photograph the corner tracker does not
+hold, so ``cluttered_model_to_plain_corners_step`` sets the model's cluttered step against the corner
+tracker's plain one. ``compiled_kernels`` says whether the C kernels ran
 (``SELFVIEW_PURE_PYTHON=1`` times the pure-Python reference). One run, one core: BLAS and OpenCV
 threads are limited to one and the process is pinned to one CPU.
 
