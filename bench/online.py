@@ -180,10 +180,11 @@ def model_step(cell, world, C_H_G_before, *, backdrop=None, frames: int = 8, rou
     (``SilhouetteTracker``: the whole silhouette fitted, a quality per frame), each + 4P-I, their steps
     taken in turn frame by frame (each tracker on its own run of the sequence), so that the machine's
     load weighs on both alike; medians [ms] and as a fraction of a 40 ms CCIR frame, and their ratio
-    (``model_to_corners_step``: the issue asks for no more than 2); frames measured (found / missed). Also the full searches' times: the corner search,
-    the model-based search (the silhouette fitted with the full ranges from the last pose), and the
-    SilhouetteTracker's own search once it has lost the fingertips (``search_after_lost_ms``: from the
-    prediction, with the corner search's pose and the wide ranges where that fails). ``model_reference``:
+    (``model_to_corners_step``: the issue asks for no more than 2); frames measured (found / missed).
+    Also the full searches' times: the corner search, the model-based search (the silhouette fitted with
+    the full ranges from the last pose), and the SilhouetteTracker's own search once it has lost the
+    fingertips (``search_after_lost_ms``: from the prediction, with the corner search's pose and the wide
+    ranges where that fails). ``model_reference``:
     the same for the model's first implementation (``silhouette.REFERENCE``, no compiled kernel), the
     figures before it was made fast, on the same frames in the same run."""
     from selfview.mocks.render import render

@@ -497,8 +497,9 @@ REFERENCE = False  # True: fit with the reference functions (the tests compare t
 
 
 def _candidates(img, s: _Samples, R: float, app: Appearance, n_cand: int = CANDIDATES):
-    """``_candidates_ref`` with the per-edge levels looked up once per edge and the face levels read by
-    slicing a padded profile (the same numbers)."""
+    """``_candidates_ref``'s fast path: in the compiled kernel when built, else ``_candidates_np`` (the
+    per-edge levels looked up once per edge and the face levels read by slicing a padded profile: the
+    same numbers)."""
     if REFERENCE:
         return _candidates_ref(img.astype(np.float32, copy=False), s, R, app, n_cand)
     return _candidates_q(img, s, R, app, None, n_cand)[:3]
@@ -825,19 +826,22 @@ def learn_appearance(image, camera: CameraModel, C_H_G, gripper: GripperSpec, ga
 
 
 def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec, gap_mm: float, *,
-                   appearance: Appearance | None = None, rounds=ROUNDS, points=range(6)) -> SilhouetteFit:
+                   appearance: Appearance | None = None, rounds=ROUNDS, points=range(6),
+                   frame: bool = False) -> SilhouetteFit:
     """Fit the fingers' silhouette to ``image`` from the pose ``C_H_G_pred`` (4, 4), jaw gap ``gap_mm``.
 
     ``appearance`` the faces' grey levels (``learn_appearance``, or the last fit's); without one they are
     read at the prediction (good enough when it is within a few px). ``rounds`` the search ranges [px] of
     the rounds of sampling (the first must reach as far as the prediction may be off). ``points``: the
-    fingertip points reported as found when the fit holds. Returns a ``SilhouetteFit``; never raises for
-    a fit that fails (``ok`` False and the reason)."""
+    fingertip points reported as found when the fit holds. ``frame``: ``image`` is a tracker's frame
+    (grey, of the camera's size), which the compiled kernel reads as it is when 8-bit, without the
+    picture's checks. Returns a ``SilhouetteFit``; never raises for a fit that fails (``ok`` False and
+    the reason)."""
     a = np.asarray(image)
     if a.dtype == np.float32 and a.shape == (int(camera.height), int(camera.width)):
         img = a  # already checked by the caller (a tracker's frame)
-    elif (a.dtype == np.uint8 and a.shape == (int(camera.height), int(camera.width)) and a.flags.c_contiguous
-          and _native.sil is not None and not REFERENCE):
+    elif (frame and a.dtype == np.uint8 and a.shape == (int(camera.height), int(camera.width))
+          and a.flags.c_contiguous and _native.sil is not None and not REFERENCE):
         img = a  # a grabber's frame, read as it is by the compiled kernel (the same levels as float32)
     else:
         img = as_gray(image, camera)

@@ -821,11 +821,11 @@ class SilhouetteTracker:
             self.reset()
         if self._H is not None:
             fit = fit_silhouette(img, self.camera, self._H, self.gripper, gap_mm, appearance=self._app,
-                                 rounds=self.track_rounds, points=self.points)
+                                 rounds=self.track_rounds, points=self.points, frame=True)
             if fit.C_H_G is not None and self._moved_px(fit.C_H_G, gap_mm) > self.refine_px:
                 # a larger step than usual: once more with a short range around the new pose
                 again = fit_silhouette(img, self.camera, fit.C_H_G, self.gripper, gap_mm, appearance=fit.appearance,
-                                       rounds=(min(self.track_rounds[-1], 3.0),), points=self.points)
+                                       rounds=(min(self.track_rounds[-1], 3.0),), points=self.points, frame=True)
                 fit = again if again.ok or not fit.ok else fit
             if fit.ok:
                 self._take(fit, gap_mm)
