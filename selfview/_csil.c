@@ -1,6 +1,31 @@
-/* selfview._csil: the compiled IRLS and vote of the model-based fingertip measurement (selfview.silhouette).
+/* selfview._csil: the compiled per-round steps of the model-based fingertip measurement (selfview.silhouette):
+ * the sampling of the model's edges, the candidates along each sample's normal, the IRLS and the vote.
  *
- * The Python function ``silhouette._solve_py`` is the reference: this computes the same iterations (the
+ *   sample(a_G, b_G, d_in, finger, box, H, cam, margin, step, p, edge, uv, nrm) -> S, or -1
+ *     silhouette._sample_py (the reference): points every ``step`` px along the edges a_G -> b_G (E, 3)
+ *     whose ends lie 1 mm or more in front of the camera at H (C_H_G), projected with cam (7,): f, kappa,
+ *     cx, cy, aspect, width, height of camera.CameraModel (eq. 3, then the distorted radius by the same
+ *     closed forms and Newton polish as camera._distorted_radius), kept when in the picture ``margin`` px
+ *     inside its border and not behind the other finger's box (box (2, 2, 3): finger, lo/hi; finger (E,)
+ *     int64), with unit normals towards each edge's first face (d_in (E, 3): into it, G). Outputs: the
+ *     first S rows of p (Smax, 3) [G], edge (Smax,) int64, uv (Smax, 2) [px], nrm (Smax, 2); Smax at
+ *     least 400 per edge. -1: a point the Python code refuses (behind the camera, beyond the lens's fold),
+ *     which the caller then hands to it to raise its error.
+ *   points(p_G, other, box, H, cam, margin, uv, inside, hidden) -> 1, or 0
+ *     the fingertip points p_G (N, 3) at H: their pixels uv (N, 2), whether inside the picture ``margin`` px
+ *     within its border, whether hidden by the box of finger other (N,) int64 (int64 0/1 each). 0: a point
+ *     behind the camera or beyond the lens's fold (the caller runs the Python code).
+ *   candidates(img, uv, nrm, lev1, lev2, R, gates, cam, off, face, contrast, q)
+ *     silhouette._candidates_np (the reference) and the candidates' undistorted sensor coordinates
+ *     (camera.undistort_pixels): img (H, W) float32 or uint8; per sample uv, nrm (S, 2), the levels of
+ *     its first and second face lev1, lev2 (S,) (NaN: none learnt); R the range [px]; gates (4,): the
+ *     plateau [px], the least contrast, the level tolerance (fraction) and its floor [grey]. The profile
+ *     is read as cv2.remap reads it (INTER_LINEAR, BORDER_REPLICATE: the position rounded to 1/32 px,
+ *     single-precision weights) and every step from there in single precision as numpy computes it, so
+ *     the levels agree to float rounding; equal scores rank by position (numpy's sort leaves their order
+ *     open). Outputs (S, C): off [px along nrm], face, contrast (NaN: none), q (S, C, 2).
+ *
+ * The Python function ``silhouette._solve_py`` is the reference of solve: this computes the same iterations (the
  * homogeneous model lines l = A x B of the edges, each sample's candidate nearest its line, Tukey's weights
  * over 1.4826 MAD floored, the scaled Gauss-Newton step with the 1e-6 ridge, the camera motion applied on
  * the left, the same stopping rule), in double precision; sums are taken in another order than numpy's, so
@@ -29,10 +54,10 @@
 #include <stdlib.h>
 #include <string.h>
 
-#define API_VERSION 1
+#define API_VERSION 2
 #define MAXBUF 16
 
-enum { T_F64 = 1, T_I64 = 2 };
+enum { T_F64 = 1, T_I64 = 2, T_F32 = 3, T_U8 = 4 };
 
 typedef struct {
     Py_buffer v[MAXBUF];
@@ -55,6 +80,10 @@ static int buf_kind(const Py_buffer *b)
         return 0;
     if (f[0] == 'd' && b->itemsize == 8)
         return T_F64;
+    if (f[0] == 'f' && b->itemsize == 4)
+        return T_F32;
+    if (f[0] == 'B' && b->itemsize == 1)
+        return T_U8;
     if ((f[0] == 'q' || f[0] == 'l' || f[0] == 'n') && b->itemsize == 8)
         return T_I64;
     return 0;
@@ -71,7 +100,7 @@ static Py_buffer *get_buf(BufSet *s, PyObject *o, const char *name, int kind, in
     }
     Py_buffer *b = &s->v[s->n];
     int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
-    const char *tn = kind == T_F64 ? "float64" : "int64";
+    const char *tn = kind == T_F64 ? "float64" : kind == T_F32 ? "float32" : kind == T_U8 ? "uint8" : "int64";
     if (PyObject_GetBuffer(o, b, flags) < 0) {
         PyErr_Clear();
         PyErr_Format(PyExc_TypeError, "%s: expected a C-contiguous%s %s array, got %.100s", name,
@@ -79,7 +108,7 @@ static Py_buffer *get_buf(BufSet *s, PyObject *o, const char *name, int kind, in
         return NULL;
     }
     s->n++;
-    if (buf_kind(b) != kind) {
+    if (buf_kind(b) != kind && !(kind == T_F32 && buf_kind(b) == T_U8)) { /* a picture: float32 or uint8 */
         PyErr_Format(PyExc_TypeError, "%s: expected a %s array, got elements of format '%s'", name, tn,
                      b->format ? b->format : "B");
         return NULL;
@@ -105,19 +134,46 @@ static Py_buffer *get_buf(BufSet *s, PyObject *o, const char *name, int kind, in
             goto fail;                                                                                   \
     } while (0)
 
-static int cmp_double(const void *a, const void *b)
+/* the k-th smallest of v[0..n) (Hoare's selection; v is reordered: v[k] holds it, v[0..k) the ones not above it) */
+static double select_kth(double *v, Py_ssize_t n, Py_ssize_t k)
 {
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
+    Py_ssize_t lo = 0, hi = n - 1;
+    while (lo < hi) {
+        const double pivot = v[lo + (hi - lo) / 2];
+        Py_ssize_t i = lo, j = hi;
+        while (i <= j) {
+            while (v[i] < pivot)
+                i++;
+            while (v[j] > pivot)
+                j--;
+            if (i <= j) {
+                const double t = v[i];
+                v[i] = v[j];
+                v[j] = t;
+                i++;
+                j--;
+            }
+        }
+        if (k <= j)
+            hi = j;
+        else if (k >= i)
+            lo = i;
+        else
+            break;
+    }
+    return v[k];
 }
 
-/* np.median of n finite values (the buffer is reordered) */
+/* np.median of n finite values (the buffer is reordered): the middle one, or the mean of the two middle ones */
 static double median(double *v, Py_ssize_t n)
 {
-    qsort(v, (size_t)n, sizeof(double), cmp_double);
+    const double upper = select_kth(v, n, n / 2);
     if (n % 2)
-        return v[n / 2];
-    return 0.5 * (v[n / 2 - 1] + v[n / 2]);
+        return upper;
+    double lower = v[0];
+    for (Py_ssize_t i = 1; i < n / 2; i++)
+        lower = v[i] > lower ? v[i] : lower;
+    return 0.5 * (lower + upper);
 }
 
 /* geometry.R_from_rotvec */
@@ -425,12 +481,499 @@ fail:
     return NULL;
 }
 
+/* ---- the sampling of the silhouette and the candidates along each sample's normal ---------------------- */
+
+typedef struct {
+    double f, kappa, cx, cy, aspect, width, height, rmax;
+} Cam;
+
+/* cam (7,): f, kappa, cx, cy, aspect, width, height of a camera.CameraModel; 0 with an exception set */
+static int get_cam(const double *v, Cam *c)
+{
+    for (int i = 0; i < 7; i++)
+        if (!isfinite(v[i])) {
+            PyErr_SetString(PyExc_ValueError, "cam: expected 7 finite numbers (f, kappa, cx, cy, aspect, width, height)");
+            return 0;
+        }
+    if (!(v[0] > 0) || !(v[4] > 0) || !(v[5] > 0) || !(v[6] > 0)) {
+        PyErr_SetString(PyExc_ValueError, "cam: expected f, aspect, width and height > 0");
+        return 0;
+    }
+    c->f = v[0];
+    c->kappa = v[1];
+    c->cx = v[2];
+    c->cy = v[3];
+    c->aspect = v[4];
+    c->width = v[5];
+    c->height = v[6];
+    c->rmax = INFINITY;
+    if (c->kappa < 0) {
+        double r = sqrt(-1.0 / (3.0 * c->kappa));
+        c->rmax = r + c->kappa * r * r * r;
+    }
+    return 1;
+}
+
+/* camera.CameraModel.project of one camera-frame point (eq. 3, then the distorted radius of eq. 4 by the
+ * same closed forms and Newton polish); 0 for a point the Python code refuses (z <= 0, beyond the lens's
+ * fold), which the caller then hands to it */
+static int project(const Cam *c, const double p[3], double uv[2])
+{
+    if (!(p[2] > 0))
+        return 0;
+    const double X = c->f * p[0] / p[2], Y = c->f * p[1] / p[2];
+    const double R = sqrt(X * X + Y * Y), k = c->kappa;
+    double r = R;
+    if (k > 0) {
+        const double pp = 1.0 / k, q = -R / k;
+        const double disc = sqrt((q / 2) * (q / 2) + (pp / 3) * (pp / 3) * (pp / 3));
+        r = cbrt(-q / 2 + disc) + cbrt(-q / 2 - disc);
+    } else if (k < 0) {
+        if (R > c->rmax * (1 + 1e-12))
+            return 0;
+        const double pp = 1.0 / k, m = 2.0 * sqrt(-pp / 3.0);
+        double arg = 3.0 * (-R / k) / (pp * m);
+        arg = arg < -1.0 ? -1.0 : arg > 1.0 ? 1.0 : arg;
+        r = m * cos(acos(arg) / 3.0 - 2.0 * 3.14159265358979323846 / 3.0);
+    }
+    if (k != 0.0)
+        for (int i = 0; i < 3; i++)
+            r -= (k * r * r * r + r - R) / (3 * k * r * r + 1.0);
+    const double s = R > 0 ? r / R : 1.0;
+    uv[0] = X * s / c->aspect + c->cx;
+    uv[1] = Y * s + c->cy;
+    return isfinite(uv[0]) && isfinite(uv[1]);
+}
+
+static void apply_H(const double *H, const double p[3], double out[3])
+{
+    for (int i = 0; i < 3; i++)
+        out[i] = H[4 * i] * p[0] + H[4 * i + 1] * p[1] + H[4 * i + 2] * p[2] + H[4 * i + 3];
+}
+
+/* silhouette._blocked for one ray o + t d: whether it passes through the box (lo, hi) before t = 1 (an axis
+ * where the ray runs in a face's plane is left out, as the reference's NaN-skipping reductions do) */
+static int blocked(const double o[3], const double d[3], const double *lo, const double *hi)
+{
+    double tn = NAN, tf = NAN;
+    for (int i = 0; i < 3; i++) {
+        const double t1 = (lo[i] - o[i]) / d[i], t2 = (hi[i] - o[i]) / d[i];
+        double mn, mx;
+        if (isnan(t1)) {
+            mn = -INFINITY;
+            mx = INFINITY;
+        } else if (isnan(t2)) {
+            continue;
+        } else {
+            mn = t1 < t2 ? t1 : t2;
+            mx = t1 > t2 ? t1 : t2;
+        }
+        if (isnan(tn) || mn > tn)
+            tn = mn;
+        if (isnan(tf) || mx < tf)
+            tf = mx;
+    }
+    const double tf1 = isnan(tf) ? NAN : (tf < 1.0 ? tf : 1.0);
+    return (tn < tf1 - 1e-6) && (tn > 1e-6) && (tf1 - tn > 1e-4);
+}
+
+#define MAX_PER_EDGE 400
+
+/* sample(a_G, b_G, d_in, finger, box, H, cam, margin, step, p, edge, uv, nrm) -> S, or -1 */
+static PyObject *py_sample(PyObject *self, PyObject *args)
+{
+    PyObject *o_a, *o_b, *o_d, *o_fin, *o_box, *o_H, *o_cam, *o_p, *o_e, *o_uv, *o_n;
+    double margin, step;
+    BufSet bs = {.n = 0};
+    Py_buffer *b_a, *b_b, *b_d, *b_fin, *b_box, *b_H, *b_cam, *b_p, *b_e, *b_uv, *b_n;
+    double *work = NULL;
+    Py_ssize_t S = 0;
+    if (!PyArg_ParseTuple(args, "OOOOOOOddOOOO:sample", &o_a, &o_b, &o_d, &o_fin, &o_box, &o_H, &o_cam, &margin, &step,
+                          &o_p, &o_e, &o_uv, &o_n))
+        return NULL;
+    GET(b_a, o_a, "a_G", T_F64, 0, 2, -1, 3);
+    const Py_ssize_t E = b_a->shape[0];
+    GET(b_b, o_b, "b_G", T_F64, 0, 2, E, 3);
+    GET(b_d, o_d, "d_in", T_F64, 0, 2, E, 3);
+    GET(b_fin, o_fin, "finger", T_I64, 0, 1, E);
+    GET(b_box, o_box, "box", T_F64, 0, 3, 2, 2, 3);
+    GET(b_H, o_H, "H", T_F64, 0, 2, 4, 4);
+    GET(b_cam, o_cam, "cam", T_F64, 0, 1, 7);
+    GET(b_p, o_p, "p", T_F64, 1, 2, -1, 3);
+    const Py_ssize_t Smax = b_p->shape[0];
+    GET(b_e, o_e, "edge", T_I64, 1, 1, Smax);
+    GET(b_uv, o_uv, "uv", T_F64, 1, 2, Smax, 2);
+    GET(b_n, o_n, "nrm", T_F64, 1, 2, Smax, 2);
+    if (Smax < E * MAX_PER_EDGE) {
+        PyErr_Format(PyExc_ValueError, "p: room for %zd samples, expected %d per edge (%zd)", Smax, MAX_PER_EDGE,
+                     E * MAX_PER_EDGE);
+        goto fail;
+    }
+    if (!(step > 0) || !isfinite(step) || !isfinite(margin)) {
+        PyErr_SetString(PyExc_ValueError, "step, margin: expected step > 0 and a finite margin");
+        goto fail;
+    }
+    const int64_t *fin = b_fin->buf;
+    for (Py_ssize_t e = 0; e < E; e++)
+        if (fin[e] != 0 && fin[e] != 1) {
+            PyErr_Format(PyExc_ValueError, "finger: edge %zd names finger %lld, expected 0 or 1", e, (long long)fin[e]);
+            goto fail;
+        }
+    Cam c;
+    if (!get_cam(b_cam->buf, &c))
+        goto fail;
+    const double *aG = b_a->buf, *bG = b_b->buf, *dG = b_d->buf, *box = b_box->buf, *H = b_H->buf;
+    double *P = b_p->buf, *UV = b_uv->buf, *NR = b_n->buf;
+    int64_t *EO = b_e->buf;
+    /* per edge: count, side (2); per sample of all edges: uv (2) */
+    work = PyMem_Malloc(sizeof(double) * (size_t)(3 * E + 2 * E * MAX_PER_EDGE + 1));
+    if (!work) {
+        PyErr_NoMemory();
+        goto fail;
+    }
+    double *cnt = work, *side = work + E, *all = work + 3 * E;
+    /* the camera's position in G: o = -R^T t */
+    double o[3];
+    for (int i = 0; i < 3; i++)
+        o[i] = -(H[i] * H[3] + H[4 + i] * H[7] + H[8 + i] * H[11]);
+    Py_ssize_t N = 0;
+    int any = 0;
+    for (Py_ssize_t e = 0; e < E; e++) {
+        double A[3], B[3], ua[2], ub[2];
+        cnt[e] = 0;
+        apply_H(H, aG + 3 * e, A);
+        apply_H(H, bG + 3 * e, B);
+        if (!(A[2] > 1.0 && B[2] > 1.0))
+            continue;
+        any = 1;
+        if (!project(&c, A, ua) || !project(&c, B, ub))
+            goto refuse;
+        const double dx = ub[0] - ua[0], dy = ub[1] - ua[1];
+        double k = sqrt(dx * dx + dy * dy) / step;
+        k = k < 2 ? 2 : k > MAX_PER_EDGE ? MAX_PER_EDGE : k;
+        cnt[e] = (double)(int)k;
+    }
+    if (!any)
+        goto done;
+    /* every sample's pixel, and each edge's side: its first face's direction in the picture */
+    for (Py_ssize_t e = 0; e < E; e++) {
+        const int n = (int)cnt[e];
+        if (!n)
+            continue;
+        const double *a = aG + 3 * e, *b = bG + 3 * e, *d = dG + 3 * e;
+        double m[3], m2[3], C1[3], C2[3], u1[2], u2[2];
+        for (int i = 0; i < 3; i++) {
+            m[i] = 0.5 * (a[i] + b[i]);
+            m2[i] = m[i] + 0.05 * d[i];
+        }
+        apply_H(H, m, C1);
+        apply_H(H, m2, C2);
+        if (!project(&c, C1, u1) || !project(&c, C2, u2))
+            goto refuse;
+        side[2 * e] = u2[0] - u1[0];
+        side[2 * e + 1] = u2[1] - u1[1];
+        for (int k = 0; k < n; k++) {
+            const double t = ((double)k + 0.5) / n;
+            double p[3], pc[3];
+            for (int i = 0; i < 3; i++)
+                p[i] = a[i] + t * (b[i] - a[i]);
+            apply_H(H, p, pc);
+            if (!project(&c, pc, all + 2 * (N + k)))
+                goto refuse;
+        }
+        N += n;
+    }
+    /* tangents from the neighbours on the same edge, the samples kept: in the picture, not behind the other finger */
+    Py_ssize_t i0 = 0;
+    const double lo_u = -0.5 + margin, hi_u = c.width - 0.5 - margin, hi_v = c.height - 0.5 - margin;
+    for (Py_ssize_t e = 0; e < E; e++) {
+        const int n = (int)cnt[e];
+        const double *a = aG + 3 * e, *b = bG + 3 * e;
+        const double *lo = box + 6 * (1 - fin[e]), *hi = lo + 3;
+        for (int k = 0; k < n; k++) {
+            const double *u = all + 2 * (i0 + k);
+            if (!(u[0] >= lo_u && u[0] <= hi_u && u[1] >= lo_u && u[1] <= hi_v))
+                continue;
+            const double t = ((double)k + 0.5) / n;
+            double p[3], d[3];
+            for (int i = 0; i < 3; i++) {
+                p[i] = a[i] + t * (b[i] - a[i]);
+                d[i] = p[i] - o[i];
+            }
+            if (blocked(o, d, lo, hi))
+                continue;
+            double tx, ty;
+            if (k + 1 < n) {
+                tx = u[2] - u[0];
+                ty = u[3] - u[1];
+            } else {
+                tx = u[0] - u[-2];
+                ty = u[1] - u[-1];
+            }
+            const double L = sqrt(tx * tx + ty * ty) + 1e-12;
+            tx /= L;
+            ty /= L;
+            double nx = -ty, ny = tx;
+            const double sg = nx * side[2 * e] + ny * side[2 * e + 1];
+            if (sg < 0) {
+                nx = -nx;
+                ny = -ny;
+            }
+            memcpy(P + 3 * S, p, sizeof p);
+            EO[S] = e;
+            UV[2 * S] = u[0];
+            UV[2 * S + 1] = u[1];
+            NR[2 * S] = nx;
+            NR[2 * S + 1] = ny;
+            S++;
+        }
+        i0 += n;
+    }
+done:
+    PyMem_Free(work);
+    bufs_release(&bs);
+    return PyLong_FromSsize_t(S);
+refuse:
+    PyMem_Free(work);
+    bufs_release(&bs);
+    return PyLong_FromLong(-1);
+fail:
+    PyMem_Free(work);
+    bufs_release(&bs);
+    return NULL;
+}
+
+/* cv2.remap's bilinear sample of a float32 picture (INTER_LINEAR, BORDER_REPLICATE): the position rounded
+ * to 1/32 px, the four weights products of 1 - a/32 and a/32 in single precision (an 8-bit picture: its
+ * levels as float32, the same numbers) */
+#define PIX(row, x) (img8 ? (float)img8[(row) + (x)] : img[(row) + (x)])
+static inline float bilinear(const float *img, const uint8_t *img8, int H, int W, float x, float y)
+{
+    x = x < -1e6f ? -1e6f : x > 1e6f ? 1e6f : x;
+    y = y < -1e6f ? -1e6f : y > 1e6f ? 1e6f : y;
+    const long X = lrintf(x * 32.0f), Y = lrintf(y * 32.0f);
+    const int fx = (int)(X & 31), fy = (int)(Y & 31);
+    const long ix = (X - fx) / 32, iy = (Y - fy) / 32;
+    const float ax = (1.f / 32) * fx, ay = (1.f / 32) * fy;
+    const int x0 = ix < 0 ? 0 : ix >= W ? W - 1 : (int)ix, x1 = ix + 1 < 0 ? 0 : ix + 1 >= W ? W - 1 : (int)ix + 1;
+    const int y0 = iy < 0 ? 0 : iy >= H ? H - 1 : (int)iy, y1 = iy + 1 < 0 ? 0 : iy + 1 >= H ? H - 1 : (int)iy + 1;
+    const Py_ssize_t r0 = (Py_ssize_t)y0 * W, r1 = (Py_ssize_t)y1 * W;
+    return PIX(r0, x0) * ((1.f - ay) * (1.f - ax)) + PIX(r0, x1) * ((1.f - ay) * ax) +
+           PIX(r1, x0) * (ay * (1.f - ax)) + PIX(r1, x1) * (ay * ax);
+}
+#undef PIX
+
+static inline int sgnf(float v) { return (v > 0) - (v < 0); }
+
+/* candidates(img, uv, nrm, lev1, lev2, R, gates, cam, off, face, contrast, q): silhouette._candidates, and
+ * each candidate's undistorted sensor coordinates q */
+static PyObject *py_candidates(PyObject *self, PyObject *args)
+{
+    PyObject *o_img, *o_uv, *o_n, *o_l1, *o_l2, *o_g, *o_cam, *o_off, *o_face, *o_con, *o_q;
+    double R;
+    BufSet bs = {.n = 0};
+    Py_buffer *b_img, *b_uv, *b_n, *b_l1, *b_l2, *b_g, *b_cam, *b_off, *b_face, *b_con, *b_q;
+    float *work = NULL;
+    if (!PyArg_ParseTuple(args, "OOOOOdOOOOOO:candidates", &o_img, &o_uv, &o_n, &o_l1, &o_l2, &R, &o_g, &o_cam,
+                          &o_off, &o_face, &o_con, &o_q))
+        return NULL;
+    GET(b_img, o_img, "img", T_F32, 0, 2, -1, -1);
+    GET(b_uv, o_uv, "uv", T_F64, 0, 2, -1, 2);
+    const Py_ssize_t S = b_uv->shape[0];
+    GET(b_n, o_n, "nrm", T_F64, 0, 2, S, 2);
+    GET(b_l1, o_l1, "lev1", T_F64, 0, 1, S);
+    GET(b_l2, o_l2, "lev2", T_F64, 0, 1, S);
+    GET(b_g, o_g, "gates", T_F64, 0, 1, 4);
+    GET(b_cam, o_cam, "cam", T_F64, 0, 1, 7);
+    GET(b_off, o_off, "off", T_F64, 1, 2, S, -1);
+    const Py_ssize_t C = b_off->shape[1];
+    GET(b_face, o_face, "face", T_F64, 1, 2, S, C);
+    GET(b_con, o_con, "contrast", T_F64, 1, 2, S, C);
+    GET(b_q, o_q, "q", T_F64, 1, 3, S, C, 2);
+    const int Hh = (int)b_img->shape[0], Ww = (int)b_img->shape[1];
+    const double *gates = b_g->buf;
+    const int P = (int)gates[0];
+    if (b_img->shape[0] < 1 || b_img->shape[1] < 1 || b_img->shape[0] > 1 << 20 || b_img->shape[1] > 1 << 20) {
+        PyErr_SetString(PyExc_ValueError, "img: expected a picture of 1..2^20 rows and columns");
+        goto fail;
+    }
+    if (!(R >= 1.0 && R <= 1000.0) || C < 1 || (double)P != gates[0] || P < 2 || P > 50) {
+        PyErr_SetString(PyExc_ValueError, "R, off, gates: expected 1 <= R <= 1000, a candidate column, a plateau of 2..50 px");
+        goto fail;
+    }
+    Cam c;
+    if (!get_cam(b_cam->buf, &c))
+        goto fail;
+    const double *uv = b_uv->buf, *nr = b_n->buf, *l1 = b_l1->buf, *l2 = b_l2->buf;
+    for (Py_ssize_t s = 0; s < 2 * S; s++)
+        if (!isfinite(uv[s]) || !isfinite(nr[s])) {
+            PyErr_Format(PyExc_ValueError, "uv, nrm: sample %zd is not finite", s / 2);
+            goto fail;
+        }
+    const float min_con = (float)gates[1];
+    const double ltol = gates[2], ltol_grey = gates[3];
+    const int Ri = (int)ceil(R), L = 2 * Ri + 2 * P + 3, M = L - 4;
+    work = PyMem_Malloc(sizeof(float) * (size_t)(4 * L) + sizeof(double) * (size_t)M);
+    if (!work) {
+        PyErr_NoMemory();
+        goto fail;
+    }
+    /* per sample: the profile at offsets -Ri-P-1 .. Ri+P+1, its derivative D (at offsets -Ri-P .. Ri+P), and per
+     * step m (at offset m - Ri - P + 1, D's m + 1) the mean levels 2..P px on its face side and on the other */
+    float *prof = work, *D = work + L, *face = D + L, *other = face + L;
+    double *score = (double *)(other + L);
+    const int is8 = buf_kind(b_img) == T_U8;
+    const float *img = is8 ? NULL : b_img->buf;
+    const uint8_t *img8 = is8 ? b_img->buf : NULL;
+    double *OFF = b_off->buf, *FACE = b_face->buf, *CON = b_con->buf, *Q = b_q->buf;
+    for (Py_ssize_t s = 0; s < S; s++) {
+        const double u = uv[2 * s], v = uv[2 * s + 1], nx = nr[2 * s], ny = nr[2 * s + 1];
+        for (int i = 0; i < L; i++) {
+            const double k = (double)(i - Ri - P - 1);
+            prof[i] = bilinear(img, img8, Hh, Ww, (float)(u + k * nx), (float)(v + k * ny));
+        }
+        for (int j = 0; j < L - 2; j++)
+            D[j] = 0.5f * (prof[j + 2] - prof[j]);
+        const int has1 = isfinite(l1[s]), has2 = isfinite(l2[s]);
+        for (int m = 0; m < M; m++) {
+            score[m] = INFINITY;
+            const float a0 = fabsf(D[m]), a1 = fabsf(D[m + 1]), a2 = fabsf(D[m + 2]);
+            if (!(a1 >= a0 && a1 > a2) || abs(m - Ri - P + 1) > R)
+                continue;
+            float fc = 0.f, ot = 0.f;
+            for (int k = 2; k <= P; k++) {
+                const int i1 = m + 2 + k, i2 = m + 2 - k;
+                fc += prof[i1 > L - 1 ? L - 1 : i1];
+                ot += prof[i2 < 0 ? 0 : i2];
+            }
+            fc /= (float)(P - 1);
+            ot /= (float)(P - 1);
+            face[m] = fc;
+            other[m] = ot;
+            const float con = fc - ot;
+            /* contrast, polarity (the derivative's sign is the face side's minus the other's), the faces' levels */
+            if (!(fabsf(con) >= min_con) || sgnf(D[m + 1]) != sgnf(con))
+                continue;
+            if (has1 && !(fabs((double)fc - l1[s]) <= fmax(ltol * l1[s], ltol_grey)))
+                continue;
+            if (has2 && !(fabs((double)ot - l2[s]) <= fmax(ltol * l2[s], ltol_grey)))
+                continue;
+            score[m] = has1 ? fabs((double)fc - l1[s]) : -(double)fabsf(con);
+        }
+        /* the C best scores (ties: the nearer the profile's start), each located by a parabola through |D| */
+        for (Py_ssize_t cc = 0; cc < C; cc++) {
+            double *o = OFF + s * C + cc, *fo = FACE + s * C + cc, *co = CON + s * C + cc, *qo = Q + 2 * (s * C + cc);
+            int m = -1;
+            for (int i = 0; i < M; i++)
+                if (score[i] < INFINITY && (m < 0 || score[i] < score[m]))
+                    m = i;
+            if (m < 0) {
+                *o = *fo = *co = qo[0] = qo[1] = NAN;
+                continue;
+            }
+            score[m] = INFINITY;
+            const float a0 = fabsf(D[m]), a1 = fabsf(D[m + 1]), a2 = fabsf(D[m + 2]);
+            const float den = a0 - 2 * a1 + a2;
+            float frac = fabsf(den) > 1e-9f ? 0.5f * (a0 - a2) / den : 0.0f;
+            frac = frac < -0.5f ? -0.5f : frac > 0.5f ? 0.5f : frac;
+            const float off = (float)(m - Ri - P + 1) + frac;
+            *o = off;
+            *fo = face[m];
+            *co = face[m] - other[m];
+            /* camera.CameraModel.undistort_pixels of the candidate's pixel */
+            const double pu = u + (double)off * nx, pv = v + (double)off * ny;
+            const double X = c.aspect * (pu - c.cx), Y = pv - c.cy, r2 = X * X + Y * Y;
+            qo[0] = X * (1.0 + c.kappa * r2);
+            qo[1] = Y * (1.0 + c.kappa * r2);
+        }
+    }
+    PyMem_Free(work);
+    bufs_release(&bs);
+    Py_RETURN_NONE;
+fail:
+    PyMem_Free(work);
+    bufs_release(&bs);
+    return NULL;
+}
+
+/* points(p_G, other, box, H, cam, margin, uv, inside, hidden) -> 1, or 0
+ *   the model's points p_G (N, 3) at H (C_H_G): their pixels uv (N, 2) (camera.CameraModel.project),
+ *   inside (N,) int64 whether in the picture ``margin`` px inside its border (camera.in_image), hidden (N,)
+ *   int64 whether behind the box of finger other (N,) int64 (silhouette._blocked). 0: a point behind the
+ *   camera or beyond the lens's fold (nothing usable written: the caller runs the Python code). */
+static PyObject *py_points(PyObject *self, PyObject *args)
+{
+    PyObject *o_p, *o_oth, *o_box, *o_H, *o_cam, *o_uv, *o_in, *o_hid;
+    double margin;
+    BufSet bs = {.n = 0};
+    Py_buffer *b_p, *b_oth, *b_box, *b_H, *b_cam, *b_uv, *b_in, *b_hid;
+    if (!PyArg_ParseTuple(args, "OOOOOdOOO:points", &o_p, &o_oth, &o_box, &o_H, &o_cam, &margin, &o_uv, &o_in, &o_hid))
+        return NULL;
+    GET(b_p, o_p, "p_G", T_F64, 0, 2, -1, 3);
+    const Py_ssize_t N = b_p->shape[0];
+    GET(b_oth, o_oth, "other", T_I64, 0, 1, N);
+    GET(b_box, o_box, "box", T_F64, 0, 3, 2, 2, 3);
+    GET(b_H, o_H, "H", T_F64, 0, 2, 4, 4);
+    GET(b_cam, o_cam, "cam", T_F64, 0, 1, 7);
+    GET(b_uv, o_uv, "uv", T_F64, 1, 2, N, 2);
+    GET(b_in, o_in, "inside", T_I64, 1, 1, N);
+    GET(b_hid, o_hid, "hidden", T_I64, 1, 1, N);
+    const int64_t *oth = b_oth->buf;
+    for (Py_ssize_t i = 0; i < N; i++)
+        if (oth[i] != 0 && oth[i] != 1) {
+            PyErr_Format(PyExc_ValueError, "other: point %zd names finger %lld, expected 0 or 1", i, (long long)oth[i]);
+            goto fail;
+        }
+    if (!isfinite(margin)) {
+        PyErr_SetString(PyExc_ValueError, "margin: expected a finite number");
+        goto fail;
+    }
+    Cam c;
+    if (!get_cam(b_cam->buf, &c))
+        goto fail;
+    const double *pG = b_p->buf, *H = b_H->buf, *box = b_box->buf;
+    double *uv = b_uv->buf;
+    int64_t *ins = b_in->buf, *hid = b_hid->buf;
+    double o[3];
+    for (int i = 0; i < 3; i++)
+        o[i] = -(H[i] * H[3] + H[4 + i] * H[7] + H[8 + i] * H[11]);
+    for (Py_ssize_t i = 0; i < N; i++) {
+        double pc[3];
+        apply_H(H, pG + 3 * i, pc);
+        if (!project(&c, pc, uv + 2 * i)) {
+            bufs_release(&bs);
+            return PyLong_FromLong(0);
+        }
+    }
+    for (Py_ssize_t i = 0; i < N; i++) {
+        const double *u = uv + 2 * i, *p = pG + 3 * i, *lo = box + 6 * oth[i];
+        ins[i] = u[0] >= -0.5 + margin && u[0] <= c.width - 0.5 - margin && u[1] >= -0.5 + margin &&
+                 u[1] <= c.height - 0.5 - margin;
+        const double d[3] = {p[0] - o[0], p[1] - o[1], p[2] - o[2]};
+        hid[i] = blocked(o, d, lo, lo + 3);
+    }
+    bufs_release(&bs);
+    return PyLong_FromLong(1);
+fail:
+    bufs_release(&bs);
+    return NULL;
+}
+
 static PyMethodDef methods[] = {
     {"solve", py_solve, METH_VARARGS,
      "solve(q, pos, a_G, b_G, H, f, floor, iters, start_floor, H_out, w, r, pick, JtWJ) -> (code, sigma): "
      "the IRLS of silhouette._solve (code 0 done, 1 too few samples, 2 singular: run the reference)."},
     {"vote", py_vote, METH_VARARGS,
      "vote(off, nrm, g, tol, votes): the vote of silhouette._coarse_shift over the grid g x g."},
+    {"sample", py_sample, METH_VARARGS,
+     "sample(a_G, b_G, d_in, finger, box, H, cam, margin, step, p, edge, uv, nrm) -> S: silhouette._sample_py "
+     "(-1: a point the kernel does not project: run the Python code)."},
+    {"points", py_points, METH_VARARGS,
+     "points(p_G, other, box, H, cam, margin, uv, inside, hidden) -> 1, or 0 (run the Python code): the model's "
+     "points in the picture, inside it, hidden by the other finger."},
+    {"candidates", py_candidates, METH_VARARGS,
+     "candidates(img, uv, nrm, lev1, lev2, R, gates, cam, off, face, contrast, q): silhouette._candidates and "
+     "the candidates' undistorted sensor coordinates."},
     {NULL, NULL, 0, NULL},
 };
 

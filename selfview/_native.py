@@ -10,8 +10,9 @@ build leaves the package working on the Python code):
   the Gauss-Newton on SE(3) of NP-I and of NP-R's refinement (``online._gauss_newton``);
 - ``selfview._ctrack``: the tracker's profile sampling, step location and robust line fits
   (``tracking.FingertipTracker``);
-- ``selfview._csil``: the IRLS of the model-based measurement (``silhouette._solve``, its numpy code
-  ``silhouette._solve_py`` the reference).
+- ``selfview._csil``: the model-based measurement's edge sampling, candidates, IRLS and vote
+  (``silhouette._sample``, ``_candidates``, ``_solve``, ``_coarse_shift``; their numpy code
+  ``_sample_py``, ``_candidates_np``, ``_solve_py``, ``_votes_py`` the reference).
 
 Each computes what the Python code beside it computes (``_cnpu`` and ``_ctrack`` in the same order of
 operations, ``_csil`` to rounding: its sums in another order), and hands any

@@ -29,14 +29,20 @@ about this object: its exact shape, its faces' grey levels, and that it moves li
    standard deviation in the camera frame). Below the thresholds the fit is reported as not found with
    the reason (``ok`` False), never as a pose.
 
-Speed: the costly steps have a fast path (``_candidates``, ``_solve``, ``_coarse_shift``; the IRLS in
-the compiled kernel ``selfview._csil`` when built, its numpy code ``_solve_py`` the reference) beside the
-first implementation (``*_ref``), which ``REFERENCE = True`` selects; the tests hold them to the same
-measurement (corners within 0.01 px, the TCP within 1e-4 mm).
+Speed: the costly steps have a fast path (``_sample``, ``_candidates``, ``_solve``, ``_coarse_shift``)
+beside the first implementation (``*_ref``), which ``REFERENCE = True`` selects; the tests hold them to
+the same measurement (corners within 0.01 px, the TCP within 1e-4 mm). The fast path runs in the
+compiled kernel ``selfview._csil`` when built, its numpy code the kernel's reference: the sampling of the
+edges (``_sample_py``; the kernel projects with the camera model's own formulas, and hands a camera it
+does not mirror, or a point the model refuses, to the numpy code), the candidates along the normals
+with their undistorted coordinates (``_candidates_np``; the profile read as ``cv2.remap`` reads it, at
+1/32 px), the IRLS (``_solve_py``) and the vote (``_votes_py``). A tracker's 8-bit frame goes to the
+kernel as it is (the same levels as float32).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -122,6 +128,8 @@ class _EdgeSet:
     finger: np.ndarray  # (E,)
     faces: list  # per edge: [(finger, axis, side), ...] seen (1: silhouette, 2: crease)
     into_G: list  # per edge: unit directions into those faces (G)
+    d_in: np.ndarray | None = None  # (E, 3) the direction into each edge's first face (G)
+    box: np.ndarray | None = None  # (2, 2, 3) the boxes: finger, lo/hi
 
 
 _EDGE_CACHE: dict = {}
@@ -138,6 +146,9 @@ def _visible_edges(boxes, C_H_G) -> _EdgeSet:
         if len(_EDGE_CACHE) > 64:
             _EDGE_CACHE.clear()
         hit = _EDGE_CACHE[key] = _visible_edges_of(boxes, cam_G)
+        hit.d_in = np.array([ins[0] for ins in hit.into_G], float).reshape(-1, 3)
+        hit.box = np.ascontiguousarray(b.reshape(-1, 2, 3))
+        hit.finger = hit.finger.astype(np.int64)
     return hit
 
 
@@ -191,8 +202,34 @@ class _Samples:
     faces: list  # per edge, as _EdgeSet
 
 
+_CAM_FIELDS = ("f", "kappa", "cx", "cy", "aspect", "width", "height")
+
+
+def _cam_params(cam) -> np.ndarray | None:
+    """The camera as the compiled kernel takes it (7,), or None when ``cam`` is not the model the kernel
+    mirrors (``CameraModel`` with exactly these parameters: any other goes the Python way)."""
+    if type(cam) is not CameraModel or tuple(f.name for f in dataclasses.fields(cam)) != _CAM_FIELDS:
+        return None
+    return np.array([float(getattr(cam, k)) for k in _CAM_FIELDS])
+
+
 def _sample(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _Samples:
-    """Points every STEP_PX along the visible edges, in the picture and not hidden by the other finger."""
+    """Points every STEP_PX along the visible edges, in the picture and not hidden by the other finger
+    (``_sample_py``, in the compiled kernel when built: the same samples)."""
+    kernel = _native.sil
+    cp = None if REFERENCE or kernel is None or es.d_in is None else _cam_params(cam)
+    if cp is not None and len(es.a_G):
+        n = len(es.a_G) * 400
+        p, edge, uv, nrm = np.empty((n, 3)), np.empty(n, np.int64), np.empty((n, 2)), np.empty((n, 2))
+        S = kernel.sample(es.a_G, es.b_G, es.d_in, es.finger, es.box, np.ascontiguousarray(C_H_G, float), cp,
+                          float(margin), STEP_PX, p, edge, uv, nrm)
+        if S >= 0:
+            return _Samples(p[:S], edge[:S], uv[:S], nrm[:S], es.faces)
+    return _sample_py(cam, es, boxes, C_H_G, margin)
+
+
+def _sample_py(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _Samples:
+    """``_sample`` in numpy (the compiled kernel's reference)."""
     G_H_C = inv_H(C_H_G)
     o = G_H_C[:3, 3]
     empty = _Samples(np.zeros((0, 3)), np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2)), es.faces)
@@ -460,10 +497,62 @@ REFERENCE = False  # True: fit with the reference functions (the tests compare t
 
 
 def _candidates(img, s: _Samples, R: float, app: Appearance, n_cand: int = CANDIDATES):
-    """``_candidates_ref`` with the per-edge levels looked up once per edge and the face levels read by
-    slicing a padded profile (the same numbers)."""
+    """``_candidates_ref``'s fast path: in the compiled kernel when built, else ``_candidates_np`` (the
+    per-edge levels looked up once per edge and the face levels read by slicing a padded profile: the
+    same numbers)."""
     if REFERENCE:
-        return _candidates_ref(img, s, R, app, n_cand)
+        return _candidates_ref(img.astype(np.float32, copy=False), s, R, app, n_cand)
+    return _candidates_q(img, s, R, app, None, n_cand)[:3]
+
+
+def _levels(s: _Samples, app: Appearance):
+    """(S,) the level of each sample's first face and (S,) of its second (a crease), NaN: none learnt."""
+    E = len(s.faces)
+    e1 = np.full(E, np.nan)
+    e2 = np.full(E, np.nan)
+    for e in range(E):
+        fs = s.faces[e]
+        e1[e] = app.levels.get(fs[0], np.nan)
+        if len(fs) == 2:
+            e2[e] = app.levels.get(fs[1], np.nan)
+    return e1[s.edge], e2[s.edge]
+
+
+_GATES = np.array([PLATEAU_PX, MIN_CONTRAST, LEVEL_TOL, LEVEL_TOL_GREY], float)
+_NO_CAMERA = np.array([1.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0])  # the kernel's camera when no q is wanted
+
+
+def _candidates_q(img, s: _Samples, R: float, app: Appearance, cam, n_cand: int = CANDIDATES):
+    """``_candidates`` and the candidates' undistorted sensor coordinates q (S, C, 2) (NaN: none; only
+    with ``cam``), in the compiled kernel when built (``_candidates_np`` and ``cam.undistort_pixels`` the
+    reference: the same gates and ranking, the profile read as ``cv2.remap`` reads it)."""
+    kernel = _native.sil
+    cp = None if kernel is None else _NO_CAMERA if cam is None else _cam_params(cam)
+    if cp is not None and img.dtype in (np.float32, np.uint8) and img.ndim == 2 and img.flags.c_contiguous:
+        S = len(s.edge)
+        C = min(n_cand, 2 * int(math.ceil(R)) + 2 * PLATEAU_PX - 1)
+        lev1, lev2 = _levels(s, app)
+        off, face, con, q = np.empty((S, C)), np.empty((S, C)), np.empty((S, C)), np.empty((S, C, 2))
+        kernel.candidates(img, np.ascontiguousarray(s.uv, float), np.ascontiguousarray(s.n, float), lev1, lev2,
+                          float(R), _GATES, cp, off, face, con, q)
+        return off, face, con, (q if cam is not None else None)
+    off, face, con = _candidates_np(img.astype(np.float32, copy=False), s, R, app, n_cand)
+    return off, face, con, (None if cam is None else _undistorted(cam, s, off))
+
+
+def _undistorted(cam: CameraModel, s: _Samples, off) -> np.ndarray:
+    """(S, C, 2) the undistorted sensor coordinates of the candidates at offsets ``off`` (S, C) (NaN: none)."""
+    uvc = s.uv[:, None, :] + off[..., None] * s.n[:, None, :]
+    flat = uvc.reshape(-1, 2)
+    okc = np.isfinite(flat).all(axis=1)
+    q = np.full(flat.shape, np.nan)
+    if okc.any():
+        q[okc] = cam.undistort_pixels(flat[okc])
+    return q.reshape(uvc.shape)
+
+
+def _candidates_np(img, s: _Samples, R: float, app: Appearance, n_cand: int = CANDIDATES):
+    """``_candidates`` in numpy (the compiled kernel's reference)."""
     S = len(s.edge)
     Ri = int(math.ceil(R))
     P = PLATEAU_PX
@@ -489,16 +578,7 @@ def _candidates(img, s: _Samples, R: float, app: Appearance, n_cand: int = CANDI
     other /= P - 1
     contrast = face - other
     ok = peak & (np.abs(contrast) >= MIN_CONTRAST)
-    E = len(s.faces)
-    e1 = np.full(E, np.nan)
-    e2 = np.full(E, np.nan)
-    for e in range(E):
-        fs = s.faces[e]
-        e1[e] = app.levels.get(fs[0], np.nan)
-        if len(fs) == 2:
-            e2[e] = app.levels.get(fs[1], np.nan)
-    lev1 = e1[s.edge]
-    lev2 = e2[s.edge]
+    lev1, lev2 = _levels(s, app)
     has1 = np.isfinite(lev1)
     ok &= ~has1[:, None] | _level_ok(face, lev1[:, None])
     has2 = np.isfinite(lev2)
@@ -540,13 +620,13 @@ def _solve(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, start_f
         return _solve_ref(cam, es, s, q, C_H_G, floor, iters, start_floor)
     kernel = _native.sil
     if kernel is not None:
-        used, pos = np.unique(s.edge, return_inverse=True)
+        # every edge's line (an edge no sample names is left alone): the samples name their edges directly
         S = len(s.edge)
         H = np.empty((4, 4))
         w, r = np.empty(S), np.empty(S)
         pick = np.empty(S, np.int64)
         JtWJ = np.empty((6, 6))
-        code, sigma = kernel.solve(np.ascontiguousarray(q, float), pos.astype(np.int64), es.a_G[used], es.b_G[used],
+        code, sigma = kernel.solve(np.ascontiguousarray(q, float), s.edge.astype(np.int64, copy=False), es.a_G, es.b_G,
                                    np.ascontiguousarray(C_H_G, float), float(cam.f), float(floor), int(iters),
                                    -1.0 if start_floor is None else float(start_floor), H, w, r, pick, JtWJ)
         if code != 2:
@@ -675,6 +755,37 @@ def _refine_shift(off, has, nrm, best, cell, tol):
     return best
 
 
+_OTHER6 = np.array([1, 1, 0, 0, 1, 0], np.int64)  # the other finger of each fingertip point
+
+
+def _points_seen(camera: CameraModel, H, p_G6, box):
+    """The fingertip points p_G6 (6, 3) at ``H``: their pixels (6, 2) (NaN when one lies behind the camera),
+    whether each is in the picture (half a pixel inside its border) and whether the other finger hides it
+    (``box`` (2, 2, 3): the fingers' boxes, lo/hi); in the compiled kernel when built (``_points_seen_py``
+    the reference)."""
+    kernel = _native.sil
+    cp = None if REFERENCE or kernel is None else _cam_params(camera)
+    if cp is not None:
+        uv, inside, hidden = np.empty((6, 2)), np.empty(6, np.int64), np.empty(6, np.int64)
+        if kernel.points(np.ascontiguousarray(p_G6, float), _OTHER6, np.ascontiguousarray(box, float),
+                         np.ascontiguousarray(H, float), cp, 0.5, uv, inside, hidden):
+            return uv, inside.astype(bool), hidden.astype(bool)
+    return _points_seen_py(camera, H, p_G6, box)
+
+
+def _points_seen_py(camera: CameraModel, H, p_G6, box):
+    """``_points_seen`` in numpy."""
+    uv6 = np.full((6, 2), np.nan)
+    pts_C = transform_points(H, p_G6)
+    if np.all(pts_C[:, 2] > 0):
+        uv6 = camera.project(pts_C)
+    o = inv_H(H)[:3, 3]
+    box = np.asarray(box, float)
+    inside6 = camera.in_image(uv6, margin=0.5)
+    hidden6 = _blocked(o, p_G6 - o[None], box[_OTHER6, 0], box[_OTHER6, 1])
+    return uv6, inside6, hidden6
+
+
 def learn_appearance(image, camera: CameraModel, C_H_G, gripper: GripperSpec, gap_mm: float) -> Appearance:
     """The grey level of every visible finger face at ``C_H_G``: the median over its part within the
     picture, 2 px inside its edges (use a pose that fits, e.g. where the fingertips were found)."""
@@ -715,17 +826,23 @@ def learn_appearance(image, camera: CameraModel, C_H_G, gripper: GripperSpec, ga
 
 
 def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec, gap_mm: float, *,
-                   appearance: Appearance | None = None, rounds=ROUNDS, points=range(6)) -> SilhouetteFit:
+                   appearance: Appearance | None = None, rounds=ROUNDS, points=range(6),
+                   frame: bool = False) -> SilhouetteFit:
     """Fit the fingers' silhouette to ``image`` from the pose ``C_H_G_pred`` (4, 4), jaw gap ``gap_mm``.
 
     ``appearance`` the faces' grey levels (``learn_appearance``, or the last fit's); without one they are
     read at the prediction (good enough when it is within a few px). ``rounds`` the search ranges [px] of
     the rounds of sampling (the first must reach as far as the prediction may be off). ``points``: the
-    fingertip points reported as found when the fit holds. Returns a ``SilhouetteFit``; never raises for
-    a fit that fails (``ok`` False and the reason)."""
+    fingertip points reported as found when the fit holds. ``frame``: ``image`` is a tracker's frame
+    (grey, of the camera's size), which the compiled kernel reads as it is when 8-bit, without the
+    picture's checks. Returns a ``SilhouetteFit``; never raises for a fit that fails (``ok`` False and
+    the reason)."""
     a = np.asarray(image)
     if a.dtype == np.float32 and a.shape == (int(camera.height), int(camera.width)):
         img = a  # already checked by the caller (a tracker's frame)
+    elif (frame and a.dtype == np.uint8 and a.shape == (int(camera.height), int(camera.width))
+          and a.flags.c_contiguous and _native.sil is not None and not REFERENCE):
+        img = a  # a grabber's frame, read as it is by the compiled kernel (the same levels as float32)
     else:
         img = as_gray(image, camera)
     H0 = np.asarray(C_H_G_pred, float)
@@ -759,59 +876,50 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
         s = _sample(camera, es, boxes, H, margin=BORDER_PX)
         if len(s.edge) < 20:
             return fail(f"too few edge samples in the picture ({len(s.edge)})", len(s.edge))
-        off, lev, _ = _candidates(img, s, R, app)
-        uvc = s.uv[:, None, :] + off[..., None] * s.n[:, None, :]
-        flat = uvc.reshape(-1, 2)
-        okc = np.isfinite(flat).all(axis=1)
-        q = np.full(flat.shape, np.nan)
-        if okc.any():
-            q[okc] = camera.undistort_pixels(flat[okc])
-        q = q.reshape(uvc.shape)
+        if REFERENCE:
+            off, lev, _ = _candidates_ref(img, s, R, app)
+            q = _undistorted(camera, s, off)
+        else:
+            off, lev, _, q = _candidates_q(img, s, R, app, camera)
         floor = max(SCALE_FLOOR_PX, R / 6.0) if i < len(rounds) - 1 else SCALE_FLOOR_PX
         last = i == len(rounds) - 1
         H, w, r, pick, JtWJ, sigma = _solve(camera, es, s, q, H, floor, iters=6 if last else 3,
                                             start_floor=max(floor, R / 6.0))
     good = w > 0.5
     n_s = len(s.edge)
-    gf = float(good.mean()) if n_s else 0.0
     fing = es.finger[s.edge]
+    n_good = int(np.count_nonzero(good))
+    gf = n_good / n_s if n_s else 0.0
     # per finger, of those with enough samples in the picture (a finger may leave it)
-    ff = np.array([float(good[fing == f].mean()) if np.sum(fing == f) >= MIN_FINGER_SAMPLES else math.nan
-                   for f in (0, 1)])
-    rms = float(np.sqrt(np.mean(r[good] ** 2))) if good.any() else math.nan
+    n_f = np.bincount(fing, minlength=2)
+    ff = np.where(n_f >= MIN_FINGER_SAMPLES, np.bincount(fing[good], minlength=2) / np.maximum(n_f, 1), math.nan)
+    rms = float(np.sqrt(np.mean(r[good] ** 2))) if n_good else math.nan
     # covariance of the motion and the TCP's standard deviation
     cov = None
     tcp_sd = np.full(3, np.nan)
-    if good.sum() > 6:
-        s2 = float(np.sum(w[good] * r[good] ** 2) / max(good.sum() - 6, 1))
+    if n_good > 6:
+        s2 = float(np.sum(w[good] * r[good] ** 2) / max(n_good - 6, 1))
         try:
             cov = s2 * np.linalg.inv(JtWJ)
             # the TCP (G's origin) in C moves by [-t_x] dθ + dt under the motion
             t = H[:3, 3]
-            Jt = np.hstack([-np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]), np.eye(3)])
+            Jt = np.zeros((3, 6))  # [-[t]x, I]
+            Jt[0, 1], Jt[0, 2], Jt[1, 0], Jt[1, 2], Jt[2, 0], Jt[2, 1] = t[2], -t[1], -t[2], t[0], t[1], -t[0]
+            Jt[0, 3] = Jt[1, 4] = Jt[2, 5] = 1.0
             tcp_sd = np.sqrt(np.maximum(np.diag(Jt @ cov @ Jt.T), 0.0))
         except np.linalg.LinAlgError:
             cov = None
-    uv6 = nan6.copy()
-    pts_C = transform_points(H, p_G6)
     found = np.zeros(6, bool)
     reasons: list = [None] * 6
     want = {int(k) for k in points}
-    if np.all(pts_C[:, 2] > 0):
-        uv6 = camera.project(pts_C)
-    G_H_C = inv_H(H)
-    o = G_H_C[:3, 3]
-    other6 = np.array([1, 1, 0, 0, 1, 0])  # the other finger of each point
-    box = np.asarray(boxes, float)
-    inside6 = camera.in_image(uv6, margin=0.5)
-    hidden6 = _blocked(o, p_G6 - o[None], box[other6, 0], box[other6, 1])
+    uv6, inside6, hidden6 = _points_seen(camera, H, p_G6, np.asarray(boxes, float).reshape(2, 2, 3))
     for k in range(6):
         if k not in want:
             reasons[k] = "not requested"
         elif not inside6[k]:
             reasons[k] = "outside the picture"
         elif hidden6[k]:
-            reasons[k] = f"occluded by finger {'AB'[other6[k]]}"
+            reasons[k] = f"occluded by finger {'AB'[_OTHER6[k]]}"
         else:
             found[k] = True
     why = None

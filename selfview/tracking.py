@@ -767,7 +767,8 @@ class SilhouetteTracker:
     is searched: fits with the full ranges from the last pose and from ``C_H_G_pred``, then from the
     pose the corner search (``selfview.fingertips``) gives. A frame where none holds reports every point
     as not found, with the reason in ``result.lost``: a missed frame, never a pose. Every result carries
-    the fit's ``quality``. Python only (no compiled kernel mirrors it).
+    the fit's ``quality``. The fit's sampling, candidates, IRLS and vote run in the compiled kernel
+    ``selfview._csil`` when built (``selfview.silhouette``: its numpy code the reference).
     """
 
     def __init__(self, camera: CameraModel, gripper: GripperSpec, *, points=range(4), search_px: float = 60.0,
@@ -811,7 +812,7 @@ class SilhouetteTracker:
         C_H_G_pred, gap_mm = checked_prediction(C_H_G_pred, gap_mm)
         a = np.asarray(image)
         if a.dtype == np.uint8 and a.shape == (int(self.camera.height), int(self.camera.width)):
-            img = a.astype(np.float32)  # a grabber's frame: no other check needed per frame
+            img = a  # a grabber's frame: no other check needed per frame (float32 where the search needs it)
         else:
             img = as_gray(image, self.camera)  # float32, checked
         why = None
@@ -820,11 +821,11 @@ class SilhouetteTracker:
             self.reset()
         if self._H is not None:
             fit = fit_silhouette(img, self.camera, self._H, self.gripper, gap_mm, appearance=self._app,
-                                 rounds=self.track_rounds, points=self.points)
+                                 rounds=self.track_rounds, points=self.points, frame=True)
             if fit.C_H_G is not None and self._moved_px(fit.C_H_G, gap_mm) > self.refine_px:
                 # a larger step than usual: once more with a short range around the new pose
                 again = fit_silhouette(img, self.camera, fit.C_H_G, self.gripper, gap_mm, appearance=fit.appearance,
-                                       rounds=(min(self.track_rounds[-1], 3.0),), points=self.points)
+                                       rounds=(min(self.track_rounds[-1], 3.0),), points=self.points, frame=True)
                 fit = again if again.ok or not fit.ok else fit
             if fit.ok:
                 self._take(fit, gap_mm)
@@ -835,6 +836,7 @@ class SilhouetteTracker:
                 return res
             why = fit.reason
         self.last_failure = why
+        img = img.astype(np.float32, copy=False)
         starts = ([self._H] if self._H is not None else []) + [C_H_G_pred]
         res, fit = model_measurement(img, self.camera, C_H_G_pred, self.gripper, gap_mm, self.points,
                                      appearance=self._app, starts=starts)

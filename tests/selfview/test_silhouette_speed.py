@@ -9,7 +9,8 @@ on the same frames, both renderers, plain and over a photograph, tracked and sea
 within CORNER_TOL_PX and the fitted pose's TCP within TCP_TOL_MM of the reference's, the same verdict
 (found or lost) and the same number of supporting samples. The tolerances are far below anything
 physical (the corners' own noise is ~0.02 px, the TCP's ~0.005 mm) and far above rounding, so that a
-reordered sum passes and a changed choice of candidate, weight or step fails.
+reordered sum passes and a changed choice of candidate, weight or step fails. The kernel's sampling and
+candidates are also compared with their numpy code step by step (below).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from selfview import _native
 from selfview.bench import clutter
 from selfview.cell import default_cell_path, load_cell
 from selfview.fingertips import model_measurement
+from selfview.geometry import inv_H, make_H
 from selfview.tracking import WIDE_ROUNDS, SilhouetteTracker
 
 CORNER_TOL_PX = 0.01
@@ -153,3 +155,175 @@ def test_the_kernel_refuses_bad_arguments_by_name():
     # no sample with a candidate: the reference's early return (weights zero), code 1
     code, sigma = k.solve(np.full((S, C, 2), np.nan), pos, ab, ab, H, 800.0, 0.35, 6, -1.0, *outs)
     assert code == 1 and not outs[1].any() and np.array_equal(outs[0], H)
+
+
+# --- the kernel's sampling and candidates against their numpy code ------------------------------------------
+# Tolerances with a physical meaning: positions to 1e-6 px (a millionth of a pixel: rounding of sums taken in
+# another order, nothing a changed formula would stay within); normals to 1e-9 (their angle in rad); grey
+# levels to 1e-3 (a thousandth of an 8-bit picture's step: the kernel reads the profile as cv2.remap does, at
+# 1/32 px with single-precision weights); a candidate's offset to 1e-4 px (the parabola through those levels).
+POS_TOL_PX = 1e-6
+LEVEL_TOL_GREY = 1e-3
+OFFSET_TOL_PX = 1e-4
+
+needs_kernel = pytest.mark.skipif(_native.sil is None, reason="the compiled kernel selfview._csil is not built")
+
+
+def _poses(seq):
+    """The sequence's true poses and, for each, one some px off (a start the fit corrects)."""
+    out = []
+    for k, fr in enumerate(seq.frames):
+        H = fr.C_H_G.copy()
+        out.append(H)
+        H2 = sil._motion(np.array([0.004, -0.003, 0.002, 0.4, -0.3, 0.6]) * (1 + k)) @ H
+        out.append(H2)
+    return out
+
+
+@needs_kernel
+@pytest.mark.parametrize("kappa", [None, 0.0, 6e-7, -1.5e-7])
+def test_kernel_samples_match_the_numpy_sampling(kappa, monkeypatch):
+    """The samples along the visible edges (which ones, where, their normals) from the kernel and from
+    ``_sample_py``, on the poses of a disturbed sequence and poses some px off, with the cell's lens and
+    with barrel, pincushion and no distortion (the kernel's own projection against camera.project)."""
+    cell = _cell()
+    seq = _sequence("mocks", None)
+    cam = seq.camera if kappa is None else seq.camera.with_(kappa=kappa)
+    boxes = cell.gripper.finger_boxes_G(seq.gap)
+    checked = 0
+    for H in _poses(seq):
+        es = sil._visible_edges(boxes, H)
+        a = sil._sample(cam, es, boxes, H, margin=sil.BORDER_PX)
+        b = sil._sample_py(cam, es, boxes, H, margin=sil.BORDER_PX)
+        assert np.array_equal(a.edge, b.edge) and len(a.edge) > 100
+        assert np.abs(a.uv - b.uv).max() < POS_TOL_PX
+        assert np.abs(a.p_G - b.p_G).max() < 1e-9  # mm
+        assert np.abs(a.n - b.n).max() < 1e-9
+        checked += len(a.edge)
+    assert checked > 1000
+    # one finger behind the other: the camera beside the gripper, looking along the jaws' axis
+    for c_G in ((110.0, 3.0, -30.0), (120.0, 10.0, -50.0), (100.0, -8.0, -20.0)):
+        H = _looking_at(c_G, (0.0, 0.0, -35.0))
+        es = sil._visible_edges(boxes, H)
+        a = sil._sample(cam, es, boxes, H, margin=sil.BORDER_PX)
+        b = sil._sample_py(cam, es, boxes, H, margin=sil.BORDER_PX)
+        assert np.array_equal(a.edge, b.edge) and len(a.edge) > 100
+        assert np.abs(a.uv - b.uv).max() < POS_TOL_PX and np.abs(a.n - b.n).max() < 1e-9
+        # the other finger hid some of them: fewer than the samples in the picture
+        with monkeypatch.context() as m:
+            m.setattr(sil, "_blocked", lambda o, d, lo, hi: np.zeros(len(d), bool))
+            assert len(a.edge) < len(sil._sample_py(cam, es, boxes, H, margin=sil.BORDER_PX).edge) - 50
+
+    # the fingertip points: pixels, in the picture, hidden (the kernel against _points_seen_py)
+    p_G6 = cell.gripper.points_G(gap=seq.gap)
+    box = np.asarray(boxes, float)
+    hid = 0
+    for H in _poses(seq) + [_looking_at(c, (0.0, 0.0, -35.0)) for c in ((110.0, 3.0, -30.0), (100.0, -8.0, -20.0))]:
+        uv, inside, hidden = sil._points_seen(cam, H, p_G6, box)
+        uv_r, inside_r, hidden_r = sil._points_seen_py(cam, H, p_G6, box)
+        assert np.abs(uv - uv_r).max() < POS_TOL_PX
+        assert np.array_equal(inside, inside_r) and np.array_equal(hidden, hidden_r)
+        hid += int(hidden.sum())
+    assert hid >= 2
+
+
+def _looking_at(c_G, target_G):
+    """C_H_G of a camera at c_G (G, mm) looking at target_G, its y axis in G's z-up plane."""
+    c = np.asarray(c_G, float)
+    z = np.asarray(target_G, float) - c
+    z /= np.linalg.norm(z)
+    x = np.cross((0.0, 0.0, 1.0), z)
+    x /= np.linalg.norm(x)
+    return inv_H(make_H(np.column_stack([x, np.cross(z, x), z]), c))
+
+
+@needs_kernel
+def test_kernel_hands_points_it_does_not_project_to_the_python_code():
+    """A lens whose field of view ends inside the picture (kappa < 0, the model's points beyond the fold):
+    the kernel refuses (-1) and ``_sample`` raises what camera.project raises."""
+    from selfview.errors import CalibrationError
+
+    cell = _cell()
+    seq = _sequence("mocks", None)
+    cam = seq.camera.with_(kappa=-8e-6)
+    boxes = cell.gripper.finger_boxes_G(seq.gap)
+    H = seq.frames[0].C_H_G
+    es = sil._visible_edges(boxes, H)
+    n = len(es.a_G) * 400
+    outs = (np.empty((n, 3)), np.empty(n, np.int64), np.empty((n, 2)), np.empty((n, 2)))
+    assert _native.sil.sample(es.a_G, es.b_G, es.d_in, es.finger, es.box, H, sil._cam_params(cam), 3.0, 4.0,
+                              *outs) == -1
+    with pytest.raises(CalibrationError, match="beyond the lens's field of view"):
+        sil._sample(cam, es, boxes, H, margin=sil.BORDER_PX)
+    p_G6 = cell.gripper.points_G(gap=seq.gap)
+    box = np.asarray(boxes, float)
+    outs = (np.empty((6, 2)), np.empty(6, np.int64), np.empty(6, np.int64))
+    assert _native.sil.points(p_G6, sil._OTHER6, box, H, sil._cam_params(cam), 0.5, *outs) == 0
+    with pytest.raises(CalibrationError, match="beyond the lens's field of view"):
+        sil._points_seen(cam, H, p_G6, box)
+
+
+@needs_kernel
+@pytest.mark.parametrize("renderer,photo", [("mocks", None), ("mocks", "gravel"), ("alt", None), ("alt", "coffee")])
+def test_kernel_candidates_match_the_numpy_candidates(renderer, photo):
+    """The candidates along each sample's normal from the kernel (8-bit and float32 pictures) and from
+    ``_candidates_np`` + ``camera.undistort_pixels``, on pictures of both renderers, plain and over a
+    photograph, with learnt faces' levels and without, for the ranges of the tracker, of the fit's rounds
+    and of the vote: the same candidates missing, offsets, levels and contrasts, undistorted coordinates."""
+    cell = _cell()
+    seq = _sequence(renderer, photo)
+    boxes = cell.gripper.finger_boxes_G(seq.gap)
+    fr = seq.frames[-1]
+    app = sil.learn_appearance(fr.image, seq.camera, fr.C_H_G, cell.gripper, seq.gap)
+    assert app.levels
+    found = 0
+    for H in _poses(seq)[-2:]:
+        es = sil._visible_edges(boxes, H)
+        s = sil._sample(seq.camera, es, boxes, H, margin=sil.BORDER_PX)
+        for R, n, a in ((3.0, sil.CANDIDATES, app), (8.0, sil.CANDIDATES, app), (24.0, 8, app),
+                        (10.0, sil.CANDIDATES, sil.Appearance())):
+            ref = sil._candidates_np(fr.image.astype(np.float32), s, R, a, n)
+            q_ref = sil._undistorted(seq.camera, s, ref[0])
+            for img in (fr.image, fr.image.astype(np.float32)):
+                off, face, con, q = sil._candidates_q(img, s, R, a, seq.camera, n)
+                assert off.shape == ref[0].shape
+                assert np.array_equal(np.isnan(off), np.isnan(ref[0]))
+                assert np.nanmax(np.abs(off - ref[0])) < OFFSET_TOL_PX
+                assert np.nanmax(np.abs(face - ref[1])) < LEVEL_TOL_GREY
+                assert np.nanmax(np.abs(con - ref[2])) < LEVEL_TOL_GREY
+                assert np.array_equal(np.isnan(q), np.isnan(q_ref))
+                assert np.nanmax(np.abs(q - q_ref)) < POS_TOL_PX
+            found += int(np.isfinite(ref[0]).sum())
+    assert found > 1000
+
+
+@needs_kernel
+def test_kernel_sampling_refuses_bad_arguments_by_name():
+    k = _native.sil
+    E, n = 4, 4 * 400
+    ab = np.ones((E, 3))
+    fin = np.zeros(E, np.int64)
+    box = np.zeros((2, 2, 3))
+    cam = np.array([962.0, 0.0, 383.5, 287.5, 1.0, 768.0, 576.0])
+    outs = (np.empty((n, 3)), np.empty(n, np.int64), np.empty((n, 2)), np.empty((n, 2)))
+    with pytest.raises(ValueError, match="p: room for 1599 samples"):
+        k.sample(ab, ab, ab, fin, box, np.eye(4), cam, 3.0, 4.0, np.empty((n - 1, 3)), np.empty(n - 1, np.int64),
+                 np.empty((n - 1, 2)), np.empty((n - 1, 2)))
+    with pytest.raises(ValueError, match="finger: edge 2 names finger 5"):
+        bad = fin.copy()
+        bad[2] = 5
+        k.sample(ab, ab, ab, bad, box, np.eye(4), cam, 3.0, 4.0, *outs)
+    with pytest.raises(ValueError, match="cam: expected f, aspect"):
+        k.sample(ab, ab, ab, fin, box, np.eye(4), cam * np.r_[-1, np.ones(6)], 3.0, 4.0, *outs)
+    S, C = 10, 3
+    args = (np.zeros((S, 2)), np.zeros((S, 2)), np.zeros(S), np.zeros(S), 8.0,
+            np.array([3.0, 8.0, 0.18, 12.0]), cam)
+    res = (np.empty((S, C)), np.empty((S, C)), np.empty((S, C)), np.empty((S, C, 2)))
+    with pytest.raises(TypeError, match="img: expected a float32 array"):
+        k.candidates(np.zeros((5, 5)), *args, *res)
+    with pytest.raises(ValueError, match="q: dimension 1 is 2"):
+        k.candidates(np.zeros((5, 5), np.float32), *args, *res[:3], np.empty((S, 2, 2)))
+    with pytest.raises(ValueError, match="uv, nrm: sample 4 is not finite"):
+        uv = np.zeros((S, 2))
+        uv[4, 1] = np.nan
+        k.candidates(np.zeros((5, 5), np.uint8), uv, *args[1:], *res)
