@@ -69,7 +69,7 @@ from selfview.intrinsics import (  # noqa: E402
     TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics, camera_check, detect_views, plan_view_poses, tcp_sigma,
 )
 from selfview.discs import disc_image_bias  # noqa: E402
-from selfview.geometry import trans  # noqa: E402
+from selfview.geometry import trans, transform_points  # noqa: E402
 from selfview.mocks.imperfections import PROFILES  # noqa: E402
 from selfview.mocks.render import render as _project_render  # noqa: E402
 from selfview.mocks.world import PLATE_BASE_POSE, SimWorld  # noqa: E402
@@ -118,11 +118,16 @@ def _cv2(dets, uvs, cam0, size):
     }
 
 
-def _errors(est, truth):
+def _errors(est, truth, skew=0.0):
+    """Errors against the true camera (``skew``: the true grabber's shear, px of u per px of v)."""
+    extra = {}
+    if "skew" in est:
+        extra = {"skew_err": float(est["skew"] - skew)}
     return {
+        **extra,
         "centre_px": float(np.hypot(est["cx"] - truth.cx, est["cy"] - truth.cy)),
         "d": {"f": est["f"] - truth.f, "cx": est["cx"] - truth.cx, "cy": est["cy"] - truth.cy,
-              "aspect": est["aspect"] - truth.aspect},
+              "aspect": est["aspect"] - truth.aspect, **({"skew": est["skew"] - skew} if "skew" in est else {})},
         "aspect_pct": float(100 * abs(est["aspect"] / truth.aspect - 1)),
         "f_pct": float(100 * abs(est["f"] / truth.f - 1)),
         "kappa_pct": float(100 * abs(est["kappa"] / truth.kappa - 1)),
@@ -147,11 +152,11 @@ def one_camera(seed: int) -> dict:
         out["error"] = f"{type(exc).__name__}: {exc}"
         return out
     c = r.camera
-    ours = {"f": c.f, "cx": c.cx, "cy": c.cy, "aspect": c.aspect, "kappa": c.kappa,
-            "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect")}, "rms_px": r.rms_px, "seconds": dt,
+    ours = {"f": c.f, "cx": c.cx, "cy": c.cy, "aspect": c.aspect, "kappa": c.kappa, "skew": c.skew,
+            "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect", "skew")}, "rms_px": r.rms_px, "seconds": dt,
             "stop_rule_met": r.stop_rule["met"], "cross_check_agree": r.cross_check.get("agree"),
             "views_used": r.views_used}
-    out["selfview"] = {**ours, **_errors(ours, w.camera)}
+    out["selfview"] = {**ours, **_errors(ours, w.camera, 0.0)}
     size = (cam0.width, cam0.height)
     raw = _cv2(dets, [d.uv for d in dets], cam0, size)
     out["cv2_raw"] = {**raw, **_errors(raw, w.camera)}
@@ -169,7 +174,7 @@ def one_camera(seed: int) -> dict:
             out[key] = {"across_mm": float(np.hypot(e[0], e[1])), "along_mm": float(abs(e[2])),
                         "err_mm": [float(v) for v in e]}
             if camera is not None:
-                out[key]["tcp_sigma_mm"] = tcp_sigma(res, cell, r.covariance[2:5, 2:5])["tcp_sigma_mm"]
+                out[key]["tcp_sigma_mm"] = tcp_sigma(res, cell, r.covariance[2:, 2:])["tcp_sigma_mm"]
             if camera is None:
                 out[key]["warned"] = camera_check(res, cell)["warning"] is not None
         except CellError as exc:
@@ -202,21 +207,31 @@ def one_camera_profile(args) -> dict:
            "truth": {"f": w.camera.f, "kappa": w.camera.kappa, "cx": w.camera.cx, "cy": w.camera.cy,
                      "aspect": w.camera.aspect},
            "views_detected": len(dets), "views_skipped": skipped}
+    # the grabber's true shear as a skew: line v's content moved by pll_shear (v - (H-1)/2) / H
+    true_skew = w.imperfect.shear_sign * w.imperfections.pll_shear_px / cam0.height
+    out["truth"]["skew"] = true_skew
     flat = None
-    for key, model in (("selfview", "bow+dots"), ("selfview_flat_plate", "flat")):
+    measured = {}
+    for key, model, skew in (("selfview", "bow+dots", True), ("selfview_no_skew", "bow+dots", False),
+                             ("selfview_flat_plate", "flat", True)):
         try:
             t = time.perf_counter()
-            r = calibrate_intrinsics(None, cell.plate, cam0, names, detections=dets, plate_model=model)
+            r = calibrate_intrinsics(None, cell.plate, cam0, names, detections=dets, plate_model=model, skew=skew)
             dt = time.perf_counter() - t
         except CellError as exc:
             out[key] = {"error": f"{type(exc).__name__}: {exc}"}
             continue
         c = r.camera
         ours = {"f": c.f, "cx": c.cx, "cy": c.cy, "aspect": c.aspect, "kappa": c.kappa,
-                "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect")}, "rms_px": r.rms_px, "seconds": dt,
+                "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect", "skew") if k in r.sigma},
+                "rms_px": r.rms_px, "seconds": dt,
                 "stop_rule_met": r.stop_rule["met"], "cross_check_agree": r.cross_check.get("agree"),
-                "views_used": r.views_used, "plate_shape": r.plate_shape}
-        out[key] = {**ours, **_errors(ours, w.camera)}
+                "views_used": r.views_used, "plate_shape": r.plate_shape,
+                "more_views": (r.stop_rule.get("more_views") or {}).get("views_needed")}
+        if skew:
+            ours["skew"] = c.skew
+        out[key] = {**ours, **_errors(ours, w.camera, true_skew)}
+        measured[key] = r
         if model == "flat":
             flat = r
     size = (cam0.width, cam0.height)
@@ -227,6 +242,24 @@ def one_camera_profile(args) -> dict:
                      for d, v in zip(dets, flat.views)]
         cor = _cv2(dets, corrected, cam0, size)
         out["cv2_bias_corrected"] = {**cor, **_errors(cor, w.camera)}
+    # study 2 on this cell: one parked picture calibrated with the measured camera (with and without its
+    # skew); the true TCP is the centre of the real fingers' inner corners (issue 17's fingers are off nominal)
+    w.set_tcp(plate)
+    w.park()
+    pic = _project_render(w, seed=1000 * seed + 999).image
+    truth = transform_points(w.C_H_G, w.points_G()[:4].mean(0, keepdims=True))[0]
+    for key, mkey in (("tcp_with_camera", "selfview"), ("tcp_with_camera_no_skew", "selfview_no_skew")):
+        if mkey not in measured:
+            continue
+        r = measured[mkey]
+        try:
+            res = calibrate_offline(pic, cell, camera=r.camera)
+            e = res.calibration.C_H_G[:3, 3] - truth
+            out[key] = {"across_mm": float(np.hypot(e[0], e[1])), "along_mm": float(abs(e[2])),
+                        "err_mm": [float(v) for v in e],
+                        "tcp_sigma_mm": tcp_sigma(res, cell, r.covariance[2:, 2:])["tcp_sigma_mm"]}
+        except CellError as exc:
+            out[key] = {"error": f"{type(exc).__name__}: {exc}"}
     return out
 
 
@@ -264,7 +297,7 @@ def _median(v):
 def table(per_camera):
     ok = [p for p in per_camera if "selfview" in p and "error" not in p["selfview"]]
     out = {}
-    for m in ("selfview", "selfview_flat_plate", "cv2_raw", "cv2_bias_corrected"):
+    for m in ("selfview", "selfview_no_skew", "selfview_flat_plate", "cv2_raw", "cv2_bias_corrected"):
         rows = [p[m] for p in ok if m in p and "error" not in p[m]]
         if not rows:
             continue
@@ -281,6 +314,11 @@ def table(per_camera):
             k: float(np.sqrt(np.mean([r["d"][k] ** 2 for r in rows])) / np.sqrt(np.mean([r["sigma"][k] ** 2 for r in rows])))
             for k in ("f", "cx", "cy", "aspect")
         }
+        if all("skew" in r["sigma"] and "skew" in r["d"] for r in rows):
+            entry["median_skew_err"] = _median([abs(r["d"]["skew"]) for r in rows])
+            entry["median_sigma"]["skew"] = _median([r["sigma"]["skew"] for r in rows])
+            entry["spread_over_sigma"]["skew"] = float(np.sqrt(np.mean([r["d"]["skew"] ** 2 for r in rows]))
+                                                       / np.sqrt(np.mean([r["sigma"]["skew"] ** 2 for r in rows])))
         out[m] = entry
     s = out.get("selfview")
     if s:
@@ -291,14 +329,14 @@ def table(per_camera):
             "sigmas_within_factor_2": all(1 / ISSUE["sigma_factor"] <= v <= ISSUE["sigma_factor"]
                                           for v in s["spread_over_sigma"].values()),
         }
-    for key in ("tcp_with_camera", "tcp_nominal"):
+    for key in ("tcp_with_camera", "tcp_with_camera_no_skew", "tcp_nominal"):
         rows = [p[key] for p in ok if key in p and "error" not in p[key]]
         if rows:
             out[key] = {"median_across_mm": _median([r["across_mm"] for r in rows]),
                         "median_along_mm": _median([r["along_mm"] for r in rows]),
                         "max_across_mm": max(r["across_mm"] for r in rows),
                         "max_along_mm": max(r["along_mm"] for r in rows), "n": len(rows)}
-            if key == "tcp_with_camera":
+            if key.startswith("tcp_with_camera"):
                 # the TCP errors' RMS per camera axis over the RMS of the reported tcp_sigma_mm (1 = honest)
                 e = np.array([r["err_mm"] for r in rows])
                 sg = np.array([r["tcp_sigma_mm"] for r in rows])
@@ -393,6 +431,8 @@ def main(argv=None) -> int:
             for p in pics if str(p["kind"]).startswith("small")],
         "mrcal": mrcal_note,
         "opencv_flags": " | ".join(CV_FLAGS) + " (fx, fy, cx, cy free)",
+        "opencv_skew": "cv2.calibrateCamera has no skew parameter (K[0, 1] is held at 0; only cv2.fisheye has "
+                       "CALIB_FIX_SKEW): it cannot model a grabber's shear",
         "per_camera": per_camera,
         "pictures": pics,
         "seconds": round(time.perf_counter() - t0, 1),
