@@ -25,6 +25,8 @@ from tests import alt_render
 LEAN = (-1.0, 0.0)
 #: A shear of 0.58 px from the top line to the bottom one: twice the simulated grabber's realistic 0.3 px.
 SKEW = 1.0e-3
+#: The independent renderer's grabber moves line v by pll_shear_px v / (H - 1): a skew of SKEW.
+SHEAR = dict(pll_shear_px=SKEW * 575)
 
 
 # --- the model ------------------------------------------------------------------------------------
@@ -63,12 +65,15 @@ def test_an_absurd_skew_is_refused(bad):
 # --- the joint fit on pictures of the independent renderer ----------------------------------------
 @pytest.fixture(scope="module")
 def sheared(cell):
-    """12 planned views of a realistic camera whose grabber shears by ``SKEW``, by the independent renderer."""
+    """12 planned views of a realistic camera whose grabber shears by ``SKEW``, by the independent renderer
+    (its own grabber: each line moved by linear interpolation along it); the truth is the camera with
+    that skew (about the first line rather than cy: the constant part is a move of the centre by
+    SKEW * cy = 0.3 px, added to the truth's cx)."""
     w = SimWorld(cell, seed=8, camera="realistic")
-    truth = w.camera.with_(skew=SKEW)
+    truth = w.camera.with_(skew=SKEW, cx=w.camera.cx + SKEW * w.camera.cy)
     plan = plan_view_poses(cell, 12, lean_W=LEAN)
-    imgs = [alt_render.render(truth, w.C_H_G, w.C_H_G @ inv_H(v["W_H_G"]), w.jaw_gap_mm, cell, seed=80 + i,
-                              supersample=2).image for i, v in enumerate(plan)]
+    imgs = [alt_render.render(w.camera, w.C_H_G, w.C_H_G @ inv_H(v["W_H_G"]), w.jaw_gap_mm, cell, seed=80 + i,
+                              supersample=2, **SHEAR).image for i, v in enumerate(plan)]
     return w, truth, imgs
 
 
@@ -92,7 +97,9 @@ def test_the_skew_is_measured_and_the_centre_not_biased(cell, sheared):
 
 def test_calibrate_with_a_sheared_camera_file(cell, sheared, tmp_path):
     """The off-line calibration with the measured camera (file round trip): the TCP within the targets,
-    the calibration file keeps the skew, and the on-line update reads it back."""
+    the calibration file keeps the skew, and the on-line update reads it back. The parked picture by the
+    independent renderer's camera with the skew (its own equations; its grabber's line interpolation, of
+    the views, blurs the fingertips' edges line by line and costs the corners 0.01-0.03 mm by itself)."""
     w, truth, _ = sheared
     w.park()
     pic = alt_render.render(truth, w.C_H_G, w.C_H_W, w.jaw_gap_mm, cell, seed=3, supersample=2).image
@@ -186,3 +193,27 @@ def test_cli_calibrate_refuses_an_absurd_skew_and_uses_a_good_one(cell, sheared,
     code = main(["calibrate", "--image", str(pic), "--camera", str(absurd), "--out", str(out2)])
     err = capsys.readouterr().err
     assert code == 3 and "camera skew" in err and not out2.exists()
+
+
+def test_the_simulated_grabber_shears_by_what_it_says(cell):
+    """The project renderer's grabber (mocks/imperfections.py) moves each line by exactly its drawn shift:
+    a realistic 0.3 px shear moves the discs' centroids by 0.3 (v - 287.5) / 576 px, to 2 % of the shear
+    and 0.005 px (its resampling once made it 1.2-1.3 times as strong, which a fitted skew then showed)."""
+    from dataclasses import replace
+
+    from selfview.discs import detect_discs
+    from selfview.mocks.imperfections import PROFILES
+    from selfview.mocks.render import render
+
+    uvs = []
+    for imp in (PROFILES["ideal"], replace(PROFILES["ideal"], pll_shear_px=0.3)):
+        w = SimWorld(cell, seed=2, imperfections=imp)
+        w.park()
+        uvs.append(detect_discs(render(w, seed=5, noise=False).image, cell.plate, camera=w.camera).uv)
+    shear = w.imperfect.shear_sign * 0.3
+    a, b = uvs
+    j = np.argmin(np.linalg.norm(b[:, None] - a[None], axis=2), axis=1)
+    d, v = b - a[j], a[j, 1]
+    want = shear * (v - 287.5) / 576
+    assert np.abs(d[:, 0] - want).max() < 0.005 and np.abs(d[:, 1]).max() < 0.005  # px
+    assert np.polyfit(v, d[:, 0], 1)[0] * 576 == pytest.approx(shear, abs=0.02 * 0.3)
