@@ -721,10 +721,11 @@ VIEW_KINDS = (("tilted 35 deg", 35.0), ("tilted 20 deg", 20.0), ("square-on", 0.
 
 
 def _view_information(camera: CameraModel, plate: PlateSpec, distance: float, tilt_deg: float, azimuth_deg: float,
-                      s2: float, ni: int = 5) -> np.ndarray | None:
+                      s2: float, ni: int = 5, shape: "_PlateShape | None" = None, y=None) -> np.ndarray | None:
     """(ni, ni) information on the intrinsics that one view of the plate adds, its pose eliminated: the
     plate's centre at ``distance`` on the optical axis, tilted ``tilt_deg`` about an in-plane axis at
-    ``azimuth_deg``; the discs that fall in the picture."""
+    ``azimuth_deg``; the discs that fall in the picture. With the plate's shape (``shape`` at parameters
+    ``y``): (ni + n_shape) square, on the intrinsics and the shape (the same printed plate in every view)."""
     a = np.radians(azimuth_deg)
     H = trans(0, 0, distance) @ rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt_deg))
     p = plate.disc_centres_W()
@@ -734,29 +735,54 @@ def _view_information(camera: CameraModel, plate: PlateSpec, distance: float, ti
     ok[ok] = camera.in_image(uv[ok], margin=10)
     if ok.sum() < 8:
         return None
-    model = _Joint([p[ok]], [uv[ok]], [H[:3, :3]], ni=ni, skew=camera.skew)
-    J = model.jacobian(np.concatenate([x, np.zeros(3), H[:3, 3]]))
-    A = _normal(J, np.zeros(len(J)), model.blocks)[0] / s2
-    Aii, Aip, App = A[:ni, :ni], A[:ni, ni:], A[ni:, ni:]
-    return Aii - Aip @ np.linalg.solve(App, Aip.T)
+    if shape is None:
+        model = _Joint([p[ok]], [uv[ok]], [H[:3, :3]], ni=ni, skew=camera.skew)
+        J = model.jacobian(np.concatenate([x, np.zeros(3), H[:3, 3]]))
+        A = _normal(J, np.zeros(len(J)), model.blocks)[0] / s2
+        Aii, Aip, App = A[:ni, :ni], A[:ni, ni:], A[ni:, ni:]
+        return Aii - Aip @ np.linalg.solve(App, Aip.T)
+    model = _Joint([p[ok]], [uv[ok]], [H[:3, :3]], shape, [np.flatnonzero(ok)], ni=ni, skew=camera.skew)
+    J = model.jacobian(np.concatenate([x, np.zeros(3), H[:3, 3], y]))[: model.m_data]  # no second prior
+    A = J.T @ J / s2
+    keep = np.r_[0:ni, ni + 6 : len(A)]
+    Ak, Akp, App = A[np.ix_(keep, keep)], A[keep, ni : ni + 6], A[ni : ni + 6, ni : ni + 6]
+    return Ak - Akp @ np.linalg.solve(App, Akp.T)
 
 
 def more_views_advice(fit: _Fit, plate: PlateSpec) -> dict:
-    """How many more views of each kind (``VIEW_KINDS``) would meet the stop rule, from the covariance."""
+    """How many more views of each kind (``VIEW_KINDS``) would meet the stop rule, from the covariance.
+
+    With the plate's shape fitted, on the joint information of the intrinsics and the shape: a further
+    view sees the same printed plate, whose uncertain shape it shares with the views taken (counting only
+    the intrinsics' marginal information, as if the new view's plate were known, promised the stop rule
+    after one more view where six did not reach it)."""
     ni = len(fit.cov5)
+    ns = len(fit.shape) if fit.plate_model != "flat" else 0
+    shape = None
+    if ns:
+        n = len(fit.cov_full)
+        idx = np.r_[0:ni, n - ns : n]
+        cov0 = fit.cov_full[np.ix_(idx, idx)]
+        shape = _PlateShape(plate, fit.plate_model, fit.prior_noise_px, fit.dot_sd_mm)
+        if shape.n != ns:
+            shape, cov0 = None, fit.cov5
+    else:
+        cov0 = fit.cov5
+    m = len(cov0)
     try:
-        info0 = np.linalg.inv(fit.cov5)
+        info0 = np.linalg.inv(cov0)
     except np.linalg.LinAlgError:
-        info0 = np.zeros((ni, ni))
+        info0 = np.zeros((m, m))
     if not np.all(np.isfinite(info0)):
-        info0 = np.zeros((ni, ni))
+        info0 = np.zeros((m, m))
     dist = float(np.median([v.distance_mm for v in fit.views]))
     out = {}
     for label, tilt in VIEW_KINDS:
         info = info0.copy()
         need = None
         for n in range(1, MAX_MORE_VIEWS + 1):
-            add = _view_information(fit.camera, plate, dist, tilt, 90.0 * (n - 1) + 45.0 * ((n - 1) // 4), fit.s2, ni)
+            add = _view_information(fit.camera, plate, dist, tilt, 90.0 * (n - 1) + 45.0 * ((n - 1) // 4), fit.s2, ni,
+                                    shape, fit.shape if shape is not None else None)
             if add is None:
                 break
             info += add
@@ -764,6 +790,7 @@ def more_views_advice(fit: _Fit, plate: PlateSpec) -> dict:
                 cov = np.linalg.inv(info)
             except np.linalg.LinAlgError:
                 continue
+            cov = cov[:ni, :ni]
             if np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0) and _stop_met(_sigmas(cov), fit.camera.aspect):
                 need = n
                 break
