@@ -341,6 +341,7 @@ class _Fit:
     prior_noise_px: float = 0.0
     dot_sd_mm: float = PLATE_DOT_PRIOR_MM
     turns: list = field(default_factory=list)
+    dropped: list = field(default_factory=list)  # [(view name, why)] left out of the fit
 
 
 @dataclass
@@ -626,6 +627,7 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
         )
     uv = [d.uv for d in dets]
     turns = [0.0] * len(dets)
+    dropped: list = []
     if plate_model != "flat":
         # a first camera on the plate as specified, then the views' discs on one physical grid
         fit = _solve([d.p_W for d in dets], uv, camera0, poses, names, fit_skew=fit_skew)
@@ -636,6 +638,16 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
             # corrections could not be tied to the physical discs, and on the pictures' own grids they
             # would take up what is fixed in the picture (a grabber's shear) as a deformation of the plate
             plate_model = "bow"
+        unaligned = [k for k, t in enumerate(turns) if t is None]
+        if plate_model == "bow+dots" and unaligned and len(dets) - len(unaligned) >= MIN_VIEWS:
+            # a view whose discs could not be tied to the physical grid would give the dots' corrections
+            # to the wrong discs (in the picture: a fixed pattern the fit cannot explain, which biases the
+            # centre by pixels while its sigma stays small): left out, and said
+            keep = [k for k in range(len(dets)) if k not in unaligned]
+            dropped = [(names[k], "its discs could not be tied to the plate's grid (the printed dot pattern is "
+                                  "not recognised in it), so the plate's per-disc corrections cannot apply")
+                       for k in unaligned]
+            dets, uv, names, turns = ([a[k] for k in keep] for a in (dets, uv, names, turns))
         poses = [_initial_pose(d.p_W, u, fit.camera) for d, u in zip(dets, uv)]
         camera0 = fit.camera
     P = [d.p_W for d in dets]
@@ -657,6 +669,7 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
         fit = _solve(P, uv, fit.camera, [v.C_H_W for v in fit.views], names, shape0=fit.shape, noise_px=noise,
                      dot_sd_mm=sd, **kw)
     fit.turns = turns
+    fit.dropped = dropped
     return fit
 
 
@@ -911,14 +924,19 @@ def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, na
         )
     fit = fit_views(dets, plate, camera_guess, names, plate_model=plate_model, fit_skew=skew)
     # a view that does not fit the others: drop it and refit
-    bad = [k for k, v in enumerate(fit.views) if v.rms_px > VIEW_MAX_RMS_PX]
-    if bad and len(dets) - len(bad) >= MIN_VIEWS:
-        for k in bad:
-            skipped.append({"name": names[k], "reason": f"does not fit the other views (residual rms "
-                                                        f"{fit.views[k].rms_px:.2f} px > {VIEW_MAX_RMS_PX} px)"})
-        keep = [k for k in range(len(dets)) if k not in bad]
+    bad = {v.name: v.rms_px for v in fit.views if v.rms_px > VIEW_MAX_RMS_PX}
+    if bad and len(fit.views) - len(bad) >= MIN_VIEWS:
+        for nm, rms in bad.items():
+            skipped.append({"name": nm, "reason": f"does not fit the other views (residual rms "
+                                                  f"{rms:.2f} px > {VIEW_MAX_RMS_PX} px)"})
+        keep = [k for k in range(len(dets)) if names[k] not in bad]
         dets, names = [dets[k] for k in keep], [names[k] for k in keep]
         fit = fit_views(dets, plate, fit.camera, names, plate_model=plate_model, fit_skew=skew)
+    for nm, why in fit.dropped:
+        skipped.append({"name": nm, "reason": why})
+    used = {v.name for v in fit.views}
+    keep = [k for k in range(len(dets)) if names[k] in used]
+    dets, names = [dets[k] for k in keep], [names[k] for k in keep]
     sig = _sigmas(fit.cov5)
     tilts = [v.tilt_deg for v in fit.views]
     if not (np.all(np.isfinite(fit.cov5)) and max(sig["cx"], sig["cy"]) < UNDETERMINED_CENTRE_PX):
