@@ -1,11 +1,12 @@
 """Benchmark: multi-view intrinsics (f, kappa, principal point, aspect) against cv2.calibrateCamera and mrcal.
 
 Study 1, intrinsics (``--cameras`` simulated cameras, default 10, each drawn realistic: principal point up
-to 15 px off, aspect 0.97-1.07): the robot's 12 planned views (``selfview.intrinsics.plan_view_poses``)
+to 15 px off, aspect 0.97-1.07): the robot's 12 planned views (``--views``; ``selfview.intrinsics.plan_view_poses``)
 rendered by the project's independent test renderer (``tests/alt_render.py``, in a source tree; the
 project's renderer otherwise, said in the output), the discs detected once per view, and on those same
 detections:
-  - ours: ``calibrate_intrinsics`` (bias-corrected centres, joint LM, covariance scaled by the residual);
+  - ours: ``calibrate_intrinsics`` (bias-corrected centres, joint LM, covariance scaled by the residual),
+    with the grabber's skew fitted (its error against the simulated grabber's shear, and its honesty);
   - ``cv2.calibrateCamera`` (extended, for its standard deviations): centre and aspect free (fx, fy, cx,
     cy), one radial term (CALIB_ZERO_TANGENT_DIST | CALIB_FIX_K2 | CALIB_FIX_K3), started from the cell's
     guess, on the raw disc centres and, as a second variant, on our bias-corrected ones; its f is fy, its
@@ -20,7 +21,12 @@ Study 1 again per further ``--profile`` (issue 17's imperfections: a profile nam
 ``realistic:plate``): the same cameras and planned views with the cell's imperfections, rendered by the
 project's renderer (the independent one draws only the specified plate and no grabber), under
 ``profiles``; there ours is also run with the plate taken as specified (``selfview_flat_plate``,
-``plate_model='flat'``: the fit before the plate's shape was added) and the fitted plate shape is listed.
+``plate_model='flat'``: the fit before the plate's shape was added) and without the skew
+(``selfview_no_skew``: the spec's camera model, as before the skew was added), and the fitted plate shape is
+listed; cv2.calibrateCamera has no skew parameter (K[0, 1] is held at 0), so it cannot model the shear.
+Then study 2 on that cell: one parked picture calibrated with the measured camera, with and without its
+skew (``tcp_with_camera``, ``tcp_with_camera_no_skew``), against the centre of the real fingers' inner
+corners.
 
 Study 2, one parked picture per camera (the independent renderer): the TCP error of ``calibrate_offline``
 with the measured camera (``--camera``) and with the cell's nominal one, across and along the optical
@@ -84,6 +90,8 @@ except ImportError:  # pragma: no cover - an installed copy without the tests
 LEAN = (-1.0, 0.0)
 CV_FLAGS = ("CALIB_USE_INTRINSIC_GUESS", "CALIB_ZERO_TANGENT_DIST", "CALIB_FIX_K2", "CALIB_FIX_K3")
 ISSUE = {"centre_px": 0.3, "aspect_pct": 0.05, "f_pct": 0.05, "sigma_factor": 2.0}
+#: The robot's planned views per camera (the issue's 12; ``--views``).
+VIEWS = 12
 
 
 def _render(world, C_H_W, seed):
@@ -134,11 +142,12 @@ def _errors(est, truth, skew=0.0):
     }
 
 
-def one_camera(seed: int) -> dict:
+def one_camera(args) -> dict:
+    seed, views = args if isinstance(args, tuple) else (args, VIEWS)
     cell = load_cell(default_cell_path())
     w = SimWorld(cell, seed=seed, camera="realistic")
     cam0 = cell.camera.guess()
-    plan = plan_view_poses(cell, 12, lean_W=LEAN)
+    plan = plan_view_poses(cell, views, lean_W=LEAN)
     imgs = [_render(w, w.C_H_G @ inv_H(v["W_H_G"]), 1000 * seed + i) for i, v in enumerate(plan)]
     dets, names, skipped = detect_views(imgs, cell.plate, cam0, skip_unusable=True)
     out = {"seed": seed, "truth": {"f": w.camera.f, "kappa": w.camera.kappa, "cx": w.camera.cx, "cy": w.camera.cy,
@@ -192,14 +201,14 @@ def _imperfections(profile: str):
 
 def one_camera_profile(args) -> dict:
     """Study 1 on a cell with imperfections (the project's renderer; see the module)."""
-    seed, profile = args
+    seed, profile, views = args if len(args) == 3 else (*args, VIEWS)
     cell = load_cell(default_cell_path())
     w = SimWorld(cell, seed=seed, imperfections=_imperfections(profile), camera="realistic")
     cam0 = cell.camera.guess()
     plate = PLATE_BASE_POSE @ trans(0.0, 0.0, 4.0)
     lean = (inv_H(plate) @ np.array([0.0, 0.0, 0.0, 1.0]))[:2]
     imgs = []
-    for i, v in enumerate(plan_view_poses(cell, 12, lean_W=lean)):
+    for i, v in enumerate(plan_view_poses(cell, views, lean_W=lean)):
         w.set_tcp(plate @ v["W_H_G"])
         imgs.append(_project_render(w, seed=1000 * seed + i).image)
     dets, names, skipped = detect_views(imgs, cell.plate, cam0, skip_unusable=True)
@@ -366,6 +375,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cameras", type=int, default=10, help="simulated cameras for the intrinsics table (default 10)")
     ap.add_argument("--pictures", type=int, default=30, help="parked pictures per kind for the warning rates (default 30)")
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
+    ap.add_argument("--views", type=int, default=VIEWS, help=f"planned views per camera (default {VIEWS}, the issue's)")
     ap.add_argument("--quick", action="store_true", help="a small run: 2 cameras, 4 pictures per kind")
     ap.add_argument("--profile", nargs="+", default=["ideal", "realistic"],
                     help="simulated cells for study 1: 'ideal' (the independent renderer, and studies 2-4) and "
@@ -379,19 +389,19 @@ def main(argv=None) -> int:
                 ap.error(str(exc))
     if args.quick:
         args.cameras, args.pictures = 2, 4
-    if args.cameras < 1 or args.pictures < 1:
-        ap.error("expected --cameras >= 1 and --pictures >= 1")
+    if args.cameras < 1 or args.pictures < 1 or args.views < 4:
+        ap.error("expected --cameras >= 1, --pictures >= 1 and --views >= 4")
     if _alt is None:
         print(json.dumps({"benchmark": "intrinsics", "skipped": "the independent renderer (tests/alt_render.py) is "
                                                                  "not beside this copy: run from a source tree"}))
         return 0
     t0 = time.perf_counter()
-    seeds = list(range(args.cameras))
+    seeds = [(s, args.views) for s in range(args.cameras)]
     ideal = "ideal" in args.profile
     work = [(100 + s, k) for k in ("ideal", "realistic") for s in range(args.pictures)] if ideal else []
     work += [(200 + i, k) for i, k in enumerate(SMALL)] if ideal else []
     others = [p for p in dict.fromkeys(args.profile) if p != "ideal"]
-    pwork = [(s, p) for p in others for s in seeds]
+    pwork = [(s, p, v) for p in others for s, v in seeds]
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as ex:
             per_camera = list(ex.map(one_camera, seeds)) if ideal else []
@@ -420,7 +430,7 @@ def main(argv=None) -> int:
     out = {
         "benchmark": "multi-view intrinsics vs cv2.calibrateCamera (and mrcal)",
         "renderer": "tests/alt_render.py (independent)",
-        "views_per_camera": 12,
+        "views_per_camera": args.views,
         "intrinsics": table(per_camera) if ideal else None,
         "profiles": profiles,
         "issue_targets": ISSUE,
