@@ -1,11 +1,12 @@
 """Benchmark: multi-view intrinsics (f, kappa, principal point, aspect) against cv2.calibrateCamera and mrcal.
 
 Study 1, intrinsics (``--cameras`` simulated cameras, default 10, each drawn realistic: principal point up
-to 15 px off, aspect 0.97-1.07): the robot's 12 planned views (``selfview.intrinsics.plan_view_poses``)
+to 15 px off, aspect 0.97-1.07): the robot's 12 planned views (``--views``; ``selfview.intrinsics.plan_view_poses``)
 rendered by the project's independent test renderer (``tests/alt_render.py``, in a source tree; the
 project's renderer otherwise, said in the output), the discs detected once per view, and on those same
 detections:
-  - ours: ``calibrate_intrinsics`` (bias-corrected centres, joint LM, covariance scaled by the residual);
+  - ours: ``calibrate_intrinsics`` (bias-corrected centres, joint LM, covariance scaled by the residual),
+    with the grabber's skew fitted (its error against the simulated grabber's shear, and its honesty);
   - ``cv2.calibrateCamera`` (extended, for its standard deviations): centre and aspect free (fx, fy, cx,
     cy), one radial term (CALIB_ZERO_TANGENT_DIST | CALIB_FIX_K2 | CALIB_FIX_K3), started from the cell's
     guess, on the raw disc centres and, as a second variant, on our bias-corrected ones; its f is fy, its
@@ -20,7 +21,12 @@ Study 1 again per further ``--profile`` (issue 17's imperfections: a profile nam
 ``realistic:plate``): the same cameras and planned views with the cell's imperfections, rendered by the
 project's renderer (the independent one draws only the specified plate and no grabber), under
 ``profiles``; there ours is also run with the plate taken as specified (``selfview_flat_plate``,
-``plate_model='flat'``: the fit before the plate's shape was added) and the fitted plate shape is listed.
+``plate_model='flat'``: the fit before the plate's shape was added) and without the skew
+(``selfview_no_skew``: the spec's camera model, as before the skew was added), and the fitted plate shape is
+listed; cv2.calibrateCamera has no skew parameter (K[0, 1] is held at 0), so it cannot model the shear.
+Then study 2 on that cell: one parked picture calibrated with the measured camera, with and without its
+skew (``tcp_with_camera``, ``tcp_with_camera_no_skew``), against the centre of the real fingers' inner
+corners.
 
 Study 2, one parked picture per camera (the independent renderer): the TCP error of ``calibrate_offline``
 with the measured camera (``--camera``) and with the cell's nominal one, across and along the optical
@@ -69,7 +75,7 @@ from selfview.intrinsics import (  # noqa: E402
     TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics, camera_check, detect_views, plan_view_poses, tcp_sigma,
 )
 from selfview.discs import disc_image_bias  # noqa: E402
-from selfview.geometry import trans  # noqa: E402
+from selfview.geometry import trans, transform_points  # noqa: E402
 from selfview.mocks.imperfections import PROFILES  # noqa: E402
 from selfview.mocks.render import render as _project_render  # noqa: E402
 from selfview.mocks.world import PLATE_BASE_POSE, SimWorld  # noqa: E402
@@ -84,6 +90,8 @@ except ImportError:  # pragma: no cover - an installed copy without the tests
 LEAN = (-1.0, 0.0)
 CV_FLAGS = ("CALIB_USE_INTRINSIC_GUESS", "CALIB_ZERO_TANGENT_DIST", "CALIB_FIX_K2", "CALIB_FIX_K3")
 ISSUE = {"centre_px": 0.3, "aspect_pct": 0.05, "f_pct": 0.05, "sigma_factor": 2.0}
+#: The robot's planned views per camera (the issue's 12; ``--views``).
+VIEWS = 12
 
 
 def _render(world, C_H_W, seed):
@@ -118,22 +126,28 @@ def _cv2(dets, uvs, cam0, size):
     }
 
 
-def _errors(est, truth):
+def _errors(est, truth, skew=0.0):
+    """Errors against the true camera (``skew``: the true grabber's shear, px of u per px of v)."""
+    extra = {}
+    if "skew" in est:
+        extra = {"skew_err": float(est["skew"] - skew)}
     return {
+        **extra,
         "centre_px": float(np.hypot(est["cx"] - truth.cx, est["cy"] - truth.cy)),
         "d": {"f": est["f"] - truth.f, "cx": est["cx"] - truth.cx, "cy": est["cy"] - truth.cy,
-              "aspect": est["aspect"] - truth.aspect},
+              "aspect": est["aspect"] - truth.aspect, **({"skew": est["skew"] - skew} if "skew" in est else {})},
         "aspect_pct": float(100 * abs(est["aspect"] / truth.aspect - 1)),
         "f_pct": float(100 * abs(est["f"] / truth.f - 1)),
         "kappa_pct": float(100 * abs(est["kappa"] / truth.kappa - 1)),
     }
 
 
-def one_camera(seed: int) -> dict:
+def one_camera(args) -> dict:
+    seed, views = args if isinstance(args, tuple) else (args, VIEWS)
     cell = load_cell(default_cell_path())
     w = SimWorld(cell, seed=seed, camera="realistic")
     cam0 = cell.camera.guess()
-    plan = plan_view_poses(cell, 12, lean_W=LEAN)
+    plan = plan_view_poses(cell, views, lean_W=LEAN)
     imgs = [_render(w, w.C_H_G @ inv_H(v["W_H_G"]), 1000 * seed + i) for i, v in enumerate(plan)]
     dets, names, skipped = detect_views(imgs, cell.plate, cam0, skip_unusable=True)
     out = {"seed": seed, "truth": {"f": w.camera.f, "kappa": w.camera.kappa, "cx": w.camera.cx, "cy": w.camera.cy,
@@ -147,11 +161,11 @@ def one_camera(seed: int) -> dict:
         out["error"] = f"{type(exc).__name__}: {exc}"
         return out
     c = r.camera
-    ours = {"f": c.f, "cx": c.cx, "cy": c.cy, "aspect": c.aspect, "kappa": c.kappa,
-            "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect")}, "rms_px": r.rms_px, "seconds": dt,
+    ours = {"f": c.f, "cx": c.cx, "cy": c.cy, "aspect": c.aspect, "kappa": c.kappa, "skew": c.skew,
+            "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect", "skew")}, "rms_px": r.rms_px, "seconds": dt,
             "stop_rule_met": r.stop_rule["met"], "cross_check_agree": r.cross_check.get("agree"),
             "views_used": r.views_used}
-    out["selfview"] = {**ours, **_errors(ours, w.camera)}
+    out["selfview"] = {**ours, **_errors(ours, w.camera, 0.0)}
     size = (cam0.width, cam0.height)
     raw = _cv2(dets, [d.uv for d in dets], cam0, size)
     out["cv2_raw"] = {**raw, **_errors(raw, w.camera)}
@@ -169,7 +183,7 @@ def one_camera(seed: int) -> dict:
             out[key] = {"across_mm": float(np.hypot(e[0], e[1])), "along_mm": float(abs(e[2])),
                         "err_mm": [float(v) for v in e]}
             if camera is not None:
-                out[key]["tcp_sigma_mm"] = tcp_sigma(res, cell, r.covariance[2:5, 2:5])["tcp_sigma_mm"]
+                out[key]["tcp_sigma_mm"] = tcp_sigma(res, cell, r.covariance[2:, 2:])["tcp_sigma_mm"]
             if camera is None:
                 out[key]["warned"] = camera_check(res, cell)["warning"] is not None
         except CellError as exc:
@@ -187,14 +201,14 @@ def _imperfections(profile: str):
 
 def one_camera_profile(args) -> dict:
     """Study 1 on a cell with imperfections (the project's renderer; see the module)."""
-    seed, profile = args
+    seed, profile, views = args if len(args) == 3 else (*args, VIEWS)
     cell = load_cell(default_cell_path())
     w = SimWorld(cell, seed=seed, imperfections=_imperfections(profile), camera="realistic")
     cam0 = cell.camera.guess()
     plate = PLATE_BASE_POSE @ trans(0.0, 0.0, 4.0)
     lean = (inv_H(plate) @ np.array([0.0, 0.0, 0.0, 1.0]))[:2]
     imgs = []
-    for i, v in enumerate(plan_view_poses(cell, 12, lean_W=lean)):
+    for i, v in enumerate(plan_view_poses(cell, views, lean_W=lean)):
         w.set_tcp(plate @ v["W_H_G"])
         imgs.append(_project_render(w, seed=1000 * seed + i).image)
     dets, names, skipped = detect_views(imgs, cell.plate, cam0, skip_unusable=True)
@@ -202,21 +216,31 @@ def one_camera_profile(args) -> dict:
            "truth": {"f": w.camera.f, "kappa": w.camera.kappa, "cx": w.camera.cx, "cy": w.camera.cy,
                      "aspect": w.camera.aspect},
            "views_detected": len(dets), "views_skipped": skipped}
+    # the grabber's true shear as a skew: line v's content moved by pll_shear (v - (H-1)/2) / H
+    true_skew = w.imperfect.shear_sign * w.imperfections.pll_shear_px / cam0.height
+    out["truth"]["skew"] = true_skew
     flat = None
-    for key, model in (("selfview", "bow+dots"), ("selfview_flat_plate", "flat")):
+    measured = {}
+    for key, model, skew in (("selfview", "bow+dots", True), ("selfview_no_skew", "bow+dots", False),
+                             ("selfview_flat_plate", "flat", True)):
         try:
             t = time.perf_counter()
-            r = calibrate_intrinsics(None, cell.plate, cam0, names, detections=dets, plate_model=model)
+            r = calibrate_intrinsics(None, cell.plate, cam0, names, detections=dets, plate_model=model, skew=skew)
             dt = time.perf_counter() - t
         except CellError as exc:
             out[key] = {"error": f"{type(exc).__name__}: {exc}"}
             continue
         c = r.camera
         ours = {"f": c.f, "cx": c.cx, "cy": c.cy, "aspect": c.aspect, "kappa": c.kappa,
-                "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect")}, "rms_px": r.rms_px, "seconds": dt,
+                "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect", "skew") if k in r.sigma},
+                "rms_px": r.rms_px, "seconds": dt,
                 "stop_rule_met": r.stop_rule["met"], "cross_check_agree": r.cross_check.get("agree"),
-                "views_used": r.views_used, "plate_shape": r.plate_shape}
-        out[key] = {**ours, **_errors(ours, w.camera)}
+                "views_used": r.views_used, "plate_shape": r.plate_shape,
+                "more_views": (r.stop_rule.get("more_views") or {}).get("views_needed")}
+        if skew:
+            ours["skew"] = c.skew
+        out[key] = {**ours, **_errors(ours, w.camera, true_skew)}
+        measured[key] = r
         if model == "flat":
             flat = r
     size = (cam0.width, cam0.height)
@@ -227,6 +251,24 @@ def one_camera_profile(args) -> dict:
                      for d, v in zip(dets, flat.views)]
         cor = _cv2(dets, corrected, cam0, size)
         out["cv2_bias_corrected"] = {**cor, **_errors(cor, w.camera)}
+    # study 2 on this cell: one parked picture calibrated with the measured camera (with and without its
+    # skew); the true TCP is the centre of the real fingers' inner corners (issue 17's fingers are off nominal)
+    w.set_tcp(plate)
+    w.park()
+    pic = _project_render(w, seed=1000 * seed + 999).image
+    truth = transform_points(w.C_H_G, w.points_G()[:4].mean(0, keepdims=True))[0]
+    for key, mkey in (("tcp_with_camera", "selfview"), ("tcp_with_camera_no_skew", "selfview_no_skew")):
+        if mkey not in measured:
+            continue
+        r = measured[mkey]
+        try:
+            res = calibrate_offline(pic, cell, camera=r.camera)
+            e = res.calibration.C_H_G[:3, 3] - truth
+            out[key] = {"across_mm": float(np.hypot(e[0], e[1])), "along_mm": float(abs(e[2])),
+                        "err_mm": [float(v) for v in e],
+                        "tcp_sigma_mm": tcp_sigma(res, cell, r.covariance[2:, 2:])["tcp_sigma_mm"]}
+        except CellError as exc:
+            out[key] = {"error": f"{type(exc).__name__}: {exc}"}
     return out
 
 
@@ -264,7 +306,7 @@ def _median(v):
 def table(per_camera):
     ok = [p for p in per_camera if "selfview" in p and "error" not in p["selfview"]]
     out = {}
-    for m in ("selfview", "selfview_flat_plate", "cv2_raw", "cv2_bias_corrected"):
+    for m in ("selfview", "selfview_no_skew", "selfview_flat_plate", "cv2_raw", "cv2_bias_corrected"):
         rows = [p[m] for p in ok if m in p and "error" not in p[m]]
         if not rows:
             continue
@@ -281,6 +323,11 @@ def table(per_camera):
             k: float(np.sqrt(np.mean([r["d"][k] ** 2 for r in rows])) / np.sqrt(np.mean([r["sigma"][k] ** 2 for r in rows])))
             for k in ("f", "cx", "cy", "aspect")
         }
+        if all("skew" in r["sigma"] and "skew" in r["d"] for r in rows):
+            entry["median_skew_err"] = _median([abs(r["d"]["skew"]) for r in rows])
+            entry["median_sigma"]["skew"] = _median([r["sigma"]["skew"] for r in rows])
+            entry["spread_over_sigma"]["skew"] = float(np.sqrt(np.mean([r["d"]["skew"] ** 2 for r in rows]))
+                                                       / np.sqrt(np.mean([r["sigma"]["skew"] ** 2 for r in rows])))
         out[m] = entry
     s = out.get("selfview")
     if s:
@@ -291,14 +338,14 @@ def table(per_camera):
             "sigmas_within_factor_2": all(1 / ISSUE["sigma_factor"] <= v <= ISSUE["sigma_factor"]
                                           for v in s["spread_over_sigma"].values()),
         }
-    for key in ("tcp_with_camera", "tcp_nominal"):
+    for key in ("tcp_with_camera", "tcp_with_camera_no_skew", "tcp_nominal"):
         rows = [p[key] for p in ok if key in p and "error" not in p[key]]
         if rows:
             out[key] = {"median_across_mm": _median([r["across_mm"] for r in rows]),
                         "median_along_mm": _median([r["along_mm"] for r in rows]),
                         "max_across_mm": max(r["across_mm"] for r in rows),
                         "max_along_mm": max(r["along_mm"] for r in rows), "n": len(rows)}
-            if key == "tcp_with_camera":
+            if key.startswith("tcp_with_camera"):
                 # the TCP errors' RMS per camera axis over the RMS of the reported tcp_sigma_mm (1 = honest)
                 e = np.array([r["err_mm"] for r in rows])
                 sg = np.array([r["tcp_sigma_mm"] for r in rows])
@@ -328,6 +375,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cameras", type=int, default=10, help="simulated cameras for the intrinsics table (default 10)")
     ap.add_argument("--pictures", type=int, default=30, help="parked pictures per kind for the warning rates (default 30)")
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
+    ap.add_argument("--views", type=int, default=VIEWS, help=f"planned views per camera (default {VIEWS}, the issue's)")
     ap.add_argument("--quick", action="store_true", help="a small run: 2 cameras, 4 pictures per kind")
     ap.add_argument("--profile", nargs="+", default=["ideal", "realistic"],
                     help="simulated cells for study 1: 'ideal' (the independent renderer, and studies 2-4) and "
@@ -341,19 +389,19 @@ def main(argv=None) -> int:
                 ap.error(str(exc))
     if args.quick:
         args.cameras, args.pictures = 2, 4
-    if args.cameras < 1 or args.pictures < 1:
-        ap.error("expected --cameras >= 1 and --pictures >= 1")
+    if args.cameras < 1 or args.pictures < 1 or args.views < 4:
+        ap.error("expected --cameras >= 1, --pictures >= 1 and --views >= 4")
     if _alt is None:
         print(json.dumps({"benchmark": "intrinsics", "skipped": "the independent renderer (tests/alt_render.py) is "
                                                                  "not beside this copy: run from a source tree"}))
         return 0
     t0 = time.perf_counter()
-    seeds = list(range(args.cameras))
+    seeds = [(s, args.views) for s in range(args.cameras)]
     ideal = "ideal" in args.profile
     work = [(100 + s, k) for k in ("ideal", "realistic") for s in range(args.pictures)] if ideal else []
     work += [(200 + i, k) for i, k in enumerate(SMALL)] if ideal else []
     others = [p for p in dict.fromkeys(args.profile) if p != "ideal"]
-    pwork = [(s, p) for p in others for s in seeds]
+    pwork = [(s, p, v) for p in others for s, v in seeds]
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as ex:
             per_camera = list(ex.map(one_camera, seeds)) if ideal else []
@@ -382,7 +430,7 @@ def main(argv=None) -> int:
     out = {
         "benchmark": "multi-view intrinsics vs cv2.calibrateCamera (and mrcal)",
         "renderer": "tests/alt_render.py (independent)",
-        "views_per_camera": 12,
+        "views_per_camera": args.views,
         "intrinsics": table(per_camera) if ideal else None,
         "profiles": profiles,
         "issue_targets": ISSUE,
@@ -393,6 +441,8 @@ def main(argv=None) -> int:
             for p in pics if str(p["kind"]).startswith("small")],
         "mrcal": mrcal_note,
         "opencv_flags": " | ".join(CV_FLAGS) + " (fx, fy, cx, cy free)",
+        "opencv_skew": "cv2.calibrateCamera has no skew parameter (K[0, 1] is held at 0; only cv2.fisheye has "
+                       "CALIB_FIX_SKEW): it cannot model a grabber's shear",
         "per_camera": per_camera,
         "pictures": pics,
         "seconds": round(time.perf_counter() - t0, 1),

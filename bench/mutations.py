@@ -117,8 +117,8 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "camera-half-pixel-shift",
         "selfview/camera.py",
-        "out = np.column_stack([XY_hat[:, 0] / self.aspect + self.cx, XY_hat[:, 1] + self.cy])",
-        "out = np.column_stack([XY_hat[:, 0] / self.aspect + self.cx + 0.5, XY_hat[:, 1] + self.cy])",
+        "        u = XY_hat[:, 0] / self.aspect + self.cx\n",
+        "        u = XY_hat[:, 0] / self.aspect + self.cx + 0.5\n",
         ("tests/selfview/test_discs.py::test_alt_renderer_truth_is_self_consistent",
          "tests/selfview/test_fingertips.py::test_prediction_agrees_with_the_independent_renderer"),
         "the project's projection half a pixel off its convention (its own renderer follows it along)",
@@ -126,7 +126,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "disc-bias-correction-removed",
         "selfview/offline.py",
-        "    uv_c = correct_disc_bias(det, ts.camera, ts.C_H_W, cell.plate)\n",
+        "    uv_c = correct_disc_bias(det, ts.camera.with_(skew=nominal.skew), ts.C_H_W, cell.plate)\n",
         "    uv_c = det.uv\n",
         ("tests/selfview/test_offline.py::test_accuracy_on_an_independent_renderer",
          "tests/selfview/test_offline.py::test_accuracy_over_30_seeds_on_the_project_renderer"),

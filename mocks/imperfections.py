@@ -309,6 +309,30 @@ def chamfer_cuts(lo, hi, radius: float) -> list[tuple[np.ndarray, float, int]]:
     return cuts
 
 
+#: Reflected border [px] around the picture for the band-limited shifts of ``_shifted``.
+_SHIFT_PAD = 16
+
+
+def _shifted(value: np.ndarray, axis: int, shift) -> np.ndarray:
+    """``value`` (H, W) moved along ``axis`` (1: u, each line by its own ``shift[v]``; 0: v, by one
+    ``shift``) by a band-limited (Fourier) shift: a grabber samples the analogue line, band-limited to
+    5 MHz against its 14.75 MHz pixel clock, at moved instants, so sinc interpolation is the physics, and
+    it moves a disc's centroid by exactly the shift. (OpenCV's remap quantises sub-pixel positions to
+    1/32 px and its cubic kernel moves a centroid by up to 0.025 px more or less than asked: a 0.3 px
+    shear came out 1.2-1.3 times as strong, a 0.01 px shift not at all.) Borders reflected."""
+    pad = _SHIFT_PAD
+    p = np.pad(value, pad, mode="reflect")
+    n = p.shape[axis]
+    freq = np.fft.rfftfreq(n)
+    F = np.fft.rfft(p, axis=axis)
+    if axis == 1:
+        s = np.pad(np.asarray(shift, float), pad, mode="edge")
+        F *= np.exp(-2j * np.pi * s[:, None] * freq[None, :])
+    else:
+        F *= np.exp(-2j * np.pi * float(shift) * freq)[:, None]
+    return np.fft.irfft(F, n=n, axis=axis)[pad:-pad, pad:-pad]
+
+
 def picture_effects(value: np.ndarray, imp: Imperfections, real: RealisedImperfections | None, seed,
                     margin: int, width: int, height: int, noise: bool = True) -> tuple[np.ndarray, dict]:
     """Apply the grabber's and the light's imperfections to the optical picture ``value`` (Hm, Wm) float,
@@ -343,20 +367,19 @@ def picture_effects(value: np.ndarray, imp: Imperfections, real: RealisedImperfe
         value = value * ((1.0 + imp.light_gradient * xn) * (1.0 - imp.vignetting * r2) * gain)
         drawn["flicker_gain"] = gain
     if geometric:
-        import cv2
-
         field = rng.normal(0.0, 1.0, 2) * imp.field_shift_px
         jitter = rng.normal(0.0, 1.0, Hm) * imp.line_jitter_px
         shear = (real.shear_sign if real is not None else 1.0) * imp.pll_shear_px
         rows = np.arange(Hm) - m
         du = jitter + shear * (rows - (height - 1) / 2) / height
         odd = (rows % 2) == 1
-        map_x = uu + m - du[:, None] - np.where(odd, field[0], 0.0)[:, None]
-        map_y = vv + m - np.where(odd, field[1], 0.0)[:, None]
         drawn["field_shift_px"] = field.tolist()
         drawn["line_shift_px"] = du[m : m + height].tolist()
-        value = cv2.remap(value.astype(np.float32), map_x.astype(np.float32), map_y.astype(np.float32),
-                          cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT).astype(np.float64)
+        # the odd field: the picture moved by the field shift; then every line moved along u by its own
+        # shift (the field's du added on the odd lines)
+        if field[1]:
+            value = np.where(odd[:, None], _shifted(value, 0, field[1]), value)
+        value = _shifted(value, 1, du + np.where(odd, field[0], 0.0))
     if analog:
         import cv2
 

@@ -1,7 +1,8 @@
 """Calibration files: what an off-line calibration found, kept safe.
 
 A calibration file is a YAML document (``format: selfview-calibration``, ``version: 1``) holding the
-interior orientation (f, kappa, principal point, aspect), ``C_H_W`` and ``C_H_G`` (4x4, mm), the gripper
+interior orientation (f, kappa, principal point, aspect; and ``skew`` when a measured camera has one),
+``C_H_W`` and ``C_H_G`` (4x4, mm), the gripper
 points per state, the residuals, the picture's SHA-256, the time, the software version, the cell file's
 hash and a checksum over all of it.
 
@@ -115,8 +116,9 @@ class Calibration:
                 aspect=float(cam["aspect"]),
                 width=int(cam["width"]),
                 height=int(cam["height"]),
+                skew=float(cam.get("skew", 0.0)),  # a measured grabber's shear; absent: 0 (the spec's model)
             )
-            for name in ("f", "kappa", "cx", "cy", "aspect"):
+            for name in ("f", "kappa", "cx", "cy", "aspect", "skew"):
                 if not math.isfinite(getattr(camera, name)):
                     raise ValueError(f"camera {name} is {getattr(camera, name)}, not a finite number")
             _plausible_camera(camera)
@@ -187,7 +189,7 @@ def _check_types(doc: dict) -> None:
     """Every field of a calibration document of the type it is written with (a re-checksummed file whose
     number became a flag, a list grew an element or a state name became a list is refused): ``ValueError``."""
     cam = doc["camera"]
-    for k in ("f", "kappa", "aspect"):
+    for k in ("f", "kappa", "aspect") + (("skew",) if "skew" in cam else ()):
         if not _is_number(cam[k]):
             raise ValueError(f"camera {k} is {short_repr(cam[k], 40)}, not a number")
     pp = cam["principal_point"]

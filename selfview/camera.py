@@ -3,12 +3,18 @@
 Pixel (u, v) with integer values is the centre of a pixel (OpenCV convention). Sensor coordinates
 relative to the principal point (cx, cy), in pixel units:
 
-    X^ = aspect * (u - cx),  Y^ = v - cy                     (distorted, what the picture shows)
+    X^ = aspect * (u - cx - skew (v - cy)),  Y^ = v - cy     (distorted, what the picture shows)
     X = X^ (1 + kappa r^2),  Y = Y^ (1 + kappa r^2)          (eq. 4, r^2 = X^^2 + Y^^2)
     X = f x / z,             Y = f y / z                     (eq. 3, camera coordinates in mm)
 
 The correction is explicit from distorted to undistorted; ``distort`` inverts it exactly by solving
 the cubic ``kappa r^3 + r - R = 0`` for the distorted radius r of an undistorted radius R.
+
+``skew`` (default 0: the paper's and the spec's model exactly) is a frame grabber's shear: the line
+``v`` sampled ``skew (v - cy)`` px to the right of where the sensor put it (a PLL whose line-sync phase
+drifts linearly down the picture; Beyer 1992 measured tenths of a pixel over the frame). It is the
+skew term of OpenCV's and Heikkilae's pinhole models (``K[0, 1] = skew * fy`` in OpenCV's terms,
+with ``fy = f`` and ``fx = f / aspect``), which Tsai's lacks; ``selfview intrinsics`` measures it.
 """
 
 from __future__ import annotations
@@ -19,7 +25,12 @@ import numpy as np
 
 from selfview.errors import CalibrationError, ConfigError
 
-__all__ = ["CameraModel", "undistort", "distort", "max_undistorted_radius"]
+__all__ = ["CameraModel", "undistort", "distort", "max_undistorted_radius", "MAX_SKEW"]
+
+#: Largest |skew| a camera may have: 0.01 shifts the bottom line of a CCIR picture 5.8 px against the top
+#: one, ten times the worst PLL shear reported for analogue grabbers (a few tenths of a pixel); more is
+#: not a grabber's shear but a wrong file or a wrong fit.
+MAX_SKEW = 0.01
 
 
 def _as_points(a, dim: int, name: str) -> tuple[np.ndarray, bool]:
@@ -100,7 +111,8 @@ class CameraModel:
 
     Attributes: ``f`` effective focal length [px]; ``kappa`` radial coefficient [px^-2];
     ``cx, cy`` principal point [px]; ``aspect`` horizontal sampling factor (X^ = aspect (u - cx));
-    ``width, height`` picture size [px].
+    ``width, height`` picture size [px]; ``skew`` the grabber's shear (px of u per px of v below cy,
+    |skew| <= ``MAX_SKEW``; 0, the default, is the spec's model).
     """
 
     f: float
@@ -110,9 +122,10 @@ class CameraModel:
     aspect: float = 1.0
     width: int = 768
     height: int = 576
+    skew: float = 0.0
 
     def __post_init__(self):
-        for name in ("f", "kappa", "cx", "cy", "aspect"):
+        for name in ("f", "kappa", "cx", "cy", "aspect", "skew"):
             v = getattr(self, name)
             if not np.isfinite(v):
                 raise ConfigError(f"camera {name}: expected a finite number, got {v!r}")
@@ -120,6 +133,11 @@ class CameraModel:
             raise ConfigError(f"camera f: expected a positive focal length in px, got {self.f!r}")
         if self.aspect <= 0:
             raise ConfigError(f"camera aspect: expected a positive ratio, got {self.aspect!r}")
+        if abs(self.skew) > MAX_SKEW:
+            raise ConfigError(
+                f"camera skew: {self.skew!r} shears the picture by {abs(self.skew) * self.height:.1f} px from its top "
+                f"line to its bottom one; a grabber's shear is a few tenths of a pixel (|skew| <= {MAX_SKEW})"
+            )
         if int(self.width) <= 0 or int(self.height) <= 0:
             raise ConfigError(f"camera size: expected positive width and height, got {self.width}x{self.height}")
 
@@ -135,14 +153,33 @@ class CameraModel:
     def pixel_to_sensor(self, uv) -> np.ndarray:
         """Pixels (N, 2) -> distorted sensor coordinates X^, Y^ (N, 2)."""
         uv, single = _as_points(uv, 2, "uv")
-        out = np.column_stack([self.aspect * (uv[:, 0] - self.cx), uv[:, 1] - self.cy])
+        Yh = uv[:, 1] - self.cy
+        u = uv[:, 0] - self.cx if not self.skew else uv[:, 0] - self.cx - self.skew * Yh
+        out = np.column_stack([self.aspect * u, Yh])
         return out[0] if single else out
 
     def sensor_to_pixel(self, XY_hat) -> np.ndarray:
         """Distorted sensor coordinates (N, 2) -> pixels (N, 2)."""
         XY_hat, single = _as_points(XY_hat, 2, "XY_hat")
-        out = np.column_stack([XY_hat[:, 0] / self.aspect + self.cx, XY_hat[:, 1] + self.cy])
+        u = XY_hat[:, 0] / self.aspect + self.cx
+        if self.skew:
+            u = u + self.skew * XY_hat[:, 1]
+        out = np.column_stack([u, XY_hat[:, 1] + self.cy])
         return out[0] if single else out
+
+    def deskew_pixels(self, uv) -> np.ndarray:
+        """Pixels (N, 2) -> the pixels of the same rays in this camera without its skew
+        (``self.without_skew()``): u - skew (v - cy). The identity when skew is 0."""
+        uv, single = _as_points(uv, 2, "uv")
+        out = uv.copy()
+        if self.skew:
+            out[:, 0] -= self.skew * (uv[:, 1] - self.cy)
+        return out[0] if single else out
+
+    def without_skew(self) -> "CameraModel":
+        """This camera with skew 0: the model of code that takes (cx, cy, aspect) alone (Tsai's method, the
+        on-line estimators), fed with ``deskew_pixels``."""
+        return self if not self.skew else replace(self, skew=0.0)
 
     def undistort_pixels(self, uv) -> np.ndarray:
         """Pixels (N, 2) -> undistorted sensor coordinates X, Y (N, 2) of eq. 3-4."""
@@ -237,4 +274,5 @@ class CameraModel:
             "aspect": float(self.aspect),
             "width": int(self.width),
             "height": int(self.height),
+            **({"skew": float(self.skew)} if self.skew else {}),
         }

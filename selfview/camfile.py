@@ -1,7 +1,9 @@
 """Camera files: a camera's measured interior orientation, its uncertainty and where it came from.
 
 A camera file is a YAML document (``format: selfview-camera``, ``version: 1``) written by ``selfview
-intrinsics``: f, kappa, principal point, aspect and picture size; their 1-sigma and covariance; the
+intrinsics``: f, kappa, principal point, aspect, the grabber's skew and picture size; their 1-sigma and
+covariance (a file without ``skew``, as written before it was measured, reads as skew 0 with the 5 x 5
+covariance of the others); the
 residual, the stop rule and the cross-check; provenance (the pictures' SHA-256, the time, the software
 and Python/NumPy/OpenCV versions, the cell file's hash) and a checksum over all of it. It is written
 like a calibration file (``selfview.calfile``): atomically, the previous file kept in ``<name>.history/``,
@@ -30,13 +32,14 @@ __all__ = ["CameraFile", "load_camera_file", "save_camera_file", "FORMAT", "VERS
 
 FORMAT = "selfview-camera"
 VERSION = 1
-INTRINSIC_NAMES = ("f", "kappa", "cx", "cy", "aspect")
+INTRINSIC_NAMES = ("f", "kappa", "cx", "cy", "aspect", "skew")
 
 
 @dataclass
 class CameraFile:
-    """A measured camera: ``camera``; ``sigma`` name -> 1-sigma (f, kappa, cx, cy, aspect); ``covariance``
-    (5, 5) in that order; ``figures`` what the calibration reported (rms_px, views_used, stop rule,
+    """A measured camera: ``camera``; ``sigma`` name -> 1-sigma (f, kappa, cx, cy, aspect[, skew]);
+    ``covariance`` (n, n) in that order (n = 6 with the skew measured, 5 without); ``figures`` what the
+    calibration reported (rms_px, views_used, stop rule,
     cross-check, projection uncertainty); ``provenance`` (pictures, created, software, versions, cell)."""
 
     camera: CameraModel
@@ -50,12 +53,17 @@ class CameraFile:
         prov.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
         prov.setdefault("software", f"selfview {__version__}")
         prov.setdefault("versions", _versions())
+        cov = np.asarray(self.covariance, float)
+        n = self.n_intrinsics
+        camera = self.camera.to_dict()
+        if n == 6:
+            camera["skew"] = float(self.camera.skew)
         doc = {
             "format": FORMAT,
             "version": VERSION,
-            "camera": self.camera.to_dict(),
-            "sigma": {k: float(self.sigma[k]) for k in INTRINSIC_NAMES},
-            "covariance": [[float(v) for v in row] for row in np.asarray(self.covariance, float)],
+            "camera": camera,
+            "sigma": {k: float(self.sigma[k]) for k in INTRINSIC_NAMES[:n]},
+            "covariance": [[float(v) for v in row] for row in cov],
             "figures": _plain(self.figures),
             "provenance": _plain(prov),
         }
@@ -76,14 +84,33 @@ class CameraFile:
                                        "(measure again with 'selfview intrinsics', or restore it from its .history folder)")
         try:
             c = doc["camera"]
+            n = 6 if "skew" in c else 5
+            if n == 6 and (isinstance(c["skew"], bool) or not isinstance(c["skew"], (int, float))):
+                raise ValueError(f"camera skew is {c['skew']!r}, not a number")
             camera = CameraModel(f=float(c["f"]), kappa=float(c["kappa"]), cx=float(c["principal_point"][0]),
                                  cy=float(c["principal_point"][1]), aspect=float(c["aspect"]),
-                                 width=int(c["width"]), height=int(c["height"]))
-            sigma = {k: float(doc["sigma"][k]) for k in INTRINSIC_NAMES}
-            cov = np.array(doc["covariance"], dtype=float).reshape(5, 5)
+                                 width=int(c["width"]), height=int(c["height"]), skew=float(c.get("skew", 0.0)))
+            sigma = {k: float(doc["sigma"][k]) for k in INTRINSIC_NAMES[:n]}
+            cov = np.array(doc["covariance"], dtype=float).reshape(n, n)
+            if not (np.all(np.isfinite(cov)) and np.all(np.isfinite(list(sigma.values())))):
+                raise ValueError("a sigma or the covariance holds a number that is not finite")
         except (KeyError, TypeError, ValueError, IndexError, ConfigError) as exc:
             raise CalibrationFileError(f"{source}: malformed camera file ({exc})") from exc
         return cls(camera, sigma, cov, dict(doc.get("figures") or {}), dict(doc.get("provenance") or {}))
+
+    @property
+    def n_intrinsics(self) -> int:
+        """5 (f, kappa, cx, cy, aspect) or 6 (and the skew): the size of ``covariance``."""
+        n = len(np.asarray(self.covariance))
+        if n not in (5, 6) or np.shape(self.covariance) != (n, n):
+            raise ConfigError(f"camera file covariance: expected 5 x 5 or 6 x 6, got {np.shape(self.covariance)}")
+        if n == 5 and self.camera.skew:
+            raise ConfigError("camera file: a camera with a skew needs its 6 x 6 covariance (the skew's too)")
+        return n
+
+    def centre_covariance(self) -> np.ndarray:
+        """The covariance of (cx, cy, aspect[, skew]): (3, 3), or (4, 4) with the skew measured."""
+        return np.asarray(self.covariance, float)[2:, 2:]
 
     def check_size(self, width: int, height: int, source: str = "camera file") -> None:
         """``ConfigError`` unless the file's picture size is ``width`` x ``height``."""

@@ -1,4 +1,4 @@
-"""Multi-view calibration of the interior orientation: f, kappa, principal point and aspect.
+"""Multi-view calibration of the interior orientation: f, kappa, principal point, aspect and skew.
 
 Tsai's coplanar method, as the paper uses it, takes the principal point (cx, cy) and the horizontal
 scale factor ``aspect`` as known. One picture of a plane hardly separates them from f and the plate's
@@ -8,6 +8,13 @@ Jacobian (on the normal equations, assembled view by view: ``selfview.lm``'s SVD
 per iteration costs far more for 5 + 6 V (+ 2 N - 1 of the plate's shape) parameters), on the same disc centres as the off-line
 calibration (``selfview.discs``: sub-pixel centroids, then their perspective/lens bias removed with the
 current model, refitted), minimising the distorted pixel error of the camera model of ``selfview.camera``.
+
+The skew (``CameraModel.skew``, ``skew=True`` by default) is an analogue frame grabber's shear: its PLL
+samples line v skew (v - cy) px late, a few tenths of a pixel from the top line to the bottom (Beyer 1992).
+The spec's model lacks it (as Tsai's does; OpenCV's and Heikkilae's have it), and a fit without it turns
+a 0.3 px shear into a principal point 1-2 px off whose sigma is 4-6 times too small: the same shift of
+every line in every view looks, to tilted views, like a moved centre. With the skew free the centre is
+unbiased and the sigmas honest (bench/intrinsics.py); ``skew=False`` holds it at the guess's (the spec's 0).
 
 The printed plate is not the specified one (``plate_model``, default 'bow+dots'; 'flat' takes the plate
 as specified). A laser print's discs are each off by 10-20 um, the same in every view: a fixed pattern
@@ -53,7 +60,7 @@ import numpy as np
 from selfview.camera import CameraModel, distort
 from selfview.cell import PlateSpec
 from selfview.discs import DiscDetections, detect_discs, disc_image_bias
-from selfview.errors import CalibrationError, ImageError
+from selfview.errors import CalibrationError, ConfigError, ImageError
 from selfview.tsai import _cross, _left_jacobian
 from selfview.geometry import R_from_rotvec, make_H, rot_axis, trans, transform_points
 
@@ -62,7 +69,8 @@ __all__ = [
     "projection_sigma_px", "MIN_VIEWS", "STOP_CENTRE_PX", "STOP_ASPECT_REL",
 ]
 
-INTRINSIC_NAMES = ("f", "kappa", "cx", "cy", "aspect")
+#: The intrinsics in the order of the covariance: the skew last, absent when it is not fitted.
+INTRINSIC_NAMES = ("f", "kappa", "cx", "cy", "aspect", "skew")
 #: Fewest usable views a joint calibration accepts (and each half of the cross-check).
 MIN_VIEWS = 4
 MIN_VIEWS_HALF = 3
@@ -91,15 +99,18 @@ UNDETERMINED_CENTRE_PX = 5.0
 MAX_MORE_VIEWS = 60
 #: Finite-difference steps of the numeric Jacobian: f (relative), kappa [px^-2], cx, cy [px], aspect,
 #: rotation [rad], translation [mm].
-_STEP = np.array([1e-6, 1e-12, 1e-4, 1e-4, 1e-7])
+_STEP = np.array([1e-6, 1e-12, 1e-4, 1e-4, 1e-7, 1e-7])
 _POSE_STEP = np.array([1e-7, 1e-7, 1e-7, 1e-5, 1e-5, 1e-5])
 
 
 # --- the model ------------------------------------------------------------------------------------
-def _project(intr, R, t, p_W) -> np.ndarray:
+def _project(intr, R, t, p_W, skew: float = 0.0) -> np.ndarray:
     """(N, 2) distorted pixels of plate points ``p_W`` (N, 3) seen at pose (R, t) by intrinsics
-    ``intr`` = (f, kappa, cx, cy, aspect); NaN where a point is behind the camera or beyond the fold."""
-    f, kappa, cx, cy, aspect = intr
+    ``intr`` = (f, kappa, cx, cy, aspect[, skew]) (``skew`` when ``intr`` has five); NaN where a point is
+    behind the camera or beyond the fold."""
+    f, kappa, cx, cy, aspect = intr[:5]
+    if len(intr) > 5:
+        skew = intr[5]
     pc = p_W @ R.T + t
     z = pc[:, 2]
     if np.any(z <= 0) or f <= 0 or aspect <= 0:
@@ -109,7 +120,18 @@ def _project(intr, R, t, p_W) -> np.ndarray:
         XYh = distort(XY, kappa)
     except CalibrationError:
         return np.full((len(p_W), 2), np.nan)
-    return np.column_stack([XYh[:, 0] / aspect + cx, XYh[:, 1] + cy])
+    return np.column_stack([XYh[:, 0] / aspect + skew * XYh[:, 1] + cx, XYh[:, 1] + cy])
+
+
+def _intr(camera: CameraModel, ni: int = 6) -> np.ndarray:
+    """The intrinsics vector of ``camera``: (f, kappa, cx, cy, aspect[, skew]) (``ni`` 5 or 6)."""
+    return np.array([camera.f, camera.kappa, camera.cx, camera.cy, camera.aspect, camera.skew][:ni])
+
+
+def _with_intr(camera: CameraModel, x) -> CameraModel:
+    """``camera`` with the intrinsics ``x[:5]`` (and ``x[5]``, its skew, when given)."""
+    c = camera.with_(f=float(x[0]), kappa=float(x[1]), cx=float(x[2]), cy=float(x[3]), aspect=float(x[4]))
+    return c.with_(skew=float(x[5])) if len(x) > 5 else c
 
 
 #: Plate models of the joint fit (``plate_model``): 'flat' (the plate as specified, every disc exactly
@@ -186,21 +208,27 @@ class _PlateShape:
 
 
 class _Joint:
-    """Parameters x = (f, kappa, cx, cy, aspect, then per view omega (3), t (3), then the plate's shape
-    (``_PlateShape``: bow, disc corrections) if ``shape``) with view k's rotation exp(omega_k) R0_k;
-    residuals model minus observation, per view (u then v of its points), then the shape's prior rows.
-    ``blocks`` [(first row, end row, columns)] lists which columns each group of rows touches."""
+    """Parameters x = (f, kappa, cx, cy, aspect, [skew,] then per view omega (3), t (3), then the plate's
+    shape (``_PlateShape``: bow, disc corrections) if ``shape``) with view k's rotation exp(omega_k) R0_k;
+    ``ni`` intrinsics: 6 with the skew free, 5 with it held at ``skew``. Residuals model minus observation,
+    per view (u then v of its points), then the shape's prior rows. ``blocks`` [(first row, end row,
+    columns)] lists which columns each group of rows touches."""
 
-    def __init__(self, p_W: list, uv: list, R0: list, shape: _PlateShape | None = None, idx: list | None = None):
+    def __init__(self, p_W: list, uv: list, R0: list, shape: _PlateShape | None = None, idx: list | None = None,
+                 *, ni: int = 5, skew: float = 0.0):
+        if ni not in (5, 6):
+            raise ValueError(f"intrinsics: expected 5 or 6 intrinsic parameters, got {ni}")
         self.p_W, self.uv, self.R0 = p_W, uv, R0
+        self.ni, self.skew = int(ni), float(skew)
         self.n = [len(p) for p in p_W]
         self.off = np.concatenate([[0], np.cumsum([2 * k for k in self.n])])
         self.shape = shape if shape is not None and shape.n else None
         self.idx = idx
         V = len(p_W)
-        self.n_params = 5 + 6 * V + (self.shape.n if self.shape else 0)
-        sc = np.arange(5 + 6 * V, self.n_params)
-        self.blocks = [(int(self.off[k]), int(self.off[k + 1]), np.r_[0:5, 5 + 6 * k : 11 + 6 * k, sc])
+        ni = self.ni
+        self.n_params = ni + 6 * V + (self.shape.n if self.shape else 0)
+        sc = np.arange(ni + 6 * V, self.n_params)
+        self.blocks = [(int(self.off[k]), int(self.off[k + 1]), np.r_[0:ni, ni + 6 * k : ni + 6 + 6 * k, sc])
                        for k in range(V)]
         if self.shape:
             self.blocks.append((int(self.off[-1]), int(self.off[-1]) + self.shape.n, sc))
@@ -209,28 +237,31 @@ class _Joint:
     def points(self, x, k) -> np.ndarray:
         if not self.shape:
             return self.p_W[k]
-        return self.p_W[k] + self.shape.offsets(x[5 + 6 * len(self.p_W) :], self.idx[k])
+        return self.p_W[k] + self.shape.offsets(x[self.ni + 6 * len(self.p_W) :], self.idx[k])
 
     def view(self, x, k) -> np.ndarray:
-        j = 5 + 6 * k
+        j = self.ni + 6 * k
         R = R_from_rotvec(x[j : j + 3]) @ self.R0[k]
-        m = _project(x[:5], R, x[j + 3 : j + 6], self.points(x, k))
+        m = _project(x[: self.ni], R, x[j + 3 : j + 6], self.points(x, k), self.skew)
         return (m - self.uv[k]).T.ravel()
 
     def residuals(self, x) -> np.ndarray:
         r = [self.view(x, k) for k in range(len(self.p_W))]
         if self.shape:
-            r.append(self.shape.w * x[5 + 6 * len(self.p_W) :])
+            r.append(self.shape.w * x[self.ni + 6 * len(self.p_W) :])
         return np.concatenate(r)
 
     def jacobian(self, x) -> np.ndarray:
-        """Analytic (as ``selfview.tsai``'s full model, with cx, cy, the aspect and the plate's shape added)."""
+        """Analytic (as ``selfview.tsai``'s full model, with cx, cy, the aspect, the skew and the plate's shape
+        added: u = X^ / aspect + skew Y^ + cx)."""
         f, kappa, cx, cy, aspect = x[:5]
+        ni = self.ni
+        skew = x[5] if ni > 5 else self.skew
         V = len(self.p_W)
-        s0 = 5 + 6 * V
+        s0 = ni + 6 * V
         J = np.zeros((int(self.off[-1]) + (self.shape.n if self.shape else 0), len(x)))
         for k in range(V):
-            j = 5 + 6 * k
+            j = ni + 6 * k
             R = R_from_rotvec(x[j : j + 3]) @ self.R0[k]
             d = self.points(x, k) @ R.T
             pc = d + x[j + 3 : j + 6]
@@ -248,7 +279,7 @@ class _Joint:
             n = len(z)
             r0 = self.off[k]
             D = self.shape.dp_dy(self.idx[k]) if self.shape else None
-            for row, (mu0, mu1), extra in ((0, (m00 / aspect, m01 / aspect), 1), (1, (m01, m11), 0)):
+            for row, (mu0, mu1) in ((0, (m00 / aspect + skew * m01, m01 / aspect + skew * m11)), (1, (m01, m11))):
                 g = np.column_stack([mu0, mu1, -(mu0 * X + mu1 * Y) / f]) * (f / z)[:, None]
                 rows = slice(r0 + row * n, r0 + (row + 1) * n)
                 J[rows, 0] = (mu0 * X + mu1 * Y) / f
@@ -260,6 +291,8 @@ class _Joint:
             J[r0 : r0 + n, 2] = 1.0
             J[r0 + n : r0 + 2 * n, 3] = 1.0
             J[r0 : r0 + n, 4] = -Xh / aspect**2
+            if ni > 5:
+                J[r0 : r0 + n, 5] = Yh
         if self.shape:
             J[int(self.off[-1]) :, s0:] = np.diag(self.shape.w)
         if not np.all(np.isfinite(J)):
@@ -267,7 +300,7 @@ class _Joint:
         return J
 
     def pose(self, x, k) -> np.ndarray:
-        j = 5 + 6 * k
+        j = self.ni + 6 * k
         return make_H(R_from_rotvec(x[j : j + 3]) @ self.R0[k], x[j + 3 : j + 6])
 
 
@@ -294,7 +327,7 @@ class ViewFit:
 @dataclass
 class _Fit:
     camera: CameraModel
-    cov5: np.ndarray
+    cov5: np.ndarray  # (ni, ni) of the intrinsics fitted: INTRINSIC_NAMES[:ni]
     cov_full: np.ndarray
     jac: np.ndarray
     s2: float
@@ -308,6 +341,7 @@ class _Fit:
     prior_noise_px: float = 0.0
     dot_sd_mm: float = PLATE_DOT_PRIOR_MM
     turns: list = field(default_factory=list)
+    dropped: list = field(default_factory=list)  # [(view name, why)] left out of the fit
 
 
 @dataclass
@@ -407,10 +441,12 @@ def _initial_pose(p_W, uv, camera: CameraModel) -> np.ndarray:
 
 def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list, *, rc: list | None = None,
            plate: PlateSpec | None = None, plate_model: str = "flat", shape0=None, noise_px: float = 0.05,
-           dot_sd_mm: float = PLATE_DOT_PRIOR_MM) -> _Fit:
+           dot_sd_mm: float = PLATE_DOT_PRIOR_MM, fit_skew: bool = True) -> _Fit:
     """Joint LM from ``camera0``, ``poses0`` (and the plate's shape ``shape0``); drops outlying discs once
     and refits. ``plate_model`` (``PLATE_MODELS``; needs ``rc`` and ``plate``): what of the plate's shape is
-    fitted; ``noise_px`` the disc centres' noise that weighs the shape's prior against the pixels."""
+    fitted; ``noise_px`` the disc centres' noise that weighs the shape's prior against the pixels;
+    ``fit_skew``: the skew is fitted (else held at ``camera0``'s)."""
+    ni = 6 if fit_skew else 5
     shape = None
     if plate_model != "flat":
         if rc is None or plate is None:
@@ -423,14 +459,15 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
         P = [p[k] for p, k in zip(p_W, keep)]
         U = [u[k] for u, k in zip(uv, keep)]
         idx = [shape.index(r[k]) for r, k in zip(rc, keep)] if shape else None
-        model = _Joint(P, U, [H[:3, :3] for H in poses0], shape, idx)
-        x0 = np.concatenate([[camera0.f, camera0.kappa, camera0.cx, camera0.cy, camera0.aspect],
-                             *[np.concatenate([np.zeros(3), H[:3, 3]]) for H in poses0], y0])
+        model = _Joint(P, U, [H[:3, :3] for H in poses0], shape, idx, ni=ni, skew=camera0.skew)
+        x0 = np.concatenate([_intr(camera0, ni), *[np.concatenate([np.zeros(3), H[:3, 3]]) for H in poses0], y0])
         res = _lm_normal(model.residuals, model.jacobian, x0, model.blocks)
         poses0 = [model.pose(res.x, k) for k in range(len(P))]
         y0 = res.x[len(res.x) - ns :] if ns else y0
-        camera0 = camera0.with_(f=float(res.x[0]), kappa=float(res.x[1]), cx=float(res.x[2]), cy=float(res.x[3]),
-                                aspect=float(res.x[4]))
+        try:
+            camera0 = _with_intr(camera0, res.x[:ni])
+        except ConfigError as exc:  # a skew no grabber has: the views do not fit this camera model
+            raise CalibrationError(f"intrinsics: the joint fit left the camera model ({exc})") from None
         dist = [np.hypot(*model.view(res.x, k).reshape(2, -1)) for k in range(len(P))]
         rms = float(np.sqrt(np.mean(np.concatenate(dist) ** 2)))
         if attempt == 1:
@@ -456,7 +493,7 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
         tilt = float(np.degrees(np.arccos(min(1.0, abs(H[2, 2])))))
         views.append(ViewFit(names[k], H, int(keep[k].sum()), float(np.sqrt(np.mean(dist[k] ** 2))), tilt,
                              float(np.linalg.norm(H[:3, 3])), int((~keep[k]).sum())))
-    return _Fit(camera0, cov[:5, :5], cov, res.jacobian, float(s2), rms, views, U, P, plate_model,
+    return _Fit(camera0, cov[:ni, :ni], cov, res.jacobian, float(s2), rms, views, U, P, plate_model,
                 np.asarray(y0, float), cov[n - ns :, n - ns :] if ns else np.zeros((0, 0)), float(noise_px), float(dot_sd_mm))
 
 
@@ -482,7 +519,7 @@ def _dot_field(det, uv, camera: CameraModel, H) -> np.ndarray | None:
     None with too few discs."""
     if len(uv) < 15:
         return None
-    x = np.array([camera.f, camera.kappa, camera.cx, camera.cy, camera.aspect])
+    x = _intr(camera)
     R, t = H[:3, :3], H[:3, 3]
     p = det.p_W
     m = _project(x, R, t, p)
@@ -567,11 +604,11 @@ def _align_views(dets, uvs, fit: _Fit, plate: PlateSpec):
 
 
 def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel, names: list[str] | None = None,
-              *, bias: bool = True, plate_model: str = "bow+dots") -> _Fit:
+              *, bias: bool = True, plate_model: str = "bow+dots", fit_skew: bool = True) -> _Fit:
     """The joint fit of views' disc detections from ``camera0`` (a starting camera): first poses by
     planar PnP, a fit on the centroids, then ``BIAS_ROUNDS`` rounds of bias correction and refit
     (``bias=False``: the centroids as measured). ``plate_model`` (``PLATE_MODELS``): what of the printed
-    plate's shape is fitted with the camera. The shape's prior is weighed with the previous fit's noise
+    plate's shape is fitted with the camera; ``fit_skew``: the grabber's skew too. The shape's prior is weighed with the previous fit's noise
     (its residual sigma); the fit is repeated (at most ``NOISE_ROUNDS`` times) until that noise settles."""
     if plate_model not in PLATE_MODELS:
         raise CalibrationError(f"intrinsics: plate model {plate_model!r}: expected one of {', '.join(PLATE_MODELS)}")
@@ -590,9 +627,10 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
         )
     uv = [d.uv for d in dets]
     turns = [0.0] * len(dets)
+    dropped: list = []
     if plate_model != "flat":
         # a first camera on the plate as specified, then the views' discs on one physical grid
-        fit = _solve([d.p_W for d in dets], uv, camera0, poses, names)
+        fit = _solve([d.p_W for d in dets], uv, camera0, poses, names, fit_skew=fit_skew)
         uv = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate)
         dets, turns = _align_views(dets, uv, fit, plate)
         if plate_model == "bow+dots" and sum(t is not None for t in turns) < max(2, (len(dets) + 1) // 2):
@@ -600,11 +638,21 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
             # corrections could not be tied to the physical discs, and on the pictures' own grids they
             # would take up what is fixed in the picture (a grabber's shear) as a deformation of the plate
             plate_model = "bow"
+        unaligned = [k for k, t in enumerate(turns) if t is None]
+        if plate_model == "bow+dots" and unaligned and len(dets) - len(unaligned) >= MIN_VIEWS:
+            # a view whose discs could not be tied to the physical grid would give the dots' corrections
+            # to the wrong discs (in the picture: a fixed pattern the fit cannot explain, which biases the
+            # centre by pixels while its sigma stays small): left out, and said
+            keep = [k for k in range(len(dets)) if k not in unaligned]
+            dropped = [(names[k], "its discs could not be tied to the plate's grid (the printed dot pattern is "
+                                  "not recognised in it), so the plate's per-disc corrections cannot apply")
+                       for k in unaligned]
+            dets, uv, names, turns = ([a[k] for k in keep] for a in (dets, uv, names, turns))
         poses = [_initial_pose(d.p_W, u, fit.camera) for d, u in zip(dets, uv)]
         camera0 = fit.camera
     P = [d.p_W for d in dets]
     rc = [d.rc for d in dets]
-    kw = {"rc": rc, "plate": plate, "plate_model": plate_model}
+    kw = {"rc": rc, "plate": plate, "plate_model": plate_model, "fit_skew": fit_skew}
     fit = _solve(P, uv, camera0, poses, names, **kw)
     for rnd in range(BIAS_ROUNDS + NOISE_ROUNDS if bias else NOISE_ROUNDS):
         noise, sd = float(np.sqrt(fit.s2)), fit.dot_sd_mm
@@ -621,6 +669,7 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
         fit = _solve(P, uv, fit.camera, [v.C_H_W for v in fit.views], names, shape0=fit.shape, noise_px=noise,
                      dot_sd_mm=sd, **kw)
     fit.turns = turns
+    fit.dropped = dropped
     return fit
 
 
@@ -642,29 +691,31 @@ def detect_views(images, plate: PlateSpec, camera: CameraModel, names=None, *, s
 
 
 # --- uncertainty figures --------------------------------------------------------------------------
-def _pixel_jacobian(camera: CameraModel, uv) -> np.ndarray:
-    """(2, 5) derivative of where the ray of pixel ``uv`` lands, w.r.t. (f, kappa, cx, cy, aspect)."""
+def _pixel_jacobian(camera: CameraModel, uv, ni: int = 5) -> np.ndarray:
+    """(2, ni) derivative of where the ray of pixel ``uv`` lands, w.r.t. (f, kappa, cx, cy, aspect[, skew])."""
     xy = camera.undistort_pixels(np.atleast_2d(uv))[0] / camera.f
     p = np.array([[xy[0], xy[1], 1.0]])
-    x = np.array([camera.f, camera.kappa, camera.cx, camera.cy, camera.aspect])
-    J = np.zeros((2, 5))
-    for i in range(5):
+    x = _intr(camera, ni)
+    J = np.zeros((2, ni))
+    for i in range(ni):
         h = _STEP[i] * (abs(x[i]) if i == 0 else 1.0)
         xp, xm = x.copy(), x.copy()
         xp[i] += h
         xm[i] -= h
-        J[:, i] = (_project(xp, np.eye(3), np.zeros(3), p)[0] - _project(xm, np.eye(3), np.zeros(3), p)[0]) / (2 * h)
+        J[:, i] = (_project(xp, np.eye(3), np.zeros(3), p, camera.skew)[0]
+                   - _project(xm, np.eye(3), np.zeros(3), p, camera.skew)[0]) / (2 * h)
     return J
 
 
 def projection_sigma_px(camera: CameraModel, cov5: np.ndarray) -> dict:
-    """1-sigma [px] of the projection at the picture's centre and its four corners (see the module)."""
+    """1-sigma [px] of the projection at the picture's centre and its four corners (see the module);
+    ``cov5`` the covariance of ``INTRINSIC_NAMES[:n]``, n 5 or 6."""
     W, H = camera.width, camera.height
     pts = {"centre": ((W - 1) / 2, (H - 1) / 2), "top_left": (0.0, 0.0), "top_right": (W - 1.0, 0.0),
            "bottom_left": (0.0, H - 1.0), "bottom_right": (W - 1.0, H - 1.0)}
     out = {}
     for nm, q in pts.items():
-        J = _pixel_jacobian(camera, q)
+        J = _pixel_jacobian(camera, q, len(cov5))
         out[nm] = float(np.sqrt(max(np.trace(J @ cov5 @ J.T), 0.0)))
     return out
 
@@ -683,41 +734,68 @@ VIEW_KINDS = (("tilted 35 deg", 35.0), ("tilted 20 deg", 20.0), ("square-on", 0.
 
 
 def _view_information(camera: CameraModel, plate: PlateSpec, distance: float, tilt_deg: float, azimuth_deg: float,
-                      s2: float) -> np.ndarray | None:
-    """(5, 5) information on the intrinsics that one view of the plate adds, its pose eliminated: the
+                      s2: float, ni: int = 5, shape: "_PlateShape | None" = None, y=None) -> np.ndarray | None:
+    """(ni, ni) information on the intrinsics that one view of the plate adds, its pose eliminated: the
     plate's centre at ``distance`` on the optical axis, tilted ``tilt_deg`` about an in-plane axis at
-    ``azimuth_deg``; the discs that fall in the picture."""
+    ``azimuth_deg``; the discs that fall in the picture. With the plate's shape (``shape`` at parameters
+    ``y``): (ni + n_shape) square, on the intrinsics and the shape (the same printed plate in every view)."""
     a = np.radians(azimuth_deg)
     H = trans(0, 0, distance) @ rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt_deg))
     p = plate.disc_centres_W()
-    x = np.array([camera.f, camera.kappa, camera.cx, camera.cy, camera.aspect])
-    uv = _project(x, H[:3, :3], H[:3, 3], p)
+    x = _intr(camera, ni)
+    uv = _project(x, H[:3, :3], H[:3, 3], p, camera.skew)
     ok = np.all(np.isfinite(uv), axis=1)
     ok[ok] = camera.in_image(uv[ok], margin=10)
     if ok.sum() < 8:
         return None
-    model = _Joint([p[ok]], [uv[ok]], [H[:3, :3]])
-    J = model.jacobian(np.concatenate([x, np.zeros(3), H[:3, 3]]))
-    A = _normal(J, np.zeros(len(J)), model.blocks)[0] / s2
-    Aii, Aip, App = A[:5, :5], A[:5, 5:], A[5:, 5:]
-    return Aii - Aip @ np.linalg.solve(App, Aip.T)
+    if shape is None:
+        model = _Joint([p[ok]], [uv[ok]], [H[:3, :3]], ni=ni, skew=camera.skew)
+        J = model.jacobian(np.concatenate([x, np.zeros(3), H[:3, 3]]))
+        A = _normal(J, np.zeros(len(J)), model.blocks)[0] / s2
+        Aii, Aip, App = A[:ni, :ni], A[:ni, ni:], A[ni:, ni:]
+        return Aii - Aip @ np.linalg.solve(App, Aip.T)
+    model = _Joint([p[ok]], [uv[ok]], [H[:3, :3]], shape, [np.flatnonzero(ok)], ni=ni, skew=camera.skew)
+    J = model.jacobian(np.concatenate([x, np.zeros(3), H[:3, 3], y]))[: model.m_data]  # no second prior
+    A = J.T @ J / s2
+    keep = np.r_[0:ni, ni + 6 : len(A)]
+    Ak, Akp, App = A[np.ix_(keep, keep)], A[keep, ni : ni + 6], A[ni : ni + 6, ni : ni + 6]
+    return Ak - Akp @ np.linalg.solve(App, Akp.T)
 
 
 def more_views_advice(fit: _Fit, plate: PlateSpec) -> dict:
-    """How many more views of each kind (``VIEW_KINDS``) would meet the stop rule, from the covariance."""
+    """How many more views of each kind (``VIEW_KINDS``) would meet the stop rule, from the covariance.
+
+    With the plate's shape fitted, on the joint information of the intrinsics and the shape: a further
+    view sees the same printed plate, whose uncertain shape it shares with the views taken (counting only
+    the intrinsics' marginal information, as if the new view's plate were known, promised the stop rule
+    after one more view where six did not reach it)."""
+    ni = len(fit.cov5)
+    ns = len(fit.shape) if fit.plate_model != "flat" else 0
+    shape = None
+    if ns:
+        n = len(fit.cov_full)
+        idx = np.r_[0:ni, n - ns : n]
+        cov0 = fit.cov_full[np.ix_(idx, idx)]
+        shape = _PlateShape(plate, fit.plate_model, fit.prior_noise_px, fit.dot_sd_mm)
+        if shape.n != ns:
+            shape, cov0 = None, fit.cov5
+    else:
+        cov0 = fit.cov5
+    m = len(cov0)
     try:
-        info0 = np.linalg.inv(fit.cov5)
+        info0 = np.linalg.inv(cov0)
     except np.linalg.LinAlgError:
-        info0 = np.zeros((5, 5))
+        info0 = np.zeros((m, m))
     if not np.all(np.isfinite(info0)):
-        info0 = np.zeros((5, 5))
+        info0 = np.zeros((m, m))
     dist = float(np.median([v.distance_mm for v in fit.views]))
     out = {}
     for label, tilt in VIEW_KINDS:
         info = info0.copy()
         need = None
         for n in range(1, MAX_MORE_VIEWS + 1):
-            add = _view_information(fit.camera, plate, dist, tilt, 90.0 * (n - 1) + 45.0 * ((n - 1) // 4), fit.s2)
+            add = _view_information(fit.camera, plate, dist, tilt, 90.0 * (n - 1) + 45.0 * ((n - 1) // 4), fit.s2, ni,
+                                    shape, fit.shape if shape is not None else None)
             if add is None:
                 break
             info += add
@@ -725,6 +803,7 @@ def more_views_advice(fit: _Fit, plate: PlateSpec) -> dict:
                 cov = np.linalg.inv(info)
             except np.linalg.LinAlgError:
                 continue
+            cov = cov[:ni, :ni]
             if np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0) and _stop_met(_sigmas(cov), fit.camera.aspect):
                 need = n
                 break
@@ -738,7 +817,7 @@ class IntrinsicsResult:
     """A joint calibration of the interior orientation from several views (see the module)."""
 
     camera: CameraModel
-    covariance: np.ndarray  # (5, 5) of INTRINSIC_NAMES
+    covariance: np.ndarray  # (n, n) of INTRINSIC_NAMES[:n]: n = 6 with the skew fitted, 5 without
     sigma: dict
     rms_px: float
     views: list
@@ -757,7 +836,7 @@ class IntrinsicsResult:
     def summary(self) -> dict:
         c = self.camera
         return {
-            "f": c.f, "kappa": c.kappa, "principal_point": [c.cx, c.cy], "aspect": c.aspect,
+            "f": c.f, "kappa": c.kappa, "principal_point": [c.cx, c.cy], "aspect": c.aspect, "skew": c.skew,
             "width": c.width, "height": c.height,
             "sigma": dict(self.sigma),
             "covariance": np.asarray(self.covariance).tolist(),
@@ -798,13 +877,13 @@ def _cross_check(dets, names, plate, fit: _Fit) -> dict:
     for idx in (range(0, n, 2), range(1, n, 2)):
         idx = list(idx)
         try:
-            h = fit_views([dets[i] for i in idx], plate, fit.camera, [names[i] for i in idx], plate_model=fit.plate_model)
+            h = fit_views([dets[i] for i in idx], plate, fit.camera, [names[i] for i in idx], plate_model=fit.plate_model,
+                          fit_skew=len(fit.cov5) > 5)
         except CalibrationError as exc:
             return {"done": False, "why": f"a half could not be calibrated: {exc}"}
         halves.append(h)
     a, b = halves
-    xa = np.array([a.camera.f, a.camera.kappa, a.camera.cx, a.camera.cy, a.camera.aspect])
-    xb = np.array([b.camera.f, b.camera.kappa, b.camera.cx, b.camera.cy, b.camera.aspect])
+    xa, xb = _intr(a.camera, len(a.cov5)), _intr(b.camera, len(b.cov5))
     comb = np.sqrt(np.diag(a.cov5) + np.diag(b.cov5))
     ratio = np.abs(xa - xb) / comb
     agree = bool(np.all(np.isfinite(ratio)) and np.all(ratio <= AGREE_SIGMAS))
@@ -821,8 +900,9 @@ def _cross_check(dets, names, plate, fit: _Fit) -> dict:
 
 def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, names=None, *,
                          skip_unusable: bool = False, cross_check: bool = True, detections=None,
-                         plate_model: str = "bow+dots") -> IntrinsicsResult:
-    """Joint calibration of f, kappa, cx, cy, aspect and each view's ``C_H_W`` from pictures of the plate.
+                         plate_model: str = "bow+dots", skew: bool = True) -> IntrinsicsResult:
+    """Joint calibration of f, kappa, cx, cy, aspect, the grabber's skew and each view's ``C_H_W`` from
+    pictures of the plate (``skew=False``: the skew held at ``camera_guess``'s, the spec's model).
 
     ``images`` (H, W) pictures (or ``detections``, a list of ``DiscDetections``, instead); ``plate`` the
     plate; ``camera_guess`` the starting camera (the cell's nominal one: its size checks the pictures);
@@ -842,16 +922,21 @@ def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, na
             f"intrinsics: {len(dets)} usable view(s) of the plate; at least {MIN_VIEWS} are needed (12 or more, "
             "tilted 20-40 deg in different directions, pin the centre and the aspect)"
         )
-    fit = fit_views(dets, plate, camera_guess, names, plate_model=plate_model)
+    fit = fit_views(dets, plate, camera_guess, names, plate_model=plate_model, fit_skew=skew)
     # a view that does not fit the others: drop it and refit
-    bad = [k for k, v in enumerate(fit.views) if v.rms_px > VIEW_MAX_RMS_PX]
-    if bad and len(dets) - len(bad) >= MIN_VIEWS:
-        for k in bad:
-            skipped.append({"name": names[k], "reason": f"does not fit the other views (residual rms "
-                                                        f"{fit.views[k].rms_px:.2f} px > {VIEW_MAX_RMS_PX} px)"})
-        keep = [k for k in range(len(dets)) if k not in bad]
+    bad = {v.name: v.rms_px for v in fit.views if v.rms_px > VIEW_MAX_RMS_PX}
+    if bad and len(fit.views) - len(bad) >= MIN_VIEWS:
+        for nm, rms in bad.items():
+            skipped.append({"name": nm, "reason": f"does not fit the other views (residual rms "
+                                                  f"{rms:.2f} px > {VIEW_MAX_RMS_PX} px)"})
+        keep = [k for k in range(len(dets)) if names[k] not in bad]
         dets, names = [dets[k] for k in keep], [names[k] for k in keep]
-        fit = fit_views(dets, plate, fit.camera, names, plate_model=plate_model)
+        fit = fit_views(dets, plate, fit.camera, names, plate_model=plate_model, fit_skew=skew)
+    for nm, why in fit.dropped:
+        skipped.append({"name": nm, "reason": why})
+    used = {v.name for v in fit.views}
+    keep = [k for k in range(len(dets)) if names[k] in used]
+    dets, names = [dets[k] for k in keep], [names[k] for k in keep]
     sig = _sigmas(fit.cov5)
     tilts = [v.tilt_deg for v in fit.views]
     if not (np.all(np.isfinite(fit.cov5)) and max(sig["cx"], sig["cy"]) < UNDETERMINED_CENTRE_PX):
@@ -1001,13 +1086,13 @@ TARGET_ALONG_MM = 0.08
 CAMERA_CHI2_LIMIT = 21.1
 
 
-def _one_view(result, camera: CameraModel):
-    """(model, x, s2, J) of the one-view problem at the off-line result: all five intrinsics and the pose."""
+def _one_view(result, camera: CameraModel, ni: int = 5):
+    """(model, x) of the one-view problem at the off-line result: the intrinsics (f and kappa the picture's,
+    the rest ``camera``'s; ``ni`` 5: the skew held at ``camera``'s, 6: free) and the pose."""
     ts = result.tsai
     H = ts.C_H_W
-    model = _Joint([result.discs.p_W], [result.disc_uv_corrected], [H[:3, :3]])
-    c = ts.camera
-    x = np.concatenate([[c.f, c.kappa, camera.cx, camera.cy, camera.aspect], np.zeros(3), H[:3, 3]])
+    model = _Joint([result.discs.p_W], [result.disc_uv_corrected], [H[:3, :3]], ni=ni, skew=camera.skew)
+    x = np.concatenate([_intr(camera.with_(f=ts.camera.f, kappa=ts.camera.kappa), ni), np.zeros(3), H[:3, 3]])
     return model, x
 
 
@@ -1026,7 +1111,8 @@ def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
     assumed camera's principal point or aspect (``camera``, default the cell's nominal one) is wrong by
     enough to cost more than the accuracy targets?
 
-    One view with f, kappa, cx, cy, aspect and the pose all free; the difference of (cx, cy, aspect) from
+    One view with f, kappa, cx, cy, aspect and the pose all free (the skew held at the assumed camera's:
+    one view does not pin it); the difference of (cx, cy, aspect) from
     the assumed ones is significant when its chi-square exceeds ``CAMERA_CHI2_LIMIT``; its cost is how far
     the TCP moves when the picture is calibrated again with the picture's own centre and aspect.
     Returns {significant, chi2, centre_offset_px [dx, dy], aspect, aspect_sigma, centre_sigma_px,
@@ -1062,9 +1148,11 @@ def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
     if not out["significant"]:
         return out
     try:
-        ts = calibrate_coplanar(result.discs.p_W, result.disc_uv_corrected, cx=float(res.x[2]), cy=float(res.x[3]),
-                                aspect=float(res.x[4]), mode="full", width=cam0.width, height=cam0.height)
-        shift = _tcp_of(result, cell, ts.camera, ts.C_H_W) - result.calibration.C_H_G[:3, 3]
+        own = cam0.with_(cx=float(res.x[2]), cy=float(res.x[3]), aspect=float(res.x[4]))
+        ts = calibrate_coplanar(result.discs.p_W, own.deskew_pixels(result.disc_uv_corrected), cx=own.cx, cy=own.cy,
+                                aspect=own.aspect, mode="full", width=cam0.width, height=cam0.height)
+        shift = (_tcp_of(result, cell, ts.camera.with_(skew=cam0.skew), ts.C_H_W)
+                 - result.calibration.C_H_G[:3, 3])
     except CalibrationError as exc:
         out["why"] = f"recalibrating with the picture's own centre failed: {exc}"
         return out
@@ -1089,18 +1177,19 @@ def tcp_sigma(result, cell, camera_cov3: np.ndarray | None = None) -> dict:
     Three parts, propagated to ``C_H_G``'s translation by its derivatives (central differences through
     Tsai's pose and ``selfview.pcc.solve_pcc``): the picture's own noise in the disc centres (the
     covariance of f, kappa and the plate pose, scaled by the residual); the uncertainty of the principal
-    point and aspect (``camera_cov3`` (3, 3) of cx, cy, aspect, from a camera file; None: taken as exact),
+    point and aspect (``camera_cov3`` (3, 3) of cx, cy, aspect, or (4, 4) with the skew, from a camera file;
+    None: taken as exact),
     through the pose and f they shift and directly; the fingertip corners' (each from two line fits: the
     edge points' RMS over sqrt(n/2) per axis). Returns {tcp_sigma_mm [3], parts {...}}.
     """
     cal = result.calibration
     cam = cal.camera
-    model, x = _one_view(result, cam)
+    model, x = _one_view(result, cam, ni=6)
     r = model.residuals(x)
     J = model.jacobian(x)
     m = len(r)
-    p_idx = np.r_[0:2, 5:11]
-    Jp, Jt = J[:, p_idx], J[:, 2:5]
+    p_idx = np.r_[0:2, 6:12]
+    Jp, Jt = J[:, p_idx], J[:, 2:6]
     s2 = float(r @ r) / max(m - len(p_idx), 1)
     N = Jp.T @ Jp
     Ninv = np.linalg.inv(N)
@@ -1113,13 +1202,13 @@ def tcp_sigma(result, cell, camera_cov3: np.ndarray | None = None) -> dict:
     from selfview.pcc import solve_pcc
 
     def tcp(xv, uv=None):
-        c = cam.with_(f=float(xv[0]), kappa=float(xv[1]), cx=float(xv[2]), cy=float(xv[3]), aspect=float(xv[4]))
-        H = make_H(R_from_rotvec(xv[5:8]) @ R0, xv[8:11])
+        c = _with_intr(cam, xv[:6])
+        H = make_H(R_from_rotvec(xv[6:9]) @ R0, xv[9:12])
         return solve_pcc(ft.uv[found] if uv is None else uv, pG, H, c).C_H_G[:3, 3]
 
     steps = np.r_[_STEP[0] * x[0], _STEP[1:], _POSE_STEP]
-    G = np.zeros((3, 11))
-    for i in range(11):
+    G = np.zeros((3, 12))
+    for i in range(12):
         xp, xm = x.copy(), x.copy()
         xp[i] += steps[i]
         xm[i] -= steps[i]
@@ -1127,8 +1216,11 @@ def tcp_sigma(result, cell, camera_cov3: np.ndarray | None = None) -> dict:
     Gp = G[:, p_idx]
     parts = {"picture": Gp @ cov_p @ Gp.T}
     if camera_cov3 is not None:
-        Gt = G[:, 2:5] + Gp @ dp_dt
-        parts["camera_file"] = Gt @ np.asarray(camera_cov3, float) @ Gt.T
+        C = np.asarray(camera_cov3, float)
+        if C.shape not in ((3, 3), (4, 4)):
+            raise ValueError(f"tcp_sigma: camera_cov3: expected (3, 3) or (4, 4), got {C.shape}")
+        Gt = (G[:, 2:6] + Gp @ dp_dt)[:, : len(C)]
+        parts["camera_file"] = Gt @ C @ Gt.T
     uv = ft.uv[found]
     n_edge = ft.n_edge_points[found] if ft.n_edge_points is not None else np.full(len(uv), 20)
     sc = np.nan_to_num(ft.edge_rms_px[found], nan=0.1) / np.sqrt(np.maximum(np.asarray(n_edge, float), 2) / 2)

@@ -137,7 +137,7 @@ def calibrate_offline(
     fingertips (default the cell's mount guess); ``points``: 'measured' takes the gripper points' G
     coordinates from the picture (the paper's way: the inner four form a rectangle centred on the TCP),
     'cell' takes them from the cell description.
-    ``camera`` a measured camera (``selfview intrinsics``): its principal point and aspect replace the
+    ``camera`` a measured camera (``selfview intrinsics``): its principal point, aspect and skew replace the
     cell's nominal ones (f and kappa are still measured from the picture, it only starts them);
     ``camera_file`` {path, sha256} of the file it came from, recorded in the calibration's residuals
     under ``camera_file`` (absent: the cell's nominal camera).
@@ -171,11 +171,13 @@ def calibrate_offline(
 
     t = time.perf_counter()
     kw = dict(cx=nominal.cx, cy=nominal.cy, aspect=nominal.aspect, mode=mode, width=cs.width, height=cs.height)
-    ts = calibrate_coplanar(det.p_W, det.uv, **kw)
+    # Tsai's method takes (cx, cy, aspect): a measured camera's skew is taken off the pixels first
+    # (CameraModel.deskew_pixels: the same rays in the camera without skew) and given back to its result
+    ts = calibrate_coplanar(det.p_W, nominal.deskew_pixels(det.uv), **kw)
     # the image of a disc's centre is not the centroid of its ellipse: correct with the first pose, refit
-    uv_c = correct_disc_bias(det, ts.camera, ts.C_H_W, cell.plate)
-    ts = calibrate_coplanar(det.p_W, uv_c, **kw)
-    camera: CameraModel = ts.camera
+    uv_c = correct_disc_bias(det, ts.camera.with_(skew=nominal.skew), ts.C_H_W, cell.plate)
+    ts = calibrate_coplanar(det.p_W, nominal.deskew_pixels(uv_c), **kw)
+    camera: CameraModel = ts.camera.with_(skew=nominal.skew)
     timings["tsai"] = (time.perf_counter() - t) * 1e3
 
     t = time.perf_counter()

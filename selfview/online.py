@@ -241,6 +241,19 @@ def _prepare(C_H_G, p_G, uv, camera, names, kind: str):
     return H, P, uv, Hl, Pl, uvl, names, label
 
 
+def _deskewed(uv, camera):
+    """(pixels, camera) for the estimators, which take the camera's (cx, cy, aspect) alone: a camera with a
+    grabber's skew (``CameraModel.skew``) becomes the same camera without it, seeing ``deskew_pixels(uv)``:
+    the same rays, so the same motion (the residuals then differ from the picture's by skew * dv, a
+    part in a thousand). A camera without skew and malformed input (left to the checks) pass as they are."""
+    if not isinstance(camera, CameraModel) or not camera.skew:
+        return uv, camera
+    a = np.asarray(uv, dtype=float)
+    if a.ndim != 2 or a.shape[-1] != 2:
+        return uv, camera
+    return camera.deskew_pixels(a), camera.without_skew()
+
+
 def _point_names(names, n: int) -> tuple[str, ...]:
     """The names of n points: ``names`` as strings, or by default those of ``POINT_NAMES``."""
     if names is None:
@@ -521,6 +534,7 @@ def differential_update(
     Raises ``CalibrationError`` for fewer than 3 points, non-finite input, points behind the camera,
     collinear points or an ill-conditioned system; ``ValueError`` for arrays of the wrong shape.
     """
+    uv, camera = _deskewed(uv, camera)
     npu = _native.npu
     if npu is not None and isinstance(camera, CameraModel):
         # The compiled kernel computes what the code below computes (selfview/_native.py) in about a
@@ -720,6 +734,7 @@ def iterative_update(
     Raises ``CalibrationError`` for fewer than 3 points, non-finite input, a mirroring ``C_H_G``, points
     behind the camera, collinear points, an ill-conditioned system or no convergence in ``max_iter`` steps.
     """
+    uv, camera = _deskewed(uv, camera)
     if _native.npu is not None and isinstance(camera, CameraModel):
         # the compiled Gauss-Newton (as in differential_update: None hands the case to the code below)
         C_H_G = np.asarray(C_H_G, dtype=float)
@@ -769,6 +784,7 @@ def recalibrate(
     Raises ``CalibrationError`` for fewer than 4 points, non-finite input, a mirroring ``C_H_G``,
     collinear points, no solution, an ill-conditioned system or no convergence.
     """
+    uv, camera = _deskewed(uv, camera)
     H0, P, uv, _, Pl, uvl, names, label = _prepare(C_H_G, p_G, uv, camera, names, "R")
     s = _spread(P)
     why = _collinear_reason(P, s)

@@ -103,7 +103,8 @@ class AltPicture:
 
 # --- the camera and the geometry, from the conventions and the cell's numbers --------------------------
 class _Camera:
-    """The camera of CONVENTIONS.md from plain numbers: eq. 1-4, both ways."""
+    """The camera of CONVENTIONS.md from plain numbers: eq. 1-4, both ways; with a grabber's ``skew`` (the
+    line v sampled skew (v - cy) px to the right: u = X^ / aspect + skew Y^ + cx), 0 unless the camera has one."""
 
     NEWTON_STEPS = 40  # the radius's Newton iteration: quadratic, converged in a handful; bounded
 
@@ -112,13 +113,14 @@ class _Camera:
         self.kappa = float(camera.kappa)
         self.cx, self.cy = float(camera.cx), float(camera.cy)
         self.aspect = float(camera.aspect)
+        self.skew = float(getattr(camera, "skew", 0.0))
         self.width, self.height = int(camera.width), int(camera.height)
 
     def undistort_pixels(self, uv: np.ndarray) -> np.ndarray:
         """Distorted pixels (M, 2) -> undistorted sensor coordinates (X, Y) (M, 2), explicit (eq. 4)."""
         uv = np.asarray(uv, float)
-        Xh = self.aspect * (uv[:, 0] - self.cx)
         Yh = uv[:, 1] - self.cy
+        Xh = self.aspect * (uv[:, 0] - self.cx - self.skew * Yh)
         k = 1.0 + self.kappa * (Xh * Xh + Yh * Yh)
         return np.column_stack([Xh * k, Yh * k])
 
@@ -143,7 +145,7 @@ class _Camera:
         bad = ~(1.0 + 3.0 * self.kappa * rh * rh > 0) | ~(p[:, 2] > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
             s = np.where(r > 0, rh / np.where(r > 0, r, 1.0), 1.0)
-        uv = np.column_stack([X * s / self.aspect + self.cx, Y * s + self.cy])
+        uv = np.column_stack([X * s / self.aspect + self.skew * (Y * s) + self.cx, Y * s + self.cy])
         uv[bad] = np.nan
         return uv
 

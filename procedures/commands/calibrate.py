@@ -54,13 +54,13 @@ def register(sub):
 
 
 def _camera_file(path, cell):
-    """(camera model, {path, sha256}, (3, 3) covariance of cx, cy, aspect) of a camera file, checked
-    against the cell's picture size."""
+    """(camera model, {path, sha256}, covariance of cx, cy, aspect (3, 3), and skew (4, 4) when the file
+    has it) of a camera file, checked against the cell's picture size."""
     from selfview.camfile import file_sha256, load_camera_file
 
     cf = load_camera_file(path)
     cf.check_size(cell.camera.width, cell.camera.height, f"camera file {path}")
-    return cf.camera, {"path": str(path), "sha256": file_sha256(path)}, cf.covariance[2:5, 2:5]
+    return cf.camera, {"path": str(path), "sha256": file_sha256(path)}, cf.centre_covariance()
 
 
 def run(args) -> int:

@@ -143,6 +143,8 @@ def run(args) -> int:
             f"  kappa  = {c.kappa:.4e} +- {sg['kappa']:.1e} px^-2",
             f"  centre = ({c.cx:.2f}, {c.cy:.2f}) +- ({sg['cx']:.2f}, {sg['cy']:.2f}) px",
             f"  aspect = {c.aspect:.5f} +- {sg['aspect']:.5f}",
+            *([f"  skew   = {c.skew:.2e} +- {sg['skew']:.1e} (the grabber's shear: "
+               f"{c.skew * c.height:+.2f} px from the top line to the bottom one)"] if "skew" in sg else []),
             f"  projection uncertainty: centre {ps['centre']:.3f} px, corners "
             + ", ".join(f"{ps[k]:.3f}" for k in ("top_left", "top_right", "bottom_left", "bottom_right")) + " px",
             "  stop rule: " + ("met" if res.stop_rule["met"] else "NOT met: " + res.stop_rule.get("advice", "")),

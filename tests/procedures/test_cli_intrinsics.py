@@ -54,7 +54,8 @@ def test_intrinsics_json_from_picture_files(measured, tmp_path, capsys):
     for key in ("f", "kappa", "principal_point", "aspect", "sigma", "rms_px", "views_used", "projection_sigma_px",
                 "stop_rule", "cross_check", "warnings"):
         assert key in out
-    assert set(out["sigma"]) == {"f", "kappa", "cx", "cy", "aspect"}
+    assert set(out["sigma"]) == {"f", "kappa", "cx", "cy", "aspect", "skew"}
+    assert abs(out["skew"]) < 4 * out["sigma"]["skew"] + 1e-4  # a camera without shear: skew about 0
     assert set(out["projection_sigma_px"]) == {"centre", "top_left", "top_right", "bottom_left", "bottom_right"}
     assert out["out"] is None and out["cross_check"]["done"]
 

@@ -121,8 +121,9 @@ def test_joint_fit_recovers_the_camera_and_its_sigmas_are_honest(cell):
         r = calibrate_intrinsics(None, cell.plate, cell.camera.guess(), detections=_views(cell, TRUE, seed=s),
                                  cross_check=False)
         c = r.camera
-        e = np.array([c.f - TRUE.f, c.kappa - TRUE.kappa, c.cx - TRUE.cx, c.cy - TRUE.cy, c.aspect - TRUE.aspect])
-        sg = np.array([r.sigma[k] for k in ("f", "kappa", "cx", "cy", "aspect")])
+        e = np.array([c.f - TRUE.f, c.kappa - TRUE.kappa, c.cx - TRUE.cx, c.cy - TRUE.cy, c.aspect - TRUE.aspect,
+                      c.skew - TRUE.skew])
+        sg = np.array([r.sigma[k] for k in ("f", "kappa", "cx", "cy", "aspect", "skew")])
         assert np.all(np.abs(e) < 4 * sg)
         errs.append(e)
         sigs.append(sg)
