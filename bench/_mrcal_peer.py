@@ -58,9 +58,18 @@ def find_python(timeout_s: float = 30.0) -> str | None:
 
 
 def mrcal_version(python: str) -> str | None:
-    r = subprocess.run([python, "-c", "import mrcal; print(getattr(mrcal, '__version__', '') or 'unknown')"],
+    """mrcal's version as the module or its package says it (Debian's module carries none; its package
+    manager does), or None."""
+    r = subprocess.run([python, "-c", "import mrcal; print(getattr(mrcal, '__version__', ''))"],
                        capture_output=True, text=True, timeout=30)
-    return r.stdout.strip() or None if r.returncode == 0 else None
+    if r.returncode == 0 and r.stdout.strip():
+        return r.stdout.strip()
+    try:
+        r = subprocess.run(["dpkg-query", "-W", "-f", "${Version}", "python3-mrcal"], capture_output=True, text=True,
+                           timeout=30)
+    except OSError:
+        return None
+    return f"{r.stdout.strip()} (Debian's python3-mrcal)" if r.returncode == 0 and r.stdout.strip() else None
 
 
 def _grid(p_W_views, pitch):

@@ -12,7 +12,9 @@ detections:
     guess, on the raw disc centres and, as a second variant, on our bias-corrected ones; its f is fy, its
     aspect fy / fx (u = X^ / aspect + cx in ours), its kappa the paper's kappa closest to its k1 over the
     picture (``bench/offline.py``'s ``kappa_equivalent``);
-  - mrcal where it is installed (``import mrcal``); skipped with a note otherwise.
+  - mrcal (``bench/_mrcal_peer.py``) where an interpreter imports it (Debian's ``python3-mrcal``, run in its
+    own interpreter): the plate as mrcal's board with its warp free, ``LENSMODEL_OPENCV4``, on the raw disc
+    centres; its f is fy, its aspect fy / fx, its kappa as cv2's; skipped with a note when none is found.
 Per method: median centre error [px], aspect and f errors [%] against the truth, the RMS of the errors over
 the RMS of the reported sigmas per parameter (1 = honest sigmas), and the median time.
 
@@ -126,6 +128,32 @@ def _cv2(dets, uvs, cam0, size):
     }
 
 
+def _mrcal(dets, uvs, pitch, cam0, size):
+    """mrcal's fit of the same views and detections (None: no interpreter has mrcal)."""
+    from selfview.bench import _mrcal_peer
+
+    if _MRCAL["python"] is None:
+        return None
+    m = _mrcal_peer.fit([d.p_W for d in dets], uvs, pitch, cam0, size, python=_MRCAL["python"])
+    m["kappa"] = _kappa_equivalent(np.array(m["K"]), np.r_[m["dist"], 0.0], size[0], size[1], m["aspect"])
+    return m
+
+
+def _add_mrcal(out, dets, cell, cam0, truth, true_skew=0.0):
+    """``out['mrcal']``: mrcal's fit on the raw disc centres with its errors, or what failed; nothing when
+    no interpreter has mrcal."""
+    try:
+        m = _mrcal(dets, [d.uv for d in dets], cell.plate.pitch, cam0, (cam0.width, cam0.height))
+        if m is not None:
+            out["mrcal"] = {**m, **_errors(m, truth, true_skew)}
+    except (RuntimeError, OSError, ValueError) as exc:  # mrcal ran and failed: said, not hidden
+        out["mrcal"] = {"error": f"{type(exc).__name__}: {exc}"}
+
+
+#: the interpreter that runs mrcal, found once by main() (workers inherit it)
+_MRCAL: dict = {"python": None}
+
+
 def _errors(est, truth, skew=0.0):
     """Errors against the true camera (``skew``: the true grabber's shear, px of u per px of v)."""
     extra = {}
@@ -172,6 +200,7 @@ def one_camera(args) -> dict:
     corrected = [d.uv - disc_image_bias(c, v.C_H_W, d.p_W, cell.plate.disc_diameter / 2) for d, v in zip(dets, r.views)]
     cor = _cv2(dets, corrected, cam0, size)
     out["cv2_bias_corrected"] = {**cor, **_errors(cor, w.camera)}
+    _add_mrcal(out, dets, cell, cam0, w.camera)
     # study 2: one parked picture, calibrated with the measured camera and with the nominal one
     w.park()
     pic = _render(w, w.C_H_W, 1000 * seed + 999)
@@ -251,6 +280,7 @@ def one_camera_profile(args) -> dict:
                      for d, v in zip(dets, flat.views)]
         cor = _cv2(dets, corrected, cam0, size)
         out["cv2_bias_corrected"] = {**cor, **_errors(cor, w.camera)}
+    _add_mrcal(out, dets, cell, cam0, w.camera, true_skew)
     # study 2 on this cell: one parked picture calibrated with the measured camera (with and without its
     # skew); the true TCP is the centre of the real fingers' inner corners (issue 17's fingers are off nominal)
     w.set_tcp(plate)
@@ -306,7 +336,7 @@ def _median(v):
 def table(per_camera):
     ok = [p for p in per_camera if "selfview" in p and "error" not in p["selfview"]]
     out = {}
-    for m in ("selfview", "selfview_no_skew", "selfview_flat_plate", "cv2_raw", "cv2_bias_corrected"):
+    for m in ("selfview", "selfview_no_skew", "selfview_flat_plate", "cv2_raw", "cv2_bias_corrected", "mrcal"):
         rows = [p[m] for p in ok if m in p and "error" not in p[m]]
         if not rows:
             continue
@@ -380,6 +410,7 @@ def main(argv=None) -> int:
     ap.add_argument("--profile", nargs="+", default=["ideal", "realistic"],
                     help="simulated cells for study 1: 'ideal' (the independent renderer, and studies 2-4) and "
                          "imperfection profiles or PROFILE:PART, e.g. realistic:plate (default: ideal realistic)")
+    ap.add_argument("--no-mrcal", action="store_true", help="do not look for mrcal (the peer is then skipped)")
     args = ap.parse_args(argv)
     for prof in args.profile:
         if prof != "ideal":
@@ -396,6 +427,10 @@ def main(argv=None) -> int:
                                                                  "not beside this copy: run from a source tree"}))
         return 0
     t0 = time.perf_counter()
+    if not args.no_mrcal:
+        from selfview.bench import _mrcal_peer
+
+        _MRCAL["python"] = _mrcal_peer.find_python()  # before the workers start: they inherit it
     seeds = [(s, args.views) for s in range(args.cameras)]
     ideal = "ideal" in args.profile
     work = [(100 + s, k) for k in ("ideal", "realistic") for s in range(args.pictures)] if ideal else []
@@ -421,12 +456,15 @@ def main(argv=None) -> int:
             "plate_models_fitted": {m: sum(1 for sh in shapes if sh.get("model") == m) for m in ("bow+dots", "bow", "flat")},
             "per_camera": rows,
         }
-    try:
-        import mrcal  # noqa: F401
+    if _MRCAL["python"] is not None:
+        from selfview.bench import _mrcal_peer
 
-        mrcal_note = "mrcal is installed, but this benchmark does not run it yet: no mrcal figures"
-    except ImportError:
-        mrcal_note = "mrcal is not installed (Debian's python3-mrcal): skipped"
+        mrcal_note = (f"mrcal {_mrcal_peer.mrcal_version(_MRCAL['python']) or '(version not reported)'} run in its own interpreter "
+                      f"({Path(_MRCAL['python']).name}): {_mrcal_peer.LENSMODEL}, the plate's warp free, outlier "
+                      "rejection on, on the raw disc centres (study 1 and each profile; no skew term: mrcal's "
+                      "models have none)")
+    else:
+        mrcal_note = "no interpreter imports mrcal (Debian's python3-mrcal, or SELFVIEW_MRCAL_PYTHON): skipped"
     out = {
         "benchmark": "multi-view intrinsics vs cv2.calibrateCamera (and mrcal)",
         "renderer": "tests/alt_render.py (independent)",
