@@ -3,7 +3,7 @@
  *
  *   sample(a_G, b_G, d_in, finger, box, H, cam, margin, step, p, edge, uv, nrm) -> S, or -1
  *     silhouette._sample_py (the reference): points every ``step`` px along the edges a_G -> b_G (E, 3)
- *     whose ends lie 1 mm or more in front of the camera at H (C_H_G), projected with cam (7,): f, kappa,
+ *     whose ends lie 1 mm or more in front of the camera at H (C_H_G), projected with cam (8,): f, kappa,
  *     cx, cy, aspect, width, height of camera.CameraModel (eq. 3, then the distorted radius by the same
  *     closed forms and Newton polish as camera._distorted_radius), kept when in the picture ``margin`` px
  *     inside its border and not behind the other finger's box (box (2, 2, 3): finger, lo/hi; finger (E,)
@@ -484,15 +484,16 @@ fail:
 /* ---- the sampling of the silhouette and the candidates along each sample's normal ---------------------- */
 
 typedef struct {
-    double f, kappa, cx, cy, aspect, width, height, rmax;
+    double f, kappa, cx, cy, aspect, width, height, skew, rmax;
 } Cam;
 
-/* cam (7,): f, kappa, cx, cy, aspect, width, height of a camera.CameraModel; 0 with an exception set */
+/* cam (8,): f, kappa, cx, cy, aspect, width, height, skew of a camera.CameraModel; 0 with an exception set */
 static int get_cam(const double *v, Cam *c)
 {
-    for (int i = 0; i < 7; i++)
+    for (int i = 0; i < 8; i++)
         if (!isfinite(v[i])) {
-            PyErr_SetString(PyExc_ValueError, "cam: expected 7 finite numbers (f, kappa, cx, cy, aspect, width, height)");
+            PyErr_SetString(PyExc_ValueError,
+                            "cam: expected 8 finite numbers (f, kappa, cx, cy, aspect, width, height, skew)");
             return 0;
         }
     if (!(v[0] > 0) || !(v[4] > 0) || !(v[5] > 0) || !(v[6] > 0)) {
@@ -506,6 +507,7 @@ static int get_cam(const double *v, Cam *c)
     c->aspect = v[4];
     c->width = v[5];
     c->height = v[6];
+    c->skew = v[7];
     c->rmax = INFINITY;
     if (c->kappa < 0) {
         double r = sqrt(-1.0 / (3.0 * c->kappa));
@@ -540,7 +542,7 @@ static int project(const Cam *c, const double p[3], double uv[2])
         for (int i = 0; i < 3; i++)
             r -= (k * r * r * r + r - R) / (3 * k * r * r + 1.0);
     const double s = R > 0 ? r / R : 1.0;
-    uv[0] = X * s / c->aspect + c->cx;
+    uv[0] = X * s / c->aspect + c->cx + c->skew * (Y * s); /* the grabber's shear: u += skew (v - cy) */
     uv[1] = Y * s + c->cy;
     return isfinite(uv[0]) && isfinite(uv[1]);
 }
@@ -598,7 +600,7 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
     GET(b_fin, o_fin, "finger", T_I64, 0, 1, E);
     GET(b_box, o_box, "box", T_F64, 0, 3, 2, 2, 3);
     GET(b_H, o_H, "H", T_F64, 0, 2, 4, 4);
-    GET(b_cam, o_cam, "cam", T_F64, 0, 1, 7);
+    GET(b_cam, o_cam, "cam", T_F64, 0, 1, 8);
     GET(b_p, o_p, "p", T_F64, 1, 2, -1, 3);
     const Py_ssize_t Smax = b_p->shape[0];
     GET(b_e, o_e, "edge", T_I64, 1, 1, Smax);
@@ -784,7 +786,7 @@ static PyObject *py_candidates(PyObject *self, PyObject *args)
     GET(b_l1, o_l1, "lev1", T_F64, 0, 1, S);
     GET(b_l2, o_l2, "lev2", T_F64, 0, 1, S);
     GET(b_g, o_g, "gates", T_F64, 0, 1, 4);
-    GET(b_cam, o_cam, "cam", T_F64, 0, 1, 7);
+    GET(b_cam, o_cam, "cam", T_F64, 0, 1, 8);
     GET(b_off, o_off, "off", T_F64, 1, 2, S, -1);
     const Py_ssize_t C = b_off->shape[1];
     GET(b_face, o_face, "face", T_F64, 1, 2, S, C);
@@ -882,7 +884,7 @@ static PyObject *py_candidates(PyObject *self, PyObject *args)
             *co = face[m] - other[m];
             /* camera.CameraModel.undistort_pixels of the candidate's pixel */
             const double pu = u + (double)off * nx, pv = v + (double)off * ny;
-            const double X = c.aspect * (pu - c.cx), Y = pv - c.cy, r2 = X * X + Y * Y;
+            const double X = c.aspect * (pu - c.cx - c.skew * (pv - c.cy)), Y = pv - c.cy, r2 = X * X + Y * Y;
             qo[0] = X * (1.0 + c.kappa * r2);
             qo[1] = Y * (1.0 + c.kappa * r2);
         }
@@ -914,7 +916,7 @@ static PyObject *py_points(PyObject *self, PyObject *args)
     GET(b_oth, o_oth, "other", T_I64, 0, 1, N);
     GET(b_box, o_box, "box", T_F64, 0, 3, 2, 2, 3);
     GET(b_H, o_H, "H", T_F64, 0, 2, 4, 4);
-    GET(b_cam, o_cam, "cam", T_F64, 0, 1, 7);
+    GET(b_cam, o_cam, "cam", T_F64, 0, 1, 8);
     GET(b_uv, o_uv, "uv", T_F64, 1, 2, N, 2);
     GET(b_in, o_in, "inside", T_I64, 1, 1, N);
     GET(b_hid, o_hid, "hidden", T_I64, 1, 1, N);

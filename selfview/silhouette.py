@@ -202,11 +202,11 @@ class _Samples:
     faces: list  # per edge, as _EdgeSet
 
 
-_CAM_FIELDS = ("f", "kappa", "cx", "cy", "aspect", "width", "height")
+_CAM_FIELDS = ("f", "kappa", "cx", "cy", "aspect", "width", "height", "skew")
 
 
 def _cam_params(cam) -> np.ndarray | None:
-    """The camera as the compiled kernel takes it (7,), or None when ``cam`` is not the model the kernel
+    """The camera as the compiled kernel takes it (8,), or None when ``cam`` is not the model the kernel
     mirrors (``CameraModel`` with exactly these parameters: any other goes the Python way)."""
     if type(cam) is not CameraModel or tuple(f.name for f in dataclasses.fields(cam)) != _CAM_FIELDS:
         return None
@@ -519,7 +519,7 @@ def _levels(s: _Samples, app: Appearance):
 
 
 _GATES = np.array([PLATEAU_PX, MIN_CONTRAST, LEVEL_TOL, LEVEL_TOL_GREY], float)
-_NO_CAMERA = np.array([1.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0])  # the kernel's camera when no q is wanted
+_NO_CAMERA = np.array([1.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0])  # the kernel's camera when no q is wanted
 
 
 def _candidates_q(img, s: _Samples, R: float, app: Appearance, cam, n_cand: int = CANDIDATES):

@@ -15,6 +15,7 @@ candidates are also compared with their numpy code step by step (below).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import numpy as np
@@ -181,14 +182,15 @@ def _poses(seq):
 
 
 @needs_kernel
-@pytest.mark.parametrize("kappa", [None, 0.0, 6e-7, -1.5e-7])
-def test_kernel_samples_match_the_numpy_sampling(kappa, monkeypatch):
+@pytest.mark.parametrize("kappa,skew", [(None, 0.0), (0.0, 0.0), (6e-7, 0.0), (-1.5e-7, 0.0), (None, 1e-3), (None, -8e-4)])
+def test_kernel_samples_match_the_numpy_sampling(kappa, skew, monkeypatch):
     """The samples along the visible edges (which ones, where, their normals) from the kernel and from
     ``_sample_py``, on the poses of a disturbed sequence and poses some px off, with the cell's lens and
-    with barrel, pincushion and no distortion (the kernel's own projection against camera.project)."""
+    with barrel, pincushion and no distortion, and with a grabber's shear (skew: 0.58 and 0.46 px over the
+    picture's height): the kernel's own projection against camera.project."""
     cell = _cell()
     seq = _sequence("mocks", None)
-    cam = seq.camera if kappa is None else seq.camera.with_(kappa=kappa)
+    cam = (seq.camera if kappa is None else seq.camera.with_(kappa=kappa)).with_(skew=skew)
     boxes = cell.gripper.finger_boxes_G(seq.gap)
     checked = 0
     for H in _poses(seq):
@@ -264,14 +266,18 @@ def test_kernel_hands_points_it_does_not_project_to_the_python_code():
 
 
 @needs_kernel
-@pytest.mark.parametrize("renderer,photo", [("mocks", None), ("mocks", "gravel"), ("alt", None), ("alt", "coffee")])
-def test_kernel_candidates_match_the_numpy_candidates(renderer, photo):
+@pytest.mark.parametrize("renderer,photo,skew", [("mocks", None, 0.0), ("mocks", "gravel", 0.0), ("alt", None, 0.0),
+                                                 ("alt", "coffee", 0.0), ("mocks", "gravel", 8e-4)])
+def test_kernel_candidates_match_the_numpy_candidates(renderer, photo, skew):
     """The candidates along each sample's normal from the kernel (8-bit and float32 pictures) and from
     ``_candidates_np`` + ``camera.undistort_pixels``, on pictures of both renderers, plain and over a
     photograph, with learnt faces' levels and without, for the ranges of the tracker, of the fit's rounds
-    and of the vote: the same candidates missing, offsets, levels and contrasts, undistorted coordinates."""
+    and of the vote, and with a grabber's shear in the camera: the same candidates missing, offsets, levels
+    and contrasts, undistorted coordinates."""
     cell = _cell()
     seq = _sequence(renderer, photo)
+    if skew:
+        seq = dataclasses.replace(seq, camera=seq.camera.with_(skew=skew))
     boxes = cell.gripper.finger_boxes_G(seq.gap)
     fr = seq.frames[-1]
     app = sil.learn_appearance(fr.image, seq.camera, fr.C_H_G, cell.gripper, seq.gap)
@@ -304,7 +310,7 @@ def test_kernel_sampling_refuses_bad_arguments_by_name():
     ab = np.ones((E, 3))
     fin = np.zeros(E, np.int64)
     box = np.zeros((2, 2, 3))
-    cam = np.array([962.0, 0.0, 383.5, 287.5, 1.0, 768.0, 576.0])
+    cam = np.array([962.0, 0.0, 383.5, 287.5, 1.0, 768.0, 576.0, 0.0])
     outs = (np.empty((n, 3)), np.empty(n, np.int64), np.empty((n, 2)), np.empty((n, 2)))
     with pytest.raises(ValueError, match="p: room for 1599 samples"):
         k.sample(ab, ab, ab, fin, box, np.eye(4), cam, 3.0, 4.0, np.empty((n - 1, 3)), np.empty(n - 1, np.int64),
@@ -314,7 +320,9 @@ def test_kernel_sampling_refuses_bad_arguments_by_name():
         bad[2] = 5
         k.sample(ab, ab, ab, bad, box, np.eye(4), cam, 3.0, 4.0, *outs)
     with pytest.raises(ValueError, match="cam: expected f, aspect"):
-        k.sample(ab, ab, ab, fin, box, np.eye(4), cam * np.r_[-1, np.ones(6)], 3.0, 4.0, *outs)
+        k.sample(ab, ab, ab, fin, box, np.eye(4), cam * np.r_[-1, np.ones(7)], 3.0, 4.0, *outs)
+    with pytest.raises(ValueError, match="cam: dimension 0 is 7, expected 8"):  # a camera without its skew
+        k.sample(ab, ab, ab, fin, box, np.eye(4), cam[:7].copy(), 3.0, 4.0, *outs)
     S, C = 10, 3
     args = (np.zeros((S, 2)), np.zeros((S, 2)), np.zeros(S), np.zeros(S), 8.0,
             np.array([3.0, 8.0, 0.18, 12.0]), cam)
