@@ -329,6 +329,16 @@ def _speed(runs: dict[str, BenchRun]) -> list[str]:
                     f"{step.get('steps', '-')} steps tracked) | {_f(on.data.get('per_frame_step_ms'))} | - | - |")
         rows.append(f"| a full search for the fingertips (the first frame, or when tracking does not hold) [ms] | "
                     f"{_f(step.get('full_search_ms'))} | - | - |")
+        for bg in ("plain", "cluttered"):
+            tr = on.data.get(f"trackers_{bg}") or {}
+            model = tr.get("model") or {}
+            if model.get("median_ms") is not None:
+                corners = tr.get("corners") or {}
+                rows.append(f"| per-frame step of the model (silhouette) tracker, {bg} background [ms] ({model.get('found', '-')} "
+                            f"of {model.get('steps', '-')} found; over the corner tracker's step on the same frames, timed in "
+                            f"turn: {_f(tr.get('model_to_corners_step'))}, the corner tracker holding "
+                            f"{corners.get('tracked_steps', '-')} of {corners.get('steps', '-')}) | {_f(model['median_ms'])} "
+                            "| - | - |")
     if off and off.status == "ok":
         sp = off.data.get("speed", {})
         rows.append(f"| camera calibration of one picture [ms] (calibrate_coplanar vs cv2.calibrateCamera) | "
