@@ -72,11 +72,26 @@ def mrcal_version(python: str) -> str | None:
     return f"{r.stdout.strip()} (Debian's python3-mrcal)" if r.returncode == 0 and r.stdout.strip() else None
 
 
+#: how far a disc's plate coordinates may lie from the pitch grid [fraction of the pitch]: the detections'
+#: plate coordinates are the grid's own; a quarter pitch off is another plate or a mislabelled disc
+GRID_TOL = 0.25
+
+
 def _grid(p_W_views, pitch):
-    """(indices per view as (i, j) int arrays, W, H): the discs' grid positions from their plate coordinates."""
+    """(indices per view as (i, j) int arrays, W, H): the discs' grid positions from their plate coordinates.
+    ``ValueError`` naming the view when a disc is off the pitch grid or two discs of a view share a place."""
     allp = np.vstack([np.asarray(p, float)[:, :2] for p in p_W_views])
     lo = allp.min(axis=0)
-    idx = [np.rint((np.asarray(p, float)[:, :2] - lo) / pitch).astype(int) for p in p_W_views]
+    idx = []
+    for k, p in enumerate(p_W_views):
+        g = (np.asarray(p, float)[:, :2] - lo) / pitch
+        ij = np.rint(g).astype(int)
+        off = np.abs(g - ij).max(initial=0.0)
+        if off > GRID_TOL:
+            raise ValueError(f"mrcal peer: view {k}: a disc lies {off:.2f} pitch off the plate's {pitch:g} mm grid")
+        if len({(int(a), int(b)) for a, b in ij}) != len(ij):
+            raise ValueError(f"mrcal peer: view {k}: two discs at one grid place")
+        idx.append(ij)
     hi = np.vstack(idx).max(axis=0)
     return idx, int(hi[0]) + 1, int(hi[1]) + 1
 
@@ -91,6 +106,12 @@ def fit(p_W_views, uv_views, pitch: float, cam0, size, *, python: str | None = N
     python = python or find_python()
     if python is None:
         return None
+    if len(p_W_views) != len(uv_views) or not p_W_views:
+        raise ValueError(f"mrcal peer: {len(p_W_views)} views of plate points, {len(uv_views)} of pixels")
+    for k, (p, uv) in enumerate(zip(p_W_views, uv_views)):
+        if len(p) != len(uv) or len(p) < 4 or not np.all(np.isfinite(uv)):
+            raise ValueError(f"mrcal peer: view {k}: {len(p)} plate points and {len(uv)} pixels (at least 4 finite "
+                             "pairs wanted)")
     idx, W, H = _grid(p_W_views, pitch)
     n = len(uv_views)
     obs = np.zeros((n, H, W, 3))

@@ -308,17 +308,8 @@ def measure_sequence(seq: Sequence, cell, methods=("search", "tracker")) -> dict
             for fr in seq.frames[1:]
         ]
     if "model-tracker" in methods:
-        tr = SilhouetteTracker(seq.camera, cell.gripper, points=ONLINE_POINTS)
-        tr.find(seq.frames[0].image, seq.C_H_G_pred, seq.gap)
-        verdicts = []
-        for fr in seq.frames[1:]:
-            t0 = time.perf_counter()
-            res = tr.find(fr.image, seq.C_H_G_pred, seq.gap)
-            v = judge_pose(res, seq, fr)
-            v["tracked"] = bool(res.tracked)
-            v["ms"] = (time.perf_counter() - t0) * 1e3
-            verdicts.append(v)
-        out["model-tracker"] = verdicts
+        out["model-tracker"] = _tracked(SilhouetteTracker(seq.camera, cell.gripper, points=ONLINE_POINTS), seq,
+                                        timed=True)
     if "search" in methods:
         out["search"] = [
             judge_pose(find_fingertips(fr.image, seq.camera, seq.C_H_G_pred, cell.gripper, seq.gap,
@@ -326,16 +317,24 @@ def measure_sequence(seq: Sequence, cell, methods=("search", "tracker")) -> dict
             for fr in seq.frames[1:]
         ]
     if "tracker" in methods:
-        tr = FingertipTracker(seq.camera, cell.gripper, points=ONLINE_POINTS)
-        tr.find(seq.frames[0].image, seq.C_H_G_pred, seq.gap)
-        verdicts = []
-        for fr in seq.frames[1:]:
-            res = tr.find(fr.image, seq.C_H_G_pred, seq.gap)
-            v = judge_pose(res, seq, fr)
-            v["tracked"] = bool(res.tracked)
-            verdicts.append(v)
-        out["tracker"] = verdicts
+        out["tracker"] = _tracked(FingertipTracker(seq.camera, cell.gripper, points=ONLINE_POINTS), seq)
     return out
+
+
+def _tracked(tr, seq: Sequence, *, timed: bool = False) -> list[dict]:
+    """A tracker primed on the sequence's first frame, then judged on each later one (``timed``: each
+    step's time in ``ms``)."""
+    tr.find(seq.frames[0].image, seq.C_H_G_pred, seq.gap)
+    verdicts = []
+    for fr in seq.frames[1:]:
+        t0 = time.perf_counter()
+        res = tr.find(fr.image, seq.C_H_G_pred, seq.gap)
+        v = judge_pose(res, seq, fr)
+        v["tracked"] = bool(res.tracked)
+        if timed:
+            v["ms"] = (time.perf_counter() - t0) * 1e3
+        verdicts.append(v)
+    return verdicts
 
 
 def build(cell, renderers, photos, trials: int, steps: int, series=("cable", "tilt"), disc_trials: int = 0,

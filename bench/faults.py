@@ -847,41 +847,39 @@ INVISIBLE = {
 }
 
 
-def _plausible_change(a, b) -> bool:
-    """True if fingerprint ``b`` differs from ``a`` only in finite numbers within a factor 10 of the
-    truth, of the same sign (what no range check can tell from a real value)."""
+def _differs_only_in(a, b, leaf_ok) -> bool:
+    """True if fingerprint ``b`` has ``a``'s structure and every leaf that differs passes ``leaf_ok(x, y)``."""
     if isinstance(a, dict) and isinstance(b, dict):
-        return a.keys() == b.keys() and all(_plausible_change(a[k], b[k]) for k in a)
+        return a.keys() == b.keys() and all(_differs_only_in(a[k], b[k], leaf_ok) for k in a)
     if isinstance(a, list) and isinstance(b, list):
-        return len(a) == len(b) and all(_plausible_change(x, y) for x, y in zip(a, b))
-    if a == b:
-        return True
+        return len(a) == len(b) and all(_differs_only_in(x, y, leaf_ok) for x, y in zip(a, b))
+    return a == b or leaf_ok(a, b)
+
+
+def _as_number(v) -> float | None:
     try:
-        x, y = float(a), float(b)
+        return float(v)
     except (TypeError, ValueError):
-        return False
-    if not (math.isfinite(x) and math.isfinite(y)) or x * y < 0:
+        return None
+
+
+def _plausible_number(a, b) -> bool:
+    x, y = _as_number(a), _as_number(b)
+    if x is None or y is None or not (math.isfinite(x) and math.isfinite(y)) or x * y < 0:
         return False
     return x == 0 == y or (x != 0 and y != 0 and 0.1 <= y / x <= 10)
 
 
+def _plausible_change(a, b) -> bool:
+    """True if fingerprint ``b`` differs from ``a`` only in finite numbers within a factor 10 of the
+    truth, of the same sign (what no range check can tell from a real value)."""
+    return _differs_only_in(a, b, _plausible_number)
+
+
 def _text_change_only(a, b) -> bool:
     """True if fingerprint ``b`` differs from ``a`` only in leaves that are text, not numbers, on both sides."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        return a.keys() == b.keys() and all(_text_change_only(a[k], b[k]) for k in a)
-    if isinstance(a, list) and isinstance(b, list):
-        return len(a) == len(b) and all(_text_change_only(x, y) for x, y in zip(a, b))
-    if a == b:
-        return True
-    if not (isinstance(a, str) and isinstance(b, str)):
-        return False
-    for x in (a, b):
-        try:
-            float(x)
-            return False
-        except ValueError:
-            pass
-    return True
+    return _differs_only_in(a, b, lambda x, y: isinstance(x, str) and isinstance(y, str)
+                            and _as_number(x) is None and _as_number(y) is None)
 
 
 def _leaves(doc, path=()):
@@ -1179,16 +1177,21 @@ def _selfview(argv, cwd, timeout_s=CLI_TIMEOUT_S, sigint_when=None):
     """Run ``selfview argv``; (returncode or None on a hang, stderr). ``sigint_when(proc)`` (optional)
     is called in this thread once the process runs, to send Ctrl-C."""
     cmd = [sys.executable, "-c", "import sys; from selfview.procedures.cli import main; sys.exit(main())", *argv]
+    return _run_child(cmd, cwd, timeout_s, sigint_when)
+
+
+def _run_child(cmd, cwd, timeout_s, sigint_when=None):
+    """Run ``cmd`` in its own session under the memory limit; (returncode or None on a hang, stderr)."""
     proc = subprocess.Popen(cmd, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, preexec_fn=_limit_child, start_new_session=True)
     if sigint_when is not None:
         sigint_when(proc)
     try:
-        out, err = proc.communicate(timeout=timeout_s)
+        _, err = proc.communicate(timeout=timeout_s)
         return proc.returncode, err
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
-        out, err = proc.communicate()
+        _, err = proc.communicate()
         return None, err
 
 
@@ -1384,16 +1387,7 @@ except CellError as exc:
 
 def _selfview_cell(argv, cwd, sigint_when):
     if argv[0] == "-c":  # a script, not the selfview command
-        proc = subprocess.Popen([sys.executable, *argv], cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, text=True, preexec_fn=_limit_child, start_new_session=True)
-        sigint_when(proc)
-        try:
-            _, err = proc.communicate(timeout=CLI_TIMEOUT_S)
-            return proc.returncode, err
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            _, err = proc.communicate()
-            return None, err
+        return _run_child([sys.executable, *argv], cwd, CLI_TIMEOUT_S, sigint_when)
     return _selfview(argv, cwd, timeout_s=CLI_TIMEOUT_S, sigint_when=sigint_when)
 
 

@@ -88,6 +88,21 @@ def interleaved_median_us(fns: dict, repeat: int, number: int) -> dict:
     return {k: statistics.median(v) / number * 1e6 for k, v in times.items()}
 
 
+def _creeping_sequence(world, frames: int, creep_deg: float, *, rng_seed: int, first_seed: int, backdrop=None):
+    """(renders, true C_H_G per frame): ``frames`` pictures of the world, the camera creeping on by
+    ``creep_deg`` about a random axis before each one after the first."""
+    from selfview.mocks.render import render
+
+    rng = np.random.default_rng(rng_seed)
+    pics, truths = [], []
+    for i in range(frames):
+        if i:
+            world.disturb_by_angle(rng.normal(size=3), creep_deg, series="creep")
+        pics.append(render(world, seed=first_seed + i, backdrop=backdrop))
+        truths.append(world.C_H_G)
+    return pics, truths
+
+
 def per_frame_step(cell, world, C_H_G_before, frames: int = 10, rounds: int = 10, creep_deg: float = 0.02) -> dict:
     """The on-line per-frame step on a rendered sequence of 768x576 pictures.
 
@@ -100,7 +115,6 @@ def per_frame_step(cell, world, C_H_G_before, frames: int = 10, rounds: int = 10
     so that every step sees a picture one creep from the last. Also reported: how many steps were
     tracked, and the corners' error against the renderer's truth for the tracker and for the full
     search on the same pictures."""
-    from selfview.mocks.render import render
     from selfview.errors import CalibrationError
     from selfview.fingertips import find_fingertips
     from selfview.online import estimate
@@ -109,13 +123,7 @@ def per_frame_step(cell, world, C_H_G_before, frames: int = 10, rounds: int = 10
     gap = world.jaw_gap_mm
     cam = world.camera
     p_G6 = cell.gripper.points_G(gap=gap)
-    rng = np.random.default_rng(7)
-    pics, truths = [], []
-    for i in range(frames):
-        if i:
-            world.disturb_by_angle(rng.normal(size=3), creep_deg, series="creep")
-        pics.append(render(world, seed=100 + i))
-        truths.append(world.C_H_G)
+    pics, truths = _creeping_sequence(world, frames, creep_deg, rng_seed=7, first_seed=100)
     t0 = time.perf_counter()
     first = find_fingertips(pics[0].image, cam, C_H_G_before, cell.gripper, gap, points=range(4))
     search_ms = (time.perf_counter() - t0) * 1e3
@@ -187,7 +195,6 @@ def model_step(cell, world, C_H_G_before, *, backdrop=None, frames: int = 8, rou
     ranges where that fails). ``model_reference``:
     the same for the model's first implementation (``silhouette.REFERENCE``, no compiled kernel), the
     figures before it was made fast, on the same frames in the same run."""
-    from selfview.mocks.render import render
     from selfview.errors import CalibrationError
     from selfview.fingertips import find_fingertips, model_measurement
     from selfview.online import estimate
@@ -196,13 +203,8 @@ def model_step(cell, world, C_H_G_before, *, backdrop=None, frames: int = 8, rou
     gap = world.jaw_gap_mm
     cam = world.camera
     p_G6 = cell.gripper.points_G(gap=gap)
-    rng = np.random.default_rng(11)
-    pics, truths = [], []
-    for i in range(frames):
-        if i:
-            world.disturb_by_angle(rng.normal(size=3), creep_deg, series="creep")
-        pics.append(render(world, seed=200 + i, backdrop=backdrop).image)
-        truths.append(world.C_H_G)
+    rendered, truths = _creeping_sequence(world, frames, creep_deg, rng_seed=11, first_seed=200, backdrop=backdrop)
+    pics = [r.image for r in rendered]
     out = {}
     order = (list(range(1, frames)) + list(range(frames - 2, -1, -1))) * rounds
     trackers = {"corners": FingertipTracker(cam, cell.gripper, points=range(4)),

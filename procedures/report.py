@@ -363,7 +363,7 @@ def _speed(runs: dict[str, BenchRun]) -> list[str]:
 def _offline_accuracy(run: BenchRun | None) -> list[str]:
     lines = ["### Off-line calibration against the simulator's truth", ""]
     if not run or run.status != "ok":
-        return lines + [f"Not available: {run.status + '. ' + run.detail if run else 'not run'}", ""]
+        return lines + _unavailable(run)
     acc = run.data["accuracy"]
     names = {"f_pct": "f error [%]", "kappa_pct": "kappa error [%]", "tcp_across_mm": "TCP across the optical axis [mm]",
              "tcp_along_mm": "TCP along the optical axis [mm]", "rot_deg": "rotation [deg]"}
@@ -426,10 +426,15 @@ def _table_file(results_dir: Path, name: str) -> list[str]:
     return [p.read_text(encoding="utf-8").rstrip(), ""] if p.is_file() else [f"(its table `{name}` was not written)", ""]
 
 
+def _unavailable(run: BenchRun | None) -> list[str]:
+    """The lines of a section whose benchmark did not run or did not succeed."""
+    return [f"Not available: {run.status + '. ' + run.detail if run else 'not run'}", ""]
+
+
 def _handeye(run: BenchRun | None, results_dir: Path) -> list[str]:
     lines = ["## Kinematics-free? Classical hand/eye calibration (AX=XB) against self-viewing", ""]
     if not run or run.status != "ok":
-        return lines + [f"Not available: {run.status + '. ' + run.detail if run else 'not run'}", ""]
+        return lines + _unavailable(run)
     d = run.data
     h = d["headline"]
     w = d["worn_robot"]
@@ -448,7 +453,7 @@ def _handeye(run: BenchRun | None, results_dir: Path) -> list[str]:
 def _limit(run: BenchRun | None, cell_limit, results_dir: Path) -> list[str]:
     lines = ["## The limit between updating and recalibrating", ""]
     if not run or run.status != "ok":
-        return lines + [f"Not available: {run.status + '. ' + run.detail if run else 'not run'}", ""]
+        return lines + _unavailable(run)
     d = run.data
     lim = d["limit"]
     if lim["angle_deg"] is None:
@@ -473,7 +478,7 @@ def _limit(run: BenchRun | None, cell_limit, results_dir: Path) -> list[str]:
 def _error_budget(run: BenchRun | None, results_dir: Path) -> list[str]:
     lines = ["## A real cell's imperfections: the error budget of Tables 1 and 2", ""]
     if not run or run.status != "ok":
-        return lines + [f"Not available: {run.status + '. ' + run.detail if run else 'not run'}", ""]
+        return lines + _unavailable(run)
     d = run.data
     confs = d["configurations"]
     lines += [f"The paper's protocol (`run_direct`), {d['trials_per_series']} trials per series and configuration, the same "

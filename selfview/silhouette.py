@@ -306,10 +306,10 @@ def _level_ok(measured, level) -> np.ndarray:
     return np.abs(measured - level) <= np.maximum(LEVEL_TOL * level, LEVEL_TOL_GREY)
 
 
-def _candidates_ref(img, s: _Samples, R: float, app: Appearance, n_cand: int = CANDIDATES):
-    """Per sample up to CANDIDATES offsets [px] along its normal (NaN: none): (S, C) offsets, (S, C) face
-    levels seen beside them, (S, C) contrasts."""
-    S = len(s.edge)
+def _profiles(img, s: _Samples, R: float):
+    """The grey-level profile along each sample's normal, reaching R + PLATEAU_PX + 1 px either side:
+    (S, L) profile, (S, L - 2) its derivative D at positions ``pos`` (L - 2,) [px], A = |D|, and (S, L - 4)
+    the peaks of A within R of the sample."""
     Ri = int(math.ceil(R))
     P = PLATEAU_PX
     offs = np.arange(-Ri - P - 1, Ri + P + 2, dtype=np.float32)  # profile positions
@@ -320,9 +320,16 @@ def _candidates_ref(img, s: _Samples, R: float, app: Appearance, n_cand: int = C
     pos = offs[1:-1]
     A = np.abs(D)
     peak = (A[:, 1:-1] >= A[:, :-2]) & (A[:, 1:-1] > A[:, 2:])
-    pk_pos = pos[1:-1]
-    inside = np.abs(pk_pos) <= R
-    peak &= inside[None]
+    peak &= (np.abs(pos[1:-1]) <= R)[None]
+    return prof, D, A, pos, peak
+
+
+def _candidates_ref(img, s: _Samples, R: float, app: Appearance, n_cand: int = CANDIDATES):
+    """Per sample up to CANDIDATES offsets [px] along its normal (NaN: none): (S, C) offsets, (S, C) face
+    levels seen beside them, (S, C) contrasts."""
+    S = len(s.edge)
+    P = PLATEAU_PX
+    prof, D, A, pos, peak = _profiles(img, s, R)
     # grey levels beside each peak: the face side (+n) and the other (-n), 2..P px away
     L = prof.shape[1]
     idx = np.arange(1, A.shape[1] - 1) + 1  # index into prof of each peak position
@@ -333,24 +340,25 @@ def _candidates_ref(img, s: _Samples, R: float, app: Appearance, n_cand: int = C
         other += prof[:, np.clip(idx - k, 0, L - 1)]
     face /= P - 1
     other /= P - 1
+    return _gate_and_rank(face, other, peak, D, A, pos, *_levels(s, app), n_cand)
+
+
+def _gate_and_rank(face, other, peak, D, A, pos, lev1, lev2, n_cand: int):
+    """The candidates among the peaks (S, M) of the profile's derivative D (S, M + 2), A = |D|, at profile
+    positions ``pos`` (M + 2,): the gates (contrast, the learnt faces' levels ``lev1``/``lev2`` (S,), polarity),
+    the ranking (closeness to the face's level; without a level learnt, contrast), the best ``n_cand`` with
+    their sub-pixel offsets: (S, C) offsets, face levels, contrasts (NaN: none). Shared by both numpy
+    implementations (``_candidates_ref``, ``_candidates_np``), which differ in how they read the profile."""
+    S = len(face)
     contrast = face - other
     ok = peak & (np.abs(contrast) >= MIN_CONTRAST)
     # appearance: the face's level on the face side (at a crease the second face's on the other)
-    lev1 = np.full(S, np.nan)
-    lev2 = np.full(S, np.nan)
-    for e in np.unique(s.edge):
-        fs = s.faces[e]
-        m = s.edge == e
-        lev1[m] = app.levels.get(fs[0], np.nan)
-        if len(fs) == 2:
-            lev2[m] = app.levels.get(fs[1], np.nan)
     has1 = np.isfinite(lev1)
     ok &= ~has1[:, None] | _level_ok(face, lev1[:, None])
     has2 = np.isfinite(lev2)
     ok &= ~has2[:, None] | _level_ok(other, lev2[:, None])
     # polarity: the derivative's sign is the face side's minus the other side's
-    Dp = D[:, 1:-1]
-    ok &= np.sign(Dp) == np.sign(contrast)
+    ok &= np.sign(D[:, 1:-1]) == np.sign(contrast)
     # rank: closeness to the face's level (without a level learnt: contrast)
     score = np.where(has1[:, None], np.abs(face - np.where(has1, lev1, 0)[:, None]), -np.abs(contrast))
     score = np.where(ok, score, np.inf)
@@ -362,9 +370,9 @@ def _candidates_ref(img, s: _Samples, R: float, app: Appearance, n_cand: int = C
     j = order + 1  # index into A
     a0, a1, a2 = A[rows, j - 1], A[rows, j], A[rows, j + 1]
     den = a0 - 2 * a1 + a2
-    frac = np.where(np.abs(den) > 1e-9, 0.5 * (a0 - a2) / np.where(np.abs(den) > 1e-9, den, 1.0), 0.0)
-    off = pos[j] + np.clip(frac, -0.5, 0.5)
-    off = np.where(good, off, np.nan)
+    big = np.abs(den) > 1e-9
+    frac = np.where(big, 0.5 * (a0 - a2) / np.where(big, den, 1.0), 0.0)
+    off = np.where(good, pos[j] + np.clip(frac, -0.5, 0.5), np.nan)
     return off, np.where(good, face[rows, order], np.nan), np.where(good, contrast[rows, order], np.nan)
 
 
@@ -411,6 +419,19 @@ def _tukey(r, c):
     return np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
 
 
+def _gauss_newton_step(J, w, r):
+    """(J^T W J, the step) of weighted residuals ``r`` (S,) with Jacobian ``J`` (S, 6) and weights ``w``: the
+    normal equations scaled to a unit diagonal, a 1e-6 ridge, solved; the step is None when singular."""
+    Jw = J * w[:, None]
+    JtWJ = Jw.T @ J
+    g = Jw.T @ r
+    d = np.sqrt(np.maximum(np.diag(JtWJ), 1e-12))
+    try:
+        return JtWJ, -np.linalg.solve(JtWJ / np.outer(d, d) + 1e-6 * np.eye(6), g / d) / d
+    except np.linalg.LinAlgError:
+        return JtWJ, None
+
+
 def _solve_ref(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, start_floor: float | None = None):
     """IRLS of the camera motion on the candidates q (S, C, 2) (undistorted sensor coordinates, NaN:
     none). The scale's floor falls from ``start_floor`` (default ``floor``) by half each iteration down
@@ -446,15 +467,8 @@ def _solve_ref(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, sta
         dn = np.stack([-dt[:, 1, :], dt[:, 0, :]], axis=1)  # (E, 2, 6)
         qa = qs - a[pos]
         J = np.einsum("si,sik->sk", qa, dn[pos]) - np.einsum("si,sik->sk", n0[pos], dA[pos])
-        rr = np.where(has, r, 0.0)
-        Jw = J * w[:, None]
-        JtWJ = Jw.T @ J
-        g = Jw.T @ rr
-        d = np.sqrt(np.maximum(np.diag(JtWJ), 1e-12))
-        A = JtWJ / np.outer(d, d) + 1e-6 * np.eye(6)
-        try:
-            dxi = -np.linalg.solve(A, g / d) / d
-        except np.linalg.LinAlgError:
+        JtWJ, dxi = _gauss_newton_step(J, w, np.where(has, r, 0.0))
+        if dxi is None:
             break
         H = _motion(dxi) @ H
         if fl <= floor and np.max(np.abs(dxi[:3])) < 1e-7 and np.max(np.abs(dxi[3:])) < 1e-5:  # ~1e-4 px
@@ -554,18 +568,9 @@ def _undistorted(cam: CameraModel, s: _Samples, off) -> np.ndarray:
 def _candidates_np(img, s: _Samples, R: float, app: Appearance, n_cand: int = CANDIDATES):
     """``_candidates`` in numpy (the compiled kernel's reference)."""
     S = len(s.edge)
-    Ri = int(math.ceil(R))
     P = PLATEAU_PX
-    offs = np.arange(-Ri - P - 1, Ri + P + 2, dtype=np.float32)
-    x = s.uv[:, 0:1] + offs[None] * s.n[:, 0:1]
-    y = s.uv[:, 1:2] + offs[None] * s.n[:, 1:2]
-    prof = _remap(img, x.astype(np.float32), y.astype(np.float32))  # (S, L)
+    prof, D, A, pos, peak = _profiles(img, s, R)
     L = prof.shape[1]
-    D = 0.5 * (prof[:, 2:] - prof[:, :-2])
-    pos = offs[1:-1]
-    A = np.abs(D)
-    peak = (A[:, 1:-1] >= A[:, :-2]) & (A[:, 1:-1] > A[:, 2:])
-    peak &= (np.abs(pos[1:-1]) <= R)[None]
     # prof index of peak m is m + 2 (m = 0 .. L-5); padded by one replicated column each side
     pad = np.concatenate([prof[:, :1], prof, prof[:, -1:]], axis=1)
     M = L - 4
@@ -576,28 +581,7 @@ def _candidates_np(img, s: _Samples, R: float, app: Appearance, n_cand: int = CA
         other += pad[:, 3 - k:3 - k + M]
     face /= P - 1
     other /= P - 1
-    contrast = face - other
-    ok = peak & (np.abs(contrast) >= MIN_CONTRAST)
-    lev1, lev2 = _levels(s, app)
-    has1 = np.isfinite(lev1)
-    ok &= ~has1[:, None] | _level_ok(face, lev1[:, None])
-    has2 = np.isfinite(lev2)
-    ok &= ~has2[:, None] | _level_ok(other, lev2[:, None])
-    Dp = D[:, 1:-1]
-    ok &= np.sign(Dp) == np.sign(contrast)
-    score = np.where(has1[:, None], np.abs(face - np.where(has1, lev1, 0)[:, None]), -np.abs(contrast))
-    score = np.where(ok, score, np.inf)
-    C = min(n_cand, score.shape[1])
-    order = np.argsort(score, axis=1)[:, :C]
-    rows = np.arange(S)[:, None]
-    good = np.isfinite(score[rows, order])
-    j = order + 1
-    a0, a1, a2 = A[rows, j - 1], A[rows, j], A[rows, j + 1]
-    den = a0 - 2 * a1 + a2
-    big = np.abs(den) > 1e-9
-    frac = np.where(big, 0.5 * (a0 - a2) / np.where(big, den, 1.0), 0.0)
-    off = np.where(good, pos[j] + np.clip(frac, -0.5, 0.5), np.nan)
-    return off, np.where(good, face[rows, order], np.nan), np.where(good, contrast[rows, order], np.nan)
+    return _gate_and_rank(face, other, peak, D, A, pos, *_levels(s, app), n_cand)
 
 
 def _cross3(a, b):
@@ -687,14 +671,8 @@ def _solve_py(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, star
         u4[:, :3] = q3[sel, pick[sel]]
         u4[:, 3] = rh
         J = np.einsum("si,sij->sj", u4, K[pos[sel]])
-        Jw = J * wh[:, None]
-        JtWJ = Jw.T @ J
-        g = Jw.T @ rh
-        d = np.sqrt(np.maximum(np.diag(JtWJ), 1e-12))
-        Am = JtWJ / np.outer(d, d) + 1e-6 * np.eye(6)
-        try:
-            dxi = -np.linalg.solve(Am, g / d) / d
-        except np.linalg.LinAlgError:
+        JtWJ, dxi = _gauss_newton_step(J, wh, rh)
+        if dxi is None:
             break
         H = _motion(dxi) @ H
         if fl <= floor and np.max(np.abs(dxi[:3])) < 1e-7 and np.max(np.abs(dxi[3:])) < 1e-5:

@@ -68,3 +68,12 @@ def test_mrcal_recovers_a_known_pinhole_camera():
     assert abs(r["cx"] - cx) < 0.01 and abs(r["cy"] - cy) < 0.01
     assert abs(r["f"] / fy - 1) < 1e-4 and abs(r["aspect"] / (fy / fx) - 1) < 1e-4
     assert r["rms_px"] < 0.01 and all(np.isfinite(v) for v in r["sigma"].values())
+
+
+def test_discs_off_the_pitch_grid_are_refused_by_view():
+    pitch = 15.0
+    a = np.array([[0.0, 0.0, 0.0], [15.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match="view 1: a disc lies 0.40 pitch off"):
+        P._grid([a, np.array([[6.0, 0.0, 0.0]])], pitch)
+    with pytest.raises(ValueError, match="view 0: two discs at one grid place"):
+        P._grid([np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])], pitch)
