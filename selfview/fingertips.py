@@ -41,7 +41,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from selfview import _native
 from selfview.camera import CameraModel
 from selfview.cell import POINT_NAMES, GripperSpec
 from selfview.discs import as_gray
@@ -66,15 +65,6 @@ MAX_EDGE_RMS_PX = 0.5  # edge points of a corner scattering more about its lines
 # within +-1.5 px of it, for blurs sigma (px), increasing fraction order for np.interp
 _BLUR_SIGMA = np.linspace(4.0, 0.3, 38)
 _BLUR_F = np.array([math.erf(1.5 / (s_ * math.sqrt(2))) for s_ in _BLUR_SIGMA])
-_CTRACK_API = 2  # the interface of selfview._ctrack that this module and selfview.tracking call (its API)
-
-
-def _kernels():
-    """``selfview._ctrack`` when it is in use and of this interface (read at each call: a test may set
-    ``selfview._native.track`` to None), else None: the Python code here runs, the reference. The kernels
-    compute what the numpy code beside their calls computes, bit for bit (tests/selfview/test_native_search.py)."""
-    nat = _native.track
-    return nat if nat is not None and getattr(nat, "API", None) == _CTRACK_API else None
 
 
 @dataclass
@@ -84,9 +74,9 @@ class FingertipResult:
     ``uv`` (6, 2) distorted pixels, NaN where not found; ``found`` (6,); ``reasons`` why a point was
     not found (None where found); ``edge_rms_px`` (6,) RMS distance of the edge points from their fitted
     lines (undistorted pixels), NaN if not found; ``names`` the point names; ``n_edge_points`` (6,)
-    edge points that the corner's lines rest on; ``tracked`` True when ``selfview.tracking`` followed
+    edge points that the corner's lines rest on; ``tracked`` True when a tracker followed
     the corners from the previous frame instead of searching for them. From the model-based measurement
-    (``find_fingertips(..., model=True)``, ``selfview.tracking.SilhouetteTracker``) also: ``quality`` the
+    (``find_fingertips(..., model=True)``, ``selfview.silhouette.SilhouetteTracker``) also: ``quality`` the
     fit's quality (``selfview.silhouette.SilhouetteFit.quality``: share of good edge samples, residual,
     the TCP's standard deviation), ``lost`` why the frame says "not found" (None: it does not), and
     ``C_H_G`` the fitted pose (None if none was believed).
@@ -291,13 +281,9 @@ def _template_score(G: np.ndarray, pts: list[np.ndarray], normals: np.ndarray, g
     Returns (score (2 span + 1, 2 span + 1), per-edge sums (E, 2 span + 1, 2 span + 1))."""
     n = 2 * span + 1
     sums = np.zeros((len(pts), n, n), np.float32)
-    nat = _kernels()
     for e, q in enumerate(pts):
         Gn = normals[e, 0] * G[0] + normals[e, 1] * G[1]
         acc = sums[e]
-        if nat is not None:  # the same float32 additions in the same order
-            nat.template_sums(Gn, np.ascontiguousarray(q, np.int64), n, acc)
-            continue
         for qx, qy in q:
             acc += Gn[qy : qy + n, qx : qx + n]
     return _group_score(sums, groups), sums
@@ -537,22 +523,11 @@ def _edge_steps(img, poly, pdir, sign, others, search, shading: _Shading, both_s
     sr = int(np.ceil(search / cos))
     R = sr + h + P + 1
     ok = np.all((st - R - 1 >= 0) & (st + R + 1 < (W - 1, H - 1)), axis=1)  # the dither adds up to 0.5
-    nat = _kernels() if img.dtype == np.float32 else None
     if len(others):
         lo, hi = st.min(0) - R - BLUR_MARGIN, st.max(0) + R + BLUR_MARGIN
         o = others[np.all((others > lo) & (others < hi), axis=1)]
         if len(o):
-            if nat is not None:
-                # the same test; where the kernel's sums (rounded its own way) lie too near the margin
-                # to tell, numpy's over the same others decides
-                clear = np.empty(len(st), np.uint8)
-                nat.clear(st, np.ascontiguousarray(o, np.float64), pdir.astype(np.float64), float(R), float(BLUR_MARGIN), clear)
-                unsure = clear == 2
-                if unsure.any():
-                    clear[unsure] = _clear_of(st[unsure], o, pdir, R)
-                ok &= clear == 1
-            else:
-                ok &= _clear_of(st, o, pdir, R)
+            ok &= _clear_of(st, o, pdir, R)
     st = st[ok]
     if len(st) == 0:
         return empty
@@ -560,12 +535,8 @@ def _edge_steps(img, poly, pdir, sign, others, search, shading: _Shading, both_s
     # dither the profiles' sample phase along the edge (golden-ratio sequence), so that whatever bias a
     # phase has averages out over the crossings instead of repeating on an edge the prediction fits
     ph = (np.arange(len(st)) * 0.6180339887) % 1.0 - 0.5
-    if nat is not None:  # _bilinear(img, pos) below, the same operations
-        prof = np.empty((len(st), 2 * R + 1))
-        nat.search_profiles(img, np.ascontiguousarray(st), pdir.astype(np.float64), ph, R, prof)
-    else:
-        pos = st[:, None, :] + (j[None, :] + ph[:, None])[..., None] * pdir[None, None, :]
-        prof = _bilinear(img, pos)
+    pos = st[:, None, :] + (j[None, :] + ph[:, None])[..., None] * pdir[None, None, :]
+    prof = _bilinear(img, pos)
     mid = slice(R - sr, R + sr + 1)
     diff = prof[:, mid][:, 1:] - prof[:, mid][:, :-1]
     score = np.abs(diff) if both_signs else diff * step_sign
@@ -651,10 +622,12 @@ def _line_tls(q: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float]:
     return n, float(n @ m)
 
 
-def _tukey(r: np.ndarray, floor: float) -> np.ndarray:
+def tukey_weights(r: np.ndarray, floor: float) -> tuple[np.ndarray, float]:
+    """Tukey's biweights of residuals r (N,) and their robust scale: 1.4826 times the median |r|, at
+    least ``floor``; a residual beyond 4.685 scales weighs 0."""
     s = max(1.4826 * float(np.median(np.abs(r))), floor)
     u = r / (4.685 * s)
-    return np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+    return np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0), s
 
 
 _PAIR_DRAWS: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -693,7 +666,7 @@ def _fit_line(q: np.ndarray, t_pred: np.ndarray, iters: int = 3):
         w = np.ones(N)
     for _ in range(iters):
         n, c = _line_tls(q, w)
-        w = _tukey(q @ n - c, 0.05)
+        w = tukey_weights(q @ n - c, 0.05)[0]
         if w.sum() < 2:
             break
     return n, c, w > 0
@@ -792,7 +765,7 @@ def find_fingertips(
     fingertips behind the camera or is not finite, ``ValueError`` for a transform that is not (4, 4) or a
     jaw gap that is not a positive number.
     """
-    result = _search(image, camera, C_H_G_pred, gripper, gap_mm, search_px, points)[0]
+    result = _search(image, camera, C_H_G_pred, gripper, gap_mm, search_px, points)
     if not model:
         return result
     return model_measurement(image, camera, C_H_G_pred, gripper, gap_mm, points, result, appearance)[0]
@@ -858,8 +831,7 @@ def model_measurement(image, camera, C_H_G_pred, gripper, gap_mm, points=range(6
 
 
 def _search(image, camera, C_H_G_pred, gripper, gap_mm, search_px, points):
-    """``find_fingertips``, also returning what ``selfview.tracking`` follows from frame to frame:
-    (result, the model, {edge key: _Fit} of the edges fitted, {point index: [edge keys of its lines]})."""
+    """The corner search of ``find_fingertips``: a ``FingertipResult``."""
     img = as_gray(image, camera)
     model = _Model(camera, C_H_G_pred, gripper, gap_mm)
     want = sorted({int(k) for k in points})
@@ -871,8 +843,6 @@ def _search(image, camera, C_H_G_pred, gripper, gap_mm, search_px, points):
     rms = np.full(6, np.nan)
     npts = np.zeros(6, int)
     H, W = img.shape
-    all_fits: dict[tuple, _Fit] = {}
-    corner_keys: dict[int, list] = {}
     for k in range(6):
         if k not in want:
             reasons[k] = "not requested"
@@ -897,7 +867,6 @@ def _search(image, camera, C_H_G_pred, gripper, gap_mm, search_px, points):
                 reasons[k] = "outside the picture"
             continue
         fits, fails, shift = located
-        all_fits.update(fits)
         for k in todo:
             res = _corner(img, camera, model, k, fits, fails, search_px, model.uv[k] + shift)
             if isinstance(res, str):
@@ -905,11 +874,7 @@ def _search(image, camera, C_H_G_pred, gripper, gap_mm, search_px, points):
             else:
                 uv[k], rms[k], npts[k] = res
                 found[k] = True
-                corner_keys[k] = [e.key for e, _ in model.corner_edges[k] if e.key in fits]
-    result = FingertipResult(
-        uv=uv, found=found, reasons=reasons, edge_rms_px=rms, names=POINT_NAMES, n_edge_points=npts
-    )
-    return result, model, all_fits, corner_keys
+    return FingertipResult(uv=uv, found=found, reasons=reasons, edge_rms_px=rms, names=POINT_NAMES, n_edge_points=npts)
 
 
 def _locate_edges(img, camera, model: _Model, f: int, todo: list[int], search_px: float):

@@ -1,43 +1,13 @@
-"""Model-based fingertip measurement: the whole visible silhouette of both fingers fitted at once.
+"""Model-based fingertip measurement: the visible silhouette of both finger prisms fitted at once.
 
-Where ``selfview.fingertips`` finds each corner from the short stretches of its own edges, this fits the
-known shape of the two finger prisms to every edge of them that shows, the long sides too, the way ViSP's
-moving edges (``vpMe``) feed its model-based tracker (``vpMbEdgeTracker``), with what we know better
-about this object: its exact shape, its faces' grey levels, and that it moves little between frames.
-
-1. The visible box edges of both fingers at the current ``C_H_G`` (an edge shows when one of its two faces
-   turns towards the camera; stretches the other finger hides are left out) are sampled every
-   ``STEP_PX`` along their whole length in the picture.
-2. Each sample looks along the edge's image normal within +-R px for steps: local maxima of the
-   derivative of a bilinear profile. A step is a candidate only if it has the expected polarity and
-   the finger's own appearance on its face side: the face's grey level there (learnt from the
-   picture where the fingers were found, and updated frame to frame) within ``LEVEL_TOL``, and a
-   contrast to the other side of at least ``MIN_CONTRAST`` (at a crease, both faces' levels). Up to
-   ``CANDIDATES`` per sample are kept, the closest to the face's level first, each located to a
-   fraction of a pixel (a parabola through the derivative's peak).
-3. The pose: ``C_H_G`` moved by a small camera motion (rotation vector, translation) that minimises
-   the distances of the samples from the projected model lines, in undistorted sensor coordinates where
-   the edges are straight; each sample takes its candidate closest to its line at each iteration, and
-   its weight is Tukey's of that distance over a robust scale (1.48 MAD, floored). Rounds of
-   sampling shrink R (e.g. 24, 10, 5, 3 px) around the last pose. A first range of 16 px or more
-   starts with a vote: the image shift that most samples' candidates agree with (within 1.5 px),
-   applied as a small turn of the camera, so a start tens of pixels off does not lock onto the
-   nearest wrong edges.
-4. The corners are the model's points at the fitted pose, so a tip edge weak against the background is
-   carried by the long edges and the model. Quality: the share of samples that support the fit (weight
-   over one half), per finger too, the residual RMS of those, and the pose's covariance (the TCP's
-   standard deviation in the camera frame). Below the thresholds the fit is reported as not found with
-   the reason (``ok`` False), never as a pose.
-
-Speed: the costly steps have a fast path (``_sample``, ``_candidates``, ``_solve``, ``_coarse_shift``)
-beside the first implementation (``*_ref``), which ``REFERENCE = True`` selects; the tests hold them to
-the same measurement (corners within 0.01 px, the TCP within 1e-4 mm). The fast path runs in the
-compiled kernel ``selfview._csil`` when built, its numpy code the kernel's reference: the sampling of the
-edges (``_sample_py``; the kernel projects with the camera model's own formulas, and hands a camera it
-does not mirror, or a point the model refuses, to the numpy code), the candidates along the normals
-with their undistorted coordinates (``_candidates_np``; the profile read as ``cv2.remap`` reads it, at
-1/32 px), the IRLS (``_solve_py``) and the vote (``_votes_py``). A tracker's 8-bit frame goes to the
-kernel as it is (the same levels as float32).
+Every visible box edge is sampled every ``STEP_PX``; each sample looks along its image normal for steps
+with the finger's polarity and face levels (``Appearance``); the camera motion that brings the model
+lines onto the nearest candidates is found by IRLS with Tukey weights in undistorted sensor coordinates,
+over rounds of shrinking search ranges (a vote for the image shift first when the start may be far off).
+The corners are the model's points at the fitted pose; a fit below the quality thresholds is reported
+as lost with the reason, never as a pose. ``SilhouetteTracker`` follows the fit from frame to frame.
+The sampling, candidates, IRLS and vote run in the compiled kernel ``selfview._csil`` when it is built,
+else in the numpy code here (the tests hold the two to stated tolerances).
 """
 
 from __future__ import annotations
@@ -53,9 +23,11 @@ from selfview import _native
 from selfview.camera import CameraModel
 from selfview.cell import GripperSpec
 from selfview.discs import as_gray
+from selfview.fingertips import (FingertipResult, _box_edges, _search, checked_prediction, model_measurement,
+                                 tukey_weights, _fit_result)
 from selfview.geometry import R_from_rotvec, inv_H, make_H, transform_points
 
-__all__ = ["Appearance", "SilhouetteFit", "fit_silhouette", "learn_appearance", "MIN_GOOD_FRACTION"]
+__all__ = ["Appearance", "SilhouetteFit", "SilhouetteTracker", "fit_silhouette", "learn_appearance", "MIN_GOOD_FRACTION"]
 
 STEP_PX = 4.0  # samples along each edge
 PLATEAU_PX = 3  # px each side of a step that show its two grey levels
@@ -153,33 +125,10 @@ def _visible_edges(boxes, C_H_G) -> _EdgeSet:
 
 
 def _visible_edges_of(boxes, cam_G) -> _EdgeSet:
-    eye = np.eye(3)
-    a, b, fin, faces, into = [], [], [], [], []
-    for f, (lo, hi) in enumerate(boxes):
-        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-        for axis in range(3):
-            j, k = [m for m in range(3) if m != axis]
-            for sj in (-1, 1):
-                for sk in (-1, 1):
-                    fs, ins = [], []
-                    for ax, side, other, oside in ((j, sj, k, sk), (k, sk, j, sj)):
-                        plane = hi[ax] if side > 0 else lo[ax]
-                        if side * (cam_G[ax] - plane) > 1e-9:
-                            fs.append((f, ax, side))
-                            ins.append(-oside * eye[other])
-                    if not fs:
-                        continue
-                    p = np.where(np.arange(3) == axis, lo, 0.0)
-                    p[j] = hi[j] if sj > 0 else lo[j]
-                    p[k] = hi[k] if sk > 0 else lo[k]
-                    q = p.copy()
-                    q[axis] = hi[axis]
-                    a.append(p)
-                    b.append(q)
-                    fin.append(f)
-                    faces.append(fs)
-                    into.append(ins)
-    return _EdgeSet(np.array(a), np.array(b), np.array(fin), faces, into)
+    edges = [e for f, (lo, hi) in enumerate(boxes)
+             for e in _box_edges(np.asarray(lo, float), np.asarray(hi, float), cam_G, f).values()]
+    return _EdgeSet(np.array([e.a_G for e in edges]), np.array([e.b_G for e in edges]),
+                    np.array([e.finger for e in edges]), [e.faces for e in edges], [e.into for e in edges])
 
 
 def _blocked(o, d, lo, hi) -> np.ndarray:
@@ -217,7 +166,7 @@ def _sample(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _Sam
     """Points every STEP_PX along the visible edges, in the picture and not hidden by the other finger
     (``_sample_py``, in the compiled kernel when built: the same samples)."""
     kernel = _native.sil
-    cp = None if REFERENCE or kernel is None or es.d_in is None else _cam_params(cam)
+    cp = None if kernel is None or es.d_in is None else _cam_params(cam)
     if cp is not None and len(es.a_G):
         n = len(es.a_G) * 400
         p, edge, uv, nrm = np.empty((n, 3)), np.empty(n, np.int64), np.empty((n, 2)), np.empty((n, 2))
@@ -324,31 +273,11 @@ def _profiles(img, s: _Samples, R: float):
     return prof, D, A, pos, peak
 
 
-def _candidates_ref(img, s: _Samples, R: float, app: Appearance, n_cand: int = CANDIDATES):
-    """Per sample up to CANDIDATES offsets [px] along its normal (NaN: none): (S, C) offsets, (S, C) face
-    levels seen beside them, (S, C) contrasts."""
-    S = len(s.edge)
-    P = PLATEAU_PX
-    prof, D, A, pos, peak = _profiles(img, s, R)
-    # grey levels beside each peak: the face side (+n) and the other (-n), 2..P px away
-    L = prof.shape[1]
-    idx = np.arange(1, A.shape[1] - 1) + 1  # index into prof of each peak position
-    face = np.zeros((S, len(idx)), np.float32)
-    other = np.zeros((S, len(idx)), np.float32)
-    for k in range(2, P + 1):
-        face += prof[:, np.clip(idx + k, 0, L - 1)]
-        other += prof[:, np.clip(idx - k, 0, L - 1)]
-    face /= P - 1
-    other /= P - 1
-    return _gate_and_rank(face, other, peak, D, A, pos, *_levels(s, app), n_cand)
-
-
 def _gate_and_rank(face, other, peak, D, A, pos, lev1, lev2, n_cand: int):
     """The candidates among the peaks (S, M) of the profile's derivative D (S, M + 2), A = |D|, at profile
     positions ``pos`` (M + 2,): the gates (contrast, the learnt faces' levels ``lev1``/``lev2`` (S,), polarity),
     the ranking (closeness to the face's level; without a level learnt, contrast), the best ``n_cand`` with
-    their sub-pixel offsets: (S, C) offsets, face levels, contrasts (NaN: none). Shared by both numpy
-    implementations (``_candidates_ref``, ``_candidates_np``), which differ in how they read the profile."""
+    their sub-pixel offsets: (S, C) offsets, face levels, contrasts (NaN: none)."""
     S = len(face)
     contrast = face - other
     ok = peak & (np.abs(contrast) >= MIN_CONTRAST)
@@ -380,45 +309,6 @@ def _motion(xi) -> np.ndarray:
     return make_H(R_from_rotvec(xi[:3]), xi[3:])
 
 
-def _lines(cam: CameraModel, es: _EdgeSet, used: np.ndarray, C_H_G, jac: bool = False):
-    """Projected model lines (undistorted sensor coordinates) of edges ``used``: ends A (E, 2), unit
-    normals (E, 2), offsets (E,); with ``jac`` also the derivatives of A and of B (E, 2, 6) under a
-    camera motion (rotation vector, translation) applied on the left of ``C_H_G``."""
-    pa = transform_points(C_H_G, es.a_G[used])
-    pb = transform_points(C_H_G, es.b_G[used])
-    f = cam.f
-    a = f * pa[:, :2] / pa[:, 2:3]
-    b = f * pb[:, :2] / pb[:, 2:3]
-    t = b - a
-    L = np.linalg.norm(t, axis=1)
-    t = t / L[:, None]
-    n = np.column_stack([-t[:, 1], t[:, 0]])
-    if not jac:
-        return a, n, np.sum(n * a, axis=1)
-
-    def dproj(p):
-        # d(f x/z, f y/z)/dp (E, 2, 3) times dp/dxi = [-[p]x, I] (E, 3, 6)
-        x, y, z = p[:, 0], p[:, 1], p[:, 2]
-        Jp = np.zeros((len(p), 2, 3))
-        Jp[:, 0, 0] = f / z
-        Jp[:, 0, 2] = -f * x / z**2
-        Jp[:, 1, 1] = f / z
-        Jp[:, 1, 2] = -f * y / z**2
-        M = np.zeros((len(p), 3, 6))
-        M[:, 0, 1], M[:, 0, 2] = z, -y
-        M[:, 1, 0], M[:, 1, 2] = -z, x
-        M[:, 2, 0], M[:, 2, 1] = y, -x
-        M[:, 0, 3] = M[:, 1, 4] = M[:, 2, 5] = 1.0
-        return Jp @ M
-
-    return a, n, np.sum(n * a, axis=1), dproj(pa), dproj(pb), t, L
-
-
-def _tukey(r, c):
-    u = r / c
-    return np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
-
-
 def _gauss_newton_step(J, w, r):
     """(J^T W J, the step) of weighted residuals ``r`` (S,) with Jacobian ``J`` (S, 6) and weights ``w``: the
     normal equations scaled to a unit diagonal, a 1e-6 ridge, solved; the step is None when singular."""
@@ -432,90 +322,9 @@ def _gauss_newton_step(J, w, r):
         return JtWJ, None
 
 
-def _solve_ref(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, start_floor: float | None = None):
-    """IRLS of the camera motion on the candidates q (S, C, 2) (undistorted sensor coordinates, NaN:
-    none). The scale's floor falls from ``start_floor`` (default ``floor``) by half each iteration down
-    to ``floor``, so that far candidates are weighed before the fit settles on the nearest ones.
-    Returns (C_H_G, weights (S,), residuals (S,), picked candidate (S,), J^T W J (6, 6), scale)."""
-    used = np.unique(s.edge)
-    pos = np.searchsorted(used, s.edge)
-    H = C_H_G.copy()
-    S = len(s.edge)
-    w = np.zeros(S)
-    r = np.full(S, np.nan)
-    pick = np.zeros(S, int)
-    JtWJ = np.zeros((6, 6))
-    sigma = floor
-    rows = np.arange(S)
-    for it in range(iters):
-        a, n0, c0, dA, dB, t, L = _lines(cam, es, used, H, jac=True)
-        rc = np.einsum("sci,si->sc", q, n0[pos]) - c0[pos][:, None]  # (S, C)
-        rc = np.where(np.isfinite(rc), rc, np.inf)
-        pick = np.argmin(np.abs(rc), axis=1)
-        r = rc[rows, pick]
-        has = np.isfinite(r)
-        if has.sum() < 12:
-            return H, np.zeros(S), r, pick, JtWJ, sigma
-        qs = np.where(has[:, None], q[rows, pick], 0.0)
-        mad = float(np.median(np.abs(r[has])))
-        fl = floor if start_floor is None else max(floor, start_floor * 0.5**it)
-        sigma = max(1.4826 * mad, fl)
-        w = np.where(has, _tukey(np.where(has, r, 0.0), 4.685 * sigma), 0.0)
-        # r = n . (q - A): dr = dn . (q - A) - n . dA, dn = perp((I - t t') (dB - dA) / L)
-        dBA = dB - dA  # (E, 2, 6)
-        dt = (dBA - t[:, :, None] * np.einsum("ei,eik->ek", t, dBA)[:, None, :]) / L[:, None, None]
-        dn = np.stack([-dt[:, 1, :], dt[:, 0, :]], axis=1)  # (E, 2, 6)
-        qa = qs - a[pos]
-        J = np.einsum("si,sik->sk", qa, dn[pos]) - np.einsum("si,sik->sk", n0[pos], dA[pos])
-        JtWJ, dxi = _gauss_newton_step(J, w, np.where(has, r, 0.0))
-        if dxi is None:
-            break
-        H = _motion(dxi) @ H
-        if fl <= floor and np.max(np.abs(dxi[:3])) < 1e-7 and np.max(np.abs(dxi[3:])) < 1e-5:  # ~1e-4 px
-            break
-    return H, w, r, pick, JtWJ, sigma
-
-
-def _coarse_shift_ref(off: np.ndarray, nrm: np.ndarray, R: float, cell: float = 2.0, tol: float = 1.5) -> np.ndarray:
-    """The image shift (2,) [px] within +-R that the most samples agree with: sample i agrees with d when
-    one of its candidates lies at n_i . d (within ``tol``). A vote over a grid of ``cell`` px, then the
-    mean of the agreeing samples' constraints (least squares) around the best cell."""
-    g = np.arange(-R, R + cell / 2, cell)
-    dx, dy = np.meshgrid(g, g)
-    d = np.column_stack([dx.ravel(), dy.ravel()])  # (D, 2)
-    proj = nrm @ d.T  # (S, D)
-    has = np.isfinite(off)
-    agree = np.zeros(proj.shape, bool)
-    for c in range(off.shape[1]):
-        o = np.where(has[:, c], off[:, c], np.inf)
-        agree |= np.abs(proj - o[:, None]) <= tol
-    votes = agree.sum(axis=0)
-    best = d[int(np.argmax(votes))]
-    # refine: the agreeing samples' nearest candidates, least squares n . d = off
-    pb = nrm @ best
-    r = np.where(has, off - pb[:, None], np.inf)
-    k = np.argmin(np.abs(r), axis=1)
-    rows = np.arange(len(off))
-    ok = np.abs(r[rows, k]) <= tol
-    if ok.sum() >= 6:
-        A = nrm[ok]
-        b = off[rows[ok], k[ok]]
-        sol, *_ = np.linalg.lstsq(A, b, rcond=None)
-        if np.all(np.abs(sol - best) <= 2 * cell):
-            return sol
-    return best
-
-
-# --- the fast path (the functions above, ``_*_ref``, are its reference: same results, see REFERENCE) ---------
-REFERENCE = False  # True: fit with the reference functions (the tests compare the two)
-
-
 def _candidates(img, s: _Samples, R: float, app: Appearance, n_cand: int = CANDIDATES):
-    """``_candidates_ref``'s fast path: in the compiled kernel when built, else ``_candidates_np`` (the
-    per-edge levels looked up once per edge and the face levels read by slicing a padded profile: the
-    same numbers)."""
-    if REFERENCE:
-        return _candidates_ref(img.astype(np.float32, copy=False), s, R, app, n_cand)
+    """Per sample up to ``n_cand`` offsets [px] along its normal (NaN: none): (S, C) offsets, (S, C) face
+    levels seen beside them, (S, C) contrasts; in the compiled kernel when built."""
     return _candidates_q(img, s, R, app, None, n_cand)[:3]
 
 
@@ -594,14 +403,16 @@ def _cross3(a, b):
 
 
 def _solve(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, start_floor: float | None = None):
-    """``_solve_ref`` in homogeneous form: the model line of an edge with camera-frame ends A, B is
+    """IRLS of the camera motion on the candidates q (S, C, 2) (undistorted sensor coordinates, NaN:
+    none). The scale's floor falls from ``start_floor`` (default ``floor``) by half each iteration down
+    to ``floor``, so that far candidates are weighed before the fit settles on the nearest ones.
+    Returns (C_H_G, weights (S,), residuals (S,), picked candidate (S,), J^T W J (6, 6), scale).
+
+    In homogeneous form: the model line of an edge with camera-frame ends A, B is
     l = A x B (undistorted sensor coordinates (x, y, f) lie on it when l . (x, y, f) = 0), a sample's
     distance r = l . (x, y, f) / |l_12|, and under the camera motion (w, t) on the left
     dl = w x l + t x (B - A), so a sample's row of the Jacobian is [l x q, (B - A) x q] / |l_12| - r V,
-    V the derivative of |l_12| over |l_12|. The same residuals, weights and steps as the reference
-    (the same function of the motion, its derivatives in closed form)."""
-    if REFERENCE:
-        return _solve_ref(cam, es, s, q, C_H_G, floor, iters, start_floor)
+    V the derivative of |l_12| over |l_12|. In the compiled kernel when built, else ``_solve_py``."""
     kernel = _native.sil
     if kernel is not None:
         # every edge's line (an edge no sample names is left alone): the samples name their edges directly
@@ -649,11 +460,8 @@ def _solve_py(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, star
         if has.sum() < 12:
             return H, np.zeros(S), r, pick, JtWJ, sigma
         rh = r[has]
-        mad = float(np.median(np.abs(rh)))
         fl = floor if start_floor is None else max(floor, start_floor * 0.5**it)
-        sigma = max(1.4826 * mad, fl)
-        u = rh / (4.685 * sigma)
-        wh = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+        wh, sigma = tukey_weights(rh, fl)
         w = np.zeros(S)
         w[has] = wh
         Dn = (PB - PA) / N[:, None]
@@ -681,10 +489,9 @@ def _solve_py(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, star
 
 
 def _coarse_shift(off: np.ndarray, nrm: np.ndarray, R: float, cell: float = 2.0, tol: float = 1.5) -> np.ndarray:
-    """``_coarse_shift_ref``, the vote in the compiled kernel ``selfview._csil`` when built (its numpy
-    code ``_votes_py`` the reference: each candidate column compared only on the samples that have one)."""
-    if REFERENCE:
-        return _coarse_shift_ref(off, nrm, R, cell, tol)
+    """The image shift (2,) [px] within +-R that the most samples agree with: sample i agrees with d when
+    one of its candidates lies at n_i . d (within ``tol``). A vote over a grid of ``cell`` px (in the
+    compiled kernel when built), then the least squares of the agreeing samples around the best cell."""
     g = np.arange(-R, R + cell / 2, cell)
     dx, dy = np.meshgrid(g, g)
     d = np.column_stack([dx.ravel(), dy.ravel()])
@@ -742,7 +549,7 @@ def _points_seen(camera: CameraModel, H, p_G6, box):
     (``box`` (2, 2, 3): the fingers' boxes, lo/hi); in the compiled kernel when built (``_points_seen_py``
     the reference)."""
     kernel = _native.sil
-    cp = None if REFERENCE or kernel is None else _cam_params(camera)
+    cp = None if kernel is None else _cam_params(camera)
     if cp is not None:
         uv, inside, hidden = np.empty((6, 2)), np.empty(6, np.int64), np.empty(6, np.int64)
         if kernel.points(np.ascontiguousarray(p_G6, float), _OTHER6, np.ascontiguousarray(box, float),
@@ -818,9 +625,9 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
     a = np.asarray(image)
     if a.dtype == np.float32 and a.shape == (int(camera.height), int(camera.width)):
         img = a  # already checked by the caller (a tracker's frame)
-    elif (frame and a.dtype == np.uint8 and a.shape == (int(camera.height), int(camera.width))
-          and a.flags.c_contiguous and _native.sil is not None and not REFERENCE):
-        img = a  # a grabber's frame, read as it is by the compiled kernel (the same levels as float32)
+    elif frame and a.dtype == np.uint8 and a.shape == (int(camera.height), int(camera.width)):
+        # a grabber's frame: no picture checks; the kernel reads it as it is (the same levels as float32)
+        img = a if _native.sil is not None and a.flags.c_contiguous else a.astype(np.float32)
     else:
         img = as_gray(image, camera)
     H0 = np.asarray(C_H_G_pred, float)
@@ -854,11 +661,7 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
         s = _sample(camera, es, boxes, H, margin=BORDER_PX)
         if len(s.edge) < 20:
             return fail(f"too few edge samples in the picture ({len(s.edge)})", len(s.edge))
-        if REFERENCE:
-            off, lev, _ = _candidates_ref(img, s, R, app)
-            q = _undistorted(camera, s, off)
-        else:
-            off, lev, _, q = _candidates_q(img, s, R, app, camera)
+        off, lev, _, q = _candidates_q(img, s, R, app, camera)
         floor = max(SCALE_FLOOR_PX, R / 6.0) if i < len(rounds) - 1 else SCALE_FLOOR_PX
         last = i == len(rounds) - 1
         H, w, r, pick, JtWJ, sigma = _solve(camera, es, s, q, H, floor, iters=6 if last else 3,
@@ -926,3 +729,117 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
         new_app.levels[es.faces[e][0]] = float(tot[e] / cnt[e])
     return SilhouetteFit(H, np.where(found[:, None], uv6, np.nan), found, True, None, gf, ff, rms, tcp_sd, n_s,
                          new_app, reasons, cov)
+
+
+WIDE_ROUNDS = (60.0, 24.0, 10.0, 5.0, 3.0)  # a search's fit from a start that may be far off [px]
+
+
+class SilhouetteTracker:
+    """The fingertips of a sequence of pictures by the model-based measurement (``selfview.silhouette``).
+
+    ``find(image, C_H_G_pred, gap_mm)`` returns a ``FingertipResult`` (``tracked`` when it followed the
+    last frame); ``searches``, ``tracked_frames``, ``lost_frames`` count the kinds of frame,
+    ``last_failure`` says why the last frame was searched (None: tracked), ``reset()`` forgets the last
+    pose. Every frame fits the whole silhouette of both fingers: from the last fitted pose with the short ranges ``track_rounds``
+    [px] (the camera moves little between frames), with the faces' grey levels of the last fit; once more
+    within 3 px of the new pose when the fingertips moved more than ``refine_px`` [px]. When
+    that fit is not believed (its quality under the thresholds: the reason is ``last_failure``), the frame
+    is searched: fits with the full ranges from the last pose and from ``C_H_G_pred``, then from the
+    pose the corner search (``selfview.fingertips``) gives. A frame where none holds reports every point
+    as not found, with the reason in ``result.lost``: a missed frame, never a pose. Every result carries
+    the fit's ``quality``.
+    """
+
+    def __init__(self, camera: CameraModel, gripper: GripperSpec, *, points=range(4), search_px: float = 60.0,
+                 track_rounds=(8.0,), refine_px: float = 2.0, appearance=None):
+        if not isinstance(camera, CameraModel):
+            raise TypeError(f"camera: expected a selfview.camera.CameraModel, got {type(camera).__name__}")
+        want = sorted({int(k) for k in points})
+        if not want or any(k < 0 or k > 5 for k in want):
+            raise ValueError(f"points: expected indices 0..5 into POINT_NAMES, got {list(points)}")
+        rounds = tuple(float(r) for r in track_rounds)
+        if not rounds or any(not (1.0 <= r <= 60.0) for r in rounds):
+            raise ValueError(f"track_rounds: expected search ranges of 1..60 px, got {track_rounds!r}")
+        self.camera = camera
+        self.gripper = gripper
+        self.points = tuple(want)
+        self.search_px = float(search_px)
+        self.track_rounds = rounds
+        self.refine_px = float(refine_px)
+        self.searches = 0
+        self.tracked_frames = 0
+        self.lost_frames = 0
+        self.last_failure: str | None = None
+        self.last_fit = None
+        self._app0 = appearance
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the last pose: the next frame is searched for."""
+        self._H = None
+        self._gap = None
+        self._app = self._app0
+
+    @property
+    def primed(self) -> bool:
+        return self._H is not None
+
+    def find(self, image, C_H_G_pred, gap_mm: float) -> FingertipResult:
+        C_H_G_pred, gap_mm = checked_prediction(C_H_G_pred, gap_mm)
+        a = np.asarray(image)
+        if a.dtype == np.uint8 and a.shape == (int(self.camera.height), int(self.camera.width)):
+            img = a  # a grabber's frame: no other check needed per frame (float32 where the search needs it)
+        else:
+            img = as_gray(image, self.camera)  # float32, checked
+        why = None
+        if self._H is not None and self._gap is not None and abs(gap_mm - self._gap) > 1e-6:
+            why = f"the jaw gap changed ({self._gap:.2f} -> {gap_mm:.2f} mm)"
+            self.reset()
+        if self._H is not None:
+            fit = fit_silhouette(img, self.camera, self._H, self.gripper, gap_mm, appearance=self._app,
+                                 rounds=self.track_rounds, points=self.points, frame=True)
+            if fit.C_H_G is not None and self._moved_px(fit.C_H_G, gap_mm) > self.refine_px:
+                # a larger step than usual: once more with a short range around the new pose
+                again = fit_silhouette(img, self.camera, fit.C_H_G, self.gripper, gap_mm, appearance=fit.appearance,
+                                       rounds=(min(self.track_rounds[-1], 3.0),), points=self.points, frame=True)
+                fit = again if again.ok or not fit.ok else fit
+            if fit.ok:
+                self._take(fit, gap_mm)
+                self.tracked_frames += 1
+                self.last_failure = None
+                res = _fit_result(fit, None, self.points)
+                res.tracked = True
+                return res
+            why = fit.reason
+        self.last_failure = why
+        img = img.astype(np.float32, copy=False)
+        starts = ([self._H] if self._H is not None else []) + [C_H_G_pred]
+        res, fit = model_measurement(img, self.camera, C_H_G_pred, self.gripper, gap_mm, self.points,
+                                     appearance=self._app, starts=starts)
+        if not fit.ok:
+            # the corner search's pose (three corners or more), and fits reaching as far as it searches
+            searched = _search(img, self.camera, C_H_G_pred, self.gripper, gap_mm, self.search_px, range(6))
+            res2, fit2 = model_measurement(img, self.camera, C_H_G_pred, self.gripper, gap_mm, self.points,
+                                           searched=searched, appearance=self._app, starts=[],
+                                           rounds=WIDE_ROUNDS)
+            if fit2.ok:
+                res, fit = res2, fit2
+        self.searches += 1
+        if fit.ok:
+            self._take(fit, gap_mm)
+        else:
+            self.lost_frames += 1
+        return res
+
+    def _moved_px(self, H, gap_mm: float) -> float:
+        """How far [px] the fingertip points moved in the picture from the last pose to ``H``."""
+        p = self.gripper.points_G(gap=gap_mm)
+        a = self.camera.project_undistorted(transform_points(self._H, p))
+        b = self.camera.project_undistorted(transform_points(H, p))
+        return float(np.max(np.linalg.norm(a - b, axis=1)))
+
+    def _take(self, fit, gap_mm: float) -> None:
+        self._H = fit.C_H_G.copy()
+        self._gap = float(gap_mm)
+        self._app = fit.appearance
+        self.last_fit = fit

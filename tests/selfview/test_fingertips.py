@@ -267,3 +267,12 @@ def test_corners_beside_ink_at_the_tip(cell, renderer):
     assert res.found.all(), res.reasons
     err = np.linalg.norm(res.uv - pic.corner_uv, axis=1)
     assert err.max() < 0.5, err
+
+
+def test_unique_rows_is_numpys():
+    from selfview import fingertips as F
+
+    rng = np.random.default_rng(4)
+    for a in (rng.integers(-50, 50, (300, 2)), rng.integers(0, 3, (40, 2)), np.zeros((0, 2), int),
+              np.array([[5, -7]])):
+        assert np.array_equal(F._unique_rows(a), np.unique(a, axis=0))

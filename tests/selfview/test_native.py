@@ -1,4 +1,4 @@
-"""The switch between the compiled kernels and the pure-Python reference (selfview._native)."""
+"""The switch between the compiled kernel and the numpy code (selfview._native)."""
 
 import json
 import os
@@ -25,26 +25,26 @@ def _status_with(env_value: str | None) -> dict:
     return json.loads(out.stdout)
 
 
-def test_pure_python_switch_turns_every_kernel_off():
-    assert _status_with("1") == {"_cnpu": False, "_ctrack": False, "_csil": False}
-    assert _status_with("yes") == {"_cnpu": False, "_ctrack": False, "_csil": False}
+def test_pure_python_switch_turns_the_kernel_off():
+    assert _status_with("1") == {"_csil": False}
+    assert _status_with("yes") == {"_csil": False}
 
 
-def test_kernels_load_unless_switched_off():
+def test_the_kernel_loads_unless_switched_off():
     expect = {
         name: any((ROOT / "selfview" / f"{name}{suffix}").exists() for suffix in EXTENSION_SUFFIXES)
-        for name in ("_cnpu", "_ctrack", "_csil")
+        for name in ("_csil",)
     }
     assert _status_with(None) == expect
     assert _status_with("0") == expect
     assert _status_with("") == expect
 
 
-def test_ci_requires_the_kernels():
-    """CI sets SELFVIEW_REQUIRE_NATIVE=1: a kernel that failed to compile (setup.py marks them optional,
+def test_ci_requires_the_kernel():
+    """CI sets SELFVIEW_REQUIRE_NATIVE=1: a kernel that failed to compile (setup.py marks it optional,
     so pip only warns) must fail the run there rather than leave the slow path in use unnoticed."""
     if os.environ.get("SELFVIEW_REQUIRE_NATIVE", "") in ("", "0"):
         pytest.skip("SELFVIEW_REQUIRE_NATIVE is not set")
     if os.environ.get(_native.PURE_PYTHON_ENV, "").strip() not in ("", "0"):
         pytest.skip("SELFVIEW_PURE_PYTHON is set")
-    assert _native.status() == {"_cnpu": True, "_ctrack": True, "_csil": True}
+    assert _native.status() == {"_csil": True}

@@ -425,3 +425,68 @@ def test_to_dict_is_json_ready(ref):
     d = e.to_dict()
     assert d["method"] == "3P-U" and d["motion_sd"] == [None] * 6  # unknown with three points
     json.dumps(d, allow_nan=False)
+
+
+# --- unusual input: a clear error of the right kind, or a finite estimate ----------------------------
+def _unusual_cases(H0, P6, cam):
+    P = P6[:4]
+    uv = observe(H0, P, cam)
+    line = np.array([[28.0, -6.0, 0.0], [0.0, -6.0, 0.0], [-28.0, -6.0, 0.0], [14.0, -6.0, 0.0]])
+    same = np.repeat(P[:1], 4, axis=0)
+    behind = H0.copy()
+    behind[2, 3] = -110.0
+    far_away = H0.copy()
+    far_away[2, 3] = 1e5  # 100 m: a 56 mm patch cannot fix the camera's pose
+    mirrored = H0 @ np.diag([1.0, 1.0, -1.0, 1.0])
+    cases = {
+        "2 points": ((H0, P[:2], uv[:2], cam), {}, CalibrationError, "at least"),
+        "collinear": ((H0, line, observe(H0, line, cam), cam), {}, CalibrationError, "collinear"),
+        "coincident": ((H0, same, observe(H0, same, cam), cam), {}, CalibrationError, None),
+        "behind the camera": ((behind, P, uv, cam), {}, CalibrationError, "behind"),
+        "far-away patch": ((far_away, P, observe(far_away, P, cam), cam), {}, CalibrationError, "condition"),
+        "uv (3, 2)": ((H0, P, uv[:3], cam), {}, ValueError, "uv"),
+        "p_G (12,)": ((H0, P.ravel(), uv, cam), {}, ValueError, "p_G"),
+        "C_H_G (16,)": ((H0.ravel(), P, uv, cam), {}, ValueError, "C_H_G"),
+        "camera a dict": ((H0, P, uv, {"f": 962.0}), {}, TypeError, "camera"),
+        "names too few": ((H0, P, uv, cam), {"names": ["a", "b"]}, ValueError, "names"),
+        "mirrored prior": ((mirrored, P, uv, cam), {}, CalibrationError, "no rigid motion"),
+        "int C_H_G": ((np.round(H0).astype(int).tolist(), P, uv, cam), {}, None, ""),
+        "Fortran-order C_H_G": ((np.asfortranarray(H0), P, uv, cam), {}, None, ""),
+        "big-endian uv": ((H0, P, uv.astype(">f8"), cam), {}, None, ""),
+    }
+    for value in (np.nan, np.inf):
+        bad = uv.copy()
+        bad[1, 1] = value
+        cases[f"{value} in uv"] = ((H0, P, bad, cam), {}, CalibrationError, POINT_NAMES[1])
+    return cases
+
+
+@pytest.mark.parametrize("solver", [iterative_update, recalibrate, differential_update])
+def test_unusual_input_gives_a_clear_error_or_a_finite_estimate(ref, solver):
+    H0, P6, cam = ref
+    for name, (args, kwargs, error, match) in _unusual_cases(H0, P6, cam).items():
+        if name == "mirrored prior" and solver is differential_update:
+            continue  # NP-U takes any prior: eq. 13 leaves it non-orthogonal anyway
+        if name == "behind the camera" and solver is recalibrate:
+            continue  # NP-R solves the pose afresh from the points: the prior only picks a solution
+        if name == "2 points" and solver is recalibrate:
+            error, match = CalibrationError, "at least 4"
+        if error is None:
+            e = solver(*args, **kwargs)
+            assert np.isfinite(e.C_H_G).all() and (e.rms_px < 1e-3 or name == "int C_H_G"), name
+        else:
+            with pytest.raises(error, match=match):
+                solver(*args, **kwargs)
+
+
+def test_np_i_from_a_non_orthogonal_prior_starts_at_its_nearest_rotation(ref):
+    """After an NP-U update (eq. 13 leaves the rotation non-orthogonal) NP-I starts from its nearest
+    rotation and measures the motion from the non-orthogonal prior."""
+    H0, P, cam = ref
+    H1 = turned(H0, (0.2, 1.0, 0.1), 3.0, (0.0, -15.0, -20.0))
+    uv = observe(H1, P[:4], cam)
+    H_u = differential_update(H0, P[:4], uv, cam).C_H_G
+    assert np.abs(H_u[:3, :3].T @ H_u[:3, :3] - np.eye(3)).max() > 1e-9
+    e = iterative_update(H_u, P[:4], uv, cam)
+    assert is_rigid(e.C_H_G) and tcp_error(e.C_H_G, H1) < 1e-6
+    np.testing.assert_allclose(e.C_H_G_prior, H_u)
