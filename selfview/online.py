@@ -99,8 +99,9 @@ class MotionEstimate:
         }
 
 
-def _estimate(label, H, H_orth, motion, res_px, N, rss, names, iters, H0, prior_sigma_px) -> MotionEstimate:
-    """The ``MotionEstimate`` of a solve: ``N`` its normal matrix (6, 6), ``rss`` its residual sum of squares."""
+def _estimate(label, H, H_orth, motion, res_px, N, cond, rss, names, iters, H0, prior_sigma_px) -> MotionEstimate:
+    """The ``MotionEstimate`` of a solve: ``N`` its normal matrix (6, 6) and ``cond`` its condition,
+    ``rss`` its residual sum of squares."""
     rms = float(np.sqrt(np.mean(np.sum(res_px**2, axis=1))))
     if prior_sigma_px is not None:
         sigma2 = float(prior_sigma_px) ** 2
@@ -108,9 +109,9 @@ def _estimate(label, H, H_orth, motion, res_px, N, rss, names, iters, H0, prior_
         dof = 2 * len(res_px) - 6
         sigma2 = rss / dof if dof > 0 else math.nan
     Ns, d = _scaled(N)
-    cov = sigma2 * np.linalg.pinv(Ns) / np.outer(d, d)
+    cov = sigma2 * np.linalg.inv(Ns) / np.outer(d, d)  # well conditioned: checked before
     return MotionEstimate(label, H, H_orth, motion, math.degrees(float(np.linalg.norm(motion[:3]))),
-                          float(np.linalg.norm(motion[3:])), res_px, rms, cov, _condition(N), names, iters, H0)
+                          float(np.linalg.norm(motion[3:])), res_px, rms, cov, cond, names, iters, H0)
 
 
 # --- input checks and shared pieces ------------------------------------------------------------------
@@ -209,9 +210,9 @@ def _condition(N: np.ndarray) -> float:
     return float(s[0] / s[-1]) if s[-1] > 0.0 else math.inf
 
 
-def _check_conditioning(N: np.ndarray, P: np.ndarray, label: str) -> None:
-    """Refuse a normal matrix whose scaled condition exceeds ``MAX_CONDITION``, naming collinear points
-    when that is the cause."""
+def _check_conditioning(N: np.ndarray, P: np.ndarray, label: str) -> float:
+    """The condition of a normal matrix (``_condition``); ``CalibrationError`` when it exceeds
+    ``MAX_CONDITION``, naming collinear points when that is the cause."""
     if not np.min(N.diagonal()) > 0.0:
         raise CalibrationError(f"{label}: a motion parameter does not affect any observation")
     cond = _condition(N)
@@ -221,6 +222,16 @@ def _check_conditioning(N: np.ndarray, P: np.ndarray, label: str) -> None:
             f"{label}: {why or 'ill-conditioned point configuration'}; condition number {cond:.3g} of "
             f"the scaled normal system exceeds {MAX_CONDITION:.0e}, the motion would be meaningless"
         )
+    return cond
+
+
+def _cross(w: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """w x p_i for a vector w (3,) and points p (N, 3) (np.cross costs more at this size)."""
+    out = np.empty_like(p)
+    out[:, 0] = w[1] * p[:, 2] - w[2] * p[:, 1]
+    out[:, 1] = w[2] * p[:, 0] - w[0] * p[:, 2]
+    out[:, 2] = w[0] * p[:, 1] - w[1] * p[:, 0]
+    return out
 
 
 # --- NP-U -------------------------------------------------------------------------------------------
@@ -259,15 +270,15 @@ def differential_update(
     p_C = _camera_points(H0, P, label)  # eq. 15
     A, b = _eq17(p_C, XY, f)
     N = A.T @ A
-    _check_conditioning(N, P, label)
+    cond = _check_conditioning(N, P, label)
     x = np.linalg.solve(N, A.T @ b)
     H = delta_star(x[:3], x[3:]) @ H0  # eq. 13
-    p_new = p_C + np.cross(x[:3], p_C) + x[3:]  # eq. 16: C'p_i = Delta* C p_i
+    p_new = p_C + _cross(x[:3], p_C) + x[3:]  # eq. 16: C'p_i = Delta* C p_i
     if not np.all(p_new[:, 2] > 0.0):
         raise CalibrationError(f"{label}: the update moves a point behind the camera; the motion is not small")
     res = _pixel_residuals(camera, uv, f * p_new[:, :2] / p_new[:, 2:3])
     r = A @ x - b
-    return _estimate(label, H, orthonormalize(H), x, res, N, float(r @ r), names, 1, H0, prior_sigma_px)
+    return _estimate(label, H, orthonormalize(H), x, res, N, cond, float(r @ r), names, 1, H0, prior_sigma_px)
 
 
 # --- NP-I (and the refinement of NP-R) --------------------------------------------------------------
@@ -278,10 +289,10 @@ def _linearise(H: np.ndarray, P: np.ndarray, XY: np.ndarray, f: float, label: st
     p = _camera_points(H, P, label)
     x, y, z = p.T
     u, v = f * x / z, f * y / z
-    zero = np.zeros_like(x)
-    J = np.empty((2 * len(p), 6))
-    J[0::2] = np.column_stack([-u * y / z, f + u * x / z, -v, f / z, zero, -u / z])
-    J[1::2] = np.column_stack([-f - v * y / z, v * x / z, u, zero, f / z, -v / z])
+    J = np.zeros((2 * len(p), 6))
+    JX, JY = J[0::2], J[1::2]
+    JX[:, 0], JX[:, 1], JX[:, 2], JX[:, 3], JX[:, 5] = -u * y / z, f + u * x / z, -v, f / z, -u / z
+    JY[:, 0], JY[:, 1], JY[:, 2], JY[:, 4], JY[:, 5] = -f - v * y / z, v * x / z, u, f / z, -v / z
     r = np.empty(2 * len(p))
     r[0::2], r[1::2] = XY[:, 0] - u, XY[:, 1] - v
     return p, J, r
@@ -311,7 +322,7 @@ def _gauss_newton(H0, H_start, P, uv, camera, names, label, tol, max_iter, prior
             raise CalibrationError(f"{label}: the normal system became singular during the iteration")
         step = step.ravel()
         w, t = step[:3], step[3:]
-        moved = float(np.max(np.linalg.norm(np.cross(w, p) + t, axis=1)))
+        moved = math.sqrt(float(np.max(np.sum((_cross(w, p) + t) ** 2, axis=1))))
         Rw = R_from_rotvec(w)
         H_next = np.eye(4)
         H_next[:3, :3] = Rw @ H[:3, :3]
@@ -324,12 +335,12 @@ def _gauss_newton(H0, H_start, P, uv, camera, names, label, tol, max_iter, prior
             f"{label}: no convergence in {max_iter} iterations (the last step moved the points {moved:.3g} mm)"
         )
     N = J.T @ J
-    _check_conditioning(N, P, label)  # the final configuration must be well conditioned too
+    cond = _check_conditioning(N, P, label)  # the final configuration must be well conditioned too
     r_after = r - J @ step  # the residual after the last, sub-tolerance step
     res = _pixel_residuals(camera, uv, XY - r_after.reshape(-1, 2))
     C_H_C = H @ np.linalg.inv(H0)  # the total motion (H0 may be a non-orthogonal NP-U result)
     motion = np.concatenate([rotvec_from_R(orthonormalize(C_H_C[:3, :3])), C_H_C[:3, 3]])
-    return _estimate(label, H, H, motion, res, N, float(r_after @ r_after), names, it, H0, prior_sigma_px)
+    return _estimate(label, H, H, motion, res, N, cond, float(r_after @ r_after), names, it, H0, prior_sigma_px)
 
 
 def iterative_update(

@@ -12,7 +12,7 @@ import functools
 import numpy as np
 import pytest
 
-from selfview.bench import clutter
+from tests import clutter_scenes as clutter
 from selfview.cell import default_cell_path, load_cell
 from selfview.errors import AlarmError, ConfigError
 from selfview.fingertips import find_fingertips
@@ -20,7 +20,7 @@ from selfview.geometry import transform_points, trans
 from selfview.online import estimate
 from selfview.policy import Monitor
 from selfview.silhouette import fit_silhouette
-from selfview.tracking import SilhouetteTracker
+from selfview.silhouette import SilhouetteTracker
 
 # a pose marked good may be this far off in any TCP axis (the bound for a wrong one is 0.1 mm; a
 # right one is typically 0.01 mm: 0.05 leaves room for one frame's noise, not for a wrong edge)

@@ -1,16 +1,12 @@
-"""The model-based measurement's fast path against its reference.
+"""The silhouette fit's compiled kernel (``selfview._csil``) against its numpy code.
 
-``selfview.silhouette`` keeps the first implementation of its three costly steps (the candidates along
-each sample's normal, the IRLS of the camera motion, the vote for the image shift) as ``*_ref``, and
-``silhouette.REFERENCE = True`` makes every fit use them; the fast path's IRLS and vote run in the compiled
-kernel ``selfview._csil`` when it is built, their numpy code (``_solve_py``, ``_votes_py``) the kernel's
-reference. The fast path, with the kernel and without, must give the same measurement:
-on the same frames, both renderers, plain and over a photograph, tracked and searched, the corners
-within CORNER_TOL_PX and the fitted pose's TCP within TCP_TOL_MM of the reference's, the same verdict
-(found or lost) and the same number of supporting samples. The tolerances are far below anything
-physical (the corners' own noise is ~0.02 px, the TCP's ~0.005 mm) and far above rounding, so that a
-reordered sum passes and a changed choice of candidate, weight or step fails. The kernel's sampling and
-candidates are also compared with their numpy code step by step (below).
+Both must give the same measurement: on the same frames, both renderers, plain and over a photograph,
+tracked and searched, the corners within CORNER_TOL_PX and the fitted pose's TCP within TCP_TOL_MM, the
+same verdict (found or lost) and the same number of samples. The tolerances are tight enough to catch a
+changed decision and loose enough for a reordered sum: the corners' own noise is ~0.02 px and the TCP's
+~0.005 mm, so 0.01 px and 1e-4 mm lie far below anything physical, while a different candidate, weight
+or step moves a corner by 0.05 px or more; the kernel's sums in another order differ by ~1e-9 px. The
+kernel's sampling, candidates, IRLS and vote are also compared with their numpy code step by step.
 """
 
 from __future__ import annotations
@@ -23,14 +19,16 @@ import pytest
 
 import selfview.silhouette as sil
 from selfview import _native
-from selfview.bench import clutter
 from selfview.cell import default_cell_path, load_cell
 from selfview.fingertips import model_measurement
 from selfview.geometry import inv_H, make_H
-from selfview.tracking import WIDE_ROUNDS, SilhouetteTracker
+from selfview.silhouette import WIDE_ROUNDS, SilhouetteTracker
+from tests import clutter_scenes as clutter
 
 CORNER_TOL_PX = 0.01
 TCP_TOL_MM = 1e-4
+KERNEL = _native.sil
+needs_kernel = pytest.mark.skipif(KERNEL is None, reason="the compiled kernel selfview._csil is not built")
 
 
 @functools.lru_cache(maxsize=None)
@@ -43,10 +41,10 @@ def _sequence(renderer: str, photo: str | None):
     return clutter.online_sequence(_cell(), renderer, photo, "cable", 131, 40.0, 1.5, steps=3)
 
 
-def _run(seq, reference: bool, monkeypatch):
+def _run(seq, kernel, monkeypatch):
     """The tracker over the sequence, then searches of the last frame (the default rounds from the last
     frame's prediction, and the wide rounds from the mount before the disturbance)."""
-    monkeypatch.setattr(sil, "REFERENCE", reference)
+    monkeypatch.setattr(_native, "sil", kernel)
     cell = _cell()
     tr = SilhouetteTracker(seq.camera, cell.gripper, points=range(4))
     out = []
@@ -60,14 +58,12 @@ def _run(seq, reference: bool, monkeypatch):
     return out, tr.tracked_frames
 
 
-@pytest.mark.parametrize("renderer,photo,kernel", [("mocks", None, True), ("mocks", "gravel", True), ("alt", None, True),
-                                                   ("alt", "coffee", True), ("alt", "coffee", False)])
-def test_fast_silhouette_fit_matches_the_reference(renderer, photo, kernel, monkeypatch):
-    if not kernel:
-        monkeypatch.setattr(_native, "sil", None)  # the fast path's numpy code
+@needs_kernel
+@pytest.mark.parametrize("renderer,photo", [("mocks", None), ("mocks", "gravel"), ("alt", None), ("alt", "coffee")])
+def test_kernel_fit_matches_the_numpy_fit(renderer, photo, monkeypatch):
     seq = _sequence(renderer, photo)
-    ref, tracked_ref = _run(seq, True, monkeypatch)
-    fast, tracked_fast = _run(seq, False, monkeypatch)
+    ref, tracked_ref = _run(seq, None, monkeypatch)
+    fast, tracked_fast = _run(seq, KERNEL, monkeypatch)
     assert tracked_ref == tracked_fast and tracked_fast >= 2
     for (r0, f0), (r1, f1) in zip(ref, fast):
         assert (r0.lost is None) == (r1.lost is None)
@@ -80,10 +76,27 @@ def test_fast_silhouette_fit_matches_the_reference(renderer, photo, kernel, monk
             assert abs(f0.rms_px - f1.rms_px) < 1e-3
 
 
-def test_fast_steps_match_their_references_on_one_frame(monkeypatch):
-    """Each fast step on the same input as its reference: the candidates (offsets to 1e-4 px, the same
-    ones missing), the IRLS (the pose's TCP to TCP_TOL_MM, the weights to 1e-6), the vote (the shift to
-    0.01 px)."""
+def test_an_8_bit_frame_fits_as_its_float_copy(monkeypatch):
+    """A grabber's 8-bit frame skips the picture's checks on either path and gives the fit of its float32
+    copy (the same grey levels)."""
+    seq = _sequence("mocks", None)
+    cell = _cell()
+    fr = seq.frames[1]
+    assert fr.image.dtype == np.uint8
+    for kernel in (None, KERNEL):
+        monkeypatch.setattr(_native, "sil", kernel)
+        a = sil.fit_silhouette(fr.image, seq.camera, fr.C_H_G, cell.gripper, seq.gap, rounds=(8.0, 3.0), frame=True)
+        b = sil.fit_silhouette(fr.image.astype(np.float32), seq.camera, fr.C_H_G, cell.gripper, seq.gap,
+                               rounds=(8.0, 3.0))
+        assert a.ok and b.ok and a.n_samples == b.n_samples
+        assert np.abs(a.C_H_G[:3, 3] - b.C_H_G[:3, 3]).max() < TCP_TOL_MM
+
+
+@needs_kernel
+def test_kernel_steps_match_their_numpy_code_on_one_frame(monkeypatch):
+    """Each kernel step on the same input as its numpy code: the candidates (offsets to 1e-4 px, the same
+    ones missing), the vote (at most one vote apart per cell: n . d rounded otherwise), the IRLS (the
+    pose's TCP to TCP_TOL_MM, the weights to 1e-6)."""
     cell = _cell()
     seq = _sequence("alt", "coffee")
     fr = seq.frames[2]
@@ -96,40 +109,27 @@ def test_fast_steps_match_their_references_on_one_frame(monkeypatch):
     s = sil._sample(seq.camera, es, boxes, H0, margin=sil.BORDER_PX)
     assert len(s.edge) > 100
     for R, n in ((8.0, sil.CANDIDATES), (24.0, 8)):
-        a = sil._candidates_ref(img, s, R, app, n)
+        a = sil._candidates_np(img, s, R, app, n)
         b = sil._candidates(img, s, R, app, n)
         for x, y in zip(a, b):
             assert np.array_equal(np.isnan(x), np.isnan(y))
             assert np.nanmax(np.abs(x - y)) < 1e-4
         off = b[0]
-        assert np.abs(sil._coarse_shift_ref(off, s.n, R) - sil._coarse_shift(off, s.n, R)).max() < 0.01
-        if _native.sil is not None:
-            # the kernel's vote against its numpy reference: n . d is rounded otherwise (no matrix
-            # product), so a sample exactly at tol from a cell may count on one side only
-            g = np.arange(-R, R + 1.0, 2.0)
-            dx, dy = np.meshgrid(g, g)
-            d = np.column_stack([dx.ravel(), dy.ravel()])
-            votes = np.empty(len(d), np.int64)
-            _native.sil.vote(off.astype(float), s.n, g, 1.5, votes)
-            ref_votes = sil._votes_py(off, np.isfinite(off), s.n @ d.T, 1.5)
-            assert np.abs(votes - ref_votes).max() <= 1 and votes.max() > 0.5 * len(off)
+        g = np.arange(-R, R + 1.0, 2.0)
+        dx, dy = np.meshgrid(g, g)
+        d = np.column_stack([dx.ravel(), dy.ravel()])
+        votes = np.empty(len(d), np.int64)
+        KERNEL.vote(off.astype(float), s.n, g, 1.5, votes)
+        ref_votes = sil._votes_py(off, np.isfinite(off), s.n @ d.T, 1.5)
+        assert np.abs(votes - ref_votes).max() <= 1 and votes.max() > 0.5 * len(off)
     off, _, _ = sil._candidates(img, s, 8.0, app)
-    uvc = s.uv[:, None, :] + off[..., None] * s.n[:, None, :]
-    flat = uvc.reshape(-1, 2)
-    okc = np.isfinite(flat).all(axis=1)
-    q = np.full(flat.shape, np.nan)
-    q[okc] = seq.camera.undistort_pixels(flat[okc])
-    q = q.reshape(uvc.shape)
-    Ha, wa, ra, pa, Ja, sa = sil._solve_ref(seq.camera, es, s, q, H0, 0.35, iters=6, start_floor=1.3)
+    q = sil._undistorted(seq.camera, s, off)
     Hb, wb, rb, pb, Jb, sb = sil._solve(seq.camera, es, s, q, H0, 0.35, iters=6, start_floor=1.3)
-    assert np.abs(Ha[:3, 3] - Hb[:3, 3]).max() < TCP_TOL_MM
-    assert np.abs(Ha[:3, 3] - H0[:3, 3]).max() > 0.05  # the fit did move the pose
-    assert np.array_equal(pa, pb) and np.abs(wa - wb).max() < 1e-6 and abs(sa - sb) < 1e-6
-    assert np.allclose(Ja, Jb, rtol=1e-6, atol=1e-9 * np.abs(Ja).max())
-    # the numpy code of the fast IRLS (the compiled kernel's reference) agrees as well
     Hc, wc, rc, pc, Jc, sc = sil._solve_py(seq.camera, es, s, q, H0, 0.35, iters=6, start_floor=1.3)
+    assert np.abs(Hb[:3, 3] - H0[:3, 3]).max() > 0.05  # the fit did move the pose
     assert np.abs(Hc[:3, 3] - Hb[:3, 3]).max() < TCP_TOL_MM and np.array_equal(pb, pc)
     assert np.abs(wb - wc).max() < 1e-6 and abs(sb - sc) < 1e-6
+    assert np.allclose(Jb, Jc, rtol=1e-6, atol=1e-9 * np.abs(Jb).max())
 
 
 @pytest.mark.skipif(_native.sil is None, reason="the compiled kernel selfview._csil is not built")
@@ -167,7 +167,6 @@ POS_TOL_PX = 1e-6
 LEVEL_TOL_GREY = 1e-3
 OFFSET_TOL_PX = 1e-4
 
-needs_kernel = pytest.mark.skipif(_native.sil is None, reason="the compiled kernel selfview._csil is not built")
 
 
 def _poses(seq):
