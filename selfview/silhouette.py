@@ -59,7 +59,9 @@ class SilhouetteFit:
     """The fitted silhouette: ``C_H_G`` (4, 4) the pose that fits (None if it could not be fitted),
     ``uv`` (6, 2) the model's points there (distorted pixels), ``found`` (6,) in the picture and not
     hidden, when ``ok``; ``ok`` whether the fit is believed; ``reason`` why not; ``good_fraction`` of the
-    samples that support it, ``finger_fraction`` (2,) per finger; ``rms_px``; ``tcp_sd_mm`` (3,) the
+    samples that support it, ``finger_fraction`` (2,) per finger (of its samples in the picture; NaN for
+    a finger with too few there to judge); ``finger_visible`` (2,) the share of each finger's edge samples
+    that lie in the picture and are not hidden by the other finger; ``rms_px``; ``tcp_sd_mm`` (3,) the
     TCP's standard deviation (camera axes); ``n_samples``; ``appearance`` the faces' levels measured at
     the fit (for the next frame); ``reasons`` per point."""
 
@@ -76,6 +78,7 @@ class SilhouetteFit:
     appearance: Appearance
     reasons: list
     covariance: np.ndarray | None = None
+    finger_visible: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))
 
     def quality(self) -> dict:
         def num(v):
@@ -86,6 +89,7 @@ class SilhouetteFit:
             "reason": self.reason,
             "good_fraction": num(self.good_fraction),
             "finger_fraction": [num(v) for v in self.finger_fraction],
+            "finger_visible": [num(v) for v in self.finger_visible],
             "rms_px": num(self.rms_px),
             "tcp_sd_mm": [num(v) for v in self.tcp_sd_mm],
             "n_samples": int(self.n_samples),
@@ -231,6 +235,21 @@ def _sample_py(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _
     sgn = np.sign(np.sum(nrm * side[edge], axis=1))
     nrm *= np.where(sgn == 0, 1.0, sgn)[:, None]
     return _Samples(p[keep], edge[keep], uv[keep], nrm[keep], es.faces)
+
+
+def _finger_visible(cam: CameraModel, es: _EdgeSet, C_H_G, s: _Samples) -> np.ndarray:
+    """(2,) of each finger's edge samples (as ``_sample`` spaces them along the whole edge), the share
+    that ``s`` kept: in the picture and not hidden by the other finger."""
+    ends = transform_points(C_H_G, np.vstack([es.a_G, es.b_G]))
+    E = len(es.a_G)
+    front = (ends[:E, 2] > 1.0) & (ends[E:, 2] > 1.0)
+    total = np.zeros(2)
+    if front.any():
+        uv = cam.project(np.vstack([ends[:E][front], ends[E:][front]]))
+        n = np.clip(np.linalg.norm(uv[front.sum():] - uv[:front.sum()], axis=1) / STEP_PX, 2, 400).astype(int)
+        total = np.bincount(es.finger[front], weights=n, minlength=2)
+    kept = np.bincount(es.finger[s.edge], minlength=2)
+    return np.where(total > 0, np.minimum(kept / np.maximum(total, 1), 1.0), 0.0)
 
 
 def _remap(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -571,6 +590,25 @@ def _points_seen_py(camera: CameraModel, H, p_G6, box):
     return uv6, inside6, hidden6
 
 
+def _points_found(camera: CameraModel, H, p_G6, box, points):
+    """The fingertip points at ``H`` that a fit reports: (uv (6, 2), found (6,): requested, in the picture
+    and not hidden by the other finger, reasons (6,): why not, None where found)."""
+    uv6, inside6, hidden6 = _points_seen(camera, H, p_G6, box)
+    want = {int(k) for k in points}
+    found = np.zeros(6, bool)
+    reasons: list = [None] * 6
+    for k in range(6):
+        if k not in want:
+            reasons[k] = "not requested"
+        elif not inside6[k]:
+            reasons[k] = "outside the picture"
+        elif hidden6[k]:
+            reasons[k] = f"occluded by finger {'AB'[_OTHER6[k]]}"
+        else:
+            found[k] = True
+    return uv6, found, reasons
+
+
 def learn_appearance(image, camera: CameraModel, C_H_G, gripper: GripperSpec, gap_mm: float) -> Appearance:
     """The grey level of every visible finger face at ``C_H_G``: the median over its part within the
     picture, 2 px inside its edges (use a pose that fits, e.g. where the fingertips were found)."""
@@ -668,6 +706,7 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
                                             start_floor=max(floor, R / 6.0))
     good = w > 0.5
     n_s = len(s.edge)
+    visible = _finger_visible(camera, es, H, s)
     fing = es.finger[s.edge]
     n_good = int(np.count_nonzero(good))
     gf = n_good / n_s if n_s else 0.0
@@ -690,19 +729,7 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
             tcp_sd = np.sqrt(np.maximum(np.diag(Jt @ cov @ Jt.T), 0.0))
         except np.linalg.LinAlgError:
             cov = None
-    found = np.zeros(6, bool)
-    reasons: list = [None] * 6
-    want = {int(k) for k in points}
-    uv6, inside6, hidden6 = _points_seen(camera, H, p_G6, np.asarray(boxes, float).reshape(2, 2, 3))
-    for k in range(6):
-        if k not in want:
-            reasons[k] = "not requested"
-        elif not inside6[k]:
-            reasons[k] = "outside the picture"
-        elif hidden6[k]:
-            reasons[k] = f"occluded by finger {'AB'[_OTHER6[k]]}"
-        else:
-            found[k] = True
+    uv6, found, reasons = _points_found(camera, H, p_G6, np.asarray(boxes, float).reshape(2, 2, 3), points)
     why = None
     if gf < MIN_GOOD_FRACTION:
         why = f"lost: {100 * gf:.0f} % of {n_s} edge samples support the fit (needs {100 * MIN_GOOD_FRACTION:.0f} %)"
@@ -717,6 +744,7 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
         res = fail(why, n_s, gf, ff, rms, H)
         res.tcp_sd_mm = tcp_sd
         res.covariance = cov
+        res.finger_visible = visible
         return res
     # the faces' levels at the fit, for the next frame
     new_app = app.copy()
@@ -728,7 +756,7 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
     for e in np.flatnonzero(cnt >= 5):  # the mean beside each edge's supporting samples
         new_app.levels[es.faces[e][0]] = float(tot[e] / cnt[e])
     return SilhouetteFit(H, np.where(found[:, None], uv6, np.nan), found, True, None, gf, ff, rms, tcp_sd, n_s,
-                         new_app, reasons, cov)
+                         new_app, reasons, cov, visible)
 
 
 WIDE_ROUNDS = (60.0, 24.0, 10.0, 5.0, 3.0)  # a search's fit from a start that may be far off [px]
