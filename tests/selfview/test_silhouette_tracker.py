@@ -11,11 +11,12 @@ import pytest
 import selfview.silhouette as sil
 from selfview import _native
 from selfview.cell import default_cell_path, load_cell
-from selfview.geometry import inv_H, make_H, trans
+from selfview.geometry import trans
 from selfview.mocks.render import render
 from selfview.mocks.world import SimWorld
 from selfview.online import estimate
 from selfview.silhouette import SilhouetteTracker, fit_silhouette, learn_appearance
+from tests.selfview.test_silhouette_speed import _looking_at
 
 TCP_MM = 0.05  # the on-line accuracy a tracked frame must give (4P-I on its corners, any TCP axis)
 TILT_DEG = 0.3  # the camera's creep between two frames about its y axis (some 6 px in the picture)
@@ -129,16 +130,6 @@ def test_a_start_a_millimetre_off_with_a_short_range_is_refused():
     again = fit_silhouette(pic.image, w.camera, trans(1.0, 0.0, 0.0) @ w.C_H_G, _cell().gripper, w.jaw_gap_mm,
                            appearance=app)
     assert again.ok and np.abs(again.C_H_G[:3, 3] - w.C_H_G[:3, 3]).max() < TCP_MM
-
-
-def _looking_at(c_G, target_G):
-    """C_H_G of a camera at c_G (G, mm) looking at target_G, its y axis in G's z-up plane."""
-    c = np.asarray(c_G, float)
-    z = np.asarray(target_G, float) - c
-    z /= np.linalg.norm(z)
-    x = np.cross((0.0, 0.0, 1.0), z)
-    x /= np.linalg.norm(x)
-    return inv_H(make_H(np.column_stack([x, np.cross(z, x), z]), c))
 
 
 @pytest.mark.parametrize("kernel", [None, _native.sil])
