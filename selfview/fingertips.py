@@ -47,7 +47,7 @@ from selfview.discs import as_gray
 from selfview.errors import CalibrationError
 from selfview.geometry import inv_H, transform_points
 
-__all__ = ["FingertipResult", "find_fingertips", "predict_fingertips", "visible_edges"]
+__all__ = ["FingertipResult", "PredictedFingers", "find_fingertips", "predict_fingertips", "visible_edges"]
 
 FINGERS = ("A", "B")
 #: finger of each point, in POINT_NAMES order
@@ -172,31 +172,44 @@ def _hidden_by(p_C, boxes, C_H_G, skip: int) -> int | None:
     return None
 
 
-def checked_prediction(C_H_G, gap_mm) -> tuple[np.ndarray, float]:
-    """(C_H_G (4, 4) float, gap [mm]) of a prediction; ``ValueError`` for a transform of another shape or
-    a jaw gap that is not a positive finite number, ``CalibrationError`` for a non-finite transform."""
-    H = np.asarray(C_H_G, dtype=float)
-    if H.shape != (4, 4):
-        raise ValueError(f"C_H_G_pred: expected a (4, 4) transform, got shape {H.shape}")
-    if not np.isfinite(H).all():
-        raise CalibrationError("C_H_G_pred contains non-finite values: no prediction to search from")
-    try:
-        gap = float(gap_mm)
-    except (TypeError, ValueError):
-        gap = math.nan
-    if not (math.isfinite(gap) and gap > 0.0):
-        raise ValueError(f"gap_mm: expected the jaw gap as a positive number of mm, got {gap_mm!r}")
-    return H, gap
+@dataclass(frozen=True, eq=False)
+class PredictedFingers:
+    """Where the fingers are expected in a picture: the ``camera`` that sees them, the gripper in its frame
+    ``C_H_G`` (4, 4), the ``gripper`` and its jaw gap ``gap_mm``. Checked on construction: ``ValueError``
+    for a transform of another shape or a jaw gap that is not a positive finite number,
+    ``CalibrationError`` for a non-finite transform."""
+
+    camera: CameraModel
+    C_H_G: np.ndarray
+    gripper: GripperSpec
+    gap_mm: float
+
+    def __post_init__(self):
+        H = np.array(self.C_H_G, dtype=float)
+        if H.shape != (4, 4):
+            raise ValueError(f"C_H_G_pred: expected a (4, 4) transform, got shape {H.shape}")
+        if not np.isfinite(H).all():
+            raise CalibrationError("C_H_G_pred contains non-finite values: no prediction to search from")
+        try:
+            gap = float(self.gap_mm)
+        except (TypeError, ValueError):
+            gap = math.nan
+        if not (math.isfinite(gap) and gap > 0.0):
+            raise ValueError(f"gap_mm: expected the jaw gap as a positive number of mm, got {self.gap_mm!r}")
+        H.flags.writeable = False
+        object.__setattr__(self, "C_H_G", H)
+        object.__setattr__(self, "gap_mm", gap)
 
 
 class _Model:
-    """The predicted finger geometry in the picture for one C_H_G."""
+    """The predicted finger geometry in the picture."""
 
-    def __init__(self, camera: CameraModel, C_H_G, gripper: GripperSpec, gap_mm: float):
-        self.cam = camera
-        self.C_H_G, gap_mm = checked_prediction(C_H_G, gap_mm)
-        self.boxes = gripper.finger_boxes_G(gap_mm)
-        self.points_G = gripper.points_G(gap=gap_mm)
+    def __init__(self, pred: PredictedFingers):
+        self.cam = pred.camera
+        self.C_H_G = pred.C_H_G
+        self.boxes = pred.gripper.finger_boxes_G(pred.gap_mm)
+        self.points_G = pred.gripper.points_G(gap=pred.gap_mm)
+        camera = pred.camera
         cam_G = inv_H(self.C_H_G)[:3, 3]
         self.edges: dict[tuple, _Edge] = {}
         for f, (lo, hi) in enumerate(self.boxes):
@@ -247,7 +260,7 @@ class _Model:
 
 def visible_edges(camera: CameraModel, C_H_G, gripper: GripperSpec, gap_mm: float) -> dict[str, list[str]]:
     """Which box edges show at each fingertip point (for reports): name -> ['x edge (silhouette)', ...]."""
-    m = _Model(camera, C_H_G, gripper, gap_mm)
+    m = _Model(PredictedFingers(camera, C_H_G, gripper, gap_mm))
     return {
         POINT_NAMES[k]: [
             f"{'xyz'[e.key[1]]} edge ({'crease' if e.crease else 'silhouette'})" for e, _ in m.corner_edges[k]
@@ -265,7 +278,7 @@ def predict_fingertips(
     lies in the picture, the other finger does not hide it and at least two of its edges show.
     Raises ``CalibrationError`` if a point lies behind the camera.
     """
-    m = _Model(camera, C_H_G, gripper, gap_mm)
+    m = _Model(PredictedFingers(camera, C_H_G, gripper, gap_mm))
     in_view = camera.in_image(m.uv) & np.array(
         [m.hidden[k] is None and len(m.corner_edges[k]) >= 2 for k in range(6)]
     )
@@ -765,13 +778,14 @@ def find_fingertips(
     fingertips behind the camera or is not finite, ``ValueError`` for a transform that is not (4, 4) or a
     jaw gap that is not a positive number.
     """
-    result = _search(image, camera, C_H_G_pred, gripper, gap_mm, search_px, points)
+    pred = PredictedFingers(camera, C_H_G_pred, gripper, gap_mm)
+    result = _search(image, pred, search_px, points)
     if not model:
         return result
-    return model_measurement(image, camera, C_H_G_pred, gripper, gap_mm, points, result, appearance)[0]
+    return _model_measurement(image, pred, points, result, appearance)[0]
 
 
-def _pose_from_corners(camera, C_H_G_pred, gripper, gap_mm, res: FingertipResult):
+def _pose_from_corners(pred: PredictedFingers, res: FingertipResult):
     """The pose the found corners give (NP-I from the prediction on them), or None (fewer than 3)."""
     from selfview.online import iterative_update
 
@@ -779,7 +793,7 @@ def _pose_from_corners(camera, C_H_G_pred, gripper, gap_mm, res: FingertipResult
     if len(k) < 3:
         return None
     try:
-        return iterative_update(C_H_G_pred, gripper.points_G(gap=gap_mm)[k], res.uv[k], camera).C_H_G_orth
+        return iterative_update(pred.C_H_G, pred.gripper.points_G(gap=pred.gap_mm)[k], res.uv[k], pred.camera).C_H_G_orth
     except CalibrationError:
         return None
 
@@ -806,23 +820,29 @@ def model_measurement(image, camera, C_H_G_pred, gripper, gap_mm, points=range(6
     """The model-based measurement from the prediction and, if the corner search ``searched`` found three
     or more corners, from the pose they give; the believed fit with the larger share of good samples
     wins. Returns (FingertipResult, SilhouetteFit)."""
+    return _model_measurement(image, PredictedFingers(camera, C_H_G_pred, gripper, gap_mm), points, searched,
+                              appearance, starts, rounds)
+
+
+def _model_measurement(image, pred: PredictedFingers, points=range(6), searched=None, appearance=None, starts=None,
+                       rounds=None):
     from selfview.silhouette import fit_silhouette, learn_appearance
 
-    C_H_G_pred, gap_mm = checked_prediction(C_H_G_pred, gap_mm)
-    cands = list(starts) if starts is not None else [C_H_G_pred]
+    cands = list(starts) if starts is not None else [pred.C_H_G]
     if searched is not None:
-        H = _pose_from_corners(camera, C_H_G_pred, gripper, gap_mm, searched)
+        H = _pose_from_corners(pred, searched)
         if H is not None:
             cands.insert(0, H)
     if not cands:
-        cands = [C_H_G_pred]
+        cands = [pred.C_H_G]
+    cam, gripper, gap = pred.camera, pred.gripper, pred.gap_mm
     if appearance is None or not appearance.levels:
         # the faces' levels where the fingers most likely are: at the found corners' pose, else the first start
-        appearance = learn_appearance(image, camera, cands[0], gripper, gap_mm)
+        appearance = learn_appearance(image, cam, cands[0], gripper, gap)
     best = None
     for H in cands:
         kw = {} if rounds is None else {"rounds": rounds}
-        fit = fit_silhouette(image, camera, H, gripper, gap_mm, appearance=appearance, points=points, **kw)
+        fit = fit_silhouette(image, cam, H, gripper, gap, appearance=appearance, points=points, **kw)
         if best is None or (fit.ok, fit.good_fraction) > (best.ok, best.good_fraction):
             best = fit
         if fit.ok and fit.good_fraction > 0.8:
@@ -830,10 +850,11 @@ def model_measurement(image, camera, C_H_G_pred, gripper, gap_mm, points=range(6
     return _fit_result(best, searched, points), best
 
 
-def _search(image, camera, C_H_G_pred, gripper, gap_mm, search_px, points):
+def _search(image, pred: PredictedFingers, search_px, points):
     """The corner search of ``find_fingertips``: a ``FingertipResult``."""
+    camera = pred.camera
     img = as_gray(image, camera)
-    model = _Model(camera, C_H_G_pred, gripper, gap_mm)
+    model = _Model(pred)
     want = sorted({int(k) for k in points})
     if any(k < 0 or k > 5 for k in want):
         raise ValueError(f"points: expected indices 0..5 into POINT_NAMES, got {list(points)}")

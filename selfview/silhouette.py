@@ -23,8 +23,8 @@ from selfview import _native
 from selfview.camera import CameraModel
 from selfview.cell import GripperSpec
 from selfview.discs import as_gray
-from selfview.fingertips import (FingertipResult, _box_edges, _search, checked_prediction, model_measurement,
-                                 tukey_weights, _fit_result)
+from selfview.fingertips import (FingertipResult, PredictedFingers, _box_edges, _fit_result, _model_measurement,
+                                 _search, tukey_weights)
 from selfview.geometry import R_from_rotvec, inv_H, make_H, transform_points
 
 __all__ = ["Appearance", "SilhouetteFit", "SilhouetteTracker", "fit_silhouette", "learn_appearance", "MIN_GOOD_FRACTION"]
@@ -813,7 +813,8 @@ class SilhouetteTracker:
         return self._H is not None
 
     def find(self, image, C_H_G_pred, gap_mm: float) -> FingertipResult:
-        C_H_G_pred, gap_mm = checked_prediction(C_H_G_pred, gap_mm)
+        pred = PredictedFingers(self.camera, C_H_G_pred, self.gripper, gap_mm)
+        gap_mm = pred.gap_mm
         a = np.asarray(image)
         if a.dtype == np.uint8 and a.shape == (int(self.camera.height), int(self.camera.width)):
             img = a  # a grabber's frame: no other check needed per frame (float32 where the search needs it)
@@ -841,15 +842,13 @@ class SilhouetteTracker:
             why = fit.reason
         self.last_failure = why
         img = img.astype(np.float32, copy=False)
-        starts = ([self._H] if self._H is not None else []) + [C_H_G_pred]
-        res, fit = model_measurement(img, self.camera, C_H_G_pred, self.gripper, gap_mm, self.points,
-                                     appearance=self._app, starts=starts)
+        starts = ([self._H] if self._H is not None else []) + [pred.C_H_G]
+        res, fit = _model_measurement(img, pred, self.points, appearance=self._app, starts=starts)
         if not fit.ok:
             # the corner search's pose (three corners or more), and fits reaching as far as it searches
-            searched = _search(img, self.camera, C_H_G_pred, self.gripper, gap_mm, self.search_px, range(6))
-            res2, fit2 = model_measurement(img, self.camera, C_H_G_pred, self.gripper, gap_mm, self.points,
-                                           searched=searched, appearance=self._app, starts=[],
-                                           rounds=WIDE_ROUNDS)
+            searched = _search(img, pred, self.search_px, range(6))
+            res2, fit2 = _model_measurement(img, pred, self.points, searched=searched, appearance=self._app,
+                                            starts=[], rounds=WIDE_ROUNDS)
             if fit2.ok:
                 res, fit = res2, fit2
         self.searches += 1
