@@ -1,36 +1,12 @@
-"""The six fingertip corners of CONVENTIONS.md in a picture (off-line step 3, and on-line tracking).
+"""The six fingertip corners of CONVENTIONS.md in a picture, searched from a predicted mount (off-line
+calibration, and the silhouette tracker's recovery).
 
-From a predicted mount ``C_H_G_pred`` (the mount guess off-line, the last calibration on-line) the
-finger boxes are projected, and the predicted 3-D geometry decides which box edges show at each
-corner: an edge shows when at least one of its two faces turns towards the camera, as a silhouette
-against the background or as a crease between two differently lit faces. Then, per finger:
-
-1. coarse: the finger's visible edges near its tips, as a template of line segments, are slid over the
-   smoothed gradient within ``search_px`` (each edge scores the magnitude of its normal gradient
-   summed along it, so polarity does not matter); at a quarter of the resolution, then refined at
-   full resolution around its best local maxima and along its ridges (the template sliding along the
-   fingers' long sides, where only the short edges at the tip tell the shifts apart);
-2. fine, twice: each edge is crossed by profiles one pixel apart, sampled (bilinear) into the face
-   beside it, the way its shading stays nearly constant (a specular strip runs along a finger, not
-   across it). In each profile the step is located by the area (zeroth-moment) method: the position
-   where an ideal step between the two plateau levels holds the same grey-level sum. Under any
-   symmetric blur and the pixel's own area this is unbiased for a straight edge, and the plateaus'
-   slopes are allowed for. Over a textured background, whose level under the edge the plateaus do not
-   show, the peak of the rise is used instead (a Gaussian through its three largest differences).
-   Profile phases are dithered along the edge. The first pass takes steps of the expected polarity
-   within +-8 px; the second, within +-3 px of the first's line, takes either polarity (a disc of ink
-   behind the edge reverses it). Each face shows beside about three edges near the tip: an edge whose
-   face side disagrees with what the others see there found something else (the rim of a disc), and is
-   looked for again among steps that show that face. Profiles near another edge, with uneven plateaus
-   or more than one step are skipped;
-3. the crossings are undistorted (eq. 4) so the edges are straight, a line is fitted to each (a
-   consistent pair near the predicted direction, then Tukey reweighting), and the corner is the
-   least-squares intersection of its two or three lines, distorted back to pixels.
-
-A corner that is outside the picture, hidden (by the other finger, or by something else: no edge
-points near it and the faces beside it not showing their grey level there), or whose edges yield too
-few points is reported as not found with the reason, never extrapolated. Everything runs in small
-windows around the predictions.
+The finger boxes are projected at the prediction and the visible box edges at each corner chosen; a
+template of them is slid over the smoothed gradient (quarter, then full resolution); each edge is crossed
+by profiles whose step is located by the area method (the peak of the rise over a textured background),
+twice; a robust line is fitted to each edge's undistorted crossings, and the corner is the weighted
+intersection of its lines. A corner outside the picture, hidden, or whose edges yield too few points is
+reported as not found with the reason, never extrapolated.
 """
 
 from __future__ import annotations
