@@ -511,7 +511,9 @@ def _edge_steps(img, poly, pdir, sign, others, search, shading: _Shading, both_s
     st = np.column_stack([np.interp(s, run, poly[:, 0]), np.interp(s, run, poly[:, 1])])
     sr = int(np.ceil(search / cos))
     R = sr + h + P + 1
-    ok = np.all((st - R - 1 >= 0) & (st + R + 1 < (W - 1, H - 1)), axis=1)  # the dither adds up to 0.5
+    # the whole profile in the picture (only along its direction: an edge may run close to the border)
+    reach = (R + 1) * np.abs(pdir)  # the dither adds up to 0.5 sample
+    ok = np.all((st - reach >= 0) & (st + reach < (W - 1, H - 1)), axis=1)
     if len(others):
         lo, hi = st.min(0) - R - BLUR_MARGIN, st.max(0) + R + BLUR_MARGIN
         o = others[np.all((others > lo) & (others < hi), axis=1)]

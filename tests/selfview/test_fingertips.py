@@ -276,3 +276,27 @@ def test_unique_rows_is_numpys():
     for a in (rng.integers(-50, 50, (300, 2)), rng.integers(0, 3, (40, 2)), np.zeros((0, 2), int),
               np.array([[5, -7]])):
         assert np.array_equal(F._unique_rows(a), np.unique(a, axis=0))
+
+
+def test_finger_a_cut_by_the_left_border_keeps_its_inner_corners():
+    """The camera turned until finger A's outer corner and most of the finger lie beyond the left border:
+    the search still finds A's two inner corners (and B's), and says the outer one is outside the picture."""
+    from selfview.cell import default_cell_path, load_cell
+    from selfview.mocks.render import render
+    from selfview.mocks.world import SimWorld
+
+    cell = load_cell(default_cell_path())
+    w = SimWorld(cell, seed=5)
+    state = cell.gripper.calibrate_in
+    w.set_jaw(cell.gripper.gap(state), state)
+    w.park()
+    w.unpark()
+    w.disturb_by_angle((0.0, 1.0, 0.0), 4.8)
+    pred = w.C_H_G  # the last frame's pose
+    w.disturb_by_angle((0.0, 1.0, 0.0), 0.3)
+    pic = render(w, seed=4)
+    assert pic.corner_uv[4, 0] < 0 < pic.corner_uv[0, 0] < 60  # the outer corner beyond the border
+    res = find_fingertips(pic.image, w.camera, pred, cell.gripper, w.jaw_gap_mm)
+    assert res.found[[0, 1, 2, 3, 5]].all() and not res.found[4]
+    assert res.reasons[4].startswith("outside the picture")
+    assert np.linalg.norm(res.uv[:4] - pic.corner_uv[:4], axis=1).max() < 0.1
