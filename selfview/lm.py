@@ -29,6 +29,8 @@ Jacobian = Callable[[np.ndarray], np.ndarray]
 
 _EPS = np.finfo(float).eps
 _DWARF = np.finfo(float).tiny
+#: Smallest singular value, relative to the largest, that the normal equations resolve.
+_NORMAL_FLOOR = 1e-7
 
 
 @dataclass(frozen=True)
@@ -57,17 +59,34 @@ class LMResult:
         return covariance(self.jacobian, self.cost / max(m - p, 1) if sigma2 is None else sigma2)
 
 
-def covariance(J, sigma2: float) -> np.ndarray:
+def _r_factor(A) -> np.ndarray:
+    """The triangular factor R of A = Q R (M >= P rows: (P, P); fewer: (M, P)). The SVD of a tall matrix is
+    that of its R, whose factorisation costs far less than an SVD of all M rows (thousands of residuals)."""
+    return np.linalg.qr(A, mode="r")
+
+
+def _normal_svd(A):
+    """(s, V^T, A) of A's SVD from the eigen-decomposition of A^T A: for a tall, column-scaled, well-conditioned
+    A (the joint fit of many views: thousands of rows, hundreds of columns) a fraction of the SVD's cost."""
+    w, V = np.linalg.eigh(A.T @ A)
+    w, V = w[::-1], V[:, ::-1]
+    return np.sqrt(np.clip(w, 0.0, None)), V.T, A
+
+
+def covariance(J, sigma2: float, *, normal: bool = False) -> np.ndarray:
     """(P, P) covariance ``sigma2 (J^T J)^-1`` of a least-squares estimate with Jacobian ``J`` (M, P)
     and residual variance ``sigma2``. Computed from the SVD of the column-scaled Jacobian (inverting
     J^T J would square its condition); if the data do not determine some direction at all, every
-    entry is infinite."""
+    entry is infinite. ``normal``: from the normal equations (see ``levenberg_marquardt``)."""
     J = np.asarray(J, dtype=float)
     m, p = J.shape
     cn = np.linalg.norm(J, axis=0)
     cn = np.where(cn > 0, cn, 1.0)
-    _, s, Vt = np.linalg.svd(J / cn, full_matrices=False)
-    if not (np.all(np.isfinite(s)) and s[-1] > _EPS * max(m, p) * s[0]):
+    if normal:
+        s, Vt, _ = _normal_svd(J / cn)
+    else:
+        _, s, Vt = np.linalg.svd(_r_factor(J / cn), full_matrices=False)
+    if not (np.all(np.isfinite(s)) and s[-1] > (_NORMAL_FLOOR if normal else _EPS * max(m, p)) * s[0]):
         return np.full((p, p), np.inf)
     return sigma2 * ((Vt.T / (s * s)) @ Vt) / np.outer(cn, cn)
 
@@ -114,12 +133,19 @@ class _ScaledSVD:
     step ``x(par)`` solving ``min ||J x - r||^2 + par ||D x||^2`` and every quantity of Moré's
     iteration then costs O(P), so the many damping trials of an iteration need no factorisation."""
 
-    def __init__(self, J, r, d):
-        U, s, Vt = np.linalg.svd(J / d, full_matrices=False)
+    def __init__(self, J, r, d, normal: bool = False):
+        p = J.shape[1]
+        if normal:
+            s, Vt, g = _normal_svd(J / d)
+            self.c = np.where(s > 0, (Vt @ (g.T @ r)) / np.where(s > 0, s, 1.0), 0.0)
+        else:
+            R = _r_factor(np.column_stack([J / d, r]))  # J D^-1 = Q R[:, :P], R[:, P] = Q^T r
+            U, s, Vt = np.linalg.svd(R[:p, :p])
+            self.c = U.T @ R[:p, p]
         self.s, self.Vt, self.d = s, Vt, d
-        self.c = U.T @ r
-        # MINPACK's rank test is an exact zero on R's diagonal; a relative floor plays its part here.
-        self.rank_ok = s > _EPS * max(J.shape) * (s[0] if s.size else 0.0)
+        # MINPACK's rank test is an exact zero on R's diagonal; a relative floor plays its part here (the
+        # normal equations resolve singular values to sqrt(eps) of the largest only).
+        self.rank_ok = s > (_NORMAL_FLOOR if normal else _EPS * max(J.shape)) * (s[0] if s.size else 0.0)
 
     def z(self, par):
         """Scaled step D x (in the basis V) for damping ``par``."""
@@ -182,6 +208,7 @@ def levenberg_marquardt(
     max_nfev: int | None = None,
     factor: float = 100.0,
     scale=None,
+    normal: bool = False,
 ) -> LMResult:
     """Minimise ``sum(fun(x)**2)`` from ``x0`` (P,).
 
@@ -192,7 +219,8 @@ def levenberg_marquardt(
     are at most ``ftol``, when the step bound is at most ``xtol`` times the scaled parameters' norm,
     or when the cosine between the residuals and any Jacobian column is at most ``gtol``; also when
     a tolerance reaches machine precision. ``factor`` sets the first step bound
-    (``factor * ||D x0||``). Gives up after ``max_nfev`` residual evaluations (default 200 (P + 1))
+    (``factor * ||D x0||``). ``normal``: each iteration factors the P-square normal equations instead of
+    the (M, P) Jacobian (for thousands of residuals on well-scaled parameters). Gives up after ``max_nfev`` residual evaluations (default 200 (P + 1))
     with ``converged`` False.
     Raises ``ValueError`` for M < P or a Jacobian of the wrong shape, ``CalibrationError`` when the
     residuals are not finite at ``x0``.
@@ -254,7 +282,7 @@ def levenberg_marquardt(
             converged, message = True, "residuals orthogonal to the Jacobian (gtol)"
             break
         d = np.maximum(d, acnorm)
-        svd = _ScaledSVD(J, r, d)
+        svd = _ScaledSVD(J, r, d, normal)
         while True:
             par, zv = _lm_parameter(svd, delta, par)
             p = -svd.step(zv)
