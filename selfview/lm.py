@@ -255,7 +255,8 @@ def levenberg_marquardt(
     or when the cosine between the residuals and any Jacobian column is at most ``gtol``; also when
     a tolerance reaches machine precision. ``factor`` sets the first step bound
     (``factor * ||D x0||``). ``normal``: each iteration factors the P-square normal equations instead of
-    the (M, P) Jacobian (for thousands of residuals on well-scaled parameters). Gives up after ``max_nfev`` residual evaluations (default 200 (P + 1))
+    the (M, P) Jacobian (for thousands of residuals on well-scaled parameters). Gives up after
+    ``max_nfev`` residual evaluations (default 200 (P + 1))
     with ``converged`` False.
     Raises ``ValueError`` for M < P or a Jacobian of the wrong shape, ``CalibrationError`` when the
     residuals are not finite at ``x0``.

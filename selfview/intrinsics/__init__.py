@@ -20,8 +20,8 @@ from selfview.intrinsics.fit import (
 from selfview.intrinsics.plate import PLATE_MODELS
 
 __all__ = [
-    "AGREE_SIGMAS", "CAMERA_CHI2_LIMIT", "CAMERA_FILE_MAX_EXCESS_PX", "INTRINSIC_NAMES", "IntrinsicsResult", "MAX_MORE_VIEWS", "MIN_VIEWS",
-    "PLATE_MODELS", "STOP_ASPECT_REL", "STOP_CENTRE_PX", "TARGET_ACROSS_MM", "TARGET_ALONG_MM", "VIEW_KINDS",
-    "ViewFit", "calibrate_intrinsics", "camera_check", "camera_file_fit", "detect_views", "fit_views", "more_views_advice",
-    "projection_sigma_px", "tcp_sigma",
+    "AGREE_SIGMAS", "CAMERA_CHI2_LIMIT", "CAMERA_FILE_MAX_EXCESS_PX", "INTRINSIC_NAMES", "IntrinsicsResult",
+    "MAX_MORE_VIEWS", "MIN_VIEWS", "PLATE_MODELS", "STOP_ASPECT_REL", "STOP_CENTRE_PX", "TARGET_ACROSS_MM",
+    "TARGET_ALONG_MM", "VIEW_KINDS", "ViewFit", "calibrate_intrinsics", "camera_check", "camera_file_fit",
+    "detect_views", "fit_views", "more_views_advice", "projection_sigma_px", "tcp_sigma",
 ]
