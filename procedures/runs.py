@@ -77,7 +77,10 @@ def refuse_unfitting_camera(res: OfflineResult, camera, cam_path, force: bool) -
         return None
     fit = camera_file_fit(res, camera, f"the camera file {cam_path}")
     if not fit["fits"] and not force:
-        raise CalibrationError(f"calibrate: {fit['refusal']}; nothing written")
+        exc = CalibrationError(f"calibrate: {fit['refusal']}; nothing written")
+        exc.what_to_do = ("measure this camera with 'selfview intrinsics --out CAMERA.yaml' and calibrate with "
+                          "--camera CAMERA.yaml (or add --force to write this calibration anyway)")
+        raise exc
     return fit
 
 

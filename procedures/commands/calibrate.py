@@ -105,7 +105,8 @@ def run(args) -> int:
     s["camera_file_fit"] = fit
     warnings = []
     if fit and not fit["fits"]:
-        warnings.append(fit["refusal"].replace(" (--force writes anyway)", "; written because of --force"))
+        warnings.append(f"{fit['refusal']}; written because of --force (measure this camera with "
+                        "'selfview intrinsics')")
     chk = camera_check(res, cell, camera)
     if chk.get("warning"):
         w = chk["warning"]

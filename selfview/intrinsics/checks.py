@@ -101,8 +101,7 @@ def camera_file_fit(result, camera: CameraModel, source: str = "the camera file"
     refusal = None if fits else (
         f"{source} does not fit this picture: the plate's disc residual with its camera (f {camera.f:.1f} px) is "
         f"{rms:.3f} px against {own:.3f} px with the picture's own f ({result.tsai.camera.f:.1f} px) and kappa, more "
-        f"than {CAMERA_FILE_MAX_EXCESS_PX} px over: it was measured on another camera or lens setting; measure this "
-        "camera with 'selfview intrinsics --out CAMERA.yaml' and calibrate with that file (--force writes anyway)")
+        f"than {CAMERA_FILE_MAX_EXCESS_PX} px over: it was measured on another camera or lens setting")
     return {"rms_px": rms, "own_rms_px": own, "excess_px": excess, "limit_px": CAMERA_FILE_MAX_EXCESS_PX,
             "fits": fits, "refusal": refusal}
 

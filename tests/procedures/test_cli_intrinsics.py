@@ -91,7 +91,8 @@ def test_calibrate_refuses_another_cameras_file_before_writing(measured, tmp_pat
     argv = ["calibrate", "--sim-camera", "realistic", "--seed", str(SEED), "--profile", "realistic", "--out", str(cal)]
     code, _, err = run(capsys, argv + ["--camera", str(other)])
     assert code == 5 and not cal.exists(), err
-    assert f"the camera file {other} does not fit this picture" in err and "selfview intrinsics" in err
+    assert f"the camera file {other} does not fit this picture" in err
+    assert "what to do: measure this camera with 'selfview intrinsics --out CAMERA.yaml'" in err
     rms = float(err.split("residual with its camera (f 1052.0 px) is ")[1].split(" px")[0])
     assert rms > 0.5  # px
     code, out, err = run(capsys, argv + ["--camera", str(other), "--force", "--json"])
