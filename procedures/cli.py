@@ -51,10 +51,11 @@ _EXIT_FOR = [
 
 
 def exit_code_for(exc: BaseException) -> tuple[int, str]:
-    """(exit code, what to do) for an exception reaching the command line."""
+    """(exit code, what to do) for an exception reaching the command line (its own ``what_to_do``, if it
+    has one, before its kind's)."""
     for types, code, hint in _EXIT_FOR:
         if isinstance(exc, types):
-            return code, hint
+            return code, getattr(exc, "what_to_do", None) or hint
     return EXIT_INTERNAL, "this is a bug; please report it with the command line"
 
 

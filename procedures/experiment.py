@@ -241,7 +241,8 @@ def measure_intrinsics_direct(world, views: int = 12, render_seed: int = 0):
     planned views above the plate (``plan_view_poses``, from the plate's taught pressing pose), a picture
     at each by the project's renderer. The world is left unparked. Returns the ``IntrinsicsResult``."""
     from selfview.geometry import inv_H, trans
-    from selfview.intrinsics import calibrate_intrinsics, plan_view_poses
+    from selfview.intrinsics import calibrate_intrinsics
+    from selfview.procedures.viewplan import plan_view_poses
     from selfview.mocks.render import render
     from selfview.mocks.world import PLATE_BASE_POSE
 

@@ -33,7 +33,7 @@ from selfview.pcc import jaw_gap_of
 from selfview.online import METHODS
 from selfview.policy import Monitor
 
-__all__ = ["RunSettings", "CellSession", "park_plan", "depart_plan"]
+__all__ = ["RunSettings", "CellSession", "park_plan", "depart_plan", "refuse_unfitting_camera"]
 
 log = logging.getLogger("selfview.procedures")
 
@@ -68,6 +68,22 @@ def depart_plan(s: RunSettings) -> list[Step]:
     return [Step("depart", {"distance_mm": s.approach_mm}, note="lift off the plate")]
 
 
+def refuse_unfitting_camera(res: OfflineResult, camera, cam_path, force: bool) -> dict | None:
+    """The camera file's fit to the picture (``selfview.intrinsics.camera_file_fit``; None without a camera
+    file); ``CalibrationError`` when it does not fit, unless ``force``."""
+    from selfview.intrinsics import camera_file_fit
+
+    if camera is None:
+        return None
+    fit = camera_file_fit(res, camera, f"the camera file {cam_path}")
+    if not fit["fits"] and not force:
+        exc = CalibrationError(f"calibrate: {fit['refusal']}; nothing written")
+        exc.what_to_do = ("measure this camera with 'selfview intrinsics --out CAMERA.yaml' and calibrate with "
+                          "--camera CAMERA.yaml (or add --force to write this calibration anyway)")
+        raise exc
+    return fit
+
+
 class CellSession:
     """An open cell: devices connected, an engine, the cell description. Use as a context manager.
 
@@ -92,10 +108,15 @@ class CellSession:
 
     @classmethod
     def simulated(cls, cell: Cell, seed: int = 0, *, time_scale: float = 0.02, link: str = "pty",
-                  taught: dict | None = None, profile=None, camera="ideal", **kw) -> "CellSession":
+                  taught: dict | None = None, profile=None, camera="ideal", camera_url: str | None = None,
+                  **kw) -> "CellSession":
+        """The simulated cell; ``camera_url`` (e.g. ``frames:///dir/img_%03d.png``) reads the pictures from
+        that grabber URL instead of the simulated camera."""
         sim = SimulatedCell(cell, seed=seed, time_scale=time_scale, link=link, taught=taught, profile=profile,
                             camera=camera)
-        return cls(cell, CellURLs("", "", ""), sim=sim, **kw)
+        session = cls(cell, CellURLs("", "", ""), sim=sim, **kw)
+        session.camera_url = camera_url
+        return session
 
     @classmethod
     def real(cls, cell: Cell, *, robot: str, gripper: str, camera: str, **kw) -> "CellSession":
@@ -113,6 +134,8 @@ class CellSession:
         if self.sim is not None:
             self.sim.start()
             self.urls = self.sim.urls
+            if getattr(self, "camera_url", None):
+                self.urls = CellURLs(self.urls.robot, self.urls.gripper, self.camera_url)
         cs = self.cell.camera
         robot = PumaVAL(self.urls.robot, timeout_s=self.timeout_s)
         gripper = PneumaticGripper(self.urls.gripper)
@@ -190,12 +213,14 @@ class CellSession:
         return self.calibrate_camera(out, state=state, mode=mode)
 
     def calibrate_camera(self, out: str | Path = "calibration.yaml", *, camera=None, camera_file: dict | None = None,
-                         state: str | None = None, mode: str = "full") -> OfflineResult | None:
+                         state: str | None = None, mode: str = "full", force: bool = False) -> OfflineResult | None:
         """``calibrate`` with a measured camera (``selfview intrinsics``): park, grab, calibrate off-line
         with ``camera``'s principal point and aspect (None: the cell's nominal ones), save the calibration
         file (recording ``camera_file`` {path, sha256}), depart. Nothing is written on a failure; the
-        previous file's history copy is left in ``calibration_kept``."""
-        self.calibration_kept = None
+        previous file's history copy is left in ``calibration_kept``. A camera file that does not fit the
+        picture (``selfview.intrinsics.camera_file_fit``, in ``camera_file_fit``) stops the run with a
+        ``CalibrationError`` before anything is written, unless ``force``."""
+        self.calibration_kept = self.camera_file_fit = None
         state = state or self.cell.gripper.calibrate_in
         s = self.settings
         grab = Step("grab", {"average": s.average}, name="picture", note="the calibration picture")
@@ -207,6 +232,7 @@ class CellSession:
             res = e.execute(Step("compute", {"fn": lambda e: calibrate_offline(
                 e.results["picture"], self.cell, state=state, mode=mode, camera=camera, camera_file=camera_file)},
                 name="offline", note="off-line calibration"))
+            self.camera_file_fit = refuse_unfitting_camera(res, camera, (camera_file or {}).get("path"), force)
             self.calibration_kept = e.execute(Step("compute", {"fn": lambda e: save_calibration(res.calibration, out)},
                                                    note=f"save {out}"))
             e.execute(plan[-1])
@@ -216,13 +242,13 @@ class CellSession:
 
     def intrinsics_views(self, views: int = 12, state: str | None = None) -> tuple[list, list[dict]] | None:
         """Take the pictures for ``selfview.intrinsics``: from above the plate, the robot moves in straight
-        lines through ``views`` planned poses (``selfview.intrinsics.plan_view_poses``: lifted 15-120 mm,
+        lines through ``views`` planned poses (``selfview.procedures.viewplan.plan_view_poses``: lifted 15-120 mm,
         tilted up to 40 deg about axes in the plate, turned about the approach axis, the fingers clear of
         the plate), grabs a picture at each, and goes back above the plate. Every pose is checked against
         the robot's limits before the first motion. Returns (pictures, the poses' descriptions), or None
         in a dry run."""
         from selfview.geometry import trans
-        from selfview.intrinsics import plan_view_poses
+        from selfview.procedures.viewplan import plan_view_poses
 
         state = state or self.cell.gripper.calibrate_in
         s = self.settings
@@ -283,11 +309,14 @@ class CellSession:
                     disturb(k)
                 try:
                     img = e.execute(Step("grab", {}))
-                except DeviceTimeout as exc:  # no picture: a missed frame (the alarm after max_missed_frames)
+                    why = mon.frame_problem(img)
+                except (DeviceTimeout, ImageError) as exc:  # no usable picture (none, black, saturated)
+                    img, why = None, str(exc)
+                if why is not None:  # a missed frame (the alarm after max_missed_frames), never the end of the run
                     try:
-                        mon.missed(f"no picture: {exc}")
+                        mon.missed(why if img is not None else f"no picture: {why}")
                     finally:
-                        mon.records[-1]["fingertips"] = "no picture"
+                        mon.records[-1]["fingertips"] = "no picture" if img is None else "picture refused"
                         if on_decision:
                             on_decision(mon.records[-1])
                     tracker.reset()

@@ -29,6 +29,8 @@ Jacobian = Callable[[np.ndarray], np.ndarray]
 
 _EPS = np.finfo(float).eps
 _DWARF = np.finfo(float).tiny
+#: Smallest singular value, relative to the largest, that the normal equations resolve.
+_NORMAL_FLOOR = 1e-7
 
 
 @dataclass(frozen=True)
@@ -57,16 +59,28 @@ class LMResult:
         return covariance(self.jacobian, self.cost / max(m - p, 1) if sigma2 is None else sigma2)
 
 
-def covariance(J, sigma2: float) -> np.ndarray:
+def _r_factor(A) -> np.ndarray:
+    """The triangular factor R of A = Q R (M >= P rows: (P, P); fewer: (M, P)). The SVD of a tall matrix is
+    that of its R, whose factorisation costs far less than an SVD of all M rows (thousands of residuals)."""
+    return np.linalg.qr(A, mode="r")
+
+
+def covariance(J, sigma2: float, *, normal: bool = False) -> np.ndarray:
     """(P, P) covariance ``sigma2 (J^T J)^-1`` of a least-squares estimate with Jacobian ``J`` (M, P)
     and residual variance ``sigma2``. Computed from the SVD of the column-scaled Jacobian (inverting
     J^T J would square its condition); if the data do not determine some direction at all, every
-    entry is infinite."""
+    entry is infinite. ``normal``: from the normal equations (see ``levenberg_marquardt``)."""
     J = np.asarray(J, dtype=float)
     m, p = J.shape
     cn = np.linalg.norm(J, axis=0)
     cn = np.where(cn > 0, cn, 1.0)
-    _, s, Vt = np.linalg.svd(J / cn, full_matrices=False)
+    if normal:
+        A = (J / cn).T @ (J / cn)
+        w = np.linalg.eigvalsh(A)
+        if not (np.all(np.isfinite(w)) and w[0] > _NORMAL_FLOOR**2 * w[-1]):
+            return np.full((p, p), np.inf)
+        return sigma2 * np.linalg.inv(A) / np.outer(cn, cn)
+    _, s, Vt = np.linalg.svd(_r_factor(J / cn), full_matrices=False)
     if not (np.all(np.isfinite(s)) and s[-1] > _EPS * max(m, p) * s[0]):
         return np.full((p, p), np.inf)
     return sigma2 * ((Vt.T / (s * s)) @ Vt) / np.outer(cn, cn)
@@ -115,11 +129,22 @@ class _ScaledSVD:
     iteration then costs O(P), so the many damping trials of an iteration need no factorisation."""
 
     def __init__(self, J, r, d):
-        U, s, Vt = np.linalg.svd(J / d, full_matrices=False)
+        p = J.shape[1]
+        R = _r_factor(np.column_stack([J / d, r]))  # J D^-1 = Q R[:, :P], R[:, P] = Q^T r
+        U, s, Vt = np.linalg.svd(R[:p, :p])
+        self.c = U.T @ R[:p, p]
         self.s, self.Vt, self.d = s, Vt, d
-        self.c = U.T @ r
         # MINPACK's rank test is an exact zero on R's diagonal; a relative floor plays its part here.
         self.rank_ok = s > _EPS * max(J.shape) * (s[0] if s.size else 0.0)
+        self.full_rank = bool(np.all(self.rank_ok))
+
+    def gradient_norm(self):
+        """||(J D^-1)^T r||."""
+        return float(np.linalg.norm(self.s * self.c))
+
+    def jnorm(self, zv):
+        """||J x|| of the step."""
+        return float(np.linalg.norm(self.s * zv))
 
     def z(self, par):
         """Scaled step D x (in the basis V) for damping ``par``."""
@@ -138,7 +163,43 @@ class _ScaledSVD:
         return (self.Vt.T @ zv) / self.d
 
 
-def _lm_parameter(svd: _ScaledSVD, delta, par):
+class _ScaledNormal:
+    """``_ScaledSVD``'s quantities from the normal equations ``A = D^-1 J^T J D^-1`` (P-square), each damped
+    step a solve with ``A + par I`` (the basis V is the identity): for thousands of residuals on
+    well-scaled parameters, where factoring J itself costs far more. ``LinAlgError`` when A is not
+    positive definite to ``_NORMAL_FLOOR`` (the caller then takes the SVD)."""
+
+    def __init__(self, J, r, d):
+        Js = J / d
+        self.A, self.g, self.d = Js.T @ Js, Js.T @ r, d
+        L = np.linalg.cholesky(self.A)
+        if not np.min(np.diag(L)) ** 2 > _NORMAL_FLOOR**2 * np.max(np.diag(self.A)):
+            raise np.linalg.LinAlgError("normal equations: not positive definite")
+        self.full_rank = True
+        self._par, self._inv = None, None
+
+    def _solve(self, par, b):
+        if par != self._par:  # one inverse per damping, for both of Moré's solves with it
+            self._inv, self._par = np.linalg.inv(self.A + par * np.eye(len(self.A))), par
+        return self._inv @ b
+
+    def z(self, par):
+        return self._solve(par, self.g)
+
+    def newton_norm2(self, zv, par):
+        return float(zv @ self._solve(par, zv)) / float(zv @ zv)
+
+    def step(self, zv):
+        return zv / self.d
+
+    def gradient_norm(self):
+        return float(np.linalg.norm(self.g))
+
+    def jnorm(self, zv):
+        return float(np.sqrt(max(zv @ self.A @ zv, 0.0)))
+
+
+def _lm_parameter(svd, delta, par):
     """Moré's safeguarded Newton iteration for the damping ``par`` whose step has ||D x|| within 10 %
     of ``delta`` (MINPACK's ``lmpar``, on the SVD); returns (par, scaled step in the V basis)."""
     zv = svd.z(0.0)
@@ -146,8 +207,8 @@ def _lm_parameter(svd: _ScaledSVD, delta, par):
     fp = dxnorm - delta
     if fp <= 0.1 * delta:
         return 0.0, zv
-    parl = fp / delta / svd.newton_norm2(zv, 0.0) if np.all(svd.rank_ok) else 0.0
-    gnorm = float(np.linalg.norm(svd.s * svd.c))
+    parl = fp / delta / svd.newton_norm2(zv, 0.0) if svd.full_rank else 0.0
+    gnorm = svd.gradient_norm()
     paru = gnorm / delta
     if paru == 0:
         paru = _DWARF / min(delta, 0.1)
@@ -182,6 +243,7 @@ def levenberg_marquardt(
     max_nfev: int | None = None,
     factor: float = 100.0,
     scale=None,
+    normal: bool = False,
 ) -> LMResult:
     """Minimise ``sum(fun(x)**2)`` from ``x0`` (P,).
 
@@ -192,7 +254,9 @@ def levenberg_marquardt(
     are at most ``ftol``, when the step bound is at most ``xtol`` times the scaled parameters' norm,
     or when the cosine between the residuals and any Jacobian column is at most ``gtol``; also when
     a tolerance reaches machine precision. ``factor`` sets the first step bound
-    (``factor * ||D x0||``). Gives up after ``max_nfev`` residual evaluations (default 200 (P + 1))
+    (``factor * ||D x0||``). ``normal``: each iteration factors the P-square normal equations instead of
+    the (M, P) Jacobian (for thousands of residuals on well-scaled parameters). Gives up after
+    ``max_nfev`` residual evaluations (default 200 (P + 1))
     with ``converged`` False.
     Raises ``ValueError`` for M < P or a Jacobian of the wrong shape, ``CalibrationError`` when the
     residuals are not finite at ``x0``.
@@ -254,7 +318,10 @@ def levenberg_marquardt(
             converged, message = True, "residuals orthogonal to the Jacobian (gtol)"
             break
         d = np.maximum(d, acnorm)
-        svd = _ScaledSVD(J, r, d)
+        try:
+            svd = _ScaledNormal(J, r, d) if normal else _ScaledSVD(J, r, d)
+        except np.linalg.LinAlgError:
+            svd = _ScaledSVD(J, r, d)
         while True:
             par, zv = _lm_parameter(svd, delta, par)
             p = -svd.step(zv)
@@ -266,7 +333,7 @@ def levenberg_marquardt(
             nfev += 1
             fnorm1 = float(np.linalg.norm(r_new)) if np.all(np.isfinite(r_new)) else np.inf
             actred = 1.0 - (fnorm1 / fnorm) ** 2 if 0.1 * fnorm1 < fnorm else -1.0
-            t1 = float(np.linalg.norm(svd.s * zv)) / fnorm  # ||J p|| / ||r||
+            t1 = svd.jnorm(zv) / fnorm  # ||J p|| / ||r||
             t2 = np.sqrt(par) * pnorm / fnorm
             prered = t1 * t1 + 2.0 * t2 * t2
             dirder = -(t1 * t1 + t2 * t2)

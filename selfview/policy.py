@@ -12,7 +12,10 @@ A ``Monitor`` following a sequence tells a missed frame from an alarm: a frame w
 it has lost the fingertips (its quality under the thresholds, ``lost``), in which fewer than 3 are
 found, or for which no picture came (``Monitor.missed``) is a *missed* frame: never an update,
 ``C_H_G`` unchanged, the fingertips searched for again in the next one; only
-``monitor.max_missed_frames`` consecutive missed frames raise the alarm.
+``monitor.max_missed_frames`` consecutive missed frames raise the alarm. A source can lie: a picture
+bit-identical to the previous one (a real camera's noise never repeats: the grabber is stuck) or blank
+(``Monitor.frame_problem``) is a missed frame too; poses that alternate between two values over
+``ALTERNATION_WINDOW`` frames (a loose mount, or two cameras on one input) raise the alarm.
 
 The change compared with the limits is delta and d of eq. 14 (the rotation angle and the translation of
 ``C'_H_G C_H_G^-1``, the camera's motion; d is not the TCP's shift) since the LAST CALIBRATION (off-line, or the last
@@ -23,8 +26,10 @@ calibrated ``C_H_G``, applies the policy frame by frame and logs every decision 
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -39,6 +44,12 @@ from selfview.online import MotionEstimate, estimate, parse_method, select_point
 __all__ = ["ACTIONS", "Decision", "Policy", "Monitor"]
 
 ACTIONS: tuple[str, ...] = ("update", "recalibrate", "alarm", "missed")
+
+#: A picture whose grey levels span less than this (1st to 99th percentile) shows nothing: a blank frame.
+BLANK_CONTRAST_GREY = 8.0
+#: Measured poses this many frames in a row, each beyond the update limit from the one before and within it
+#: of the one before that, alternate between two values: the alarm.
+ALTERNATION_WINDOW = 6
 
 _LOG = logging.getLogger("selfview.policy")
 _LEVEL = {"update": logging.INFO, "recalibrate": logging.WARNING, "alarm": logging.ERROR, "calibrated": logging.INFO,
@@ -294,6 +305,8 @@ class Monitor:
         self.alarmed = False
         self.C_H_G = check_rigid(C_H_G, "C_H_G")
         self.C_H_G_calibrated = self.C_H_G.copy()
+        self._last_picture: bytes | None = None
+        self._poses: deque = deque(maxlen=ALTERNATION_WINDOW)
         self._record("calibrated", "initial calibration", self.C_H_G)
 
     @staticmethod
@@ -313,13 +326,14 @@ class Monitor:
             rec.update({"action": action, "reason": reason, "C_H_G": np.asarray(C_H_G).tolist()})
         self.records.append(rec)
         d = decision
-        if d is None:
+        if d is None or d.method is None:
             self.log.log(_LEVEL[action], "frame %d: %s (%s)", self.frame, action, reason)
         else:
             self.log.log(
                 _LEVEL[d.action],
-                "frame %d: %s by %s: %s [delta %.4f deg, d %.4f mm, rms %.3f px, %d points found]",
-                self.frame, d.action, d.method, d.reason, d.delta_deg, d.d_mm, d.rms_px, d.n_found,
+                "frame %d: %s by %s: %s [delta %s deg, d %s mm, rms %s px, %d points found]",
+                self.frame, d.action, d.method, d.reason, *(f"{v:.4f}" if math.isfinite(v) else "-"
+                                                            for v in (d.delta_deg, d.d_mm, d.rms_px)), d.n_found,
             )
         return rec
 
@@ -348,6 +362,31 @@ class Monitor:
             return "5P-R"
         except CalibrationError:
             return "4P-R"
+
+    def frame_problem(self, image) -> str | None:
+        """Why the picture ``image`` (H, W) cannot be measured, or None: blank (its grey levels span less than
+        ``BLANK_CONTRAST_GREY``), or bit-identical to the previous picture given (the grabber or its source is
+        stuck: a camera's noise never repeats). Such a frame is to be counted as ``missed``."""
+        img = np.asarray(image)
+        digest = hashlib.blake2b(np.ascontiguousarray(img).tobytes(), digest_size=16).digest()
+        same, self._last_picture = digest == self._last_picture, digest
+        if same:
+            return ("the picture is bit-identical to the previous one: the frame grabber or its source is stuck "
+                    "(a camera's noise never repeats)")
+        lo, hi = np.percentile(img, (1, 99)) if img.size else (0.0, 0.0)
+        if hi - lo < BLANK_CONTRAST_GREY:
+            return (f"blank picture (grey levels {lo:.0f}-{hi:.0f}, under {BLANK_CONTRAST_GREY:g} apart): no camera "
+                    "signal, lens cap on, or no light")
+        return None
+
+    def _alternating(self) -> bool:
+        """Do the last ``ALTERNATION_WINDOW`` measured poses alternate between two values?"""
+        P = list(self._poses)
+        if len(P) < ALTERNATION_WINDOW:
+            return False
+        lim, ex = self.policy.limits.update_limit, self.policy._exceeds
+        return (all(ex(lim, *self.policy.change(a, b)) for a, b in zip(P, P[1:]))
+                and not any(ex(lim, *self.policy.change(a, b)) for a, b in zip(P, P[2:])))
 
     def missed(self, reason: str) -> Decision:
         """A frame without the fingertips (no picture, or the measurement lost them: ``reason``): never an
@@ -414,6 +453,15 @@ class Monitor:
             recalibration=recalibration,
             error=err,
         )
+        if decision.action != "alarm" and decision.estimate is not None:
+            self._poses.append(np.asarray(decision.estimate.C_H_G, float))
+            if self._alternating():
+                n = ALTERNATION_WINDOW
+                decision = Decision(
+                    "alarm", f"camera mount loose or source switching: the measured pose alternated between two "
+                    f"values over the last {n} frames (each beyond the update limit from the one before, within it "
+                    "of the one before that)", decision.delta_deg, decision.d_mm, decision.rms_px, self.C_H_G.copy(),
+                    decision.method, int(n_found), decision.points_used, decision.estimate)
         if decision.action == "update":
             self.C_H_G = decision.C_H_G.copy()
         elif decision.action == "recalibrate" and decision.estimate is not None and decision.method.endswith("R"):

@@ -48,6 +48,8 @@ def register(sub):
     )
     p.add_argument("--points", default="measured", choices=("measured", "cell"),
                    help="gripper points from the picture (default, as the paper) or from the cell description")
+    p.add_argument("--force", action="store_true",
+                   help="write the calibration even when the camera file does not fit the picture")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
     return p
@@ -68,6 +70,7 @@ def run(args) -> int:
     from selfview.errors import ConfigError
     from selfview.intrinsics import camera_check, tcp_sigma
     from selfview.offline import calibrate_offline
+    from selfview.procedures.runs import refuse_unfitting_camera
 
     url, cam_path = camera_arguments(args.camera)
     args.camera = url
@@ -81,6 +84,7 @@ def run(args) -> int:
         img, sha = read_picture(args.image)
         res = calibrate_offline(img, cell, state=args.state, mode=args.mode, points=args.points, image_sha256=sha,
                                 camera=camera, camera_file=camera_file)
+        fit = refuse_unfitting_camera(res, camera, cam_path, args.force)  # before anything is written
         kept = save_calibration(res.calibration, args.out)
         source = args.image
     else:
@@ -88,16 +92,21 @@ def run(args) -> int:
         cell, session = open_session(args, say)
         with session:
             res = session.calibrate_camera(args.out, camera=camera, camera_file=camera_file, state=args.state,
-                                           mode=args.mode)
+                                           mode=args.mode, force=args.force)
         if res is None:  # dry run
             return 0
         kept = session.calibration_kept
+        fit = session.camera_file_fit
         source = "the cell's picture"
     s = res.summary()
     s["out"] = str(args.out)
     s["previous_kept_as"] = str(kept) if kept else None
     s["camera_file"] = camera_file
+    s["camera_file_fit"] = fit
     warnings = []
+    if fit and not fit["fits"]:
+        warnings.append(f"{fit['refusal']}; written because of --force (measure this camera with "
+                        "'selfview intrinsics')")
     chk = camera_check(res, cell, camera)
     if chk.get("warning"):
         w = chk["warning"]

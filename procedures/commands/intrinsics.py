@@ -120,7 +120,8 @@ def run(args) -> int:
         if res.stop_rule["met"] or args.force:
             cf = CameraFile(
                 res.camera, res.sigma, res.covariance,
-                figures={k: s[k] for k in ("rms_px", "views_used", "projection_sigma_px", "stop_rule", "cross_check")},
+                figures={k: s[k] for k in ("rms_px", "views_used", "projection_sigma_px", "stop_rule", "cross_check",
+                                          "skew_fit")},
                 provenance={"pictures": pictures, "source": source, "cell_sha256": cell.sha256,
                             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                             "software": f"selfview {__version__}"},
@@ -144,7 +145,8 @@ def run(args) -> int:
             f"  centre = ({c.cx:.2f}, {c.cy:.2f}) +- ({sg['cx']:.2f}, {sg['cy']:.2f}) px",
             f"  aspect = {c.aspect:.5f} +- {sg['aspect']:.5f}",
             *([f"  skew   = {c.skew:.2e} +- {sg['skew']:.1e} (the grabber's shear: "
-               f"{c.skew * c.height:+.2f} px from the top line to the bottom one)"] if "skew" in sg else []),
+               f"{c.skew * c.height:+.2f} px from the top line to the bottom one)"] if "skew" in sg
+              else [f"  {res.skew_fit.get('note', 'skew not fitted')}"]),
             f"  projection uncertainty: centre {ps['centre']:.3f} px, corners "
             + ", ".join(f"{ps[k]:.3f}" for k in ("top_left", "top_right", "bottom_left", "bottom_right")) + " px",
             "  stop rule: " + ("met" if res.stop_rule["met"] else "NOT met: " + res.stop_rule.get("advice", "")),

@@ -18,9 +18,11 @@ def register(sub):
             "apply the update, recalibrate (4P-R / 5P-R), or raise the alarm and stop the robot. Every decision is "
             "printed with delta, d and the residual. The fingertips are measured by fitting both fingers' whole "
             "silhouette; a frame where that fit is not believed (its quality is printed with --json), where fewer "
-            "than 3 fingertips show, or where no picture came is a missed frame: C_H_G unchanged, the fingertips "
-            "searched for again, and the alarm only after the cell's monitor.max_missed_frames (default 3) missed "
-            "frames in a row. With --drift (simulation) the camera creeps on its mount by "
+            "than 3 fingertips show, where no picture came, or whose picture is black, blank or bit-identical to the "
+            "previous one (a stuck grabber: a camera's noise never repeats) is a missed frame: C_H_G unchanged, "
+            "the fingertips searched for again, and the alarm only after the cell's monitor.max_missed_frames (default 3) missed "
+            "frames in a row. Poses alternating between two values frame after frame (a loose mount, or two "
+            "cameras on one input) raise the alarm. With --drift (simulation) the camera creeps on its mount by "
             "that many degrees per frame, to watch the policy at work."
         ),
     )

@@ -60,6 +60,9 @@ def run(args) -> int:
     ft = find_fingertips(img, cal.camera, cal.C_H_G, cell.gripper, gap, model=args.measure == "model")
     found_names = [nm for nm, ok in zip(POINT_NAMES, ft.found) if ok]
     if args.method == "auto":
+        if ft.lost is not None or int(np.sum(ft.found)) < 3:
+            n = int(np.sum(ft.found))
+            raise CalibrationError(f"fingertips not found: {ft.lost or f'{n} point(s) found, 3 needed'}")
         mon = Monitor(cal.C_H_G, cal.camera, pG, cell.monitor, max_missed_frames=1)  # one picture: no next frame
         d = mon.step(ft.uv, ft.found, lost=ft.lost)
         out = {

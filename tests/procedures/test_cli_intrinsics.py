@@ -44,6 +44,7 @@ def test_intrinsics_on_the_cell_measures_the_camera(measured, cell, capsys):
     assert len(cf.provenance["pictures"]) == 12 and all(len(p["sha256"]) == 64 for p in cf.provenance["pictures"])
     assert cf.provenance["source"].startswith("simulated cell")
     assert len(list((d / "views").glob("view_*.png"))) == 12
+    assert not cf.figures["skew_fit"]["fitted"] and "skew not fitted:" in cam.read_text()
 
 
 def test_intrinsics_json_from_picture_files(measured, tmp_path, capsys):
@@ -54,8 +55,11 @@ def test_intrinsics_json_from_picture_files(measured, tmp_path, capsys):
     for key in ("f", "kappa", "principal_point", "aspect", "sigma", "rms_px", "views_used", "projection_sigma_px",
                 "stop_rule", "cross_check", "warnings"):
         assert key in out
-    assert set(out["sigma"]) == {"f", "kappa", "cx", "cy", "aspect", "skew"}
-    assert abs(out["skew"]) < 4 * out["sigma"]["skew"] + 1e-4  # a camera without shear: skew about 0
+    # a camera without shear: the views do not pin a skew, so it is held at 0 and the output says so
+    assert set(out["sigma"]) == {"f", "kappa", "cx", "cy", "aspect"} and out["skew"] == 0.0
+    assert not out["skew_fit"]["fitted"] and out["skew_fit"]["note"].startswith("skew not fitted:")
+    code, text, err = run(capsys, ["intrinsics", "--images", *views])
+    assert code == 0 and "skew not fitted:" in text and "nan" not in text and "None" not in text
     assert set(out["projection_sigma_px"]) == {"centre", "top_left", "top_right", "bottom_left", "bottom_right"}
     assert out["out"] is None and out["cross_check"]["done"]
 
@@ -73,6 +77,30 @@ def test_calibrate_with_the_camera_file_meets_the_targets_and_records_it(measure
     assert len(out["tcp_sigma_mm"]) == 3 and all(0 < s < 0.1 for s in out["tcp_sigma_mm"])
     assert out["camera_file"]["path"] == str(cam)
     assert load_calibration(cal).residuals["camera_file"]["sha256"] == out["camera_file"]["sha256"]
+
+
+def test_calibrate_refuses_another_cameras_file_before_writing(measured, tmp_path, capsys):
+    """A camera file of another camera of the same size (f 1052 px where this one has 962): the plate's disc
+    residual with it is over a pixel against 0.2 px with the picture's own f, so nothing is written (exit 5);
+    --force writes and warns. The right file's residual is within a hundredth of a pixel of the picture's own."""
+    _, cam = measured
+    cf = load_camera_file(cam)
+    other = tmp_path / "other.yaml"
+    save_camera_file(CameraFile(cf.camera.with_(f=1052.0), cf.sigma, cf.covariance), other)
+    cal = tmp_path / "cal.yaml"
+    argv = ["calibrate", "--sim-camera", "realistic", "--seed", str(SEED), "--profile", "realistic", "--out", str(cal)]
+    code, _, err = run(capsys, argv + ["--camera", str(other)])
+    assert code == 5 and not cal.exists(), err
+    assert f"the camera file {other} does not fit this picture" in err
+    assert "what to do: measure this camera with 'selfview intrinsics --out CAMERA.yaml'" in err
+    rms = float(err.split("residual with its camera (f 1052.0 px) is ")[1].split(" px")[0])
+    assert rms > 0.5  # px
+    code, out, err = run(capsys, argv + ["--camera", str(other), "--force", "--json"])
+    assert code == 0 and cal.exists() and not out["camera_file_fit"]["fits"]
+    assert any("does not fit" in w and "--force" in w for w in out["warnings"])
+    code, out, err = run(capsys, argv + ["--camera", str(cam), "--json", "--out", str(tmp_path / "right.yaml")])
+    fit = out["camera_file_fit"]
+    assert code == 0 and fit["fits"] and fit["excess_px"] < 0.02 and fit["refusal"] is None, fit
 
 
 def test_calibrate_without_the_camera_file_warns(cell, tmp_path, capsys):

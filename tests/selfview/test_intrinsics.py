@@ -3,6 +3,8 @@ the one-picture camera check and TCP uncertainty; camera files; the simulated wo
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -12,12 +14,10 @@ from selfview.calfile import history_dir
 from selfview.discs import DiscDetections, disc_image_bias
 from selfview.errors import CalibrationError, CalibrationFileError, ConfigError, ImageError
 from selfview.geometry import inv_H, make_H, rot_axis, transform_points, trans
-from selfview.intrinsics import (
-    CLEARANCE_MM, MAX_TILT_DEG, LIFT_MM, TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics, camera_check,
-    plan_view_poses, tcp_sigma,
-)
+from selfview.intrinsics import TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics, camera_check, tcp_sigma
 from selfview.mocks.world import REALISTIC_ASPECT, REALISTIC_OFFSET_PX, SimWorld, draw_camera
 from selfview.offline import calibrate_offline
+from selfview.procedures.viewplan import CLEARANCE_MM, LIFT_MM, MAX_TILT_DEG, plan_view_poses
 from tests import alt_render
 
 #: The reference simulated cell's plate lies at +x of the robot's base, W's x along the base's x: the
@@ -92,7 +92,7 @@ TRUE = CameraModel(f=962.0, kappa=1.9e-7, cx=391.2, cy=279.9, aspect=1.043)
 
 
 def test_plan_keeps_the_fingers_clear_and_the_ranges(cell):
-    from selfview.intrinsics import _fingers_clear
+    from selfview.procedures.viewplan import _fingers_clear
     from selfview.mocks.puma260 import Puma260
     from selfview.mocks.val_controller import TOOL_LENGTH_MM
     from selfview.mocks.puma260 import make_tool
@@ -119,7 +119,7 @@ def test_joint_fit_recovers_the_camera_and_its_sigmas_are_honest(cell):
     errs, sigs = [], []
     for s in range(16):
         r = calibrate_intrinsics(None, cell.plate, cell.camera.guess(), detections=_views(cell, TRUE, seed=s),
-                                 cross_check=False)
+                                 cross_check=False, skew=True)
         c = r.camera
         e = np.array([c.f - TRUE.f, c.kappa - TRUE.kappa, c.cx - TRUE.cx, c.cy - TRUE.cy, c.aspect - TRUE.aspect,
                       c.skew - TRUE.skew])
@@ -133,6 +133,25 @@ def test_joint_fit_recovers_the_camera_and_its_sigmas_are_honest(cell):
     assert np.all((ratio > 1 / 2) & (ratio < 2)), ratio
     assert r.projection_sigma_px["centre"] > 0 and set(r.projection_sigma_px) == {
         "centre", "top_left", "top_right", "bottom_left", "bottom_right"}
+
+
+def test_the_skew_is_held_at_0_when_the_views_do_not_pin_it(cell):
+    """A camera without shear: the fitted skew is within 3 of its sigmas of 0, so it is not kept; the refit holds
+    it at 0 and says so, and the other intrinsics stay within 4 sigma of the truth."""
+    dets = _views(cell, TRUE, seed=3)
+    free = calibrate_intrinsics(None, cell.plate, cell.camera.guess(), detections=dets, cross_check=False, skew=True)
+    assert abs(free.camera.skew) < 3 * free.sigma["skew"]
+    r = calibrate_intrinsics(None, cell.plate, cell.camera.guess(), detections=dets, cross_check=False)
+    sf = r.summary()["skew_fit"]
+    assert not sf["fitted"] and sf["note"].startswith("skew not fitted") and sf["sigmas_from_zero"] < 3
+    assert r.camera.skew == 0.0 and r.covariance.shape == (5, 5) and "skew" not in r.sigma
+    for k in ("f", "cx", "cy", "aspect"):
+        assert abs(getattr(r.camera, k) - getattr(TRUE, k)) < 4 * r.sigma[k], k
+    # the same views with a grabber's shear of 0.58 px: the skew is pinned and kept
+    sheared = [replace(d, uv=d.uv + np.column_stack([1e-3 * (d.uv[:, 1] - TRUE.cy), 0 * d.uv[:, 1]])) for d in dets]
+    r = calibrate_intrinsics(None, cell.plate, cell.camera.guess(), detections=sheared, cross_check=False)
+    assert r.skew_fit["fitted"] and r.skew_fit["sigmas_from_zero"] >= 3 and r.covariance.shape == (6, 6)
+    assert abs(r.camera.skew - 1e-3) < 4 * r.sigma["skew"]
 
 
 def test_cross_check_agrees_on_one_camera_and_not_on_two(cell):

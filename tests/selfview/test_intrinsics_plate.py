@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 
 from selfview.geometry import R_from_rotvec, inv_H, make_H, trans
-from selfview.intrinsics import (
-    _Joint, _PlateShape, _similarity_complement, calibrate_intrinsics, detect_views, fit_views, plan_view_poses,
-)
+from selfview.intrinsics import calibrate_intrinsics, detect_views, fit_views
+from selfview.intrinsics.model import _Joint
+from selfview.intrinsics.plate import _PlateShape, _similarity_complement
 from selfview.mocks.imperfections import PROFILES
 from selfview.mocks.render import render
 from selfview.mocks.world import PLATE_BASE_POSE, SimWorld
+from selfview.procedures.viewplan import plan_view_poses
 
 SEEDS = (0, 1, 2)
 #: Centre error bound [px] on the realistic plate: the largest measured over these seeds (and over 12

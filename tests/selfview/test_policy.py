@@ -241,3 +241,31 @@ def test_a_recalibration_beyond_the_alarm_limit_raises_the_alarm(cell, ref):
     H_mid = turned(H0, 3.0)
     d = pol.decide(est, 6, recalibration=recalibrate(H0, P[:4], cam.project(transform_points(H_mid, P[:4])), cam))
     assert d.action == "recalibrate" and tcp_error(d.C_H_G, H_mid) < 1e-6
+
+
+def test_a_repeated_or_blank_picture_is_a_frame_problem(mon):
+    m = mon[0]
+    rng = np.random.default_rng(1)
+    img = rng.integers(0, 255, (48, 64), dtype=np.uint8)
+    assert m.frame_problem(img) is None
+    assert "bit-identical" in m.frame_problem(img.copy())
+    assert m.frame_problem(np.clip(img.astype(int) + 1, 0, 255).astype(np.uint8)) is None  # a grey level differs
+    assert "blank picture" in m.frame_problem(np.full((48, 64), 128, np.uint8))
+
+
+def test_poses_alternating_between_two_values_raise_the_alarm(mon, cell):
+    m, H0, P, cam = mon
+    angle = 2 * cell.monitor.update_limit.angle_deg
+    B = turned(H0, angle)
+    acts = []
+    for k in range(8):
+        uv, found = frame(H0 if k % 2 == 0 else B, P, cam)
+        acts.append(m.step(uv, found).action)
+        if acts[-1] == "alarm":
+            break
+    assert acts[:-1] == ["update"] + ["recalibrate"] * (len(acts) - 2) and acts[-1] == "alarm", acts
+    assert len(acts) == 6 and "camera mount loose or source switching" in m.records[-1]["reason"]
+    np.testing.assert_array_equal(m.records[-1]["C_H_G"], m.C_H_G)
+    # a camera that moves once and stays is never taken for one that alternates
+    m2 = Monitor(H0, cam, P, cell.monitor)
+    assert all(m2.step(*frame(B, P, cam)).action != "alarm" for _ in range(8))

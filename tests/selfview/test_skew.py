@@ -15,10 +15,11 @@ from selfview.camera import MAX_SKEW, CameraModel
 from selfview.camfile import CameraFile, load_camera_file, save_camera_file
 from selfview.errors import CalibrationFileError, ConfigError
 from selfview.geometry import R_from_rotvec, inv_H, make_H, transform_points
-from selfview.intrinsics import TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics, plan_view_poses
+from selfview.intrinsics import TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics
 from selfview.mocks.world import SimWorld
 from selfview.offline import calibrate_offline
 from selfview.online import differential_update, iterative_update, recalibrate
+from selfview.procedures.viewplan import plan_view_poses
 from tests import alt_render
 
 #: The robot's base lies at -x of the reference cell's plate (as in test_intrinsics).
@@ -82,6 +83,7 @@ def test_the_skew_is_measured_and_the_centre_not_biased(cell, sheared):
     r = calibrate_intrinsics(imgs, cell.plate, cell.camera.guess(), cross_check=False)
     c = r.camera
     assert set(r.sigma) == {"f", "kappa", "cx", "cy", "aspect", "skew"} and r.covariance.shape == (6, 6)
+    assert r.skew_fit["fitted"] and r.skew_fit["note"].startswith("skew fitted")  # pinned: many sigmas from 0
     # the skew within 4 of its sigmas and 10 % of the shear; the centre, f and aspect as on a camera without
     # one (test_intrinsics: within 0.5 px and 0.05 %), each within 4 sigma
     assert abs(c.skew - SKEW) < 4 * r.sigma["skew"] and abs(c.skew - SKEW) < 0.1 * SKEW, (c.skew, r.sigma["skew"])

@@ -1,0 +1,106 @@
+"""The stop rule (are the centre and the aspect pinned?) and the advice on how many more views of which kind
+would pin them: each further view's information on the intrinsics, its own pose eliminated."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from selfview.camera import CameraModel
+from selfview.cell import PlateSpec
+from selfview.geometry import rot_axis, trans
+from selfview.intrinsics.fit import _Fit, _sigmas
+from selfview.intrinsics.model import _Joint, _intr, _project
+from selfview.intrinsics.plate import _PlateShape
+
+
+#: Stop rule: the centre pinned to sigma below this in each axis [px], the aspect to this relative sigma.
+STOP_CENTRE_PX = 0.3
+STOP_ASPECT_REL = 0.0005
+
+#: Most further views the advice considers per kind.
+MAX_MORE_VIEWS = 60
+
+def _stop_met(sig: dict, aspect: float) -> bool:
+    return bool(max(sig["cx"], sig["cy"]) < STOP_CENTRE_PX and sig["aspect"] / aspect < STOP_ASPECT_REL)
+
+
+#: Kinds of further views the advice weighs: (label, tilt of the plate from square-on [deg]).
+VIEW_KINDS = (("tilted 35 deg", 35.0), ("tilted 20 deg", 20.0), ("square-on", 0.0))
+
+
+def _view_information(camera: CameraModel, plate: PlateSpec, distance: float, tilt_deg: float, azimuth_deg: float,
+                      s2: float, ni: int = 5, shape: "_PlateShape | None" = None, y=None) -> np.ndarray | None:
+    """(ni, ni) information on the intrinsics that one view of the plate adds, its pose eliminated: the
+    plate's centre at ``distance`` on the optical axis, tilted ``tilt_deg`` about an in-plane axis at
+    ``azimuth_deg``; the discs that fall in the picture. With the plate's shape (``shape`` at parameters
+    ``y``): (ni + n_shape) square, on the intrinsics and the shape (the same printed plate in every view)."""
+    a = np.radians(azimuth_deg)
+    H = trans(0, 0, distance) @ rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt_deg))
+    p = plate.disc_centres_W()
+    x = _intr(camera, ni)
+    uv = _project(x, H[:3, :3], H[:3, 3], p, camera.skew)
+    ok = np.all(np.isfinite(uv), axis=1)
+    ok[ok] = camera.in_image(uv[ok], margin=10)
+    if ok.sum() < 8:
+        return None
+    if shape is None:
+        model = _Joint([p[ok]], [uv[ok]], [H[:3, :3]], ni=ni, skew=camera.skew)
+        J = model.jacobian(np.concatenate([x, np.zeros(3), H[:3, 3]]))
+        A = J.T @ J / s2
+        Aii, Aip, App = A[:ni, :ni], A[:ni, ni:], A[ni:, ni:]
+        return Aii - Aip @ np.linalg.solve(App, Aip.T)
+    model = _Joint([p[ok]], [uv[ok]], [H[:3, :3]], shape, [np.flatnonzero(ok)], ni=ni, skew=camera.skew)
+    J = model.jacobian(np.concatenate([x, np.zeros(3), H[:3, 3], y]))[: model.m_data]  # no second prior
+    A = J.T @ J / s2
+    keep = np.r_[0:ni, ni + 6 : len(A)]
+    Ak, Akp, App = A[np.ix_(keep, keep)], A[keep, ni : ni + 6], A[ni : ni + 6, ni : ni + 6]
+    return Ak - Akp @ np.linalg.solve(App, Akp.T)
+
+
+def more_views_advice(fit: _Fit, plate: PlateSpec) -> dict:
+    """How many more views of each kind (``VIEW_KINDS``) would meet the stop rule, from the covariance.
+
+    With the plate's shape fitted, on the joint information of the intrinsics and the shape: a further
+    view sees the same printed plate, whose uncertain shape it shares with the views taken (counting only
+    the intrinsics' marginal information, as if the new view's plate were known, promised the stop rule
+    after one more view where six did not reach it)."""
+    ni = len(fit.cov5)
+    ns = len(fit.shape) if fit.plate_model != "flat" else 0
+    shape = None
+    if ns:
+        n = len(fit.cov_full)
+        idx = np.r_[0:ni, n - ns : n]
+        cov0 = fit.cov_full[np.ix_(idx, idx)]
+        shape = _PlateShape(plate, fit.plate_model, fit.prior_noise_px, fit.dot_sd_mm)
+        if shape.n != ns:
+            shape, cov0 = None, fit.cov5
+    else:
+        cov0 = fit.cov5
+    m = len(cov0)
+    try:
+        info0 = np.linalg.inv(cov0)
+    except np.linalg.LinAlgError:
+        info0 = np.zeros((m, m))
+    if not np.all(np.isfinite(info0)):
+        info0 = np.zeros((m, m))
+    dist = float(np.median([v.distance_mm for v in fit.views]))
+    out = {}
+    for label, tilt in VIEW_KINDS:
+        info = info0.copy()
+        need = None
+        for n in range(1, MAX_MORE_VIEWS + 1):
+            add = _view_information(fit.camera, plate, dist, tilt, 90.0 * (n - 1) + 45.0 * ((n - 1) // 4), fit.s2, ni,
+                                    shape, fit.shape if shape is not None else None)
+            if add is None:
+                break
+            info += add
+            try:
+                cov = np.linalg.inv(info)
+            except np.linalg.LinAlgError:
+                continue
+            cov = cov[:ni, :ni]
+            if np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0) and _stop_met(_sigmas(cov), fit.camera.aspect):
+                need = n
+                break
+        out[label] = need
+    return {"distance_mm": dist, "views_needed": out}

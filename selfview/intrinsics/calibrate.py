@@ -1,0 +1,169 @@
+"""``calibrate_intrinsics``: the joint calibration from pictures of the plate, with its stop rule, advice and
+cross-check, as one result."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from selfview.camera import CameraModel
+from selfview.cell import PlateSpec
+from selfview.errors import CalibrationError
+from selfview.intrinsics.advice import STOP_ASPECT_REL, STOP_CENTRE_PX, MAX_MORE_VIEWS, _stop_met, more_views_advice
+from selfview.intrinsics.checks import _cross_check
+from selfview.intrinsics.fit import (
+    MIN_VIEWS, UNDETERMINED_CENTRE_PX, VIEW_MAX_RMS_PX, _Fit, _sigmas, detect_views, fit_views, projection_sigma_px,
+)
+
+#: The skew is kept only when the views pin it: its estimate at least this many sigmas from 0 (a grabber
+#: without shear shows one as large in 0.3 % of calibrations); otherwise it is held at 0, the spec's model.
+SKEW_SIGNIFICANCE = 3.0
+
+
+# --- the result -----------------------------------------------------------------------------------
+@dataclass
+class IntrinsicsResult:
+    """A joint calibration of the interior orientation from several views (see the module)."""
+
+    camera: CameraModel
+    covariance: np.ndarray  # (n, n) of INTRINSIC_NAMES[:n]: n = 6 with the skew fitted, 5 without
+    sigma: dict
+    rms_px: float
+    views: list
+    skipped: list
+    projection_sigma_px: dict
+    stop_rule: dict
+    cross_check: dict
+    residual_sigma_px: float = 0.0
+    plate_shape: dict = field(default_factory=dict)
+    extras: dict = field(default_factory=dict)
+    skew_fit: dict = field(default_factory=dict)
+
+    @property
+    def views_used(self) -> int:
+        return len(self.views)
+
+    def summary(self) -> dict:
+        c = self.camera
+        return {
+            "f": c.f, "kappa": c.kappa, "principal_point": [c.cx, c.cy], "aspect": c.aspect, "skew": c.skew,
+            "width": c.width, "height": c.height,
+            "sigma": dict(self.sigma),
+            "covariance": np.asarray(self.covariance).tolist(),
+            "rms_px": self.rms_px,
+            "views_used": self.views_used,
+            "views": [v.to_dict() for v in self.views],
+            "views_skipped": list(self.skipped),
+            "projection_sigma_px": dict(self.projection_sigma_px),
+            "stop_rule": self.stop_rule,
+            "cross_check": self.cross_check,
+            "plate_shape": self.plate_shape,
+            "skew_fit": dict(self.skew_fit),
+        }
+
+
+def _plate_summary(fit: _Fit) -> dict:
+    """What the fit found of the printed plate: its model, the bow's coefficients [mm] (z at the grid's
+    half-width: xx, xy, yy) with their 1-sigma, the discs' position error sd [mm] and rms of their fitted
+    corrections, each view's turn of its disc indices onto the plate's grid [deg] (None: kept as found)."""
+    out = {"model": fit.plate_model, "turns_deg": list(fit.turns)}
+    if fit.plate_model == "flat":
+        return out
+    nb = 3
+    out["bow_mm"] = [float(v) for v in fit.shape[:nb]]
+    out["bow_sigma_mm"] = [float(v) for v in np.sqrt(np.clip(np.diag(fit.shape_cov)[:nb], 0, None))]
+    if fit.plate_model == "bow+dots":
+        u = fit.shape[nb:]
+        out["dot_sd_mm"] = float(fit.dot_sd_mm)
+        out["dot_rms_mm"] = float(np.sqrt(u @ u / (len(u) + 4)))
+    return out
+
+def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, names=None, *,
+                         skip_unusable: bool = False, cross_check: bool = True, detections=None,
+                         plate_model: str = "bow+dots", skew: bool | str = "auto") -> IntrinsicsResult:
+    """Joint calibration of f, kappa, cx, cy, aspect, the grabber's skew and each view's ``C_H_W`` from
+    pictures of the plate. ``skew``: 'auto' fits the skew and keeps it only when the views pin it
+(``SKEW_SIGNIFICANCE``), else refits with it held at 0 (``skew_fit`` says which and why); True always
+fits it; False holds it at ``camera_guess``'s, the spec's model.
+
+    ``images`` (H, W) pictures (or ``detections``, a list of ``DiscDetections``, instead); ``plate`` the
+    plate; ``camera_guess`` the starting camera (the cell's nominal one: its size checks the pictures);
+    ``names`` per picture, for messages; ``skip_unusable``: a picture without the plate is skipped (and
+    listed) instead of refused. Raises ``ImageError`` (a picture without the plate, of the wrong size) or
+    ``CalibrationError`` (fewer than ``MIN_VIEWS`` usable views; views that do not determine the centre,
+    all seen square-on; no convergence).
+    """
+    if detections is None:
+        dets, names, skipped = detect_views(images, plate, camera_guess, names, skip_unusable=skip_unusable)
+    else:
+        dets = list(detections)
+        names = list(names) if names is not None else [f"view {i + 1}" for i in range(len(dets))]
+        skipped = []
+    if len(dets) < MIN_VIEWS:
+        raise CalibrationError(
+            f"intrinsics: {len(dets)} usable view(s) of the plate; at least {MIN_VIEWS} are needed (12 or more, "
+            "tilted 20-40 deg in different directions, pin the centre and the aspect)"
+        )
+    if skew not in (True, False, "auto"):
+        raise CalibrationError(f"intrinsics: skew={skew!r}: expected 'auto', True or False")
+    fit = fit_views(dets, plate, camera_guess, names, plate_model=plate_model, fit_skew=skew is not False)
+    # a view that does not fit the others: drop it and refit
+    bad = {v.name: v.rms_px for v in fit.views if v.rms_px > VIEW_MAX_RMS_PX}
+    if bad and len(fit.views) - len(bad) >= MIN_VIEWS:
+        for nm, rms in bad.items():
+            skipped.append({"name": nm, "reason": f"does not fit the other views (residual rms "
+                                                  f"{rms:.2f} px > {VIEW_MAX_RMS_PX} px)"})
+        keep = [k for k in range(len(dets)) if names[k] not in bad]
+        dets, names = [dets[k] for k in keep], [names[k] for k in keep]
+        fit = fit_views(dets, plate, fit.camera, names, plate_model=plate_model, fit_skew=skew is not False)
+    skew_fit = {"fitted": skew is not False, "note": "skew fitted" if skew is True else "skew held at the guess's"}
+    if skew is not False:
+        val, sd = fit.camera.skew, float(np.sqrt(max(fit.cov5[5, 5], 0.0)))
+        z = abs(val) / sd if sd > 0 and np.isfinite(sd) else 0.0
+        skew_fit.update(value=float(val), sigma=sd, sigmas_from_zero=float(z), limit_sigmas=SKEW_SIGNIFICANCE)
+        if skew == "auto" and not z >= SKEW_SIGNIFICANCE:
+            skew_fit.update(fitted=False, note=f"skew not fitted: the views measure it as {val:.1e} +- {sd:.1e} "
+                                               f"({z:.1f} sigmas from 0, under {SKEW_SIGNIFICANCE:g}): they do not pin "
+                                               "it, so it is held at 0 (the spec's camera model)")
+            fit = fit_views(dets, plate, fit.camera.with_(skew=0.0), names, plate_model=plate_model, fit_skew=False)
+        elif skew == "auto":
+            skew_fit["note"] = f"skew fitted: {val:.2e} +- {sd:.1e}, {z:.0f} sigmas from 0"
+    for nm, why in fit.dropped:
+        skipped.append({"name": nm, "reason": why})
+    used = {v.name for v in fit.views}
+    keep = [k for k in range(len(dets)) if names[k] in used]
+    dets, names = [dets[k] for k in keep], [names[k] for k in keep]
+    sig = _sigmas(fit.cov5)
+    tilts = [v.tilt_deg for v in fit.views]
+    if not (np.all(np.isfinite(fit.cov5)) and max(sig["cx"], sig["cy"]) < UNDETERMINED_CENTRE_PX):
+        raise CalibrationError(
+            f"intrinsics: the {len(dets)} views do not determine the principal point (sigma "
+            f"{max(sig['cx'], sig['cy']):.3g} px): they see the plate {min(tilts):.0f}-{max(tilts):.0f} deg from "
+            "square-on; take views tilted 20-40 deg in different directions"
+        )
+    met = _stop_met(sig, fit.camera.aspect)
+    stop = {
+        "met": met,
+        "sigma_centre_px": max(sig["cx"], sig["cy"]),
+        "sigma_aspect_pct": 100 * sig["aspect"] / fit.camera.aspect,
+        "limit_centre_px": STOP_CENTRE_PX,
+        "limit_aspect_pct": 100 * STOP_ASPECT_REL,
+    }
+    if not met:
+        adv = more_views_advice(fit, plate)
+        stop["more_views"] = adv
+        best = [(n, k) for k, n in adv["views_needed"].items() if n is not None]
+        if best:
+            n, k = min(best)
+            stop["advice"] = (f"{n} more view(s) {k} (plate about {adv['distance_mm']:.0f} mm away, tilt axes turning "
+                              f"by 90 deg from view to view) would pin the centre to < {STOP_CENTRE_PX} px and the "
+                              f"aspect to < {100 * STOP_ASPECT_REL:g} %")
+        else:
+            stop["advice"] = f"more than {MAX_MORE_VIEWS} further views of any kind would be needed"
+    xc = _cross_check(dets, names, plate, fit) if cross_check else {"done": False, "why": "not asked for"}
+    return IntrinsicsResult(
+        camera=fit.camera, covariance=fit.cov5, sigma=sig, rms_px=fit.rms_px, views=fit.views, skipped=skipped,
+        projection_sigma_px=projection_sigma_px(fit.camera, fit.cov5), stop_rule=stop, cross_check=xc,
+        residual_sigma_px=float(np.sqrt(fit.s2)), plate_shape=_plate_summary(fit), skew_fit=skew_fit,
+    )

@@ -1,0 +1,238 @@
+"""Consistency checks: two halves of the views against each other; one picture's evidence against the assumed
+camera; the TCP's uncertainty from the camera calibration and the PCC together."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from selfview.camera import CameraModel
+from selfview.errors import CalibrationError
+from selfview.geometry import R_from_rotvec, make_H
+from selfview.intrinsics.fit import INTRINSIC_NAMES, MIN_VIEWS_HALF, _Fit, fit_views
+from selfview.intrinsics.model import _POSE_STEP, _STEP, _Joint, _intr, _with_intr
+from selfview.lm import covariance, levenberg_marquardt
+
+
+#: The halves of the cross-check agree when no parameter differs by more than this many combined sigmas.
+AGREE_SIGMAS = 3.0
+
+def _cross_check(dets, names, plate, fit: _Fit) -> dict:
+    n = len(dets)
+    if n < 2 * MIN_VIEWS_HALF:
+        return {"done": False, "why": f"{n} views; the cross-check needs {2 * MIN_VIEWS_HALF} (two halves of "
+                                      f"{MIN_VIEWS_HALF})"}
+    halves = []
+    for idx in (range(0, n, 2), range(1, n, 2)):
+        idx = list(idx)
+        try:
+            h = fit_views([dets[i] for i in idx], plate, fit.camera, [names[i] for i in idx], plate_model=fit.plate_model,
+                          fit_skew=len(fit.cov5) > 5)
+        except CalibrationError as exc:
+            return {"done": False, "why": f"a half could not be calibrated: {exc}"}
+        halves.append(h)
+    a, b = halves
+    xa, xb = _intr(a.camera, len(a.cov5)), _intr(b.camera, len(b.cov5))
+    comb = np.sqrt(np.diag(a.cov5) + np.diag(b.cov5))
+    ratio = np.abs(xa - xb) / comb
+    agree = bool(np.all(np.isfinite(ratio)) and np.all(ratio <= AGREE_SIGMAS))
+    return {
+        "done": True,
+        "agree": agree,
+        "halves": [{nm: float(v) for nm, v in zip(INTRINSIC_NAMES, x)} for x in (xa, xb)],
+        "difference": {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, xa - xb)},
+        "combined_sigma": {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, comb)},
+        "ratio": {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, ratio)},
+        "limit_sigmas": AGREE_SIGMAS,
+    }
+
+# --- one picture: is the nominal camera wrong? how sure is the TCP? --------------------------------
+#: Accuracy targets of the off-line calibration [mm]: TCP across and along the optical axis.
+TARGET_ACROSS_MM = 0.02
+TARGET_ALONG_MM = 0.08
+#: The picture shows the camera's centre and aspect differ from the assumed ones when the chi-square of
+#: the difference (3 degrees of freedom) exceeds this (p = 1e-4 for a right camera).
+CAMERA_CHI2_LIMIT = 21.1
+
+
+def _one_view(result, camera: CameraModel, ni: int = 5):
+    """(model, x) of the one-view problem at the off-line result: the intrinsics (f and kappa the picture's,
+    the rest ``camera``'s; ``ni`` 5: the skew held at ``camera``'s, 6: free) and the pose."""
+    ts = result.tsai
+    H = ts.C_H_W
+    model = _Joint([result.discs.p_W], [result.disc_uv_corrected], [H[:3, :3]], ni=ni, skew=camera.skew)
+    x = np.concatenate([_intr(camera.with_(f=ts.camera.f, kappa=ts.camera.kappa), ni), np.zeros(3), H[:3, 3]])
+    return model, x
+
+
+def _tcp_of(result, cell, cam: CameraModel, C_H_W) -> np.ndarray:
+    from selfview.pcc import solve_pcc
+
+    ft = result.fingertips
+    found = np.asarray(ft.found, bool)
+    cal = result.calibration
+    pG = cal.points_G[cal.state][found]
+    return solve_pcc(ft.uv[found], pG, C_H_W, cam).C_H_G[:3, 3]
+
+
+#: A camera file fits a picture when the plate's disc residual with all of its intrinsics held (the plate's
+#: pose alone fitted) stays within this of the residual with f and kappa the picture's own [px]: with the
+#: right camera both are the discs' own scatter (centroid noise 0.02 px, a laser print's dot errors 0.05-0.2
+#: px) and differ by under 0.02 px; another camera's f or centre leaves a pattern over the plate that the
+#: pose cannot take up (another camera of the same size: 0.3 px and more).
+CAMERA_FILE_MAX_EXCESS_PX = 0.1
+
+
+def camera_file_fit(result, camera: CameraModel, source: str = "the camera file") -> dict:
+    """Does ``camera`` (from a camera file: f, kappa, centre, aspect, skew) fit the picture of an off-line
+    calibration (``selfview.offline.OfflineResult``)? The plate's pose alone is fitted to the disc centres with
+    every intrinsic held at ``camera``'s. Returns {rms_px, own_rms_px (f and kappa the picture's), excess_px,
+    limit_px, fits, refusal (why it does not fit, naming ``source``; None when it fits)}."""
+    model, x = _one_view(result, camera, ni=6)
+    x[:6] = _intr(camera, 6)
+    own = float(result.tsai.rms_px)
+    try:
+        res = levenberg_marquardt(lambda y: model.residuals(np.r_[x[:6], y]), x[6:],
+                                  lambda y: model.jacobian(np.r_[x[:6], y])[:, 6:])
+        rms = float(np.sqrt(np.mean(np.square(res.residuals.reshape(2, -1)).sum(0))))
+    except CalibrationError:
+        rms = float("inf")
+    excess = rms - own
+    fits = bool(excess <= CAMERA_FILE_MAX_EXCESS_PX)
+    refusal = None if fits else (
+        f"{source} does not fit this picture: the plate's disc residual with its camera (f {camera.f:.1f} px) is "
+        f"{rms:.3f} px against {own:.3f} px with the picture's own f ({result.tsai.camera.f:.1f} px) and kappa, more "
+        f"than {CAMERA_FILE_MAX_EXCESS_PX} px over: it was measured on another camera or lens setting")
+    return {"rms_px": rms, "own_rms_px": own, "excess_px": excess, "limit_px": CAMERA_FILE_MAX_EXCESS_PX,
+            "fits": fits, "refusal": refusal}
+
+
+def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
+    """Does the picture of an off-line calibration (``selfview.offline.OfflineResult``) show that the
+    assumed camera's principal point or aspect (``camera``, default the cell's nominal one) is wrong by
+    enough to cost more than the accuracy targets?
+
+    One view with f, kappa, cx, cy, aspect and the pose all free (the skew held at the assumed camera's:
+    one view does not pin it); the difference of (cx, cy, aspect) from
+    the assumed ones is significant when its chi-square exceeds ``CAMERA_CHI2_LIMIT``; its cost is how far
+    the TCP moves when the picture is calibrated again with the picture's own centre and aspect.
+    Returns {significant, chi2, centre_offset_px [dx, dy], aspect, aspect_sigma, centre_sigma_px,
+    tcp_shift_mm [3], costly, warning (str or None)}.
+    """
+    from selfview.tsai import calibrate_coplanar
+
+    cam0 = camera or cell.camera.guess()
+    model, x0 = _one_view(result, cam0)
+    out = {"significant": False, "costly": False, "warning": None}
+    try:
+        res = levenberg_marquardt(model.residuals, x0, model.jacobian, normal=True)
+    except (CalibrationError, np.linalg.LinAlgError) as exc:
+        out["why"] = f"the one-view fit failed: {exc}"
+        return out
+    m, n = res.jacobian.shape
+    s2 = res.cost / max(m - n, 1)
+    cov = covariance(res.jacobian, s2, normal=True)
+    d = res.x[2:5] - np.array([cam0.cx, cam0.cy, cam0.aspect])
+    C3 = cov[2:5, 2:5]
+    if not (res.converged and np.all(np.isfinite(C3))):
+        out["why"] = "one picture does not determine the centre and the aspect"
+        return out
+    try:
+        chi2 = float(d @ np.linalg.solve(C3, d))
+    except np.linalg.LinAlgError:
+        out["why"] = "one picture does not determine the centre and the aspect"
+        return out
+    sig = np.sqrt(np.diag(C3))
+    out.update(chi2=chi2, centre_offset_px=[float(d[0]), float(d[1])], centre_sigma_px=[float(sig[0]), float(sig[1])],
+               aspect=float(res.x[4]), aspect_sigma=float(sig[2]), assumed_aspect=float(cam0.aspect),
+               significant=bool(chi2 > CAMERA_CHI2_LIMIT))
+    if not out["significant"]:
+        return out
+    try:
+        own = cam0.with_(cx=float(res.x[2]), cy=float(res.x[3]), aspect=float(res.x[4]))
+        ts = calibrate_coplanar(result.discs.p_W, own.deskew_pixels(result.disc_uv_corrected), cx=own.cx, cy=own.cy,
+                                aspect=own.aspect, mode="full", width=cam0.width, height=cam0.height)
+        shift = (_tcp_of(result, cell, ts.camera.with_(skew=cam0.skew), ts.C_H_W)
+                 - result.calibration.C_H_G[:3, 3])
+    except CalibrationError as exc:
+        out["why"] = f"recalibrating with the picture's own centre failed: {exc}"
+        return out
+    across, along = float(np.hypot(shift[0], shift[1])), float(abs(shift[2]))
+    out.update(tcp_shift_mm=[float(v) for v in shift], costly=bool(across > TARGET_ACROSS_MM or along > TARGET_ALONG_MM))
+    if out["costly"]:
+        out["warning"] = (
+            f"the picture shows the camera's principal point {np.hypot(d[0], d[1]):.1f} px from the assumed "
+            f"({cam0.cx:.1f}, {cam0.cy:.1f}) (offset {d[0]:+.1f}, {d[1]:+.1f} px, +- {sig[0]:.1f}, {sig[1]:.1f}) and its "
+            f"aspect {res.x[4]:.4f} +- {sig[2]:.4f} instead of {cam0.aspect:.4f}; that moves the TCP by "
+            f"{across:.3f} mm across and {along:.3f} mm along the optical axis (targets {TARGET_ACROSS_MM} and "
+            f"{TARGET_ALONG_MM} mm): measure the camera with 'selfview intrinsics' and calibrate with "
+            "--camera CAMERA.yaml"
+        )
+    return out
+
+
+def tcp_sigma(result, cell, camera_cov3: np.ndarray | None = None) -> dict:
+    """1-sigma of the TCP in camera axes [mm] of an off-line calibration, from the covariance of the camera
+    calibration and the PCC together.
+
+    Three parts, propagated to ``C_H_G``'s translation by its derivatives (central differences through
+    Tsai's pose and ``selfview.pcc.solve_pcc``): the picture's own noise in the disc centres (the
+    covariance of f, kappa and the plate pose, scaled by the residual); the uncertainty of the principal
+    point and aspect (``camera_cov3`` (3, 3) of cx, cy, aspect, or (4, 4) with the skew, from a camera file;
+    None: taken as exact),
+    through the pose and f they shift and directly; the fingertip corners' (each from two line fits: the
+    edge points' RMS over sqrt(n/2) per axis). Returns {tcp_sigma_mm [3], parts {...}}.
+    """
+    cal = result.calibration
+    cam = cal.camera
+    model, x = _one_view(result, cam, ni=6)
+    r = model.residuals(x)
+    J = model.jacobian(x)
+    m = len(r)
+    p_idx = np.r_[0:2, 6:12]
+    Jp, Jt = J[:, p_idx], J[:, 2:6]
+    s2 = float(r @ r) / max(m - len(p_idx), 1)
+    N = Jp.T @ Jp
+    Ninv = np.linalg.inv(N)
+    cov_p = s2 * Ninv
+    dp_dt = -Ninv @ Jp.T @ Jt
+    R0 = result.tsai.C_H_W[:3, :3]
+    ft = result.fingertips
+    found = np.asarray(ft.found, bool)
+    pG = cal.points_G[cal.state][found]
+    from selfview.pcc import solve_pcc
+
+    def tcp(xv, uv=None):
+        c = _with_intr(cam, xv[:6])
+        H = make_H(R_from_rotvec(xv[6:9]) @ R0, xv[9:12])
+        return solve_pcc(ft.uv[found] if uv is None else uv, pG, H, c).C_H_G[:3, 3]
+
+    steps = np.r_[_STEP[0] * x[0], _STEP[1:], _POSE_STEP]
+    G = np.zeros((3, 12))
+    for i in range(12):
+        xp, xm = x.copy(), x.copy()
+        xp[i] += steps[i]
+        xm[i] -= steps[i]
+        G[:, i] = (tcp(xp) - tcp(xm)) / (2 * steps[i])
+    Gp = G[:, p_idx]
+    parts = {"picture": Gp @ cov_p @ Gp.T}
+    if camera_cov3 is not None:
+        C = np.asarray(camera_cov3, float)
+        if C.shape not in ((3, 3), (4, 4)):
+            raise ValueError(f"tcp_sigma: camera_cov3: expected (3, 3) or (4, 4), got {C.shape}")
+        Gt = (G[:, 2:6] + Gp @ dp_dt)[:, : len(C)]
+        parts["camera_file"] = Gt @ C @ Gt.T
+    uv = ft.uv[found]
+    n_edge = ft.n_edge_points[found] if ft.n_edge_points is not None else np.full(len(uv), 20)
+    sc = np.nan_to_num(ft.edge_rms_px[found], nan=0.1) / np.sqrt(np.maximum(np.asarray(n_edge, float), 2) / 2)
+    Cc = np.zeros((3, 3))
+    for k in range(len(uv)):
+        for a in range(2):
+            up, um = uv.copy(), uv.copy()
+            up[k, a] += 1e-3
+            um[k, a] -= 1e-3
+            g = (tcp(x, up) - tcp(x, um)) / 2e-3
+            Cc += np.outer(g, g) * sc[k] ** 2
+    parts["corners"] = Cc
+    total = sum(parts.values())
+    return {"tcp_sigma_mm": [float(v) for v in np.sqrt(np.clip(np.diag(total), 0, None))],
+            "parts": {k: [float(v) for v in np.sqrt(np.clip(np.diag(c), 0, None))] for k, c in parts.items()}}

@@ -1,0 +1,275 @@
+"""The joint fit of several views' disc centres: first poses, the bias-corrected refits with the plate's shape,
+outlying discs dropped; the fit's uncertainty figures."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from selfview.camera import CameraModel
+from selfview.cell import PlateSpec
+from selfview.discs import DiscDetections, detect_discs, disc_image_bias
+from selfview.errors import CalibrationError, ConfigError, ImageError
+from selfview.geometry import make_H
+from selfview.intrinsics.model import _STEP, _Joint, _intr, _project, _with_intr
+from selfview.intrinsics.plate import PLATE_DOT_PRIOR_MM, PLATE_DOT_SD_RANGE_MM, PLATE_MODELS, _align_views, _PlateShape
+from selfview.lm import covariance, levenberg_marquardt
+
+
+#: The intrinsics in the order of the covariance: the skew last, absent when it is not fitted.
+INTRINSIC_NAMES = ("f", "kappa", "cx", "cy", "aspect", "skew")
+#: Fewest usable views a joint calibration accepts (and each half of the cross-check).
+MIN_VIEWS = 4
+MIN_VIEWS_HALF = 3
+
+#: A disc centre this many residual RMS (and at least ``OUTLIER_MIN_PX``) from the model is dropped.
+OUTLIER_RMS = 4.0
+OUTLIER_MIN_PX = 0.5
+#: A view whose residual RMS exceeds this [px] after the fit does not belong to the set (another
+#: plate, a moved camera, a blurred picture) and is dropped.
+VIEW_MAX_RMS_PX = 1.5
+#: Bias-correction rounds (centroid -> image of the centre) after the first fit.
+BIAS_ROUNDS = 2
+#: Further refits, at most, until the noise that weighs the plate's prior settles (within 20 %).
+NOISE_ROUNDS = 4
+#: Views whose plate normals (in the camera frame) all lie within this of their mean direction [deg] see
+#: parallel planes (the gripper straight down, only lifted and turned; or all square-on): they cannot pin
+#: the principal point (Zhang: parallel planes add no constraint on the interior orientation).
+PARALLEL_DEG = 5.0
+#: Above this sigma of the centre [px] the views do not determine it at all.
+UNDETERMINED_CENTRE_PX = 5.0
+
+@dataclass
+class ViewFit:
+    """One view in the joint fit: ``name``; ``C_H_W`` (4, 4); ``discs`` used; ``rms_px`` of its residuals;
+    ``tilt_deg`` angle between the plate's normal and the optical axis; ``distance_mm`` to the plate's
+    origin; ``dropped`` disc centres dropped as outliers."""
+
+    name: str
+    C_H_W: np.ndarray
+    discs: int
+    rms_px: float
+    tilt_deg: float
+    distance_mm: float
+    dropped: int = 0
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "discs": self.discs, "rms_px": float(self.rms_px), "tilt_deg": float(self.tilt_deg),
+                "distance_mm": float(self.distance_mm), "dropped": self.dropped,
+                "C_H_W": np.asarray(self.C_H_W).tolist()}
+
+
+@dataclass
+class _Fit:
+    camera: CameraModel
+    cov5: np.ndarray  # (ni, ni) of the intrinsics fitted: INTRINSIC_NAMES[:ni]
+    cov_full: np.ndarray
+    jac: np.ndarray
+    s2: float
+    rms_px: float
+    views: list
+    uv_used: list
+    p_W_used: list
+    plate_model: str = "flat"
+    shape: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    shape_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    prior_noise_px: float = 0.0
+    dot_sd_mm: float = PLATE_DOT_PRIOR_MM
+    turns: list = field(default_factory=list)
+    dropped: list = field(default_factory=list)  # [(view name, why)] left out of the fit
+
+def _initial_pose(p_W, uv, camera: CameraModel) -> np.ndarray:
+    """A first ``C_H_W`` of one view: planar PnP (IPPE) on the undistorted pixels of ``camera``."""
+    und = camera.undistorted_pixels(uv)
+    K = np.array([[camera.f / camera.aspect, 0, camera.cx], [0, camera.f, camera.cy], [0, 0, 1.0]])
+    ok, rv, tv = cv2.solvePnP(p_W.astype(np.float64), und.astype(np.float64), K, None, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        raise CalibrationError("intrinsics: no first pose for a view (planar PnP failed)")
+    H = make_H(cv2.Rodrigues(rv)[0], tv.ravel())
+    if H[2, 3] <= 0:
+        raise CalibrationError("intrinsics: a view's plate lies behind the camera")
+    return H
+
+
+def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list, *, rc: list | None = None,
+           plate: PlateSpec | None = None, plate_model: str = "flat", shape0=None, noise_px: float = 0.05,
+           dot_sd_mm: float = PLATE_DOT_PRIOR_MM, fit_skew: bool = True) -> _Fit:
+    """Joint LM from ``camera0``, ``poses0`` (and the plate's shape ``shape0``); drops outlying discs once
+    and refits. ``plate_model`` (``PLATE_MODELS``; needs ``rc`` and ``plate``): what of the plate's shape is
+    fitted; ``noise_px`` the disc centres' noise that weighs the shape's prior against the pixels;
+    ``fit_skew``: the skew is fitted (else held at ``camera0``'s)."""
+    ni = 6 if fit_skew else 5
+    shape = None
+    if plate_model != "flat":
+        if rc is None or plate is None:
+            raise CalibrationError("intrinsics: fitting the plate's shape needs the discs' grid indices and the plate")
+        shape = _PlateShape(plate, plate_model, float(noise_px), float(dot_sd_mm))
+    ns = shape.n if shape else 0
+    y0 = np.zeros(ns) if shape0 is None or len(shape0) != ns else np.asarray(shape0, float)
+    keep = [np.ones(len(p), bool) for p in p_W]
+    for attempt in range(2):
+        P = [p[k] for p, k in zip(p_W, keep)]
+        U = [u[k] for u, k in zip(uv, keep)]
+        idx = [shape.index(r[k]) for r, k in zip(rc, keep)] if shape else None
+        model = _Joint(P, U, [H[:3, :3] for H in poses0], shape, idx, ni=ni, skew=camera0.skew)
+        x0 = np.concatenate([_intr(camera0, ni), *[np.concatenate([np.zeros(3), H[:3, 3]]) for H in poses0], y0])
+        res = levenberg_marquardt(model.residuals, x0, model.jacobian, normal=True)
+        poses0 = [model.pose(res.x, k) for k in range(len(P))]
+        y0 = res.x[len(res.x) - ns :] if ns else y0
+        try:
+            camera0 = _with_intr(camera0, res.x[:ni])
+        except ConfigError as exc:  # a skew no grabber has: the views do not fit this camera model
+            raise CalibrationError(f"intrinsics: the joint fit left the camera model ({exc})") from None
+        dist = [np.hypot(*model.view(res.x, k).reshape(2, -1)) for k in range(len(P))]
+        rms = float(np.sqrt(np.mean(np.concatenate(dist) ** 2)))
+        if attempt == 1:
+            break
+        lim = max(OUTLIER_RMS * rms, OUTLIER_MIN_PX)
+        changed = False
+        for k, d in enumerate(dist):
+            idx_k = np.flatnonzero(keep[k])
+            bad = idx_k[d > lim]
+            if len(bad):
+                keep[k][bad] = False
+                changed = True
+        if not changed:
+            break
+    if not (res.converged and res.x[0] > 0 and res.x[4] > 0):
+        raise CalibrationError(f"intrinsics: the joint fit did not converge ({res.message})")
+    m, n = res.jacobian.shape
+    s2 = res.cost / max(m - n, 1)  # the prior rows count as observations of the shape's parameters
+    cov = covariance(res.jacobian, s2, normal=True)
+    views = []
+    for k in range(len(P)):
+        H = poses0[k]
+        tilt = float(np.degrees(np.arccos(min(1.0, abs(H[2, 2])))))
+        views.append(ViewFit(names[k], H, int(keep[k].sum()), float(np.sqrt(np.mean(dist[k] ** 2))), tilt,
+                             float(np.linalg.norm(H[:3, 3])), int((~keep[k]).sum())))
+    return _Fit(camera0, cov[:ni, :ni], cov, res.jacobian, float(s2), rms, views, U, P, plate_model,
+                np.asarray(y0, float), cov[n - ns :, n - ns :] if ns else np.zeros((0, 0)), float(noise_px), float(dot_sd_mm))
+
+
+def _bias_corrected(dets, camera, poses, plate) -> list:
+    return [d.uv - disc_image_bias(camera, H, d.p_W, plate.disc_diameter / 2) for d, H in zip(dets, poses)]
+
+def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel, names: list[str] | None = None,
+              *, bias: bool = True, plate_model: str = "bow+dots", fit_skew: bool = True) -> _Fit:
+    """The joint fit of views' disc detections from ``camera0`` (a starting camera): first poses by
+    planar PnP, a fit on the centroids, then ``BIAS_ROUNDS`` rounds of bias correction and refit
+    (``bias=False``: the centroids as measured). ``plate_model`` (``PLATE_MODELS``): what of the printed
+    plate's shape is fitted with the camera; ``fit_skew``: the grabber's skew too. The shape's prior is weighed with the previous fit's noise
+    (its residual sigma); the fit is repeated (at most ``NOISE_ROUNDS`` times) until that noise settles."""
+    if plate_model not in PLATE_MODELS:
+        raise CalibrationError(f"intrinsics: plate model {plate_model!r}: expected one of {', '.join(PLATE_MODELS)}")
+    names = names or [f"view {i + 1}" for i in range(len(dets))]
+    poses = [_initial_pose(d.p_W, d.uv, camera0) for d in dets]
+    normals = np.array([H[:3, 2] for H in poses])
+    mean = normals.sum(0) / np.linalg.norm(normals.sum(0))
+    spread = float(np.degrees(np.arccos(np.clip(normals @ mean, -1, 1))).max())
+    if spread < PARALLEL_DEG:
+        tilts = [float(np.degrees(np.arccos(min(1.0, abs(H[2, 2]))))) for H in poses]
+        raise CalibrationError(
+            f"intrinsics: the {len(dets)} views do not determine the principal point: they all see the plate from "
+            f"one direction (its normal within {spread:.1f} deg in every view, {min(tilts):.0f}-{max(tilts):.0f} deg "
+            f"from square-on), as when the gripper only looks straight down; take views with the gripper tilted "
+            "20-40 deg about different axes in the plate"
+        )
+    uv = [d.uv for d in dets]
+    turns = [0.0] * len(dets)
+    dropped: list = []
+    if plate_model != "flat":
+        # a first camera on the plate as specified, then the views' discs on one physical grid
+        fit = _solve([d.p_W for d in dets], uv, camera0, poses, names, fit_skew=fit_skew)
+        uv = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate)
+        dets, turns = _align_views(dets, uv, fit, plate)
+        if plate_model == "bow+dots" and sum(t is not None for t in turns) < max(2, (len(dets) + 1) // 2):
+            # the dot pattern is not seen in most views (a print better than the noise shows): per-disc
+            # corrections could not be tied to the physical discs, and on the pictures' own grids they
+            # would take up what is fixed in the picture (a grabber's shear) as a deformation of the plate
+            plate_model = "bow"
+        unaligned = [k for k, t in enumerate(turns) if t is None]
+        if plate_model == "bow+dots" and unaligned and len(dets) - len(unaligned) >= MIN_VIEWS:
+            # a view whose discs could not be tied to the physical grid would give the dots' corrections
+            # to the wrong discs (in the picture: a fixed pattern the fit cannot explain, which biases the
+            # centre by pixels while its sigma stays small): left out, and said
+            keep = [k for k in range(len(dets)) if k not in unaligned]
+            dropped = [(names[k], "its discs could not be tied to the plate's grid (the printed dot pattern is "
+                                  "not recognised in it), so the plate's per-disc corrections cannot apply")
+                       for k in unaligned]
+            dets, uv, names, turns = ([a[k] for k in keep] for a in (dets, uv, names, turns))
+        poses = [_initial_pose(d.p_W, u, fit.camera) for d, u in zip(dets, uv)]
+        camera0 = fit.camera
+    P = [d.p_W for d in dets]
+    rc = [d.rc for d in dets]
+    kw = {"rc": rc, "plate": plate, "plate_model": plate_model, "fit_skew": fit_skew}
+    fit = _solve(P, uv, camera0, poses, names, **kw)
+    for rnd in range(BIAS_ROUNDS + NOISE_ROUNDS if bias else NOISE_ROUNDS):
+        noise, sd = float(np.sqrt(fit.s2)), fit.dot_sd_mm
+        if plate_model == "bow+dots":
+            nb = 3
+            u, cu = fit.shape[nb:], fit.shape_cov[nb:, nb:]
+            sd = float(np.sqrt((u @ u + np.trace(cu)) / len(u))) if np.all(np.isfinite(cu)) else sd
+            sd = float(np.clip(sd, *PLATE_DOT_SD_RANGE_MM))
+        if rnd >= (BIAS_ROUNDS if bias else 0):
+            if plate_model == "flat" or (abs(noise / fit.prior_noise_px - 1.0) < 0.2 and abs(sd / fit.dot_sd_mm - 1.0) < 0.2):
+                break
+        else:
+            uv = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate)
+        fit = _solve(P, uv, fit.camera, [v.C_H_W for v in fit.views], names, shape0=fit.shape, noise_px=noise,
+                     dot_sd_mm=sd, **kw)
+    fit.turns = turns
+    fit.dropped = dropped
+    return fit
+
+
+def detect_views(images, plate: PlateSpec, camera: CameraModel, names=None, *, skip_unusable: bool = False):
+    """Disc detections of each picture. Returns (detections, names kept, skipped [{name, reason}]).
+
+    A picture without the plate raises ``ImageError`` naming it, unless ``skip_unusable``."""
+    names = list(names) if names is not None else [f"view {i + 1}" for i in range(len(images))]
+    dets, kept, skipped = [], [], []
+    for img, nm in zip(images, names):
+        try:
+            dets.append(detect_discs(img, plate, camera=camera))
+            kept.append(nm)
+        except ImageError as exc:
+            if not skip_unusable:
+                raise ImageError(f"{nm}: {exc}") from None
+            skipped.append({"name": nm, "reason": str(exc)})
+    return dets, kept, skipped
+
+# --- uncertainty figures --------------------------------------------------------------------------
+def _pixel_jacobian(camera: CameraModel, uv, ni: int = 5) -> np.ndarray:
+    """(2, ni) derivative of where the ray of pixel ``uv`` lands, w.r.t. (f, kappa, cx, cy, aspect[, skew])."""
+    xy = camera.undistort_pixels(np.atleast_2d(uv))[0] / camera.f
+    p = np.array([[xy[0], xy[1], 1.0]])
+    x = _intr(camera, ni)
+    J = np.zeros((2, ni))
+    for i in range(ni):
+        h = _STEP[i] * (abs(x[i]) if i == 0 else 1.0)
+        xp, xm = x.copy(), x.copy()
+        xp[i] += h
+        xm[i] -= h
+        J[:, i] = (_project(xp, np.eye(3), np.zeros(3), p, camera.skew)[0]
+                   - _project(xm, np.eye(3), np.zeros(3), p, camera.skew)[0]) / (2 * h)
+    return J
+
+
+def projection_sigma_px(camera: CameraModel, cov5: np.ndarray) -> dict:
+    """1-sigma [px] of the projection at the picture's centre and its four corners (see the module);
+    ``cov5`` the covariance of ``INTRINSIC_NAMES[:n]``, n 5 or 6."""
+    W, H = camera.width, camera.height
+    pts = {"centre": ((W - 1) / 2, (H - 1) / 2), "top_left": (0.0, 0.0), "top_right": (W - 1.0, 0.0),
+           "bottom_left": (0.0, H - 1.0), "bottom_right": (W - 1.0, H - 1.0)}
+    out = {}
+    for nm, q in pts.items():
+        J = _pixel_jacobian(camera, q, len(cov5))
+        out[nm] = float(np.sqrt(max(np.trace(J @ cov5 @ J.T), 0.0)))
+    return out
+
+
+def _sigmas(cov5) -> dict:
+    d = np.sqrt(np.clip(np.diag(cov5), 0, None))
+    return {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, d)}

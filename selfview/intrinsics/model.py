@@ -1,0 +1,136 @@
+"""The camera model of the joint fit: the projection of plate points with the intrinsics as a vector, and the
+joint least-squares problem of all views (residuals and analytic Jacobian)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from selfview.camera import CameraModel, distort
+from selfview.errors import CalibrationError
+from selfview.geometry import R_from_rotvec, make_H
+from selfview.tsai import _cross, _left_jacobian
+
+
+#: Finite-difference steps of the numeric Jacobian: f (relative), kappa [px^-2], cx, cy [px], aspect,
+#: rotation [rad], translation [mm].
+_STEP = np.array([1e-6, 1e-12, 1e-4, 1e-4, 1e-7, 1e-7])
+_POSE_STEP = np.array([1e-7, 1e-7, 1e-7, 1e-5, 1e-5, 1e-5])
+
+
+# --- the model ------------------------------------------------------------------------------------
+def _project(intr, R, t, p_W, skew: float = 0.0) -> np.ndarray:
+    """(N, 2) distorted pixels of plate points ``p_W`` (N, 3) seen at pose (R, t) by intrinsics
+    ``intr`` = (f, kappa, cx, cy, aspect[, skew]) (``skew`` when ``intr`` has five); NaN where a point is
+    behind the camera or beyond the fold."""
+    f, kappa, cx, cy, aspect = intr[:5]
+    if len(intr) > 5:
+        skew = intr[5]
+    pc = p_W @ R.T + t
+    z = pc[:, 2]
+    if np.any(z <= 0) or f <= 0 or aspect <= 0:
+        return np.full((len(p_W), 2), np.nan)
+    XY = f * pc[:, :2] / z[:, None]
+    try:
+        XYh = distort(XY, kappa)
+    except CalibrationError:
+        return np.full((len(p_W), 2), np.nan)
+    return np.column_stack([XYh[:, 0] / aspect + skew * XYh[:, 1] + cx, XYh[:, 1] + cy])
+
+
+def _intr(camera: CameraModel, ni: int = 6) -> np.ndarray:
+    """The intrinsics vector of ``camera``: (f, kappa, cx, cy, aspect[, skew]) (``ni`` 5 or 6)."""
+    return np.array([camera.f, camera.kappa, camera.cx, camera.cy, camera.aspect, camera.skew][:ni])
+
+
+def _with_intr(camera: CameraModel, x) -> CameraModel:
+    """``camera`` with the intrinsics ``x[:5]`` (and ``x[5]``, its skew, when given)."""
+    c = camera.with_(f=float(x[0]), kappa=float(x[1]), cx=float(x[2]), cy=float(x[3]), aspect=float(x[4]))
+    return c.with_(skew=float(x[5])) if len(x) > 5 else c
+
+
+class _Joint:
+    """Parameters x = (f, kappa, cx, cy, aspect, [skew,] then per view omega (3), t (3), then the plate's
+    shape (``_PlateShape``: bow, disc corrections) if ``shape``) with view k's rotation exp(omega_k) R0_k;
+    ``ni`` intrinsics: 6 with the skew free, 5 with it held at ``skew``. Residuals model minus observation,
+    per view (u then v of its points), then the shape's prior rows."""
+
+    def __init__(self, p_W: list, uv: list, R0: list, shape=None, idx: list | None = None,
+                 *, ni: int = 5, skew: float = 0.0):
+        if ni not in (5, 6):
+            raise ValueError(f"intrinsics: expected 5 or 6 intrinsic parameters, got {ni}")
+        self.p_W, self.uv, self.R0 = p_W, uv, R0
+        self.ni, self.skew = int(ni), float(skew)
+        self.n = [len(p) for p in p_W]
+        self.off = np.concatenate([[0], np.cumsum([2 * k for k in self.n])])
+        self.shape = shape if shape is not None and shape.n else None
+        self.idx = idx
+        self.m_data = int(self.off[-1])
+
+    def points(self, x, k) -> np.ndarray:
+        if not self.shape:
+            return self.p_W[k]
+        return self.p_W[k] + self.shape.offsets(x[self.ni + 6 * len(self.p_W) :], self.idx[k])
+
+    def view(self, x, k) -> np.ndarray:
+        j = self.ni + 6 * k
+        R = R_from_rotvec(x[j : j + 3]) @ self.R0[k]
+        m = _project(x[: self.ni], R, x[j + 3 : j + 6], self.points(x, k), self.skew)
+        return (m - self.uv[k]).T.ravel()
+
+    def residuals(self, x) -> np.ndarray:
+        r = [self.view(x, k) for k in range(len(self.p_W))]
+        if self.shape:
+            r.append(self.shape.w * x[self.ni + 6 * len(self.p_W) :])
+        return np.concatenate(r)
+
+    def jacobian(self, x) -> np.ndarray:
+        """Analytic (as ``selfview.tsai``'s full model, with cx, cy, the aspect, the skew and the plate's shape
+        added: u = X^ / aspect + skew Y^ + cx)."""
+        f, kappa, cx, cy, aspect = x[:5]
+        ni = self.ni
+        skew = x[5] if ni > 5 else self.skew
+        V = len(self.p_W)
+        s0 = ni + 6 * V
+        J = np.zeros((int(self.off[-1]) + (self.shape.n if self.shape else 0), len(x)))
+        for k in range(V):
+            j = ni + 6 * k
+            R = R_from_rotvec(x[j : j + 3]) @ self.R0[k]
+            d = self.points(x, k) @ R.T
+            pc = d + x[j + 3 : j + 6]
+            z = pc[:, 2]
+            if np.any(z <= 0):
+                raise CalibrationError("intrinsics: a disc lies behind the camera near the current parameters")
+            X, Y = f * pc[:, 0] / z, f * pc[:, 1] / z
+            XYh = distort(np.column_stack([X, Y]), kappa)
+            Xh, Yh = XYh[:, 0], XYh[:, 1]
+            rh2 = Xh * Xh + Yh * Yh
+            a = 1.0 + kappa * rh2
+            c = 2.0 * kappa / (a + 2.0 * kappa * rh2)
+            m00, m11, m01 = (1.0 - c * Xh * Xh) / a, (1.0 - c * Yh * Yh) / a, -c * Xh * Yh / a
+            Jl = _left_jacobian(x[j : j + 3])
+            n = len(z)
+            r0 = self.off[k]
+            D = self.shape.dp_dy(self.idx[k]) if self.shape else None
+            for row, (mu0, mu1) in ((0, (m00 / aspect + skew * m01, m01 / aspect + skew * m11)), (1, (m01, m11))):
+                g = np.column_stack([mu0, mu1, -(mu0 * X + mu1 * Y) / f]) * (f / z)[:, None]
+                rows = slice(r0 + row * n, r0 + (row + 1) * n)
+                J[rows, 0] = (mu0 * X + mu1 * Y) / f
+                J[rows, 1] = -(mu0 * Xh + mu1 * Yh) * rh2
+                J[rows, j : j + 3] = _cross(d, g) @ Jl
+                J[rows, j + 3 : j + 6] = g
+                if D is not None:
+                    J[rows, s0:] = np.einsum("na,nas->ns", g @ R, D)
+            J[r0 : r0 + n, 2] = 1.0
+            J[r0 + n : r0 + 2 * n, 3] = 1.0
+            J[r0 : r0 + n, 4] = -Xh / aspect**2
+            if ni > 5:
+                J[r0 : r0 + n, 5] = Yh
+        if self.shape:
+            J[int(self.off[-1]) :, s0:] = np.diag(self.shape.w)
+        if not np.all(np.isfinite(J)):
+            raise CalibrationError("intrinsics: the model cannot see every disc near the current parameters")
+        return J
+
+    def pose(self, x, k) -> np.ndarray:
+        j = self.ni + 6 * k
+        return make_H(R_from_rotvec(x[j : j + 3]) @ self.R0[k], x[j + 3 : j + 6])

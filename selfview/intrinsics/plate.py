@@ -1,0 +1,185 @@
+"""The printed plate's shape in the joint fit: a bow and each disc's in-plane error (gauge-fixed against the
+grid's similarity transforms), and the turn of each view's disc indices onto one physical grid."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from selfview.camera import CameraModel
+from selfview.cell import PlateSpec
+from selfview.errors import CalibrationError
+from selfview.intrinsics.model import _intr, _project
+
+
+#: Plate models of the joint fit (``plate_model``): 'flat' (the plate as specified, every disc exactly
+#: where the spec puts it), 'bow' (plus a smooth out-of-plane deformation), 'bow+dots' (plus each disc's
+#: in-plane position; the default).
+PLATE_MODELS = ("flat", "bow", "bow+dots")
+#: Prior 1-sigma of each disc's in-plane position error per axis [mm], to start with: a laser print places
+#: a disc's edge to about half a 600-dpi dot (10-20 um). The fit then estimates it from the discs'
+#: corrections themselves (a variance component, by expectation-maximisation: the mean square of the
+#: corrections plus their posterior variance), within ``PLATE_DOT_SD_RANGE_MM``: a well-printed plate is
+#: then not given freedom it does not need (which would cost the centre's precision), a poorly printed one
+#: gets what it needs.
+PLATE_DOT_PRIOR_MM = 0.02
+PLATE_DOT_SD_RANGE_MM = (0.0005, 0.05)
+#: Prior 1-sigma of each bow coefficient [mm] (the height the bow reaches at the grid's half-width):
+#: paper on a board cockles by 0.1-0.5 mm; 1 mm is weak.
+PLATE_BOW_PRIOR_MM = 1.0
+
+
+def _similarity_complement(p0: np.ndarray) -> np.ndarray:
+    """(2N, 2N - 4) orthonormal basis of the in-plane corrections (dx, dy interleaved per disc) that do not
+    move, turn or scale the grid as a whole: the complement of its similarity transforms about its centre."""
+    c = p0[:, :2] - p0[:, :2].mean(0)
+    n = len(c)
+    modes = np.zeros((2 * n, 4))
+    modes[0::2, 0] = 1.0
+    modes[1::2, 1] = 1.0
+    modes[0::2, 2], modes[1::2, 2] = -c[:, 1], c[:, 0]
+    modes[0::2, 3], modes[1::2, 3] = c[:, 0], c[:, 1]
+    q, _ = np.linalg.qr(modes)
+    u, _, _ = np.linalg.svd(np.eye(2 * n) - q @ q.T)
+    return u[:, : 2 * n - 4]
+
+
+class _PlateShape:
+    """The printed plate's shape as parameters: a bow z = b0 xn^2 + b1 xn yn + b2 yn^2 (xn, yn the disc's
+    nominal position over the grid's half-width; constant and linear terms are the pose's) and the discs'
+    in-plane corrections ``B u`` (``_similarity_complement``), all discs of the grid indexed row * cols + col."""
+
+    def __init__(self, plate: PlateSpec, model: str, prior_w: float, dot_sd_mm: float = PLATE_DOT_PRIOR_MM):
+        if model not in PLATE_MODELS:
+            raise CalibrationError(f"intrinsics: plate model {model!r}: expected one of {', '.join(PLATE_MODELS)}")
+        self.cols = plate.cols
+        p0 = plate.disc_centres_W()
+        half = max(float(np.abs(p0[:, :2]).max()), 1e-9)
+        xn, yn = p0[:, 0] / half, p0[:, 1] / half
+        self.Q = np.column_stack([xn * xn, xn * yn, yn * yn]) if model != "flat" else np.zeros((len(p0), 0))
+        self.B = _similarity_complement(p0) if model == "bow+dots" else np.zeros((2 * len(p0), 0))
+        self.nb, self.nu = self.Q.shape[1], self.B.shape[1]
+        self.n = self.nb + self.nu
+        # prior rows, in the residuals' units (px): w_b b and w_u u, w = pixel noise / prior sd
+        self.w = np.r_[np.full(self.nb, prior_w / PLATE_BOW_PRIOR_MM), np.full(self.nu, prior_w / dot_sd_mm)]
+
+    def index(self, rc) -> np.ndarray:
+        return np.asarray(rc)[:, 0] * self.cols + np.asarray(rc)[:, 1]
+
+    def offsets(self, y, idx) -> np.ndarray:
+        """(n, 3) displacement of discs ``idx`` from their nominal places for shape parameters ``y``."""
+        d = np.zeros((len(idx), 3))
+        if self.nb:
+            d[:, 2] = self.Q[idx] @ y[: self.nb]
+        if self.nu:
+            du = self.B @ y[self.nb :]
+            d[:, 0], d[:, 1] = du[2 * idx], du[2 * idx + 1]
+        return d
+
+    def dp_dy(self, idx) -> np.ndarray:
+        """(n, 3, n_shape) derivative of the discs' positions w.r.t. the shape parameters."""
+        D = np.zeros((len(idx), 3, self.n))
+        D[:, 2, : self.nb] = self.Q[idx]
+        D[:, 0, self.nb :] = self.B[2 * idx]
+        D[:, 1, self.nb :] = self.B[2 * idx + 1]
+        return D
+
+#: Alignment of the views' disc indices: the disc detector orients each picture's grid by the picture (x
+#: towards growing u), so on a square grid without a marker one view's disc (r, c) may be another's turned
+#: by 90, 180 or 270 deg. A printed plate's dot errors are the same in every view: a view's turn is the one
+#: under which its high-passed disc errors correlate best with the other views' (at least
+#: ``ALIGN_MIN_CORR``, and by ``ALIGN_MIN_MARGIN`` over the next turn); else its indices are kept as found
+#: (the dots are then below the noise and a turn matters little). When fewer than half the views can be
+#: turned so, 'bow+dots' falls back to 'bow' (the summary's ``plate_shape['model']`` says which was fitted).
+ALIGN_MIN_CORR = 0.4
+ALIGN_MIN_MARGIN = 0.2
+ALIGN_MIN_COMMON = 10
+
+
+def _dot_field(det, uv, camera: CameraModel, H) -> np.ndarray | None:
+    """(N, 2) a view's residuals carried back onto the plate [mm] (each disc's apparent in-plane position
+    error), less their fit by a quadratic field (pose, camera and bow errors are smooth over the plate);
+    None with too few discs."""
+    if len(uv) < 15:
+        return None
+    x = _intr(camera)
+    R, t = H[:3, :3], H[:3, 3]
+    p = det.p_W
+    m = _project(x, R, t, p)
+    h = 0.01
+    jx = (_project(x, R, t, p + [h, 0, 0]) - m) / h
+    jy = (_project(x, R, t, p + [0, h, 0]) - m) / h
+    Jp = np.stack([jx, jy], axis=2)  # (N, 2 px, 2 mm)
+    r = uv - m
+    if not (np.all(np.isfinite(Jp)) and np.all(np.isfinite(r))):
+        return None
+    d = np.linalg.solve(Jp, r[:, :, None])[:, :, 0]
+    sc = max(float(np.abs(p[:, :2]).max()), 1e-9)
+    xn, yn = p[:, 0] / sc, p[:, 1] / sc
+    Bm = np.column_stack([np.ones_like(xn), xn, yn, xn * xn, xn * yn, yn * yn])
+    coef, *_ = np.linalg.lstsq(Bm, d, rcond=None)
+    return d - Bm @ coef
+
+
+def _turned(det, k: int, plate: PlateSpec):
+    """``det`` with its grid turned by k * 90 deg about the grid's centre (None when it leaves the grid)."""
+    c = np.column_stack([det.rc[:, 1] - (plate.cols - 1) / 2, det.rc[:, 0] - (plate.rows - 1) / 2])
+    for _ in range(k % 4):
+        c = np.column_stack([-c[:, 1], c[:, 0]])
+    col, row = c[:, 0] + (plate.cols - 1) / 2, c[:, 1] + (plate.rows - 1) / 2
+    if not (np.allclose(col, np.round(col)) and np.allclose(row, np.round(row))):
+        return None
+    rc = np.column_stack([np.round(row), np.round(col)]).astype(det.rc.dtype)
+    if rc.min() < 0 or rc[:, 0].max() >= plate.rows or rc[:, 1].max() >= plate.cols:
+        return None
+    p0 = plate.disc_centres_W()
+    return replace(det, rc=rc, p_W=p0[rc[:, 0] * plate.cols + rc[:, 1]].copy())
+
+
+def _align_views(dets, uvs, fit, plate: PlateSpec):
+    """(detections re-indexed on one physical grid, [turn in deg per view or None when kept as found])."""
+    n_disc = plate.rows * plate.cols
+    fields = [_dot_field(d, u, fit.camera, v.C_H_W) for d, u, v in zip(dets, uvs, fit.views)]
+    anchored = [all(b != "centred" for b in d.index_basis.values()) for d in dets]
+    order = sorted(range(len(dets)), key=lambda k: (fields[k] is None, not anchored[k], -len(dets[k])))
+    acc, cnt = np.zeros((n_disc, 2)), np.zeros(n_disc)
+    out, turns = list(dets), [None] * len(dets)
+    for k in order:
+        if fields[k] is None or not anchored[k]:
+            continue
+        best = []
+        for q in range(4):
+            dq = _turned(dets[k], q, plate)
+            if dq is None:
+                continue
+            e = fields[k]
+            for _ in range(q):
+                e = np.column_stack([-e[:, 1], e[:, 0]])
+            idx = dq.rc[:, 0] * plate.cols + dq.rc[:, 1]
+            com = cnt[idx] > 0
+            if com.sum() >= ALIGN_MIN_COMMON:
+                ref = acc[idx[com]] / cnt[idx[com], None]
+                corr = float(np.sum(ref * e[com]) / np.sqrt(np.sum(ref**2) * np.sum(e[com] ** 2) + 1e-300))
+            else:
+                corr = np.nan
+            best.append((corr, q, dq, idx, e))
+        if not cnt.any():  # the first usable view sets the grid
+            if not best:
+                continue
+            choice = best[0]
+            turns[k] = 0.0
+        else:
+            scored = sorted([b for b in best if np.isfinite(b[0])], key=lambda b: -b[0])
+            if not scored:
+                continue
+            second = scored[1][0] if len(scored) > 1 else -1.0
+            if scored[0][0] < ALIGN_MIN_CORR or scored[0][0] - second < ALIGN_MIN_MARGIN:
+                continue
+            choice = scored[0]
+            turns[k] = 90.0 * choice[1]
+        _, q, dq, idx, e = choice
+        out[k] = dq
+        acc[idx] += e
+        cnt[idx] += 1
+    return out, turns
