@@ -103,8 +103,20 @@ def main(argv: list[str] | None = None) -> int:
         code, hint = exit_code_for(exc)
         print(f"selfview {args.command}: error: {exc}\n  what to do: {hint}", file=sys.stderr)
         return code
-    except BrokenPipeError:
-        return EXIT_OK
+    except argparse.ArgumentTypeError as exc:  # a number or name checked after parsing
+        print(f"selfview {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except OSError as exc:  # a file or folder the command was given (a name too long, a read-only disk, ...)
+        if isinstance(exc, BrokenPipeError):
+            return EXIT_OK
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"selfview {args.command}: error: {where}{exc.strerror or exc}\n  what to do: correct the file or "
+              "argument named above", file=sys.stderr)
+        return EXIT_CONFIG
+    except MemoryError:
+        print(f"selfview {args.command}: error: out of memory (a file or argument far larger than the cell's)\n"
+              "  what to do: correct the file or argument", file=sys.stderr)
+        return EXIT_CONFIG
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -33,7 +33,7 @@ from selfview.camera import CameraModel
 from selfview.cell import POINT_NAMES
 from selfview.errors import CalibrationFileError, ConfigError
 from selfview.geometry import check_rigid
-from selfview.io_safe import atomic_write, load_yaml, short_repr
+from selfview.io_safe import atomic_write, load_yaml, load_yaml_file, short_repr
 from selfview.tsai import MODES as TSAI_MODES
 
 __all__ = ["Calibration", "save_calibration", "load_calibration", "history_dir", "FORMAT", "VERSION"]
@@ -331,13 +331,8 @@ def history_dir(path) -> Path:
 def load_calibration(path) -> Calibration:
     """Read and verify a calibration file; raises ``CalibrationFileError`` naming the fault."""
     p = Path(path)
-    try:
-        blob = p.read_bytes()
-    except FileNotFoundError:
-        raise CalibrationFileError(f"{p}: no such calibration file (run 'selfview calibrate' first)") from None
-    except OSError as exc:
-        raise CalibrationFileError(f"{p}: cannot read the calibration file ({exc.strerror or exc})") from exc
-    doc = load_yaml(blob, str(p), error=CalibrationFileError, what="calibration file")
+    doc = load_yaml_file(p, error=CalibrationFileError, what="calibration file",
+                         missing="no such calibration file (run 'selfview calibrate' first)")
     return Calibration.from_document(doc, source=str(p))
 
 

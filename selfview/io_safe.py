@@ -4,6 +4,8 @@
   anything that walks it: a checksum's ``json.dumps``, an error message's ``repr``), a bounded size and a
   bounded nesting depth (deep nesting would end in RecursionError). Refusals name the file, the line and
   the cause, as the caller's error class (``ConfigError``, ``CalibrationFileError``).
+- ``read_bounded``: the bytes of a regular file of at most a given size, checked before reading (a FIFO,
+  a device such as /dev/zero or a folder is refused naming its kind; at most the limit is ever read).
 - ``read_picture``: the picture's size is read from its header before anything is decoded (PNG, JPEG, BMP,
   PGM/PPM), so a small file that would decode to 30000 x 30000 pixels is refused at once; an empty,
   truncated, unknown or undecodable file is an ``ImageError`` naming the file.
@@ -20,7 +22,9 @@ from __future__ import annotations
 
 import errno
 import hashlib
+import math
 import os
+import re
 import secrets
 import stat
 import struct
@@ -31,7 +35,7 @@ import yaml
 
 from selfview.errors import CellError, ConfigError, ImageError
 
-__all__ = ["load_yaml", "read_picture", "picture_size", "atomic_write", "MAX_YAML_BYTES", "MAX_YAML_DEPTH",
+__all__ = ["load_yaml", "load_yaml_file", "read_bounded", "parse_number", "read_picture", "picture_size", "atomic_write", "MAX_YAML_BYTES", "MAX_YAML_DEPTH",
            "MAX_PICTURE_SIDE", "MAX_PICTURE_PIXELS"]
 
 #: Largest YAML document read (cell and calibration files are a few kB).
@@ -41,6 +45,63 @@ MAX_YAML_DEPTH = 32
 #: Largest picture side and pixel count decoded (the CCIR camera gives 768 x 576).
 MAX_PICTURE_SIDE = 16384
 MAX_PICTURE_PIXELS = 64_000_000
+#: Largest picture file read (an uncompressed picture of MAX_PICTURE_PIXELS grey pixels, and its header).
+MAX_PICTURE_BYTES = MAX_PICTURE_PIXELS + (1 << 16)
+
+
+# --- bounded reads --------------------------------------------------------------------------------
+_KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+def _not_regular(mode: int) -> str:
+    for test, kind in _KINDS:
+        if test(mode):
+            return kind
+    return "" if stat.S_ISREG(mode) else "not a regular file"
+
+
+def read_bounded(path, limit: int, *, error: type[CellError] = ConfigError, what: str = "file",
+                 source: str | None = None, missing: str | None = None) -> bytes:
+    """The bytes of ``path``, a regular file of at most ``limit`` bytes. A FIFO, device, socket or folder is
+    refused naming its kind before it is opened for reading (and opened without blocking, in case it was
+    swapped in since); a larger file is refused from its size, and no more than ``limit + 1`` bytes are ever
+    read. Raises ``error`` naming ``source`` (default: the path); ``missing`` replaces the message for a
+    file that does not exist."""
+    p = Path(path)
+    src = str(p) if source is None else source
+
+    def refuse(why: str) -> CellError:
+        return error(f"{src}: cannot read the {what}: {why}")
+
+    try:
+        st = os.stat(p)
+        if _not_regular(st.st_mode):
+            raise refuse(f"it is {_not_regular(st.st_mode)}, not a regular file; give the path of a {what}")
+        if st.st_size > limit:
+            raise refuse(f"{st.st_size} bytes, more than the {limit} accepted (is it the right file?)")
+        fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except FileNotFoundError:
+        raise error(f"{src}: {missing}" if missing else f"{src}: cannot read the {what} (no such file)") from None
+    except OSError as exc:
+        raise refuse(_cause(exc)) from None
+    try:
+        if _not_regular(os.fstat(fd).st_mode):
+            raise refuse("it was replaced by something that is not a regular file while being opened")
+        chunks, got = [], 0
+        while got <= limit:
+            chunk = os.read(fd, min(1 << 20, limit + 1 - got))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            got += len(chunk)
+    except OSError as exc:
+        raise refuse(_cause(exc)) from None
+    finally:
+        os.close(fd)
+    if got > limit:
+        raise refuse(f"it grew beyond the {limit} bytes accepted while being read")
+    return b"".join(chunks)
 
 
 # --- YAML -----------------------------------------------------------------------------------------
@@ -69,7 +130,49 @@ def _strict(base: type) -> type:
                 self._depth -= 1
 
     Strict.__name__ = f"Strict{base.__name__}"
+    if issubclass(base, yaml.SafeLoader):
+        for tag in ("int", "float"):
+            Strict.add_constructor(f"tag:yaml.org,2002:{tag}", _digits_only(base.yaml_constructors[f"tag:yaml.org,2002:{tag}"]))
     return Strict
+
+
+def _digits_only(construct):
+    """A YAML 1.1 number constructor that refuses the forms a person does not mean as one number:
+    ``1_0`` (read as 10) and ``1:30`` (sexagesimal, read as 90)."""
+    def checked(loader, node):
+        text = str(node.value)
+        if "_" in text or ":" in text:
+            raise _Refused(f"line {node.start_mark.line + 1}: number {_short(text, 40)!r} refused: write it in plain "
+                           "digits (YAML would read '_' and ':' groups as another number)")
+        return construct(loader, node)
+    return checked
+
+
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_INTEGER = re.compile(r"[+-]?[0-9]+")
+
+
+def parse_number(text: str, *, integer: bool = False, lo: float | None = None, hi: float | None = None,
+                 lo_open: bool = False, hi_open: bool = False) -> float | int:
+    """A number written in ASCII digits (``12``, ``-1.5``, ``2e-3``; with ``integer`` a whole number), finite
+    and within ``lo``..``hi`` (exclusive where ``lo_open`` / ``hi_open``). ``ValueError`` saying why:
+    Python's own ``float`` would also take ``1_0``, full-width digits, ``inf`` and ``nan``."""
+    s = str(text).strip()
+    if s.lower().lstrip("+-") in ("inf", "infinity", "nan"):
+        raise ValueError(f"non-finite: {s} (expected a finite number)")
+    if len(s) > 40 or not (_INTEGER if integer else _NUMBER).fullmatch(s):
+        kind = "a whole number" if integer else "a number"
+        raise ValueError(f"not {kind} in ASCII digits: {_short(repr(str(text)), 50)}")
+    v = int(s) if integer else float(s)
+    if not math.isfinite(v):
+        raise ValueError(f"out of range: {s} (beyond any number)")
+    below = lo is not None and (v <= lo if lo_open else v < lo)
+    above = hi is not None and (v >= hi if hi_open else v > hi)
+    if below or above:
+        lo_s = "" if lo is None else f"{'>' if lo_open else '>='} {lo}"
+        hi_s = "" if hi is None else f"{'<' if hi_open else '<='} {hi}"
+        raise ValueError(f"out of range: {s} (expected {' and '.join(x for x in (lo_s, hi_s) if x)})")
+    return v
 
 
 _LOADERS = {"safe": _strict(yaml.SafeLoader), "base": _strict(yaml.BaseLoader)}
@@ -104,6 +207,14 @@ def load_yaml(data: bytes | str, source: str, *, error: type[CellError] = Config
     finally:
         if loader is not None:
             loader.dispose()
+
+
+def load_yaml_file(path, *, error: type[CellError] = ConfigError, what: str = "file", source: str | None = None,
+                   missing: str | None = None, text_only: bool = False):
+    """``load_yaml`` of ``read_bounded(path, MAX_YAML_BYTES)``: a YAML file checked before it is read."""
+    src = str(path) if source is None else source
+    blob = read_bounded(path, MAX_YAML_BYTES, error=error, what=what, source=src, missing=missing)
+    return load_yaml(blob, src, error=error, text_only=text_only, what=what)
 
 
 def _short(text: str, n: int = 80) -> str:
@@ -178,10 +289,7 @@ def read_picture(path, *, max_side: int = MAX_PICTURE_SIDE, max_pixels: int = MA
     import cv2
 
     p = Path(path)
-    try:
-        blob = p.read_bytes()
-    except OSError as exc:
-        raise ImageError(f"{p}: cannot read the {what} ({exc.strerror or exc})") from exc
+    blob = read_bounded(p, MAX_PICTURE_BYTES, error=ImageError, what=what)
     try:
         fmt, w, h = picture_size(blob[:65536])
     except ValueError as exc:

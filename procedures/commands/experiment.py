@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from selfview.procedures.commands._common import print_json
+from selfview.procedures.commands._common import numeric, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
 
 
@@ -27,7 +27,7 @@ def register(sub):
     # lab would with a new camera: the figures a lab should expect (--profile ideal --sim-camera ideal: a
     # perfect cell)
     add_session_arguments(p, profile_default="realistic", sim_camera_default="realistic")
-    p.add_argument("--trials", type=int, default=20, help="trials per series (default %(default)s)")
+    p.add_argument("--trials", type=numeric(integer=True, lo=1, hi=10_000, name="trials"), default=20, help="trials per series (default %(default)s)")
     p.add_argument("--series", nargs="+", default=["cable", "tilt"], help="series to run (default: cable tilt)")
     p.add_argument("--out", metavar="DIR", help="results folder (must be new or empty; default runs/experiment-TIME)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
@@ -43,10 +43,7 @@ def run(args) -> int:
     from selfview.procedures.experiment import tables_markdown
     from selfview.procedures.results import new_run_dir
     from selfview.procedures.runs import write_experiment_folder
-    from selfview.errors import ConfigError
 
-    if args.trials < 1:
-        raise ConfigError(f"--trials: expected at least 1, got {args.trials}")
     say = progress_printer(args.quiet)
     cell, session = open_session(args, say)
     folder = None if args.dry_run else new_run_dir(args.out)
