@@ -50,6 +50,9 @@ _EXIT_FOR = [
 ]
 
 
+_THIRD_PARTY_LOGGERS = ("pymodbus", "asyncio", "matplotlib", "PIL")
+
+
 def exit_code_for(exc: BaseException) -> tuple[int, str]:
     """(exit code, what to do) for an exception reaching the command line."""
     for types, code, hint in _EXIT_FOR:
@@ -91,6 +94,10 @@ def main(argv: list[str] | None = None) -> int:
     level = {0: logging.ERROR, 1: logging.INFO}.get(args.verbose, logging.DEBUG)
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s: %(message)s", stream=sys.stderr)
     logging.getLogger().setLevel(level)
+    # a library's own log lines (pymodbus dumps every frame it could not parse) only with -v: the errors
+    # it raises reach the operator as this command's message
+    for name in _THIRD_PARTY_LOGGERS:
+        logging.getLogger(name).setLevel(level if args.verbose else logging.CRITICAL + 1)
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE

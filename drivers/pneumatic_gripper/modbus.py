@@ -7,11 +7,14 @@ its results and exceptions into the project's:
 - an exception reply from the device           -> ``ModbusExceptionReply`` (a DeviceError), with its code;
 - a refused connection / a port that cannot open -> ``ConnectionFailed`` (a DeviceError);
 - a connection that drops during a request      -> ``ConnectionLost`` (a DeviceError);
-- a device that stays silent                    -> ``DeviceTimeout``, after ``timeout_s * (retries + 1)``;
+- a device that stays silent                    -> ``DeviceTimeout``, after ``timeout_s`` (a write) or
+                                                   ``timeout_s * (retries + 1)`` (a read);
 - a garbled or mismatched reply                 -> ``ProtocolError``.
 
 After any of the last three the link closes its transport, so a late reply can never be taken for the
-answer to the next request; the next call connects again and calls ``on_connect``.
+answer to the next request; the next call connects again and calls ``on_connect``. Only reads are sent
+again after a timeout (on a new connection): a write that timed out may have been carried out.
+The defaults fit a Modbus TCP terminal answered by a busy PC: a reply within a second, two more tries.
 """
 
 from __future__ import annotations
@@ -43,6 +46,11 @@ __all__ = [
 # pymodbus logs every failure that it also raises, and with no logging configured Python prints those
 # lines on stderr; the errors raised here say the same with the URL. Configured handlers still see them.
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())
+
+#: Request timeout and read retries by default: a terminal answers in milliseconds, but the PC asking may
+#: be busy (image processing beside it) and a reply that comes late is not a faulty device.
+DEFAULT_TIMEOUT_S = 1.0
+DEFAULT_READ_RETRIES = 2
 
 #: Modbus exception codes (Modbus Application Protocol v1.1b3, section 7).
 EXCEPTION_NAMES = {
@@ -109,8 +117,8 @@ class ModbusLink:
         self,
         url: str | ModbusUrl,
         *,
-        timeout_s: float = 0.25,
-        retries: int = 0,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
+        retries: int = DEFAULT_READ_RETRIES,
         on_connect: Callable[[], None] | None = None,
         trace: Callable[[str, bytes], None] | None = None,
     ):
@@ -126,6 +134,7 @@ class ModbusLink:
         self._lock = threading.RLock()
         self._client: ModbusTcpClient | ModbusSerialClient | None = None
         self.connections = 0  # successful connections so far (reconnects show as > 1)
+        self._in_on_connect = False  # on_connect's own reads are not retried (a retry would reconnect)
 
     # --- connection ---------------------------------------------------------------------------
     @property
@@ -166,7 +175,7 @@ class ModbusLink:
                 parity=u.parity,
                 stopbits=u.stopbits,
                 timeout=self.timeout_s,
-                retries=self.retries,
+                retries=0,  # this link retries reads itself, never writes
                 trace_packet=trace,
             )
             if not client.connect():
@@ -178,7 +187,7 @@ class ModbusLink:
                 port=u.port,
                 framer=FramerType.SOCKET if u.transport == "tcp" else FramerType.RTU,
                 timeout=self.timeout_s,
-                retries=self.retries,
+                retries=0,  # this link retries reads itself, never writes
                 trace_packet=trace,
             )
             # Open the socket here rather than in pymodbus, whose connect() only says "failed":
@@ -196,11 +205,14 @@ class ModbusLink:
         self._client = client
         self.connections += 1
         if self.on_connect is not None:
+            self._in_on_connect = True
             try:
                 self.on_connect()
             except BaseException:
                 self._drop()
                 raise
+            finally:
+                self._in_on_connect = False
 
     def _drop(self) -> None:
         client, self._client = self._client, None
@@ -220,7 +232,18 @@ class ModbusLink:
             self._lock.release()
 
     # --- requests -----------------------------------------------------------------------------
-    def _request(self, what: str, function: int, call, *, reconnect: bool = True):
+    def _request(self, what: str, function: int, call, *, reconnect: bool = True, idempotent: bool = False):
+        """One request; a read (``idempotent``) that times out is sent again, on a new connection, up to
+        ``retries`` times. A write is sent once."""
+        tries = self.retries + 1 if idempotent and not self._in_on_connect else 1
+        for attempt in range(1, tries + 1):
+            try:
+                return self._request_once(what, function, call, reconnect=reconnect, tries=tries)
+            except DeviceTimeout:
+                if attempt == tries:
+                    raise
+
+    def _request_once(self, what: str, function: int, call, *, reconnect: bool, tries: int):
         with self._locked(what):
             if not reconnect and self._client is None:
                 raise ConnectionLost(f"{self.url.url}: {what}: not connected (this request does not reconnect)")
@@ -232,7 +255,7 @@ class ModbusLink:
                 self._drop()
                 if "no response" in str(exc).lower():
                     raise DeviceTimeout(
-                        f"{self.url.url}: {what}: no reply within {self.timeout_s} s x {self.retries + 1} attempt(s)"
+                        f"{self.url.url}: {what}: no reply within {self.timeout_s} s x {tries} attempt(s)"
                     ) from exc
                 raise ProtocolError(f"{self.url.url}: {what}: {exc}") from exc
             except (ConnectionException, OSError) as exc:
@@ -277,6 +300,7 @@ class ModbusLink:
             function,
             lambda c, u: getattr(c, method)(address, count=count, device_id=u),
             reconnect=reconnect,
+            idempotent=True,
         )
         values = list(getattr(rsp, field))
         # bit replies are padded to whole bytes; register replies must match exactly

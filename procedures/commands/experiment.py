@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import shutil
+import sys
 import time
+from pathlib import Path
 
 from selfview.procedures.commands._common import numeric, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
@@ -40,13 +43,37 @@ def register(sub):
 
 
 def run(args) -> int:
-    from selfview.procedures.experiment import tables_markdown
     from selfview.procedures.results import new_run_dir
-    from selfview.procedures.runs import write_experiment_folder
 
     say = progress_printer(args.quiet)
     cell, session = open_session(args, say)
+    given_existed = args.out is not None and Path(args.out).is_dir()
     folder = None if args.dry_run else new_run_dir(args.out)
+    try:
+        return _run(args, cell, session, folder, say)
+    except BaseException:
+        if folder is not None:
+            _discard(folder, keep_folder=given_existed)
+        raise
+
+
+def _discard(folder: Path, *, keep_folder: bool) -> None:
+    """Remove what a failed run left in its results folder (new or empty when the run began), and the
+    folder itself unless it existed before: a half-written run is never taken for a result."""
+    try:
+        for entry in folder.iterdir():
+            shutil.rmtree(entry) if entry.is_dir() and not entry.is_symlink() else entry.unlink()
+        if not keep_folder:
+            folder.rmdir()
+    except OSError as exc:
+        print(f"selfview experiment: could not remove the incomplete results folder {folder} ({exc.strerror or exc})",
+              file=sys.stderr)
+
+
+def _run(args, cell, session, folder, say) -> int:
+    from selfview.procedures.experiment import tables_markdown
+    from selfview.procedures.runs import write_experiment_folder
+
     total = args.trials * len(args.series)
     t0 = time.monotonic()
     done = [0]
