@@ -9,6 +9,8 @@
 - ``read_picture``: the picture's size is read from its header before anything is decoded (PNG, JPEG, BMP,
   PGM/PPM), so a small file that would decode to 30000 x 30000 pixels is refused at once; an empty,
   truncated, unknown or undecodable file is an ``ImageError`` naming the file.
+- ``file_lock`` and ``remove_leftovers``: writers of one file take turns; a killed writer's temporary file
+  (named with its pid) is removed by the next write.
 - ``atomic_write``: the new content goes to a temporary file in the same folder, is flushed to disk and
   renamed over the old file (atomic on POSIX), so a crash or a full disk leaves either the old file or the
   new one, never half a file. The replaced file's permission bits are kept; a missing folder is not
@@ -20,7 +22,9 @@ Core module: imports nothing from drivers, mocks or procedures.
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import fcntl
 import hashlib
 import math
 import os
@@ -28,6 +32,7 @@ import re
 import secrets
 import stat
 import struct
+import time
 from pathlib import Path
 
 import numpy as np
@@ -336,12 +341,78 @@ def _cause(exc: OSError) -> str:
     return exc.strerror or str(exc)
 
 
+def _temporary(path: Path) -> Path:
+    """A temporary file's name beside ``path``: ``.NAME.PID.TOKEN.tmp``, recognisably its and its writer's."""
+    return path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(6)}.tmp"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
+
+
+def remove_leftovers(folder, name: str | None = None) -> list[Path]:
+    """Remove the temporary files that writers killed before they finished left in ``folder`` (of the file
+    ``name``, or of any file): only those whose writer's pid is no longer running. Returns them."""
+    folder = Path(folder)
+    pattern = re.compile(rf"\.{re.escape(name) if name else '.+'}\.([0-9]+)\.[0-9a-f]{{12}}\.tmp")
+    gone = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return gone
+    for entry in entries:
+        m = pattern.fullmatch(entry.name)
+        if m and not _pid_alive(int(m.group(1))) and entry.is_file(follow_symlinks=False):
+            try:
+                os.unlink(entry.path)
+                gone.append(Path(entry.path))
+            except OSError:
+                pass
+    return gone
+
+
+@contextlib.contextmanager
+def file_lock(path, *, error: type[CellError] = ConfigError, what: str = "file", timeout_s: float = 10.0):
+    """Hold an exclusive flock on ``.NAME.lock`` beside ``path`` (writers of one file take turns), waiting
+    at most ``timeout_s``; ``error`` naming the file if another process keeps it longer."""
+    path = Path(path)
+    lock = path.parent / f".{path.name}.lock"
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
+    except OSError as exc:
+        raise error(f"{path}: cannot write the {what}: its lock file {lock.name}: {_cause(exc)}") from None
+    try:
+        end = time.monotonic() + timeout_s
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > end:
+                    raise error(f"{path}: another process has been writing the {what} for {timeout_s:g} s "
+                                f"(it holds {lock.name}); nothing written") from None
+                time.sleep(0.02)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
 def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, what: str = "file",
                  mode: int | None = None) -> None:
     """Replace ``path`` with ``data`` atomically (see the module doc). Permission bits: the replaced
-    file's, else ``mode``, else 0o666 less the umask. Raises ``error`` naming the path and the cause; the
-    old file is then untouched and no temporary file is left."""
+    file's, else ``mode``, else 0o666 less the umask. A symlink's target is replaced (the link stays);
+    a device, FIFO or socket is refused. Leftovers of this file's writers that were killed are removed
+    first. Raises ``error`` naming the path and the cause; the old file is then untouched and no
+    temporary file is left."""
     path = Path(path)
+    if path.is_symlink():
+        path = Path(os.path.realpath(path))
     folder = path.parent
     if not folder.exists():
         raise error(f"{path}: cannot write the {what}: the folder {folder} does not exist (it is not created)")
@@ -355,7 +426,10 @@ def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, wha
         raise error(f"{path}: cannot write the {what}: {_cause(exc)}") from None
     if path.is_dir():
         raise error(f"{path}: cannot write the {what}: a folder of that name exists")
-    tmp = folder / f".{path.name}.{secrets.token_hex(6)}.tmp"
+    if path.exists() and _not_regular(path.stat().st_mode):
+        raise error(f"{path}: cannot write the {what}: it is {_not_regular(path.stat().st_mode)}, not a regular file")
+    remove_leftovers(folder, path.name)
+    tmp = _temporary(path)
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666 if old_mode is None else old_mode)
     except OSError as exc:
