@@ -12,9 +12,11 @@ its results and exceptions into the project's:
 - a garbled or mismatched reply                 -> ``ProtocolError``.
 
 After any of the last three the link closes its transport, so a late reply can never be taken for the
-answer to the next request; the next call connects again and calls ``on_connect``. Only reads are sent
-again after a timeout (on a new connection): a write that timed out may have been carried out.
-The defaults fit a Modbus TCP terminal answered by a busy PC: a reply within a second, two more tries.
+answer to the next request; the next call connects again and calls ``on_connect``. On Modbus TCP a read
+whose reply is late is first sent again (``retries`` times, on the same connection: the MBAP transaction
+id tells a late reply from the awaited one); a write is never sent twice (it may have been carried out),
+and RTU frames carry no transaction id, so there nothing is. The defaults fit a Modbus TCP terminal
+answered by a busy PC: a reply within a second, two more tries.
 """
 
 from __future__ import annotations
@@ -104,6 +106,10 @@ class WriteEchoMismatch(ProtocolError):
         self.echoed = echoed
 
 
+class _NoReplyYet(Exception):
+    """A read's reply did not come in time, and the read will be sent again (on the same connection)."""
+
+
 class ModbusLink:
     """A Modbus master on one transport, safe to share between threads (one request at a time).
 
@@ -134,7 +140,6 @@ class ModbusLink:
         self._lock = threading.RLock()
         self._client: ModbusTcpClient | ModbusSerialClient | None = None
         self.connections = 0  # successful connections so far (reconnects show as > 1)
-        self._in_on_connect = False  # on_connect's own reads are not retried (a retry would reconnect)
 
     # --- connection ---------------------------------------------------------------------------
     @property
@@ -205,14 +210,11 @@ class ModbusLink:
         self._client = client
         self.connections += 1
         if self.on_connect is not None:
-            self._in_on_connect = True
             try:
                 self.on_connect()
             except BaseException:
                 self._drop()
                 raise
-            finally:
-                self._in_on_connect = False
 
     def _drop(self) -> None:
         client, self._client = self._client, None
@@ -233,17 +235,18 @@ class ModbusLink:
 
     # --- requests -----------------------------------------------------------------------------
     def _request(self, what: str, function: int, call, *, reconnect: bool = True, idempotent: bool = False):
-        """One request; a read (``idempotent``) that times out is sent again, on a new connection, up to
-        ``retries`` times. A write is sent once."""
-        tries = self.retries + 1 if idempotent and not self._in_on_connect else 1
-        for attempt in range(1, tries + 1):
-            try:
-                return self._request_once(what, function, call, reconnect=reconnect, tries=tries)
-            except DeviceTimeout:
-                if attempt == tries:
-                    raise
+        """One request; on Modbus TCP a read (``idempotent``) whose reply does not come is sent again on the
+        same connection, up to ``retries`` times (see the module doc). A write is sent once."""
+        tries = self.retries + 1 if idempotent and self.url.transport == "tcp" else 1
+        with self._locked(what):
+            for attempt in range(1, tries + 1):
+                try:
+                    return self._request_once(what, function, call, reconnect=reconnect, tries=tries,
+                                              last=attempt == tries)
+                except _NoReplyYet:
+                    continue
 
-    def _request_once(self, what: str, function: int, call, *, reconnect: bool, tries: int):
+    def _request_once(self, what: str, function: int, call, *, reconnect: bool, tries: int, last: bool):
         with self._locked(what):
             if not reconnect and self._client is None:
                 raise ConnectionLost(f"{self.url.url}: {what}: not connected (this request does not reconnect)")
@@ -252,6 +255,8 @@ class ModbusLink:
             try:
                 rsp = call(client, self.url.unit)
             except ModbusIOException as exc:
+                if "no response" in str(exc).lower() and not last:
+                    raise _NoReplyYet() from None
                 self._drop()
                 if "no response" in str(exc).lower():
                     raise DeviceTimeout(
