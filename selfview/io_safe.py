@@ -56,57 +56,44 @@ MAX_PICTURE_BYTES = MAX_PICTURE_PIXELS + (1 << 16)
 
 # --- bounded reads --------------------------------------------------------------------------------
 _KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
-          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"), (lambda m: not stat.S_ISREG(m), "not a file"))
 
 
 def _not_regular(mode: int) -> str:
-    for test, kind in _KINDS:
-        if test(mode):
-            return kind
-    return "" if stat.S_ISREG(mode) else "not a regular file"
+    return next((kind for test, kind in _KINDS if test(mode)), "")
 
 
 def read_bounded(path, limit: int, *, error: type[CellError] = ConfigError, what: str = "file",
                  source: str | None = None, missing: str | None = None) -> bytes:
-    """The bytes of ``path``, a regular file of at most ``limit`` bytes. A FIFO, device, socket or folder is
-    refused naming its kind before it is opened for reading (and opened without blocking, in case it was
-    swapped in since); a larger file is refused from its size, and no more than ``limit + 1`` bytes are ever
-    read. Raises ``error`` naming ``source`` (default: the path); ``missing`` replaces the message for a
-    file that does not exist."""
-    p = Path(path)
-    src = str(p) if source is None else source
-
-    def refuse(why: str) -> CellError:
-        return error(f"{src}: cannot read the {what}: {why}")
-
+    """The bytes of the regular file ``path`` of at most ``limit`` bytes: a FIFO, device or folder is refused
+    naming its kind before it is read (and opened without blocking), a larger file from its size; at most
+    ``limit + 1`` bytes are read. ``error`` names ``source`` (default: the path); ``missing``: the message
+    for a file that does not exist."""
+    src = str(path) if source is None else source
+    refuse = lambda why: error(f"{src}: cannot read the {what}: {why}")  # noqa: E731
     try:
-        st = os.stat(p)
-        if _not_regular(st.st_mode):
-            raise refuse(f"it is {_not_regular(st.st_mode)}, not a regular file; give the path of a {what}")
+        fd = None
+        if kind := _not_regular(os.stat(path).st_mode):
+            raise refuse(f"it is {kind}, not a regular file; give the path of a {what}")
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+        st = os.fstat(fd)  # the file opened, whatever was swapped in since
+        if kind := _not_regular(st.st_mode):
+            raise refuse(f"it is {kind}, not a regular file; give the path of a {what}")
         if st.st_size > limit:
             raise refuse(f"{st.st_size} bytes, more than the {limit} accepted (is it the right file?)")
-        fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+        data = b""
+        while len(data) <= limit and (chunk := os.read(fd, limit + 1 - len(data))):
+            data += chunk
     except FileNotFoundError:
         raise error(f"{src}: {missing}" if missing else f"{src}: cannot read the {what} (no such file)") from None
     except OSError as exc:
         raise refuse(_cause(exc)) from None
-    try:
-        if _not_regular(os.fstat(fd).st_mode):
-            raise refuse("it was replaced by something that is not a regular file while being opened")
-        chunks, got = [], 0
-        while got <= limit:
-            chunk = os.read(fd, min(1 << 20, limit + 1 - got))
-            if not chunk:
-                break
-            chunks.append(chunk)
-            got += len(chunk)
-    except OSError as exc:
-        raise refuse(_cause(exc)) from None
     finally:
-        os.close(fd)
-    if got > limit:
+        if fd is not None:
+            os.close(fd)
+    if len(data) > limit:
         raise refuse(f"it grew beyond the {limit} bytes accepted while being read")
-    return b"".join(chunks)
+    return data
 
 
 # --- YAML -----------------------------------------------------------------------------------------
@@ -158,25 +145,19 @@ _INTEGER = re.compile(r"[+-]?[0-9]+")
 
 
 def parse_number(text: str, *, integer: bool = False, lo: float | None = None, hi: float | None = None,
-                 lo_open: bool = False, hi_open: bool = False) -> float | int:
-    """A number written in ASCII digits (``12``, ``-1.5``, ``2e-3``; with ``integer`` a whole number), finite
-    and within ``lo``..``hi`` (exclusive where ``lo_open`` / ``hi_open``). ``ValueError`` saying why:
-    Python's own ``float`` would also take ``1_0``, full-width digits, ``inf`` and ``nan``."""
+                 lo_open: bool = False) -> float | int:
+    """A number in ASCII digits (``12``, ``-1.5``, ``2e-3``; with ``integer`` a whole number), finite and in
+    ``lo``..``hi`` (``lo`` excluded with ``lo_open``); ``ValueError`` saying why. (Python's ``float`` also
+    takes ``1_0``, full-width digits, ``inf`` and ``nan``.)"""
     s = str(text).strip()
     if s.lower().lstrip("+-") in ("inf", "infinity", "nan"):
         raise ValueError(f"non-finite: {s} (expected a finite number)")
     if len(s) > 40 or not (_INTEGER if integer else _NUMBER).fullmatch(s):
-        kind = "a whole number" if integer else "a number"
-        raise ValueError(f"not {kind} in ASCII digits: {_short(repr(str(text)), 50)}")
+        raise ValueError(f"not a{' whole' if integer else ''} number in ASCII digits: {_short(repr(str(text)), 50)}")
     v = int(s) if integer else float(s)
-    if not math.isfinite(v):
-        raise ValueError(f"out of range: {s} (beyond any number)")
-    below = lo is not None and (v <= lo if lo_open else v < lo)
-    above = hi is not None and (v >= hi if hi_open else v > hi)
-    if below or above:
-        lo_s = "" if lo is None else f"{'>' if lo_open else '>='} {lo}"
-        hi_s = "" if hi is None else f"{'<' if hi_open else '<='} {hi}"
-        raise ValueError(f"out of range: {s} (expected {' and '.join(x for x in (lo_s, hi_s) if x)})")
+    if not math.isfinite(v) or (lo is not None and (v <= lo if lo_open else v < lo)) or (hi is not None and v > hi):
+        want = [f"{'>' if lo_open else '>='} {lo}"] * (lo is not None) + [f"<= {hi}"] * (hi is not None)
+        raise ValueError(f"out of range: {s} (expected {' and '.join(want) or 'a finite number'})")
     return v
 
 
@@ -341,66 +322,51 @@ def _cause(exc: OSError) -> str:
     return exc.strerror or str(exc)
 
 
-def _temporary(path: Path) -> Path:
-    """A temporary file's name beside ``path``: ``.NAME.PID.TOKEN.tmp``, recognisably its and its writer's."""
-    return path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(6)}.tmp"
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except (PermissionError, OverflowError):
-        return True
-    return True
-
-
-def remove_leftovers(folder, name: str | None = None) -> list[Path]:
-    """Remove the temporary files that writers killed before they finished left in ``folder`` (of the file
-    ``name``, or of any file): only those whose writer's pid is no longer running. Returns them."""
-    folder = Path(folder)
+def remove_leftovers(folder, name: str | None = None) -> None:
+    """Remove the temporary files (``.NAME.PID.TOKEN.tmp``) that writers of ``name`` (or of any file) left
+    in ``folder`` when they were killed: only those whose pid no longer runs."""
     pattern = re.compile(rf"\.{re.escape(name) if name else '.+'}\.([0-9]+)\.[0-9a-f]{{12}}\.tmp")
-    gone = []
     try:
-        entries = list(os.scandir(folder))
+        for entry in os.scandir(folder):
+            if (m := pattern.fullmatch(entry.name)) and entry.is_file(follow_symlinks=False):
+                try:
+                    os.kill(int(m.group(1)), 0)
+                except ProcessLookupError:
+                    os.unlink(entry.path)
+                except (PermissionError, OverflowError):
+                    pass
     except OSError:
-        return gone
-    for entry in entries:
-        m = pattern.fullmatch(entry.name)
-        if m and not _pid_alive(int(m.group(1))) and entry.is_file(follow_symlinks=False):
-            try:
-                os.unlink(entry.path)
-                gone.append(Path(entry.path))
-            except OSError:
-                pass
-    return gone
+        pass
 
 
 @contextlib.contextmanager
 def file_lock(path, *, error: type[CellError] = ConfigError, what: str = "file", timeout_s: float = 10.0):
     """Hold an exclusive flock on ``.NAME.lock`` beside ``path`` (writers of one file take turns), waiting
-    at most ``timeout_s``; ``error`` naming the file if another process keeps it longer."""
+    at most ``timeout_s``; ``error`` naming the file if another process holds it longer."""
     path = Path(path)
     lock = path.parent / f".{path.name}.lock"
     try:
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
     except OSError as exc:
         raise error(f"{path}: cannot write the {what}: its lock file {lock.name}: {_cause(exc)}") from None
     try:
         end = time.monotonic() + timeout_s
-        while True:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                if time.monotonic() > end:
-                    raise error(f"{path}: another process has been writing the {what} for {timeout_s:g} s "
-                                f"(it holds {lock.name}); nothing written") from None
-                time.sleep(0.02)
+        while not _try_flock(fd):
+            if time.monotonic() > end:
+                raise error(f"{path}: another process has been writing the {what} for {timeout_s:g} s "
+                            f"(it holds {lock.name}); nothing written")
+            time.sleep(0.02)
         yield
     finally:
         os.close(fd)  # releases the lock
+
+
+def _try_flock(fd: int) -> bool:
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return True
+    except BlockingIOError:
+        return False
 
 
 def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, what: str = "file",
@@ -429,7 +395,7 @@ def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, wha
     if path.exists() and _not_regular(path.stat().st_mode):
         raise error(f"{path}: cannot write the {what}: it is {_not_regular(path.stat().st_mode)}, not a regular file")
     remove_leftovers(folder, path.name)
-    tmp = _temporary(path)
+    tmp = folder / f".{path.name}.{os.getpid()}.{secrets.token_hex(6)}.tmp"  # see remove_leftovers
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666 if old_mode is None else old_mode)
     except OSError as exc:

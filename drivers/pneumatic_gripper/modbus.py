@@ -53,6 +53,8 @@ logging.getLogger("pymodbus").addHandler(logging.NullHandler())
 #: be busy (image processing beside it) and a reply that comes late is not a faulty device.
 DEFAULT_TIMEOUT_S = 1.0
 DEFAULT_READ_RETRIES = 2
+#: Longest request timeout accepted.
+MAX_TIMEOUT_S = 600.0
 
 #: Modbus exception codes (Modbus Application Protocol v1.1b3, section 7).
 EXCEPTION_NAMES = {
@@ -129,8 +131,9 @@ class ModbusLink:
         trace: Callable[[str, bytes], None] | None = None,
     ):
         self.url = url if isinstance(url, ModbusUrl) else parse_modbus_url(url)
-        if isinstance(timeout_s, bool) or not isinstance(timeout_s, (int, float)) or not timeout_s > 0:
-            raise ConfigError(f"Modbus request timeout_s={timeout_s!r}: expected a positive number of seconds")
+        if isinstance(timeout_s, bool) or not isinstance(timeout_s, (int, float)) or not 0 < timeout_s <= MAX_TIMEOUT_S:
+            raise ConfigError(f"Modbus request timeout_s={timeout_s!r}: expected a number of seconds > 0 and <= "
+                              f"{MAX_TIMEOUT_S:g} (a device that stays silent longer is not answering)")
         if isinstance(retries, bool) or not isinstance(retries, int) or not 0 <= retries <= 5:
             raise ConfigError(f"Modbus retries={retries!r}: expected a whole number 0..5")
         self.timeout_s = float(timeout_s)

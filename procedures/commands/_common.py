@@ -49,25 +49,27 @@ def print_json(obj) -> None:
 
 
 def number(text: str, what: str, *, integer: bool = False, lo: float | None = None, hi: float | None = None,
-           lo_open: bool = False, hi_open: bool = False) -> float | int:
+           lo_open: bool = False) -> float | int:
     """A number a person typed (``selfview.io_safe.parse_number``: ASCII digits, finite, in range), or
     ``argparse.ArgumentTypeError`` naming ``what``, which the command line turns into exit 2."""
     from selfview.io_safe import parse_number
 
     try:
-        return parse_number(text, integer=integer, lo=lo, hi=hi, lo_open=lo_open, hi_open=hi_open)
+        return parse_number(text, integer=integer, lo=lo, hi=hi, lo_open=lo_open)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(f"{what}: {exc}") from None
 
 
 def numeric(*, integer: bool = False, lo: float | None = None, hi: float | None = None, lo_open: bool = False,
-            hi_open: bool = False, name: str = "number"):
+            name: str = "number"):
     """An argparse ``type`` for a numeric option: ``number`` with this range (argparse names the option)."""
     def parse(text: str):
+        from selfview.io_safe import parse_number
+
         try:
-            return number(text, "value", integer=integer, lo=lo, hi=hi, lo_open=lo_open, hi_open=hi_open)
-        except argparse.ArgumentTypeError as exc:
-            raise argparse.ArgumentTypeError(str(exc).removeprefix("value: ")) from None
+            return parse_number(text, integer=integer, lo=lo, hi=hi, lo_open=lo_open)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
     parse.__name__ = name
     return parse
 

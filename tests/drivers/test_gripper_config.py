@@ -166,3 +166,11 @@ def test_reads_are_grouped_within_modbus_limits():
         ("input_register", 3, 1),  # two bits of one register: one register read
         ("input_register", 200, 1),
     ]
+
+
+@pytest.mark.parametrize("timeout_s", [float("inf"), float("nan"), 1e10, 0.0, -1.0])
+def test_request_timeouts_are_finite_and_bounded(timeout_s):
+    from selfview.drivers.pneumatic_gripper.modbus import ModbusLink
+
+    with pytest.raises(ConfigError, match="timeout_s"):
+        ModbusLink("modbus-tcp://127.0.0.1:502?unit=1", timeout_s=timeout_s)  # inf would wait forever
