@@ -379,55 +379,39 @@ def replace_keeping_history(p: Path, text: str, load_existing, *, what: str, kee
         why = "does not exist (it is not created)" if not p.parent.exists() else "is a file, not a folder"
         raise CalibrationFileError(f"{p}: cannot write the {what}: the folder {p.parent} {why}")
     with file_lock(p, error=CalibrationFileError, what=what):
-        return _replace_locked(p, text, load_existing, what=what, keep_history=keep_history,
-                               expected_sha256=expected_sha256)
-
-
-def _replace_locked(p: Path, text: str, load_existing, *, what: str, keep_history: bool,
-                    expected_sha256: str | None) -> Path | None:
-    kept = None
-    if expected_sha256 is not None:
-        _check_version(p, expected_sha256, what)
-    if p.exists():
-        load_existing(p)  # refuse to replace a corrupt or foreign file
-        if keep_history:
-            hd = history_dir(p)
-            try:
-                hd.mkdir(exist_ok=True)
-            except FileExistsError:
-                raise CalibrationFileError(
-                    f"{hd}: cannot keep the previous {what}: a file of that name exists where its history "
-                    f"folder belongs; {p} is unchanged"
-                ) from None
-            except OSError as exc:
-                raise CalibrationFileError(
-                    f"{hd}: cannot create the history folder ({exc.strerror or exc}); {p} is unchanged"
-                ) from None
-            remove_leftovers(hd)  # history copies of saves killed half-way
-            blob = read_bounded(p, MAX_YAML_BYTES, error=CalibrationFileError, what=f"previous {what}")
-            stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
-            kept = hd / f"{stamp}-{hashlib.sha256(blob).hexdigest()[:8]}{p.suffix or '.yaml'}"
-            atomic_write(kept, blob, error=CalibrationFileError, what=f"history copy of the {what}",
-                         mode=stat.S_IMODE(p.stat().st_mode))
-    atomic_write(p, text.encode("utf-8"), error=CalibrationFileError, what=what)
-    return kept
+        kept = None
+        if expected_sha256 is not None:
+            _check_version(p, expected_sha256, what)
+        if p.exists():
+            load_existing(p)  # refuse to replace a corrupt or foreign file
+            if keep_history:
+                hd = history_dir(p)
+                try:
+                    hd.mkdir(exist_ok=True)
+                except FileExistsError:
+                    raise CalibrationFileError(
+                        f"{hd}: cannot keep the previous {what}: a file of that name exists where its history "
+                        f"folder belongs; {p} is unchanged"
+                    ) from None
+                except OSError as exc:
+                    raise CalibrationFileError(
+                        f"{hd}: cannot create the history folder ({exc.strerror or exc}); {p} is unchanged"
+                    ) from None
+                remove_leftovers(hd)  # history copies of saves killed half-way
+                blob = read_bounded(p, MAX_YAML_BYTES, error=CalibrationFileError, what=f"previous {what}")
+                stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
+                kept = hd / f"{stamp}-{hashlib.sha256(blob).hexdigest()[:8]}{p.suffix or '.yaml'}"
+                atomic_write(kept, blob, error=CalibrationFileError, what=f"history copy of the {what}",
+                             mode=stat.S_IMODE(p.stat().st_mode))
+        atomic_write(p, text.encode("utf-8"), error=CalibrationFileError, what=what)
+        return kept
 
 
 def _check_version(p: Path, expected_sha256: str, what: str) -> None:
     """``CalibrationFileError`` naming both versions unless ``p`` still hashes to ``expected_sha256``."""
-    if not p.exists():
-        raise CalibrationFileError(f"{p}: the {what} read before (sha256 {expected_sha256[:12]}) is gone; "
-                                   "nothing written")
-    blob = read_bounded(p, MAX_YAML_BYTES, error=CalibrationFileError, what=what)
-    now = hashlib.sha256(blob).hexdigest()
-    if now == expected_sha256:
-        return
-    try:
-        doc = load_yaml(blob, str(p), error=CalibrationFileError)
-        about = f", created {doc.get('created')}, picture {str(doc.get('image_sha256'))[:12]}" if isinstance(doc, dict) else ""
-    except CalibrationFileError:
-        about = ", not a readable calibration"
-    raise CalibrationFileError(
-        f"{p}: changed since it was read: this update derives from version sha256 {expected_sha256[:12]}, but the "
-        f"file now holds version sha256 {now[:12]}{about} (a recalibration saved meanwhile?); nothing written: "
-        "run again from the new calibration")
+    now = hashlib.sha256(read_bounded(p, MAX_YAML_BYTES, error=CalibrationFileError, what=what)).hexdigest()
+    if now != expected_sha256:
+        raise CalibrationFileError(
+            f"{p}: changed since it was read: this update derives from version sha256 {expected_sha256[:12]}, but "
+            f"the file now holds version sha256 {now[:12]} (a recalibration saved meanwhile?); nothing written: "
+            "run again from the new calibration")
