@@ -24,7 +24,7 @@ import os
 import stat
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import yaml
@@ -65,9 +65,9 @@ class Calibration:
     created: str = ""
     software: str = __version__
     updates: list[dict[str, Any]] = field(default_factory=list)
-    #: SHA-256 of the file this was read from ("" if it was not read from a file): what a save that
-    #: passes it as ``expected`` may replace
-    file_sha256: str = field(default="", compare=False, repr=False)
+    #: SHA-256 of the file this was read from ("" if not read from one): what a save passing it as
+    #: ``expected`` may replace. Not a field: where it was read is not part of the calibration.
+    file_sha256: ClassVar[str] = ""
 
     def to_document(self) -> dict:
         doc = {
