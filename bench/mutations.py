@@ -64,7 +64,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "calfile-written-in-place",
         "selfview/io_safe.py",
-        '    tmp = folder / f".{path.name}.{secrets.token_hex(6)}.tmp"\n    try:\n'
+        '    tmp = folder / f".{path.name}.{os.getpid()}.{secrets.token_hex(6)}.tmp"  # see remove_leftovers\n    try:\n'
         "        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666 if old_mode is None else old_mode)\n",
         "    tmp = path\n    try:\n"
         "        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666 if old_mode is None else old_mode)\n",

@@ -137,6 +137,7 @@ class ValveTerminal:
         self.sensor_faults: dict[str, bool | None] = {"open": None, "closed": None}
         self.exception_code: int | None = None
         self.silent = False
+        self._silent_left: int | None = None
         self._drop_next = False
         # statistics
         self.requests = 0
@@ -255,6 +256,9 @@ class ValveTerminal:
             self.requests += 1
             self._last_activity = self.clock()
             if self.silent:
+                if self._silent_left is not None:
+                    self._silent_left -= 1
+                    self.silent = self._silent_left > 0
                 return None  # consumed, never answered
             if self._drop_next:
                 self._drop_next = False
@@ -437,10 +441,12 @@ class ValveTerminal:
         with self._lock:
             self.exception_code = None if code is None else int(code)
 
-    def set_silent(self, silent: bool = True) -> None:
-        """Take requests and never answer (a hung device, a broken transmit line)."""
+    def set_silent(self, silent: bool = True, *, requests: int | None = None) -> None:
+        """Take requests and never answer (a hung device, a broken transmit line); with ``requests``, only
+        the next that many (a reply lost on a busy network), answering again after them."""
         with self._lock:
             self.silent = bool(silent)
+            self._silent_left = requests if silent else None
 
     def drop_on_next_request(self) -> None:
         """Close every connection when the next request arrives, without answering it."""

@@ -50,6 +50,9 @@ _EXIT_FOR = [
 ]
 
 
+_THIRD_PARTY_LOGGERS = ("pymodbus", "asyncio", "matplotlib", "PIL")
+
+
 def exit_code_for(exc: BaseException) -> tuple[int, str]:
     """(exit code, what to do) for an exception reaching the command line (its own ``what_to_do``, if it
     has one, before its kind's)."""
@@ -92,6 +95,10 @@ def main(argv: list[str] | None = None) -> int:
     level = {0: logging.ERROR, 1: logging.INFO}.get(args.verbose, logging.DEBUG)
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s: %(message)s", stream=sys.stderr)
     logging.getLogger().setLevel(level)
+    # a library's own log lines (pymodbus dumps every frame it could not parse) only with -v: the errors
+    # it raises reach the operator as this command's message
+    for name in _THIRD_PARTY_LOGGERS:
+        logging.getLogger(name).setLevel(level if args.verbose else logging.CRITICAL + 1)
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
@@ -104,8 +111,20 @@ def main(argv: list[str] | None = None) -> int:
         code, hint = exit_code_for(exc)
         print(f"selfview {args.command}: error: {exc}\n  what to do: {hint}", file=sys.stderr)
         return code
-    except BrokenPipeError:
-        return EXIT_OK
+    except argparse.ArgumentTypeError as exc:  # a number or name checked after parsing
+        print(f"selfview {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except OSError as exc:  # a file or folder the command was given (a name too long, a read-only disk, ...)
+        if isinstance(exc, BrokenPipeError):
+            return EXIT_OK
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"selfview {args.command}: error: {where}{exc.strerror or exc}\n  what to do: correct the file or "
+              "argument named above", file=sys.stderr)
+        return EXIT_CONFIG
+    except MemoryError:
+        print(f"selfview {args.command}: error: out of memory (a file or argument far larger than the cell's)\n"
+              "  what to do: correct the file or argument", file=sys.stderr)
+        return EXIT_CONFIG
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -20,10 +20,11 @@ import datetime as _dt
 import hashlib
 import json
 import math
+import os
 import stat
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import yaml
@@ -33,7 +34,7 @@ from selfview.camera import CameraModel
 from selfview.cell import POINT_NAMES
 from selfview.errors import CalibrationFileError, ConfigError
 from selfview.geometry import check_rigid
-from selfview.io_safe import atomic_write, load_yaml, short_repr
+from selfview.io_safe import MAX_YAML_BYTES, atomic_write, file_lock, load_yaml, read_bounded, remove_leftovers, short_repr
 from selfview.tsai import MODES as TSAI_MODES
 
 __all__ = ["Calibration", "save_calibration", "load_calibration", "history_dir", "FORMAT", "VERSION"]
@@ -64,6 +65,9 @@ class Calibration:
     created: str = ""
     software: str = __version__
     updates: list[dict[str, Any]] = field(default_factory=list)
+    #: SHA-256 of the file this was read from ("" if not read from one): what a save passing it as
+    #: ``expected`` may replace. Not a field: where it was read is not part of the calibration.
+    file_sha256: ClassVar[str] = ""
 
     def to_document(self) -> dict:
         doc = {
@@ -331,61 +335,83 @@ def history_dir(path) -> Path:
 def load_calibration(path) -> Calibration:
     """Read and verify a calibration file; raises ``CalibrationFileError`` naming the fault."""
     p = Path(path)
-    try:
-        blob = p.read_bytes()
-    except FileNotFoundError:
-        raise CalibrationFileError(f"{p}: no such calibration file (run 'selfview calibrate' first)") from None
-    except OSError as exc:
-        raise CalibrationFileError(f"{p}: cannot read the calibration file ({exc.strerror or exc})") from exc
-    doc = load_yaml(blob, str(p), error=CalibrationFileError, what="calibration file")
-    return Calibration.from_document(doc, source=str(p))
+    blob = read_bounded(p, MAX_YAML_BYTES, error=CalibrationFileError, what="calibration file",
+                        missing="no such calibration file (run 'selfview calibrate' first)")
+    cal = Calibration.from_document(load_yaml(blob, str(p), error=CalibrationFileError, what="calibration file"),
+                                    source=str(p))
+    cal.file_sha256 = hashlib.sha256(blob).hexdigest()
+    return cal
 
 
-def save_calibration(cal: Calibration, path, *, keep_history: bool = True) -> Path:
+def save_calibration(cal: Calibration, path, *, keep_history: bool = True,
+                     expected: "Calibration | str | None" = None) -> Path:
     """Write ``cal`` to ``path`` atomically, keeping the previous file in ``<name>.history/``.
 
     Refuses (``CalibrationFileError``, nothing written) when the existing file is not a valid selfview
-    calibration: it may be somebody else's file. Returns the path of the history copy, or None.
+    calibration: it may be somebody else's file. ``expected``: the version ``cal`` was derived from (the
+    Calibration as loaded, or its file's SHA-256); the file is replaced only if it still is that version,
+    so a recalibration saved meanwhile is never overwritten (the refusal names both). A symlink's target
+    is replaced (the link stays). Returns the path of the history copy, or None.
     """
     p = Path(path)
     text = yaml.safe_dump(cal.to_document(), sort_keys=False, default_flow_style=None, width=120)
     # check what we are about to write reads back, before it replaces anything
     Calibration.from_document(load_yaml(text, str(p), error=CalibrationFileError), source=str(p))
-    return replace_keeping_history(p, text, load_calibration, what="calibration file", keep_history=keep_history)
+    want = expected.file_sha256 if isinstance(expected, Calibration) else expected
+    if isinstance(expected, Calibration) and not want:
+        raise CalibrationFileError(f"{p}: the expected calibration was not read from a file: nothing to compare with")
+    return replace_keeping_history(p, text, load_calibration, what="calibration file", keep_history=keep_history,
+                                   expected_sha256=want)
 
 
-def replace_keeping_history(p: Path, text: str, load_existing, *, what: str, keep_history: bool = True) -> Path | None:
+def replace_keeping_history(p: Path, text: str, load_existing, *, what: str, keep_history: bool = True,
+                            expected_sha256: str | None = None) -> Path | None:
     """Replace ``p`` with ``text`` atomically, the previous file first checked with ``load_existing`` (it
     raises for a corrupt or foreign file, and nothing is written) and kept in ``<name>.history/``.
+    Writers of one file take turns (an flock on a lock file beside it); with ``expected_sha256`` the file
+    must still hash to it when its turn comes. A symlink is followed: its target is replaced.
     Every failure is ``CalibrationFileError`` naming the path and the cause, with ``p`` unchanged.
     Returns the history copy, or None."""
     p = Path(p)
+    if p.is_symlink():
+        p = Path(os.path.realpath(p))  # replace the file the link names; the link stays a link
     if not p.parent.is_dir():
         why = "does not exist (it is not created)" if not p.parent.exists() else "is a file, not a folder"
         raise CalibrationFileError(f"{p}: cannot write the {what}: the folder {p.parent} {why}")
-    kept = None
-    if p.exists():
-        load_existing(p)  # refuse to replace a corrupt or foreign file
-        if keep_history:
-            hd = history_dir(p)
-            try:
-                hd.mkdir(exist_ok=True)
-            except FileExistsError:
-                raise CalibrationFileError(
-                    f"{hd}: cannot keep the previous {what}: a file of that name exists where its history "
-                    f"folder belongs; {p} is unchanged"
-                ) from None
-            except OSError as exc:
-                raise CalibrationFileError(
-                    f"{hd}: cannot create the history folder ({exc.strerror or exc}); {p} is unchanged"
-                ) from None
-            try:
-                blob = p.read_bytes()
-            except OSError as exc:
-                raise CalibrationFileError(f"{p}: cannot read the previous {what} ({exc.strerror or exc})") from None
-            stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
-            kept = hd / f"{stamp}-{hashlib.sha256(blob).hexdigest()[:8]}{p.suffix or '.yaml'}"
-            atomic_write(kept, blob, error=CalibrationFileError, what=f"history copy of the {what}",
-                         mode=stat.S_IMODE(p.stat().st_mode))
-    atomic_write(p, text.encode("utf-8"), error=CalibrationFileError, what=what)
-    return kept
+    with file_lock(p, error=CalibrationFileError, what=what):
+        kept = None
+        if expected_sha256 is not None:
+            _check_version(p, expected_sha256, what)
+        if p.exists():
+            load_existing(p)  # refuse to replace a corrupt or foreign file
+            if keep_history:
+                hd = history_dir(p)
+                try:
+                    hd.mkdir(exist_ok=True)
+                except FileExistsError:
+                    raise CalibrationFileError(
+                        f"{hd}: cannot keep the previous {what}: a file of that name exists where its history "
+                        f"folder belongs; {p} is unchanged"
+                    ) from None
+                except OSError as exc:
+                    raise CalibrationFileError(
+                        f"{hd}: cannot create the history folder ({exc.strerror or exc}); {p} is unchanged"
+                    ) from None
+                remove_leftovers(hd)  # history copies of saves killed half-way
+                blob = read_bounded(p, MAX_YAML_BYTES, error=CalibrationFileError, what=f"previous {what}")
+                stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
+                kept = hd / f"{stamp}-{hashlib.sha256(blob).hexdigest()[:8]}{p.suffix or '.yaml'}"
+                atomic_write(kept, blob, error=CalibrationFileError, what=f"history copy of the {what}",
+                             mode=stat.S_IMODE(p.stat().st_mode))
+        atomic_write(p, text.encode("utf-8"), error=CalibrationFileError, what=what)
+        return kept
+
+
+def _check_version(p: Path, expected_sha256: str, what: str) -> None:
+    """``CalibrationFileError`` naming both versions unless ``p`` still hashes to ``expected_sha256``."""
+    now = hashlib.sha256(read_bounded(p, MAX_YAML_BYTES, error=CalibrationFileError, what=what)).hexdigest()
+    if now != expected_sha256:
+        raise CalibrationFileError(
+            f"{p}: changed since it was read: this update derives from version sha256 {expected_sha256[:12]}, but "
+            f"the file now holds version sha256 {now[:12]} (a recalibration saved meanwhile?); nothing written: "
+            "run again from the new calibration")

@@ -18,7 +18,7 @@ import numpy as np
 from selfview.camera import CameraModel
 from selfview.errors import ConfigError
 from selfview.geometry import check_rigid
-from selfview.io_safe import load_yaml, short_repr
+from selfview.io_safe import MAX_YAML_BYTES, load_yaml, read_bounded, short_repr
 
 __all__ = [
     "POINT_NAMES",
@@ -461,10 +461,7 @@ def parse_cell(data: Any, source: str = "<memory>", sha256: str = "") -> Cell:
 def load_cell(path) -> Cell:
     """Read and validate a cell description file; raises ``ConfigError`` naming what is wrong."""
     p = Path(path)
-    try:
-        blob = p.read_bytes()
-    except OSError as exc:
-        raise ConfigError(f"cell description {str(p)!r}: cannot read ({exc.strerror or exc})") from exc
+    blob = read_bounded(p, MAX_YAML_BYTES, error=ConfigError, what="cell description", source=f"cell description {str(p)!r}")
     data = load_yaml(blob, f"cell description {str(p)!r}", error=ConfigError, what="file")
     if data is None:
         raise ConfigError(f"cell description {str(p)!r}: the file is empty")

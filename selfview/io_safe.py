@@ -4,9 +4,13 @@
   anything that walks it: a checksum's ``json.dumps``, an error message's ``repr``), a bounded size and a
   bounded nesting depth (deep nesting would end in RecursionError). Refusals name the file, the line and
   the cause, as the caller's error class (``ConfigError``, ``CalibrationFileError``).
+- ``read_bounded``: the bytes of a regular file of at most a given size, checked before reading (a FIFO,
+  a device such as /dev/zero or a folder is refused naming its kind; at most the limit is ever read).
 - ``read_picture``: the picture's size is read from its header before anything is decoded (PNG, JPEG, BMP,
   PGM/PPM), so a small file that would decode to 30000 x 30000 pixels is refused at once; an empty,
   truncated, unknown or undecodable file is an ``ImageError`` naming the file.
+- ``file_lock`` and ``remove_leftovers``: writers of one file take turns; a killed writer's temporary file
+  (named with its pid) is removed by the next write.
 - ``atomic_write``: the new content goes to a temporary file in the same folder, is flushed to disk and
   renamed over the old file (atomic on POSIX), so a crash or a full disk leaves either the old file or the
   new one, never half a file. The replaced file's permission bits are kept; a missing folder is not
@@ -18,12 +22,17 @@ Core module: imports nothing from drivers, mocks or procedures.
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import fcntl
 import hashlib
+import math
 import os
+import re
 import secrets
 import stat
 import struct
+import time
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +40,7 @@ import yaml
 
 from selfview.errors import CellError, ConfigError, ImageError
 
-__all__ = ["load_yaml", "read_picture", "picture_size", "atomic_write", "MAX_YAML_BYTES", "MAX_YAML_DEPTH",
+__all__ = ["load_yaml", "load_yaml_file", "read_bounded", "parse_number", "read_picture", "picture_size", "atomic_write", "MAX_YAML_BYTES", "MAX_YAML_DEPTH",
            "MAX_PICTURE_SIDE", "MAX_PICTURE_PIXELS"]
 
 #: Largest YAML document read (cell and calibration files are a few kB).
@@ -41,6 +50,50 @@ MAX_YAML_DEPTH = 32
 #: Largest picture side and pixel count decoded (the CCIR camera gives 768 x 576).
 MAX_PICTURE_SIDE = 16384
 MAX_PICTURE_PIXELS = 64_000_000
+#: Largest picture file read (an uncompressed picture of MAX_PICTURE_PIXELS grey pixels, and its header).
+MAX_PICTURE_BYTES = MAX_PICTURE_PIXELS + (1 << 16)
+
+
+# --- bounded reads --------------------------------------------------------------------------------
+_KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"), (lambda m: not stat.S_ISREG(m), "not a file"))
+
+
+def _not_regular(mode: int) -> str:
+    return next((kind for test, kind in _KINDS if test(mode)), "")
+
+
+def read_bounded(path, limit: int, *, error: type[CellError] = ConfigError, what: str = "file",
+                 source: str | None = None, missing: str | None = None) -> bytes:
+    """The bytes of the regular file ``path`` of at most ``limit`` bytes: a FIFO, device or folder is refused
+    naming its kind before it is read (and opened without blocking), a larger file from its size; at most
+    ``limit + 1`` bytes are read. ``error`` names ``source`` (default: the path); ``missing``: the message
+    for a file that does not exist."""
+    src = str(path) if source is None else source
+    refuse = lambda why: error(f"{src}: cannot read the {what}: {why}")  # noqa: E731
+    try:
+        fd = None
+        if kind := _not_regular(os.stat(path).st_mode):
+            raise refuse(f"it is {kind}, not a regular file; give the path of a {what}")
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+        st = os.fstat(fd)  # the file opened, whatever was swapped in since
+        if kind := _not_regular(st.st_mode):
+            raise refuse(f"it is {kind}, not a regular file; give the path of a {what}")
+        if st.st_size > limit:
+            raise refuse(f"{st.st_size} bytes, more than the {limit} accepted (is it the right file?)")
+        data = b""
+        while len(data) <= limit and (chunk := os.read(fd, limit + 1 - len(data))):
+            data += chunk
+    except FileNotFoundError:
+        raise error(f"{src}: {missing}" if missing else f"{src}: cannot read the {what} (no such file)") from None
+    except OSError as exc:
+        raise refuse(_cause(exc)) from None
+    finally:
+        if fd is not None:
+            os.close(fd)
+    if len(data) > limit:
+        raise refuse(f"it grew beyond the {limit} bytes accepted while being read")
+    return data
 
 
 # --- YAML -----------------------------------------------------------------------------------------
@@ -69,7 +122,43 @@ def _strict(base: type) -> type:
                 self._depth -= 1
 
     Strict.__name__ = f"Strict{base.__name__}"
+    if issubclass(base, yaml.SafeLoader):
+        for tag in ("int", "float"):
+            Strict.add_constructor(f"tag:yaml.org,2002:{tag}", _digits_only(base.yaml_constructors[f"tag:yaml.org,2002:{tag}"]))
     return Strict
+
+
+def _digits_only(construct):
+    """A YAML 1.1 number constructor that refuses the forms a person does not mean as one number:
+    ``1_0`` (read as 10) and ``1:30`` (sexagesimal, read as 90)."""
+    def checked(loader, node):
+        text = str(node.value)
+        if "_" in text or ":" in text:
+            raise _Refused(f"line {node.start_mark.line + 1}: number {_short(text, 40)!r} refused: write it in plain "
+                           "digits (YAML would read '_' and ':' groups as another number)")
+        return construct(loader, node)
+    return checked
+
+
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_INTEGER = re.compile(r"[+-]?[0-9]+")
+
+
+def parse_number(text: str, *, integer: bool = False, lo: float | None = None, hi: float | None = None,
+                 lo_open: bool = False) -> float | int:
+    """A number in ASCII digits (``12``, ``-1.5``, ``2e-3``; with ``integer`` a whole number), finite and in
+    ``lo``..``hi`` (``lo`` excluded with ``lo_open``); ``ValueError`` saying why. (Python's ``float`` also
+    takes ``1_0``, full-width digits, ``inf`` and ``nan``.)"""
+    s = str(text).strip()
+    if s.lower().lstrip("+-") in ("inf", "infinity", "nan"):
+        raise ValueError(f"non-finite: {s} (expected a finite number)")
+    if len(s) > 40 or not (_INTEGER if integer else _NUMBER).fullmatch(s):
+        raise ValueError(f"not a{' whole' if integer else ''} number in ASCII digits: {_short(repr(str(text)), 50)}")
+    v = int(s) if integer else float(s)
+    if not math.isfinite(v) or (lo is not None and (v <= lo if lo_open else v < lo)) or (hi is not None and v > hi):
+        want = [f"{'>' if lo_open else '>='} {lo}"] * (lo is not None) + [f"<= {hi}"] * (hi is not None)
+        raise ValueError(f"out of range: {s} (expected {' and '.join(want) or 'a finite number'})")
+    return v
 
 
 _LOADERS = {"safe": _strict(yaml.SafeLoader), "base": _strict(yaml.BaseLoader)}
@@ -104,6 +193,14 @@ def load_yaml(data: bytes | str, source: str, *, error: type[CellError] = Config
     finally:
         if loader is not None:
             loader.dispose()
+
+
+def load_yaml_file(path, *, error: type[CellError] = ConfigError, what: str = "file", source: str | None = None,
+                   missing: str | None = None, text_only: bool = False):
+    """``load_yaml`` of ``read_bounded(path, MAX_YAML_BYTES)``: a YAML file checked before it is read."""
+    src = str(path) if source is None else source
+    blob = read_bounded(path, MAX_YAML_BYTES, error=error, what=what, source=src, missing=missing)
+    return load_yaml(blob, src, error=error, text_only=text_only, what=what)
 
 
 def _short(text: str, n: int = 80) -> str:
@@ -178,10 +275,7 @@ def read_picture(path, *, max_side: int = MAX_PICTURE_SIDE, max_pixels: int = MA
     import cv2
 
     p = Path(path)
-    try:
-        blob = p.read_bytes()
-    except OSError as exc:
-        raise ImageError(f"{p}: cannot read the {what} ({exc.strerror or exc})") from exc
+    blob = read_bounded(p, MAX_PICTURE_BYTES, error=ImageError, what=what)
     try:
         fmt, w, h = picture_size(blob[:65536])
     except ValueError as exc:
@@ -228,12 +322,63 @@ def _cause(exc: OSError) -> str:
     return exc.strerror or str(exc)
 
 
+def remove_leftovers(folder, name: str | None = None) -> None:
+    """Remove the temporary files (``.NAME.PID.TOKEN.tmp``) that writers of ``name`` (or of any file) left
+    in ``folder`` when they were killed: only those whose pid no longer runs."""
+    pattern = re.compile(rf"\.{re.escape(name) if name else '.+'}\.([0-9]+)\.[0-9a-f]{{12}}\.tmp")
+    try:
+        for entry in os.scandir(folder):
+            if (m := pattern.fullmatch(entry.name)) and entry.is_file(follow_symlinks=False):
+                try:
+                    os.kill(int(m.group(1)), 0)
+                except ProcessLookupError:
+                    os.unlink(entry.path)
+                except (PermissionError, OverflowError):
+                    pass
+    except OSError:
+        pass
+
+
+@contextlib.contextmanager
+def file_lock(path, *, error: type[CellError] = ConfigError, what: str = "file", timeout_s: float = 10.0):
+    """Hold an exclusive flock on ``.NAME.lock`` beside ``path`` (writers of one file take turns), waiting
+    at most ``timeout_s``; ``error`` naming the file if another process holds it longer."""
+    path = Path(path)
+    lock = path.parent / f".{path.name}.lock"
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+    except OSError as exc:
+        raise error(f"{path}: cannot write the {what}: its lock file {lock.name}: {_cause(exc)}") from None
+    try:
+        end = time.monotonic() + timeout_s
+        while not _try_flock(fd):
+            if time.monotonic() > end:
+                raise error(f"{path}: another process has been writing the {what} for {timeout_s:g} s "
+                            f"(it holds {lock.name}); nothing written")
+            time.sleep(0.02)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def _try_flock(fd: int) -> bool:
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return True
+    except BlockingIOError:
+        return False
+
+
 def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, what: str = "file",
                  mode: int | None = None) -> None:
     """Replace ``path`` with ``data`` atomically (see the module doc). Permission bits: the replaced
-    file's, else ``mode``, else 0o666 less the umask. Raises ``error`` naming the path and the cause; the
-    old file is then untouched and no temporary file is left."""
+    file's, else ``mode``, else 0o666 less the umask. A symlink's target is replaced (the link stays);
+    a device, FIFO or socket is refused. Leftovers of this file's writers that were killed are removed
+    first. Raises ``error`` naming the path and the cause; the old file is then untouched and no
+    temporary file is left."""
     path = Path(path)
+    if path.is_symlink():
+        path = Path(os.path.realpath(path))
     folder = path.parent
     if not folder.exists():
         raise error(f"{path}: cannot write the {what}: the folder {folder} does not exist (it is not created)")
@@ -247,7 +392,10 @@ def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, wha
         raise error(f"{path}: cannot write the {what}: {_cause(exc)}") from None
     if path.is_dir():
         raise error(f"{path}: cannot write the {what}: a folder of that name exists")
-    tmp = folder / f".{path.name}.{secrets.token_hex(6)}.tmp"
+    if path.exists() and _not_regular(path.stat().st_mode):
+        raise error(f"{path}: cannot write the {what}: it is {_not_regular(path.stat().st_mode)}, not a regular file")
+    remove_leftovers(folder, path.name)
+    tmp = folder / f".{path.name}.{os.getpid()}.{secrets.token_hex(6)}.tmp"  # see remove_leftovers
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666 if old_mode is None else old_mode)
     except OSError as exc:

@@ -43,6 +43,7 @@ import numpy as np
 from selfview.camera import CameraModel, distort
 from selfview.errors import CalibrationError, CalibrationFileError, ConfigError
 from selfview.geometry import R_from_rotvec, R_from_rpy, make_H, transform_points
+from selfview.io_safe import parse_number, read_bounded
 from selfview.lm import covariance, levenberg_marquardt
 
 __all__ = [
@@ -721,12 +722,11 @@ def load_willson_points(path) -> tuple[np.ndarray, np.ndarray]:
     number) or a file without points.
     """
     path = Path(path)
+    blob = read_bounded(path, 16 << 20, error=CalibrationFileError, what="points file", missing="no such points file")
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError as exc:
-        raise CalibrationFileError(f"{path}: no such points file") from exc
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CalibrationFileError(f"{path}: cannot read the points file ({exc})") from exc
+        text = blob.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise CalibrationFileError(f"{path}: cannot read the points file ({exc})") from None
     rows = []
     for no, line in enumerate(text.splitlines(), start=1):
         body = line.split("#", 1)[0].strip()
@@ -739,11 +739,9 @@ def load_willson_points(path) -> tuple[np.ndarray, np.ndarray]:
                 f"{line.strip()!r}"
             )
         try:
-            vals = [float(s) for s in parts]
+            vals = [parse_number(s) for s in parts]
         except ValueError as exc:
-            raise CalibrationFileError(f"{path}, line {no}: not a number in {line.strip()!r}") from exc
-        if not all(np.isfinite(vals)):
-            raise CalibrationFileError(f"{path}, line {no}: non-finite value in {line.strip()!r}")
+            raise CalibrationFileError(f"{path}, line {no}: {exc} in {line.strip()!r}") from None
         rows.append(vals)
     if not rows:
         raise CalibrationFileError(f"{path}: no points (expected lines 'xw yw zw u v')")

@@ -51,7 +51,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from selfview.drivers.pneumatic_gripper.iomap import IoMap, Point
-from selfview.drivers.pneumatic_gripper.modbus import ConnectionLost, ModbusExceptionReply, ModbusLink, WriteEchoMismatch
+from selfview.drivers.pneumatic_gripper.modbus import (DEFAULT_READ_RETRIES, DEFAULT_TIMEOUT_S, ConnectionLost, ModbusExceptionReply,
+                                                    ModbusLink, WriteEchoMismatch)
 from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout, ProtocolError
 
 __all__ = ["PneumaticGripper", "GripperFault", "JawReading", "SafeReport"]
@@ -144,8 +145,8 @@ class PneumaticGripper:
         *,
         io_map: IoMap | None = None,
         timeout_s: float = 0.5,
-        request_timeout_s: float = 0.25,
-        retries: int = 0,
+        request_timeout_s: float = DEFAULT_TIMEOUT_S,
+        retries: int = DEFAULT_READ_RETRIES,
         poll_s: float | None = 0.1,
         confirm_poll_s: float = 0.005,
         clock: Callable[[], float] = time.monotonic,

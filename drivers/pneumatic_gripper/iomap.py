@@ -85,7 +85,7 @@ class Point:
                 "(in YAML, quote a reference: a number would lose its leading zeros and bit digits)"
             )
         s = text.strip()
-        m = re.fullmatch(r"([a-z_]+):(\d+)(?:\.(\d+))?", s)
+        m = re.fullmatch(r"([a-z_]+):([0-9]+)(?:\.([0-9]+))?", s)
         if m:
             kind = _SHORT.get(m.group(1))
             if kind is None:
@@ -93,7 +93,7 @@ class Point:
                     f"I/O point {text!r}: unknown table {m.group(1)!r}; expected coil, di, ir or hr"
                 )
             return cls(kind, int(m.group(2)), None if m.group(3) is None else int(m.group(3)))
-        m = re.fullmatch(r"(\d{5,6})(?:\.(\d+))?", s)
+        m = re.fullmatch(r"([0-9]{5,6})(?:\.([0-9]+))?", s)
         if m:
             return from_reference(m.group(1), None if m.group(2) is None else int(m.group(2)))
         raise ConfigError(
@@ -109,7 +109,7 @@ class Point:
 def from_reference(ref: str, bit: int | None = None) -> Point:
     """A 1-based Modicon reference (``40001``, ``400001``, ``10003``) -> the Point at its 0-based wire
     address. Raises ConfigError for a malformed reference or an unknown table digit."""
-    if not isinstance(ref, str) or not re.fullmatch(r"\d{5,6}", ref):
+    if not isinstance(ref, str) or not re.fullmatch(r"[0-9]{5,6}", ref):
         raise ConfigError(f"Modicon reference {ref!r}: expected 5 or 6 digits such as '40001' or '400001'")
     kind = _BY_DIGIT.get(int(ref[0]))
     if kind is None:

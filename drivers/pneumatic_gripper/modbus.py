@@ -7,11 +7,16 @@ its results and exceptions into the project's:
 - an exception reply from the device           -> ``ModbusExceptionReply`` (a DeviceError), with its code;
 - a refused connection / a port that cannot open -> ``ConnectionFailed`` (a DeviceError);
 - a connection that drops during a request      -> ``ConnectionLost`` (a DeviceError);
-- a device that stays silent                    -> ``DeviceTimeout``, after ``timeout_s * (retries + 1)``;
+- a device that stays silent                    -> ``DeviceTimeout``, after ``timeout_s`` (a write) or
+                                                   ``timeout_s * (retries + 1)`` (a read);
 - a garbled or mismatched reply                 -> ``ProtocolError``.
 
 After any of the last three the link closes its transport, so a late reply can never be taken for the
-answer to the next request; the next call connects again and calls ``on_connect``.
+answer to the next request; the next call connects again and calls ``on_connect``. On Modbus TCP a read
+whose reply is late is first sent again (``retries`` times, on the same connection: the MBAP transaction
+id tells a late reply from the awaited one); a write is never sent twice (it may have been carried out),
+and RTU frames carry no transaction id, so there nothing is. The defaults fit a Modbus TCP terminal
+answered by a busy PC: a reply within a second, two more tries.
 """
 
 from __future__ import annotations
@@ -43,6 +48,13 @@ __all__ = [
 # pymodbus logs every failure that it also raises, and with no logging configured Python prints those
 # lines on stderr; the errors raised here say the same with the URL. Configured handlers still see them.
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())
+
+#: Request timeout and read retries by default: a terminal answers in milliseconds, but the PC asking may
+#: be busy (image processing beside it) and a reply that comes late is not a faulty device.
+DEFAULT_TIMEOUT_S = 1.0
+DEFAULT_READ_RETRIES = 2
+#: Longest request timeout accepted.
+MAX_TIMEOUT_S = 600.0
 
 #: Modbus exception codes (Modbus Application Protocol v1.1b3, section 7).
 EXCEPTION_NAMES = {
@@ -96,6 +108,10 @@ class WriteEchoMismatch(ProtocolError):
         self.echoed = echoed
 
 
+class _NoReplyYet(Exception):
+    """A read's reply did not come in time, and the read will be sent again (on the same connection)."""
+
+
 class ModbusLink:
     """A Modbus master on one transport, safe to share between threads (one request at a time).
 
@@ -109,14 +125,15 @@ class ModbusLink:
         self,
         url: str | ModbusUrl,
         *,
-        timeout_s: float = 0.25,
-        retries: int = 0,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
+        retries: int = DEFAULT_READ_RETRIES,
         on_connect: Callable[[], None] | None = None,
         trace: Callable[[str, bytes], None] | None = None,
     ):
         self.url = url if isinstance(url, ModbusUrl) else parse_modbus_url(url)
-        if isinstance(timeout_s, bool) or not isinstance(timeout_s, (int, float)) or not timeout_s > 0:
-            raise ConfigError(f"Modbus request timeout_s={timeout_s!r}: expected a positive number of seconds")
+        if isinstance(timeout_s, bool) or not isinstance(timeout_s, (int, float)) or not 0 < timeout_s <= MAX_TIMEOUT_S:
+            raise ConfigError(f"Modbus request timeout_s={timeout_s!r}: expected a number of seconds > 0 and <= "
+                              f"{MAX_TIMEOUT_S:g} (a device that stays silent longer is not answering)")
         if isinstance(retries, bool) or not isinstance(retries, int) or not 0 <= retries <= 5:
             raise ConfigError(f"Modbus retries={retries!r}: expected a whole number 0..5")
         self.timeout_s = float(timeout_s)
@@ -166,7 +183,7 @@ class ModbusLink:
                 parity=u.parity,
                 stopbits=u.stopbits,
                 timeout=self.timeout_s,
-                retries=self.retries,
+                retries=0,  # this link retries reads itself, never writes
                 trace_packet=trace,
             )
             if not client.connect():
@@ -178,7 +195,7 @@ class ModbusLink:
                 port=u.port,
                 framer=FramerType.SOCKET if u.transport == "tcp" else FramerType.RTU,
                 timeout=self.timeout_s,
-                retries=self.retries,
+                retries=0,  # this link retries reads itself, never writes
                 trace_packet=trace,
             )
             # Open the socket here rather than in pymodbus, whose connect() only says "failed":
@@ -220,7 +237,19 @@ class ModbusLink:
             self._lock.release()
 
     # --- requests -----------------------------------------------------------------------------
-    def _request(self, what: str, function: int, call, *, reconnect: bool = True):
+    def _request(self, what: str, function: int, call, *, reconnect: bool = True, idempotent: bool = False):
+        """One request; on Modbus TCP a read (``idempotent``) whose reply does not come is sent again on the
+        same connection, up to ``retries`` times (see the module doc). A write is sent once."""
+        tries = self.retries + 1 if idempotent and self.url.transport == "tcp" else 1
+        with self._locked(what):
+            for attempt in range(1, tries + 1):
+                try:
+                    return self._request_once(what, function, call, reconnect=reconnect, tries=tries,
+                                              last=attempt == tries)
+                except _NoReplyYet:
+                    continue
+
+    def _request_once(self, what: str, function: int, call, *, reconnect: bool, tries: int, last: bool):
         with self._locked(what):
             if not reconnect and self._client is None:
                 raise ConnectionLost(f"{self.url.url}: {what}: not connected (this request does not reconnect)")
@@ -229,10 +258,12 @@ class ModbusLink:
             try:
                 rsp = call(client, self.url.unit)
             except ModbusIOException as exc:
+                if "no response" in str(exc).lower() and not last:
+                    raise _NoReplyYet() from None
                 self._drop()
                 if "no response" in str(exc).lower():
                     raise DeviceTimeout(
-                        f"{self.url.url}: {what}: no reply within {self.timeout_s} s x {self.retries + 1} attempt(s)"
+                        f"{self.url.url}: {what}: no reply within {self.timeout_s} s x {tries} attempt(s)"
                     ) from exc
                 raise ProtocolError(f"{self.url.url}: {what}: {exc}") from exc
             except (ConnectionException, OSError) as exc:
@@ -277,6 +308,7 @@ class ModbusLink:
             function,
             lambda c, u: getattr(c, method)(address, count=count, device_id=u),
             reconnect=reconnect,
+            idempotent=True,
         )
         values = list(getattr(rsp, field))
         # bit replies are padded to whole bytes; register replies must match exactly

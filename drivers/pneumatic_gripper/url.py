@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from urllib.parse import parse_qsl, urlsplit
 
 from selfview.errors import ConfigError
+from selfview.io_safe import parse_number
 
 __all__ = ["ModbusUrl", "parse_modbus_url"]
 
@@ -51,12 +52,9 @@ class ModbusUrl:
 
 def _int(url: str, key: str, text: str, lo: int, hi: int) -> int:
     try:
-        v = int(text)
-    except ValueError:
-        raise ConfigError(f"{url}: {key}={text!r} is not a whole number") from None
-    if not lo <= v <= hi:
-        raise ConfigError(f"{url}: {key}={v} out of range {lo}..{hi}")
-    return v
+        return parse_number(text, integer=True, lo=lo, hi=hi)
+    except ValueError as exc:
+        raise ConfigError(f"{url}: {key}={text}: {exc}") from None
 
 
 def parse_modbus_url(url: str) -> ModbusUrl:

@@ -5,20 +5,15 @@ from __future__ import annotations
 from dataclasses import fields
 from pathlib import Path
 
-import yaml
-
 from selfview.errors import ConfigError
+from selfview.io_safe import load_yaml_file
 
 
 def read_yaml(path, what: str) -> dict:
-    """The mapping in a YAML file (empty file: {}); ``ConfigError`` naming the file otherwise."""
+    """The mapping in a YAML file of at most ``MAX_YAML_BYTES`` (empty file: {}); ``ConfigError`` naming
+    the file otherwise (not a regular file, too large, not YAML, aliases, too deep)."""
     p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text())
-    except OSError as exc:
-        raise ConfigError(f"{what} file {str(p)!r}: cannot read ({exc.strerror or exc})") from exc
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{what} file {str(p)!r}: not valid YAML ({exc})") from exc
+    data = load_yaml_file(p, what=f"{what} file", source=f"{what} file {str(p)!r}")
     if data is not None and not isinstance(data, dict):
         raise ConfigError(f"{what} file {str(p)!r}: expected a mapping, got {type(data).__name__}")
     return data or {}

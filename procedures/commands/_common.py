@@ -48,17 +48,41 @@ def print_json(obj) -> None:
     sys.stdout.flush()
 
 
-def positive_seconds(text: str) -> float:
-    """argparse type: a number of seconds > 0."""
-    v = float(text)
-    if not v > 0:
-        raise ValueError(text)
-    return v
+def number(text: str, what: str, *, integer: bool = False, lo: float | None = None, hi: float | None = None,
+           lo_open: bool = False) -> float | int:
+    """A number a person typed (``selfview.io_safe.parse_number``: ASCII digits, finite, in range), or
+    ``argparse.ArgumentTypeError`` naming ``what``, which the command line turns into exit 2."""
+    from selfview.io_safe import parse_number
+
+    try:
+        return parse_number(text, integer=integer, lo=lo, hi=hi, lo_open=lo_open)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{what}: {exc}") from None
 
 
-def check_port(port: int, who: str) -> None:
-    if not 0 <= port <= 65535:
-        raise SystemExit(f"selfview {who}: --port {port} out of 0..65535")
+def numeric(*, integer: bool = False, lo: float | None = None, hi: float | None = None, lo_open: bool = False,
+            name: str = "number"):
+    """An argparse ``type`` for a numeric option: ``number`` with this range (argparse names the option)."""
+    def parse(text: str):
+        from selfview.io_safe import parse_number
+
+        try:
+            return parse_number(text, integer=integer, lo=lo, hi=hi, lo_open=lo_open)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+    parse.__name__ = name
+    return parse
+
+
+#: The numeric options' types: a timeout or duration (longer than an hour is a typing error, and an
+#: infinite wait never ends), a seed, a TCP port, a count, a non-negative time factor.
+SECONDS = numeric(lo=0, lo_open=True, hi=3600, name="seconds")
+SECONDS_OR_ZERO = numeric(lo=0, hi=3600, name="seconds")
+SEED = numeric(integer=True, lo=0, hi=2**32 - 1, name="seed")
+PORT = numeric(integer=True, lo=0, hi=65535, name="port")
+COUNT = numeric(integer=True, lo=1, hi=1_000_000, name="count")
+FACTOR = numeric(lo=0, hi=1000, name="factor")
+BAUD = numeric(integer=True, lo=50, hi=4_000_000, name="baud rate")
 
 
 def serve_until(url: str, duration_s: float | None) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from selfview.procedures.commands._common import check_port, positive_seconds, serve_until
+from selfview.procedures.commands._common import PORT, SECONDS, SECONDS_OR_ZERO, SEED, numeric, serve_until
 from selfview.procedures.commands.gripper import add_io_map_argument, load_io_map_arg
 
 
@@ -19,14 +19,14 @@ def register(kinds):
             "the first line, then serves until Ctrl-C or --duration."
         ),
     )
-    p.add_argument("--port", type=int, default=0, help="TCP port (default: a free one)")
-    p.add_argument("--duration", type=positive_seconds, default=None, metavar="S", help="stop after S seconds")
-    p.add_argument("--seed", type=int, default=0, help="seed of the travel-time jitter")
-    p.add_argument("--travel", type=float, default=0.1, metavar="S", help="jaw travel time (default 0.1 s)")
-    p.add_argument("--travel-sd", type=float, default=0.0, metavar="S", help="travel time jitter, sd (default 0)")
-    p.add_argument("--watchdog", type=positive_seconds, default=1.0, metavar="S", help="connection watchdog (default 1 s)")
+    p.add_argument("--port", type=PORT, default=0, help="TCP port (default: a free one)")
+    p.add_argument("--duration", type=SECONDS, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument("--seed", type=SEED, default=0, help="seed of the travel-time jitter")
+    p.add_argument("--travel", type=SECONDS_OR_ZERO, default=0.1, metavar="S", help="jaw travel time (default 0.1 s)")
+    p.add_argument("--travel-sd", type=SECONDS_OR_ZERO, default=0.0, metavar="S", help="travel time jitter, sd (default 0)")
+    p.add_argument("--watchdog", type=SECONDS, default=1.0, metavar="S", help="connection watchdog (default 1 s)")
     p.add_argument("--no-watchdog", action="store_true", help="never drop the outputs")
-    p.add_argument("--unit", type=int, default=1, help="Modbus unit (device id), default 1")
+    p.add_argument("--unit", type=numeric(integer=True, lo=0, hi=255, name="unit"), default=1, help="Modbus unit (device id), default 1")
     p.add_argument("--rtu", action="store_true", help="RTU frames over TCP (prints modbus-rtu+socket://...)")
     add_io_map_argument(p)
     p.set_defaults(func=run)
@@ -36,7 +36,6 @@ def register(kinds):
 def run(args) -> int:
     from selfview.mocks.valve_terminal import ValveTerminal
 
-    check_port(args.port, "mock gripper")
     terminal = ValveTerminal(
         None,
         io_map=load_io_map_arg(args),

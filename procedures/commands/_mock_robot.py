@@ -4,14 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from selfview.procedures.commands._common import add_cell_argument, check_port, load_cell_arg, positive_seconds, serve_until
-
-
-def _nonneg(text: str) -> float:
-    v = float(text)
-    if not v >= 0:
-        raise ValueError(text)
-    return v
+from selfview.procedures.commands._common import BAUD, FACTOR, PORT, SECONDS, SEED, add_cell_argument, load_cell_arg, serve_until
 
 
 def register(kinds):
@@ -26,12 +19,12 @@ def register(kinds):
         ),
     )
     p.add_argument("--link", choices=("pty", "tcp"), default="pty", help="pseudo-terminal (default) or TCP")
-    p.add_argument("--port", type=int, default=0, help="TCP port (default: a free one)")
-    p.add_argument("--duration", type=positive_seconds, default=None, metavar="S", help="stop after S seconds")
-    p.add_argument("--seed", type=int, default=0, help="seed of the simulated world and of the faults")
-    p.add_argument("--time-scale", type=_nonneg, default=1.0, metavar="K", help="motion time factor (default 1: real time)")
+    p.add_argument("--port", type=PORT, default=0, help="TCP port (default: a free one)")
+    p.add_argument("--duration", type=SECONDS, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument("--seed", type=SEED, default=0, help="seed of the simulated world and of the faults")
+    p.add_argument("--time-scale", type=FACTOR, default=1.0, metavar="K", help="motion time factor (default 1: real time)")
     p.add_argument("--pace", action="store_true", help="send reply bytes at --baud (8N1), like a real line")
-    p.add_argument("--baud", type=int, default=9600, help="pacing baud rate (default 9600)")
+    p.add_argument("--baud", type=BAUD, default=9600, help="pacing baud rate (default 9600)")
     p.add_argument("--no-echo", action="store_true", help="do not echo command lines")
     p.add_argument("--calibrated", action="store_true", help="start calibrated (no CAL needed)")
     p.add_argument("--dialect", default=None, metavar="DIALECT.yaml", help="controller dialect")
@@ -45,9 +38,6 @@ def run(args) -> int:
     from selfview.mocks.val_controller import ValController
     from selfview.mocks.world import SimWorld
 
-    check_port(args.port, "mock robot")
-    if args.baud <= 0:
-        raise SystemExit(f"selfview mock robot: --baud {args.baud} must be positive")
     world = SimWorld(load_cell_arg(args), seed=args.seed)
     sim = ValController(
         world,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 import time
 
-from selfview.procedures.commands._common import add_cell_argument, load_cell_arg
+from selfview.procedures.commands._common import FACTOR, SEED, add_cell_argument, load_cell_arg
 
 
 def add_session_arguments(p, *, seed_default: int = 0, profile_default: str = "ideal", sim_camera_default: str = "ideal",
@@ -25,12 +25,12 @@ def add_session_arguments(p, *, seed_default: int = 0, profile_default: str = "i
                             "frames:///dir/img_%%03d.png); may be given twice")
     else:
         g.add_argument("--camera", metavar="URL", help="frame grabber: v4l2:///dev/video0?input=1&std=pal, frames:///dir/img_%%03d.png")
-    g.add_argument("--seed", type=int, default=seed_default, help="seed of the simulated cell (default %(default)s)")
+    g.add_argument("--seed", type=SEED, default=seed_default, help="seed of the simulated cell (default %(default)s)")
     g.add_argument("--sim-camera", choices=("ideal", "realistic"), default=sim_camera_default,
                    help="the simulated camera: ideal (the cell's nominal principal point and aspect) or realistic "
                         "(drawn from a real camera's ranges: centre up to 15 px off, aspect 0.97-1.07) "
                         "(default %(default)s)")
-    g.add_argument("--time-scale", type=float, default=0.02,
+    g.add_argument("--time-scale", type=FACTOR, default=0.02,
                    help="simulated robot motions take this fraction of real time (default %(default)s)")
     g.add_argument("--profile", default=profile_default, metavar="NAME",
                    help="the simulated cell's imperfections: ideal (a perfect cell), realistic (a real CCIR cell's, "

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from selfview.procedures.commands._common import print_json
+from selfview.procedures.commands._common import numeric, print_json
 from selfview.geometry import rpy_from_R
 from selfview.tsai import FREE_CENTRE_MODES, MODES, calibrate_coplanar, load_willson_points
 
@@ -22,10 +22,10 @@ def register(sub):
     )
     p.add_argument("--points", required=True, metavar="FILE", help="correspondences, one 'xw yw zw u v' per line")
     p.add_argument(
-        "--principal-point", required=True, nargs=2, type=float, metavar=("CX", "CY"),
+        "--principal-point", required=True, nargs=2, type=numeric(lo=-1e5, hi=1e5, name="px"), metavar=("CX", "CY"),
         help="principal point in pixels (the start value with --mode full+centre or willson)",
     )
-    p.add_argument("--aspect", type=float, default=1.0, help="horizontal factor: X^ = A (u - cx) (default 1)")
+    p.add_argument("--aspect", type=numeric(lo=0.5, hi=2.0, name="aspect"), default=1.0, help="horizontal factor: X^ = A (u - cx) (default 1)")
     p.add_argument(
         "--mode", choices=MODES, default="full",
         help=(
@@ -35,7 +35,7 @@ def register(sub):
         ),
     )
     p.add_argument(
-        "--size", nargs=2, type=int, default=(768, 576), metavar=("W", "H"),
+        "--size", nargs=2, type=numeric(integer=True, lo=1, hi=16384, name="px"), default=(768, 576), metavar=("W", "H"),
         help="picture size in pixels, recorded with the camera (default 768 576)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import shutil
+import sys
 import time
+from pathlib import Path
 
-from selfview.procedures.commands._common import print_json
+from selfview.procedures.commands._common import numeric, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
 
 
@@ -27,7 +30,7 @@ def register(sub):
     # lab would with a new camera: the figures a lab should expect (--profile ideal --sim-camera ideal: a
     # perfect cell)
     add_session_arguments(p, profile_default="realistic", sim_camera_default="realistic")
-    p.add_argument("--trials", type=int, default=20, help="trials per series (default %(default)s)")
+    p.add_argument("--trials", type=numeric(integer=True, lo=1, hi=10_000, name="trials"), default=20, help="trials per series (default %(default)s)")
     p.add_argument("--series", nargs="+", default=["cable", "tilt"], help="series to run (default: cable tilt)")
     p.add_argument("--out", metavar="DIR", help="results folder (must be new or empty; default runs/experiment-TIME)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
@@ -40,16 +43,37 @@ def register(sub):
 
 
 def run(args) -> int:
-    from selfview.procedures.experiment import tables_markdown
     from selfview.procedures.results import new_run_dir
-    from selfview.procedures.runs import write_experiment_folder
-    from selfview.errors import ConfigError
 
-    if args.trials < 1:
-        raise ConfigError(f"--trials: expected at least 1, got {args.trials}")
     say = progress_printer(args.quiet)
     cell, session = open_session(args, say)
+    given_existed = args.out is not None and Path(args.out).is_dir()
     folder = None if args.dry_run else new_run_dir(args.out)
+    try:
+        return _run(args, cell, session, folder, say)
+    except BaseException:
+        if folder is not None:
+            _discard(folder, keep_folder=given_existed)
+        raise
+
+
+def _discard(folder: Path, *, keep_folder: bool) -> None:
+    """Remove what a failed run left in its results folder (new or empty when the run began), and the
+    folder itself unless it existed before: a half-written run is never taken for a result."""
+    try:
+        for entry in folder.iterdir():
+            shutil.rmtree(entry) if entry.is_dir() and not entry.is_symlink() else entry.unlink()
+        if not keep_folder:
+            folder.rmdir()
+    except OSError as exc:
+        print(f"selfview experiment: could not remove the incomplete results folder {folder} ({exc.strerror or exc})",
+              file=sys.stderr)
+
+
+def _run(args, cell, session, folder, say) -> int:
+    from selfview.procedures.experiment import tables_markdown
+    from selfview.procedures.runs import write_experiment_folder
+
     total = args.trials * len(args.series)
     t0 = time.monotonic()
     done = [0]

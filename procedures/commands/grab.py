@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from selfview.procedures.commands._common import add_cell_argument, load_cell_arg, print_json, write_image
+from selfview.procedures.commands._common import COUNT, SECONDS, SEED, add_cell_argument, load_cell_arg, print_json, write_image
 from selfview.errors import ConfigError
 
 
@@ -20,10 +20,10 @@ def register(sub):
     )
     p.add_argument("--url", required=True, help="frame source URL")
     p.add_argument("--out", required=True, metavar="IMG.png", help="picture file to write")
-    p.add_argument("--average", type=int, default=1, metavar="N", help="average N frames (default 1)")
+    p.add_argument("--average", type=COUNT, default=1, metavar="N", help="average N frames (default 1)")
     p.add_argument("--field", action="store_true", help="one field only (every other row, for a moving scene)")
-    p.add_argument("--timeout", type=float, default=2.0, metavar="S", help="frame timeout (default 2 s)")
-    p.add_argument("--seed", type=int, default=0, help="sim://: seed of the simulated world")
+    p.add_argument("--timeout", type=SECONDS, default=2.0, metavar="S", help="frame timeout (default 2 s)")
+    p.add_argument("--seed", type=SEED, default=0, help="sim://: seed of the simulated world")
     add_cell_argument(p)
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from selfview.procedures.commands._common import add_cell_argument, load_cell_arg, print_json, write_image
+from selfview.procedures.commands._common import SEED, add_cell_argument, load_cell_arg, print_json, write_image
 from selfview.errors import ConfigError
 
 
@@ -29,7 +29,7 @@ def register(sub):
     )
     add_cell_argument(p)
     p.add_argument("--out", required=True, metavar="IMG.png", help="where to write the picture (PNG)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the simulated cell and of the sensor noise (default 0)")
+    p.add_argument("--seed", type=SEED, default=0, help="seed of the simulated cell and of the sensor noise (default 0)")
     p.add_argument("--state", default=None, metavar="STATE",
                    help="gripper state whose jaw gap to use, e.g. open or closed (default: the cell's calibrate_in)")
     p.add_argument("--disturb", action="append", default=[], metavar="SERIES",

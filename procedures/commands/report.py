@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from selfview.procedures.commands._common import print_json
+from selfview.procedures.commands._common import numeric, print_json
 
 
 def register(sub):
@@ -24,10 +24,10 @@ def register(sub):
     p.add_argument("--out", default="docs/RESULTS.md", metavar="RESULTS.md", help="the report (default %(default)s)")
     p.add_argument("--quick", action="store_true", help="small sizes everywhere (a smoke test, not evidence)")
     p.add_argument("--only", metavar="NAME", nargs="+", help="run only these benchmarks (e.g. offline update_limit)")
-    p.add_argument("--trials", type=int, help="experiment trials per series (default 20, quick 2; 0 skips it)")
+    p.add_argument("--trials", type=numeric(integer=True, lo=0, hi=10_000, name="trials"), help="experiment trials per series (default 20, quick 2; 0 skips it)")
     p.add_argument("--bench-dir", metavar="DIR", help="a bench/ folder to run instead of the installed project's own")
     p.add_argument("--reference", metavar="DIR", help="the folder of Willson's data (default: the copy shipped with selfview)")
-    p.add_argument("--jobs", type=int, default=2, help="processes for the experiment's two series (default 2)")
+    p.add_argument("--jobs", type=numeric(integer=True, lo=1, hi=64, name="jobs"), default=2, help="processes for the experiment's two series (default 2)")
     p.add_argument("--write-cell", metavar="CELL.yaml",
                    help="also write the update limit measured in this run into that cell file (e.g. selfview/data/cell.yaml)")
     p.add_argument("--keep", action="store_true",

@@ -31,7 +31,7 @@ def test_rtu_urls():
     [
         ("tcp://127.0.0.1:502", "unknown scheme"),
         ("127.0.0.1:502", "expected modbus-tcp"),
-        ("modbus-tcp://127.0.0.1:502?unit=300", "unit=300 out of range"),
+        ("modbus-tcp://127.0.0.1:502?unit=300", "unit=300: out of range"),
         ("modbus-tcp://127.0.0.1:502?slave=1", "unknown parameter"),
         ("modbus-tcp://127.0.0.1:0", "port 0"),
         ("modbus-tcp://127.0.0.1:99999", "bad port"),
@@ -40,6 +40,8 @@ def test_rtu_urls():
         ("modbus-rtu://dev/ttyUSB0", "three slashes"),
         ("modbus-rtu:///dev/ttyUSB0?parity=X", "parity"),
         ("modbus-rtu:///dev/ttyUSB0?baud=fast", "not a whole number"),
+        ("modbus-rtu:///dev/ttyUSB0?baud=19_200", "not a whole number in ASCII digits"),
+        ("modbus-tcp://127.0.0.1:502?unit=\uff11", "not a whole number in ASCII digits"),  # a full-width 1
         ("modbus-rtu+socket://10.0.0.7", "no standard port"),
     ],
 )
@@ -80,6 +82,8 @@ def test_points_and_modicon_references():
         ("40000", "count from 1"),
         ("4001", "expected"),
         ("coil:70000", "0..65535"),
+        ("coil:\uff11", "expected"),  # a full-width digit: re's \d would take it
+        ("\uff14" + "0001", "expected"),
     ],
 )
 def test_bad_points(text, match):
@@ -162,3 +166,11 @@ def test_reads_are_grouped_within_modbus_limits():
         ("input_register", 3, 1),  # two bits of one register: one register read
         ("input_register", 200, 1),
     ]
+
+
+@pytest.mark.parametrize("timeout_s", [float("inf"), float("nan"), 1e10, 0.0, -1.0])
+def test_request_timeouts_are_finite_and_bounded(timeout_s):
+    from selfview.drivers.pneumatic_gripper.modbus import ModbusLink
+
+    with pytest.raises(ConfigError, match="timeout_s"):
+        ModbusLink("modbus-tcp://127.0.0.1:502?unit=1", timeout_s=timeout_s)  # inf would wait forever

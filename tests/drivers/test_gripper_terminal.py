@@ -155,7 +155,7 @@ def test_exception_replies_on_demand(terminal):
 
 
 def test_silent_terminal_times_out_and_blocks_jaw_commands(terminal):
-    with PneumaticGripper(terminal.url, request_timeout_s=0.15, poll_s=0.05) as g:
+    with PneumaticGripper(terminal.url, request_timeout_s=0.15, retries=0, poll_s=0.05) as g:
         terminal.set_silent()
         n0 = terminal.requests
         with pytest.raises(DeviceTimeout, match="safe state NOT confirmed"):
@@ -295,3 +295,32 @@ def test_safe_state_closed():
         g.safe()
         assert t.valve_outputs == {"open": False, "close": True}
         assert wait_for(lambda: t.position == 0.0)
+
+
+def test_reads_are_tried_again_after_a_lost_reply_writes_never(terminal):
+    from selfview.drivers.pneumatic_gripper.modbus import DEFAULT_READ_RETRIES, DEFAULT_TIMEOUT_S, ModbusLink
+
+    assert DEFAULT_TIMEOUT_S >= 1.0 and DEFAULT_READ_RETRIES >= 1  # a busy PC's reply is late, not missing
+    link = ModbusLink(terminal.url, timeout_s=0.15, retries=2)
+    try:
+        assert link.read("coil", 0, 2) == [False, False]
+        n0, c0 = terminal.requests, link.connections
+        terminal.set_silent(requests=2)  # two replies lost, the third answered
+        assert link.read("discrete_input", 0, 2) == list(terminal.sensors)
+        assert terminal.requests - n0 == 3 and link.connections == c0  # sent again on the same connection
+        n0 = terminal.requests
+        terminal.set_silent(requests=1)
+        with pytest.raises(DeviceTimeout, match="x 1 attempt"):
+            link.write_coil(0, True)  # a write that timed out may have been carried out: not sent again
+        assert terminal.requests - n0 == 1
+        n0 = terminal.requests
+        terminal.set_silent()
+        with pytest.raises(DeviceTimeout, match="x 3 attempt"):
+            link.read("coil", 0, 2)
+        assert terminal.requests - n0 == 3
+    finally:
+        terminal.set_silent(False)
+        link.close()
+    with PneumaticGripper(terminal.url, request_timeout_s=0.15, poll_s=None) as g:  # the default retries
+        terminal.set_silent(requests=2)
+        assert g.state() == "open" and g.halted is None and g.close_jaws() == "closed"

@@ -293,7 +293,7 @@ def test_exception_reply_is_typed_and_keeps_the_link(device):
 
 def test_silent_device_times_out_within_its_timeout(device):
     d = device(CONNECT_OPEN + [(mbap(3, "02 0000 0002"), SILENT)] + SAFE_AFTER_RECONNECT)
-    with PneumaticGripper(d.url, poll_s=None, request_timeout_s=0.2) as g:
+    with PneumaticGripper(d.url, poll_s=None, request_timeout_s=0.2, retries=0) as g:
         with pytest.raises(DeviceTimeout):
             g.state()  # one attempt (not pymodbus's default 4): a repeated request would break the script
         assert g.last_state is None and not g.connected  # silent after the safe attempt
@@ -380,7 +380,7 @@ def test_write_echo_naming_another_coil_switches_it_off_on_a_dedicated_terminal(
 def test_reply_from_another_unit_is_ignored_until_timeout(device):
     # as on a shared RTU bus: a frame for another unit is not ours; the device counts as silent
     d = device(CONNECT_OPEN + [(mbap(3, "02 0000 0002"), mbap(3, "02 01 01", unit=9))] + SAFE_AFTER_RECONNECT)
-    with PneumaticGripper(d.url, poll_s=None, request_timeout_s=0.2) as g:
+    with PneumaticGripper(d.url, poll_s=None, request_timeout_s=0.2, retries=0) as g:
         with pytest.raises(DeviceTimeout):
             g.state()
         assert g.last_state is None

@@ -54,3 +54,20 @@ def test_mock_gripper_duration_and_rtu():
         if proc.poll() is None:
             proc.kill()
             proc.wait(5)
+
+
+def test_library_log_lines_only_with_verbose():
+    """pymodbus logs each lost reply (and dumps frames) on its own; the operator sees the command's error."""
+    from selfview.mocks.valve_terminal import ValveTerminal
+
+    with ValveTerminal() as t:
+        t.set_silent()
+        errs = []
+        for verbose in ([], ["-v"]):
+            r = subprocess.run([sys.executable, "-m", "selfview.procedures.cli", *verbose, "gripper", "--url", t.url,
+                                "--request-timeout", "0.1", "--retries", "0", "state"],
+                               cwd=REPO, capture_output=True, text=True, timeout=60)
+            assert r.returncode == 4 and "no reply within 0.1 s" in r.stderr
+            errs.append(r.stderr)
+    assert "pymodbus" not in errs[0] and len(errs[0].strip().splitlines()) == 2
+    assert "pymodbus" in errs[1]

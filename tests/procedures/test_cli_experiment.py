@@ -45,8 +45,9 @@ def test_experiment_writes_its_results_folder(tmp_path, capsys):
 
 
 def test_bad_arguments_name_the_problem(capsys):
-    assert main(["experiment", "--trials", "0", "--quiet"]) == 3
-    assert "--trials" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stop:
+        main(["experiment", "--trials", "0", "--quiet"])
+    assert stop.value.code == 2 and "--trials" in capsys.readouterr().err
     assert main(["experiment", "--robot", "/dev/ttyS0", "--quiet"]) == 3
     assert "--real" in capsys.readouterr().err
     assert main(["experiment", "--real", "--quiet"]) == 3
@@ -82,3 +83,30 @@ def test_profile_option_where_a_simulated_cell_is_built():
         assert p.parse_args([cmd, *extra, "--profile", "paper-like"]).profile == "paper-like"
     sim = SimulatedCell(load_cell(default_cell_path()), seed=2, profile="paper-like")
     assert sim.world.imperfections.finger_dim_sd_mm > 0
+
+
+@pytest.mark.parametrize("existed", [False, True])
+def test_a_failed_write_leaves_no_partial_results_folder(tmp_path, capsys, monkeypatch, existed):
+    import errno
+
+    import selfview.procedures.runs as runs
+
+    real_write = runs.write_experiment_folder
+
+    def disk_fills(folder, *a, **kw):
+        (Path(folder) / "tables.md").write_text("half")
+        (Path(folder) / "pictures").mkdir()
+        raise OSError(errno.ENOSPC, "No space left on device", str(Path(folder) / "errors.png"))
+
+    monkeypatch.setattr(runs, "write_experiment_folder", disk_fills)
+    out = tmp_path / "run"
+    if existed:
+        out.mkdir()
+    argv = ["experiment", "--trials", "1", "--series", "cable", "--profile", "ideal", "--sim-camera", "ideal",
+            "--out", str(out), "--quiet"]
+    assert main(argv) == 3
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "errors.png" in err and "Traceback" not in err
+    assert out.is_dir() == existed and (not existed or list(out.iterdir()) == [])
+    monkeypatch.setattr(runs, "write_experiment_folder", real_write)
+    assert main(argv) == 0 and (out / "results.json").is_file()

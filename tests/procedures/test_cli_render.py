@@ -86,3 +86,40 @@ def test_bad_arguments_exit_3_naming_what_is_wrong(tmp_path, capsys, args, word)
     assert code == EXIT_CONFIG
     assert word in err
     assert not (tmp_path / "pic.png").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, word",
+    [
+        (["render", "--seed", "-1", "--out", "{tmp}/p.png"], "--seed: out of range: -1"),
+        (["render", "--seed", "1_0", "--out", "{tmp}/p.png"], "ASCII digits"),  # float() and int() take 1_0 as 10
+        (["render", "--seed", "\uff13", "--out", "{tmp}/p.png"], "ASCII digits"),  # a full-width 3
+        (["park", "--seed", "-5"], "--seed: out of range: -5"),
+        (["experiment", "--trials", "0"], "--trials"),
+        (["experiment", "--time-scale", "nan"], "--time-scale"),
+        (["mock", "robot", "--port", "99999"], "--port: out of range: 99999"),
+        (["mock", "gripper", "--duration", "inf"], "--duration"),
+        (["mock", "robot", "--time-scale", "1e308"], "--time-scale"),
+        (["grab", "--url", "sim://", "--out", "{tmp}/p.png", "--timeout", "1e10"], "--timeout"),
+        (["camera", "--points", "{tmp}/p.dat", "--principal-point", "1e308", "0"], "--principal-point"),
+    ],
+)
+def test_numbers_are_ascii_finite_and_in_range_or_exit_2(tmp_path, capsys, argv, word):
+    with pytest.raises(SystemExit) as stop:
+        main([a.format(tmp=tmp_path) for a in argv])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and word in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_file_names_the_system_refuses_exit_3(tmp_path, capsys):
+    long_name = str(tmp_path / ("a" * 300 + ".yaml"))
+    picture = tmp_path / "p.png"
+    assert run(capsys, "--out", picture)[0] == 0
+    for argv in (["calibrate", "--image", str(picture), "--out", long_name],
+                 ["calibrate", "--image", str(picture), "--out", "/dev/full"],
+                 ["track", "--calibration", "/dev/full", "--image", str(picture)],
+                 ["render", "--out", str(picture), "--truth", "/dev/full"]):
+        code = main(argv)
+        err = capsys.readouterr().err
+        assert code == EXIT_CONFIG and "Traceback" not in err and ("/dev/full" in err or "aaaa" in err), err

@@ -199,7 +199,7 @@ def test_a_write_that_fails_half_way_leaves_the_old_file(tmp_path, rng, monkeypa
         save_calibration(make_cal(rng, f=960.0), p, keep_history=False)
     assert str(p) in str(e.value)
     assert p.read_bytes() == old and load_calibration(p).camera.f == 950.0
-    assert sorted(x.name for x in tmp_path.iterdir()) == ["cal.yaml"]
+    assert sorted(x.name for x in tmp_path.iterdir()) == [".cal.yaml.lock", "cal.yaml"]  # the writers' lock stays
 
 
 _CRASH = r"""
@@ -233,8 +233,13 @@ def test_a_crash_in_the_middle_of_a_write_leaves_the_old_file(tmp_path, rng):
     assert r.returncode == -signal.SIGKILL, r.stderr
     assert p.read_bytes() == old  # no half file under the name, ever
     assert load_calibration(p).camera.f == 950.0
-    save_calibration(make_cal(rng, f=960.0), p)  # and the next write goes through
+    left = list(tmp_path.glob(".cal.yaml.*.tmp"))  # the killed writer's temporary, named with its pid
+    assert len(left) == 1 and left[0].name.split(".")[3].isdigit()
+    mine = tmp_path / f".cal.yaml.{os.getpid()}.{'0' * 12}.tmp"  # a live writer's is never touched
+    mine.write_bytes(b"being written")
+    save_calibration(make_cal(rng, f=960.0), p)  # and the next write goes through, removing the leftover
     assert load_calibration(p).camera.f == 960.0
+    assert list(tmp_path.glob(".cal.yaml.*.tmp")) == [mine]
 
 
 def test_a_file_size_limit_is_a_clear_error(tmp_path, rng):
@@ -263,7 +268,7 @@ def test_a_file_size_limit_is_a_clear_error(tmp_path, rng):
                        preexec_fn=small_files, env=env)
     assert r.returncode == 3, r.stderr
     assert str(p) in r.stdout and "file too large" in r.stdout
-    assert p.read_bytes() == old and sorted(x.name for x in tmp_path.iterdir()) == ["cal.yaml"]
+    assert p.read_bytes() == old and sorted(x.name for x in tmp_path.iterdir()) == [".cal.yaml.lock", "cal.yaml"]
 
 
 def test_history_that_is_a_file_and_out_under_a_file(tmp_path, rng):
@@ -337,3 +342,88 @@ def test_values_no_camera_or_cell_has_are_refused_even_with_a_good_checksum(tmp_
     p.write_text(yaml.safe_dump(doc, sort_keys=False))
     with pytest.raises(CalibrationFileError, match="not a|outside|over|plausible"):
         load_calibration(p)
+
+
+# --- concurrent writers, links and leftovers ------------------------------------------------------
+def test_an_update_replaces_only_the_version_it_was_derived_from(tmp_path, rng):
+    p = tmp_path / "cal.yaml"
+    save_calibration(make_cal(rng, f=950.0), p)
+    started = load_calibration(p)  # a monitor run starts from this version
+    save_calibration(make_cal(rng, f=960.0), p)  # a recalibration saved meanwhile
+    recal = p.read_bytes()
+    started.C_H_G = started.C_H_G.copy()
+    started.updates.append({"by": "monitor"})
+    with pytest.raises(CalibrationFileError, match="changed since it was read") as e:
+        save_calibration(started, p, expected=started)
+    import hashlib
+
+    assert started.file_sha256[:12] in str(e.value) and hashlib.sha256(recal).hexdigest()[:12] in str(e.value)
+    assert p.read_bytes() == recal  # the recalibration stays
+    with pytest.raises(CalibrationFileError, match="changed since it was read"):
+        save_calibration(started, p, expected=started.file_sha256)  # the hash alone does the same
+    now = load_calibration(p)
+    now.updates.append({"by": "monitor"})
+    save_calibration(now, p, expected=now)  # derived from what is there: written
+    assert load_calibration(p).updates == [{"by": "monitor"}]
+    with pytest.raises(CalibrationFileError, match="not read from a file"):
+        save_calibration(make_cal(rng), p, expected=make_cal(rng))
+
+
+def test_writers_of_one_file_take_turns(tmp_path, rng):
+    import threading
+    import time
+
+    from selfview.io_safe import file_lock
+
+    p = tmp_path / "cal.yaml"
+    save_calibration(make_cal(rng, f=950.0), p)
+    started = load_calibration(p)
+    held, t_saved = threading.Event(), []
+
+    def other_writer():  # takes the lock, replaces the file, then lets go
+        with file_lock(p, error=CalibrationFileError):
+            held.set()
+            time.sleep(0.3)
+            save_calibration(make_cal(rng, f=960.0), p.with_name("other.yaml"))
+            p.with_name("other.yaml").replace(p)
+        t_saved.append(time.monotonic())
+
+    t = threading.Thread(target=other_writer)
+    t.start()
+    assert held.wait(5)
+    with pytest.raises(CalibrationFileError, match="changed since it was read"):
+        save_calibration(started, p, expected=started)  # waited for its turn, then saw the new version
+    t.join(5)
+    assert t_saved and load_calibration(p).camera.f == 960.0
+    with file_lock(p, error=CalibrationFileError):
+        with pytest.raises(CalibrationFileError, match="another process has been writing"):
+            with file_lock(p, error=CalibrationFileError, timeout_s=0.1):
+                pass
+
+
+def test_a_symlinked_file_has_its_target_replaced(tmp_path, rng):
+    real = tmp_path / "cells" / "cal.yaml"
+    real.parent.mkdir()
+    save_calibration(make_cal(rng, f=950.0), real)
+    link = tmp_path / "current.yaml"
+    link.symlink_to(real)
+    save_calibration(make_cal(rng, f=960.0), link)
+    assert link.is_symlink() and link.resolve() == real.resolve()
+    assert load_calibration(real).camera.f == 960.0 and load_calibration(link).camera.f == 960.0
+    assert [load_calibration(k).camera.f for k in history_dir(real).iterdir()] == [950.0]
+
+
+def test_history_leftovers_of_dead_writers_are_removed(tmp_path, rng):
+    import subprocess
+    import sys
+
+    p = tmp_path / "cal.yaml"
+    save_calibration(make_cal(rng, f=950.0), p)
+    save_calibration(make_cal(rng, f=955.0), p)
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True,
+                          timeout=60).stdout.strip()
+    hd = history_dir(p)
+    stale = hd / f".20260101T000000.000000Z-0123abcd.yaml.{dead}.{'a' * 12}.tmp"
+    stale.write_bytes(b"half a copy")
+    save_calibration(make_cal(rng, f=960.0), p)
+    assert not stale.exists() and len(list(hd.iterdir())) == 2

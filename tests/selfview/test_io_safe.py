@@ -3,6 +3,7 @@ reader, and the atomic writer's refusals."""
 
 from __future__ import annotations
 
+import os
 import struct
 import zlib
 
@@ -12,6 +13,8 @@ import pytest
 
 from selfview.errors import ConfigError, ImageError
 from selfview.io_safe import atomic_write, load_yaml, picture_size, read_picture
+
+from tests.conftest import REPO
 
 
 def png_header_only(width: int, height: int, idat: bytes = b"") -> bytes:
@@ -125,3 +128,79 @@ def test_atomic_write_refuses_a_folder_target(tmp_path):
     atomic_write(tmp_path / "f.txt", b"abc")
     assert (tmp_path / "f.txt").read_bytes() == b"abc"
     assert sorted(x.name for x in tmp_path.iterdir()) == ["d", "f.txt"]
+
+
+# --- files checked before they are read -----------------------------------------------------------
+def test_bounded_reads_refuse_what_is_not_a_regular_file(tmp_path):
+    from selfview.io_safe import read_bounded
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)  # opening it to read would block until a writer came
+    for path, kind in ((fifo, "a FIFO"), ("/dev/zero", "a character device"), (tmp_path, "a folder")):
+        with pytest.raises(ConfigError, match=f"{path}: cannot read the cell file: it is {kind}"):
+            read_bounded(path, 1000, what="cell file")
+    big = tmp_path / "big.yaml"
+    big.write_bytes(b"a" * 1001)
+    with pytest.raises(ConfigError, match="1001 bytes, more than the 1000 accepted"):
+        read_bounded(big, 1000)
+    assert read_bounded(big, 1001) == b"a" * 1001
+    with pytest.raises(ConfigError, match="none.yaml: no such thing"):
+        read_bounded(tmp_path / "none.yaml", 10, missing="no such thing")
+
+
+def _run_limited(argv: list[str], tmp_path, timeout_s: float = 20.0):
+    """(exit code, stderr, peak resident kB) of ``selfview ARGV`` in a child whose address space is capped."""
+    import resource
+    import subprocess
+    import sys
+    import time
+
+    def cap():
+        resource.setrlimit(resource.RLIMIT_AS, (1_500_000_000, 1_500_000_000))
+
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    with open(tmp_path / "stderr.txt", "w+b") as errf:
+        proc = subprocess.Popen([sys.executable, "-m", "selfview.procedures.cli", *argv], stdout=subprocess.DEVNULL,
+                                stderr=errf, env=env, preexec_fn=cap)
+        end = time.monotonic() + timeout_s
+        pid = status = 0
+        while time.monotonic() < end:
+            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+            if pid:
+                break
+            time.sleep(0.05)
+        if not pid:
+            proc.kill()
+            proc.wait()
+            pytest.fail(f"selfview {' '.join(argv)} still reading after {timeout_s} s")
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        errf.seek(0)
+        return proc.returncode, errf.read().decode(errors="replace"), usage.ru_maxrss
+
+
+@pytest.mark.parametrize("kind", ["/dev/zero", "fifo"])
+def test_endless_files_are_refused_at_the_command_line(tmp_path, kind):
+    path = kind
+    if kind == "fifo":
+        path = str(tmp_path / "cal.yaml")
+        os.mkfifo(path)
+    for argv in (["track", "--calibration", path, "--image", str(tmp_path / "x.png")],
+                 ["calibrate", "--cell", path, "--image", str(tmp_path / "x.png"), "--out", str(tmp_path / "o.yaml")]):
+        code, err, peak_kb = _run_limited(argv, tmp_path)
+        assert code == 3 and path in err and "not a regular file" in err and "Traceback" not in err, err
+        assert peak_kb < 200_000
+
+
+def test_numbers_in_files_and_typed_are_plain_ascii_digits():
+    from selfview.io_safe import parse_number
+
+    for text in ("a: 1_0\n", "a: 1:30\n", "a: 1_000.5\n"):  # YAML 1.1 reads 10, 90 and 1000.5
+        with pytest.raises(ConfigError, match="plain digits"):
+            load_yaml(text, "m.yaml")
+    assert load_yaml("a: -10\nb: 2.5e-3\n", "m.yaml") == {"a": -10, "b": 0.0025}
+    assert parse_number(" -1.5e2 ") == -150.0 and parse_number("7", integer=True, lo=1, hi=7) == 7
+    for text, kw, why in (("1_0", {}, "ASCII digits"), ("\uff11\uff10", {}, "ASCII digits"), ("1.5", {"integer": True}, "whole"),
+                          ("inf", {}, "non-finite"), ("-nan", {}, "non-finite"), ("1e400", {}, "out of range"),
+                          ("1e308", {"lo": -360, "hi": 360}, "out of range"), ("0", {"lo": 0, "lo_open": True}, "> 0")):
+        with pytest.raises(ValueError, match=why):
+            parse_number(text, **kw)
