@@ -6,7 +6,8 @@ Modules are found at start-up, so adding a command never touches this file.
 
 Exit codes (stable; scripts may rely on them):
   0 success, 1 unexpected internal error, 2 usage error, 3 bad configuration or input file,
-  4 device error or timeout, 5 calibration failed, 6 alarm raised by the monitor, 130 interrupted.
+  4 device error or timeout, 5 calibration failed, 6 alarm raised by the monitor, 130 interrupted
+  (Ctrl-C), 128+N ended by signal N (SIGTERM 143, SIGHUP 129, SIGQUIT 131) after the same cleanup.
 """
 
 from __future__ import annotations
@@ -15,10 +16,12 @@ import argparse
 import importlib
 import logging
 import pkgutil
+import signal
 import sys
+import threading
 
 from selfview import __version__
-from selfview.procedures.engine import Cancelled
+from selfview.procedures.engine import TERMINATION_SIGNALS, Cancelled, Interrupted
 from selfview.errors import (
     AlarmError,
     CalibrationError,
@@ -67,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
         ),
         epilog=(
             "Exit codes: 0 ok, 1 internal error, 2 usage, 3 configuration or file, 4 device, "
-            "5 calibration, 6 alarm, 130 interrupted."
+            "5 calibration, 6 alarm, 130 interrupted, 128+N ended by signal N (143 SIGTERM, 129 SIGHUP)."
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -85,7 +88,32 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _raise_interrupted(signum, frame):
+    raise Interrupted(signum)
+
+
+def _catch_termination_signals() -> dict:
+    """SIGTERM, SIGHUP and SIGQUIT raise ``Interrupted`` (a ``KeyboardInterrupt``) as Ctrl-C raises
+    ``KeyboardInterrupt``, so every command cleans up for them as it does for Ctrl-C (the engine
+    turns them into a flag while a procedure runs). Returns the previous handlers."""
+    old = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in TERMINATION_SIGNALS:
+            if sig != signal.SIGINT and signal.getsignal(sig) is not signal.SIG_IGN:  # nohup's choice stays
+                old[sig] = signal.signal(sig, _raise_interrupted)
+    return old
+
+
 def main(argv: list[str] | None = None) -> int:
+    old = _catch_termination_signals()
+    try:
+        return _main(argv)
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+
+
+def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     level = {0: logging.ERROR, 1: logging.INFO}.get(args.verbose, logging.DEBUG)
@@ -96,15 +124,25 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         return int(args.func(args) or 0)
-    except KeyboardInterrupt:
-        print("selfview: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", signal.SIGINT)
+        _say("selfview: interrupted" if signum == signal.SIGINT else f"selfview: terminated by {exc}")
+        return 128 + signum
     except CellError as exc:
         code, hint = exit_code_for(exc)
-        print(f"selfview {args.command}: error: {exc}\n  what to do: {hint}", file=sys.stderr)
+        if isinstance(exc, Cancelled):
+            code = 128 + exc.signum
+        _say(f"selfview {args.command}: error: {exc}\n  what to do: {hint}")
         return code
     except BrokenPipeError:
         return EXIT_OK
+
+
+def _say(text: str) -> None:
+    try:
+        print(text, file=sys.stderr)
+    except OSError:  # the terminal is gone (SIGHUP): the exit code still tells
+        pass
 
 
 if __name__ == "__main__":  # pragma: no cover
