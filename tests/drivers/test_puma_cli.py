@@ -156,3 +156,39 @@ def test_robot_cli_abort_while_another_client_moves_the_arm(cell, capsys):
         out = json.loads(capsys.readouterr().out)
         assert out["abort"]["written"] and out["abort"]["confirmed"]
         assert c.received == ["ABORT"]  # ABORT first: no CR before it
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT], ids=lambda s: signal.Signals(s).name)
+def test_a_termination_signal_during_robot_ready_aborts_the_motion_and_exits_128_plus_n(cell, sig):
+    import os
+    import time
+
+    from selfview.mocks.val_controller import ValController
+    from selfview.mocks.world import SimWorld
+
+    with ValController(SimWorld(cell, seed=2), time_scale=1.0, calibrated=True, speed_pct=5.0) as c:
+        c.start_pty()
+        env = dict(os.environ, PYTHONPATH=str(REPO))
+        proc = subprocess.Popen([sys.executable, "-m", "selfview.procedures.cli", "robot", "--url", c.url, "ready"],
+                                cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert c.moving.wait(60.0), "the arm never started moving"
+            time.sleep(0.3)
+            q_at_signal = c.joints
+            proc.send_signal(sig)
+            t_signal = time.monotonic()
+            while c.moving.is_set() and time.monotonic() - t_signal < 5.0:
+                time.sleep(0.005)
+            stopped_after = time.monotonic() - t_signal
+            out, err = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(5)
+        assert proc.returncode == 128 + sig, err
+        assert "ABORT" in c.received, c.received
+        assert stopped_after < 0.5, f"the arm stopped {stopped_after:.3f} s after the signal"
+        # at SPEED 5 the fastest joint turns 6 deg/s: 0.5 s of travel is at most 3 deg
+        assert np.abs(c.joints - q_at_signal).max() < 3.0
+        assert f"terminated by {signal.Signals(sig).name}" in err and "ABORT sent and confirmed" in err
+        assert "this is a bug" not in err and "Traceback" not in err
