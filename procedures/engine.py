@@ -179,7 +179,7 @@ class Engine:
         """Check every planned motion against the robot's limits before anything moves.
 
         Named locations are read from the controller (POINT); appro targets are backed off along their
-        tool z; depart from the previous target; READY's tool point comes from the driver's kinematics;
+        tool z (a negative distance, beyond the location, is refused); depart from the previous target; READY's tool point comes from the driver's kinematics;
         a drive is checked by the driver against the joints it reads just before sending. Raises
         ``LimitError`` naming the step."""
         robot = self.devices.robot
@@ -204,6 +204,8 @@ class Engine:
                     continue
                 if s.kind not in MOTION_KINDS:
                     continue
+                if s.kind in ("appro", "depart"):
+                    limits.check_distance(s.params["distance_mm"], f"step {i + 1} {s.describe()}")
                 if s.kind == "depart":
                     if last is None:
                         continue  # relative to wherever the robot is: checked by the driver when sent
