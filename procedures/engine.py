@@ -68,7 +68,7 @@ class Interrupted(KeyboardInterrupt):
 
 
 class _SignalFlag:
-    """While active (main thread only), each signal of ``TERMINATION_SIGNALS`` only records itself:
+    """While active (main thread only), each signal of ``TERMINATION_SIGNALS`` that is not ignored only records itself:
     the first in ``signum``, every one in ``count``. Restores the previous handlers on exit."""
 
     def __init__(self):
@@ -84,6 +84,8 @@ class _SignalFlag:
     def __enter__(self) -> "_SignalFlag":
         if threading.current_thread() is threading.main_thread():
             for sig in TERMINATION_SIGNALS:
+                if signal.getsignal(sig) is signal.SIG_IGN:
+                    continue  # ignored on purpose (nohup, a background job): it stays ignored
                 try:
                     self._old[sig] = signal.signal(sig, self._note)
                 except (OSError, ValueError):  # not settable here
