@@ -21,7 +21,7 @@ import sys
 import threading
 
 from selfview import __version__
-from selfview.procedures.engine import TERMINATION_SIGNALS, Cancelled, Interrupted
+from selfview.procedures.engine import TERMINATION_SIGNALS, Cancelled, Interrupted, _SignalFlag
 from selfview.errors import (
     AlarmError,
     CalibrationError,
@@ -89,17 +89,24 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _raise_interrupted(signum, frame):
-    raise Interrupted(signum)
+    """The first termination signal raises (``KeyboardInterrupt`` for SIGINT, ``Interrupted`` for the
+    others) where the program is; every later one is only noted, so that the cleanup the first one
+    started (ABORT, safe valve, closes, the report) is never cut short. A signal the engine has turned
+    into its flag counts as the first."""
+    if _SignalFlag.seen is not None:
+        return
+    _SignalFlag.seen = signum
+    raise KeyboardInterrupt() if signum == signal.SIGINT else Interrupted(signum)
 
 
 def _catch_termination_signals() -> dict:
-    """SIGTERM, SIGHUP and SIGQUIT raise ``Interrupted`` (a ``KeyboardInterrupt``) as Ctrl-C raises
-    ``KeyboardInterrupt``, so every command cleans up for them as it does for Ctrl-C (the engine
-    turns them into a flag while a procedure runs). Returns the previous handlers."""
+    """Install ``_raise_interrupted`` for every catchable termination signal not ignored on purpose
+    (nohup, a background job). Returns the previous handlers."""
     old = {}
     if threading.current_thread() is threading.main_thread():
+        _SignalFlag.seen = None
         for sig in TERMINATION_SIGNALS:
-            if sig != signal.SIGINT and signal.getsignal(sig) is not signal.SIG_IGN:  # nohup's choice stays
+            if signal.getsignal(sig) is not signal.SIG_IGN:
                 old[sig] = signal.signal(sig, _raise_interrupted)
     return old
 
@@ -108,6 +115,8 @@ def main(argv: list[str] | None = None) -> int:
     old = _catch_termination_signals()
     try:
         return _main(argv)
+    except KeyboardInterrupt as exc:  # before the command started (parsing, start-up)
+        return 128 + getattr(exc, "signum", signal.SIGINT)
     finally:
         for sig, handler in old.items():
             signal.signal(sig, handler if handler is not None else signal.SIG_DFL)

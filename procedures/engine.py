@@ -69,7 +69,10 @@ class Interrupted(KeyboardInterrupt):
 
 class _SignalFlag:
     """While active (main thread only), each signal of ``TERMINATION_SIGNALS`` that is not ignored only records itself:
-    the first in ``signum``, every one in ``count``. Restores the previous handlers on exit."""
+    the first in ``signum``, every one in ``count``. Restores the previous handlers on exit. ``seen``
+    (shared): the first signal any run of this process has noted, or None."""
+
+    seen: int | None = None
 
     def __init__(self):
         self.signum: int | None = None
@@ -80,6 +83,8 @@ class _SignalFlag:
         self.count += 1
         if self.signum is None:
             self.signum = signum
+        if _SignalFlag.seen is None:
+            _SignalFlag.seen = signum
 
     def __enter__(self) -> "_SignalFlag":
         if threading.current_thread() is threading.main_thread():
