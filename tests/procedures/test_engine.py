@@ -317,3 +317,21 @@ def test_the_cell_is_reported_safe_only_once_the_worker_has_ended():
     with pytest.raises(Cancelled, match="NOT ended"):
         e.run(body)
     assert "NOT ended" in e.cleanup_report["procedure"]
+
+
+def test_the_command_line_raises_for_the_first_signal_only():
+    from selfview.procedures import cli
+    from selfview.procedures.engine import Interrupted, _SignalFlag
+
+    old = cli._catch_termination_signals()
+    try:
+        with pytest.raises(Interrupted) as info:
+            signal.raise_signal(signal.SIGTERM)
+        assert info.value.signum == signal.SIGTERM
+        signal.raise_signal(signal.SIGINT)  # the cleanup the first one started goes on
+        signal.raise_signal(signal.SIGHUP)
+        assert _SignalFlag.seen == signal.SIGTERM
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        _SignalFlag.seen = None
