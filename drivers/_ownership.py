@@ -43,9 +43,12 @@ class DeviceLock:
 
     def __init__(self, kind: str, key: str):
         self.kind, self.key = kind, key
-        slug = re.sub(r"[^A-Za-z0-9._-]+", "_", f"{kind}-{key}").strip("_")[:150]
-        self.path = lock_dir() / f"{slug}.lock"
+        self._slug = re.sub(r"[^A-Za-z0-9._-]+", "_", f"{kind}-{key}").strip("_")[:150]
         self._fd: int | None = None
+
+    @property
+    def path(self) -> Path:
+        return lock_dir() / f"{self._slug}.lock"
 
     def acquire(self) -> "DeviceLock":
         if self._fd is not None:
@@ -53,7 +56,8 @@ class DeviceLock:
         try:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
         except OSError as exc:
-            raise DeviceError(f"{self.kind} {self.key}: cannot create its lock file {self.path} ({exc.strerror})") from exc
+            raise DeviceError(f"{self.kind} {self.key}: cannot create its lock file ({exc}); set SELFVIEW_LOCK_DIR "
+                              "to a writable folder") from exc
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
