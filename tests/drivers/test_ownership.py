@@ -11,7 +11,7 @@ import pytest
 
 from selfview.drivers._ownership import DeviceBusy, DeviceLock, claim_for
 from selfview.drivers.pneumatic_gripper import PneumaticGripper
-from selfview.errors import ConfigError
+from selfview.errors import ConfigError, DeviceError
 from selfview.mocks.valve_terminal import ValveTerminal
 from selfview.procedures.cli import EXIT_DEVICE, EXIT_USAGE, main
 from tests.conftest import REPO
@@ -89,3 +89,11 @@ def test_every_jaw_wait_is_finite(capsys):
         PneumaticGripper("modbus-tcp://127.0.0.1:1", timeout_s=float("inf"))
     with pytest.raises(ConfigError, match="finite"):
         PneumaticGripper("modbus-tcp://127.0.0.1:1", poll_s=float("inf"))
+
+
+def test_an_unusable_lock_folder_is_named(tmp_path, monkeypatch):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    monkeypatch.setenv("SELFVIEW_LOCK_DIR", str(blocker))
+    with pytest.raises(DeviceError, match="cannot create its lock file.*SELFVIEW_LOCK_DIR"):
+        DeviceLock("valve terminal", "10.0.0.5:502").acquire()

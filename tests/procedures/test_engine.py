@@ -258,6 +258,7 @@ def test_every_termination_signal_and_a_second_one_get_the_whole_cleanup(cell, s
         rep = s.engine.cleanup_report
         assert rep["robot"].startswith("ABORT sent and confirmed") and rep["gripper"] == "valve set to its safe state"
         assert "procedure" not in rep  # the worker is known to have ended
+        assert not [t for t in threading.enumerate() if t.name == "procedure"]  # and nothing of it runs at exit
         assert not s.devices.robot.connected and not s.devices.gripper.connected
 
 
