@@ -186,6 +186,7 @@ class ValRig:
             rot_speed_deg_s=90.0 * k,
             joint_speed_deg_s=tuple(v * k for v in PUMA260_JOINT_SPEED_DEG_S),
             calibrate_s=20.0 * TIME_SCALE,
+            accel_s=0.5 * TIME_SCALE,
             timeout_margin_s=0.3,
         )
         self._limits = limits
@@ -252,6 +253,10 @@ class ValRig:
             s.calibrated = True
             s.speed_pct = 20.0
             s._faults.clear()
+        try:  # the driver reads the speed back before each motion: it learns this one, as set by its owner
+            self.robot.speed_now()
+        except CellError:
+            pass  # the case's first command resynchronises
 
 
 def _inv(H):

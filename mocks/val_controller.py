@@ -20,8 +20,8 @@ Faults on demand (``inject``), each drawn from the controller's seeded generator
 or dropped characters in the next reply or echo), a reply that never comes, arm power lost mid-move, an
 out-of-reach target, an asynchronous error line, a reply line that goes dead during a motion (``stall``).
 
-Every loop is bounded: reads poll with a timeout and check the stop event; threads are daemons joined
-by ``stop()``. The TCP server binds 127.0.0.1 only.
+Every loop is bounded: reads, writes and paced output check the stop event; threads are daemons
+joined by ``stop()`` before it closes the links. The TCP server binds 127.0.0.1 only.
 """
 
 from __future__ import annotations
@@ -108,9 +108,11 @@ class _PtyLink:
             time.sleep(timeout)
             return b""
 
-    def write(self, data: bytes, deadline: float) -> bool:
+    def write(self, data: bytes, deadline: float, stop: threading.Event | None = None) -> bool:
         view = memoryview(data)
         while view:
+            if stop is not None and stop.is_set():
+                return False
             try:
                 n = os.write(self.master, view)
                 view = view[n:]
@@ -148,9 +150,11 @@ class _TcpLink:
             return None
         return data if data else None  # b"" from recv: the client closed
 
-    def write(self, data: bytes, deadline: float) -> bool:
+    def write(self, data: bytes, deadline: float, stop: threading.Event | None = None) -> bool:
         view = memoryview(data)
         while view:
+            if stop is not None and stop.is_set():
+                return False
             try:
                 view = view[self.conn.send(view) :]
             except BlockingIOError:
@@ -385,11 +389,17 @@ class ValController:
         t.start()
 
     def stop(self, timeout_s: float = 5.0) -> None:
-        """Stop serving: end the loops, join the threads, close the links. Safe to call twice."""
+        """Stop serving: end the loops (paced output included), join every thread, then close the links,
+        so that nothing writes to a descriptor once it is closed (and perhaps reused). Safe to call twice;
+        ``RuntimeError`` (the links left open) if a thread outlives ``timeout_s``."""
         self._stop.set()
         deadline = time.monotonic() + timeout_s
         for t in self._threads:
             t.join(max(0.0, deadline - time.monotonic()))
+        alive = [t.name for t in self._threads if t.is_alive()]
+        if alive:
+            raise RuntimeError(f"simulated controller: thread(s) {', '.join(alive)} still running {timeout_s:g} s "
+                               "after stop(); their links are left open")
         for link in self._links:
             link.close()
         self._links.clear()
@@ -461,17 +471,17 @@ class ValController:
             data = self._corrupt(data, noise)
         deadline = time.monotonic() + 5.0 + (len(data) * 10.0 / self.pace_baud if self.pace_baud else 0.0)
         if not self.pace_baud:
-            if not link.write(bytes(data), deadline):
+            if not link.write(bytes(data), deadline, self._stop):
                 raise _Disconnected()
             return
         byte_s = 10.0 / self.pace_baud
         t = time.monotonic()
-        for b in data:  # one byte per character time, on an absolute schedule (no drift)
+        for b in data:  # one byte per character time, on an absolute schedule (no drift); stop() ends it
             t += byte_s
             delay = t - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            if not link.write(bytes((b,)), deadline):
+            if delay > 0 and self._stop.wait(delay):
+                raise _Disconnected()
+            if not link.write(bytes((b,)), deadline, self._stop):
                 raise _Disconnected()
 
     def _corrupt(self, data: bytearray, noise: dict) -> bytearray:

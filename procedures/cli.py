@@ -6,7 +6,8 @@ Modules are found at start-up, so adding a command never touches this file.
 
 Exit codes (stable; scripts may rely on them):
   0 success, 1 unexpected internal error, 2 usage error, 3 bad configuration or input file,
-  4 device error or timeout, 5 calibration failed, 6 alarm raised by the monitor, 130 interrupted.
+  4 device error or timeout, 5 calibration failed, 6 alarm raised by the monitor, 130 interrupted
+  (Ctrl-C), 128+N ended by signal N (SIGTERM 143, SIGHUP 129, SIGQUIT 131) after the same cleanup.
 """
 
 from __future__ import annotations
@@ -15,10 +16,12 @@ import argparse
 import importlib
 import logging
 import pkgutil
+import signal
 import sys
+import threading
 
 from selfview import __version__
-from selfview.procedures.engine import Cancelled
+from selfview.procedures.engine import TERMINATION_SIGNALS, Cancelled, Interrupted, _SignalFlag
 from selfview.errors import (
     AlarmError,
     CalibrationError,
@@ -71,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
         ),
         epilog=(
             "Exit codes: 0 ok, 1 internal error, 2 usage, 3 configuration or file, 4 device, "
-            "5 calibration, 6 alarm, 130 interrupted."
+            "5 calibration, 6 alarm, 130 interrupted, 128+N ended by signal N (143 SIGTERM, 129 SIGHUP)."
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -89,7 +92,41 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _raise_interrupted(signum, frame):
+    """The first termination signal raises (``KeyboardInterrupt`` for SIGINT, ``Interrupted`` for the
+    others) where the program is; every later one is only noted, so that the cleanup the first one
+    started (ABORT, safe valve, closes, the report) is never cut short. A signal the engine has turned
+    into its flag counts as the first."""
+    if _SignalFlag.seen is not None:
+        return
+    _SignalFlag.seen = signum
+    raise KeyboardInterrupt() if signum == signal.SIGINT else Interrupted(signum)
+
+
+def _catch_termination_signals() -> dict:
+    """Install ``_raise_interrupted`` for every catchable termination signal not ignored on purpose
+    (nohup, a background job). Returns the previous handlers."""
+    old = {}
+    if threading.current_thread() is threading.main_thread():
+        _SignalFlag.seen = None
+        for sig in TERMINATION_SIGNALS:
+            if signal.getsignal(sig) is not signal.SIG_IGN:
+                old[sig] = signal.signal(sig, _raise_interrupted)
+    return old
+
+
 def main(argv: list[str] | None = None) -> int:
+    old = _catch_termination_signals()
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as exc:  # before the command started (parsing, start-up)
+        return 128 + getattr(exc, "signum", signal.SIGINT)
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+
+
+def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     level = {0: logging.ERROR, 1: logging.INFO}.get(args.verbose, logging.DEBUG)
@@ -104,12 +141,15 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         return int(args.func(args) or 0)
-    except KeyboardInterrupt:
-        print("selfview: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", signal.SIGINT)
+        _say("selfview: interrupted" if signum == signal.SIGINT else f"selfview: terminated by {exc}")
+        return 128 + signum
     except CellError as exc:
         code, hint = exit_code_for(exc)
-        print(f"selfview {args.command}: error: {exc}\n  what to do: {hint}", file=sys.stderr)
+        if isinstance(exc, Cancelled):
+            code = 128 + exc.signum
+        _say(f"selfview {args.command}: error: {exc}\n  what to do: {hint}")
         return code
     except argparse.ArgumentTypeError as exc:  # a number or name checked after parsing
         print(f"selfview {args.command}: error: {exc}", file=sys.stderr)
@@ -125,6 +165,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"selfview {args.command}: error: out of memory (a file or argument far larger than the cell's)\n"
               "  what to do: correct the file or argument", file=sys.stderr)
         return EXIT_CONFIG
+
+
+def _say(text: str) -> None:
+    try:
+        print(text, file=sys.stderr)
+    except OSError:  # the terminal is gone (SIGHUP): the exit code still tells
+        pass
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -4,17 +4,21 @@ A procedure describes steps (``Step``); the engine executes them. Before the fir
 planned motion against the robot's limits (``LimitError`` names the step; nothing has moved). With
 ``dry_run`` it prints the steps and moves nothing. Each executed step is logged with its time and result.
 
-Safety: the procedure runs in a worker thread and the main thread watches it, so a Ctrl-C never lands
-in the middle of a write to a device. On Ctrl-C or on any error the engine stops the robot (VAL's
-ABORT, which the driver writes at once, even while a motion is in flight, then confirms), puts the
-gripper valve in its safe state, closes the devices, and reports the state it left the cell in:
-whether the controller confirmed the ABORT, and what failed. No step of the cleanup can stop the
-next: a failed (or raising) ABORT still leaves the valve made safe and every device closed.
+Safety: the procedure runs in a worker thread and the main thread watches it, with every catchable
+termination signal (SIGINT, SIGTERM, SIGHUP, SIGQUIT) turned into a flag, so a signal never lands in
+the middle of a write to a device. On a signal or on any error the engine stops the robot (VAL's
+ABORT, which the driver writes at once, even while a motion is in flight, then confirms), waits for
+the worker to end, puts the gripper valve in its safe state, closes the devices, and reports the state
+it left the cell in: whether the controller confirmed the ABORT, whether the procedure had stopped,
+and what failed. Once the cleanup has begun further signals are only noted; each of its steps has its
+own time limit, and none can stop the next: a failed (or raising) ABORT still leaves the valve made
+safe and every device closed.
 """
 
 from __future__ import annotations
 
 import logging
+import signal
 import threading
 import time
 from dataclasses import dataclass, field
@@ -25,7 +29,8 @@ import numpy as np
 from selfview.errors import CellError, ConfigError, LimitError
 from selfview.geometry import trans
 
-__all__ = ["Step", "Engine", "Cancelled", "CellDevices", "StepRecord"]
+__all__ = ["Step", "Engine", "Cancelled", "Interrupted", "CellDevices", "StepRecord", "TERMINATION_SIGNALS",
+           "signal_name"]
 
 log = logging.getLogger("selfview.engine")
 
@@ -33,8 +38,69 @@ MOTION_KINDS = ("move", "moves", "appro", "depart", "drive", "ready")
 KINDS = MOTION_KINDS + ("speed", "define", "gripper", "grab", "wait", "ask", "disturb", "restore", "compute")
 
 
+#: The catchable signals that end a run as Ctrl-C does (the platform's subset).
+TERMINATION_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, n))
+
+_WATCH_S = 0.02  # how often the main thread looks at the signal flag while the procedure runs
+
+
+def signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
+
+
 class Cancelled(CellError):
-    """The operator interrupted the run (Ctrl-C)."""
+    """The run was interrupted: by the operator (Ctrl-C) or by a termination signal (``signum``)."""
+
+    def __init__(self, message: str, signum: int = signal.SIGINT):
+        super().__init__(message)
+        self.signum = int(signum)
+
+
+class Interrupted(KeyboardInterrupt):
+    """A termination signal other than SIGINT, raised where Ctrl-C would raise ``KeyboardInterrupt``."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal_name(signum))
+        self.signum = int(signum)
+
+
+class _SignalFlag:
+    """While active (main thread only), each signal of ``TERMINATION_SIGNALS`` that is not ignored only records itself:
+    the first in ``signum``, every one in ``count``. Restores the previous handlers on exit. ``seen``
+    (shared): the first signal any run of this process has noted, or None."""
+
+    seen: int | None = None
+
+    def __init__(self):
+        self.signum: int | None = None
+        self.count = 0
+        self._old: dict[int, Any] = {}
+
+    def _note(self, signum, frame) -> None:
+        self.count += 1
+        if self.signum is None:
+            self.signum = signum
+        if _SignalFlag.seen is None:
+            _SignalFlag.seen = signum
+
+    def __enter__(self) -> "_SignalFlag":
+        if threading.current_thread() is threading.main_thread():
+            for sig in TERMINATION_SIGNALS:
+                if signal.getsignal(sig) is signal.SIG_IGN:
+                    continue  # ignored on purpose (nohup, a background job): it stays ignored
+                try:
+                    self._old[sig] = signal.signal(sig, self._note)
+                except (OSError, ValueError):  # not settable here
+                    pass
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old if old is not None else signal.SIG_DFL)
+        self._old.clear()
 
 
 @dataclass
@@ -96,16 +162,19 @@ class Engine:
 
     ``dry_run`` prints instead of executing; ``ask`` is how the operator is asked (default: ``input``;
     in CI there is no operator and asking raises); ``progress`` a callable(str) for progress lines;
-    ``settle_s`` default wait for the cell to settle; ``abort_timeout_s`` how long cleanup waits.
+    ``settle_s`` default wait for the cell to settle; ``abort_timeout_s`` how long the cleanup waits for
+    the procedure to end, and for each of its own steps (ABORT, safe valve, each close).
     """
 
     def __init__(self, devices: CellDevices, *, dry_run: bool = False, ask: Callable[[str], str] | None = None,
                  progress: Callable[[str], None] | None = None, abort_timeout_s: float = 10.0):
+        if not (isinstance(abort_timeout_s, (int, float)) and 0 < abort_timeout_s < float("inf")):
+            raise ConfigError(f"abort_timeout_s: expected a finite positive number of seconds, got {abort_timeout_s!r}")
         self.devices = devices
         self.dry_run = dry_run
         self._ask = ask
-        self.progress = progress or (lambda s: None)
-        self.abort_timeout_s = abort_timeout_s
+        self._progress = progress or (lambda s: None)
+        self.abort_timeout_s = float(abort_timeout_s)
         self.results: dict[str, Any] = {}
         self.records: list[StepRecord] = []
         self.cancel = threading.Event()
@@ -117,7 +186,7 @@ class Engine:
         """Check every planned motion against the robot's limits before anything moves.
 
         Named locations are read from the controller (POINT); appro targets are backed off along their
-        tool z; depart from the previous target; READY's tool point comes from the driver's kinematics;
+        tool z (a negative distance, beyond the location, is refused); depart from the previous target; READY's tool point comes from the driver's kinematics;
         a drive is checked by the driver against the joints it reads just before sending. Raises
         ``LimitError`` naming the step."""
         robot = self.devices.robot
@@ -142,6 +211,8 @@ class Engine:
                     continue
                 if s.kind not in MOTION_KINDS:
                     continue
+                if s.kind in ("appro", "depart"):
+                    limits.check_distance(s.params["distance_mm"], f"step {i + 1} {s.describe()}")
                 if s.kind == "depart":
                     if last is None:
                         continue  # relative to wherever the robot is: checked by the driver when sent
@@ -166,11 +237,20 @@ class Engine:
         return H
 
     # --- running --------------------------------------------------------------------------------
+    def progress(self, msg: str) -> None:
+        """One progress line; never raises (a closed terminal must not cut the cleanup short)."""
+        try:
+            self._progress(msg)
+        except Exception as exc:  # e.g. EIO on the terminal a SIGHUP came from
+            log.warning("progress line lost (%s): %s", exc, msg)
+
     def run(self, body: Callable[["Engine"], Any], plan: list[Step] | None = None) -> Any:
         """Run ``body(engine)`` (which calls ``engine.execute``) in a worker thread, safely.
 
         ``plan`` lists the motions ``body`` will make, checked before it starts; with ``dry_run`` the
-        plan is printed and ``body`` not run. On error or Ctrl-C: cleanup (``cleanup``) and re-raise.
+        plan is printed and ``body`` not run. On error or on a termination signal (Ctrl-C, SIGTERM,
+        SIGHUP, SIGQUIT): cleanup (``cleanup``), then the error re-raised, or ``Cancelled`` carrying the
+        signal's number.
         """
         plan = plan or []
         if self.dry_run:
@@ -179,29 +259,39 @@ class Engine:
             return None
         self.check_plan(plan)
         box: dict[str, Any] = {}
+        done = threading.Event()  # set by the worker itself as its very last act
 
         def worker():
             try:
                 box["result"] = body(self)
             except BaseException as exc:  # handed to the main thread
                 box["error"] = exc
+            finally:
+                done.set()
 
-        t = threading.Thread(target=worker, name="procedure", daemon=True)
-        t.start()
-        try:
-            while t.is_alive():
-                t.join(timeout=0.1)
-        except KeyboardInterrupt:
-            self.cancel.set()
-            self.progress("interrupted: stopping the robot")
-            first = self._abort_robot()  # at once, while the motion may still run
-            t.join(timeout=self.abort_timeout_s)
-            self.cleanup("interrupted by the operator (Ctrl-C)", first_abort=first)
-            raise Cancelled("interrupted by the operator; " + self.state_sentence()) from None
-        if "error" in box:
-            exc = box["error"]
-            self.cleanup(f"{type(exc).__name__}: {exc}")
-            raise exc
+        with _SignalFlag() as flag:
+            try:
+                threading.Thread(target=worker, name="procedure", daemon=True).start()
+                while not done.wait(_WATCH_S) and flag.signum is None:
+                    pass
+            except KeyboardInterrupt as exc:  # the handlers could not be installed (not the main thread)
+                flag.signum = getattr(exc, "signum", signal.SIGINT)
+            if flag.signum is not None:
+                signum = flag.signum
+                self.cancel.set()
+                what = "interrupted by the operator (Ctrl-C)" if signum == signal.SIGINT else f"terminated by {signal_name(signum)}"
+                self.progress(f"{what}: stopping the robot")
+                first = self._bounded("ABORT", self._abort_robot, ("ABORT did not return", False))
+                stopped = done.wait(self.abort_timeout_s)
+                self.cleanup(what, first_abort=first, worker_stopped=stopped)
+                raise Cancelled(f"{what}; " + self.state_sentence(), signum) from None
+            if "error" in box:
+                exc = box["error"]
+                self.cleanup(f"{type(exc).__name__}: {exc}", worker_stopped=True)
+                if flag.signum is not None:  # a signal came during the cleanup: it ends the command
+                    raise Cancelled(f"{signal_name(flag.signum)} during the cleanup after {type(exc).__name__}: {exc}; "
+                                    + self.state_sentence(), flag.signum) from exc
+                raise exc
         return box.get("result")
 
     def execute(self, step: Step) -> Any:
@@ -296,27 +386,56 @@ class Engine:
             return "ABORT sent (no confirmation available)", False
         return str(res), bool(getattr(res, "confirmed", False))
 
-    def cleanup(self, reason: str, first_abort: tuple[str, bool] | None = None) -> dict:
+    def _bounded(self, what: str, fn: Callable[[], Any], late: Any) -> Any:
+        """``fn()`` in its own thread, waited for at most ``abort_timeout_s``; ``late`` if it has not
+        returned by then (it goes on alone). Exceptions come back to the caller."""
+        out: dict[str, Any] = {}
+        ev = threading.Event()
+
+        def go():
+            try:
+                out["value"] = fn()
+            except BaseException as exc:
+                out["error"] = exc
+            finally:
+                ev.set()
+
+        threading.Thread(target=go, name=f"cleanup {what}", daemon=True).start()
+        if not ev.wait(self.abort_timeout_s):
+            log.error("cleanup: %s did not return within %g s", what, self.abort_timeout_s)
+            return late
+        if "error" in out:
+            raise out["error"]
+        return out.get("value")
+
+    def cleanup(self, reason: str, first_abort: tuple[str, bool] | None = None, worker_stopped: bool | None = None) -> dict:
         """Stop the robot, leave the gripper safe, close the devices; record and return what was done.
 
         ``first_abort``: the (report, confirmed) of an ABORT already sent at the interrupt; the cleanup
-        sends its own as well (an ABORT more is harmless) and reports both."""
+        sends its own as well (an ABORT more is harmless) and reports both. ``worker_stopped``: whether
+        the procedure's thread is known to have ended (False: it is reported as still running). Each
+        step is bounded by ``abort_timeout_s``."""
+        t = self.abort_timeout_s
         rep: dict[str, Any] = {"reason": reason}
+        if worker_stopped is False:
+            rep["procedure"] = f"its thread had NOT ended {t:g} s after the stop (no further step is sent)"
         if first_abort is not None:
             rep["robot_at_interrupt"] = first_abort[0]
-        rep["robot"], rep["robot_stopped"] = self._abort_robot()
+        rep["robot"], rep["robot_stopped"] = self._bounded(
+            "ABORT", self._abort_robot, (f"ABORT did not return within {t:g} s", False))
         g = self.devices.gripper
         if g is not None:
             try:
-                g.safe()
-                rep["gripper"] = "valve set to its safe state"
+                ok = self._bounded("the safe valve", lambda: g.safe() or True, None)
+                rep["gripper"] = "valve set to its safe state" if ok else f"the safe state did not return within {t:g} s"
             except Exception as exc:  # reported; the closes below still run
                 rep["gripper"] = f"could not set the safe state: {type(exc).__name__}: {exc}"
         for nm in ("camera", "gripper", "robot"):
             dev = getattr(self.devices, nm)
             if dev is not None:
                 try:
-                    dev.close()
+                    if not self._bounded(f"closing the {nm}", lambda dev=dev: dev.close() or True, None):
+                        rep[f"{nm}_close"] = f"close did not return within {t:g} s"
                 except Exception as exc:
                     rep[f"{nm}_close"] = f"close failed: {exc}"
         self.cleanup_report = rep

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from selfview.drivers._ownership import claim_for
 from selfview.drivers.frame_grabber_v4l2.capture import FrameSource, SourceFactory, source_for, to_grey
 from selfview.drivers.frame_grabber_v4l2.url import GrabberUrl, parse_grabber_url
 from selfview.errors import ConfigError, DeviceError, DeviceTimeout, ImageError
@@ -112,6 +113,7 @@ class FrameGrabber:
         with self._lock:
             if self.source is None:
                 src = source_for(self.url, self._sources, timeout_s=self.timeout_s)
+                claim_for(src, "frame grabber", self.url.path if self.url.scheme == "v4l2" else None)
                 src.open()
                 self.source = src
                 self._index = 0

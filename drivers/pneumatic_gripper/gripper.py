@@ -27,6 +27,9 @@ command, a failed ``safe()`` or a lost link (seen by a call or by the poller), t
 3. it reports what it could confirm: ``safe_report`` (a ``SafeReport``), and the message of the error
    raised to the caller ends with the report's sentence.
 
+One program owns a valve terminal: ``connect()`` takes its lock (``selfview.drivers._ownership``) and
+``close()`` gives it back; a second driver meets ``DeviceBusy`` naming the holder.
+
 Until ``connect()`` (which re-reads the valve outputs and both switches), ``last_state`` is None and jaw
 commands raise ``ConnectionLost``. ``safe()`` may always be called; it returns a ``SafeReport`` and raises
 when it cannot confirm the safe outputs.
@@ -50,6 +53,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from selfview.drivers._ownership import DeviceLock
 from selfview.drivers.pneumatic_gripper.iomap import IoMap, Point
 from selfview.drivers.pneumatic_gripper.modbus import (DEFAULT_READ_RETRIES, DEFAULT_TIMEOUT_S, ConnectionLost, ModbusExceptionReply,
                                                     ModbusLink, WriteEchoMismatch)
@@ -156,10 +160,11 @@ class PneumaticGripper:
         if not isinstance(self.io_map, IoMap):
             raise ConfigError(f"io_map: expected an IoMap, got {type(io_map).__name__}")
         for name, v in (("timeout_s", timeout_s), ("confirm_poll_s", confirm_poll_s)):
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
-                raise ConfigError(f"gripper {name}={v!r}: expected a positive number of seconds")
-        if poll_s is not None and (isinstance(poll_s, bool) or not isinstance(poll_s, (int, float)) or not poll_s > 0):
-            raise ConfigError(f"gripper poll_s={poll_s!r}: expected a positive number of seconds or None")
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < float("inf"):
+                raise ConfigError(f"gripper {name}={v!r}: expected a finite positive number of seconds (every wait ends)")
+        if poll_s is not None and (isinstance(poll_s, bool) or not isinstance(poll_s, (int, float))
+                                   or not 0 < poll_s < float("inf")):
+            raise ConfigError(f"gripper poll_s={poll_s!r}: expected a finite positive number of seconds or None")
         self.timeout_s = float(timeout_s)
         self.poll_s = None if poll_s is None else float(poll_s)
         self.confirm_poll_s = float(confirm_poll_s)
@@ -168,6 +173,8 @@ class PneumaticGripper:
             url, timeout_s=request_timeout_s, retries=retries, on_connect=self._on_connect, trace=trace
         )
         self.url = self.link.url.url
+        u = self.link.url
+        self._owner = DeviceLock("valve terminal", u.device if u.transport == "rtu" else f"{u.host}:{u.port}")
         self._explicit_connect = False
         self._lost: str | None = None  # why the state became unknown, until connect() is called again
         self._last: JawReading | None = None
@@ -188,6 +195,8 @@ class PneumaticGripper:
         """Connect (or reconnect after a loss or after the driver gave up), read the valve outputs and
         both switches, start the poller. Raises ConnectionFailed, DeviceTimeout, ModbusExceptionReply,
         GripperFault."""
+        first = not self._owner.held
+        self._owner.acquire()  # DeviceBusy naming the program that holds the valve terminal
         self._explicit_connect = True
         try:
             if self.link.connected:
@@ -196,6 +205,11 @@ class PneumaticGripper:
                 self.link.connect()  # reads the outputs through _on_connect
             r = self._read_checked(None)
             r.state  # noqa: B018 - raises GripperFault when both switches stay on
+        except BaseException:
+            if first:  # a connect that failed leaves the terminal to others
+                self.link.close()
+                self._owner.release()
+            raise
         finally:
             self._explicit_connect = False
         self._lost = None
@@ -216,6 +230,7 @@ class PneumaticGripper:
             t.join(timeout=self.link.lock_timeout_s + (self.poll_s or 0) + 1.0)
         self.link.close()
         self._last = None
+        self._owner.release()
 
     disconnect = close
 

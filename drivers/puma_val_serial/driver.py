@@ -19,8 +19,12 @@ again on a mismatch). A motion is complete only when the prompt
 follows it, an empty line is answered by a prompt (a busy controller does not answer: one noise ``.``
 cannot end a motion) and ``WHERE`` puts the arm at its target. A named target is read from the
 controller (``POINT``) before its limit check, never taken from a cache. ``SPEED`` is read back
-(``STATUS``). The wait for a motion follows from its distance, the speed read from the controller
-and the arm's limits (``ValLimits``), plus a margin.
+(``STATUS``) after it is set and before every motion: a speed that another program changed meanwhile
+refuses the motion. APPRO and DEPART distances must be >= 0, and every target is computed and checked
+against the limits before it is sent. The wait for a motion is its expected duration at the speed
+read back (joint-interpolated motions from the joint angles that reach the target, straight lines
+from the tool's path; ``ValLimits``) plus a margin of a few seconds. The port is opened exclusively:
+a second program opening it is refused.
 
 Stopping: ``ABORT`` is written first and unconditionally (after a CTRL-U that erases any half-typed
 line), then confirmed by reading the controller's answer. The driver does so itself when a motion's
@@ -50,7 +54,7 @@ from selfview.drivers.puma_val_serial.errors import ControllerError, MotionAbort
 from selfview.drivers.puma_val_serial.kinematics import PumaKinematics
 from selfview.drivers.puma_val_serial.limits import ValLimits
 from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout, ProtocolError
-from selfview.geometry import check_rigid, rotation_angle, trans
+from selfview.geometry import check_rigid, rotation_angle, rotvec_from_R, trans
 
 __all__ = ["PumaVAL", "Where", "AbortResult"]
 
@@ -107,6 +111,26 @@ class _Segment:
     lines: list[str]
     end: str  # "prompt" or "question"
     question: str
+
+
+def _joints_reaching(kin: PumaKinematics, goal_H: np.ndarray, q0, iters: int = 200) -> np.ndarray | None:
+    """Joint angles (deg) near ``q0`` whose tool pose is ``goal_H`` (damped least squares on the joint
+    axes, steps of at most 0.2 rad), to time a joint-interpolated motion; None if it does not converge
+    to 0.1 mm / 0.05 deg."""
+    q = np.asarray(q0, dtype=float).copy()
+    w = np.array([1.0, 1.0, 1.0, 100.0, 100.0, 100.0])  # a radian weighed as 100 mm
+    for _ in range(iters):
+        F = kin.frames(q)
+        H = F[-1] @ trans(*kin.tool_mm)
+        dp = goal_H[:3, 3] - H[:3, 3]
+        dr = rotvec_from_R(goal_H[:3, :3] @ H[:3, :3].T)
+        if np.linalg.norm(dp) < 0.1 and np.degrees(np.linalg.norm(dr)) < 0.05:
+            return q
+        z = np.array([f[:3, 2] for f in F[:6]])
+        J = np.vstack([np.cross(z, H[:3, 3] - np.array([f[:3, 3] for f in F[:6]])).T, z.T]) * w[:, None]
+        step = np.linalg.solve(J.T @ J + 100.0 * np.eye(6), J.T @ (np.concatenate([dp, dr]) * w))
+        q += np.degrees(step * min(1.0, 0.2 / max(float(np.abs(step).max()), 1e-12)))
+    return None
 
 
 def _norm(s: str) -> str:
@@ -187,11 +211,14 @@ class PumaVAL:
                         baudrate=self.baudrate,
                         timeout=self.dialect.prompt_silence_s,
                         write_timeout=self.timeout_s,
+                        exclusive=True,
                     )
                 except ValueError as exc:
                     raise ConfigError(f"robot URL {self.url!r}: {exc}") from exc
                 except (serial.SerialException, OSError) as exc:
-                    raise DeviceError(f"robot URL {self.url!r}: cannot open ({exc})") from exc
+                    held = "lock" in str(exc).lower() or getattr(exc, "errno", None) in (11, 16)
+                    raise DeviceError(f"robot URL {self.url!r}: cannot open ({exc})" + (
+                        "; another program holds the port: stop it first (one program drives the arm)" if held else "")) from exc
             try:
                 ser.timeout = self.dialect.prompt_silence_s
                 self._ser = ser
@@ -587,20 +614,33 @@ class PumaVAL:
         return name, H
 
     def _speed_locked(self) -> float:
-        """The monitor speed, read from the controller if the driver has not set or read it."""
-        if self._speed_pct is None:
-            self._speed_pct = self._read_speed_locked()
-        return self._speed_pct
+        """The monitor speed read from the controller now, before a motion. ``ProtocolError`` if it is not
+        the speed this driver last set or read (another program changed it), ``LimitError`` above the
+        limits' maximum; nothing is sent then."""
+        got = self._read_speed_locked()
+        known, self._speed_pct = self._speed_pct, got
+        if known is not None and abs(got - known) > 0.5 * 10.0 ** -self.dialect.command_decimals:
+            raise ProtocolError(f"the controller's SPEED is {got:g}, not the {known:g} this driver set or read: "
+                                "another program changed it; nothing was moved (set the speed again)")
+        self.limits.check_speed(got, "the controller's SPEED")
+        return got
 
     def _read_speed_locked(self) -> float:
         cmd = self.dialect.command("status")
         content = self._exchange_locked(cmd)
         return self._checked(lambda: self.dialect.speed_of_status(content))
 
-    def _motion_timeout(self, from_H: np.ndarray, to_H: np.ndarray) -> float:
+    def _motion_timeout(self, from_H: np.ndarray, to_H: np.ndarray, joints=None) -> float:
+        """The wait for a motion from ``from_H`` to ``to_H``: straight (``joints`` None) or joint-interpolated
+        from the joint angles ``joints`` (then timed by the joints that reach ``to_H``, when found)."""
+        speed = self._speed_locked()
+        if joints is not None:
+            goal_q = _joints_reaching(self.kinematics, to_H, joints)
+            if goal_q is not None:
+                return self.limits.joint_timeout_s(goal_q - np.asarray(joints, float), speed)
         dist = float(np.linalg.norm(to_H[:3, 3] - from_H[:3, 3]))
         ang = float(np.degrees(rotation_angle(from_H[:3, :3].T @ to_H[:3, :3])))
-        return self.limits.cartesian_timeout_s(dist, ang, self._speed_locked())
+        return self.limits.cartesian_timeout_s(dist, ang, speed)
 
     def _arrived_at(self, goal_H: np.ndarray):
         lim = self.limits
@@ -746,17 +786,26 @@ class PumaVAL:
     def _to_target(self, kind: str, target, distance_mm: float | None = None) -> None:
         what = f"{kind.upper()} target"
         if distance_mm is not None:
-            d = float(distance_mm)
-            if not np.isfinite(d):
-                raise ConfigError(f"{kind.upper()} distance: expected a finite number of mm, got {distance_mm!r}")
+            d = self._distance(distance_mm, kind)
         with self._locked(kind.upper()):
             name, H = self._resolve_locked(target, what)
             goal = H if distance_mm is None else H @ trans(0.0, 0.0, -d)
             label = f"{kind.upper()} {name}" + ("" if distance_mm is None else f", {d:g}")
             self.limits.check_position(goal[:3, 3], label)
-            here = self._where_locked().base_H_T
+            w = self._where_locked()
+            joints = None if kind == "moves" else w.joints  # MOVE and APPRO interpolate the joints
             fields = {"name": name} if distance_mm is None else {"name": name, "d": d}
-            self._motion_locked(self.dialect.command(kind, **fields), self._motion_timeout(here, goal), self._arrived_at(goal))
+            self._motion_locked(self.dialect.command(kind, **fields), self._motion_timeout(w.base_H_T, goal, joints),
+                                self._arrived_at(goal))
+
+    def _distance(self, distance_mm, kind: str) -> float:
+        try:
+            d = float(distance_mm)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{kind.upper()} distance: expected a number of mm, got {distance_mm!r}") from None
+        if not np.isfinite(d):
+            raise ConfigError(f"{kind.upper()} distance: expected a finite number of mm, got {distance_mm!r}")
+        return self.limits.check_distance(d, kind.upper())
 
     def move(self, target) -> None:
         """``DO MOVE``: joint-interpolated motion to a location name, a pose or a (4, 4) transform."""
@@ -772,14 +821,13 @@ class PumaVAL:
 
     def depart(self, distance_mm: float) -> None:
         """``DO DEPART d``: back the tool off ``distance_mm`` along its own z (away from what it approached)."""
-        d = float(distance_mm)
-        if not np.isfinite(d):
-            raise ConfigError(f"DEPART distance: expected a finite number of mm, got {distance_mm!r}")
+        d = self._distance(distance_mm, "depart")
         with self._locked("DEPART"):
-            here = self._where_locked().base_H_T
-            goal = here @ trans(0.0, 0.0, -d)
+            w = self._where_locked()
+            goal = w.base_H_T @ trans(0.0, 0.0, -d)
             self.limits.check_position(goal[:3, 3], f"DEPART {d:g}")
-            self._motion_locked(self.dialect.command("depart", d=d), self._motion_timeout(here, goal), self._arrived_at(goal))
+            self._motion_locked(self.dialect.command("depart", d=d), self._motion_timeout(w.base_H_T, goal, w.joints),
+                                self._arrived_at(goal))
 
     def drive(self, joint: int, delta_deg: float, speed_pct: float) -> None:
         """``DO DRIVE j, deg, speed``: turn one joint by ``delta_deg`` at ``speed_pct`` % of the monitor speed.

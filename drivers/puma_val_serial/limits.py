@@ -38,8 +38,10 @@ class ValLimits:
 
     ``workspace_mm``: ((xmin, xmax), (ymin, ymax), (zmin, zmax)) of the tool point in the base frame.
     ``max_speed_pct``: the highest SPEED (and DRIVE speed) the driver sends.
-    ``cart_speed_mm_s`` / ``rot_speed_deg_s``: the slowest tool speeds at SPEED 100 that a motion is
-    assumed to reach; with ``timeout_factor`` and ``timeout_margin_s`` they bound the wait for the prompt.
+    ``cart_speed_mm_s`` / ``rot_speed_deg_s``: the slowest tool speeds at SPEED 100 that a straight-line
+    motion is assumed to reach (joint motions use ``joint_speed_deg_s``); with ``accel_s`` (the time a
+    motion loses to speeding up and slowing down) they give its expected duration, and the wait for its
+    prompt is ``timeout_factor`` times that plus ``timeout_margin_s``.
     ``assume_speed_pct``: the SPEED assumed before the driver has set one. ``calibrate_s``: CAL's duration.
     ``ready_joints_deg``: the joints of VAL's READY position (to time ``DO READY``).
     ``arrival_tol_mm`` / ``arrival_tol_deg`` / ``arrival_tol_joint_deg``: how close the WHERE after a
@@ -54,8 +56,9 @@ class ValLimits:
     cart_speed_mm_s: float = 250.0
     rot_speed_deg_s: float = 90.0
     assume_speed_pct: float = 10.0
-    timeout_factor: float = 2.0
-    timeout_margin_s: float = 2.0
+    accel_s: float = 0.5
+    timeout_factor: float = 1.25
+    timeout_margin_s: float = 3.0
     calibrate_s: float = 20.0
     ready_joints_deg: tuple[float, ...] = VAL_READY_DEG
     arrival_tol_mm: float = 1.0
@@ -84,8 +87,12 @@ class ValLimits:
                    "arrival_tol_deg", "arrival_tol_joint_deg"):
             if not getattr(self, nm) > 0:
                 raise ConfigError(f"limits.{nm}: expected a positive number, got {getattr(self, nm)!r}")
-        if not self.timeout_margin_s >= 0:
-            raise ConfigError(f"limits.timeout_margin_s: expected >= 0, got {self.timeout_margin_s!r}")
+        for nm in ("timeout_margin_s", "accel_s"):
+            if not getattr(self, nm) >= 0:
+                raise ConfigError(f"limits.{nm}: expected >= 0, got {getattr(self, nm)!r}")
+        for nm, v in vars(self).items():
+            if any(not np.isfinite(float(x)) for x in np.ravel(np.asarray(v, dtype=float))):
+                raise ConfigError(f"limits.{nm}: expected finite numbers, got {v!r}")
 
     @classmethod
     def from_dict(cls, data: dict) -> "ValLimits":
@@ -117,6 +124,15 @@ class ValLimits:
             raise LimitError(f"{what}: speed {pct:g} % is outside 0 < speed <= {self.max_speed_pct:g} %; nothing was sent")
         return pct
 
+    def check_distance(self, d_mm: float, what: str) -> float:
+        """An APPRO / DEPART distance: finite and >= 0 (a negative one would drive the tool beyond its
+        location, into what it approaches). Returns it as a float."""
+        d = float(d_mm)
+        if not np.isfinite(d) or d < 0:
+            raise LimitError(f"{what}: distance {d:g} mm; expected a finite distance >= 0 mm along the tool's "
+                             "approach side (a negative one passes beyond the location); nothing was sent")
+        return d
+
     def check_joint(self, joint: int, value_deg: float, what: str) -> None:
         lo, hi = self.joint_limits_deg[joint - 1]
         if not lo <= value_deg <= hi:
@@ -127,14 +143,16 @@ class ValLimits:
     # --- motion time -------------------------------------------------------------------------------
     def _bound(self, t_at_100: float, speed_pct: float | None) -> float:
         s = (speed_pct if speed_pct else self.assume_speed_pct) / 100.0
-        return self.timeout_factor * t_at_100 / s + self.timeout_margin_s
+        return self.timeout_factor * (t_at_100 / s + self.accel_s) + self.timeout_margin_s
 
     def cartesian_timeout_s(self, distance_mm: float, angle_deg: float, speed_pct: float | None) -> float:
-        """Upper bound (s) on a motion of the tool by ``distance_mm`` and ``angle_deg`` at SPEED ``speed_pct``."""
-        return self._bound(abs(distance_mm) / self.cart_speed_mm_s + abs(angle_deg) / self.rot_speed_deg_s, speed_pct)
+        """The wait (s) for a straight-line motion of the tool by ``distance_mm`` and ``angle_deg`` at
+        SPEED ``speed_pct``: the slower of the two governs."""
+        return self._bound(max(abs(distance_mm) / self.cart_speed_mm_s, abs(angle_deg) / self.rot_speed_deg_s), speed_pct)
 
     def joint_timeout_s(self, delta_deg, speed_pct: float | None, drive_pct: float = 100.0) -> float:
-        """Upper bound (s) on a joint motion by ``delta_deg`` (6,) at SPEED ``speed_pct`` (and DRIVE speed)."""
+        """The wait (s) for a joint motion by ``delta_deg`` (6,) at SPEED ``speed_pct`` (and DRIVE speed):
+        the slowest joint governs."""
         d = np.abs(np.asarray(delta_deg, dtype=float).reshape(6))
         t = float(np.max(d / np.asarray(self.joint_speed_deg_s))) * 100.0 / drive_pct
         return self._bound(t, speed_pct)

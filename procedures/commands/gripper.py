@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from selfview.procedures.commands._common import print_json
+from selfview.procedures.commands._common import positive_seconds, print_json
 from selfview.errors import ConfigError
 
 
@@ -40,6 +40,17 @@ def load_io_map_arg(args):
         raise ConfigError(f"{path}: {exc}") from None
 
 
+def _finite_seconds(text: str) -> float:
+    """argparse type: a finite number of seconds > 0 (a wait that never ends would leave the valve energised)."""
+    v = positive_seconds(text)
+    if v == float("inf"):
+        raise ValueError(text)
+    return v
+
+
+_finite_seconds.__name__ = "finite number of seconds"
+
+
 def register(sub):
     p = sub.add_parser(
         "gripper",
@@ -52,7 +63,8 @@ def register(sub):
         ),
     )
     p.add_argument("--url", required=True, help="Modbus URL of the valve (terminal)")
-    p.add_argument("--timeout", type=float, default=0.5, metavar="S", help="jaw motion timeout (default 0.5 s)")
+    p.add_argument("--timeout", type=_finite_seconds, default=0.5, metavar="S",
+                   help="jaw motion timeout, a finite number of seconds (default 0.5 s)")
     p.add_argument("--request-timeout", type=float, default=0.25, metavar="S", help="per request (default 0.25 s)")
     p.add_argument("--retries", type=int, default=0, help="Modbus retries per request (default 0)")
     add_io_map_argument(p)

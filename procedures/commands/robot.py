@@ -1,8 +1,9 @@
 """``selfview robot``: command the PUMA 260 over VAL-II (a real controller's terminal port or the simulator).
 
 Every motion (move, moves, appro, depart, drive, ready) goes through the engine: its plan is checked
-against the limits first, and on any error or Ctrl-C the engine writes ABORT (confirmed or reported
-as not) before the command ends (exit 130 for Ctrl-C)."""
+against the limits first, and on any error, Ctrl-C or termination signal (SIGTERM, SIGHUP, SIGQUIT) the
+engine writes ABORT (confirmed or reported as not) before the command ends (exit 128+N for signal N:
+130 for Ctrl-C, 143 for SIGTERM). APPRO and DEPART take distances >= 0 only."""
 
 from __future__ import annotations
 
@@ -71,8 +72,8 @@ def register(sub):
     for name in ("move", "moves"):
         a[name].add_argument("target", nargs="+", metavar="NAME | X Y Z O A T")
     a["appro"].add_argument("target", nargs="+", metavar="NAME | X Y Z O A T")
-    a["appro"].add_argument("distance", metavar="D", help="mm along the tool z")
-    a["depart"].add_argument("distance", metavar="D", help="mm along the tool z")
+    a["appro"].add_argument("distance", metavar="D", help="mm back from NAME along its tool z (>= 0)")
+    a["depart"].add_argument("distance", metavar="D", help="mm back along the tool z (>= 0)")
     a["drive"].add_argument("joint", type=int, metavar="J", help="joint 1..6")
     a["drive"].add_argument("deg", metavar="DEG")
     a["drive"].add_argument("speed", metavar="SPEED", help="percent")

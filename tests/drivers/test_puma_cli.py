@@ -11,6 +11,7 @@ import sys
 import numpy as np
 import pytest
 
+from selfview.errors import DeviceError, ProtocolError
 from selfview.procedures.cli import main
 from tests.conftest import REPO
 
@@ -156,3 +157,115 @@ def test_robot_cli_abort_while_another_client_moves_the_arm(cell, capsys):
         out = json.loads(capsys.readouterr().out)
         assert out["abort"]["written"] and out["abort"]["confirmed"]
         assert c.received == ["ABORT"]  # ABORT first: no CR before it
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT], ids=lambda s: signal.Signals(s).name)
+def test_a_termination_signal_during_robot_ready_aborts_the_motion_and_exits_128_plus_n(cell, sig):
+    import os
+    import time
+
+    from selfview.mocks.val_controller import ValController
+    from selfview.mocks.world import SimWorld
+
+    with ValController(SimWorld(cell, seed=2), time_scale=1.0, calibrated=True, speed_pct=5.0) as c:
+        c.start_pty()
+        env = dict(os.environ, PYTHONPATH=str(REPO))
+        proc = subprocess.Popen([sys.executable, "-m", "selfview.procedures.cli", "robot", "--url", c.url, "ready"],
+                                cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert c.moving.wait(60.0), "the arm never started moving"
+            time.sleep(0.3)
+            q_at_signal = c.joints
+            proc.send_signal(sig)
+            t_signal = time.monotonic()
+            while c.moving.is_set() and time.monotonic() - t_signal < 5.0:
+                time.sleep(0.005)
+            stopped_after = time.monotonic() - t_signal
+            out, err = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(5)
+        assert proc.returncode == 128 + sig, err
+        assert "ABORT" in c.received, c.received
+        assert stopped_after < 0.5, f"the arm stopped {stopped_after:.3f} s after the signal"
+        # at SPEED 5 the fastest joint turns 6 deg/s: 0.5 s of travel is at most 3 deg
+        assert np.abs(c.joints - q_at_signal).max() < 3.0
+        assert f"terminated by {signal.Signals(sig).name}" in err and "ABORT sent and confirmed" in err
+        assert "this is a bug" not in err and "Traceback" not in err
+
+
+def test_a_stalled_reply_line_gets_abort_within_5_s_of_the_motions_expected_end(capsys):
+    import threading
+    import time
+
+    from selfview.drivers.puma_val_serial import PumaVAL
+    from selfview.mocks.val_controller import ValController
+
+    with ValController(time_scale=1.0, calibrated=True, speed_pct=50.0) as c:  # starts at READY
+        c.start_pty()
+        with PumaVAL(c.url) as r:
+            t0 = time.monotonic()
+            r.move("above")
+            duration = time.monotonic() - t0  # the motion's real duration at SPEED 50 (about 1.2 s)
+            r.ready()
+        c.inject("stall", after_s=0.2)  # the reply line dies 0.2 s into the motion
+        seen = {}
+
+        def watch():
+            while "t" not in seen and time.monotonic() - t0 < 30.0:
+                if c.received.count("ABORT"):
+                    seen["t"] = time.monotonic()
+                time.sleep(0.005)
+
+        t0 = time.monotonic()
+        watcher = threading.Thread(target=watch)
+        watcher.start()
+        code = main(["robot", "--url", c.url, "move", "above"])
+        watcher.join(30.0)
+        err = capsys.readouterr().err
+        assert code == 4 and "ABORT sent" in err, err
+        # from the start of the command: the STATUS, POINT and WHERE before the motion take well under 1 s
+        assert seen["t"] - t0 < duration + 5.0, f"ABORT {seen['t'] - t0:.2f} s after the start of a {duration:.2f} s motion"
+
+
+def test_a_speed_changed_by_another_program_refuses_the_next_motion(capsys):
+    from selfview.drivers.puma_val_serial import PumaVAL
+    from selfview.mocks.val_controller import ValController
+
+    with ValController(time_scale=0.0, calibrated=True) as c:
+        pty = c.start_pty()
+        port = c.start_tcp()
+        with PumaVAL(pty) as r, PumaVAL(f"socket://127.0.0.1:{port}") as other:
+            r.speed(20)
+            r.move("above")
+            other.speed(50)  # a lab script on the controller's other terminal
+            with pytest.raises(ProtocolError, match="SPEED is 50, not the 20.*another program"):
+                r.depart(40)
+            assert not [ln for ln in c.received if ln.startswith("DO DEPART")]
+
+
+def test_the_serial_port_is_opened_exclusively():
+    from selfview.drivers.puma_val_serial import PumaVAL
+    from selfview.mocks.val_controller import ValController
+
+    with ValController(time_scale=0.0, calibrated=True) as c:
+        c.start_pty()
+        with PumaVAL(c.url):
+            with pytest.raises(DeviceError, match="another program holds the port"):
+                PumaVAL(c.url).connect()
+            assert main(["robot", "--url", c.url, "where"]) == 4
+        with PumaVAL(c.url) as again:  # free once the first has closed it
+            assert again.where().joints
+
+
+@pytest.mark.parametrize("argv", [["appro", "plate", "-15"], ["depart", "-10"]])
+def test_negative_appro_and_depart_are_refused_before_anything_moves(cell, capsys, argv):
+    from selfview.mocks.val_controller import ValController
+    from selfview.mocks.world import SimWorld
+
+    with ValController(SimWorld(cell, seed=2), time_scale=0.0, calibrated=True) as c:
+        c.start_pty()
+        assert main(["robot", "--url", c.url, *argv]) == 4
+        assert "beyond the location" in capsys.readouterr().err
+        assert not [ln for ln in c.received if ln.startswith("DO ")]

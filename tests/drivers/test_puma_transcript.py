@@ -477,7 +477,7 @@ def point(name: bytes, pose=POSE) -> list:
 
 
 def motion(cmd: bytes, arrive=JOINTS, *, start=JOINTS, speed=20) -> list:
-    """WHERE (start), STATUS (once), the motion (prompt after 50 ms), CR answered, WHERE at the end."""
+    """WHERE (start), STATUS (before every motion), the motion (prompt after 50 ms), CR answered, WHERE at the end."""
     out = [*where(start)]
     if speed is not None:
         out += status(speed)
@@ -486,7 +486,7 @@ def motion(cmd: bytes, arrive=JOINTS, *, start=JOINTS, speed=20) -> list:
 
 
 def test_move_reads_its_target_from_the_controller_each_time():
-    r, port = robot([*point(b"p1"), *motion(b"DO MOVE p1"), *point(b"p1"), *motion(b"DO MOVE p1", speed=None)])
+    r, port = robot([*point(b"p1"), *motion(b"DO MOVE p1"), *point(b"p1"), *motion(b"DO MOVE p1")])
     r.move("p1")
     r.move("p1")
     assert port.written.count(b"POINT p1") == 4  # never a cached copy (each read twice)
@@ -515,9 +515,9 @@ def test_appro_depart_drive_ready_bytes():
     q_depart = joints_at(VAL.pose_to_H(pose_of(q_appro)) @ trans(0, 0, -50), q_appro)
     q_drive = tuple(round(v, 2) for v in np.add(q_depart, (0, -10.5, 0, 0, 0, 0)))
     script = point(b"p1") + motion(b"DO APPRO p1, 30", arrive=q_appro)
-    script += [*where(q_appro), (b"DO DEPART 50", b"DO DEPART 50"), (b"\r", [(0.0, CRLF), (0.05, b".")]), (b"\r", b"\r\n."), *where(q_depart)]
-    script += motion(b"DO DRIVE 2, -10.5, 20", arrive=q_drive, start=q_depart, speed=None)
-    script += motion(b"DO READY", arrive=READY_DEG, start=q_drive, speed=None)
+    script += [*where(q_appro), *status(20), (b"DO DEPART 50", b"DO DEPART 50"), (b"\r", [(0.0, CRLF), (0.05, b".")]), (b"\r", b"\r\n."), *where(q_depart)]
+    script += motion(b"DO DRIVE 2, -10.5, 20", arrive=q_drive, start=q_depart)
+    script += motion(b"DO READY", arrive=READY_DEG, start=q_drive)
     r, port = robot(script)
     r.appro("p1", 30)
     r.depart(50)
@@ -535,8 +535,10 @@ def test_motion_limits_are_checked_before_sending():
     lim = ValLimits(workspace_mm=((-400, 400), (-400, 400), (20, 600)), max_speed_pct=30)
     low = (POSE[0], POSE[1], 60.0) + POSE[3:]
     r, port = robot([*point(b"p1", low), *where(), *where()], limits=lim)
-    with pytest.raises(LimitError, match="outside the workspace"):
-        r.appro("p1", -100)  # -100 along a tool z that points down is ~100 mm lower: below z = 20
+    with pytest.raises(LimitError, match="distance -100 mm.*beyond the location"):
+        r.appro("p1", -100)  # beyond p1 along its approach: refused before anything is read or sent
+    with pytest.raises(LimitError, match=r"APPRO p1, 700: z = 7\d\d.\d\d mm is outside the workspace"):
+        r.appro("p1", 700)  # the tool z points (nearly) down: 700 mm back along it is above z = 600
     with pytest.raises(LimitError, match=r"DEPART 600: z = 69\d.\d\d mm"):
         r.depart(600)  # the tool z points (nearly) down: 600 mm back along it is ~590 mm up
     with pytest.raises(LimitError, match="JT1 would reach 224.07"):

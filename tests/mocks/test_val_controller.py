@@ -318,3 +318,23 @@ def test_replies_are_formatted_by_the_simulators_own_code(term_sim, monkeypatch)
     out = t.say(b"WHERE")
     assert b"BROKEN" not in out and b"       X        Y" in out
     t.close()
+
+
+def test_stop_joins_the_paced_output_before_it_closes_the_pty():
+    # at 100 baud WHERE's reply takes seconds: stop() comes in the middle of it
+    c = ValController(time_scale=0.0, pace_baud=100)
+    path = c.start_pty()
+    with serial.Serial(path, timeout=0.05) as port:
+        port.write(b"WHERE\r")
+        got = b""
+        t_end = time.monotonic() + 10.0
+        while len(got) < 8 and time.monotonic() < t_end:  # the echo, then the reply under way
+            got += port.read(16)
+        assert len(got) >= 8
+        threads = list(c._threads)
+        t0 = time.monotonic()
+        c.stop()
+        took = time.monotonic() - t0
+        assert not any(t.is_alive() for t in threads)  # nothing writes once the pty is closed
+        assert took < 1.0, f"stop() took {took:.2f} s"
+    c.stop()  # twice is fine

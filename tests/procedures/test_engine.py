@@ -227,3 +227,112 @@ def test_monitor_updates_then_recalibrates_then_raises_the_alarm(cell, tmp_path)
         assert how[0] == "searched (no earlier frame)" and "tracked" in how[1:4], how
         assert "ABORT" in [ln.upper() for ln in s.sim.robot_sim.received[n_rx:]]
         assert valve_is_safe(s)
+
+
+@pytest.mark.parametrize("signals, gap_s", [((signal.SIGTERM,), 0.0), ((signal.SIGHUP,), 0.0), ((signal.SIGQUIT,), 0.0),
+                                            ((signal.SIGINT, signal.SIGINT), 0.0), ((signal.SIGINT, signal.SIGINT), 0.01),
+                                            ((signal.SIGINT, signal.SIGINT), 0.03), ((signal.SIGTERM, signal.SIGINT), 0.02)],
+                         ids=["TERM", "HUP", "QUIT", "INT-INT-0ms", "INT-INT-10ms", "INT-INT-30ms", "TERM-INT-20ms"])
+def test_every_termination_signal_and_a_second_one_get_the_whole_cleanup(cell, signals, gap_s):
+    with CellSession.simulated(cell, seed=6, time_scale=1.0) as s:
+        main = threading.get_ident()
+        sim = s.sim.robot_sim
+
+        def send():
+            if sim.moving.wait(30.0):
+                for k, sig in enumerate(signals):
+                    if k:
+                        time.sleep(gap_s)
+                    signal.pthread_kill(main, sig)
+
+        sender = threading.Thread(target=send)
+        sender.start()
+        try:
+            with pytest.raises(Cancelled) as info:
+                s.park()
+        finally:
+            sender.join(30.0)
+        assert info.value.signum == signals[0]
+        assert "ABORT" in [ln.upper() for ln in sim.received] and not sim.moving.is_set()
+        assert valve_is_safe(s)
+        rep = s.engine.cleanup_report
+        assert rep["robot"].startswith("ABORT sent and confirmed") and rep["gripper"] == "valve set to its safe state"
+        assert "procedure" not in rep  # the worker is known to have ended
+        assert not [t for t in threading.enumerate() if t.name == "procedure"]  # and nothing of it runs at exit
+        assert not s.devices.robot.connected and not s.devices.gripper.connected
+
+
+class _Valve:
+    def __init__(self):
+        self.calls = []
+
+    def safe(self):
+        self.calls.append("safe")
+
+    def close(self):
+        self.calls.append("close")
+
+
+def test_a_signal_while_the_worker_starts_still_gets_the_cleanup(monkeypatch):
+    main = threading.get_ident()
+    real = threading.Thread
+
+    class Starting(real):
+        def start(self):
+            if self.name == "procedure":
+                signal.pthread_kill(main, signal.SIGTERM)
+            super().start()
+
+    monkeypatch.setattr(threading, "Thread", Starting)
+    valve = _Valve()
+    e = Engine(CellDevices(gripper=valve))
+    with pytest.raises(Cancelled, match="SIGTERM") as info:
+        e.run(lambda eng: eng.execute(Step("wait", {"seconds": 5.0})))
+    assert info.value.signum == signal.SIGTERM
+    assert valve.calls == ["safe", "close"]
+
+
+def test_the_cell_is_reported_safe_only_once_the_worker_has_ended():
+    main = threading.get_ident()
+    ended = threading.Event()
+
+    def body(eng):
+        eng.execute(Step("compute", {"fn": lambda _e: time.sleep(0.8)}))  # a step that does not look at the flag
+        eng.execute(Step("wait", {"seconds": 0.0}))
+        ended.set()
+
+    def interrupt():
+        time.sleep(0.2)
+        signal.pthread_kill(main, signal.SIGINT)
+
+    # long enough: the engine waits for the step, so the cleanup follows the worker's end
+    e = Engine(CellDevices(gripper=_Valve()), abort_timeout_s=5.0)
+    threading.Thread(target=interrupt).start()
+    with pytest.raises(Cancelled):
+        e.run(body)
+    assert "procedure" not in e.cleanup_report and e.records[-1].ok
+    assert not ended.is_set()  # the step after it was refused (cancelled)
+    # too short: the report says the worker had not ended
+    e = Engine(CellDevices(gripper=_Valve()), abort_timeout_s=0.2)
+    threading.Thread(target=interrupt).start()
+    with pytest.raises(Cancelled, match="NOT ended"):
+        e.run(body)
+    assert "NOT ended" in e.cleanup_report["procedure"]
+
+
+def test_the_command_line_raises_for_the_first_signal_only():
+    from selfview.procedures import cli
+    from selfview.procedures.engine import Interrupted, _SignalFlag
+
+    old = cli._catch_termination_signals()
+    try:
+        with pytest.raises(Interrupted) as info:
+            signal.raise_signal(signal.SIGTERM)
+        assert info.value.signum == signal.SIGTERM
+        signal.raise_signal(signal.SIGINT)  # the cleanup the first one started goes on
+        signal.raise_signal(signal.SIGHUP)
+        assert _SignalFlag.seen == signal.SIGTERM
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        _SignalFlag.seen = None

@@ -1,0 +1,99 @@
+"""One program owns a device: the lock files of the valve terminal and the grabber, and a second program."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from selfview.drivers._ownership import DeviceBusy, DeviceLock, claim_for
+from selfview.drivers.pneumatic_gripper import PneumaticGripper
+from selfview.errors import ConfigError, DeviceError
+from selfview.mocks.valve_terminal import ValveTerminal
+from selfview.procedures.cli import EXIT_DEVICE, EXIT_USAGE, main
+from tests.conftest import REPO
+
+HOLD = "import sys, time; from selfview.drivers._ownership import DeviceLock; DeviceLock(sys.argv[1], sys.argv[2]).acquire(); print('held', flush=True); time.sleep(30)"
+
+
+@pytest.fixture(autouse=True)
+def lock_dir(tmp_path, monkeypatch):
+    monkeypatch.setenv("SELFVIEW_LOCK_DIR", str(tmp_path))
+    return tmp_path
+
+
+def _holder(kind, key, env):
+    proc = subprocess.Popen([sys.executable, "-c", HOLD, kind, key], cwd=REPO, env=env, stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "held"
+    return proc
+
+
+def test_a_second_holder_is_refused_with_the_first_ones_pid_and_a_dead_ones_lock_is_taken_over():
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = _holder("valve terminal", "10.0.0.5:502", env)
+    try:
+        with pytest.raises(DeviceBusy, match=rf"valve terminal 10.0.0.5:502 is in use by pid {proc.pid} \(-c valve"):
+            DeviceLock("valve terminal", "10.0.0.5:502").acquire()
+        other = DeviceLock("valve terminal", "10.0.0.6:502").acquire()  # another terminal: free
+        other.release()
+    finally:
+        proc.send_signal(signal.SIGKILL)  # dies holding it: no cleanup of its own
+        proc.wait(10)
+        proc.stdout.close()
+    lock = DeviceLock("valve terminal", "10.0.0.5:502").acquire()
+    assert lock.path.read_text().startswith(f"{os.getpid()} ")
+    with pytest.raises(DeviceBusy, match=f"pid {os.getpid()}"):  # a second driver in this program too
+        DeviceLock("valve terminal", "10.0.0.5:502").acquire()
+    lock.release()
+    lock.release()
+    assert DeviceLock("valve terminal", "10.0.0.5:502").acquire().held
+
+
+def test_a_lock_claimed_for_an_object_lasts_as_long_as_it():
+    class Source:
+        pass
+
+    src = Source()
+    assert claim_for(src, "frame grabber", None) is None  # a source that needs no lock
+    claim_for(src, "frame grabber", "/dev/video7")
+    with pytest.raises(DeviceBusy, match="frame grabber /dev/video7"):
+        DeviceLock("frame grabber", "/dev/video7").acquire()
+    del src
+    assert DeviceLock("frame grabber", "/dev/video7").acquire().held
+
+
+def test_a_second_program_on_the_valve_terminal_is_refused_with_exit_4():
+    with ValveTerminal(travel_s=0.02) as t:
+        with PneumaticGripper(t.url) as g:  # its poller feeds the terminal's watchdog
+            g.close_jaws()
+            env = dict(os.environ, PYTHONPATH=str(REPO))
+            run = subprocess.run([sys.executable, "-m", "selfview.procedures.cli", "gripper", "--url", t.url, "open"],
+                                 cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+            assert run.returncode == EXIT_DEVICE, run.stderr
+            assert f"in use by pid {os.getpid()}" in run.stderr
+            assert t.valve_outputs == {"open": False, "close": True}  # untouched
+        # released at close: the next one connects
+        assert main(["gripper", "--url", t.url, "open"]) == 0
+
+
+def test_every_jaw_wait_is_finite(capsys):
+    for v in ("inf", "nan", "-1"):
+        with pytest.raises(SystemExit) as info:
+            main(["gripper", "--url", "modbus-tcp://127.0.0.1:1", "--timeout", v, "state"])
+        assert info.value.code == EXIT_USAGE
+    assert "--timeout" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="finite"):
+        PneumaticGripper("modbus-tcp://127.0.0.1:1", timeout_s=float("inf"))
+    with pytest.raises(ConfigError, match="finite"):
+        PneumaticGripper("modbus-tcp://127.0.0.1:1", poll_s=float("inf"))
+
+
+def test_an_unusable_lock_folder_is_named(tmp_path, monkeypatch):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    monkeypatch.setenv("SELFVIEW_LOCK_DIR", str(blocker))
+    with pytest.raises(DeviceError, match="cannot create its lock file.*SELFVIEW_LOCK_DIR"):
+        DeviceLock("valve terminal", "10.0.0.5:502").acquire()
