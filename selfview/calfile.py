@@ -64,6 +64,7 @@ class Calibration:
     created: str = ""
     software: str = __version__
     updates: list[dict[str, Any]] = field(default_factory=list)
+    pictures: dict[str, str] = field(default_factory=dict)  # role -> file name beside this file
 
     def to_document(self) -> dict:
         doc = {
@@ -86,6 +87,8 @@ class Calibration:
             "residuals": _plain(self.residuals),
             "updates": _plain(self.updates),
         }
+        if self.pictures:
+            doc["pictures"] = {str(k): str(v) for k, v in self.pictures.items()}
         doc["checksum"] = _checksum(doc)
         return doc
 
@@ -156,6 +159,7 @@ class Calibration:
                 created=str(doc.get("created", "")),
                 software=str(doc.get("software", "")).removeprefix("selfview "),
                 updates=list(doc.get("updates") or []),
+                pictures={str(k): str(v) for k, v in (doc.get("pictures") or {}).items()},
             )
         except (KeyError, TypeError, ValueError, IndexError, AttributeError, OverflowError, ConfigError) as exc:
             what = f"missing key {exc}" if isinstance(exc, KeyError) else f"{type(exc).__name__}: {exc}"

@@ -10,6 +10,7 @@ import sys
 
 from selfview.procedures.commands._common import load_cell_arg, print_json
 from selfview.procedures.commands._session import add_session_arguments, camera_arguments, open_session, progress_printer
+from selfview.procedures.view import add_view_arguments, offline_state, viewing, with_progress
 
 
 def read_picture(path) -> tuple:
@@ -48,9 +49,35 @@ def register(sub):
     )
     p.add_argument("--points", default="measured", choices=("measured", "cell"),
                    help="gripper points from the picture (default, as the paper) or from the cell description")
+    p.add_argument("--no-pictures", action="store_true",
+                   help="do not keep the picture and its annotated copy beside --out (kept by default, named in the file)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    add_view_arguments(p)
     p.set_defaults(func=run)
     return p
+
+
+def keep_pictures(out, image, draw, kind: str = "") -> dict:
+    """Write the picture a result was computed from and its annotated copy (``draw(image)``, BGR) beside
+    ``out``, named by the picture's SHA-256 (an earlier run's pictures are never overwritten); returns
+    {picture, annotated}: the file names, relative to ``out``'s folder. ``kind`` starts the names
+    (``track-``: a tracked picture beside its calibration file)."""
+    import hashlib
+    import os
+    from pathlib import Path
+
+    from selfview.procedures.commands._common import write_image
+
+    out = Path(out)
+    tag = hashlib.sha256(image.tobytes()).hexdigest()[:12]
+    names = {}
+    for role, img in (("picture", image), ("annotated", draw(image))):
+        path = out.with_name(f"{out.stem}.{kind}{role}-{tag}.png")
+        tmp = path.with_name(f".{path.stem}.tmp.png")
+        write_image(tmp, img, "--out")
+        os.replace(tmp, path)
+        names[role] = path.name
+    return names
 
 
 def _camera_file(path, cell):
@@ -64,7 +91,13 @@ def _camera_file(path, cell):
 
 
 def run(args) -> int:
+    with viewing(args, "calibrate") as view:
+        return _run(args, view)
+
+
+def _run(args, view) -> int:
     from selfview.calfile import save_calibration
+    from selfview.procedures.results import draw_offline
     from selfview.errors import ConfigError
     from selfview.intrinsics import camera_check, tcp_sigma
     from selfview.offline import calibrate_offline
@@ -75,20 +108,31 @@ def run(args) -> int:
     camera = camera_file = cov3 = None
     if cam_path:
         camera, camera_file, cov3 = _camera_file(cam_path, cell)
+
+    def before_save(img, res):
+        if not args.no_pictures:
+            res.calibration.pictures = keep_pictures(args.out, img, lambda im: draw_offline(im, res))
+        if view:
+            offline_state(view, img, res, tcp_sigma_mm=tcp_sigma(res, cell, cov3)["tcp_sigma_mm"])
+
     if args.image:
         if args.real or url:
             raise ConfigError("--image calibrates a picture file; --real and a grabber URL are for the cell: give one of them")
         img, sha = read_picture(args.image)
+        if view:
+            view.doing(f"calibrating {args.image}")
+            view.frame(img)
         res = calibrate_offline(img, cell, state=args.state, mode=args.mode, points=args.points, image_sha256=sha,
                                 camera=camera, camera_file=camera_file)
+        before_save(img, res)
         kept = save_calibration(res.calibration, args.out)
         source = args.image
     else:
-        say = progress_printer()
+        say = with_progress(view, progress_printer())
         cell, session = open_session(args, say)
         with session:
             res = session.calibrate_camera(args.out, camera=camera, camera_file=camera_file, state=args.state,
-                                           mode=args.mode)
+                                           mode=args.mode, before_save=before_save)
         if res is None:  # dry run
             return 0
         kept = session.calibration_kept
@@ -97,6 +141,7 @@ def run(args) -> int:
     s["out"] = str(args.out)
     s["previous_kept_as"] = str(kept) if kept else None
     s["camera_file"] = camera_file
+    s["pictures"] = dict(res.calibration.pictures)
     warnings = []
     chk = camera_check(res, cell, camera)
     if chk.get("warning"):
@@ -124,5 +169,7 @@ def run(args) -> int:
         *(f"    [{' '.join(f'{v:+.6f}' for v in row)}]" for row in H),
         f"written to {args.out}" + (f" (previous kept as {kept})" if kept else ""),
     ]
+    if s["pictures"]:
+        lines.append(f"picture kept as {s['pictures']['picture']}, annotated as {s['pictures']['annotated']}")
     print("\n".join(lines), file=sys.stdout)
     return 0
