@@ -151,20 +151,6 @@ class CellSession:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def describe_devices(self) -> dict:
-        """What each configured device reports (for ``selfview devices``)."""
-        d = self.devices
-        out = {"robot": {"url": self.urls.robot}, "gripper": {"url": self.urls.gripper},
-               "camera": {"url": self.urls.camera}}
-        w = d.robot.where()
-        out["robot"].update({"pose_xyzoat": list(w.pose), "joints_deg": list(w.joints)})
-        out["gripper"].update({"state": d.gripper.state(), "outputs": d.gripper.outputs()})
-        fr = d.camera.grab()
-        img = fr.image
-        out["camera"].update({"size": [int(img.shape[1]), int(img.shape[0])], "mean_grey": float(img.mean()),
-                              "source": getattr(d.camera.source, "description", "")})
-        return out
-
     # --- procedures -------------------------------------------------------------------------------
     def _run(self, body, plan):
         return self.engine.run(body, plan)
