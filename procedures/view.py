@@ -17,7 +17,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import numpy as np
 
-__all__ = ["LiveView", "add_view_arguments", "open_view", "viewing", "with_progress", "offline_state", "decision_state"]
+__all__ = ["LiveView", "add_view_arguments", "open_view", "viewing", "with_progress", "watch", "offline_state", "decision_state"]
 
 
 def add_view_arguments(p: argparse.ArgumentParser) -> None:
@@ -71,6 +71,18 @@ def with_progress(view: "LiveView | None", say):
     return both
 
 
+def watch(view: "LiveView | None", session, *also) -> None:
+    """Show each step of ``session``'s engine on the page as it starts; ``also``: more ``on_step`` callables."""
+    hooks = ([view.step] if view is not None else []) + [h for h in also if h is not None]
+
+    def on_step(n, step):
+        for h in hooks:
+            h(n, step)
+
+    if session.engine is not None and hooks:
+        session.engine.on_step = on_step
+
+
 class LiveView:
     """The state a command shows and the server that shows it. Thread-safe; every method is cheap."""
 
@@ -94,6 +106,10 @@ class LiveView:
 
     def doing(self, text: str) -> None:
         self.update(doing=str(text))
+
+    def step(self, n: int, step) -> None:
+        """An engine step starting (``Engine.on_step``)."""
+        self.doing(f"step {n}: {step.describe()}")
 
     def verdict(self, go: bool, why: str) -> None:
         self.update(verdict={"go": bool(go), "why": str(why)})
@@ -259,9 +275,9 @@ svg{background:#111}
 <div id="doing">connecting</div>
 <main><section><img id="frame" alt="latest frame"></section>
 <section><h2 id="cmd">figures</h2><table id="numbers"></table>
-<h2>change of the camera over time</h2><svg id="plot" width="420" height="200"></svg>
-<h2>coverage</h2><div id="coverage">-</div>
-<h2>residuals per point</h2><table id="residuals"></table></section></main>
+<div id="plotbox" hidden><h2>change of the camera over time</h2><svg id="plot" width="420" height="200"></svg></div>
+<div id="coveragebox" hidden><h2>coverage of the picture</h2><table id="coverage"></table></div>
+<div id="residualbox" hidden><h2>residuals per point</h2><table id="residuals"></table></div></section></main>
 <script>
 let lastFrame=-1;
 function fmt(v){return typeof v==="number"?(Number.isInteger(v)?String(v):Math.abs(v)>=1e-3||v===0?v.toFixed(4):v.toExponential(3)):String(v)}
@@ -285,7 +301,9 @@ async function poll(){try{const s=await (await fetch("state.json",{cache:"no-sto
  const v=document.getElementById("verdict");
  if(s.verdict){v.className=s.verdict.go?"go":"nogo";v.textContent=(s.verdict.go?"GO: ":"NO-GO: ")+s.verdict.why;}
  rows(document.getElementById("numbers"),s.numbers);plot(s.series);
- document.getElementById("coverage").textContent=s.coverage?JSON.stringify(s.coverage):"-";
+ document.getElementById("plotbox").hidden=!s.series;document.getElementById("coveragebox").hidden=!s.coverage;
+ document.getElementById("residualbox").hidden=!s.residuals.length;
+ if(s.coverage)rows(document.getElementById("coverage"),s.coverage);
  const t=document.getElementById("residuals");t.innerHTML="";if(s.residuals.length){const h=t.insertRow();
   for(const k of Object.keys(s.residuals[0])){const c=document.createElement("th");c.textContent=k;h.appendChild(c);}
   for(const r of s.residuals){const tr=t.insertRow();for(const k in r)tr.insertCell().textContent=fmt(r[k]);}}

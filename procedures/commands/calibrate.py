@@ -10,7 +10,7 @@ import sys
 
 from selfview.procedures.commands._common import load_cell_arg, print_json
 from selfview.procedures.commands._session import add_session_arguments, camera_arguments, open_session, progress_printer
-from selfview.procedures.view import add_view_arguments, offline_state, viewing, with_progress
+from selfview.procedures.view import add_view_arguments, watch, offline_state, viewing, with_progress
 
 
 def read_picture(path) -> tuple:
@@ -131,6 +131,7 @@ def _run(args, view) -> int:
         say = with_progress(view, progress_printer())
         cell, session = open_session(args, say)
         with session:
+            watch(view, session)
             res = session.calibrate_camera(args.out, camera=camera, camera_file=camera_file, state=args.state,
                                            mode=args.mode, before_save=before_save)
         if res is None:  # dry run

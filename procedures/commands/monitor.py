@@ -6,7 +6,7 @@ import json
 import sys
 
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
-from selfview.procedures.view import add_view_arguments, decision_state, viewing, with_progress
+from selfview.procedures.view import add_view_arguments, watch, decision_state, viewing, with_progress
 
 
 def register(sub):
@@ -77,6 +77,7 @@ def _run(args, view) -> int:
                   + (f" [fingertips {rec['fingertips']}]" if rec.get("fingertips") else ""), flush=True)
 
     with session:
+        watch(view, session)
         disturb = None
         if args.drift:
             w = session.sim.world

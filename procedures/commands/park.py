@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from selfview.procedures.commands._common import print_json, write_image
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
-from selfview.procedures.view import add_view_arguments, viewing, with_progress
+from selfview.procedures.view import add_view_arguments, watch, viewing, with_progress
 
 
 def register(sub):
@@ -34,6 +34,7 @@ def _run(args, view) -> int:
     say = with_progress(view, progress_printer())
     cell, session = open_session(args, say)
     with session:
+        watch(view, session)
         img = session.park()
     if img is None:  # dry run
         return 0
