@@ -285,7 +285,7 @@ function rows(t,obj){t.innerHTML="";for(const k in obj){const r=t.insertRow();r.
  r.insertCell().textContent=fmt(obj[k]);}}
 function plot(s){const svg=document.getElementById("plot");svg.innerHTML="";if(!s||!s.points)return;
  const L=s.limits||{},P=s.points,W=420,H=200,n=Math.max(P.length,2),x=i=>10+i*(W-20)/(n-1);
- const top=Math.max(1.2,...P.map(p=>Math.max((p.delta_deg||0)/L.alarm_deg,(p.d_mm||0)/L.alarm_mm))*1.05);
+ const top=Math.max(1.2,...P.map(p=>Math.max((p.delta_deg||0)/L.alarm_deg,(p.d_mm||0)/L.alarm_mm)))*1.05;
  const y=v=>H-10-(v/top)*(H-30);let h="";
  const lines=[[1,"#ff4040",`alarm limit ${L.alarm_deg} deg / ${L.alarm_mm} mm`],
   [L.update_deg/L.alarm_deg,"#e0c000",`update limit ${L.update_deg} deg`],[L.update_mm/L.alarm_mm,"#c08000",`update limit ${L.update_mm} mm`]];
@@ -295,7 +295,10 @@ function plot(s){const svg=document.getElementById("plot");svg.innerHTML="";if(!
   h+=`<polyline fill="none" stroke="${c}" points="${P.map((p,i)=>x(i)+","+y((p[k]||0)/a)).join(" ")}"/>`;
  h+=`<text x="4" y="12" font-size="11"><tspan fill="#6cf">rotation</tspan> <tspan fill="#f8a">shift</tspan>`+
   `<tspan fill="#ccc"> as a fraction of the alarm limit, ${P.length} frames</tspan></text>`;svg.innerHTML=h;}
-async function poll(){try{const s=await (await fetch("state.json",{cache:"no-store"})).json();
+async function poll(){let s;try{s=await (await fetch("state.json",{cache:"no-store"})).json();}
+ catch(e){document.getElementById("doing").textContent="the command has ended; this is its last state";
+  setTimeout(poll,1000);return;}
+ try{
  document.getElementById("cmd").textContent="selfview "+s.command;
  document.getElementById("doing").textContent=(s.done?"finished; last step: ":"now: ")+s.doing;
  const v=document.getElementById("verdict");
@@ -309,7 +312,7 @@ async function poll(){try{const s=await (await fetch("state.json",{cache:"no-sto
   for(const r of s.residuals){const tr=t.insertRow();for(const k in r)tr.insertCell().textContent=fmt(r[k]);}}
  if(s.frame_seq!==lastFrame&&s.frame_seq>0){lastFrame=s.frame_seq;
   document.getElementById("frame").src="frame.jpg?"+s.frame_seq;}
-}catch(e){document.getElementById("doing").textContent="the command has ended ("+e+")";}
+}catch(e){document.getElementById("doing").textContent="page error: "+e;}
 setTimeout(poll,250);}
 poll();
 </script></body></html>
