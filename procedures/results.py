@@ -168,12 +168,21 @@ def _draw_gripper(big, cam, C_H_G, pG, scale, colour=(255, 255, 0)):
     cv2.arrowedLine(big, _pt(tcp[0], scale), _pt(tcp[2], scale), (255, 128, 0), 1, cv2.LINE_AA, tipLength=0.2)
 
 
-def draw_tracked(image, camera, C_H_G, pG, fingertips, scale: int = 2):
-    """A tracked frame (BGR, ``scale`` times bigger): the gripper where ``C_H_G`` puts it (cyan) and the
-    fingertip corners found (yellow, numbered)."""
+def draw_tracked(image, camera, C_H_G, pG, fingertips, scale: int = 2, boxes=None):
+    """A tracked frame (BGR, ``scale`` times bigger): the gripper where ``C_H_G`` puts it (cyan), the
+    fingers' silhouette there (``boxes``: [(lo, hi)] in G, green outlines) and the fingertip corners found
+    (yellow, numbered)."""
     import cv2
 
     big = cv2.resize(_bgr(image), None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    for lo, hi in boxes or ():
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        try:
+            uv = camera.project(transform_points(C_H_G, corners))
+        except Exception:  # a box partly behind the camera: no outline for it
+            continue
+        hull = cv2.convexHull(np.array([_pt(p, scale) for p in uv], np.int32))
+        cv2.polylines(big, [hull], True, (0, 255, 0), 1, cv2.LINE_AA)
     _draw_gripper(big, camera, C_H_G, pG, scale)
     _draw_corners(big, fingertips, scale)
     return big

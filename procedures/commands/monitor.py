@@ -59,8 +59,11 @@ def _run(args, view) -> int:
         from selfview.procedures.results import draw_tracked
 
         cal = load_calibration(args.calibration)
+        from selfview.pcc import jaw_gap_of
+
         pG = cal.points_G[cal.state]
-        on_frame = lambda img, ft, H: view.frame(draw_tracked(img, cal.camera, H, pG, ft))  # noqa: E731
+        boxes = cell.gripper.finger_boxes_G(jaw_gap_of(pG))
+        on_frame = lambda img, ft, H: view.frame(draw_tracked(img, cal.camera, H, pG, ft, boxes=boxes))  # noqa: E731
 
     def show(rec):
         if view:

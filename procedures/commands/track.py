@@ -129,7 +129,7 @@ def _run(args, view) -> int:
         }
         new = est.C_H_G_orth
     shown = new if new is not None else cal.C_H_G
-    draw = lambda im: draw_tracked(im, cal.camera, shown, pG, ft)  # noqa: E731
+    draw = lambda im: draw_tracked(im, cal.camera, shown, pG, ft, boxes=cell.gripper.finger_boxes_G(gap))  # noqa: E731
     if view:
         view.frame(draw(img))
         view.update(numbers={k: out[k] for k in ("method", "decision", "delta_deg", "d_mm", "rms_px")}
