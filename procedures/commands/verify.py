@@ -14,6 +14,7 @@ import numpy as np
 
 from selfview.procedures.commands._common import print_json
 from selfview.procedures.commands._session import add_session_arguments, camera_arguments, open_session, progress_printer
+from selfview.procedures.view import add_view_arguments, offline_state, viewing, watch, with_progress
 
 #: Where the parks go, relative to the taught plate location: in-plane shift x, y [mm] along the gripper's
 #: axes and turn about the approach axis [deg]. The fingers lie along G's x (+-28..36 mm) and are 12 mm
@@ -47,6 +48,7 @@ def register(sub):
                    help="the largest spread of the TCP along any camera axis that counts as go (default %(default)s)")
     p.add_argument("--state", default=None, help="gripper state (default: the cell's calibrate_in)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    add_view_arguments(p)
     p.set_defaults(func=run)
     return p
 
@@ -77,6 +79,11 @@ def spread(Hs) -> dict:
 
 
 def run(args) -> int:
+    with viewing(args, "verify") as view:
+        return _run(args, view)
+
+
+def _run(args, view) -> int:
     from selfview.errors import ConfigError
     from selfview.geometry import rotation_angle, trans
     from selfview.intrinsics import tcp_sigma
@@ -92,7 +99,7 @@ def run(args) -> int:
         raise ConfigError(f"--target-mm {args.target_mm}: expected a length > 0 in mm")
     url, cam_path = camera_arguments(args.camera)
     args.camera = url
-    say = progress_printer()
+    say = with_progress(view, progress_printer())
     cell, session = open_session(args, say)
     camera = camera_file = cov3 = None
     if cam_path:
@@ -105,6 +112,7 @@ def run(args) -> int:
             raise ConfigError(f"park at {dx:+.0f} {dy:+.0f} mm, {turn:+.0f} deg: the plate's centre would leave the "
                               "fingertips' contact hull (a narrower gripper than the reference cell's): give fewer --parks")
     with session:
+        watch(view, session)
         s = session.settings
         if session.dry_run:
             targets = [f"{s.plate} shifted {dx:+.0f} {dy:+.0f} mm, turned {t:+.0f} deg" for dx, dy, t in places]
@@ -131,6 +139,11 @@ def run(args) -> int:
                             img, cell, state=state, camera=camera, camera_file=camera_file)},
                             note=f"calibrate park {k + 1}"))
                         results.append(res)
+                        if view:
+                            offline_state(view, img, res)
+                            view.update(numbers={"park": f"{k + 1} of {len(targets)}",
+                                                 **{f"park {i + 1} TCP x y z [mm]": " ".join(f"{v:+.4f}" for v in
+                                                    r.calibration.C_H_G[:3, 3]) for i, r in enumerate(results)}})
             return results
 
         results = session.engine.run(body, plan)
@@ -149,8 +162,8 @@ def run(args) -> int:
     reason = (f"the TCP's spread over {len(results)} parks is at most {worst:.4f} mm (along {axes[k]}), "
               + ("within" if go else "over") + f" the target {args.target_mm:g} mm")
     if np.any(ratio > 3):
-        reason += (f"; the spread is {ratio.max():.1f} times the calibration's own sigma: the picture-to-picture "
-                   "error is larger than the sigma says")
+        reason += (f"; along {axes[int(np.argmax(ratio))]} the spread is {ratio.max():.1f} times the calibration's "
+                   "own sigma: the picture-to-picture error is larger than the sigma says")
     out = {
         "parks": [{"shift_mm": [dx, dy], "turn_deg": t, "tcp_mm": H[:3, 3].tolist(), "rms_px": float(r.tsai.rms_px),
                    "corners_found": int(np.count_nonzero(r.fingertips.found))}
@@ -171,6 +184,14 @@ def run(args) -> int:
         out["truth_error_mm"] = (sp["mean"][:3, 3] - Ht[:3, 3]).tolist()
         out["truth_error_deg"] = float(np.degrees(rotation_angle(sp["mean"][:3, :3].T @ Ht[:3, :3])))
         out["truth_error_per_park_mm"] = [float(np.linalg.norm(H[:3, 3] - Ht[:3, 3])) for H in Hs]
+    if view:
+        view.update(numbers={"spread x y z [mm]": " ".join(f"{v:.4f}" for v in out["spread_mm"]),
+                             "spread rotation [deg]": out["spread_deg"],
+                             "own 1-sigma x y z [mm]": " ".join(f"{v:.4f}" for v in out["sigma_mm"]),
+                             **({"error against the truth x y z [mm]": " ".join(f"{v:+.4f}" for v in out["truth_error_mm"])}
+                                if "truth_error_mm" in out else {}),
+                             "cannot see": BLIND})
+        view.verdict(go, reason)
     if args.json:
         print_json(out)
     else:
