@@ -8,7 +8,6 @@ parks is compared with the calibration's own sigma and with a target the user se
 from __future__ import annotations
 
 import dataclasses
-import sys
 
 import numpy as np
 
@@ -85,13 +84,12 @@ def run(args) -> int:
 
 def _run(args, view) -> int:
     from selfview.errors import ConfigError
-    from selfview.geometry import rotation_angle, trans
+    from selfview.geometry import rot_z, rotation_angle, trans
     from selfview.intrinsics import tcp_sigma
     from selfview.offline import calibrate_offline
     from selfview.procedures.commands.calibrate import _camera_file
     from selfview.procedures.engine import Step
     from selfview.procedures.runs import depart_plan, park_plan
-    from selfview.geometry import rot_z
 
     if not 3 <= args.parks <= len(PLACES):
         raise ConfigError(f"--parks {args.parks}: expected 3 to {len(PLACES)}")
