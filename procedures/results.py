@@ -19,7 +19,7 @@ from selfview import __version__
 from selfview.cell import POINT_NAMES
 from selfview.geometry import transform_points
 
-__all__ = ["new_run_dir", "write_json", "annotate_offline", "draw_offline", "offline_residuals", "draw_tracked", "annotate_online", "plot_errors", "environment"]
+__all__ = ["new_run_dir", "write_json", "annotate_offline", "draw_offline", "offline_residuals", "draw_tracked", "keep_pictures", "annotate_online", "plot_errors", "environment"]
 
 
 def new_run_dir(out: str | os.PathLike | None, base: str | os.PathLike = "runs", prefix: str = "experiment") -> Path:
@@ -269,3 +269,22 @@ def plot_errors(summary: dict, path: Path, methods) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def keep_pictures(out, image, draw, kind: str = "") -> dict:
+    """Write the picture a result was computed from and its annotated copy (``draw(image)``, BGR) beside
+    ``out``, named by the picture's SHA-256 (an earlier run's pictures are never overwritten); returns
+    {picture, annotated}: the file names, relative to ``out``'s folder. ``kind`` starts the names
+    (``track-``: a tracked picture beside its calibration file)."""
+    from selfview.procedures.commands._common import write_image
+
+    out = Path(out)
+    tag = hashlib.sha256(image.tobytes()).hexdigest()[:12]
+    names = {}
+    for role, img in (("picture", image), ("annotated", draw(image))):
+        path = out.with_name(f"{out.stem}.{kind}{role}-{tag}.png")
+        tmp = path.with_name(f".{path.stem}.tmp.png")
+        write_image(tmp, img, "--out")
+        os.replace(tmp, path)
+        names[role] = path.name
+    return names

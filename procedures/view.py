@@ -17,7 +17,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import numpy as np
 
-__all__ = ["LiveView", "add_view_arguments", "open_view", "viewing", "with_progress", "watch", "offline_state", "decision_state"]
+__all__ = ["LiveView", "ViewProgress", "add_view_arguments", "open_view", "viewing", "with_progress", "watch", "offline_state", "intrinsics_state", "tracked_frames", "decision_state"]
 
 
 def add_view_arguments(p: argparse.ArgumentParser) -> None:
@@ -240,6 +240,35 @@ def offline_state(view: LiveView, image, result, *, tcp_sigma_mm=None, rms_limit
                            f"(max {s['max_px']:.3f} px)")
 
 
+def intrinsics_state(view: LiveView, res) -> None:
+    """A camera measured from several views (``selfview.intrinsics``) on the page: its figures, the stop
+    rule's state and a verdict (go when the rule is met and the two halves of the views agree)."""
+    xc = res.cross_check
+    sr = res.stop_rule
+    view.update(numbers={"f [px]": res.camera.f, "kappa [px^-2]": res.camera.kappa, "cx [px]": res.camera.cx,
+                         "cy [px]": res.camera.cy, "aspect": res.camera.aspect, "views used": res.views_used,
+                         "residual rms [px]": res.rms_px,
+                         "stop rule: sigma centre [px]": f"{sr['sigma_centre_px']:.3f} (limit {sr['limit_centre_px']})",
+                         "stop rule: sigma aspect [%]": f"{sr['sigma_aspect_pct']:.4f} (limit {sr['limit_aspect_pct']})"})
+    view.verdict(bool(sr["met"]) and not (xc.get("done") and not xc.get("agree")),
+                 "stop rule met" + ("" if not xc.get("done") else ", halves agree" if xc.get("agree") else
+                                    ", but the halves DISAGREE") if sr["met"] else
+                 "stop rule not met: " + sr.get("advice", ""))
+
+
+def tracked_frames(view: LiveView, calibration, cell):
+    """``CellSession.monitor``'s ``on_frame``: each tracked frame on the page, the fingers' silhouette and
+    corners drawn where the current C_H_G puts them."""
+    from selfview.calfile import load_calibration
+    from selfview.pcc import jaw_gap_of
+    from selfview.procedures.results import draw_tracked
+
+    cal = load_calibration(calibration)
+    pG = cal.points_G[cal.state]
+    boxes = cell.gripper.finger_boxes_G(jaw_gap_of(pG))
+    return lambda img, ft, H: view.frame(draw_tracked(img, cal.camera, H, pG, ft, boxes=boxes))
+
+
 def decision_state(view: LiveView, rec: dict, limits) -> None:
     """One monitor decision on the page: a point of the camera's change over time against the limits."""
     view.doing(f"frame {rec.get('frame')}: {rec.get('action')}")
@@ -256,6 +285,62 @@ def decision_state(view: LiveView, rec: dict, limits) -> None:
         view.verdict(False, f"alarm at frame {rec.get('frame')}: {rec.get('reason')}")
     else:
         view.verdict(True, f"frame {rec.get('frame')}: {rec.get('action')} ({rec.get('reason')})")
+
+
+class ViewProgress:
+    """``Engine.on_step`` for the views of ``CellSession.intrinsics_views``: one line per view with the time
+    left for the views (from the time per view so far), and on the live view each picture as it comes with
+    the plate's discs found in it and the picture's coverage by all the views so far."""
+
+    def __init__(self, say, views: int, engine, cell, view=None, grid: int = 4):
+        import time
+
+        self.say, self.views, self.engine, self.cell, self.view, self.grid = say, views, engine, cell, view, grid
+        self.t0 = time.monotonic()
+        self.pending = None
+        self.covered = set()
+        self.canvas = None
+
+    def __call__(self, n, step) -> None:
+        import time
+
+        if self.pending:
+            self._show(self.pending)
+            self.pending = None
+        if step.kind == "grab" and (step.name or "").startswith("view"):
+            i = int(step.name[4:])
+            el = time.monotonic() - self.t0
+            self.say(f"view {i} of {self.views}: at its pose, grabbing; elapsed {el:.1f} s, "
+                     f"views left ~{el / i * (self.views - i):.0f} s")
+            self.pending = step.name if self.view is not None else None
+
+    def _show(self, name) -> None:
+        import cv2
+        import numpy as np
+
+        from selfview.discs import detect_discs
+        from selfview.errors import ImageError
+
+        img = self.engine.results.get(name)
+        if img is None:
+            return
+        big = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+        if self.canvas is None:
+            self.canvas = np.zeros_like(big)
+        try:
+            uv = detect_discs(img, self.cell.plate, camera=self.cell.camera.guess()).uv
+        except ImageError as exc:
+            self.view.doing(f"{name}: no plate found ({exc})")
+            uv = np.zeros((0, 2))
+        h, w = img.shape
+        for u, v in uv:
+            cv2.circle(big, (int(u), int(v)), 6, (0, 200, 0), 2, cv2.LINE_AA)
+            cv2.circle(self.canvas, (int(u), int(v)), 3, (0, 200, 255), -1, cv2.LINE_AA)
+            self.covered.add((min(int(u * self.grid / w), self.grid - 1), min(int(v * self.grid / h), self.grid - 1)))
+        shown = cv2.addWeighted(big, 1.0, self.canvas, 0.8, 0)
+        self.view.frame(shown)
+        self.view.update(coverage={"views taken": int(name[4:]), "of": self.views, "discs in this view": len(uv),
+                                   f"cells of a {self.grid}x{self.grid} grid with discs": len(self.covered)})
 
 
 _PAGE = """<!doctype html>

@@ -57,29 +57,6 @@ def register(sub):
     return p
 
 
-def keep_pictures(out, image, draw, kind: str = "") -> dict:
-    """Write the picture a result was computed from and its annotated copy (``draw(image)``, BGR) beside
-    ``out``, named by the picture's SHA-256 (an earlier run's pictures are never overwritten); returns
-    {picture, annotated}: the file names, relative to ``out``'s folder. ``kind`` starts the names
-    (``track-``: a tracked picture beside its calibration file)."""
-    import hashlib
-    import os
-    from pathlib import Path
-
-    from selfview.procedures.commands._common import write_image
-
-    out = Path(out)
-    tag = hashlib.sha256(image.tobytes()).hexdigest()[:12]
-    names = {}
-    for role, img in (("picture", image), ("annotated", draw(image))):
-        path = out.with_name(f"{out.stem}.{kind}{role}-{tag}.png")
-        tmp = path.with_name(f".{path.stem}.tmp.png")
-        write_image(tmp, img, "--out")
-        os.replace(tmp, path)
-        names[role] = path.name
-    return names
-
-
 def _camera_file(path, cell):
     """(camera model, {path, sha256}, covariance of cx, cy, aspect (3, 3), and skew (4, 4) when the file
     has it) of a camera file, checked against the cell's picture size."""
@@ -97,7 +74,7 @@ def run(args) -> int:
 
 def _run(args, view) -> int:
     from selfview.calfile import save_calibration
-    from selfview.procedures.results import draw_offline
+    from selfview.procedures.results import draw_offline, keep_pictures
     from selfview.errors import ConfigError
     from selfview.intrinsics import camera_check, tcp_sigma
     from selfview.offline import calibrate_offline

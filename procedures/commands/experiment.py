@@ -7,7 +7,7 @@ import time
 
 from selfview.procedures.commands._common import print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
-from selfview.procedures.view import add_view_arguments, viewing, watch, with_progress
+from selfview.procedures.view import ViewProgress, add_view_arguments, viewing, watch, with_progress
 
 
 def register(sub):
@@ -80,7 +80,6 @@ def _run(args, view) -> int:
         camera = None
         if intrinsics:
             from selfview.intrinsics import calibrate_intrinsics
-            from selfview.procedures.commands.intrinsics import ViewProgress
 
             t_cam = time.monotonic()
             watch(view, session, ViewProgress(say, 12, session.engine, cell, view))

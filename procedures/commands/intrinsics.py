@@ -13,7 +13,7 @@ from pathlib import Path
 
 from selfview.procedures.commands._common import print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
-from selfview.procedures.view import add_view_arguments, viewing, watch, with_progress
+from selfview.procedures.view import ViewProgress, add_view_arguments, intrinsics_state, viewing, watch, with_progress
 
 
 def register(sub):
@@ -42,62 +42,6 @@ def register(sub):
     add_view_arguments(p)
     p.set_defaults(func=run)
     return p
-
-
-class ViewProgress:
-    """``Engine.on_step`` for the views of ``CellSession.intrinsics_views``: one line per view with the time
-    left for the views (from the time per view so far), and on the live view each picture as it comes with
-    the plate's discs found in it and the picture's coverage by all the views so far."""
-
-    def __init__(self, say, views: int, engine, cell, view=None, grid: int = 4):
-        import time
-
-        self.say, self.views, self.engine, self.cell, self.view, self.grid = say, views, engine, cell, view, grid
-        self.t0 = time.monotonic()
-        self.pending = None
-        self.covered = set()
-        self.canvas = None
-
-    def __call__(self, n, step) -> None:
-        import time
-
-        if self.pending:
-            self._show(self.pending)
-            self.pending = None
-        if step.kind == "grab" and (step.name or "").startswith("view"):
-            i = int(step.name[4:])
-            el = time.monotonic() - self.t0
-            self.say(f"view {i} of {self.views}: at its pose, grabbing; elapsed {el:.1f} s, "
-                     f"views left ~{el / i * (self.views - i):.0f} s")
-            self.pending = step.name if self.view is not None else None
-
-    def _show(self, name) -> None:
-        import cv2
-        import numpy as np
-
-        from selfview.discs import detect_discs
-        from selfview.errors import ImageError
-
-        img = self.engine.results.get(name)
-        if img is None:
-            return
-        big = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
-        if self.canvas is None:
-            self.canvas = np.zeros_like(big)
-        try:
-            uv = detect_discs(img, self.cell.plate, camera=self.cell.camera.guess()).uv
-        except ImageError as exc:
-            self.view.doing(f"{name}: no plate found ({exc})")
-            uv = np.zeros((0, 2))
-        h, w = img.shape
-        for u, v in uv:
-            cv2.circle(big, (int(u), int(v)), 6, (0, 200, 0), 2, cv2.LINE_AA)
-            cv2.circle(self.canvas, (int(u), int(v)), 3, (0, 200, 255), -1, cv2.LINE_AA)
-            self.covered.add((min(int(u * self.grid / w), self.grid - 1), min(int(v * self.grid / h), self.grid - 1)))
-        shown = cv2.addWeighted(big, 1.0, self.canvas, 0.8, 0)
-        self.view.frame(shown)
-        self.view.update(coverage={"views taken": int(name[4:]), "of": self.views, "discs in this view": len(uv),
-                                   f"cells of a {self.grid}x{self.grid} grid with discs": len(self.covered)})
 
 
 def _check_args(args) -> None:
@@ -176,16 +120,7 @@ def _run(args, view) -> int:
                         f"(limit {xc['limit_sigmas']:g}); a view may be blurred, or the camera moved between views")
     s["warnings"] = warnings
     if view:
-        sr = res.stop_rule
-        view.update(numbers={"f [px]": res.camera.f, "kappa [px^-2]": res.camera.kappa, "cx [px]": res.camera.cx,
-                             "cy [px]": res.camera.cy, "aspect": res.camera.aspect, "views used": res.views_used,
-                             "residual rms [px]": res.rms_px,
-                             "stop rule: sigma centre [px]": f"{sr['sigma_centre_px']:.3f} (limit {sr['limit_centre_px']})",
-                             "stop rule: sigma aspect [%]": f"{sr['sigma_aspect_pct']:.4f} (limit {sr['limit_aspect_pct']})"})
-        view.verdict(bool(sr["met"]) and not (xc.get("done") and not xc.get("agree")),
-                     "stop rule met" + ("" if not xc.get("done") else ", halves agree" if xc.get("agree") else
-                                        ", but the halves DISAGREE") if sr["met"] else
-                     "stop rule not met: " + sr.get("advice", ""))
+        intrinsics_state(view, res)
     if not args.images and getattr(session, "sim", None) is not None:
         t = session.sim.world.camera
         s["truth"] = {"f": t.f, "kappa": t.kappa, "principal_point": [t.cx, t.cy], "aspect": t.aspect}

@@ -6,7 +6,7 @@ import json
 import sys
 
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
-from selfview.procedures.view import add_view_arguments, watch, decision_state, viewing, with_progress
+from selfview.procedures.view import add_view_arguments, decision_state, tracked_frames, viewing, watch, with_progress
 
 
 def register(sub):
@@ -53,17 +53,7 @@ def _run(args, view) -> int:
         raise ConfigError("--drift moves the simulated camera; it has no meaning with --real")
     say = with_progress(view, progress_printer())
     cell, session = open_session(args, say)
-    on_frame = None
-    if view:
-        from selfview.calfile import load_calibration
-        from selfview.procedures.results import draw_tracked
-
-        cal = load_calibration(args.calibration)
-        from selfview.pcc import jaw_gap_of
-
-        pG = cal.points_G[cal.state]
-        boxes = cell.gripper.finger_boxes_G(jaw_gap_of(pG))
-        on_frame = lambda img, ft, H: view.frame(draw_tracked(img, cal.camera, H, pG, ft, boxes=boxes))  # noqa: E731
+    on_frame = tracked_frames(view, args.calibration, cell) if view else None
 
     def show(rec):
         if view:

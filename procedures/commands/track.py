@@ -47,8 +47,8 @@ def run(args) -> int:
 
 
 def _run(args, view) -> int:
-    from selfview.procedures.commands.calibrate import keep_pictures, read_picture
-    from selfview.procedures.results import draw_tracked
+    from selfview.procedures.commands.calibrate import read_picture
+    from selfview.procedures.results import draw_tracked, keep_pictures
     from selfview.calfile import load_calibration, save_calibration
     from selfview.cell import POINT_NAMES
     from selfview.errors import AlarmError, CalibrationError, ConfigError
