@@ -164,3 +164,17 @@ def test_track_view_shows_the_decision_and_a_failed_calibration_says_no_go(pictu
         stop(p)
     assert s["verdict"]["go"] is True and s["numbers"]["decision"] in ("update", "recalibrate")
     assert s["numbers"]["d_mm"] > 0 and s["frame_seq"] >= 2 and "B-outer-front" in s["numbers"]["points found"]
+
+
+def test_park_view_serves_the_parked_picture(tmp_path):
+    p, url = start(["park", "--out", "parked.png", "--view", "--view-linger", "20"], tmp_path)
+    try:
+        s = wait_for(url, lambda s: s["done"])
+        with urllib.request.urlopen(url + "frame.jpg", timeout=5) as r:
+            frame = cv2.imdecode(np.frombuffer(r.read(), np.uint8), cv2.IMREAD_GRAYSCALE)
+    finally:
+        stop(p)
+    assert s["command"] == "park" and s["verdict"]["go"] is True and s["numbers"]["picture"] == "768x576"
+    parked = cv2.imread(str(tmp_path / "parked.png"), cv2.IMREAD_GRAYSCALE)
+    assert frame.shape == parked.shape and np.abs(frame.astype(int) - parked).mean() < 3  # the same picture, as JPEG
+    assert "moves(" in s["doing"] or "grab" in s["doing"]
