@@ -163,7 +163,8 @@ class Engine:
     ``dry_run`` prints instead of executing; ``ask`` is how the operator is asked (default: ``input``;
     in CI there is no operator and asking raises); ``progress`` a callable(str) for progress lines;
     ``settle_s`` default wait for the cell to settle; ``abort_timeout_s`` how long the cleanup waits for
-    the procedure to end, and for each of its own steps (ABORT, safe valve, each close).
+    the procedure to end, and for each of its own steps (ABORT, safe valve, each close);
+    ``on_step(n, step)``, when set, hears of each step as it starts (a live view, a time estimate).
     """
 
     def __init__(self, devices: CellDevices, *, dry_run: bool = False, ask: Callable[[str], str] | None = None,
@@ -179,6 +180,7 @@ class Engine:
         self.records: list[StepRecord] = []
         self.cancel = threading.Event()
         self.cleanup_report: dict | None = None
+        self.on_step: Callable[[int, Step], None] | None = None
         self._n = 0
 
     # --- planning -------------------------------------------------------------------------------
@@ -299,6 +301,8 @@ class Engine:
         if self.cancel.is_set():
             raise Cancelled("run cancelled")
         self._n += 1
+        if self.on_step is not None:
+            self.on_step(self._n, step)
         t0 = time.monotonic()
         wall = time.time()
         try:

@@ -19,7 +19,7 @@ from selfview import __version__
 from selfview.cell import POINT_NAMES
 from selfview.geometry import transform_points
 
-__all__ = ["new_run_dir", "write_json", "annotate_offline", "annotate_online", "plot_errors", "environment"]
+__all__ = ["new_run_dir", "write_json", "annotate_offline", "draw_offline", "offline_residuals", "draw_tracked", "keep_pictures", "annotate_online", "plot_errors", "environment"]
 
 
 def new_run_dir(out: str | os.PathLike | None, base: str | os.PathLike = "runs", prefix: str = "experiment") -> Path:
@@ -103,9 +103,31 @@ def _pt(uv, scale):
 
 
 def annotate_offline(image, result, path: Path, scale: int = 2) -> Path:
-    """Draw what the off-line calibration used and found: the detected discs with their grid indices
-    (green), the model's reprojection of each disc centre (red cross), the fingertip corners (yellow
-    circles), the gripper rectangle and the TCP with G's x and y axes (cyan/magenta)."""
+    """``draw_offline`` written to ``path``."""
+    import cv2
+
+    cv2.imwrite(str(path), draw_offline(image, result, scale))
+    return path
+
+
+def offline_residuals(result) -> list[dict]:
+    """Each disc's residual: grid row and column, model minus detected centre [px], and its size on the
+    plate [mm] (the pixels times the disc's depth over f)."""
+    cal = result.calibration
+    det = result.discs
+    pC = transform_points(cal.C_H_W, det.p_W)
+    d = cal.camera.project(pC) - det.uv
+    px = np.hypot(d[:, 0], d[:, 1])
+    return [{"disc": f"{int(r)},{int(c)}", "du [px]": float(a), "dv [px]": float(b), "|r| [px]": float(n),
+             "|r| [mm]": float(n * z / cal.camera.f)}
+            for (r, c), (a, b), n, z in zip(det.rc, d, px, pC[:, 2])]
+
+
+def draw_offline(image, result, scale: int = 2, vector_scale: float = 50.0):
+    """The picture (``scale`` times bigger, BGR) with what the off-line calibration used and found: the
+    detected discs with their grid indices (green), the model's reprojection of each disc centre (red cross)
+    and its residual vector ``vector_scale`` times longer (orange), the fingertip corners (yellow circles),
+    the gripper rectangle and the TCP with G's x and y axes (cyan/magenta)."""
     import cv2
 
     cam = result.calibration.camera
@@ -117,20 +139,17 @@ def annotate_offline(image, result, path: Path, scale: int = 2) -> Path:
         cv2.drawMarker(big, _pt(m, scale), (0, 0, 255), cv2.MARKER_CROSS, 4 * scale, 1, cv2.LINE_AA)
         cv2.putText(big, f"{r},{c}", _pt((u + 4, v - 4), scale), cv2.FONT_HERSHEY_PLAIN, 0.6 * scale,
                     (0, 160, 0), 1, cv2.LINE_AA)
+        tip = (u + vector_scale * (m[0] - u), v + vector_scale * (m[1] - v))
+        cv2.arrowedLine(big, _pt((u, v), scale), _pt(tip, scale), (0, 140, 255), 1, cv2.LINE_AA, tipLength=0.3)
     _draw_gripper(big, cam, result.calibration.C_H_G, result.calibration.points_G[result.calibration.state], scale)
-    ft = result.fingertips
-    for i, nm in enumerate(POINT_NAMES):
-        if ft.found[i]:
-            cv2.circle(big, _pt(ft.uv[i], scale), 5 * scale, (0, 230, 230), 1, cv2.LINE_AA)
-            cv2.putText(big, str(i + 1), _pt((ft.uv[i][0] + 6, ft.uv[i][1] + 12), scale), cv2.FONT_HERSHEY_SIMPLEX,
-                        0.5, (0, 230, 230), 1, cv2.LINE_AA)
+    _draw_corners(big, result.fingertips, scale)
     s = result.summary()
     txt = (f"f={s['f']:.1f}px kappa={s['kappa']:.2e} rms={s['rms_px']:.3f}px discs={s['discs_used']} "
            f"corners={len(s['corners_found'])}")
     cv2.putText(big, txt, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 3, cv2.LINE_AA)
     cv2.putText(big, txt, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.imwrite(str(path), big)
-    return path
+    _label(big, f"orange: disc residuals x{vector_scale:g}", (10, 48), (0, 140, 255))
+    return big
 
 
 def _draw_gripper(big, cam, C_H_G, pG, scale, colour=(255, 255, 0)):
@@ -147,6 +166,37 @@ def _draw_gripper(big, cam, C_H_G, pG, scale, colour=(255, 255, 0)):
     cv2.drawMarker(big, _pt(tcp[0], scale), colour, cv2.MARKER_TILTED_CROSS, 8 * scale, 2, cv2.LINE_AA)
     cv2.arrowedLine(big, _pt(tcp[0], scale), _pt(tcp[1], scale), (255, 0, 255), 1, cv2.LINE_AA, tipLength=0.2)
     cv2.arrowedLine(big, _pt(tcp[0], scale), _pt(tcp[2], scale), (255, 128, 0), 1, cv2.LINE_AA, tipLength=0.2)
+
+
+def draw_tracked(image, camera, C_H_G, pG, fingertips, scale: int = 2, boxes=None):
+    """A tracked frame (BGR, ``scale`` times bigger): the gripper where ``C_H_G`` puts it (cyan), the
+    fingers' silhouette there (``boxes``: [(lo, hi)] in G, green outlines) and the fingertip corners found
+    (yellow, numbered)."""
+    import cv2
+
+    big = cv2.resize(_bgr(image), None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    for lo, hi in boxes or ():
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        try:
+            uv = camera.project(transform_points(C_H_G, corners))
+        except Exception:  # a box partly behind the camera: no outline for it
+            continue
+        hull = cv2.convexHull(np.array([_pt(p, scale) for p in uv], np.int32))
+        cv2.polylines(big, [hull], True, (0, 255, 0), 1, cv2.LINE_AA)
+    _draw_gripper(big, camera, C_H_G, pG, scale)
+    _draw_corners(big, fingertips, scale)
+    return big
+
+
+def _draw_corners(big, fingertips, scale):
+    import cv2
+
+    for i in range(len(POINT_NAMES)):
+        if fingertips.found[i]:
+            uv = fingertips.uv[i]
+            cv2.circle(big, _pt(uv, scale), 5 * scale, (0, 230, 230), 1, cv2.LINE_AA)
+            cv2.putText(big, str(i + 1), _pt((uv[0] + 6, uv[1] + 12), scale), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                        (0, 230, 230), 1, cv2.LINE_AA)
 
 
 def annotate_online(image, camera, C_H_G_before, estimates: dict, fingertips, pG, path: Path, scale: int = 2) -> Path:
@@ -219,3 +269,22 @@ def plot_errors(summary: dict, path: Path, methods) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def keep_pictures(out, image, draw, kind: str = "") -> dict:
+    """Write the picture a result was computed from and its annotated copy (``draw(image)``, BGR) beside
+    ``out``, named by the picture's SHA-256 (an earlier run's pictures are never overwritten); returns
+    {picture, annotated}: the file names, relative to ``out``'s folder. ``kind`` starts the names
+    (``track-``: a tracked picture beside its calibration file)."""
+    from selfview.procedures.commands._common import write_image
+
+    out = Path(out)
+    tag = hashlib.sha256(image.tobytes()).hexdigest()[:12]
+    names = {}
+    for role, img in (("picture", image), ("annotated", draw(image))):
+        path = out.with_name(f"{out.stem}.{kind}{role}-{tag}.png")
+        tmp = path.with_name(f".{path.stem}.tmp.png")
+        write_image(tmp, img, "--out")
+        os.replace(tmp, path)
+        names[role] = path.name
+    return names

@@ -174,20 +174,6 @@ class CellSession:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def describe_devices(self) -> dict:
-        """What each configured device reports (for ``selfview devices``)."""
-        d = self.devices
-        out = {"robot": {"url": self.urls.robot}, "gripper": {"url": self.urls.gripper},
-               "camera": {"url": self.urls.camera}}
-        w = d.robot.where()
-        out["robot"].update({"pose_xyzoat": list(w.pose), "joints_deg": list(w.joints)})
-        out["gripper"].update({"state": d.gripper.state(), "outputs": d.gripper.outputs()})
-        fr = d.camera.grab()
-        img = fr.image
-        out["camera"].update({"size": [int(img.shape[1]), int(img.shape[0])], "mean_grey": float(img.mean()),
-                              "source": getattr(d.camera.source, "description", "")})
-        return out
-
     # --- procedures -------------------------------------------------------------------------------
     def _run(self, body, plan):
         return self.engine.run(body, plan)
@@ -213,13 +199,15 @@ class CellSession:
         return self.calibrate_camera(out, state=state, mode=mode)
 
     def calibrate_camera(self, out: str | Path = "calibration.yaml", *, camera=None, camera_file: dict | None = None,
-                         state: str | None = None, mode: str = "full", force: bool = False) -> OfflineResult | None:
+                         state: str | None = None, mode: str = "full", force: bool = False,
+                         before_save: Callable | None = None) -> OfflineResult | None:
         """``calibrate`` with a measured camera (``selfview intrinsics``): park, grab, calibrate off-line
         with ``camera``'s principal point and aspect (None: the cell's nominal ones), save the calibration
         file (recording ``camera_file`` {path, sha256}), depart. Nothing is written on a failure; the
         previous file's history copy is left in ``calibration_kept``. A camera file that does not fit the
         picture (``selfview.intrinsics.camera_file_fit``, in ``camera_file_fit``) stops the run with a
-        ``CalibrationError`` before anything is written, unless ``force``."""
+        ``CalibrationError`` before anything is written, unless ``force``. ``before_save(picture, result)``
+        runs between the calibration and the save (to keep the picture beside the file, to show it)."""
         self.calibration_kept = self.camera_file_fit = None
         state = state or self.cell.gripper.calibrate_in
         s = self.settings
@@ -233,6 +221,8 @@ class CellSession:
                 e.results["picture"], self.cell, state=state, mode=mode, camera=camera, camera_file=camera_file)},
                 name="offline", note="off-line calibration"))
             self.camera_file_fit = refuse_unfitting_camera(res, camera, (camera_file or {}).get("path"), force)
+            if before_save is not None:
+                before_save(e.results["picture"], res)
             self.calibration_kept = e.execute(Step("compute", {"fn": lambda e: save_calibration(res.calibration, out)},
                                                    note=f"save {out}"))
             e.execute(plan[-1])
@@ -281,12 +271,13 @@ class CellSession:
 
     def monitor(self, calibration: str | Path, frames: int = 20, *, method: str = "4P-U",
                 disturb: Callable[[int], None] | None = None, state: str | None = None,
-                on_decision: Callable[[dict], None] | None = None) -> list[dict]:
+                on_decision: Callable[[dict], None] | None = None,
+                on_frame: Callable | None = None) -> list[dict]:
         """Grab pictures as the robot works, track the fingertips, apply the policy to each.
 
         The robot moves between ``settings.work_locations``; ``disturb(k)`` (simulation) may move the
         camera before frame k. On an alarm the engine stops the robot and ``AlarmError`` is raised.
-        Returns the monitor's decision records."""
+        ``on_frame(picture, fingertips, C_H_G)`` sees each tracked frame. Returns the monitor's decision records."""
         cal = load_calibration(calibration)
         state = state or cal.state
         pG = cal.points_G[state]
@@ -324,6 +315,8 @@ class CellSession:
 
                 def track(e, img=img):
                     ft = tracker.find(img, mon.C_H_G, gap)
+                    if on_frame is not None:
+                        on_frame(img, ft, mon.C_H_G)
                     logged = len(mon.records)
                     try:
                         return mon.step(ft.uv, ft.found, lost=ft.lost)

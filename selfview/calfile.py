@@ -65,6 +65,7 @@ class Calibration:
     created: str = ""
     software: str = __version__
     updates: list[dict[str, Any]] = field(default_factory=list)
+    pictures: dict[str, str] = field(default_factory=dict)  # role -> file name beside this file
     #: SHA-256 of the file this was read from ("" if not read from one): what a save passing it as
     #: ``expected`` may replace. Not a field: where it was read is not part of the calibration.
     file_sha256: ClassVar[str] = ""
@@ -90,6 +91,8 @@ class Calibration:
             "residuals": _plain(self.residuals),
             "updates": _plain(self.updates),
         }
+        if self.pictures:
+            doc["pictures"] = {str(k): str(v) for k, v in self.pictures.items()}
         doc["checksum"] = _checksum(doc)
         return doc
 
@@ -160,6 +163,7 @@ class Calibration:
                 created=str(doc.get("created", "")),
                 software=str(doc.get("software", "")).removeprefix("selfview "),
                 updates=list(doc.get("updates") or []),
+                pictures={str(k): str(v) for k, v in (doc.get("pictures") or {}).items()},
             )
         except (KeyError, TypeError, ValueError, IndexError, AttributeError, OverflowError, ConfigError) as exc:
             what = f"missing key {exc}" if isinstance(exc, KeyError) else f"{type(exc).__name__}: {exc}"

@@ -10,6 +10,7 @@ import sys
 
 from selfview.procedures.commands._common import load_cell_arg, print_json
 from selfview.procedures.commands._session import add_session_arguments, camera_arguments, open_session, progress_printer
+from selfview.procedures.view import add_view_arguments, watch, offline_state, viewing, with_progress
 
 
 def read_picture(path) -> tuple:
@@ -50,7 +51,10 @@ def register(sub):
                    help="gripper points from the picture (default, as the paper) or from the cell description")
     p.add_argument("--force", action="store_true",
                    help="write the calibration even when the camera file does not fit the picture")
+    p.add_argument("--no-pictures", action="store_true",
+                   help="do not keep the picture and its annotated copy beside --out (kept by default, named in the file)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    add_view_arguments(p)
     p.set_defaults(func=run)
     return p
 
@@ -66,7 +70,13 @@ def _camera_file(path, cell):
 
 
 def run(args) -> int:
+    with viewing(args, "calibrate") as view:
+        return _run(args, view)
+
+
+def _run(args, view) -> int:
     from selfview.calfile import save_calibration
+    from selfview.procedures.results import draw_offline, keep_pictures
     from selfview.errors import ConfigError
     from selfview.intrinsics import camera_check, tcp_sigma
     from selfview.offline import calibrate_offline
@@ -78,21 +88,33 @@ def run(args) -> int:
     camera = camera_file = cov3 = None
     if cam_path:
         camera, camera_file, cov3 = _camera_file(cam_path, cell)
+
+    def before_save(img, res):
+        if not args.no_pictures:
+            res.calibration.pictures = keep_pictures(args.out, img, lambda im: draw_offline(im, res))
+        if view:
+            offline_state(view, img, res, tcp_sigma_mm=tcp_sigma(res, cell, cov3)["tcp_sigma_mm"])
+
     if args.image:
         if args.real or url:
             raise ConfigError("--image calibrates a picture file; --real and a grabber URL are for the cell: give one of them")
         img, sha = read_picture(args.image)
+        if view:
+            view.doing(f"calibrating {args.image}")
+            view.frame(img)
         res = calibrate_offline(img, cell, state=args.state, mode=args.mode, points=args.points, image_sha256=sha,
                                 camera=camera, camera_file=camera_file)
         fit = refuse_unfitting_camera(res, camera, cam_path, args.force)  # before anything is written
+        before_save(img, res)
         kept = save_calibration(res.calibration, args.out)
         source = args.image
     else:
-        say = progress_printer()
+        say = with_progress(view, progress_printer())
         cell, session = open_session(args, say)
         with session:
+            watch(view, session)
             res = session.calibrate_camera(args.out, camera=camera, camera_file=camera_file, state=args.state,
-                                           mode=args.mode, force=args.force)
+                                           mode=args.mode, force=args.force, before_save=before_save)
         if res is None:  # dry run
             return 0
         kept = session.calibration_kept
@@ -103,6 +125,7 @@ def run(args) -> int:
     s["previous_kept_as"] = str(kept) if kept else None
     s["camera_file"] = camera_file
     s["camera_file_fit"] = fit
+    s["pictures"] = dict(res.calibration.pictures)
     warnings = []
     if fit and not fit["fits"]:
         warnings.append(f"{fit['refusal']}; written because of --force (measure this camera with "
@@ -133,5 +156,7 @@ def run(args) -> int:
         *(f"    [{' '.join(f'{v:+.6f}' for v in row)}]" for row in H),
         f"written to {args.out}" + (f" (previous kept as {kept})" if kept else ""),
     ]
+    if s["pictures"]:
+        lines.append(f"picture kept as {s['pictures']['picture']}, annotated as {s['pictures']['annotated']}")
     print("\n".join(lines), file=sys.stdout)
     return 0

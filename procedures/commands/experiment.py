@@ -10,6 +10,7 @@ from pathlib import Path
 
 from selfview.procedures.commands._common import numeric, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
+from selfview.procedures.view import ViewProgress, add_view_arguments, viewing, watch, with_progress
 
 
 def register(sub):
@@ -38,19 +39,25 @@ def register(sub):
     p.add_argument("--intrinsics", action=argparse.BooleanOptionalAction, default=None,
                    help="measure the camera first (the robot takes the views of 'selfview intrinsics') and calibrate "
                         "with it, as a lab does with a new camera (default: on with --sim-camera realistic)")
+    add_view_arguments(p)
     p.set_defaults(func=run)
     return p
 
 
 def run(args) -> int:
+    with viewing(args, "experiment") as view:
+        return _start(args, view)
+
+
+def _start(args, view) -> int:
     from selfview.procedures.results import new_run_dir
 
-    say = progress_printer(args.quiet)
+    say = with_progress(view, progress_printer(args.quiet))
     cell, session = open_session(args, say)
     given_existed = args.out is not None and Path(args.out).is_dir()
     folder = None if args.dry_run else new_run_dir(args.out)
     try:
-        return _run(args, cell, session, folder, say)
+        return _run(args, cell, session, folder, say, view)
     except BaseException:
         if folder is not None:
             _discard(folder, keep_folder=given_existed)
@@ -70,37 +77,47 @@ def _discard(folder: Path, *, keep_folder: bool) -> None:
               file=sys.stderr)
 
 
-def _run(args, cell, session, folder, say) -> int:
+def _run(args, cell, session, folder, say, view) -> int:
     from selfview.procedures.experiment import tables_markdown
     from selfview.procedures.runs import write_experiment_folder
 
     total = args.trials * len(args.series)
-    t0 = time.monotonic()
+    t0 = [time.monotonic()]  # the trials' start: the measuring of the camera is timed apart
     done = [0]
+    rows = []
 
     def on_trial(series, k, n, rec):
         done[0] += 1
-        el = time.monotonic() - t0
+        el = time.monotonic() - t0[0]
         rem = el / done[0] * (total - done[0])
         e4 = rec.estimates.get("4P-U", {}).get("err_ref_mm")
         extra = f"; 4P-U vs reference {' '.join(f'{v:.3f}' for v in e4)} mm" if e4 else ""
-        say(f"{series} trial {k + 1} of {n} ({done[0]}/{total}), elapsed {el:.0f} s, remaining ~{rem:.0f} s{extra}")
+        say(f"{series} trial {k + 1} of {n} ({done[0]}/{total}), trials elapsed {el:.0f} s, remaining ~{rem:.0f} s{extra}")
+        if view and e4:
+            rows.append({"trial": f"{series} {k + 1}", **{f"4P-U vs reference {a} [mm]": v for a, v in zip("xyz", e4)}})
+            view.update(residuals=rows, numbers={"trials done": f"{done[0]} of {total}", "remaining [s]": round(rem)})
 
     intrinsics = args.intrinsics if args.intrinsics is not None else (args.sim_camera == "realistic" and not args.real)
     cam_info = None
     with session:
+        watch(view, session)
         camera = None
         if intrinsics:
             from selfview.intrinsics import calibrate_intrinsics
 
+            t_cam = time.monotonic()
+            watch(view, session, ViewProgress(say, 12, session.engine, cell, view))
             got = session.intrinsics_views(12)
             if got is not None:
+                say(f"measuring the camera from {len(got[0])} views")
                 intr = calibrate_intrinsics(got[0], cell.plate, cell.camera.guess(), skip_unusable=True)
                 camera = intr.camera
                 cam_info = {"measured": camera.to_dict(), "sigma": intr.sigma, "views_used": intr.views_used,
                             "stop_rule_met": intr.stop_rule["met"]}
                 say(f"camera measured from {intr.views_used} views: centre ({camera.cx:.2f}, {camera.cy:.2f}) px, "
-                    f"aspect {camera.aspect:.5f}, f {camera.f:.2f} px")
+                    f"aspect {camera.aspect:.5f}, f {camera.f:.2f} px (the camera took {time.monotonic() - t_cam:.1f} s)")
+            watch(view, session)
+        t0[0] = time.monotonic()
         out = session.experiment(series=tuple(args.series), trials=args.trials, on_trial=on_trial, camera=camera)
     if args.dry_run:
         return 0
@@ -114,6 +131,10 @@ def _run(args, cell, session, folder, say) -> int:
               "time_scale": args.time_scale, "urls": vars(session.urls), "sim_camera": args.sim_camera,
               "intrinsics": bool(intrinsics)}
     results = write_experiment_folder(folder, records, summary, first, cell=cell, config=config)
+    if view:
+        fails = summary.get("failures") or []
+        view.verdict(not fails, f"{len(records)} trials done, results in {folder}" if not fails else
+                     f"{len(fails)} trial(s) failed: {fails[0]['error']}")
     if args.json:
         print_json({"folder": str(folder), "summary": summary, "files": results["files"]})
     else:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 from selfview.procedures.commands._common import COUNT, SECONDS, SEED, add_cell_argument, load_cell_arg, print_json, write_image
@@ -18,7 +19,10 @@ def register(sub):
             "file:///dir/run.avi, sim:// (the simulated cell built from --cell and --seed, gripper parked on the plate)."
         ),
     )
-    p.add_argument("--url", required=True, help="frame source URL")
+    p.add_argument("--camera", metavar="URL",
+                   help="the camera (required): v4l2:///dev/video0?input=1&std=pal, frames:///dir/img_%%03d.png, "
+                        "file:///run.avi, sim://")
+    p.add_argument("--url", dest="camera", help=argparse.SUPPRESS)  # the earlier name, still read
     p.add_argument("--out", required=True, metavar="IMG.png", help="picture file to write")
     p.add_argument("--average", type=COUNT, default=1, metavar="N", help="average N frames (default 1)")
     p.add_argument("--field", action="store_true", help="one field only (every other row, for a moving scene)")
@@ -34,11 +38,13 @@ def run(args) -> int:
 
     from selfview.drivers.frame_grabber_v4l2 import FrameGrabber, parse_grabber_url
 
+    if not args.camera:
+        raise ConfigError("--camera URL is required: the frame source (sim:// for the simulated camera)")
     out = Path(args.out)
     if not out.parent.is_dir():
         raise ConfigError(f"--out {out}: folder {out.parent} does not exist")
     attachment = None
-    if parse_grabber_url(args.url).scheme == "sim":
+    if parse_grabber_url(args.camera).scheme == "sim":
         from selfview.mocks.sim_camera import attach_world
         from selfview.mocks.world import SimWorld
 
@@ -46,14 +52,14 @@ def run(args) -> int:
         world.park()
         attachment = attach_world(world)
     try:
-        with FrameGrabber(args.url, timeout_s=args.timeout) as grabber:
+        with FrameGrabber(args.camera, timeout_s=args.timeout) as grabber:
             frame = grabber.grab(average=args.average, field=args.field)
     finally:
         if attachment is not None:
             attachment.detach()
     write_image(out, frame.image)
     info = {
-        "url": args.url,
+        "url": args.camera,
         "out": str(out),
         "width": int(frame.image.shape[1]),
         "height": int(frame.image.shape[0]),

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from selfview.procedures.commands._common import print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
+from selfview.procedures.view import ViewProgress, add_view_arguments, intrinsics_state, viewing, watch, with_progress
 
 
 def register(sub):
@@ -38,6 +39,7 @@ def register(sub):
     p.add_argument("--force", action="store_true", help="write --out even when the stop rule is not met")
     p.add_argument("--save-views", metavar="DIR", help="on the cell: write the pictures taken into DIR")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    add_view_arguments(p)
     p.set_defaults(func=run)
     return p
 
@@ -56,6 +58,11 @@ def _check_args(args) -> None:
 
 
 def run(args) -> int:
+    with viewing(args, "intrinsics") as view:
+        return _run(args, view)
+
+
+def _run(args, view) -> int:
     from selfview import __version__
     from selfview.camfile import CameraFile, save_camera_file
     from selfview.cell import default_cell_path, load_cell
@@ -64,7 +71,7 @@ def run(args) -> int:
     from selfview.procedures.commands.calibrate import read_picture
 
     _check_args(args)
-    say = progress_printer()
+    say = with_progress(view, progress_printer())
     if args.images:
         cell = load_cell(args.cell or default_cell_path())
         images, names, pictures = [], [], []
@@ -77,6 +84,7 @@ def run(args) -> int:
     else:
         cell, session = open_session(args, say)
         with session:
+            watch(view, session, ViewProgress(say, args.views, session.engine, cell, view))
             got = session.intrinsics_views(args.views)
         if got is None:  # dry run
             return 0
@@ -94,6 +102,7 @@ def run(args) -> int:
             for i, img in enumerate(images):
                 write_image(folder / f"view_{i + 1:02d}.png", img, "--save-views")
         source = "cell (real)" if args.real else f"simulated cell (seed {args.seed}, camera {args.sim_camera})"
+    say(f"measuring the camera from {len(images)} views")
     res = calibrate_intrinsics(images, cell.plate, cell.camera.guess(), names, skip_unusable=args.skip_unusable or not args.images)
     s = res.summary()
     s["source"] = source
@@ -110,6 +119,8 @@ def run(args) -> int:
         warnings.append(f"the two halves of the views disagree: {worst} differs by {xc['ratio'][worst]:.1f} combined sigmas "
                         f"(limit {xc['limit_sigmas']:g}); a view may be blurred, or the camera moved between views")
     s["warnings"] = warnings
+    if view:
+        intrinsics_state(view, res)
     if not args.images and getattr(session, "sim", None) is not None:
         t = session.sim.world.camera
         s["truth"] = {"f": t.f, "kappa": t.kappa, "principal_point": [t.cx, t.cy], "aspect": t.aspect}

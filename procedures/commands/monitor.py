@@ -6,6 +6,7 @@ import json
 import sys
 
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
+from selfview.procedures.view import add_view_arguments, decision_state, tracked_frames, viewing, watch, with_progress
 
 
 def register(sub):
@@ -35,21 +36,30 @@ def register(sub):
                    help="simulation: rotate the camera by DEG per frame about the cable axis")
     p.add_argument("--apply", action="store_true", help="write the final C_H_G to the calibration file (history kept)")
     p.add_argument("--json", action="store_true", help="print one JSON line per decision on stdout")
+    add_view_arguments(p)
     p.set_defaults(func=run)
     return p
 
 
 def run(args) -> int:
+    with viewing(args, "monitor") as view:
+        return _run(args, view)
+
+
+def _run(args, view) -> int:
     from selfview.errors import ConfigError
 
     if args.frames < 1:
         raise ConfigError(f"--frames: expected at least 1, got {args.frames}")
     if args.drift and args.real:
         raise ConfigError("--drift moves the simulated camera; it has no meaning with --real")
-    say = progress_printer()
+    say = with_progress(view, progress_printer())
     cell, session = open_session(args, say)
+    on_frame = tracked_frames(view, args.calibration, cell) if view else None
 
     def show(rec):
+        if view:
+            decision_state(view, rec, cell.monitor)
         if args.json:
             print(json.dumps({k: v for k, v in rec.items() if k != "estimate"}, default=str), flush=True)
         else:
@@ -62,13 +72,14 @@ def run(args) -> int:
                   + (f" [fingertips {rec['fingertips']}]" if rec.get("fingertips") else ""), flush=True)
 
     with session:
+        watch(view, session)
         disturb = None
         if args.drift:
             w = session.sim.world
             axis = cell.simulation.disturbances["cable"]
             disturb = lambda k: w.disturb_by_angle(axis.axis_C, args.drift, axis.pivot_C, series="drift")  # noqa: E731
         records = session.monitor(args.calibration, frames=args.frames, method=args.method, disturb=disturb,
-                                  on_decision=show)
+                                  on_decision=show, on_frame=on_frame)
     if args.apply:
         from selfview.calfile import load_calibration, save_calibration
 

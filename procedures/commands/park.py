@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from selfview.procedures.commands._common import print_json, write_image
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
+from selfview.procedures.view import add_view_arguments, watch, viewing, with_progress
 
 
 def register(sub):
@@ -19,17 +20,28 @@ def register(sub):
     add_session_arguments(p)
     p.add_argument("--out", metavar="IMG.png", help="write the picture here")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    add_view_arguments(p)
     p.set_defaults(func=run)
     return p
 
 
 def run(args) -> int:
-    say = progress_printer()
+    with viewing(args, "park") as view:
+        return _run(args, view)
+
+
+def _run(args, view) -> int:
+    say = with_progress(view, progress_printer())
     cell, session = open_session(args, say)
     with session:
+        watch(view, session)
         img = session.park()
     if img is None:  # dry run
         return 0
+    if view:
+        view.frame(img)
+        view.update(numbers={"picture": f"{img.shape[1]}x{img.shape[0]}", "mean grey": float(img.mean())})
+        view.verdict(True, "parked on the plate; the picture is the one a calibration would use")
     if args.out:
         write_image(args.out, img)
     if args.json:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from selfview.procedures.commands._common import add_cell_argument, load_cell_arg, print_json
+from selfview.procedures.view import add_view_arguments, viewing
 
 METHOD_CHOICES = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R", "E", "auto")
 
@@ -32,13 +33,22 @@ def register(sub):
                    help="how the fingertips are measured: 'model' fits the whole silhouette of both fingers and says "
                         "when it has lost them (default); 'corners' the corner search alone")
     p.add_argument("--apply", action="store_true", help="write the new C_H_G to the calibration file")
+    p.add_argument("--no-pictures", action="store_true",
+                   help="do not keep the picture and its annotated copy beside the calibration file")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    add_view_arguments(p)
     p.set_defaults(func=run)
     return p
 
 
 def run(args) -> int:
+    with viewing(args, "track") as view:
+        return _run(args, view)
+
+
+def _run(args, view) -> int:
     from selfview.procedures.commands.calibrate import read_picture
+    from selfview.procedures.results import draw_tracked, keep_pictures
     from selfview.calfile import load_calibration, save_calibration
     from selfview.cell import POINT_NAMES
     from selfview.errors import AlarmError, CalibrationError, ConfigError
@@ -57,6 +67,9 @@ def run(args) -> int:
     img = check_picture(img, cal.camera.width, cal.camera.height)
     pG = cal.points_G[state]
     gap = jaw_gap_of(pG)
+    if view:
+        view.doing(f"finding the fingertips in {args.image}")
+        view.frame(img)
     ft = find_fingertips(img, cal.camera, cal.C_H_G, cell.gripper, gap, model=args.measure == "model")
     found_names = [nm for nm, ok in zip(POINT_NAMES, ft.found) if ok]
     if args.method == "auto":
@@ -118,8 +131,19 @@ def run(args) -> int:
             "quality": ft.quality,
         }
         new = est.C_H_G_orth
+    shown = new if new is not None else cal.C_H_G
+    draw = lambda im: draw_tracked(im, cal.camera, shown, pG, ft, boxes=cell.gripper.finger_boxes_G(gap))  # noqa: E731
+    if view:
+        view.frame(draw(img))
+        view.update(numbers={k: out[k] for k in ("method", "decision", "delta_deg", "d_mm", "rms_px")}
+                    | {"points found": ", ".join(found_names)})
+        view.verdict(out["decision"] != "alarm", f"{out['decision']}: {out.get('reason') or out['method']}")
+    if not args.no_pictures:
+        out["pictures"] = keep_pictures(args.calibration, img, draw, "track-")
     if args.apply and new is not None:
         cal.C_H_G = new
+        if "pictures" in out:
+            cal.pictures = {f"track {k}": v for k, v in out["pictures"].items()}
         cal.updates.append({"by": "track", "method": out["method"], "decision": out["decision"],
                             "delta_deg": float(out["delta_deg"]), "d_mm": float(out["d_mm"])})
         save_calibration(cal, args.calibration)

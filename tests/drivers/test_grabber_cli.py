@@ -16,7 +16,7 @@ def test_grab_from_a_sequence_with_average(tmp_path, capsys):
     for i, im in enumerate(imgs):
         cv2.imwrite(str(tmp_path / f"f_{i}.png"), im)
     out = tmp_path / "avg.png"
-    assert main(["grab", "--url", f"frames://{tmp_path}/f_%d.png", "--out", str(out), "--average", "2", "--json"]) == 0
+    assert main(["grab", "--camera", f"frames://{tmp_path}/f_%d.png", "--out", str(out), "--average", "2", "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert (info["width"], info["height"], info["average"]) == (120, 90, 2)
     got = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
@@ -25,7 +25,7 @@ def test_grab_from_a_sequence_with_average(tmp_path, capsys):
 
 def test_grab_from_the_simulated_cell(tmp_path, capsys):
     out = tmp_path / "sim.png"
-    assert main(["grab", "--url", "sim://?noise=0", "--out", str(out), "--seed", "4"]) == 0
+    assert main(["grab", "--camera", "sim://?noise=0", "--out", str(out), "--seed", "4"]) == 0
     img = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
     assert img.shape == (576, 768) and img.dtype == np.uint8
     from selfview.mocks.render import render
@@ -45,3 +45,16 @@ def test_grab_failures_exit_codes(tmp_path, capsys):
     assert main(["grab", "--url", f"frames://{tmp_path}/k_%d.png", "--out", str(tmp_path / "y.png")]) == EXIT_CALIBRATION
     assert "black frame" in capsys.readouterr().err
     assert not (tmp_path / "y.png").exists()
+
+
+def test_grab_needs_a_camera_and_still_reads_url(tmp_path, capsys):
+    assert main(["grab", "--out", str(tmp_path / "x.png")]) == EXIT_CONFIG
+    assert "--camera URL is required" in capsys.readouterr().err
+    assert main(["grab", "--url", "sim://?noise=0", "--out", str(tmp_path / "x.png")]) == 0
+    capsys.readouterr()
+    try:
+        main(["grab", "--help"])
+    except SystemExit:
+        pass
+    help_text = capsys.readouterr().out
+    assert "--camera URL" in help_text and "--url" not in help_text
