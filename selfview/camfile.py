@@ -24,7 +24,7 @@ import yaml
 
 from selfview import __version__
 from selfview.calfile import _checksum, _plain, replace_keeping_history
-from selfview.io_safe import load_yaml
+from selfview.io_safe import load_yaml, load_yaml_file
 from selfview.camera import CameraModel
 from selfview.errors import CalibrationFileError, ConfigError
 
@@ -134,13 +134,8 @@ def _versions() -> dict:
 def load_camera_file(path) -> CameraFile:
     """Read and verify a camera file; ``CalibrationFileError`` naming the fault."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise CalibrationFileError(f"{p}: no such camera file (run 'selfview intrinsics --out {p.name}' first)") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CalibrationFileError(f"{p}: cannot read the camera file ({exc})") from exc
-    doc = load_yaml(text, str(p), error=CalibrationFileError, what="camera file")
+    doc = load_yaml_file(p, error=CalibrationFileError, what="camera file",
+                         missing=f"no such camera file (run 'selfview intrinsics --out {p.name}' first)")
     return CameraFile.from_document(doc, source=str(p))
 
 

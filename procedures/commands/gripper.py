@@ -5,7 +5,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from selfview.procedures.commands._common import positive_seconds, print_json
+from selfview.procedures.commands._common import SECONDS, numeric, print_json
+from selfview.drivers.pneumatic_gripper.modbus import DEFAULT_READ_RETRIES, DEFAULT_TIMEOUT_S
 from selfview.errors import ConfigError
 
 
@@ -25,30 +26,15 @@ def load_io_map_arg(args):
 
     if args.io_map is None:
         return IoMap()
-    from selfview.io_safe import load_yaml
+    from selfview.io_safe import load_yaml_file
 
     path = Path(args.io_map)
-    try:
-        blob = path.read_bytes()
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the io map ({exc.strerror or exc})") from exc
     # every value as text: a YAML number would turn 40001.10 into 40001.1 and 00001 into 1
-    data = load_yaml(blob, str(path), error=ConfigError, text_only=True, what="io map")
+    data = load_yaml_file(path, error=ConfigError, text_only=True, what="io map")
     try:
         return IoMap.from_dict(data or {})
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
-
-
-def _finite_seconds(text: str) -> float:
-    """argparse type: a finite number of seconds > 0 (a wait that never ends would leave the valve energised)."""
-    v = positive_seconds(text)
-    if v == float("inf"):
-        raise ValueError(text)
-    return v
-
-
-_finite_seconds.__name__ = "finite number of seconds"
 
 
 def register(sub):
@@ -63,10 +49,12 @@ def register(sub):
         ),
     )
     p.add_argument("--url", required=True, help="Modbus URL of the valve (terminal)")
-    p.add_argument("--timeout", type=_finite_seconds, default=0.5, metavar="S",
+    p.add_argument("--timeout", type=SECONDS, default=0.5, metavar="S",
                    help="jaw motion timeout, a finite number of seconds (default 0.5 s)")
-    p.add_argument("--request-timeout", type=float, default=0.25, metavar="S", help="per request (default 0.25 s)")
-    p.add_argument("--retries", type=int, default=0, help="Modbus retries per request (default 0)")
+    p.add_argument("--request-timeout", type=SECONDS, default=DEFAULT_TIMEOUT_S, metavar="S",
+                   help="per request (default %(default)s s)")
+    p.add_argument("--retries", type=numeric(integer=True, lo=0, hi=5, name="retries"), default=DEFAULT_READ_RETRIES,
+                   help="Modbus retries of a read (writes are sent once; default %(default)s)")
     add_io_map_argument(p)
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("action", choices=("open", "close", "state", "safe"))

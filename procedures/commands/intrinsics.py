@@ -11,7 +11,7 @@ import datetime as _dt
 import sys
 from pathlib import Path
 
-from selfview.procedures.commands._common import print_json
+from selfview.procedures.commands._common import COUNT, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
 from selfview.procedures.view import ViewProgress, add_view_arguments, intrinsics_state, viewing, watch, with_progress
 
@@ -32,7 +32,7 @@ def register(sub):
     )
     add_session_arguments(p)
     p.add_argument("--images", nargs="+", metavar="IMG", help="pictures of the plate from different poses (no devices)")
-    p.add_argument("--views", type=int, default=12, help="views the robot takes on the cell (default %(default)s)")
+    p.add_argument("--views", type=COUNT, default=12, help="views the robot takes on the cell (default %(default)s)")
     p.add_argument("--skip-unusable", action="store_true",
                    help="skip a picture without the plate (listed in the output) instead of refusing the set")
     p.add_argument("--out", metavar="CAMERA.yaml", help="write the camera file here")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import sys
 
+from selfview.procedures.commands._common import COUNT, numeric
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
 from selfview.procedures.view import add_view_arguments, decision_state, tracked_frames, viewing, watch, with_progress
 
@@ -29,10 +30,10 @@ def register(sub):
     )
     add_session_arguments(p)
     p.add_argument("--calibration", required=True, metavar="CAL.yaml", help="calibration file to start from")
-    p.add_argument("--frames", type=int, default=20, help="frames to judge (default %(default)s)")
+    p.add_argument("--frames", type=COUNT, default=20, help="frames to judge (default %(default)s)")
     p.add_argument("--method", default="4P-U", choices=("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I"),
                    help="update method (default %(default)s)")
-    p.add_argument("--drift", type=float, default=0.0, metavar="DEG",
+    p.add_argument("--drift", type=numeric(lo=-180, hi=180, name="degrees"), default=0.0, metavar="DEG",
                    help="simulation: rotate the camera by DEG per frame about the cable axis")
     p.add_argument("--apply", action="store_true", help="write the final C_H_G to the calibration file (history kept)")
     p.add_argument("--json", action="store_true", help="print one JSON line per decision on stdout")
@@ -71,6 +72,9 @@ def _run(args, view) -> int:
                   f"rms {num('rms_px')} px - {rec['reason']}"
                   + (f" [fingertips {rec['fingertips']}]" if rec.get("fingertips") else ""), flush=True)
 
+    from selfview.calfile import load_calibration, save_calibration
+
+    started = load_calibration(args.calibration)  # the version a final --apply may replace
     with session:
         watch(view, session)
         disturb = None
@@ -81,14 +85,12 @@ def _run(args, view) -> int:
         records = session.monitor(args.calibration, frames=args.frames, method=args.method, disturb=disturb,
                                   on_decision=show, on_frame=on_frame)
     if args.apply:
-        from selfview.calfile import load_calibration, save_calibration
-
-        cal = load_calibration(args.calibration)
+        cal = started
         last = records[-1]
         import numpy as np
 
         cal.C_H_G = np.asarray(last["C_H_G"], float)
         cal.updates.append({"by": "monitor", "frames": args.frames, "method": args.method})
-        save_calibration(cal, args.calibration)
+        save_calibration(cal, args.calibration, expected=started)
         print(f"C_H_G written to {args.calibration} (previous kept in its .history)", file=sys.stderr)
     return 0

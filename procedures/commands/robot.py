@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from selfview.procedures.commands._common import print_json
+from selfview.procedures.commands._common import BAUD, SECONDS, number, numeric, print_json
 from selfview.errors import ConfigError
 
 _ACTIONS = {
@@ -30,10 +30,9 @@ _ACTIONS = {
 
 
 def _number(text: str, what: str) -> float:
-    try:
-        return float(text)
-    except ValueError:
-        raise ConfigError(f"{what}: expected a number, got {text!r}") from None
+    """A coordinate, angle, distance or speed typed on the command line: ASCII digits, finite, within
+    +-10,000 (a wider number is a typing error, not a pose); exit 2 otherwise."""
+    return number(text, what, lo=-1e4, hi=1e4)
 
 
 def _target(values: list[str], what: str):
@@ -57,13 +56,13 @@ def register(sub):
         ),
     )
     p.add_argument("--url", required=True, help="the controller's terminal port (path or URL)")
-    p.add_argument("--timeout", type=float, default=2.0, metavar="S", help="reply timeout of non-motion commands (default 2 s)")
-    p.add_argument("--baud", type=int, default=9600, help="baud rate of a real serial port (default 9600)")
+    p.add_argument("--timeout", type=SECONDS, default=2.0, metavar="S", help="reply timeout of non-motion commands (default 2 s)")
+    p.add_argument("--baud", type=BAUD, default=9600, help="baud rate of a real serial port (default 9600)")
     p.add_argument("--dialect", default=None, metavar="DIALECT.yaml", help="controller dialect (echo, prompt, error texts, ...)")
     p.add_argument("--limits", default=None, metavar="LIMITS.yaml", help="client-side limits (workspace_mm, max_speed_pct, ...)")
     p.add_argument("--kinematics", default=None, metavar="KIN.yaml",
                    help="the arm's link lengths and TOOL (tool_mm), to check WHERE's pose against its joints")
-    p.add_argument("--max-speed", type=float, default=None, metavar="PCT", help="override the limits' maximum speed")
+    p.add_argument("--max-speed", type=numeric(lo=0, lo_open=True, hi=100, name="percent"), default=None, metavar="PCT", help="override the limits' maximum speed")
     actions = p.add_subparsers(dest="action", metavar="ACTION")
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -74,7 +73,7 @@ def register(sub):
     a["appro"].add_argument("target", nargs="+", metavar="NAME | X Y Z O A T")
     a["appro"].add_argument("distance", metavar="D", help="mm back from NAME along its tool z (>= 0)")
     a["depart"].add_argument("distance", metavar="D", help="mm back along the tool z (>= 0)")
-    a["drive"].add_argument("joint", type=int, metavar="J", help="joint 1..6")
+    a["drive"].add_argument("joint", type=numeric(integer=True, lo=1, hi=6, name="joint"), metavar="J", help="joint 1..6")
     a["drive"].add_argument("deg", metavar="DEG")
     a["drive"].add_argument("speed", metavar="SPEED", help="percent")
     for name in ("here", "point", "define"):

@@ -146,7 +146,7 @@ def _run(args, view) -> int:
             cal.pictures = {f"track {k}": v for k, v in out["pictures"].items()}
         cal.updates.append({"by": "track", "method": out["method"], "decision": out["decision"],
                             "delta_deg": float(out["delta_deg"]), "d_mm": float(out["d_mm"])})
-        save_calibration(cal, args.calibration)
+        save_calibration(cal, args.calibration, expected=cal)
         out["applied"] = True
     else:
         out["applied"] = False

@@ -11,7 +11,7 @@ import dataclasses
 
 import numpy as np
 
-from selfview.procedures.commands._common import print_json
+from selfview.procedures.commands._common import numeric, print_json
 from selfview.procedures.commands._session import add_session_arguments, camera_arguments, open_session, progress_printer
 from selfview.procedures.view import add_view_arguments, offline_state, viewing, watch, with_progress
 
@@ -42,8 +42,8 @@ def register(sub):
         ),
     )
     add_session_arguments(p, camera_file=True, profile_default="realistic")
-    p.add_argument("--parks", type=int, default=5, help=f"how many parks, 3 to {len(PLACES)} (default %(default)s)")
-    p.add_argument("--target-mm", type=float, default=0.25, metavar="MM",
+    p.add_argument("--parks", type=numeric(integer=True, lo=3, hi=len(PLACES), name="parks"), default=5, help=f"how many parks, 3 to {len(PLACES)} (default %(default)s)")
+    p.add_argument("--target-mm", type=numeric(lo=0, lo_open=True, hi=1000, name="mm"), default=0.25, metavar="MM",
                    help="the largest spread of the TCP along any camera axis that counts as go (default %(default)s)")
     p.add_argument("--state", default=None, help="gripper state (default: the cell's calibrate_in)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
