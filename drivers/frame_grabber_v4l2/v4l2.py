@@ -358,8 +358,8 @@ class V4L2Device:
                 raise DeviceError(f"{self.path}: cannot set standard {std_name(std)}: device busy") from None
             raise DeviceError(f"{self.path}: VIDIOC_S_STD({std_name(std)}) failed: {exc.strerror}") from None
 
-    def field_order(self) -> int | None:
-        """VIDIOC_G_FMT: the capture format's field order (enum v4l2_field), or None if the driver does not say."""
+    def _pix_format(self) -> v4l2_pix_format | None:
+        """VIDIOC_G_FMT of the capture queue, or None if the driver does not say."""
         fmt = v4l2_format(type=V4L2_BUF_TYPE_VIDEO_CAPTURE)
         try:
             self._ioctl(VIDIOC_G_FMT, fmt, "VIDIOC_G_FMT")
@@ -367,7 +367,12 @@ class V4L2Device:
             if exc.errno in (errno.ENOTTY, errno.EINVAL):
                 return None
             raise DeviceError(f"{self.path}: VIDIOC_G_FMT failed: {exc.strerror}") from None
-        return int(fmt.fmt.pix.field)
+        return fmt.fmt.pix
+
+    def field_order(self) -> int | None:
+        """The capture format's field order (enum v4l2_field), or None if the driver does not say."""
+        pix = self._pix_format()
+        return None if pix is None else int(pix.field)
 
     def buffers(self, most: int = 32) -> tuple[int, int | None]:
         """VIDIOC_QUERYBUF over indices 0, 1, ...: (how many capture buffers the driver allocated, the
@@ -487,15 +492,10 @@ class V4L2Device:
         return (int(sel.r.left), int(sel.r.top), int(sel.r.width), int(sel.r.height))
 
     def format(self) -> tuple[int, int, str] | None:
-        """VIDIOC_G_FMT: the capture format's (width, height, fourcc), or None if the driver does not say."""
-        fmt = v4l2_format(type=V4L2_BUF_TYPE_VIDEO_CAPTURE)
-        try:
-            self._ioctl(VIDIOC_G_FMT, fmt, "VIDIOC_G_FMT")
-        except OSError as exc:
-            if exc.errno in (errno.ENOTTY, errno.EINVAL):
-                return None
-            raise DeviceError(f"{self.path}: VIDIOC_G_FMT failed: {exc.strerror}") from None
-        pix = fmt.fmt.pix
+        """The capture format's (width, height, fourcc), or None if the driver does not say."""
+        pix = self._pix_format()
+        if pix is None:
+            return None
         return int(pix.width), int(pix.height), int(pix.pixelformat).to_bytes(4, "little").decode("ascii", "replace")
 
     def whole_picture(self, width: int, height: int) -> None:

@@ -1,7 +1,10 @@
 """The PUMA 260 over VAL-II's terminal port: typed commands, checked replies, limits before sending.
 
 The link is whatever ``serial.serial_for_url`` opens (a real port, a pty path, ``socket://``,
-``spy://`` for a traffic dump, ``loop://``) or an already open serial-like object.
+``spy://`` for a traffic dump, ``loop://``) or an already open serial-like object; ``serial:///dev/ttyS0?
+baud=9600&xonxoff=1&rtscts=1`` names a serial port with its baud rate and flow control
+(``parse_serial_url``); with ``xonxoff=1`` the kernel's terminal driver acts on the controller's XON/XOFF
+bytes (IXON/IXOFF) and they never reach the reply parser.
 
 A command is typed without its line end; the controller echoes each character, the driver compares
 the echo with the command in full and only then sends the CR that executes it. A corrupted command
@@ -52,7 +55,7 @@ from selfview.drivers.puma_val_serial.limits import ValLimits
 from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout, ProtocolError
 from selfview.geometry import check_rigid, rotation_angle, trans
 
-__all__ = ["PumaVAL", "Where", "AbortResult"]
+__all__ = ["PumaVAL", "Where", "AbortResult", "parse_serial_url"]
 
 _PRINTABLE = set(range(0x20, 0x7F)) | {0x07, 0x09, 0x0A, 0x0D}  # BEL and TAB occur on real terminals
 
@@ -109,6 +112,36 @@ class _Segment:
     question: str
 
 
+_SERIAL_FLAGS = ("xonxoff", "rtscts")
+
+
+def parse_serial_url(url: str, baudrate: int = 9600) -> tuple[str, dict]:
+    """``serial://PATH?baud=N&xonxoff=0|1&rtscts=0|1`` -> (PATH, serial settings); any other URL or path
+    is pyserial's and comes back as it is, with ``baudrate`` and flow control off. Raises ConfigError
+    naming the part that is wrong."""
+    settings = {"baudrate": baudrate, "xonxoff": False, "rtscts": False}
+    if not url.lower().startswith("serial:"):
+        return url, settings
+    rest = url[len("serial:"):]
+    path, _, query = rest.partition("?")
+    if not path.startswith("///"):
+        raise ConfigError(f"robot URL {url!r}: expected serial:///dev/ttyX (three slashes, then the device path)")
+    path = path[2:]
+    for item in filter(None, query.split("&")):
+        key, eq, value = item.partition("=")
+        if key == "baud":
+            if not (value.isdigit() and 50 <= int(value) <= 4_000_000):
+                raise ConfigError(f"robot URL {url!r}: baud={value!r}; expected a baud rate such as 9600")
+            settings["baudrate"] = int(value)
+        elif key in _SERIAL_FLAGS:
+            if value not in ("0", "1"):
+                raise ConfigError(f"robot URL {url!r}: {key}={value!r}; expected 0 or 1")
+            settings[key] = value == "1"
+        else:
+            raise ConfigError(f"robot URL {url!r}: unknown parameter {key!r}; a serial URL takes baud, xonxoff, rtscts")
+    return path, settings
+
+
 def _norm(s: str) -> str:
     return " ".join(s.split()).upper()
 
@@ -147,7 +180,8 @@ class PumaVAL:
         self.limits = limits or ValLimits()
         self.kinematics = kinematics or PumaKinematics()
         self.timeout_s = float(timeout_s)
-        self.baudrate = baudrate
+        self._port_name, self._link = parse_serial_url(self.url, baudrate) if self.url else (None, {})
+        self.baudrate = self._link.get("baudrate", baudrate)
         self._ser = None
         self._cmd_lock = threading.Lock()
         self._write_lock = threading.Lock()
@@ -183,8 +217,8 @@ class PumaVAL:
             else:
                 try:
                     ser = serial.serial_for_url(
-                        self.url,
-                        baudrate=self.baudrate,
+                        self._port_name,
+                        **self._link,
                         timeout=self.dialect.prompt_silence_s,
                         write_timeout=self.timeout_s,
                     )

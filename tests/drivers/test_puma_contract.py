@@ -416,3 +416,28 @@ def test_real_controller_where():
     with PumaVAL(os.environ["SELFVIEW_PUMA_URL"], timeout_s=2.0) as robot:
         w = robot.where()
         assert len(w.pose) == 6 and len(w.joints) == 6
+
+
+@pytest.mark.hardware
+@pytest.mark.skipif(not os.environ.get("SELFVIEW_PUMA_URL"), reason="set SELFVIEW_PUMA_URL to a real controller")
+def test_real_controller_speed_reads_back_and_the_link_settings_hold():
+    """Motion-free: SPEED set and read back (then restored), the URL's baud rate and flow control as the
+    port was opened, a BREAK on the line survived, and a second connect() a no-op."""
+    url = os.environ["SELFVIEW_PUMA_URL"]
+    with PumaVAL(url, timeout_s=5.0) as robot:
+        before = robot.speed_now()
+        robot.speed(17)
+        assert robot.speed_now() == pytest.approx(17)
+        robot.speed(before)
+        ser = robot._ser
+        if url.startswith("serial:"):
+            for key in ("baud", "xonxoff", "rtscts"):
+                if f"{key}=" in url:
+                    want = url.split(f"{key}=")[1].split("&")[0]
+                    got = ser.baudrate if key == "baud" else int(getattr(ser, key))
+                    assert str(got) == want, (key, got, want)
+        if hasattr(ser, "send_break"):
+            ser.send_break(0.1)
+        robot.connect()
+        w = robot.where()
+        assert len(w.pose) == 6

@@ -1,0 +1,115 @@
+"""The vm stage: the drivers against real kernel drivers in a qemu guest (marker ``vm``).
+
+One guest boots (virtme-ng, software emulation, one vCPU, the host's file system shared read-only, a
+pinned Debian kernel unpacked by ``tests/vm/setup.sh``) and runs ``tests/vm/guest.sh``: the grabber's
+contract suite against the kernel's vivid, the robot driver over the guest's 8250 UART to the VAL-II
+simulator here on the host (qemu's serial device on a 127.0.0.1 socket, replies paced at 9600 baud),
+and the gripper driver over Modbus RTU on a second UART to the valve simulator. The cases here read the
+guest's results. Run with ``SELFVIEW_VM_TESTS=1 pytest -m vm`` after ``tests/vm/setup.sh``.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import subprocess
+import sys
+import tempfile
+import time
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+CACHE = Path(os.environ.get("SELFVIEW_VM_CACHE", Path.home() / ".cache" / "selfview-vm"))
+GUEST_TIMEOUT_S = 1500  # the whole guest run; about 5 min on an idle 2-core machine
+ROBOT_URL = "serial:///dev/ttyS1?baud=9600&xonxoff=1&rtscts=1"
+GRIPPER_URL = "modbus-rtu:///dev/ttyS2?baud=19200&parity=E&unit=1"
+GRABBER_URL = "v4l2:///dev/video0?input=1&std=pal&width=768&height=576&format=GREY"
+
+pytestmark = [
+    pytest.mark.vm,
+    pytest.mark.skipif(os.environ.get("SELFVIEW_VM_TESTS") != "1",
+                       reason="the vm stage boots a qemu guest: run tests/vm/setup.sh, then SELFVIEW_VM_TESTS=1 pytest -m vm"),
+]
+
+
+def _kernel() -> Path:
+    found = sorted(glob.glob(str(CACHE / "linux-image-*" / "boot" / "vmlinuz-*")))
+    if not found or not (CACHE / "venv" / "bin" / "vng").exists():
+        pytest.fail(f"no guest kernel or virtme-ng in {CACHE}: run tests/vm/setup.sh first")
+    return Path(found[-1])
+
+
+@pytest.fixture(scope="module")
+def guest(cell):
+    """Boot the guest once with both simulators serving; the guest's results, log and timings."""
+    from selfview.mocks.val_controller import ValController
+    from selfview.mocks.valve_terminal import ValveTerminal
+    from selfview.mocks.world import SimWorld
+
+    kernel = _kernel()
+    # kept after the run (the guest's log has the timings); not under pytest's basetemp, which another
+    # pytest run of the same user may prune while the guest still writes
+    out = Path(os.environ.get("SELFVIEW_VM_OUT") or tempfile.mkdtemp(prefix="selfview-vm-"))
+    out.mkdir(parents=True, exist_ok=True)
+    world = SimWorld(cell, seed=5)
+    with ValController(world, seed=5, time_scale=0.02, pace_baud=9600) as val, \
+            ValveTerminal(travel_s=0.04, watchdog_s=None, framing="rtu") as valve:
+        robot_port = val.start_tcp(0)
+        qemu = (f"-chardev socket,id=val,host=127.0.0.1,port={robot_port} -device isa-serial,chardev=val "
+                f"-chardev socket,id=valve,host=127.0.0.1,port={valve.port} -device isa-serial,chardev=valve")
+        cmd = [str(CACHE / "venv" / "bin" / "vng"), "--disable-kvm", "--force-9p", "--cpus", "1", "--memory", "2G",
+               "--rwdir", str(out), "--cwd", str(REPO), "--run", str(kernel), f"--qemu-opts={qemu}", "--exec",
+               f"sh tests/vm/guest.sh {out} {sys.executable} '{ROBOT_URL}' '{GRIPPER_URL}' '{GRABBER_URL}'"]
+        env = dict(os.environ, PATH=f"{CACHE / 'venv' / 'bin'}:{os.environ.get('PATH', '')}")
+        t0 = time.monotonic()
+        with open(out / "console.log", "wb") as console:
+            # vng exits 255 whatever the command did (no virtio-serial without udev): the status is in OUT
+            subprocess.run(cmd, stdin=subprocess.DEVNULL, stdout=console, stderr=subprocess.STDOUT, env=env,
+                           timeout=GUEST_TIMEOUT_S, cwd=REPO)
+        wall = time.monotonic() - t0
+        received = list(val.received)
+    status = (out / "status").read_text().strip() if (out / "status").exists() else None
+    log = (out / "guest.log").read_text(errors="replace") if (out / "guest.log").exists() else ""
+    if not (out / "guest.xml").exists():
+        tail = (out / "console.log").read_text(errors="replace")[-3000:]
+        pytest.fail(f"the guest wrote no results (status {status}); guest log:\n{log[-3000:]}\nconsole:\n{tail}")
+    cases = {}
+    for tc in ET.parse(out / "guest.xml").getroot().iter("testcase"):
+        outcome = "passed"
+        for child in tc:
+            if child.tag in ("failure", "error", "skipped"):
+                outcome = child.tag
+        cases[f"{tc.get('classname')}::{tc.get('name')}"] = (outcome, float(tc.get("time") or 0))
+    timing = (out / "timing").read_text() if (out / "timing").exists() else ""
+    print(f"\nvm stage ({out}): {wall:.0f} s wall; guest uptime {' '.join(timing.split())}; {len(cases)} cases, status {status}")
+    for name, (outcome, t) in cases.items():
+        print(f"  {outcome:8s} {t:6.1f} s  {name}")
+    return {"cases": cases, "status": status, "log": log, "received": received, "out": out}
+
+
+def _suite(guest, module: str, least: int):
+    cases = {k: v for k, v in guest["cases"].items() if f".{module}::" in k or k.startswith(f"{module}::")}
+    bad = {k: v[0] for k, v in cases.items() if v[0] != "passed"}
+    assert len(cases) >= least and not bad, (f"{len(cases)} cases of {module}, not passed: {bad}\n"
+                                             f"{guest['log'][-4000:]}")
+
+
+def test_the_grabber_contract_against_vivid(guest):
+    _suite(guest, "test_grabber_device", 20)
+
+
+def test_the_robot_driver_over_the_8250_uart_at_9600_baud(guest):
+    _suite(guest, "test_puma_contract", 2)
+    # the commands crossed qemu's UART to the simulator here
+    assert any(line.strip().upper().startswith("WHERE") for line in guest["received"]), guest["received"][-10:]
+
+
+def test_the_gripper_over_modbus_rtu_on_a_second_uart(guest):
+    _suite(guest, "test_gripper_terminal", 2)
+
+
+def test_the_guest_run_passed_as_a_whole(guest):
+    assert guest["status"] == "0", guest["log"][-4000:]
