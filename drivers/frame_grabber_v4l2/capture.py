@@ -272,6 +272,8 @@ class V4L2Source:
         self.buffer_s = self.frame_period_s  # how long one buffer's fields take
         self.buffers: int | None = None  # buffers the driver allocated (read back after the first frame)
         self.tstamp: str | None = None  # 'end' or 'start' of the frame (from the buffer flags), None: unknown
+        self.sequence: int | None = None  # the driver's sequence number of the last frame read (None: not told)
+        self.lost_frames = 0  # frames the driver counted but never delivered (gaps in the sequence numbers)
 
     def open(self) -> None:
         if self._cap is not None:
@@ -356,6 +358,20 @@ class V4L2Source:
             if flags & _v4l2.V4L2_BUF_FLAG_TIMESTAMP_MASK != _v4l2.V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC:
                 self.tstamp = "not monotonic"
 
+    def _check_buffer(self) -> None:
+        """The held buffer's flags and sequence number: a buffer the card marked corrupted is a device
+        error; a gap in the sequence counts the frames the driver dropped (no free buffer, or lost)."""
+        held = self.device.held_buffer()
+        if held is None:
+            return
+        seq, flags = held
+        if flags & _v4l2.V4L2_BUF_FLAG_ERROR:
+            raise DeviceError(f"{self.url.url}: the card marked frame {seq} as corrupted (V4L2_BUF_FLAG_ERROR): "
+                              "a disturbed signal or a capture overrun")
+        if self.sequence is not None and seq > self.sequence + 1:
+            self.lost_frames += seq - self.sequence - 1
+        self.sequence = seq
+
     def _grey_from_raw(self, raw: np.ndarray) -> np.ndarray:
         u = self.url
         bpp, offset = _RAW_GREY[u.fourcc]
@@ -385,6 +401,7 @@ class V4L2Source:
         self.device.check_orientation()
         if self.buffers is None:
             self._read_buffers()
+        self._check_buffer()
         ts = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
         if self.tstamp == "not monotonic":
             ts = math.nan  # not comparable with time.monotonic(): the pessimistic estimate below

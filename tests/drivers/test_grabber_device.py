@@ -137,6 +137,19 @@ def test_start_of_exposure_stamps(vivid):
         assert after < f.timestamp < after + 3 * PERIOD
 
 
+def test_sequence_numbers_count_the_dropped_buffers(vivid):
+    with grabber() as g:
+        g.grab()
+        src = g.source
+        first = src.sequence
+        assert first is not None
+        vivid(percentage_of_dropped_buffers=50)
+        for _ in range(8):
+            g.grab()
+        assert src.sequence > first and src.lost_frames >= 1, (first, src.sequence, src.lost_frames)
+        print(f"50 % dropped: sequence {first} -> {src.sequence}, {src.lost_frames} frames lost")
+
+
 def test_every_buffer_dropped_is_a_timeout_and_the_stream_recovers(vivid):
     with grabber(timeout_s=1.0) as g:
         g.grab()

@@ -5,10 +5,12 @@
 # Usage: guest.sh OUT PYTHON ROBOT_URL GRIPPER_URL GRABBER_URL
 out="$1"; python="$2"
 up() { cut -d' ' -f1 /proc/uptime; }
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"  # this tree's selfview, whatever is installed
 echo "boot $(up)" > "$out/timing"
 modprobe vivid n_devs=1 node_types=0x1 input_types=0xe4 > "$out/modprobe.log" 2>&1
 echo "vivid $(up)" >> "$out/timing"
 dmesg | grep -E "ttyS|vivid" > "$out/dmesg.log" 2>&1
+v4l2-ctl -d /dev/video0 -L > "$out/controls.txt" 2>&1
 SELFVIEW_PUMA_URL="$3" SELFVIEW_GRIPPER_URL="$4" SELFVIEW_GRABBER_URL="$5" PYTHONDONTWRITEBYTECODE=1 \
     "$python" -m pytest -p no:cacheprovider -q -rA -s --junitxml="$out/guest.xml" \
     -k "real_controller or test_contract_ or test_grabber_device" \

@@ -30,6 +30,7 @@ GRABBER_URL = "v4l2:///dev/video0?input=1&std=pal&width=768&height=576&format=GR
 
 pytestmark = [
     pytest.mark.vm,
+    pytest.mark.timeout(GUEST_TIMEOUT_S + 120),  # the first case boots the guest
     pytest.mark.skipif(os.environ.get("SELFVIEW_VM_TESTS") != "1",
                        reason="the vm stage boots a qemu guest: run tests/vm/setup.sh, then SELFVIEW_VM_TESTS=1 pytest -m vm"),
 ]
