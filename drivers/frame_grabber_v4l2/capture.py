@@ -272,8 +272,8 @@ class V4L2Source:
         self.buffer_s = self.frame_period_s  # how long one buffer's fields take
         self.buffers: int | None = None  # buffers the driver allocated (read back after the first frame)
         self.tstamp: str | None = None  # 'end' or 'start' of the frame (from the buffer flags), None: unknown
-        self.sequence: int | None = None  # the driver's sequence number of the last frame read (None: not told)
-        self.lost_frames = 0  # frames the driver counted but never delivered (gaps in the sequence numbers)
+        self.lost_frames = 0  # frames the driver never delivered (gaps between buffer timestamps)
+        self._last_ts: float | None = None
 
     def open(self) -> None:
         if self._cap is not None:
@@ -358,19 +358,13 @@ class V4L2Source:
             if flags & _v4l2.V4L2_BUF_FLAG_TIMESTAMP_MASK != _v4l2.V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC:
                 self.tstamp = "not monotonic"
 
-    def _check_buffer(self) -> None:
-        """The held buffer's flags and sequence number: a buffer the card marked corrupted is a device
-        error; a gap in the sequence counts the frames the driver dropped (no free buffer, or lost)."""
-        held = self.device.held_buffer()
-        if held is None:
-            return
-        seq, flags = held
-        if flags & _v4l2.V4L2_BUF_FLAG_ERROR:
-            raise DeviceError(f"{self.url.url}: the card marked frame {seq} as corrupted (V4L2_BUF_FLAG_ERROR): "
-                              "a disturbed signal or a capture overrun")
-        if self.sequence is not None and seq > self.sequence + 1:
-            self.lost_frames += seq - self.sequence - 1
-        self.sequence = seq
+    def _count_lost(self, ts: float) -> None:
+        """Frames the driver never delivered (no free buffer, or dropped), from the gaps between
+        consecutive buffer timestamps: OpenCV queues each buffer again before its sequence number can be
+        read, and a gap of k frame periods is k - 1 frames lost."""
+        if self._last_ts is not None and math.isfinite(ts) and ts > self._last_ts:
+            self.lost_frames += max(0, round((ts - self._last_ts) / self.buffer_s) - 1)
+        self._last_ts = ts if math.isfinite(ts) else None
 
     def _grey_from_raw(self, raw: np.ndarray) -> np.ndarray:
         u = self.url
@@ -389,6 +383,9 @@ class V4L2Source:
         now = time.monotonic()
         if not ok or raw is None:
             self.device.check_signal(self.url.std)  # says "no signal" when that is why
+            if now - t0 < 0.5 * min(timeout_s, self.select_timeout_s):
+                raise DeviceError(f"{self.url.url}: the capture failed at once although the signal is "
+                                  f"{std_name(self.url.std or 0)}: the driver ended the stream (a capture error)")
             raise DeviceTimeout(
                 f"{self.url.url}: no frame within {now - t0:.2f} s although the signal is "
                 f"{std_name(self.url.std or 0)} (grabber stalled?)"
@@ -401,10 +398,10 @@ class V4L2Source:
         self.device.check_orientation()
         if self.buffers is None:
             self._read_buffers()
-        self._check_buffer()
         ts = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
         if self.tstamp == "not monotonic":
             ts = math.nan  # not comparable with time.monotonic(): the pessimistic estimate below
+        self._count_lost(ts)
         buffers = self.buffers if self.buffers is not None else max(self.url.buffers, 2)
         start = exposure_start(ts, now, tstamp=self.tstamp, buffer_s=self.buffer_s,
                                frame_period_s=self.frame_period_s, buffers=buffers)

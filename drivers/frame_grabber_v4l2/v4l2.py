@@ -182,9 +182,6 @@ V4L2_SEL_TGT_CROP, V4L2_SEL_TGT_CROP_DEFAULT, V4L2_SEL_TGT_COMPOSE = 0x0000, 0x0
 V4L2_CID_HFLIP, V4L2_CID_VFLIP = 0x00980914, 0x00980915
 
 V4L2_BUF_TYPE_VIDEO_CAPTURE = 1
-V4L2_BUF_FLAG_QUEUED = 0x00000002
-V4L2_BUF_FLAG_DONE = 0x00000004
-V4L2_BUF_FLAG_ERROR = 0x00000040  # the driver filled the buffer but its data may be corrupted
 V4L2_BUF_FLAG_TIMESTAMP_MASK = 0x0000E000
 V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC = 0x00002000
 V4L2_BUF_FLAG_TSTAMP_SRC_MASK = 0x00070000
@@ -377,9 +374,10 @@ class V4L2Device:
         pix = self._pix_format()
         return None if pix is None else int(pix.field)
 
-    def _buffer_states(self, most: int = 32) -> list[v4l2_buffer]:
-        """VIDIOC_QUERYBUF over indices 0, 1, ... while streaming: every capture buffer the driver allocated."""
-        out = []
+    def buffers(self, most: int = 32) -> tuple[int, int | None]:
+        """VIDIOC_QUERYBUF over indices 0, 1, ...: (how many capture buffers the driver allocated, the
+        first buffer's flags), after streaming started. (0, None) when the driver tells nothing."""
+        count, flags = 0, None
         for i in range(most):
             buf = v4l2_buffer(index=i, type=V4L2_BUF_TYPE_VIDEO_CAPTURE)
             try:
@@ -388,23 +386,10 @@ class V4L2Device:
                 if exc.errno in (errno.EINVAL, errno.ENOTTY, errno.EBUSY):
                     break
                 raise DeviceError(f"{self.path}: VIDIOC_QUERYBUF failed: {exc.strerror}") from None
-            out.append(buf)
-        return out
-
-    def buffers(self, most: int = 32) -> tuple[int, int | None]:
-        """(how many capture buffers the driver allocated, the first buffer's flags), after streaming
-        started. (0, None) when the driver tells nothing."""
-        states = self._buffer_states(most)
-        return len(states), (int(states[0].flags) if states else None)
-
-    def held_buffer(self) -> tuple[int, int] | None:
-        """(sequence number, flags) of the buffer the reader holds (dequeued, neither queued nor done),
-        the latest if several; None when the driver tells nothing."""
-        held = [b for b in self._buffer_states() if not b.flags & (V4L2_BUF_FLAG_QUEUED | V4L2_BUF_FLAG_DONE)]
-        if not held:
-            return None
-        b = max(held, key=lambda b: (b.timestamp.tv_sec, b.timestamp.tv_usec, b.sequence))
-        return int(b.sequence), int(b.flags)
+            count += 1
+            if flags is None:
+                flags = int(buf.flags)
+        return count, flags
 
     def query_std(self) -> int | None:
         """VIDIOC_QUERYSTD: the standards the input's signal fits (0: no signal), or None if the driver

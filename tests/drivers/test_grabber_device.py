@@ -137,17 +137,25 @@ def test_start_of_exposure_stamps(vivid):
         assert after < f.timestamp < after + 3 * PERIOD
 
 
-def test_sequence_numbers_count_the_dropped_buffers(vivid):
+def test_dropped_buffers_are_counted(vivid):
     with grabber() as g:
         g.grab()
         src = g.source
-        first = src.sequence
-        assert first is not None
         vivid(percentage_of_dropped_buffers=50)
-        for _ in range(8):
+        before = src.lost_frames
+        for _ in range(10):
             g.grab()
-        assert src.sequence > first and src.lost_frames >= 1, (first, src.sequence, src.lost_frames)
-        print(f"50 % dropped: sequence {first} -> {src.sequence}, {src.lost_frames} frames lost")
+        assert src.lost_frames - before >= 2, (before, src.lost_frames)
+        print(f"50 % dropped: {src.lost_frames - before} of about 20 frames counted lost over 10 grabs")
+
+
+def test_a_fatal_streaming_error_is_a_device_error(vivid):
+    with grabber(timeout_s=1.0) as g:
+        g.grab()
+        set_controls(inject_fatal_streaming_error=1)
+        with pytest.raises(DeviceError, match="ended the stream"):  # never a good frame
+            for _ in range(4):
+                g.grab()
 
 
 def test_every_buffer_dropped_is_a_timeout_and_the_stream_recovers(vivid):

@@ -117,3 +117,22 @@ def test_other_urls_are_pyserials():
     assert parse_serial_url("socket://127.0.0.1:5000", 4800) == (
         "socket://127.0.0.1:5000", {"baudrate": 4800, "xonxoff": False, "rtscts": False})
     assert parse_serial_url("serial:///dev/ttyS0?baud=9600&rtscts=1")[0] == "/dev/ttyS0"
+
+
+def test_the_cli_takes_the_documented_url(world_sim, capsys):
+    from selfview.procedures.cli import main
+
+    assert main(["robot", "--url", f"serial://{world_sim.url}?baud=9600&xonxoff=1", "where"]) == 0
+    assert "JT1" in capsys.readouterr().out
+    assert main(["robot", "--url", f"serial://{world_sim.url}?baud=nine", "where"]) == 3
+    assert "baud='nine'" in capsys.readouterr().err
+
+
+@pytest.fixture
+def world_sim(cell):
+    from selfview.mocks.val_controller import ValController
+    from selfview.mocks.world import SimWorld
+
+    with ValController(SimWorld(cell, seed=1), time_scale=0.0) as c:
+        c.start_pty()
+        yield c

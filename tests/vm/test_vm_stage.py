@@ -4,7 +4,9 @@ One guest boots (virtme-ng, software emulation, one vCPU, the host's file system
 pinned Debian kernel unpacked by ``tests/vm/setup.sh``) and runs ``tests/vm/guest.sh``: the grabber's
 contract suite against the kernel's vivid, the robot driver over the guest's 8250 UART to the VAL-II
 simulator here on the host (qemu's serial device on a 127.0.0.1 socket, replies paced at 9600 baud),
-and the gripper driver over Modbus RTU on a second UART to the valve simulator. The cases here read the
+with every reply chunk wrapped in XOFF ... XON (``XoffRelay``: only the URL's ``xonxoff=1`` reaching
+the guest's tty lets the replies through), and the gripper driver over Modbus RTU on a second UART to
+the valve simulator. The cases here read the
 guest's results. Run with ``SELFVIEW_VM_TESTS=1 pytest -m vm`` after ``tests/vm/setup.sh``.
 """
 
@@ -12,9 +14,12 @@ from __future__ import annotations
 
 import glob
 import os
+import select
+import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -43,6 +48,45 @@ def _kernel() -> Path:
     return Path(found[-1])
 
 
+class XoffRelay:
+    """Between qemu's UART socket and the VAL simulator: passes the guest's bytes on as they are and wraps
+    every chunk of the simulator's reply in XOFF ... XON, as a controller pausing its terminal does. Only
+    a port opened with XON/XOFF flow control (the kernel's IXON) reads the replies unharmed."""
+
+    def __init__(self, target_port: int):
+        self.target_port = target_port
+        self.srv = socket.create_server(("127.0.0.1", 0))
+        self.port = self.srv.getsockname()[1]
+        self.pauses = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="xoff-relay", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        self.srv.settimeout(0.2)
+        while not self._stop.is_set():
+            try:
+                guest, _ = self.srv.accept()
+            except OSError:
+                continue
+            with guest, socket.create_connection(("127.0.0.1", self.target_port), timeout=5) as sim:
+                while not self._stop.is_set():
+                    ready, _, _ = select.select([guest, sim], [], [], 0.2)
+                    for s in ready:
+                        data = s.recv(4096)
+                        if not data:
+                            return
+                        if s is sim:
+                            self.pauses += 1
+                            data = b"\x13" + data + b"\x11"
+                        (guest if s is sim else sim).sendall(data)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self.srv.close()
+
+
 @pytest.fixture(scope="module")
 def guest(cell):
     """Boot the guest once with both simulators serving; the guest's results, log and timings."""
@@ -58,18 +102,21 @@ def guest(cell):
     world = SimWorld(cell, seed=5)
     with ValController(world, seed=5, time_scale=0.02, pace_baud=9600) as val, \
             ValveTerminal(travel_s=0.04, watchdog_s=None, framing="rtu") as valve:
-        robot_port = val.start_tcp(0)
-        qemu = (f"-chardev socket,id=val,host=127.0.0.1,port={robot_port} -device isa-serial,chardev=val "
+        relay = XoffRelay(val.start_tcp(0))
+        qemu = (f"-chardev socket,id=val,host=127.0.0.1,port={relay.port} -device isa-serial,chardev=val "
                 f"-chardev socket,id=valve,host=127.0.0.1,port={valve.port} -device isa-serial,chardev=valve")
         cmd = [str(CACHE / "venv" / "bin" / "vng"), "--disable-kvm", "--force-9p", "--cpus", "1", "--memory", "2G",
                "--rwdir", str(out), "--cwd", str(REPO), "--run", str(kernel), f"--qemu-opts={qemu}", "--exec",
                f"sh tests/vm/guest.sh {out} {sys.executable} '{ROBOT_URL}' '{GRIPPER_URL}' '{GRABBER_URL}'"]
         env = dict(os.environ, PATH=f"{CACHE / 'venv' / 'bin'}:{os.environ.get('PATH', '')}")
         t0 = time.monotonic()
-        with open(out / "console.log", "wb") as console:
-            # vng exits 255 whatever the command did (no virtio-serial without udev): the status is in OUT
-            subprocess.run(cmd, stdin=subprocess.DEVNULL, stdout=console, stderr=subprocess.STDOUT, env=env,
-                           timeout=GUEST_TIMEOUT_S, cwd=REPO)
+        try:
+            with open(out / "console.log", "wb") as console:
+                # vng exits 255 whatever the command did (no virtio-serial without udev): the status is in OUT
+                subprocess.run(cmd, stdin=subprocess.DEVNULL, stdout=console, stderr=subprocess.STDOUT, env=env,
+                               timeout=GUEST_TIMEOUT_S, cwd=REPO)
+        finally:
+            relay.close()
         wall = time.monotonic() - t0
         received = list(val.received)
     status = (out / "status").read_text().strip() if (out / "status").exists() else None
@@ -88,7 +135,8 @@ def guest(cell):
     print(f"\nvm stage ({out}): {wall:.0f} s wall; guest uptime {' '.join(timing.split())}; {len(cases)} cases, status {status}")
     for name, (outcome, t) in cases.items():
         print(f"  {outcome:8s} {t:6.1f} s  {name}")
-    return {"cases": cases, "status": status, "log": log, "received": received, "out": out}
+    return {"cases": cases, "status": status, "log": log, "received": received, "out": out,
+            "pauses": relay.pauses}
 
 
 def _suite(guest, module: str, least: int):
@@ -106,6 +154,7 @@ def test_the_robot_driver_over_the_8250_uart_at_9600_baud(guest):
     _suite(guest, "test_puma_contract", 2)
     # the commands crossed qemu's UART to the simulator here
     assert any(line.strip().upper().startswith("WHERE") for line in guest["received"]), guest["received"][-10:]
+    assert guest["pauses"] > 20  # every reply chunk came wrapped in XOFF ... XON
 
 
 def test_the_gripper_over_modbus_rtu_on_a_second_uart(guest):
