@@ -422,7 +422,7 @@ def test_real_controller_where():
 @pytest.mark.skipif(not os.environ.get("SELFVIEW_PUMA_URL"), reason="set SELFVIEW_PUMA_URL to a real controller")
 def test_real_controller_speed_reads_back_and_the_link_settings_hold():
     """Motion-free: SPEED set and read back (then restored), the URL's baud rate and flow control as the
-    port was opened, a BREAK on the line survived, and a second connect() a no-op."""
+    port was opened, and a second connect() a no-op."""
     url = os.environ["SELFVIEW_PUMA_URL"]
     with PumaVAL(url, timeout_s=5.0) as robot:
         before = robot.speed_now()
@@ -436,8 +436,6 @@ def test_real_controller_speed_reads_back_and_the_link_settings_hold():
                     want = url.split(f"{key}=")[1].split("&")[0]
                     got = ser.baudrate if key == "baud" else int(getattr(ser, key))
                     assert str(got) == want, (key, got, want)
-        if hasattr(ser, "send_break"):
-            ser.send_break(0.1)
         robot.connect()
         w = robot.where()
         assert len(w.pose) == 6
