@@ -37,8 +37,10 @@ else
     echo "setup: $KERNEL_PACKAGE already unpacked"
 fi
 
-if [ ! -x "$cache/venv/bin/vng" ] || ! "$cache/venv/bin/pip" show -q virtme-ng >/dev/null 2>&1 \
-   || [ "$("$cache/venv/bin/pip" show virtme-ng | sed -n 's/^Version: //p')" != "${VIRTME_NG#*==}" ]; then
+have=""
+[ -x "$cache/venv/bin/vng" ] && have=$("$cache/venv/bin/python" -c \
+    'import importlib.metadata as m; print(m.version("virtme-ng"))' 2>/dev/null || true)
+if [ "$have" != "${VIRTME_NG#*==}" ]; then
     echo "setup: installing $VIRTME_NG"
     python3 -m venv "$cache/venv"
     "$cache/venv/bin/pip" install -q "$VIRTME_NG" </dev/null
