@@ -461,9 +461,9 @@ class PumaVAL:
             seg = self._read_segment(deadline, "<resync: CR>", self.timeout_s, strict=False)
             if seg.end == "prompt":
                 quiet_until = time.monotonic() + quiet_s
-                while time.monotonic() < quiet_until and not self._port().in_waiting:
+                while quiet_s and time.monotonic() < quiet_until and not self._port().in_waiting:
                     time.sleep(0.01)
-                if not self._port().in_waiting:
+                if not (quiet_s and self._port().in_waiting):
                     self._need_resync = False
                     return
                 continue

@@ -3,11 +3,11 @@
 One guest boots (virtme-ng, software emulation, one vCPU, the host's file system shared read-only, a
 pinned Debian kernel unpacked by ``tests/vm/setup.sh``) and runs ``tests/vm/guest.sh``: the grabber's
 contract suite against the kernel's vivid, the robot driver over the guest's 8250 UART to the VAL-II
-simulator here on the host (qemu's serial device on a 127.0.0.1 socket, replies paced at 9600 baud),
-with every reply chunk wrapped in XOFF ... XON (``XoffRelay``: only the URL's ``xonxoff=1`` reaching
-the guest's tty lets the replies through), and the gripper driver over Modbus RTU on a second UART to
-the valve simulator. The cases here read the
-guest's results. Run with ``SELFVIEW_VM_TESTS=1 pytest -m vm`` after ``tests/vm/setup.sh``.
+simulator here on the host (qemu's serial device on a 127.0.0.1 telnet socket, replies paced at 9600
+baud) through ``UartRelay``: every reply chunk wrapped in XOFF ... XON (only the URL's ``xonxoff=1``
+reaching the guest's tty lets the replies through) and BREAKs injected where tests/vm/guest_serial_break.py
+asks; and the gripper driver over Modbus RTU on a second UART to the valve simulator. The cases here
+read the guest's results. Run with ``SELFVIEW_VM_TESTS=1 pytest -m vm`` after ``tests/vm/setup.sh``.
 """
 
 from __future__ import annotations
@@ -48,43 +48,137 @@ def _kernel() -> Path:
     return Path(found[-1])
 
 
-class XoffRelay:
-    """Between qemu's UART socket and the VAL simulator: passes the guest's bytes on as they are and wraps
-    every chunk of the simulator's reply in XOFF ... XON, as a controller pausing its terminal does. Only
-    a port opened with XON/XOFF flow control (the kernel's IXON) reads the replies unharmed."""
+IAC, BRK, WILL, DONT = 0xFF, 0xF3, 0xFB, 0xFE
+XOFF, XON = b"\x13", b"\x11"
 
-    def __init__(self, target_port: int):
-        self.target_port = target_port
-        self.srv = socket.create_server(("127.0.0.1", 0))
-        self.port = self.srv.getsockname()[1]
+
+def _free_port() -> int:
+    with socket.create_server(("127.0.0.1", 0)) as s:
+        return s.getsockname()[1]
+
+
+class UartRelay:
+    """Between qemu's UART and the VAL simulator, as a telnet client of qemu's chardev (``telnet=on``):
+    passes the guest's bytes on (qemu's telnet negotiation stripped), wraps every chunk of the simulator's
+    reply in XOFF ... XON as a controller pausing its terminal does (only a port opened with XON/XOFF flow
+    control, the kernel's IXON, reads the replies unharmed; a 0xFF would go doubled), and injects a BREAK
+    (IAC BRK: qemu's 16550A then receives a break) where the guest asks for one by recording a location:
+    ``HERE BRKMID`` in the middle of the next WHERE's reply, ``HERE BRKIDLE`` once the line has been quiet
+    for ``IDLE_S``, ``HERE BRKMOVE`` ``MOVE_S`` after the next motion (``DO ...``) was executed. Each break
+    is recorded in ``breaks`` (its kind, whether the simulated arm was moving, how many lines the
+    simulator had received)."""
+
+    MID_BYTES = 60  # into WHERE's reply: inside its second line
+    IDLE_S = 0.5
+    MOVE_S = 0.3
+
+    def __init__(self, val):
+        self.val = val
+        self.port = _free_port()  # qemu listens here
         self.pauses = 0
+        self.negotiations = 0  # telnet option commands qemu sent (and the relay stripped)
+        self.breaks: list[dict] = []
+        self._tn = 0  # telnet decoder state: 0 data, 1 after IAC, 2 before an option byte
+        self._line = bytearray()
+        self._armed = None  # "mid", "idle", "move" (waiting for its command), or "mid-reply"
+        self._reply_bytes = 0
+        self._at = None  # when the armed break goes out (idle and move)
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="xoff-relay", daemon=True)
+        self._thread = threading.Thread(target=self._run, name="uart-relay", daemon=True)
         self._thread.start()
 
-    def _run(self) -> None:
-        self.srv.settimeout(0.2)
+    def _untelnet(self, data: bytes) -> bytes:
+        out = bytearray()
+        for b in data:  # qemu does not double a 0xFF it sends: the guest sends none (VAL is ASCII)
+            if self._tn == 0:
+                if b == IAC:
+                    self._tn = 1
+                else:
+                    out.append(b)
+            elif self._tn == 1:
+                if b == IAC:
+                    out.append(b)
+                    self._tn = 0
+                else:
+                    self.negotiations += 1
+                    self._tn = 2 if WILL <= b <= DONT else 0
+            else:
+                self._tn = 0
+        return bytes(out)
+
+    def _watch_guest(self, data: bytes) -> None:
+        for b in data:
+            if b == 0x15:  # CTRL-U erases the line
+                self._line.clear()
+            elif b == 0x0D:
+                line = " ".join(self._line.decode("ascii", "replace").split()).upper()
+                self._line.clear()
+                if line in ("HERE BRKMID", "HERE BRKIDLE", "HERE BRKMOVE"):
+                    self._armed = line[len("HERE BRK"):].lower()
+                    self._at = None
+                elif self._armed == "mid" and line == "WHERE":
+                    self._armed, self._reply_bytes = "mid-reply", 0
+                elif self._armed == "move" and line.startswith("DO "):
+                    self._at = time.monotonic() + self.MOVE_S
+            elif b != 0x0A:
+                self._line.append(b)
+        if self._armed == "idle":
+            self._at = time.monotonic() + self.IDLE_S
+
+    def _break(self, guest, kind: str) -> None:
+        time.sleep(0.1)  # qemu delivers an IAC BRK before the data of the same read: let that go first
+        guest.sendall(bytes((IAC, BRK)))
+        self.breaks.append({"kind": kind, "moving": self.val.moving.is_set(), "received": len(self.val.received)})
+        self._armed, self._at = None, None
+        time.sleep(0.1)
+
+    def _to_guest(self, guest, data: bytes) -> None:
+        self.pauses += 1
+        guest.sendall(XOFF + data.replace(bytes((IAC,)), bytes((IAC, IAC))) + XON)
+
+    def _connect(self) -> socket.socket | None:
         while not self._stop.is_set():
             try:
-                guest, _ = self.srv.accept()
+                return socket.create_connection(("127.0.0.1", self.port), timeout=1)
             except OSError:
-                continue
-            with guest, socket.create_connection(("127.0.0.1", self.target_port), timeout=5) as sim:
-                while not self._stop.is_set():
-                    ready, _, _ = select.select([guest, sim], [], [], 0.2)
-                    for s in ready:
-                        data = s.recv(4096)
-                        if not data:
-                            return
-                        if s is sim:
-                            self.pauses += 1
-                            data = b"\x13" + data + b"\x11"
-                        (guest if s is sim else sim).sendall(data)
+                time.sleep(0.2)  # qemu is not listening yet
+        return None
+
+    def _run(self) -> None:
+        guest = self._connect()
+        if guest is None:
+            return
+        with guest, socket.create_connection(("127.0.0.1", self.val.start_tcp(0)), timeout=5) as sim:
+            while not self._stop.is_set():
+                ready, _, _ = select.select([guest, sim], [], [], 0.05)
+                for s in ready:
+                    data = s.recv(4096)
+                    if not data:
+                        return
+                    if s is guest:
+                        data = self._untelnet(data)
+                        self._watch_guest(data)
+                        if data:
+                            sim.sendall(data)
+                        continue
+                    if self._armed == "idle":
+                        self._at = time.monotonic() + self.IDLE_S
+                    if self._armed == "mid-reply":
+                        k = max(0, min(len(data), self.MID_BYTES - self._reply_bytes))
+                        self._reply_bytes += len(data)
+                        if self._reply_bytes >= self.MID_BYTES:
+                            if k:
+                                self._to_guest(guest, data[:k])
+                            self._break(guest, "mid")
+                            data = data[k:]
+                    if data:
+                        self._to_guest(guest, data)
+                if self._at is not None and time.monotonic() >= self._at:
+                    self._break(guest, self._armed)
 
     def close(self) -> None:
         self._stop.set()
         self._thread.join(5)
-        self.srv.close()
 
 
 @pytest.fixture(scope="module")
@@ -102,8 +196,9 @@ def guest(cell):
     world = SimWorld(cell, seed=5)
     with ValController(world, seed=5, time_scale=0.02, pace_baud=9600) as val, \
             ValveTerminal(travel_s=0.04, watchdog_s=None, framing="rtu") as valve:
-        relay = XoffRelay(val.start_tcp(0))
-        qemu = (f"-chardev socket,id=val,host=127.0.0.1,port={relay.port} -device isa-serial,chardev=val "
+        relay = UartRelay(val)
+        qemu = (f"-chardev socket,id=val,host=127.0.0.1,port={relay.port},server=on,wait=off,telnet=on "
+                "-device isa-serial,chardev=val "
                 f"-chardev socket,id=valve,host=127.0.0.1,port={valve.port} -device isa-serial,chardev=valve")
         cmd = [str(CACHE / "venv" / "bin" / "vng"), "--disable-kvm", "--force-9p", "--cpus", "1", "--memory", "2G",
                "--rwdir", str(out), "--cwd", str(REPO), "--run", str(kernel), f"--qemu-opts={qemu}", "--exec",
@@ -136,7 +231,7 @@ def guest(cell):
     for name, (outcome, t) in cases.items():
         print(f"  {outcome:8s} {t:6.1f} s  {name}")
     return {"cases": cases, "status": status, "log": log, "received": received, "out": out,
-            "pauses": relay.pauses}
+            "pauses": relay.pauses, "breaks": relay.breaks, "negotiations": relay.negotiations}
 
 
 def _suite(guest, module: str, least: int):
@@ -155,6 +250,20 @@ def test_the_robot_driver_over_the_8250_uart_at_9600_baud(guest):
     # the commands crossed qemu's UART to the simulator here
     assert any(line.strip().upper().startswith("WHERE") for line in guest["received"]), guest["received"][-10:]
     assert guest["pauses"] > 20  # every reply chunk came wrapped in XOFF ... XON
+
+
+def test_a_break_on_the_robot_line_is_refused_and_never_ends_a_motion(guest):
+    _suite(guest, "guest_serial_break", 4)
+    assert guest["negotiations"] >= 4  # qemu's telnet options, stripped before the simulator
+    breaks = {b["kind"]: b for b in guest["breaks"]}
+    assert sorted(breaks) == ["idle", "mid", "move"] and len(guest["breaks"]) == 3, guest["breaks"]
+    received = guest["received"]
+    # between commands: the driver resynchronised (an empty line) before its next command
+    assert received[breaks["idle"]["received"]:][:2] == ["", "WHERE"], received[breaks["idle"]["received"]:][:5]
+    # during the motion: the arm was moving when the break came, and the driver's next line stopped it
+    assert breaks["move"]["moving"], guest["breaks"]
+    assert received[breaks["move"]["received"]] == "ABORT", received[breaks["move"]["received"] - 2:][:5]
+    assert received[breaks["move"]["received"] - 1].startswith("DO DRIVE 1")
 
 
 def test_the_gripper_over_modbus_rtu_on_a_second_uart(guest):
