@@ -230,6 +230,8 @@ def guest(cell):
     print(f"\nvm stage ({out}): {wall:.0f} s wall; guest uptime {' '.join(timing.split())}; {len(cases)} cases, status {status}")
     for name, (outcome, t) in cases.items():
         print(f"  {outcome:8s} {t:6.1f} s  {name}")
+    print(f"  robot line: {relay.pauses} XOFF-wrapped reply chunks, {relay.negotiations} telnet options stripped, "
+          f"BREAKs {relay.breaks}")
     return {"cases": cases, "status": status, "log": log, "received": received, "out": out,
             "pauses": relay.pauses, "breaks": relay.breaks, "negotiations": relay.negotiations}
 
