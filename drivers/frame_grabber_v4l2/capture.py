@@ -218,11 +218,17 @@ def exposure_start(
     ``ts`` the buffer's timestamp (s), ``now`` the time it was read; ``tstamp`` the buffer's timestamp
     source: 'end' (V4L2_BUF_FLAG_TSTAMP_SRC_EOF, V4L2's default and bttv's: the last byte of the frame),
     'start' (TSTAMP_SRC_SOE) or None (unknown: taken as 'end'); ``buffer_s`` how long the buffer's fields
-    take (one frame period for a frame of two fields, half of it for a single field). A timestamp that is
-    not a plausible monotonic time is replaced by the most pessimistic one: ``buffers`` + 1 frame periods
+    take (one frame period for a frame of two fields, half of it for a single field).
+
+    A driver's clock has slop: a stamp may lie up to one frame period after the read (a driver that
+    stamps the end of a frame from its schedule, as vivid does, or from an interrupt on another CPU); it
+    counts as the read time. Any stamp in the past is taken as it is (a frame that waited long in its
+    buffer is old). A timestamp that is not a plausible monotonic time (not finite, not positive, or
+    further ahead than that slop) is replaced by the most pessimistic one: ``buffers`` + 1 frame periods
     before the read (a frame may have waited in every buffer)."""
-    if not (now - 5.0 < ts <= now):
+    if not (math.isfinite(ts) and 0.0 < ts <= now + frame_period_s):
         return now - (buffers + 1) * frame_period_s - buffer_s
+    ts = min(ts, now)
     return ts if tstamp == "start" else ts - buffer_s
 
 
@@ -230,14 +236,17 @@ class V4L2Source:
     """A V4L2 capture device (an analogue CCIR grabber card) through OpenCV's V4L2 backend.
 
     ``open()``: open the node for control ioctls, check it captures video, select the input and the
-    analogue standard (VIDIOC_S_INPUT, VIDIOC_S_STD), check a signal is present (VIDIOC_QUERYSTD),
+    analogue standard (VIDIOC_S_INPUT, VIDIOC_S_STD), check a signal is present (input status, VIDIOC_QUERYSTD),
     set ``OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT`` (whole seconds, before the first capture), then open the
-    capture with size, pixel format, 1-2 buffers and no RGB conversion, and check OpenCV got them;
+    capture with size, pixel format, 1-2 buffers and no RGB conversion, and check OpenCV got them; set
+    crop and compose to the whole picture and read them back (OpenCV first sets 640x480, and a card may
+    keep that compose rectangle inside a larger frame); refuse a mirrored or upside-down stream;
     read the field order back (VIDIOC_G_FMT) and check it fits the height. Frames come as the raw
     buffer; the luma bytes are picked out (GREY, YUYV, UYVY). After the first frame the buffers the
     driver really allocated are counted (VIDIOC_QUERYBUF: bttv allocates at least 2 whatever is asked)
     and their timestamp source read from the flags. A frame's time is the start of its exposure:
-    ``exposure_start`` from the buffer's timestamp (V4L2's default stamps the END of the frame).
+    ``exposure_start`` from the buffer's timestamp (V4L2's default stamps the END of the frame). The
+    signal and the orientation are checked again with every frame.
     """
 
     def __init__(self, url: GrabberUrl, *, select_timeout_s: float = 1.0):
@@ -249,7 +258,13 @@ class V4L2Source:
         self.url = url
         self.description = url.url
         self.select_timeout_s = select_timeout_s
-        self.frame_period_s = 1.0 / 25.0 if url.std is not None and url.std & 0x00FF06FF else 1.0 / 30.0
+        lines625 = url.std is not None and bool(url.std & 0x00FF06FF)  # PAL, PAL-N/Nc, SECAM: 576 active lines
+        if url.std is not None and not lines625 and url.height > 480:
+            raise ConfigError(
+                f"{url.url}: std={std_name(url.std)} has 480 active lines, but height={url.height}: the card would "
+                "scale the lines up (or refuse); use std=pal for a CCIR camera, or height<=480"
+            )
+        self.frame_period_s = 1.0 / 25.0 if lines625 else 1.0 / 30.0
         self.device = V4L2Device(url.path)
         self.info: dict | None = None
         self._cap: cv2.VideoCapture | None = None
@@ -257,6 +272,8 @@ class V4L2Source:
         self.buffer_s = self.frame_period_s  # how long one buffer's fields take
         self.buffers: int | None = None  # buffers the driver allocated (read back after the first frame)
         self.tstamp: str | None = None  # 'end' or 'start' of the frame (from the buffer flags), None: unknown
+        self.lost_frames = 0  # frames the driver never delivered (gaps between buffer timestamps)
+        self._last_ts: float | None = None
 
     def open(self) -> None:
         if self._cap is not None:
@@ -278,6 +295,8 @@ class V4L2Source:
                 raise DeviceError(f"{u.url}: OpenCV's V4L2 backend cannot open {u.path} (busy?)")
             try:
                 self._configure(cap)
+                self.device.whole_picture(u.width, u.height)
+                self.device.check_orientation()
                 self._check_field()
             except BaseException:
                 cap.release()
@@ -339,6 +358,14 @@ class V4L2Source:
             if flags & _v4l2.V4L2_BUF_FLAG_TIMESTAMP_MASK != _v4l2.V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC:
                 self.tstamp = "not monotonic"
 
+    def _count_lost(self, ts: float) -> None:
+        """Frames the driver never delivered (no free buffer, or dropped), from the gaps between
+        consecutive buffer timestamps: OpenCV queues each buffer again before its sequence number can be
+        read, and a gap of k frame periods is k - 1 frames lost."""
+        if self._last_ts is not None and math.isfinite(ts) and ts > self._last_ts:
+            self.lost_frames += max(0, round((ts - self._last_ts) / self.buffer_s) - 1)
+        self._last_ts = ts if math.isfinite(ts) else None
+
     def _grey_from_raw(self, raw: np.ndarray) -> np.ndarray:
         u = self.url
         bpp, offset = _RAW_GREY[u.fourcc]
@@ -356,17 +383,25 @@ class V4L2Source:
         now = time.monotonic()
         if not ok or raw is None:
             self.device.check_signal(self.url.std)  # says "no signal" when that is why
+            if now - t0 < 0.5 * min(timeout_s, self.select_timeout_s):
+                raise DeviceError(f"{self.url.url}: the capture failed at once although the signal is "
+                                  f"{std_name(self.url.std or 0)}: the driver ended the stream (a capture error)")
             raise DeviceTimeout(
                 f"{self.url.url}: no frame within {now - t0:.2f} s although the signal is "
                 f"{std_name(self.url.std or 0)} (grabber stalled?)"
             )
         if now - t0 > timeout_s:
             raise DeviceTimeout(f"{self.url.url}: the frame took {now - t0:.2f} s, beyond timeout_s={timeout_s}")
+        # every frame: a card keeps delivering (noise) frames after the signal is gone, and a flip control
+        # may be switched while streaming
+        self.device.check_signal(self.url.std)
+        self.device.check_orientation()
         if self.buffers is None:
             self._read_buffers()
         ts = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
         if self.tstamp == "not monotonic":
             ts = math.nan  # not comparable with time.monotonic(): the pessimistic estimate below
+        self._count_lost(ts)
         buffers = self.buffers if self.buffers is not None else max(self.url.buffers, 2)
         start = exposure_start(ts, now, tstamp=self.tstamp, buffer_s=self.buffer_s,
                                frame_period_s=self.frame_period_s, buffers=buffers)

@@ -1,4 +1,5 @@
-"""The V4L2 ioctls OpenCV does not make: video input, analogue standard, signal detection.
+"""The V4L2 ioctls OpenCV does not make: video input, analogue standard, signal detection, crop and
+compose rectangles, the flip controls.
 
 Standard library only (``os``, ``fcntl``, ``ctypes``). Request numbers are encoded as the kernel's
 ``<asm-generic/ioctl.h>`` does (``_IOC(dir, type, nr, size)``: nr in bits 0-7, type 8-15, size 16-29,
@@ -31,6 +32,9 @@ __all__ = [
     "VIDIOC_QUERYSTD",
     "VIDIOC_G_FMT",
     "VIDIOC_QUERYBUF",
+    "VIDIOC_G_CTRL",
+    "VIDIOC_G_SELECTION",
+    "VIDIOC_S_SELECTION",
     "FIELD_NAMES",
     "fields_per_buffer",
     "V4L2Device",
@@ -147,6 +151,19 @@ class v4l2_buffer(ctypes.Structure):
     ]
 
 
+class v4l2_rect(ctypes.Structure):
+    _fields_ = [("left", ctypes.c_int32), ("top", ctypes.c_int32), ("width", ctypes.c_uint32), ("height", ctypes.c_uint32)]
+
+
+class v4l2_selection(ctypes.Structure):
+    _fields_ = [("type", ctypes.c_uint32), ("target", ctypes.c_uint32), ("flags", ctypes.c_uint32), ("r", v4l2_rect),
+                ("reserved", ctypes.c_uint32 * 9)]
+
+
+class v4l2_control(ctypes.Structure):
+    _fields_ = [("id", ctypes.c_uint32), ("value", ctypes.c_int32)]
+
+
 v4l2_std_id = ctypes.c_uint64
 
 VIDIOC_QUERYCAP = IOR("V", 0, v4l2_capability)
@@ -158,6 +175,11 @@ VIDIOC_S_INPUT = IOWR("V", 39, ctypes.c_int)
 VIDIOC_QUERYSTD = IOR("V", 63, v4l2_std_id)
 VIDIOC_G_FMT = IOWR("V", 4, v4l2_format)
 VIDIOC_QUERYBUF = IOWR("V", 9, v4l2_buffer)
+VIDIOC_G_CTRL = IOWR("V", 27, v4l2_control)
+VIDIOC_G_SELECTION = IOWR("V", 94, v4l2_selection)
+VIDIOC_S_SELECTION = IOWR("V", 95, v4l2_selection)
+V4L2_SEL_TGT_CROP, V4L2_SEL_TGT_CROP_DEFAULT, V4L2_SEL_TGT_COMPOSE = 0x0000, 0x0001, 0x0100
+V4L2_CID_HFLIP, V4L2_CID_VFLIP = 0x00980914, 0x00980915
 
 V4L2_BUF_TYPE_VIDEO_CAPTURE = 1
 V4L2_BUF_FLAG_TIMESTAMP_MASK = 0x0000E000
@@ -195,7 +217,13 @@ V4L2_CAP_VIDEO_CAPTURE = 0x00000001
 V4L2_CAP_DEVICE_CAPS = 0x80000000
 V4L2_IN_ST_NO_POWER = 0x00000001
 V4L2_IN_ST_NO_SIGNAL = 0x00000002
+V4L2_IN_ST_HFLIP = 0x00000010  # the source sends its picture mirrored and the driver does not undo it
+V4L2_IN_ST_VFLIP = 0x00000020
 V4L2_IN_ST_NO_H_LOCK = 0x00000100
+V4L2_IN_ST_NO_V_LOCK = 0x00000400
+V4L2_IN_ST_NO_STD_LOCK = 0x00000800
+V4L2_IN_ST_NO_SYNC = 0x00010000
+_NO_LOCK = V4L2_IN_ST_NO_H_LOCK | V4L2_IN_ST_NO_V_LOCK | V4L2_IN_ST_NO_STD_LOCK | V4L2_IN_ST_NO_SYNC
 
 _STD_NAMES = {
     0x000000FF: "PAL",
@@ -262,6 +290,11 @@ class V4L2Device:
                 return arg
             except InterruptedError:
                 continue
+            except OSError as exc:
+                if exc.errno == errno.ENODEV:  # whatever the ioctl, the card is gone
+                    raise DeviceError(f"{self.path}: no such device (the grabber was unplugged or its driver "
+                                      f"unloaded; {name})") from None
+                raise
         raise DeviceError(f"{self.path}: {name} interrupted three times")
 
     def querycap(self) -> dict:
@@ -325,8 +358,8 @@ class V4L2Device:
                 raise DeviceError(f"{self.path}: cannot set standard {std_name(std)}: device busy") from None
             raise DeviceError(f"{self.path}: VIDIOC_S_STD({std_name(std)}) failed: {exc.strerror}") from None
 
-    def field_order(self) -> int | None:
-        """VIDIOC_G_FMT: the capture format's field order (enum v4l2_field), or None if the driver does not say."""
+    def _pix_format(self) -> v4l2_pix_format | None:
+        """VIDIOC_G_FMT of the capture queue, or None if the driver does not say."""
         fmt = v4l2_format(type=V4L2_BUF_TYPE_VIDEO_CAPTURE)
         try:
             self._ioctl(VIDIOC_G_FMT, fmt, "VIDIOC_G_FMT")
@@ -334,7 +367,12 @@ class V4L2Device:
             if exc.errno in (errno.ENOTTY, errno.EINVAL):
                 return None
             raise DeviceError(f"{self.path}: VIDIOC_G_FMT failed: {exc.strerror}") from None
-        return int(fmt.fmt.pix.field)
+        return fmt.fmt.pix
+
+    def field_order(self) -> int | None:
+        """The capture format's field order (enum v4l2_field), or None if the driver does not say."""
+        pix = self._pix_format()
+        return None if pix is None else int(pix.field)
 
     def buffers(self, most: int = 32) -> tuple[int, int | None]:
         """VIDIOC_QUERYBUF over indices 0, 1, ...: (how many capture buffers the driver allocated, the
@@ -379,7 +417,17 @@ class V4L2Device:
         return int(inp.status)
 
     def check_signal(self, std: int | None) -> None:
-        """Raise DeviceError if the current input carries no signal, or one of another standard."""
+        """Raise DeviceError if the current input carries no signal, one the grabber cannot lock to, or
+        one of another standard. The input status is asked first: it tells "no signal" from "no lock"."""
+        status = self.input_status()
+        if status is not None and status & (V4L2_IN_ST_NO_POWER | V4L2_IN_ST_NO_SIGNAL):
+            what = "the camera has no power" if status & V4L2_IN_ST_NO_POWER else "no video signal on the input"
+            raise DeviceError(f"{self.path}: {what} (input status {status:#x}): is the camera connected and on?")
+        if status is not None and status & _NO_LOCK:
+            raise DeviceError(
+                f"{self.path}: a signal but no lock (input status {status:#x}): the grabber cannot synchronise to "
+                "it; a bad cable, a source of another line standard or a camera that is not CCIR?"
+            )
         detected = self.query_std()
         if detected == 0:
             raise DeviceError(f"{self.path}: no video signal on the input (VIDIOC_QUERYSTD found none)")
@@ -387,6 +435,96 @@ class V4L2Device:
             raise DeviceError(
                 f"{self.path}: the signal is {std_name(detected)}, but {std_name(std)} is configured"
             )
-        status = self.input_status()
-        if status is not None and status & (V4L2_IN_ST_NO_POWER | V4L2_IN_ST_NO_SIGNAL | V4L2_IN_ST_NO_H_LOCK):
-            raise DeviceError(f"{self.path}: no video signal on the input (input status {status:#x})")
+
+    def control(self, cid: int) -> int | None:
+        """VIDIOC_G_CTRL: a control's value, or None if the device has no such control."""
+        ctrl = v4l2_control(id=cid)
+        try:
+            self._ioctl(VIDIOC_G_CTRL, ctrl, "VIDIOC_G_CTRL")
+        except OSError as exc:
+            if exc.errno in (errno.EINVAL, errno.ENOTTY, errno.EACCES):
+                return None
+            raise DeviceError(f"{self.path}: VIDIOC_G_CTRL({cid:#x}) failed: {exc.strerror}") from None
+        return int(ctrl.value)
+
+    def check_orientation(self) -> None:
+        """Raise DeviceError if the frames come mirrored or upside down: the input's flip status bits
+        (a source sending its picture flipped) combined with the driver's HFLIP / VFLIP controls."""
+        status = self.input_status() or 0
+        for axis, bit, cid, ctl, what in (
+            ("horizontal", V4L2_IN_ST_HFLIP, V4L2_CID_HFLIP, "horizontal_flip", "mirrored left to right"),
+            ("vertical", V4L2_IN_ST_VFLIP, V4L2_CID_VFLIP, "vertical_flip", "upside down"),
+        ):
+            src, flip = bool(status & bit), bool(self.control(cid))
+            if src != flip:
+                why = (f"the source sends it flipped (input status {status:#x}) and the {axis} flip control is off"
+                       if src else f"the {axis} flip control ({ctl}) is on")
+                raise DeviceError(
+                    f"{self.path}: frames come {what}: {why}; a flipped picture calibrates to a wrong pose, "
+                    f"set {ctl}={int(src)} (v4l2-ctl -c {ctl}={int(src)})"
+                )
+
+    def selection(self, target: int) -> tuple[int, int, int, int] | None:
+        """VIDIOC_G_SELECTION of the capture queue: (left, top, width, height), or None if not supported."""
+        sel = v4l2_selection(type=V4L2_BUF_TYPE_VIDEO_CAPTURE, target=target)
+        try:
+            self._ioctl(VIDIOC_G_SELECTION, sel, "VIDIOC_G_SELECTION")
+        except OSError as exc:
+            if exc.errno in (errno.EINVAL, errno.ENOTTY, errno.ENODATA):
+                return None
+            raise DeviceError(f"{self.path}: VIDIOC_G_SELECTION({target:#x}) failed: {exc.strerror}") from None
+        return (int(sel.r.left), int(sel.r.top), int(sel.r.width), int(sel.r.height))
+
+    def set_selection(self, target: int, rect: tuple[int, int, int, int]) -> tuple[int, int, int, int] | None:
+        """VIDIOC_S_SELECTION: ask for ``rect``; returns the rectangle the driver chose (None: not supported)."""
+        left, top, width, height = rect
+        sel = v4l2_selection(type=V4L2_BUF_TYPE_VIDEO_CAPTURE, target=target,
+                             r=v4l2_rect(left=left, top=top, width=width, height=height))
+        try:
+            self._ioctl(VIDIOC_S_SELECTION, sel, "VIDIOC_S_SELECTION")
+        except OSError as exc:
+            if exc.errno in (errno.EINVAL, errno.ENOTTY, errno.ENODATA):
+                return None
+            if exc.errno == errno.EBUSY:
+                raise DeviceError(f"{self.path}: cannot set the {'compose' if target & 0x100 else 'crop'} "
+                                  "rectangle: device busy") from None
+            raise DeviceError(f"{self.path}: VIDIOC_S_SELECTION({target:#x}) failed: {exc.strerror}") from None
+        return (int(sel.r.left), int(sel.r.top), int(sel.r.width), int(sel.r.height))
+
+    def format(self) -> tuple[int, int, str] | None:
+        """The capture format's (width, height, fourcc), or None if the driver does not say."""
+        pix = self._pix_format()
+        if pix is None:
+            return None
+        return int(pix.width), int(pix.height), int(pix.pixelformat).to_bytes(4, "little").decode("ascii", "replace")
+
+    def whole_picture(self, width: int, height: int) -> None:
+        """Make a frame the whole picture at ``width`` x ``height``: the crop rectangle the card's default
+        (its whole active picture), the compose rectangle the whole buffer; read both and the format back.
+        Raises ConfigError naming what the card gave when it keeps anything else (a cropped or squeezed
+        frame would calibrate to a wrong aspect and principal point)."""
+        fmt = self.format()
+        if fmt is not None and fmt[:2] != (width, height):
+            raise ConfigError(f"{self.path}: the capture format is {fmt[0]}x{fmt[1]}, not {width}x{height}")
+        default = self.selection(V4L2_SEL_TGT_CROP_DEFAULT)
+        if default is not None:
+            self.set_selection(V4L2_SEL_TGT_CROP, default)
+            crop = self.selection(V4L2_SEL_TGT_CROP)
+            if crop is not None and crop != default:
+                raise ConfigError(
+                    f"{self.path}: the card crops the picture to {crop[2]}x{crop[3]} at ({crop[0]}, {crop[1]}) and "
+                    f"will not take its whole picture {default[2]}x{default[3]} at ({default[0]}, {default[1]})"
+                )
+        want = (0, 0, width, height)
+        if self.selection(V4L2_SEL_TGT_COMPOSE) is not None:
+            self.set_selection(V4L2_SEL_TGT_COMPOSE, want)
+            compose = self.selection(V4L2_SEL_TGT_COMPOSE)
+            if compose != want:
+                raise ConfigError(
+                    f"{self.path}: the card composes the picture into {compose[2]}x{compose[3]} at ({compose[0]}, "
+                    f"{compose[1]}) of the {width}x{height} frame, not the whole frame: the picture would be squeezed"
+                )
+        fmt = self.format()
+        if fmt is not None and fmt[:2] != (width, height):
+            raise ConfigError(f"{self.path}: after setting crop and compose the format is {fmt[0]}x{fmt[1]}, "
+                              f"not {width}x{height}")

@@ -1,7 +1,10 @@
 """The PUMA 260 over VAL-II's terminal port: typed commands, checked replies, limits before sending.
 
 The link is whatever ``serial.serial_for_url`` opens (a real port, a pty path, ``socket://``,
-``spy://`` for a traffic dump, ``loop://``) or an already open serial-like object.
+``spy://`` for a traffic dump, ``loop://``) or an already open serial-like object; ``serial:///dev/ttyS0?
+baud=9600&xonxoff=1&rtscts=1`` names a serial port with its baud rate and flow control
+(``parse_serial_url``); with ``xonxoff=1`` the kernel's terminal driver acts on the controller's XON/XOFF
+bytes (IXON/IXOFF) and they never reach the reply parser.
 
 A command is typed without its line end; the controller echoes each character, the driver compares
 the echo with the command in full and only then sends the CR that executes it. A corrupted command
@@ -11,7 +14,9 @@ start of a line followed by silence (``dialect.prompt_silence_s``), or with a qu
 method expecting it answers; ``*`` at the start of a line is VAL's prompt while a program runs
 (``ProgramRunning``). Error lines ``*text*`` raise the typed ``ControllerError`` of the dialect's
 table; garbage or a missing prompt raises ``ProtocolError`` and the driver resynchronises (CR, drain
-to prompt and silence) before its next command; silence raises ``DeviceTimeout``.
+to prompt and silence) before its next command; silence raises ``DeviceTimeout``. A BREAK on the
+line reads as one NUL byte (the port's BRKINT, IGNBRK, PARMRK off): it is refused at once (a waiting
+motion is stopped), and one that arrived between commands is followed by a resynchronisation.
 
 Checks beyond the bytes: ``WHERE``'s pose must equal the forward kinematics of the joint angles it
 prints, up to what the rounding of the printed numbers explains (``PumaKinematics.where_fit``; read
@@ -39,6 +44,7 @@ Frames: poses are the tool point T in the robot base frame B, ``base_H_T``; mm a
 
 from __future__ import annotations
 
+import os
 import re
 import threading
 import time
@@ -49,6 +55,11 @@ from dataclasses import dataclass
 import numpy as np
 import serial
 
+try:
+    import termios
+except ImportError:  # not a POSIX system: its ports have no terminal settings to make
+    termios = None
+
 from selfview.drivers.puma_val_serial.dialect import OAT_CONVENTIONS, ValDialect
 from selfview.drivers.puma_val_serial.errors import ControllerError, MotionAborted, ProgramRunning
 from selfview.drivers.puma_val_serial.kinematics import PumaKinematics
@@ -56,10 +67,15 @@ from selfview.drivers.puma_val_serial.limits import ValLimits
 from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout, ProtocolError
 from selfview.geometry import check_rigid, rotation_angle, rotvec_from_R, trans
 
-__all__ = ["PumaVAL", "Where", "AbortResult"]
+__all__ = ["PumaVAL", "Where", "AbortResult", "parse_serial_url"]
 
 _PRINTABLE = set(range(0x20, 0x7F)) | {0x07, 0x09, 0x0A, 0x0D}  # BEL and TAB occur on real terminals
+_BREAK_HINT = ("; a NUL byte is what a BREAK on the line reads as (the controller power-cycled, a cable was "
+               "plugged in, or line noise)")
 
+
+#: After a fault, how long the line must stay quiet after a prompt for the driver to take it as its own.
+_RESYNC_QUIET_S = 0.2
 
 #: How many times a location is read at most, looking for two replies in a row that agree.
 LOCATION_READS = 4
@@ -133,6 +149,64 @@ def _joints_reaching(kin: PumaKinematics, goal_H: np.ndarray, q0, iters: int = 2
     return None
 
 
+_SERIAL_FLAGS = ("xonxoff", "rtscts")
+
+
+def parse_serial_url(url: str, baudrate: int = 9600) -> tuple[str, dict]:
+    """``serial://PATH?baud=N&xonxoff=0|1&rtscts=0|1`` -> (PATH, serial settings); any other URL or path
+    is pyserial's and comes back as it is, with ``baudrate`` and flow control off. Raises ConfigError
+    naming the part that is wrong."""
+    settings = {"baudrate": baudrate, "xonxoff": False, "rtscts": False}
+    if not url.lower().startswith("serial:"):
+        return url, settings
+    rest = url[len("serial:"):]
+    path, _, query = rest.partition("?")
+    if not path.startswith("///"):
+        raise ConfigError(f"robot URL {url!r}: expected serial:///dev/ttyX (three slashes, then the device path)")
+    path = path[2:]
+    for item in filter(None, query.split("&")):
+        key, eq, value = item.partition("=")
+        if key == "baud":
+            if not (value.isascii() and value.isdigit() and 50 <= int(value) <= 4_000_000):
+                raise ConfigError(f"robot URL {url!r}: baud={value!r}; expected a baud rate such as 9600")
+            settings["baudrate"] = int(value)
+        elif key in _SERIAL_FLAGS:
+            if value not in ("0", "1"):
+                raise ConfigError(f"robot URL {url!r}: {key}={value!r}; expected 0 or 1")
+            settings[key] = value == "1"
+        else:
+            raise ConfigError(f"robot URL {url!r}: unknown parameter {key!r}; a serial URL takes baud, xonxoff, rtscts")
+    return path, settings
+
+
+def _break_reads_as_nul(ser) -> None:
+    """On a terminal port, make a BREAK read as one NUL byte (BRKINT, IGNBRK and PARMRK off). With BRKINT
+    the kernel would silently discard what the port had received and had queued to send (an ABORT too);
+    with IGNBRK a break that cost characters would pass unseen. A NUL is never part of a VAL reply, so the
+    reader refuses it. Ports that are not terminals (socket://, loop://) are left alone."""
+    if termios is None:
+        return
+    try:
+        fd = ser.fileno()
+        attrs = termios.tcgetattr(fd) if os.isatty(fd) else None
+    except (AttributeError, TypeError, ValueError, OSError, termios.error, serial.SerialException):
+        return
+    if attrs is None or not attrs[0] & (termios.BRKINT | termios.IGNBRK | termios.PARMRK):
+        return
+    attrs[0] &= ~(termios.BRKINT | termios.IGNBRK | termios.PARMRK)
+    try:
+        termios.tcsetattr(fd, termios.TCSANOW, attrs)
+    except termios.error as exc:
+        raise DeviceError(f"robot port: cannot make a BREAK read as a NUL byte (BRKINT off): {exc}") from exc
+
+
+def _garbage(command: str, buf) -> str:
+    """What a reply with bytes that are not text is called (a NUL named as a BREAK)."""
+    bad = [i for i, b in enumerate(buf) if b not in _PRINTABLE]
+    return (f"garbage in the reply to {command!r}: {len(bad)} byte(s) that are not text, first at offset {bad[0]}: "
+            f"{bytes(buf[max(0, bad[0] - 20) : bad[0] + 20])!r}" + (_BREAK_HINT if 0 in buf else ""))
+
+
 def _norm(s: str) -> str:
     return " ".join(s.split()).upper()
 
@@ -171,7 +245,8 @@ class PumaVAL:
         self.limits = limits or ValLimits()
         self.kinematics = kinematics or PumaKinematics()
         self.timeout_s = float(timeout_s)
-        self.baudrate = baudrate
+        self._port_name, self._link = parse_serial_url(self.url, baudrate) if self.url else (None, {})
+        self.baudrate = self._link.get("baudrate", baudrate)
         self._ser = None
         self._cmd_lock = threading.Lock()
         self._write_lock = threading.Lock()
@@ -207,8 +282,8 @@ class PumaVAL:
             else:
                 try:
                     ser = serial.serial_for_url(
-                        self.url,
-                        baudrate=self.baudrate,
+                        self._port_name,
+                        **self._link,
                         timeout=self.dialect.prompt_silence_s,
                         write_timeout=self.timeout_s,
                         exclusive=True,
@@ -221,6 +296,7 @@ class PumaVAL:
                         "; another program holds the port: stop it first (one program drives the arm)" if held else "")) from exc
             try:
                 ser.timeout = self.dialect.prompt_silence_s
+                _break_reads_as_nul(ser)
                 self._ser = ser
                 if sync:
                     self._resync()
@@ -312,6 +388,7 @@ class PumaVAL:
                     pass
                 raise ProtocolError(
                     f"the echo of {text!r} came back as {echo!r}: the line was erased before its line end; nothing ran"
+                    + (_BREAK_HINT if 0 in echo else "")
                 )
             self._write_raw(eol, text, motion=motion)
         else:
@@ -349,6 +426,9 @@ class PumaVAL:
             if chunk:
                 buf += chunk
                 self.last_rx_bytes += len(chunk)
+                if strict and 0 in chunk:  # a BREAK: refused at once (a motion waiting for its prompt is stopped)
+                    self._need_resync = True
+                    raise ProtocolError(_garbage(command, buf))
             else:
                 end = self._terminator(buf)
                 if end == "program":
@@ -370,13 +450,9 @@ class PumaVAL:
                 raise DeviceTimeout(f"no prompt after {command!r} within {budget_s:.2f} s (received ...{shown!r})")
 
     def _split(self, buf: bytearray, end: str, command: str, strict: bool) -> _Segment:
-        bad = [i for i, b in enumerate(buf) if b not in _PRINTABLE]
-        if bad and strict:
+        if strict and any(b not in _PRINTABLE for b in buf):
             self._need_resync = True
-            raise ProtocolError(
-                f"garbage in the reply to {command!r}: {len(bad)} byte(s) that are not text, "
-                f"first at offset {bad[0]}: {bytes(buf[max(0, bad[0] - 20) : bad[0] + 20])!r}"
-            )
+            raise ProtocolError(_garbage(command, buf))
         text = buf.decode("ascii", errors="replace")
         parts = re.split(r"\r\n|\r|\n", text)
         lines = [p for p in parts[:-1] if p.strip()]
@@ -400,8 +476,10 @@ class PumaVAL:
         text = buf.decode("ascii", errors="replace")
         return [p for p in re.split(r"\r\n|\r|\n", text) if p.strip()]
 
-    def _resync(self) -> None:
-        """Bring the dialogue back to an idle prompt: drain, send CR, read to a prompt and silence."""
+    def _resync(self, quiet_s: float = 0.0) -> None:
+        """Bring the dialogue back to an idle prompt: drain, send CR, read to a prompt and silence. With
+        ``quiet_s`` (after a fault, when the rest of an earlier reply may still be on its way) a prompt
+        counts only if nothing follows it for that long: else it was the earlier reply's, read on."""
         self._drain()
         deadline = time.monotonic() + self.timeout_s
         self._need_resync = True
@@ -409,17 +487,26 @@ class PumaVAL:
         for _ in range(4):  # a pending question (Y/N, Change?) takes the empty line as its answer
             seg = self._read_segment(deadline, "<resync: CR>", self.timeout_s, strict=False)
             if seg.end == "prompt":
-                self._need_resync = False
-                return
+                quiet_until = time.monotonic() + quiet_s
+                while quiet_s and time.monotonic() < quiet_until and not self._port().in_waiting:
+                    time.sleep(0.01)
+                if not (quiet_s and self._port().in_waiting):
+                    self._need_resync = False
+                    return
+                continue
             self._send_line("", deadline)
-        raise ProtocolError("resynchronising: the controller kept asking questions instead of prompting")
+        raise ProtocolError("resynchronising: the controller kept asking questions or talking instead of prompting")
 
     def _prepare(self) -> None:
         """Before a command: resynchronise after a fault, or report what arrived unasked."""
         if self._need_resync:
-            self._resync()
+            self._resync(_RESYNC_QUIET_S)
             return
-        stray = self._classify(self._drain(), None, set(), raise_errors=False)
+        lines = self._drain()
+        if any("\x00" in ln for ln in lines):  # a BREAK since the last reply: back to a known prompt first
+            self._resync(_RESYNC_QUIET_S)
+            return
+        stray = self._classify(lines, None, set(), raise_errors=False)
         if stray[1]:
             raise self.dialect.error_for(stray[1][0], None)
 

@@ -29,6 +29,9 @@ KERNEL = {
     "VIDIOC_QUERYSTD": 0x8008563F,
     "VIDIOC_G_FMT": 0xC0D05604,
     "VIDIOC_QUERYBUF": 0xC0585609,
+    "VIDIOC_G_CTRL": 0xC008561B,
+    "VIDIOC_G_SELECTION": 0xC040565E,
+    "VIDIOC_S_SELECTION": 0xC040565F,
 }
 
 
@@ -143,6 +146,7 @@ def test_a_node_that_is_not_v4l2_fails_clearly():
 def test_signal_check_translation(monkeypatch):
     dev = V4L2Device("/dev/video9")
     monkeypatch.setattr(dev, "query_std", lambda: 0)
+    monkeypatch.setattr(dev, "input_status", lambda: None)  # a driver that tells no input status
     with pytest.raises(DeviceError, match="no video signal"):
         dev.check_signal(0xFF)
     monkeypatch.setattr(dev, "query_std", lambda: 0xB000)
@@ -154,6 +158,103 @@ def test_signal_check_translation(monkeypatch):
     monkeypatch.setattr(dev, "input_status", lambda: v4l2.V4L2_IN_ST_NO_SIGNAL)
     with pytest.raises(DeviceError, match="status 0x2"):
         dev.check_signal(0xFF)
+
+
+def test_no_lock_no_signal_and_no_power_are_told_apart(monkeypatch):
+    dev = V4L2Device("/dev/video9")
+    monkeypatch.setattr(dev, "query_std", lambda: 0)  # a card that finds no standard in all three cases
+    for status, message in ((v4l2.V4L2_IN_ST_NO_H_LOCK, "a signal but no lock"), (v4l2.V4L2_IN_ST_NO_SIGNAL,
+                            "no video signal"), (v4l2.V4L2_IN_ST_NO_POWER, "no power")):
+        monkeypatch.setattr(dev, "input_status", lambda status=status: status)
+        with pytest.raises(DeviceError, match=message):
+            dev.check_signal(0xFF)
+
+
+def test_a_frame_from_a_lost_signal_is_a_device_error(monkeypatch):
+    src = V4L2Source(parse_grabber_url("v4l2:///dev/video0?width=16&height=16"))
+    monkeypatch.setattr(src.device, "buffers", lambda: (2, v4l2.V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC))
+    monkeypatch.setattr(src.device, "input_status", lambda: v4l2.V4L2_IN_ST_NO_SIGNAL)
+    monkeypatch.setattr(src.device, "check_orientation", lambda: None)
+    import time
+
+    src._cap = FakeCapture([(time.monotonic(), 61)], 16, 16)  # a noise frame, delivered as if good
+    with pytest.raises(DeviceError, match="no video signal"):
+        src.read(1.0)
+
+
+def test_an_unplugged_grabber_is_no_such_device(monkeypatch):
+    def gone(*a, **k):
+        raise OSError(errno.ENODEV, "No such device")
+
+    with V4L2Device("/dev/null") as dev:
+        monkeypatch.setattr(v4l2.fcntl, "ioctl", gone)
+        with pytest.raises(DeviceError, match="no such device .*unplugged.*VIDIOC_QUERYSTD"):
+            dev.query_std()
+
+
+def test_a_525_line_standard_at_576_lines_is_refused():
+    with pytest.raises(ConfigError, match="NTSC has 480 active lines, but height=576"):
+        V4L2Source(parse_grabber_url("v4l2:///dev/video0?std=ntsc"))
+    assert V4L2Source(parse_grabber_url("v4l2:///dev/video0?std=ntsc&width=640&height=480")).frame_period_s == 1 / 30
+
+
+@pytest.mark.parametrize(
+    "status, hflip, vflip, error",
+    [(0, 0, 0, None), (0, 1, 0, "mirrored left to right.*horizontal_flip"), (0, 0, 1, "upside down"),
+     (v4l2.V4L2_IN_ST_HFLIP, 0, 0, "mirrored.*source sends it flipped"), (v4l2.V4L2_IN_ST_HFLIP, 1, 0, None),
+     (0, None, None, None)],
+)
+def test_a_mirrored_or_upside_down_stream_is_refused(monkeypatch, status, hflip, vflip, error):
+    dev = V4L2Device("/dev/video9")
+    monkeypatch.setattr(dev, "input_status", lambda: status)
+    monkeypatch.setattr(dev, "control", lambda cid: {v4l2.V4L2_CID_HFLIP: hflip, v4l2.V4L2_CID_VFLIP: vflip}[cid])
+    if error is None:
+        dev.check_orientation()
+    else:
+        with pytest.raises(DeviceError, match=error):
+            dev.check_orientation()
+
+
+class FakeSelection:
+    """A card's crop and compose rectangles; ``keep`` rectangles it will not change."""
+
+    def __init__(self, fmt, crop_default, compose, keep=()):
+        self.fmt = fmt
+        self.rects = {v4l2.V4L2_SEL_TGT_CROP_DEFAULT: crop_default, v4l2.V4L2_SEL_TGT_CROP: (0, 0, 640, 480),
+                      v4l2.V4L2_SEL_TGT_COMPOSE: compose}
+        self.keep = keep
+
+    def install(self, monkeypatch, dev):
+        monkeypatch.setattr(dev, "format", lambda: self.fmt)
+        monkeypatch.setattr(dev, "selection", lambda target: self.rects[target])
+
+        def set_selection(target, rect):
+            if target not in self.keep:
+                self.rects[target] = rect
+            return self.rects[target]
+
+        monkeypatch.setattr(dev, "set_selection", set_selection)
+
+
+def test_crop_and_compose_are_set_to_the_whole_picture(monkeypatch):
+    dev = V4L2Device("/dev/video9")
+    card = FakeSelection((768, 576, "GREY"), (0, 0, 720, 576), (0, 0, 640, 480))  # OpenCV's 640x480 left over
+    card.install(monkeypatch, dev)
+    dev.whole_picture(768, 576)
+    assert card.rects[v4l2.V4L2_SEL_TGT_COMPOSE] == (0, 0, 768, 576)
+    assert card.rects[v4l2.V4L2_SEL_TGT_CROP] == (0, 0, 720, 576)
+    card = FakeSelection((768, 576, "GREY"), (0, 0, 720, 576), (0, 0, 640, 480), keep={v4l2.V4L2_SEL_TGT_COMPOSE})
+    card.install(monkeypatch, dev)
+    with pytest.raises(ConfigError, match="composes the picture into 640x480 at \\(0, 0\\) of the 768x576 frame"):
+        dev.whole_picture(768, 576)
+    card = FakeSelection((768, 576, "GREY"), (0, 0, 720, 576), (0, 0, 768, 576), keep={v4l2.V4L2_SEL_TGT_CROP})
+    card.install(monkeypatch, dev)
+    with pytest.raises(ConfigError, match="crops the picture to 640x480"):
+        dev.whole_picture(768, 576)
+    card = FakeSelection((640, 480, "GREY"), (0, 0, 720, 576), (0, 0, 640, 480))
+    card.install(monkeypatch, dev)
+    with pytest.raises(ConfigError, match="format is 640x480, not 768x576"):
+        dev.whole_picture(768, 576)
 
 
 def test_errno_of_a_busy_device(monkeypatch):
@@ -211,6 +312,12 @@ def test_exposure_start_from_the_buffer_timestamp():
     # not a monotonic time: as old as a frame can be (waited in both buffers, plus its own duration)
     assert exposure_start(5e9, 100.0, tstamp="end", **kw) == pytest.approx(100.0 - 0.12 - 0.04, abs=1e-12)
     assert exposure_start(float("nan"), 100.0, tstamp="end", **kw) == pytest.approx(99.84, abs=1e-12)
+    # a real clock's slop: an end-of-frame stamp up to one frame period after the read is the read time
+    assert exposure_start(100.033, 100.0, tstamp="end", **kw) == pytest.approx(99.96, abs=1e-12)
+    assert exposure_start(100.05, 100.0, tstamp="end", **kw) == pytest.approx(99.84, abs=1e-12)  # beyond it
+    assert exposure_start(0.0, 100.0, tstamp="end", **kw) == pytest.approx(99.84, abs=1e-12)  # not stamped
+    # a frame that waited long in its buffer keeps its own (old) time, never a younger guess
+    assert exposure_start(90.0, 100.0, tstamp="start", **kw) == 90.0
 
 
 class FakeCapture:
@@ -236,6 +343,25 @@ class FakeCapture:
         pass
 
 
+def good_stream(monkeypatch, src):
+    """The per-frame checks of a node that is not open: a locked signal, an upright picture."""
+    monkeypatch.setattr(src.device, "check_signal", lambda std: None)
+    monkeypatch.setattr(src.device, "check_orientation", lambda: None)
+
+
+def test_gaps_between_buffer_timestamps_count_the_lost_frames(monkeypatch):
+    import time
+
+    src = V4L2Source(parse_grabber_url("v4l2:///dev/video0?width=16&height=16"))
+    monkeypatch.setattr(src.device, "buffers", lambda: (2, v4l2.V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC))
+    good_stream(monkeypatch, src)
+    t = time.monotonic() - 1.0
+    src._cap = FakeCapture([(t, 50), (t + 0.04, 50), (t + 0.161, 50), (t + 0.2, 50)], 16, 16)
+    for _ in range(4):
+        src.read(1.0)
+    assert src.lost_frames == 2  # 0.121 s between the second and the third: two frames never came
+
+
 def test_a_frame_ending_after_settling_but_exposed_before_is_dropped(monkeypatch):
     """Issue 18 #19: a frame whose END-of-frame stamp lies after the moment the robot settled was still
     exposed (mostly) before it: dropped; the next one, exposed entirely after, is taken."""
@@ -244,6 +370,7 @@ def test_a_frame_ending_after_settling_but_exposed_before_is_dropped(monkeypatch
     g = FrameGrabber("v4l2:///dev/video0?width=16&height=16", black_level=None, saturation_level=None)
     src = V4L2Source(g.url)
     monkeypatch.setattr(src.device, "buffers", lambda: (2, v4l2.V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC))  # EOF stamps
+    good_stream(monkeypatch, src)
     settled = time.monotonic() - 0.5
     src._cap = FakeCapture([(settled + 0.005, 10), (settled + 0.045, 20), (settled + 0.085, 30)], 16, 16)
     g.source = src
@@ -262,6 +389,7 @@ def test_start_of_exposure_stamps_are_taken_as_they_are(monkeypatch):
     src = V4L2Source(g.url)
     flags = v4l2.V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC | v4l2.V4L2_BUF_FLAG_TSTAMP_SRC_SOE
     monkeypatch.setattr(src.device, "buffers", lambda: (2, flags))  # bttv: at least 2, whatever was asked
+    good_stream(monkeypatch, src)
     settled = time.monotonic() - 0.5
     src._cap = FakeCapture([(settled + 0.005, 10)], 16, 16)
     g.source = src

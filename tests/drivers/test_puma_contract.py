@@ -244,6 +244,80 @@ def test_a_reply_that_never_comes_is_a_timeout_and_the_driver_recovers(robot, si
     robot.where()
 
 
+# A BREAK reaches the driver as one NUL byte (the tty's delivery with BRKINT, IGNBRK, PARMRK off, which
+# the driver sets); here the simulator writes that NUL into the pty itself.
+def test_a_break_mid_reply_is_a_protocol_error_naming_it_and_the_driver_recovers(robot, sim, monkeypatch):
+    real, calls = sim._cmd_where, []  # noqa: SLF001
+
+    def where_with_a_break(link, inp, head):
+        reply = real(link, inp, head)
+        calls.append(reply)
+        if len(calls) > 1:
+            return reply
+        sim._send(link, reply[:40] + "\x00")  # noqa: SLF001
+        time.sleep(0.1)  # the line held in BREAK; the rest of the reply (and its prompt) comes after
+        return reply[40:]
+
+    real_handle = sim._handle  # noqa: SLF001 - and the resync's CR is answered 50 ms late (a slow link)
+
+    def handle_slowly(link, inp, raw):
+        if not raw.strip():
+            time.sleep(0.05)
+        return real_handle(link, inp, raw)
+
+    monkeypatch.setattr(sim, "_cmd_where", where_with_a_break)
+    monkeypatch.setattr(sim, "_handle", handle_slowly)
+    with pytest.raises(ProtocolError, match="garbage in the reply to 'WHERE'.*BREAK on the line"):
+        timed(robot.where)
+    assert timed.elapsed < robot.timeout_s + 1.0
+    assert_pose(robot.where(), VAL.H_to_pose(sim.base_H_T))
+    assert sim.received[-3:] == ["WHERE", "", "WHERE"]  # a resync (empty line) before the next command
+
+
+def test_a_break_between_commands_is_followed_by_a_resync(robot, sim):
+    before = robot.where()
+    assert sim._links[0].write(b"\x00", time.monotonic() + 1.0)  # noqa: SLF001 - unasked, while idle
+    time.sleep(0.1)
+    assert_pose(robot.where(), before.pose)
+    assert sim.received[-3:] == ["WHERE", "", "WHERE"]
+
+
+def test_a_break_during_a_motion_stops_it_and_never_completes_it(world, monkeypatch):
+    with ValController(world, seed=3, time_scale=0.5, calibrated=True) as c:
+        c.start_pty()
+        real_run = c._run  # noqa: SLF001 - the NUL arrives right after the motion's echo, the arm moving
+
+        def run_with_a_break(link, inp, head, m):
+            c._send(link, head + "\x00")  # noqa: SLF001
+            return real_run(link, inp, "", m)
+
+        monkeypatch.setattr(c, "_run", run_with_a_break)
+        with PumaVAL(c.url, timeout_s=1.0) as robot:
+            robot.speed(10)
+            with pytest.raises(ProtocolError, match="BREAK on the line.*ABORT sent and confirmed"):
+                robot.move("above")
+            assert "ABORT" in c.received and not c.moving.is_set()
+            target = PLATE_BASE_POSE @ trans(0, 0, -60)
+            assert pose_difference(c.base_H_T, target)[1] > 10.0  # stopped on its way, not at the target
+            assert_pose(robot.where(), VAL.H_to_pose(c.base_H_T))
+
+
+def test_the_port_reads_a_break_as_a_nul_whatever_it_was_left_with(sim):
+    """BRKINT (as ``stty sane`` or a getty leaves it) would make the kernel flush a reply silently."""
+    termios = pytest.importorskip("termios")
+    fd = os.open(sim.url, os.O_RDWR | os.O_NOCTTY)
+    try:
+        attrs = termios.tcgetattr(fd)
+        attrs[0] |= termios.BRKINT | termios.IGNBRK | termios.PARMRK
+        termios.tcsetattr(fd, termios.TCSANOW, attrs)
+        with PumaVAL(sim.url, timeout_s=0.5) as robot:
+            flags = termios.tcgetattr(robot._ser.fileno())[0]  # noqa: SLF001
+            assert not flags & (termios.BRKINT | termios.IGNBRK | termios.PARMRK), oct(flags)
+            robot.where()
+    finally:
+        os.close(fd)
+
+
 def test_power_lost_mid_move(robot, sim):
     ready_robot(robot)
     start = robot.where()
@@ -416,3 +490,26 @@ def test_real_controller_where():
     with PumaVAL(os.environ["SELFVIEW_PUMA_URL"], timeout_s=2.0) as robot:
         w = robot.where()
         assert len(w.pose) == 6 and len(w.joints) == 6
+
+
+@pytest.mark.hardware
+@pytest.mark.skipif(not os.environ.get("SELFVIEW_PUMA_URL"), reason="set SELFVIEW_PUMA_URL to a real controller")
+def test_real_controller_speed_reads_back_and_the_link_settings_hold():
+    """Motion-free: SPEED set and read back (then restored), the URL's baud rate and flow control as the
+    port was opened, and a second connect() a no-op."""
+    url = os.environ["SELFVIEW_PUMA_URL"]
+    with PumaVAL(url, timeout_s=5.0) as robot:
+        before = robot.speed_now()
+        robot.speed(17)
+        assert robot.speed_now() == pytest.approx(17)
+        robot.speed(before)
+        ser = robot._ser
+        if url.startswith("serial:"):
+            for key in ("baud", "xonxoff", "rtscts"):
+                if f"{key}=" in url:
+                    want = url.split(f"{key}=")[1].split("&")[0]
+                    got = ser.baudrate if key == "baud" else int(getattr(ser, key))
+                    assert str(got) == want, (key, got, want)
+        robot.connect()
+        w = robot.where()
+        assert len(w.pose) == 6
