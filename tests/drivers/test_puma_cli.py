@@ -97,7 +97,7 @@ def test_robot_cli_pty_in_process(cell, capsys):
         assert main(["robot", "--url", c.url, "speed", "90"]) == 4
         assert "nothing was sent" in capsys.readouterr().err
         assert main(["robot", "--url", c.url, "move", "350", "0", "x", "0", "180", "0"]) == 2
-        assert "MOVE Z: expected a number" in capsys.readouterr().err
+        assert "MOVE Z: not a number in ASCII digits" in capsys.readouterr().err
         assert main(["robot", "--url", c.url, "--max-speed", "90", "speed", "90"]) == 0
         assert "SPEED 90" in capsys.readouterr().out
         assert c.speed_pct == 90

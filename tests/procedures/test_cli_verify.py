@@ -46,4 +46,6 @@ def test_verify_on_the_ideal_cell_is_go_within_a_target(capsys):
     text = capsys.readouterr().out
     assert code == 0, text
     assert "GO: the TCP's spread over 3 parks" in text and "against the simulator's truth" in text
-    assert main(["verify", "--parks", "2"]) == 3
+    with pytest.raises(SystemExit) as stop:  # fewer parks than a spread needs: a usage error
+        main(["verify", "--parks", "2"])
+    assert stop.value.code == 2

@@ -147,7 +147,9 @@ def test_report_command_refuses_bad_arguments(tmp_path, capsys):
     assert "--only nonsense" in capsys.readouterr().err
     assert main(["report", "--only", "robot", "--out", str(tmp_path / "R.txt")]) == 3
     assert "expected a markdown file" in capsys.readouterr().err
-    assert main(["report", "--trials", "-1", "--out", str(tmp_path / "R.md")]) == 3
+    with pytest.raises(SystemExit) as stop:  # a negative count on the command line: a usage error
+        main(["report", "--trials", "-1", "--out", str(tmp_path / "R.md")])
+    assert stop.value.code == 2
 
 
 # --- the studies' pieces ----------------------------------------------------------------------------------
