@@ -133,33 +133,57 @@ def _ellipse_misfit(blob: np.ndarray) -> tuple[float, float]:
 
 def _centroid(work, labels, k, bbox, area) -> tuple[str | None, np.ndarray | None]:
     """Sub-pixel centre of blob ``k`` (contrast-weighted centroid over a support around it, paper level a
-    plane fitted to the ring around the support), or the reason it is not a whole, clean disc."""
+    plane fitted to the ring around the support), or the reason it is not a whole, clean disc.
+
+    Pixels nearer another dark blob (a neighbouring disc, a label, a mark) than to this one, and pixels
+    beside another blob, belong neither to the support nor to the ring: near neighbours shrink the
+    support instead of refusing the disc, so large discs and labelled ones are still measured. The
+    support and ring are cut at the picture's border; the blob itself must keep clear of it."""
     x, y, w, h = bbox
     H, W = work.shape
     d = 2 * np.sqrt(area / np.pi)
     m_in = int(np.clip(round(0.2 * d), 4, 10))
     m_ring = int(np.clip(round(0.15 * d), 3, 8))
     m = m_in + m_ring
-    x0, y0, x1, y1 = x - m, y - m, x + w + m, y + h + m
-    if x0 < 0 or y0 < 0 or x1 > W or y1 > H:
+    if x < 2 or y < 2 or x + w > W - 2 or y + h > H - 2:
         return "picture edge", None
+    x0, y0, x1, y1 = max(x - m, 0), max(y - m, 0), min(x + w + m, W), min(y + h + m, H)
     lab = labels[y0:y1, x0:x1]
     # distance (px) from the blob: the support holds the blurred edge, the ring beyond it is paper
     dist = cv2.distanceTransform((lab != k).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
-    outer = dist <= m
-    if np.any(outer & (lab != k) & (lab > 0)):
+    other = (lab != k) & (lab > 0)
+    d_other = cv2.distanceTransform((~other).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+    if np.any(other & (dist <= 2.0)):
         return "crowded", None
-    support = dist <= m_in
-    ring = outer & ~support
+    mine = d_other > np.maximum(dist, 2.0)  # nearer this blob, and not beside another
+    outer = (dist <= m) & mine
+    support = (dist <= m_in) & mine
+    ring = outer & (dist > m_in) & (d_other > 3.0)
+    full_ring = np.count_nonzero((dist <= m) & (dist > m_in))
+    if np.count_nonzero(ring) < 0.3 * full_ring or np.count_nonzero(support & (dist > 0)) < 0.5 * np.count_nonzero(
+        (dist <= m_in) & (dist > 0)
+    ):
+        return "crowded", None
     crop = work[y0:y1, x0:x1].astype(np.float64)
     rv, ru = np.nonzero(ring)
     cu, cv_ = (x1 - x0 - 1) / 2, (y1 - y0 - 1) / 2
     A = np.column_stack([np.ones(len(ru)), ru - cu, rv - cv_])
     z = crop[rv, ru]
     coef = np.linalg.solve(A.T @ A, A.T @ z)
-    res = z - A @ coef
-    level = coef[0]
-    if level <= 0 or np.mean(np.abs(res) > RING_TOLERANCE * level) > 0.01:
+    off = np.abs(z - A @ coef) > RING_TOLERANCE * coef[0]
+    if coef[0] > 0 and 0.01 < np.mean(off) < 0.3:
+        # something not paper in the ring (a mark, the sheet's edge): refit on the paper, and keep the
+        # disc only if that thing stays clear of the disc's edge, leaving it out of the support
+        coef = np.linalg.lstsq(A[~off], z[~off], rcond=None)[0]
+        gu, gv = np.meshgrid(np.arange(x1 - x0) - cu, np.arange(y1 - y0) - cv_)
+        foreign = (np.abs(crop - (coef[0] + coef[1] * gu + coef[2] * gv)) > RING_TOLERANCE * coef[0]) & (dist > 2)
+        nf, flab = cv2.connectedComponents(foreign.astype(np.uint8), connectivity=8)
+        near = np.unique(flab[foreign & (dist <= 3)])
+        if np.any(near > 0):
+            return "occluded", None
+        off = foreign[rv, ru]
+        support &= ~foreign
+    if coef[0] <= 0 or np.mean(off) >= 0.3:
         return "occluded", None
     sv, su = np.nonzero(support)
     plane = coef[0] + coef[1] * (su - cu) + coef[2] * (sv - cv_)
@@ -183,7 +207,8 @@ def _seed(P: np.ndarray, dist: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]
         for j in nb[1:]:
             b = P[j] - P[s]
             lb = np.linalg.norm(b)
-            if abs(a @ b) > 0.8 * la * lb or not 0.5 < lb / la < 2.0:
+            # a reduced basis (no diagonal): neither a + b nor a - b shorter than the longer step
+            if abs(a @ b) > 0.6 * min(la, lb) ** 2 or not 0.5 < lb / la < 2.0:
                 continue
             if np.any(np.linalg.norm(P[nb] - (P[s] - b), axis=1) < 0.25 * lb):
                 return int(s), a, b
