@@ -41,6 +41,8 @@ __all__ = ["DiscDetections", "detect_discs", "correct_disc_bias", "disc_image_bi
 DARK_FRACTION = 0.3
 #: Ring test: a ring pixel deviating from the fitted paper plane by more than this (relative) is not paper.
 RING_TOLERANCE = 0.12
+#: Lattice test: a disc off the midpoint of its two neighbours on a line by more than this (of a step).
+LATTICE_TOLERANCE = 0.15
 
 
 @dataclass
@@ -254,7 +256,7 @@ def _propagate(P: np.ndarray) -> dict[int, tuple[int, int]]:
 
 
 def _lattice_outliers(P, index) -> set[int]:
-    """Points off the midpoint of their two lattice neighbours along a line by > 15 % of a step."""
+    """Points off the midpoint of their two lattice neighbours on a line by > ``LATTICE_TOLERANCE`` steps."""
     at = {v: k for k, v in index.items()}
     bad = set()
     for k, (i, j) in index.items():
@@ -263,7 +265,7 @@ def _lattice_outliers(P, index) -> set[int]:
             if lo is None or hi is None:
                 continue
             step = np.linalg.norm(P[hi] - P[lo]) / 2
-            if np.linalg.norm(P[k] - (P[lo] + P[hi]) / 2) > 0.15 * step:
+            if np.linalg.norm(P[k] - (P[lo] + P[hi]) / 2) > LATTICE_TOLERANCE * step:
                 bad.add(k)
     return bad
 
