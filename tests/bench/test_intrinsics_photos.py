@@ -1,0 +1,20 @@
+"""bench/intrinsics.py's study of real photographs: ours beside findCirclesGrid and cv2.calibrateCamera."""
+
+from __future__ import annotations
+
+from selfview.bench.intrinsics import photo_study
+
+
+def test_photo_study_finds_every_disc_and_agrees_with_opencv():
+    out = photo_study()
+    res = out["visp-circles"]
+    assert res["none_refused"] and res["every_opencv_disc_found"]
+    assert len(res["pictures"]) == 6 and all(r["ours"] == r["opencv"] == 36 for r in res["pictures"])
+    assert all(r["centre_agreement_px"]["max"] < 0.5 for r in res["pictures"])
+    (cam,) = res["cameras"]
+    assert cam["size"] == [320, 240] and cam["pictures"] == 5
+    assert cam["selfview"]["discs"] == cam["cv2_on_findCirclesGrid"]["discs"] == 180
+    assert cam["selfview"]["skew"] == 0.0
+    for key in ("ours_minus_cv2_in_combined_sigmas", "flat_plate_minus_cv2_in_combined_sigmas"):
+        assert all(abs(v) <= 3.0 for v in cam[key].values()), (key, cam[key])
+    assert cam["within_3_sigmas"]
