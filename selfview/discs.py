@@ -41,6 +41,8 @@ __all__ = ["DiscDetections", "detect_discs", "correct_disc_bias", "disc_image_bi
 DARK_FRACTION = 0.3
 #: Ring test: a ring pixel deviating from the fitted paper plane by more than this (relative) is not paper.
 RING_TOLERANCE = 0.12
+#: Size test: a disc's area over its lattice cell's, relative to the plate's pi/4 (d/pitch)^2, lies in this range.
+DISC_SHARE = (0.5, 2.0)
 #: Lattice test: a disc off the midpoint of its two neighbours on a line by more than this (of a step).
 LATTICE_TOLERANCE = 0.15
 
@@ -270,6 +272,61 @@ def _lattice_outliers(P, index) -> set[int]:
     return bad
 
 
+def _cell_share(P, index, areas) -> dict[int, float]:
+    """Per lattice point with a neighbour along each axis: its blob's area over its lattice cell's area
+    (|a x b| of the local steps), which a perspective view keeps, locally, at pi/4 (d/pitch)^2."""
+    at = {v: k for k, v in index.items()}
+    share = {}
+    for k, (i, j) in index.items():
+        steps = []
+        for di, dj in ((1, 0), (0, 1)):
+            hi, lo = at.get((i + di, j + dj)), at.get((i - di, j - dj))
+            step = P[hi] - P[k] if hi is not None else (P[k] - P[lo] if lo is not None else None)
+            steps.append(step)
+        if steps[0] is not None and steps[1] is not None:
+            share[k] = float(areas[k] / max(abs(steps[0][0] * steps[1][1] - steps[0][1] * steps[1][0]), 1e-9))
+    return share
+
+
+def _off_size(P, index, areas, plate: PlateSpec) -> set[int]:
+    """Lattice points whose blob is far smaller or larger than the plate's discs at that place (labels,
+    marks, background blobs that happen to sit on the lattice); ``ImageError`` when most are."""
+    share = _cell_share(P, index, areas)
+    if not share:
+        return set()
+    expect = np.pi / 4 * (plate.disc_diameter / plate.pitch) ** 2
+    bad = {k for k, v in share.items() if not DISC_SHARE[0] < v / expect < DISC_SHARE[1]}
+    if len(bad) > len(share) / 2:
+        raise ImageError(
+            f"the discs cover {np.median(list(share.values())):.2f} of their lattice cell where the plate's "
+            f"{plate.disc_diameter:g} mm discs at {plate.pitch:g} mm pitch would cover {expect:.2f}: "
+            "check plate.disc_diameter and plate.pitch in the cell file"
+        )
+    return bad
+
+
+def _plate_window(index, plate: PlateSpec) -> dict[int, tuple[int, int]]:
+    """``index`` cut to the plate's ``rows x cols`` window that holds the most lattice points, when the
+    lattice is larger than the plate (blobs beyond the sheet at lattice places) and one window holds more
+    than any other; ``index`` unchanged otherwise."""
+    keys = np.array(list(index.values()))
+    lo, ext = keys.min(0), keys.max(0) - keys.min(0) + 1
+    shapes = {(plate.cols, plate.rows), (plate.rows, plate.cols)}
+    if any(ext[0] <= a and ext[1] <= b for a, b in shapes):
+        return index
+    counts = {}
+    for a, b in shapes:
+        for i0 in range(lo[0], max(lo[0], lo[0] + ext[0] - a) + 1):
+            for j0 in range(lo[1], max(lo[1], lo[1] + ext[1] - b) + 1):
+                inside = frozenset(k for k, (i, j) in index.items() if i0 <= i < i0 + a and j0 <= j < j0 + b)
+                counts[inside] = len(inside)
+    ranked = sorted(counts.values(), reverse=True)
+    if len(ranked) > 1 and ranked[0] == ranked[1]:
+        return index  # no one window is the plate: refused when oriented
+    best = max(counts, key=counts.get)
+    return {k: index[k] for k in best}
+
+
 def _mean_step(P, index, axis: int) -> np.ndarray:
     at = {v: k for k, v in index.items()}
     steps = []
@@ -397,9 +454,12 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     areas = np.array(areas)
     P = camera.undistorted_pixels(uv) if camera is not None else uv
     index = _propagate(P)
-    bad = _lattice_outliers(P, index)
-    for k in bad:
+    for k in _lattice_outliers(P, index):
         del index[k]
+    if len(index) >= min_discs:
+        for k in _off_size(P, index, areas, plate):
+            del index[k]
+        index = _plate_window(index, plate)
     if len(index) < min_discs:
         raise ImageError(
             f"the discs do not form a lattice: {len(index)} of {len(uv)} whole discs fit one "

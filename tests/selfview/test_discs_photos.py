@@ -7,6 +7,7 @@ it finds is found, at its centre, and what it cannot do (a grid partly hidden) s
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -15,6 +16,7 @@ import pytest
 
 from selfview.cell import load_cell
 from selfview.discs import detect_discs
+from selfview.errors import ImageError
 
 SET = Path(__file__).resolve().parents[1] / "data" / "visp-circles"
 PICTURES = [f"circles-0{i}.jpg" for i in range(1, 6)] + ["grid36-03.png"]
@@ -127,3 +129,50 @@ def test_labels_and_marks_are_no_discs():
     det = detect_discs(img, plate)
     assert det.n_blobs > 100 and sum(det.rejected.values()) == det.n_blobs - len(det)
     assert len(det) == 36
+
+
+def _discs_beside_the_grid(img, ref, plate, rows, scale=1.0):
+    """``img`` with discs painted one step beyond the grid's last column in ``rows`` (radius ``scale``
+    times a disc's), and their centres."""
+    out = img.copy()
+    det = detect_discs(img, plate)
+    r = np.sqrt(np.median(det.area_px) / np.pi)
+    centres = []
+    for row in rows:
+        last = ref[row * plate.cols + plate.cols - 1]
+        c = 2 * last - ref[row * plate.cols + plate.cols - 2]
+        _, ink = _paper_and_ink(img, last, r)
+        cv2.circle(out, tuple(int(v) for v in np.round(c * 16)), int(round(scale * r * 16)), ink, -1, cv2.LINE_AA, 4)
+        centres.append(c)
+    return out, np.array(centres)
+
+
+def test_blobs_beyond_the_sheet_on_the_lattice_are_not_the_plate():
+    img, plate = _load("grid36-03.png"), _cell("grid36-03.png").plate
+    ref = _opencv(img, plate)
+    more, extra = _discs_beside_the_grid(img, ref, plate, rows=(1, 2, 3))
+    det = detect_discs(more, plate)
+    assert len(det) == 36 and np.min(np.linalg.norm(det.uv[:, None] - extra[None], axis=2)) > 10
+    assert det.index_basis == {"cols": "all seen", "rows": "all seen"}
+    # a whole seventh column: no one 6 x 6 window is the plate, so the picture is refused
+    more, _ = _discs_beside_the_grid(img, ref, plate, rows=range(plate.rows))
+    with pytest.raises(ImageError, match="larger than the plate"):
+        detect_discs(more, plate)
+
+
+def test_a_dot_too_small_for_the_plate_is_no_disc():
+    """A mark at a disc's place (the disc itself hidden) is a third of a disc's area: not one of the plate's."""
+    img, plate = _load("grid36-03.png"), _cell("grid36-03.png").plate
+    ref = _opencv(img, plate)
+    k = 3 * plate.cols + 2
+    det0 = detect_discs(img, plate)
+    r = np.sqrt(np.median(det0.area_px) / np.pi)
+    paper, ink = _paper_and_ink(img, ref[k], r)
+    marked = img.copy()
+    cv2.circle(marked, tuple(int(v) for v in np.round(ref[k])), int(np.ceil(r + 3)), paper, -1, cv2.LINE_AA)
+    cv2.circle(marked, tuple(int(v) for v in np.round(ref[k] * 16)), int(round(0.58 * r * 16)), ink, -1, cv2.LINE_AA, 4)
+    det = detect_discs(marked, plate)
+    assert len(det) == 35 and np.min(np.linalg.norm(det.uv - ref[k], axis=1)) > 10
+    # the cell file's disc size is what decides: a plate of discs that small would have taken it
+    with pytest.raises(ImageError, match="disc_diameter"):
+        detect_discs(img, replace(plate, disc_diameter=plate.disc_diameter / 3))
