@@ -135,19 +135,20 @@ def _ellipse_misfit(blob: np.ndarray) -> tuple[float, float]:
     return solidity, float(np.max(np.abs(rho - 1)) * (da + db) / 4)
 
 
-def _centroid(work, labels, k, bbox, area) -> tuple[str | None, np.ndarray | None]:
+def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarray | None]:
     """Sub-pixel centre of blob ``k`` (contrast-weighted centroid over a support around it, paper level a
     plane fitted to the ring around the support), or the reason it is not a whole, clean disc.
 
     Pixels nearer another dark blob (a neighbouring disc, a label, a mark) than to this one, and pixels
     beside another blob, belong neither to the support nor to the ring: near neighbours shrink the
-    support instead of refusing the disc, so large discs and labelled ones are still measured. The
+    support instead of refusing the disc, so large discs and labelled ones are still measured; a blob
+    larger than a mark (``small[label]`` False: a disc, a finger) within 2 px of it is "crowded". The
     support and ring are cut at the picture's border; the blob itself must keep clear of it."""
     x, y, w, h = bbox
     H, W = work.shape
     d = 2 * np.sqrt(area / np.pi)
-    m_in = int(np.clip(round(0.2 * d), 4, 10))
-    m_ring = int(np.clip(round(0.15 * d), 3, 8))
+    m_in = int(np.clip(round(0.2 * d), 3, 10))
+    m_ring = int(np.clip(round(0.15 * d), 2, 8))
     m = m_in + m_ring
     if x < 2 or y < 2 or x + w > W - 2 or y + h > H - 2:
         return "picture edge", None
@@ -157,16 +158,16 @@ def _centroid(work, labels, k, bbox, area) -> tuple[str | None, np.ndarray | Non
     dist = cv2.distanceTransform((lab != k).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
     other = (lab != k) & (lab > 0)
     d_other = cv2.distanceTransform((~other).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
-    if np.any(other & (dist <= 2.0)):
+    if np.any(other & ~small[lab] & (dist <= 2.0)):
         return "crowded", None
     mine = d_other > np.maximum(dist, 2.0)  # nearer this blob, and not beside another
     outer = (dist <= m) & mine
     support = (dist <= m_in) & mine
-    ring = outer & (dist > m_in) & (d_other > 3.0)
+    ring = outer & (dist > m_in) & (d_other > 2.5)
     full_ring = np.count_nonzero((dist <= m) & (dist > m_in))
-    if np.count_nonzero(ring) < 0.3 * full_ring or np.count_nonzero(support & (dist > 0)) < 0.5 * np.count_nonzero(
-        (dist <= m_in) & (dist > 0)
-    ):
+    fr_ring = np.count_nonzero(ring) / max(full_ring, 1)
+    fr_sup = np.count_nonzero(support & (dist > 0)) / max(np.count_nonzero((dist <= m_in) & (dist > 0)), 1)
+    if fr_ring < 0.05 or np.count_nonzero(ring) < 12 or fr_sup < 0.5:
         return "crowded", None
     crop = work[y0:y1, x0:x1].astype(np.float64)
     rv, ru = np.nonzero(ring)
@@ -181,9 +182,10 @@ def _centroid(work, labels, k, bbox, area) -> tuple[str | None, np.ndarray | Non
         coef = np.linalg.lstsq(A[~off], z[~off], rcond=None)[0]
         gu, gv = np.meshgrid(np.arange(x1 - x0) - cu, np.arange(y1 - y0) - cv_)
         foreign = (np.abs(crop - (coef[0] + coef[1] * gu + coef[2] * gv)) > RING_TOLERANCE * coef[0]) & (dist > 2)
-        nf, flab = cv2.connectedComponents(foreign.astype(np.uint8), connectivity=8)
-        near = np.unique(flab[foreign & (dist <= 3)])
-        if np.any(near > 0):
+        _, flab = cv2.connectedComponents(foreign.astype(np.uint8), connectivity=8)
+        # a thing touching the disc hides part of it, unless it is the halo of another dark blob
+        near = set(np.unique(flab[foreign & (dist <= 3)])) - set(np.unique(flab[foreign & (d_other <= 2.5)])) - {0}
+        if near:
             return "occluded", None
         off = foreign[rv, ru]
         support &= ~foreign
@@ -386,6 +388,16 @@ def _grid_end(P_img, cr, axis, side, dark, r_px, shape) -> bool:
     return empty >= 2
 
 
+def _typical_area(area: np.ndarray) -> float:
+    """The plate's disc area [px]: the centre of the factor-4 band of blob areas that holds the most dark
+    area (the discs, rather than the many small marks or print around them, or a few large blobs)."""
+    la = np.log(np.asarray(area, float))
+    ink = [area[(la >= c - np.log(2)) & (la <= c + np.log(2))].sum() for c in la]
+    c = la[int(np.argmax(ink))]
+    inside = (la >= c - np.log(2)) & (la <= c + np.log(2))
+    return float(np.exp(np.median(la[inside])))
+
+
 # --- the detector ---------------------------------------------------------------------------------
 def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, min_discs: int = 12) -> DiscDetections:
     """Find, measure and index the whole discs of the calibration plate in a picture.
@@ -417,27 +429,29 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
             reject("picture edge")
         else:
             cand.append(k)
-    if cand:
-        med = float(np.median(stats[cand, cv2.CC_STAT_AREA]))
-        keep = []
-        for k in cand:
-            area = stats[k, cv2.CC_STAT_AREA]
-            if area < 0.25 * med:
-                reject("speck")
-            elif area > 4 * med or area > 0.05 * H * W:
-                reject("too large")
-            else:
-                keep.append(k)
-        cand = keep
-    uv, areas = [], []
+    round_ = []
     for k in cand:
         x, y, w, h, area = (int(v) for v in stats[k])
-        blob = labels[y : y + h, x : x + w] == k
-        solidity, misfit = _ellipse_misfit(blob)
-        if solidity < 0.9 or misfit > 1.6:
-            reject("not elliptical")
+        if area > 0.05 * H * W:
+            reject("too large")
             continue
-        why, c = _centroid(work, labels, k, (x, y, w, h), area)
+        solidity, misfit = _ellipse_misfit(labels[y : y + h, x : x + w] == k)
+        if solidity < 0.9 or misfit > max(1.6, 0.035 * np.sqrt(area)):
+            reject("not elliptical")
+        else:
+            round_.append(k)
+    typical = _typical_area(stats[round_, cv2.CC_STAT_AREA]) if round_ else 0.0
+    small = stats[:, cv2.CC_STAT_AREA] < 0.25 * typical
+    uv, areas = [], []
+    for k in round_:
+        x, y, w, h, area = (int(v) for v in stats[k])
+        if area < 0.25 * typical:
+            reject("speck")
+            continue
+        if area > 4 * typical:
+            reject("too large")
+            continue
+        why, c = _centroid(work, labels, k, (x, y, w, h), area, small)
         if why:
             reject(why)
             continue

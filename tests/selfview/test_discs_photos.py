@@ -176,3 +176,17 @@ def test_a_dot_too_small_for_the_plate_is_no_disc():
     # the cell file's disc size is what decides: a plate of discs that small would have taken it
     with pytest.raises(ImageError, match="disc_diameter"):
         detect_discs(img, replace(plate, disc_diameter=plate.disc_diameter / 3))
+
+
+@pytest.mark.parametrize("scale", [0.75, 3.0])
+def test_any_resolution(scale):
+    """The same photographs resampled to 240 x 180 and to 960 x 720: still every disc, at its centre."""
+    plate = _cell("circles-01.jpg").plate
+    for name in PICTURES[:5]:
+        img = _load(name)
+        ref = (_opencv(img, plate) + 0.5) * scale - 0.5
+        small = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_CUBIC)
+        det = detect_discs(small, plate)
+        assert len(det) == 36, (name, det.rejected)
+        idx, d = _match(det.uv, ref)
+        assert len(set(idx)) == 36 and d.max() < MAX_PX * max(scale, 1.0), (name, d.max())
