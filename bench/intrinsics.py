@@ -107,7 +107,7 @@ VIEWS = 12
 
 #: Real photograph sets under tests/data: (directory, picture pattern), each picture read with the cell file of
 #: its size there.
-PHOTO_SETS = (("visp-circles", "circles-0*.jpg"), ("visp-circles", "grid36-*.png"))
+PHOTO_SETS = (("visp-circles", "circles-0*.jpg"), ("visp-circles", "grid36-0*.png"))
 PHOTO_DATA = Path(__file__).resolve().parents[1] / "tests" / "data"
 
 

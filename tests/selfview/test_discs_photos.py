@@ -19,7 +19,7 @@ from selfview.discs import detect_discs
 from selfview.errors import ImageError
 
 SET = Path(__file__).resolve().parents[1] / "data" / "visp-circles"
-PICTURES = [f"circles-0{i}.jpg" for i in range(1, 6)] + ["grid36-03.png"]
+PICTURES = [f"circles-0{i}.jpg" for i in range(1, 6)] + [f"grid36-0{i}.png" for i in range(1, 5)]
 #: Our centres against findCirclesGrid's [px]: both centroid-like; the two differ by the blob detector's
 #: threshold steps and by our paper-level weighting, a few hundredths to a few tenths of a pixel.
 MEDIAN_PX, MAX_PX = 0.2, 0.5
