@@ -474,15 +474,16 @@ def photo_study() -> dict:
             entry = {"size": list(size), "pictures": len(views)}
             try:
                 fits = {}
-                for key, skew, plate_model in (("selfview", False, "bow+dots"), ("selfview_skew_fitted", True, "bow+dots"),
-                                               ("selfview_flat_plate", False, "flat")):
+                variants = (("selfview", False, "bow+dots"), ("selfview_skew_fitted", True, "bow+dots"),
+                            ("selfview_flat_plate", False, "flat"))
+                for key, skew, plate_model in variants:
                     r = calibrate_intrinsics(None, cell.plate, cam0, detections=dets, skew=skew, cross_check=False,
                                              plate_model=plate_model)
                     c = r.camera
                     fits[key] = {"f": c.f, "cx": c.cx, "cy": c.cy, "aspect": c.aspect, "kappa": c.kappa,
                                  "skew": c.skew, "rms_px": r.rms_px, "discs": int(sum(len(d) for d in dets)),
                                  "plate_model": r.plate_shape.get("model", plate_model),
-                                 "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect") + (("skew",) if skew else ())}}
+                                 "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect", "skew")[: 4 + skew]}}
                 entry.update(fits)
                 entry["selfview"]["skew_note"] = "held at 0 (skew=False); selfview_skew_fitted has it free"
                 entry["selfview_flat_plate"]["note"] = "the plate taken as specified, as cv2.calibrateCamera takes it"

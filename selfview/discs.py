@@ -14,6 +14,10 @@ a multiplicative light gradient across the disc. What it measures is the centroi
 *distorted image*, which is not the image of the disc's centre: ``correct_disc_bias`` supplies that
 difference from the camera model and ``C_H_W``.
 
+Which blobs are discs: round ones of the plate's size (the band of areas holding the most ink, then each
+disc's share of its lattice cell against the cell file's pi/4 (d/pitch)^2), on the lattice, inside one
+plate-sized window of it; printed labels and marks beside a disc shrink its support instead of refusing it.
+
 Grid indexing: the survivors form a lattice; neighbour steps give its two directions, indices are
 propagated from a seed disc (tolerating missing discs), and W is oriented so that x (columns) points to
 growing u and y (rows) completes a right-handed frame whose z points away from the camera. When all

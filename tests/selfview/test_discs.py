@@ -50,7 +50,7 @@ def test_centres_unbiased_after_correction(cell_path, seed):
     det, k, err = _check(c)
     mean, p95, bias = _stats(err)
     assert mean < 0.02 and p95 < 0.045 and bias < 0.01, (mean, p95, bias)
-    # most whole discs are used (a few beside the fingers are dropped as crowded)
+    # most whole discs are used (a few touching the fingers are dropped as crowded)
     assert len(det) >= 0.85 * c.pic.disc_visible.sum()
     # without the correction the centroids are off by up to a few tenths of a pixel
     raw = np.linalg.norm(det.uv - c.pic.disc_uv[k], axis=1)

@@ -185,7 +185,8 @@ def test_any_resolution(scale):
     for name in PICTURES[:5]:
         img = _load(name)
         ref = (_opencv(img, plate) + 0.5) * scale - 0.5
-        small = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_CUBIC)
+        how = cv2.INTER_AREA if scale < 1 else cv2.INTER_CUBIC
+        small = cv2.resize(img, None, fx=scale, fy=scale, interpolation=how)
         det = detect_discs(small, plate)
         assert len(det) == 36, (name, det.rejected)
         idx, d = _match(det.uv, ref)
