@@ -290,3 +290,18 @@ def test_the_minimum_disc_count(cell_path):
     assert len(det) == 12
     k, _ = grid_symmetry(det, pl, c.pic.disc_uv)
     assert sorted(k.tolist()) == sorted(order[:12])
+
+
+@pytest.mark.parametrize("ratio", [0.7])
+def test_large_discs_are_not_crowded(cell_path, tmp_path, ratio):
+    """A plate whose discs are 0.7 of the pitch (the largest a cell file may describe for this detector):
+    every whole disc clear of the fingers is found, centres as unbiased as with the reference plate."""
+    text = cell_path.read_text()
+    assert "disc_diameter: 4.5" in text
+    path = tmp_path / "cell.yaml"
+    path.write_text(text.replace("disc_diameter: 4.5", f"disc_diameter: {ratio * 9.0}"))
+    c = case(str(path), 1)
+    det, k, err = _check(c)
+    mean, p95, bias = _stats(err)
+    assert mean < 0.02 and p95 < 0.045 and bias < 0.01, (mean, p95, bias)
+    assert len(det) >= c.pic.disc_visible.sum() - 1, (len(det), c.pic.disc_visible.sum(), det.rejected)
