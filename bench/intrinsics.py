@@ -462,7 +462,7 @@ def photo_study() -> dict:
                 row["centre_agreement_px"] = {"median": float(np.median(both)), "max": float(both.max())}
                 k = np.arange(len(ref))
                 p = np.column_stack([k % pl.cols, k // pl.cols, np.zeros(len(k))]) * pl.pitch
-                groups.setdefault((img.shape[1], img.shape[0]), []).append((det, SimpleNamespace(p_W=p), ref))
+                groups.setdefault((img.shape[1], img.shape[0]), []).append((det, SimpleNamespace(p_W=p), ref, f.name))
             rows.append(row)
         cams = []
         for size, views in groups.items():
@@ -477,11 +477,13 @@ def photo_study() -> dict:
                 variants = (("selfview", False, "bow+dots"), ("selfview_skew_fitted", True, "bow+dots"),
                             ("selfview_flat_plate", False, "flat"))
                 for key, skew, plate_model in variants:
-                    r = calibrate_intrinsics(None, cell.plate, cam0, detections=dets, skew=skew, cross_check=False,
-                                             plate_model=plate_model)
+                    r = calibrate_intrinsics(None, cell.plate, cam0, [v[3] for v in views], detections=dets,
+                                             skew=skew, cross_check=False, plate_model=plate_model)
                     c = r.camera
-                    fits[key] = {"f": c.f, "cx": c.cx, "cy": c.cy, "aspect": c.aspect, "kappa": c.kappa,
-                                 "skew": c.skew, "rms_px": r.rms_px, "discs": int(sum(len(d) for d in dets)),
+                    fits[key] = {"views_used": r.views_used, "f": c.f, "cx": c.cx, "cy": c.cy, "aspect": c.aspect,
+                                 "kappa": c.kappa,
+                                 "skew": c.skew, "rms_px": r.rms_px, "discs": int(sum(v.discs for v in r.views)),
+                                 "views_left_out": [list(x) if isinstance(x, tuple) else x for x in r.skipped],
                                  "plate_model": r.plate_shape.get("model", plate_model),
                                  "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect", "skew")[: 4 + skew]}}
                 entry.update(fits)
@@ -499,6 +501,7 @@ def photo_study() -> dict:
                 entry["ours_minus_cv2_on_our_discs_in_combined_sigmas"] = _in_sigmas(
                     entry["selfview"], entry["cv2_on_our_discs"])
                 entry["flat_plate_minus_cv2_in_combined_sigmas"] = _in_sigmas(entry["selfview_flat_plate"], cvd)
+                entry["skew_fitted_minus_cv2_in_combined_sigmas"] = _in_sigmas(entry["selfview_skew_fitted"], cvd)
                 entry["within_3_sigmas"] = all(abs(v) <= 3 for v in entry["ours_minus_cv2_in_combined_sigmas"].values())
             cams.append(entry)
         out.setdefault(folder, {"pictures": [], "cameras": []})
