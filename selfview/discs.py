@@ -185,10 +185,13 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
         # disc only if that thing stays clear of the disc's edge, leaving it out of the support
         coef = np.linalg.lstsq(A[~off], z[~off], rcond=None)[0]
         gu, gv = np.meshgrid(np.arange(x1 - x0) - cu, np.arange(y1 - y0) - cv_)
-        foreign = (np.abs(crop - (coef[0] + coef[1] * gu + coef[2] * gv)) > RING_TOLERANCE * coef[0]) & (dist > 2)
-        _, flab = cv2.connectedComponents(foreign.astype(np.uint8), connectivity=8)
-        # a thing touching the disc hides part of it, unless it is the halo of another dark blob
+        resid = cv2.blur((crop - (coef[0] + coef[1] * gu + coef[2] * gv)).astype(np.float32), (3, 3))  # noise-proof
+        foreign = (np.abs(resid) > RING_TOLERANCE * coef[0]) & (dist > 2)
+        nf, flab, fst, _ = cv2.connectedComponentsWithStats(foreign.astype(np.uint8), connectivity=8)
+        # a thing touching the disc hides part of it, unless it is the halo of another dark blob or a
+        # pixel or two of noise
         near = set(np.unique(flab[foreign & (dist <= 3)])) - set(np.unique(flab[foreign & (d_other <= 2.5)])) - {0}
+        near = {j for j in near if fst[j, cv2.CC_STAT_AREA] > 3}
         if near:
             return "occluded", None
         off = foreign[rv, ru]
@@ -416,7 +419,8 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     work = img if plate.polarity == "dark_on_light" else (float(img.max()) - img)
     paper = _paper_level(work)
     dark = 1.0 - work / np.maximum(paper, 1.0)
-    mask = (dark > DARK_FRACTION).astype(np.uint8)
+    # the blobs' outlines from a lightly smoothed contrast, so pixel noise does not fray them
+    mask = (cv2.GaussianBlur(dark, (0, 0), 0.7) > DARK_FRACTION).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     H, W = img.shape
     rejected: dict[str, int] = {}

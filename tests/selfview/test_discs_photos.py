@@ -127,7 +127,7 @@ def test_labels_and_marks_are_no_discs():
     """The small printed digits and marks beside the discs are dark blobs the detector sees and drops."""
     img, plate = _load("circles-01.jpg"), _cell("circles-01.jpg").plate
     det = detect_discs(img, plate)
-    assert det.n_blobs > 100 and sum(det.rejected.values()) == det.n_blobs - len(det)
+    assert det.n_blobs - len(det) >= 15 and sum(det.rejected.values()) == det.n_blobs - len(det)
     assert len(det) == 36
 
 
@@ -191,3 +191,14 @@ def test_any_resolution(scale):
         assert len(det) == 36, (name, det.rejected)
         idx, d = _match(det.uv, ref)
         assert len(set(idx)) == 36 and d.max() < MAX_PX * max(scale, 1.0), (name, d.max())
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_noisier_camera(seed):
+    """Grey-level noise of 6 levels (about 3.5 % of the paper) on every photograph: still every disc."""
+    rng = np.random.default_rng(seed)
+    for name in PICTURES:
+        img = _load(name).astype(float)
+        noisy = np.clip(img + rng.normal(0.0, 6.0, img.shape), 0, 255).astype(np.uint8)
+        det = detect_discs(noisy, _cell(name).plate)
+        assert len(det) == 36, (name, det.rejected)
