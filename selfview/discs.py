@@ -14,6 +14,10 @@ a multiplicative light gradient across the disc. What it measures is the centroi
 *distorted image*, which is not the image of the disc's centre: ``correct_disc_bias`` supplies that
 difference from the camera model and ``C_H_W``.
 
+Which blobs are discs: round ones of the plate's size (the band of areas holding the most ink, then each
+disc's share of its lattice cell against the cell file's pi/4 (d/pitch)^2), on the lattice, inside one
+plate-sized window of it; printed labels and marks beside a disc shrink its support instead of refusing it.
+
 Grid indexing: the survivors form a lattice; neighbour steps give its two directions, indices are
 propagated from a seed disc (tolerating missing discs), and W is oriented so that x (columns) points to
 growing u and y (rows) completes a right-handed frame whose z points away from the camera. When all
@@ -41,6 +45,10 @@ __all__ = ["DiscDetections", "detect_discs", "correct_disc_bias", "disc_image_bi
 DARK_FRACTION = 0.3
 #: Ring test: a ring pixel deviating from the fitted paper plane by more than this (relative) is not paper.
 RING_TOLERANCE = 0.12
+#: Size test: a disc's area over its lattice cell's, relative to the plate's pi/4 (d/pitch)^2, lies in this range.
+DISC_SHARE = (0.5, 2.0)
+#: Lattice test: a disc off the midpoint of its two neighbours on a line by more than this (of a step).
+LATTICE_TOLERANCE = 0.15
 
 
 @dataclass
@@ -131,35 +139,64 @@ def _ellipse_misfit(blob: np.ndarray) -> tuple[float, float]:
     return solidity, float(np.max(np.abs(rho - 1)) * (da + db) / 4)
 
 
-def _centroid(work, labels, k, bbox, area) -> tuple[str | None, np.ndarray | None]:
+def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarray | None]:
     """Sub-pixel centre of blob ``k`` (contrast-weighted centroid over a support around it, paper level a
-    plane fitted to the ring around the support), or the reason it is not a whole, clean disc."""
+    plane fitted to the ring around the support), or the reason it is not a whole, clean disc.
+
+    Pixels nearer another dark blob (a neighbouring disc, a label, a mark) than to this one, and pixels
+    beside another blob, belong neither to the support nor to the ring: near neighbours shrink the
+    support instead of refusing the disc, so large discs and labelled ones are still measured; a blob
+    larger than a mark (``small[label]`` False: a disc, a finger) within 2 px of it is "crowded". The
+    support and ring are cut at the picture's border; the blob itself must keep clear of it."""
     x, y, w, h = bbox
     H, W = work.shape
     d = 2 * np.sqrt(area / np.pi)
-    m_in = int(np.clip(round(0.2 * d), 4, 10))
-    m_ring = int(np.clip(round(0.15 * d), 3, 8))
+    m_in = int(np.clip(round(0.2 * d), 3, 10))
+    m_ring = int(np.clip(round(0.15 * d), 2, 8))
     m = m_in + m_ring
-    x0, y0, x1, y1 = x - m, y - m, x + w + m, y + h + m
-    if x0 < 0 or y0 < 0 or x1 > W or y1 > H:
+    if x < 2 or y < 2 or x + w > W - 2 or y + h > H - 2:
         return "picture edge", None
+    x0, y0, x1, y1 = max(x - m, 0), max(y - m, 0), min(x + w + m, W), min(y + h + m, H)
     lab = labels[y0:y1, x0:x1]
     # distance (px) from the blob: the support holds the blurred edge, the ring beyond it is paper
     dist = cv2.distanceTransform((lab != k).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
-    outer = dist <= m
-    if np.any(outer & (lab != k) & (lab > 0)):
+    other = (lab != k) & (lab > 0)
+    d_other = cv2.distanceTransform((~other).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+    if np.any(other & ~small[lab] & (dist <= 2.0)):
         return "crowded", None
-    support = dist <= m_in
-    ring = outer & ~support
+    mine = d_other > np.maximum(dist, 2.0)  # nearer this blob, and not beside another
+    outer = (dist <= m) & mine
+    support = (dist <= m_in) & mine
+    ring = outer & (dist > m_in) & (d_other > 2.5)
+    full_ring = np.count_nonzero((dist <= m) & (dist > m_in))
+    fr_ring = np.count_nonzero(ring) / max(full_ring, 1)
+    fr_sup = np.count_nonzero(support & (dist > 0)) / max(np.count_nonzero((dist <= m_in) & (dist > 0)), 1)
+    if fr_ring < 0.05 or np.count_nonzero(ring) < 12 or fr_sup < 0.5:
+        return "crowded", None
     crop = work[y0:y1, x0:x1].astype(np.float64)
     rv, ru = np.nonzero(ring)
     cu, cv_ = (x1 - x0 - 1) / 2, (y1 - y0 - 1) / 2
     A = np.column_stack([np.ones(len(ru)), ru - cu, rv - cv_])
     z = crop[rv, ru]
     coef = np.linalg.solve(A.T @ A, A.T @ z)
-    res = z - A @ coef
-    level = coef[0]
-    if level <= 0 or np.mean(np.abs(res) > RING_TOLERANCE * level) > 0.01:
+    off = np.abs(z - A @ coef) > RING_TOLERANCE * coef[0]
+    if coef[0] > 0 and 0.01 < np.mean(off) < 0.3:
+        # something not paper in the ring (a mark, the sheet's edge): refit on the paper, and keep the
+        # disc only if that thing stays clear of the disc's edge, leaving it out of the support
+        coef = np.linalg.lstsq(A[~off], z[~off], rcond=None)[0]
+        gu, gv = np.meshgrid(np.arange(x1 - x0) - cu, np.arange(y1 - y0) - cv_)
+        resid = cv2.blur((crop - (coef[0] + coef[1] * gu + coef[2] * gv)).astype(np.float32), (3, 3))  # noise-proof
+        foreign = (np.abs(resid) > RING_TOLERANCE * coef[0]) & (dist > 2)
+        nf, flab, fst, _ = cv2.connectedComponentsWithStats(foreign.astype(np.uint8), connectivity=8)
+        # a thing touching the disc hides part of it, unless it is the halo of another dark blob or a
+        # pixel or two of noise
+        near = set(np.unique(flab[foreign & (dist <= 3)])) - set(np.unique(flab[foreign & (d_other <= 2.5)])) - {0}
+        near = {j for j in near if fst[j, cv2.CC_STAT_AREA] > 3}
+        if near:
+            return "occluded", None
+        off = foreign[rv, ru]
+        support &= ~foreign
+    if coef[0] <= 0 or np.mean(off) >= 0.3:
         return "occluded", None
     sv, su = np.nonzero(support)
     plane = coef[0] + coef[1] * (su - cu) + coef[2] * (sv - cv_)
@@ -183,7 +220,8 @@ def _seed(P: np.ndarray, dist: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]
         for j in nb[1:]:
             b = P[j] - P[s]
             lb = np.linalg.norm(b)
-            if abs(a @ b) > 0.8 * la * lb or not 0.5 < lb / la < 2.0:
+            # a reduced basis (no diagonal): neither a + b nor a - b shorter than the longer step
+            if abs(a @ b) > 0.6 * min(la, lb) ** 2 or not 0.5 < lb / la < 2.0:
                 continue
             if np.any(np.linalg.norm(P[nb] - (P[s] - b), axis=1) < 0.25 * lb):
                 return int(s), a, b
@@ -229,7 +267,7 @@ def _propagate(P: np.ndarray) -> dict[int, tuple[int, int]]:
 
 
 def _lattice_outliers(P, index) -> set[int]:
-    """Points off the midpoint of their two lattice neighbours along a line by > 15 % of a step."""
+    """Points off the midpoint of their two lattice neighbours on a line by > ``LATTICE_TOLERANCE`` steps."""
     at = {v: k for k, v in index.items()}
     bad = set()
     for k, (i, j) in index.items():
@@ -238,9 +276,64 @@ def _lattice_outliers(P, index) -> set[int]:
             if lo is None or hi is None:
                 continue
             step = np.linalg.norm(P[hi] - P[lo]) / 2
-            if np.linalg.norm(P[k] - (P[lo] + P[hi]) / 2) > 0.15 * step:
+            if np.linalg.norm(P[k] - (P[lo] + P[hi]) / 2) > LATTICE_TOLERANCE * step:
                 bad.add(k)
     return bad
+
+
+def _cell_share(P, index, areas) -> dict[int, float]:
+    """Per lattice point with a neighbour along each axis: its blob's area over its lattice cell's area
+    (|a x b| of the local steps), which a perspective view keeps, locally, at pi/4 (d/pitch)^2."""
+    at = {v: k for k, v in index.items()}
+    share = {}
+    for k, (i, j) in index.items():
+        steps = []
+        for di, dj in ((1, 0), (0, 1)):
+            hi, lo = at.get((i + di, j + dj)), at.get((i - di, j - dj))
+            step = P[hi] - P[k] if hi is not None else (P[k] - P[lo] if lo is not None else None)
+            steps.append(step)
+        if steps[0] is not None and steps[1] is not None:
+            share[k] = float(areas[k] / max(abs(steps[0][0] * steps[1][1] - steps[0][1] * steps[1][0]), 1e-9))
+    return share
+
+
+def _off_size(P, index, areas, plate: PlateSpec) -> set[int]:
+    """Lattice points whose blob is far smaller or larger than the plate's discs at that place (labels,
+    marks, background blobs that happen to sit on the lattice); ``ImageError`` when most are."""
+    share = _cell_share(P, index, areas)
+    if not share:
+        return set()
+    expect = np.pi / 4 * (plate.disc_diameter / plate.pitch) ** 2
+    bad = {k for k, v in share.items() if not DISC_SHARE[0] < v / expect < DISC_SHARE[1]}
+    if len(bad) > len(share) / 2:
+        raise ImageError(
+            f"the discs cover {np.median(list(share.values())):.2f} of their lattice cell where the plate's "
+            f"{plate.disc_diameter:g} mm discs at {plate.pitch:g} mm pitch would cover {expect:.2f}: "
+            "check plate.disc_diameter and plate.pitch in the cell file"
+        )
+    return bad
+
+
+def _plate_window(index, plate: PlateSpec) -> dict[int, tuple[int, int]]:
+    """``index`` cut to the plate's ``rows x cols`` window that holds the most lattice points, when the
+    lattice is larger than the plate (blobs beyond the sheet at lattice places) and one window holds more
+    than any other; ``index`` unchanged otherwise."""
+    keys = np.array(list(index.values()))
+    lo, ext = keys.min(0), keys.max(0) - keys.min(0) + 1
+    shapes = {(plate.cols, plate.rows), (plate.rows, plate.cols)}
+    if any(ext[0] <= a and ext[1] <= b for a, b in shapes):
+        return index
+    counts = {}
+    for a, b in shapes:
+        for i0 in range(lo[0], max(lo[0], lo[0] + ext[0] - a) + 1):
+            for j0 in range(lo[1], max(lo[1], lo[1] + ext[1] - b) + 1):
+                inside = frozenset(k for k, (i, j) in index.items() if i0 <= i < i0 + a and j0 <= j < j0 + b)
+                counts[inside] = len(inside)
+    ranked = sorted(counts.values(), reverse=True)
+    if len(ranked) > 1 and ranked[0] == ranked[1]:
+        return index  # no one window is the plate: refused when oriented
+    best = max(counts, key=counts.get)
+    return {k: index[k] for k in best}
 
 
 def _mean_step(P, index, axis: int) -> np.ndarray:
@@ -302,6 +395,16 @@ def _grid_end(P_img, cr, axis, side, dark, r_px, shape) -> bool:
     return empty >= 2
 
 
+def _typical_area(area: np.ndarray) -> float:
+    """The plate's disc area [px]: the centre of the factor-4 band of blob areas that holds the most dark
+    area (the discs, rather than the many small marks or print around them, or a few large blobs)."""
+    la = np.log(np.asarray(area, float))
+    ink = [area[(la >= c - np.log(2)) & (la <= c + np.log(2))].sum() for c in la]
+    c = la[int(np.argmax(ink))]
+    inside = (la >= c - np.log(2)) & (la <= c + np.log(2))
+    return float(np.exp(np.median(la[inside])))
+
+
 # --- the detector ---------------------------------------------------------------------------------
 def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, min_discs: int = 12) -> DiscDetections:
     """Find, measure and index the whole discs of the calibration plate in a picture.
@@ -316,7 +419,8 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     work = img if plate.polarity == "dark_on_light" else (float(img.max()) - img)
     paper = _paper_level(work)
     dark = 1.0 - work / np.maximum(paper, 1.0)
-    mask = (dark > DARK_FRACTION).astype(np.uint8)
+    # the blobs' outlines from a lightly smoothed contrast, so pixel noise does not fray them
+    mask = (cv2.GaussianBlur(dark, (0, 0), 0.7) > DARK_FRACTION).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     H, W = img.shape
     rejected: dict[str, int] = {}
@@ -333,27 +437,29 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
             reject("picture edge")
         else:
             cand.append(k)
-    if cand:
-        med = float(np.median(stats[cand, cv2.CC_STAT_AREA]))
-        keep = []
-        for k in cand:
-            area = stats[k, cv2.CC_STAT_AREA]
-            if area < 0.25 * med:
-                reject("speck")
-            elif area > 4 * med or area > 0.05 * H * W:
-                reject("too large")
-            else:
-                keep.append(k)
-        cand = keep
-    uv, areas = [], []
+    round_ = []
     for k in cand:
         x, y, w, h, area = (int(v) for v in stats[k])
-        blob = labels[y : y + h, x : x + w] == k
-        solidity, misfit = _ellipse_misfit(blob)
-        if solidity < 0.9 or misfit > 1.6:
-            reject("not elliptical")
+        if area > 0.05 * H * W:
+            reject("too large")
             continue
-        why, c = _centroid(work, labels, k, (x, y, w, h), area)
+        solidity, misfit = _ellipse_misfit(labels[y : y + h, x : x + w] == k)
+        if solidity < 0.9 or misfit > max(1.6, 0.035 * np.sqrt(area)):
+            reject("not elliptical")
+        else:
+            round_.append(k)
+    typical = _typical_area(stats[round_, cv2.CC_STAT_AREA]) if round_ else 0.0
+    small = stats[:, cv2.CC_STAT_AREA] < 0.25 * typical
+    uv, areas = [], []
+    for k in round_:
+        x, y, w, h, area = (int(v) for v in stats[k])
+        if area < 0.25 * typical:
+            reject("speck")
+            continue
+        if area > 4 * typical:
+            reject("too large")
+            continue
+        why, c = _centroid(work, labels, k, (x, y, w, h), area, small)
         if why:
             reject(why)
             continue
@@ -370,9 +476,12 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     areas = np.array(areas)
     P = camera.undistorted_pixels(uv) if camera is not None else uv
     index = _propagate(P)
-    bad = _lattice_outliers(P, index)
-    for k in bad:
+    for k in _lattice_outliers(P, index):
         del index[k]
+    if len(index) >= min_discs:
+        for k in _off_size(P, index, areas, plate):
+            del index[k]
+        index = _plate_window(index, plate)
     if len(index) < min_discs:
         raise ImageError(
             f"the discs do not form a lattice: {len(index)} of {len(uv)} whole discs fit one "
