@@ -39,7 +39,7 @@ def register(sub):
 
 
 def run(args) -> int:
-    from selfview.procedures.report import BENCHES, make_report
+    from selfview.bench.report import BENCHES, make_report
     from selfview.errors import ConfigError
 
     benches = BENCHES

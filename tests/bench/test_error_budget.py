@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from selfview.procedures.paper import PAPER_TABLES
-from selfview.procedures.report import BenchRun, _error_budget
+from selfview.bench.report import BenchRun, _error_budget
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -32,7 +32,6 @@ from selfview.online import METHODS
 __all__ = ["Bench", "BenchRun", "BENCHES", "find_bench_dir", "find_reference_dir", "run_bench", "machine",
            "run_experiment", "willson_check", "render_markdown", "make_report"]
 
-_REPO = Path(__file__).resolve().parents[1]
 _OUT = "{out}"  # replaced by the results folder in a bench's arguments
 KEPT = "figures kept from the previous run"  # a benchmark not rerun by ``--keep``
 
@@ -132,7 +131,9 @@ def run_bench(bench: Bench, bench_dir: Path | None, results_dir: Path, *, quick:
     """Run one benchmark script (with ``extra_args`` after its own) in its own process group; on
     timeout the whole group is killed. Its JSON is written to ``results_dir/<name>.json``."""
     script = None if bench_dir is None else Path(bench_dir) / bench.script
-    if script is None or not script.is_file():
+    if script is not None and not script.is_file() and (Path(bench_dir) / bench.name / "__main__.py").is_file():
+        script = Path(bench_dir) / bench.name  # a campaign split into a package runs as its folder
+    if script is None or not script.exists():
         where = "no bench/ folder found" if bench_dir is None else f"{script} does not exist"
         return BenchRun(bench.name, bench.title, "not available", detail=where)
     args = [a.replace(_OUT, str(results_dir)) for a in (bench.quick_args if quick else bench.args)] + list(extra_args)

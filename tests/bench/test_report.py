@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from selfview.procedures.cli import main
-from selfview.procedures.report import (Bench, BenchRun, find_bench_dir, find_reference_dir, make_report, render_markdown,
+from selfview.bench.report import (Bench, BenchRun, find_bench_dir, find_reference_dir, make_report, render_markdown,
                                         run_bench, willson_check)
 from selfview.cell import default_cell_path, load_cell
 from selfview.geometry import R_from_rotvec, inv_H, make_H, rot_z
