@@ -19,6 +19,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -268,7 +269,7 @@ def willson_check(ref_dir: Path | None) -> dict | None:
     return {"points": int(len(p_W)), "pixel_mm": dpy, "runs": rows}
 
 
-# --- the markdown ---------------------------------------------------------------------------------------------
+# --- the page ---------------------------------------------------------------------------------------------------
 def _g(d, *keys, default=None):
     for k in keys:
         if not isinstance(d, dict) or k not in d:
@@ -287,144 +288,14 @@ def _f(v, spec: str = ".3g") -> str:
     return str(v)
 
 
-def _scalars(d, prefix: str = "", depth: int = 3) -> list[tuple[str, object]]:
-    """(dotted key, value) of the numbers, booleans and short strings of a JSON object, ``depth`` deep."""
-    out = []
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict) and depth > 1:
-            out += _scalars(v, key + ".", depth - 1)
-        elif isinstance(v, (int, float, bool)) or (isinstance(v, str) and len(v) <= 60):
-            out.append((key, v))
-    return out
+def _xyz(v, spec: str = ".3f") -> str:
+    """A per-axis triple as 'x / y / z'."""
+    return " / ".join(_f(a, spec) for a in v) if v else "-"
 
 
-def _bench_block(run: BenchRun) -> list[str]:
-    if run.status != "ok":
-        return [f"**{run.title}** (`bench/{run.name}.py`): **{run.status}**. {run.detail}".rstrip(), ""]
-    rows = [f"| {k} | {_f(v, '.4g') if not isinstance(v, str) else v} |" for k, v in _scalars(run.data)
-            if k not in ("benchmark",)]
-    return [f"**{run.title}** (`bench/{run.name}.py`, {run.seconds:.0f} s, JSON: `results/{run.name}.json`)", "",
-            "| figure | value |", "|---|---|", *rows, ""]
-
-
-_STUDIES = ("kinematics_vs_selfview", "update_limit")
-
-
-def _speed(runs: dict[str, BenchRun]) -> list[str]:
-    lines = ["## Speed", "", "Each figure below was measured in this run; OpenCV's peers ran in the same process "
-             "on the same data, and the ratios are theirs to ours.", ""]
-    on, off = runs.get("online"), runs.get("offline")
-    head = ["| what | ours | OpenCV peer | peer / ours |", "|---|---|---|---|"]
-    rows = []
-    if on and on.status == "ok":
-        med = on.data.get("median_us", {})
-        for ours in ("4P-U", "4P-I", "4P-R"):
-            for peer in [k for k in med if k.startswith("cv2")]:
-                if ours in med:
-                    rows.append(f"| one {ours} solve [us] | {_f(med[ours])} | {peer}: {_f(med[peer])} | "
-                                f"{_f(med[peer] / med[ours])} |")
-        step = on.data.get("per_frame_step") or {}
-        rows.append(f"| per-frame step: the fingertips tracked from the last frame + 4P-I [ms] (target "
-                    f"{_f(on.data.get('target_step_ms'))}; {step.get('tracked_steps', '-')} of "
-                    f"{step.get('steps', '-')} steps tracked) | {_f(on.data.get('per_frame_step_ms'))} | - | - |")
-        rows.append(f"| a full search for the fingertips (the first frame, or when tracking does not hold) [ms] | "
-                    f"{_f(step.get('full_search_ms'))} | - | - |")
-        for bg in ("plain", "cluttered"):
-            tr = on.data.get(f"trackers_{bg}") or {}
-            model = tr.get("model") or {}
-            if model.get("median_ms") is not None:
-                corners = tr.get("corners") or {}
-                rows.append(f"| per-frame step of the model (silhouette) tracker, {bg} background [ms] ({model.get('found', '-')} "
-                            f"of {model.get('steps', '-')} found; over the corner tracker's step on the same frames, timed in "
-                            f"turn: {_f(tr.get('model_to_corners_step'))}, the corner tracker holding "
-                            f"{corners.get('tracked_steps', '-')} of {corners.get('steps', '-')}) | {_f(model['median_ms'])} "
-                            "| - | - |")
-    if off and off.status == "ok":
-        sp = off.data.get("speed", {})
-        rows.append(f"| camera calibration of one picture [ms] (calibrate_coplanar vs cv2.calibrateCamera) | "
-                    f"{_f(sp.get('calibrate_coplanar_ms'))} | {_f(sp.get('cv2_calibrateCamera_ms'))} | "
-                    f"{_f(sp.get('ratio_cv2_to_calibrate_coplanar'))} |")
-        rows.append(f"| whole off-line calibration [ms] (target {_f(sp.get('target_ms'))}) | "
-                    f"{_f(sp.get('calibrate_offline_ms'))} | - | - |")
-        steps = sp.get("steps_median_ms", {})
-        if steps:
-            rows.append("| its steps [ms] | " + ", ".join(f"{k} {_f(v)}" for k, v in steps.items()) + " | - | - |")
-    lines += (head + rows + [""]) if rows else ["No speed figures: the on-line and off-line benchmarks did not run.", ""]
-    lines += ["All benchmark figures as printed:", ""]
-    for name, r in runs.items():
-        if name in _STUDIES:
-            continue  # they have sections of their own
-        if name == "offline" and r.status == "ok":  # its accuracy has a section of its own
-            r = BenchRun(r.name, r.title, r.status, {"speed": r.data.get("speed", {})}, r.seconds, r.command)
-        lines += _bench_block(r)
-    return lines
-
-
-def _offline_accuracy(run: BenchRun | None) -> list[str]:
-    lines = ["### Off-line calibration against the simulator's truth", ""]
-    if not run or run.status != "ok":
-        return lines + _unavailable(run)
-    acc = run.data["accuracy"]
-    names = {"f_pct": "f error [%]", "kappa_pct": "kappa error [%]", "tcp_across_mm": "TCP across the optical axis [mm]",
-             "tcp_along_mm": "TCP along the optical axis [mm]", "rot_deg": "rotation [deg]"}
-    lines += [f"{run.data['seeds']} simulated cells (seeds 0-{run.data['seeds'] - 1}), one picture each; magnitudes, "
-              f"median / 95th percentile. OpenCV: `cv2.calibrateCamera` ({run.data['opencv_flags']}) on the same "
-              f"detected disc centres, then the same PCC step; its kappa: {run.data['kappa_from_k1']}.", "",
-              "| error | target | self-viewing (ours) | cv2 on the detected centres | cv2 on bias-corrected centres |",
-              "|---|---|---|---|---|"]
-    for k, nm in names.items():
-        cells = []
-        for label in ("selfview", "cv2", "cv2 bias-corrected"):
-            e = acc.get(label, {}).get(k)
-            cells.append("-" if not e else f"{_f(e['median'], '.4g')} / {_f(e['p95'], '.4g')}"
-                         + ("" if e["p95_within"] else (" (p95 over)" if e["median_within"] else " (over)")))
-        lines.append(f"| {nm} | {_f(run.data['targets'][k], 'g')} | " + " | ".join(cells) + " |")
-    fails = {label: acc.get(label, {}).get("failed") for label in acc}
-    lines += ["", f"Failed calibrations per method: {', '.join(f'{k} {v}' for k, v in fails.items())}.", ""]
-    return lines
-
-
-def _demote(md: str, levels: int) -> str:
-    """Markdown with its headings moved ``levels`` deeper (to nest a generated section)."""
-    return re.sub(r"^(#+) ", lambda m: "#" * (len(m.group(1)) + levels) + " ", md, flags=re.M)
-
-
-def _experiment(exp: dict | None) -> list[str]:
-    lines = ["### On-line: the paper's experiment (Tables 1 and 2) on the simulated cell", ""]
-    if not exp:
-        return lines + ["Not run.", ""]
-    if "failed" in exp:
-        return lines + [f"Failed: {exp['failed']}", ""]
-    s = exp["summary"]
-    lines += [f"`selfview.procedures.experiment.run_direct`, {exp['trials_per_series']} trials per series, in "
-              f"{exp['seconds']:.0f} s; errors per camera axis (c_x, c_y, c_z) in mm. "
-              f"Plot: `results/experiment_errors.png`.", "", _demote(exp["tables_md"], 2), ""]
-    if not s.get("failures"):
-        lines += ["No trial failed.", ""]
-    return lines
-
-
-def _willson(w: dict | None) -> list[str]:
-    lines = ["### Tsai's method on Willson's reference data", ""]
-    if not w:
-        return lines + ["Not available: Willson's data (`reference/tsai-willson`) not found; pass --reference.", ""]
-    lines += [f"`selfview.tsai.calibrate_coplanar` on `cc_cd.dat` ({w['points']} coplanar points) beside the runs "
-              f"published in `ccal.log`; f in mm and kappa1 in mm^-2 through his pixel size {w['pixel_mm']:g} mm.", "",
-              "| mode (published run) | | f [mm] | kappa1 [mm^-2] | Tx | Ty | Tz [mm] | Rx | Ry | Rz [deg] | Cx | Cy | mean / max error [px] |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for r in w["runs"]:
-        for who, v in (("ours", r["ours"]), ("Willson", r["willson"])):
-            lines.append(f"| {r['mode']} ({r['published']}) | {who} | {_f(v.get('f'), '.6f')} | {_f(v.get('kappa1'), '.6e')} | "
-                         + " | ".join(_f(v.get(k), ".4f") for k in ("Tx", "Ty", "Tz", "Rx", "Ry", "Rz", "Cx", "Cy"))
-                         + f" | {_f(v.get('mean_px'), '.6f')} / {_f(v.get('max_px'), '.6f')} |")
-    return lines + [""]
-
-
-def _table_file(results_dir: Path, name: str) -> list[str]:
-    """The table a study wrote beside its JSON in this run."""
-    p = results_dir / name
-    return [p.read_text(encoding="utf-8").rstrip(), ""] if p.is_file() else [f"(its table `{name}` was not written)", ""]
+def _link(name: str) -> str:
+    """A link to a file of the results folder, beside the page."""
+    return f"[{name}](results/{name})"
 
 
 def _unavailable(run: BenchRun | None) -> list[str]:
@@ -432,118 +303,333 @@ def _unavailable(run: BenchRun | None) -> list[str]:
     return [f"Not available: {run.status + '. ' + run.detail if run else 'not run'}", ""]
 
 
-def _handeye(run: BenchRun | None, results_dir: Path) -> list[str]:
-    lines = ["## Kinematics-free? Classical hand/eye calibration (AX=XB) against self-viewing", ""]
-    if not run or run.status != "ok":
-        return lines + _unavailable(run)
-    d = run.data
-    h = d["headline"]
-    w = d["worn_robot"]
-    lines += [f"{d['seeds']} simulated cells; the worn robot (level 1) has link lengths off by up to {w['link_mm']:g} mm, "
-              f"joint zeros by up to {w['joint_offset_deg']:g} deg and {w['encoder_sd_deg']:g} deg encoder noise; levels "
-              f"{', '.join(_f(v, 'g') for v in d['levels'])} scale it. AX=XB from {', '.join(map(str, d['poses']))} stations; "
-              f"camera: {d['camera']}. `bench/kinematics_vs_selfview.py` ({run.seconds:.0f} s); plot "
-              "`results/kinematics_vs_selfview.png`.", ""]
-    lines += [f"- Self-viewing, median TCP error: {_f(h['selfview_tcp_mm_at_zero'], '.4f')} mm with a perfect robot, "
-              f"{_f(h['selfview_tcp_mm_at_max'], '.4f')} mm with the worn one.",
-              f"- {h['axxb_method']}, median TCP error: {_f(h['axxb_tcp_mm_at_zero'], '.4f')} mm with a perfect robot, "
-              f"{_f(h['axxb_tcp_mm_at_max'], '.4f')} mm with the worn one.", ""]
-    return lines + _table_file(results_dir, "kinematics_vs_selfview.md")
+def _ok(run: BenchRun | None) -> bool:
+    return run is not None and run.status == "ok"
 
 
-def _limit(run: BenchRun | None, cell_limit, results_dir: Path) -> list[str]:
-    lines = ["## The limit between updating and recalibrating", ""]
-    if not run or run.status != "ok":
+def _offline_accuracy(run: BenchRun | None) -> list[str]:
+    lines = [f"### Off-line calibration from one picture ({_link('offline.json')})", ""]
+    if not _ok(run):
         return lines + _unavailable(run)
     d = run.data
-    lim = d["limit"]
+    acc = d["accuracy"]
+    names = {"f_pct": "f [%]", "kappa_pct": "kappa [%]", "tcp_across_mm": "TCP across the optical axis [mm]",
+             "tcp_along_mm": "TCP along the optical axis [mm]", "rot_deg": "rotation [deg]"}
+    lines += [f"{d['seeds']} simulated cells, one picture each; error magnitudes, median / 95th percentile. OpenCV: "
+              f"`cv2.calibrateCamera` ({d['opencv_flags']}) on the same disc centres, then the same PCC step.", "",
+              "| error | target | selfview | cv2 | cv2, bias-corrected centres |", "|---|---|---|---|---|"]
+    for k, nm in names.items():
+        cells = []
+        for label in ("selfview", "cv2", "cv2 bias-corrected"):
+            e = acc.get(label, {}).get(k)
+            cells.append("-" if not e else f"{_f(e['median'], '.3g')} / {_f(e['p95'], '.3g')}"
+                         + ("" if e["p95_within"] else " (over)"))
+        lines.append(f"| {nm} | {_f(d['targets'][k], 'g')} | " + " | ".join(cells) + " |")
+    fails = ", ".join(f"{k} {v.get('failed')}" for k, v in acc.items())
+    return lines + ["", f"Failed calibrations: {fails}.", ""]
+
+
+def _intrinsics(run: BenchRun | None) -> list[str]:
+    lines = [f"### The camera's intrinsics from {_g(run.data, 'views_per_camera', default='-') if _ok(run) else '-'} "
+             f"views ({_link('intrinsics.json')})", ""]
+    if not _ok(run):
+        return lines + _unavailable(run)
+    d = run.data
+    it = d["intrinsics"]
+    peers = {"selfview": "selfview", "cv2_raw": "cv2.calibrateCamera", "cv2_bias_corrected": "cv2, bias-corrected centres",
+             "mrcal": "mrcal"}
+    t = d.get("issue_targets", {})
+    lines += [f"Median errors against the truth over the simulated cameras (renderer: {d.get('renderer', '-')}).", "",
+              "| method | centre [px] | aspect [%] | f [%] | kappa [%] | seconds |", "|---|---|---|---|---|---|",
+              f"| target | {_f(t.get('centre_px'))} | {_f(t.get('aspect_pct'))} | {_f(t.get('f_pct'))} | - | - |"]
+    for k, nm in peers.items():
+        if k in it:
+            r = it[k]
+            lines.append(f"| {nm} | {_f(r['median_centre_err_px'])} | {_f(r['median_aspect_err_pct'])} | "
+                         f"{_f(r['median_f_err_pct'])} | {_f(r['median_kappa_err_pct'])} | {_f(r['median_seconds'])} |")
+    meets = it.get("selfview_meets_issue", {})
+    lines += ["", "selfview within its targets: " + ", ".join(f"{k} {_f(v)}" for k, v in meets.items()) + ".", ""]
+    return lines
+
+
+def _experiment(exp: dict | None) -> list[str]:
+    lines = [f"### On-line: the paper's Tables 1 and 2 on the simulated cell ({_link('experiment.json')})", ""]
+    if not exp:
+        return lines + ["Not run.", ""]
+    if "failed" in exp:
+        return lines + [f"Failed: {exp['failed']}", ""]
+    from selfview.procedures.paper import PAPER_TABLES
+
+    s = exp["summary"]
+    series = [k for k in ("cable", "tilt") if k in s]
+    lines += [f"{exp['trials_per_series']} trials per series; mean TCP error against the off-line reference (the "
+              "paper's measure) per camera axis c_x / c_y / c_z [mm], beside the paper's. Plot: "
+              f"{_link('experiment_errors.png')}.", "",
+              "| method | " + " | ".join(f"Table {i + 1} ({k}) | paper" for i, k in enumerate(series)) + " |",
+              "|---|" + "---|---|" * len(series)]
+    for m in s[series[0]]["methods"]:
+        cells = []
+        for k in series:
+            r = s[k]["methods"].get(m, {})
+            cells += [_xyz(_g(r, "reference", "mean_mm")), _xyz(PAPER_TABLES.get(k, {}).get(m, (None,))[0], ".2f")]
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    lines += ["", "The off-line reference against the simulator's truth, mean: "
+              + "; ".join(f"{k} {_xyz(s[k]['offline_reference_vs_truth']['mean_mm'])} mm" for k in series)
+              + f". Failed trials: {len(s.get('failures', []))}.", ""]
+    return lines
+
+
+def _clutter(run: BenchRun | None) -> list[str]:
+    lines = [f"### The fingertips over real photographs ({_link('clutter.json')})", ""]
+    if not _ok(run):
+        return lines + _unavailable(run)
+    d = run.data
+    lines += [f"{len(d.get('photos', []))} photographed tables, {len(d.get('renderers', []))} renderers; 'wrong' is a "
+              f"result off by more than {_f(d.get('wrong_mm'))} mm that was marked good.", "",
+              "| measurement | frames | found [%] | missed | wrong | largest TCP error [mm] |", "|---|---|---|---|---|---|"]
+    for k, r in d["table"].items():
+        if k.startswith("all / "):
+            lines.append(f"| {k[6:]} | {r['frames']} | {_f(r.get('found_pct'))} | {r['missed']} | {r['wrong']} | "
+                         f"{_f(r.get('4P-I_tcp_err_max_mm'))} |")
+    return lines + [""]
+
+
+def _willson(w: dict | None) -> list[str]:
+    lines = [f"### Tsai's method on Willson's reference data ({_link('willson.json')})", ""]
+    if not w:
+        return lines + ["Not available: Willson's data (`reference/tsai-willson`) not found; pass --reference.", ""]
+    lines += [f"`selfview.tsai.calibrate_coplanar` on `cc_cd.dat` ({w['points']} points) beside his published runs.", "",
+              "| mode | | f [mm] | kappa1 [mm^-2] | Tz [mm] | mean / max error [px] |", "|---|---|---|---|---|---|"]
+    for r in w["runs"]:
+        for who, v in (("ours", r["ours"]), ("Willson", r["willson"])):
+            lines.append(f"| {r['mode']} | {who} | {_f(v.get('f'), '.6f')} | {_f(v.get('kappa1'), '.6e')} | "
+                         f"{_f(v.get('Tz'), '.4f')} | {_f(v.get('mean_px'), '.6f')} / {_f(v.get('max_px'), '.6f')} |")
+    return lines + [""]
+
+
+def _handeye(run: BenchRun | None) -> list[str]:
+    lines = [f"### Against classical hand/eye calibration, AX=XB ({_link('kinematics_vs_selfview.json')}, table "
+             f"{_link('kinematics_vs_selfview.md')})", ""]
+    if not _ok(run):
+        return lines + _unavailable(run)
+    d = run.data
+    h, w = d["headline"], d["worn_robot"]
+    return lines + [
+        f"{d['seeds']} simulated cells; the worn robot has link lengths off by up to {w['link_mm']:g} mm, joint zeros by "
+        f"up to {w['joint_offset_deg']:g} deg and {w['encoder_sd_deg']:g} deg encoder noise. Median TCP error:", "",
+        f"- self-viewing: {_f(h['selfview_tcp_mm_at_zero'], '.4f')} mm with a perfect robot, "
+        f"{_f(h['selfview_tcp_mm_at_max'], '.4f')} mm with the worn one;",
+        f"- {h['axxb_method']}: {_f(h['axxb_tcp_mm_at_zero'], '.4f')} mm with a perfect robot, "
+        f"{_f(h['axxb_tcp_mm_at_max'], '.4f')} mm with the worn one.", ""]
+
+
+def _limit(run: BenchRun | None, cell_limit) -> list[str]:
+    lines = [f"### The limit between updating and recalibrating ({_link('update_limit.json')}, table "
+             f"{_link('update_limit.md')})", ""]
+    if not _ok(run):
+        return lines + _unavailable(run)
+    lim, cv = run.data["limit"], run.data["cell_values"]
     if lim["angle_deg"] is None:
-        lines += ["No limit within the range swept: 4P-U stayed as good as 4P-R up to 10 deg.", ""]
+        return lines + ["No limit within the range swept: 4P-U stayed as good as 4P-R.", ""]
+    same = (cv["angle_deg"], cv["shift_mm"]) == (cell_limit.angle_deg, cell_limit.shift_mm)
+    return lines + [f"4P-U stays as good as 4P-R up to {_f(lim['angle_deg'], '.3f')} deg (binding axis "
+                    f"{lim['binding_axis']}), a shift of {_f(lim['shift_mm'], '.3f')} mm. The packaged cell file holds "
+                    f"{_f(cell_limit.angle_deg, 'g')} deg / {_f(cell_limit.shift_mm, 'g')} mm"
+                    + (", the measured values." if same else ", NOT the values measured."), ""]
+
+
+def _frame_budget(on: BenchRun | None, clutter: BenchRun | None) -> list[tuple]:
+    """(what, median ms, share of the frame) rows of the per-frame work."""
+    if not _ok(on):
+        return []
+    d = on.data
+    frame = float(_g(d, "frame_budget", "frame_ms", default=d.get("frame_ms", 40.0)))
+    fb = d.get("frame_budget")
+    if fb:
+        rows = [("per-frame step, plain table (tracker + 4P-I)", fb.get("step_ms_plain")),
+                ("per-frame step, photographed table (tracker + 4P-I)", fb.get("step_ms_cluttered")),
+                ("full search (first frame, or after a lost one)", fb.get("search_ms"))]
     else:
-        cv = d["cell_values"]
-        tcp = ", ".join(f"{a} {_f(v, '.2f')} mm" for a, v in lim["tcp_shift_mm_per_axis"].items())
-        lines += [f"Measured: **{_f(lim['angle_deg'], '.3f')} deg** (binding axis: {lim['binding_axis']}), matching "
-                  f"shift (the policy's d, eq. 14, largest over the axes) **{_f(lim['shift_mm'], '.3f')} mm**; TCP shift at "
-                  f"that angle {tcp}. "
-                  f"As a cell value: update_limit angle_deg {_f(cv['angle_deg'], 'g')}, shift_mm {_f(cv['shift_mm'], 'g')}.",
-                  f"The packaged cell description (`selfview/data/cell.yaml`) holds update_limit "
-                  f"{_f(cell_limit.angle_deg, 'g')} deg / {_f(cell_limit.shift_mm, 'g')} mm, which the policy uses"
-                  + (": the measured values." if (cv["angle_deg"], cv["shift_mm"]) == (cell_limit.angle_deg, cell_limit.shift_mm)
-                     else ": NOT the value measured in this run."), ""]
-    lines += [f"{d['seeds']} seeds, angles {', '.join(_f(a, 'g') for a in d['angles_deg'])} deg about C x, C y, C z and a "
-              f"random axis per seed through the pivot {d['pivot_C']} mm; `bench/update_limit.py` ({run.seconds:.0f} s); "
-              "plot `results/update_limit.png`. The criterion is in the script's docstring.", ""]
-    return lines + _table_file(results_dir, "update_limit.md")
+        rows = [("per-frame step (tracker + 4P-I)", d.get("per_frame_step_ms"))]
+        for bg in ("plain", "cluttered"):
+            rows.append((f"silhouette tracker's step, {bg} table", _g(d, f"trackers_{bg}", "model", "median_ms")))
+        rows.append(("full search (first frame, or after a lost one)", _g(d, "per_frame_step", "full_search_ms")))
+    if _ok(clutter) and _g(clutter.data, "table", "all / model-tracker", "step_ms_median") is not None:
+        rows.append(("silhouette tracker over photographs (clutter.json)",
+                     clutter.data["table"]["all / model-tracker"]["step_ms_median"]))
+    return [(w, v, None if v is None else 100.0 * float(v) / frame) for w, v in rows], frame
 
 
-def _error_budget(run: BenchRun | None, results_dir: Path) -> list[str]:
-    lines = ["## A real cell's imperfections: the error budget of Tables 1 and 2", ""]
-    if not run or run.status != "ok":
+def _speed(runs: dict[str, BenchRun]) -> list[str]:
+    on, off = runs.get("online"), runs.get("offline")
+    lines = [f"## Speed against the 40 ms frame budget ({_link('online.json')}, {_link('offline.json')})", ""]
+    budget = _frame_budget(on, runs.get("clutter"))
+    if budget:
+        rows, frame = budget
+        lines += [f"A CCIR frame is {_f(frame, 'g')} ms. Median times on this machine"
+                  + (" (the numpy path)" if not _g(on.data, "compiled_kernels") else
+                     f" (compiled kernels: {', '.join(on.data['compiled_kernels'])})") + ".", "",
+                  "| per frame | median [ms] | of a frame |", "|---|---|---|"]
+        lines += [f"| {w} | {_f(v)} | {_f(p, '.1f')} % |" for w, v, p in rows]
+        med = on.data.get("median_us", {})
+        lines += ["", "| one solve | ours [us] | cv2.solvePnP ITERATIVE [us] | IPPE [us] |", "|---|---|---|---|"]
+        for m in ("4P-U", "4P-I", "4P-R"):
+            if m in med:
+                lines.append(f"| {m} | {_f(med[m])} | {_f(med.get('cv2.solvePnP ITERATIVE'))} | "
+                             f"{_f(med.get('cv2.solvePnP IPPE'))} |")
+        lines.append("")
+    else:
+        lines += _unavailable(on)
+    if _ok(off):
+        sp = off.data["speed"]
+        lines += [f"Off-line calibration of one picture: {_f(sp.get('calibrate_offline_ms'))} ms (target "
+                  f"{_f(sp.get('target_ms'))} ms); its camera step {_f(sp.get('calibrate_coplanar_ms'))} ms against "
+                  f"cv2.calibrateCamera's {_f(sp.get('cv2_calibrateCamera_ms'))} ms."]
+    rb, io, rd = runs.get("robot"), runs.get("io"), runs.get("render")
+    if _ok(rb):
+        lines.append(f"VAL-II WHERE at {rb.data['baud']} baud: {_f(rb.data['paced_median_s'] * 1000)} ms, "
+                     f"{_f(rb.data['ratio_to_wire'])} x the wire time ({_link('robot.json')}).")
+    if _ok(io):
+        st = _g(io.data, "gripper_modbus_tcp", "minus_travel", "median_ms")
+        rt = _g(io.data, "gripper_modbus_tcp", "request_round_trip", "median_ms")
+        lines.append(f"Gripper over Modbus TCP: a stroke confirmed {_f(st)} ms after its travel, a request "
+                     f"{_f(rt)} ms ({_link('io.json')}).")
+    if _ok(rd):
+        lines.append(f"The simulated camera renders a frame in {_f(rd.data['median_s'] * 1000)} ms ({_link('render.json')}).")
+    return lines + [""]
+
+
+def _family(kind: str) -> str:
+    """The family of a fault kind: its first name, and the second for the CLI's and the signals' kinds."""
+    parts = kind.split(".")
+    return ".".join(parts[:2]) if parts[0] in ("cli", "sigint", "signal", "files") else parts[0]
+
+
+def _faults(run: BenchRun | None) -> list[str]:
+    lines = [f"## The fault campaign ({_link('faults.json')})", ""]
+    if not _ok(run):
+        return lines + _unavailable(run)
+    d = run.data
+    bad = ("hang", "traceback", "unsafe", "wrong_value", "lost_file")
+    fam: dict[str, Counter] = {}
+    for kind, c in d["kinds"].items():
+        fam.setdefault(_family(kind), Counter()).update(c)
+    inv = Counter()
+    for kind, v in d.get("invisible", {}).items():
+        inv[_family(kind)] += v["wrong_value"]
+    lines += [f"{d['total']} faults in {_f(d.get('seconds'), '.0f')} s (seed {d.get('seed')}), each judged from the "
+              "simulators' side. 'wrong value' counts, in brackets, those no check can see.", "",
+              "| family | faults | clear error | no effect | " + " | ".join(b.replace("_", " ") for b in bad) + " |",
+              "|---|" + "---|" * (3 + len(bad))]
+    for name in sorted(fam):
+        c = fam[name]
+        cells = [str(c[b]) if b != "wrong_value" or not inv[name] else f"{c[b]} ({inv[name]})" for b in bad]
+        lines.append(f"| {name} | {sum(c.values())} | {c['clear_error']} | {c['no_effect']} | " + " | ".join(cells) + " |")
+    t = d["totals"]
+    lines.append(f"| **all** | **{d['total']}** | {t['clear_error']} | {t['no_effect']} | "
+                 + " | ".join(str(t[b]) for b in bad) + " |")
+    ex = [e for b in bad if b != "wrong_value" for e in d.get("examples", {}).get(b, [])][:6]
+    if ex:
+        lines += ["", "Examples of what the campaign found:", ""]
+        lines += [f"- `{e['kind']}`: {e['seen'][:200]}" for e in ex]
+    return lines + [""]
+
+
+def _real_cell(run: BenchRun | None) -> list[str]:
+    lines = [f"## What to expect on a real cell ({_link('error_budget.json')}, table {_link('error_budget.md')})", ""]
+    if not _ok(run):
         return lines + _unavailable(run)
     d = run.data
     confs = d["configurations"]
-    lines += [f"The paper's protocol (`run_direct`), {d['trials_per_series']} trials per series and configuration, the same "
-              "worlds in every configuration: none of the imperfections (ideal), each part alone at its realistic "
-              "magnitude (`selfview.mocks.imperfections`, where each magnitude's source is written), all of them "
-              "(realistic) and the paper-like profile. Mean absolute TCP error per camera axis, c_x / c_y / c_z [mm]; "
-              f"`bench/error_budget.py` ({run.seconds:.0f} s).", ""]
-    for name in ("realistic", "paper-like"):
-        if name in confs:
-            imp = {k: v for k, v in confs[name]["imperfections"].items() if v}
-            lines.append(f"- {name}: " + ", ".join(f"{k} {_f(v, 'g')}" for k, v in imp.items()))
+    lines += [f"The paper's protocol on the simulated cell with each imperfection of a real one alone and all of them "
+              f"together ('realistic'), {d['trials_per_series']} trials per series and configuration, the same worlds "
+              "in each. Mean TCP error of 4P-U, c_x / c_y / c_z [mm], against the off-line reference and against the "
+              "truth:", "",
+              "| configuration | Table 1 vs reference | Table 1 vs truth | Table 2 vs reference | Table 2 vs truth |",
+              "|---|---|---|---|---|"]
+    for name, c in confs.items():
+        cells = []
+        for s in ("cable", "tilt"):
+            m = _g(c, "series", s, "methods", "4P-U", default={})
+            cells += [_xyz(m.get("reference_mean_mm")), _xyz(m.get("truth_mean_mm"))]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    failures = sum(len(c["failures"]) for c in confs.values())
+
+    def worst(name, key):  # the largest per-axis mean of 4P-U over both series
+        return max((max(_g(confs[name], "series", s, "methods", "4P-U", key, default=[0.0])) for s in ("cable", "tilt")),
+                   default=None)
+
     lines.append("")
-    failures = [f for c in confs.values() for f in c["failures"]]
-    misses = {(n, s): sum(m["failed"] for m in c["series"][s]["methods"].values())
-              for n, c in confs.items() for s in c["series"]}
-    lines += [f"Failed trials: {len(failures)}; methods that could not run on a trial (reported as misses with their "
-              f"reason, never as results): {sum(misses.values())} over all configurations.", ""]
-    return lines + _table_file(results_dir, "error_budget.md")
+    if "realistic" in confs and "ideal" in confs:
+        floor = worst("ideal", "truth_mean_mm")
+        parts = [n for n in confs if n not in ("ideal", "realistic", "paper-like")
+                 and worst(n, "truth_mean_mm") > 2.0 * floor]
+        lines.append(f"On a cell with all of them, expect each on-line update within {_f(worst('realistic', 'reference_mean_mm'), '.2f')} "
+                     f"mm (mean, per axis) of its off-line reference, and the tool centre within "
+                     f"{_f(worst('realistic', 'truth_mean_mm'), '.2f')} mm of the truth, against {_f(floor, '.2f')} mm on the "
+                     f"ideal cell: the off-line calibration's error carries into every update, and it comes from "
+                     f"{', '.join(parts) or 'no single part'} (more than twice the ideal cell's error alone).")
+    return lines + [f"Failed trials: {failures}.", ""]
 
 
 def _section(fn, *args) -> list[str]:
-    """A section of the report; one whose results lack a figure it shows says so instead."""
+    """A section of the page; one whose results lack a figure it shows says so instead."""
     try:
         return fn(*args)
-    except (KeyError, TypeError, IndexError, ValueError) as exc:
-        return [f"(section `{fn.__name__.strip('_')}` could not be written from this run's results: "
+    except (KeyError, TypeError, IndexError, ValueError, AttributeError) as exc:
+        return [f"(section `{fn.__name__.strip('_')}` could not be written from these results: "
                 f"{type(exc).__name__} {exc})", ""]
 
 
 def render_markdown(runs: dict[str, BenchRun], mach: dict, exp: dict | None, willson: dict | None, *,
-                    quick: bool, seconds: float, command: str, cell_limit, results_dir: Path) -> str:
-    """The text of RESULTS.md from one run's results."""
+                    quick: bool, seconds: float | None, command: str, cell_limit, results_dir: Path,
+                    when: str | None = None) -> str:
+    """The text of RESULTS.md from the results (``runs``: each benchmark's JSON as read or rerun)."""
     lines = ["# Results", "",
-             f"Produced by `{command}` in {seconds:.0f} s" + (" (QUICK run: small sizes, for tests)" if quick else "")
-             + f" on {time.strftime('%Y-%m-%d %H:%M %Z')}. Every figure below comes from that run; the JSON of every "
-             "benchmark is in `results/`.", "",
-             "## Machine", "",
-             f"{mach['cpu']}, {mach['cores']} cores ({mach['usable_cores']} usable); Python {mach['python']}, numpy "
-             f"{mach['numpy']}, OpenCV {mach['opencv']}, matplotlib {mach.get('matplotlib')}; {mach['platform']}; "
-             f"selfview {mach['selfview']}.", "",
-             "| benchmark | status | seconds |", "|---|---|---|"]
-    lines += [f"| `bench/{r.name}.py` | {r.status}{' (' + KEPT + ')' if r.detail == KEPT else ''} | "
-              f"{'-' if r.detail == KEPT else f'{r.seconds:.1f}'} |" for r in runs.values()]
-    lines += [""]
-    lines += _section(_speed, runs)
-    lines += ["## Accuracy", ""]
+             f"Produced by `{command}`" + (f" in {seconds:.0f} s" if seconds is not None else "")
+             + (" (QUICK run: small sizes, for tests)" if quick else "")
+             + f" on {when or time.strftime('%Y-%m-%d %H:%M %Z')}, on {mach['cpu']} ({mach['cores']} cores, "
+             f"{mach['usable_cores']} usable), {mach['platform']}: Python {mach['python']}, numpy {mach['numpy']}, "
+             f"OpenCV {mach['opencv']}, selfview {mach['selfview']} ({_link('machine.json')}).", "",
+             "Every figure below is read from the JSON file its section links (`results/`). `selfview report "
+             "--render-only` writes this page again from those files; `selfview report --only NAME --keep` reruns "
+             "one benchmark and keeps the others' figures.", "",
+             "| benchmark | what it measures | status | seconds | JSON |", "|---|---|---|---|---|"]
+    for r in runs.values():
+        status = r.status + (f" ({r.detail})" if r.status != "ok" and r.detail else "")
+        lines.append(f"| `bench/{r.name}` | {r.title} | {status} | {'-' if r.detail == KEPT or r.seconds <= 0 else f'{r.seconds:.0f}'} | "
+                     + (_link(f"{r.name}.json") if r.status == "ok" else "-") + " |")
+    lines += ["", "## Accuracy against the truth and the peers", ""]
     lines += _section(_offline_accuracy, runs.get("offline"))
+    lines += _section(_intrinsics, runs.get("intrinsics"))
     lines += _section(_experiment, exp)
+    lines += _section(_clutter, runs.get("clutter"))
     lines += _section(_willson, willson)
-    lines += _section(_handeye, runs.get("kinematics_vs_selfview"), results_dir)
-    lines += _section(_limit, runs.get("update_limit"), cell_limit, results_dir)
-    lines += _section(_error_budget, runs.get("error_budget"), results_dir)
+    lines += _section(_handeye, runs.get("kinematics_vs_selfview"))
+    lines += _section(_limit, runs.get("update_limit"), cell_limit)
+    lines += _section(_speed, runs)
+    lines += _section(_faults, runs.get("faults"))
+    lines += _section(_real_cell, runs.get("error_budget"))
     return "\n".join(lines).rstrip() + "\n"
+
+
+def _stored(results: Path, name: str) -> dict | None:
+    p = results / name
+    return json.loads(p.read_text(encoding="utf-8")) if p.is_file() else None
 
 
 def make_report(out: Path, *, quick: bool = False, benches=BENCHES, bench_dir: Path | None = None,
                 reference: Path | None = None, trials: int | None = None, jobs: int = 2, progress=None,
-                command: str = "selfview report", write_cell: Path | None = None, keep: bool = False) -> dict:
+                command: str = "selfview report", write_cell: Path | None = None, keep: bool = False,
+                render_only: bool = False) -> dict:
     """Rerun the benchmarks, the experiment and Willson's check; write ``out`` (RESULTS.md) and
     ``out.parent/results/``. ``quick`` uses each benchmark's small arguments and 2 trials per series
     (``trials`` overrides). ``write_cell``: the update limit measured in this run is written into that
     cell file (``bench/update_limit.py --write-cell``) before the report reads the packaged one.
+    ``keep``: the benchmarks not rerun keep their stored JSON. ``render_only``: nothing is rerun; the page
+    is written from the stored JSON alone (``results/report.json`` keeps each run's status and time).
     Returns {'markdown': path, 'results': folder, 'runs': {name: status}, 'seconds'}.
-    Raises ``ConfigError`` for an output path that is not a .md file."""
+    Raises ``ConfigError`` for an output path that is not a .md file, or nothing stored to render."""
     out = Path(out)
     if out.suffix.lower() != ".md":
         raise ConfigError(f"--out {out}: expected a markdown file such as docs/RESULTS.md")
@@ -552,17 +638,21 @@ def make_report(out: Path, *, quick: bool = False, benches=BENCHES, bench_dir: P
     say = progress or (lambda msg: None)
     t0 = time.monotonic()
     results = out.parent / "results"
+    if render_only and not results.is_dir():
+        raise ConfigError(f"--render-only: no results folder {results} to render from (run the report once first)")
     results.mkdir(parents=True, exist_ok=True)
+    meta = (_stored(results, "report.json") or {}) if (keep or render_only) else {}
+    past = meta.get("runs", {})
     bench_dir = Path(bench_dir) if bench_dir else find_bench_dir()
     runs = {}
-    rerun = {b.name for b in benches}
-    if keep:  # every benchmark not rerun now keeps the figures stored by the last run, and says so
+    rerun = set() if render_only else {b.name for b in benches}
+    if keep or render_only:  # every benchmark not rerun now keeps the figures stored by the last run, and says so
         for b in BENCHES:
-            stored = results / f"{b.name}.json"
-            if b.name not in rerun and stored.is_file():
-                runs[b.name] = BenchRun(b.name, b.title, "ok", json.loads(stored.read_text(encoding="utf-8")),
-                                        0.0, [], KEPT)
-    for b in benches:
+            data = _stored(results, f"{b.name}.json")
+            if b.name not in rerun and data is not None:
+                runs[b.name] = BenchRun(b.name, b.title, "ok", data, float(_g(past, b.name, "seconds", default=0.0)),
+                                        [], "" if render_only else KEPT)
+    for b in benches if not render_only else ():
         say(f"bench/{b.script} ...")
         extra = ()
         if write_cell and b.name == "update_limit" and bench_dir is not None:
@@ -570,14 +660,10 @@ def make_report(out: Path, *, quick: bool = False, benches=BENCHES, bench_dir: P
             extra = ("--write-cell", os.path.relpath(Path(write_cell).resolve(), _bench_root(bench_dir)))
         runs[b.name] = run_bench(b, bench_dir, results, quick=quick, extra_args=extra)
         say(f"bench/{b.script}: {runs[b.name].status} ({runs[b.name].seconds:.0f} s)")
-    n = trials if trials is not None else (2 if quick else 20)
+    n = 0 if render_only else (trials if trials is not None else (2 if quick else 20))
     exp = None
-    if keep and n == 0 and (results / "experiment.json").is_file():
-        from selfview.procedures.experiment import tables_markdown
-
-        exp = json.loads((results / "experiment.json").read_text(encoding="utf-8"))
-        if "summary" in exp:
-            exp["tables_md"] = tables_markdown(exp["summary"])
+    if (keep or render_only) and n == 0:
+        exp = _stored(results, "experiment.json")
     if n > 0:
         say(f"experiment: {n} trials per series ...")
         try:
@@ -587,14 +673,26 @@ def make_report(out: Path, *, quick: bool = False, benches=BENCHES, bench_dir: P
         write_json(results / "experiment.json", {k: v for k, v in exp.items() if k != "tables_md"})
         if "summary" in exp:
             plot_errors(exp["summary"], results / "experiment_errors.png", METHODS)
-    willson = willson_check(find_reference_dir(reference))
-    if willson:
-        write_json(results / "willson.json", willson)
-    mach = machine()
-    write_json(results / "machine.json", mach)
+    if render_only:
+        willson, mach = _stored(results, "willson.json"), _stored(results, "machine.json") or machine()
+        if not runs and exp is None:
+            raise ConfigError(f"--render-only: {results} holds no benchmark's JSON to render")
+    else:
+        willson = willson_check(find_reference_dir(reference))
+        if willson:
+            write_json(results / "willson.json", willson)
+        mach = machine()
+        write_json(results / "machine.json", mach)
     cell_limit = load_cell(default_cell_path()).monitor.update_limit
-    text = render_markdown(runs, mach, exp, willson, quick=quick, seconds=time.monotonic() - t0, command=command,
-                           cell_limit=cell_limit, results_dir=results)
+    seconds = time.monotonic() - t0
+    if not render_only:
+        meta = {"command": command, "when": time.strftime("%Y-%m-%d %H:%M %Z"), "seconds": round(seconds, 1),
+                "quick": quick, "runs": {**past, **{k: {"status": r.status, "seconds": round(r.seconds, 1)}
+                                                    for k, r in runs.items() if r.detail != KEPT}}}
+        write_json(results / "report.json", meta)
+    text = render_markdown(runs, mach, exp, willson, quick=bool(meta.get("quick", quick)),
+                           seconds=meta.get("seconds"), command=meta.get("command", command), cell_limit=cell_limit,
+                           results_dir=results, when=meta.get("when"))
     tmp = out.with_suffix(".md.tmp")
     tmp.write_text(text, encoding="utf-8")
     tmp.replace(out)
