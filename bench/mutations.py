@@ -51,7 +51,7 @@ class Mutation:
 
 
 MUTATIONS: tuple[Mutation, ...] = (
-    # --- the seven that survived the first mutation check (issue 14) -----------------------------------------
+    # --- the seven that survived the first mutation check --------------------------------------------------
     Mutation(
         "val-echo-first-word",
         "drivers/puma_val_serial/driver.py",
@@ -132,7 +132,7 @@ MUTATIONS: tuple[Mutation, ...] = (
          "tests/selfview/test_offline.py::test_accuracy_over_30_seeds_on_the_project_renderer"),
         "the off-line calibration without its disc-bias correction",
     ),
-    # --- one per safety rule: the robot (issue 18) ------------------------------------------------------------
+    # --- one per safety rule: the robot ------------------------------------------------------------------
     Mutation(
         "abort-after-resync",
         "drivers/puma_val_serial/driver.py",
@@ -186,7 +186,7 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("tests/procedures/test_engine.py::test_ctrl_c_during_selfview_park_exits_130",),
         "Ctrl-C during a procedure exits 1 ('this is a bug') instead of 130",
     ),
-    # --- one per safety rule: the gripper, files and pictures (issue 18) --------------------------------------
+    # --- one per safety rule: the gripper, files and pictures --------------------------------------------
     Mutation(
         "poller-feeds-watchdog-after-failure",
         "drivers/pneumatic_gripper/gripper.py",

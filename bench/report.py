@@ -500,9 +500,15 @@ def _speed(runs: dict[str, BenchRun]) -> list[str]:
 
 
 def _family(kind: str) -> str:
-    """The family of a fault kind: its first name, and the second for the CLI's and the signals' kinds."""
+    """The row of a fault kind in the campaign's table: its section, with what the section varies."""
     parts = kind.split(".")
-    return ".".join(parts[:2]) if parts[0] in ("cli", "sigint", "signal", "files") else parts[0]
+    if parts[0] in ("signal", "files"):
+        return f"{parts[0]}.{parts[-1]}"  # the signal (once or twice), the kind of hostile file
+    if parts[0] == "fuzz":
+        return "fuzz.long_name" if parts[-1] == "long_name" else "fuzz.numbers"
+    if parts[0] in ("cli", "sigint", "devices"):
+        return ".".join(parts[:2])
+    return parts[0]
 
 
 def _faults(run: BenchRun | None) -> list[str]:

@@ -37,7 +37,18 @@ Sections (each fault kind is named ``section.detail``):
   calibrate procedure runs as a lab script runs it (``CellSession.calibrate``, the CLI's exit codes),
   as ``selfview calibrate`` without ``--image`` is refused by its parser today.
 
-    python bench/faults.py [--seed 1] [--faults 10000] [--budget-s 560] [--quick]
+- ``signal.<command>.<SIGNAL>[-twice]``: SIGINT, SIGTERM, SIGHUP or SIGQUIT (once, or twice 0-30 ms apart) during
+  ``park``, ``robot ready``, ``robot depart`` and the calibrate procedure: ABORT received if the arm was
+  moving, the arm stopped, the valve safe, exit 128 + the signal's number (``signals.py``);
+- ``devices.<robot|gripper>``: a second process on the robot's port or the valve terminal during ``park``:
+  refused, or unsafe if the simulator executed its command (``devices.py``);
+- ``save.<call>``: a calibration save killed just before each of its file-system calls: the file loads,
+  and the next save leaves no temporary file (``saves.py``);
+- ``files.<argument>.<zero|fifo|sparse|full|readonly>`` and ``fuzz.<argument>``: endless and huge files and
+  FIFOs for every file argument (refused within 2 s and 200 MB), /dev/full and a read-only folder for every
+  output, numbers and 300-character names at the command line (``paths.py``).
+
+    python -m selfview.bench.faults [--seed 1] [--faults 10000] [--budget-s 480] [--quick]
 
 Timing matters to some faults (a stall against a timeout, the gripper's poller), so two runs with one
 seed inject the same faults in the same order but a few outcomes can differ between machines.

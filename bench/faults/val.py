@@ -346,7 +346,7 @@ def _val_worker(n: int, seed: int, index: int, deadline: float, tally: Tally) ->
                 if rig.proxy.error is not None:
                     tally.notes[f"val: proxy error {_err_text(rig.proxy.error)}"] += 1
                 if not any(t.is_alive() for t in rig.sim._threads):
-                    tally.notes["val: the simulator's server thread died (issue 18 item 10)"] += 1
+                    tally.notes["val: the simulator's server thread died"] += 1
                 rig.stop()
                 rebuilt += 1
                 rig = _build(ValRig, seed * 1000 + index + 17 * rebuilt, tally)
