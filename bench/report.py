@@ -523,8 +523,13 @@ def _faults(run: BenchRun | None) -> list[str]:
     inv = Counter()
     for kind, v in d.get("invisible", {}).items():
         inv[_family(kind)] += v["wrong_value"]
-    lines += [f"{d['total']} faults in {_f(d.get('seconds'), '.0f')} s (seed {d.get('seed')}), each judged from the "
-              "simulators' side. 'wrong value' counts, in brackets, those no check can see.", "",
+    planned = sum(d.get("planned", {}).values())
+    load = d.get("load_1min") or {}
+    lines += [f"{d['total']} faults in {_f(d.get('seconds'), '.0f')} s (seed {d.get('seed')}"
+              + (f"; machine load {_f(load.get('start'))} to {_f(load.get('end'))}" if load else "") + ")"
+              + ("" if d.get("complete", True) else f", stopped at the time budget ({_f(d.get('budget_s'), 'g')} s) "
+                 f"before the {planned} planned") + ". Each fault is judged from the simulators' side; 'wrong value' "
+              "counts, in brackets, those no check can see.", "",
               "| family | faults | clear error | no effect | " + " | ".join(b.replace("_", " ") for b in bad) + " |",
               "|---|" + "---|" * (3 + len(bad))]
     for name in sorted(fam):
@@ -534,7 +539,12 @@ def _faults(run: BenchRun | None) -> list[str]:
     t = d["totals"]
     lines.append(f"| **all** | **{d['total']}** | {t['clear_error']} | {t['no_effect']} | "
                  + " | ".join(str(t[b]) for b in bad) + " |")
-    ex = [e for b in bad if b != "wrong_value" for e in d.get("examples", {}).get(b, [])][:6]
+    ex, shown = [], set()
+    worst_first = ("unsafe", "lost_file", "hang", "traceback", "wrong_value")
+    for e in (e for b in worst_first for e in d.get("examples", {}).get(b, [])):  # one per row of the table
+        if _family(e["kind"]) not in shown and len(ex) < 8:
+            shown.add(_family(e["kind"]))
+            ex.append(e)
     if ex:
         lines += ["", "Examples of what the campaign found:", ""]
         lines += [f"- `{e['kind']}`: {e['seen'][:200]}" for e in ex]

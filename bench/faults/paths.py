@@ -139,7 +139,7 @@ def endless_case(i: int, fixtures: dict, hostile: Hostile, tally: Tally, work: P
     x = hostile.path(kind)
     res = _run(_fill(argv, X=x, P=fixtures["picture"], C=fixtures["cal"], O=str(work / "out.yaml")), work)
     code, err, dt, mb = res
-    what = f"selfview {argv[0]} {argv[1]} given {'a 3 GB sparse file' if kind == 'sparse' else 'a FIFO' if kind == 'fifo' else '/dev/zero'}"
+    what = f"selfview {argv[0]} --{name.split('.')[1]} given {'a 3 GB sparse file' if kind == 'sparse' else 'a FIFO' if kind == 'fifo' else '/dev/zero'}"
     k = f"files.{name}.{kind}"
     if code is not None and (dt > REFUSE_S or mb > REFUSE_MB) and not _cli_outcome(code, err)[0]:
         tally.add(k, "hang", f"{what}: refused only after {dt:.1f} s and {mb:.0f} MB (bound {REFUSE_S:g} s, {REFUSE_MB:g} MB)")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -55,6 +56,7 @@ def main(argv=None) -> int:
     _thread_deaths(tally)
     _quiet_logs()
     t0 = time.monotonic()
+    load0 = round(os.getloadavg()[0], 2)
     # each section's deadline: its share of the budget by its estimated cost, cumulative (a section
     # that ends early leaves its time to the next ones)
     cost = {k: counts[k] * COST_S[k] for k in ORDER}
@@ -85,6 +87,7 @@ def main(argv=None) -> int:
     out.update(tally.to_json())
     out["seconds"] = round(time.monotonic() - t0, 1)
     out["complete"] = out["total"] >= sum(counts.values())
+    out["load_1min"] = {"start": load0, "end": round(os.getloadavg()[0], 2)}  # other work on the machine slows the cases
     out["blind_spots"] = [
         "calibration files: the fields 'created' and 'software' are not compared (nothing uses them)",
         "robot: a motion that ends at its target by another path is not seen, unless the controller "

@@ -150,6 +150,8 @@ def test_report_command_refuses_bad_arguments(tmp_path, capsys):
     assert "--only nonsense" in capsys.readouterr().err
     assert main(["report", "--only", "robot", "--out", str(tmp_path / "R.txt")]) == 3
     assert "expected a markdown file" in capsys.readouterr().err
+    assert main(["report", "--render-only", "--only", "robot", "--out", str(tmp_path / "R.md")]) == 3
+    assert "--render-only reruns nothing" in capsys.readouterr().err
     assert main(["report", "--trials", "-1", "--out", str(tmp_path / "R.md")]) == 3
 
 
