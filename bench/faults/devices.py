@@ -52,7 +52,7 @@ def second_process_case(device: str, fixtures: dict, rng, tally: Tally, workdir:
         box["thread"] = t
 
     try:
-        code, err = _selfview(argv, workdir, sigint_when=start_second)
+        code, err = _selfview(argv, workdir, timeout_s=SECOND_TIMEOUT_S, sigint_when=start_second)
         box["thread"].join(SECOND_TIMEOUT_S + 5.0)
         received = [ln.strip().upper() for ln in sim.received]
     finally:

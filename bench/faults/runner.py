@@ -79,8 +79,10 @@ def main(argv=None) -> int:
                 "val": lambda d: run_val(counts["val"], args.seed, d, tally)}
         for name in ORDER:
             n0, s0 = tally.total, time.monotonic()
-            # a section late behind an overrunning one still gets time for a case or two
-            runs[name](max(t0 + budget * shares[name], time.monotonic() + 1.0 + 3.0 * COST_S[name]))
+            # a section late behind an overrunning one still gets time for a case or two, and each of the
+            # small sections that start a process per fault time for all of its cases
+            least = counts[name] if name in FIXED else 3
+            runs[name](max(t0 + budget * shares[name], time.monotonic() + 1.0 + least * COST_S[name]))
             sections[name] = {"planned": counts[name], "faults": tally.total - n0, "seconds": round(time.monotonic() - s0, 1)}
     out = {"benchmark": "fault campaign", "seed": args.seed, "planned": counts, "budget_s": budget,
            "sections": sections}
