@@ -527,8 +527,8 @@ def _faults(run: BenchRun | None) -> list[str]:
     load = d.get("load_1min") or {}
     lines += [f"{d['total']} faults in {_f(d.get('seconds'), '.0f')} s (seed {d.get('seed')}"
               + (f"; machine load {_f(load.get('start'))} to {_f(load.get('end'))}" if load else "") + ")"
-              + ("" if d.get("complete", True) else f", stopped at the time budget ({_f(d.get('budget_s'), 'g')} s) "
-                 f"before the {planned} planned") + ". Each fault is judged from the simulators' side; 'wrong value' "
+              + ("" if d.get("complete", True) else f", {planned - d['total']} short of the {planned} planned: a section's "
+                 f"share of the {_f(d.get('budget_s'), 'g')} s budget ran out") + ". Each fault is judged from the simulators' side; 'wrong value' "
               "counts, in brackets, those no check can see.", "",
               "| family | faults | clear error | no effect | " + " | ".join(b.replace("_", " ") for b in bad) + " |",
               "|---|" + "---|" * (3 + len(bad))]
