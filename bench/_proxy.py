@@ -1,4 +1,4 @@
-"""A corrupting TCP proxy on 127.0.0.1 for the fault campaign (``bench/faults.py``).
+"""A corrupting TCP proxy on 127.0.0.1 for the fault campaign (``bench/faults/``).
 
 It sits between a driver (the client) and a simulated device (upstream) and, on demand, corrupts the
 byte stream in one direction: host to device (``h2d``) or device to host (``d2h``). A fault is armed

@@ -1,4 +1,4 @@
-"""Study: the error budget of the paper's experiment on an imperfect simulated cell (issue 17).
+"""Study: the error budget of the paper's experiment on an imperfect simulated cell.
 
 The paper's protocol (section 5, Tables 1 and 2; ``selfview.procedures.experiment.run_direct``: park,
 calibrate off-line, disturb the camera, re-measure with the on-line methods, the off-line method on the

@@ -9,14 +9,14 @@ AX = XB: the gripper stands at 20 stations above the plate (60-120 mm over it, t
 random horizontal axis, turned up to 40 deg about the vertical, aimed so the camera sees the plate);
 each station's picture is rendered (``selfview.mocks.render``) and kept if it shows >= 20 whole discs with every
 row and column seen. The camera pose ``C_H_W`` comes from each picture (``selfview.discs.detect_discs``
-and ``selfview.handeye.plate_pose``: the discs' exterior orientation with f and kappa FIXED at the values
+and ``selfview.bench.handeye.plate_pose``: the discs' exterior orientation with f and kappa FIXED at the values
 of this level's off-line calibration, so that both methods share one interior orientation and the
 comparison is about the kinematics). The flange pose comes from the controller's NOMINAL kinematics at
 the joints its encoders read, while the arm truly stands where the TRUE geometry puts the true joints
 (``PerturbedPuma260.observe``: the stations' true poses are the same at every level, so each picture is
 rendered once per seed). The disc grid's four-fold symmetry is resolved per station by the robot's
 pose and the cell's mount guess. AX = XB is solved with the first 5, 10 and 20 stations by
-``selfview.handeye`` (Tsai-Lenz, Park-Martin) and OpenCV's ``calibrateHandEye`` (TSAI, PARK) as a
+``selfview.bench.handeye`` (Tsai-Lenz, Park-Martin) and OpenCV's ``calibrateHandEye`` (TSAI, PARK) as a
 cross-check, and ``C_H_G = X^-1 F_H_G`` through the tool transform is compared with the true mount.
 
 Self-viewing: the robot (commanded through the same worn kinematics) parks the gripper on the plate;
@@ -60,7 +60,7 @@ from selfview.errors import CellError  # noqa: E402
 from selfview.geometry import (  # noqa: E402
     R_from_rotvec, inv_H, make_H, pose_difference, rot_z, rotation_angle, trans, transform_points,
 )
-from selfview.handeye import calibrate_handeye, plate_pose  # noqa: E402
+from selfview.bench.handeye import calibrate_handeye, plate_pose  # noqa: E402
 from selfview.offline import calibrate_offline  # noqa: E402
 
 MIN_DISCS = 20

@@ -51,7 +51,7 @@ class Mutation:
 
 
 MUTATIONS: tuple[Mutation, ...] = (
-    # --- the seven that survived the first mutation check (issue 14) -----------------------------------------
+    # --- the seven that survived the first mutation check --------------------------------------------------
     Mutation(
         "val-echo-first-word",
         "drivers/puma_val_serial/driver.py",
@@ -132,7 +132,7 @@ MUTATIONS: tuple[Mutation, ...] = (
          "tests/selfview/test_offline.py::test_accuracy_over_30_seeds_on_the_project_renderer"),
         "the off-line calibration without its disc-bias correction",
     ),
-    # --- one per safety rule: the robot (issue 18) ------------------------------------------------------------
+    # --- one per safety rule: the robot ------------------------------------------------------------------
     Mutation(
         "abort-after-resync",
         "drivers/puma_val_serial/driver.py",
@@ -186,7 +186,7 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("tests/procedures/test_engine.py::test_ctrl_c_during_selfview_park_exits_130",),
         "Ctrl-C during a procedure exits 1 ('this is a bug') instead of 130",
     ),
-    # --- one per safety rule: the gripper, files and pictures (issue 18) --------------------------------------
+    # --- one per safety rule: the gripper, files and pictures --------------------------------------------
     Mutation(
         "poller-feeds-watchdog-after-failure",
         "drivers/pneumatic_gripper/gripper.py",
@@ -263,6 +263,71 @@ MUTATIONS: tuple[Mutation, ...] = (
         "    return ts\n",
         ("tests/drivers/test_grabber_v4l2.py::test_a_frame_ending_after_settling_but_exposed_before_is_dropped",),
         "V4L2's end-of-frame timestamp taken as the start of exposure (a frame exposed before settling passes)",
+    ),
+    # --- safety rules: the engine's cleanup, the drivers' checks, the files' refusals ---------------------------
+    Mutation(
+        "engine-closes-stop-at-first-failure",
+        "procedures/engine.py",
+        'rep[f"{nm}_close"] = f"close failed: {exc}"',
+        'rep[f"{nm}_close"] = f"close failed: {exc}"; break',
+        ("tests/procedures/test_engine.py::test_every_device_is_closed_when_one_close_fails",),
+        "the engine's cleanup stops closing the devices at the first close that fails (the others stay open)",
+    ),
+    Mutation(
+        "engine-cancel-unchecked-between-steps",
+        "procedures/engine.py",
+        "        if self.cancel.is_set():\n",
+        "        if False:\n",
+        ("tests/procedures/test_engine.py::test_no_step_starts_after_a_cancellation",),
+        "a cancellation is not checked before the next step (the next motion starts after Ctrl-C)",
+    ),
+    Mutation(
+        "engine-cleanup-only-for-project-errors",
+        "procedures/engine.py",
+        'self.cleanup(f"{type(exc).__name__}: {exc}")',
+        'isinstance(exc, CellError) and self.cleanup(f"{type(exc).__name__}: {exc}")',
+        ("tests/procedures/test_engine.py::test_cleanup_runs_for_an_exception_outside_the_projects_errors",),
+        "the cleanup (ABORT, safe valve, closes) runs only for the project's own errors, not for any other exception",
+    ),
+    Mutation(
+        "motion-arrival-ignores-orientation",
+        "drivers/puma_val_serial/driver.py",
+        "if mm > lim.arrival_tol_mm or deg > lim.arrival_tol_deg:",
+        "if mm > lim.arrival_tol_mm:",
+        ("tests/drivers/test_puma_transcript.py::test_a_motion_that_ends_turned_from_its_target_is_not_arrived",),
+        "a Cartesian motion's arrival check drops its orientation condition (an arm turned away passes as arrived)",
+    ),
+    Mutation(
+        "valve-safe-confirmed-without-read-back",
+        "drivers/pneumatic_gripper/gripper.py",
+        "outputs = self._read_outputs_agreed()",
+        "outputs = dict(want)",
+        ("tests/drivers/test_gripper_transcript.py::test_single_solenoid_safe_state",),
+        "the valve's safe state reported as confirmed from what was written, without reading the outputs back",
+    ),
+    Mutation(
+        "register-write-echo-unchecked",
+        "drivers/pneumatic_gripper/modbus.py",
+        'self._check_echo(what, rsp, (address, int(value)), "holding_register")',
+        "pass",
+        ("tests/drivers/test_gripper_transcript.py::test_a_register_write_whose_echo_differs_is_a_protocol_error",),
+        "a holding register write's echo is not compared with the address and value sent",
+    ),
+    Mutation(
+        "calfile-without-checksum-accepted",
+        "selfview/calfile.py",
+        "if want != _checksum(body):",
+        "if want is not None and want != _checksum(body):",
+        ("tests/selfview/test_calfile.py::test_a_file_without_a_checksum_is_refused",),
+        "a calibration file with no checksum at all is accepted (only a wrong one is refused)",
+    ),
+    Mutation(
+        "camfile-nan-covariance-accepted",
+        "selfview/camfile.py",
+        "np.all(np.isfinite(cov)) and ",
+        "",
+        ("tests/selfview/test_intrinsics.py::test_a_camera_file_whose_covariance_holds_nan_is_refused",),
+        "a camera file whose covariance holds NaN is accepted (only its sigmas are checked)",
     ),
 )
 

@@ -11,7 +11,7 @@ focal guess.
 Accuracy (``--seeds`` simulated cells, default 30; each a parked gripper at a random offset and turn): f
 error [%], kappa error [%], the TCP position error of ``C_H_G`` across (x, y) and along (z) the optical
 axis [mm] and its rotation error [deg] against the simulator's truth, medians and 95th percentiles, with
-the issue's targets (f 0.2 %, kappa 3 %, TCP 0.02 mm across, 0.08 mm along, rotation 0.02 deg). OpenCV runs
+its targets (f 0.2 %, kappa 3 %, TCP 0.02 mm across, 0.08 mm along, rotation 0.02 deg). OpenCV runs
 on the same detections: the raw disc centres (what the detector measures) and, as a second variant, the
 centres with our perspective-bias correction; its ``C_H_W`` then goes through the same PCC step (its own
 model undistorts the fingertip corners, the gripper is measured from them as ours is). OpenCV's k1

@@ -16,8 +16,9 @@ def register(sub):
             "intrinsics, clutter, faults) as a "
             "subprocess with a time limit each, the paper's experiment on the simulated cell (20 trials per series) and "
             "Tsai's method on Willson's reference data, and writes RESULTS.md with speed (OpenCV's peers timed in the same "
-            "run, as ratios), accuracy, the AX=XB study, the update/recalibrate limit and the machine, and beside it "
-            "results/ with every JSON object, table and plot. A missing or failing benchmark is reported as such. "
+            "run), accuracy against the truth and the peers, the fault campaign and what to expect on a real cell, and "
+            "beside it results/ with every JSON object, table and plot, which the page links. A missing or failing "
+            "benchmark is reported as such. "
             "About 5 to 10 minutes on 2 cores; --quick runs every part at small sizes."
         ),
     )
@@ -33,13 +34,15 @@ def register(sub):
     p.add_argument("--keep", action="store_true",
                    help="with --only (and --trials 0): keep the stored figures of every part not rerun (results/*.json "
                         "beside --out), so that one benchmark can be refreshed without rerunning the others")
+    p.add_argument("--render-only", action="store_true",
+                   help="rerun nothing: write the page again from the stored JSON (results/*.json beside --out)")
     p.add_argument("--json", action="store_true", help="print where everything went as one JSON object")
     p.set_defaults(func=run)
     return p
 
 
 def run(args) -> int:
-    from selfview.procedures.report import BENCHES, make_report
+    from selfview.bench.report import BENCHES, make_report
     from selfview.errors import ConfigError
 
     benches = BENCHES
@@ -49,6 +52,8 @@ def run(args) -> int:
         if unknown:
             raise ConfigError(f"--only {' '.join(unknown)}: expected benchmark names among {', '.join(known)}")
         benches = tuple(known[n] for n in args.only)
+    if args.render_only and (args.only or args.quick or args.trials or args.write_cell):
+        raise ConfigError("--render-only reruns nothing: it takes no --only, --quick, --trials or --write-cell")
     if args.trials is not None and args.trials < 0:
         raise ConfigError(f"--trials: expected a number >= 0, got {args.trials}")
 
@@ -59,7 +64,8 @@ def run(args) -> int:
     command = "selfview report " + " ".join(a for a in sys.argv[2:]) if sys.argv[1:2] == ["report"] else "selfview report"
     res = make_report(args.out, quick=args.quick, benches=benches, bench_dir=args.bench_dir, reference=args.reference,
                       trials=args.trials, jobs=args.jobs, progress=say, command=command.strip(),
-                      write_cell=args.write_cell, keep=args.keep)
+                      write_cell=args.write_cell, keep=args.keep,
+                      render_only=args.render_only)
     if args.json:
         print_json(res)
     else:

@@ -4,6 +4,7 @@ mutation whose text is gone reported as such, never counted as caught."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -64,3 +65,29 @@ def test_list_and_unknown_names(capsys):
     with pytest.raises(SystemExit):
         M.main(["--only", "no-such-mutation"])
     assert "unknown mutation" in capsys.readouterr().err
+
+
+#: the safety rules a realistic one-place bug can break: each mutation must make its named test fail
+SAFETY = ("engine-closes-stop-at-first-failure", "engine-cancel-unchecked-between-steps",
+          "engine-cleanup-only-for-project-errors", "motion-arrival-ignores-orientation",
+          "valve-safe-confirmed-without-read-back", "register-write-echo-unchecked",
+          "calfile-without-checksum-accepted", "camfile-nan-covariance-accepted")
+
+
+def _test_exists(node: str) -> bool:
+    path, _, name = node.partition("::")
+    return re.search(rf"^def {re.escape(name)}\(", (ROOT / path).read_text(encoding="utf-8"), flags=re.M) is not None
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", SAFETY)
+def test_each_safety_mutation_is_caught_by_its_named_test(name, capsys):
+    (m,) = [m for m in M.MUTATIONS if m.name == name]
+    assert all("::" in t for t in m.tests), f"{name}: name the one test that catches it"
+    missing = [t for t in m.tests if not _test_exists(t)]
+    if missing:
+        pytest.skip(f"the test that catches {name} is not in this tree yet: {missing}")
+    assert M.main(["--only", name, "--timeout", "300"]) == 0
+    (res,) = json.loads(capsys.readouterr().out)["mutations"]
+    assert res["error"] is None and res["caught"], res
+    assert set(res["failed_tests"]) & set(m.tests), f"{name} was caught, but not by its named test: {res}"

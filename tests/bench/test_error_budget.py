@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from selfview.procedures.paper import PAPER_TABLES
-from selfview.procedures.report import BenchRun, _error_budget
+from selfview.bench.report import BenchRun, _real_cell
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -69,5 +69,6 @@ def test_a_small_run_and_its_report_section(tmp_path, capsys):
     assert out["configurations"]["paper-like"]["imperfections"]["finger_dim_sd_mm"] > 0
     md = (tmp_path / "error_budget.md").read_text()
     assert "| ideal |" in md and "| paper-like |" in md and "| the paper |" in md
-    text = "\n".join(_error_budget(BenchRun("error_budget", "t", "ok", data=out, seconds=1.0), tmp_path))
-    assert "paper-like: " in text and "| paper-like |" in text and "Failed trials" in text
+    text = "\n".join(_real_cell(BenchRun("error_budget", "t", "ok", data=out, seconds=1.0)))
+    assert "| paper-like |" in text and "| ideal |" in text and "Failed trials" in text
+    assert "(results/error_budget.json)" in text  # the section links its figures

@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import re
 import time
 from pathlib import Path
 
@@ -13,9 +14,10 @@ import numpy as np
 import pytest
 
 from selfview.procedures.cli import main
-from selfview.procedures.report import (Bench, BenchRun, find_bench_dir, find_reference_dir, make_report, render_markdown,
+from selfview.bench.report import (Bench, BenchRun, find_bench_dir, find_reference_dir, make_report, render_markdown,
                                         run_bench, willson_check)
 from selfview.cell import default_cell_path, load_cell
+from selfview.errors import ConfigError
 from selfview.geometry import R_from_rotvec, inv_H, make_H, rot_z
 
 REPO = Path(__file__).resolve().parents[2]
@@ -108,11 +110,11 @@ def test_make_report_writes_every_section_from_the_run(fake_benches, tmp_path):
     mach = json.loads((tmp_path / "docs" / "results" / "machine.json").read_text())
     assert mach["numpy"] == np.__version__ and mach["cores"] == os.cpu_count()
     assert f"numpy {np.__version__}" in text and "QUICK run" in text and "selfview report --test" in text
-    assert "| speed.solve_us | 12.35 |" in text  # the fake bench's figure, as it printed it
-    assert "**fails** (`bench/broken.py`): **failed**. exit code 3" in text
+    assert "| `bench/good` | fake speed figures | ok |" in text and "[good.json](results/good.json)" in text
+    assert "| `bench/broken` | fails | failed (exit code 3" in text
     assert "Not available: not available" in text  # the off-line accuracy without its benchmark
     exp = json.loads((tmp_path / "docs" / "results" / "experiment.json").read_text())
-    assert exp["trials_per_series"] == 1 and "4P-U" in text and "#### Table 1" in text
+    assert exp["trials_per_series"] == 1 and "| 4P-U | " in text and "Table 1 (cable)" in text
     w = json.loads((tmp_path / "docs" / "results" / "willson.json").read_text())
     assert f"{w['runs'][0]['ours']['f']:.6f}" in text
     assert any("experiment" in s for s in said)
@@ -127,7 +129,7 @@ def test_make_report_passes_the_cell_to_write_to_the_limit_study_only(fake_bench
     got = {n: json.loads((tmp_path / "results" / f"{n}.json").read_text())["args"] for n in ("update_limit", "good")}
     assert got == {"update_limit": ["--write-cell", "cell.yaml"], "good": []}  # relative to where the script runs
     # a study whose JSON lacks its figures gets a line saying so, not a crash
-    assert "(section `limit` could not be written from this run's results: KeyError 'limit')" in (tmp_path / "R.md").read_text()
+    assert "(section `limit` could not be written from these results: KeyError 'limit')" in (tmp_path / "R.md").read_text()
 
 
 def test_render_markdown_reports_missing_studies():
@@ -138,7 +140,8 @@ def test_render_markdown_reports_missing_studies():
     text = render_markdown(runs, mach, None, None, quick=False, seconds=1.0, command="c",
                            cell_limit=cell.monitor.update_limit, results_dir=Path("."))
     assert "Not available: timed out. no result within 420 s" in text
-    assert "## The limit between updating and recalibrating\n\nNot available: not run" in text
+    assert "### The limit between updating and recalibrating ([update_limit.json](results/update_limit.json), table " \
+           "[update_limit.md](results/update_limit.md))\n\nNot available: not run" in text
     assert "Willson's data (`reference/tsai-willson`) not found" in text
 
 
@@ -147,6 +150,8 @@ def test_report_command_refuses_bad_arguments(tmp_path, capsys):
     assert "--only nonsense" in capsys.readouterr().err
     assert main(["report", "--only", "robot", "--out", str(tmp_path / "R.txt")]) == 3
     assert "expected a markdown file" in capsys.readouterr().err
+    assert main(["report", "--render-only", "--only", "robot", "--out", str(tmp_path / "R.md")]) == 3
+    assert "--render-only reruns nothing" in capsys.readouterr().err
     with pytest.raises(SystemExit) as stop:  # a negative count on the command line: a usage error
         main(["report", "--trials", "-1", "--out", str(tmp_path / "R.md")])
     assert stop.value.code == 2
@@ -231,7 +236,7 @@ def test_quick_report_runs_the_studies_end_to_end(tmp_path):
     assert f"{h['axxb_tcp_mm_at_max']:.4f} mm with the worn one" in text
     assert (tmp_path / "results" / "kinematics_vs_selfview.png").stat().st_size > 10_000
     assert (tmp_path / "results" / "update_limit.png").stat().st_size > 10_000
-    assert ul["limit"]["noise_floor"]["n"] > 0 and "## The limit between updating and recalibrating" in text
+    assert ul["limit"]["noise_floor"]["n"] > 0 and "### The limit between updating and recalibrating" in text
 
 
 def test_report_runs_the_installed_projects_own_benchmarks_wherever_started(tmp_path, monkeypatch):
@@ -258,5 +263,41 @@ def test_keep_refreshes_one_benchmark_and_keeps_the_others_figures(fake_benches,
     res = make_report(out, benches=benches, bench_dir=fake_benches, trials=0, keep=True)
     assert res["runs"]["good"] == "ok" and res["runs"]["online"] == "ok"
     text = out.read_text()
-    assert "`bench/online.py` | ok (figures kept from the previous run)" in text
+    assert "| `bench/online` | on-line solves vs cv2.solvePnP, per-frame step | ok | - | [online.json]" in text
     assert json.loads((tmp_path / "docs" / "results" / "online.json").read_text()) == stored
+
+
+def test_render_only_writes_the_page_from_the_stored_json_alone(fake_benches, tmp_path):
+    """--render-only reruns nothing: the page comes from results/*.json, and says what each run took."""
+    out = tmp_path / "docs" / "RESULTS.md"
+    make_report(out, benches=(Bench("good", "a good one"),), bench_dir=fake_benches, trials=0, command="first run")
+    results = tmp_path / "docs" / "results"
+    (results / "online.json").write_text(json.dumps({"frame_budget": {"frame_ms": 40.0, "step_ms_plain": 1.5,
+                                                                       "step_ms_cluttered": 1.9, "search_ms": 17.6},
+                                                      "median_us": {"4P-I": 30.0}}))
+    (fake_benches / "good.py").write_text("raise SystemExit('must not run')\n")
+    res = make_report(out, bench_dir=fake_benches, render_only=True)
+    assert res["runs"] == {"online": "ok"}  # only what is stored (good is not one of the report's benchmarks)
+    text = out.read_text()
+    assert "Produced by `first run`" in text  # the command that made the figures, not the re-rendering
+    assert "| per-frame step, photographed table (tracker + 4P-I) | 1.9 | 4.8 % |" in text
+    assert "| full search (first frame, or after a lost one) | 17.6 | 44.0 % |" in text
+    with pytest.raises(ConfigError, match="no results folder"):
+        make_report(tmp_path / "elsewhere" / "R.md", render_only=True)
+
+
+def test_the_published_page_is_short_and_every_figure_links_its_json():
+    """docs/RESULTS.md: at most 300 lines; each section that shows a figure links a JSON file that exists."""
+    page = REPO / "docs" / "RESULTS.md"
+    text = page.read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 300
+    sections = re.split(r"^#{2,3} ", text, flags=re.M)[1:]
+    assert len(sections) >= 8
+    for sec in sections:
+        title = sec.splitlines()[0]
+        links = re.findall(r"\]\((results/[^)]+\.json)\)", sec)
+        has_figure = re.search(r"\d\.\d", "\n".join(sec.splitlines()[1:]))
+        if has_figure or title.startswith(("Speed", "The fault")):
+            assert links, f"section '{title}' shows figures but links no JSON file"
+        for ln in links:
+            assert (page.parent / ln).is_file(), f"section '{title}' links {ln}, which does not exist"

@@ -8,7 +8,7 @@ import pytest
 
 from selfview.errors import CalibrationError, ConfigError
 from selfview.geometry import R_from_rotvec, inv_H, make_H, pose_difference, rot_z, transform_points
-from selfview.handeye import METHODS, calibrate_handeye, plate_pose, relative_motions
+from selfview.bench.handeye import METHODS, calibrate_handeye, plate_pose, relative_motions
 
 
 def random_H(rng, angle_scale=1.0, t_scale=100.0, t0=(0.0, 0.0, 0.0)) -> np.ndarray:

@@ -1,38 +1,10 @@
-"""Classical hand/eye calibration, AX = XB (the paper's references [7, 9, 11]): the yardstick that the
-self-viewing method is compared with.
-
-The robot holds the camera in N stations i, each giving the flange pose from the kinematics,
-``base_H_F_i`` (4, 4), and the pose of a fixed plate in the camera, ``C_H_W_i`` (4, 4). The plate does not
-move in the base frame, so for every station ``base_H_W = base_H_F_i X C_H_W_i`` with the unknown
-
-    X = F_H_C   (4, 4): the camera's pose in the flange frame (maps camera to flange coordinates).
-
-Equating two stations i, j gives the classical form
-
-    A X = X B,   A = base_H_F_j^-1 base_H_F_i   (the flange's motion, from the kinematics),
-                 B = C_H_W_j C_H_W_i^-1          (the camera's motion, from the pictures),
-
-whose rotation part ``R_A R_X = R_X R_B`` says that X turns B's rotation axis into A's (and both angles
-are equal), and whose translation part is ``(R_A - I) t_X = R_X t_B - t_A``. The gripper-to-camera
-transform of the paper is then ``C_H_G = X^-1 F_H_G`` with the tool transform ``F_H_G``; every error of
-the kinematics in ``base_H_F_i`` reaches it, which is what the self-viewing method avoids.
-
-Two solvers, pure numpy, over all pairs i < j of stations:
-- ``tsai-lenz`` (Tsai and Lenz 1989): the rotation from ``skew(p_A + p_B) c = p_B - p_A`` in the modified
-  Rodrigues vectors p = 2 sin(theta/2) k of A and B and c = tan(theta_X/2) k_X, by least squares; then
-  the translation. c is infinite for a half-turn X, and a wrist camera looking back at its gripper is
-  close to one, so the camera frame is first turned by whichever of the identity and the three half
-  turns about its axes leaves the smallest rotation to solve for (exact: it is undone afterwards).
-- ``park-martin`` (Park and Martin 1994): the rotation vectors alpha = log R_A, beta = log R_B obey
-  alpha = R_X beta; with M = sum beta alpha^T, R_X = (M^T M)^(-1/2) M^T (computed as the nearest
-  rotation by SVD); then the same translation step.
-
-Degenerate input raises ``CalibrationError``: fewer than two motions (three stations), rotation axes of
-the motions that are all (nearly) parallel, which leave X's translation along that axis free, or robot
-and camera motions whose rotation angles disagree (stations paired out of order).
-
-``plate_pose`` gives the per-station ``C_H_W`` from a picture's discs with the interior orientation held
-fixed.
+"""Classical hand/eye calibration, AX = XB (the paper's references [7, 9, 11]): the yardstick the self-viewing
+method is compared with. From N stations (flange pose ``base_H_F_i`` from the kinematics, plate pose
+``C_H_W_i`` from the picture) it solves ``X = F_H_C`` over all station pairs, ``A X = X B`` with
+``A = base_H_F_j^-1 base_H_F_i`` and ``B = C_H_W_j C_H_W_i^-1``, by Tsai-Lenz or Park-Martin (pure numpy);
+``C_H_G = X^-1 F_H_G`` then carries every error of the kinematics, which the self-viewing method avoids.
+Degenerate input (under three stations, parallel rotation axes, stations out of order) raises
+``CalibrationError``. ``plate_pose`` gives ``C_H_W`` from a picture's discs with f and kappa held fixed.
 """
 
 from __future__ import annotations

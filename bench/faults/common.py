@@ -1,0 +1,242 @@
+"""What every campaign shares: the outcomes and their tally, a call with a bound, worker threads, children
+under a memory limit, the classification of a command's exit."""
+
+from __future__ import annotations
+
+import os
+import re
+import resource
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter, defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from selfview.errors import CellError
+
+
+
+OUTCOMES = ("clear_error", "no_effect", "hang", "traceback", "unsafe", "wrong_value", "lost_file")
+EXAMPLE_OUTCOMES = ("unsafe", "wrong_value", "hang", "traceback", "lost_file")
+VAL_FAULTS = ("bitflip", "digit_swap", "drop", "dup", "stray_prompt", "error_line", "stall", "cutoff", "nonascii")
+MODBUS_FAULTS = ("bitflip", "drop", "dup", "stray_prompt", "stall", "cutoff", "nonascii")
+TIME_SCALE = 0.02  # simulated motions take this fraction of real time
+POS_TOL_MM, ANG_TOL_DEG = 0.5, 0.5  # "at the target": far above WHERE's 0.01 resolution, far below a fault's effect
+WHERE_TOL_MM, WHERE_TOL_DEG = 0.05, 0.05  # a WHERE value against the simulator's pose (2 decimals printed)
+CLI_TIMEOUT_S = 60.0
+MEM_LIMIT = 3 << 30  # address-space limit of every child process (a bomb must not take the machine)
+
+
+# --- bookkeeping ------------------------------------------------------------------------------------
+class Tally:
+    def __init__(self, max_examples: int = 4):
+        self.kinds: dict[str, Counter] = defaultdict(Counter)
+        self.examples: dict[str, list] = defaultdict(list)
+        self.invisible: Counter = Counter()
+        self.invisible_why: dict[str, str] = {}
+        self.not_fired: Counter = Counter()
+        self.notes: Counter = Counter()
+        self.max_examples = max_examples
+        self._lock = threading.Lock()
+
+    def add(self, kind: str, outcome: str, seen: str = "", *, invisible: str | None = None) -> None:
+        assert outcome in OUTCOMES, outcome
+        with self._lock:
+            self.kinds[kind][outcome] += 1
+            if invisible and outcome == "wrong_value":
+                self.invisible[kind] += 1
+                self.invisible_why[kind] = invisible
+            elif outcome in EXAMPLE_OUTCOMES:
+                ex = self.examples[outcome]
+                if sum(1 for e in ex if e["kind"] == kind) < 2 and len(ex) < 40:
+                    ex.append({"kind": kind, "seen": seen[:400]})
+
+    @property
+    def total(self) -> int:
+        return sum(sum(c.values()) for c in self.kinds.values())
+
+    def to_json(self) -> dict:
+        totals = {o: sum(c[o] for c in self.kinds.values()) for o in OUTCOMES}
+        return {
+            "total": self.total,
+            "totals": totals,
+            "kinds": {k: {o: c[o] for o in OUTCOMES} for k, c in sorted(self.kinds.items())},
+            "examples": {o: self.examples.get(o, []) for o in EXAMPLE_OUTCOMES},
+            "invisible": {k: {"wrong_value": n, "why": self.invisible_why[k]} for k, n in sorted(self.invisible.items())},
+            "not_fired": dict(sorted(self.not_fired.items())),
+            "notes": dict(sorted(self.notes.items())),
+        }
+
+
+def _err_text(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}"
+
+
+def _is_clear(exc: BaseException) -> bool:
+    """One of the project's errors, with a message."""
+    return isinstance(exc, CellError) and bool(str(exc).strip())
+
+
+def _call(fn, timeout_s: float, after=None):
+    """Run ``fn()`` in a thread; (status 'ok'|'error'|'hang', value or exception, after()'s snapshot
+    taken in the thread the instant ``fn`` ended)."""
+    box: dict = {}
+
+    def work():
+        try:
+            box["value"] = fn()
+            box["status"] = "ok"
+        except BaseException as exc:  # classified by the caller
+            box["value"] = exc
+            box["status"] = "error"
+        finally:
+            if after is not None:
+                try:
+                    box["snap"] = after()
+                except BaseException as exc:  # the snapshot reads the simulator: should not fail
+                    box["snap"] = exc
+
+    t = threading.Thread(target=work, name="fault-op", daemon=True)
+    t.start()
+    t.join(timeout_s)
+    if t.is_alive():
+        return "hang", None, None
+    return box["status"], box.get("value"), box.get("snap")
+
+
+def _limit_child():
+    """preexec_fn of every child: an address-space limit (a YAML or PNG bomb cannot take the machine)."""
+    try:
+        resource.setrlimit(resource.RLIMIT_AS, (MEM_LIMIT, MEM_LIMIT))
+    except (ValueError, OSError):
+        pass
+
+
+class _RigDead(Exception):
+    pass
+
+_NOTES: Tally | None = None  # where the log handler counts what the simulators' event loops log
+
+
+def set_notes(tally: Tally) -> None:
+    global _NOTES
+    _NOTES = tally
+
+
+def _quiet_logs() -> None:
+    """The engine and the drivers log each failure; the campaign classifies them instead. Errors that
+    the simulators' event loops log (asyncio) are counted in the JSON's notes."""
+    import logging
+
+    for name in ("selfview", "pymodbus"):
+        lg = logging.getLogger(name)
+        lg.addHandler(logging.NullHandler())
+        lg.propagate = False
+
+    class _Count(logging.Handler):
+        def emit(self, record):
+            if _NOTES is not None:
+                _NOTES.notes[f"asyncio (the valve terminal's server) logged: {record.getMessage()[:60]}"] += 1
+
+    lg = logging.getLogger("asyncio")
+    if not any(isinstance(h, _Count) for h in lg.handlers):
+        lg.addHandler(_Count())
+        lg.propagate = False
+
+def _in_threads(fn, n, seed, deadline, tally, workers):
+    shares = [n // workers + (1 if i < n % workers else 0) for i in range(workers)]
+    threads = []
+    for i, share in enumerate(shares):
+        if share:
+            t = threading.Thread(target=_guarded, args=(fn, share, seed, i, deadline, tally), daemon=True)
+            t.start()
+            threads.append(t)
+    for t in threads:
+        t.join(max(0.0, deadline - time.monotonic()) + 60.0)
+        if t.is_alive():
+            tally.notes[f"{fn.__name__}: a worker did not finish"] += 1
+
+
+def _guarded(fn, share, seed, i, deadline, tally):
+    try:
+        fn(share, seed, i, deadline, tally)
+    except Exception as exc:  # a fault of the campaign itself: said in the JSON, never hidden
+        import traceback
+
+        where = _no_machine_paths(traceback.format_exc().splitlines()[-3].strip())
+        tally.notes[f"{fn.__name__}: campaign error {_err_text(exc)} at {where}"] += 1
+
+
+def _build(cls, seed: int, tally: Tally):
+    """A new rig (three tries: a loaded machine can miss a first exchange)."""
+    for attempt in range(3):
+        try:
+            return cls(seed + 7919 * attempt)
+        except CellError as exc:
+            tally.notes[f"{cls.__name__}: a new rig failed its first exchange ({type(exc).__name__}); tried again"] += 1
+    return cls(seed + 7919 * 3)
+
+
+def _no_machine_paths(text: str) -> str:
+    """A traceback line with its file named from the project's own folders (no path of this machine)."""
+    return re.sub(r'"[^"]*?/((?:selfview|drivers|mocks|procedures|bench)/[^"/]+(?:/[^"/]+)*)"', r'"\1"', text)
+
+
+def _draw(kinds, weights, rng) -> str:
+    w = np.array([weights.get(k, 1.0) for k in kinds])
+    return str(kinds[int(rng.choice(len(kinds), p=w / w.sum()))])
+
+def _selfview(argv, cwd, timeout_s=CLI_TIMEOUT_S, sigint_when=None):
+    """Run ``selfview argv``; (returncode or None on a hang, stderr). ``sigint_when(proc)`` (optional)
+    is called in this thread once the process runs, to send Ctrl-C."""
+    cmd = [sys.executable, "-c", "import sys; from selfview.procedures.cli import main; sys.exit(main())", *argv]
+    return _run_child(cmd, cwd, timeout_s, sigint_when)
+
+
+def _run_child(cmd, cwd, timeout_s, sigint_when=None):
+    """Run ``cmd`` in its own session under the memory limit; (returncode or None on a hang, stderr)."""
+    proc = subprocess.Popen(cmd, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, preexec_fn=_limit_child, start_new_session=True)
+    if sigint_when is not None:
+        sigint_when(proc)
+    try:
+        _, err = proc.communicate(timeout=timeout_s)
+        return proc.returncode, err
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        _, err = proc.communicate()
+        return None, err
+
+
+def _cli_outcome(code, err) -> tuple[str | None, str]:
+    """hang / traceback from an exit, or None when the exit is one of the documented ones."""
+    if code is None:
+        return "hang", f"killed after {CLI_TIMEOUT_S:g} s; stderr ...{err[-200:]!r}"
+    if code == -signal.SIGINT and "Traceback" not in err:
+        return None, ""  # ended by the Ctrl-C itself (the shell's exit status 130), e.g. while exiting
+    if code < 0:
+        return "traceback", f"killed by signal {-code}; stderr ...{err[-200:]!r}"
+    if "Traceback (most recent call last)" in err or code == 1:
+        tail = [ln for ln in err.strip().splitlines() if ln.strip()][-1:] or [""]
+        return "traceback", f"exit {code}: {tail[0][:300]}"
+    return None, ""
+
+
+def _file_state(path: Path) -> tuple:
+    """What must not change: the bytes of ``path`` and the folder's other files (a left temp file)."""
+    blob = path.read_bytes() if path.exists() else None
+    others = sorted(p.name for p in path.parent.iterdir() if p.name.startswith(".") and p.name.endswith(".tmp"))
+    return blob, others
+
+def _thread_deaths(tally: Tally):
+    """Count threads that die of an exception (the simulators' server threads) instead of printing them."""
+    def hook(args):
+        tally.notes[f"thread {args.thread.name if args.thread else '?'} died: {args.exc_type.__name__}"] += 1
+
+    threading.excepthook = hook
+
+

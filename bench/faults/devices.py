@@ -1,0 +1,91 @@
+"""A second process on each device while ``selfview park`` owns it: ``selfview robot speed`` on the robot's
+serial port (a pty), ``selfview gripper open`` on the valve terminal. One process owns a device: the second
+must be refused. Judged from the simulators' side: the controller received the second's command, or the
+jaws moved at its request."""
+
+from __future__ import annotations
+
+import shutil
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from selfview.bench.faults.common import Tally, _cli_outcome, _in_threads, _quiet_logs, _selfview
+
+DEVICES = ("robot", "gripper")
+SECOND_TIMEOUT_S = 20.0
+
+
+def second_process_case(device: str, fixtures: dict, rng, tally: Tally, workdir: Path) -> None:
+    from selfview.mocks.val_controller import ValController
+    from selfview.mocks.valve_terminal import ValveTerminal
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    frames = workdir / "frames"
+    frames.mkdir(exist_ok=True)
+    shutil.copyfile(fixtures["picture"], frames / "img_000.png")
+    scale = 0.1
+    sim = ValController(None, seed=int(rng.integers(1 << 30)), time_scale=scale, calibrated=True)
+    tty = sim.start_pty()
+    valve = ValveTerminal(None, travel_s=0.05, watchdog_s=None, initial="closed").start()
+    argv = ["park", "--real", "--robot", tty, "--gripper", valve.url, "--camera", f"frames://{frames}/img_%03d.png?loop=1",
+            "--time-scale", str(scale)]
+    speed = int(rng.integers(31, 60))  # a speed park never sets: seen at the controller if the second got through
+    second = (["robot", "--url", tty, "--timeout", "3", "speed", str(speed)] if device == "robot"
+              else ["gripper", "--url", valve.url, "--timeout", "3", "open"])
+    delay = float(rng.uniform(0.0, 0.5))
+    box: dict = {}
+
+    def start_second(proc):
+        def run():
+            t0 = time.monotonic()
+            while not sim.received and proc.poll() is None and time.monotonic() - t0 < 30.0:
+                time.sleep(0.005)
+            time.sleep(delay)
+            box["during"] = proc.poll() is None
+            box["result"] = _selfview(second, workdir, timeout_s=SECOND_TIMEOUT_S)
+
+        t = threading.Thread(target=run, name="second-process", daemon=True)
+        t.start()
+        box["thread"] = t
+
+    try:
+        code, err = _selfview(argv, workdir, timeout_s=SECOND_TIMEOUT_S, sigint_when=start_second)
+        box["thread"].join(SECOND_TIMEOUT_S + 5.0)
+        received = [ln.strip().upper() for ln in sim.received]
+    finally:
+        sim.stop()
+        valve.stop()
+    k = f"devices.{device}"
+    action = " ".join(second[-2:]) if device == "robot" else second[-1]
+    what = f"selfview {second[0]} {action} {delay:.2f} s into selfview park"
+    code2, err2 = box.get("result", (None, "the second process never ran"))
+    bad, seen = _cli_outcome(code, err)
+    bad2, seen2 = _cli_outcome(code2, err2)
+    got_through = (f"SPEED {speed}" in received) if device == "robot" else code2 == 0
+    if not box.get("during"):
+        outcome, seen = "no_effect", ""  # park had ended: nothing owned the device
+    elif got_through:
+        outcome, seen = "unsafe", f"{what}: the second process drove the {device} while park owned it (park exit {code})"
+    elif bad or bad2:
+        outcome, seen = (bad or bad2), f"{what}: {seen or seen2}"
+    elif code2 in (3, 4) and err2.strip():
+        outcome, seen = "clear_error", ""
+    else:
+        outcome, seen = "wrong_value", f"{what}: the second exited {code2} without a clear refusal: {err2.strip()[-200:]!r}"
+    tally.add(k, outcome, seen)
+
+
+def run_devices(n: int, seed: int, deadline: float, tally: Tally, fixtures: dict, workers: int = 2) -> None:
+    _quiet_logs()
+
+    def worker(share, seed_, index, deadline_, tally_):
+        rng = np.random.default_rng([seed, 6, index])
+        for i in range(share):
+            if time.monotonic() >= deadline:
+                break
+            second_process_case(DEVICES[(index + i) % 2], fixtures, rng, tally, Path(fixtures["dir"]) / f"devices{index}")
+
+    _in_threads(worker, n, seed, deadline, tally, workers)

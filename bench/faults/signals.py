@@ -1,0 +1,182 @@
+"""Termination signals (SIGINT, SIGTERM, SIGHUP, SIGQUIT; one, or two 0-30 ms apart) at a random moment of every
+command that moves the arm: ``selfview park``, ``selfview robot ready`` / ``depart``, the cell's calibrate
+procedure. Judged from the simulators' side: the arm stopped (ABORT received if it was moving), the valve's
+outputs in their safe state, the exit status 128 + the signal's number, the calibration file intact."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from selfview.bench._proxy import FaultProxy
+from selfview.errors import CellError
+from selfview.bench.faults.common import CLI_TIMEOUT_S, Tally, _cli_outcome, _file_state, _in_threads, _quiet_logs, _run_child, _selfview
+
+
+# --- signals during the commands that move the arm -------------------------------------------------------
+SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT")
+COMMANDS = ("park", "calibrate", "robot-ready", "robot-depart")
+
+
+def _kind(command: str, signame: str, twice: bool) -> str:
+    if signame == "SIGINT" and not twice and command in ("park", "calibrate"):
+        return f"sigint.{command}"  # the first campaign's kinds, kept for comparison
+    return f"signal.{command}.{signame}" + ("-twice" if twice else "")
+
+
+def sigint_case(command: str, fixtures: dict, rng, tally: Tally, workdir: Path, signame: str = "SIGINT",
+                twice: bool = False) -> None:
+    from selfview.mocks.val_controller import ValController
+    from selfview.mocks.valve_terminal import ValveTerminal
+
+    signum = getattr(signal, signame)
+    workdir.mkdir(parents=True, exist_ok=True)
+    frames = workdir / "frames"
+    frames.mkdir(exist_ok=True)
+    shutil.copyfile(fixtures["picture"], frames / "img_000.png")
+    guard = workdir / "cal.yaml"
+    shutil.copyfile(fixtures["cal"], guard)
+    for p in workdir.glob("cal.yaml.history"):
+        shutil.rmtree(p)
+    scale = 0.1
+    sim = ValController(None, seed=int(rng.integers(1 << 30)), time_scale=scale, calibrated=True)
+    if command == "robot-ready":  # from a pose away from READY (the simulator owns its state; no motion)
+        with sim._state:
+            sim._joints = sim._joints + np.array([60.0, -30.0, 40.0, 30.0, 30.0, 45.0])
+    proxy = FaultProxy(sim.start_tcp(0), serial=True).start()
+    valve = ValveTerminal(None, travel_s=0.05, watchdog_s=None, initial="closed").start()
+    urls = (f"socket://127.0.0.1:{proxy.port}", valve.url, f"frames://{frames}/img_%03d.png?loop=1")
+    if command == "park":
+        argv = ["park", "--real", "--robot", urls[0], "--gripper", urls[1], "--camera", urls[2], "--time-scale", str(scale)]
+    elif command == "robot-ready":
+        argv = ["robot", "--url", urls[0], "ready"]
+    elif command == "robot-depart":
+        argv = ["robot", "--url", urls[0], "depart", "80"]
+    else:  # `selfview calibrate` needs --image (its parser), so the cell's calibrate runs through the Python API
+        argv = ["-c", _CALIBRATE_SCRIPT, *urls, str(guard)]
+    delay = float(rng.uniform(0.0, {"park": 1.2, "calibrate": 2.5}.get(command, 0.8)))
+    gap = float(rng.uniform(0.0, 0.03))
+    sent = {}
+
+    def sigint_when(proc):
+        t0 = time.monotonic()
+        while not sim.received and proc.poll() is None and time.monotonic() - t0 < 30.0:
+            time.sleep(0.005)
+        time.sleep(delay)
+        if proc.poll() is None:
+            sent["q"] = sim.joints
+            sent["moving"] = sim.moving.is_set()
+            sent["n_received"] = len(sim.received)
+            os.kill(proc.pid, signum)
+            if twice:
+                time.sleep(gap)
+                if proc.poll() is None:
+                    os.kill(proc.pid, signum)
+
+    before = _file_state(guard)
+    outputs_before = valve.valve_outputs
+    try:
+        code, err = _selfview_cell(argv, workdir, sigint_when)
+        q_exit, moving_exit = sim.joints, sim.moving.is_set()
+        time.sleep(0.3)  # 3 s of simulated time
+        q_later = sim.joints
+        outputs = valve.valve_outputs
+        safe = valve.io_map.drive(valve.io_map.safe_state)
+        after_signal = [ln.strip().upper() for ln in sim.received[sent.get("n_received", 0):]]
+    finally:
+        proxy.stop()
+        sim.stop()
+        valve.stop()
+    k = _kind(command, signame, twice)
+    what = (f"selfview {command.replace('-', ' ')}, {signame}{' twice' if twice else ''} {delay:.2f} s after the "
+            "first command" + (" during a motion" if sent.get("moving") else ""))
+    after = _file_state(guard)
+    bad_exit, seen = _cli_outcome(code, err)
+    moved = float(np.max(np.abs(q_later - q_exit)))
+    interrupted = "q" in sent and code not in (0, None)
+    valve_unsafe = (command in ("park", "calibrate") and interrupted and outputs != safe
+                    and (outputs != outputs_before or "cell left" in err))
+    lost = False
+    if command == "calibrate" and after != before:
+        from selfview.calfile import load_calibration
+
+        try:
+            load_calibration(guard)
+            lost = bool(after[1])  # a new complete file is fine; a left temp file is not
+        except CellError:
+            lost = True
+    if code is None:
+        outcome, seen = "hang", f"{what}: {seen}"
+    elif moving_exit or moved > 0.01:
+        outcome, seen = "unsafe", f"{what}: exit {code}, the arm moved {moved:.2f} deg (joints) after the command exited"
+    elif sent.get("moving") and interrupted and "ABORT" not in after_signal:
+        outcome, seen = "unsafe", f"{what}: exit {code}, the controller received no ABORT after the signal"
+    elif valve_unsafe:
+        outcome, seen = "unsafe", f"{what}: exit {code}, valve outputs {outputs} left, not the safe {safe}"
+    elif bad_exit:
+        outcome, seen = bad_exit, f"{what}: {seen}"
+    elif lost:
+        outcome, seen = "lost_file", f"{what}: exit {code}, the calibration file was lost or left half-written"
+    elif "q" not in sent or code == 0:
+        outcome = "no_effect"  # the command ended before the signal: nothing was interrupted
+    elif code in (128 + signum, -signal.SIGINT if signum == signal.SIGINT else 128 + signum):
+        outcome = "clear_error"
+    else:
+        outcome, seen = "traceback", (f"{what}: exit {code} instead of {128 + signum}: "
+                                      f"{err.strip().splitlines()[-1:]}")
+    tally.add(k, outcome, seen)
+
+
+#: the cell's calibration procedure as a lab script runs it, with the CLI's exit codes
+_CALIBRATE_SCRIPT = r'''
+import sys
+from selfview.cell import default_cell_path, load_cell
+from selfview.errors import CellError
+from selfview.procedures.cli import exit_code_for
+from selfview.procedures.runs import CellSession
+robot, gripper, camera, out = sys.argv[1:5]
+try:
+    with CellSession.real(load_cell(default_cell_path()), robot=robot, gripper=gripper, camera=camera,
+                          progress=lambda s: print(s, file=sys.stderr, flush=True)) as s:
+        s.calibrate(out=out)
+except KeyboardInterrupt:
+    print("interrupted", file=sys.stderr)
+    sys.exit(130)
+except CellError as exc:
+    code, hint = exit_code_for(exc)
+    print(f"error: {exc}\n  what to do: {hint}", file=sys.stderr)
+    sys.exit(code)
+'''
+
+
+def _selfview_cell(argv, cwd, sigint_when):
+    if argv[0] == "-c":  # a script, not the selfview command
+        return _run_child([sys.executable, *argv], cwd, CLI_TIMEOUT_S, sigint_when)
+    return _selfview(argv, cwd, timeout_s=CLI_TIMEOUT_S, sigint_when=sigint_when)
+
+
+def run_sigint(n: int, seed: int, deadline: float, tally: Tally, fixtures: dict, workers: int = 2,
+               signals_too: bool = True) -> None:
+    """``n`` cases: Ctrl-C during park and calibrate, and (``signals_too``) every termination signal, once or
+    twice, during every command that moves the arm, in turn."""
+    _quiet_logs()
+    plan = [(c, "SIGINT", False) for c in ("park", "calibrate")]
+    if signals_too:
+        plan += [(c, sg, tw) for c in COMMANDS for sg in SIGNALS for tw in (False, True)
+                 if (c, sg, tw) not in plan]
+
+    def worker(share, seed_, index, deadline_, tally_):
+        rng = np.random.default_rng([seed, 5, index])
+        for i in range(share):
+            if time.monotonic() >= deadline:
+                break
+            command, signame, twice = plan[(index + workers * i) % len(plan)]
+            sigint_case(command, fixtures, rng, tally, Path(fixtures["dir"]) / f"sigint{index}", signame, twice)
+
+    _in_threads(worker, n, seed, deadline, tally, workers)
