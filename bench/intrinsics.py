@@ -1,7 +1,7 @@
 """Benchmark: multi-view intrinsics (f, kappa, principal point, aspect) against cv2.calibrateCamera and mrcal.
 
 Study 1, intrinsics (``--cameras`` simulated cameras, default 10, each drawn realistic: principal point up
-to 15 px off, aspect 0.97-1.07): the robot's 12 planned views (``--views``; ``selfview.intrinsics.plan_view_poses``)
+to 15 px off, aspect 0.97-1.07): the robot's 12 planned views (``--views``; ``selfview.procedures.viewplan.plan_view_poses``)
 rendered by the project's independent test renderer (``tests/alt_render.py``, in a source tree; the
 project's renderer otherwise, said in the output), the discs detected once per view, and on those same
 detections:
@@ -83,8 +83,9 @@ from selfview.cell import default_cell_path, load_cell  # noqa: E402
 from selfview.errors import CellError, ConfigError  # noqa: E402
 from selfview.geometry import inv_H  # noqa: E402
 from selfview.intrinsics import (  # noqa: E402
-    TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics, camera_check, detect_views, plan_view_poses, tcp_sigma,
+    TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics, camera_check, detect_views, tcp_sigma,
 )
+from selfview.procedures.viewplan import plan_view_poses  # noqa: E402
 from selfview.discs import disc_image_bias  # noqa: E402
 from selfview.geometry import trans, transform_points  # noqa: E402
 from selfview.mocks.imperfections import PROFILES  # noqa: E402
