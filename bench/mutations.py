@@ -284,8 +284,8 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "engine-cleanup-only-for-project-errors",
         "procedures/engine.py",
-        'self.cleanup(f"{type(exc).__name__}: {exc}")',
-        'isinstance(exc, CellError) and self.cleanup(f"{type(exc).__name__}: {exc}")',
+        'self.cleanup(f"{type(exc).__name__}: {exc}", worker_stopped=True)',
+        'isinstance(exc, CellError) and self.cleanup(f"{type(exc).__name__}: {exc}", worker_stopped=True)',
         ("tests/procedures/test_engine.py::test_cleanup_runs_for_an_exception_outside_the_projects_errors",),
         "the cleanup (ABORT, safe valve, closes) runs only for the project's own errors, not for any other exception",
     ),

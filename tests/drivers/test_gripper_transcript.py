@@ -538,3 +538,17 @@ def test_rtu_serial_client_path(device):
 def test_missing_serial_port_is_typed():
     with pytest.raises(ConnectionFailed, match="does not exist"):
         PneumaticGripper("modbus-rtu:///dev/ttyUSB-selfview-missing", poll_s=None).connect()
+
+
+def test_a_register_write_whose_echo_differs_is_a_protocol_error(device):
+    """FC6's reply must echo the register and value sent: an echo with a bit flipped (a corrupted
+    request, or a reply to another one) is a protocol error naming both, and the link is dropped."""
+    from selfview.drivers.pneumatic_gripper.modbus import ModbusLink, WriteEchoMismatch
+
+    d = device([(mbap(1, "06 0000 8002"), mbap(1, "06 0000 8003"))])  # the value's bit 0 flipped
+    link = ModbusLink(d.url, timeout_s=0.5)
+    with pytest.raises(WriteEchoMismatch, match=r"echoes \(0, 32771\), not \(0, 32770\)") as e:
+        link.write_register(0, 0x8002)
+    assert isinstance(e.value, ProtocolError) and e.value.sent == (0, 0x8002) and e.value.echoed == (0, 0x8003)
+    assert not link.connected
+    d.check()

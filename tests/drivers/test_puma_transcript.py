@@ -576,6 +576,18 @@ def test_a_prompt_with_the_arm_short_of_its_target_is_an_error_and_aborts():
     assert port.written[-1] == b"\x15ABORT\r"
 
 
+def test_a_motion_that_ends_turned_from_its_target_is_not_arrived():
+    # the arm at the target's point but the hand turned 5 deg about its own axis (JT6): the tool point is
+    # where it should be, the orientation is not, so the motion has not arrived
+    turned = tuple(round(v, 2) for v in np.add(JOINTS, (0, 0, 0, 0, 0, 5.0)))
+    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE p1", b"DO MOVE p1"), (b"\r", [(0.0, CRLF), (0.01, b".")])]
+    script += [(b"\r", b"\r\n."), *where(turned), (b"\x15ABORT\r", b"ABORT\r\n*Motion aborted*\r\n.")]
+    r, port = robot(script)
+    with pytest.raises(ProtocolError, match="from its target.*ABORT sent and confirmed"):
+        r.move("p1")
+    assert port.written[-1] == b"\x15ABORT\r"
+
+
 def test_a_motion_that_outlasts_its_wait_is_aborted_first_thing():
     lim = ValLimits(timeout_factor=0.001, timeout_margin_s=0.2)  # a wait far shorter than the motion
     script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE p1", b"DO MOVE p1"), (b"\r", CRLF)]

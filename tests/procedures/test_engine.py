@@ -336,3 +336,56 @@ def test_the_command_line_raises_for_the_first_signal_only():
         for sig, handler in old.items():
             signal.signal(sig, handler)
         _SignalFlag.seen = None
+
+
+class _Device:
+    """A stand-in device that records what the engine asks of it; its close may fail."""
+
+    def __init__(self, name: str, calls: list, fail_close: bool = False):
+        self.name, self.calls, self.fail_close = name, calls, fail_close
+
+    def safe(self):
+        self.calls.append(f"{self.name} safe")
+
+    def close(self):
+        self.calls.append(f"{self.name} close")
+        if self.fail_close:
+            raise OSError(5, "Input/output error")
+
+
+def test_every_device_is_closed_when_one_close_fails():
+    calls: list[str] = []
+    e = Engine(CellDevices(camera=_Device("camera", calls, fail_close=True), gripper=_Device("gripper", calls)))
+    e.devices.robot = None
+    with pytest.raises(ImageError):
+        e.run(lambda eng: eng.execute(Step("compute", {"fn": lambda _e: (_ for _ in ()).throw(ImageError("blank"))})))
+    # the camera's close failed first; the gripper was still made safe and closed after it
+    assert calls == ["gripper safe", "camera close", "gripper close"]
+    assert "close failed" in e.cleanup_report["camera_close"] and "gripper_close" not in e.cleanup_report
+
+
+def test_no_step_starts_after_a_cancellation():
+    ran: list[str] = []
+    e = Engine(CellDevices(gripper=_Device("gripper", [])))
+
+    def body(eng):
+        eng.execute(Step("compute", {"fn": lambda _e: ran.append("first")}))
+        eng.cancel.set()  # what a signal does while a step runs
+        eng.execute(Step("compute", {"fn": lambda _e: ran.append("second")}))
+
+    with pytest.raises(Cancelled, match="cancelled"):
+        e.run(body)
+    assert ran == ["first"] and len(e.records) == 1
+
+
+def test_cleanup_runs_for_an_exception_outside_the_projects_errors():
+    calls: list[str] = []
+    e = Engine(CellDevices(gripper=_Device("gripper", calls)))
+
+    def broken(_e):
+        raise RuntimeError("a bug in a step")
+
+    with pytest.raises(RuntimeError, match="a bug in a step"):
+        e.run(lambda eng: eng.execute(Step("compute", {"fn": broken})))
+    assert calls == ["gripper safe", "gripper close"]
+    assert e.cleanup_report is not None and "RuntimeError" in e.cleanup_report["reason"]

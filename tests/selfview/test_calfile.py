@@ -427,3 +427,15 @@ def test_history_leftovers_of_dead_writers_are_removed(tmp_path, rng):
     stale.write_bytes(b"half a copy")
     save_calibration(make_cal(rng, f=960.0), p)
     assert not stale.exists() and len(list(hd.iterdir())) == 2
+
+
+def test_a_file_without_a_checksum_is_refused(tmp_path, rng):
+    """A file whose checksum line was lost (an editor, a bad merge) is not trusted: the checksum is what
+    tells a calibration from a hand-altered copy."""
+    p = tmp_path / "cal.yaml"
+    save_calibration(make_cal(rng), p)
+    doc = yaml.safe_load(p.read_text())
+    del doc["checksum"]
+    p.write_text(yaml.safe_dump(doc))
+    with pytest.raises(CalibrationFileError, match="checksum mismatch"):
+        load_calibration(p)
