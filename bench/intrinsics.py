@@ -48,8 +48,8 @@ Study 5, real photographs (``real_photographs``; ``--photos-only`` runs it alone
 photographs the project did not make (``PHOTO_SETS``, in ``tests/data``, each with a cell file per picture
 size). Per picture the discs ``detect_discs`` finds beside ``cv2.findCirclesGrid``'s (symmetric grid) and the
 distance between the centres of the discs both found [px]; per camera (pictures of one size, at least 4)
-``calibrate_intrinsics`` on our detections with the skew held at 0 (``skew=False``; the fitted skew is listed
-apart) beside ``cv2.calibrateCamera`` (the flags above) on findCirclesGrid's centres and on ours, with each
+``calibrate_intrinsics`` on our detections as ``selfview intrinsics`` runs it (the skew fitted only when the
+views pin it, ``skew_fit`` says which and why; the skew always fitted is listed apart) beside ``cv2.calibrateCamera`` (the flags above) on findCirclesGrid's centres and on ours, with each
 difference in units of the combined sigmas sqrt(s_ours^2 + s_cv2^2) for f, cx, cy and the aspect.
 
 Prints one JSON object.
@@ -475,8 +475,8 @@ def photo_study() -> dict:
             entry = {"size": list(size), "pictures": len(views)}
             try:
                 fits = {}
-                variants = (("selfview", False, "bow+dots"), ("selfview_skew_fitted", True, "bow+dots"),
-                            ("selfview_flat_plate", False, "flat"))
+                variants = (("selfview", "auto", "bow+dots"), ("selfview_skew_fitted", True, "bow+dots"),
+                            ("selfview_flat_plate", "auto", "flat"))
                 for key, skew, plate_model in variants:
                     r = calibrate_intrinsics(None, cell.plate, cam0, [v[3] for v in views], detections=dets,
                                              skew=skew, cross_check=False, plate_model=plate_model)
@@ -486,9 +486,10 @@ def photo_study() -> dict:
                                  "skew": c.skew, "rms_px": r.rms_px, "discs": int(sum(v.discs for v in r.views)),
                                  "views_left_out": [list(x) if isinstance(x, tuple) else x for x in r.skipped],
                                  "plate_model": r.plate_shape.get("model", plate_model),
-                                 "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect", "skew")[: 4 + skew]}}
+                                 "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect", "skew") if k in r.sigma},
+                                 "skew_fit": r.skew_fit}
                 entry.update(fits)
-                entry["selfview"]["skew_note"] = "held at 0 (skew=False); selfview_skew_fitted has it free"
+                entry["selfview"]["skew_note"] = fits["selfview"]["skew_fit"]["note"] + " (selfview_skew_fitted has it free)"
                 entry["selfview_flat_plate"]["note"] = "the plate taken as specified, as cv2.calibrateCamera takes it"
             except CellError as exc:
                 entry["selfview"] = {"error": f"{type(exc).__name__}: {exc}"}

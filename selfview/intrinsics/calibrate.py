@@ -17,8 +17,13 @@ from selfview.intrinsics.fit import (
 )
 
 #: The skew is kept only when the views pin it: its estimate at least this many sigmas from 0 (a grabber
-#: without shear shows one as large in 0.3 % of calibrations); otherwise it is held at 0, the spec's model.
+#: without shear shows one as large in 0.3 % of calibrations) by its formal sigma *and* by the spread of
+#: the estimates with groups of views left out (a leave-one-group-out jackknife), which sees what the formal
+#: sigma cannot: a skew that stands for something the model lacks (distortion beyond kappa, a plate not as
+#: modelled) changes from view to view. Otherwise it is held at 0, the spec's model.
 SKEW_SIGNIFICANCE = 3.0
+#: at most this many groups of views are left out in turn for the jackknife
+SKEW_JACKKNIFE_GROUPS = 6
 
 
 # --- the result -----------------------------------------------------------------------------------
@@ -122,13 +127,27 @@ fits it; False holds it at ``camera_guess``'s, the spec's model.
         val, sd = fit.camera.skew, float(np.sqrt(max(fit.cov5[5, 5], 0.0)))
         z = abs(val) / sd if sd > 0 and np.isfinite(sd) else 0.0
         skew_fit.update(value=float(val), sigma=sd, sigmas_from_zero=float(z), limit_sigmas=SKEW_SIGNIFICANCE)
+        why = None
         if skew == "auto" and not z >= SKEW_SIGNIFICANCE:
-            skew_fit.update(fitted=False, note=f"skew not fitted: the views measure it as {val:.1e} +- {sd:.1e} "
-                                               f"({z:.1f} sigmas from 0, under {SKEW_SIGNIFICANCE:g}): they do not pin "
-                                               "it, so it is held at 0 (the spec's camera model)")
-            fit = fit_views(dets, plate, fit.camera.with_(skew=0.0), names, plate_model=plate_model, fit_skew=False)
+            why = (f"the views measure it as {val:.1e} +- {sd:.1e} ({z:.1f} sigmas from 0, under "
+                   f"{SKEW_SIGNIFICANCE:g})")
         elif skew == "auto":
-            skew_fit["note"] = f"skew fitted: {val:.2e} +- {sd:.1e}, {z:.0f} sigmas from 0"
+            sd_jk = _skew_jackknife(dets, names, plate, fit, plate_model)
+            z_jk = abs(val) / sd_jk if sd_jk and np.isfinite(sd_jk) else 0.0
+            skew_fit.update(jackknife_sigma=sd_jk, jackknife_sigmas_from_zero=float(z_jk))
+            if sd_jk is None:
+                why = (f"it measures {val:.1e} +- {sd:.1e}, but {len(fit.views)} views are too few to check it "
+                       f"with views left out (at least {MIN_VIEWS + 1})")
+            elif not z_jk >= SKEW_SIGNIFICANCE:
+                why = (f"it measures {val:.1e} +- {sd:.1e}, but leaving views out moves it by {sd_jk:.1e} "
+                       f"({z_jk:.1f} of those from 0): it stands for something the views do not share, not "
+                       "for the grabber's shear")
+            else:
+                skew_fit["note"] = (f"skew fitted: {val:.2e} +- {sd:.1e}, {z:.0f} sigmas from 0 ({z_jk:.0f} by "
+                                    "the views left out in turn)")
+        if why is not None:
+            skew_fit.update(fitted=False, note=f"skew not fitted: {why}; it is held at 0 (the spec's camera model)")
+            fit = fit_views(dets, plate, fit.camera.with_(skew=0.0), names, plate_model=plate_model, fit_skew=False)
     for nm, why in fit.dropped:
         skipped.append({"name": nm, "reason": why})
     used = {v.name for v in fit.views}
@@ -167,3 +186,24 @@ fits it; False holds it at ``camera_guess``'s, the spec's model.
         projection_sigma_px=projection_sigma_px(fit.camera, fit.cov5), stop_rule=stop, cross_check=xc,
         residual_sigma_px=float(np.sqrt(fit.s2)), plate_shape=_plate_summary(fit), skew_fit=skew_fit,
     )
+
+
+def _skew_jackknife(dets, names, plate, fit: _Fit, plate_model: str) -> float | None:
+    """The skew's leave-one-group-out jackknife sigma over the views ``fit`` used (at most
+    ``SKEW_JACKKNIFE_GROUPS`` groups, each leaving ``MIN_VIEWS`` or more views); None when the views are
+    too few, or when a group left out makes the rest unsolvable."""
+    used = [k for k in range(len(dets)) if names[k] in {v.name for v in fit.views}]
+    g = min(SKEW_JACKKNIFE_GROUPS, len(used))
+    if len(used) - -(-len(used) // g) < MIN_VIEWS or g < 2:
+        return None
+    vals = []
+    for j in range(g):
+        keep = [k for i, k in enumerate(used) if i % g != j]
+        try:
+            sub = fit_views([dets[k] for k in keep], plate, fit.camera, [names[k] for k in keep],
+                            plate_model=plate_model, fit_skew=True)
+        except CalibrationError:
+            return None
+        vals.append(sub.camera.skew)
+    v = np.asarray(vals)
+    return float(np.sqrt((g - 1) / g * np.sum((v - v.mean()) ** 2)))
