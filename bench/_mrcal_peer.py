@@ -1,4 +1,4 @@
-"""mrcal as a peer of the intrinsics benchmark (issue 15 item 6), run in whichever interpreter has it.
+"""mrcal as a peer of the intrinsics benchmark, run in whichever interpreter has it.
 
 mrcal (Dima Kogan's calibration library) ships as Debian's ``python3-mrcal`` for the system interpreter,
 built against that interpreter's numpy; it is not on PyPI for this project's environment. So ``fit`` (called

@@ -18,7 +18,7 @@ detections:
 Per method: median centre error [px], aspect and f errors [%] against the truth, the RMS of the errors over
 the RMS of the reported sigmas per parameter (1 = honest sigmas), and the median time.
 
-Study 1 again per further ``--profile`` (issue 17's imperfections: a profile name of
+Study 1 again per further ``--profile`` (a real cell's imperfections: a profile name of
 ``selfview.mocks.imperfections.PROFILES``, or ``PROFILE:PART`` for one part alone, e.g.
 ``realistic:plate``): the same cameras and planned views with the cell's imperfections, rendered by the
 project's renderer (the independent one draws only the specified plate and no grabber), under
@@ -102,7 +102,7 @@ except ImportError:  # pragma: no cover - an installed copy without the tests
 LEAN = (-1.0, 0.0)
 CV_FLAGS = ("CALIB_USE_INTRINSIC_GUESS", "CALIB_ZERO_TANGENT_DIST", "CALIB_FIX_K2", "CALIB_FIX_K3")
 ISSUE = {"centre_px": 0.3, "aspect_pct": 0.05, "f_pct": 0.05, "sigma_factor": 2.0}
-#: The robot's planned views per camera (the issue's 12; ``--views``).
+#: The robot's planned views per camera (12 by default; ``--views``).
 VIEWS = 12
 
 
@@ -298,7 +298,7 @@ def one_camera_profile(args) -> dict:
         out["cv2_bias_corrected"] = {**cor, **_errors(cor, w.camera)}
     _add_mrcal(out, dets, cell, cam0, w.camera, true_skew)
     # study 2 on this cell: one parked picture calibrated with the measured camera (with and without its
-    # skew); the true TCP is the centre of the real fingers' inner corners (issue 17's fingers are off nominal)
+    # skew); the true TCP is the centre of the real fingers' inner corners (the realistic fingers are off nominal)
     w.set_tcp(plate)
     w.park()
     pic = _project_render(w, seed=1000 * seed + 999).image
@@ -523,7 +523,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cameras", type=int, default=10, help="simulated cameras for the intrinsics table (default 10)")
     ap.add_argument("--pictures", type=int, default=30, help="parked pictures per kind for the warning rates (default 30)")
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
-    ap.add_argument("--views", type=int, default=VIEWS, help=f"planned views per camera (default {VIEWS}, the issue's)")
+    ap.add_argument("--views", type=int, default=VIEWS, help=f"planned views per camera (default {VIEWS})")
     ap.add_argument("--quick", action="store_true", help="a small run: 2 cameras, 4 pictures per kind")
     ap.add_argument("--profile", nargs="+", default=["ideal", "realistic"],
                     help="simulated cells for study 1: 'ideal' (the independent renderer, and studies 2-4) and "

@@ -1,4 +1,4 @@
-"""The imperfections of a real self-viewing cell, for the simulated world (issue 17).
+"""The imperfections of a real self-viewing cell, for the simulated world.
 
 The simulated cell of ``SimWorld`` and ``render`` is ideal by default: a perfectly printed flat plate,
 fingers of exactly the cell's nominal dimensions with sharp edges, a camera whose 576 lines are taken at
@@ -7,7 +7,7 @@ configured pivot. A real CCIR cell such as the paper's (Panasonic WV-KS152, 7.5 
 plate, a PUMA 260 with a pneumatic parallel-jaw gripper) has none of these. ``Imperfections`` lists them,
 each with a magnitude (0: off) and the source of its realistic value beside it; named profiles:
 
-- ``ideal``: everything off (the cell the project simulated until issue 17; every exact test uses it);
+- ``ideal``: everything off (the ideal cell; every exact test uses it);
 - ``realistic``: every part at the realistic magnitude of its source;
 - ``paper-like``: the combination of realistic magnitudes under which the simulated Tables 1 and 2 come
   nearest the paper's (found with ``bench/error_budget.py``; see ``docs/RESULTS.md``).
@@ -55,11 +55,11 @@ class Imperfections:
 
     # --- plate (the paper, section 5: "a laser print ... imprecise positioning of the printer") ---
     #: Relative printing scale error of the sheet (sign drawn per world). Laser printers' paper feed and
-    #: toner fusing scale a print by 0.1-0.3 % (issue 17's range; e.g. the HP LaserJet 4 service manual
+    #: toner fusing scale a print by 0.1-0.3 % (e.g. the HP LaserJet 4 service manual
     #: specifies a +-0.2 % image length tolerance). Realistic: 0.2 %.
     plate_scale: float = 0.0
     #: Standard deviation of each disc centre's position error per axis [mm]. At 600 dpi a printer places
-    #: toner on a 42 um grid, so a disc's edge is off by up to half a dot: 10-20 um (issue 17). Realistic: 15 um.
+    #: toner on a 42 um grid, so a disc's edge is off by up to half a dot: 10-20 um. Realistic: 15 um.
     plate_dot_sd_mm: float = 0.0
     #: Paper not flat: height of a cylindrical bow (cockle) across the sheet [mm]; the sheet lifts towards
     #: the camera in the middle of one direction (random per world). Printed office paper glued or laid on a
@@ -72,7 +72,7 @@ class Imperfections:
     #: 30-120 mm (the jaw gap). Realistic: 0.1 mm (so 95 % within the class's +-0.2 mm).
     finger_dim_sd_mm: float = 0.0
     #: Edge break of the fingers' edges [mm], rendered as a 45 degree chamfer tangent to a round of this
-    #: radius: deburred machined parts carry 0.1-0.3 mm (ISO 13715 edge specifications; issue 17).
+    #: radius: deburred machined parts carry 0.1-0.3 mm (ISO 13715 edge specifications).
     #: Realistic: 0.2 mm.
     finger_edge_radius_mm: float = 0.0
 

@@ -75,7 +75,7 @@ class AltOptions:
     table_mm_per_px: float = 0.2
     table_defocus_mm: float = 0.0
     seed: int = 0
-    # a real CCIR grabber (issue 17; magnitudes and sources in selfview.mocks.imperfections), see _grabber
+    # a real CCIR grabber (magnitudes and sources in selfview.mocks.imperfections), see _grabber
     field_shift_px: tuple[float, float] = (0.0, 0.0)  # motion of the picture between the even and odd field
     line_jitter_px: float = 0.0  # sd of each line's horizontal shift
     pll_shear_px: float = 0.0  # horizontal shift from the first line to the last

@@ -1,5 +1,5 @@
-"""WHERE's pose against the kinematics of its own joint angles (issue 18, items 4 and 16): no false alarm
-wherever the arm can be, and a one-digit corruption caught.
+"""WHERE's pose against the kinematics of its own joint angles: no false alarm wherever
+the arm can be, and a one-digit corruption caught.
 
 The tolerance is the print rounding, derived, not chosen: VAL-II prints JT1..JT6, X Y Z and O A T with
 2 decimals, so each printed joint is up to 0.005 deg off the angle the pose was computed from, each

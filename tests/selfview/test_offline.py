@@ -1,6 +1,6 @@
 """Off-line calibration from one picture, end to end, on pictures of two independent renderers.
 
-The issue's targets (f within 0.2 %, kappa within 3 %, TCP position of C_H_G within 0.02 mm across and
+The accuracy targets (f within 0.2 %, kappa within 3 %, TCP position of C_H_G within 0.02 mm across and
 0.08 mm along the optical axis, rotation within 0.02 degrees) are met with room to spare; the tests bound
 each figure by what the pipeline achieves, with a stated margin, so that losing a step fails a test.
 Measured on the reference cell (bench-style runs of these very cases; medians over the seeds):
@@ -32,7 +32,7 @@ from selfview.geometry import pose_difference
 from selfview.offline import calibrate_offline
 from tests import alt_render
 
-TARGET = {"f_rel": 0.002, "kappa_rel": 0.03, "across_mm": 0.02, "along_mm": 0.08, "rot_deg": 0.02}  # the issue's
+TARGET = {"f_rel": 0.002, "kappa_rel": 0.03, "across_mm": 0.02, "along_mm": 0.08, "rot_deg": 0.02}  # the accuracy targets
 MARGIN = 2.0
 # what the pipeline achieves (the table above), each bound being MARGIN times the measured figure
 ACHIEVED_MEDIAN = {"f_rel": 9.3e-5, "kappa_rel": 7.1e-4, "across_mm": 0.0029, "along_mm": 0.0100, "rot_deg": 0.0035}
@@ -41,7 +41,7 @@ ACHIEVED_ALT = {"f_rel": 1.24e-4, "kappa_rel": 1.05e-3, "across_mm": 0.0023, "al
 ACHIEVED_ROBUST = {"f_rel": 1.64e-4, "kappa_rel": 3.13e-3, "across_mm": 0.0118, "along_mm": 0.0183, "rot_deg": 0.0077}
 # out of focus (blur 1.5 px instead of 0.6) the edges of the discs and fingertips soften: measured f 1.0e-4,
 # kappa 2.1e-3, across 0.0355, along 0.0289, rot 0.0279; bound by twice that, but never looser than twice
-# the issue's targets
+# the accuracy targets
 ACHIEVED_BLURRED = {"f_rel": 1.04e-4, "kappa_rel": 2.12e-3, "across_mm": 0.0355, "along_mm": 0.0289, "rot_deg": 0.0279}
 
 
