@@ -155,7 +155,7 @@ def test_a_one_digit_change_is_caught_everywhere_in_the_sweep(what):
 
 
 def test_another_oat_convention_is_refused_at_the_singularity_too():
-    # item 16: V+ angles read as VAL's do not fit, also with the tool straight down (both sets degenerate)
+    # V+ angles read as VAL's do not fit, also with the tool straight down (both sets degenerate)
     named = 0
     for q in CONFIGURATIONS[:: 7]:
         pose = printed(sim_pose(q, VPLUS))

@@ -73,7 +73,7 @@ def test_realistic_plate_centre_within_its_sigma_and_the_bound(cell, plate_views
     # honest sigmas: errors within a factor 2 of the sigmas (RMS over seeds and parameters)
     assert np.sqrt(np.mean(z**2)) < 2.0, z
     assert max(errs) < CENTRE_BOUND_PX, errs
-    # the same detections on the plate as specified: the finding this fit removes
+    # the same detections on the plate as specified: the centre error this fit removes
     assert min(flat_errs) > CENTRE_BOUND_PX, flat_errs  # 1.3-4.2 px on these seeds
 
 
