@@ -1,26 +1,9 @@
-"""mrcal as a peer of the intrinsics benchmark (issue 15 item 6), run in whichever interpreter has it.
+"""mrcal as a peer of the intrinsics benchmark, run in whichever interpreter has it.
 
-mrcal (Dima Kogan's calibration library) ships as Debian's ``python3-mrcal`` for the system interpreter,
-built against that interpreter's numpy; it is not on PyPI for this project's environment. So ``fit`` (called
-in the project's interpreter) hands the observations to this same file run as a script under an interpreter
-that imports mrcal, and reads one JSON object back. That script part needs numpy and mrcal only: it imports
-nothing of selfview.
-
-The problem given to mrcal is the one ``cv2.calibrateCamera`` gets in ``bench/intrinsics.py``: the same views
-and the same detected disc centres. The plate is mrcal's calibration object (a regular grid at the plate's
-pitch, ``calobject_warp`` free: mrcal's own model of a board that is not flat); discs hidden by the fingers or
-outside the picture are observations with a negative weight (mrcal's "ignore"). Its lens model is
-``LENSMODEL_OPENCV4`` (fx, fy, cx, cy, k1, k2, p1, p2), the model its documentation starts from for a
-narrow lens; the poses are seeded by ``cv2.solvePnP`` with the cell's nominal camera (the same start the
-cv2 peer gets). mrcal's outlier rejection and regularisation stay on, as in ``mrcal-calibrate-cameras``.
-
-Sigmas: mrcal reports projection uncertainty rather than parameter sigmas; here they are the square roots of
-the diagonal of sigma^2 (J^T J)^-1 at the solution (J: mrcal's own Jacobian, in its packed state, unpacked by
-its own scales), sigma the RMS reprojection error: the same recipe as ours and OpenCV's.
-
-Which interpreter: ``SELFVIEW_MRCAL_PYTHON`` if set; else this one if it imports mrcal; else ``python3`` on
-the PATH and Debian's system interpreter ``/usr/bin/python3`` (where ``python3-mrcal`` installs), the first
-that imports mrcal. None: ``fit`` returns None and the benchmark says mrcal was not found.
+mrcal ships as Debian's ``python3-mrcal`` for the system interpreter, built against that interpreter's
+numpy; it is not on PyPI for this project's environment. So ``fit`` hands the observations to this same
+file run as a script under an interpreter that imports mrcal (``find_python``), and reads one JSON object
+back. That script part (``_solve``) needs numpy and mrcal only: it imports nothing of selfview.
 """
 
 from __future__ import annotations
@@ -40,7 +23,9 @@ _CHECK = "import mrcal, numpy, scipy"
 
 
 def find_python(timeout_s: float = 30.0) -> str | None:
-    """An interpreter that imports mrcal (see the module's docstring), or None."""
+    """An interpreter that imports mrcal, or None: ``SELFVIEW_MRCAL_PYTHON`` if set; else this one if it
+    imports mrcal; else ``python3`` on the PATH and Debian's system interpreter ``/usr/bin/python3``
+    (where ``python3-mrcal`` installs), the first that imports mrcal."""
     env = os.environ.get("SELFVIEW_MRCAL_PYTHON")
     candidates = [env] if env else [sys.executable, shutil.which("python3"), "/usr/bin/python3"]
     seen = set()
@@ -100,7 +85,18 @@ def fit(p_W_views, uv_views, pitch: float, cam0, size, *, python: str | None = N
     """mrcal's calibration of the views: dict with ``f`` (fy), ``cx``, ``cy``, ``aspect`` (fy / fx, as the
     cv2 peer), ``dist`` [k1, k2, p1, p2], ``K`` (3x3), ``sigma`` of f, cx, cy, aspect, ``rms_px``, ``seconds``
     (mrcal's solve alone), ``outliers`` (disc centres mrcal's outlier rejection dropped), ``calobject_warp``; or None when no interpreter imports mrcal.
-    Raises RuntimeError when mrcal ran and failed."""
+    Raises RuntimeError when mrcal ran and failed.
+
+    The problem is the one ``cv2.calibrateCamera`` gets in ``bench/intrinsics.py``: the same views and
+    detected disc centres. The plate is mrcal's calibration object (a regular grid at the plate's pitch,
+    ``calobject_warp`` free: mrcal's model of a board that is not flat); discs hidden by the fingers or
+    outside the picture are observations with a negative weight (mrcal's "ignore"). The lens model is
+    ``LENSMODEL_OPENCV4``, the model its documentation starts from for a narrow lens; the poses are seeded
+    by ``cv2.solvePnP`` with the cell's nominal camera (the cv2 peer's start). mrcal's outlier rejection
+    and regularisation stay on, as in ``mrcal-calibrate-cameras``. Sigmas: mrcal reports projection
+    uncertainty rather than parameter sigmas; here they are the square roots of the diagonal of
+    sigma^2 (J^T J)^-1 at the solution (J: mrcal's own Jacobian, unpacked by its own scales), sigma the
+    RMS reprojection error: the recipe of ours and OpenCV's."""
     import cv2
 
     python = python or find_python()

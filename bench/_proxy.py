@@ -1,21 +1,8 @@
 """A corrupting TCP proxy on 127.0.0.1 for the fault campaign (``bench/faults/``).
 
 It sits between a driver (the client) and a simulated device (upstream) and, on demand, corrupts the
-byte stream in one direction: host to device (``h2d``) or device to host (``d2h``). A fault is armed
-with the byte offset (counted from the arming, in that direction) where it strikes; it fires once when
-that byte passes, and ``fired`` says what it did (so a fault that never met its byte is not counted as
-injected).
-
-Two upstream models:
-
-- ``serial=True`` (the VAL-II terminal): one upstream connection for the proxy's whole life, like a
-  serial cable whose far end never notices the host. A client that disconnects (or is cut off) leaves
-  the controller running; what the controller says meanwhile is lost, as on an unplugged cable; the
-  next client is joined to the same upstream connection.
-- ``serial=False`` (Modbus TCP): one upstream connection per client, closed with it.
-
-Every wait is bounded: one thread, a select loop with a short timeout that checks the stop event. The
-listening socket binds 127.0.0.1 only and its port comes from the OS (kept bound until ``stop()``).
+byte stream in one direction: host to device (``h2d``) or device to host (``d2h``). Every wait is
+bounded: one thread, a select loop with a short timeout that checks the stop event.
 """
 
 from __future__ import annotations
@@ -71,7 +58,15 @@ class _Pipe:
 
 class FaultProxy:
     """Proxy 127.0.0.1:``port`` -> 127.0.0.1:``upstream_port``. ``seed`` drives the random choices made
-    while a fault fires (which bit, which replacement byte). Start with ``start()``, end with ``stop()``."""
+    while a fault fires (which bit, which replacement byte). Start with ``start()``, end with ``stop()``.
+
+    A fault is armed with the byte offset (counted from the arming, in that direction) where it strikes;
+    it fires once when that byte passes, and ``fired`` says what it did (so a fault that never met its
+    byte is not counted as injected). ``serial=True`` (the VAL-II terminal): one upstream connection for
+    the proxy's whole life, like a serial cable whose far end never notices the host: a client that
+    disconnects leaves the controller running, what it says meanwhile is lost, and the next client is
+    joined to the same upstream connection. ``serial=False`` (Modbus TCP): one upstream connection per
+    client, closed with it. The listening port comes from the OS (kept bound until ``stop()``)."""
 
     def __init__(self, upstream_port: int, *, serial: bool, seed: int = 0):
         self.upstream_port = int(upstream_port)

@@ -1,38 +1,11 @@
-"""Study: the fingertips over backgrounds the project did not make (real photographs), beside discs, and
-partly covered.
+"""Study: the fingertips measured over real photographs laid as the table, beside discs and partly covered.
 
-The photographs shipped inside scikit-image (``skimage/data``: gravel, grass, brick, coffee, a motorcycle,
-an astronaut, the cameraman, coins, ...; read with OpenCV from the installed package, nothing is
-downloaded) are laid as a table ``distance_mm`` (15..80) beyond the plate's plane, where the fingertips
-stand while parked, with a defocus blur, in both renderers: the project's (``selfview.mocks.render``,
-``Backdrop``) and the independent one of the tests (``tests/alt_render.py``, ``table_image``; only when
-run from a source tree). Three kinds of picture:
-
-- ``online``: a sequence per trial. The gripper parked and its mount known (the true ``C_H_G`` before
-  the disturbance is the prediction, so the study measures the measurement, not the off-line
-  calibration), then the gripper lifted over the photograph and the camera moved by one draw of the
-  paper's 'cable' or 'tilt' series in ``steps`` equal rotations, one picture each. Every disturbed
-  picture is measured by the full search from the prediction (``search``) and by a
-  ``SilhouetteTracker`` run over the sequence (``model-tracker``, primed by a search of the undisturbed
-  picture), each followed by 4P-I;
-- ``disc``: parked on the plate with a fingertip corner on or beside a printed disc (the parks drawn
-  until one is), measured by the full search from the cell's mount guess; all six corners;
-- ``occluded`` (independent renderer only): the online pictures with a cable (a thin box) across one finger.
-
-Methods (``--methods``): ``search`` the corner search (``find_fingertips``); ``model-search``
-(``find_fingertips(..., model=True)``) and ``model-tracker`` (``SilhouetteTracker``) the model-based
-measurement, whose own pose is also scored as method E (``E_tcp_err_*``). The same frames for all three.
-The scenes are built by ``tests/clutter_scenes.py`` (run from a source tree).
-
-Each measured frame is one of: ``found`` (marked good and right), ``missed`` (not marked good: points
-not found, 4P-I refused, or the measurement's own quality check said "not found"), ``wrong`` (marked
-good but the pose more than ``WRONG_MM`` off in some axis of the TCP, or, for ``disc``, a found corner
-more than 0.5 px off). Prints one JSON object: per renderer, kind, background family and photograph.
+The photographs shipped inside scikit-image (gravel, grass, brick, coffee, ...; read from the installed
+package, nothing is downloaded) lie ``distance_mm`` (15..80) beyond the plate's plane, blurred, in both
+renderers. Each frame measured by each method (``--methods``) is found, missed or wrong (``judge_pose``,
+``judge_corners``). Prints one JSON object: per renderer, kind, background family and photograph.
 
     python bench/clutter.py [--trials 2] [--steps 4] [--photos gravel,grass] [--quick]
-
-``--quick``: one trial per photograph of the first four, 3 steps, 6 disc pictures and 2 occluded trials
-per renderer (some 80 frames per method instead of some 330).
 """
 
 from __future__ import annotations
@@ -80,7 +53,11 @@ QUICK_PHOTOS = 4  # --quick: the first photographs of --photos
 
 # --- measuring ------------------------------------------------------------------------------------
 def judge_pose(result, seq: Sequence, frame: Frame) -> dict:
-    """found / missed / wrong for one on-line frame measured as ``result`` (a FingertipResult)."""
+    """found / missed / wrong for one on-line frame measured as ``result`` (a FingertipResult).
+
+    ``found``: marked good and right; ``missed``: not marked good (points not found, 4P-I refused, or the
+    measurement's own quality check said "not found"); ``wrong``: marked good but the pose more than
+    ``WRONG_MM`` off in some axis of the TCP."""
     from selfview.online import estimate
 
     quality_ok = getattr(result, "quality_ok", True)
@@ -124,7 +101,12 @@ def judge_corners(result, frame: Frame) -> dict:
 
 
 def measure_sequence(seq: Sequence, cell, methods=("search", "model-tracker")) -> dict:
-    """Run each method over the sequence's disturbed frames; per method a list of per-frame verdicts."""
+    """Run each method over the sequence's disturbed frames; per method a list of per-frame verdicts.
+
+    ``search``: the corner search (``find_fingertips``); ``model-search`` (``find_fingertips(...,
+    model=True)``) and ``model-tracker`` (a ``SilhouetteTracker`` run over the sequence, primed by a search
+    of the undisturbed picture) the model-based measurement, whose own pose is also scored as method E
+    (``E_tcp_err_*``). The same frames for all; each followed by 4P-I."""
     from selfview.fingertips import find_fingertips
     from selfview.silhouette import SilhouetteTracker
 
@@ -172,7 +154,20 @@ def _tracked(tr, seq: Sequence, *, timed: bool = False) -> list[dict]:
 
 def build(cell, renderers, photos, trials: int, steps: int, series=("cable", "tilt"), disc_trials: int = 0,
           occluded_trials: int = 0, plain: bool = True):
-    """Generate the study's sequences (a generator, so that a caller measures as they come)."""
+    """Generate the study's sequences (a generator, so that a caller measures as they come).
+
+    Renderers: the project's (``selfview.mocks.render``, ``Backdrop``) and the independent one of the
+    tests (``tests/alt_render.py``, ``table_image``; only from a source tree); the scenes are built by
+    ``tests/clutter_scenes.py``. Kinds:
+    - ``online``: a sequence per trial. The gripper parked and its mount known (the true ``C_H_G`` before
+      the disturbance is the prediction, so the study measures the measurement, not the off-line
+      calibration), then lifted over the photograph and the camera moved by one draw of the paper's
+      'cable' or 'tilt' series in ``steps`` equal rotations, one picture each;
+    - ``disc``: parked on the plate with a fingertip corner on or beside a printed disc (the parks drawn
+      until one is), measured by the full search from the cell's mount guess; all six corners;
+    - ``occluded`` (independent renderer only): the online pictures with a cable (a thin box) across one
+      finger.
+    """
     k = 0
     for renderer in renderers:
         names = ([None] if plain else []) + list(photos)

@@ -1,22 +1,10 @@
 """Study: the error budget of the paper's experiment on an imperfect simulated cell.
 
-The paper's protocol (section 5, Tables 1 and 2; ``selfview.procedures.experiment.run_direct``: park,
-calibrate off-line, disturb the camera, re-measure with the on-line methods, the off-line method on the
-second picture as the reference) is run on the simulated cell with each part of a real cell's
-imperfections (``selfview.mocks.imperfections.PARTS``) alone at its realistic magnitude, with all of them
-(``realistic``), with none (``ideal``) and with the ``paper-like`` profile. For each configuration, series
-and method (3P-U, 4P-U, 5P-U, 4P-I, 4P-R, 5P-R) it gives the mean absolute TCP error per camera axis
-(c_x, c_y, c_z) [mm] against the simulator's truth and against the off-line reference (the paper's measure),
-and the failed trials (a method that could not run on a trial, with its reason: a miss, never a result).
-
-``paper_check`` compares ``paper-like`` with the paper: per series, method (3P-U, 4P-U, 5P-U, 4P-R, 5P-R)
-and axis where the paper's mean is at least 0.05 mm, the ratio of ours to the paper's against the
-reference (within a factor of 2: 0.5..2); the pattern (3P-U's mean error, summed over the axes, at least
-three times 4P-U's in both tables; Table 2's 4P-U c_z above 4P-R's).
-
-Every configuration uses the same seeds, so the worlds (mount, parking, disturbances) are the same and
-only the imperfections differ. Prints one JSON object; ``--out DIR`` also writes ``error_budget.json``
-and ``error_budget.md``.
+The paper's protocol (section 5, Tables 1 and 2; ``selfview.procedures.experiment.run_direct``) run with
+each part of a real cell's imperfections alone at its realistic magnitude, with all, with none and with
+the ``paper-like`` profile (``configurations``), on the same seeds so that only the imperfections differ;
+``paper_check`` compares ``paper-like`` with the paper. Prints one JSON object; ``--out DIR`` also writes
+``error_budget.json`` and ``error_budget.md``.
 
     python bench/error_budget.py [--trials 10] [--jobs 2] [--configs ideal plate ... paper-like] [--quick] [--out DIR]
 """
@@ -61,6 +49,10 @@ def configurations(names=None) -> dict[str, Imperfections]:
 
 
 def _run(name: str, imp: Imperfections, series: str, trials: int, seed: int) -> tuple[str, str, dict, list]:
+    """One configuration and series: park, calibrate off-line, disturb the camera, re-measure with each
+    method (3P-U, 4P-U, 5P-U, 4P-I, 4P-R, 5P-R); the mean absolute TCP error per camera axis [mm] against
+    the simulator's truth and against the off-line method on the second picture (the paper's measure),
+    and the failed trials with their reasons (a miss, never a result)."""
     from selfview.procedures.experiment import run_direct
 
     cell = load_cell(default_cell_path())
@@ -89,7 +81,12 @@ def _run(name: str, imp: Imperfections, series: str, trials: int, seed: int) -> 
 
 
 def paper_check(conf: dict) -> dict:
-    """How ``conf`` (one configuration's results) compares with the paper's Tables 1 and 2."""
+    """How ``conf`` (one configuration's results) compares with the paper's Tables 1 and 2.
+
+    Per series, method (3P-U, 4P-U, 5P-U, 4P-R, 5P-R) and axis where the paper's mean is at least 0.05 mm,
+    the ratio of ours to the paper's against the reference (within a factor of 2: 0.5..2); and the
+    pattern: 3P-U's mean error, summed over the axes, at least three times 4P-U's in both tables;
+    Table 2's 4P-U c_z above 4P-R's."""
     ratios, misses = [], []
     for series in SERIES:
         for m in PAPER_METHODS:

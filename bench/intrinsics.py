@@ -1,58 +1,9 @@
 """Benchmark: multi-view intrinsics (f, kappa, principal point, aspect) against cv2.calibrateCamera and mrcal.
 
-Study 1, intrinsics (``--cameras`` simulated cameras, default 10, each drawn realistic: principal point up
-to 15 px off, aspect 0.97-1.07): the robot's 12 planned views (``--views``; ``selfview.procedures.viewplan.plan_view_poses``)
-rendered by the project's independent test renderer (``tests/alt_render.py``, in a source tree; the
-project's renderer otherwise, said in the output), the discs detected once per view, and on those same
-detections:
-  - ours: ``calibrate_intrinsics`` (bias-corrected centres, joint LM, covariance scaled by the residual),
-    with the grabber's skew fitted (its error against the simulated grabber's shear, and its honesty);
-  - ``cv2.calibrateCamera`` (extended, for its standard deviations): centre and aspect free (fx, fy, cx,
-    cy), one radial term (CALIB_ZERO_TANGENT_DIST | CALIB_FIX_K2 | CALIB_FIX_K3), started from the cell's
-    guess, on the raw disc centres and, as a second variant, on our bias-corrected ones; its f is fy, its
-    aspect fy / fx (u = X^ / aspect + cx in ours), its kappa the paper's kappa closest to its k1 over the
-    picture (``bench/offline.py``'s ``kappa_equivalent``);
-  - mrcal (``bench/_mrcal_peer.py``) where an interpreter imports it (Debian's ``python3-mrcal``, run in its
-    own interpreter): the plate as mrcal's board with its warp free, ``LENSMODEL_OPENCV4``, on the raw disc
-    centres; its f is fy, its aspect fy / fx, its kappa as cv2's; skipped with a note when none is found.
-Per method: median centre error [px], aspect and f errors [%] against the truth, the RMS of the errors over
-the RMS of the reported sigmas per parameter (1 = honest sigmas), and the median time.
-
-Study 1 again per further ``--profile`` (issue 17's imperfections: a profile name of
-``selfview.mocks.imperfections.PROFILES``, or ``PROFILE:PART`` for one part alone, e.g.
-``realistic:plate``): the same cameras and planned views with the cell's imperfections, rendered by the
-project's renderer (the independent one draws only the specified plate and no grabber), under
-``profiles``; there ours is also run with the plate taken as specified (``selfview_flat_plate``,
-``plate_model='flat'``: the fit before the plate's shape was added) and without the skew
-(``selfview_no_skew``: the spec's camera model, as before the skew was added), and the fitted plate shape is
-listed; cv2.calibrateCamera has no skew parameter (K[0, 1] is held at 0), so it cannot model the shear.
-Then study 2 on that cell: one parked picture calibrated with the measured camera, with and without its
-skew (``tcp_with_camera``, ``tcp_with_camera_no_skew``), against the centre of the real fingers' inner
-corners.
-
-Study 2, one parked picture per camera (the independent renderer): the TCP error of ``calibrate_offline``
-with the measured camera (``--camera``) and with the cell's nominal one, across and along the optical
-axis [mm], against the targets 0.02 and 0.08 mm; with the measured camera also the reported
-``tcp_sigma_mm`` and the errors' RMS over it per camera axis.
-
-Study 3, the camera check (``camera_check``) on ``--pictures`` parked pictures (default 30) of realistic
-cameras and as many of the nominal camera: how often it warns, and on how many of the realistic cameras
-whose nominal calibration misses the targets.
-
-Study 4, the check's reach: parked pictures of cameras a little off the nominal one (centre 0.5 to 4 px
-off, aspect 0.1 to 1 % off), each with whether the nominal calibration misses the targets and whether the
-check warned: one picture pins the centre only to a few tenths of a pixel, so small errors that still
-cost more than 0.02 mm may pass unwarned (the reason to run ``selfview intrinsics`` on every new camera).
-
-Study 5, real photographs (``real_photographs``; ``--photos-only`` runs it alone): each set of printed dot-grid
-photographs the project did not make (``PHOTO_SETS``, in ``tests/data``, each with a cell file per picture
-size). Per picture the discs ``detect_discs`` finds beside ``cv2.findCirclesGrid``'s (symmetric grid) and the
-distance between the centres of the discs both found [px]; per camera (pictures of one size, at least 4)
-``calibrate_intrinsics`` on our detections as ``selfview intrinsics`` runs it (the skew fitted only when the
-views pin it, ``skew_fit`` says which and why; the skew always fitted is listed apart) beside ``cv2.calibrateCamera`` (the flags above) on findCirclesGrid's centres and on ours, with each
-difference in units of the combined sigmas sqrt(s_ours^2 + s_cv2^2) for f, cx, cy and the aspect.
-
-Prints one JSON object.
+Study 1, the joint fit on the robot's planned views of simulated cameras (again per further ``--profile``
+of a real cell's imperfections); 2, one parked picture calibrated with the measured camera; 3 and 4, how
+often the camera check warns and how small an error it catches; 5, real dot-grid photographs. Each
+study's function says what it measures. Prints one JSON object.
 
     python bench/intrinsics.py [--cameras 10] [--pictures 30] [--jobs 2] [--quick] [--profile ideal realistic ...]
     python bench/intrinsics.py --photos-only
@@ -101,8 +52,10 @@ except ImportError:  # pragma: no cover - an installed copy without the tests
 #: Where the robot's base lies from the reference simulated cell's plate (W's -x).
 LEAN = (-1.0, 0.0)
 CV_FLAGS = ("CALIB_USE_INTRINSIC_GUESS", "CALIB_ZERO_TANGENT_DIST", "CALIB_FIX_K2", "CALIB_FIX_K3")
+#: The intrinsics targets: median centre error under 0.3 px, aspect and f errors under 0.05 %, the
+#: errors' RMS within a factor 2 of the reported sigmas.
 ISSUE = {"centre_px": 0.3, "aspect_pct": 0.05, "f_pct": 0.05, "sigma_factor": 2.0}
-#: The robot's planned views per camera (the issue's 12; ``--views``).
+#: The robot's planned views per camera (12 by default; ``--views``).
 VIEWS = 12
 
 
@@ -187,6 +140,25 @@ def _errors(est, truth, skew=0.0):
 
 
 def one_camera(args) -> dict:
+    """Studies 1 and 2 on one realistic simulated camera (principal point up to 15 px off, aspect 0.97-1.07).
+
+    Study 1: the planned views (``plan_view_poses``) rendered by the independent test renderer
+    (``tests/alt_render.py``), the discs detected once per view, and on those same detections:
+      - ours: ``calibrate_intrinsics`` (bias-corrected centres, joint LM, covariance scaled by the
+        residual), with the grabber's skew fitted;
+      - ``cv2.calibrateCamera`` (extended, for its standard deviations): fx, fy, cx, cy free, one radial
+        term (``CV_FLAGS``), started from the cell's guess, on the raw disc centres and on our
+        bias-corrected ones; its f is fy, its aspect fy / fx (u = X^ / aspect + cx in ours), its kappa the
+        paper's kappa closest to its k1 over the picture (``bench/offline.py``'s ``kappa_equivalent``);
+      - mrcal (``bench/_mrcal_peer.py``) where an interpreter imports it: the plate as mrcal's board with
+        its warp free, ``LENSMODEL_OPENCV4``, on the raw disc centres; skipped with a note otherwise.
+    Per method (``table``): median centre error [px], aspect and f errors [%] against the truth, the RMS of
+    the errors over the RMS of the reported sigmas per parameter (1 = honest sigmas), the median time.
+
+    Study 2: one parked picture (the independent renderer): the TCP error of ``calibrate_offline`` with
+    the measured camera and with the cell's nominal one, across and along the optical axis [mm], against
+    0.02 and 0.08 mm; with the measured camera also ``tcp_sigma_mm``.
+    """
     seed, views = args if isinstance(args, tuple) else (args, VIEWS)
     cell = load_cell(default_cell_path())
     w = SimWorld(cell, seed=seed, camera="realistic")
@@ -245,7 +217,15 @@ def _imperfections(profile: str):
 
 
 def one_camera_profile(args) -> dict:
-    """Study 1 on a cell with imperfections (the project's renderer; see the module)."""
+    """Study 1 on a cell with imperfections (a ``--profile``), rendered by the project's renderer.
+
+    The independent renderer draws only the specified plate and no grabber. Ours is also run with the
+    plate taken as specified (``selfview_flat_plate``, ``plate_model='flat'``) and without the skew
+    (``selfview_no_skew``: the spec's camera model), and the fitted plate shape is listed;
+    cv2.calibrateCamera holds K[0, 1] at 0, so it cannot model the grabber's shear. Then study 2 on that
+    cell, with and without the skew (``tcp_with_camera``, ``tcp_with_camera_no_skew``), against the centre
+    of the real fingers' inner corners.
+    """
     seed, profile, views = args if len(args) == 3 else (*args, VIEWS)
     cell = load_cell(default_cell_path())
     w = SimWorld(cell, seed=seed, imperfections=_imperfections(profile), camera="realistic")
@@ -298,7 +278,7 @@ def one_camera_profile(args) -> dict:
         out["cv2_bias_corrected"] = {**cor, **_errors(cor, w.camera)}
     _add_mrcal(out, dets, cell, cam0, w.camera, true_skew)
     # study 2 on this cell: one parked picture calibrated with the measured camera (with and without its
-    # skew); the true TCP is the centre of the real fingers' inner corners (issue 17's fingers are off nominal)
+    # skew); the true TCP is the centre of the real fingers' inner corners (the realistic fingers are off nominal)
     w.set_tcp(plate)
     w.park()
     pic = _project_render(w, seed=1000 * seed + 999).image
@@ -324,6 +304,15 @@ SMALL = ([{"principal_point": [383.5 + d, 287.5]} for d in (0.5, 1.0, 2.0, 4.0)]
 
 
 def one_picture(args) -> dict:
+    """Studies 3 and 4: the camera check (``camera_check``) on one parked picture calibrated with the
+    nominal camera.
+
+    Study 3 runs it on realistic cameras and on the nominal one: how often it warns, and on how many of
+    the cameras whose nominal calibration misses the TCP targets. Study 4 (``SMALL``) on cameras a little
+    off the nominal one (centre 0.5 to 4 px, aspect 0.1 to 1 %): one picture pins the centre only to a few
+    tenths of a pixel, so small errors that still cost more than 0.02 mm may pass unwarned (the reason
+    to run ``selfview intrinsics`` on every new camera).
+    """
     seed, kind = args
     cell = load_cell(default_cell_path())
     w = SimWorld(cell, seed=seed, camera=kind)
@@ -431,7 +420,16 @@ def _in_sigmas(ours, theirs) -> dict:
 
 
 def photo_study() -> dict:
-    """Study 5 (see the module): ours beside findCirclesGrid and cv2.calibrateCamera on real photographs."""
+    """Study 5: ours beside findCirclesGrid and cv2.calibrateCamera on real photographs.
+
+    Each set of printed dot-grid photographs the project did not make (``PHOTO_SETS``, in ``tests/data``,
+    each with a cell file per picture size). Per picture the discs ``detect_discs`` finds beside
+    ``cv2.findCirclesGrid``'s (symmetric grid) and the distance between the centres both found [px]; per
+    camera (pictures of one size, at least 4) ``calibrate_intrinsics`` run as ``selfview intrinsics`` runs
+    it (the skew fitted only when the views pin it, ``skew_fit`` says which and why; the skew always fitted
+    is listed apart) beside ``cv2.calibrateCamera`` (``CV_FLAGS``) on findCirclesGrid's centres and on ours,
+    each difference in units of the combined sigmas sqrt(s_ours^2 + s_cv2^2) for f, cx, cy and the aspect.
+    """
     from types import SimpleNamespace
 
     from selfview.discs import detect_discs
@@ -523,7 +521,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cameras", type=int, default=10, help="simulated cameras for the intrinsics table (default 10)")
     ap.add_argument("--pictures", type=int, default=30, help="parked pictures per kind for the warning rates (default 30)")
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
-    ap.add_argument("--views", type=int, default=VIEWS, help=f"planned views per camera (default {VIEWS}, the issue's)")
+    ap.add_argument("--views", type=int, default=VIEWS, help=f"planned views per camera (default {VIEWS})")
     ap.add_argument("--quick", action="store_true", help="a small run: 2 cameras, 4 pictures per kind")
     ap.add_argument("--profile", nargs="+", default=["ideal", "realistic"],
                     help="simulated cells for study 1: 'ideal' (the independent renderer, and studies 2-4) and "

@@ -1,29 +1,9 @@
 """Study: classical hand/eye calibration (AX = XB) against the self-viewing method as the robot wears.
 
-Per seed, one simulated cell (``selfview.mocks.world.SimWorld``: its own true mount and camera) and one worn
-PUMA 260 (``selfview.mocks.kinematic_errors``: a fixed pattern of link-length and joint-zero errors, scaled by the
-error level, and encoder noise). The levels scale the worn robot ``WORN_PUMA`` (link lengths +-1 mm,
-joint zeros +-0.2 deg, encoder noise 0.02 deg sd) by 0, 0.25, 0.5, 0.75, 1 (default).
-
-AX = XB: the gripper stands at 20 stations above the plate (60-120 mm over it, tilted 15-25 deg about a
-random horizontal axis, turned up to 40 deg about the vertical, aimed so the camera sees the plate);
-each station's picture is rendered (``selfview.mocks.render``) and kept if it shows >= 20 whole discs with every
-row and column seen. The camera pose ``C_H_W`` comes from each picture (``selfview.discs.detect_discs``
-and ``selfview.bench.handeye.plate_pose``: the discs' exterior orientation with f and kappa FIXED at the values
-of this level's off-line calibration, so that both methods share one interior orientation and the
-comparison is about the kinematics). The flange pose comes from the controller's NOMINAL kinematics at
-the joints its encoders read, while the arm truly stands where the TRUE geometry puts the true joints
-(``PerturbedPuma260.observe``: the stations' true poses are the same at every level, so each picture is
-rendered once per seed). The disc grid's four-fold symmetry is resolved per station by the robot's
-pose and the cell's mount guess. AX = XB is solved with the first 5, 10 and 20 stations by
-``selfview.bench.handeye`` (Tsai-Lenz, Park-Martin) and OpenCV's ``calibrateHandEye`` (TSAI, PARK) as a
-cross-check, and ``C_H_G = X^-1 F_H_G`` through the tool transform is compared with the true mount.
-
-Self-viewing: the robot (commanded through the same worn kinematics) parks the gripper on the plate;
-one picture; ``selfview.offline.calibrate_offline``; its ``C_H_G`` against the true mount.
-
-Prints one JSON object; with ``--out DIR`` also writes ``kinematics_vs_selfview.json``, ``.md`` (table)
-and ``.png`` (plot) there.
+Per seed, one simulated cell and one worn PUMA 260 (``selfview.mocks.kinematic_errors``) whose errors
+scale ``WORN_PUMA`` (link lengths +-1 mm, joint zeros +-0.2 deg, encoder noise 0.02 deg sd) by each
+``--levels`` value; both methods' ``C_H_G`` against the true mount (``run_seed``). Prints one JSON object;
+with ``--out DIR`` also writes ``kinematics_vs_selfview.json``, ``.md`` (table) and ``.png`` (plot) there.
 
     python bench/kinematics_vs_selfview.py [--seeds 6] [--levels 0,0.25,0.5,0.75,1] [--jobs 2] [--out DIR] [--quick]
 """
@@ -85,7 +65,11 @@ def candidate_pose(cell, rng) -> np.ndarray:
 
 
 def stations(world, cell, seed: int, n: int, max_tries: int) -> tuple[list, dict]:
-    """``n`` stations (true base_H_G, disc detections) whose pictures show enough of the plate."""
+    """``n`` stations (true base_H_G, disc detections) whose pictures show enough of the plate.
+
+    60-120 mm over the plate, tilted 15-25 deg about a random horizontal axis, turned up to 40 deg about
+    the vertical, aimed so the camera sees the plate; a picture is kept if it shows >= ``MIN_DISCS``
+    whole discs with every row and column seen."""
     rng = np.random.default_rng([seed, 2])
     plate, guess = cell.plate, cell.camera.guess()
     nominal = PerturbedPuma260(seed=seed).nominal
@@ -161,6 +145,19 @@ def errors(C_H_G_est, C_H_G_true) -> dict:
 
 # --- one seed ----------------------------------------------------------------------------------------
 def run_seed(seed: int, levels: list[float], n_list: list[int], max_tries: int) -> dict:
+    """Both methods on one simulated cell at every wear level.
+
+    AX = XB: ``C_H_W`` from each station's picture (``plate_pose``: the discs' exterior orientation with
+    f and kappa FIXED at this level's off-line calibration, so that both methods share one interior
+    orientation and the comparison is about the kinematics); the flange pose from the controller's
+    NOMINAL kinematics at the joints its encoders read, while the arm truly stands where the TRUE
+    geometry puts the true joints (``PerturbedPuma260.observe``: the stations' true poses are the same
+    at every level, so each picture is rendered once per seed). The grid's four-fold symmetry is
+    resolved per station (``resolve_grid``). Solved with the first 5, 10 and 20 stations by
+    ``selfview.bench.handeye`` (Tsai-Lenz, Park-Martin) and OpenCV's ``calibrateHandEye`` (TSAI, PARK);
+    ``C_H_G = X^-1 F_H_G`` through the tool transform. Self-viewing: the robot (commanded through the
+    same worn kinematics) parks the gripper on the plate; one picture; ``calibrate_offline``.
+    """
     cv2.setNumThreads(1)
     t0 = time.perf_counter()
     cell = load_cell(default_cell_path())

@@ -1,19 +1,6 @@
 """Mutation check: can the test suite fail? Each mutation is a deliberate bug put into a temporary copy of
 the repository; the tests that should catch it run there; it is caught when they fail.
 
-A mutation is data (``MUTATIONS`` below): its name, the file it changes, the exact original text (which
-must occur in that file exactly once), the replacement, and the pytest node ids or files that should
-catch it. For each one the script copies the repository tree (with the compiled kernels built in place,
-so the copy runs the same code; ``selfview/__init__.py`` resolves ``selfview.drivers`` and the others to
-the copy's folders), applies the one mutation, and runs
-
-    python -m pytest -x -q -p no:cacheprovider <tests>
-
-with the copy as the working directory, under a timeout. Caught means the tests failed (a non-zero exit
-other than "no tests collected" or a usage error). A mutation whose original text is not found, or found
-more than once, is reported with an error ("no longer applies") and never counted as caught; a run that
-times out counts as not caught, with its error.
-
 Prints one JSON object: ``caught``, ``total``, ``errors`` (mutations that no longer apply or timed out),
 and ``mutations``: a list of {name, file, caught, failed_tests, error, seconds}.
 
@@ -40,7 +27,8 @@ ROOT = Path(__file__).resolve().parent.parent
 @dataclass(frozen=True)
 class Mutation:
     """One deliberate bug: in ``file`` (relative to the repository), ``original`` becomes ``replacement``;
-    ``tests`` (pytest node ids or files, relative to the repository) should then fail."""
+    ``tests`` (pytest node ids or files, relative to the repository) should then fail. ``original``
+    must occur in that file exactly once."""
 
     name: str
     file: str
@@ -337,7 +325,9 @@ _NOT_A_FAILURE = {2, 3, 4, 5}
 
 
 def copy_tree(dest: Path, root: Path = ROOT) -> Path:
-    """The repository's tree (kernels built in place included) copied to ``dest``; returns it."""
+    """The repository's tree (kernels built in place included) copied to ``dest``; returns it. The copy
+    runs the same code: ``selfview/__init__.py`` resolves ``selfview.drivers`` and the others to the
+    copy's folders."""
     shutil.copytree(root, dest, ignore=_IGNORE, symlinks=True)
     return dest
 
@@ -361,7 +351,12 @@ def _failed_tests(output: str) -> list[str]:
 
 
 def run_one(m: Mutation, timeout_s: float, root: Path = ROOT) -> dict:
-    """Apply ``m`` to a fresh copy of the tree, run its tests there, and say whether they caught it."""
+    """Apply ``m`` to a fresh copy of the tree, run its tests there, and say whether they caught it.
+
+    ``python -m pytest -x -q -p no:cacheprovider <tests>`` in the copy, under a timeout. Caught means the
+    tests failed (a non-zero exit other than "no tests collected" or a usage error). A mutation whose
+    original text is not found, or found more than once, is reported with an error ("no longer applies")
+    and never counted as caught; a run that times out counts as not caught, with its error."""
     t0 = time.monotonic()
     rec = {"name": m.name, "file": m.file, "caught": False, "failed_tests": [], "error": None}
     with tempfile.TemporaryDirectory(prefix="selfview-mutation-") as tmp:

@@ -1,27 +1,9 @@
 """Benchmark: the off-line calibration of one picture, its speed and accuracy, against OpenCV's calibrateCamera.
 
-Speed (one picture of the reference cell, seed 0, the gripper parked; one thread): the median time of the
-whole ``calibrate_offline`` (disc detection, Tsai twice with the disc-bias correction between, fingertips,
-PCC; target 150 ms), of its camera-calibration step alone (``calibrate_coplanar`` on the detected discs),
-and of ``cv2.calibrateCamera`` on the same points: one view, principal point fixed at the picture's
-centre, one radial term (flags CALIB_USE_INTRINSIC_GUESS | CALIB_FIX_PRINCIPAL_POINT |
-CALIB_FIX_ASPECT_RATIO | CALIB_ZERO_TANGENT_DIST | CALIB_FIX_K2 | CALIB_FIX_K3), started from the cell's
-focal guess.
-
-Accuracy (``--seeds`` simulated cells, default 30; each a parked gripper at a random offset and turn): f
-error [%], kappa error [%], the TCP position error of ``C_H_G`` across (x, y) and along (z) the optical
-axis [mm] and its rotation error [deg] against the simulator's truth, medians and 95th percentiles, with
-its targets (f 0.2 %, kappa 3 %, TCP 0.02 mm across, 0.08 mm along, rotation 0.02 deg). OpenCV runs
-on the same detections: the raw disc centres (what the detector measures) and, as a second variant, the
-centres with our perspective-bias correction; its ``C_H_W`` then goes through the same PCC step (its own
-model undistorts the fingertip corners, the gripper is measured from them as ours is). OpenCV's k1
-acts on normalised coordinates in the forward direction (x_d = x_u (1 + k1 r_u^2)), the paper's kappa on
-pixels in the backward direction (X_u = X_d (1 + kappa r_d^2)): to first order kappa = -k1 / f^2. The
-two models differ beyond first order (by several % of kappa at the picture's corners), so its kappa
-error uses the kappa that best reproduces OpenCV's own undistortion over the picture (least squares
-over 64 radii from the centre to a corner, ``kappa_equivalent``); the first-order value is given too.
-
-Prints one JSON object.
+Speed (``speed``: one picture, one thread, target ``TARGET_TOTAL_MS``) and accuracy on ``--seeds``
+simulated cells (``one_seed``: errors against the simulator's truth beside ``TARGETS``). OpenCV runs on
+the same detections with ``CV_FLAGS``: one view, principal point fixed at the picture's centre, one
+radial term, started from the cell's focal guess. Prints one JSON object.
 
     python bench/offline.py [--repeat 15] [--seeds 30] [--jobs 2] [--quick]
 """
@@ -107,7 +89,11 @@ def opencv_C_H_G(off, K, dist, C_H_W, cell) -> np.ndarray:
 def kappa_equivalent(K, dist, width: int, height: int, aspect: float = 1.0) -> float:
     """The paper's kappa [px^-2] closest to OpenCV's radial model (K, dist): least squares of
     X_u - X_d = kappa X_d r_d^2 over 64 distorted radii from the centre to a corner, X_u from
-    cv2.undistortPoints."""
+    cv2.undistortPoints.
+
+    OpenCV's k1 acts on normalised coordinates in the forward direction (x_d = x_u (1 + k1 r_u^2)), the
+    paper's kappa on pixels in the backward direction (X_u = X_d (1 + kappa r_d^2)): to first order
+    kappa = -k1 / f^2, but the models differ beyond that by several % of kappa at the picture's corners."""
     cx, cy, f = K[0, 2], K[1, 2], K[1, 1]
     t = np.linspace(0.0, 1.0, 65)[1:]
     uv = np.column_stack([cx + t * (width - 0.5 - cx), cy + t * (height - 0.5 - cy)])
@@ -131,7 +117,13 @@ def errors(f, kappa, C_H_G, truth) -> dict:
 
 
 def one_seed(seed: int) -> dict:
-    """Calibrate one simulated cell's parked picture by both methods; errors against the truth."""
+    """Calibrate one simulated cell's parked picture by both methods; errors against the truth.
+
+    The gripper parked at a random offset and turn; f and kappa errors [%], the TCP error of ``C_H_G``
+    across (x, y) and along (z) the optical axis [mm], its rotation error [deg]. OpenCV on the raw disc
+    centres and, as a second variant, on the centres with our perspective-bias correction; its
+    ``C_H_W`` then goes through the same PCC step (its own model undistorts the fingertip corners). Its
+    kappa error uses ``kappa_equivalent``; the first-order -k1 / f^2 is given too."""
     cv2.setNumThreads(1)
     cell = load_cell(default_cell_path())
     world = SimWorld(cell, seed=seed)
@@ -171,7 +163,10 @@ def median_ms(fn, repeat: int) -> float:
 
 
 def speed(repeat: int) -> dict:
-    """Median times [ms] on one picture, one thread."""
+    """Median times [ms] on one picture of the reference cell (seed 0, the gripper parked), one thread:
+    the whole ``calibrate_offline`` (disc detection, Tsai twice with the disc-bias correction between,
+    fingertips, PCC), its ``calibrate_coplanar`` step alone, and ``cv2.calibrateCamera`` on the same
+    points."""
     cv2.setNumThreads(1)
     cell = load_cell(default_cell_path())
     world = SimWorld(cell, seed=0)

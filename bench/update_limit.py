@@ -1,31 +1,10 @@
 """Study: up to which disturbance updating (4P-U) is as good as recalibrating (4P-R), by experiment.
 
-The paper (section 4) leaves the limit between updating and recalibrating "to be found experimentally".
-Per seed, one simulated cell with the gripper parked on the plate is calibrated off-line from a first
-picture (``calibrate_offline``). Then, for each axis (C x, C y, C z, and one random axis per seed)
-through the mount's pivot (``simulation.disturbances.cable.pivot_C``) and each angle (12 values
-log-spaced from 0.1 to 10 deg), the camera is turned on its mount (``SimWorld.disturb_by_angle``), a
-picture rendered (``selfview.mocks.render``), the fingertip corners found (``find_fingertips``), and 4P-U, 4P-I
-and 4P-R estimate the new ``C_H_G`` from the off-line calibration; each is compared with the truth
-(TCP position and rotation error). The finder is pointed at the current pose as a frame-by-frame
-tracker would point it (the previous frame's estimate: here the true pose moved by a random tracking
-error of 0.2 deg and 0.3 mm); the solvers all start from the off-line calibration.
-
-The limit: 4P-U solves the linearised problem (eq. 17) whose exact solution 4P-I and 4P-R find, so on
-one picture the two differ only by 4P-U's modelling error m = |t_U - t_R| (TCP, mm; likewise the angle
-between their rotations), which grows with the square of the disturbance, while both carry the same
-measurement error. Updating stays as good as recalibrating while m is small against that measurement
-error s (the RMS error of 4P-R against the truth over all trials): with the two independent, 4P-U's
-error is sqrt(s^2 + m^2), at most (1 + ``--tolerance``) s (default 0.1: 10 % more) while
-m <= sqrt((1 + tolerance)^2 - 1) s. Per axis the angle where the median m over seeds reaches that
-bound (log-log interpolation on the grid; TCP and rotation, whichever comes first) is where updating
-stops being as good; the limit is the smallest over the axes. Its shift_mm is the largest over the axes
-of the policy's own measure d at that angle (eq. 14: the translation of the camera's motion, which
-the policy compares with ``update_limit.shift_mm``); the TCP shift is given too.
-
-Prints one JSON object; ``--out DIR`` also writes ``update_limit.json``, ``.md`` and ``.png``;
-``--write-cell PATH`` rewrites ``monitor.update_limit`` in that cell file (values only, a comment line
-saying where they come from; every other byte kept).
+The paper (section 4) leaves that limit "to be found experimentally": simulated cells calibrated
+off-line, the camera turned on its mount about several axes by growing angles, 4P-U, 4P-I and 4P-R
+compared with the truth (``run_axis``), the limit where 4P-U's model error starts to show
+(``find_limit``). Prints one JSON object; ``--out DIR`` also writes ``update_limit.json``, ``.md`` and
+``.png``; ``--write-cell PATH`` rewrites ``monitor.update_limit`` in that cell file (``write_cell``).
 
     python bench/update_limit.py [--seeds 3] [--jobs 2] [--out DIR] [--write-cell selfview/data/cell.yaml] [--quick]
 """
@@ -77,7 +56,15 @@ def seed_axes(seed: int) -> dict[str, tuple[float, float, float]]:
 
 
 def run_axis(seed: int, axis_name: str, angles: list[float]) -> dict:
-    """Every angle about one axis of one simulated cell: calibrate off-line, then disturb, find, estimate."""
+    """Every angle about one axis of one simulated cell: calibrate off-line, then disturb, find, estimate.
+
+    The cell, gripper parked on the plate, is calibrated off-line from a first picture. For each angle
+    the camera is turned on its mount about the axis through the mount's pivot
+    (``simulation.disturbances.cable.pivot_C``; ``SimWorld.disturb_by_angle``), a picture rendered, the
+    fingertip corners found, and 4P-U, 4P-I and 4P-R estimate the new ``C_H_G`` from the off-line
+    calibration, each compared with the truth (TCP position and rotation error). The finder is pointed
+    at the current pose as a frame-by-frame tracker would point it (here the true pose moved by a random
+    tracking error of 0.2 deg and 0.3 mm); the solvers all start from the off-line calibration."""
     cv2.setNumThreads(1)
     t0 = time.perf_counter()
     cell = load_cell(default_cell_path())
@@ -190,9 +177,17 @@ def _at(rows: list[dict], key: str, angle: float) -> float:
 
 
 def find_limit(tab: dict, floor: dict, tolerance: float) -> dict:
-    """The update limit (module docstring): per axis the angle where 4P-U's median model error reaches
+    """The update limit: per axis the angle where 4P-U's median model error reaches
     ``sqrt((1 + tolerance)^2 - 1)`` times the noise floor (TCP or rotation, the first), the smallest
-    over the axes, and the largest policy d (and TCP shift) of the axes at that angle."""
+    over the axes, and the largest policy d (and TCP shift) of the axes at that angle.
+
+    4P-U solves the linearised problem (eq. 17) whose exact solution 4P-I and 4P-R find, so on one
+    picture the two differ only by 4P-U's model error m = |t_U - t_R| (TCP, mm; likewise the angle
+    between their rotations), which grows with the square of the disturbance, while both carry the same
+    measurement error s (the noise floor: 4P-R's RMS error against the truth). With the two independent,
+    4P-U's error is sqrt(s^2 + m^2), at most (1 + tolerance) s while m <= sqrt((1 + tolerance)^2 - 1) s.
+    The crossing is log-log interpolated on the angle grid. d is the policy's own measure (eq. 14: the
+    translation of the camera's motion, compared with ``update_limit.shift_mm``)."""
     k = float(np.sqrt((1.0 + tolerance) ** 2 - 1.0))
     bounds = {"model_tcp_mm": k * floor["tcp_mm"], "model_rot_deg": k * floor["rot_deg"]} if floor["n"] else {}
     per_axis, by = {}, {}

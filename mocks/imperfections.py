@@ -1,30 +1,9 @@
-"""The imperfections of a real self-viewing cell, for the simulated world (issue 17).
+"""The imperfections of a real self-viewing cell, for the simulated world.
 
-The simulated cell of ``SimWorld`` and ``render`` is ideal by default: a perfectly printed flat plate,
-fingers of exactly the cell's nominal dimensions with sharp edges, a camera whose 576 lines are taken at
-one instant and sampled without jitter, even light, and disturbances that are pure rotations about the
-configured pivot. A real CCIR cell such as the paper's (Panasonic WV-KS152, 7.5 mm lens, a laser-printed
-plate, a PUMA 260 with a pneumatic parallel-jaw gripper) has none of these. ``Imperfections`` lists them,
-each with a magnitude (0: off) and the source of its realistic value beside it; named profiles:
-
-- ``ideal``: everything off (the cell the project simulated until issue 17; every exact test uses it);
-- ``realistic``: every part at the realistic magnitude of its source;
-- ``paper-like``: the combination of realistic magnitudes under which the simulated Tables 1 and 2 come
-  nearest the paper's (found with ``bench/error_budget.py``; see ``docs/RESULTS.md``).
-
-What is drawn per world (plate print errors, the fingers' real dimensions, a disturbance's pivot and slip)
-comes from a generator of its own, seeded from the world's seed, so that switching a part on changes
-nothing else in the world (the same mount, parking offsets and disturbances as the ideal cell). What
-changes per picture (interlace, line jitter, analogue noise, flicker) is drawn from the render's seed.
-
-Parts (``PARTS``), each switchable alone (``Imperfections.only``):
-
-- ``plate``: printing scale error, random disc position errors, the sheet not flat;
-- ``fingers``: dimensions off nominal, rounded (chamfered) edges;
-- ``interlace``: the two CCIR fields taken 20 ms apart while the camera vibrates;
-- ``grabber``: line jitter and PLL shear of the frame grabber, analogue noise;
-- ``light``: illumination gradient, vignetting, flicker between frames;
-- ``disturbance``: the mount's motion is not a pure rotation about the configured pivot.
+The simulated cell of ``SimWorld`` and ``render`` is ideal by default. A real CCIR cell such as the
+paper's (Panasonic WV-KS152, 7.5 mm lens, a laser-printed plate, a PUMA 260 with a pneumatic gripper) is
+not: ``Imperfections`` lists its imperfections, each with a magnitude (0: off) and the source of its
+realistic value beside it, in parts (``PARTS``) switchable alone and named profiles (``PROFILES``).
 """
 
 from __future__ import annotations
@@ -55,11 +34,11 @@ class Imperfections:
 
     # --- plate (the paper, section 5: "a laser print ... imprecise positioning of the printer") ---
     #: Relative printing scale error of the sheet (sign drawn per world). Laser printers' paper feed and
-    #: toner fusing scale a print by 0.1-0.3 % (issue 17's range; e.g. the HP LaserJet 4 service manual
+    #: toner fusing scale a print by 0.1-0.3 % (e.g. the HP LaserJet 4 service manual
     #: specifies a +-0.2 % image length tolerance). Realistic: 0.2 %.
     plate_scale: float = 0.0
     #: Standard deviation of each disc centre's position error per axis [mm]. At 600 dpi a printer places
-    #: toner on a 42 um grid, so a disc's edge is off by up to half a dot: 10-20 um (issue 17). Realistic: 15 um.
+    #: toner on a 42 um grid, so a disc's edge is off by up to half a dot: 10-20 um. Realistic: 15 um.
     plate_dot_sd_mm: float = 0.0
     #: Paper not flat: height of a cylindrical bow (cockle) across the sheet [mm]; the sheet lifts towards
     #: the camera in the middle of one direction (random per world). Printed office paper glued or laid on a
@@ -72,7 +51,7 @@ class Imperfections:
     #: 30-120 mm (the jaw gap). Realistic: 0.1 mm (so 95 % within the class's +-0.2 mm).
     finger_dim_sd_mm: float = 0.0
     #: Edge break of the fingers' edges [mm], rendered as a 45 degree chamfer tangent to a round of this
-    #: radius: deburred machined parts carry 0.1-0.3 mm (ISO 13715 edge specifications; issue 17).
+    #: radius: deburred machined parts carry 0.1-0.3 mm (ISO 13715 edge specifications).
     #: Realistic: 0.2 mm.
     finger_edge_radius_mm: float = 0.0
 
@@ -160,7 +139,11 @@ class Imperfections:
         return asdict(self)
 
 
-#: Each part and its fields.
+#: Each part and its fields: ``plate`` printing scale error, random disc position errors, the sheet not
+#: flat; ``fingers`` dimensions off nominal, rounded (chamfered) edges; ``interlace`` the two CCIR fields
+#: taken 20 ms apart while the camera vibrates; ``grabber`` line jitter and PLL shear of the frame
+#: grabber, analogue noise; ``light`` illumination gradient, vignetting, flicker between frames;
+#: ``disturbance`` the mount's motion not a pure rotation about the configured pivot.
 PARTS: dict[str, tuple[str, ...]] = {
     "plate": ("plate_scale", "plate_dot_sd_mm", "plate_bow_mm"),
     "fingers": ("finger_dim_sd_mm", "finger_edge_radius_mm"),
@@ -179,7 +162,10 @@ REALISTIC = Imperfections(
     pivot_sd_mm=20.0, slip_sd_mm=0.2,
 )
 
-#: Named profiles (``--profile``).
+#: Named profiles (``--profile``): ``ideal`` everything off (every exact test uses it); ``realistic``
+#: every part at the realistic magnitude of its source; ``paper-like`` the combination of realistic
+#: magnitudes under which the simulated Tables 1 and 2 come nearest the paper's (found with
+#: ``bench/error_budget.py``).
 PROFILES: dict[str, Imperfections] = {
     "ideal": Imperfections(),
     "realistic": REALISTIC,
@@ -210,6 +196,10 @@ def resolve(imperfections) -> Imperfections:
 # --- what is drawn per world ------------------------------------------------------------------------
 class RealisedImperfections:
     """One world's draw of its imperfections: the printed plate, the real fingers, the disturbances' rng.
+
+    Drawn from a generator of its own, seeded from the world's seed, so that switching a part on changes
+    nothing else in the world (the same mount, parking offsets and disturbances as the ideal cell). What
+    changes per picture (interlace, line jitter, analogue noise, flicker) is drawn from the render's seed.
 
     ``disc_centres_W`` (rows*cols, 3): the printed disc centres in W [mm] (z < 0: lifted towards the
     camera); ``finger_faces`` (2, 4): per finger the offsets [mm] of its inner, outer, front (-y) and back

@@ -1,26 +1,7 @@
 """PUMA 260 kinematics: forward and closed-form inverse, from the published geometry.
 
-The arm is modelled with standard Denavit-Hartenberg parameters in the usual PUMA structure (shoulder
-and upper arm in one plane, a lateral offset between upper arm and forearm, a small elbow drop, a
-spherical wrist):
-
-    link  theta            d                a               alpha
-    1     q1 + z1          0                0               +90
-    2     q2 + z2          0                upper_arm       0
-    3     q3 + z3          lateral          elbow_drop      -90
-    4     q4 + z4          forearm          0               +90
-    5     q5 + z5          0                0               -90
-    6     q6 + z6          flange           0               0
-
-with the shoulder frame ``shoulder`` mm above the base reference (B: z up, x forward). ``q`` are
-VAL's joint angles (JT1..JT6, degrees); ``z`` maps VAL's zero to the DH zero so that VAL's READY
-(0, -90, 90, 0, 0, 0) holds the arm straight up; ``joint_offsets_deg`` and the link lengths are
-parameters, so a simulated robot can be given kinematic errors.
-
-Inverse kinematics chooses one arm configuration: ``reach`` 'front' (the wrist centre in front of the
-shoulder, r > 0) or 'back', ``elbow`` 'above' or 'below' the shoulder-wrist line (seen from the side
-on which the wrist lies to the right), ``wrist`` 'noflip' (JT5 >= 0) or 'flip'. Joint angles are wrapped by whole turns into the limits, nearest to a given
-current joint state.
+Link lengths and joint offsets are parameters (``Puma260Geometry``), so a simulated robot can be given
+kinematic errors. ``q`` are VAL's joint angles (JT1..JT6, degrees).
 """
 
 from __future__ import annotations
@@ -101,7 +82,10 @@ class Puma260Geometry:
 
 @dataclass(frozen=True)
 class ArmConfig:
-    """Which of the (up to) eight solutions inverse kinematics returns."""
+    """Which of the (up to) eight solutions inverse kinematics returns: ``reach`` 'front' (the wrist
+    centre in front of the shoulder, r > 0) or 'back', ``elbow`` 'above' or 'below' the shoulder-wrist
+    line (seen from the side on which the wrist lies to the right), ``wrist`` 'noflip' (JT5 >= 0) or
+    'flip'. Joint angles are wrapped by whole turns into the limits, nearest to a given joint state."""
 
     reach: str = "front"
     elbow: str = "above"
@@ -133,6 +117,18 @@ class Puma260:
 
     def frames(self, q_deg) -> list[np.ndarray]:
         """The (4, 4) poses in B of DH frames 0..6 (frame 0 at the shoulder, 6 at the flange)."""
+        # Standard Denavit-Hartenberg in the usual PUMA structure (shoulder and upper arm in one plane, a
+        # lateral offset between upper arm and forearm, a small elbow drop, a spherical wrist), the
+        # shoulder frame ``shoulder`` mm above the base reference (B: z up, x forward):
+        #     link  theta      d         a           alpha
+        #     1     q1 + z1    0         0           +90
+        #     2     q2 + z2    0         upper_arm   0
+        #     3     q3 + z3    lateral   elbow_drop  -90
+        #     4     q4 + z4    forearm   0           +90
+        #     5     q5 + z5    0         0           -90
+        #     6     q6 + z6    flange    0           0
+        # ``z`` maps VAL's zero to the DH zero so that VAL's READY (0, -90, 90, 0, 0, 0) holds the arm
+        # straight up.
         d, a = self._links()
         H = trans(0.0, 0.0, self.geometry.shoulder_mm)
         out = [H]

@@ -1,23 +1,10 @@
 """The simulated wrist camera's picture: a ray caster through the true camera model, and its ground truth.
 
-The scene, in the frames of ``CONVENTIONS.md``: the calibration plate (a board ``PLATE_THICKNESS_MM``
-thick whose z = 0 face is the printed sheet: paper with dark discs), the foam block under it (a larger
-slab whose top lies ``FOAM_GAP_MM`` behind the plate plane), the two fingers as boxes in G (each face
-lit by ``LIGHT_G`` to one of the three ``finger`` grey levels), and the table (the plane z = 0 of the
-robot base B, z up) with a seeded texture. Every ray leaves the projection centre through a *distorted*
-pixel position, so straight 3-D edges come out slightly curved (eq. 3-4; the correction from distorted
-to undistorted is explicit, so no cubic is solved per ray).
-
-A pixel's value is the mean of the scene over its area (pixel (u, v) covers u-0.5..u+0.5, v-0.5..v+0.5):
-- a pixel that no edge crosses sees one surface and takes its value exactly;
-- a pixel that an edge crosses (the images of all box edges and disc rims are marked analytically, and
-  so is every pixel whose centre sees another surface than a neighbour's) averages a Fibonacci lattice
-  of at least (2 n)^2 rays, n = ``supersample`` (89 for n = 4), shifted by a fixed hash of the pixel:
-  every ray has its own row and column offset, edges of any direction are resolved evenly, and the
-  quantisation errors of neighbouring pixels do not line up along an edge;
-- a table pixel averages the texture over a regular n x n grid.
-Then optical blur (Gaussian, ``blur_px``), ``gain``, sensor noise (Gaussian, ``noise_gray``, seeded),
-clipping and rounding to 8 bits.
+The scene is the plate, the foam block under it, the two fingers and a textured table, in the frames of
+``CONVENTIONS.md`` (``_Scene``). Every ray leaves the projection centre through a *distorted* pixel
+position, so straight 3-D edges come out slightly curved (eq. 3-4; the correction from distorted to
+undistorted is explicit, so no cubic is solved per ray). A pixel's value is the mean of the scene over
+its area (``render``).
 """
 
 from __future__ import annotations
@@ -255,7 +242,13 @@ class _Plane:
 
 
 class _Scene:
-    """The cell as the camera sees it at one instant: surfaces, their grey levels and the table texture."""
+    """The cell as the camera sees it at one instant: surfaces, their grey levels and the table texture.
+
+    The calibration plate (a board ``PLATE_THICKNESS_MM`` thick whose z = 0 face is the printed sheet:
+    paper with dark discs), the foam block under it (a larger slab whose top lies ``FOAM_GAP_MM`` behind
+    the plate plane), the two fingers as boxes in G (each face lit by ``LIGHT_G`` to one of the three
+    ``finger`` grey levels), and the table (the plane z = 0 of the robot base B, z up) with a seeded
+    texture."""
 
     def __init__(self, world: SimWorld, spec: ImageSpec, backdrop: Backdrop | None = None):
         with world.lock:
@@ -710,6 +703,14 @@ def render(world: SimWorld, *, seed: int | None = 0, noise: bool = True, blur_px
            gain: float = 1.0, supersample: int = 4, image_spec: ImageSpec | None = None,
            backdrop: Backdrop | None = None) -> RenderResult:
     """Render the wrist camera's (H, W) uint8 picture of ``world`` now, with its ground truth.
+
+    Pixel (u, v) covers u-0.5..u+0.5, v-0.5..v+0.5. A pixel that no edge crosses sees one surface and
+    takes its value exactly; one that an edge crosses (the images of all box edges and disc rims are
+    marked analytically, and so is every pixel whose centre sees another surface than a neighbour's)
+    averages a Fibonacci lattice of at least (2 n)^2 rays, n = ``supersample`` (89 for n = 4), shifted by
+    a fixed hash of the pixel, so edges of any direction are resolved evenly and the quantisation errors
+    of neighbouring pixels do not line up along an edge; a table pixel averages the texture over a
+    regular n x n grid. Then optical blur, ``gain``, sensor noise, clipping and rounding to 8 bits.
 
     ``seed`` seeds the sensor noise (same seed, same bytes; None draws fresh noise); ``noise=False``
     gives the noise-free picture; ``blur_px`` overrides ``simulation.image.blur_px`` (Gaussian sigma,

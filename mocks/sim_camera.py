@@ -1,16 +1,5 @@
 """The simulated wrist camera behind ``sim://``: the renderer's picture of a SimWorld, frame by frame.
 
-A frame clock ticks at ``fps`` from ``open()``; a read waits for the next tick (frames nobody read are
-lost, as on a real grabber) and returns the world's view at that moment, stamped with the tick's
-monotonic time. Each frame has its own noise seed, drawn from the camera's seeded generator, so frames
-differ in noise like a real camera's and a run is repeatable.
-
-Rendering takes a good part of a second, so the noise-free picture (``render(world, noise=False)``)
-is cached per ``world.version`` and each frame adds the renderer's sensor noise (Gaussian,
-``simulation.image.noise_gray``, from the frame's seed) to it: equal to ``render(world, seed=s)`` within
-one grey level (the cached picture is already rounded). ``exact=1`` renders every frame in full
-instead, bit for bit ``render(world, seed=s)``.
-
 ``attach_world(world)`` registers the ``sim`` scheme with the frame grabber's source registry, so
 ``FrameGrabber('sim://?fps=25&seed=3')`` reads this world; procedures do the wiring, drivers never
 import this module.
@@ -42,6 +31,14 @@ class SimCamera:
     ``fps``: frame rate (CCIR: 25). ``seed``: seeds the per-frame noise seeds. ``noise``: add sensor
     noise. ``exact``: render each frame in full. ``blur_px``, ``gain``, ``supersample``: as
     ``selfview.mocks.render.render``. ``clock`` / ``sleep``: the monotonic clock and how to wait on it.
+
+    A frame clock ticks at ``fps`` from ``open()``; a read waits for the next tick (frames nobody read
+    are lost, as on a real grabber) and returns the world's view at that moment, stamped with the tick's
+    monotonic time. Each frame has its own noise seed, so frames differ in noise like a real camera's
+    and a run is repeatable. Rendering takes a good part of a second, so the noise-free picture is
+    cached per ``world.version`` and each frame adds the renderer's sensor noise to it: equal to
+    ``render(world, seed=s)`` within one grey level (the cached picture is already rounded); with
+    ``exact`` every frame is rendered in full, bit for bit ``render(world, seed=s)``.
     """
 
     def __init__(

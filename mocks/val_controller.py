@@ -1,27 +1,9 @@
 """A simulated VAL-II controller with a PUMA 260, serving its terminal dialogue on a pty or on TCP.
 
 The dialogue follows the dialect's data (``selfview.drivers.puma_val_serial.dialect``), formatted by this
-module's own code (never the driver's): characters are echoed as they are typed (echo on), CR ends and
-executes a line (a stray LF is ignored), CTRL-U erases the line typed so far; a line with a byte >= 0x80
-or a control character is answered ``*Unrecognized command*`` and the controller goes on. Replies are
-lines ending CR LF, the prompt is ``.`` at the start of a line (``*`` while ``program_running``), errors
-are ``*text*`` lines from the dialect's table, ``CAL`` asks ``Are you sure (Y/N)?``, ``POINT`` and ``HERE``
-show the location and ask ``Change?``, ``STATUS`` prints the monitor speed. A motion goes on to its
-target when the client leaves (on a pty and on TCP alike, as the real controller's does); type-ahead
-during a motion is read (``ABORT`` stops it) and echoed once the controller is idle again. The controller keeps arm power, calibration, SPEED, named
-locations (tool-point poses in the base frame B) and the joints; ``WHERE`` comes from the PUMA 260
-forward kinematics (``selfview.mocks.puma260``) with a TOOL of ``tool_length_mm`` along the flange z, Cartesian
-targets go through inverse kinematics in the configuration 'front, above, noflip'. Motions take the
-time of a trapezoidal profile at SPEED % (multiplied by ``time_scale``), can be stopped by ``ABORT``,
-and move the simulated world's TCP at every tick (``SimWorld.set_tcp``), so pressing the gripper onto
-the plate parks it and pressing too far is a collision.
-
-Faults on demand (``inject``), each drawn from the controller's seeded generator: line noise (flipped
-or dropped characters in the next reply or echo), a reply that never comes, arm power lost mid-move, an
-out-of-reach target, an asynchronous error line, a reply line that goes dead during a motion (``stall``).
-
-Every loop is bounded: reads, writes and paced output check the stop event; threads are daemons
-joined by ``stop()`` before it closes the links. The TCP server binds 127.0.0.1 only.
+module's own code (never the driver's). Motions move the simulated world's TCP, so pressing the gripper
+onto the plate parks it; faults come on demand (``ValController.inject``). The TCP server binds
+127.0.0.1 only.
 """
 
 from __future__ import annotations
@@ -235,6 +217,16 @@ class ValController:
     """The simulated controller. ``world`` (optional) is moved with the robot; ``seed`` fixes every fault;
     ``time_scale`` multiplies motion and calibration times (0: instant); ``pace_baud`` sends replies one
     byte at a time at that baud rate (8N1, 10 bits a byte); ``echo`` overrides the dialect's echo.
+
+    The controller keeps arm power, calibration, SPEED, named locations (tool-point poses in the base
+    frame B) and the joints; ``WHERE`` comes from the PUMA 260 forward kinematics
+    (``selfview.mocks.puma260``) with a TOOL of ``tool_length_mm`` along the flange z, Cartesian targets
+    go through inverse kinematics in the configuration 'front, above, noflip'. Motions take the time of
+    a trapezoidal profile at SPEED % (times ``time_scale``), can be stopped by ``ABORT``, and move the
+    world's TCP at every tick (``SimWorld.set_tcp``): pressing too far is a collision. A motion goes on
+    to its target when the client leaves (on a pty and on TCP alike, as the real controller's does).
+    Every loop is bounded: reads, writes and paced output check the stop event; threads are daemons
+    joined by ``stop()`` before it closes the links.
     """
 
     accel_time_s = 0.25  # time to reach top speed (joint and Cartesian)
@@ -425,6 +417,9 @@ class ValController:
                 link.close()
 
     def _serve(self, link) -> None:
+        # Characters are echoed as they are typed (echo on), CR ends and executes a line (a stray LF is
+        # ignored), CTRL-U erases the line typed so far. Type-ahead during a motion is read (ABORT stops
+        # it) and echoed once the controller is idle again.
         inp = _Input(self.dialect.cancel_line.encode("ascii"))
         try:
             while not self._stop.is_set():
@@ -544,6 +539,11 @@ class ValController:
 
     # --- commands -------------------------------------------------------------------------------------
     def _handle(self, link, inp: _Input, raw: bytes) -> None:
+        # A line with a byte >= 0x80 or a control character is answered *Unrecognized command* and the
+        # controller goes on. Replies are lines ending CR LF, the prompt is '.' at the start of a line
+        # ('*' while program_running), errors are *text* lines from the dialect's table; CAL asks
+        # "Are you sure (Y/N)?", POINT and HERE show the location and ask "Change?", STATUS prints the
+        # monitor speed.
         line = raw.decode("ascii", errors="replace")
         self.received.append(line)
         if self._take_fault("no_reply") is not None:

@@ -2,17 +2,7 @@
 
 A real pymodbus TCP server (MBAP framing, or RTU frames over TCP) bound to 127.0.0.1 on a free port, in
 its own thread and event loop, started and stopped by the test or the CLI. Its data store is the
-terminal's process image, laid out by the same ``IoMap`` the driver uses:
-
-- the gripper model: after the valve switches, the jaws travel between closed (position 0) and open
-  (position 1) in ``travel_s`` (per stroke, jittered by ``travel_sd_s`` from the seeded generator); the
-  reed switches are on at the ends; a ``SimWorld``'s jaw gap follows (so the rendered picture does);
-- the connection watchdog: a master silent for longer than ``watchdog_s`` finds every output (coils,
-  holding registers) reset to 0, as a real terminal's fail-safe does;
-- faults on demand: a stuck jaw, a broken or shorted reed switch, exception replies, a silent device,
-  dropped connections.
-
-Time is the monotonic clock; the model advances on every request and on a tick of ``tick_s``.
+terminal's process image, laid out by the same ``IoMap`` the driver uses.
 """
 
 from __future__ import annotations
@@ -60,6 +50,13 @@ class ValveTerminal:
     'closed']``), or None. ``io_map``: the same map the driver is given. ``framing``: 'mbap' (Modbus
     TCP) or 'rtu' (RTU frames over TCP). ``port`` 0 picks a free port. ``watchdog_s`` None disables
     the watchdog. ``initial`` is the jaw position without a world ('open' or 'closed').
+
+    After the valve switches, the jaws travel between closed (position 0) and open (position 1) in
+    ``travel_s`` (per stroke, jittered by ``travel_sd_s`` from the seeded generator); the reed switches
+    are on at the ends. A master silent for longer than ``watchdog_s`` finds every output (coils, holding
+    registers) reset to 0, as a real terminal's fail-safe does. Faults on demand: a stuck jaw, a broken
+    or shorted reed switch, exception replies, a silent device, dropped connections. Time is the
+    monotonic clock; the model advances on every request and on a tick of ``tick_s``.
     """
 
     def __init__(

@@ -2,17 +2,8 @@
 
 A procedure describes steps (``Step``); the engine executes them. Before the first step it checks every
 planned motion against the robot's limits (``LimitError`` names the step; nothing has moved). With
-``dry_run`` it prints the steps and moves nothing. Each executed step is logged with its time and result.
-
-Safety: the procedure runs in a worker thread and the main thread watches it, with every catchable
-termination signal (SIGINT, SIGTERM, SIGHUP, SIGQUIT) turned into a flag, so a signal never lands in
-the middle of a write to a device. On a signal or on any error the engine stops the robot (VAL's
-ABORT, which the driver writes at once, even while a motion is in flight, then confirms), waits for
-the worker to end, puts the gripper valve in its safe state, closes the devices, and reports the state
-it left the cell in: whether the controller confirmed the ABORT, whether the procedure had stopped,
-and what failed. Once the cleanup has begun further signals are only noted; each of its steps has its
-own time limit, and none can stop the next: a failed (or raising) ABORT still leaves the valve made
-safe and every device closed.
+``dry_run`` it prints the steps and moves nothing. On a signal or any error it stops the robot, makes
+the gripper safe and closes the devices, and nothing cuts that cleanup short (``Engine``).
 """
 
 from __future__ import annotations
@@ -165,6 +156,16 @@ class Engine:
     ``settle_s`` default wait for the cell to settle; ``abort_timeout_s`` how long the cleanup waits for
     the procedure to end, and for each of its own steps (ABORT, safe valve, each close);
     ``on_step(n, step)``, when set, hears of each step as it starts (a live view, a time estimate).
+
+    Each executed step is logged with its time and result. The procedure runs in a worker thread and
+    the main thread watches it, with every catchable termination signal (SIGINT, SIGTERM, SIGHUP,
+    SIGQUIT) turned into a flag, so a signal never lands in the middle of a write to a device. On a
+    signal or on any error the engine stops the robot (VAL's ABORT, which the driver writes at once,
+    even while a motion is in flight, then confirms), waits for the worker to end, puts the gripper
+    valve in its safe state, closes the devices, and reports the state it left the cell in: whether the
+    controller confirmed the ABORT, whether the procedure had stopped, and what failed. Once the cleanup
+    has begun further signals are only noted; each of its steps has its own time limit, and none can
+    stop the next: a failed (or raising) ABORT still leaves the valve made safe and every device closed.
     """
 
     def __init__(self, devices: CellDevices, *, dry_run: bool = False, ask: Callable[[str], str] | None = None,

@@ -1,17 +1,10 @@
 """Calibration files: what an off-line calibration found, kept safe.
 
 A calibration file is a YAML document (``format: selfview-calibration``, ``version: 1``) holding the
-interior orientation (f, kappa, principal point, aspect; and ``skew`` when a measured camera has one),
-``C_H_W`` and ``C_H_G`` (4x4, mm), the gripper
-points per state, the residuals, the picture's SHA-256, the time, the software version, the cell file's
-hash and a checksum over all of it.
-
-Nothing is lost: a write goes to a temporary file in the same folder, is fsync'ed and renamed over the
-old one (atomic on POSIX, ``selfview.io_safe.atomic_write``), keeping its permissions, and the previous
-file is first copied into ``<name>.history/``. The new document is read back and checked before anything
-is written. A file that is corrupt, altered, foreign, of an unknown version, hostile (YAML aliases, deep
-nesting, huge numbers) or holding non-finite numbers is refused with ``CalibrationFileError``, and is
-never overwritten; so is a write that fails (full disk, size limit, missing folder), naming the path.
+interior orientation, ``C_H_W`` and ``C_H_G`` (4x4, mm), the gripper points per state, the residuals,
+the picture's SHA-256, the time, the software version, the cell file's hash and a checksum over all of
+it. Nothing is lost: writes are atomic and keep the previous file (``save_calibration``); a file that is
+not what a calibration writes is refused and never overwritten (``load_calibration``).
 """
 
 from __future__ import annotations
@@ -337,7 +330,9 @@ def history_dir(path) -> Path:
 
 
 def load_calibration(path) -> Calibration:
-    """Read and verify a calibration file; raises ``CalibrationFileError`` naming the fault."""
+    """Read and verify a calibration file; raises ``CalibrationFileError`` naming the fault: corrupt,
+    altered, foreign, of an unknown version, hostile (YAML aliases, deep nesting, huge numbers) or
+    holding non-finite numbers."""
     p = Path(path)
     blob = read_bounded(p, MAX_YAML_BYTES, error=CalibrationFileError, what="calibration file",
                         missing="no such calibration file (run 'selfview calibrate' first)")
@@ -356,6 +351,11 @@ def save_calibration(cal: Calibration, path, *, keep_history: bool = True,
     Calibration as loaded, or its file's SHA-256); the file is replaced only if it still is that version,
     so a recalibration saved meanwhile is never overwritten (the refusal names both). A symlink's target
     is replaced (the link stays). Returns the path of the history copy, or None.
+
+    The new document is read back and checked before anything is written; the write goes through
+    ``selfview.io_safe.atomic_write`` (temporary file, fsync, rename, permissions kept) after the
+    previous file is copied into ``<name>.history/``. A write that fails (full disk, size limit, missing
+    folder) raises ``CalibrationFileError`` naming the path.
     """
     p = Path(path)
     text = yaml.safe_dump(cal.to_document(), sort_keys=False, default_flow_style=None, width=120)

@@ -9,12 +9,6 @@ relative to the principal point (cx, cy), in pixel units:
 
 The correction is explicit from distorted to undistorted; ``distort`` inverts it exactly by solving
 the cubic ``kappa r^3 + r - R = 0`` for the distorted radius r of an undistorted radius R.
-
-``skew`` (default 0: the paper's and the spec's model exactly) is a frame grabber's shear: the line
-``v`` sampled ``skew (v - cy)`` px to the right of where the sensor put it (a PLL whose line-sync phase
-drifts linearly down the picture; Beyer 1992 measured tenths of a pixel over the frame). It is the
-skew term of OpenCV's and Heikkilae's pinhole models (``K[0, 1] = skew * fy`` in OpenCV's terms,
-with ``fy = f`` and ``fx = f / aspect``), which Tsai's lacks; ``selfview intrinsics`` measures it.
 """
 
 from __future__ import annotations
@@ -112,7 +106,10 @@ class CameraModel:
     Attributes: ``f`` effective focal length [px]; ``kappa`` radial coefficient [px^-2];
     ``cx, cy`` principal point [px]; ``aspect`` horizontal sampling factor (X^ = aspect (u - cx));
     ``width, height`` picture size [px]; ``skew`` the grabber's shear (px of u per px of v below cy,
-    |skew| <= ``MAX_SKEW``; 0, the default, is the spec's model).
+    |skew| <= ``MAX_SKEW``; 0, the default, is the spec's model). The shear is a PLL whose line-sync
+    phase drifts linearly down the picture (Beyer 1992 measured tenths of a pixel over the frame): the
+    skew term of OpenCV's and Heikkilae's pinhole models (``K[0, 1] = skew * fy``, ``fy = f``,
+    ``fx = f / aspect``), which Tsai's lacks; ``selfview intrinsics`` measures it.
     """
 
     f: float

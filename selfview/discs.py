@@ -4,27 +4,6 @@ The plate is a ``rows x cols`` array of dark discs at ``pitch`` mm on a light sh
 ``detect_discs`` finds the whole discs in a picture, gives each a sub-pixel centre and indexes it on the
 grid; ``correct_disc_bias`` then removes the perspective (and lens) bias of those centres once a first
 pose of the plate is known.
-
-Why this sub-pixel centre: the grey-level centroid of the disc's *contrast* ``w = 1 - I / I_paper``, with
-the paper level ``I_paper`` a plane fitted to a ring just outside the disc, over a support wide enough to
-hold the blurred edge. A symmetric blur (focus, motion-free optics, the pixel's own area) moves ink but
-keeps its first moment, so the centroid is unbiased under blur, where edge-based ellipse fits shift
-with the blur and the edge detector; dividing by the local paper level makes the weight independent of
-a multiplicative light gradient across the disc. What it measures is the centroid of the disc's
-*distorted image*, which is not the image of the disc's centre: ``correct_disc_bias`` supplies that
-difference from the camera model and ``C_H_W``.
-
-Which blobs are discs: round ones of the plate's size (the band of areas holding the most ink, then each
-disc's share of its lattice cell against the cell file's pi/4 (d/pitch)^2), on the lattice, inside one
-plate-sized window of it; printed labels and marks beside a disc shrink its support instead of refusing it.
-
-Grid indexing: the survivors form a lattice; neighbour steps give its two directions, indices are
-propagated from a seed disc (tolerating missing discs), and W is oriented so that x (columns) points to
-growing u and y (rows) completes a right-handed frame whose z points away from the camera. When all
-columns (rows) are seen, W's origin is the grid centre exactly; otherwise the side where the grid ends
-is found by looking for blank paper one pitch beyond the last column (row), and failing that the seen
-columns (rows) are centred (``DiscDetections.index_basis`` says which). The hand/eye result does not
-depend on that choice (it cancels in ``C_H_G = C_H_W W_H_G``).
 """
 
 from __future__ import annotations
@@ -142,6 +121,12 @@ def _ellipse_misfit(blob: np.ndarray) -> tuple[float, float]:
 def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarray | None]:
     """Sub-pixel centre of blob ``k`` (contrast-weighted centroid over a support around it, paper level a
     plane fitted to the ring around the support), or the reason it is not a whole, clean disc.
+
+    A symmetric blur (focus, the pixel's own area) moves ink but keeps its first moment, so the centroid
+    of the contrast ``w = 1 - I / I_paper`` is unbiased under blur, where edge-based ellipse fits shift
+    with the blur and the edge detector; dividing by the local paper level makes the weight independent
+    of a multiplicative light gradient across the disc. It measures the centroid of the disc's distorted
+    image, not the image of the disc's centre: ``correct_disc_bias`` supplies that difference.
 
     Pixels nearer another dark blob (a neighbouring disc, a label, a mark) than to this one, and pixels
     beside another blob, belong neither to the support nor to the ring: near neighbours shrink the
@@ -414,6 +399,15 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     (centres in distorted pixels, not yet bias-corrected: see ``correct_disc_bias``).
     Raises ``ImageError`` for a blank picture, one of the wrong size, one without a plate (fewer than
     ``min_discs`` whole discs) or one whose discs form no lattice.
+
+    Discs are the round blobs of the plate's size (the band of areas holding the most ink, then each
+    disc's share of its lattice cell against pi/4 (d/pitch)^2), on the lattice, inside one plate-sized
+    window of it; printed labels and marks beside a disc shrink its support instead of refusing it.
+    Indices are propagated from a seed disc along the lattice's neighbour steps (tolerating missing
+    discs). When all columns (rows) are seen, W's origin is the grid centre exactly; otherwise the side
+    where the grid ends is found by blank paper one pitch beyond the last column (row), and failing that
+    the seen columns (rows) are centred (``DiscDetections.index_basis`` says which). The hand/eye result
+    does not depend on that choice (it cancels in ``C_H_G = C_H_W W_H_G``).
     """
     img = as_gray(image, camera)
     work = img if plate.polarity == "dark_on_light" else (float(img.max()) - img)

@@ -1,23 +1,8 @@
 """Reading and writing files that may be hostile or may fail half-way: YAML documents, pictures, atomic writes.
 
-- ``load_yaml``: a YAML document read with no aliases (a 491-byte alias bomb expands to gigabytes in
-  anything that walks it: a checksum's ``json.dumps``, an error message's ``repr``), a bounded size and a
-  bounded nesting depth (deep nesting would end in RecursionError). Refusals name the file, the line and
-  the cause, as the caller's error class (``ConfigError``, ``CalibrationFileError``).
-- ``read_bounded``: the bytes of a regular file of at most a given size, checked before reading (a FIFO,
-  a device such as /dev/zero or a folder is refused naming its kind; at most the limit is ever read).
-- ``read_picture``: the picture's size is read from its header before anything is decoded (PNG, JPEG, BMP,
-  PGM/PPM), so a small file that would decode to 30000 x 30000 pixels is refused at once; an empty,
-  truncated, unknown or undecodable file is an ``ImageError`` naming the file.
-- ``file_lock`` and ``remove_leftovers``: writers of one file take turns; a killed writer's temporary file
-  (named with its pid) is removed by the next write.
-- ``atomic_write``: the new content goes to a temporary file in the same folder, is flushed to disk and
-  renamed over the old file (atomic on POSIX), so a crash or a full disk leaves either the old file or the
-  new one, never half a file. The replaced file's permission bits are kept; a missing folder is not
-  created; every OSError becomes the caller's error class naming the path and the cause, and the
-  temporary file is removed.
-
-Core module: imports nothing from drivers, mocks or procedures.
+Every refusal names the file and the cause, as the caller's error class (``ConfigError``,
+``CalibrationFileError``, ``ImageError``); nothing is read past a bound, and a write leaves either the old
+file or the new one, never half a file.
 """
 
 from __future__ import annotations
@@ -168,6 +153,10 @@ def load_yaml(data: bytes | str, source: str, *, error: type[CellError] = Config
               what: str = "file"):
     """Parse one YAML document with no aliases, at most ``MAX_YAML_BYTES`` and ``MAX_YAML_DEPTH`` deep.
 
+    No aliases: a 491-byte alias bomb expands to gigabytes in anything that walks it (a checksum's
+    ``json.dumps``, an error message's ``repr``); the depth bound keeps deep nesting from ending in
+    RecursionError. Refusals name the line and the cause.
+
     ``text_only`` keeps every scalar as text (``yaml.BaseLoader``). Raises ``error`` naming ``source``."""
     size = len(data)
     if size > MAX_YAML_BYTES:
@@ -271,7 +260,9 @@ def picture_size(head: bytes) -> tuple[str, int, int]:
 def read_picture(path, *, max_side: int = MAX_PICTURE_SIDE, max_pixels: int = MAX_PICTURE_PIXELS,
                  what: str = "picture") -> tuple[np.ndarray, str]:
     """(grey picture as a 2-D uint8 array, SHA-256 of the file); ``ImageError`` naming the file for an
-    unreadable, empty, unknown, oversized (checked in the header, before decoding) or undecodable one."""
+    unreadable, empty, unknown, oversized (checked in the header, before decoding) or undecodable one.
+    The header check (PNG, JPEG, BMP, PGM/PPM) refuses at once a small file that would decode to
+    30000 x 30000 pixels."""
     import cv2
 
     p = Path(path)
@@ -371,7 +362,10 @@ def _try_flock(fd: int) -> bool:
 
 def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, what: str = "file",
                  mode: int | None = None) -> None:
-    """Replace ``path`` with ``data`` atomically (see the module doc). Permission bits: the replaced
+    """Replace ``path`` with ``data`` atomically: the new content goes to a temporary file in the same
+    folder (named with the writer's pid), is flushed to disk and renamed over the old file (atomic on
+    POSIX), so a crash or a full disk leaves either the old file or the new one. A missing folder is not
+    created. Permission bits: the replaced
     file's, else ``mode``, else 0o666 less the umask. A symlink's target is replaced (the link stays);
     a device, FIFO or socket is refused. Leftovers of this file's writers that were killed are removed
     first. Raises ``error`` naming the path and the cause; the old file is then untouched and no

@@ -1,16 +1,8 @@
 """A small Levenberg-Marquardt least-squares solver on numpy.
 
-Minimises ``sum(fun(x)**2)`` over ``x`` (P,) for a residual function returning (M,) with M >= P. It is
-the trust-region form of Levenberg-Marquardt that Moré described ("The Levenberg-Marquardt algorithm:
-implementation and theory", 1978) and MINPACK's ``lmder``/``lmdif`` implement, which Willson's Tsai
-calibration uses: a step bound ``delta`` in parameters scaled by the Jacobian's largest column norms so
-far, the damping found by a safeguarded Newton iteration on ``||D p(lambda)|| = delta``, and MINPACK's
-tests and constants (so, with the same residuals and tolerances, it stops where ``lmdif`` stops).
-The Jacobian is analytic when given, else central or (as lmdif) forward differences; one SVD of the
-scaled Jacobian per iteration serves every damping trial of that iteration.
-
-A residual function may return non-finite values for a parameter vector it cannot evaluate (a point
-behind the camera, beyond the lens's fold): such a trial step is rejected and the step bound shrinks.
+Minimises ``sum(fun(x)**2)`` over ``x`` (P,) for a residual function returning (M,) with M >= P, in the
+trust-region form that Moré described (1978) and MINPACK's ``lmder``/``lmdif`` implement, which Willson's
+Tsai calibration uses: with the same residuals and tolerances, it stops where ``lmdif`` stops.
 """
 
 from __future__ import annotations
@@ -260,6 +252,12 @@ def levenberg_marquardt(
     with ``converged`` False.
     Raises ``ValueError`` for M < P or a Jacobian of the wrong shape, ``CalibrationError`` when the
     residuals are not finite at ``x0``.
+
+    A step bound ``delta`` in parameters scaled by the Jacobian's largest column norms so far, the
+    damping found by a safeguarded Newton iteration on ``||D p(lambda)|| = delta``, MINPACK's tests and
+    constants; one factorisation per iteration serves every damping trial of it. A residual
+    function may return non-finite values for a parameter vector it cannot evaluate (a point behind the
+    camera, beyond the lens's fold): such a trial step is rejected and the step bound shrinks.
     """
     x = np.array(x0, dtype=float).ravel()
     n = x.size

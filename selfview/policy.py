@@ -1,27 +1,8 @@
 """The on-line policy (paper, section 4): update, recalibrate or raise the alarm.
 
 While the robot works each picture of the fingertips gives a differential estimate of how far the
-camera moved on its mount. The limits of ``monitor`` in the cell description decide what to do:
-
-- the change stays within ``update_limit`` (angle AND shift): apply the update;
-- it exceeds ``update_limit`` but stays within ``alarm_limit``: recalibrate (NP-R);
-- it exceeds ``alarm_limit``, fewer than 3 fingertips are found, or the residual exceeds
-  ``max_rms_px`` (the model no longer fits): raise the alarm and leave ``C_H_G`` unchanged.
-
-A ``Monitor`` following a sequence tells a missed frame from an alarm: a frame whose measurement says
-it has lost the fingertips (its quality under the thresholds, ``lost``), in which fewer than 3 are
-found, or for which no picture came (``Monitor.missed``) is a *missed* frame: never an update,
-``C_H_G`` unchanged, the fingertips searched for again in the next one; only
-``monitor.max_missed_frames`` consecutive missed frames raise the alarm. A source can lie: a picture
-bit-identical to the previous one (a real camera's noise never repeats: the grabber is stuck) or blank
-(``Monitor.frame_problem``) is a missed frame too; poses that alternate between two values over
-``ALTERNATION_WINDOW`` frames (a loose mount, or two cameras on one input) raise the alarm.
-
-The change compared with the limits is delta and d of eq. 14 (the rotation angle and the translation of
-``C'_H_G C_H_G^-1``, the camera's motion; d is not the TCP's shift) since the LAST CALIBRATION (off-line, or the last
-recalibration), not since the previous frame: a camera that creeps 0.3 degrees per frame is
-recalibrated once the sum passes the update limit. A ``Monitor`` holds the current and the last
-calibrated ``C_H_G``, applies the policy frame by frame and logs every decision with its measures.
+camera moved on its mount; the limits of ``monitor`` in the cell description decide what to do
+(``Policy``), and a ``Monitor`` applies that rule frame by frame, telling a missed frame from an alarm.
 """
 
 from __future__ import annotations
@@ -105,7 +86,17 @@ class Policy:
     """The update / recalibrate / alarm rule of section 4 for the limits of one cell.
 
     ``limits``: ``Cell.monitor`` (update_limit, alarm_limit: angle [deg] and shift [mm]; max_rms_px).
-    A limit is exceeded when either its angle or its shift is.
+    A limit is exceeded when either its angle or its shift is:
+
+    - the change stays within ``update_limit`` (angle AND shift): apply the update;
+    - it exceeds ``update_limit`` but stays within ``alarm_limit``: recalibrate (NP-R);
+    - it exceeds ``alarm_limit``, fewer than 3 fingertips are found, or the residual exceeds
+      ``max_rms_px`` (the model no longer fits): raise the alarm and leave ``C_H_G`` unchanged.
+
+    The change is delta and d of eq. 14 (the rotation angle and the translation of ``C'_H_G C_H_G^-1``,
+    the camera's motion; d is not the TCP's shift) since the LAST CALIBRATION (off-line, or the last
+    recalibration), not since the previous frame: a camera that creeps 0.3 degrees per frame is
+    recalibrated once the sum passes the update limit.
     """
 
     def __init__(self, limits: MonitorLimits):
@@ -264,6 +255,14 @@ class Monitor:
     ``max_missed_frames`` (default: the limits' ``max_missed_frames``, the cell's
     ``monitor.max_missed_frames``) consecutive missed frames raise the alarm; ``missed_in_a_row`` counts
     them.
+
+    A missed frame is one whose measurement says it has lost the fingertips (its quality under the
+    thresholds, ``lost``), in which fewer than 3 are found, or for which no picture came
+    (``Monitor.missed``): never an update, ``C_H_G`` unchanged, the fingertips searched for again in the
+    next one. A source can lie: a picture bit-identical to the previous one (a real camera's noise never
+    repeats: the grabber is stuck) or blank (``Monitor.frame_problem``) is a missed frame too; poses that
+    alternate between two values over ``ALTERNATION_WINDOW`` frames (a loose mount, or two cameras on one
+    input) raise the alarm.
     """
 
     def __init__(

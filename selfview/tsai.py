@@ -3,31 +3,8 @@
 From N >= 5 plate points ``p_W`` (z = 0, mm) and their pictures ``uv`` (pixels), with the principal
 point and the aspect ratio known, find f [px], kappa [px^-2] and ``C_H_W`` (the paper's eq. 1-4 in the
 pixel units of ``selfview.camera``: ``X^ = aspect (u - cx)``, ``Y^ = v - cy``, ``X = X^ (1 + kappa r^2)``).
-
-The stages follow Willson's v3.0b3 (``cal_main.c``):
-  1. radial alignment: five unknowns ``U = (r1, r2, Tx, r4, r5) / Ty`` by linear least squares from
-     ``Y^ (r1 x + r2 y + Tx) = X^ (r4 x + r5 y + Ty)``;
-  2. ``|Ty|`` from U, its sign from the point farthest from the image centre;
-  3. R: r3, r6 from unit rows, the sign of r6 from ``r1 r4 + r2 r5``, the third row as the cross
-     product, the roll/pitch/yaw angles by Paul's formulas (R = Rz Ry Rx);
-  4. f and Tz by linear least squares from ``f y - Y^ Tz = Y^ w`` (kappa = 0); if f < 0, the other
-     solution for R (r3, r6, r7, r8 negated);
-  5a. f, Tz and kappa by Levenberg-Marquardt (``selfview.lm``) on the undistorted sensor-plane error,
-     as Willson's ``tsai`` run does (mode ``tsai`` stops here, on his path and tolerances);
-  5b. ``full``: pose, f and kappa, principal point fixed (the paper's assumption); ``full+centre``: the
-     principal point too; both minimise the distorted pixel error (the picture's own noise) with an
-     analytic Jacobian, to the minimum.
-  5c. ``willson``: instead, the rest of Willson's ``coplanar_calibration_with_full_optimization``
-     chain: f, Tz, kappa, cx, cy with the pose re-solved linearly (distortion removed late, then
-     early), then pose, f, kappa, then all ten, each on the undistorted sensor-plane error with his
-     lmdif settings. It stops where his optimiser stops, not at a minimum (see ``_willson_full``).
-
-Beyond Willson: the linear stage divides by Ty and fails when the plate's origin lies near the camera's
-y-z plane (his FAQ 3.3); the disc grid's origin is its centre, often in mid-picture, so the stages then
-run in a plate frame moved to the point farthest from the centre row, and the pose is moved back.
-Whether f can be separated from Tz is judged by the standard error of f that the data imply, a mirrored
-plate frame (camera on W's +z side) is refused, and so is a free principal point that one view cannot
-determine.
+The stages follow Willson's v3.0b3 (``cal_main.c``): linear stages 1-4, then a refinement by mode
+(5a ``tsai``, 5b ``full`` / ``full+centre``, 5c ``willson``), each function naming its stage.
 """
 
 from __future__ import annotations
@@ -199,7 +176,13 @@ def _rpy_paul(r: np.ndarray) -> tuple[float, float, float]:
 
 
 def _radial_alignment(xw, yw, Xd, Yd):
-    """Stages 1-3: (Tx, Ty, r (3, 3) as Willson forms it, not exactly orthonormal)."""
+    """Stages 1-3: (Tx, Ty, r (3, 3) as Willson forms it, not exactly orthonormal).
+
+    1. radial alignment: five unknowns ``U = (r1, r2, Tx, r4, r5) / Ty`` by linear least squares from
+       ``Y^ (r1 x + r2 y + Tx) = X^ (r4 x + r5 y + Ty)``;
+    2. ``|Ty|`` from U, its sign from the point farthest from the image centre;
+    3. R: r3, r6 from unit rows, the sign of r6 from ``r1 r4 + r2 r5``, the third row as the cross
+       product."""
     A = np.column_stack([Yd * xw, Yd * yw, Yd, -Xd * xw, -Xd * yw])
     U, *_ = np.linalg.lstsq(A, Xd, rcond=None)
     r1p, r2p, _, r4p, r5p = U
@@ -237,8 +220,9 @@ def _radial_alignment(xw, yw, Xd, Yd):
 
 
 def _approximate_f_Tz(xw, yw, Yd, r, ty, with_cond=True):
-    """Stage 4: (f, Tz, condition number of the column-equilibrated system (NaN unless
-    ``with_cond``)), kappa taken as 0."""
+    """Stage 4, f and Tz by linear least squares from ``f y - Y^ Tz = Y^ w``, kappa taken as 0: (f, Tz,
+    condition number of the column-equilibrated system (NaN unless ``with_cond``)). If f < 0, the caller
+    takes the other solution for R (``_flip_R``)."""
     yc = r[1, 0] * xw + r[1, 1] * yw + ty
     w = r[2, 0] * xw + r[2, 1] * yw
     A = np.column_stack([yc, -Yd])
@@ -596,6 +580,12 @@ def calibrate_coplanar(
     a valley hangs on rounding: perturbing the pixels by 1e-12 (relative) moves the final f by 0.05 %
     (median) to 0.2 % (99th percentile) here, and MINPACK's own lmdif scatters as much. Where the data
     determine f (a near, tilted plate), ``willson`` ends near the ``full+centre`` fit.
+
+    Beyond Willson: the linear stage divides by Ty and fails when the plate's origin lies near the
+    camera's y-z plane (his FAQ 3.3); the disc grid's origin is its centre, often in mid-picture, so the
+    stages then run in a plate frame moved to the point farthest from the centre row, and the pose is
+    moved back. Whether f can be separated from Tz is judged by the standard error of f that the data
+    imply.
 
     ``kappa_guess`` [px^-2] is removed from the observations before the linear stages and starts the
     refinement (0 reproduces Willson); ``f_guess`` [px], if given, starts the refinement in place of

@@ -1,31 +1,10 @@
 """An independent renderer of the self-viewing cell, used only by the image-pipeline tests.
 
-The project's own renderer lives in ``mocks/render.py``; the image pipeline must also be judged on
-pictures it did not make, so this one follows the conventions (``tests/data/spec/CONVENTIONS.md``) with a deliberately different
-technique and look:
-
-- per-pixel ray casting: the viewing ray of a (sub-)pixel position is exact, because eq. 4 maps
-  distorted pixels to undistorted sensor coordinates explicitly;
-- adaptive supersampling: one ray at each pixel centre, then ``supersample``^2 stratified, randomly
-  jittered rays (unbiased area fractions) in every pixel whose 3x3 neighbourhood sees more than one
-  surface;
-- fingers shaded by a point light (Lambert with fall-off and ambient), an optional smooth specular
-  strip on finger A's front face; a textured foam block under the plate and a textured table;
-- image-space illumination gradient and vignetting, Gaussian blur, gain, Poisson-like noise, optional
-  JPEG compression.
-
-It returns its own ground truth: projected disc centres, which discs are whole and unoccluded, the
-centroid of each disc's (distorted) image by area integration, and the six fingertip corner pixels with
-their visibility. Lengths in mm, pixels with integer values at pixel centres.
-
-Independence: nothing here comes from the project's camera model or geometry (``selfview.camera``,
-``selfview.geometry``, the cell's geometry helpers). The camera is taken as plain numbers (f, kappa, cx,
-cy, aspect, width, height: any principal point and aspect) and projected with this module's own code
-from the conventions (``X^ = aspect (u - cx)``, ``Y^ = v - cy``, ``X = X^ (1 + kappa r^2)``, ``X = f x / z``;
-the inverse of the radial correction by Newton's method on the radius); the disc grid, the finger blocks
-and the six fingertip points are built here from the spec's formulas and the cell's plain numbers (rows,
-cols, pitch, disc diameter, sheet size; finger width, thickness, length). A slip in the project's
-convention (say, half a pixel in the principal point) then shows as a disagreement with this truth.
+The image pipeline must also be judged on pictures the project's renderer (``mocks/render.py``) did not
+make, so this one follows the conventions (``tests/data/spec/CONVENTIONS.md``) with a deliberately
+different technique and look, and nothing from the project's camera model or geometry: a slip in the
+project's convention (say, half a pixel in the principal point) then shows as a disagreement with this
+renderer's own ground truth. Lengths in mm, pixels with integer values at pixel centres.
 """
 
 from __future__ import annotations
@@ -75,7 +54,7 @@ class AltOptions:
     table_mm_per_px: float = 0.2
     table_defocus_mm: float = 0.0
     seed: int = 0
-    # a real CCIR grabber (issue 17; magnitudes and sources in selfview.mocks.imperfections), see _grabber
+    # a real CCIR grabber (magnitudes and sources in selfview.mocks.imperfections), see _grabber
     field_shift_px: tuple[float, float] = (0.0, 0.0)  # motion of the picture between the even and odd field
     line_jitter_px: float = 0.0  # sd of each line's horizontal shift
     pll_shear_px: float = 0.0  # horizontal shift from the first line to the last
@@ -104,7 +83,11 @@ class AltPicture:
 # --- the camera and the geometry, from the conventions and the cell's numbers --------------------------
 class _Camera:
     """The camera of CONVENTIONS.md from plain numbers: eq. 1-4, both ways; with a grabber's ``skew`` (the
-    line v sampled skew (v - cy) px to the right: u = X^ / aspect + skew Y^ + cx), 0 unless the camera has one."""
+    line v sampled skew (v - cy) px to the right: u = X^ / aspect + skew Y^ + cx), 0 unless the camera has one.
+
+    Projected with this module's own code from the conventions (``X^ = aspect (u - cx)``, ``Y^ = v - cy``,
+    ``X = X^ (1 + kappa r^2)``, ``X = f x / z``; the inverse of the radial correction by Newton's method on
+    the radius), never through ``selfview.camera``."""
 
     NEWTON_STEPS = 40  # the radius's Newton iteration: quadratic, converged in a handful; bounded
 
@@ -509,7 +492,18 @@ def render(camera, C_H_G, C_H_W, gap_mm: float, cell, options: AltOptions | None
     gap ``gap_mm``. ``camera``: anything with the numbers f, kappa, cx, cy, aspect, width, height; ``cell``:
     anything with ``plate`` (rows, cols, pitch, disc_diameter, size) and ``gripper`` (finger_width,
     finger_thickness, finger_length). Options as an ``AltOptions`` or keyword arguments overriding its
-    defaults."""
+    defaults.
+
+    Per-pixel ray casting (the viewing ray of a (sub-)pixel position is exact, because eq. 4 maps
+    distorted pixels to undistorted sensor coordinates explicitly); adaptive supersampling (one ray at
+    each pixel centre, then ``supersample``^2 stratified, randomly jittered rays in every pixel whose 3x3
+    neighbourhood sees more than one surface); fingers shaded by a point light (Lambert with fall-off and
+    ambient), an optional specular strip on finger A's front face; a textured foam block under the plate
+    and a textured table; image-space illumination gradient and vignetting, Gaussian blur, gain,
+    Poisson-like noise, optional JPEG compression. The disc grid, finger blocks and fingertip points are
+    built here from the spec's formulas and the cell's plain numbers. The returned truth: projected disc
+    centres, which discs are whole and unoccluded, the centroid of each disc's (distorted) image by area
+    integration, and the six fingertip corner pixels with their visibility."""
     opt = options or AltOptions()
     if kw:
         opt = AltOptions(**{**opt.__dict__, **kw})

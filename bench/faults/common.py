@@ -20,6 +20,19 @@ from selfview.errors import CellError
 
 
 
+# Every fault gets exactly one outcome, judged against the simulators' own state (read in-process):
+# - clear_error: refused or failed with one of the project's errors (a message, exit 3/4/5, or 130 after
+#   Ctrl-C), and the cell is as it should be;
+# - no_effect: the operation succeeded and what it returned or did is the truth;
+# - hang: no answer within the bound (the driver's own plus a margin; a CLI killed after its timeout);
+# - traceback: an exception outside the project's error tree, a CLI exit 1 or a "Traceback";
+# - unsafe: a motion other than the one checked (a corrupted motion command executed, a motion run twice),
+#   a motion reported complete while the arm is elsewhere, a motion still running after the software gave
+#   up, a speed above the driver's maximum applied, a valve energised after the driver gave up, jaws
+#   driven the other way;
+# - wrong_value: a value accepted that differs from the truth (a WHERE pose, a location, a jaw state, valve
+#   outputs, a file's content, a speed), including those no check can see (also counted as ``invisible``);
+# - lost_file: a calibration file lost, changed or left half-written.
 OUTCOMES = ("clear_error", "no_effect", "hang", "traceback", "unsafe", "wrong_value", "lost_file")
 EXAMPLE_OUTCOMES = ("unsafe", "wrong_value", "hang", "traceback", "lost_file")
 VAL_FAULTS = ("bitflip", "digit_swap", "drop", "dup", "stray_prompt", "error_line", "stall", "cutoff", "nonascii")

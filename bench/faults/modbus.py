@@ -1,4 +1,5 @@
-"""The Modbus valve terminal behind a corrupting proxy: the gripper driver, its poller, jaw motions through the engine."""
+"""The Modbus valve terminal behind a corrupting proxy (``modbus.<h2d|d2h>.<fault>``): the gripper driver,
+its poller, jaw motions through the engine (whose cleanup makes the valve safe)."""
 
 from __future__ import annotations
 

@@ -1,7 +1,10 @@
 """Termination signals (SIGINT, SIGTERM, SIGHUP, SIGQUIT; one, or two 0-30 ms apart) at a random moment of every
 command that moves the arm: ``selfview park``, ``selfview robot ready`` / ``depart``, the cell's calibrate
 procedure. Judged from the simulators' side: the arm stopped (ABORT received if it was moving), the valve's
-outputs in their safe state, the exit status 128 + the signal's number, the calibration file intact."""
+outputs in their safe state, the exit status 128 + the signal's number, the calibration file intact. The devices are held in this
+process and the command talks to them with ``--real`` through the proxy's serial-cable model, so the
+controller goes on when the host leaves, as a real one does; the calibrate procedure runs as a lab script
+runs it (``CellSession.calibrate``, the CLI's exit codes)."""
 
 from __future__ import annotations
 

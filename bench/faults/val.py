@@ -1,4 +1,7 @@
-"""The VAL-II link: the controller simulator behind a corrupting proxy, every operation through the engine."""
+"""The VAL-II link (``val.<h2d|d2h>.<fault>``): the controller simulator on TCP behind a corrupting proxy
+(``bench/_proxy.py``, the serial-cable model: the controller never sees the host leave), the driver on
+``socket://``, every operation through the engine (whose cleanup sends ABORT). ``h2d`` corrupts what the
+host sends, ``d2h`` what it receives."""
 
 from __future__ import annotations
 

@@ -1,16 +1,9 @@
 """The frame grabber: checked grey frames, taken after a given moment, averaged or as one field.
 
-``FrameGrabber(url)`` reads from the source the URL names (``selfview.drivers.frame_grabber_v4l2.url``): the
-CCIR grabber card over V4L2, a recorded image sequence or video file, or a registered source such as
-the simulator's ``sim://``. Whatever the source, a grab
-
-- drops frames exposed before ``after`` (a picture taken after the robot settled must have been exposed
-  after it settled: buffered frames are older), waiting up to ``timeout_s`` past that moment;
-- averages ``average`` consecutive frames to cut noise, or returns one field (every other row, the
-  rows between interpolated) when the scene moves;
-- checks the size and rejects a black or saturated frame (ImageError).
-
-Failures raise (DeviceError, DeviceTimeout, ImageError, ConfigError); nothing returns None or False.
+``FrameGrabber(url)`` reads from the source the URL names (``selfview.drivers.frame_grabber_v4l2.url``):
+the CCIR grabber card over V4L2, a recorded image sequence or video file, or a registered source such as
+the simulator's ``sim://``. Failures raise (DeviceError, DeviceTimeout, ImageError, ConfigError);
+nothing returns None or False.
 """
 
 from __future__ import annotations
@@ -166,6 +159,9 @@ class FrameGrabber:
 
     def grab(self, after: float | None = None, average: int = 1, field: bool | str = False) -> Frame:
         """One checked frame exposed after ``after`` (a ``time.monotonic()`` value; None: the next).
+
+        Frames exposed before ``after`` are dropped: a picture taken after the robot settled must have
+        been exposed after it settled, and buffered frames are older.
 
         ``average`` consecutive frames are averaged (rounded to uint8). ``field`` True or 'even' /
         'odd' returns that field with the other rows interpolated (not with ``average`` > 1).

@@ -1,48 +1,10 @@
 """The pneumatic parallel-jaw gripper behind a Modbus valve: switch the valve, confirm with reed switches.
 
 The jaw state decides which fingertip points are valid (the gap differs per state), so the driver only
-ever reports a state it has read from both reed switches:
-
-- ``open_jaws()`` / ``close_jaws()`` switch the valve and wait until the matching switch confirms within
-  ``timeout_s``; if the other switch is still on then, ``DeviceTimeout`` (the jaws never left: no air, a
-  valve that did not switch, a stuck jaw); if neither is on, ``GripperFault`` (stuck between, or the
-  target's switch is broken); both on at any time is a ``GripperFault`` too.
-- ``state()`` reads both switches now.
-- A motion is confirmed by two consecutive readings of the target (its switch on, the other off): one
-  reply with a flipped bit cannot confirm it. A reading with both switches on, or one that disagrees
-  with the commanded direction in ``state()``, is read once more before it is believed. Then the valve
-  outputs are read back (until two readings agree): a stroke the switches confirm while the terminal
-  has reset its outputs (its watchdog tripped during a stalled or dropped exchange) is a ``GripperFault``,
-  never a success. The safe state's read-back and ``outputs()`` read the same way.
-- A background poller reads the switches every ``poll_s`` (keeping the terminal's connection watchdog
-  fed) on the open connection only: it never reconnects.
-
-The driver's own safe-state rule (it does not rely on the terminal's watchdog alone): after a failed jaw
-command, a failed ``safe()`` or a lost link (seen by a call or by the poller), the driver *gives up*:
-
-1. it stops feeding the terminal's watchdog: the poller makes no request, and nothing reconnects on its
-   own, until the caller calls ``connect()``;
-2. it tries the safe state once: it writes the io map's ``safe_state`` outputs (reconnecting once if the
-   link dropped) and reads them back, then closes the connection;
-3. it reports what it could confirm: ``safe_report`` (a ``SafeReport``), and the message of the error
-   raised to the caller ends with the report's sentence.
-
-One program owns a valve terminal: ``connect()`` takes its lock (``selfview.drivers._ownership``) and
-``close()`` gives it back; a second driver meets ``DeviceBusy`` naming the holder.
-
-Until ``connect()`` (which re-reads the valve outputs and both switches), ``last_state`` is None and jaw
-commands raise ``ConnectionLost``. ``safe()`` may always be called; it returns a ``SafeReport`` and raises
-when it cannot confirm the safe outputs.
-
-What "safe" means (the io map's ``safe_state``; default ``all-off``): every solenoid de-energised. A single
-solenoid valve (spring return) then moves the jaws to its spring position (the state opposite to its
-solenoid); a double solenoid (bistable) valve holds the jaws where they are, so a held part stays held and
-an open gripper stays open. ``open`` / ``closed`` energise one solenoid instead; the terminal's watchdog
-(if it has one) de-energises everything when the master goes silent, which the driver makes happen by
-going silent after giving up.
-
-The connection's ``close()`` is the STYLE's ``close()``; the jaws move with ``open_jaws()`` /
-``close_jaws()`` (``disconnect()`` is an alias of ``close()``).
+ever reports a state it has read from both reed switches. Its own safe-state rule (it does not rely on
+the terminal's watchdog alone): after a failed jaw command, a failed ``safe()`` or a lost link, the
+driver gives up (``PneumaticGripper._give_up``): silence, the safe state tried once, a report of what
+it confirmed.
 """
 
 from __future__ import annotations
@@ -141,6 +103,13 @@ class PneumaticGripper:
     ``request_timeout_s`` / ``retries``: per Modbus request. ``poll_s``: background poll period
     (None: no poller, and the terminal's watchdog is then the caller's business). ``confirm_poll_s``:
     how often the switches are read while a motion is confirmed. Construction does no I/O.
+
+    One program owns a valve terminal: ``connect()`` (which re-reads the valve outputs and both switches)
+    takes its lock (``selfview.drivers._ownership``) and ``close()`` gives it back; a second driver meets
+    ``DeviceBusy`` naming the holder. Until ``connect()``, ``last_state`` is None and jaw commands raise
+    ``ConnectionLost``; ``safe()`` may always be called. A background poller reads the switches every
+    ``poll_s`` (keeping the terminal's connection watchdog fed) on the open connection only: it never
+    reconnects. ``disconnect()`` is an alias of ``close()``.
     """
 
     def __init__(
@@ -275,7 +244,15 @@ class PneumaticGripper:
     # --- the safe-state rule --------------------------------------------------------------------
     def _give_up(self, reason: str) -> SafeReport | None:
         """Stop feeding the watchdog, try the safe state once, close the link; returns the report
-        (None if another thread is giving up already)."""
+        (None if another thread is giving up already).
+
+        1. The poller makes no request, and nothing reconnects on its own, until the caller calls
+           ``connect()``;
+        2. the io map's ``safe_state`` outputs are written (reconnecting once if the link dropped) and
+           read back, then the connection is closed;
+        3. ``safe_report`` (a ``SafeReport``) says what could be confirmed, and the message of the error
+           raised to the caller ends with the report's sentence.
+        """
         if not self._halt_lock.acquire(blocking=False):
             return None
         try:
@@ -353,7 +330,7 @@ class PneumaticGripper:
 
     def read(self) -> JawReading:
         """Read both reed switches now (one request per table they sit in). A link failure makes the
-        driver give up (see the module's safe-state rule); the error says what it confirmed."""
+        driver give up (``_give_up``); the error says what it confirmed."""
         try:
             return self._read_raw()
         except CellError as exc:
@@ -521,6 +498,16 @@ class PneumaticGripper:
             raise self._failed(exc, what) from exc
 
     def _move_confirmed(self, target: str) -> str:
+        """Switch the valve to ``target`` and wait (``timeout_s``) until the switches confirm it.
+
+        Confirmed by two consecutive readings of the target (its switch on, the other off): one reply with
+        a flipped bit cannot confirm it; a reading with both on is read once more before it is believed.
+        At the deadline, the other switch still on is a ``DeviceTimeout`` (the jaws never left: no air, a
+        valve that did not switch, a stuck jaw); neither on a ``GripperFault`` (stuck between, or the
+        target's switch broken); both on at any time a ``GripperFault`` too. Then the valve outputs are
+        read back until two readings agree: a stroke the switches confirm while the terminal has reset its
+        outputs (its watchdog tripped during a stalled exchange) is a ``GripperFault``, never a success.
+        """
         want = self.io_map.drive(target)
         self._write_outputs(want)
         other = "closed" if target == "open" else "open"
@@ -578,12 +565,12 @@ class PneumaticGripper:
 
     def open_jaws(self) -> str:
         """Open the jaws and wait for the open switch (``timeout_s``). Returns 'open'. On any failure
-        the driver gives up (the module's safe-state rule) and the error says what it confirmed."""
+        the driver gives up (``_give_up``) and the error says what it confirmed."""
         return self._move("open")
 
     def close_jaws(self) -> str:
         """Close the jaws and wait for the closed switch (``timeout_s``). Returns 'closed'. On any
-        failure the driver gives up (the module's safe-state rule) and the error says what it confirmed."""
+        failure the driver gives up (``_give_up``) and the error says what it confirmed."""
         return self._move("closed")
 
     def move(self, state: str) -> str:
@@ -598,7 +585,14 @@ class PneumaticGripper:
         """Command the io map's ``safe_state`` (de-energise, open or close) and read the outputs back;
         does not wait for the switches. Tried even after a connection loss or after the driver gave up
         (it reconnects once). Returns the report when the outputs are confirmed; otherwise the driver
-        gives up and the error (GripperFault, or the link's) carries the report."""
+        gives up and the error (GripperFault, or the link's) carries the report.
+
+        Safe by default (``all-off``) is every solenoid de-energised: a single solenoid valve (spring
+        return) then moves the jaws to its spring position, a double solenoid (bistable) valve holds them
+        where they are, so a held part stays held and an open gripper stays open. ``open`` / ``closed``
+        energise one solenoid instead; the terminal's watchdog (if it has one) de-energises everything
+        when the master goes silent, which the driver makes happen by going silent after giving up.
+        """
         report = self._try_safe("safe() called")
         if report.confirmed:
             return report

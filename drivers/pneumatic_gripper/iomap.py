@@ -1,19 +1,9 @@
 """Where a gripper's valve solenoids and reed switches sit in a Modbus device: the I/O map.
 
-Pure configuration (no I/O, no pymodbus), shared by the driver and the simulated valve terminal.
-
-Address convention: a ``Point`` holds the *wire* address, 0-based, exactly as it travels in the request
-PDU. Manuals often count 1-based "Modicon references" instead, with the table in the leading digit:
-``00001`` coil 0, ``10001`` discrete input 0, ``30001`` input register 0, ``40001`` holding register 0
-(six-digit forms ``400001`` likewise). ``Point.parse`` reads both spellings:
-
-- ``coil:0``, ``di:3``, ``ir:2.15``, ``hr:0.3`` - table, 0-based wire address, and for registers the bit
-  (0 = least significant) of the 16-bit word;
-- ``40001.3``, ``100002`` - a 5- or 6-digit Modicon reference, converted with ``from_reference``.
-
-A valve terminal such as a Festo CPX maps each solenoid to a bit of a 16-bit output word (a holding
-register) and its inputs to bits of input registers; simple I/O modules use a coil per solenoid and a
-discrete input per switch. Both fit here.
+Pure configuration (no I/O, no pymodbus), shared by the driver and the simulated valve terminal. A valve
+terminal such as a Festo CPX maps each solenoid to a bit of a 16-bit output word (a holding register) and
+its inputs to bits of input registers; simple I/O modules use a coil per solenoid and a discrete input
+per switch. Both fit here.
 """
 
 from __future__ import annotations
@@ -76,7 +66,11 @@ class Point:
     @classmethod
     def parse(cls, text: "str | Point") -> "Point":
         """``coil:0`` / ``di:1`` / ``hr:0.3`` / ``ir:2.15`` (0-based wire addresses) or a Modicon
-        reference such as ``40001.3``. Raises ConfigError naming the text."""
+        reference such as ``40001.3``. Raises ConfigError naming the text.
+
+        Manuals often count 1-based "Modicon references", with the table in the leading digit: ``00001``
+        coil 0, ``10001`` discrete input 0, ``30001`` input register 0, ``40001`` holding register 0
+        (six-digit forms ``400001`` likewise); they are converted with ``from_reference``."""
         if isinstance(text, Point):
             return text
         if not isinstance(text, str):

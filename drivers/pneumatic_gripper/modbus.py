@@ -2,21 +2,7 @@
 
 pymodbus renames arguments between minor releases (``unit`` > ``slave`` > ``device_id``) and changed
 the coil bit order in 3.10; this adapter is written against 3.11 (pinned in pyproject.toml) and turns
-its results and exceptions into the project's:
-
-- an exception reply from the device           -> ``ModbusExceptionReply`` (a DeviceError), with its code;
-- a refused connection / a port that cannot open -> ``ConnectionFailed`` (a DeviceError);
-- a connection that drops during a request      -> ``ConnectionLost`` (a DeviceError);
-- a device that stays silent                    -> ``DeviceTimeout``, after ``timeout_s`` (a write) or
-                                                   ``timeout_s * (retries + 1)`` (a read);
-- a garbled or mismatched reply                 -> ``ProtocolError``.
-
-After any of the last three the link closes its transport, so a late reply can never be taken for the
-answer to the next request; the next call connects again and calls ``on_connect``. On Modbus TCP a read
-whose reply is late is first sent again (``retries`` times, on the same connection: the MBAP transaction
-id tells a late reply from the awaited one); a write is never sent twice (it may have been carried out),
-and RTU frames carry no transaction id, so there nothing is. The defaults fit a Modbus TCP terminal
-answered by a busy PC: a reply within a second, two more tries.
+its results and exceptions into the project's (``ModbusLink``).
 """
 
 from __future__ import annotations
@@ -119,6 +105,18 @@ class ModbusLink:
     ``close()`` closes it, both safe to call twice. Addresses are 0-based wire addresses. ``on_connect``
     is called (inside the link's lock) after each successful (re)connection, before the request that
     caused it. ``trace(direction, frame)`` sees every frame sent ('>') and received ('<') as bytes.
+
+    Errors: an exception reply from the device -> ``ModbusExceptionReply`` (with its code); a refused
+    connection or a port that cannot open -> ``ConnectionFailed``; a connection that drops during a
+    request -> ``ConnectionLost``; a device that stays silent -> ``DeviceTimeout``, after ``timeout_s``
+    (a write) or ``timeout_s * (retries + 1)`` (a read); a garbled or mismatched reply ->
+    ``ProtocolError``. After any of the last three the link closes its transport, so a late reply can
+    never be taken for the answer to the next request; the next call connects again and calls
+    ``on_connect``. On Modbus TCP a read whose reply is late is first sent again (``retries`` times, on
+    the same connection: the MBAP transaction id tells a late reply from the awaited one); a write is
+    never sent twice (it may have been carried out), and RTU frames carry no transaction id, so there
+    nothing is. The defaults fit a Modbus TCP terminal answered by a busy PC: a reply within a second,
+    two more tries.
     """
 
     def __init__(

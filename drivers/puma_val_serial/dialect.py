@@ -5,23 +5,6 @@ lines, the O/A/T Euler convention, the command syntax) are not documented precis
 as a ``ValDialect`` that a YAML file can adjust (``load_dialect``) without code changes. The driver
 formats and parses through it; the simulator (``mocks/val_controller.py``) reads the same data but
 formats its replies with its own code, so a bug in the driver's formatting cannot hide in both.
-
-O/A/T. The default is the convention of Unimation's VAL, which VAL-II keeps (the sources, best first):
-
-- Unimation, *User's Guide to VAL* (1977-1980), on location data: "With all three angles zero, the hand
-  points in the negative Y direction with the fingers in a horizontal plane"; O is a rotation about the
-  vertical, A tilts the approach direction up or down, T turns the hand about its approach direction.
-  A vertical tool therefore has A = +-90. VAL's READY position (the arm straight up, tool up) prints
-  O = 90, A = -90, T = 0 in this convention, the values seen on PUMA controllers at READY.
-- VAL-II kept VAL's location syntax (``TRANS(x, y, z, o, a, t)``, ``WHERE``'s ``X Y Z O A T``); its
-  reference manual (Unimation, *User's Guide to VAL II*, 1986) was not available to check the signs.
-- Adept's V+, VAL-II's successor, changed to plain ZYZ (yaw, pitch, roll) with the tool pointing up at
-  (0, 0, 0) and down at (0, 180, 0): the ``vplus`` entry of ``OAT_CONVENTIONS``.
-
-As an ``EulerConvention``: ``R = Rz(O) Rx(A) Ry(-T) R0`` with ``R0`` the hand at zero (approach -Y,
-fingers' closing axis along +X, both horizontal). A real arm's first WHERE names a wrong choice: the
-driver checks WHERE's pose against the kinematics of its own joint angles and says which convention of
-``OAT_CONVENTIONS`` fits (``PumaVAL.where``).
 """
 
 from __future__ import annotations
@@ -42,7 +25,21 @@ from selfview.geometry import VAL_OAT, EulerConvention, H_from_xyzoat, xyzoat_fr
 
 __all__ = ["ValDialect", "DEFAULT_COMMANDS", "DEFAULT_ERRORS", "OAT_CONVENTIONS", "load_dialect"]
 
-#: O/A/T conventions by name (see the module's docstring for the sources).
+#: O/A/T conventions by name. The default is the convention of Unimation's VAL, which VAL-II keeps
+#: (the sources, best first):
+#: - Unimation, *User's Guide to VAL* (1977-1980), on location data: "With all three angles zero, the
+#:   hand points in the negative Y direction with the fingers in a horizontal plane"; O is a rotation
+#:   about the vertical, A tilts the approach direction up or down, T turns the hand about its approach
+#:   direction. A vertical tool therefore has A = +-90. VAL's READY position (the arm straight up, tool
+#:   up) prints O = 90, A = -90, T = 0 in this convention, the values seen on PUMA controllers at READY.
+#: - VAL-II kept VAL's location syntax (``TRANS(x, y, z, o, a, t)``, ``WHERE``'s ``X Y Z O A T``); its
+#:   reference manual (Unimation, *User's Guide to VAL II*, 1986) was not available to check the signs.
+#: - Adept's V+, VAL-II's successor, changed to plain ZYZ (yaw, pitch, roll) with the tool pointing up
+#:   at (0, 0, 0) and down at (0, 180, 0): the ``vplus`` entry.
+#: As an ``EulerConvention``: ``R = Rz(O) Rx(A) Ry(-T) R0`` with ``R0`` the hand at zero (approach -Y,
+#: fingers' closing axis along +X, both horizontal). A real arm's first WHERE names a wrong choice: the
+#: driver checks WHERE's pose against the kinematics of its own joint angles and says which convention
+#: fits (``PumaVAL.where``).
 OAT_CONVENTIONS: dict[str, EulerConvention] = {
     # VAL (Unimation 1977): all zero = approach along -Y, fingers horizontal; R = Rz(O) Rx(A) Ry(-T) R0
     "val": EulerConvention(

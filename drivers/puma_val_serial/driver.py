@@ -1,45 +1,9 @@
 """The PUMA 260 over VAL-II's terminal port: typed commands, checked replies, limits before sending.
 
-The link is whatever ``serial.serial_for_url`` opens (a real port, a pty path, ``socket://``,
-``spy://`` for a traffic dump, ``loop://``) or an already open serial-like object; ``serial:///dev/ttyS0?
-baud=9600&xonxoff=1&rtscts=1`` names a serial port with its baud rate and flow control
-(``parse_serial_url``); with ``xonxoff=1`` the kernel's terminal driver acts on the controller's XON/XOFF
-bytes (IXON/IXOFF) and they never reach the reply parser.
-
-A command is typed without its line end; the controller echoes each character, the driver compares
-the echo with the command in full and only then sends the CR that executes it. A corrupted command
-is erased (``dialect.cancel_line``, CTRL-U) and never runs (``ProtocolError``). (With a dialect
-without echo nothing can be verified before it runs.) The reply ends with the prompt, a ``.`` at the
-start of a line followed by silence (``dialect.prompt_silence_s``), or with a question that the
-method expecting it answers; ``*`` at the start of a line is VAL's prompt while a program runs
-(``ProgramRunning``). Error lines ``*text*`` raise the typed ``ControllerError`` of the dialect's
-table; garbage or a missing prompt raises ``ProtocolError`` and the driver resynchronises (CR, drain
-to prompt and silence) before its next command; silence raises ``DeviceTimeout``. A BREAK on the
-line reads as one NUL byte (the port's BRKINT, IGNBRK, PARMRK off): it is refused at once (a waiting
-motion is stopped), and one that arrived between commands is followed by a resynchronisation.
-
-Checks beyond the bytes: ``WHERE``'s pose must equal the forward kinematics of the joint angles it
-prints, up to what the rounding of the printed numbers explains (``PumaKinematics.where_fit``; read
-again on a mismatch). A motion is complete only when the prompt
-follows it, an empty line is answered by a prompt (a busy controller does not answer: one noise ``.``
-cannot end a motion) and ``WHERE`` puts the arm at its target. A named target is read from the
-controller (``POINT``) before its limit check, never taken from a cache. ``SPEED`` is read back
-(``STATUS``) after it is set and before every motion: a speed that another program changed meanwhile
-refuses the motion. APPRO and DEPART distances must be >= 0, and every target is computed and checked
-against the limits before it is sent. The wait for a motion is its expected duration at the speed
-read back (joint-interpolated motions from the joint angles that reach the target, straight lines
-from the tool's path; ``ValLimits``) plus a margin of a few seconds. The port is opened exclusively:
-a second program opening it is refused.
-
-Stopping: ``ABORT`` is written first and unconditionally (after a CTRL-U that erases any half-typed
-line), then confirmed by reading the controller's answer. The driver does so itself when a motion's
-wait fails in any way (timeout, garbage, a failed check, an interrupt); ``abort()`` does so from any
-thread and returns an ``AbortResult`` saying whether the stop was confirmed.
-
-Threads: one command is in flight at a time (``_cmd_lock``); bytes go out under ``_write_lock``, so
-``abort()`` from another thread can write ``ABORT`` while a motion waits; the waiting motion then
-reads the controller's answer and raises ``MotionAborted``.
-Frames: poses are the tool point T in the robot base frame B, ``base_H_T``; mm and degrees.
+A command runs only after its echo matched in full; a reply is trusted only when its bytes, the
+kinematics of what ``WHERE`` prints and the arm's arrival agree; every target is checked against the
+limits before it is sent; ``ABORT`` goes out first when anything in a motion's wait fails. Poses are the
+tool point T in the robot base frame B, ``base_H_T``; mm and degrees.
 """
 
 from __future__ import annotations
@@ -218,6 +182,29 @@ class PumaVAL:
     in_waiting, timeout). ``timeout_s``: the wait for a non-motion reply; motions wait as long as
     ``limits`` estimates from distance and speed. ``kinematics``: the arm and its TOOL, to check WHERE.
     Constructing does no I/O.
+
+    The link is whatever ``serial.serial_for_url`` opens (a real port, a pty path, ``socket://``,
+    ``spy://`` for a traffic dump, ``loop://``); ``serial:///dev/ttyS0?baud=9600&xonxoff=1&rtscts=1``
+    names a serial port with its baud rate and flow control (``parse_serial_url``); with ``xonxoff=1``
+    the kernel's terminal driver acts on the controller's XON/XOFF bytes and they never reach the reply
+    parser. The port is opened exclusively: a second program opening it is refused.
+
+    Replies end with the prompt, a ``.`` at the start of a line followed by silence
+    (``dialect.prompt_silence_s``), or with a question that the method expecting it answers; ``*`` at
+    the start of a line is VAL's prompt while a program runs (``ProgramRunning``). Error lines ``*text*``
+    raise the typed ``ControllerError`` of the dialect's table; garbage or a missing prompt raises
+    ``ProtocolError`` and the driver resynchronises (CR, drain to prompt and silence) before its next
+    command; silence raises ``DeviceTimeout``. A BREAK reads as one NUL byte: it is refused at once (a
+    waiting motion is stopped), and one that arrived between commands is followed by a resynchronisation.
+
+    Checks beyond the bytes: ``WHERE``'s pose must equal the forward kinematics of its joint angles up
+    to the print rounding (``PumaKinematics.where_fit``; read again on a mismatch). A named target is read
+    from the controller (``POINT``) before its limit check, never taken from a cache. ``SPEED`` is read
+    back (``STATUS``) after it is set and before every motion. APPRO and DEPART distances must be >= 0.
+
+    Threads: one command is in flight at a time (``_cmd_lock``); bytes go out under ``_write_lock``, so
+    ``abort()`` from another thread can write ``ABORT`` while a motion waits; the waiting motion then
+    reads the controller's answer and raises ``MotionAborted``.
     """
 
     def __init__(
@@ -373,7 +360,9 @@ class PumaVAL:
 
     def _send_line(self, text: str, deadline: float, *, motion: bool = False) -> None:
         """Type ``text`` and execute it: with echo, the line goes out without its line end, its echo is
-        compared in full, and only a faithful echo is followed by the line end (else CTRL-U erases it)."""
+        compared in full, and only a faithful echo is followed by the line end (else CTRL-U erases it,
+        ``dialect.cancel_line``, and ``ProtocolError``). With a dialect without echo nothing can be
+        verified before it runs."""
         d = self.dialect
         data = d.encode_line(text)
         body, eol = data[: len(data) - len(d.host_eol)], d.host_eol.encode("ascii")
@@ -621,7 +610,8 @@ class PumaVAL:
         return AbortResult(True, ok, how)
 
     def abort(self) -> AbortResult:
-        """Stop the arm: write ``ABORT`` at once (never after a resynchronisation), then confirm it.
+        """Stop the arm: write ``ABORT`` at once (after a CTRL-U that erases any half-typed line, never
+        after a resynchronisation), then confirm it by reading the controller's answer.
 
         Works from any thread: a motion waiting in another thread reads the controller's answer (and
         raises ``MotionAborted``); otherwise this reads it. Never raises for a failed stop: the
@@ -719,7 +709,8 @@ class PumaVAL:
 
     def _motion_timeout(self, from_H: np.ndarray, to_H: np.ndarray, joints=None) -> float:
         """The wait for a motion from ``from_H`` to ``to_H``: straight (``joints`` None) or joint-interpolated
-        from the joint angles ``joints`` (then timed by the joints that reach ``to_H``, when found)."""
+        from the joint angles ``joints`` (then timed by the joints that reach ``to_H``, when found): the
+        expected duration at the speed read back (``ValLimits``) plus a margin of a few seconds."""
         speed = self._speed_locked()
         if joints is not None:
             goal_q = _joints_reaching(self.kinematics, to_H, joints)
@@ -754,7 +745,8 @@ class PumaVAL:
 
     def _motion_locked(self, command: str, timeout_s: float, arrived) -> None:
         """Execute a motion and make sure it is over: its prompt, a prompt for an empty line (a busy
-        controller gives none), a WHERE at the target. On any failure of the wait: ABORT, confirmed."""
+        controller gives none, so one noise ``.`` cannot end a motion), a WHERE at the target. On any
+        failure of the wait (timeout, garbage, a failed check, an interrupt): ABORT, confirmed."""
         t_end = time.monotonic() + timeout_s
         try:
             self._expect_nothing(self._exchange_locked(command, timeout_s=timeout_s, motion=True), command)

@@ -5,46 +5,6 @@ angles it came from: the pose must equal the forward kinematics of the joints th
 TOOL, up to the rounding of the printed numbers. A digit swap in either line, or an O/A/T convention
 that is not the controller's, breaks that equality. This module is the driver's own; the simulator
 (``selfview.mocks.puma260``) has its own.
-
-The chain (standard Denavit-Hartenberg, lengths in mm, angles in degrees), the shoulder ``shoulder_mm``
-above the base reference B (z up, x forward):
-
-    link  theta         d          a            alpha
-    1     q1            0          0            +90
-    2     q2 + 180      0          upper_arm    0
-    3     q3 - 180      lateral    elbow_drop   -90
-    4     q4            forearm    0            +90
-    5     q5            0          0            -90
-    6     q6            flange     0            0
-
-``q`` are VAL's joint angles (READY = 0, -90, 90, 0, 0, 0: the arm straight up). The TOOL is a
-translation ``tool_mm`` in the flange frame (the cell's gripper: 170 mm along the flange z).
-
-How close is close enough (``PumaKinematics.where_fit``). The controller computes the pose from its
-unrounded joint angles and prints both rounded to ``d`` decimals (VAL-II: 2), so each printed joint is
-off its true value by up to h = 0.5e-d deg, each of X Y Z by up to h mm and each of O A T by up to h
-deg. The difference between the printed pose and the kinematics of the printed joints, as a
-6-vector e = (position [mm], rotation vector of R_pose R_kin^T [rad]), is then, to first order,
-
-    e = J dq + dx + E da,   |dq_i| <= h deg, |dx_i| <= h mm, |da_i| <= h deg,
-
-with J the arm's Jacobian at the printed joints (joint i moves the tool point by z_i x (p - o_i) and
-turns it about z_i: its lever arm) and E the axes of the O, A, T rotations at the printed angles.
-Those e form a zonotope Z (12 generators in 6 dimensions); a reading is consistent exactly when e lies
-in Z. The test is Z's facet inequalities: for the normal n of every 5 of the 12 generators,
-|n.e| <= sum_i |n.g_i| + the second-order remainder of the linearisation, 1/2 (6h + 3h)^2 in radians
-times (the arm's reach + 1 m), about 6e-4 mm at h = 0.005 (rotations are counted as mm of arc at
-1 m). No round-number tolerance: at h = 0.005 the worst case over Z is 0.04-0.14 mm and 0.026-0.032
-deg across the PUMA 260's workspace (0.11 mm / 0.031 deg with the tool down over the plate), and a
-difference along a direction in which rounding cannot move the pose is refused however small. So a
-printed joint changed by 0.08 deg (0.08 deg of tool rotation, whatever the joint), or X, Y or Z
-changed by 0.1 mm, is caught where the former flat 0.5 mm / 0.1 deg let both through. Comparing
-rotations (not O/A/T triples) makes the test blind to the representation: wrapping at +-180 and the
-O/T degeneracy at A = +-90 change nothing.
-
-``where_model_mm`` / ``where_model_deg`` widen Z by a ball: how far the controller's own arm model may
-lie from this one (0 for a controller with the nominal PUMA 260 data and this TOOL; a controller whose
-link data or TOOL are known to differ states it here rather than in a looser rounding).
 """
 
 from __future__ import annotations
@@ -137,7 +97,9 @@ class PumaKinematics:
     """The arm the driver talks to: nominal PUMA 260 link lengths (mm), VAL's joint zero, the TOOL.
 
     ``where_model_mm`` / ``where_model_deg``: how far the controller's arm model may lie from this one,
-    beyond the print rounding that ``where_fit`` derives (see the module's docstring); 0 by default.
+    beyond the print rounding that ``where_fit`` derives; they widen its zonotope by a ball. 0 for a
+    controller with the nominal PUMA 260 data and this TOOL; a controller whose link data or TOOL are
+    known to differ states it here rather than in a looser rounding.
     """
 
     shoulder_mm: float = 330.2
@@ -178,7 +140,22 @@ class PumaKinematics:
         return cls.from_dict(read_yaml(path, "kinematics"))
 
     def frames(self, q_deg) -> list[np.ndarray]:
-        """base_H_i (4, 4) for i = 0..6: the shoulder frame (joint 1's axis is its z), then each link's."""
+        """base_H_i (4, 4) for i = 0..6: the shoulder frame (joint 1's axis is its z), then each link's.
+
+        Standard Denavit-Hartenberg, lengths in mm, angles in degrees, the shoulder ``shoulder_mm`` above
+        the base reference B (z up, x forward):
+
+            link  theta         d          a            alpha
+            1     q1            0          0            +90
+            2     q2 + 180      0          upper_arm    0
+            3     q3 - 180      lateral    elbow_drop   -90
+            4     q4            forearm    0            +90
+            5     q5            0          0            -90
+            6     q6            flange     0            0
+
+        ``q`` are VAL's joint angles (READY = 0, -90, 90, 0, 0, 0: the arm straight up). The TOOL is a
+        translation ``tool_mm`` in the flange frame (the cell's gripper: 170 mm along the flange z).
+        """
         q = [float(v) for v in np.asarray(q_deg, dtype=float).reshape(6)]
         chain = [
             (q[0], 0.0, 0.0, 90.0),
@@ -205,7 +182,29 @@ class PumaKinematics:
 
     def where_fit(self, pose, joints, euler: EulerConvention, decimals: int) -> WhereFit:
         """Is the printed ``pose`` (x, y, z mm, o, a, t deg under ``euler``) the pose of the printed
-        ``joints`` (deg), both printed with ``decimals`` decimals? See the module's docstring."""
+        ``joints`` (deg), both printed with ``decimals`` decimals?
+
+        The controller computes the pose from its unrounded joint angles and prints both rounded to d
+        decimals (VAL-II: 2), so each printed joint is off its true value by up to h = 0.5e-d deg, each of X Y
+        Z by up to h mm and each of O A T by up to h deg. The difference between the printed pose and the
+        kinematics of the printed joints, as a 6-vector e = (position [mm], rotation vector of R_pose R_kin^T
+        [rad]), is then, to first order,
+
+            e = J dq + dx + E da,   |dq_i| <= h deg, |dx_i| <= h mm, |da_i| <= h deg,
+
+        with J the arm's Jacobian at the printed joints (joint i moves the tool point by z_i x (p - o_i) and
+        turns it about z_i: its lever arm) and E the axes of the O, A, T rotations at the printed angles.
+        Those e form a zonotope Z (12 generators in 6 dimensions); a reading is consistent exactly when e lies
+        in Z. The test is Z's facet inequalities: for the normal n of every 5 of the 12 generators, |n.e| <=
+        sum_i |n.g_i| + the second-order remainder of the linearisation, 1/2 (6h + 3h)^2 in radians times (the
+        arm's reach + 1 m), about 6e-4 mm at h = 0.005 (rotations are counted as mm of arc at 1 m). No round-
+        number tolerance: at h = 0.005 the worst case over Z is 0.04-0.14 mm and 0.026-0.032 deg across the
+        PUMA 260's workspace (0.11 mm / 0.031 deg with the tool down over the plate), and a difference along a
+        direction in which rounding cannot move the pose is refused however small. So a printed joint changed
+        by 0.08 deg (0.08 deg of tool rotation, whatever the joint), or X, Y or Z changed by 0.1 mm, is
+        caught. Comparing rotations (not O/A/T triples) makes the test blind to the representation: wrapping
+        at +-180 and the O/T degeneracy at A = +-90 change nothing.
+        """
         h = 0.5 * 10.0 ** -decimals
         hr = np.radians(h)
         F = self.frames(joints)

@@ -286,7 +286,7 @@ def test_formats_that_need_colour_conversion_are_refused():
         FrameGrabber("v4l2:///dev/video0?format=MJPG").connect()
 
 
-# --- issue 18 #19, #20 and the std range ---------------------------------------------------------------
+# --- frame stamps and the std range --------------------------------------------------------------------
 @pytest.mark.parametrize("std", ["0", "0x10000000000000000", "-1", "-0xff"])
 def test_std_numbers_outside_a_v4l2_std_id_are_refused(std):
     with pytest.raises(ConfigError, match="not a v4l2_std_id"):
@@ -363,7 +363,7 @@ def test_gaps_between_buffer_timestamps_count_the_lost_frames(monkeypatch):
 
 
 def test_a_frame_ending_after_settling_but_exposed_before_is_dropped(monkeypatch):
-    """Issue 18 #19: a frame whose END-of-frame stamp lies after the moment the robot settled was still
+    """A frame whose END-of-frame stamp lies after the moment the robot settled was still
     exposed (mostly) before it: dropped; the next one, exposed entirely after, is taken."""
     import time
 

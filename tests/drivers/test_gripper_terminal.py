@@ -203,7 +203,7 @@ def test_poller_feeds_the_watchdog(terminal):
 
 
 def test_no_watchdog_feed_after_a_failed_command():
-    """Issue 18 #8: after a failed command the poller must not keep the outputs energised."""
+    """After a failed command the poller must not keep the outputs energised."""
     with ValveTerminal(travel_s=TRAVEL_S, watchdog_s=0.3) as t, PneumaticGripper(t.url, poll_s=0.03) as g:
         assert g.close_jaws() == "closed"
         t.fail_requests(4)  # the device refuses every request: the open command fails, so does the safe attempt

@@ -346,7 +346,7 @@ CORRUPTED_CLOSE = CONNECT_OPEN + [
 
 
 def test_write_echo_naming_another_coil_is_reported_on_a_shared_terminal(device):
-    """Issue 18: Modbus TCP has no checksum. A write whose echo names another coil switched on: by
+    """Modbus TCP has no checksum. A write whose echo names another coil switched on: by
     default (a terminal shared with other valves) the driver leaves that coil alone and names it."""
     d = device(CORRUPTED_CLOSE + SAFE_AFTER_RECONNECT)
     with PneumaticGripper(d.url, poll_s=None) as g:
@@ -406,7 +406,7 @@ def test_both_switches_on_is_a_fault(device):
 
 
 def test_one_flipped_bit_neither_confirms_nor_faults(device):
-    """Issue 18 #9: single-bit errors in read replies. A reading with the target's switch on must be
+    """Single-bit errors in read replies. A reading with the target's switch on must be
     confirmed by the next one; a reading with both on is read again before it is believed."""
     d = device(
         CONNECT_OPEN
@@ -436,7 +436,7 @@ def test_one_flipped_bit_neither_confirms_nor_faults(device):
 
 
 def test_stroke_with_outputs_reset_by_the_terminal_is_a_fault(device):
-    """Issue 18: the terminal's watchdog resets the outputs during a stroke (the master was silent
+    """The terminal's watchdog resets the outputs during a stroke (the master was silent
     through a stalled exchange). A double valve then holds the jaws where they got to, so both switch
     readings confirm the target; the outputs read back say the valve no longer holds it: a GripperFault,
     then the safe state, never a success."""
@@ -463,7 +463,7 @@ def test_stroke_with_outputs_reset_by_the_terminal_is_a_fault(device):
 
 
 def test_poller_losing_the_link_during_a_stroke_fails_the_stroke(device, monkeypatch):
-    """Issue 18: the poller's request fails while a jaw command waits between its switch readings. The
+    """The poller's request fails while a jaw command waits between its switch readings. The
     driver gives up (safe state, once) before anything else can use the link, and the stroke fails:
     it never reconnects to report a jaw position the safe state is about to undo."""
     d = device(
@@ -496,7 +496,7 @@ def test_poller_losing_the_link_during_a_stroke_fails_the_stroke(device, monkeyp
 
 
 def test_state_with_nothing_commanded_needs_two_agreeing_readings(device):
-    """Issue 18: with no direction commanded (the valve holds the jaws), a reply with a flipped bit is
+    """With no direction commanded (the valve holds the jaws), a reply with a flipped bit is
     not believed alone: the state is the one two readings in a row agree on."""
     d = device(
         CONNECT_OPEN

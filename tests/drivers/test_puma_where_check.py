@@ -1,5 +1,5 @@
-"""WHERE's pose against the kinematics of its own joint angles (issue 18, items 4 and 16): no false alarm
-wherever the arm can be, and a one-digit corruption caught.
+"""WHERE's pose against the kinematics of its own joint angles: no false alarm wherever
+the arm can be, and a one-digit corruption caught.
 
 The tolerance is the print rounding, derived, not chosen: VAL-II prints JT1..JT6, X Y Z and O A T with
 2 decimals, so each printed joint is up to 0.005 deg off the angle the pose was computed from, each
@@ -155,7 +155,7 @@ def test_a_one_digit_change_is_caught_everywhere_in_the_sweep(what):
 
 
 def test_another_oat_convention_is_refused_at_the_singularity_too():
-    # item 16: V+ angles read as VAL's do not fit, also with the tool straight down (both sets degenerate)
+    # V+ angles read as VAL's do not fit, also with the tool straight down (both sets degenerate)
     named = 0
     for q in CONFIGURATIONS[:: 7]:
         pose = printed(sim_pose(q, VPLUS))

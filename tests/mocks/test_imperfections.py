@@ -1,4 +1,4 @@
-"""A real cell's imperfections in the simulated world (issue 17): each one is present in the world and in
+"""A real cell's imperfections in the simulated world: each one is present in the world and in
 the pictures at its stated magnitude, switching one on changes nothing else, and the ideal profile is the
 cell the project simulated before.
 

@@ -1,6 +1,6 @@
 """The paper's Tables 1 and 2 by its protocol, straight on simulated worlds (one world per trial).
 
-Claims (issue: on-line calibration): measured as the paper measures it (against the off-line method run on
+Claims of the on-line calibration: measured as the paper measures it (against the off-line method run on
 the second picture), 4P-U's mean TCP error is at most the paper's on every axis (Table 1: 0.02 / 0.00 / 0.04;
 Table 2: 0.02 / 0.01 / 0.21 mm, 0.00 read as 0.01); against the simulator's truth, 4P-I's mean error is under
 0.03 mm on every axis. The closing note reports the same over 40 trials per series (``selfview report``).

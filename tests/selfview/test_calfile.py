@@ -93,7 +93,7 @@ def test_unknown_version_and_missing_file(tmp_path, rng):
         load_calibration(tmp_path / "none.yaml")
 
 
-# --- hostile files (issue 18 #12) -------------------------------------------------------------------
+# --- hostile files --------------------------------------------------------------------------------
 def _rechecksummed(p, doc):
     """Write ``doc`` with a valid checksum, as somebody re-checksumming an edited file would."""
     from selfview.calfile import _checksum
@@ -140,7 +140,7 @@ def test_hostile_yaml_is_refused_at_once(tmp_path, rng, content, message):
         (lambda d: d["gripper"].__setitem__("points_G", [1, 2]), "points_G is not a table of jaw states"),
         (lambda d: d.__setitem__("camera", "a text"), "TypeError"),
         (lambda d: d["C_H_G"][0].__setitem__(3, float("nan")), "non-finite"),
-        # issue 18: well-typed values that are not what a calibration writes there
+        # well-typed values that are not what a calibration writes there
         (lambda d: d["gripper"]["points_G"]["open"].__setitem__("A-inner-back", [1, 2, 3]), "not a fingertip shape"),
         (lambda d: d["gripper"]["points_G"]["closed"].__setitem__("B-outer-front", [-13.0, -6.0, 2.5]), "tip plane"),
         (lambda d: d.__setitem__("version", True), "version is True"),
@@ -177,7 +177,7 @@ def test_cli_maps_a_hostile_calibration_file_to_exit_3(tmp_path, capsys):
     assert "bomb.yaml" in err and "alias" in err and "Traceback" not in err
 
 
-# --- writes (issue 18 #13) ----------------------------------------------------------------------------
+# --- writes ------------------------------------------------------------------------------------------
 def test_a_write_that_fails_half_way_leaves_the_old_file(tmp_path, rng, monkeypatch):
     """A full disk in the middle of the write: the error names the path and the cause, the old file is
     intact (the writer never writes in place), no temporary file is left."""

@@ -120,7 +120,7 @@ def test_file_errors(tmp_path):
         load_cell(p)
 
 
-# --- hostile files (issue 18 #12) -------------------------------------------------------------------
+# --- hostile files --------------------------------------------------------------------------------
 @pytest.mark.parametrize(
     "text, message",
     [

@@ -22,10 +22,10 @@ from selfview.policy import Monitor
 from selfview.silhouette import fit_silhouette
 from selfview.silhouette import SilhouetteTracker
 
-# a pose marked good may be this far off in any TCP axis (the issue's bound for a wrong one is 0.1 mm; a
+# a pose marked good may be this far off in any TCP axis (a wrong one is off by 0.1 mm or more; a
 # right one is typically 0.01 mm: 0.05 leaves room for one frame's noise, not for a wrong edge)
 TCP_TOL_MM = 0.05
-CORNER_TOL_PX = 0.5  # the issue's bound for a parked picture's corners
+CORNER_TOL_PX = 0.5  # the bound for a parked picture's corners
 
 
 @functools.lru_cache(maxsize=None)
@@ -204,7 +204,7 @@ def test_monitor_with_the_silhouette_tracker_alarms_after_the_configured_missed_
 
 
 def test_selfview_track_over_a_photograph_reports_the_pose_and_its_quality(tmp_path, capsys):
-    """The issue's case: parked and calibrated, then the camera pulled by its cable while working over a
+    """Parked and calibrated, then the camera pulled by its cable while working over a
     textured table 40 mm beyond the fingertips. ``selfview track`` finds the fingertips by the model and
     prints the fit's quality; over a picture without the fingers it says "not found" (exit 5)."""
     import json
@@ -246,7 +246,7 @@ def test_selfview_track_over_a_photograph_reports_the_pose_and_its_quality(tmp_p
 
 @pytest.mark.parametrize("renderer", ["mocks", "alt"])
 def test_offline_calibration_takes_the_model_where_the_corner_search_misses_corners(renderer, monkeypatch):
-    """The issue's parked picture: a fingertip beside a disc and the corner search finding 3 of the 6
+    """A parked picture with a fingertip beside a disc and the corner search finding 3 of the 6
     corners, none of finger B (forced here by hiding finger B's corners from the corner search's result).
     ``calibrate_offline`` (measurement 'auto') then measures by the model: all six corners within
     CORNER_TOL_PX and C_H_G within the off-line targets (0.02 mm across, 0.08 mm along the axis); the

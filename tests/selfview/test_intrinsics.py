@@ -112,8 +112,8 @@ def test_plan_keeps_the_fingers_clear_and_the_ranges(cell):
 
 
 def test_joint_fit_recovers_the_camera_and_its_sigmas_are_honest(cell):
-    """16 noise draws on 12 planned views: the errors scatter as the reported sigmas say (within the
-    issue's factor 2; 16 draws give a spread to about +-18 %, 8 were too few once the plate's bow became
+    """16 noise draws on 12 planned views: the errors scatter as the reported sigmas say (within a
+    factor 2; 16 draws give a spread to about +-18 %, 8 were too few once the plate's bow became
     a free parameter (its sigmas ~12 % larger): the first 8 draws' aspect ratio is 0.49 with it, 0.60
     without; over 16 draws 0.67 and 0.69), and every estimate is within 4 sigma."""
     errs, sigs = [], []

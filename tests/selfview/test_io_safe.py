@@ -1,5 +1,5 @@
-"""selfview.io_safe: pictures checked in their header before decoding (issue 18 #14), the strict YAML
-reader, and the atomic writer's refusals."""
+"""selfview.io_safe: pictures checked in their header before decoding, the strict YAML reader,
+and the atomic writer's refusals."""
 
 from __future__ import annotations
 
