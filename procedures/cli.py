@@ -18,10 +18,9 @@ import logging
 import pkgutil
 import signal
 import sys
-import threading
 
 from selfview import __version__
-from selfview.procedures.engine import TERMINATION_SIGNALS, Cancelled, Interrupted, _SignalFlag
+from selfview.procedures.engine import Cancelled, RaiseOnSignal
 from selfview.errors import (
     AlarmError,
     CalibrationError,
@@ -61,6 +60,8 @@ def exit_code_for(exc: BaseException) -> tuple[int, str]:
     has one, before its kind's)."""
     for types, code, hint in _EXIT_FOR:
         if isinstance(exc, types):
+            if isinstance(exc, Cancelled):  # ended by a signal: 128 + its number (130 for Ctrl-C)
+                code = 128 + exc.signum
             return code, getattr(exc, "what_to_do", None) or hint
     return EXIT_INTERNAL, "this is a bug; please report it with the command line"
 
@@ -92,38 +93,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _raise_interrupted(signum, frame):
-    """The first termination signal raises (``KeyboardInterrupt`` for SIGINT, ``Interrupted`` for the
-    others) where the program is; every later one is only noted, so that the cleanup the first one
-    started (ABORT, safe valve, closes, the report) is never cut short. A signal the engine has turned
-    into its flag counts as the first."""
-    if _SignalFlag.seen is not None:
-        return
-    _SignalFlag.seen = signum
-    raise KeyboardInterrupt() if signum == signal.SIGINT else Interrupted(signum)
-
-
-def _catch_termination_signals() -> dict:
-    """Install ``_raise_interrupted`` for every catchable termination signal not ignored on purpose
-    (nohup, a background job). Returns the previous handlers."""
-    old = {}
-    if threading.current_thread() is threading.main_thread():
-        _SignalFlag.seen = None
-        for sig in TERMINATION_SIGNALS:
-            if signal.getsignal(sig) is not signal.SIG_IGN:
-                old[sig] = signal.signal(sig, _raise_interrupted)
-    return old
-
-
 def main(argv: list[str] | None = None) -> int:
-    old = _catch_termination_signals()
-    try:
-        return _main(argv)
-    except KeyboardInterrupt as exc:  # before the command started (parsing, start-up)
-        return 128 + getattr(exc, "signum", signal.SIGINT)
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+    """The command line (``argv`` None: the program's own arguments, and the program ends after it)."""
+    with RaiseOnSignal(keep=argv is None):
+        try:
+            return _main(argv)
+        except KeyboardInterrupt as exc:  # before the command started (parsing, start-up)
+            return 128 + getattr(exc, "signum", signal.SIGINT)
 
 
 def _main(argv: list[str] | None) -> int:
@@ -147,8 +123,6 @@ def _main(argv: list[str] | None) -> int:
         return 128 + signum
     except CellError as exc:
         code, hint = exit_code_for(exc)
-        if isinstance(exc, Cancelled):
-            code = 128 + exc.signum
         _say(f"selfview {args.command}: error: {exc}\n  what to do: {hint}")
         return code
     except argparse.ArgumentTypeError as exc:  # a number or name checked after parsing

@@ -94,6 +94,50 @@ class _SignalFlag:
         self._old.clear()
 
 
+class RaiseOnSignal:
+    """While active (main thread only), the first termination signal raises where the program is
+    (``KeyboardInterrupt`` for SIGINT, ``Interrupted`` for the others); every later one is only noted, so
+    the cleanup the first one started (ABORT, safe valve, closes, the report) is never cut short. Inside an
+    engine run the run's own flag takes them (``_SignalFlag``). Signals ignored on purpose (nohup, a
+    background job) stay ignored. Nested uses share one first signal.
+
+    On exit the previous handlers come back, unless ``keep`` and a signal was seen: a program that is ending
+    because of one keeps noting the late ones, so that a second signal cannot kill it while it exits."""
+
+    _depth = 0
+
+    def __init__(self, keep: bool = False):
+        self.keep = keep
+        self._old: dict[int, Any] = {}
+
+    @staticmethod
+    def _raise(signum, frame):
+        if _SignalFlag.seen is not None:
+            return
+        _SignalFlag.seen = signum
+        raise KeyboardInterrupt() if signum == signal.SIGINT else Interrupted(signum)
+
+    def __enter__(self) -> "RaiseOnSignal":
+        if threading.current_thread() is threading.main_thread():
+            if RaiseOnSignal._depth == 0:
+                _SignalFlag.seen = None
+            RaiseOnSignal._depth += 1
+            for sig in TERMINATION_SIGNALS:
+                if signal.getsignal(sig) is not signal.SIG_IGN:
+                    self._old[sig] = signal.signal(sig, self._raise)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        RaiseOnSignal._depth = max(0, RaiseOnSignal._depth - 1)
+        if self.keep and _SignalFlag.seen is not None:
+            return
+        for sig, old in self._old.items():
+            signal.signal(sig, old if old is not None else signal.SIG_DFL)
+        self._old.clear()
+
+
 @dataclass
 class Step:
     """One step of a procedure.

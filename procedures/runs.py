@@ -15,13 +15,14 @@ Python API for lab scripts::
 from __future__ import annotations
 
 import logging
+import signal
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from selfview.procedures.engine import CellDevices, Engine, Step
+from selfview.procedures.engine import Cancelled, CellDevices, Engine, RaiseOnSignal, Step, signal_name
 from selfview.procedures.experiment import TrialRecord, run_trial, summarise, tables_markdown
 from selfview.procedures.simcell import CellURLs, SimulatedCell
 from selfview.calfile import load_calibration, save_calibration
@@ -169,10 +170,28 @@ class CellSession:
             self.sim.stop()
 
     def __enter__(self) -> "CellSession":
-        return self.open()
+        # a termination signal between the engine's runs (a lab script's own code, a calibration being
+        # computed) raises here too, so that the cleanup below runs instead of the process dying
+        self._signals = RaiseOnSignal().__enter__()
+        try:
+            return self.open()
+        except BaseException:
+            self._signals.__exit__(None, None, None)
+            raise
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        try:
+            if isinstance(exc, KeyboardInterrupt) and self.engine is not None and not self.dry_run:
+                # interrupted outside a run: what a run's interruption gets (ABORT, safe valve, closes)
+                signum = getattr(exc, "signum", signal.SIGINT)
+                what = "interrupted by the operator (Ctrl-C)" if signum == signal.SIGINT else f"terminated by {signal_name(signum)}"
+                self.engine.cancel.set()
+                self.engine.cleanup(what)
+                self.close()
+                raise Cancelled(f"{what}; " + self.engine.state_sentence(), signum) from None
+            self.close()
+        finally:
+            self._signals.__exit__(None, None, None)
 
     # --- procedures -------------------------------------------------------------------------------
     def _run(self, body, plan):

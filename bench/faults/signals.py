@@ -148,9 +148,9 @@ try:
     with CellSession.real(load_cell(default_cell_path()), robot=robot, gripper=gripper, camera=camera,
                           progress=lambda s: print(s, file=sys.stderr, flush=True)) as s:
         s.calibrate(out=out)
-except KeyboardInterrupt:
+except KeyboardInterrupt as exc:
     print("interrupted", file=sys.stderr)
-    sys.exit(130)
+    sys.exit(128 + getattr(exc, "signum", 2))
 except CellError as exc:
     code, hint = exit_code_for(exc)
     print(f"error: {exc}\n  what to do: {hint}", file=sys.stderr)

@@ -321,20 +321,19 @@ def test_the_cell_is_reported_safe_only_once_the_worker_has_ended():
 
 
 def test_the_command_line_raises_for_the_first_signal_only():
-    from selfview.procedures import cli
-    from selfview.procedures.engine import Interrupted, _SignalFlag
+    from selfview.procedures.engine import Interrupted, RaiseOnSignal, _SignalFlag
 
-    old = cli._catch_termination_signals()
+    before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
     try:
-        with pytest.raises(Interrupted) as info:
-            signal.raise_signal(signal.SIGTERM)
-        assert info.value.signum == signal.SIGTERM
-        signal.raise_signal(signal.SIGINT)  # the cleanup the first one started goes on
-        signal.raise_signal(signal.SIGHUP)
-        assert _SignalFlag.seen == signal.SIGTERM
+        with RaiseOnSignal():
+            with pytest.raises(Interrupted) as info:
+                signal.raise_signal(signal.SIGTERM)
+            assert info.value.signum == signal.SIGTERM
+            signal.raise_signal(signal.SIGINT)  # the cleanup the first one started goes on
+            signal.raise_signal(signal.SIGHUP)
+            assert _SignalFlag.seen == signal.SIGTERM
+        assert {s: signal.getsignal(s) for s in before} == before  # the handlers come back
     finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
         _SignalFlag.seen = None
 
 
@@ -389,3 +388,19 @@ def test_cleanup_runs_for_an_exception_outside_the_projects_errors():
         e.run(lambda eng: eng.execute(Step("compute", {"fn": broken})))
     assert calls == ["gripper safe", "gripper close"]
     assert e.cleanup_report is not None and "RuntimeError" in e.cleanup_report["reason"]
+
+
+def test_a_signal_between_the_engines_runs_still_gets_the_cleanup(cell):
+    """A lab script's own code between two procedures (the arm parked, the valve energised): a SIGTERM
+    there raises, and the session does what a run's interruption does before it ends."""
+    with pytest.raises(Cancelled, match="terminated by SIGTERM") as info:
+        with CellSession.simulated(cell, seed=3, time_scale=0.01) as s:
+            s.park()
+            assert not valve_is_safe(s)  # the jaws are held in the calibration state
+            robot, valve = s.sim.robot_sim, s.sim.valve_sim
+            n = len(robot.received)
+            signal.raise_signal(signal.SIGTERM)
+    assert info.value.signum == signal.SIGTERM
+    assert "ABORT" in [ln.upper() for ln in robot.received[n:]]
+    assert not any(valve.valve_outputs.values())  # all-off: the default io map's safe state
+    assert s.engine.cleanup_report["robot"].startswith("ABORT sent and confirmed")
