@@ -102,7 +102,7 @@ class RaiseOnSignal:
     background job) stay ignored. Nested uses share one first signal.
 
     On exit the previous handlers come back, unless ``keep`` and a signal was seen: a program that is ending
-    because of one keeps noting the late ones, so that a second signal cannot kill it while it exits."""
+    because of one blocks the late ones, so that a second signal cannot kill it while it exits."""
 
     _depth = 0
 
@@ -132,6 +132,9 @@ class RaiseOnSignal:
             return
         RaiseOnSignal._depth = max(0, RaiseOnSignal._depth - 1)
         if self.keep and _SignalFlag.seen is not None:
+            # blocked, not handled: the interpreter's shutdown restores the default handlers, and a late
+            # signal would then kill the program with its cleanup done and its exit status lost
+            signal.pthread_sigmask(signal.SIG_BLOCK, TERMINATION_SIGNALS)
             return
         for sig, old in self._old.items():
             signal.signal(sig, old if old is not None else signal.SIG_DFL)

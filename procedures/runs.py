@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from selfview.procedures.engine import Cancelled, CellDevices, Engine, RaiseOnSignal, Step, signal_name
+from selfview.procedures.engine import Cancelled, CellDevices, Engine, RaiseOnSignal, Step, _SignalFlag, signal_name
 from selfview.procedures.experiment import TrialRecord, run_trial, summarise, tables_markdown
 from selfview.procedures.simcell import CellURLs, SimulatedCell
 from selfview.calfile import load_calibration, save_calibration
@@ -148,15 +148,17 @@ class CellSession:
             devs.restorer = w.reset_disturbance
             devs.truth = w.truth
         self.devices = devs
+        self.engine = Engine(devs, dry_run=self.dry_run, ask=self.ask, progress=self.progress)
         if not self.dry_run:
             try:
                 robot.connect()
                 gripper.connect()
                 camera.connect()
+            except KeyboardInterrupt as exc:  # a signal while connecting: what an interrupted run gets
+                self._interrupted(exc)
             except BaseException:
                 self.close()
                 raise
-        self.engine = Engine(devs, dry_run=self.dry_run, ask=self.ask, progress=self.progress)
         return self
 
     def close(self) -> None:
@@ -182,16 +184,24 @@ class CellSession:
     def __exit__(self, exc_type, exc, tb) -> None:
         try:
             if isinstance(exc, KeyboardInterrupt) and self.engine is not None and not self.dry_run:
-                # interrupted outside a run: what a run's interruption gets (ABORT, safe valve, closes)
-                signum = getattr(exc, "signum", signal.SIGINT)
-                what = "interrupted by the operator (Ctrl-C)" if signum == signal.SIGINT else f"terminated by {signal_name(signum)}"
-                self.engine.cancel.set()
-                self.engine.cleanup(what)
+                self._interrupted(exc)
+            with _SignalFlag() as flag:  # closing is short and bounded: a signal now is noted, not raised
                 self.close()
-                raise Cancelled(f"{what}; " + self.engine.state_sentence(), signum) from None
-            self.close()
+            if flag.signum is not None and exc is None:
+                raise Cancelled(f"{signal_name(flag.signum)} while the devices were closing, after the procedures "
+                                "had ended: the cell is as they left it", flag.signum)
         finally:
             self._signals.__exit__(None, None, None)
+
+    def _interrupted(self, exc: KeyboardInterrupt):
+        """A signal outside an engine run (while connecting, between procedures): what an interrupted run
+        gets (ABORT, the valve safe, the devices closed, the state reported), then ``Cancelled``."""
+        signum = getattr(exc, "signum", signal.SIGINT)
+        what = "interrupted by the operator (Ctrl-C)" if signum == signal.SIGINT else f"terminated by {signal_name(signum)}"
+        self.engine.cancel.set()
+        self.engine.cleanup(what)
+        self.close()
+        raise Cancelled(f"{what}; " + self.engine.state_sentence(), signum) from None
 
     # --- procedures -------------------------------------------------------------------------------
     def _run(self, body, plan):

@@ -103,7 +103,11 @@ def sigint_case(command: str, fixtures: dict, rng, tally: Tally, workdir: Path, 
     bad_exit, seen = _cli_outcome(code, err)
     moved = float(np.max(np.abs(q_later - q_exit)))
     interrupted = "q" in sent and code not in (0, None)
-    valve_unsafe = (command in ("park", "calibrate") and interrupted and outputs != safe
+    # the procedure had ended when the signal came (its file written, its last motion, the DEPART, done and
+    # nothing moving, as the simulator saw it): the valve as the procedure left it is what is expected
+    ended = (command == "calibrate" and not sent.get("moving") and after != before
+             and any(ln.strip().upper().startswith("DO DEPART") for ln in sim.received[:sent.get("n_received", 0)]))
+    valve_unsafe = (command in ("park", "calibrate") and interrupted and outputs != safe and not ended
                     and (outputs != outputs_before or "cell left" in err))
     lost = False
     if command == "calibrate" and after != before:
