@@ -101,8 +101,8 @@ class RaiseOnSignal:
     engine run the run's own flag takes them (``_SignalFlag``). Signals ignored on purpose (nohup, a
     background job) stay ignored. Nested uses share one first signal.
 
-    On exit the previous handlers come back, unless ``keep`` and a signal was seen: a program that is ending
-    because of one blocks the late ones, so that a second signal cannot kill it while it exits."""
+    On exit the previous handlers come back, unless ``keep`` (a program about to end): then the signals are
+    ignored, so that one arriving as it exits cannot kill it halfway through and take its exit status."""
 
     _depth = 0
 
@@ -131,10 +131,13 @@ class RaiseOnSignal:
         if threading.current_thread() is not threading.main_thread():
             return
         RaiseOnSignal._depth = max(0, RaiseOnSignal._depth - 1)
-        if self.keep and _SignalFlag.seen is not None:
-            # blocked, not handled: the interpreter's shutdown restores the default handlers, and a late
-            # signal would then kill the program with its cleanup done and its exit status lost
-            signal.pthread_sigmask(signal.SIG_BLOCK, TERMINATION_SIGNALS)
+        if self.keep:
+            # ignored, not handled: the interpreter's shutdown puts back the default action of every signal
+            # a Python handler took (not of an ignored one), and a late signal, delivered to whichever thread
+            # is still running, would then kill the program with its work or cleanup done and its exit
+            # status lost
+            for sig in self._old:
+                signal.signal(sig, signal.SIG_IGN)
             return
         for sig, old in self._old.items():
             signal.signal(sig, old if old is not None else signal.SIG_DFL)

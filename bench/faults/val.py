@@ -71,7 +71,10 @@ class ValRig:
         except Exception:
             pass
         self.proxy.stop()
-        self.sim.stop()
+        try:  # a loaded machine may keep the simulator's thread in a motion past stop()'s own limit
+            self.sim.stop(timeout_s=20.0)
+        except RuntimeError as exc:
+            self.stop_error = str(exc)  # its links left open; the campaign goes on with a new rig
 
     def healthy(self) -> bool:
         """A clean WHERE works (reconnecting, then on a new socket, if needed)."""
@@ -356,6 +359,8 @@ def _val_worker(n: int, seed: int, index: int, deadline: float, tally: Tally) ->
                 if not any(t.is_alive() for t in rig.sim._threads):
                     tally.notes["val: the simulator's server thread died"] += 1
                 rig.stop()
+                if getattr(rig, "stop_error", None):
+                    tally.notes[f"val: {rig.stop_error}"] += 1
                 rebuilt += 1
                 rig = _build(ValRig, seed * 1000 + index + 17 * rebuilt, tally)
     finally:
