@@ -436,15 +436,23 @@ class V4L2Device:
                 f"{self.path}: the signal is {std_name(detected)}, but {std_name(std)} is configured"
             )
 
+    def _optional_ioctl(self, request: int, arg, name: str, what: str, unsupported: tuple[int, ...]) -> bool:
+        """``_ioctl`` for a query the device may not support: False when it says so (an errno in
+        ``unsupported``), DeviceError naming ``name(what)`` on any other failure."""
+        try:
+            self._ioctl(request, arg, name)
+        except OSError as exc:
+            if exc.errno in unsupported:
+                return False
+            raise DeviceError(f"{self.path}: {name}({what}) failed: {exc.strerror}") from None
+        return True
+
     def control(self, cid: int) -> int | None:
         """VIDIOC_G_CTRL: a control's value, or None if the device has no such control."""
         ctrl = v4l2_control(id=cid)
-        try:
-            self._ioctl(VIDIOC_G_CTRL, ctrl, "VIDIOC_G_CTRL")
-        except OSError as exc:
-            if exc.errno in (errno.EINVAL, errno.ENOTTY, errno.EACCES):
-                return None
-            raise DeviceError(f"{self.path}: VIDIOC_G_CTRL({cid:#x}) failed: {exc.strerror}") from None
+        if not self._optional_ioctl(VIDIOC_G_CTRL, ctrl, "VIDIOC_G_CTRL", f"{cid:#x}",
+                                    (errno.EINVAL, errno.ENOTTY, errno.EACCES)):
+            return None
         return int(ctrl.value)
 
     def check_orientation(self) -> None:
@@ -467,12 +475,9 @@ class V4L2Device:
     def selection(self, target: int) -> tuple[int, int, int, int] | None:
         """VIDIOC_G_SELECTION of the capture queue: (left, top, width, height), or None if not supported."""
         sel = v4l2_selection(type=V4L2_BUF_TYPE_VIDEO_CAPTURE, target=target)
-        try:
-            self._ioctl(VIDIOC_G_SELECTION, sel, "VIDIOC_G_SELECTION")
-        except OSError as exc:
-            if exc.errno in (errno.EINVAL, errno.ENOTTY, errno.ENODATA):
-                return None
-            raise DeviceError(f"{self.path}: VIDIOC_G_SELECTION({target:#x}) failed: {exc.strerror}") from None
+        if not self._optional_ioctl(VIDIOC_G_SELECTION, sel, "VIDIOC_G_SELECTION", f"{target:#x}",
+                                    (errno.EINVAL, errno.ENOTTY, errno.ENODATA)):
+            return None
         return (int(sel.r.left), int(sel.r.top), int(sel.r.width), int(sel.r.height))
 
     def set_selection(self, target: int, rect: tuple[int, int, int, int]) -> tuple[int, int, int, int] | None:

@@ -29,7 +29,8 @@ from selfview.drivers.puma_val_serial.errors import ControllerError, MotionAbort
 from selfview.drivers.puma_val_serial.kinematics import PumaKinematics
 from selfview.drivers.puma_val_serial.limits import ValLimits
 from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout, ProtocolError
-from selfview.geometry import check_rigid, rotation_angle, rotvec_from_R, trans
+from selfview.io_safe import parse_number
+from selfview.geometry import check_rigid, rotation_angle, trans
 
 __all__ = ["PumaVAL", "Where", "AbortResult", "parse_serial_url"]
 
@@ -93,26 +94,6 @@ class _Segment:
     question: str
 
 
-def _joints_reaching(kin: PumaKinematics, goal_H: np.ndarray, q0, iters: int = 200) -> np.ndarray | None:
-    """Joint angles (deg) near ``q0`` whose tool pose is ``goal_H`` (damped least squares on the joint
-    axes, steps of at most 0.2 rad), to time a joint-interpolated motion; None if it does not converge
-    to 0.1 mm / 0.05 deg."""
-    q = np.asarray(q0, dtype=float).copy()
-    w = np.array([1.0, 1.0, 1.0, 100.0, 100.0, 100.0])  # a radian weighed as 100 mm
-    for _ in range(iters):
-        F = kin.frames(q)
-        H = F[-1] @ trans(*kin.tool_mm)
-        dp = goal_H[:3, 3] - H[:3, 3]
-        dr = rotvec_from_R(goal_H[:3, :3] @ H[:3, :3].T)
-        if np.linalg.norm(dp) < 0.1 and np.degrees(np.linalg.norm(dr)) < 0.05:
-            return q
-        z = np.array([f[:3, 2] for f in F[:6]])
-        J = np.vstack([np.cross(z, H[:3, 3] - np.array([f[:3, 3] for f in F[:6]])).T, z.T]) * w[:, None]
-        step = np.linalg.solve(J.T @ J + 100.0 * np.eye(6), J.T @ (np.concatenate([dp, dr]) * w))
-        q += np.degrees(step * min(1.0, 0.2 / max(float(np.abs(step).max()), 1e-12)))
-    return None
-
-
 _SERIAL_FLAGS = ("xonxoff", "rtscts")
 
 
@@ -131,9 +112,10 @@ def parse_serial_url(url: str, baudrate: int = 9600) -> tuple[str, dict]:
     for item in filter(None, query.split("&")):
         key, eq, value = item.partition("=")
         if key == "baud":
-            if not (value.isascii() and value.isdigit() and 50 <= int(value) <= 4_000_000):
-                raise ConfigError(f"robot URL {url!r}: baud={value!r}; expected a baud rate such as 9600")
-            settings["baudrate"] = int(value)
+            try:
+                settings["baudrate"] = parse_number(value, integer=True, lo=50, hi=4_000_000)
+            except ValueError:
+                raise ConfigError(f"robot URL {url!r}: baud={value!r}; expected a baud rate such as 9600") from None
         elif key in _SERIAL_FLAGS:
             if value not in ("0", "1"):
                 raise ConfigError(f"robot URL {url!r}: {key}={value!r}; expected 0 or 1")
@@ -713,7 +695,7 @@ class PumaVAL:
         expected duration at the speed read back (``ValLimits``) plus a margin of a few seconds."""
         speed = self._speed_locked()
         if joints is not None:
-            goal_q = _joints_reaching(self.kinematics, to_H, joints)
+            goal_q = self.kinematics.joints_reaching(to_H, joints)
             if goal_q is not None:
                 return self.limits.joint_timeout_s(goal_q - np.asarray(joints, float), speed)
         dist = float(np.linalg.norm(to_H[:3, 3] - from_H[:3, 3]))

@@ -180,6 +180,25 @@ class PumaKinematics:
         """base_H_T (4, 4): the tool point at joint angles ``q_deg``."""
         return self.flange(q_deg) @ _t(*self.tool_mm)
 
+    def joints_reaching(self, goal_H: np.ndarray, q0, iters: int = 200) -> np.ndarray | None:
+        """Joint angles (deg) near ``q0`` whose tool pose is ``goal_H`` (damped least squares on the joint
+        axes, steps of at most 0.2 rad), to time a joint-interpolated motion; None if it does not converge
+        to 0.1 mm / 0.05 deg."""
+        q = np.asarray(q0, dtype=float).copy()
+        w = np.array([1.0, 1.0, 1.0, 100.0, 100.0, 100.0])  # a radian weighed as 100 mm
+        for _ in range(iters):
+            F = self.frames(q)
+            H = F[-1] @ _t(*self.tool_mm)
+            dp = goal_H[:3, 3] - H[:3, 3]
+            dr = rotvec_from_R(goal_H[:3, :3] @ H[:3, :3].T)
+            if np.linalg.norm(dp) < 0.1 and np.degrees(np.linalg.norm(dr)) < 0.05:
+                return q
+            z = np.array([f[:3, 2] for f in F[:6]])
+            J = np.vstack([np.cross(z, H[:3, 3] - np.array([f[:3, 3] for f in F[:6]])).T, z.T]) * w[:, None]
+            step = np.linalg.solve(J.T @ J + 100.0 * np.eye(6), J.T @ (np.concatenate([dp, dr]) * w))
+            q += np.degrees(step * min(1.0, 0.2 / max(float(np.abs(step).max()), 1e-12)))
+        return None
+
     def where_fit(self, pose, joints, euler: EulerConvention, decimals: int) -> WhereFit:
         """Is the printed ``pose`` (x, y, z mm, o, a, t deg under ``euler``) the pose of the printed
         ``joints`` (deg), both printed with ``decimals`` decimals?

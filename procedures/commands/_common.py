@@ -57,19 +57,14 @@ def number(text: str, what: str, *, integer: bool = False, lo: float | None = No
     try:
         return parse_number(text, integer=integer, lo=lo, hi=hi, lo_open=lo_open)
     except ValueError as exc:
-        raise argparse.ArgumentTypeError(f"{what}: {exc}") from None
+        raise argparse.ArgumentTypeError(f"{what}: {exc}" if what else str(exc)) from None
 
 
 def numeric(*, integer: bool = False, lo: float | None = None, hi: float | None = None, lo_open: bool = False,
             name: str = "number"):
     """An argparse ``type`` for a numeric option: ``number`` with this range (argparse names the option)."""
     def parse(text: str):
-        from selfview.io_safe import parse_number
-
-        try:
-            return parse_number(text, integer=integer, lo=lo, hi=hi, lo_open=lo_open)
-        except ValueError as exc:
-            raise argparse.ArgumentTypeError(str(exc)) from None
+        return number(text, "", integer=integer, lo=lo, hi=hi, lo_open=lo_open)
     parse.__name__ = name
     return parse
 
