@@ -1,7 +1,7 @@
 """A simulated Modbus valve terminal with a pneumatic gripper on it.
 
-A real pymodbus TCP server (MBAP framing, or RTU frames over TCP) bound to 127.0.0.1 on a free port, in
-its own thread and event loop, started and stopped by the test or the CLI. Its data store is the
+A Modbus server (MBAP framing, or RTU frames over TCP; ``mocks/modbus_server.py``) bound to 127.0.0.1 on a
+free port, in its own thread and event loop, started and stopped by the test or the CLI. Its data store is the
 terminal's process image, laid out by the same ``IoMap`` the driver uses.
 """
 
@@ -13,35 +13,11 @@ import time
 from collections.abc import Callable
 
 import numpy as np
-from pymodbus.constants import ExcCodes
-from pymodbus.datastore import ModbusServerContext
-from pymodbus.datastore.context import ModbusBaseDeviceContext
-from pymodbus.framer import FramerType
-from pymodbus.server import ModbusTcpServer
-
 from selfview.drivers.pneumatic_gripper.iomap import IoMap, Point
 from selfview.errors import ConfigError, DeviceError
+from selfview.mocks.modbus_server import EXCEPTION_CODES, ILLEGAL_ADDRESS, ILLEGAL_FUNCTION, ModbusServer
 
 __all__ = ["ValveTerminal"]
-
-_TABLE = {"c": "coil", "d": "discrete_input", "h": "holding_register", "i": "input_register"}
-
-
-class _ProcessImage(ModbusBaseDeviceContext):
-    """pymodbus's view of the terminal: every request lands in the terminal's locked methods."""
-
-    def __init__(self, terminal: "ValveTerminal"):
-        self.terminal = terminal
-
-    def reset(self):  # pymodbus interface; the terminal's image is reset by restarting it
-        pass
-
-    def getValues(self, func_code, address, count=1):
-        return self.terminal._get(_TABLE.get(self.decode(func_code)), address, count)
-
-    def setValues(self, func_code, address, values):
-        return self.terminal._set(_TABLE.get(self.decode(func_code)), address, values)
-
 
 class ValveTerminal:
     """Simulated valve terminal serving Modbus on 127.0.0.1.
@@ -147,7 +123,7 @@ class ValveTerminal:
 
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
-        self._server: ModbusTcpServer | None = None
+        self._server: ModbusServer | None = None
         self._stopping: asyncio.Event | None = None
         self._ready = threading.Event()
         self._start_error: BaseException | None = None
@@ -218,16 +194,9 @@ class ValveTerminal:
 
     async def _main(self) -> None:
         self._stopping = asyncio.Event()
-        context = ModbusServerContext(devices={self.unit: _ProcessImage(self)}, single=False)
-        self._server = ModbusTcpServer(
-            context,
-            framer=FramerType.SOCKET if self.framing == "mbap" else FramerType.RTU,
-            address=("127.0.0.1", self._want_port),
-            trace_pdu=self._trace_pdu,
-            trace_connect=self._trace_connect,
-        )
-        await self._server.serve_forever(background=True)
-        self.port = self._server.transport.sockets[0].getsockname()[1]
+        self._server = ModbusServer(self, unit=self.unit, framing=self.framing, port=self._want_port,
+                                    on_request=self._on_request, on_connect=self._on_connect)
+        self.port = await self._server.start()
         self._ready.set()
         try:
             while not self._stopping.is_set():
@@ -237,18 +206,14 @@ class ValveTerminal:
                 except asyncio.TimeoutError:
                     pass
         finally:
-            await self._server.shutdown()
-            await asyncio.sleep(0)
+            await self._server.close()
 
-    # --- pymodbus hooks (event loop thread) ---------------------------------------------------
-    def _trace_connect(self, connected: bool) -> None:
-        if connected:
-            with self._lock:
-                self.connections_total += 1
+    # --- the server's hooks (event loop thread) -----------------------------------------------
+    def _on_connect(self) -> None:
+        with self._lock:
+            self.connections_total += 1
 
-    def _trace_pdu(self, sending: bool, pdu):
-        if sending:
-            return pdu
+    def _on_request(self, unit: int, pdu: bytes) -> str:
         with self._lock:
             self.requests += 1
             self._last_activity = self.clock()
@@ -256,42 +221,41 @@ class ValveTerminal:
                 if self._silent_left is not None:
                     self._silent_left -= 1
                     self.silent = self._silent_left > 0
-                return None  # consumed, never answered
+                return "silent"  # consumed, never answered
             if self._drop_next:
                 self._drop_next = False
-                asyncio.get_running_loop().call_soon(self._drop_all)
-                return None
-        return pdu
+                return "drop"
+        return "answer"
 
-    def _drop_all(self) -> None:
-        if self._server is None:
-            return
-        for conn in list(self._server.active_connections.values()):
-            conn.close()
+    def read(self, table: str, address: int, count: int):
+        return self._get(table, address, count)
+
+    def write(self, table: str, address: int, values):
+        return self._set(table, address, values)
 
     def _get(self, table: str | None, address: int, count: int):
         with self._lock:
             self.advance()
             if self.exception_code is not None:
-                return ExcCodes(self.exception_code)
+                return self.exception_code
             data = self._image.get(table)
             if data is None:
-                return ExcCodes.ILLEGAL_FUNCTION
+                return ILLEGAL_FUNCTION
             if address < 0 or count < 1 or address + count > len(data):
-                return ExcCodes.ILLEGAL_ADDRESS
+                return ILLEGAL_ADDRESS
             return list(data[address : address + count])
 
     def _set(self, table: str | None, address: int, values):
         with self._lock:
             self.advance()
             if self.exception_code is not None:
-                return ExcCodes(self.exception_code)
+                return self.exception_code
             if table not in ("coil", "holding_register"):
-                return ExcCodes.ILLEGAL_FUNCTION
+                return ILLEGAL_FUNCTION
             data = self._image[table]
             values = list(values)
             if address < 0 or address + len(values) > len(data):
-                return ExcCodes.ILLEGAL_ADDRESS
+                return ILLEGAL_ADDRESS
             for i, v in enumerate(values):
                 data[address + i] = bool(v) if table == "coil" else int(v) & 0xFFFF
             self._update_direction(self._t_model)
@@ -410,7 +374,7 @@ class ValveTerminal:
 
     @property
     def active_connections(self) -> int:
-        return 0 if self._server is None else len(self._server.active_connections)
+        return 0 if self._server is None else self._server.connections
 
     # --- faults on demand ---------------------------------------------------------------------
     def stick_jaw(self, stuck: bool = True) -> None:
@@ -430,11 +394,8 @@ class ValveTerminal:
 
     def fail_requests(self, code: int | None = 4) -> None:
         """Answer every request with Modbus exception ``code`` (4: server device failure); None stops."""
-        if code is not None:
-            try:
-                ExcCodes(code)
-            except ValueError:
-                raise ConfigError(f"Modbus exception code {code!r}: expected one of {[int(c) for c in ExcCodes]}") from None
+        if code is not None and code not in EXCEPTION_CODES:
+            raise ConfigError(f"Modbus exception code {code!r}: expected one of {list(EXCEPTION_CODES)}")
         with self._lock:
             self.exception_code = None if code is None else int(code)
 
@@ -457,6 +418,7 @@ class ValveTerminal:
             return
 
         async def drop():
-            self._drop_all()
+            if self._server is not None:
+                self._server.drop_all()
 
         asyncio.run_coroutine_threadsafe(drop(), loop).result(timeout_s)

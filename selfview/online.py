@@ -317,7 +317,8 @@ def _gauss_newton(H0, H_start, P, uv, camera, names, label, tol, max_iter, prior
             lam = 0.1 * lam if lam > 1e-9 else 0.0
             best = (cost, H, p, J, r)
         N = J.T @ J
-        ok, step = cv2.solve(N + lam * np.diag(N.diagonal()), J.T @ r, flags=cv2.DECOMP_CHOLESKY)
+        # the right-hand side as a column: OpenCV 5 reads a 1-D array as a 1-D matrix, 4.x as a column
+        ok, step = cv2.solve(N + lam * np.diag(N.diagonal()), (J.T @ r)[:, None], flags=cv2.DECOMP_CHOLESKY)
         if not ok:
             raise CalibrationError(f"{label}: the normal system became singular during the iteration")
         step = step.ravel()

@@ -253,8 +253,12 @@ def _finger_visible(cam: CameraModel, es: _EdgeSet, C_H_G, s: _Samples) -> np.nd
 
 
 def _remap(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``img`` (float32) at (x, y) of any shape (border replicated)."""
+    """Bilinear samples of ``img`` (float32) at (x, y) of any shape (border replicated), the positions on a
+    1/32 px grid: OpenCV 4's INTER_LINEAR rounds them so, OpenCV 5's does not; rounding here gives the same
+    samples on both, and the ones the C kernel takes (``bilinear`` in ``_csil.c``)."""
     shape = x.shape
+    x = np.rint(np.asarray(x, np.float32) * np.float32(32)) / np.float32(32)
+    y = np.rint(np.asarray(y, np.float32) * np.float32(32)) / np.float32(32)
     if x.ndim == 2 and 0 < x.shape[0] < 32768 and 0 < x.shape[1] < 32768 and x.dtype == np.float32 \
             and y.dtype == np.float32:
         # (S, L) maps as they are (each output pixel depends on its own map entries only: the same values)
