@@ -213,10 +213,10 @@ class ModbusServer:
         while True:
             n = _rtu_length(buf)
             if n is None or (n > 0 and len(buf) < n):
-                try:  # a partial frame followed by silence is line noise: drop a byte and look again
+                try:  # silence ends an RTU frame: what came before it and is no whole frame is noise
                     chunk = await asyncio.wait_for(reader.read(256), None if not buf else _SILENCE_S)
                 except asyncio.TimeoutError:
-                    buf = buf[1:]
+                    buf = b""
                     continue
                 if not chunk:
                     return

@@ -1,6 +1,6 @@
 """Pneumatic parallel-jaw gripper on a Modbus valve: driver, I/O map and URLs.
 
-Only ``selfview.drivers.pneumatic_gripper.modbus`` imports pymodbus (pinned to 3.11 in pyproject.toml).
+Only ``selfview.drivers.pneumatic_gripper.modbus`` imports pymodbus (3.11 to the newest 3.x; see pyproject.toml).
 """
 
 from selfview.drivers.pneumatic_gripper.gripper import GripperFault, JawReading, PneumaticGripper, SafeReport

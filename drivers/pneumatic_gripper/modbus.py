@@ -1,8 +1,8 @@
 """The Modbus master link: the one module of the project that imports pymodbus's client.
 
 pymodbus renames arguments between minor releases (``unit`` > ``slave`` > ``device_id``) and changed
-the coil bit order in 3.10; this adapter is written against 3.11 (pinned in pyproject.toml) and turns
-its results and exceptions into the project's (``ModbusLink``).
+the coil bit order in 3.10; this adapter is written against 3.11 and tested on it and on the newest 3.x
+(``.ci/constraints-*.txt``), and turns its results and exceptions into the project's (``ModbusLink``).
 """
 
 from __future__ import annotations

@@ -258,3 +258,31 @@ def test_world_follows_the_jaws(cell):
             assert any(cell.gripper.states["closed"] < g < cell.gripper.states["open"] for g in seen)
         finally:
             c.close()
+
+
+def test_rtu_noise_is_skipped_and_the_next_frame_answered():
+    """A corrupted RTU frame gets no reply (a slave stays silent on a bad CRC); the stream re-synchronises
+    on the next good frame, and a partial frame followed by silence is dropped."""
+    with ValveTerminal(travel_s=0.0, watchdog_s=None, framing="rtu") as t:
+        c = RawClient(t.port, "rtu")
+        try:
+            bad = bytes.fromhex("01 05 0001 FF00")
+            c.sock.sendall(bad + bytes([crc16(bad)[0] ^ 0x5A, crc16(bad)[1]]))  # CRC wrong: not executed
+            c.sock.sendall(b"\x01\x0f\x00")  # a torn frame, then silence
+            time.sleep(0.4)
+            assert c.ask("01 0000 0002") == bytes.fromhex("01 01 00")
+            assert t.valve_outputs == {"open": False, "close": False}
+            assert c.ask("2B 0E01 00") == bytes.fromhex("AB 01")  # a function it lacks: illegal function
+        finally:
+            c.close()
+
+
+def test_mbap_header_that_is_not_modbus_ends_the_connection(terminal):
+    c = RawClient(terminal.port)
+    try:
+        c.sock.sendall(b"\x00\x01\x00\x07\x00\x06\x01\x01\x00\x00\x00\x02")  # protocol id 7
+        c.sock.settimeout(1.0)
+        assert c.sock.recv(16) == b""
+        assert terminal.valve_outputs == {"open": False, "close": False}
+    finally:
+        c.close()
