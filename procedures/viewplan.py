@@ -84,7 +84,7 @@ def plan_view_poses(cell, n: int = 12, *, state: str | None = None, C_H_G=None, 
         want_tilt = (35.0, 25.0, 40.0, 30.0)[i % 4]
         daz = np.abs((cands[:, 5] - az + 180.0) % 360.0 - 180.0)
         score = np.abs(cands[:, 0] - want_tilt) + 0.3 * daz
-        for j in np.argsort(score):
+        for j in np.argsort(score, kind="stable"):  # ties in a fixed order on every numpy and CPU
             if int(j) in used:
                 continue
             tilt, axis, turn, ctilt, caz, _ = cands[j]

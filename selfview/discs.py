@@ -195,9 +195,9 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
 # --- lattice --------------------------------------------------------------------------------------
 def _seed(P: np.ndarray, dist: np.ndarray) -> tuple[int, np.ndarray, np.ndarray] | None:
     """A disc near the middle whose neighbours confirm two lattice steps (a, b) both ways."""
-    order = np.argsort(np.linalg.norm(P - np.median(P, axis=0), axis=1))
+    order = np.argsort(np.linalg.norm(P - np.median(P, axis=0), axis=1), kind="stable")
     for s in order:
-        nb = np.argsort(dist[s])[1:9]
+        nb = np.argsort(dist[s], kind="stable")[1:9]
         a = P[nb[0]] - P[s]
         la = np.linalg.norm(a)
         if not np.any(np.linalg.norm(P[nb] - (P[s] - a), axis=1) < 0.25 * la):

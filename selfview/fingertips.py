@@ -379,7 +379,7 @@ def _coarse_shift(img: np.ndarray, polys: list[np.ndarray], search_px: float, in
     # and the cells along a ridge of the map (see _ridge_cells)
     peaks = (score == cv2.dilate(score, np.ones((5, 5), np.uint8))) & (score > 0)
     iy, ix = np.nonzero(peaks)
-    order = np.argsort(score[iy, ix])[::-1][:COARSE_CANDIDATES]
+    order = np.argsort(-score[iy, ix], kind="stable")[:COARSE_CANDIDATES]
     if len(order) == 0:
         return None
     cells = _ridge_cells(score, np.column_stack([iy[order], ix[order]]))

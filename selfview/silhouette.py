@@ -315,7 +315,7 @@ def _gate_and_rank(face, other, peak, D, A, pos, lev1, lev2, n_cand: int):
     score = np.where(has1[:, None], np.abs(face - np.where(has1, lev1, 0)[:, None]), -np.abs(contrast))
     score = np.where(ok, score, np.inf)
     C = min(n_cand, score.shape[1])
-    order = np.argsort(score, axis=1)[:, :C]
+    order = np.argsort(score, axis=1, kind="stable")[:, :C]
     rows = np.arange(S)[:, None]
     good = np.isfinite(score[rows, order])
     # sub-pixel: parabola through |D| at the peak and its neighbours

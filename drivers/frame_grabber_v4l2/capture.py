@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -143,8 +144,50 @@ class _Paced:
         return due
 
 
+class _ImageSequence:
+    """A numbered image sequence (``img_%03d.png``) read in index order from the smallest index present up to
+    the first gap, as OpenCV's CAP_IMAGES reader does; written here because that reader's behaviour changes
+    between OpenCV releases (4.10 cannot open a sequence of one picture). Files are read as bytes and decoded
+    in memory: no native call sees the path. The VideoCapture calls ``RecordedSource`` makes of it."""
+
+    def __init__(self, pattern: str):
+        folder, name = os.path.split(pattern)
+        m = re.search(r"%(0?)(\d*)d", name)
+        self._folder, self._head, self._tail = folder or ".", name[: m.start()], name[m.end() :]
+        self._format = pattern
+        width = int(m.group(2) or 0) if m.group(1) else 0
+        digits = rf"\d{{{width},}}" if width else r"\d+"
+        rx = re.compile(re.escape(self._head) + f"({digits})" + re.escape(self._tail) + "$")
+        found = [int(mm.group(1)) for f in os.listdir(self._folder) if (mm := rx.match(f))]
+        self._next = min(found) if found else None
+
+    def isOpened(self) -> bool:
+        return self._next is not None
+
+    def read(self):
+        if self._next is None:
+            return False, None
+        path = self._format % self._next
+        try:
+            with open(path, "rb") as fh:
+                data = np.frombuffer(fh.read(), np.uint8)
+        except FileNotFoundError:
+            return False, None
+        except OSError as exc:
+            raise DeviceError(f"cannot read {path}: {exc.strerror or exc}") from exc
+        img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+        if img is None:
+            raise DeviceError(f"{path}: not a picture OpenCV can decode")
+        self._next += 1
+        return True, img
+
+    def release(self) -> None:
+        self._next = None
+
+
 class RecordedSource:
-    """An image sequence (``frames://``, OpenCV's CAP_IMAGES reader) or a video file (``file://``).
+    """An image sequence (``frames://``, read by ``_ImageSequence``) or a video file (``file://``, OpenCV's
+    reader).
 
     Each frame is stamped with the moment it is read (paced at ``fps`` when the URL gives one).
     At the end of the recording: EndOfStream, or the first frame again with ``loop=1``.
@@ -155,16 +198,16 @@ class RecordedSource:
         self.description = url.url
         self._pace = _Paced(url.fps)
         self.frame_period_s = self._pace.frame_period_s
-        self._cap: cv2.VideoCapture | None = None
+        self._cap: cv2.VideoCapture | _ImageSequence | None = None
         self.frames_read = 0
 
-    def _open_capture(self) -> cv2.VideoCapture:
+    def _open_capture(self):
         path = self.url.path
         if self.url.scheme == "frames":
             folder = os.path.dirname(path) or "."
             if not os.path.isdir(folder):
                 raise DeviceError(f"{self.url.url}: folder {folder} does not exist")
-            cap = cv2.VideoCapture(path, cv2.CAP_IMAGES)
+            cap = _ImageSequence(path)
         else:
             if not os.path.isfile(path):
                 raise DeviceError(f"{self.url.url}: video file {path} does not exist")

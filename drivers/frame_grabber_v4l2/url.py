@@ -5,7 +5,7 @@
   ``std`` (pal, ntsc, secam, pal-m, pal-n, pal-nc, pal-60, or a number such as 0xff; default pal),
   ``width`` x ``height`` (default 768 x 576: square pixels need a square-pixel grabber), ``format``
   (a V4L2 fourcc, default GREY; Windows names such as Y800 or YUY2 are refused with the V4L2 name), ``buffers`` (driver buffers, 1 or 2, default 2: few, so frames are fresh).
-- ``frames:///dir/img_%03d.png`` - a numbered image sequence (OpenCV's image-sequence reader);
+- ``frames:///dir/img_%03d.png`` - a numbered image sequence (from its smallest index to the first gap);
   ``frames:rel/dir/img_%03d.png`` is relative to the working directory. ``loop=1`` starts over at the end.
 - ``file:///path/x.avi`` (or ``file:rel/x.avi``) - a video file; ``loop=1`` likewise.
 - ``sim://`` - the simulated camera, supplied by whoever registered the ``sim`` scheme (see

@@ -221,3 +221,16 @@ def test_bad_grab_arguments(sequence):
         g.close()
         with pytest.raises(DeviceError, match="before connect"):
             g.grab()
+
+
+def test_a_sequence_runs_from_its_smallest_index_to_the_first_gap(tmp_path):
+    """The numbered sequence is read as OpenCV's CAP_IMAGES reads it on every release: from the smallest
+    index present (here 7, zero-padded), in order, ending at the first missing index."""
+    imgs = pictures(4, seed=3)
+    for i, idx in enumerate((7, 8, 9, 11)):
+        cv2.imwrite(str(tmp_path / f"s_{idx:03d}.png"), imgs[i])
+    with FrameGrabber(f"frames://{tmp_path}/s_%03d.png") as g:
+        got = [g.grab().image for _ in range(3)]
+        with pytest.raises(EndOfStream):
+            g.grab()
+    assert all(np.array_equal(a, b) for a, b in zip(got, imgs[:3]))
