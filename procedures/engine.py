@@ -333,8 +333,11 @@ class Engine:
                 signum = flag.signum
                 self.cancel.set()
                 what = "interrupted by the operator (Ctrl-C)" if signum == signal.SIGINT else f"terminated by {signal_name(signum)}"
-                self.progress(f"{what}: stopping the robot")
+                self.progress(f"{what}: " + ("stopping the robot" if self.devices.robot is not None else "making the cell safe"))
                 first = self._bounded("ABORT", self._abort_robot, ("ABORT did not return", False))
+                interrupt = getattr(self.devices.gripper, "interrupt", None)
+                if interrupt is not None:  # a jaw wait in progress ends now, not at its own timeout
+                    interrupt()
                 stopped = done.wait(self.abort_timeout_s)
                 self.cleanup(what, first_abort=first, worker_stopped=stopped)
                 raise Cancelled(f"{what}; " + self.state_sentence(), signum) from None

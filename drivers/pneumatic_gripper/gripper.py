@@ -157,6 +157,7 @@ class PneumaticGripper:
         self._halted: str | None = None  # why the driver gave up (safe-state rule), until connect()
         self._gave_up = False  # the safe state was tried after giving up, since the last connect()
         self._halt_lock = threading.Lock()
+        self._interrupted = threading.Event()  # a jaw wait ends at once (``interrupt()``), until connect()
         self.safe_report: SafeReport | None = None  # the latest attempt at the safe state
 
     # --- connection ---------------------------------------------------------------------------
@@ -184,6 +185,7 @@ class PneumaticGripper:
         self._lost = None
         self._halted = None
         self._gave_up = False
+        self._interrupted.clear()
         if self.poll_s is not None and (self._poller is None or not self._poller.is_alive()):
             self._stop.clear()
             self._poller = threading.Thread(target=self._poll_loop, name=f"gripper-poll {self.url}", daemon=True)
@@ -230,6 +232,8 @@ class PneumaticGripper:
             self._lost = f"{type(exc).__name__}: {exc}"
 
     def _require_link(self, what: str) -> None:
+        if self._interrupted.is_set():
+            raise GripperFault(f"{self.url}: {what} refused: the driver was interrupted; call connect() to resume")
         if self._halted is not None:
             raise ConnectionLost(
                 f"{self.url}: {what} refused: the driver gave up ({self._halted}) and left the valve in its safe "
@@ -531,7 +535,7 @@ class PneumaticGripper:
             now = self.clock()
             if now >= deadline:
                 break
-            time.sleep(min(self.confirm_poll_s, deadline - now))
+            self._interrupted.wait(min(self.confirm_poll_s, deadline - now))
         if state == "between":
             raise GripperFault(
                 f"{self.url}: jaws left '{other}' but the '{target}' reed switch did not come on within "
@@ -554,10 +558,18 @@ class PneumaticGripper:
                 f"{want}: the terminal reset them during the stroke (its watchdog, or a restart)"
             )
 
+    def interrupt(self) -> None:
+        """End a jaw wait in progress (in another thread) at once: it raises ``GripperFault`` and the driver
+        gives up (the valve in its safe state); later jaw commands wait normally once ``connect()`` is called
+        again. Safe to call from any thread, and from a signal's handler (it only sets a flag)."""
+        self._interrupted.set()
+
     def _check_undisturbed(self, target: str) -> None:
         """Nothing else happened to the link during the stroke: the poller did not give up (it would make
-        the valve safe right after this call returned) and the link was not silently re-established (what
-        the terminal did meanwhile is unknown)."""
+        the valve safe right after this call returned), the link was not silently re-established (what
+        the terminal did meanwhile is unknown), and the wait was not interrupted (``interrupt()``)."""
+        if self._interrupted.is_set():
+            raise GripperFault(f"{self.url}: '{target}' not confirmed: the wait was interrupted")
         if self._halted is not None:
             raise ConnectionLost(f"{self.url}: '{target}' not confirmed: the driver gave up during the stroke ({self._halted})")
         if self._lost is not None:
