@@ -143,7 +143,8 @@ class PneumaticGripper:
         )
         self.url = self.link.url.url
         u = self.link.url
-        self._owner = DeviceLock("valve terminal", u.device if u.transport == "rtu" else f"{u.host}:{u.port}")
+        self._owner = (DeviceLock.for_path("valve terminal", u.device) if u.transport == "rtu"
+                       else DeviceLock.for_host("valve terminal", u.host, u.port))
         self._explicit_connect = False
         self._lost: str | None = None  # why the state became unknown, until connect() is called again
         self._last: JawReading | None = None
