@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from selfview import signals
 from selfview.drivers._ownership import DeviceLock
 from selfview.drivers.pneumatic_gripper.iomap import IoMap, Point
 from selfview.drivers.pneumatic_gripper.modbus import (DEFAULT_READ_RETRIES, DEFAULT_TIMEOUT_S, ConnectionLost, ModbusExceptionReply,
@@ -187,6 +188,7 @@ class PneumaticGripper:
         self._halted = None
         self._gave_up = False
         self._interrupted.clear()
+        signals.watch(self)  # a termination signal makes the valve safe, whichever thread drives it
         if self.poll_s is not None and (self._poller is None or not self._poller.is_alive()):
             self._stop.clear()
             self._poller = threading.Thread(target=self._poll_loop, name=f"gripper-poll {self.url}", daemon=True)
@@ -196,6 +198,7 @@ class PneumaticGripper:
     def close(self) -> None:
         """Stop the poller and close the connection (safe to call twice). The valve keeps its outputs
         until the terminal's watchdog drops them; call ``safe()`` first to leave it safe."""
+        signals.unwatch(self)
         self._stop.set()
         t, self._poller = self._poller, None
         if t is not None and t is not threading.current_thread():

@@ -30,6 +30,7 @@ from selfview.drivers.puma_val_serial.kinematics import PumaKinematics
 from selfview.drivers.puma_val_serial.limits import ValLimits
 from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout, ProtocolError
 from selfview.io_safe import parse_number
+from selfview import signals
 from selfview.geometry import check_rigid, rotation_angle, trans
 
 __all__ = ["PumaVAL", "Where", "AbortResult", "parse_serial_url"]
@@ -157,6 +158,9 @@ def _norm(s: str) -> str:
     return " ".join(s.split()).upper()
 
 
+_OVERTIME_S = 1.0  # past a reply's deadline, bytes already waiting are read for at most this long before it is judged
+
+
 class PumaVAL:
     """Driver of a PUMA 260 on a VAL-II controller's terminal port.
 
@@ -267,6 +271,7 @@ class PumaVAL:
                 ser.timeout = self.dialect.prompt_silence_s
                 _break_reads_as_nul(ser)
                 self._ser = ser
+                signals.watch(self)  # a termination signal ABORTs the arm, whichever thread drives it
                 if sync:
                     self._resync()
                 else:
@@ -282,6 +287,7 @@ class PumaVAL:
         """Close the link (a port given open is left open). Safe to call twice."""
         with self._write_lock:
             ser, self._ser = self._ser, None
+        signals.unwatch(self)
         if ser is not None and self._given is None:
             try:
                 ser.close()
@@ -390,8 +396,11 @@ class PumaVAL:
         return None
 
     def _read_segment(self, deadline: float, command: str, budget_s: float, *, strict: bool = True) -> _Segment:
-        """Read until a prompt or a question followed by silence, or raise at ``deadline``."""
+        """Read until a prompt or a question followed by silence, or raise at ``deadline``. Bytes read at
+        the deadline are judged first (after the silence that ends a reply): a reply that arrived complete
+        while this host was stalled (suspended, swapped out) counts, and the stall is no device fault."""
         buf = bytearray()
+        overtime_end = None  # set at the deadline when bytes were still coming: read on until silence, briefly
         while True:
             chunk = self._read()
             if chunk:
@@ -410,7 +419,11 @@ class PumaVAL:
                     )
                 if end is not None:
                     return self._split(buf, end, command, strict)
-            if time.monotonic() >= deadline:
+            now = time.monotonic()
+            if now >= deadline:
+                if chunk and (overtime_end is None or now < overtime_end):  # bytes were waiting: do they end the reply?
+                    overtime_end = overtime_end or now + _OVERTIME_S
+                    continue
                 self._need_resync = True
                 shown = bytes(buf[-80:])
                 if not buf:
@@ -590,6 +603,15 @@ class PumaVAL:
             return AbortResult(False, False, why)
         ok, how = self._confirm_abort(self.timeout_s)
         return AbortResult(True, ok, how)
+
+    def abort_now(self) -> str | None:
+        """Write ABORT at once and return (None, or why it could not be written): what a signal's handler
+        does first; the motion's wait, wherever it runs, reads the controller's answer."""
+        return self._write_abort()
+
+    def wait_motion_end(self, timeout_s: float) -> bool:
+        """Wait (at most ``timeout_s``) until no motion's wait is in progress; whether none is."""
+        return self._motion_done.wait(timeout_s)
 
     def abort(self) -> AbortResult:
         """Stop the arm: write ``ABORT`` at once (after a CTRL-U that erases any half-typed line, never
