@@ -460,10 +460,10 @@ def write_experiment_folder(folder: Path, records, summary, first, *, cell: Cell
         files["online_annotated"] = annotate_online(first["img2"], fr.camera, fr.C_H_G, first["estimates"],
                                                     first["fingertips2"], fr.points_G[fr.state],
                                                     folder / "trial1_online.png").name
-        import cv2
+        from selfview.io_safe import write_picture
 
-        cv2.imwrite(str(folder / "trial1_picture1.png"), first["img1"])
-        cv2.imwrite(str(folder / "trial1_picture2.png"), first["img2"])
+        write_picture(folder / "trial1_picture1.png", first["img1"])
+        write_picture(folder / "trial1_picture2.png", first["img2"])
     files["plot"] = plot_errors(summary, folder / "errors.png", METHODS).name
     (folder / "tables.md").write_text(tables_markdown(summary) + "\n")
     files["tables"] = "tables.md"

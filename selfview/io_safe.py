@@ -25,7 +25,7 @@ import yaml
 from selfview.errors import CellError, ConfigError, ImageError
 from selfview.lockdir import lock_slug, open_lock_file, os_cause
 
-__all__ = ["load_yaml", "load_yaml_file", "read_bounded", "parse_number", "read_picture", "picture_size", "atomic_write", "MAX_YAML_BYTES", "MAX_YAML_DEPTH",
+__all__ = ["load_yaml", "load_yaml_file", "read_bounded", "parse_number", "read_picture", "picture_size", "atomic_write", "write_picture", "MAX_YAML_BYTES", "MAX_YAML_DEPTH",
            "MAX_PICTURE_SIDE", "MAX_PICTURE_PIXELS"]
 
 #: Largest YAML document read (cell and calibration files are a few kB).
@@ -412,3 +412,28 @@ def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, wha
             os.close(dfd)
     except OSError:
         pass
+
+
+#: The picture formats ``write_picture`` writes (by the name's extension).
+PICTURE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pnm")
+
+
+def write_picture(path, image, *, error: type[CellError] = ConfigError, what: str = "picture") -> None:
+    """Write ``image`` (grey or BGR, 8-bit) to ``path`` in the format its extension names: encoded in
+    memory (OpenCV never sees the path, whatever bytes it holds) and written by ``atomic_write`` (a full
+    disk or a killed writer leaves the old file or none, and no temporary file). Raises ``error`` naming the
+    path and the cause: an extension not in ``PICTURE_EXTENSIONS``, a picture OpenCV cannot encode, or the
+    write's own failure."""
+    import cv2
+
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext not in PICTURE_EXTENSIONS:
+        raise error(f"{path}: cannot write the {what}: the name must end in one of {', '.join(PICTURE_EXTENSIONS)}")
+    try:
+        ok, buf = cv2.imencode(ext, np.asarray(image))
+    except cv2.error as exc:
+        raise error(f"{path}: cannot write the {what}: OpenCV cannot encode it ({str(exc).strip()})") from None
+    if not ok:
+        raise error(f"{path}: cannot write the {what}: OpenCV cannot encode it as {ext}")
+    atomic_write(path, buf.tobytes(), error=error, what=what)
