@@ -186,3 +186,33 @@ def test_monitor_prints_each_decision_and_how_the_fingertips_were_found(tmp_path
     assert [r["frame"] for r in recs] == [1, 2, 3] and all(r["action"] == "update" for r in recs)
     assert recs[0]["fingertips"] == "searched (no earlier frame)"
     assert [r["fingertips"] for r in recs[1:]] == ["tracked", "tracked"]
+
+
+def test_monitor_whose_output_goes_away_ends_non_zero_after_the_cleanup(tmp_path, capsys):
+    """``monitor | head -1``: the reader ends after the first line; the monitor makes the cell safe, says so and
+    ends with 141 (128 + SIGPIPE), not 0 as if its twelve frames had been watched."""
+    import os
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    pic, cal = tmp_path / "parked.png", tmp_path / "cal.yaml"
+    assert main(["park", "--seed", "5", "--time-scale", "0.01", "--out", str(pic)]) == 0
+    assert main(["calibrate", "--image", str(pic), "--out", str(cal)]) == 0
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.Popen([sys.executable, "-m", "selfview.procedures.cli", "monitor", "--seed", "5", "--time-scale",
+                             "0.01", "--calibration", str(cal), "--frames", "12", "--json"], cwd=REPO, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        first = proc.stdout.readline()
+        proc.stdout.close()  # what head -1 does
+        err = proc.stderr.read().decode()
+        proc.wait(120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+    assert json.loads(first)["frame"] == 1
+    assert proc.returncode == 141, err
+    assert "standard output was closed" in err and "valve set to its safe state" in err and "Traceback" not in err, err
