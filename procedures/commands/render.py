@@ -71,10 +71,9 @@ def run(args) -> int:
 
     write_image(out, result.image)
     if truth_path is not None:
-        try:
-            truth_path.write_text(_json_text(result.truth))
-        except OSError as exc:
-            raise ConfigError(f"--truth {args.truth}: cannot write the ground truth ({exc.strerror or exc})") from exc
+        from selfview.io_safe import atomic_write
+
+        atomic_write(truth_path, _json_text(result.truth).encode("utf-8"), error=ConfigError, what="ground truth (--truth)")
     print_json(
         {
             "out": str(out),
