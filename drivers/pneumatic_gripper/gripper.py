@@ -539,7 +539,7 @@ class PneumaticGripper:
             now = self.clock()
             if now >= deadline:
                 break
-            self._interrupted.wait(min(self.confirm_poll_s, deadline - now))
+            time.sleep(min(self.confirm_poll_s, deadline - now))  # interrupt() is seen at the next check
         if state == "between":
             raise GripperFault(
                 f"{self.url}: jaws left '{other}' but the '{target}' reed switch did not come on within "
