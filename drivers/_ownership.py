@@ -25,11 +25,20 @@ from selfview.errors import DeviceError
 from selfview.lockdir import lock_dir as _lock_dir
 from selfview.lockdir import lock_slug, open_lock_file
 
-__all__ = ["DeviceBusy", "DeviceLock", "claim_for", "lock_dir", "host_identity", "path_identity"]
+__all__ = ["DeviceBusy", "StaleState", "DeviceLock", "claim_for", "lock_dir", "host_identity", "path_identity"]
 
 
 class DeviceBusy(DeviceError):
     """Another program (or another driver in this one) holds the device."""
+
+
+class StaleState(DeviceError):
+    """The previous holder of the device ended (killed, crashed) in the middle of something that goes on
+    without it: a motion, an energised valve. Nothing is sent until the operator has checked the cell and
+    cleared the record (``selfview devices --reset``)."""
+
+    what_to_do = ("check the cell (the arm may still move, the valve may still be energised), then run "
+                  "'selfview devices --real ... --reset', which stops the robot, makes the valve safe and clears the record")
 
 
 def lock_dir() -> Path:
@@ -78,6 +87,8 @@ class DeviceLock:
         self._identity = identity or (lambda: [key])
         self._fds: list[int] = []
         self._paths: list[Path] = []
+        self._me = f"{os.getpid()} ({' '.join(sys.argv)[:300]})"
+        self.previous = ""  # what the lock file held when it was taken: a holder that never let go wrote it
 
     @classmethod
     def for_host(cls, kind: str, host: str, port: int) -> "DeviceLock":
@@ -94,7 +105,9 @@ class DeviceLock:
             return self._paths[0]
         return lock_dir() / lock_slug(self.kind, self._identity()[0])
 
-    def acquire(self) -> "DeviceLock":
+    def acquire(self, *, clear_stale: bool = False) -> "DeviceLock":
+        """Take the lock. A record of a holder that ended in the middle of something (``busy``) raises
+        ``StaleState`` and is kept for the next one, unless ``clear_stale`` (the operator has checked)."""
         if self._fds:
             return self
         try:
@@ -112,11 +125,27 @@ class DeviceLock:
         except BaseException:
             self.release()
             raise
-        me = f"{os.getpid()} ({' '.join(sys.argv)[:300]})\n".encode("utf-8", errors="replace")
-        for fd in self._fds:
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, me, 0)
+        self.previous = os.pread(self._fds[0], 4096, 0).decode("utf-8", errors="replace").strip()
+        busy = [ln[len("busy: "):] for ln in self.previous.splitlines() if ln.startswith("busy: ")]
+        if busy and not clear_stale:
+            fds, self._fds, self._paths = self._fds, [], []
+            for fd in fds:
+                os.close(fd)  # the record stays for the next one
+            raise StaleState(f"{self.kind} {self.key}: the program that held it before (pid "
+                             f"{self.previous.splitlines()[0]}) ended without letting go while {busy[0]}")
+        self.note(None)
         return self
+
+    def note(self, busy: str | None) -> None:
+        """Record what this holder is in the middle of (``busy``: 'a motion was running (DO MOVE a)'), or
+        that it is in the middle of nothing (None); a holder that dies leaves it for the next one."""
+        text = f"{self._me}\n" + (f"busy: {busy}\n" if busy else "")
+        for fd in self._fds:
+            try:
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, text.encode("utf-8", errors="replace"), 0)
+            except OSError:  # a full lock folder: the lock still holds; only the record is lost
+                pass
 
     def release(self) -> None:
         fds, self._fds, self._paths = self._fds, [], []

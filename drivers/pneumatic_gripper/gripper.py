@@ -163,12 +163,13 @@ class PneumaticGripper:
         self.safe_report: SafeReport | None = None  # the latest attempt at the safe state
 
     # --- connection ---------------------------------------------------------------------------
-    def connect(self) -> "PneumaticGripper":
+    def connect(self, *, clear_stale: bool = False) -> "PneumaticGripper":
         """Connect (or reconnect after a loss or after the driver gave up), read the valve outputs and
         both switches, start the poller. Raises ConnectionFailed, DeviceTimeout, ModbusExceptionReply,
-        GripperFault."""
+        GripperFault; ``StaleState`` if the previous program on this terminal died with the valve
+        energised (nothing is sent; ``clear_stale`` once the operator has checked the gripper)."""
         first = not self._owner.held
-        self._owner.acquire()  # DeviceBusy naming the program that holds the valve terminal
+        self._owner.acquire(clear_stale=clear_stale)  # DeviceBusy naming the program that holds the valve terminal
         self._explicit_connect = True
         try:
             if self.link.connected:
@@ -473,6 +474,8 @@ class PneumaticGripper:
             raise
         self._commanded = dict(want)
         self.valve_outputs = dict(want)
+        on = [name for name, v in want.items() if v]
+        self._owner.note(f"the valve was energised ({', '.join(on)} on)" if on else None)
 
     def _stray_write(self, exc: WriteEchoMismatch) -> CellError:
         """The error for a write whose echo names another coil switched on: with ``stray_coils:

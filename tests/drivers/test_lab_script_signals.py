@@ -50,14 +50,15 @@ print("finished", flush=True)
 """
 
 
-def _run(script, sig, *, ignored=False, cell=None):
+def _run(script, sig, *, ignored=False, cell=None, locks=None):
     """The script against a slow simulated arm and a valve terminal; ``sig`` sent once the arm moves.
     Returns (return code, stderr, controller's received commands, joints at the signal, joints after,
     valve outputs, seconds from the signal to the arm's stop)."""
     with ValController(SimWorld(cell, seed=2), time_scale=1.0, calibrated=True, speed_pct=5.0) as c, \
             ValveTerminal(travel_s=0.02, watchdog_s=None) as t:
         c.start_pty()
-        env = dict(os.environ, PYTHONPATH=str(REPO))
+        # its own lock folder: a script killed with the arm moving leaves a record there for the next one
+        env = dict(os.environ, PYTHONPATH=str(REPO), SELFVIEW_LOCK_DIR=str(locks))
 
         def pre():
             if ignored:
@@ -90,8 +91,9 @@ def _run(script, sig, *, ignored=False, cell=None):
 
 @pytest.mark.parametrize("where", ["main", "worker"])
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=lambda s: signal.Signals(s).name)
-def test_a_termination_signal_stops_the_arm_and_makes_the_valve_safe_in_any_thread(cell, where, sig):
-    code, out, err, received, q0, q1, valve, stopped_after = _run(MAIN if where == "main" else WORKER, sig, cell=cell)
+def test_a_termination_signal_stops_the_arm_and_makes_the_valve_safe_in_any_thread(cell, where, sig, tmp_path):
+    code, out, err, received, q0, q1, valve, stopped_after = _run(MAIN if where == "main" else WORKER, sig, cell=cell,
+                                                                  locks=tmp_path)
     assert "ABORT" in received, (received[-5:], err)
     assert stopped_after < 1.0, f"the arm stopped {stopped_after:.2f} s after the signal"
     assert np.abs(q1 - q0).max() < 6.0  # SPEED 5: at most 6 deg/s
@@ -100,8 +102,8 @@ def test_a_termination_signal_stops_the_arm_and_makes_the_valve_safe_in_any_thre
     assert "finished" not in out
 
 
-def test_a_signal_inherited_as_ignored_stays_ignored(cell):
-    code, out, err, received, q0, q1, valve, _ = _run(MAIN, signal.SIGHUP, ignored=True, cell=cell)
+def test_a_signal_inherited_as_ignored_stays_ignored(cell, tmp_path):
+    code, out, err, received, q0, q1, valve, _ = _run(MAIN, signal.SIGHUP, ignored=True, cell=cell, locks=tmp_path)
     assert "ABORT" not in received, err
     assert np.abs(q1 - q0).max() > 6.0  # the arm went on (SIGKILL ended the test)
     assert valve == {"open": False, "close": True}

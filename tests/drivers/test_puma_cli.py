@@ -340,3 +340,20 @@ def test_ctrl_z_stops_the_arm_before_the_program_and_resume_says_so(cell):
         assert "ABORT" in c.received
         assert "resumed" in err and proc.returncode == 4, err  # the stopped motion is not taken up again
         assert "Traceback" not in err
+
+
+def test_a_slow_motion_longer_than_the_margin_is_waited_for_to_its_end():
+    """The motion wait's lower side: at SPEED 5 a drive of joint 1 takes about 4.5 s, longer than the
+    wait's fixed margin; it must end at its target, not in a false timeout and an ABORT."""
+    from selfview.drivers.puma_val_serial import PumaVAL
+    from selfview.drivers.puma_val_serial.limits import PUMA260_JOINT_SPEED_DEG_S
+    from selfview.mocks.val_controller import ValController
+
+    deg = 4.5 * PUMA260_JOINT_SPEED_DEG_S[0] * 0.05 * 0.5  # 4.5 s at SPEED 5 and DRIVE speed 50
+    with ValController(time_scale=1.0, calibrated=True, speed_pct=5.0) as c:
+        c.start_pty()
+        with PumaVAL(c.url) as r:
+            q0 = r.where().joints[0]
+            r.drive(1, deg, 50)
+            assert r.where().joints[0] == pytest.approx(q0 + deg, abs=0.1)
+        assert "ABORT" not in c.received
