@@ -94,3 +94,4 @@ def test_a_signal_during_a_jaw_stroke_leaves_the_valve_safe_and_says_so(sig, act
         assert proc.returncode == 128 + signum, err
         assert t.valve_outputs == {"open": False, "close": False}, err
         assert "valve set to its safe state" in err and "Traceback" not in err, err
+        assert "had NOT ended" not in err, err  # the jaw wait ended at the signal, not at its own timeout
