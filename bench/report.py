@@ -731,8 +731,8 @@ def make_report(out: Path, *, quick: bool = False, benches=BENCHES, bench_dir: P
     text = render_markdown(runs, mach, exp, willson, quick=bool(meta.get("quick", quick)),
                            seconds=meta.get("seconds"), command=meta.get("command", command), cell_limit=cell_limit,
                            results_dir=results, when=meta.get("when"))
-    tmp = out.with_suffix(".md.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(out)
+    from selfview.io_safe import atomic_write
+
+    atomic_write(out, text.encode("utf-8"), what="report")
     return {"markdown": str(out), "results": str(results), "runs": {k: r.status for k, r in runs.items()},
             "seconds": time.monotonic() - t0}

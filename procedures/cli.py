@@ -7,7 +7,8 @@ Modules are found at start-up, so adding a command never touches this file.
 Exit codes (stable; scripts may rely on them):
   0 success, 1 unexpected internal error, 2 usage error, 3 bad configuration or input file,
   4 device error or timeout, 5 calibration failed, 6 alarm raised by the monitor, 130 interrupted
-  (Ctrl-C), 128+N ended by signal N (SIGTERM 143, SIGHUP 129, SIGQUIT 131) after the same cleanup.
+  (Ctrl-C), 128+N ended by signal N (SIGTERM 143, SIGHUP 129, SIGQUIT 131) after the same cleanup; 141
+  (128+SIGPIPE) when standard output was closed before the command finished (``| head -1``).
 """
 
 from __future__ import annotations
@@ -129,8 +130,11 @@ def _main(argv: list[str] | None) -> int:
         print(f"selfview {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except OSError as exc:  # a file or folder the command was given (a name too long, a read-only disk, ...)
-        if isinstance(exc, BrokenPipeError):
-            return EXIT_OK
+        if isinstance(exc, BrokenPipeError):  # stdout's reader went away (``| head -1``): the run did not finish
+            _stdout_gone()
+            _say(f"selfview {args.command}: its standard output was closed (the reader of a pipe ended) before it "
+                 "finished; the cell was left as stated above")
+            return 128 + signal.SIGPIPE
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"selfview {args.command}: error: {where}{exc.strerror or exc}\n  what to do: correct the file or "
               "argument named above", file=sys.stderr)
@@ -139,6 +143,18 @@ def _main(argv: list[str] | None) -> int:
         print(f"selfview {args.command}: error: out of memory (a file or argument far larger than the cell's)\n"
               "  what to do: correct the file or argument", file=sys.stderr)
         return EXIT_CONFIG
+
+
+def _stdout_gone() -> None:
+    """Point standard output at /dev/null, so that flushing it at exit raises no second EPIPE."""
+    import os
+
+    try:
+        fd = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(fd, sys.stdout.fileno())
+        os.close(fd)
+    except (OSError, ValueError):
+        pass
 
 
 def _say(text: str) -> None:

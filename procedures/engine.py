@@ -19,6 +19,7 @@ import numpy as np
 
 from selfview.errors import CellError, ConfigError, LimitError
 from selfview.geometry import trans
+from selfview.signals import TERMINATION_SIGNALS, Interrupted, signal_name
 
 __all__ = ["Step", "Engine", "Cancelled", "Interrupted", "CellDevices", "StepRecord", "TERMINATION_SIGNALS",
            "signal_name"]
@@ -29,17 +30,7 @@ MOTION_KINDS = ("move", "moves", "appro", "depart", "drive", "ready")
 KINDS = MOTION_KINDS + ("speed", "define", "gripper", "grab", "wait", "ask", "disturb", "restore", "compute")
 
 
-#: The catchable signals that end a run as Ctrl-C does (the platform's subset).
-TERMINATION_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, n))
-
 _WATCH_S = 0.02  # how often the main thread looks at the signal flag while the procedure runs
-
-
-def signal_name(signum: int) -> str:
-    try:
-        return signal.Signals(signum).name
-    except ValueError:
-        return f"signal {signum}"
 
 
 class Cancelled(CellError):
@@ -47,14 +38,6 @@ class Cancelled(CellError):
 
     def __init__(self, message: str, signum: int = signal.SIGINT):
         super().__init__(message)
-        self.signum = int(signum)
-
-
-class Interrupted(KeyboardInterrupt):
-    """A termination signal other than SIGINT, raised where Ctrl-C would raise ``KeyboardInterrupt``."""
-
-    def __init__(self, signum: int):
-        super().__init__(signal_name(signum))
         self.signum = int(signum)
 
 
@@ -333,8 +316,11 @@ class Engine:
                 signum = flag.signum
                 self.cancel.set()
                 what = "interrupted by the operator (Ctrl-C)" if signum == signal.SIGINT else f"terminated by {signal_name(signum)}"
-                self.progress(f"{what}: stopping the robot")
+                self.progress(f"{what}: " + ("stopping the robot" if self.devices.robot is not None else "making the cell safe"))
                 first = self._bounded("ABORT", self._abort_robot, ("ABORT did not return", False))
+                interrupt = getattr(self.devices.gripper, "interrupt", None)
+                if interrupt is not None:  # a jaw wait in progress ends now, not at its own timeout
+                    interrupt()
                 stopped = done.wait(self.abort_timeout_s)
                 self.cleanup(what, first_abort=first, worker_stopped=stopped)
                 raise Cancelled(f"{what}; " + self.state_sentence(), signum) from None

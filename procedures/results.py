@@ -47,9 +47,10 @@ def new_run_dir(out: str | os.PathLike | None, base: str | os.PathLike = "runs",
 
 
 def write_json(path: Path, obj) -> None:
-    tmp = Path(str(path) + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=1, allow_nan=True, default=_default))
-    os.replace(tmp, path)
+    """``obj`` as JSON in ``path``, written atomically (``selfview.io_safe.atomic_write``)."""
+    from selfview.io_safe import atomic_write
+
+    atomic_write(path, json.dumps(obj, indent=1, allow_nan=True, default=_default).encode("utf-8"), what="results file")
 
 
 def _default(o):
@@ -104,9 +105,9 @@ def _pt(uv, scale):
 
 def annotate_offline(image, result, path: Path, scale: int = 2) -> Path:
     """``draw_offline`` written to ``path``."""
-    import cv2
+    from selfview.io_safe import write_picture
 
-    cv2.imwrite(str(path), draw_offline(image, result, scale))
+    write_picture(path, draw_offline(image, result, scale), what="annotated picture")
     return path
 
 
@@ -215,7 +216,9 @@ def annotate_online(image, camera, C_H_G_before, estimates: dict, fingertips, pG
         if fingertips.found[i]:
             cv2.circle(big, _pt(fingertips.uv[i], scale), 5 * scale, (0, 230, 230), 1, cv2.LINE_AA)
     _label(big, "grey: before the disturbance; colours: each method's estimate after it", (10, 24), (220, 220, 220))
-    cv2.imwrite(str(path), big)
+    from selfview.io_safe import write_picture
+
+    write_picture(path, big, what="annotated picture")
     return path
 
 
@@ -283,8 +286,6 @@ def keep_pictures(out, image, draw, kind: str = "") -> dict:
     names = {}
     for role, img in (("picture", image), ("annotated", draw(image))):
         path = out.with_name(f"{out.stem}.{kind}{role}-{tag}.png")
-        tmp = path.with_name(f".{path.stem}.tmp.png")
-        write_image(tmp, img, "--out")
-        os.replace(tmp, path)
+        write_image(path, img, "--out")
         names[role] = path.name
     return names

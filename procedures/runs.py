@@ -28,6 +28,7 @@ from selfview.procedures.simcell import CellURLs, SimulatedCell
 from selfview.calfile import load_calibration, save_calibration
 from selfview.cell import Cell
 from selfview.errors import AlarmError, CalibrationError, ConfigError, DeviceTimeout, ImageError
+from selfview.io_safe import atomic_write, write_picture
 from selfview.silhouette import SilhouetteTracker
 from selfview.offline import OfflineResult, calibrate_offline
 from selfview.pcc import jaw_gap_of
@@ -460,12 +461,10 @@ def write_experiment_folder(folder: Path, records, summary, first, *, cell: Cell
         files["online_annotated"] = annotate_online(first["img2"], fr.camera, fr.C_H_G, first["estimates"],
                                                     first["fingertips2"], fr.points_G[fr.state],
                                                     folder / "trial1_online.png").name
-        import cv2
-
-        cv2.imwrite(str(folder / "trial1_picture1.png"), first["img1"])
-        cv2.imwrite(str(folder / "trial1_picture2.png"), first["img2"])
+        write_picture(folder / "trial1_picture1.png", first["img1"])
+        write_picture(folder / "trial1_picture2.png", first["img2"])
     files["plot"] = plot_errors(summary, folder / "errors.png", METHODS).name
-    (folder / "tables.md").write_text(tables_markdown(summary) + "\n")
+    atomic_write(folder / "tables.md", (tables_markdown(summary) + "\n").encode("utf-8"), what="tables")
     files["tables"] = "tables.md"
     results = {
         "config": config,

@@ -8,7 +8,6 @@ file or the new one, never half a file.
 from __future__ import annotations
 
 import contextlib
-import errno
 import fcntl
 import hashlib
 import math
@@ -24,8 +23,9 @@ import numpy as np
 import yaml
 
 from selfview.errors import CellError, ConfigError, ImageError
+from selfview.lockdir import lock_slug, open_lock_file, os_cause
 
-__all__ = ["load_yaml", "load_yaml_file", "read_bounded", "parse_number", "read_picture", "picture_size", "atomic_write", "MAX_YAML_BYTES", "MAX_YAML_DEPTH",
+__all__ = ["load_yaml", "load_yaml_file", "read_bounded", "parse_number", "read_picture", "picture_size", "atomic_write", "write_picture", "MAX_YAML_BYTES", "MAX_YAML_DEPTH",
            "MAX_PICTURE_SIDE", "MAX_PICTURE_PIXELS"]
 
 #: Largest YAML document read (cell and calibration files are a few kB).
@@ -72,7 +72,7 @@ def read_bounded(path, limit: int, *, error: type[CellError] = ConfigError, what
     except FileNotFoundError:
         raise error(f"{src}: {missing}" if missing else f"{src}: cannot read the {what} (no such file)") from None
     except OSError as exc:
-        raise refuse(_cause(exc)) from None
+        raise refuse(os_cause(exc)) from None
     finally:
         if fd is not None:
             os.close(fd)
@@ -303,16 +303,6 @@ def _write_all(fd: int, data: bytes) -> None:
         view = view[n:]
 
 
-def _cause(exc: OSError) -> str:
-    if exc.errno == errno.ENOSPC:
-        return "no space left on the device"
-    if exc.errno == errno.EFBIG:
-        return "file too large (a file-size limit)"
-    if exc.errno == errno.EDQUOT:
-        return "disk quota exceeded"
-    return exc.strerror or str(exc)
-
-
 def remove_leftovers(folder, name: str | None = None) -> None:
     """Remove the temporary files (``.NAME.PID.TOKEN.tmp``) that writers of ``name`` (or of any file) left
     in ``folder`` when they were killed: only those whose pid no longer runs."""
@@ -332,20 +322,23 @@ def remove_leftovers(folder, name: str | None = None) -> None:
 
 @contextlib.contextmanager
 def file_lock(path, *, error: type[CellError] = ConfigError, what: str = "file", timeout_s: float = 10.0):
-    """Hold an exclusive flock on ``.NAME.lock`` beside ``path`` (writers of one file take turns), waiting
-    at most ``timeout_s``; ``error`` naming the file if another process holds it longer."""
+    """Hold an exclusive flock for writing ``path`` (writers of one file take turns), waiting at most
+    ``timeout_s``; ``error`` naming the file if another process holds it longer. The lock file is in the
+    user's lock folder (``selfview.lockdir``), keyed on the file's folder as the kernel knows it (device
+    and inode: two spellings of one folder share the lock), never beside the user's files."""
     path = Path(path)
-    lock = path.parent / f".{path.name}.lock"
     try:
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+        st = os.stat(path.parent)
     except OSError as exc:
-        raise error(f"{path}: cannot write the {what}: its lock file {lock.name}: {_cause(exc)}") from None
+        raise error(f"{path}: cannot write the {what}: its folder {path.parent}: {os_cause(exc)}") from None
+    fd, lock = open_lock_file(lock_slug("file", f"{st.st_dev:x}", f"{st.st_ino:x}", path.name), error=error,
+                              what=f"{path}: cannot write the {what}")
     try:
         end = time.monotonic() + timeout_s
         while not _try_flock(fd):
             if time.monotonic() > end:
                 raise error(f"{path}: another process has been writing the {what} for {timeout_s:g} s "
-                            f"(it holds {lock.name}); nothing written")
+                            f"(it holds {lock}); nothing written")
             time.sleep(0.02)
         yield
     finally:
@@ -383,7 +376,7 @@ def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, wha
     except FileNotFoundError:
         old_mode = mode
     except OSError as exc:
-        raise error(f"{path}: cannot write the {what}: {_cause(exc)}") from None
+        raise error(f"{path}: cannot write the {what}: {os_cause(exc)}") from None
     if path.is_dir():
         raise error(f"{path}: cannot write the {what}: a folder of that name exists")
     if path.exists() and _not_regular(path.stat().st_mode):
@@ -393,7 +386,7 @@ def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, wha
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666 if old_mode is None else old_mode)
     except OSError as exc:
-        raise error(f"{path}: cannot write the {what}: {_cause(exc)}") from None
+        raise error(f"{path}: cannot write the {what}: {os_cause(exc)}") from None
     try:
         try:
             _write_all(fd, data)
@@ -409,7 +402,7 @@ def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, wha
         except OSError:
             pass
         if isinstance(exc, OSError):
-            raise error(f"{path}: cannot write the {what}: {_cause(exc)}; the previous file is unchanged") from None
+            raise error(f"{path}: cannot write the {what}: {os_cause(exc)}; the previous file is unchanged") from None
         raise
     try:  # make the rename itself durable
         dfd = os.open(folder, os.O_RDONLY)
@@ -419,3 +412,28 @@ def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, wha
             os.close(dfd)
     except OSError:
         pass
+
+
+#: The picture formats ``write_picture`` writes (by the name's extension).
+PICTURE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pnm")
+
+
+def write_picture(path, image, *, error: type[CellError] = ConfigError, what: str = "picture") -> None:
+    """Write ``image`` (grey or BGR, 8-bit) to ``path`` in the format its extension names: encoded in
+    memory (OpenCV never sees the path, whatever bytes it holds) and written by ``atomic_write`` (a full
+    disk or a killed writer leaves the old file or none, and no temporary file). Raises ``error`` naming the
+    path and the cause: an extension not in ``PICTURE_EXTENSIONS``, a picture OpenCV cannot encode, or the
+    write's own failure."""
+    import cv2
+
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext not in PICTURE_EXTENSIONS:
+        raise error(f"{path}: cannot write the {what}: the name must end in one of {', '.join(PICTURE_EXTENSIONS)}")
+    try:
+        ok, buf = cv2.imencode(ext, np.asarray(image))
+    except cv2.error as exc:
+        raise error(f"{path}: cannot write the {what}: OpenCV cannot encode it ({str(exc).strip()})") from None
+    if not ok:
+        raise error(f"{path}: cannot write the {what}: OpenCV cannot encode it as {ext}")
+    atomic_write(path, buf.tobytes(), error=error, what=what)

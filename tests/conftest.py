@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import atexit
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +15,13 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 DATA = REPO / "tests" / "data"  # reference material copied into the repository: see its README
+
+
+# the test run's own lock folder (mode 0700, removed at the end): a record that a killed test program leaves
+# (a motion, an energised valve) never meets the devices of another run on this machine
+_LOCKS = tempfile.mkdtemp(prefix="selfview-test-locks-")
+os.environ["SELFVIEW_LOCK_DIR"] = _LOCKS
+atexit.register(shutil.rmtree, _LOCKS, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

@@ -66,6 +66,11 @@ def main(argv=None) -> int:
         acc += cost[k] / total_cost
         shares[k] = min(1.0, acc)
     with tempfile.TemporaryDirectory(prefix="selfview-faults-") as tmp:
+        # the campaign's own lock folder: a record a killed case leaves (a motion, an energised valve) is
+        # seen by the campaign's later cases only, never by a program outside it
+        locks = Path(tmp) / "locks"
+        locks.mkdir(mode=0o700)
+        os.environ["SELFVIEW_LOCK_DIR"] = str(locks)
         fixtures = make_fixtures(Path(tmp), args.seed)
         run_files(0, args.seed, t0 + budget, tally, fixtures)  # the clean files' fingerprints
         sections = {}

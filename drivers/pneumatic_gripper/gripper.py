@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from selfview import signals
 from selfview.drivers._ownership import DeviceLock
 from selfview.drivers.pneumatic_gripper.iomap import IoMap, Point
 from selfview.drivers.pneumatic_gripper.modbus import (DEFAULT_READ_RETRIES, DEFAULT_TIMEOUT_S, ConnectionLost, ModbusExceptionReply,
@@ -143,7 +144,8 @@ class PneumaticGripper:
         )
         self.url = self.link.url.url
         u = self.link.url
-        self._owner = DeviceLock("valve terminal", u.device if u.transport == "rtu" else f"{u.host}:{u.port}")
+        self._owner = (DeviceLock.for_path("valve terminal", u.device) if u.transport == "rtu"
+                       else DeviceLock.for_host("valve terminal", u.host, u.port))
         self._explicit_connect = False
         self._lost: str | None = None  # why the state became unknown, until connect() is called again
         self._last: JawReading | None = None
@@ -157,15 +159,17 @@ class PneumaticGripper:
         self._halted: str | None = None  # why the driver gave up (safe-state rule), until connect()
         self._gave_up = False  # the safe state was tried after giving up, since the last connect()
         self._halt_lock = threading.Lock()
+        self._interrupted = threading.Event()  # a jaw wait ends at once (``interrupt()``), until connect()
         self.safe_report: SafeReport | None = None  # the latest attempt at the safe state
 
     # --- connection ---------------------------------------------------------------------------
-    def connect(self) -> "PneumaticGripper":
+    def connect(self, *, clear_stale: bool = False) -> "PneumaticGripper":
         """Connect (or reconnect after a loss or after the driver gave up), read the valve outputs and
         both switches, start the poller. Raises ConnectionFailed, DeviceTimeout, ModbusExceptionReply,
-        GripperFault."""
+        GripperFault; ``StaleState`` if the previous program on this terminal died with the valve
+        energised (nothing is sent; ``clear_stale`` once the operator has checked the gripper)."""
         first = not self._owner.held
-        self._owner.acquire()  # DeviceBusy naming the program that holds the valve terminal
+        self._owner.acquire(clear_stale=clear_stale)  # DeviceBusy naming the program that holds the valve terminal
         self._explicit_connect = True
         try:
             if self.link.connected:
@@ -184,6 +188,8 @@ class PneumaticGripper:
         self._lost = None
         self._halted = None
         self._gave_up = False
+        self._interrupted.clear()
+        signals.watch(self)  # a termination signal makes the valve safe, whichever thread drives it
         if self.poll_s is not None and (self._poller is None or not self._poller.is_alive()):
             self._stop.clear()
             self._poller = threading.Thread(target=self._poll_loop, name=f"gripper-poll {self.url}", daemon=True)
@@ -193,6 +199,7 @@ class PneumaticGripper:
     def close(self) -> None:
         """Stop the poller and close the connection (safe to call twice). The valve keeps its outputs
         until the terminal's watchdog drops them; call ``safe()`` first to leave it safe."""
+        signals.unwatch(self)
         self._stop.set()
         t, self._poller = self._poller, None
         if t is not None and t is not threading.current_thread():
@@ -230,6 +237,8 @@ class PneumaticGripper:
             self._lost = f"{type(exc).__name__}: {exc}"
 
     def _require_link(self, what: str) -> None:
+        if self._interrupted.is_set():
+            raise GripperFault(f"{self.url}: {what} refused: the driver was interrupted; call connect() to resume")
         if self._halted is not None:
             raise ConnectionLost(
                 f"{self.url}: {what} refused: the driver gave up ({self._halted}) and left the valve in its safe "
@@ -465,6 +474,8 @@ class PneumaticGripper:
             raise
         self._commanded = dict(want)
         self.valve_outputs = dict(want)
+        on = [name for name, v in want.items() if v]
+        self._owner.note(f"the valve was energised ({', '.join(on)} on)" if on else None)
 
     def _stray_write(self, exc: WriteEchoMismatch) -> CellError:
         """The error for a write whose echo names another coil switched on: with ``stray_coils:
@@ -531,7 +542,7 @@ class PneumaticGripper:
             now = self.clock()
             if now >= deadline:
                 break
-            time.sleep(min(self.confirm_poll_s, deadline - now))
+            time.sleep(min(self.confirm_poll_s, deadline - now))  # interrupt() is seen at the next check
         if state == "between":
             raise GripperFault(
                 f"{self.url}: jaws left '{other}' but the '{target}' reed switch did not come on within "
@@ -554,10 +565,18 @@ class PneumaticGripper:
                 f"{want}: the terminal reset them during the stroke (its watchdog, or a restart)"
             )
 
+    def interrupt(self) -> None:
+        """End a jaw wait in progress (in another thread) at once: it raises ``GripperFault`` and the driver
+        gives up (the valve in its safe state); later jaw commands wait normally once ``connect()`` is called
+        again. Safe to call from any thread, and from a signal's handler (it only sets a flag)."""
+        self._interrupted.set()
+
     def _check_undisturbed(self, target: str) -> None:
         """Nothing else happened to the link during the stroke: the poller did not give up (it would make
-        the valve safe right after this call returned) and the link was not silently re-established (what
-        the terminal did meanwhile is unknown)."""
+        the valve safe right after this call returned), the link was not silently re-established (what
+        the terminal did meanwhile is unknown), and the wait was not interrupted (``interrupt()``)."""
+        if self._interrupted.is_set():
+            raise GripperFault(f"{self.url}: '{target}' not confirmed: the wait was interrupted")
         if self._halted is not None:
             raise ConnectionLost(f"{self.url}: '{target}' not confirmed: the driver gave up during the stroke ({self._halted})")
         if self._lost is not None:

@@ -98,6 +98,20 @@ class _NoReplyYet(Exception):
     """A read's reply did not come in time, and the read will be sent again (on the same connection)."""
 
 
+def _discard_unasked(sock) -> None:
+    """Drop the bytes waiting on an RTU-over-socket connection before a request (a reply that came too
+    late for an earlier one): RTU frames carry no transaction id to tell them from the awaited reply."""
+    if sock is None:
+        return
+    try:
+        while sock.recv(4096, socket.MSG_DONTWAIT):
+            pass
+    except (BlockingIOError, InterruptedError):
+        pass
+    except OSError:  # a broken connection: the request itself reports it
+        pass
+
+
 class ModbusLink:
     """A Modbus master on one transport, safe to share between threads (one request at a time).
 
@@ -113,10 +127,11 @@ class ModbusLink:
     ``ProtocolError``. After any of the last three the link closes its transport, so a late reply can
     never be taken for the answer to the next request; the next call connects again and calls
     ``on_connect``. On Modbus TCP a read whose reply is late is first sent again (``retries`` times, on
-    the same connection: the MBAP transaction id tells a late reply from the awaited one); a write is
-    never sent twice (it may have been carried out), and RTU frames carry no transaction id, so there
-    nothing is. The defaults fit a Modbus TCP terminal answered by a busy PC: a reply within a second,
-    two more tries.
+    the same connection: the MBAP transaction id tells a late reply from the awaited one), and so is an
+    RTU read (serial or over a socket): RTU frames carry no transaction id, so whatever has arrived
+    unasked is discarded before every RTU request is sent, and a late reply to an identical read is that
+    read's answer. A write is never sent twice (it may have been carried out). The defaults fit a
+    terminal answered by a busy PC: a reply within a second, two more tries.
     """
 
     def __init__(
@@ -236,9 +251,9 @@ class ModbusLink:
 
     # --- requests -----------------------------------------------------------------------------
     def _request(self, what: str, function: int, call, *, reconnect: bool = True, idempotent: bool = False):
-        """One request; on Modbus TCP a read (``idempotent``) whose reply does not come is sent again on the
-        same connection, up to ``retries`` times (see the module doc). A write is sent once."""
-        tries = self.retries + 1 if idempotent and self.url.transport == "tcp" else 1
+        """One request; a read (``idempotent``) whose reply does not come is sent again on the same
+        connection, up to ``retries`` times (see the module doc). A write is sent once."""
+        tries = self.retries + 1 if idempotent else 1
         with self._locked(what):
             for attempt in range(1, tries + 1):
                 try:
@@ -253,6 +268,8 @@ class ModbusLink:
                 raise ConnectionLost(f"{self.url.url}: {what}: not connected (this request does not reconnect)")
             self._ensure_connected()
             client = self._client
+            if self.url.transport == "rtu-socket":
+                _discard_unasked(client.socket)  # (the serial client does this itself before it sends)
             try:
                 rsp = call(client, self.url.unit)
             except ModbusIOException as exc:

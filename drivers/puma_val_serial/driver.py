@@ -30,6 +30,8 @@ from selfview.drivers.puma_val_serial.kinematics import PumaKinematics
 from selfview.drivers.puma_val_serial.limits import ValLimits
 from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout, ProtocolError
 from selfview.io_safe import parse_number
+from selfview import signals
+from selfview.drivers._ownership import DeviceLock
 from selfview.geometry import check_rigid, rotation_angle, trans
 
 __all__ = ["PumaVAL", "Where", "AbortResult", "parse_serial_url"]
@@ -157,6 +159,21 @@ def _norm(s: str) -> str:
     return " ".join(s.split()).upper()
 
 
+def _record_lock(port: str) -> DeviceLock | None:
+    """The lock that records what this driver is in the middle of, keyed on the controller's port (a
+    device path or socket://HOST:PORT); None for other URLs (a spy or loop, no record)."""
+    if "://" not in port:
+        return DeviceLock.for_path("robot", port)
+    if port.lower().startswith("socket://"):
+        host, _, p = port[len("socket://"):].split("/")[0].split("?")[0].rpartition(":")
+        if host and p.isdigit():
+            return DeviceLock.for_host("robot", host.strip("[]"), int(p))
+    return None
+
+
+_OVERTIME_S = 1.0  # past a reply's deadline, bytes already waiting are read for at most this long before it is judged
+
+
 class PumaVAL:
     """Driver of a PUMA 260 on a VAL-II controller's terminal port.
 
@@ -217,6 +234,7 @@ class PumaVAL:
         self._port_name, self._link = parse_serial_url(self.url, baudrate) if self.url else (None, {})
         self.baudrate = self._link.get("baudrate", baudrate)
         self._ser = None
+        self._owner = _record_lock(self._port_name) if self.url else None  # what a dead holder was doing
         self._cmd_lock = threading.Lock()
         self._write_lock = threading.Lock()
         self._need_resync = False
@@ -236,12 +254,14 @@ class PumaVAL:
     def connected(self) -> bool:
         return self._ser is not None
 
-    def connect(self, *, sync: bool = True) -> "PumaVAL":
+    def connect(self, *, sync: bool = True, clear_stale: bool = False) -> "PumaVAL":
         """Open the link and synchronise with the controller (CR, wait for the prompt). Idempotent.
 
         ``sync=False`` only opens the link (to ABORT a controller that may be busy). Raises
         ``DeviceError`` if the port cannot be opened, ``ConfigError`` for an unknown URL scheme,
-        ``DeviceTimeout`` if no prompt comes within ``timeout_s``.
+        ``DeviceTimeout`` if no prompt comes within ``timeout_s``, ``StaleState`` if the previous program
+        on this controller died during a motion (nothing is sent; ``clear_stale`` once the operator has
+        checked the arm).
         """
         with self._locked("connect"):
             if self._ser is not None:
@@ -264,9 +284,12 @@ class PumaVAL:
                     raise DeviceError(f"robot URL {self.url!r}: cannot open ({exc})" + (
                         "; another program holds the port: stop it first (one program drives the arm)" if held else "")) from exc
             try:
+                if self._owner is not None:
+                    self._owner.acquire(clear_stale=clear_stale)
                 ser.timeout = self.dialect.prompt_silence_s
                 _break_reads_as_nul(ser)
                 self._ser = ser
+                signals.watch(self)  # a termination signal ABORTs the arm, whichever thread drives it
                 if sync:
                     self._resync()
                 else:
@@ -275,6 +298,8 @@ class PumaVAL:
                 self._ser = None
                 if self._given is None:
                     ser.close()
+                if self._owner is not None:
+                    self._owner.release()
                 raise
         return self
 
@@ -282,6 +307,9 @@ class PumaVAL:
         """Close the link (a port given open is left open). Safe to call twice."""
         with self._write_lock:
             ser, self._ser = self._ser, None
+        signals.unwatch(self)
+        if self._owner is not None:
+            self._owner.release()
         if ser is not None and self._given is None:
             try:
                 ser.close()
@@ -315,6 +343,8 @@ class PumaVAL:
         with self._write_lock:
             ser = self._port()
             if motion:
+                if self._owner is not None:  # a program that dies now leaves this for the next one to see
+                    self._owner.note(f"a motion was running ({what})")
                 self._abort_sent.clear()
                 self._motion_done.clear()
                 self._motion_outcome = (False, "the motion is running")
@@ -390,8 +420,11 @@ class PumaVAL:
         return None
 
     def _read_segment(self, deadline: float, command: str, budget_s: float, *, strict: bool = True) -> _Segment:
-        """Read until a prompt or a question followed by silence, or raise at ``deadline``."""
+        """Read until a prompt or a question followed by silence, or raise at ``deadline``. Bytes read at
+        the deadline are judged first (after the silence that ends a reply): a reply that arrived complete
+        while this host was stalled (suspended, swapped out) counts, and the stall is no device fault."""
         buf = bytearray()
+        overtime_end = None  # set at the deadline when bytes were still coming: read on until silence, briefly
         while True:
             chunk = self._read()
             if chunk:
@@ -410,7 +443,11 @@ class PumaVAL:
                     )
                 if end is not None:
                     return self._split(buf, end, command, strict)
-            if time.monotonic() >= deadline:
+            now = time.monotonic()
+            if now >= deadline:
+                if chunk and (overtime_end is None or now < overtime_end):  # bytes were waiting: do they end the reply?
+                    overtime_end = overtime_end or now + _OVERTIME_S
+                    continue
                 self._need_resync = True
                 shown = bytes(buf[-80:])
                 if not buf:
@@ -591,6 +628,15 @@ class PumaVAL:
         ok, how = self._confirm_abort(self.timeout_s)
         return AbortResult(True, ok, how)
 
+    def abort_now(self) -> str | None:
+        """Write ABORT at once and return (None, or why it could not be written): what a signal's handler
+        does first; the motion's wait, wherever it runs, reads the controller's answer."""
+        return self._write_abort()
+
+    def wait_motion_end(self, timeout_s: float) -> bool:
+        """Wait (at most ``timeout_s``) until no motion's wait is in progress; whether none is."""
+        return self._motion_done.wait(timeout_s)
+
     def abort(self) -> AbortResult:
         """Stop the arm: write ``ABORT`` at once (after a CTRL-U that erases any half-typed line, never
         after a resynchronisation), then confirm it by reading the controller's answer.
@@ -756,6 +802,9 @@ class PumaVAL:
         finally:
             with self._write_lock:
                 self._motion_active = False
+            if self._owner is not None:
+                ended, how = self._motion_outcome
+                self._owner.note(None if ended else f"a motion's stop was not confirmed ({command}: {how})")
             self._motion_done.set()
 
     # --- commands -----------------------------------------------------------------------------------------

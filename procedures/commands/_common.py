@@ -94,15 +94,31 @@ def serve_until(url: str, duration_s: float | None) -> None:
         pass
 
 
-def write_image(path, image, what: str = "--out") -> None:
-    """Write a picture with OpenCV; ``ConfigError`` naming ``what`` if it cannot be written."""
-    import cv2
+def output_file(value: str, option: str, suffixes: tuple[str, ...] = ()) -> "Path":
+    """The file an option names for writing, checked before anything runs (nothing moves for a name that
+    cannot be written): a name (not empty, not a folder), in a folder that exists, ending in one of
+    ``suffixes`` when given. ``ConfigError`` (exit 3) naming the option and the value otherwise."""
+    from pathlib import Path
 
     from selfview.errors import ConfigError
 
-    try:
-        ok = cv2.imwrite(str(path), image)
-    except cv2.error as exc:
-        raise ConfigError(f"{what} {path}: cannot write the picture ({exc})") from exc
-    if not ok:
-        raise ConfigError(f"{what} {path}: cannot write the picture (no such folder, or an extension OpenCV cannot write)")
+    shown = repr(value) if not value else value
+    if not value or value.endswith("/") or Path(value).name in ("", ".", ".."):
+        raise ConfigError(f"{option} {shown}: expected a file name")
+    out = Path(value)
+    if out.is_dir():
+        raise ConfigError(f"{option} {value}: is a folder; expected a file name")
+    if not out.parent.is_dir():
+        raise ConfigError(f"{option} {value}: the folder {str(out.parent)!r} does not exist")
+    if suffixes and out.suffix.lower() not in suffixes:
+        raise ConfigError(f"{option} {value}: expected a {' or '.join(suffixes)} file name")
+    return out
+
+
+def write_image(path, image, what: str = "--out") -> None:
+    """Write a picture (``selfview.io_safe.write_picture``: encoded in memory, written atomically);
+    ``ConfigError`` naming ``what`` and the path if it cannot be written."""
+    from selfview.errors import ConfigError
+    from selfview.io_safe import write_picture
+
+    write_picture(path, image, error=ConfigError, what=f"picture ({what})")

@@ -70,6 +70,9 @@ def _camera_file(path, cell):
 
 
 def run(args) -> int:
+    from selfview.procedures.commands._common import output_file
+
+    output_file(args.out, "--out")  # before anything moves: a name that cannot be written is refused now
     with viewing(args, "calibrate") as view:
         return _run(args, view)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 from selfview.procedures.commands._common import load_cell_arg, print_json
 from selfview.procedures.commands._session import add_session_arguments
 
@@ -17,6 +19,10 @@ def register(sub):
     )
     add_session_arguments(p)
     p.add_argument("--json", action="store_true", help="print the table as one JSON object on stdout")
+    p.add_argument("--reset", action="store_true",
+                   help="after a program died holding a device (killed, a crash, a power cut of the host) and the other "
+                        "commands refuse: ABORT the robot, put the valve in its safe state and clear the record, "
+                        "then check as usual (check the cell first)")
     p.set_defaults(func=run)
     return p
 
@@ -56,6 +62,31 @@ def _camera(url, cell, timeout_s):
 
 
 PROBES = (("robot", _robot), ("gripper", _gripper), ("camera", _camera))
+
+
+def reset_devices(urls: dict, timeout_s: float = 2.0) -> list[str]:
+    """The operator has checked the cell after a program died holding a device: ABORT the robot, make
+    the valve safe, and clear the records that made the other commands refuse. What was done, one line
+    per device; the devices' errors are raised."""
+    from selfview.drivers.pneumatic_gripper import PneumaticGripper
+    from selfview.drivers.puma_val_serial import PumaVAL
+
+    done = []
+    if urls.get("robot"):
+        robot = PumaVAL(urls["robot"], timeout_s=timeout_s)
+        robot.connect(sync=False, clear_stale=True)
+        try:
+            done.append(f"robot: {robot.abort()}")
+        finally:
+            robot.close()
+    if urls.get("gripper"):
+        g = PneumaticGripper(urls["gripper"], poll_s=None)
+        g.connect(clear_stale=True)
+        try:
+            done.append(f"gripper: {g.safe().sentence()}")
+        finally:
+            g.close()
+    return done
 
 
 def check_devices(urls: dict, cell, timeout_s: float = 2.0) -> list[dict]:
@@ -105,6 +136,9 @@ def run(args) -> int:
         print("devices:", urls)
         return 0
     try:
+        if args.reset:
+            for line in reset_devices(urls):
+                print(f"reset {line}", file=sys.stderr)
         rows = check_devices(urls, cell)
     finally:
         if sim is not None:

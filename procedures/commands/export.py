@@ -8,7 +8,6 @@ transform with both frames named and its direction written out.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -93,9 +92,11 @@ def _quaternion(R) -> list[float]:
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    """The export's file, by the atomic writer (no temporary file left, the old file kept on failure)."""
+    from selfview.errors import ConfigError
+    from selfview.io_safe import atomic_write
+
+    atomic_write(path, text.encode("utf-8"), error=ConfigError, what="export")
 
 
 def run(args) -> int:
@@ -120,10 +121,11 @@ def run(args) -> int:
                    f"cv2.undistortPoints drop: {fit['skew_dropped_max_px']:.3f} px at most" if cam.skew else ""))
     written = [str(out)]
     if args.format == "opencv":
-        tmp = out.with_name(f".{out.stem}.tmp{out.suffix or '.yml'}")
-        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
-        if not fs.isOpened():
+        ext = out.suffix.lower()
+        if ext not in (".yml", ".yaml", ".xml"):
             raise ConfigError(f"--out {out}: OpenCV cannot write this file (its extension must be .yml, .yaml or .xml)")
+        # written in memory (OpenCV never sees the path), then by the atomic writer
+        fs = cv2.FileStorage("export" + ext, cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
         fs.write("image_width", int(cam.width))
         fs.write("image_height", int(cam.height))
         fs.write("camera_matrix", fit["K"])
@@ -138,8 +140,7 @@ def run(args) -> int:
         fs.write("C_H_G_to_frame", CAMERA_FRAME)
         fs.write("C_H_G_direction", DIRECTION)
         fs.write("source", src.name)
-        fs.release()
-        os.replace(tmp, out)
+        _atomic_write_text(out, fs.releaseAndGetString())
     elif args.format == "ros":
         K = fit["K"]
         P = np.column_stack([K, np.zeros(3)])

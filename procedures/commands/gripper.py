@@ -62,6 +62,20 @@ def register(sub):
     return p
 
 
+def _switch(gripper, action: str) -> None:
+    """Switch the valve through the engine, the safety path every command that drives a device shares: on
+    Ctrl-C, SIGTERM, SIGHUP or SIGQUIT the jaw wait ends, the valve is put in its safe state and the
+    command says so (exit 128+N); a failed stroke likewise leaves the valve safe (exit 4)."""
+    import sys
+
+    from selfview.procedures.engine import CellDevices, Engine, Step
+
+    step = (Step("compute", {"fn": lambda e: gripper.safe()}, note="the safe state") if action == "safe"
+            else Step("gripper", {"state": "open" if action == "open" else "closed"}))
+    engine = Engine(CellDevices(gripper=gripper), progress=lambda msg: print(f"selfview gripper: {msg}", file=sys.stderr))
+    engine.run(lambda e: e.execute(step), [step])
+
+
 def run(args) -> int:
     from selfview.drivers.pneumatic_gripper import PneumaticGripper
 
@@ -75,12 +89,8 @@ def run(args) -> int:
     )
     with gripper:
         t0 = time.monotonic()
-        if args.action == "open":
-            gripper.open_jaws()
-        elif args.action == "close":
-            gripper.close_jaws()
-        elif args.action == "safe":
-            gripper.safe()
+        if args.action != "state":
+            _switch(gripper, args.action)
         elapsed = time.monotonic() - t0
         reading = gripper.read()
         outputs = gripper.outputs()

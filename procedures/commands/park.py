@@ -26,6 +26,11 @@ def register(sub):
 
 
 def run(args) -> int:
+    if args.out is not None:
+        from selfview.io_safe import PICTURE_EXTENSIONS
+        from selfview.procedures.commands._common import output_file
+
+        output_file(args.out, "--out", PICTURE_EXTENSIONS)  # before anything moves
     with viewing(args, "park") as view:
         return _run(args, view)
 
@@ -42,7 +47,7 @@ def _run(args, view) -> int:
         view.frame(img)
         view.update(numbers={"picture": f"{img.shape[1]}x{img.shape[0]}", "mean grey": float(img.mean())})
         view.verdict(True, "parked on the plate; the picture is the one a calibration would use")
-    if args.out:
+    if args.out is not None:
         write_image(args.out, img)
     if args.json:
         print_json({"picture": args.out, "size": [int(img.shape[1]), int(img.shape[0])], "mean_grey": float(img.mean())})

@@ -100,3 +100,15 @@ def test_the_kinds_without_a_known_defect_meet_the_targets(campaign):
 def test_the_json_names_no_path_of_this_machine(campaign):
     text = json.dumps(campaign)
     assert "selfview-faults-" not in text and "/tmp/" not in text
+
+
+def test_a_second_process_counts_as_unsafe_only_if_park_drove_the_arm_after_it():
+    """The scoring of ``devices.robot``: park closes the port before it exits, and a second process that
+    starts slowly (a loaded machine) may come after that; it drove a robot park owned only if park's
+    lines follow its SPEED at the controller."""
+    from selfview.bench.faults.devices import _park_went_on
+
+    assert not _park_went_on(["", "SPEED 20", "STATUS", "DO APPRO plate, 50", "", "SPEED 45", "STATUS"], 45)
+    assert not _park_went_on(["SPEED 45", "", "STATUS", ""], 45)
+    assert _park_went_on(["", "SPEED 45", "STATUS", "WHERE", "DO MOVES press"], 45)
+    assert _park_went_on(["SPEED 45", "DO DEPART 50", "STATUS"], 45)

@@ -59,3 +59,39 @@ def test_exit_codes(terminal, capsys):
     terminal.stick_jaw()
     assert main(["gripper", "--url", terminal.url, "--timeout", "0.1", "close"]) == EXIT_DEVICE
     assert "still 'open'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT"])
+@pytest.mark.parametrize("action", ["close", "open"])
+def test_a_signal_during_a_jaw_stroke_leaves_the_valve_safe_and_says_so(sig, action):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from tests.conftest import REPO
+
+    signum = getattr(signal, sig)
+    # a stuck jaw never confirms and no watchdog drops the outputs: only the command can make them safe
+    with ValveTerminal(travel_s=0.02, watchdog_s=None, initial="closed" if action == "open" else "open") as t:
+        t.stick_jaw()
+        env = dict(os.environ, PYTHONPATH=str(REPO))
+        proc = subprocess.Popen([sys.executable, "-m", "selfview.procedures.cli", "gripper", "--url", t.url,
+                                 "--timeout", "60", action], cwd=REPO, env=env, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            end = time.monotonic() + 60
+            while not t.valve_outputs[action] and proc.poll() is None and time.monotonic() < end:
+                time.sleep(0.01)
+            assert t.valve_outputs[action], "the command never energised the valve"
+            proc.send_signal(signum)
+            out, err = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(5)
+        assert proc.returncode == 128 + signum, err
+        assert t.valve_outputs == {"open": False, "close": False}, err
+        assert "valve set to its safe state" in err and "Traceback" not in err, err
+        assert "had NOT ended" not in err, err  # the jaw wait ended at the signal, not at its own timeout

@@ -324,3 +324,24 @@ def test_reads_are_tried_again_after_a_lost_reply_writes_never(terminal):
     with PneumaticGripper(terminal.url, request_timeout_s=0.15, poll_s=None) as g:  # the default retries
         terminal.set_silent(requests=2)
         assert g.state() == "open" and g.halted is None and g.close_jaws() == "closed"
+
+
+def test_rtu_reads_are_tried_again_like_tcp_writes_never():
+    from selfview.drivers.pneumatic_gripper.modbus import ModbusLink
+
+    with ValveTerminal(travel_s=TRAVEL_S, framing="rtu") as t:
+        link = ModbusLink(t.url, timeout_s=0.15, retries=2)
+        try:
+            assert link.read("coil", 0, 2) == [False, False]
+            n0, c0 = t.requests, link.connections
+            t.set_silent(requests=2)  # two replies lost, the third answered
+            assert link.read("discrete_input", 0, 2) == list(t.sensors)
+            assert t.requests - n0 == 3 and link.connections == c0
+            n0 = t.requests
+            t.set_silent(requests=1)
+            with pytest.raises(DeviceTimeout, match="x 1 attempt"):
+                link.write_coil(0, True)
+            assert t.requests - n0 == 1
+        finally:
+            t.set_silent(False)
+            link.close()

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from selfview.drivers._ownership import DeviceBusy, DeviceLock, claim_for
+from selfview.drivers._ownership import DeviceBusy, DeviceLock, claim_for, path_identity
 from selfview.drivers.pneumatic_gripper import PneumaticGripper
 from selfview.errors import ConfigError, DeviceError
 from selfview.mocks.valve_terminal import ValveTerminal
@@ -60,9 +60,9 @@ def test_a_lock_claimed_for_an_object_lasts_as_long_as_it():
     assert claim_for(src, "frame grabber", None) is None  # a source that needs no lock
     claim_for(src, "frame grabber", "/dev/video7")
     with pytest.raises(DeviceBusy, match="frame grabber /dev/video7"):
-        DeviceLock("frame grabber", "/dev/video7").acquire()
+        DeviceLock.for_path("frame grabber", "/dev/video7").acquire()
     del src
-    assert DeviceLock("frame grabber", "/dev/video7").acquire().held
+    assert DeviceLock.for_path("frame grabber", "/dev/video7").acquire().held
 
 
 def test_a_second_program_on_the_valve_terminal_is_refused_with_exit_4():
@@ -95,5 +95,54 @@ def test_an_unusable_lock_folder_is_named(tmp_path, monkeypatch):
     blocker = tmp_path / "a-file"
     blocker.write_text("")
     monkeypatch.setenv("SELFVIEW_LOCK_DIR", str(blocker))
-    with pytest.raises(DeviceError, match="cannot create its lock file.*SELFVIEW_LOCK_DIR"):
+    with pytest.raises(DeviceError, match=f"lock folder {blocker} is not a folder.*SELFVIEW_LOCK_DIR"):
+        DeviceLock("valve terminal", "10.0.0.5:502").acquire()
+
+
+@pytest.mark.parametrize("spelling", ["localhost", "127.000.000.001", "2130706433", "127.0.0.1"])
+def test_the_valve_terminals_lock_is_keyed_on_the_address_not_its_spelling(spelling):
+    with ValveTerminal(travel_s=0.02) as t:
+        with PneumaticGripper(t.url, poll_s=None):
+            g = PneumaticGripper(f"modbus-tcp://{spelling}:{t.port}?unit=1", poll_s=None)
+            with pytest.raises(DeviceBusy, match=f"valve terminal {spelling}:{t.port} is in use by pid {os.getpid()}"):
+                g.connect()
+        with PneumaticGripper(f"modbus-tcp://{spelling}:{t.port}?unit=1", poll_s=None) as g:  # free again
+            assert g.connected
+    with pytest.raises(DeviceError, match="no-such-host.invalid:502: cannot resolve"):
+        DeviceLock.for_host("valve terminal", "no-such-host.invalid", 502).acquire()
+
+
+def test_a_device_paths_lock_is_keyed_on_the_device_not_the_link(tmp_path):
+    link = tmp_path / "serial-link"
+    link.symlink_to("/dev/null")
+    held = DeviceLock.for_path("valve terminal", "/dev/null").acquire()
+    with pytest.raises(DeviceBusy, match=f"valve terminal {link} is in use"):
+        DeviceLock.for_path("valve terminal", str(link)).acquire()
+    held.release()
+    assert DeviceLock.for_path("valve terminal", str(link)).acquire().held
+    assert path_identity(str(link)) == path_identity("/dev/null") == [f"dev {os.major(os.stat('/dev/null').st_rdev)}:"
+                                                                      f"{os.minor(os.stat('/dev/null').st_rdev)}"]
+
+
+def test_a_planted_link_in_the_lock_folder_is_not_followed(lock_dir, tmp_path_factory):
+    victim = tmp_path_factory.mktemp("user") / "notes.txt"
+    victim.write_text("the user's own words\n")
+    lock = DeviceLock("valve terminal", "10.0.0.5:502")
+    lock.path.symlink_to(victim)
+    with pytest.raises(DeviceError, match="its lock file .* symbolic link"):
+        lock.acquire()
+    assert victim.read_text() == "the user's own words\n" and not lock.held
+
+
+def test_a_lock_folder_others_may_use_is_refused_by_name(tmp_path, monkeypatch):
+    shared = tmp_path / "shared"
+    shared.mkdir(mode=0o777)
+    shared.chmod(0o777)
+    monkeypatch.setenv("SELFVIEW_LOCK_DIR", str(shared))
+    with pytest.raises(DeviceError, match=f"lock folder {shared} has mode 0777"):
+        DeviceLock("valve terminal", "10.0.0.5:502").acquire()
+    link = tmp_path / "link"
+    link.symlink_to(tmp_path)
+    monkeypatch.setenv("SELFVIEW_LOCK_DIR", str(link))
+    with pytest.raises(DeviceError, match=f"lock folder {link} is a symbolic link"):
         DeviceLock("valve terminal", "10.0.0.5:502").acquire()

@@ -269,3 +269,91 @@ def test_negative_appro_and_depart_are_refused_before_anything_moves(cell, capsy
         assert main(["robot", "--url", c.url, *argv]) == 4
         assert "beyond the location" in capsys.readouterr().err
         assert not [ln for ln in c.received if ln.startswith("DO ")]
+
+
+def test_a_stall_of_the_host_longer_than_the_reply_limit_is_no_device_fault():
+    """The host is suspended (SIGSTOP) through the motion and past its reply limit: the controller's complete
+    reply waits in the buffer, and on resume it counts (exit 0, no ABORT)."""
+    import os
+    import time
+
+    from selfview.mocks.val_controller import ValController
+
+    with ValController(time_scale=1.0, calibrated=True, speed_pct=50.0) as c:  # starts at READY
+        c.start_pty()
+        env = dict(os.environ, PYTHONPATH=str(REPO))
+        proc = subprocess.Popen([sys.executable, "-m", "selfview.procedures.cli", "robot", "--url", c.url, "move", "above"],
+                                cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert c.moving.wait(60.0), "the arm never started moving"
+            time.sleep(0.3)  # the command is waiting for the motion's reply
+            proc.send_signal(signal.SIGSTOP)
+            t0 = time.monotonic()
+            while c.moving.is_set() and time.monotonic() - t0 < 30:
+                time.sleep(0.01)
+            # the motion's wait is its expected duration (about 1.2 s) plus a margin of a few seconds
+            time.sleep(12.0)
+            proc.send_signal(signal.SIGCONT)
+            out, err = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(5)
+        assert proc.returncode == 0, err
+        assert "ABORT" not in c.received, err
+
+
+def test_ctrl_z_stops_the_arm_before_the_program_and_resume_says_so(cell):
+    import os
+    import time
+
+    from selfview.mocks.val_controller import ValController
+    from selfview.mocks.world import SimWorld
+
+    with ValController(SimWorld(cell, seed=2), time_scale=1.0, calibrated=True, speed_pct=5.0) as c:
+        c.start_pty()
+        env = dict(os.environ, PYTHONPATH=str(REPO))
+        proc = subprocess.Popen([sys.executable, "-m", "selfview.procedures.cli", "robot", "--url", c.url, "ready"],
+                                cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert c.moving.wait(60.0), "the arm never started moving"
+            time.sleep(0.3)
+            q0 = c.joints
+            proc.send_signal(signal.SIGTSTP)
+            t0 = time.monotonic()
+            while c.moving.is_set() and time.monotonic() - t0 < 5.0:
+                time.sleep(0.005)
+            assert not c.moving.is_set(), "the arm went on while the program was suspended"
+            state = ""
+            while time.monotonic() - t0 < 10.0 and state != "T":
+                with open(f"/proc/{proc.pid}/stat") as f:
+                    state = f.read().rsplit(")", 1)[1].split()[0]
+                time.sleep(0.01)
+            assert state == "T", "the program was not suspended"
+            assert np.abs(c.joints - q0).max() < 3.0
+            proc.send_signal(signal.SIGCONT)
+            out, err = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(5)
+        assert "ABORT" in c.received
+        assert "resumed" in err and proc.returncode == 4, err  # the stopped motion is not taken up again
+        assert "Traceback" not in err
+
+
+def test_a_slow_motion_longer_than_the_margin_is_waited_for_to_its_end():
+    """The motion wait's lower side: at SPEED 5 a drive of joint 1 takes about 4.5 s, longer than the
+    wait's fixed margin; it must end at its target, not in a false timeout and an ABORT."""
+    from selfview.drivers.puma_val_serial import PumaVAL
+    from selfview.drivers.puma_val_serial.limits import PUMA260_JOINT_SPEED_DEG_S
+    from selfview.mocks.val_controller import ValController
+
+    deg = 4.5 * PUMA260_JOINT_SPEED_DEG_S[0] * 0.05 * 0.5  # 4.5 s at SPEED 5 and DRIVE speed 50
+    with ValController(time_scale=1.0, calibrated=True, speed_pct=5.0) as c:
+        c.start_pty()
+        with PumaVAL(c.url) as r:
+            q0 = r.where().joints[0]
+            r.drive(1, deg, 50)
+            assert r.where().joints[0] == pytest.approx(q0 + deg, abs=0.1)
+        assert "ABORT" not in c.received

@@ -186,3 +186,83 @@ def test_monitor_prints_each_decision_and_how_the_fingertips_were_found(tmp_path
     assert [r["frame"] for r in recs] == [1, 2, 3] and all(r["action"] == "update" for r in recs)
     assert recs[0]["fingertips"] == "searched (no earlier frame)"
     assert [r["fingertips"] for r in recs[1:]] == ["tracked", "tracked"]
+
+
+def test_monitor_whose_output_goes_away_ends_non_zero_after_the_cleanup(tmp_path, capsys):
+    """``monitor | head -1``: the reader ends after the first line; the monitor makes the cell safe, says so and
+    ends with 141 (128 + SIGPIPE), not 0 as if its twelve frames had been watched."""
+    import os
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    pic, cal = tmp_path / "parked.png", tmp_path / "cal.yaml"
+    assert main(["park", "--seed", "5", "--time-scale", "0.01", "--out", str(pic)]) == 0
+    assert main(["calibrate", "--image", str(pic), "--out", str(cal)]) == 0
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.Popen([sys.executable, "-m", "selfview.procedures.cli", "monitor", "--seed", "5", "--time-scale",
+                             "0.01", "--calibration", str(cal), "--frames", "12", "--json"], cwd=REPO, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        first = proc.stdout.readline()
+        proc.stdout.close()  # what head -1 does
+        err = proc.stderr.read().decode()
+        proc.wait(120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+    assert json.loads(first)["frame"] == 1
+    assert proc.returncode == 141, err
+    assert "standard output was closed" in err and "valve set to its safe state" in err and "Traceback" not in err, err
+
+
+def _another_writer(path):
+    """What another program does meanwhile: its own update of the calibration file (a different C_H_G)."""
+    from selfview.calfile import save_calibration
+
+    other = load_calibration(path)
+    other.C_H_G = other.C_H_G.copy()
+    other.C_H_G[0, 3] += 1.0
+    other.updates.append({"by": "another program"})
+    save_calibration(other, path, expected=load_calibration(path))
+    return path.read_bytes()
+
+
+def test_track_apply_never_overwrites_a_file_changed_since_it_was_read(pictures, calibrated, capsys, monkeypatch):
+    import selfview.procedures.results as results
+
+    d, _, _ = pictures
+    real, box = results.keep_pictures, {}
+
+    def meanwhile(out, *a, **kw):  # runs after track read the file, before it saves
+        box["theirs"] = _another_writer(calibrated)
+        return real(out, *a, **kw)
+
+    monkeypatch.setattr(results, "keep_pictures", meanwhile)
+    code = main(["track", "--calibration", str(calibrated), "--image", str(d / "mid.png"), "--method", "auto", "--apply"])
+    err = capsys.readouterr().err
+    assert code == 3 and str(calibrated) in err, err
+    assert calibrated.read_bytes() == box["theirs"]  # the other program's update stands
+
+
+def test_monitor_apply_never_overwrites_a_file_changed_since_it_was_read(tmp_path, capsys, monkeypatch):
+    from selfview.procedures.runs import CellSession
+
+    pic, cal = tmp_path / "parked.png", tmp_path / "cal.yaml"
+    assert main(["park", "--seed", "5", "--time-scale", "0.01", "--out", str(pic)]) == 0
+    assert main(["calibrate", "--image", str(pic), "--out", str(cal)]) == 0
+    real, box = CellSession.monitor, {}
+
+    def meanwhile(self, *a, **kw):
+        out = real(self, *a, **kw)
+        box["theirs"] = _another_writer(cal)
+        return out
+
+    monkeypatch.setattr(CellSession, "monitor", meanwhile)
+    capsys.readouterr()
+    code = main(["monitor", "--seed", "5", "--time-scale", "0.01", "--calibration", str(cal), "--frames", "2", "--apply"])
+    err = capsys.readouterr().err
+    assert code == 3 and str(cal) in err, err
+    assert cal.read_bytes() == box["theirs"]

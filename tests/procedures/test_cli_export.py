@@ -85,3 +85,25 @@ def test_json_export(calfile):
 def test_export_refuses_a_missing_folder(calfile, capsys):
     assert main(["export", str(calfile / "cal.yaml"), "--format", "json", "--out", str(calfile / "no" / "x.json")]) == 3
     assert "does not exist" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("fmt", ["opencv", "ros", "json"])
+def test_an_export_on_a_full_disk_says_so_and_leaves_no_file(calfile, tmp_path, fmt, monkeypatch, capsys):
+    import errno
+    import shutil
+
+    from selfview import io_safe
+
+    shutil.copy(calfile / "cal.yaml", tmp_path / "cal.yaml")
+    real = io_safe._write_all
+
+    def full(fd, data):
+        real(fd, data[:10])
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(io_safe, "_write_all", full)
+    capsys.readouterr()
+    assert main(["export", str(tmp_path / "cal.yaml"), "--format", fmt]) == 3
+    out, err = capsys.readouterr()
+    assert "no space left" in err and str(tmp_path) in err and "written" not in out, err
+    assert [p.name for p in tmp_path.iterdir()] == ["cal.yaml"]  # no 0-byte export, no temporary file

@@ -1,6 +1,7 @@
 """``calibrate`` and ``track`` keep the picture they used and an annotated copy, named in the calibration file."""
 
 import json
+import os
 
 import cv2
 import numpy as np
@@ -41,6 +42,61 @@ def test_no_pictures_keeps_none(cell, tmp_path, capsys):
     cv2.imwrite(str(tmp_path / "parked.png"), render(w, seed=1).image)
     assert main(["calibrate", "--image", str(tmp_path / "parked.png"), "--out", str(tmp_path / "c.yaml"),
                  "--no-pictures"]) == 0
-    # the save's lock file (.c.yaml.lock) is no picture
-    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.endswith(".lock")) == ["c.yaml", "parked.png"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.yaml", "parked.png"]  # nor any lock file
     assert load_calibration(tmp_path / "c.yaml").pictures == {}
+
+
+def _selfview(*argv: bytes, cwd):
+    import os
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    return subprocess.run([sys.executable.encode(), b"-m", b"selfview.procedures.cli", *argv], cwd=cwd, env=env,
+                          capture_output=True, timeout=300)
+
+
+def test_a_name_with_a_byte_that_is_not_utf8_is_written_as_given_and_no_native_call_crashes(cell, tmp_path):
+    w = SimWorld(cell, seed=6)
+    w.park()
+    parked = render(w, seed=1).image
+    cv2.imwrite(str(tmp_path / "parked.png"), parked)
+    r = _selfview(b"calibrate", b"--image", b"parked.png", b"--out", b"cal\xff.yaml", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr.decode(errors="replace")
+    names = sorted(os.fsencode(p.name) for p in tmp_path.iterdir())
+    assert b"cal\xff.yaml" in names and sum(n.startswith(b"cal\xff.") and n.endswith(b".png") for n in names) == 2
+    kept = load_calibration(tmp_path / os.fsdecode(b"cal\xff.yaml")).pictures
+    assert np.array_equal(cv2.imdecode(np.fromfile(tmp_path / kept["picture"], np.uint8), cv2.IMREAD_UNCHANGED), parked)
+    r = _selfview(b"render", b"--out", b"r\xff.png", cwd=tmp_path)
+    assert r.returncode == 0 and (tmp_path / os.fsdecode(b"r\xff.png")).stat().st_size > 1000, r.stderr
+    for argv in ([b"render", b"--out", b"r.pn\xff"], [b"calibrate", b"--image", b"parked.png", b"--out", b""],
+                 [b"park", b"--out", b""], [b"park", b"--out", b"no-folder/p.png"]):
+        r = _selfview(*argv, cwd=tmp_path)
+        err = r.stderr.decode(errors="replace")
+        assert r.returncode == 3 and "--out" in err and "Traceback" not in err, (argv, err)
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp") or p.name.startswith(".")]
+
+
+def test_a_picture_that_cannot_be_written_is_named_with_its_cause(tmp_path, monkeypatch):
+    import errno
+
+    import pytest
+
+    from selfview import io_safe
+    from selfview.errors import ConfigError
+
+    img = np.zeros((8, 8), np.uint8)
+    with pytest.raises(ConfigError, match=r"p\.gif: cannot write the picture: the name must end in one of \.png"):
+        io_safe.write_picture(tmp_path / "p.gif", img)
+    real = io_safe._write_all
+
+    def full(fd, data):
+        real(fd, data[:3])
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(io_safe, "_write_all", full)
+    with pytest.raises(ConfigError, match=f"{tmp_path / 'p.png'}: cannot write the picture: no space left"):
+        io_safe.write_picture(tmp_path / "p.png", img)
+    assert list(tmp_path.iterdir()) == []  # no 0-byte "written" file, no temporary file

@@ -73,7 +73,7 @@ def test_free_gripper(tmp_path, capsys):
     [
         (["--out", "{tmp}/missing/pic.png"], "--out"),
         (["--out", "{tmp}/pic.jpg"], ".png"),
-        (["--out", "{tmp}/folder.png"], "cannot write"),
+        (["--out", "{tmp}/folder.png"], "is a folder"),
         (["--out", "{tmp}/pic.png", "--truth", "{tmp}/missing/t.json"], "--truth"),
         (["--out", "{tmp}/pic.png", "--state", "half"], "half"),
         (["--out", "{tmp}/pic.png", "--disturb", "wobble"], "wobble"),

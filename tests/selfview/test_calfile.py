@@ -199,7 +199,7 @@ def test_a_write_that_fails_half_way_leaves_the_old_file(tmp_path, rng, monkeypa
         save_calibration(make_cal(rng, f=960.0), p, keep_history=False)
     assert str(p) in str(e.value)
     assert p.read_bytes() == old and load_calibration(p).camera.f == 950.0
-    assert sorted(x.name for x in tmp_path.iterdir()) == [".cal.yaml.lock", "cal.yaml"]  # the writers' lock stays
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["cal.yaml"]  # no temporary file, no lock file beside it
 
 
 _CRASH = r"""
@@ -268,7 +268,7 @@ def test_a_file_size_limit_is_a_clear_error(tmp_path, rng):
                        preexec_fn=small_files, env=env)
     assert r.returncode == 3, r.stderr
     assert str(p) in r.stdout and "file too large" in r.stdout
-    assert p.read_bytes() == old and sorted(x.name for x in tmp_path.iterdir()) == [".cal.yaml.lock", "cal.yaml"]
+    assert p.read_bytes() == old and sorted(x.name for x in tmp_path.iterdir()) == ["cal.yaml"]
 
 
 def test_history_that_is_a_file_and_out_under_a_file(tmp_path, rng):

@@ -1,0 +1,88 @@
+"""The folder of this user's lock files, and the lock files in it.
+
+Every lock of selfview (a device's, a file writer's) is an ``flock`` on a file in one folder:
+``$SELFVIEW_LOCK_DIR``, else ``$XDG_RUNTIME_DIR/selfview``, else ``selfview-UID`` in the temporary
+directory. The folder must be the user's own with mode 0700 (a folder another user can write lets them
+plant a link or hold a lock; it is refused, named, not repaired), and a lock file is opened without
+following links, so a planted link cannot make a lock truncate the file it points to. No lock file is
+ever made beside the user's own files.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import re
+import stat
+import tempfile
+from pathlib import Path
+
+from selfview.errors import CellError
+
+__all__ = ["lock_dir", "open_lock_file", "lock_slug", "os_cause"]
+
+_FIX = "set SELFVIEW_LOCK_DIR to a folder of yours with mode 0700"
+
+
+def os_cause(exc: OSError) -> str:
+    """What an operating-system error means for the file being written or read, in words."""
+    if exc.errno == errno.ENOSPC:
+        return "no space left on the device"
+    if exc.errno == errno.EFBIG:
+        return "file too large (a file-size limit)"
+    if exc.errno == errno.EDQUOT:
+        return "disk quota exceeded"
+    if exc.errno == errno.EROFS:
+        return "a read-only file system"
+    if exc.errno == errno.ELOOP:
+        return "it is a symbolic link (not followed)"
+    return exc.strerror or str(exc)
+
+
+def lock_dir(*, error: type[CellError]) -> Path:
+    """Where the lock files are: created (mode 0700) if missing, then checked to be a real folder (not a
+    link) owned by this user with no access for anyone else. Raises ``error`` naming the folder."""
+    if os.environ.get("SELFVIEW_LOCK_DIR"):
+        d = Path(os.environ["SELFVIEW_LOCK_DIR"])
+    elif os.environ.get("XDG_RUNTIME_DIR") and Path(os.environ["XDG_RUNTIME_DIR"]).is_dir():
+        d = Path(os.environ["XDG_RUNTIME_DIR"]) / "selfview"
+    else:
+        d = Path(tempfile.gettempdir()) / f"selfview-{os.getuid()}"
+    try:
+        os.mkdir(d, 0o700)
+    except FileExistsError:
+        pass
+    except OSError as exc:
+        raise error(f"the lock folder {d}: cannot create it: {os_cause(exc)}; {_FIX}") from None
+    try:
+        st = os.lstat(d)
+    except OSError as exc:
+        raise error(f"the lock folder {d}: {os_cause(exc)}; {_FIX}") from None
+    if stat.S_ISLNK(st.st_mode):
+        raise error(f"the lock folder {d} is a symbolic link (not followed); {_FIX}")
+    if not stat.S_ISDIR(st.st_mode):
+        raise error(f"the lock folder {d} is not a folder; {_FIX}")
+    if st.st_uid != os.getuid():
+        raise error(f"the lock folder {d} belongs to uid {st.st_uid}, not to this user (uid {os.getuid()}); {_FIX}")
+    if stat.S_IMODE(st.st_mode) & 0o077:
+        raise error(f"the lock folder {d} has mode {stat.S_IMODE(st.st_mode):04o}: others may use it; {_FIX}")
+    return d
+
+
+def lock_slug(*parts: str) -> str:
+    """A lock file's name (without the folder) for the parts of a key: safe characters only, bounded."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", "-".join(parts)).strip("_")[:150] + ".lock"
+
+
+def open_lock_file(name: str, *, error: type[CellError], what: str) -> tuple[int, Path]:
+    """(descriptor, path) of the lock file ``name`` in ``lock_dir()``: created 0600 if missing, never
+    through a link, and only a regular file. ``what`` names the thing locked in the error."""
+    path = lock_dir(error=error) / name
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK, 0o600)
+    except OSError as exc:
+        raise error(f"{what}: cannot open its lock file {path}: {os_cause(exc)}; {_FIX}") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise error(f"{what}: its lock file {path} is not a regular file; {_FIX}")
+    return fd, path
