@@ -39,7 +39,9 @@ class DiscDetections:
     origin at the grid centre; ``area_px`` (N,) pixels above the darkness threshold; ``n_blobs`` how many
     candidate blobs the picture held; ``rejected`` how many of them were dropped, by reason;
     ``index_basis`` how the grid index was anchored per axis ('all seen', 'low end seen',
-    'high end seen', 'centred').
+    'high end seen', 'centred'); ``ambiguous`` per axis whose seen lines nothing places on the plate
+    ('centred': neither end of the grid seen) the sentence naming the indices they may take. While it is
+    not empty the grid's origin, and so ``p_W`` and any plate pose ``C_H_W`` from them, are a guess.
     """
 
     uv: np.ndarray
@@ -49,6 +51,12 @@ class DiscDetections:
     n_blobs: int
     rejected: dict[str, int]
     index_basis: dict[str, str] = field(default_factory=dict)
+    ambiguous: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def origin_pinned(self) -> bool:
+        """Whether the picture fixes the grid's origin (every axis's index anchored by what is seen)."""
+        return not self.ambiguous
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -406,8 +414,10 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     Indices are propagated from a seed disc along the lattice's neighbour steps (tolerating missing
     discs). When all columns (rows) are seen, W's origin is the grid centre exactly; otherwise the side
     where the grid ends is found by blank paper one pitch beyond the last column (row), and failing that
-    the seen columns (rows) are centred (``DiscDetections.index_basis`` says which). The hand/eye result
-    does not depend on that choice (it cancels in ``C_H_G = C_H_W W_H_G``).
+    the seen columns (rows) are centred (``DiscDetections.index_basis`` says which), and
+    ``DiscDetections.ambiguous`` names the indices they may take: the plate's origin, and ``C_H_W``, are
+    then not known. The hand/eye result does not depend on that choice (it cancels in
+    ``C_H_G = C_H_W W_H_G``).
     """
     img = as_gray(image, camera)
     work = img if plate.polarity == "dark_on_light" else (float(img.max()) - img)
@@ -487,7 +497,7 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     ids = np.array(sorted(index))
     cr = _orient(P[ids], {n_: index[k] for n_, k in enumerate(ids)}, plate)
     r_px = float(np.sqrt(np.median(areas) / np.pi))
-    basis = {}
+    basis, ambiguous = {}, {}
     for axis, name, count in ((0, "cols", plate.cols), (1, "rows", plate.rows)):
         ext = cr[:, axis].max() + 1
         if ext == count:
@@ -498,8 +508,15 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
             cr[:, axis] += count - ext
             basis[name] = "high end seen"
         else:
-            cr[:, axis] += (count - ext) // 2
+            shift = (count - ext) // 2
+            cr[:, axis] += shift
             basis[name] = "centred"
+            word = "columns" if name == "cols" else "rows"
+            ambiguous[name] = (
+                f"{ext} of the plate's {count} {word} seen and no end of the grid (one pitch beyond the outer "
+                f"{word} on either side lies outside the picture or is not blank paper): they may be {word} "
+                f"{_span(0, ext)} up to {_span(count - ext, ext)}, taken as {_span(shift, ext)}"
+            )
     order = np.lexsort((cr[:, 0], cr[:, 1]))
     cr = cr[order]
     ids = ids[order]
@@ -513,8 +530,12 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     )
     return DiscDetections(
         uv=uv[ids], rc=rc, p_W=p_W, area_px=areas[ids].astype(float), n_blobs=n_blobs,
-        rejected=rejected, index_basis=basis,
+        rejected=rejected, index_basis=basis, ambiguous=ambiguous,
     )
+
+
+def _span(first: int, n: int) -> str:
+    return f"{first}-{first + n - 1}"
 
 
 # --- perspective bias -----------------------------------------------------------------------------

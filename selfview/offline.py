@@ -34,7 +34,8 @@ MAX_PLANE_DISAGREEMENT_DEG = 25.0
 
 @dataclass
 class OfflineResult:
-    """Everything one off-line calibration found; ``calibration`` is what gets saved."""
+    """Everything one off-line calibration found; ``calibration`` is what gets saved; ``warnings`` what the
+    picture could not tell (shown by the command line, kept in the calibration's residuals)."""
 
     calibration: Calibration
     tsai: TsaiResult
@@ -44,6 +45,7 @@ class OfflineResult:
     pcc: PCCResult
     dims: dict | None
     timings_ms: dict = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
 
     def summary(self) -> dict:
         """The figures a person or a script reads (plain types; units in the key names)."""
@@ -53,6 +55,7 @@ class OfflineResult:
             "kappa": cal.camera.kappa,
             "principal_point": [cal.camera.cx, cal.camera.cy],
             "C_H_W": cal.C_H_W.tolist(),
+            "C_H_W_known": self.discs.origin_pinned,
             "C_H_G": cal.C_H_G.tolist(),
             "points_G": {
                 nm: [float(v) for v in p] for nm, p in zip(POINT_NAMES, cal.points_G[cal.state])
@@ -64,6 +67,7 @@ class OfflineResult:
             "pcc_rms_mm": float(self.pcc.rms_mm),
             "state": cal.state,
             "timings_ms": {k: round(v, 2) for k, v in self.timings_ms.items()},
+            "warnings": list(self.warnings),
         }
 
 
@@ -213,6 +217,7 @@ def calibrate_offline(
     timings["pcc"] = (time.perf_counter() - t) * 1e3
     timings["total"] = (time.perf_counter() - t0) * 1e3
 
+    warnings = _origin_warnings(det)
     sha = image_sha256 or hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest()
     cal = Calibration(
         camera=camera,
@@ -231,6 +236,8 @@ def calibrate_offline(
             "pcc_q_norm": float(pcc.q_norm),
             "points_from": "picture" if dims is not None else "cell",
             "corners_measured_by": measured_by,
+            "plate_origin": "pinned" if det.origin_pinned else "ambiguous",
+            **({"warnings": warnings} if warnings else {}),
             **({"camera_file": dict(camera_file)} if camera_file else {}),
         },
         image_sha256=sha,
@@ -245,4 +252,14 @@ def calibrate_offline(
         pcc=pcc,
         dims=dims,
         timings_ms=timings,
+        warnings=warnings,
     )
+
+
+def _origin_warnings(det: DiscDetections) -> list[str]:
+    """The warning that the picture does not pin the plate's origin (``C_H_W`` is then a guess up to whole
+    pitches; ``C_H_G`` does not depend on it)."""
+    if det.origin_pinned:
+        return []
+    return ["the plate's origin is not pinned by the picture, so C_H_W is not known (it may be off by whole "
+            "pitches; C_H_G does not depend on it): " + "; ".join(det.ambiguous.values())]

@@ -1,0 +1,115 @@
+"""Shadows on the plate (the fingers' own, a lamp's arm) and what the picture says about the plate's origin.
+
+The renderer's ``Lamp`` casts the fingers' shadows; an occluder (a lamp's arm out of the picture) adds one
+more. The scene of ``_edge_column_world`` puts the plate's outer column on the image's left in shadow (its
+top discs under the arm's shadow edge, its bottom ones on the edge of finger A's shadow), while the column
+beyond the right one lies outside the picture: nothing in the picture then says which seven of the eight
+columns are seen. Either the grid is indexed right, or the result says that its origin is not known.
+"""
+
+import cv2
+import json
+
+import numpy as np
+import pytest
+
+from selfview.discs import detect_discs
+from selfview.errors import ConfigError
+from selfview.geometry import pose_difference
+from selfview.mocks.render import Lamp, render
+from selfview.mocks.world import SimWorld
+from selfview.offline import calibrate_offline
+from selfview.procedures.cli import main
+
+#: The lamp above the plate's +y side, and an arm whose shadow edge runs through the column at x = +31.5 mm
+#: (the image's left column in this view).
+EDGE_LAMP = Lamp(position_W=(36.0, 300.0, -150.0), occluders=(((31.0, 20.0, -12.0), (80.0, 90.0, -10.0)),))
+
+
+def _world(cell):
+    w = SimWorld(cell, seed=3)
+    w.park()
+    return w
+
+
+def _true_rc(det, pic, plate):
+    """The true (row, col) of each detected disc: the nearest true disc image to its centre."""
+    d = np.linalg.norm(det.uv[:, None, :] - pic.disc_uv[None, :, :], axis=2)
+    k = np.argmin(d, axis=1)
+    assert np.all(d[np.arange(len(k)), k] < 1.0)
+    return np.column_stack([k // plate.cols, k % plate.cols])
+
+
+def _indexed_right(det, true_rc, plate) -> bool:
+    """Whether the detected indices are the true ones up to a symmetry of the square grid (which W's
+    orientation convention picks), with no shift."""
+    n = plate.rows - 1
+    r, c = true_rc[:, 0], true_rc[:, 1]
+    for rr, cc in ((r, c), (c, n - r), (n - r, n - c), (n - c, r)):
+        for a, b in ((rr, cc), (rr, n - cc), (n - rr, cc), (cc, rr)):
+            if np.array_equal(det.rc, np.column_stack([a, b])):
+                return True
+    return False
+
+
+def test_the_lamp_darkens_the_shadowed_paper_only(cell):
+    w = _world(cell)
+    plain = render(w, seed=1, noise=False)
+    lit = render(w, seed=1, noise=False, lamp=EDGE_LAMP)
+    ratio = lit.image.astype(float) / np.maximum(plain.image.astype(float), 1.0)
+    paper = plain.image > 180
+    # in full shadow the paper keeps the ambient share, in the light all of it; the fingers are untouched
+    assert np.percentile(ratio[paper], 1) == pytest.approx(EDGE_LAMP.ambient, abs=0.03)
+    assert np.median(ratio[paper]) == pytest.approx(1.0, abs=0.01)
+    shadowed = paper & (ratio < 0.6)
+    assert 0.02 < shadowed.mean() < 0.3
+    assert lit.truth["render"]["lamp"]["ambient"] == EDGE_LAMP.ambient
+    with pytest.raises(ConfigError, match="position_W"):
+        render(w, lamp=Lamp(position_W=(0.0, 0.0, 100.0)))
+    with pytest.raises(ConfigError, match="occluder"):
+        render(w, lamp=Lamp(occluders=(((0, 0, 0), (0, 1, 1)),)))
+
+
+def test_without_shadows_the_same_view_pins_the_origin(cell):
+    w = _world(cell)
+    pic = render(w, seed=1)
+    det = detect_discs(pic.image, cell.plate, camera=cell.camera.guess())
+    assert det.origin_pinned and det.ambiguous == {}
+    assert _indexed_right(det, _true_rc(det, pic, cell.plate), cell.plate)
+
+
+def test_an_edge_column_in_shadow_is_indexed_right_or_named_ambiguous(cell):
+    w = _world(cell)
+    pic = render(w, seed=1, lamp=EDGE_LAMP)
+    det = detect_discs(pic.image, cell.plate, camera=cell.camera.guess())
+    right = _indexed_right(det, _true_rc(det, pic, cell.plate), cell.plate)
+    assert right or not det.origin_pinned
+    if not det.origin_pinned:
+        assert set(det.ambiguous) == {"cols"}
+        assert "0-6 up to 1-7" in det.ambiguous["cols"]
+
+
+def test_calibration_says_when_the_plate_pose_is_not_known(cell, tmp_path, capsys):
+    w = _world(cell)
+    pic = render(w, seed=1, lamp=EDGE_LAMP)
+    res = calibrate_offline(pic.image, cell)
+    s = res.summary()
+    # the hand/eye result does not depend on the grid's origin: it holds either way
+    rot, dist = pose_difference(res.calibration.C_H_G, w.C_H_G)
+    assert dist < 0.1 and rot < 0.1
+    # the grid's centre is W's origin whatever the grid's turn: a pinned origin is the true one
+    off_mm = float(np.linalg.norm(res.calibration.C_H_W[:3, 3] - w.C_H_W[:3, 3]))
+    if res.discs.origin_pinned:
+        assert off_mm < 0.5 and s["C_H_W_known"] is True and s["warnings"] == []
+        return
+    assert s["C_H_W_known"] is False
+    assert res.calibration.residuals["plate_origin"] == "ambiguous"
+    assert any("C_H_W is not known" in m for m in s["warnings"])
+    path = tmp_path / "shadow.png"
+    cv2.imwrite(str(path), pic.image)
+    code = main(["calibrate", "--image", str(path), "--out", str(tmp_path / "cal.yaml"), "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert "warning: the plate's origin is not pinned" in err
+    doc = json.loads(out)
+    assert doc["C_H_W_known"] is False and doc["warnings"]
