@@ -113,3 +113,21 @@ def test_calibration_says_when_the_plate_pose_is_not_known(cell, tmp_path, capsy
     assert "warning: the plate's origin is not pinned" in err
     doc = json.loads(out)
     assert doc["C_H_W_known"] is False and doc["warnings"]
+
+
+def test_a_pcc_residual_far_above_the_pictures_noise_is_a_warning(cell):
+    """The fingertip rectangle taken from a cell whose fingers are 0.3 mm wider than the pictured ones
+    leaves a PCC residual many times what the picture's noise gives: a warning, not a silent result; the
+    same picture with the pictured fingers' points gives none."""
+    import dataclasses
+
+    w = _world(cell)
+    img = render(w, seed=1).image
+    good = calibrate_offline(img, cell, points="cell")
+    assert good.warnings == [] and good.pcc.rms_mm < 2 * good.calibration.residuals["pcc_noise_mm"]
+    wide = dataclasses.replace(cell, gripper=dataclasses.replace(cell.gripper, finger_width=cell.gripper.finger_width + 0.3))
+    bad = calibrate_offline(img, wide, points="cell")
+    assert bad.pcc.rms_mm > 0.1
+    assert len(bad.warnings) == 1 and "PCC residual" in bad.warnings[0]
+    assert bad.calibration.residuals["warnings"] == bad.warnings
+    assert bad.summary()["warnings"] == bad.warnings
