@@ -24,6 +24,11 @@ __all__ = ["DiscDetections", "detect_discs", "correct_disc_bias", "disc_image_bi
 DARK_FRACTION = 0.3
 #: Ring test: a ring pixel deviating from the fitted paper plane by more than this (relative) is not paper.
 RING_TOLERANCE = 0.12
+#: Ring test: a ring whose paper departs from one plane by more than this rms (relative) lies across a
+#: shadow's edge (a picture's noise gives 0.01-0.02).
+SLOPE_RMS = 0.025
+#: ... or when a quadratic leaves less than this share of the plane's mean square residual there.
+CURVED_SHARE = 0.6
 #: Size test: a disc's area over its lattice cell's, relative to the plate's pi/4 (d/pitch)^2, lies in this range.
 DISC_SHARE = (0.5, 2.0)
 #: Lattice test: a disc off the midpoint of its two neighbours on a line by more than this (of a step).
@@ -140,7 +145,9 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     beside another blob, belong neither to the support nor to the ring: near neighbours shrink the
     support instead of refusing the disc, so large discs and labelled ones are still measured; a blob
     larger than a mark (``small[label]`` False: a disc, a finger) within 2 px of it is "crowded". The
-    support and ring are cut at the picture's border; the blob itself must keep clear of it."""
+    support and ring are cut at the picture's border; the blob itself must keep clear of it. Where the
+    ring's paper is no plane (a shadow's edge, sharp or soft, across or beside the disc), the paper's
+    level is a profile along one direction fitted to the ring (``_edge_level``) instead."""
     x, y, w, h = bbox
     H, W = work.shape
     d = 2 * np.sqrt(area / np.pi)
@@ -173,6 +180,13 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     z = crop[rv, ru]
     coef = np.linalg.solve(A.T @ A, A.T @ z)
     off = np.abs(z - A @ coef) > RING_TOLERANCE * coef[0]
+    if coef[0] > 0 and (np.mean(off) > 0.01 or _curved(A, z, coef)):
+        # the ring is not one plane: a shadow's edge across the disc (sharp or soft), where the paper's
+        # level changes along one direction only; a mark in the ring does not fit that
+        level = _edge_level(ru - cu, rv - cv_, z, np.arctan2(coef[2], coef[1]))
+        if level is not None:
+            sv, su = np.nonzero(support)
+            return _weighted_centre(crop[sv, su], level(su - cu, sv - cv_), su, sv, x0, y0, area)
     if coef[0] > 0 and 0.01 < np.mean(off) < 0.3:
         # something not paper in the ring (a mark, the sheet's edge): refit on the paper, and keep the
         # disc only if that thing stays clear of the disc's edge, leaving it out of the support
@@ -193,11 +207,56 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
         return "occluded", None
     sv, su = np.nonzero(support)
     plane = coef[0] + coef[1] * (su - cu) + coef[2] * (sv - cv_)
-    wgt = 1.0 - crop[sv, su] / plane
+    return _weighted_centre(crop[sv, su], plane, su, sv, x0, y0, area)
+
+
+def _weighted_centre(grey, level, su, sv, x0, y0, area) -> tuple[str | None, np.ndarray | None]:
+    """The contrast-weighted centroid (weights ``1 - grey / level`` of the support's pixels at crop
+    coordinates ``su``, ``sv``; the crop's corner ``x0``, ``y0``), or "occluded" when too little ink is left."""
+    wgt = 1.0 - grey / level
     s = wgt.sum()
     if s <= 0.25 * area * DARK_FRACTION:
         return "occluded", None
     return None, np.array([(wgt * su).sum() / s + x0, (wgt * sv).sum() / s + y0])
+
+
+def _curved(A, z, coef) -> bool:
+    """Whether the ring's paper (``z`` at the rows (1, x, y) of ``A``) departs from the plane ``coef``:
+    by more than ``SLOPE_RMS`` rms, or a quadratic fitting it much better (the knee of a soft shadow)."""
+    mse = float(np.mean((z - A @ coef) ** 2))
+    if mse > (SLOPE_RMS * coef[0]) ** 2:
+        return True
+    Q = np.column_stack([A, A[:, 1] ** 2, A[:, 1] * A[:, 2], A[:, 2] ** 2])
+    q = np.linalg.lstsq(Q, z, rcond=None)[0]
+    return float(np.mean((z - Q @ q) ** 2)) < CURVED_SHARE * mse
+
+
+def _edge_level(x, y, z, angle):
+    """The paper's level across a disc as a function of one direction only (a straight shadow edge, sharp
+    or soft, or an even slope), fitted to the ring's pixels at (``x``, ``y``) [px from the crop's centre]
+    of grey ``z``: a profile along the normal (1 px bins, linear between), the normal the direction that
+    fits best (every 15 deg from ``angle``, the ring's slope, then refined to 1 deg). Returns the level as
+    a function of (x, y), or None when the ring is not paper under such a light (a mark, an occluder)."""
+
+    def fit(a):
+        c, s = np.cos(a), np.sin(a)
+        t = x * c + y * s
+        b = np.floor(t - t.min()).astype(int)
+        cnt = np.bincount(b)
+        have = cnt > 0
+        prof = np.bincount(b, z)[have] / cnt[have]
+        at = (np.arange(len(cnt)) + 0.5 + t.min())[have]
+        lev = np.interp(t, at, prof)
+        return float(np.mean((z - lev) ** 2)), float(np.mean(np.abs(z - lev) > RING_TOLERANCE * lev)), c, s, at, prof
+
+    best = min((fit(angle + np.radians(d)) for d in range(0, 180, 15)), key=lambda r: r[0])
+    for step in (8.0, 4.0, 2.0, 1.0):
+        a0 = np.arctan2(best[3], best[2])
+        best = min([best, fit(a0 - np.radians(step)), fit(a0 + np.radians(step))], key=lambda r: r[0])
+    _, bad, c, s, at, prof = best
+    if bad > 0.01:
+        return None
+    return lambda u, v: np.interp(u * c + v * s, at, prof)
 
 
 # --- lattice --------------------------------------------------------------------------------------

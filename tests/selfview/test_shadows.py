@@ -7,19 +7,26 @@ beyond the right one lies outside the picture: nothing in the picture then says 
 columns are seen. Either the grid is indexed right, or the result says that its origin is not known.
 """
 
-import cv2
 import json
+from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
+from selfview.cell import load_cell
 from selfview.discs import detect_discs
 from selfview.errors import ConfigError
 from selfview.geometry import pose_difference
 from selfview.mocks.render import Lamp, render
 from selfview.mocks.world import SimWorld
 from selfview.offline import calibrate_offline
+from selfview.mocks.render import disc_image_centroids
 from selfview.procedures.cli import main
+from tests.photo_variants import shadowed, turned
+
+VISP = Path(__file__).resolve().parents[1] / "data" / "visp-circles"
+PHOTOS = sorted(p.name for p in VISP.glob("*.*g"))
 
 #: The lamp above the plate's +y side, and an arm whose shadow edge runs through the column at x = +31.5 mm
 #: (the image's left column in this view).
@@ -131,3 +138,66 @@ def test_a_pcc_residual_far_above_the_pictures_noise_is_a_warning(cell):
     assert len(bad.warnings) == 1 and "PCC residual" in bad.warnings[0]
     assert bad.calibration.residuals["warnings"] == bad.warnings
     assert bad.summary()["warnings"] == bad.warnings
+
+
+def _photo(name):
+    img = cv2.imread(str(VISP / name), cv2.IMREAD_GRAYSCALE)
+    assert img is not None, f"missing test picture {name}"
+    return img, load_cell(VISP / ("cell-640x480.yaml" if name.endswith(".png") else "cell.yaml")).plate
+
+
+def _opencv(img, plate):
+    ok, c = cv2.findCirclesGrid(img, (plate.cols, plate.rows), flags=cv2.CALIB_CB_SYMMETRIC_GRID | cv2.CALIB_CB_CLUSTERING)
+    return c.reshape(-1, 2).astype(float) if ok else None
+
+
+def test_discs_across_a_shadows_edge_are_measured_at_their_centre(cell):
+    """A lamp's shadow (45 % light, edge 3 or 8 px soft) across the rendered plate: the discs it crosses
+    are kept and measured against the truth as well as lit ones (measured: at most 0.046 px; before, the
+    ring's plane was taken as the paper and they were 0.35 px off, up to 1.2 px, or dropped)."""
+    errs = []
+    for seed in range(2):
+        w = SimWorld(cell, seed=seed)
+        w.park()
+        img = render(w, seed=seed).image
+        truth = disc_image_centroids(w.camera, w.C_H_W, cell.plate)
+        for soft in (3.0, 8.0):
+            det = detect_discs(shadowed(img, soft_px=soft), cell.plate)
+            h, wd = img.shape
+            edge = 0.42 * wd + 0.25 * (det.uv[:, 1] - h / 2)
+            across = np.abs(det.uv[:, 0] - edge) < 30
+            assert across.sum() >= 4
+            errs.append(np.linalg.norm(det.uv[across, None] - truth[None], axis=2).min(axis=1))
+    errs = np.concatenate(errs)
+    assert np.max(errs) < 0.1, np.round(errs, 3)
+
+
+@pytest.mark.parametrize("name", PHOTOS)
+def test_a_shadow_across_a_real_photograph_keeps_its_discs(name):
+    """ViSP's photographs with a lamp's shadow across the grid: every disc of a soft-edged shadow is
+    kept, and of a sharp one (3 px) all but at most two that the edge grazes (measured: 323 of the nine
+    pictures' 324; before: 266, 27-33 per picture), their centres a median 0.14 px from OpenCV's."""
+    img, plate = _photo(name)
+    assert len(detect_discs(shadowed(img, soft_px=8.0), plate)) == plate.rows * plate.cols
+    sharp = shadowed(img)
+    det = detect_discs(sharp, plate)
+    assert len(det) >= plate.rows * plate.cols - 2
+    ref = _opencv(sharp, plate)
+    if ref is not None:
+        d = np.linalg.norm(ref[:, None, :] - det.uv[None], axis=2).min(axis=1)
+        both = d[d < 3.0]
+        assert np.median(both) < 0.25
+
+
+@pytest.mark.parametrize("name", PHOTOS[::2])
+@pytest.mark.parametrize("deg", [30, 55, 80])
+def test_a_plate_turned_in_the_picture(name, deg):
+    """The plate turned by any angle in the picture: every disc, centres within 0.4 px of OpenCV's."""
+    img, plate = _photo(name)
+    pic = turned(img, deg)
+    det = detect_discs(pic, plate)
+    assert len(det) == plate.rows * plate.cols and det.origin_pinned
+    ref = _opencv(pic, plate)
+    assert ref is not None
+    d = np.linalg.norm(ref[:, None, :] - det.uv[None], axis=2).min(axis=1)
+    assert np.max(d) < 0.4 and np.median(d) < 0.2
