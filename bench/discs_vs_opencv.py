@@ -13,18 +13,23 @@ OpenCV's where both found the grid, and the medians over the set.
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
-import time
-from pathlib import Path
+import os
 
-import cv2
-import numpy as np
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-from selfview.cell import load_cell
-from selfview.discs import detect_discs
-from selfview.errors import ImageError
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+from selfview.cell import load_cell  # noqa: E402
+from selfview.discs import detect_discs  # noqa: E402
+from selfview.errors import ImageError  # noqa: E402
 
 if str(Path(__file__).resolve().parents[1]) not in sys.path:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the picture changes live beside the tests

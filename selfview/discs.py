@@ -227,7 +227,10 @@ def _curved(A, z, coef) -> bool:
     if mse > (SLOPE_RMS * coef[0]) ** 2:
         return True
     Q = np.column_stack([A, A[:, 1] ** 2, A[:, 1] * A[:, 2], A[:, 2] ** 2])
-    q = np.linalg.lstsq(Q, z, rcond=None)[0]
+    try:
+        q = np.linalg.solve(Q.T @ Q, Q.T @ z)
+    except np.linalg.LinAlgError:  # a ring too small to tell
+        return False
     return float(np.mean((z - Q @ q) ** 2)) < CURVED_SHARE * mse
 
 
