@@ -223,13 +223,7 @@ def calibrate_offline(
     timings["total"] = (time.perf_counter() - t0) * 1e3
 
     noise_mm = _picture_noise_mm(ft, found, camera, pcc.C_H_G)
-    warnings = _origin_warnings(det)
-    if pcc.rms_mm > PCC_NOISE_FACTOR * noise_mm:
-        warnings.append(
-            f"the PCC residual {pcc.rms_mm:.3f} mm is {pcc.rms_mm / noise_mm:.0f} times what the picture's noise "
-            f"gives ({noise_mm:.4f} mm): a fingertip corner is measured off its place (on a printed disc, a mark "
-            "or a shadow's edge?), or the gripper points used are not this gripper's; park the gripper elsewhere "
-            "on the plate and calibrate again")
+    warnings = _warnings(det, pcc, noise_mm)
     sha = image_sha256 or hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest()
     cal = Calibration(
         camera=camera,
@@ -277,10 +271,17 @@ def _picture_noise_mm(ft: FingertipResult, found: np.ndarray, camera: CameraMode
     return rms_px * float(C_H_G[2, 3]) / float(camera.f)
 
 
-def _origin_warnings(det: DiscDetections) -> list[str]:
-    """The warning that the picture does not pin the plate's origin (``C_H_W`` is then a guess up to whole
-    pitches; ``C_H_G`` does not depend on it)."""
-    if det.origin_pinned:
-        return []
-    return ["the plate's origin is not pinned by the picture, so C_H_W is not known (it may be off by whole "
-            "pitches; C_H_G does not depend on it): " + "; ".join(det.ambiguous.values())]
+def _warnings(det: DiscDetections, pcc: PCCResult, noise_mm: float) -> list[str]:
+    """What the picture could not tell: the plate's origin not pinned (``C_H_W`` is then a guess up to whole
+    pitches; ``C_H_G`` does not depend on it), a PCC residual far above the picture's noise ``noise_mm``."""
+    out = []
+    if not det.origin_pinned:
+        out.append("the plate's origin is not pinned by the picture, so C_H_W is not known (it may be off by whole "
+                    "pitches; C_H_G does not depend on it): " + "; ".join(det.ambiguous.values()))
+    if pcc.rms_mm > PCC_NOISE_FACTOR * noise_mm:
+        out.append(
+            f"the PCC residual {pcc.rms_mm:.3f} mm is {pcc.rms_mm / noise_mm:.0f} times what the picture's noise "
+            f"gives ({noise_mm:.4f} mm): a fingertip corner is measured off its place (on a printed disc, a mark "
+            "or a shadow's edge?), or the gripper points used are not this gripper's; park the gripper elsewhere "
+            "on the plate and calibrate again")
+    return out

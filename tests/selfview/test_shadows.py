@@ -1,10 +1,11 @@
 """Shadows on the plate (the fingers' own, a lamp's arm) and what the picture says about the plate's origin.
 
 The renderer's ``Lamp`` casts the fingers' shadows; an occluder (a lamp's arm out of the picture) adds one
-more. The scene of ``_edge_column_world`` puts the plate's outer column on the image's left in shadow (its
-top discs under the arm's shadow edge, its bottom ones on the edge of finger A's shadow), while the column
-beyond the right one lies outside the picture: nothing in the picture then says which seven of the eight
-columns are seen. Either the grid is indexed right, or the result says that its origin is not known.
+more. ``EDGE_LAMP`` puts the plate's outer column on the image's left in shadow (its top discs under the
+arm's shadow edge, its bottom ones on the edge of finger A's shadow), while the column beyond the right
+one lies outside the picture: were those discs dropped, nothing in the picture would say which seven of
+the eight columns are seen. ``DEEP_LAMP`` hides that column in a deep shadow. Either the grid is indexed
+right, or the result says that its origin is not known.
 """
 
 import json
@@ -96,22 +97,37 @@ def test_an_edge_column_in_shadow_is_indexed_right_or_named_ambiguous(cell):
         assert "0-6 up to 1-7" in det.ambiguous["cols"]
 
 
-def test_calibration_says_when_the_plate_pose_is_not_known(cell, tmp_path, capsys):
+#: A lamp's arm in a deep shadow (5 % light) over the image's left column and all beyond it: its discs are
+#: hardly seen, and the plate's end on the other side lies beyond the picture.
+DEEP_LAMP = Lamp(position_W=(27.0, 0.0, -400.0), ambient=0.05, occluders=(((27.0, -80.0, -12.0), (90.0, 80.0, -10.0)),))
+#: The same at 10 % light: the column is measured, but finger B's outer corner, in the shadow's edge, is not.
+DIM_LAMP = Lamp(position_W=(26.0, 0.0, -400.0), ambient=0.1, occluders=(((26.0, -80.0, -12.0), (90.0, 80.0, -10.0)),))
+
+
+def test_an_edge_column_in_shadow_gives_the_right_plate_pose(cell):
+    """The edge column's discs on the shadow's edge are measured: the origin is pinned, and right."""
     w = _world(cell)
-    pic = render(w, seed=1, lamp=EDGE_LAMP)
-    res = calibrate_offline(pic.image, cell)
-    s = res.summary()
-    # the hand/eye result does not depend on the grid's origin: it holds either way
+    res = calibrate_offline(render(w, seed=1, lamp=EDGE_LAMP).image, cell)
+    assert res.discs.origin_pinned and res.summary()["C_H_W_known"] is True
+    # the grid's centre is W's origin whatever the grid's turn: a pinned origin is the true one
+    assert np.linalg.norm(res.calibration.C_H_W[:3, 3] - w.C_H_W[:3, 3]) < 0.05
     rot, dist = pose_difference(res.calibration.C_H_G, w.C_H_G)
     assert dist < 0.1 and rot < 0.1
-    # the grid's centre is W's origin whatever the grid's turn: a pinned origin is the true one
-    off_mm = float(np.linalg.norm(res.calibration.C_H_W[:3, 3] - w.C_H_W[:3, 3]))
-    if res.discs.origin_pinned:
-        assert off_mm < 0.5 and s["C_H_W_known"] is True and s["warnings"] == []
-        return
+
+
+def test_calibration_says_when_the_plate_pose_is_not_known(cell, tmp_path, capsys):
+    """The edge column lost in a deep shadow: the plate pose is one pitch off, and the result says that it
+    is not known (summary, residuals, the command line's warning); C_H_G holds, as it does not depend on it."""
+    w = _world(cell)
+    pic = render(w, seed=1, lamp=DEEP_LAMP)
+    res = calibrate_offline(pic.image, cell)
+    s = res.summary()
+    rot, dist = pose_difference(res.calibration.C_H_G, w.C_H_G)
+    assert dist < 0.1 and rot < 0.1
+    assert np.linalg.norm(res.calibration.C_H_W[:3, 3] - w.C_H_W[:3, 3]) == pytest.approx(cell.plate.pitch, abs=0.1)
     assert s["C_H_W_known"] is False
     assert res.calibration.residuals["plate_origin"] == "ambiguous"
-    assert any("C_H_W is not known" in m for m in s["warnings"])
+    assert any("C_H_W is not known" in m and "0-6 up to 1-7" in m for m in s["warnings"])
     path = tmp_path / "shadow.png"
     cv2.imwrite(str(path), pic.image)
     code = main(["calibrate", "--image", str(path), "--out", str(tmp_path / "cal.yaml"), "--json"])
@@ -120,6 +136,16 @@ def test_calibration_says_when_the_plate_pose_is_not_known(cell, tmp_path, capsy
     assert "warning: the plate's origin is not pinned" in err
     doc = json.loads(out)
     assert doc["C_H_W_known"] is False and doc["warnings"]
+
+
+def test_a_fingertip_corner_lost_in_a_shadow_is_no_silent_result(cell):
+    """A corner mismeasured in a shadow's edge bends the fingertip rectangle: the gripper is then off by
+    tenths of a millimetre (measured 0.34 mm, 0.54 deg), and the PCC residual says so (measured 25 times the
+    picture's noise); a picture whose corners hold gives no warning."""
+    w = _world(cell)
+    res = calibrate_offline(render(w, seed=1, lamp=DIM_LAMP).image, cell)
+    rot, dist = pose_difference(res.calibration.C_H_G, w.C_H_G)
+    assert dist < 0.05 or any("PCC residual" in m for m in res.warnings)
 
 
 def test_a_pcc_residual_far_above_the_pictures_noise_is_a_warning(cell):
