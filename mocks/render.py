@@ -24,6 +24,7 @@ from selfview.geometry import rot_x, rot_z, trans, transform_points
 
 __all__ = [
     "Backdrop",
+    "Lamp",
     "RenderResult",
     "render",
     "disc_image_centroids",
@@ -56,6 +57,8 @@ _TABLE_X0, _TABLE_Y0, _TABLE_SIZE, _TABLE_RES = -100.0, -450.0, 900.0, 0.5
 _EDGE_STEP_PX = 0.25
 _EDGE_HALF_PX = 0.13
 _CHUNK = 1 << 18
+#: Shadows: the lamp's light is traced at every this many pixels, then in full near a shadow.
+_SHADOW_STEP = 4
 
 # Surface labels; finger faces follow from _FINGER0 + 6 * finger + face (faces: -x, +x, -y, +y, -z, +z).
 _ROOM, _TABLE, _FOAM_TOP, _FOAM_SIDE, _PAPER, _INK, _PRINT, _BOARD_SIDE, _FINGER0 = range(9)
@@ -112,6 +115,52 @@ class Backdrop:
         if sigma > 0.05:
             tex = cv2.GaussianBlur(tex, (0, 0), sigma, borderType=cv2.BORDER_REFLECT_101)
         return tex
+
+
+@dataclass(frozen=True)
+class Lamp:
+    """A lamp that casts shadows: the fingers' own, and those of ``occluders`` (a lamp's arm, a cable).
+
+    ``position_W`` (3,) the lamp's centre in the plate's frame W [mm] (z into the plate: a lamp on the
+    camera's side has z < 0); ``radius_mm`` the radius of its round face, turned to W's origin (the
+    penumbra's width grows with it); ``ambient`` the share of its light a fully shadowed surface keeps
+    (the room's light); ``occluders`` boxes ((lo, hi), ...) in W [mm] besides the fingers; ``samples``
+    points on the face traced per pixel (the penumbra's smoothness). The plate, its foam and the table
+    take the shadows; the fingers keep their ``LIGHT_G`` shading.
+    """
+
+    position_W: tuple = (-150.0, 0.0, -250.0)
+    radius_mm: float = 15.0
+    ambient: float = 0.45
+    occluders: tuple = ()
+    samples: int = 16
+
+    def check(self) -> None:
+        pos = np.asarray(self.position_W, float)
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)) or pos[2] >= 0:
+            raise ConfigError(f"lamp position_W: expected (x, y, z) mm with z < 0 (the camera's side of the plate), got {self.position_W!r}")
+        for name, lo, hi in (("radius_mm", 0.0, 500.0), ("ambient", 0.0, 1.0)):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and lo <= v <= hi):
+                raise ConfigError(f"lamp {name}: expected {lo:g}..{hi:g}, got {v!r}")
+        if isinstance(self.samples, bool) or not isinstance(self.samples, (int, np.integer)) or not 1 <= self.samples <= 256:
+            raise ConfigError(f"lamp samples: expected a whole number 1..256, got {self.samples!r}")
+        for box in self.occluders:
+            lo, hi = (np.asarray(b, float) for b in box)
+            if lo.shape != (3,) or hi.shape != (3,) or not np.all(lo < hi):
+                raise ConfigError(f"lamp occluder: expected ((x0, y0, z0), (x1, y1, z1)) mm with x0 < x1 etc., got {box!r}")
+
+    def points_W(self) -> np.ndarray:
+        """(samples, 3) points on the lamp's face [mm, W]: a Fibonacci lattice on the disc facing W's origin."""
+        c = np.asarray(self.position_W, float)
+        n = -c / np.linalg.norm(c)
+        a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        a /= np.linalg.norm(a)
+        b = np.cross(n, a)
+        k = np.arange(self.samples) + 0.5
+        r = self.radius_mm * np.sqrt(k / self.samples)
+        t = k * np.pi * (3.0 - np.sqrt(5.0))
+        return c + (r * np.cos(t))[:, None] * a + (r * np.sin(t))[:, None] * b
 
 
 @dataclass
@@ -194,6 +243,22 @@ class _Box:
                 if float(np.dot(n, o)) > c:
                     t_far = np.where(dn == 0, -np.inf, t_far)
         return np.where((t_near <= t_far) & (t_near > 0), t_near, np.inf), face
+
+    def blocks(self, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Whether the box meets the segments from the points ``p`` (N, 3) to ``q`` (3,) of C [mm],
+        ends excluded (a surface does not shadow itself); the chamfers are ignored."""
+        o = (p - self.t) @ self.R  # in P
+        d = (q - self.t) @ self.R - o
+        t_near = np.full(len(p), 1e-6)
+        t_far = np.full(len(p), 1.0 - 1e-6)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for k in range(3):
+                dk = np.where(d[:, k] == 0.0, 1e-30, d[:, k])
+                t1 = (self.lo[k] - o[:, k]) / dk
+                t2 = (self.hi[k] - o[:, k]) / dk
+                t_near = np.maximum(t_near, np.minimum(t1, t2))
+                t_far = np.minimum(t_far, np.maximum(t1, t2))
+        return t_near <= t_far
 
     def visible_faces(self) -> np.ndarray:
         """(6,) bool: the faces that turn towards the camera."""
@@ -682,6 +747,41 @@ def _shade_edge_pixels(scene: _Scene, value, label, x, y, m: int, n: int) -> Non
             value[iv[j], iu[j]] = vals.reshape(du.shape).mean(axis=1)
 
 
+def _lamp_light(scene: _Scene, lamp: Lamp, x: np.ndarray, y: np.ndarray, label: np.ndarray) -> np.ndarray:
+    """The lamp's light factor (Hm, Wm) at the pixel centres: 1 lit, ``lamp.ambient`` in full shadow,
+    between in the penumbra (the share of the lamp's sample points each surface point sees).
+
+    Traced first at every ``_SHADOW_STEP``-th pixel, then at every pixel near a coarse one in some shadow
+    (a shadow narrower than that step can be missed: the fingers' are tens of pixels wide)."""
+    factor = np.ones(label.shape)
+    lit = (label != _ROOM) & (label < _FINGER0)
+    boxes = list(scene.fingers) + [_Box(scene.C_H_W, lo, hi, [_BOARD_SIDE] * 6) for lo, hi in lamp.occluders]
+    lamp_C = transform_points(scene.C_H_W, lamp.points_W())
+
+    def light(sel):
+        xs, ys = x[sel].astype(float), y[sel].astype(float)
+        t, _ = scene.trace(xs, ys)
+        p = np.column_stack([xs * t, ys * t, t])
+        seen = np.zeros(len(p))
+        for q in lamp_C:
+            blocked = np.zeros(len(p), bool)
+            for box in boxes:
+                blocked |= box.blocks(p, q)
+            seen += ~blocked
+        return lamp.ambient + (1.0 - lamp.ambient) * seen / lamp.samples
+
+    k = _SHADOW_STEP
+    coarse = np.zeros(label.shape, bool)
+    coarse[::k, ::k] = True
+    coarse &= lit
+    factor[coarse] = light(coarse)
+    shaded = (factor < 1.0).astype(np.uint8)
+    near = cv2.dilate(shaded, np.ones((2 * k + 1, 2 * k + 1), np.uint8)).astype(bool) & lit & ~coarse
+    if near.any():
+        factor[near] = light(near)
+    return factor
+
+
 def _check_args(world, blur_px, gain, supersample, image_spec) -> ImageSpec:
     if not isinstance(world, SimWorld):
         raise ConfigError(f"render: expected a SimWorld, got {type(world).__name__}")
@@ -701,7 +801,7 @@ def _check_args(world, blur_px, gain, supersample, image_spec) -> ImageSpec:
 
 def render(world: SimWorld, *, seed: int | None = 0, noise: bool = True, blur_px: float | None = None,
            gain: float = 1.0, supersample: int = 4, image_spec: ImageSpec | None = None,
-           backdrop: Backdrop | None = None) -> RenderResult:
+           backdrop: Backdrop | None = None, lamp: Lamp | None = None) -> RenderResult:
     """Render the wrist camera's (H, W) uint8 picture of ``world`` now, with its ground truth.
 
     Pixel (u, v) covers u-0.5..u+0.5, v-0.5..v+0.5. A pixel that no edge crosses sees one surface and
@@ -718,7 +818,8 @@ def render(world: SimWorld, *, seed: int | None = 0, noise: bool = True, blur_px
     ``numpy.random.default_rng(seed).normal(0, noise_gray, (H, W))``; ``supersample`` n, 4..16: where an
     edge crosses a pixel at least (2 n)^2 rays (89 for n = 4), on the textured table an n x n grid;
     ``image_spec`` replaces the cell's ``simulation.image``; ``backdrop`` (a ``Backdrop``) lays a picture as
-    the table behind the fingertips instead of the plate, its foam and the seeded table. Raises
+    the table behind the fingertips instead of the plate, its foam and the seeded table; ``lamp`` (a
+    ``Lamp``) casts the fingers' (and its occluders') shadows on the plate, its foam and the table. Raises
     ``ConfigError`` for a bad argument.
     """
     spec = _check_args(world, blur_px, gain, supersample, image_spec)
@@ -726,6 +827,10 @@ def render(world: SimWorld, *, seed: int | None = 0, noise: bool = True, blur_px
         if not isinstance(backdrop, Backdrop):
             raise ConfigError(f"render backdrop: expected a selfview.mocks.render.Backdrop, got {type(backdrop).__name__}")
         backdrop.check()
+    if lamp is not None:
+        if not isinstance(lamp, Lamp):
+            raise ConfigError(f"render lamp: expected a selfview.mocks.render.Lamp, got {type(lamp).__name__}")
+        lamp.check()
     n = int(supersample)
     sigma = float(spec.blur_px if blur_px is None else blur_px)
     scene = _Scene(world, spec, backdrop)
@@ -745,6 +850,8 @@ def render(world: SimWorld, *, seed: int | None = 0, noise: bool = True, blur_px
 
     # 3. pixels an edge crosses, or whose centre sees another surface than a neighbour's
     _shade_edge_pixels(scene, value, label, x.reshape(Hm, Wm), y.reshape(Hm, Wm), m, n)
+    if lamp is not None:
+        value = value * _lamp_light(scene, lamp, x.reshape(Hm, Wm), y.reshape(Hm, Wm), label)
 
     # 4. optics and sensor
     if sigma > 0:
@@ -763,6 +870,10 @@ def render(world: SimWorld, *, seed: int | None = 0, noise: bool = True, blur_px
         "noise_seed": seed, "noise": bool(noise), "noise_gray": float(spec.noise_gray), "blur_px": sigma,
         "gain": float(gain), "supersample": n, "width": W, "height": H,
     }
+    if lamp is not None:
+        truth["render"]["lamp"] = {"position_W": [float(v) for v in lamp.position_W], "radius_mm": float(lamp.radius_mm),
+                                   "ambient": float(lamp.ambient), "samples": int(lamp.samples),
+                                   "occluders": [[[float(v) for v in b] for b in box] for box in lamp.occluders]}
     if not scene.imperfections.ideal:
         truth["render"]["imperfections"] = {**scene.imperfections.as_dict(), **effects}
     return RenderResult(image, truth, disc_uv, disc_visible, corner_uv, corner_visible)

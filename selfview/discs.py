@@ -24,6 +24,11 @@ __all__ = ["DiscDetections", "detect_discs", "correct_disc_bias", "disc_image_bi
 DARK_FRACTION = 0.3
 #: Ring test: a ring pixel deviating from the fitted paper plane by more than this (relative) is not paper.
 RING_TOLERANCE = 0.12
+#: Ring test: a ring whose paper departs from one plane by more than this rms (relative) lies across a
+#: shadow's edge (a picture's noise gives 0.01-0.02).
+SLOPE_RMS = 0.025
+#: ... or when a quadratic leaves less than this share of the plane's mean square residual there.
+CURVED_SHARE = 0.6
 #: Size test: a disc's area over its lattice cell's, relative to the plate's pi/4 (d/pitch)^2, lies in this range.
 DISC_SHARE = (0.5, 2.0)
 #: Lattice test: a disc off the midpoint of its two neighbours on a line by more than this (of a step).
@@ -39,7 +44,9 @@ class DiscDetections:
     origin at the grid centre; ``area_px`` (N,) pixels above the darkness threshold; ``n_blobs`` how many
     candidate blobs the picture held; ``rejected`` how many of them were dropped, by reason;
     ``index_basis`` how the grid index was anchored per axis ('all seen', 'low end seen',
-    'high end seen', 'centred').
+    'high end seen', 'centred'); ``ambiguous`` per axis whose seen lines nothing places on the plate
+    ('centred': neither end of the grid seen) the sentence naming the indices they may take. While it is
+    not empty the grid's origin, and so ``p_W`` and any plate pose ``C_H_W`` from them, are a guess.
     """
 
     uv: np.ndarray
@@ -49,6 +56,12 @@ class DiscDetections:
     n_blobs: int
     rejected: dict[str, int]
     index_basis: dict[str, str] = field(default_factory=dict)
+    ambiguous: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def origin_pinned(self) -> bool:
+        """Whether the picture fixes the grid's origin (every axis's index anchored by what is seen)."""
+        return not self.ambiguous
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -132,7 +145,9 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     beside another blob, belong neither to the support nor to the ring: near neighbours shrink the
     support instead of refusing the disc, so large discs and labelled ones are still measured; a blob
     larger than a mark (``small[label]`` False: a disc, a finger) within 2 px of it is "crowded". The
-    support and ring are cut at the picture's border; the blob itself must keep clear of it."""
+    support and ring are cut at the picture's border; the blob itself must keep clear of it. Where the
+    ring's paper is no plane (a shadow's edge, sharp or soft, across or beside the disc), the paper's
+    level is a profile along one direction fitted to the ring (``_edge_level``) instead."""
     x, y, w, h = bbox
     H, W = work.shape
     d = 2 * np.sqrt(area / np.pi)
@@ -165,6 +180,13 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     z = crop[rv, ru]
     coef = np.linalg.solve(A.T @ A, A.T @ z)
     off = np.abs(z - A @ coef) > RING_TOLERANCE * coef[0]
+    if coef[0] > 0 and (np.mean(off) > 0.01 or _curved(A, z, coef)):
+        # the ring is not one plane: a shadow's edge across the disc (sharp or soft), where the paper's
+        # level changes along one direction only; a mark in the ring does not fit that
+        level = _edge_level(ru - cu, rv - cv_, z, np.arctan2(coef[2], coef[1]))
+        if level is not None:
+            sv, su = np.nonzero(support)
+            return _weighted_centre(crop[sv, su], level(su - cu, sv - cv_), su, sv, x0, y0, area)
     if coef[0] > 0 and 0.01 < np.mean(off) < 0.3:
         # something not paper in the ring (a mark, the sheet's edge): refit on the paper, and keep the
         # disc only if that thing stays clear of the disc's edge, leaving it out of the support
@@ -185,11 +207,59 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
         return "occluded", None
     sv, su = np.nonzero(support)
     plane = coef[0] + coef[1] * (su - cu) + coef[2] * (sv - cv_)
-    wgt = 1.0 - crop[sv, su] / plane
+    return _weighted_centre(crop[sv, su], plane, su, sv, x0, y0, area)
+
+
+def _weighted_centre(grey, level, su, sv, x0, y0, area) -> tuple[str | None, np.ndarray | None]:
+    """The contrast-weighted centroid (weights ``1 - grey / level`` of the support's pixels at crop
+    coordinates ``su``, ``sv``; the crop's corner ``x0``, ``y0``), or "occluded" when too little ink is left."""
+    wgt = 1.0 - grey / level
     s = wgt.sum()
     if s <= 0.25 * area * DARK_FRACTION:
         return "occluded", None
     return None, np.array([(wgt * su).sum() / s + x0, (wgt * sv).sum() / s + y0])
+
+
+def _curved(A, z, coef) -> bool:
+    """Whether the ring's paper (``z`` at the rows (1, x, y) of ``A``) departs from the plane ``coef``:
+    by more than ``SLOPE_RMS`` rms, or a quadratic fitting it much better (the knee of a soft shadow)."""
+    mse = float(np.mean((z - A @ coef) ** 2))
+    if mse > (SLOPE_RMS * coef[0]) ** 2:
+        return True
+    Q = np.column_stack([A, A[:, 1] ** 2, A[:, 1] * A[:, 2], A[:, 2] ** 2])
+    try:
+        q = np.linalg.solve(Q.T @ Q, Q.T @ z)
+    except np.linalg.LinAlgError:  # a ring too small to tell
+        return False
+    return float(np.mean((z - Q @ q) ** 2)) < CURVED_SHARE * mse
+
+
+def _edge_level(x, y, z, angle):
+    """The paper's level across a disc as a function of one direction only (a straight shadow edge, sharp
+    or soft, or an even slope), fitted to the ring's pixels at (``x``, ``y``) [px from the crop's centre]
+    of grey ``z``: a profile along the normal (1 px bins, linear between), the normal the direction that
+    fits best (every 15 deg from ``angle``, the ring's slope, then refined to 1 deg). Returns the level as
+    a function of (x, y), or None when the ring is not paper under such a light (a mark, an occluder)."""
+
+    def fit(a):
+        c, s = np.cos(a), np.sin(a)
+        t = x * c + y * s
+        b = np.floor(t - t.min()).astype(int)
+        cnt = np.bincount(b)
+        have = cnt > 0
+        prof = np.bincount(b, z)[have] / cnt[have]
+        at = (np.arange(len(cnt)) + 0.5 + t.min())[have]
+        lev = np.interp(t, at, prof)
+        return float(np.mean((z - lev) ** 2)), float(np.mean(np.abs(z - lev) > RING_TOLERANCE * lev)), c, s, at, prof
+
+    best = min((fit(angle + np.radians(d)) for d in range(0, 180, 15)), key=lambda r: r[0])
+    for step in (8.0, 4.0, 2.0, 1.0):
+        a0 = np.arctan2(best[3], best[2])
+        best = min([best, fit(a0 - np.radians(step)), fit(a0 + np.radians(step))], key=lambda r: r[0])
+    _, bad, c, s, at, prof = best
+    if bad > 0.01:
+        return None
+    return lambda u, v: np.interp(u * c + v * s, at, prof)
 
 
 # --- lattice --------------------------------------------------------------------------------------
@@ -406,8 +476,10 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     Indices are propagated from a seed disc along the lattice's neighbour steps (tolerating missing
     discs). When all columns (rows) are seen, W's origin is the grid centre exactly; otherwise the side
     where the grid ends is found by blank paper one pitch beyond the last column (row), and failing that
-    the seen columns (rows) are centred (``DiscDetections.index_basis`` says which). The hand/eye result
-    does not depend on that choice (it cancels in ``C_H_G = C_H_W W_H_G``).
+    the seen columns (rows) are centred (``DiscDetections.index_basis`` says which), and
+    ``DiscDetections.ambiguous`` names the indices they may take: the plate's origin, and ``C_H_W``, are
+    then not known. The hand/eye result does not depend on that choice (it cancels in
+    ``C_H_G = C_H_W W_H_G``).
     """
     img = as_gray(image, camera)
     work = img if plate.polarity == "dark_on_light" else (float(img.max()) - img)
@@ -487,7 +559,7 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     ids = np.array(sorted(index))
     cr = _orient(P[ids], {n_: index[k] for n_, k in enumerate(ids)}, plate)
     r_px = float(np.sqrt(np.median(areas) / np.pi))
-    basis = {}
+    basis, ambiguous = {}, {}
     for axis, name, count in ((0, "cols", plate.cols), (1, "rows", plate.rows)):
         ext = cr[:, axis].max() + 1
         if ext == count:
@@ -498,8 +570,15 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
             cr[:, axis] += count - ext
             basis[name] = "high end seen"
         else:
-            cr[:, axis] += (count - ext) // 2
+            shift = (count - ext) // 2
+            cr[:, axis] += shift
             basis[name] = "centred"
+            word = "columns" if name == "cols" else "rows"
+            ambiguous[name] = (
+                f"{ext} of the plate's {count} {word} seen and no end of the grid (one pitch beyond the outer "
+                f"{word} on either side lies outside the picture or is not blank paper): they may be {word} "
+                f"{_span(0, ext)} up to {_span(count - ext, ext)}, taken as {_span(shift, ext)}"
+            )
     order = np.lexsort((cr[:, 0], cr[:, 1]))
     cr = cr[order]
     ids = ids[order]
@@ -513,8 +592,12 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     )
     return DiscDetections(
         uv=uv[ids], rc=rc, p_W=p_W, area_px=areas[ids].astype(float), n_blobs=n_blobs,
-        rejected=rejected, index_basis=basis,
+        rejected=rejected, index_basis=basis, ambiguous=ambiguous,
     )
+
+
+def _span(first: int, n: int) -> str:
+    return f"{first}-{first + n - 1}"
 
 
 # --- perspective bias -----------------------------------------------------------------------------

@@ -30,11 +30,17 @@ MIN_CONTRAST_GRAY = 20.0
 #: How far (deg) the plate's normal may be from the mount guess's approach axis before the picture
 #: cannot show the gripper parked on the plate.
 MAX_PLANE_DISAGREEMENT_DEG = 25.0
+#: A PCC residual more than this many times what the picture's own noise gives (the fingertip edges'
+#: scatter about their fitted lines, in mm at the TCP's depth) is a warning: a corner measured off its
+#: place (on a printed disc, a mark, a shadow's edge) bends the fingertip rectangle. Measured: at most 3.1
+#: times on the realistic simulated cell (6 seeds), 2.5 times out of focus.
+PCC_NOISE_FACTOR = 6.0
 
 
 @dataclass
 class OfflineResult:
-    """Everything one off-line calibration found; ``calibration`` is what gets saved."""
+    """Everything one off-line calibration found; ``calibration`` is what gets saved; ``warnings`` what the
+    picture could not tell (shown by the command line, kept in the calibration's residuals)."""
 
     calibration: Calibration
     tsai: TsaiResult
@@ -44,6 +50,7 @@ class OfflineResult:
     pcc: PCCResult
     dims: dict | None
     timings_ms: dict = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
 
     def summary(self) -> dict:
         """The figures a person or a script reads (plain types; units in the key names)."""
@@ -53,6 +60,7 @@ class OfflineResult:
             "kappa": cal.camera.kappa,
             "principal_point": [cal.camera.cx, cal.camera.cy],
             "C_H_W": cal.C_H_W.tolist(),
+            "C_H_W_known": self.discs.origin_pinned,
             "C_H_G": cal.C_H_G.tolist(),
             "points_G": {
                 nm: [float(v) for v in p] for nm, p in zip(POINT_NAMES, cal.points_G[cal.state])
@@ -64,6 +72,7 @@ class OfflineResult:
             "pcc_rms_mm": float(self.pcc.rms_mm),
             "state": cal.state,
             "timings_ms": {k: round(v, 2) for k, v in self.timings_ms.items()},
+            "warnings": list(self.warnings),
         }
 
 
@@ -213,6 +222,8 @@ def calibrate_offline(
     timings["pcc"] = (time.perf_counter() - t) * 1e3
     timings["total"] = (time.perf_counter() - t0) * 1e3
 
+    noise_mm = _picture_noise_mm(ft, found, camera, pcc.C_H_G)
+    warnings = _warnings(det, pcc, noise_mm)
     sha = image_sha256 or hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest()
     cal = Calibration(
         camera=camera,
@@ -229,8 +240,11 @@ def calibrate_offline(
             "corner_edge_rms_px": {nm: float(ft.edge_rms_px[i]) for i, nm in enumerate(POINT_NAMES) if found[i]},
             "pcc_rms_mm": float(pcc.rms_mm),
             "pcc_q_norm": float(pcc.q_norm),
+            "pcc_noise_mm": float(noise_mm),
             "points_from": "picture" if dims is not None else "cell",
             "corners_measured_by": measured_by,
+            "plate_origin": "pinned" if det.origin_pinned else "ambiguous",
+            **({"warnings": warnings} if warnings else {}),
             **({"camera_file": dict(camera_file)} if camera_file else {}),
         },
         image_sha256=sha,
@@ -245,4 +259,29 @@ def calibrate_offline(
         pcc=pcc,
         dims=dims,
         timings_ms=timings,
+        warnings=warnings,
     )
+
+
+def _picture_noise_mm(ft: FingertipResult, found: np.ndarray, camera: CameraModel, C_H_G: np.ndarray) -> float:
+    """What the picture's own noise makes of a corner [mm]: the median scatter of the found corners' edge
+    samples about their lines [px] (at least 0.02 px) at the TCP's depth."""
+    rms_px = float(np.median(np.asarray(ft.edge_rms_px, float)[found])) if found.any() else np.nan
+    rms_px = max(rms_px if np.isfinite(rms_px) else 0.0, 0.02)
+    return rms_px * float(C_H_G[2, 3]) / float(camera.f)
+
+
+def _warnings(det: DiscDetections, pcc: PCCResult, noise_mm: float) -> list[str]:
+    """What the picture could not tell: the plate's origin not pinned (``C_H_W`` is then a guess up to whole
+    pitches; ``C_H_G`` does not depend on it), a PCC residual far above the picture's noise ``noise_mm``."""
+    out = []
+    if not det.origin_pinned:
+        out.append("the plate's origin is not pinned by the picture, so C_H_W is not known (it may be off by whole "
+                    "pitches; C_H_G does not depend on it): " + "; ".join(det.ambiguous.values()))
+    if pcc.rms_mm > PCC_NOISE_FACTOR * noise_mm:
+        out.append(
+            f"the PCC residual {pcc.rms_mm:.3f} mm is {pcc.rms_mm / noise_mm:.0f} times what the picture's noise "
+            f"gives ({noise_mm:.4f} mm): a fingertip corner is measured off its place (on a printed disc, a mark "
+            "or a shadow's edge?), or the gripper points used are not this gripper's; park the gripper elsewhere "
+            "on the plate and calibrate again")
+    return out

@@ -41,6 +41,9 @@ MIN_GOOD_FRACTION = 0.5  # of the samples (and of each finger's), that support t
 MAX_RMS_PX = 0.6  # of the supporting samples' distances
 MAX_TCP_SD_MM = 0.02  # the fitted pose's TCP standard deviation (any camera axis)
 BORDER_PX = 3.0
+#: A face's samples spreading over more than this share of their level (and FACE_SPREAD_GREY), interquartile,
+#: are not one face: a rendered face spreads by 2 grey levels, one half off the face by 20-130.
+FACE_SPREAD, FACE_SPREAD_GREY = 0.15, 8.0
 MIN_FINGER_SAMPLES = 25  # a finger with fewer samples in the picture is not judged on its own
 
 
@@ -615,7 +618,10 @@ def _points_found(camera: CameraModel, H, p_G6, box, points):
 
 def learn_appearance(image, camera: CameraModel, C_H_G, gripper: GripperSpec, gap_mm: float) -> Appearance:
     """The grey level of every visible finger face at ``C_H_G``: the median over its part within the
-    picture, 2 px inside its edges (use a pose that fits, e.g. where the fingertips were found)."""
+    picture, 2 px inside its edges (use a pose that fits, e.g. where the fingertips were found). A face
+    whose samples there spread over more than ``FACE_SPREAD`` of their level (interquartile) is not one
+    face there (the pose is off by more than the face is wide, as for a finger cut by the picture's
+    border to a sliver): it is left unlearnt, and the fit matches its edges by contrast alone."""
     img = as_gray(image, camera)
     boxes = gripper.finger_boxes_G(gap_mm)
     cam_G = inv_H(np.asarray(C_H_G, float))[:3, 3]
@@ -648,7 +654,10 @@ def learn_appearance(image, camera: CameraModel, C_H_G, gripper: GripperSpec, ga
                     continue
                 # the face's width in the picture must allow 2 px inside its edges
                 vals = _remap(img.astype(np.float32), uv[inside, 0].astype(np.float32), uv[inside, 1].astype(np.float32))
-                app.levels[(f, ax, side)] = float(np.median(vals))
+                q1, med, q3 = np.percentile(vals, [25, 50, 75])
+                if q3 - q1 > max(FACE_SPREAD_GREY, FACE_SPREAD * med):
+                    continue  # not one face there (a pose off by more than the face is wide): left unlearnt
+                app.levels[(f, ax, side)] = float(med)
     return app
 
 

@@ -129,7 +129,7 @@ def _run(args, view) -> int:
     s["camera_file"] = camera_file
     s["camera_file_fit"] = fit
     s["pictures"] = dict(res.calibration.pictures)
-    warnings = []
+    warnings = list(res.warnings)  # what the picture cannot tell (the plate's origin)
     if fit and not fit["fits"]:
         warnings.append(f"{fit['refusal']}; written because of --force (measure this camera with "
                         "'selfview intrinsics')")

@@ -1,0 +1,128 @@
+"""Study: our disc detector beside ``cv2.findCirclesGrid`` (and its clustering mode) on real photographs.
+
+The pictures are ViSP's photographs of a printed 6 x 6 disc grid (``tests/data/visp-circles``), as taken
+and changed the ways real pictures differ: turned in the picture by 15..80 deg (on a canvas that holds the
+whole photograph, the new corners the paper's grey), a lamp's shadow across the grid (a soft-edged band
+at 45 % light), uneven light (a 2:1 ramp). The three detectors run interleaved on each picture, ``--repeat``
+times, so that the machine's load falls on all of them alike. Prints one JSON object: per picture the
+discs each found (0 where OpenCV returns no grid), the median time of each, our centres against
+OpenCV's where both found the grid, and the medians over the set.
+
+    python bench/discs_vs_opencv.py [--repeat 5] [--quick]
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+from selfview.cell import load_cell  # noqa: E402
+from selfview.discs import detect_discs  # noqa: E402
+from selfview.errors import ImageError  # noqa: E402
+
+if str(Path(__file__).resolve().parents[1]) not in sys.path:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the picture changes live beside the tests
+from tests.photo_variants import ramp, shadowed, turned  # noqa: E402
+
+SET = Path(__file__).resolve().parents[1] / "tests" / "data" / "visp-circles"
+TURNS_DEG = (15, 30, 55, 80)
+
+
+def pictures(quick: bool):
+    names = sorted(p.name for p in SET.glob("*.*g"))
+    if quick:
+        names = names[:2] + names[-2:]
+    for name in names:
+        img = cv2.imread(str(SET / name), cv2.IMREAD_GRAYSCALE)
+        plate = load_cell(SET / ("cell-640x480.yaml" if name.endswith(".png") else "cell.yaml")).plate
+        yield name, img, plate
+        for d in (TURNS_DEG[2:3] if quick else TURNS_DEG):
+            yield f"{name} turned {d}", turned(img, d), plate
+        yield f"{name} shadow", shadowed(img), plate
+        if not quick:
+            yield f"{name} ramp", ramp(img), plate
+
+
+def run_ours(img, plate):
+    try:
+        det = detect_discs(img, plate)
+    except ImageError:
+        return None
+    return det.uv
+
+
+def run_opencv(img, plate, clustering: bool):
+    flags = cv2.CALIB_CB_SYMMETRIC_GRID | (cv2.CALIB_CB_CLUSTERING if clustering else 0)
+    ok, c = cv2.findCirclesGrid(img, (plate.cols, plate.rows), flags=flags)
+    return c.reshape(-1, 2).astype(float) if ok else None
+
+
+def study(repeat: int, quick: bool) -> dict:
+    runners = {
+        "ours": run_ours,
+        "findCirclesGrid": lambda i, p: run_opencv(i, p, False),
+        "findCirclesGrid_clustering": lambda i, p: run_opencv(i, p, True),
+    }
+    rows = []
+    for name, img, plate in pictures(quick):
+        times = {k: [] for k in runners}
+        found = {}
+        for _ in range(repeat):
+            for k, fn in runners.items():  # interleaved: the load falls on all three alike
+                t = time.perf_counter()
+                found[k] = fn(img, plate)
+                times[k].append((time.perf_counter() - t) * 1e3)
+        row = {"picture": name, "discs": {k: 0 if v is None else len(v) for k, v in found.items()},
+               "ms": {k: round(float(np.median(v)), 2) for k, v in times.items()}}
+        ours = found["ours"]
+        for k in ("findCirclesGrid", "findCirclesGrid_clustering"):
+            ref = found[k]
+            if ours is not None and ref is not None:
+                d = np.linalg.norm(ref[:, None, :] - ours[None, :, :], axis=2).min(axis=1)
+                both = d[d <= 3.0]  # the discs both found (OpenCV's others: ours has none within 3 px)
+                row[f"centres_vs_{k}_px"] = {"median": round(float(np.median(both)), 3), "max": round(float(both.max()), 3),
+                                             "only_opencv": int(np.sum(d > 3.0))}
+        rows.append(row)
+    ratio = [r["ms"]["ours"] / r["ms"]["findCirclesGrid"] for r in rows]
+    ratio_c = [r["ms"]["ours"] / r["ms"]["findCirclesGrid_clustering"] for r in rows]
+    full = 36
+    summary = {
+        "pictures": len(rows),
+        "share_of_discs_found": {k: round(sum(r["discs"][k] for r in rows) / (full * len(rows)), 3) for k in runners},
+        "pictures_where_ours_finds_fewer_than_the_better_opencv": [
+            r["picture"] for r in rows
+            if r["discs"]["ours"] < max(r["discs"]["findCirclesGrid"], r["discs"]["findCirclesGrid_clustering"])],
+        "median_time_ratio_ours_to_findCirclesGrid": round(float(np.median(ratio)), 2),
+        "median_time_ratio_ours_to_clustering": round(float(np.median(ratio_c)), 2),
+        "max_centre_difference_px": max((r[k]["max"] for r in rows for k in r if k.startswith("centres_vs")), default=None),
+        "median_centre_difference_px": round(float(np.median(
+            [r[k]["median"] for r in rows for k in r if k.startswith("centres_vs")] or [np.nan])), 3),
+    }
+    return {"repeat": repeat, "quick": quick, "opencv": cv2.__version__, "summary": summary, "pictures": rows}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=5, help="runs of each detector per picture (interleaved)")
+    ap.add_argument("--quick", action="store_true", help="4 photographs, one turn each, no ramp")
+    args = ap.parse_args(argv)
+    if args.repeat < 1:
+        print("discs_vs_opencv: --repeat must be at least 1", file=sys.stderr)
+        return 2
+    print(json.dumps(study(args.repeat, args.quick), indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
