@@ -111,12 +111,13 @@ def annotate_offline(image, result, path: Path, scale: int = 2) -> Path:
 
 
 def offline_residuals(result) -> list[dict]:
-    """Each disc's residual: grid row and column, model minus detected centre [px], and its size on the
+    """Each disc's residual: grid row and column, model minus the bias-corrected centre the fit used [px]
+    (``OfflineResult.disc_residuals_px``: their RMS is the calibration's ``rms_px``), and its size on the
     plate [mm] (the pixels times the disc's depth over f)."""
     cal = result.calibration
     det = result.discs
     pC = transform_points(cal.C_H_W, det.p_W)
-    d = cal.camera.project(pC) - det.uv
+    d = result.disc_residuals_px()
     px = np.hypot(d[:, 0], d[:, 1])
     return [{"disc": f"{int(r)},{int(c)}", "du [px]": float(a), "dv [px]": float(b), "|r| [px]": float(n),
              "|r| [mm]": float(n * z / cal.camera.f)}
@@ -125,16 +126,18 @@ def offline_residuals(result) -> list[dict]:
 
 def draw_offline(image, result, scale: int = 2, vector_scale: float = 50.0):
     """The picture (``scale`` times bigger, BGR) with what the off-line calibration used and found: the
-    detected discs with their grid indices (green), the model's reprojection of each disc centre (red cross)
-    and its residual vector ``vector_scale`` times longer (orange), the fingertip corners (yellow circles),
-    the gripper rectangle and the TCP with G's x and y axes (cyan/magenta)."""
+    discs' bias-corrected centres the fit used, with their grid indices (green), the model's reprojection
+    of each disc centre (red cross) and its residual vector ``vector_scale`` times longer (orange, the
+    residuals of ``offline_residuals``), the fingertip corners (yellow circles), the gripper rectangle and
+    the TCP with G's x and y axes (cyan/magenta)."""
     import cv2
 
     cam = result.calibration.camera
     big = cv2.resize(_bgr(image), None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
     det = result.discs
-    model = cam.project(transform_points(result.calibration.C_H_W, det.p_W))
-    for (u, v), (r, c), m in zip(det.uv, det.rc, model):
+    used = np.asarray(result.disc_uv_corrected, float)
+    model = used + result.disc_residuals_px()
+    for (u, v), (r, c), m in zip(used, det.rc, model):
         cv2.circle(big, _pt((u, v), scale), 3 * scale, (0, 200, 0), 1, cv2.LINE_AA)
         cv2.drawMarker(big, _pt(m, scale), (0, 0, 255), cv2.MARKER_CROSS, 4 * scale, 1, cv2.LINE_AA)
         cv2.putText(big, f"{r},{c}", _pt((u + 4, v - 4), scale), cv2.FONT_HERSHEY_PLAIN, 0.6 * scale,
@@ -148,7 +151,13 @@ def draw_offline(image, result, scale: int = 2, vector_scale: float = 50.0):
            f"corners={len(s['corners_found'])}")
     cv2.putText(big, txt, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 3, cv2.LINE_AA)
     cv2.putText(big, txt, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 1, cv2.LINE_AA)
-    _label(big, f"orange: disc residuals x{vector_scale:g}", (10, 48), (0, 140, 255))
+    legend = [("green: disc centres the fit used (bias-corrected), row,col", (0, 200, 0)),
+              ("red: the model's projection of each disc centre", (0, 0, 255)),
+              (f"orange: disc residuals (model minus used centre) x{vector_scale:g}", (0, 140, 255)),
+              ("yellow: fingertip corners found", (0, 230, 230)),
+              ("cyan: gripper points and the TCP; magenta: G's x axis; blue: G's y axis", (255, 255, 0))]
+    for k, (text, colour) in enumerate(legend):
+        _label(big, text, (10, 48 + 20 * k), colour)
     return big
 
 

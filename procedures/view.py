@@ -216,11 +216,13 @@ def _plain(o):
 
 
 # --- what the commands show -------------------------------------------------------------------------
-def offline_state(view: LiveView, image, result, *, tcp_sigma_mm=None, rms_limit_px: float = 0.5) -> None:
-    """An off-line calibration on the page: the annotated frame, each disc's residual in px and in mm on the
-    plate, the figures, and a verdict (go when every fingertip corner was found and the residual is small)."""
+def offline_state(view: LiveView, image, assessed) -> None:
+    """An off-line calibration on the page (``assessed``: ``selfview.api.PictureCalibration``): the annotated
+    frame, each disc's residual in px and in mm on the plate (against the centres the fit used), the
+    figures with the TCP's sigma, and the calibration's verdict (``selfview.api.assess_offline``)."""
     from selfview.procedures.results import draw_offline, offline_residuals
 
+    result = assessed.offline
     view.frame(draw_offline(image, result))
     rows = offline_residuals(result)
     s = result.summary()
@@ -228,18 +230,10 @@ def offline_state(view: LiveView, image, result, *, tcp_sigma_mm=None, rms_limit
     numbers = {"f [px]": s["f"], "kappa [px^-2]": s["kappa"], "residual rms [px]": s["rms_px"],
                "residual max [px]": s["max_px"], "discs used": s["discs_used"],
                "corners found": ", ".join(s["corners_found"]), "PCC residual [mm]": s["pcc_rms_mm"],
-               "TCP x [mm]": H[0, 3], "TCP y [mm]": H[1, 3], "TCP z [mm]": H[2, 3]}
-    if tcp_sigma_mm is not None:
-        numbers["TCP 1-sigma x y z [mm]"] = " ".join(f"{v:.4f}" for v in tcp_sigma_mm)
+               "TCP x [mm]": H[0, 3], "TCP y [mm]": H[1, 3], "TCP z [mm]": H[2, 3],
+               "TCP 1-sigma x y z [mm]": " ".join(f"{v:.4f}" for v in assessed.tcp_sigma_mm)}
     view.update(numbers=numbers, residuals=rows)
-    missing = 6 - len(s["corners_found"])
-    if missing:
-        view.verdict(False, f"{missing} fingertip corner(s) not found: C_H_G rests on fewer points")
-    elif s["rms_px"] > rms_limit_px:
-        view.verdict(False, f"disc residual rms {s['rms_px']:.3f} px above {rms_limit_px} px: check focus and light")
-    else:
-        view.verdict(True, f"all 6 corners, {s['discs_used']} discs, residual rms {s['rms_px']:.3f} px "
-                           f"(max {s['max_px']:.3f} px)")
+    view.verdict(assessed.go, assessed.reason)
 
 
 def intrinsics_state(view: LiveView, res) -> None:

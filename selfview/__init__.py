@@ -38,6 +38,10 @@ from selfview.errors import (  # noqa: E402
 
 __all__ = [
     "__version__",
+    "PictureCalibration",
+    "TrackResult",
+    "calibrate_picture",
+    "track",
     "AlarmError",
     "CalibrationError",
     "CalibrationFileError",
@@ -49,3 +53,14 @@ __all__ = [
     "LimitError",
     "ProtocolError",
 ]
+
+_API = ("PictureCalibration", "TrackResult", "calibrate_picture", "track")
+
+
+def __getattr__(name):
+    """The one-call API (``selfview.api``), imported when first used: ``import selfview`` stays light."""
+    if name in _API:
+        from selfview import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'selfview' has no attribute {name!r}")

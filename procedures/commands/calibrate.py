@@ -75,10 +75,10 @@ def run(args) -> int:
 
 
 def _run(args, view) -> int:
+    from selfview.api import assess_offline
     from selfview.calfile import save_calibration
     from selfview.procedures.results import draw_offline, keep_pictures
     from selfview.errors import ConfigError
-    from selfview.intrinsics import camera_check, tcp_sigma
     from selfview.offline import calibrate_offline
     from selfview.procedures.runs import refuse_unfitting_camera
 
@@ -89,11 +89,16 @@ def _run(args, view) -> int:
     if cam_path:
         camera, camera_file, cov3 = _camera_file(cam_path, cell)
 
+    assessed = []
+
     def before_save(img, res):
+        fit = getattr(session, "camera_file_fit", None) if not args.image else refuse_unfitting_camera(
+            res, camera, cam_path, args.force)
+        assessed.append(assess_offline(res, cell, camera, cov3, cam_path, fit))  # records the sigma in the file
         if not args.no_pictures:
             res.calibration.pictures = keep_pictures(args.out, img, lambda im: draw_offline(im, res))
         if view:
-            offline_state(view, img, res, tcp_sigma_mm=tcp_sigma(res, cell, cov3)["tcp_sigma_mm"])
+            offline_state(view, img, assessed[-1])
 
     if args.image:
         if args.real or url:
@@ -104,8 +109,8 @@ def _run(args, view) -> int:
             view.frame(img)
         res = calibrate_offline(img, cell, state=args.state, mode=args.mode, points=args.points, image_sha256=sha,
                                 camera=camera, camera_file=camera_file)
-        fit = refuse_unfitting_camera(res, camera, cam_path, args.force)  # before anything is written
-        before_save(img, res)
+        session = None
+        before_save(img, res)  # refuses an unfitting camera file before anything is written
         kept = save_calibration(res.calibration, args.out)
         source = args.image
     else:
@@ -118,27 +123,16 @@ def _run(args, view) -> int:
         if res is None:  # dry run
             return 0
         kept = session.calibration_kept
-        fit = session.camera_file_fit
         source = "the cell's picture"
-    s = res.summary()
+    pc = assessed[-1]
+    s = pc.to_dict()
     s["out"] = str(args.out)
     s["previous_kept_as"] = str(kept) if kept else None
     s["camera_file"] = camera_file
-    s["camera_file_fit"] = fit
     s["pictures"] = dict(res.calibration.pictures)
-    warnings = []
-    if fit and not fit["fits"]:
-        warnings.append(f"{fit['refusal']}; written because of --force (measure this camera with "
-                        "'selfview intrinsics')")
-    chk = camera_check(res, cell, camera)
-    if chk.get("warning"):
-        w = chk["warning"]
-        if camera is not None:
-            w = "the picture disagrees with the camera file " + str(cam_path) + ": " + w
-        warnings.append(w)
-    s["camera_check"] = {k: v for k, v in chk.items() if k != "warning"}
-    s["tcp_sigma_mm"] = tcp_sigma(res, cell, cov3)["tcp_sigma_mm"]
-    s["warnings"] = warnings
+    warnings = s["warnings"]
+    if pc.camera_file_fit and not pc.camera_file_fit["fits"]:
+        warnings[0] = warnings[0].replace("; measure", "; written because of --force (measure") + ")"
     for w in warnings:
         print(f"selfview calibrate: warning: {w}", file=sys.stderr)
     if args.json:
@@ -151,12 +145,14 @@ def _run(args, view) -> int:
         + (f" with the camera of {cam_path}" if cam_path else " with the cell's nominal camera"),
         f"  f = {s['f']:.2f} px   kappa = {s['kappa']:.4e} px^-2   residual rms {s['rms_px']:.3f} px, max {s['max_px']:.3f} px",
         f"  TCP in camera: x {H[0, 3]:+.3f}  y {H[1, 3]:+.3f}  z {H[2, 3]:+.3f} mm   PCC residual {s['pcc_rms_mm']:.3f} mm",
-        f"  TCP 1-sigma:   x {sg[0]:.4f}  y {sg[1]:.4f}  z {sg[2]:.4f} mm",
+        f"  TCP 1-sigma:   x {sg[0]:.4f}  y {sg[1]:.4f}  z {sg[2]:.4f} mm (every part: "
+        + ", ".join(f"{k} {max(v):.4f}" for k, v in s["tcp_sigma_parts_mm"].items()) + ")",
         "  C_H_G =",
         *(f"    [{' '.join(f'{v:+.6f}' for v in row)}]" for row in H),
         f"written to {args.out}" + (f" (previous kept as {kept})" if kept else ""),
     ]
     if s["pictures"]:
         lines.append(f"picture kept as {s['pictures']['picture']}, annotated as {s['pictures']['annotated']}")
+    lines.append(f"{'GO' if pc.go else 'NO-GO'}: {pc.reason}")
     print("\n".join(lines), file=sys.stdout)
     return 0
