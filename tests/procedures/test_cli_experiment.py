@@ -59,8 +59,12 @@ def test_bad_arguments_name_the_problem(capsys):
 @pytest.mark.parametrize("script, args, expect", [
     ("offline_calibration.py", ["cal.yaml"], "saved to cal.yaml"),
     ("monitoring_loop.py", ["6"], "frame 6:"),
+    ("picture_files.py", ["parked.png", "moved.png"], "tracking: "),
 ])
 def test_examples_run(tmp_path, script, args, expect):
+    if script == "picture_files.py":
+        assert main(["render", "--out", str(tmp_path / "parked.png")]) == 0
+        assert main(["render", "--out", str(tmp_path / "moved.png"), "--disturb", "cable"]) == 0
     r = subprocess.run([sys.executable, str(REPO / "examples" / script), *args], cwd=tmp_path,
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr

@@ -1,0 +1,119 @@
+"""What the operator reads is what the fit used: the residuals on the page, in the picture and on the command
+line; a sigma that covers the camera model's error; the one-call API against the commands."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+import selfview
+from selfview.calfile import load_calibration
+from selfview.mocks.render import render
+from selfview.mocks.world import SimWorld
+from selfview.procedures.cli import main
+from selfview.procedures.results import offline_residuals
+from selfview.procedures.view import LiveView, offline_state
+
+
+@pytest.fixture(scope="module")
+def scenes(cell, tmp_path_factory):
+    """A parked picture and one after the camera moved (cable pull), for an ideal and a realistic camera,
+    with the simulator's true C_H_G of each."""
+    d = tmp_path_factory.mktemp("scenes")
+    out = {}
+    for kind in ("ideal", "realistic"):
+        w = SimWorld(cell, seed=4, camera=kind)
+        w.park()
+        cv2.imwrite(str(d / f"{kind}-parked.png"), render(w, seed=1).image)
+        truth = w.C_H_G.copy()
+        w.disturb("cable")
+        cv2.imwrite(str(d / f"{kind}-moved.png"), render(w, seed=2).image)
+        out[kind] = (d / f"{kind}-parked.png", truth, d / f"{kind}-moved.png", w.C_H_G.copy())
+    return d, out
+
+
+def test_page_picture_and_command_show_the_residuals_the_fit_used(cell, scenes, tmp_path, capsys):
+    _, s = scenes
+    parked = s["ideal"][0]
+    assert main(["calibrate", "--image", str(parked), "--out", str(tmp_path / "c.yaml"), "--no-pictures"]) == 0
+    text = capsys.readouterr().out
+    printed = float(text.split("residual rms ")[1].split(" px")[0])
+    pc = selfview.calibrate_picture(parked, cell=cell)
+    rows = offline_residuals(pc.offline)
+    r = np.array([row["|r| [px]"] for row in rows])
+    dv = np.array([row["dv [px]"] for row in rows])
+    s_ = pc.offline.summary()
+    # the table's residuals are the fit's: their RMS and max are the headline's
+    assert len(rows) == s_["discs_used"]
+    assert np.sqrt(np.mean(r**2)) == pytest.approx(s_["rms_px"], rel=1e-9)
+    assert r.max() == pytest.approx(s_["max_px"], rel=1e-9)
+    assert printed == pytest.approx(s_["rms_px"], abs=5e-4)
+    # no systematic shift left in them (against the raw centroids every disc read 0.1-0.2 px up)
+    assert abs(dv.mean()) < 0.5 * s_["rms_px"]
+    # the page shows the same rows and the same headline
+    view = LiveView("calibrate")
+    offline_state(view, cv2.imread(str(parked), cv2.IMREAD_GRAYSCALE), pc)
+    st = view.state()
+    assert st["residuals"] == json.loads(json.dumps(rows))
+    assert st["numbers"]["residual rms [px]"] == pytest.approx(np.sqrt(np.mean(r**2)), rel=1e-9)
+    assert st["verdict"] == {"go": True, "why": pc.reason}
+    # the picture's arrows start at the centres the fit used and end at the model's projections
+    model = pc.offline.calibration.camera.project(
+        (pc.offline.calibration.C_H_W[:3, :3] @ pc.offline.discs.p_W.T).T + pc.offline.calibration.C_H_W[:3, 3])
+    ends = np.asarray(pc.offline.disc_uv_corrected) + pc.offline.disc_residuals_px()
+    assert np.sqrt(np.mean(np.sum((ends - model) ** 2, axis=1))) < 0.01 * s_["rms_px"] + 1e-9
+
+
+def test_an_unmeasured_camera_reports_the_sigma_its_warning_implies(cell, scenes, tmp_path, capsys):
+    _, s = scenes
+    parked, truth, *_ = s["realistic"]
+    pc = selfview.calibrate_picture(parked, cell=cell)
+    e = pc.C_H_G[:3, 3] - truth[:3, 3]
+    assert abs(e[2]) > 1.0  # the nominal camera costs millimetres here
+    shift = np.abs(pc.camera_check["tcp_shift_mm"])
+    sg = np.asarray(pc.tcp_sigma_mm)
+    assert np.all(sg >= shift) and "camera_model" in pc.sigma_parts_mm
+    assert np.all(np.abs(e) <= 2 * sg)  # the error is within two of its own sigmas on every axis
+    assert pc.verdict == "no-go" and "camera_model" in pc.reason and "selfview intrinsics" in pc.reason
+    # the command prints and records that sigma, and says NO-GO
+    cal = tmp_path / "c.yaml"
+    assert main(["calibrate", "--image", str(parked), "--out", str(cal), "--no-pictures"]) == 0
+    out = capsys.readouterr().out
+    z = float(out.split("TCP 1-sigma:")[1].split(" z ")[1].split(" mm")[0])
+    assert z == pytest.approx(sg[2], abs=1e-4) and z > 1.0
+    assert "\nNO-GO: " in out
+    assert load_calibration(cal).residuals["tcp_sigma_mm"] == pytest.approx(list(sg))
+    # the ideal camera: no model error, go, micrometres
+    good = selfview.calibrate_picture(s["ideal"][0], cell=cell)
+    assert good.go and "camera_model" not in good.sigma_parts_mm and max(good.tcp_sigma_mm) < 0.08
+
+
+def test_the_one_call_api_gives_what_the_commands_give(cell, cell_path, scenes, tmp_path, capsys):
+    _, s = scenes
+    parked, truth, moved, truth_moved = s["ideal"]
+    pc = selfview.calibrate_picture(str(parked), cell=cell)
+    assert np.linalg.norm(pc.C_H_G[:3, 3] - truth[:3, 3]) < 0.05
+    cal = tmp_path / "api.yaml"
+    pc.save(cal)
+    assert main(["calibrate", "--image", str(parked), "--out", str(tmp_path / "cli.yaml"), "--json", "--no-pictures"]) == 0
+    cli = json.loads(capsys.readouterr().out)
+    assert np.allclose(cli["C_H_G"], pc.C_H_G, atol=1e-9) and cli["tcp_sigma_mm"] == pytest.approx(pc.tcp_sigma_mm)
+    assert cli["verdict"] == pc.verdict == "go"
+    tr = selfview.track(moved, cal, method="auto", cell=cell)
+    assert tr.verdict == "go" and tr.decision in ("update", "recalibrate")
+    e = tr.C_H_G_orthonormal[:3, 3] - truth_moved[:3, 3]
+    sg = np.asarray(tr.tcp_sigma_mm)
+    assert np.all(sg >= np.asarray(pc.tcp_sigma_mm) - 1e-12)  # the calibration's own sigma is part of it
+    assert np.all(np.abs(e) <= 4 * sg), (e, sg)
+    assert main(["track", "--cell", str(cell_path), "--calibration", str(cal), "--image", str(moved), "--method", "auto", "--json",
+                 "--no-pictures"]) == 0
+    cli = json.loads(capsys.readouterr().out)
+    assert np.allclose(cli["C_H_G"], tr.C_H_G, atol=1e-9) and cli["tcp_sigma_mm"] == pytest.approx(tr.tcp_sigma_mm)
+    # a named method, and bad arguments named
+    t4 = selfview.track(moved, cal, method="4P-I", cell=cell)
+    assert t4.points_used == ["A-inner-front", "A-inner-back", "B-inner-front", "B-inner-back"]
+    with pytest.raises(selfview.ConfigError, match="method '4P-X'"):
+        selfview.track(moved, cal, method="4P-X", cell=cell)
+    with pytest.raises(selfview.ImageError, match="nope.png"):
+        selfview.calibrate_picture(tmp_path / "nope.png", cell=cell)
