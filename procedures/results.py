@@ -285,15 +285,19 @@ def keep_pictures(out, image, draw, kind: str = "") -> dict:
     ``out``, named by the picture's SHA-256 (an earlier run's pictures are never overwritten); returns
     {picture, annotated}: the file names, relative to ``out``'s folder. ``kind`` starts the names
     (``track-``: a tracked picture beside its calibration file)."""
-    from selfview.procedures.commands._common import write_image
+    import cv2
+
+    from selfview.errors import ConfigError
+    from selfview.io_safe import atomic_write
 
     out = Path(out)
     tag = hashlib.sha256(image.tobytes()).hexdigest()[:12]
     names = {}
     for role, img in (("picture", image), ("annotated", draw(image))):
         path = out.with_name(f"{out.stem}.{kind}{role}-{tag}.png")
-        tmp = path.with_name(f".{path.stem}.tmp.png")
-        write_image(tmp, img, "--out")
-        os.replace(tmp, path)
+        ok, png = cv2.imencode(".png", img)
+        if not ok:
+            raise ConfigError(f"{path}: OpenCV cannot encode the {role} as PNG")
+        atomic_write(path, png.tobytes(), what=role)
         names[role] = path.name
     return names

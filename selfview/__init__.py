@@ -33,6 +33,7 @@ from selfview.errors import (  # noqa: E402
     DeviceTimeout,
     ImageError,
     LimitError,
+    PictureFileError,
     ProtocolError,
 )
 
@@ -51,6 +52,7 @@ __all__ = [
     "DeviceTimeout",
     "ImageError",
     "LimitError",
+    "PictureFileError",
     "ProtocolError",
 ]
 

@@ -94,6 +94,20 @@ def serve_until(url: str, duration_s: float | None) -> None:
         pass
 
 
+def writable_out(path, option: str = "--out"):
+    """``path`` as a Path whose folder exists; ``ConfigError`` naming ``option`` and the user's path if not
+    (checked before any work, so nothing is computed for a file that cannot be written)."""
+    from pathlib import Path
+
+    from selfview.errors import ConfigError
+
+    out = Path(path)
+    if not out.parent.is_dir():
+        why = "does not exist (it is not created)" if not out.parent.exists() else "is a file, not a folder"
+        raise ConfigError(f"{option} {path}: the folder {str(out.parent)!r} {why}")
+    return out
+
+
 def write_image(path, image, what: str = "--out") -> None:
     """Write a picture with OpenCV; ``ConfigError`` naming ``what`` if it cannot be written."""
     import cv2

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sys
 
-from selfview.procedures.commands._common import load_cell_arg, print_json
+from selfview.procedures.commands._common import load_cell_arg, print_json, writable_out
 from selfview.procedures.commands._session import add_session_arguments, camera_arguments, open_session, progress_printer
 from selfview.procedures.view import add_view_arguments, watch, offline_state, viewing, with_progress
 
@@ -84,6 +84,7 @@ def _run(args, view) -> int:
 
     url, cam_path = camera_arguments(args.camera)
     args.camera = url
+    writable_out(args.out)
     cell = load_cell_arg(args)
     camera = camera_file = cov3 = None
     if cam_path:

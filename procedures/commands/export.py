@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from selfview.procedures.commands._common import print_json
+from selfview.procedures.commands._common import print_json, writable_out
 
 CAMERA_FRAME = "camera"  # the wrist camera: x along the picture's rows, y down its columns, z along the optical axis
 GRIPPER_FRAME = "gripper_tcp"  # G: the gripper's TCP between the fingertips
@@ -111,8 +111,7 @@ def run(args) -> int:
     src = Path(args.calibration)
     default = {"opencv": ".opencv.yml", "ros": ".camera_info.yaml", "json": ".export.json"}[args.format]
     out = Path(args.out) if args.out else src.with_name(src.stem + default)
-    if not out.parent.is_dir():
-        raise ConfigError(f"--out {out}: folder {out.parent} does not exist")
+    writable_out(out)
     H = np.asarray(cal.C_H_G, float)
     fit_note = (f"OpenCV {fit['model']} fitted to the kappa model (kappa {cam.kappa:.6e} px^-2) over the whole picture: "
                 f"rms {fit['rms_px']:.4f} px, max {fit['max_px']:.4f} px"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from selfview.procedures.commands._common import COUNT, SECONDS, SEED, add_cell_argument, load_cell_arg, print_json, write_image
+from selfview.procedures.commands._common import COUNT, SECONDS, SEED, add_cell_argument, load_cell_arg, print_json, writable_out, write_image
 from selfview.errors import ConfigError
 
 
@@ -41,8 +41,7 @@ def run(args) -> int:
     if not args.camera:
         raise ConfigError("--camera URL is required: the frame source (sim:// for the simulated camera)")
     out = Path(args.out)
-    if not out.parent.is_dir():
-        raise ConfigError(f"--out {out}: folder {out.parent} does not exist")
+    writable_out(out)
     attachment = None
     if parse_grabber_url(args.camera).scheme == "sim":
         from selfview.mocks.sim_camera import attach_world

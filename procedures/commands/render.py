@@ -8,9 +8,8 @@ disturbed on its mount; the picture goes to a PNG and its ground truth to a JSON
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
-from selfview.procedures.commands._common import SEED, add_cell_argument, load_cell_arg, print_json, write_image
+from selfview.procedures.commands._common import SEED, add_cell_argument, load_cell_arg, print_json, writable_out, write_image
 from selfview.errors import ConfigError
 
 
@@ -43,13 +42,6 @@ def register(sub):
     return p
 
 
-def _writable(path: str, option: str) -> Path:
-    out = Path(path)
-    if not out.parent.is_dir():
-        raise ConfigError(f"{option} {path}: the folder {str(out.parent)!r} does not exist")
-    return out
-
-
 def _json_text(obj: dict) -> str:
     """One JSON object, a top-level key per line (the values compact)."""
     rows = [f" {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in obj.items()]
@@ -62,10 +54,10 @@ def run(args) -> int:
     from selfview.mocks.world import SimWorld
 
     cell = load_cell_arg(args)
-    out = _writable(args.out, "--out")
+    out = writable_out(args.out, "--out")
     if out.suffix.lower() != ".png":
         raise ConfigError(f"--out {args.out}: expected a .png file name")
-    truth_path = _writable(args.truth, "--truth") if args.truth else None
+    truth_path = writable_out(args.truth, "--truth") if args.truth else None
     state = args.state or cell.gripper.calibrate_in
     gap = cell.gripper.gap(state)  # raises ConfigError naming the known states
 

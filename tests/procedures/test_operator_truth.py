@@ -117,3 +117,12 @@ def test_the_one_call_api_gives_what_the_commands_give(cell, cell_path, scenes, 
         selfview.track(moved, cal, method="4P-X", cell=cell)
     with pytest.raises(selfview.ImageError, match="nope.png"):
         selfview.calibrate_picture(tmp_path / "nope.png", cell=cell)
+
+
+def test_an_out_in_a_missing_folder_is_named_before_any_work(scenes, tmp_path, capsys):
+    _, s = scenes
+    out = tmp_path / "no" / "dir" / "c.yaml"
+    assert main(["calibrate", "--image", str(s["ideal"][0]), "--out", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert f"--out {out}: the folder" in err and "does not exist" in err and ".tmp" not in err
+    assert not out.parent.exists()
