@@ -735,4 +735,4 @@ def make_report(out: Path, *, quick: bool = False, benches=BENCHES, bench_dir: P
     tmp.write_text(text, encoding="utf-8")
     tmp.replace(out)
     return {"markdown": str(out), "results": str(results), "runs": {k: r.status for k, r in runs.items()},
-            "seconds": time.monotonic() - t0}
+            "experiment_failed": (exp or {}).get("failed"), "seconds": time.monotonic() - t0}

@@ -13,9 +13,11 @@ Exit codes (stable; scripts may rely on them):
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import logging
 import pkgutil
+import re
 import signal
 import sys
 
@@ -68,8 +70,37 @@ def exit_code_for(exc: BaseException) -> tuple[int, str]:
     return EXIT_INTERNAL, "this is a bug; please report it with the command line"
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with "did you mean" for a mistyped choice (a command, a method, a format)."""
+
+    def error(self, message):
+        m = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
+        if m:
+            choices = re.findall(r"'([^']*)'", m.group(2)) or [c.strip() for c in m.group(2).split(",")]
+            near = difflib.get_close_matches(m.group(1), choices, n=3, cutoff=0.5)
+            if near:
+                message += f"; did you mean {' or '.join(near)}?"
+        super().error(message)
+
+
+def _unrecognized(parser: argparse.ArgumentParser, extra: list[str]) -> int:
+    """The usage of the command that was given and, per unknown option, the options it has that are
+    nearest to it; exit status 2."""
+    options = [s for a in parser._actions for s in a.option_strings]  # noqa: SLF001 (argparse has no public list)
+    hints = []
+    for arg in extra:
+        if arg.startswith("-"):
+            near = difflib.get_close_matches(arg.split("=", 1)[0], options, n=1, cutoff=0.6)
+            if near:
+                hints.append(f"{arg}: did you mean {' or '.join(near)}?")
+    parser.print_usage(sys.stderr)
+    _say(f"{parser.prog}: error: unrecognized arguments: {' '.join(extra)}"
+         + "".join(f"\n  {h}" for h in hints) + f"\n  see '{parser.prog} --help'")
+    return EXIT_USAGE
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="selfview",
         description=(
             "Calibration and monitoring of a self-viewing eye-on-hand robot cell: a wrist camera that "
@@ -84,7 +115,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"selfview {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="log more on stderr (-v: each step and decision, -vv: debugging)")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    parser.commands = sub.choices  # name -> its parser
     import selfview.procedures.commands as pkg
 
     for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda m: m.name):
@@ -106,7 +138,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str] | None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        return _unrecognized(parser.commands.get(getattr(args, "command", None)) or parser, extra)
     level = {0: logging.ERROR, 1: logging.INFO}.get(args.verbose, logging.DEBUG)
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s: %(message)s", stream=sys.stderr)
     logging.getLogger().setLevel(level)

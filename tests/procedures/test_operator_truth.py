@@ -126,3 +126,30 @@ def test_an_out_in_a_missing_folder_is_named_before_any_work(scenes, tmp_path, c
     err = capsys.readouterr().err
     assert f"--out {out}: the folder" in err and "does not exist" in err and ".tmp" not in err
     assert not out.parent.exists()
+
+
+def test_a_mistyped_option_or_choice_gets_a_did_you_mean(capsys):
+    assert main(["calibrate", "--image", "p.png", "--forse"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("usage: selfview calibrate ") and "unrecognized arguments: --forse" in err
+    assert "--forse: did you mean --force?" in err
+    with pytest.raises(SystemExit) as stop:
+        main(["calibrat", "--image", "p.png"])
+    assert stop.value.code == 2 and "did you mean calibrate" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stop:
+        main(["track", "--calibration", "c.yaml", "--image", "p.png", "--method", "4P-X"])
+    assert stop.value.code == 2 and "did you mean 4P-" in capsys.readouterr().err
+
+
+def test_a_report_whose_part_fails_exits_non_zero(tmp_path, capsys):
+    bench = tmp_path / "bench"
+    bench.mkdir()
+    argv = ["report", "--only", "online", "--trials", "0", "--bench-dir", str(bench), "--out", str(tmp_path / "R.md")]
+    assert main(argv) == 3  # the benchmark is not there: a matter of files
+    err = capsys.readouterr().err
+    assert "online not available" in err and "--bench-dir" in err
+    (bench / "online.py").write_text("import sys\nsys.exit('no plate')\n")
+    assert main(argv) == 1  # it ran and failed
+    err = capsys.readouterr().err
+    assert "online failed" in err and "--only NAME" in err
+    assert (tmp_path / "R.md").is_file()  # the report is still written, saying so
