@@ -8,18 +8,20 @@ transform with both frames named and its direction written out.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 
 from selfview.procedures.commands._common import print_json, writable_out
 
-CAMERA_FRAME = "camera"  # the wrist camera: x along the picture's rows, y down its columns, z along the optical axis
+#: The wrist camera's optical frame: x along the picture's rows, y down its columns, z along the optical axis,
+#: which ROS names ``*_optical_frame`` (REP 103: "suffix frames with _optical"; REP 105).
+CAMERA_FRAME = "camera_optical_frame"
+CAMERA_NAME = "camera"  # camera_info's camera_name: the device, not a frame
 GRIPPER_FRAME = "gripper_tcp"  # G: the gripper's TCP between the fingertips
-DIRECTION = ("C_H_G maps gripper_tcp coordinates to camera coordinates: p_camera = C_H_G p_gripper_tcp; it is the "
-             "pose of gripper_tcp in the camera frame (parent camera, child gripper_tcp); lengths in mm, "
-             "in metres in the ROS file")
+DIRECTION = (f"C_H_G maps {GRIPPER_FRAME} coordinates to {CAMERA_FRAME} coordinates: p_camera = C_H_G p_gripper_tcp; "
+             f"it is the pose of {GRIPPER_FRAME} in the camera's optical frame (parent {CAMERA_FRAME}, child "
+             f"{GRIPPER_FRAME}; x right, y down, z along the optical axis); lengths in mm, in metres in the ROS file")
 
 
 def register(sub):
@@ -30,7 +32,7 @@ def register(sub):
             "Writes the camera (OpenCV's camera matrix K and plumb_bob distortion k1 k2 p1 p2 k3, or the rational model's 8 "
             "coefficients where plumb_bob misses by over 0.05 px; fitted to the "
             "calibration's kappa model over a grid of the whole picture; the fit's RMS and maximum in pixels are "
-            "written beside them) and C_H_G as a transform from frame gripper_tcp to frame camera. opencv: one "
+            "written beside them) and C_H_G as a transform from frame gripper_tcp to frame camera_optical_frame (REP 103). opencv: one "
             "FileStorage YAML (cv2.FileStorage reads it); ros: OUT is sensor_msgs/CameraInfo YAML and "
             "NAME.transform.yaml beside it (NAME: OUT up to its first dot) a geometry_msgs/TransformStamped (metres, quaternion x y z w); json: one file."
         ),
@@ -93,9 +95,9 @@ def _quaternion(R) -> list[float]:
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    from selfview.io_safe import atomic_write
+
+    atomic_write(path, text.encode("utf-8"), what="export")
 
 
 def run(args) -> int:
@@ -119,9 +121,8 @@ def run(args) -> int:
                    f"cv2.undistortPoints drop: {fit['skew_dropped_max_px']:.3f} px at most" if cam.skew else ""))
     written = [str(out)]
     if args.format == "opencv":
-        tmp = out.with_name(f".{out.stem}.tmp{out.suffix or '.yml'}")
-        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
-        if not fs.isOpened():
+        fs = cv2.FileStorage(out.stem + (out.suffix or ".yml"), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
+        if not fs.isOpened() or out.suffix.lower() not in (".yml", ".yaml", ".xml", ""):
             raise ConfigError(f"--out {out}: OpenCV cannot write this file (its extension must be .yml, .yaml or .xml)")
         fs.write("image_width", int(cam.width))
         fs.write("image_height", int(cam.height))
@@ -137,13 +138,12 @@ def run(args) -> int:
         fs.write("C_H_G_to_frame", CAMERA_FRAME)
         fs.write("C_H_G_direction", DIRECTION)
         fs.write("source", src.name)
-        fs.release()
-        os.replace(tmp, out)
+        _atomic_write_text(out, fs.releaseAndGetString())
     elif args.format == "ros":
         K = fit["K"]
         P = np.column_stack([K, np.zeros(3)])
         info = {
-            "image_width": int(cam.width), "image_height": int(cam.height), "camera_name": CAMERA_FRAME,
+            "image_width": int(cam.width), "image_height": int(cam.height), "camera_name": CAMERA_NAME,
             "camera_matrix": {"rows": 3, "cols": 3, "data": K.ravel().tolist()},
             "distortion_model": fit["model"],
             "distortion_coefficients": {"rows": 1, "cols": len(fit["dist"]), "data": fit["dist"].tolist()},
