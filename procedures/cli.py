@@ -99,6 +99,17 @@ def _unrecognized(parser: argparse.ArgumentParser, extra: list[str]) -> int:
     return EXIT_USAGE
 
 
+def _innermost(parser: argparse.ArgumentParser, args) -> argparse.ArgumentParser:
+    """The parser of the deepest sub-command given (``selfview mock robot``), for its usage."""
+    for _ in range(4):
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]  # noqa: SLF001
+        chosen = subs and subs[0].choices.get(getattr(args, subs[0].dest, None) or "")
+        if not chosen:
+            break
+        parser = chosen
+    return parser
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="selfview",
@@ -140,7 +151,7 @@ def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     if extra:
-        return _unrecognized(parser.commands.get(getattr(args, "command", None)) or parser, extra)
+        return _unrecognized(_innermost(parser.commands.get(getattr(args, "command", None)) or parser, args), extra)
     level = {0: logging.ERROR, 1: logging.INFO}.get(args.verbose, logging.DEBUG)
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s: %(message)s", stream=sys.stderr)
     logging.getLogger().setLevel(level)

@@ -153,3 +153,40 @@ def test_a_report_whose_part_fails_exits_non_zero(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "online failed" in err and "--only NAME" in err
     assert (tmp_path / "R.md").is_file()  # the report is still written, saying so
+
+
+def test_robot_motions_say_what_they_did_and_each_refusal_its_own_advice(capsys):
+    """``robot ready`` on an uncalibrated controller says to calibrate (not to check the cable); a motion that
+    succeeds says which one it was."""
+    import select
+    import signal
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    proc = subprocess.Popen([sys.executable, "-m", "selfview.procedures.cli", "mock", "robot", "--link", "tcp",
+                             "--duration", "20", "--time-scale", "0.02"], cwd=REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True)
+    try:
+        assert select.select([proc.stdout], [], [], 30.0)[0], "the mock printed no URL within 30 s"
+        url = proc.stdout.readline().strip()
+        assert main(["robot", "--url", url, "ready"]) == 4
+        err = capsys.readouterr().err
+        assert "Robot not calibrated" in err and "what to do: calibrate the arm first" in err and "cable" not in err
+        assert main(["robot", "--url", url, "calibrate"]) == 0
+        assert capsys.readouterr().out.startswith("CAL done")
+        assert main(["robot", "--url", url, "ready"]) == 0
+        assert capsys.readouterr().out.startswith("READY done; the arm is now at:\n")
+        assert main(["robot", "--url", url, "depart", "10"]) == 0
+        assert capsys.readouterr().out.startswith("DEPART done (depart(distance_mm=10.0)); the arm is now at:\n")
+        assert main(["robot", "--url", url, "move", "nowhere"]) == 4
+        assert "what to do: teach it first" in capsys.readouterr().err
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+        proc.stdout.close()
