@@ -1,15 +1,20 @@
-"""The live view: a page on 127.0.0.1 that shows what a command is doing while it runs.
+"""The live view: a page on 127.0.0.1 that shows what a command is doing while it runs, and its controls.
 
-A command publishes its state (what it does now, the latest annotated frame, numbers, a verdict) to a
-``LiveView``; a small HTTP server in a thread serves one self-contained page that polls ``/state.json``
-and ``/frame.jpg``. Nothing on the page comes from the internet.
+A command publishes its state (what it does now, the latest annotated frame, numbers, a verdict, a log)
+to a ``LiveView``; a small HTTP server in a thread serves one self-contained page that polls
+``/state.json`` and ``/frame.jpg``. Nothing on the page comes from the internet. GET never changes
+anything: the page's controls (STOP, the alarm's acknowledge) POST to ``/action`` with the run's token,
+which only the page served by this run holds; a request naming another host (DNS rebinding) is refused.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import hmac
 import json
+import secrets
+import signal
 import sys
 import threading
 import time
@@ -96,8 +101,10 @@ class LiveView:
         self._jpeg = b""
         self._state = {"command": command, "doing": "starting", "seq": 0, "frame_seq": 0, "verdict": None,
                        "numbers": {}, "residuals": [], "series": None, "coverage": None, "done": False,
-                       "updated": time.time()}
+                       "log": [], "alarm": None, "stop_requested": False, "updated": time.time()}
         self._server = None
+        self.token = secrets.token_urlsafe(24)  # per run; only the page this run serves holds it
+        self._actions = {"stop": self._stop, "acknowledge": self._acknowledge}
 
     # --- what the command publishes ---------------------------------------------------------------
     def update(self, **kw) -> None:
@@ -115,6 +122,37 @@ class LiveView:
 
     def verdict(self, go: bool, why: str) -> None:
         self.update(verdict={"go": bool(go), "why": str(why)})
+
+    def alarm(self, why: str) -> None:
+        """An alarm the operator is asked to acknowledge on the page (the verdict says no-go)."""
+        self.verdict(False, why)
+        self.update(alarm={"why": str(why), "acknowledged": False})
+
+    def log(self, row: dict, keep: int = 500) -> None:
+        """One row of the run's log (the monitor's decision per frame), newest last."""
+        with self._lock:
+            self._state["log"].append(row)
+            del self._state["log"][:-keep]
+        self.update()
+
+    # --- the page's controls (run in the server's thread) -----------------------------------------
+    def _stop(self) -> str:
+        """STOP: the run stops as on Ctrl-C (``procedures.engine``: ABORT to the robot, the valve safe, the
+        devices closed, exit 130); a signal is how another thread reaches the main thread's cleanup."""
+        sig = signal.SIGINT if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN else signal.SIGTERM
+        self.update(stop_requested=True, doing="STOP pressed on the page: stopping the robot")
+        print("view: STOP pressed on the page", file=sys.stderr, flush=True)
+        signal.pthread_kill(threading.main_thread().ident, sig)
+        return "stopping: ABORT to the robot, the valve safe"
+
+    def _acknowledge(self) -> str:
+        with self._lock:
+            alarm = self._state.get("alarm")
+        if not alarm:
+            return "no alarm to acknowledge"
+        self.update(alarm={**alarm, "acknowledged": True, "at": time.strftime("%H:%M:%S")})
+        print(f"view: alarm acknowledged on the page ({alarm['why']})", file=sys.stderr, flush=True)
+        return "alarm acknowledged"
 
     def frame(self, image) -> None:
         """The latest picture (grey or BGR), sent to the page as JPEG."""
@@ -145,10 +183,43 @@ class LiveView:
         view = self
 
         class Handler(BaseHTTPRequestHandler):
+            def _local(self) -> bool:
+                """Refuse a request that names another host (a page elsewhere reaching 127.0.0.1 by DNS rebinding)."""
+                if self.headers.get("Host") in (f"127.0.0.1:{view.port}", f"localhost:{view.port}"):
+                    return True
+                self.send_error(403, "not this host")
+                return False
+
+            def do_POST(self):  # noqa: N802 (http.server's name)
+                if not self._local():
+                    return
+                if self.path != "/action":
+                    self.send_error(404)
+                    return
+                if not hmac.compare_digest(self.headers.get("X-Selfview-Token", ""), view.token):
+                    self.send_error(403, "missing or wrong token: use the page this run serves")
+                    return
+                try:
+                    n = min(int(self.headers.get("Content-Length", "0")), 4096)
+                    name = json.loads(self.rfile.read(n) or b"{}").get("action")
+                    fn = view._actions[name]
+                except (ValueError, KeyError, AttributeError, TypeError):
+                    self.send_error(400, "expected {\"action\": \"stop\" or \"acknowledge\"}")
+                    return
+                body = json.dumps({"action": name, "said": fn()}).encode()
+                self.send_response(200)
+                self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Length", str(len(body)))
+                self.send_header("Cache-Control", "no-store")
+                self.end_headers()
+                self.wfile.write(body)
+
             def do_GET(self):  # noqa: N802 (http.server's name)
+                if not self._local():
+                    return
                 path = self.path.split("?")[0]
                 if path == "/":
-                    body, ctype = _PAGE.encode(), "text/html; charset=utf-8"
+                    body, ctype = _PAGE.replace("__TOKEN__", view.token).encode(), "text/html; charset=utf-8"
                 elif path == "/state.json":
                     body, ctype = json.dumps(view.state()).encode(), "application/json"
                 elif path == "/frame.jpg":
@@ -277,8 +348,11 @@ def decision_state(view: LiveView, rec: dict, limits) -> None:
     view.update(numbers={"frame": rec.get("frame"), "decision": rec.get("action"), "delta [deg]": rec.get("delta_deg"),
                          "d [mm]": rec.get("d_mm"), "rms [px]": rec.get("rms_px"),
                          "fingertips": rec.get("fingertips", "")})
+    view.log({"frame": rec.get("frame"), "decision": rec.get("action"), "method": rec.get("method") or "",
+              "delta [deg]": rec.get("delta_deg"), "d [mm]": rec.get("d_mm"), "rms [px]": rec.get("rms_px"),
+              "why": rec.get("reason") or ""})
     if rec.get("action") == "alarm":
-        view.verdict(False, f"alarm at frame {rec.get('frame')}: {rec.get('reason')}")
+        view.alarm(f"alarm at frame {rec.get('frame')}: {rec.get('reason')}")
     else:
         view.verdict(True, f"frame {rec.get('frame')}: {rec.get('action')} ({rec.get('reason')})")
 
@@ -343,54 +417,82 @@ _PAGE = """<!doctype html>
 <html><head><meta charset="utf-8"><title>selfview live view</title>
 <style>
 body{font-family:sans-serif;margin:0;background:#222;color:#eee}
-#verdict{padding:12px 16px;font-size:22px;font-weight:bold;background:#555}
+#bar{display:flex;align-items:stretch}
+#verdict{flex:1;padding:12px 16px;font-size:22px;font-weight:bold;background:#555}
 #verdict.go{background:#1b7f2a}#verdict.nogo{background:#b0201a}
+button{font-size:18px;font-weight:bold;border:0;padding:0 22px;cursor:pointer}
+#stop{background:#e00000;color:#fff;min-width:120px}#stop:disabled{background:#733;color:#ccc}
+#alarmbox{padding:8px 16px;background:#7a1010;display:flex;gap:16px;align-items:center}
+#ack{background:#ffd84a;color:#000;padding:6px 16px}
 #doing{padding:6px 16px;background:#333;font-family:monospace}
 main{display:flex;flex-wrap:wrap;gap:12px;padding:12px}
-#frame{max-width:760px;width:100%;background:#000}
+#framebox{flex:1 1 900px;max-width:1536px}#frame{width:100%;background:#000;display:block}
 table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #555;padding:2px 6px;text-align:right}
 th{background:#333}section{min-width:320px}h2{font-size:15px;margin:8px 0 4px}
-svg{background:#111}
+#logwrap{max-height:260px;overflow-y:auto}svg{background:#111}
 </style></head><body>
-<div id="verdict">waiting for a verdict</div>
+<div id="bar"><div id="verdict">waiting for a verdict</div>
+<button id="stop" title="abort the robot and make the valve safe (as Ctrl-C)">STOP</button></div>
+<div id="alarmbox" hidden><span id="alarmtext"></span><button id="ack">acknowledge the alarm</button></div>
 <div id="doing">connecting</div>
-<main><section><img id="frame" alt="latest frame"></section>
+<main><section id="framebox"><img id="frame" alt="latest frame"></section>
 <section><h2 id="cmd">figures</h2><table id="numbers"></table>
-<div id="plotbox" hidden><h2>change of the camera over time</h2><svg id="plot" width="420" height="200"></svg></div>
+<div id="plotbox" hidden><h2>change of the camera over time</h2><svg id="plot" width="560" height="260"></svg></div>
+<div id="logbox" hidden><h2>decision per frame (newest first)</h2><div id="logwrap"><table id="log"></table></div></div>
 <div id="coveragebox" hidden><h2>coverage of the picture</h2><table id="coverage"></table></div>
 <div id="residualbox" hidden><h2>residuals per point</h2><table id="residuals"></table></div></section></main>
 <script>
-let lastFrame=-1;
-function fmt(v){return typeof v==="number"?(Number.isInteger(v)?String(v):Math.abs(v)>=1e-3||v===0?v.toFixed(4):v.toExponential(3)):String(v)}
+const TOKEN="__TOKEN__";let lastFrame=-1;
+async function act(name){const r=await fetch("action",{method:"POST",headers:{"Content-Type":"application/json",
+ "X-Selfview-Token":TOKEN},body:JSON.stringify({action:name})});
+ document.getElementById("doing").textContent=r.ok?(await r.json()).said:"refused: "+r.status;}
+document.getElementById("stop").onclick=()=>{document.getElementById("stop").disabled=true;act("stop");};
+document.getElementById("ack").onclick=()=>act("acknowledge");
+function fmt(v){return typeof v==="number"?(Number.isInteger(v)?String(v):Math.abs(v)>=1e-3||v===0?v.toFixed(4):v.toExponential(3)):v===null?"":String(v)}
 function rows(t,obj){t.innerHTML="";for(const k in obj){const r=t.insertRow();r.insertCell().textContent=k;
  r.insertCell().textContent=fmt(obj[k]);}}
+function table(t,list){t.innerHTML="";if(!list.length)return;const h=t.insertRow();
+ for(const k of Object.keys(list[0])){const c=document.createElement("th");c.textContent=k;h.appendChild(c);}
+ for(const r of list){const tr=t.insertRow();for(const k in r)tr.insertCell().textContent=fmt(r[k]);}}
 function plot(s){const svg=document.getElementById("plot");svg.innerHTML="";if(!s||!s.points)return;
- const L=s.limits||{},P=s.points,W=420,H=200,n=Math.max(P.length,2),x=i=>10+i*(W-20)/(n-1);
+ const L=s.limits||{},P=s.points,W=560,H=260,X0=44,X1=W-10,Y0=H-28,Y1=22,n=Math.max(P.length,2);
+ const x=i=>X0+i*(X1-X0)/(n-1);
  const top=Math.max(1.2,...P.map(p=>Math.max((p.delta_deg||0)/L.alarm_deg,(p.d_mm||0)/L.alarm_mm)))*1.05;
- const y=v=>H-10-(v/top)*(H-30);let h="";
+ const y=v=>Y0-(v/top)*(Y0-Y1);let h=`<line x1="${X0}" x2="${X0}" y1="${Y1}" y2="${Y0}" stroke="#888"/>`+
+  `<line x1="${X0}" x2="${X1}" y1="${Y0}" y2="${Y0}" stroke="#888"/>`;
+ const step=top>3?1:top>1.5?0.5:0.25;
+ for(let v=0;v<=top+1e-9;v+=step)h+=`<line x1="${X0-4}" x2="${X0}" y1="${y(v)}" y2="${y(v)}" stroke="#888"/>`+
+  `<text class="tick" x="${X0-6}" y="${y(v)+4}" fill="#aaa" font-size="10" text-anchor="end">${v.toFixed(2)}</text>`;
+ const every=Math.max(1,Math.ceil(P.length/8));
+ P.forEach((p,i)=>{if(i%every===0||i===P.length-1)h+=`<line x1="${x(i)}" x2="${x(i)}" y1="${Y0}" y2="${Y0+4}" stroke="#888"/>`+
+  `<text class="tick" x="${x(i)}" y="${Y0+15}" fill="#aaa" font-size="10" text-anchor="middle">${p.frame}</text>`;});
+ h+=`<text x="${X1}" y="${H-2}" fill="#aaa" font-size="10" text-anchor="end">frame</text>`;
  const lines=[[1,"#ff4040",`alarm limit ${L.alarm_deg} deg / ${L.alarm_mm} mm`],
   [L.update_deg/L.alarm_deg,"#e0c000",`update limit ${L.update_deg} deg`],[L.update_mm/L.alarm_mm,"#c08000",`update limit ${L.update_mm} mm`]];
- for(const [v,c,t] of lines)h+=`<line x1="0" x2="${W}" y1="${y(v)}" y2="${y(v)}" stroke="${c}" stroke-dasharray="4"/>`+
-   `<text x="${W-200}" y="${y(v)-3}" fill="${c}" font-size="11">${t}</text>`;
+ const used=[];for(const [v,c,t] of lines){let ly=y(v)-3;while(used.some(u=>Math.abs(u-ly)<12))ly-=12;used.push(ly);
+  h+=`<line x1="${X0}" x2="${X1}" y1="${y(v)}" y2="${y(v)}" stroke="${c}" stroke-dasharray="4"/>`+
+  `<text class="limit" x="${X1-4}" y="${ly}" fill="${c}" font-size="11" text-anchor="end">${t}</text>`;}
  for(const [k,c,a] of [["delta_deg","#6cf",L.alarm_deg],["d_mm","#f8a",L.alarm_mm]])
   h+=`<polyline fill="none" stroke="${c}" points="${P.map((p,i)=>x(i)+","+y((p[k]||0)/a)).join(" ")}"/>`;
- h+=`<text x="4" y="12" font-size="11"><tspan fill="#6cf">rotation</tspan> <tspan fill="#f8a">shift</tspan>`+
+ h+=`<text x="${X0}" y="12" font-size="11"><tspan fill="#6cf">rotation</tspan> <tspan fill="#f8a">shift</tspan>`+
   `<tspan fill="#ccc"> as a fraction of the alarm limit, ${P.length} frames</tspan></text>`;svg.innerHTML=h;}
 async function poll(){let s;try{s=await (await fetch("state.json",{cache:"no-store"})).json();}
  catch(e){document.getElementById("doing").textContent="the command has ended; this is its last state";
-  setTimeout(poll,1000);return;}
+  document.getElementById("stop").disabled=true;setTimeout(poll,1000);return;}
  try{
  document.getElementById("cmd").textContent="selfview "+s.command;
  document.getElementById("doing").textContent=(s.done?"finished; last step: ":"now: ")+s.doing;
+ document.getElementById("stop").disabled=s.done||s.stop_requested;
  const v=document.getElementById("verdict");
  if(s.verdict){v.className=s.verdict.go?"go":"nogo";v.textContent=(s.verdict.go?"GO: ":"NO-GO: ")+s.verdict.why;}
+ const a=document.getElementById("alarmbox");a.hidden=!s.alarm;
+ if(s.alarm){document.getElementById("alarmtext").textContent=s.alarm.acknowledged?
+  "ALARM acknowledged at "+s.alarm.at+": "+s.alarm.why:"ALARM: "+s.alarm.why;document.getElementById("ack").hidden=s.alarm.acknowledged;}
  rows(document.getElementById("numbers"),s.numbers);plot(s.series);
  document.getElementById("plotbox").hidden=!s.series;document.getElementById("coveragebox").hidden=!s.coverage;
- document.getElementById("residualbox").hidden=!s.residuals.length;
+ document.getElementById("residualbox").hidden=!s.residuals.length;document.getElementById("logbox").hidden=!s.log.length;
  if(s.coverage)rows(document.getElementById("coverage"),s.coverage);
- const t=document.getElementById("residuals");t.innerHTML="";if(s.residuals.length){const h=t.insertRow();
-  for(const k of Object.keys(s.residuals[0])){const c=document.createElement("th");c.textContent=k;h.appendChild(c);}
-  for(const r of s.residuals){const tr=t.insertRow();for(const k in r)tr.insertCell().textContent=fmt(r[k]);}}
+ table(document.getElementById("residuals"),s.residuals);table(document.getElementById("log"),s.log.slice().reverse());
  if(s.frame_seq!==lastFrame&&s.frame_seq>0){lastFrame=s.frame_seq;
   document.getElementById("frame").src="frame.jpg?"+s.frame_seq;}
 }catch(e){document.getElementById("doing").textContent="page error: "+e;}
