@@ -417,6 +417,7 @@ _PAGE = """<!doctype html>
 <html><head><meta charset="utf-8"><title>selfview live view</title>
 <style>
 body{font-family:sans-serif;margin:0;background:#222;color:#eee}
+[hidden]{display:none!important}
 #bar{display:flex;align-items:stretch}
 #verdict{flex:1;padding:12px 16px;font-size:22px;font-weight:bold;background:#555}
 #verdict.go{background:#1b7f2a}#verdict.nogo{background:#b0201a}
@@ -426,18 +427,21 @@ button{font-size:18px;font-weight:bold;border:0;padding:0 22px;cursor:pointer}
 #ack{background:#ffd84a;color:#000;padding:6px 16px}
 #doing{padding:6px 16px;background:#333;font-family:monospace}
 main{display:flex;flex-wrap:wrap;gap:12px;padding:12px}
-#framebox{flex:1 1 900px;max-width:1536px}#frame{width:100%;background:#000;display:block}
+#framebox{flex:1 1 760px;max-width:1000px}#frame{width:100%;background:#000;display:block}
+#side{flex:1 1 360px;max-width:600px}
 table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #555;padding:2px 6px;text-align:right}
 th{background:#333}section{min-width:320px}h2{font-size:15px;margin:8px 0 4px}
 #logwrap{max-height:260px;overflow-y:auto}svg{background:#111}
+#log td:last-child{text-align:left;min-width:300px;font-size:11px}
 </style></head><body>
 <div id="bar"><div id="verdict">waiting for a verdict</div>
 <button id="stop" title="abort the robot and make the valve safe (as Ctrl-C)">STOP</button></div>
 <div id="alarmbox" hidden><span id="alarmtext"></span><button id="ack">acknowledge the alarm</button></div>
 <div id="doing">connecting</div>
-<main><section id="framebox"><img id="frame" alt="latest frame"></section>
-<section><h2 id="cmd">figures</h2><table id="numbers"></table>
-<div id="plotbox" hidden><h2>change of the camera over time</h2><svg id="plot" width="560" height="260"></svg></div>
+<main><section id="framebox"><a href="frame.jpg" target="_blank" title="the frame at full size">
+<img id="frame" alt="latest frame"></a></section>
+<section id="side"><h2 id="cmd">figures</h2><table id="numbers"></table>
+<div id="plotbox" hidden><h2>change of the camera over time</h2><svg id="plot" width="360" height="240"></svg></div>
 <div id="logbox" hidden><h2>decision per frame (newest first)</h2><div id="logwrap"><table id="log"></table></div></div>
 <div id="coveragebox" hidden><h2>coverage of the picture</h2><table id="coverage"></table></div>
 <div id="residualbox" hidden><h2>residuals per point</h2><table id="residuals"></table></div></section></main>
@@ -455,7 +459,7 @@ function table(t,list){t.innerHTML="";if(!list.length)return;const h=t.insertRow
  for(const k of Object.keys(list[0])){const c=document.createElement("th");c.textContent=k;h.appendChild(c);}
  for(const r of list){const tr=t.insertRow();for(const k in r)tr.insertCell().textContent=fmt(r[k]);}}
 function plot(s){const svg=document.getElementById("plot");svg.innerHTML="";if(!s||!s.points)return;
- const L=s.limits||{},P=s.points,W=560,H=260,X0=44,X1=W-10,Y0=H-28,Y1=22,n=Math.max(P.length,2);
+ const L=s.limits||{},P=s.points,W=360,H=240,X0=44,X1=W-10,Y0=H-28,Y1=22,n=Math.max(P.length,2);
  const x=i=>X0+i*(X1-X0)/(n-1);
  const top=Math.max(1.2,...P.map(p=>Math.max((p.delta_deg||0)/L.alarm_deg,(p.d_mm||0)/L.alarm_mm)))*1.05;
  const y=v=>Y0-(v/top)*(Y0-Y1);let h=`<line x1="${X0}" x2="${X0}" y1="${Y1}" y2="${Y0}" stroke="#888"/>`+
