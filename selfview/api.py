@@ -23,7 +23,8 @@ from selfview.errors import CalibrationError, ConfigError
 from selfview.fingertips import FingertipResult
 from selfview.offline import OfflineResult
 
-__all__ = ["PictureCalibration", "TrackResult", "assess_offline", "calibrate_picture", "track", "RMS_LIMIT_PX"]
+__all__ = ["PictureCalibration", "TrackResult", "assess_offline", "calibrate_picture", "calibration_change", "track",
+           "RMS_LIMIT_PX"]
 
 #: A disc residual RMS [px] above this says the picture is out of focus or badly lit.
 RMS_LIMIT_PX = 0.5
@@ -90,6 +91,22 @@ class PictureCalibration:
                 "warnings": list(self.warnings),
                 "camera_check": {k: v for k, v in self.camera_check.items() if k != "warning"},
                 "camera_file_fit": self.camera_file_fit}
+
+
+def calibration_change(previous: Calibration, new: Calibration) -> dict:
+    """What moved from ``previous`` to ``new``: the TCP in camera axes [mm] (``tcp_moved_mm`` x y z and its
+    length), the rotation of ``C_H_G`` [deg], f [px] and kappa [px^-2], and whether both saw the same
+    picture and gripper state. Two calibrations of one mount differ by their sigmas; more means the
+    camera moved on its mount or one of them is wrong."""
+    from selfview.geometry import pose_difference
+
+    d = np.asarray(new.C_H_G, float)[:3, 3] - np.asarray(previous.C_H_G, float)[:3, 3]
+    deg, mm = pose_difference(new.C_H_G, previous.C_H_G)
+    return {"previous_created": previous.created, "tcp_moved_mm": [float(v) for v in d], "tcp_moved_norm_mm": mm,
+            "rotated_deg": deg, "f_changed_px": float(new.camera.f - previous.camera.f),
+            "kappa_changed": float(new.camera.kappa - previous.camera.kappa),
+            "same_picture": bool(new.image_sha256 and new.image_sha256 == previous.image_sha256),
+            "same_state": new.state == previous.state}
 
 
 def assess_offline(res: OfflineResult, cell: Cell, camera: CameraModel | None = None, camera_cov3=None,

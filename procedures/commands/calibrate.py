@@ -69,13 +69,24 @@ def _camera_file(path, cell):
     return cf.camera, {"path": str(path), "sha256": file_sha256(path)}, cf.centre_covariance()
 
 
+def _previous(out):
+    """The calibration ``out`` holds now (the one this run replaces), or None (no file, or not a calibration)."""
+    from selfview.calfile import load_calibration
+    from selfview.errors import CellError
+
+    try:
+        return load_calibration(out)
+    except (CellError, OSError):
+        return None
+
+
 def run(args) -> int:
     with viewing(args, "calibrate") as view:
         return _run(args, view)
 
 
 def _run(args, view) -> int:
-    from selfview.api import assess_offline
+    from selfview.api import assess_offline, calibration_change
     from selfview.calfile import save_calibration
     from selfview.procedures.results import draw_offline, keep_pictures
     from selfview.errors import ConfigError
@@ -90,16 +101,24 @@ def _run(args, view) -> int:
     if cam_path:
         camera, camera_file, cov3 = _camera_file(cam_path, cell)
 
-    assessed = []
+    assessed, change = [], {}
 
     def before_save(img, res):
         fit = getattr(session, "camera_file_fit", None) if not args.image else refuse_unfitting_camera(
             res, camera, cam_path, args.force)
         assessed.append(assess_offline(res, cell, camera, cov3, cam_path, fit))  # records the sigma in the file
+        previous = _previous(args.out)
+        if previous is not None:
+            change.update(calibration_change(previous, res.calibration))
         if not args.no_pictures:
             res.calibration.pictures = keep_pictures(args.out, img, lambda im: draw_offline(im, res))
         if view:
             offline_state(view, img, assessed[-1])
+            if change:
+                view.update(numbers=view.state()["numbers"] | {
+                    "against the previous: TCP moved x y z [mm]": " ".join(f"{v:+.4f}" for v in change["tcp_moved_mm"]),
+                    "against the previous: rotated [deg]": change["rotated_deg"],
+                    "against the previous: f changed [px]": change["f_changed_px"]})
 
     if args.image:
         if args.real or url:
@@ -131,6 +150,7 @@ def _run(args, view) -> int:
     s["previous_kept_as"] = str(kept) if kept else None
     s["camera_file"] = camera_file
     s["pictures"] = dict(res.calibration.pictures)
+    s["against_previous"] = change or None
     warnings = s["warnings"]
     if pc.camera_file_fit and not pc.camera_file_fit["fits"]:
         warnings[0] = warnings[0].replace("; measure", "; written because of --force (measure") + ")"
@@ -154,6 +174,11 @@ def _run(args, view) -> int:
     ]
     if s["pictures"]:
         lines.append(f"picture kept as {s['pictures']['picture']}, annotated as {s['pictures']['annotated']}")
+    if change:
+        lines.append("against the previous calibration: TCP moved "
+                     + "  ".join(f"{a} {v:+.4f}" for a, v in zip("xyz", change["tcp_moved_mm"]))
+                     + f" mm ({change['tcp_moved_norm_mm']:.4f} mm), rotated {change['rotated_deg']:.4f} deg, "
+                     f"f {change['f_changed_px']:+.2f} px")
     lines.append(f"{'GO' if pc.go else 'NO-GO'}: {pc.reason}")
     print("\n".join(lines), file=sys.stdout)
     return 0

@@ -190,3 +190,20 @@ def test_robot_motions_say_what_they_did_and_each_refusal_its_own_advice(capsys)
             proc.kill()
             proc.wait(5)
         proc.stdout.close()
+
+
+def test_a_new_calibration_says_what_moved_since_the_previous_one(cell, scenes, tmp_path, capsys):
+    _, s = scenes
+    cal = tmp_path / "c.yaml"
+    assert main(["calibrate", "--image", str(s["ideal"][0]), "--out", str(cal), "--json", "--no-pictures"]) == 0
+    first = json.loads(capsys.readouterr().out)
+    assert first["against_previous"] is None  # nothing to compare with
+    assert main(["calibrate", "--image", str(s["realistic"][0]), "--out", str(cal), "--json", "--no-pictures"]) == 0
+    second = json.loads(capsys.readouterr().out)
+    ch = second["against_previous"]
+    moved = np.asarray(second["C_H_G"])[:3, 3] - np.asarray(first["C_H_G"])[:3, 3]
+    assert ch["tcp_moved_mm"] == pytest.approx(moved.tolist(), abs=1e-9) and ch["tcp_moved_norm_mm"] > 1.0
+    assert ch["f_changed_px"] == pytest.approx(second["f"] - first["f"]) and not ch["same_picture"]
+    assert main(["calibrate", "--image", str(s["realistic"][0]), "--out", str(cal), "--no-pictures"]) == 0
+    out = capsys.readouterr().out
+    assert "against the previous calibration: TCP moved x +0.0000  y +0.0000  z +0.0000 mm (0.0000 mm)" in out
