@@ -210,22 +210,54 @@ def _draw_corners(big, fingertips, scale):
 
 def annotate_online(image, camera, C_H_G_before, estimates: dict, fingertips, pG, path: Path, scale: int = 2) -> Path:
     """Second picture of a trial: the fingertip corners found (yellow), the gripper where the first
-    calibration predicts it (grey) and where each on-line method puts it (one colour each)."""
+    calibration predicts it (grey) and where each on-line method puts it (one colour each, named in the
+    legend). The methods agree to a fraction of a pixel, so an inset shows each one's TCP apart: its
+    offset from their mean, magnified (the factor and the largest offset written in it)."""
     import cv2
 
     big = cv2.resize(_bgr(image), None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
     _draw_gripper(big, camera, C_H_G_before, pG, scale, (160, 160, 160))
     colours = [(0, 0, 255), (0, 128, 255), (0, 200, 0), (255, 0, 0), (255, 0, 255), (0, 255, 255), (128, 0, 128), (0, 100, 0)]
+    tcp = {}
     for k, (m, est) in enumerate(estimates.items()):
         c = colours[k % len(colours)]
         _draw_gripper(big, camera, est.C_H_G_orth, pG, scale, c)
         _label(big, m, (10, 50 + 20 * k), c)
+        try:
+            tcp[m] = (camera.project(transform_points(est.C_H_G_orth, np.zeros((1, 3))))[0], c)
+        except Exception:  # an estimate behind the camera has no TCP in the picture
+            pass
     for i in range(6):
         if fingertips.found[i]:
             cv2.circle(big, _pt(fingertips.uv[i], scale), 5 * scale, (0, 230, 230), 1, cv2.LINE_AA)
-    _label(big, "grey: before the disturbance; colours: each method's estimate after it", (10, 24), (220, 220, 220))
+    _label(big, "grey: before the disturbance; colours: each method's estimate after it; yellow: fingertip corners",
+           (10, 24), (220, 220, 220))
+    if len(tcp) > 1:
+        _tcp_inset(big, tcp)
     cv2.imwrite(str(path), big)
     return path
+
+
+def _tcp_inset(big, tcp: dict, size: int = 300) -> None:
+    """An inset at the bottom right: each method's TCP (``tcp``: name -> (uv [px], colour)) as its offset
+    from their mean, magnified so the largest reaches 40 % of the inset."""
+    import cv2
+
+    mean = np.mean([uv for uv, _ in tcp.values()], axis=0)
+    off = {m: uv - mean for m, (uv, _) in tcp.items()}
+    worst = max(float(np.hypot(*d)) for d in off.values())
+    gain = 0.4 * size / max(worst, 1e-6)
+    h, w = big.shape[:2]
+    x0, y0 = w - size - 10, h - size - 10
+    big[y0:y0 + size, x0:x0 + size] = (big[y0:y0 + size, x0:x0 + size] * 0.15).astype(big.dtype)
+    cv2.rectangle(big, (x0, y0), (x0 + size, y0 + size), (220, 220, 220), 1)
+    cx, cy = x0 + size // 2, y0 + size // 2
+    cv2.drawMarker(big, (cx, cy), (220, 220, 220), cv2.MARKER_CROSS, 20, 1)
+    for m, d in off.items():
+        p = (int(round(cx + gain * d[0])), int(round(cy + gain * d[1])))
+        cv2.circle(big, p, 5, tcp[m][1], -1, cv2.LINE_AA)
+    for k, text in enumerate(("each method's TCP:", f"offset from the mean x{gain:.0f}", f"largest {worst:.3f} px")):
+        _label(big, text, (x0 + 6, y0 + 20 + 20 * k), (220, 220, 220))
 
 
 def _label(img, text, org, colour):
@@ -237,8 +269,8 @@ def _label(img, text, org, colour):
 
 
 def plot_errors(summary: dict, path: Path, methods) -> Path:
-    """Bar chart (log scale): mean (bar) and max (whisker) TCP error per method and camera axis, per series,
-    against the off-line reference and against the truth; the paper's means as black ticks."""
+    """Bar chart (log scale): mean (bar) and max (whisker, named in the legend) TCP error per method and camera
+    axis, per series, against the off-line reference and against the truth; the paper's means as black ticks."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -261,7 +293,8 @@ def plot_errors(summary: dict, path: Path, methods) -> Path:
                 xs = x + (k - 1) * 0.27
                 ax.bar(xs, means, width=0.25, label=f"{an} mean", color=f"C{k}")
                 ax.errorbar(xs, means, yerr=[np.zeros(len(ms)), np.subtract(maxs, means)], fmt="none",
-                            ecolor="k", elinewidth=0.8, capsize=2)
+                            ecolor="k", elinewidth=0.8, capsize=2,
+                            label="whisker: max over the trials" if k == 0 else None)
                 if against == "reference":
                     pm = [PAPER_TABLES.get(s, {}).get(m, ((np.nan,) * 3,))[0][k] for m in ms]
                     ax.scatter(xs, pm, marker="_", s=120, color="k", zorder=5,

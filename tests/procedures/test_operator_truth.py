@@ -207,3 +207,26 @@ def test_a_new_calibration_says_what_moved_since_the_previous_one(cell, scenes, 
     assert main(["calibrate", "--image", str(s["realistic"][0]), "--out", str(cal), "--no-pictures"]) == 0
     out = capsys.readouterr().out
     assert "against the previous calibration: TCP moved x +0.0000  y +0.0000  z +0.0000 mm (0.0000 mm)" in out
+
+
+def test_the_online_picture_shows_each_methods_tcp_apart(cell, scenes, tmp_path):
+    """Methods that agree to a thousandth of a pixel are drawn on top of each other; the inset shows each
+    one's TCP at its magnified offset, in its colour."""
+    import types
+
+    from selfview.procedures.results import annotate_online
+
+    _, s = scenes
+    parked, _, moved, _ = s["ideal"]
+    pc = selfview.calibrate_picture(parked, cell=cell)
+    ests, ft = {}, None
+    for m in ("3P-U", "4P-U", "4P-R"):
+        t = selfview.track(moved, pc.calibration, method=m, cell=cell)
+        ests[m], ft = types.SimpleNamespace(C_H_G_orth=t.C_H_G_orthonormal), t.fingertips
+    img = cv2.imread(str(moved), cv2.IMREAD_GRAYSCALE)
+    out = annotate_online(img, pc.calibration.camera, pc.C_H_G, ests, ft, pc.calibration.points_G[pc.calibration.state],
+                          tmp_path / "online.png")
+    pic = cv2.imread(str(out))
+    inset = pic[-310:-10, -310:-10].astype(int)
+    for colour in ((0, 0, 255), (0, 128, 255), (0, 200, 0)):  # 3P-U, 4P-U, 4P-R: a dot of each in the inset
+        assert np.count_nonzero(np.abs(inset - colour).sum(axis=2) < 40) >= 20, colour
