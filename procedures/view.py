@@ -24,7 +24,7 @@ import numpy as np
 
 from selfview.procedures.commands._common import PORT, SECONDS_OR_ZERO
 
-__all__ = ["LiveView", "ViewProgress", "add_view_arguments", "open_view", "viewing", "with_progress", "watch", "offline_state", "intrinsics_state", "tracked_frames", "decision_state"]
+__all__ = ["LiveView", "ViewProgress", "add_view_arguments", "open_view", "viewing", "with_progress", "watch", "offline_state", "intrinsics_state", "view_coverage", "tracked_frames", "decision_state"]
 
 
 def add_view_arguments(p: argparse.ArgumentParser) -> None:
@@ -101,7 +101,7 @@ class LiveView:
         self._jpeg = b""
         self._state = {"command": command, "doing": "starting", "seq": 0, "frame_seq": 0, "verdict": None,
                        "numbers": {}, "residuals": [], "series": None, "coverage": None, "done": False,
-                       "log": [], "alarm": None, "stop_requested": False, "updated": time.time()}
+                       "log": [], "alarm": None, "stop_requested": False, "bars": None, "views": [], "updated": time.time()}
         self._server = None
         self.token = secrets.token_urlsafe(24)  # per run; only the page this run serves holds it
         self._actions = {"stop": self._stop, "acknowledge": self._acknowledge}
@@ -307,9 +307,10 @@ def offline_state(view: LiveView, image, assessed) -> None:
     view.verdict(assessed.go, assessed.reason)
 
 
-def intrinsics_state(view: LiveView, res) -> None:
+def intrinsics_state(view: LiveView, res, plate=None) -> None:
     """A camera measured from several views (``selfview.intrinsics``) on the page: its figures, the stop
-    rule's state and a verdict (go when the rule is met and the two halves of the views agree)."""
+    rule's state, a row per view (used or why not), the views' coverage bars (with the ``plate``) and a
+    verdict (go when the rule is met and the two halves of the views agree)."""
     xc = res.cross_check
     sr = res.stop_rule
     view.update(numbers={"f [px]": res.camera.f, "kappa [px^-2]": res.camera.kappa, "cx [px]": res.camera.cx,
@@ -317,10 +318,41 @@ def intrinsics_state(view: LiveView, res) -> None:
                          "residual rms [px]": res.rms_px,
                          "stop rule: sigma centre [px]": f"{sr['sigma_centre_px']:.3f} (limit {sr['limit_centre_px']})",
                          "stop rule: sigma aspect [%]": f"{sr['sigma_aspect_pct']:.4f} (limit {sr['limit_aspect_pct']})"})
+    view.update(views=[{"view": v.name, "discs": v.discs, "dropped": v.dropped, "rms [px]": v.rms_px,
+                            "tilt [deg]": v.tilt_deg, "distance [mm]": v.distance_mm, "used": "yes"} for v in res.views]
+                + [{"view": sk["name"], "discs": 0, "dropped": 0, "rms [px]": None, "tilt [deg]": None,
+                    "distance [mm]": None, "used": f"no: {sk['reason']}"} for sk in res.skipped],
+                bars=view_coverage(res, plate) if plate is not None else None)
     view.verdict(bool(sr["met"]) and not (xc.get("done") and not xc.get("agree")),
                  "stop rule met" + ("" if not xc.get("done") else ", halves agree" if xc.get("agree") else
                                     ", but the halves DISAGREE") if sr["met"] else
                  "stop rule not met: " + sr.get("advice", ""))
+
+
+#: What the views should span for full bars: the plate's discs over 60 % of the picture's width and height
+#: (5th to 95th percentile of every view's discs), the plate's distance over 25 % of its mean, a tilt of
+#: 30 deg (the centre and the aspect need tilted views).
+COVERAGE_GOALS = {"x": 0.6, "y": 0.6, "size": 0.25, "tilt": 30.0}
+
+
+def view_coverage(res, plate) -> dict:
+    """Coverage bars of a set of views (``selfview.intrinsics`` result) of ``plate`` (``selfview.cell``'s):
+    x, y the span of the discs the views put in the picture over its width and height, size the span of
+    the plate's distance over its mean, tilt the largest tilt [deg]; each {value, goal, fraction (0..1)}.
+    The stop rule decides; the bars say which kind of view would help."""
+    from selfview.geometry import transform_points
+
+    cam = res.camera
+    if not res.views:
+        return {}
+    pW = plate.disc_centres_W()
+    uv = np.vstack([cam.project(transform_points(np.asarray(v.C_H_W, float), pW)) for v in res.views])
+    uv = uv[(uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)]
+    span = (np.percentile(uv, 95, axis=0) - np.percentile(uv, 5, axis=0)) if len(uv) else np.zeros(2)
+    d = np.array([v.distance_mm for v in res.views])
+    vals = {"x": float(span[0] / cam.width), "y": float(span[1] / cam.height),
+            "size": float(np.ptp(d) / d.mean()), "tilt": float(max(v.tilt_deg for v in res.views))}
+    return {k: {"value": vals[k], "goal": g, "fraction": float(min(1.0, vals[k] / g))} for k, g in COVERAGE_GOALS.items()}
 
 
 def tracked_frames(view: LiveView, calibration, cell):
@@ -433,6 +465,7 @@ table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #555;paddin
 th{background:#333}section{min-width:320px}h2{font-size:15px;margin:8px 0 4px}
 #logwrap{max-height:260px;overflow-y:auto}svg{background:#111}
 #log td:last-child{text-align:left;min-width:300px;font-size:11px}
+.barout{width:220px;height:14px;background:#444}.barin{height:14px;background:#3a9}
 </style></head><body>
 <div id="bar"><div id="verdict">waiting for a verdict</div>
 <button id="stop" title="abort the robot and make the valve safe (as Ctrl-C)">STOP</button></div>
@@ -443,7 +476,9 @@ th{background:#333}section{min-width:320px}h2{font-size:15px;margin:8px 0 4px}
 <section id="side"><h2 id="cmd">figures</h2><table id="numbers"></table>
 <div id="plotbox" hidden><h2>change of the camera over time</h2><svg id="plot" width="360" height="240"></svg></div>
 <div id="logbox" hidden><h2>decision per frame (newest first)</h2><div id="logwrap"><table id="log"></table></div></div>
+<div id="barbox" hidden><h2>coverage of the views (the stop rule decides)</h2><table id="bars"></table></div>
 <div id="coveragebox" hidden><h2>coverage of the picture</h2><table id="coverage"></table></div>
+<div id="viewbox" hidden><h2>per view</h2><table id="views"></table></div>
 <div id="residualbox" hidden><h2>residuals per point</h2><table id="residuals"></table></div></section></main>
 <script>
 const TOKEN="__TOKEN__";let lastFrame=-1;
@@ -496,7 +531,12 @@ async function poll(){let s;try{s=await (await fetch("state.json",{cache:"no-sto
  document.getElementById("plotbox").hidden=!s.series;document.getElementById("coveragebox").hidden=!s.coverage;
  document.getElementById("residualbox").hidden=!s.residuals.length;document.getElementById("logbox").hidden=!s.log.length;
  if(s.coverage)rows(document.getElementById("coverage"),s.coverage);
- table(document.getElementById("residuals"),s.residuals);table(document.getElementById("log"),s.log.slice().reverse());
+ document.getElementById("barbox").hidden=!s.bars;if(s.bars){const t=document.getElementById("bars");t.innerHTML="";
+  for(const k in s.bars){const b=s.bars[k],r=t.insertRow();r.insertCell().textContent=k;
+   r.insertCell().innerHTML=`<div class="barout"><div class="barin" style="width:${Math.round(100*b.fraction)}%"></div></div>`;
+   r.insertCell().textContent=fmt(b.value)+" of "+b.goal;}}
+ table(document.getElementById("residuals"),s.residuals);
+ document.getElementById("viewbox").hidden=!s.views.length;table(document.getElementById("views"),s.views);table(document.getElementById("log"),s.log.slice().reverse());
  if(s.frame_seq!==lastFrame&&s.frame_seq>0){lastFrame=s.frame_seq;
   document.getElementById("frame").src="frame.jpg?"+s.frame_seq;}
 }catch(e){document.getElementById("doing").textContent="page error: "+e;}

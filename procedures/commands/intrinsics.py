@@ -120,7 +120,7 @@ def _run(args, view) -> int:
                         f"(limit {xc['limit_sigmas']:g}); a view may be blurred, or the camera moved between views")
     s["warnings"] = warnings
     if view:
-        intrinsics_state(view, res)
+        intrinsics_state(view, res, cell.plate)
     if not args.images and getattr(session, "sim", None) is not None:
         t = session.sim.world.camera
         s["truth"] = {"f": t.f, "kappa": t.kappa, "principal_point": [t.cx, t.cy], "aspect": t.aspect}

@@ -201,3 +201,26 @@ def test_only_the_pages_token_changes_anything_and_never_a_get():
         assert code == 200 and said["said"] == "alarm acknowledged" and view.state()["alarm"]["acknowledged"]
     finally:
         view.close()
+
+
+@needs_chromium
+def test_intrinsics_page_has_a_row_per_view_and_coverage_bars(tmp_path):
+    from tests.procedures.test_cli_view import browser
+
+    p, url = start(["intrinsics", "--view", "--view-linger", "30", "--json"], tmp_path)
+    try:
+        s = wait_for(url, lambda s: s["done"], timeout_s=240)
+        dom, shot = browser(url, tmp_path, "intrinsics")
+    finally:
+        if p.poll() is None:
+            p.kill()
+        p.communicate(timeout=10)
+    used = [v for v in s["views"] if v["used"] == "yes"]
+    assert len(used) == s["numbers"]["views used"] >= 4
+    assert all(v["discs"] >= 5 and v["rms [px]"] < 0.1 for v in used)
+    assert set(s["bars"]) == {"x", "y", "size", "tilt"}
+    assert all(0 <= b["fraction"] <= 1 for b in s["bars"].values())
+    assert s["bars"]["tilt"]["value"] == pytest.approx(max(v["tilt [deg]"] for v in used))
+    assert s["bars"]["x"]["value"] > 0.3  # the discs of 12 planned views spread over the picture
+    assert len(re.findall(r'<div class="barin" style="width:\d+%"', dom)) == 4 and "<th>tilt [deg]</th>" in dom and "<td>view 12</td>" in dom
+    assert shot is not None
