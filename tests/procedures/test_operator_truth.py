@@ -2,6 +2,7 @@
 line; a sigma that covers the camera model's error; the one-call API against the commands."""
 
 import json
+import re
 
 import cv2
 import numpy as np
@@ -230,3 +231,42 @@ def test_the_online_picture_shows_each_methods_tcp_apart(cell, scenes, tmp_path)
     inset = pic[-310:-10, -310:-10].astype(int)
     for colour in ((0, 0, 255), (0, 128, 255), (0, 200, 0)):  # 3P-U, 4P-U, 4P-R: a dot of each in the inset
         assert np.count_nonzero(np.abs(inset - colour).sum(axis=2) < 40) >= 20, colour
+
+
+def test_ctrl_c_in_an_experiment_keeps_the_finished_trials_and_says_one_thing(tmp_path, capsys, monkeypatch):
+    import signal
+    import threading
+
+    import selfview.procedures.runs as runs
+
+    finished = threading.Event()
+    real = runs.run_trial
+    count = [0]
+
+    def trial(*a, **kw):
+        out = real(*a, **kw)
+        count[0] += 1
+        if count[0] == 2:
+            finished.set()
+        return out
+
+    monkeypatch.setattr(runs, "run_trial", trial)
+    main_thread = threading.get_ident()
+    ctrl_c = threading.Thread(target=lambda: finished.wait(120) and signal.pthread_kill(main_thread, signal.SIGINT))
+    ctrl_c.start()
+    out = tmp_path / "run"
+    try:
+        code = main(["experiment", "--trials", "6", "--series", "cable", "--out", str(out), "--profile", "ideal",
+                     "--sim-camera", "ideal", "--seed", "3"])
+    finally:
+        ctrl_c.join(120)
+    err = capsys.readouterr().err
+    assert code == 130, err
+    res = json.loads((out / "results.json").read_text())
+    n = res["config"]["trials_finished"]
+    assert n >= 2 and len(res["trials"]) == n and "interrupted" in res["summary"]["interrupted"]
+    assert (out / "tables.md").is_file()
+    tail = err[err.index("interrupted by the operator"):]
+    assert f"the {n} finished trial(s) are kept in {out}/" in tail
+    assert tail.count("ABORT sent") == 2  # once in the cleanup's line, once in the error; one outcome each
+    assert "confirmed" in tail and not re.search(r"trial \d+ of", tail)  # no progress after the interrupt
