@@ -27,10 +27,9 @@ def register(sub):
             "errors.png. A run never overwrites an earlier run's folder."
         ),
     )
-    # a real cell's imperfections and a camera that is not the nominal one by default, measured first as a
-    # lab would with a new camera: the figures a lab should expect (--profile ideal --sim-camera ideal: a
-    # perfect cell)
-    add_session_arguments(p, profile_default="realistic", sim_camera_default="realistic")
+    # the same simulated cell as every command's; --profile realistic --sim-camera realistic: a real cell's
+    # imperfections and a camera that is not the nominal one, measured first as a lab would with a new camera
+    add_session_arguments(p)
     p.add_argument("--trials", type=numeric(integer=True, lo=1, hi=10_000, name="trials"), default=20, help="trials per series (default %(default)s)")
     p.add_argument("--series", nargs="+", default=["cable", "tilt"], help="series to run (default: cable tilt)")
     p.add_argument("--out", metavar="DIR", help="results folder (must be new or empty; default runs/experiment-TIME)")

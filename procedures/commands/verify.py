@@ -41,7 +41,7 @@ def register(sub):
             "reported too. Nothing is written; the robot departs from the plate at the end."
         ),
     )
-    add_session_arguments(p, camera_file=True, profile_default="realistic")
+    add_session_arguments(p, camera_file=True)
     p.add_argument("--parks", type=numeric(integer=True, lo=3, hi=len(PLACES), name="parks"), default=5, help=f"how many parks, 3 to {len(PLACES)} (default %(default)s)")
     p.add_argument("--target-mm", type=numeric(lo=0, lo_open=True, hi=1000, name="mm"), default=0.25, metavar="MM",
                    help="the largest spread of the TCP along any camera axis that counts as go (default %(default)s)")
