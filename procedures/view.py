@@ -101,7 +101,7 @@ class LiveView:
         self._jpeg = b""
         self._state = {"command": command, "doing": "starting", "seq": 0, "frame_seq": 0, "verdict": None,
                        "numbers": {}, "residuals": [], "series": None, "coverage": None, "done": False,
-                       "log": [], "alarm": None, "stop_requested": False, "bars": None, "views": [], "updated": time.time()}
+                       "log": [], "alarm": None, "stop_requested": False, "bars": None, "views": [], "ask": None, "updated": time.time()}
         self._server = None
         self.token = secrets.token_urlsafe(24)  # per run; only the page this run serves holds it
         self._actions = {"stop": self._stop, "acknowledge": self._acknowledge}
@@ -136,7 +136,38 @@ class LiveView:
         self.update()
 
     # --- the page's controls (run in the server's thread) -----------------------------------------
-    def _stop(self) -> str:
+    def ask(self, prompt: str, buttons, *, select_views: bool = False, timeout_s: float = 600.0):
+        """Offer ``buttons`` [(action, label)] on the page under ``prompt`` and wait for the operator's click
+        (STOP and Ctrl-C still end the run); with ``select_views`` the page's per-view table offers a reject
+        box per view, sent with the click as ``reject`` (view names). Returns (action, {"reject": [...]}),
+        or None when nobody answered within ``timeout_s``."""
+        done = threading.Event()
+        box = {}
+
+        def answer(name):
+            def fn(payload):
+                box.update(action=name, reject=[str(v) for v in (payload.get("reject") or [])][:1000])
+                done.set()
+                return f"{name} requested"
+            return fn
+
+        names = [a for a, _ in buttons]
+        for a in names:
+            self._actions[a] = answer(a)
+        self.update(ask={"prompt": str(prompt), "buttons": [{"action": a, "label": lb} for a, lb in buttons],
+                         "select": "views" if select_views else None})
+        try:
+            end = time.monotonic() + timeout_s
+            while not done.wait(0.1):
+                if time.monotonic() > end:
+                    return None
+        finally:
+            for a in names:
+                self._actions.pop(a, None)
+            self.update(ask=None)
+        return box["action"], {"reject": box["reject"]}
+
+    def _stop(self, payload=None) -> str:
         """STOP: the run stops as on Ctrl-C (``procedures.engine``: ABORT to the robot, the valve safe, the
         devices closed, exit 130); a signal is how another thread reaches the main thread's cleanup."""
         sig = signal.SIGINT if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN else signal.SIGTERM
@@ -145,7 +176,7 @@ class LiveView:
         signal.pthread_kill(threading.main_thread().ident, sig)
         return "stopping: ABORT to the robot, the valve safe"
 
-    def _acknowledge(self) -> str:
+    def _acknowledge(self, payload=None) -> str:
         with self._lock:
             alarm = self._state.get("alarm")
         if not alarm:
@@ -200,13 +231,14 @@ class LiveView:
                     self.send_error(403, "missing or wrong token: use the page this run serves")
                     return
                 try:
-                    n = min(int(self.headers.get("Content-Length", "0")), 4096)
-                    name = json.loads(self.rfile.read(n) or b"{}").get("action")
+                    n = min(int(self.headers.get("Content-Length", "0")), 65536)
+                    payload = json.loads(self.rfile.read(n) or b"{}")
+                    name = payload.get("action")
                     fn = view._actions[name]
                 except (ValueError, KeyError, AttributeError, TypeError):
-                    self.send_error(400, "expected {\"action\": \"stop\" or \"acknowledge\"}")
+                    self.send_error(400, "expected {\"action\": NAME} with one of the page's actions")
                     return
-                body = json.dumps({"action": name, "said": fn()}).encode()
+                body = json.dumps({"action": name, "said": fn(payload)}).encode()
                 self.send_response(200)
                 self.send_header("Content-Type", "application/json")
                 self.send_header("Content-Length", str(len(body)))
@@ -307,7 +339,7 @@ def offline_state(view: LiveView, image, assessed) -> None:
     view.verdict(assessed.go, assessed.reason)
 
 
-def intrinsics_state(view: LiveView, res, plate=None) -> None:
+def intrinsics_state(view: LiveView, res, plate=None, rejected=()) -> None:
     """A camera measured from several views (``selfview.intrinsics``) on the page: its figures, the stop
     rule's state, a row per view (used or why not), the views' coverage bars (with the ``plate``) and a
     verdict (go when the rule is met and the two halves of the views agree)."""
@@ -321,7 +353,9 @@ def intrinsics_state(view: LiveView, res, plate=None) -> None:
     view.update(views=[{"view": v.name, "discs": v.discs, "dropped": v.dropped, "rms [px]": v.rms_px,
                             "tilt [deg]": v.tilt_deg, "distance [mm]": v.distance_mm, "used": "yes"} for v in res.views]
                 + [{"view": sk["name"], "discs": 0, "dropped": 0, "rms [px]": None, "tilt [deg]": None,
-                    "distance [mm]": None, "used": f"no: {sk['reason']}"} for sk in res.skipped],
+                    "distance [mm]": None, "used": f"no: {sk['reason']}"} for sk in res.skipped]
+                + [{"view": nm, "discs": 0, "dropped": 0, "rms [px]": None, "tilt [deg]": None,
+                    "distance [mm]": None, "used": "no: rejected on the page"} for nm in rejected],
                 bars=view_coverage(res, plate) if plate is not None else None)
     view.verdict(bool(sr["met"]) and not (xc.get("done") and not xc.get("agree")),
                  "stop rule met" + ("" if not xc.get("done") else ", halves agree" if xc.get("agree") else
@@ -457,6 +491,8 @@ button{font-size:18px;font-weight:bold;border:0;padding:0 22px;cursor:pointer}
 #stop{background:#e00000;color:#fff;min-width:120px}#stop:disabled{background:#733;color:#ccc}
 #alarmbox{padding:8px 16px;background:#7a1010;display:flex;gap:16px;align-items:center}
 #ack{background:#ffd84a;color:#000;padding:6px 16px}
+#askbox{padding:8px 16px;background:#1d3f6e;display:flex;gap:16px;align-items:center}
+#askbuttons button{background:#9cf;color:#000;padding:6px 16px;margin-right:8px}
 #doing{padding:6px 16px;background:#333;font-family:monospace}
 main{display:flex;flex-wrap:wrap;gap:12px;padding:12px}
 #framebox{flex:1 1 760px;max-width:1000px}#frame{width:100%;background:#000;display:block}
@@ -465,11 +501,13 @@ table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #555;paddin
 th{background:#333}section{min-width:320px}h2{font-size:15px;margin:8px 0 4px}
 #logwrap{max-height:260px;overflow-y:auto}svg{background:#111}
 #log td:last-child{text-align:left;min-width:300px;font-size:11px}
+#views td:first-child{white-space:nowrap}
 .barout{width:220px;height:14px;background:#444}.barin{height:14px;background:#3a9}
 </style></head><body>
 <div id="bar"><div id="verdict">waiting for a verdict</div>
 <button id="stop" title="abort the robot and make the valve safe (as Ctrl-C)">STOP</button></div>
 <div id="alarmbox" hidden><span id="alarmtext"></span><button id="ack">acknowledge the alarm</button></div>
+<div id="askbox" hidden><span id="asktext"></span><span id="askbuttons"></span></div>
 <div id="doing">connecting</div>
 <main><section id="framebox"><a href="frame.jpg" target="_blank" title="the frame at full size">
 <img id="frame" alt="latest frame"></a></section>
@@ -481,9 +519,9 @@ th{background:#333}section{min-width:320px}h2{font-size:15px;margin:8px 0 4px}
 <div id="viewbox" hidden><h2>per view</h2><table id="views"></table></div>
 <div id="residualbox" hidden><h2>residuals per point</h2><table id="residuals"></table></div></section></main>
 <script>
-const TOKEN="__TOKEN__";let lastFrame=-1;
-async function act(name){const r=await fetch("action",{method:"POST",headers:{"Content-Type":"application/json",
- "X-Selfview-Token":TOKEN},body:JSON.stringify({action:name})});
+const TOKEN="__TOKEN__";let lastFrame=-1,askKey="",viewsKey="";const rejected=new Set();
+async function act(name,extra){const r=await fetch("action",{method:"POST",headers:{"Content-Type":"application/json",
+ "X-Selfview-Token":TOKEN},body:JSON.stringify(Object.assign({action:name},extra||{}))});
  document.getElementById("doing").textContent=r.ok?(await r.json()).said:"refused: "+r.status;}
 document.getElementById("stop").onclick=()=>{document.getElementById("stop").disabled=true;act("stop");};
 document.getElementById("ack").onclick=()=>act("acknowledge");
@@ -535,8 +573,18 @@ async function poll(){let s;try{s=await (await fetch("state.json",{cache:"no-sto
   for(const k in s.bars){const b=s.bars[k],r=t.insertRow();r.insertCell().textContent=k;
    r.insertCell().innerHTML=`<div class="barout"><div class="barin" style="width:${Math.round(100*b.fraction)}%"></div></div>`;
    r.insertCell().textContent=fmt(b.value)+" of "+b.goal;}}
+ const ak=document.getElementById("askbox");ak.hidden=!s.ask;
+ if(s.ask&&JSON.stringify(s.ask)!==askKey){askKey=JSON.stringify(s.ask);document.getElementById("asktext").textContent=s.ask.prompt;
+  const bb=document.getElementById("askbuttons");bb.innerHTML="";for(const b of s.ask.buttons){const e=document.createElement("button");
+   e.id="ask-"+b.action;e.textContent=b.label;e.onclick=()=>{ak.hidden=true;act(b.action,{reject:[...rejected]});};bb.appendChild(e);}}
+ if(!s.ask)askKey="";
  table(document.getElementById("residuals"),s.residuals);
- document.getElementById("viewbox").hidden=!s.views.length;table(document.getElementById("views"),s.views);table(document.getElementById("log"),s.log.slice().reverse());
+ document.getElementById("viewbox").hidden=!s.views.length;const vk=JSON.stringify([s.views,s.ask]);
+ if(vk!==viewsKey){viewsKey=vk;table(document.getElementById("views"),s.views);
+ if(s.ask&&s.ask.select==="views"){const t=document.getElementById("views");t.rows[0].insertCell().outerHTML="<th>reject</th>";
+  for(let i=1;i<t.rows.length;i++){const nm=t.rows[i].cells[0].textContent,c=document.createElement("input");c.type="checkbox";
+   c.id="reject-"+nm.replace(/\W+/g,"-");c.checked=rejected.has(nm);c.onchange=()=>{c.checked?rejected.add(nm):rejected.delete(nm);};
+   t.rows[i].insertCell().appendChild(c);}}}table(document.getElementById("log"),s.log.slice().reverse());
  if(s.frame_seq!==lastFrame&&s.frame_seq>0){lastFrame=s.frame_seq;
   document.getElementById("frame").src="frame.jpg?"+s.frame_seq;}
 }catch(e){document.getElementById("doing").textContent="page error: "+e;}

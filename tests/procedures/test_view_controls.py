@@ -224,3 +224,37 @@ def test_intrinsics_page_has_a_row_per_view_and_coverage_bars(tmp_path):
     assert s["bars"]["x"]["value"] > 0.3  # the discs of 12 planned views spread over the picture
     assert len(re.findall(r'<div class="barin" style="width:\d+%"', dom)) == 4 and "<th>tilt [deg]</th>" in dom and "<td>view 12</td>" in dom
     assert shot is not None
+
+
+@needs_chromium
+def test_views_are_rejected_recalibrated_and_saved_by_clicks(tmp_path):
+    """intrinsics --review: the page lists the views; a view marked and CALIBRATE measures again without it;
+    SAVE writes the camera file; nothing is written before."""
+    p, url = start(["intrinsics", "--view", "--review", "120", "--out", "cam.yaml", "--json"], tmp_path)
+    b = None
+    try:
+        s = wait_for(url, lambda s: s["ask"] is not None, timeout_s=240)
+        assert s["numbers"]["views used"] == 12 and not (tmp_path / "cam.yaml").exists()
+        b = DevTools(url, tmp_path)
+        b.wait_js("document.getElementById('reject-view-3')!==null && document.getElementById('ask-calibrate')!==null")
+        b.click("reject-view-3")
+        assert b.js("document.getElementById('reject-view-3').checked") is True
+        b.screenshot(tmp_path / "review.png")
+        b.click("ask-calibrate")
+        s = wait_for(url, lambda s: s["ask"] is not None and s["numbers"]["views used"] == 11, timeout_s=120)
+        assert {"view": "view 3", "used": "no: rejected on the page"}.items() <= next(
+            v for v in s["views"] if v["view"] == "view 3").items()
+        assert not (tmp_path / "cam.yaml").exists()
+        b.wait_js("document.getElementById('ask-save')!==null && document.getElementById('reject-view-3').checked")
+        b.click("ask-save")
+        out, err = p.communicate(timeout=120)
+    finally:
+        if b is not None:
+            b.close()
+        if p.poll() is None:
+            p.kill()
+            p.communicate(timeout=10)
+    assert p.returncode == 0, err[-2000:]
+    res = json.loads(out)
+    assert res["views_used"] == 11 and res["views_rejected"] == ["view 3"] and res["out"] == "cam.yaml"
+    assert (tmp_path / "cam.yaml").is_file()
