@@ -583,7 +583,7 @@ async function poll(){let s;try{s=await (await fetch("state.json",{cache:"no-sto
  if(vk!==viewsKey){viewsKey=vk;table(document.getElementById("views"),s.views);
  if(s.ask&&s.ask.select==="views"){const t=document.getElementById("views");t.rows[0].insertCell().outerHTML="<th>reject</th>";
   for(let i=1;i<t.rows.length;i++){const nm=t.rows[i].cells[0].textContent,c=document.createElement("input");c.type="checkbox";
-   c.id="reject-"+nm.replace(/\W+/g,"-");c.checked=rejected.has(nm);c.onchange=()=>{c.checked?rejected.add(nm):rejected.delete(nm);};
+   c.id="reject-"+nm.replace(/\\W+/g,"-");c.checked=rejected.has(nm);c.onchange=()=>{c.checked?rejected.add(nm):rejected.delete(nm);};
    t.rows[i].insertCell().appendChild(c);}}}table(document.getElementById("log"),s.log.slice().reverse());
  if(s.frame_seq!==lastFrame&&s.frame_seq>0){lastFrame=s.frame_seq;
   document.getElementById("frame").src="frame.jpg?"+s.frame_seq;}
