@@ -735,4 +735,4 @@ def make_report(out: Path, *, quick: bool = False, benches=BENCHES, bench_dir: P
 
     atomic_write(out, text.encode("utf-8"), what="report")
     return {"markdown": str(out), "results": str(results), "runs": {k: r.status for k, r in runs.items()},
-            "seconds": time.monotonic() - t0}
+            "experiment_failed": (exp or {}).get("failed"), "seconds": time.monotonic() - t0}

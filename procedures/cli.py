@@ -22,9 +22,11 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import difflib  # noqa: E402
 import importlib  # noqa: E402
 import logging  # noqa: E402
 import pkgutil  # noqa: E402
+import re  # noqa: E402
 import signal  # noqa: E402
 import sys  # noqa: E402
 
@@ -40,6 +42,7 @@ from selfview.errors import (  # noqa: E402
     DeviceTimeout,
     ImageError,
     LimitError,
+    PictureFileError,
     ProtocolError,
 )
 
@@ -55,6 +58,7 @@ EXIT_INTERRUPTED = 130
 _EXIT_FOR = [
     (Cancelled, EXIT_INTERRUPTED, "the run was interrupted; the cell was left as stated above"),
     (AlarmError, EXIT_ALARM, "stop the cell and check the camera mount"),
+    (PictureFileError, EXIT_CONFIG, "give the path of a picture file (PNG, JPEG, BMP or PGM, 8-bit)"),
     ((CalibrationError, ImageError), EXIT_CALIBRATION, "check the picture (light, focus, plate and fingers in view)"),
     ((ConfigError, CalibrationFileError), EXIT_CONFIG, "correct the file or argument named above"),
     ((DeviceTimeout, ProtocolError, DeviceError, LimitError), EXIT_DEVICE, "check the device's cable, power and URL"),
@@ -75,8 +79,48 @@ def exit_code_for(exc: BaseException) -> tuple[int, str]:
     return EXIT_INTERNAL, "this is a bug; please report it with the command line"
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with "did you mean" for a mistyped choice (a command, a method, a format)."""
+
+    def error(self, message):
+        m = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
+        if m:
+            choices = re.findall(r"'([^']*)'", m.group(2)) or [c.strip() for c in m.group(2).split(",")]
+            near = difflib.get_close_matches(m.group(1), choices, n=3, cutoff=0.5)
+            if near:
+                message += f"; did you mean {' or '.join(near)}?"
+        super().error(message)
+
+
+def _unrecognized(parser: argparse.ArgumentParser, extra: list[str]) -> int:
+    """The usage of the command that was given and, per unknown option, the options it has that are
+    nearest to it; exit status 2."""
+    options = [s for a in parser._actions for s in a.option_strings]  # noqa: SLF001 (argparse has no public list)
+    hints = []
+    for arg in extra:
+        if arg.startswith("-"):
+            near = difflib.get_close_matches(arg.split("=", 1)[0], options, n=1, cutoff=0.6)
+            if near:
+                hints.append(f"{arg}: did you mean {' or '.join(near)}?")
+    parser.print_usage(sys.stderr)
+    _say(f"{parser.prog}: error: unrecognized arguments: {' '.join(extra)}"
+         + "".join(f"\n  {h}" for h in hints) + f"\n  see '{parser.prog} --help'")
+    return EXIT_USAGE
+
+
+def _innermost(parser: argparse.ArgumentParser, args) -> argparse.ArgumentParser:
+    """The parser of the deepest sub-command given (``selfview mock robot``), for its usage."""
+    for _ in range(4):
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]  # noqa: SLF001
+        chosen = subs and subs[0].choices.get(getattr(args, subs[0].dest, None) or "")
+        if not chosen:
+            break
+        parser = chosen
+    return parser
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="selfview",
         description=(
             "Calibration and monitoring of a self-viewing eye-on-hand robot cell: a wrist camera that "
@@ -91,7 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"selfview {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="log more on stderr (-v: each step and decision, -vv: debugging)")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    parser.commands = sub.choices  # name -> its parser
     import selfview.procedures.commands as pkg
 
     for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda m: m.name):
@@ -113,7 +158,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str] | None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        return _unrecognized(_innermost(parser.commands.get(getattr(args, "command", None)) or parser, args), extra)
     level = {0: logging.ERROR, 1: logging.INFO}.get(args.verbose, logging.DEBUG)
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s: %(message)s", stream=sys.stderr)
     logging.getLogger().setLevel(level)

@@ -485,8 +485,21 @@ class Engine:
         return rep
 
     def state_sentence(self) -> str:
-        r = self.cleanup_report or {}
+        r = dict(self.cleanup_report or {})
+        first = r.pop("robot_at_interrupt", None)
+        if first is not None and "robot" in r:  # two ABORTs were sent: one outcome said
+            r["robot"] = _one_abort(first, r["robot"], bool(r.get("robot_stopped")))
         return "; ".join(f"{k}: {v}" for k, v in r.items() if k not in ("reason", "robot_stopped")) or "no cleanup was needed"
+
+
+def _one_abort(first: str, second: str, stopped: bool) -> str:
+    """One sentence for the ABORT sent at an interrupt (``first``'s report) and the cleanup's (``second``):
+    the one that settled it first, the other only as a note."""
+    if first.startswith("ABORT sent and confirmed"):
+        return first
+    if stopped:
+        return f"{second} (the ABORT at the interrupt was not confirmed)"
+    return f"{first}; the cleanup's ABORT was not confirmed either ({second})"
 
 
 def _brief(out) -> str:

@@ -112,12 +112,13 @@ def annotate_offline(image, result, path: Path, scale: int = 2) -> Path:
 
 
 def offline_residuals(result) -> list[dict]:
-    """Each disc's residual: grid row and column, model minus detected centre [px], and its size on the
+    """Each disc's residual: grid row and column, model minus the bias-corrected centre the fit used [px]
+    (``OfflineResult.disc_residuals_px``: their RMS is the calibration's ``rms_px``), and its size on the
     plate [mm] (the pixels times the disc's depth over f)."""
     cal = result.calibration
     det = result.discs
     pC = transform_points(cal.C_H_W, det.p_W)
-    d = cal.camera.project(pC) - det.uv
+    d = result.disc_residuals_px()
     px = np.hypot(d[:, 0], d[:, 1])
     return [{"disc": f"{int(r)},{int(c)}", "du [px]": float(a), "dv [px]": float(b), "|r| [px]": float(n),
              "|r| [mm]": float(n * z / cal.camera.f)}
@@ -126,16 +127,18 @@ def offline_residuals(result) -> list[dict]:
 
 def draw_offline(image, result, scale: int = 2, vector_scale: float = 50.0):
     """The picture (``scale`` times bigger, BGR) with what the off-line calibration used and found: the
-    detected discs with their grid indices (green), the model's reprojection of each disc centre (red cross)
-    and its residual vector ``vector_scale`` times longer (orange), the fingertip corners (yellow circles),
-    the gripper rectangle and the TCP with G's x and y axes (cyan/magenta)."""
+    discs' bias-corrected centres the fit used, with their grid indices (green), the model's reprojection
+    of each disc centre (red cross) and its residual vector ``vector_scale`` times longer (orange, the
+    residuals of ``offline_residuals``), the fingertip corners (yellow circles), the gripper rectangle and
+    the TCP with G's x and y axes (cyan/magenta)."""
     import cv2
 
     cam = result.calibration.camera
     big = cv2.resize(_bgr(image), None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
     det = result.discs
-    model = cam.project(transform_points(result.calibration.C_H_W, det.p_W))
-    for (u, v), (r, c), m in zip(det.uv, det.rc, model):
+    used = np.asarray(result.disc_uv_corrected, float)
+    model = used + result.disc_residuals_px()
+    for (u, v), (r, c), m in zip(used, det.rc, model):
         cv2.circle(big, _pt((u, v), scale), 3 * scale, (0, 200, 0), 1, cv2.LINE_AA)
         cv2.drawMarker(big, _pt(m, scale), (0, 0, 255), cv2.MARKER_CROSS, 4 * scale, 1, cv2.LINE_AA)
         cv2.putText(big, f"{r},{c}", _pt((u + 4, v - 4), scale), cv2.FONT_HERSHEY_PLAIN, 0.6 * scale,
@@ -149,7 +152,13 @@ def draw_offline(image, result, scale: int = 2, vector_scale: float = 50.0):
            f"corners={len(s['corners_found'])}")
     cv2.putText(big, txt, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 3, cv2.LINE_AA)
     cv2.putText(big, txt, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 1, cv2.LINE_AA)
-    _label(big, f"orange: disc residuals x{vector_scale:g}", (10, 48), (0, 140, 255))
+    legend = [("green: disc centres the fit used (bias-corrected), row,col", (0, 200, 0)),
+              ("red: the model's projection of each disc centre", (0, 0, 255)),
+              (f"orange: disc residuals (model minus used centre) x{vector_scale:g}", (0, 140, 255)),
+              ("yellow: fingertip corners found", (0, 230, 230)),
+              ("cyan: gripper points and the TCP; magenta: G's x axis; blue: G's y axis", (255, 255, 0))]
+    for k, (text, colour) in enumerate(legend):
+        _label(big, text, (10, 48 + 20 * k), colour)
     return big
 
 
@@ -202,24 +211,56 @@ def _draw_corners(big, fingertips, scale):
 
 def annotate_online(image, camera, C_H_G_before, estimates: dict, fingertips, pG, path: Path, scale: int = 2) -> Path:
     """Second picture of a trial: the fingertip corners found (yellow), the gripper where the first
-    calibration predicts it (grey) and where each on-line method puts it (one colour each)."""
+    calibration predicts it (grey) and where each on-line method puts it (one colour each, named in the
+    legend). The methods agree to a fraction of a pixel, so an inset shows each one's TCP apart: its
+    offset from their mean, magnified (the factor and the largest offset written in it)."""
     import cv2
 
     big = cv2.resize(_bgr(image), None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
     _draw_gripper(big, camera, C_H_G_before, pG, scale, (160, 160, 160))
     colours = [(0, 0, 255), (0, 128, 255), (0, 200, 0), (255, 0, 0), (255, 0, 255), (0, 255, 255), (128, 0, 128), (0, 100, 0)]
+    tcp = {}
     for k, (m, est) in enumerate(estimates.items()):
         c = colours[k % len(colours)]
         _draw_gripper(big, camera, est.C_H_G_orth, pG, scale, c)
         _label(big, m, (10, 50 + 20 * k), c)
+        try:
+            tcp[m] = (camera.project(transform_points(est.C_H_G_orth, np.zeros((1, 3))))[0], c)
+        except Exception:  # an estimate behind the camera has no TCP in the picture
+            pass
     for i in range(6):
         if fingertips.found[i]:
             cv2.circle(big, _pt(fingertips.uv[i], scale), 5 * scale, (0, 230, 230), 1, cv2.LINE_AA)
-    _label(big, "grey: before the disturbance; colours: each method's estimate after it", (10, 24), (220, 220, 220))
+    _label(big, "grey: before the disturbance; colours: each method's estimate after it; yellow: fingertip corners",
+           (10, 24), (220, 220, 220))
+    if len(tcp) > 1:
+        _tcp_inset(big, tcp)
     from selfview.io_safe import write_picture
 
     write_picture(path, big, what="annotated picture")
     return path
+
+
+def _tcp_inset(big, tcp: dict, size: int = 300) -> None:
+    """An inset at the bottom right: each method's TCP (``tcp``: name -> (uv [px], colour)) as its offset
+    from their mean, magnified so the largest reaches 40 % of the inset."""
+    import cv2
+
+    mean = np.mean([uv for uv, _ in tcp.values()], axis=0)
+    off = {m: uv - mean for m, (uv, _) in tcp.items()}
+    worst = max(float(np.hypot(*d)) for d in off.values())
+    gain = 0.4 * size / max(worst, 1e-6)
+    h, w = big.shape[:2]
+    x0, y0 = w - size - 10, h - size - 10
+    big[y0:y0 + size, x0:x0 + size] = (big[y0:y0 + size, x0:x0 + size] * 0.15).astype(big.dtype)
+    cv2.rectangle(big, (x0, y0), (x0 + size, y0 + size), (220, 220, 220), 1)
+    cx, cy = x0 + size // 2, y0 + size // 2
+    cv2.drawMarker(big, (cx, cy), (220, 220, 220), cv2.MARKER_CROSS, 20, 1)
+    for m, d in off.items():
+        p = (int(round(cx + gain * d[0])), int(round(cy + gain * d[1])))
+        cv2.circle(big, p, 5, tcp[m][1], -1, cv2.LINE_AA)
+    for k, text in enumerate(("each method's TCP:", f"offset from the mean x{gain:.0f}", f"largest {worst:.3f} px")):
+        _label(big, text, (x0 + 6, y0 + 20 + 20 * k), (220, 220, 220))
 
 
 def _label(img, text, org, colour):
@@ -231,8 +272,8 @@ def _label(img, text, org, colour):
 
 
 def plot_errors(summary: dict, path: Path, methods) -> Path:
-    """Bar chart (log scale): mean (bar) and max (whisker) TCP error per method and camera axis, per series,
-    against the off-line reference and against the truth; the paper's means as black ticks."""
+    """Bar chart (log scale): mean (bar) and max (whisker, named in the legend) TCP error per method and camera
+    axis, per series, against the off-line reference and against the truth; the paper's means as black ticks."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -255,7 +296,8 @@ def plot_errors(summary: dict, path: Path, methods) -> Path:
                 xs = x + (k - 1) * 0.27
                 ax.bar(xs, means, width=0.25, label=f"{an} mean", color=f"C{k}")
                 ax.errorbar(xs, means, yerr=[np.zeros(len(ms)), np.subtract(maxs, means)], fmt="none",
-                            ecolor="k", elinewidth=0.8, capsize=2)
+                            ecolor="k", elinewidth=0.8, capsize=2,
+                            label="whisker: max over the trials" if k == 0 else None)
                 if against == "reference":
                     pm = [PAPER_TABLES.get(s, {}).get(m, ((np.nan,) * 3,))[0][k] for m in ms]
                     ax.scatter(xs, pm, marker="_", s=120, color="k", zorder=5,
@@ -279,8 +321,6 @@ def keep_pictures(out, image, draw, kind: str = "") -> dict:
     ``out``, named by the picture's SHA-256 (an earlier run's pictures are never overwritten); returns
     {picture, annotated}: the file names, relative to ``out``'s folder. ``kind`` starts the names
     (``track-``: a tracked picture beside its calibration file)."""
-    from selfview.procedures.commands._common import write_image
-
     out = Path(out)
     tag = hashlib.sha256(image.tobytes()).hexdigest()[:12]
     names = {}

@@ -417,9 +417,12 @@ class CellSession:
                 for st in depart_plan(s):
                     self.e.execute(st)
 
+        # what is finished so far, kept where a caller finds it if the run is interrupted
+        self.experiment_partial = partial = {"records": [], "failures": [], "first": None}
+
         def body(e: Engine):
             e.execute(plan[0])
-            records, failures, first = [], [], None
+            records, failures, first = partial["records"], partial["failures"], None
             rig = Rig(e)
             for name in series:
                 for k in range(trials):
@@ -434,7 +437,7 @@ class CellSession:
                         continue
                     records.append(rec)
                     if first is None:
-                        first = art
+                        first = partial["first"] = art
                     if on_trial:
                         on_trial(name, k, trials, rec)
             summary = summarise(records)

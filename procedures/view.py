@@ -1,15 +1,20 @@
-"""The live view: a page on 127.0.0.1 that shows what a command is doing while it runs.
+"""The live view: a page on 127.0.0.1 that shows what a command is doing while it runs, and its controls.
 
-A command publishes its state (what it does now, the latest annotated frame, numbers, a verdict) to a
-``LiveView``; a small HTTP server in a thread serves one self-contained page that polls ``/state.json``
-and ``/frame.jpg``. Nothing on the page comes from the internet.
+A command publishes its state (what it does now, the latest annotated frame, numbers, a verdict, a log)
+to a ``LiveView``; a small HTTP server in a thread serves one self-contained page that polls
+``/state.json`` and ``/frame.jpg``. Nothing on the page comes from the internet. GET never changes
+anything: the page's controls (STOP, the alarm's acknowledge) POST to ``/action`` with the run's token,
+which only the page served by this run holds; a request naming another host (DNS rebinding) is refused.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import hmac
 import json
+import secrets
+import signal
 import sys
 import threading
 import time
@@ -19,7 +24,7 @@ import numpy as np
 
 from selfview.procedures.commands._common import PORT, SECONDS_OR_ZERO
 
-__all__ = ["LiveView", "ViewProgress", "add_view_arguments", "open_view", "viewing", "with_progress", "watch", "offline_state", "intrinsics_state", "tracked_frames", "decision_state"]
+__all__ = ["LiveView", "ViewProgress", "add_view_arguments", "open_view", "viewing", "with_progress", "watch", "offline_state", "intrinsics_state", "view_coverage", "tracked_frames", "decision_state"]
 
 
 def add_view_arguments(p: argparse.ArgumentParser) -> None:
@@ -96,8 +101,10 @@ class LiveView:
         self._jpeg = b""
         self._state = {"command": command, "doing": "starting", "seq": 0, "frame_seq": 0, "verdict": None,
                        "numbers": {}, "residuals": [], "series": None, "coverage": None, "done": False,
-                       "updated": time.time()}
+                       "log": [], "alarm": None, "stop_requested": False, "bars": None, "views": [], "ask": None, "updated": time.time()}
         self._server = None
+        self.token = secrets.token_urlsafe(24)  # per run; only the page this run serves holds it
+        self._actions = {"stop": self._stop, "acknowledge": self._acknowledge}
 
     # --- what the command publishes ---------------------------------------------------------------
     def update(self, **kw) -> None:
@@ -115,6 +122,68 @@ class LiveView:
 
     def verdict(self, go: bool, why: str) -> None:
         self.update(verdict={"go": bool(go), "why": str(why)})
+
+    def alarm(self, why: str) -> None:
+        """An alarm the operator is asked to acknowledge on the page (the verdict says no-go)."""
+        self.verdict(False, why)
+        self.update(alarm={"why": str(why), "acknowledged": False})
+
+    def log(self, row: dict, keep: int = 500) -> None:
+        """One row of the run's log (the monitor's decision per frame), newest last."""
+        with self._lock:
+            self._state["log"].append(row)
+            del self._state["log"][:-keep]
+        self.update()
+
+    # --- the page's controls (run in the server's thread) -----------------------------------------
+    def ask(self, prompt: str, buttons, *, select_views: bool = False, timeout_s: float = 600.0):
+        """Offer ``buttons`` [(action, label)] on the page under ``prompt`` and wait for the operator's click
+        (STOP and Ctrl-C still end the run); with ``select_views`` the page's per-view table offers a reject
+        box per view, sent with the click as ``reject`` (view names). Returns (action, {"reject": [...]}),
+        or None when nobody answered within ``timeout_s``."""
+        done = threading.Event()
+        box = {}
+
+        def answer(name):
+            def fn(payload):
+                box.update(action=name, reject=[str(v) for v in (payload.get("reject") or [])][:1000])
+                done.set()
+                return f"{name} requested"
+            return fn
+
+        names = [a for a, _ in buttons]
+        for a in names:
+            self._actions[a] = answer(a)
+        self.update(ask={"prompt": str(prompt), "buttons": [{"action": a, "label": lb} for a, lb in buttons],
+                         "select": "views" if select_views else None})
+        try:
+            end = time.monotonic() + timeout_s
+            while not done.wait(0.1):
+                if time.monotonic() > end:
+                    return None
+        finally:
+            for a in names:
+                self._actions.pop(a, None)
+            self.update(ask=None)
+        return box["action"], {"reject": box["reject"]}
+
+    def _stop(self, payload=None) -> str:
+        """STOP: the run stops as on Ctrl-C (``procedures.engine``: ABORT to the robot, the valve safe, the
+        devices closed, exit 130); a signal is how another thread reaches the main thread's cleanup."""
+        sig = signal.SIGINT if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN else signal.SIGTERM
+        self.update(stop_requested=True, doing="STOP pressed on the page: stopping the robot")
+        print("view: STOP pressed on the page", file=sys.stderr, flush=True)
+        signal.pthread_kill(threading.main_thread().ident, sig)
+        return "stopping: ABORT to the robot, the valve safe"
+
+    def _acknowledge(self, payload=None) -> str:
+        with self._lock:
+            alarm = self._state.get("alarm")
+        if not alarm:
+            return "no alarm to acknowledge"
+        self.update(alarm={**alarm, "acknowledged": True, "at": time.strftime("%H:%M:%S")})
+        print(f"view: alarm acknowledged on the page ({alarm['why']})", file=sys.stderr, flush=True)
+        return "alarm acknowledged"
 
     def frame(self, image) -> None:
         """The latest picture (grey or BGR), sent to the page as JPEG."""
@@ -145,10 +214,44 @@ class LiveView:
         view = self
 
         class Handler(BaseHTTPRequestHandler):
+            def _local(self) -> bool:
+                """Refuse a request that names another host (a page elsewhere reaching 127.0.0.1 by DNS rebinding)."""
+                if self.headers.get("Host") in (f"127.0.0.1:{view.port}", f"localhost:{view.port}"):
+                    return True
+                self.send_error(403, "not this host")
+                return False
+
+            def do_POST(self):  # noqa: N802 (http.server's name)
+                if not self._local():
+                    return
+                if self.path != "/action":
+                    self.send_error(404)
+                    return
+                if not hmac.compare_digest(self.headers.get("X-Selfview-Token", ""), view.token):
+                    self.send_error(403, "missing or wrong token: use the page this run serves")
+                    return
+                try:
+                    n = min(int(self.headers.get("Content-Length", "0")), 65536)
+                    payload = json.loads(self.rfile.read(n) or b"{}")
+                    name = payload.get("action")
+                    fn = view._actions[name]
+                except (ValueError, KeyError, AttributeError, TypeError):
+                    self.send_error(400, "expected {\"action\": NAME} with one of the page's actions")
+                    return
+                body = json.dumps({"action": name, "said": fn(payload)}).encode()
+                self.send_response(200)
+                self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Length", str(len(body)))
+                self.send_header("Cache-Control", "no-store")
+                self.end_headers()
+                self.wfile.write(body)
+
             def do_GET(self):  # noqa: N802 (http.server's name)
+                if not self._local():
+                    return
                 path = self.path.split("?")[0]
                 if path == "/":
-                    body, ctype = _PAGE.encode(), "text/html; charset=utf-8"
+                    body, ctype = _PAGE.replace("__TOKEN__", view.token).encode(), "text/html; charset=utf-8"
                 elif path == "/state.json":
                     body, ctype = json.dumps(view.state()).encode(), "application/json"
                 elif path == "/frame.jpg":
@@ -216,11 +319,13 @@ def _plain(o):
 
 
 # --- what the commands show -------------------------------------------------------------------------
-def offline_state(view: LiveView, image, result, *, tcp_sigma_mm=None, rms_limit_px: float = 0.5) -> None:
-    """An off-line calibration on the page: the annotated frame, each disc's residual in px and in mm on the
-    plate, the figures, and a verdict (go when every fingertip corner was found and the residual is small)."""
+def offline_state(view: LiveView, image, assessed) -> None:
+    """An off-line calibration on the page (``assessed``: ``selfview.api.PictureCalibration``): the annotated
+    frame, each disc's residual in px and in mm on the plate (against the centres the fit used), the
+    figures with the TCP's sigma, and the calibration's verdict (``selfview.api.assess_offline``)."""
     from selfview.procedures.results import draw_offline, offline_residuals
 
+    result = assessed.offline
     view.frame(draw_offline(image, result))
     rows = offline_residuals(result)
     s = result.summary()
@@ -228,23 +333,16 @@ def offline_state(view: LiveView, image, result, *, tcp_sigma_mm=None, rms_limit
     numbers = {"f [px]": s["f"], "kappa [px^-2]": s["kappa"], "residual rms [px]": s["rms_px"],
                "residual max [px]": s["max_px"], "discs used": s["discs_used"],
                "corners found": ", ".join(s["corners_found"]), "PCC residual [mm]": s["pcc_rms_mm"],
-               "TCP x [mm]": H[0, 3], "TCP y [mm]": H[1, 3], "TCP z [mm]": H[2, 3]}
-    if tcp_sigma_mm is not None:
-        numbers["TCP 1-sigma x y z [mm]"] = " ".join(f"{v:.4f}" for v in tcp_sigma_mm)
+               "TCP x [mm]": H[0, 3], "TCP y [mm]": H[1, 3], "TCP z [mm]": H[2, 3],
+               "TCP 1-sigma x y z [mm]": " ".join(f"{v:.4f}" for v in assessed.tcp_sigma_mm)}
     view.update(numbers=numbers, residuals=rows)
-    missing = 6 - len(s["corners_found"])
-    if missing:
-        view.verdict(False, f"{missing} fingertip corner(s) not found: C_H_G rests on fewer points")
-    elif s["rms_px"] > rms_limit_px:
-        view.verdict(False, f"disc residual rms {s['rms_px']:.3f} px above {rms_limit_px} px: check focus and light")
-    else:
-        view.verdict(True, f"all 6 corners, {s['discs_used']} discs, residual rms {s['rms_px']:.3f} px "
-                           f"(max {s['max_px']:.3f} px)")
+    view.verdict(assessed.go, assessed.reason)
 
 
-def intrinsics_state(view: LiveView, res) -> None:
+def intrinsics_state(view: LiveView, res, plate=None, rejected=()) -> None:
     """A camera measured from several views (``selfview.intrinsics``) on the page: its figures, the stop
-    rule's state and a verdict (go when the rule is met and the two halves of the views agree)."""
+    rule's state, a row per view (used or why not), the views' coverage bars (with the ``plate``) and a
+    verdict (go when the rule is met and the two halves of the views agree)."""
     xc = res.cross_check
     sr = res.stop_rule
     view.update(numbers={"f [px]": res.camera.f, "kappa [px^-2]": res.camera.kappa, "cx [px]": res.camera.cx,
@@ -252,10 +350,43 @@ def intrinsics_state(view: LiveView, res) -> None:
                          "residual rms [px]": res.rms_px,
                          "stop rule: sigma centre [px]": f"{sr['sigma_centre_px']:.3f} (limit {sr['limit_centre_px']})",
                          "stop rule: sigma aspect [%]": f"{sr['sigma_aspect_pct']:.4f} (limit {sr['limit_aspect_pct']})"})
+    view.update(views=[{"view": v.name, "discs": v.discs, "dropped": v.dropped, "rms [px]": v.rms_px,
+                            "tilt [deg]": v.tilt_deg, "distance [mm]": v.distance_mm, "used": "yes"} for v in res.views]
+                + [{"view": sk["name"], "discs": 0, "dropped": 0, "rms [px]": None, "tilt [deg]": None,
+                    "distance [mm]": None, "used": f"no: {sk['reason']}"} for sk in res.skipped]
+                + [{"view": nm, "discs": 0, "dropped": 0, "rms [px]": None, "tilt [deg]": None,
+                    "distance [mm]": None, "used": "no: rejected on the page"} for nm in rejected],
+                bars=view_coverage(res, plate) if plate is not None else None)
     view.verdict(bool(sr["met"]) and not (xc.get("done") and not xc.get("agree")),
                  "stop rule met" + ("" if not xc.get("done") else ", halves agree" if xc.get("agree") else
                                     ", but the halves DISAGREE") if sr["met"] else
                  "stop rule not met: " + sr.get("advice", ""))
+
+
+#: What the views should span for full bars: the plate's discs over 60 % of the picture's width and height
+#: (5th to 95th percentile of every view's discs), the plate's distance over 25 % of its mean, a tilt of
+#: 30 deg (the centre and the aspect need tilted views).
+COVERAGE_GOALS = {"x": 0.6, "y": 0.6, "size": 0.25, "tilt": 30.0}
+
+
+def view_coverage(res, plate) -> dict:
+    """Coverage bars of a set of views (``selfview.intrinsics`` result) of ``plate`` (``selfview.cell``'s):
+    x, y the span of the discs the views put in the picture over its width and height, size the span of
+    the plate's distance over its mean, tilt the largest tilt [deg]; each {value, goal, fraction (0..1)}.
+    The stop rule decides; the bars say which kind of view would help."""
+    from selfview.geometry import transform_points
+
+    cam = res.camera
+    if not res.views:
+        return {}
+    pW = plate.disc_centres_W()
+    uv = np.vstack([cam.project(transform_points(np.asarray(v.C_H_W, float), pW)) for v in res.views])
+    uv = uv[(uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)]
+    span = (np.percentile(uv, 95, axis=0) - np.percentile(uv, 5, axis=0)) if len(uv) else np.zeros(2)
+    d = np.array([v.distance_mm for v in res.views])
+    vals = {"x": float(span[0] / cam.width), "y": float(span[1] / cam.height),
+            "size": float(np.ptp(d) / d.mean()), "tilt": float(max(v.tilt_deg for v in res.views))}
+    return {k: {"value": vals[k], "goal": g, "fraction": float(min(1.0, vals[k] / g))} for k, g in COVERAGE_GOALS.items()}
 
 
 def tracked_frames(view: LiveView, calibration, cell):
@@ -283,8 +414,11 @@ def decision_state(view: LiveView, rec: dict, limits) -> None:
     view.update(numbers={"frame": rec.get("frame"), "decision": rec.get("action"), "delta [deg]": rec.get("delta_deg"),
                          "d [mm]": rec.get("d_mm"), "rms [px]": rec.get("rms_px"),
                          "fingertips": rec.get("fingertips", "")})
+    view.log({"frame": rec.get("frame"), "decision": rec.get("action"), "method": rec.get("method") or "",
+              "delta [deg]": rec.get("delta_deg"), "d [mm]": rec.get("d_mm"), "rms [px]": rec.get("rms_px"),
+              "why": rec.get("reason") or ""})
     if rec.get("action") == "alarm":
-        view.verdict(False, f"alarm at frame {rec.get('frame')}: {rec.get('reason')}")
+        view.alarm(f"alarm at frame {rec.get('frame')}: {rec.get('reason')}")
     else:
         view.verdict(True, f"frame {rec.get('frame')}: {rec.get('action')} ({rec.get('reason')})")
 
@@ -349,54 +483,108 @@ _PAGE = """<!doctype html>
 <html><head><meta charset="utf-8"><title>selfview live view</title>
 <style>
 body{font-family:sans-serif;margin:0;background:#222;color:#eee}
-#verdict{padding:12px 16px;font-size:22px;font-weight:bold;background:#555}
+[hidden]{display:none!important}
+#bar{display:flex;align-items:stretch}
+#verdict{flex:1;padding:12px 16px;font-size:22px;font-weight:bold;background:#555}
 #verdict.go{background:#1b7f2a}#verdict.nogo{background:#b0201a}
+button{font-size:18px;font-weight:bold;border:0;padding:0 22px;cursor:pointer}
+#stop{background:#e00000;color:#fff;min-width:120px}#stop:disabled{background:#733;color:#ccc}
+#alarmbox{padding:8px 16px;background:#7a1010;display:flex;gap:16px;align-items:center}
+#ack{background:#ffd84a;color:#000;padding:6px 16px}
+#askbox{padding:8px 16px;background:#1d3f6e;display:flex;gap:16px;align-items:center}
+#askbuttons button{background:#9cf;color:#000;padding:6px 16px;margin-right:8px}
 #doing{padding:6px 16px;background:#333;font-family:monospace}
 main{display:flex;flex-wrap:wrap;gap:12px;padding:12px}
-#frame{max-width:760px;width:100%;background:#000}
+#framebox{flex:1 1 760px;max-width:1000px}#frame{width:100%;background:#000;display:block}
+#side{flex:1 1 360px;max-width:600px}
 table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #555;padding:2px 6px;text-align:right}
 th{background:#333}section{min-width:320px}h2{font-size:15px;margin:8px 0 4px}
-svg{background:#111}
+#logwrap{max-height:260px;overflow-y:auto}svg{background:#111}
+#log td:last-child{text-align:left;min-width:300px;font-size:11px}
+#views td:first-child{white-space:nowrap}
+.barout{width:220px;height:14px;background:#444}.barin{height:14px;background:#3a9}
 </style></head><body>
-<div id="verdict">waiting for a verdict</div>
+<div id="bar"><div id="verdict">waiting for a verdict</div>
+<button id="stop" title="abort the robot and make the valve safe (as Ctrl-C)">STOP</button></div>
+<div id="alarmbox" hidden><span id="alarmtext"></span><button id="ack">acknowledge the alarm</button></div>
+<div id="askbox" hidden><span id="asktext"></span><span id="askbuttons"></span></div>
 <div id="doing">connecting</div>
-<main><section><img id="frame" alt="latest frame"></section>
-<section><h2 id="cmd">figures</h2><table id="numbers"></table>
-<div id="plotbox" hidden><h2>change of the camera over time</h2><svg id="plot" width="420" height="200"></svg></div>
+<main><section id="framebox"><a href="frame.jpg" target="_blank" title="the frame at full size">
+<img id="frame" alt="latest frame"></a></section>
+<section id="side"><h2 id="cmd">figures</h2><table id="numbers"></table>
+<div id="plotbox" hidden><h2>change of the camera over time</h2><svg id="plot" width="360" height="240"></svg></div>
+<div id="logbox" hidden><h2>decision per frame (newest first)</h2><div id="logwrap"><table id="log"></table></div></div>
+<div id="barbox" hidden><h2>coverage of the views (the stop rule decides)</h2><table id="bars"></table></div>
 <div id="coveragebox" hidden><h2>coverage of the picture</h2><table id="coverage"></table></div>
+<div id="viewbox" hidden><h2>per view</h2><table id="views"></table></div>
 <div id="residualbox" hidden><h2>residuals per point</h2><table id="residuals"></table></div></section></main>
 <script>
-let lastFrame=-1;
-function fmt(v){return typeof v==="number"?(Number.isInteger(v)?String(v):Math.abs(v)>=1e-3||v===0?v.toFixed(4):v.toExponential(3)):String(v)}
+const TOKEN="__TOKEN__";let lastFrame=-1,askKey="",viewsKey="";const rejected=new Set();
+async function act(name,extra){const r=await fetch("action",{method:"POST",headers:{"Content-Type":"application/json",
+ "X-Selfview-Token":TOKEN},body:JSON.stringify(Object.assign({action:name},extra||{}))});
+ document.getElementById("doing").textContent=r.ok?(await r.json()).said:"refused: "+r.status;}
+document.getElementById("stop").onclick=()=>{document.getElementById("stop").disabled=true;act("stop");};
+document.getElementById("ack").onclick=()=>act("acknowledge");
+function fmt(v){return typeof v==="number"?(Number.isInteger(v)?String(v):Math.abs(v)>=1e-3||v===0?v.toFixed(4):v.toExponential(3)):v===null?"":String(v)}
 function rows(t,obj){t.innerHTML="";for(const k in obj){const r=t.insertRow();r.insertCell().textContent=k;
  r.insertCell().textContent=fmt(obj[k]);}}
+function table(t,list){t.innerHTML="";if(!list.length)return;const h=t.insertRow();
+ for(const k of Object.keys(list[0])){const c=document.createElement("th");c.textContent=k;h.appendChild(c);}
+ for(const r of list){const tr=t.insertRow();for(const k in r)tr.insertCell().textContent=fmt(r[k]);}}
 function plot(s){const svg=document.getElementById("plot");svg.innerHTML="";if(!s||!s.points)return;
- const L=s.limits||{},P=s.points,W=420,H=200,n=Math.max(P.length,2),x=i=>10+i*(W-20)/(n-1);
+ const L=s.limits||{},P=s.points,W=360,H=240,X0=44,X1=W-10,Y0=H-28,Y1=22,n=Math.max(P.length,2);
+ const x=i=>X0+i*(X1-X0)/(n-1);
  const top=Math.max(1.2,...P.map(p=>Math.max((p.delta_deg||0)/L.alarm_deg,(p.d_mm||0)/L.alarm_mm)))*1.05;
- const y=v=>H-10-(v/top)*(H-30);let h="";
+ const y=v=>Y0-(v/top)*(Y0-Y1);let h=`<line x1="${X0}" x2="${X0}" y1="${Y1}" y2="${Y0}" stroke="#888"/>`+
+  `<line x1="${X0}" x2="${X1}" y1="${Y0}" y2="${Y0}" stroke="#888"/>`;
+ const step=top>3?1:top>1.5?0.5:0.25;
+ for(let v=0;v<=top+1e-9;v+=step)h+=`<line x1="${X0-4}" x2="${X0}" y1="${y(v)}" y2="${y(v)}" stroke="#888"/>`+
+  `<text class="tick" x="${X0-6}" y="${y(v)+4}" fill="#aaa" font-size="10" text-anchor="end">${v.toFixed(2)}</text>`;
+ const every=Math.max(1,Math.ceil(P.length/8));
+ P.forEach((p,i)=>{if(i%every===0||i===P.length-1)h+=`<line x1="${x(i)}" x2="${x(i)}" y1="${Y0}" y2="${Y0+4}" stroke="#888"/>`+
+  `<text class="tick" x="${x(i)}" y="${Y0+15}" fill="#aaa" font-size="10" text-anchor="middle">${p.frame}</text>`;});
+ h+=`<text x="${X1}" y="${H-2}" fill="#aaa" font-size="10" text-anchor="end">frame</text>`;
  const lines=[[1,"#ff4040",`alarm limit ${L.alarm_deg} deg / ${L.alarm_mm} mm`],
   [L.update_deg/L.alarm_deg,"#e0c000",`update limit ${L.update_deg} deg`],[L.update_mm/L.alarm_mm,"#c08000",`update limit ${L.update_mm} mm`]];
- for(const [v,c,t] of lines)h+=`<line x1="0" x2="${W}" y1="${y(v)}" y2="${y(v)}" stroke="${c}" stroke-dasharray="4"/>`+
-   `<text x="${W-200}" y="${y(v)-3}" fill="${c}" font-size="11">${t}</text>`;
+ const used=[];for(const [v,c,t] of lines){let ly=y(v)-3;while(used.some(u=>Math.abs(u-ly)<12))ly-=12;used.push(ly);
+  h+=`<line x1="${X0}" x2="${X1}" y1="${y(v)}" y2="${y(v)}" stroke="${c}" stroke-dasharray="4"/>`+
+  `<text class="limit" x="${X1-4}" y="${ly}" fill="${c}" font-size="11" text-anchor="end">${t}</text>`;}
  for(const [k,c,a] of [["delta_deg","#6cf",L.alarm_deg],["d_mm","#f8a",L.alarm_mm]])
   h+=`<polyline fill="none" stroke="${c}" points="${P.map((p,i)=>x(i)+","+y((p[k]||0)/a)).join(" ")}"/>`;
- h+=`<text x="4" y="12" font-size="11"><tspan fill="#6cf">rotation</tspan> <tspan fill="#f8a">shift</tspan>`+
+ h+=`<text x="${X0}" y="12" font-size="11"><tspan fill="#6cf">rotation</tspan> <tspan fill="#f8a">shift</tspan>`+
   `<tspan fill="#ccc"> as a fraction of the alarm limit, ${P.length} frames</tspan></text>`;svg.innerHTML=h;}
 async function poll(){let s;try{s=await (await fetch("state.json",{cache:"no-store"})).json();}
  catch(e){document.getElementById("doing").textContent="the command has ended; this is its last state";
-  setTimeout(poll,1000);return;}
+  document.getElementById("stop").disabled=true;setTimeout(poll,1000);return;}
  try{
  document.getElementById("cmd").textContent="selfview "+s.command;
  document.getElementById("doing").textContent=(s.done?"finished; last step: ":"now: ")+s.doing;
+ document.getElementById("stop").disabled=s.done||s.stop_requested;
  const v=document.getElementById("verdict");
  if(s.verdict){v.className=s.verdict.go?"go":"nogo";v.textContent=(s.verdict.go?"GO: ":"NO-GO: ")+s.verdict.why;}
+ const a=document.getElementById("alarmbox");a.hidden=!s.alarm;
+ if(s.alarm){document.getElementById("alarmtext").textContent=s.alarm.acknowledged?
+  "ALARM acknowledged at "+s.alarm.at+": "+s.alarm.why:"ALARM: "+s.alarm.why;document.getElementById("ack").hidden=s.alarm.acknowledged;}
  rows(document.getElementById("numbers"),s.numbers);plot(s.series);
  document.getElementById("plotbox").hidden=!s.series;document.getElementById("coveragebox").hidden=!s.coverage;
- document.getElementById("residualbox").hidden=!s.residuals.length;
+ document.getElementById("residualbox").hidden=!s.residuals.length;document.getElementById("logbox").hidden=!s.log.length;
  if(s.coverage)rows(document.getElementById("coverage"),s.coverage);
- const t=document.getElementById("residuals");t.innerHTML="";if(s.residuals.length){const h=t.insertRow();
-  for(const k of Object.keys(s.residuals[0])){const c=document.createElement("th");c.textContent=k;h.appendChild(c);}
-  for(const r of s.residuals){const tr=t.insertRow();for(const k in r)tr.insertCell().textContent=fmt(r[k]);}}
+ document.getElementById("barbox").hidden=!s.bars;if(s.bars){const t=document.getElementById("bars");t.innerHTML="";
+  for(const k in s.bars){const b=s.bars[k],r=t.insertRow();r.insertCell().textContent=k;
+   r.insertCell().innerHTML=`<div class="barout"><div class="barin" style="width:${Math.round(100*b.fraction)}%"></div></div>`;
+   r.insertCell().textContent=fmt(b.value)+" of "+b.goal;}}
+ const ak=document.getElementById("askbox");ak.hidden=!s.ask;
+ if(s.ask&&JSON.stringify(s.ask)!==askKey){askKey=JSON.stringify(s.ask);document.getElementById("asktext").textContent=s.ask.prompt;
+  const bb=document.getElementById("askbuttons");bb.innerHTML="";for(const b of s.ask.buttons){const e=document.createElement("button");
+   e.id="ask-"+b.action;e.textContent=b.label;e.onclick=()=>{ak.hidden=true;act(b.action,{reject:[...rejected]});};bb.appendChild(e);}}
+ if(!s.ask)askKey="";
+ table(document.getElementById("residuals"),s.residuals);
+ document.getElementById("viewbox").hidden=!s.views.length;const vk=JSON.stringify([s.views,s.ask]);
+ if(vk!==viewsKey){viewsKey=vk;table(document.getElementById("views"),s.views);
+ if(s.ask&&s.ask.select==="views"){const t=document.getElementById("views");t.rows[0].insertCell().outerHTML="<th>reject</th>";
+  for(let i=1;i<t.rows.length;i++){const nm=t.rows[i].cells[0].textContent,c=document.createElement("input");c.type="checkbox";
+   c.id="reject-"+nm.replace(/\\W+/g,"-");c.checked=rejected.has(nm);c.onchange=()=>{c.checked?rejected.add(nm):rejected.delete(nm);};
+   t.rows[i].insertCell().appendChild(c);}}}table(document.getElementById("log"),s.log.slice().reverse());
  if(s.frame_seq!==lastFrame&&s.frame_seq>0){lastFrame=s.frame_seq;
   document.getElementById("frame").src="frame.jpg?"+s.frame_seq;}
 }catch(e){document.getElementById("doing").textContent="page error: "+e;}

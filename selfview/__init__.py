@@ -33,11 +33,16 @@ from selfview.errors import (  # noqa: E402
     DeviceTimeout,
     ImageError,
     LimitError,
+    PictureFileError,
     ProtocolError,
 )
 
 __all__ = [
     "__version__",
+    "PictureCalibration",
+    "TrackResult",
+    "calibrate_picture",
+    "track",
     "AlarmError",
     "CalibrationError",
     "CalibrationFileError",
@@ -47,5 +52,17 @@ __all__ = [
     "DeviceTimeout",
     "ImageError",
     "LimitError",
+    "PictureFileError",
     "ProtocolError",
 ]
+
+_API = ("PictureCalibration", "TrackResult", "calibrate_picture", "track")
+
+
+def __getattr__(name):
+    """The one-call API (``selfview.api``), imported when first used: ``import selfview`` stays light."""
+    if name in _API:
+        from selfview import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'selfview' has no attribute {name!r}")

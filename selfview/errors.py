@@ -45,5 +45,9 @@ class ImageError(CellError, ValueError):
     """A picture cannot be used (blank, saturated, wrong size, nothing found)."""
 
 
+class PictureFileError(ImageError):
+    """A picture file is missing, unreadable, not a picture or not 8-bit (a file fault, not the scene's)."""
+
+
 class AlarmError(CellError):
     """The on-line monitor raised the alarm: the camera moved beyond the alarm limit."""

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from selfview.errors import CellError, ConfigError, ImageError
+from selfview.errors import CellError, ConfigError, ImageError, PictureFileError
 from selfview.lockdir import lock_slug, open_lock_file, os_cause
 
 __all__ = ["load_yaml", "load_yaml_file", "read_bounded", "parse_number", "read_picture", "picture_size", "atomic_write", "write_picture", "MAX_YAML_BYTES", "MAX_YAML_DEPTH",
@@ -259,39 +259,40 @@ def picture_size(head: bytes) -> tuple[str, int, int]:
 
 def read_picture(path, *, max_side: int = MAX_PICTURE_SIDE, max_pixels: int = MAX_PICTURE_PIXELS,
                  what: str = "picture") -> tuple[np.ndarray, str]:
-    """(grey picture as a 2-D uint8 array, SHA-256 of the file); ``ImageError`` naming the file for an
-    unreadable, empty, unknown, oversized (checked in the header, before decoding) or undecodable one.
+    """(grey picture as a 2-D uint8 array, SHA-256 of the file); ``PictureFileError`` (an ``ImageError``)
+    naming the file for an unreadable, empty, unknown, oversized (checked in the header, before decoding)
+    or undecodable one.
     The header check (PNG, JPEG, BMP, PGM/PPM) refuses at once a small file that would decode to
     30000 x 30000 pixels."""
     import cv2
 
     p = Path(path)
-    blob = read_bounded(p, MAX_PICTURE_BYTES, error=ImageError, what=what)
+    blob = read_bounded(p, MAX_PICTURE_BYTES, error=PictureFileError, what=what)
     try:
         fmt, w, h = picture_size(blob[:65536])
     except ValueError as exc:
-        raise ImageError(f"{p}: not a usable {what}: {exc}") from None
+        raise PictureFileError(f"{p}: not a usable {what}: {exc}") from None
     if w <= 0 or h <= 0:
-        raise ImageError(f"{p}: {fmt} header says {w} x {h} pixels")
+        raise PictureFileError(f"{p}: {fmt} header says {w} x {h} pixels")
     if w > max_side or h > max_side or w * h > max_pixels:
-        raise ImageError(
+        raise PictureFileError(
             f"{p}: {fmt} header says {w} x {h} pixels, beyond the {max_side} px side / {max_pixels} pixel bound; "
             "refused before decoding"
         )
     try:
         img = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error as exc:
-        raise ImageError(f"{p}: OpenCV cannot decode the {fmt} {what} ({_short(str(exc).strip(), 200)})") from None
+        raise PictureFileError(f"{p}: OpenCV cannot decode the {fmt} {what} ({_short(str(exc).strip(), 200)})") from None
     if img is None:
-        raise ImageError(f"{p}: OpenCV cannot decode the {fmt} {what} (truncated or corrupt?)")
+        raise PictureFileError(f"{p}: OpenCV cannot decode the {fmt} {what} (truncated or corrupt?)")
     if img.ndim == 3:
         if img.shape[2] not in (3, 4):
-            raise ImageError(f"{p}: {img.shape[2]} channels; expected a grey or colour picture")
+            raise PictureFileError(f"{p}: {img.shape[2]} channels; expected a grey or colour picture")
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
     if img.dtype != np.uint8:
-        raise ImageError(f"{p}: {img.dtype} pixels; expected an 8-bit grey picture")
+        raise PictureFileError(f"{p}: {img.dtype} pixels; expected an 8-bit grey picture")
     if img.shape != (h, w):
-        raise ImageError(f"{p}: decoded to {img.shape[1]} x {img.shape[0]}, but its header says {w} x {h}")
+        raise PictureFileError(f"{p}: decoded to {img.shape[1]} x {img.shape[0]}, but its header says {w} x {h}")
     return img, hashlib.sha256(blob).hexdigest()
 
 

@@ -57,3 +57,21 @@ def test_the_python_snippet_runs_as_written(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     assert re.match(r"rms \d\.\d{3} px; last frame: (update|recalibrate)", r.stdout)
     assert (tmp_path / "calibration.yaml").is_file()
+
+
+@pytest.mark.timeout(300)
+def test_the_picture_snippet_runs_as_written(tmp_path):
+    """The one-call API on the files its comment makes: a go, the TCP with its sigma, then the tracked frame."""
+    code = next(c for c in re.findall(r"```python\n(.*?)```", README, re.S) if "calibrate_picture" in c)
+    for line in code.splitlines():
+        if line.startswith("# selfview render"):
+            for cmd in line[2:].split(";"):
+                r = run(["-m", "selfview.procedures.cli", *shlex.split(cmd)[1:]], tmp_path)
+                assert r.returncode == 0, r.stderr[-2000:]
+    (tmp_path / "snippet.py").write_text(code)
+    r = run(["snippet.py"], tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    first, second = r.stdout.splitlines()
+    assert re.match(r"go \[.*\] \+- \[0\.0\d+, 0\.0\d+, 0\.0\d+\] mm", first), first
+    assert re.match(r"(update|recalibrate) \[.*\] \+- \[.*\] mm", second), second
+    assert (tmp_path / "cal.yaml").is_file()

@@ -8,10 +8,16 @@ import time
 from selfview.procedures.commands._common import FACTOR, SEED, add_cell_argument, load_cell_arg
 
 
-def add_session_arguments(p, *, seed_default: int = 0, profile_default: str = "ideal", sim_camera_default: str = "ideal",
-                          camera_file: bool = False) -> None:
-    """The cell options. ``profile_default`` the simulated cell's imperfections and ``sim_camera_default``
-    its camera when --profile / --sim-camera are not given. ``camera_file``: ``--camera`` also takes a camera file (CAMERA.yaml, from ``selfview
+#: Every command that builds the simulated cell builds the same one unless told otherwise: a perfect cell
+#: with the nominal camera (``--profile realistic --sim-camera realistic``: a real cell's errors and a camera
+#: to measure first), so that one command's figures hold for the next.
+DEFAULT_PROFILE = "ideal"
+DEFAULT_SIM_CAMERA = "ideal"
+
+
+def add_session_arguments(p, *, seed_default: int = 0, camera_file: bool = False) -> None:
+    """The cell options; --profile and --sim-camera default to ``DEFAULT_PROFILE`` and ``DEFAULT_SIM_CAMERA``
+    for every command. ``camera_file``: ``--camera`` also takes a camera file (CAMERA.yaml, from ``selfview
     intrinsics``) and may be given twice; ``camera_arguments`` sorts the values."""
     add_cell_argument(p)
     g = p.add_argument_group("cell", "which devices; by default the simulated cell, every device on its real channel")
@@ -26,13 +32,13 @@ def add_session_arguments(p, *, seed_default: int = 0, profile_default: str = "i
     else:
         g.add_argument("--camera", metavar="URL", help="frame grabber: v4l2:///dev/video0?input=1&std=pal, frames:///dir/img_%%03d.png")
     g.add_argument("--seed", type=SEED, default=seed_default, help="seed of the simulated cell (default %(default)s)")
-    g.add_argument("--sim-camera", choices=("ideal", "realistic"), default=sim_camera_default,
+    g.add_argument("--sim-camera", choices=("ideal", "realistic"), default=DEFAULT_SIM_CAMERA,
                    help="the simulated camera: ideal (the cell's nominal principal point and aspect) or realistic "
                         "(drawn from a real camera's ranges: centre up to 15 px off, aspect 0.97-1.07) "
                         "(default %(default)s)")
     g.add_argument("--time-scale", type=FACTOR, default=0.02,
                    help="simulated robot motions take this fraction of real time (default %(default)s)")
-    g.add_argument("--profile", default=profile_default, metavar="NAME",
+    g.add_argument("--profile", default=DEFAULT_PROFILE, metavar="NAME",
                    help="the simulated cell's imperfections: ideal (a perfect cell), realistic (a real CCIR cell's, "
                         "each at its published magnitude), paper-like (the paper's cell) (default %(default)s)")
     g.add_argument("--dry-run", action="store_true", help="print the steps, move nothing")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sys
 
-from selfview.procedures.commands._common import load_cell_arg, print_json
+from selfview.procedures.commands._common import load_cell_arg, output_file, print_json
 from selfview.procedures.commands._session import add_session_arguments, camera_arguments, open_session, progress_printer
 from selfview.procedures.view import add_view_arguments, watch, offline_state, viewing, with_progress
 
@@ -69,19 +69,28 @@ def _camera_file(path, cell):
     return cf.camera, {"path": str(path), "sha256": file_sha256(path)}, cf.centre_covariance()
 
 
-def run(args) -> int:
-    from selfview.procedures.commands._common import output_file
+def _previous(out):
+    """The calibration ``out`` holds now (the one this run replaces), or None (no file, or not a calibration)."""
+    from selfview.calfile import load_calibration
+    from selfview.errors import CellError
 
+    try:
+        return load_calibration(out)
+    except (CellError, OSError):
+        return None
+
+
+def run(args) -> int:
     output_file(args.out, "--out")  # before anything moves: a name that cannot be written is refused now
     with viewing(args, "calibrate") as view:
         return _run(args, view)
 
 
 def _run(args, view) -> int:
+    from selfview.api import assess_offline, calibration_change
     from selfview.calfile import save_calibration
     from selfview.procedures.results import draw_offline, keep_pictures
     from selfview.errors import ConfigError
-    from selfview.intrinsics import camera_check, tcp_sigma
     from selfview.offline import calibrate_offline
     from selfview.procedures.runs import refuse_unfitting_camera
 
@@ -92,11 +101,24 @@ def _run(args, view) -> int:
     if cam_path:
         camera, camera_file, cov3 = _camera_file(cam_path, cell)
 
+    assessed, change = [], {}
+
     def before_save(img, res):
+        fit = getattr(session, "camera_file_fit", None) if not args.image else refuse_unfitting_camera(
+            res, camera, cam_path, args.force)
+        assessed.append(assess_offline(res, cell, camera, cov3, cam_path, fit))  # records the sigma in the file
+        previous = _previous(args.out)
+        if previous is not None:
+            change.update(calibration_change(previous, res.calibration))
         if not args.no_pictures:
             res.calibration.pictures = keep_pictures(args.out, img, lambda im: draw_offline(im, res))
         if view:
-            offline_state(view, img, res, tcp_sigma_mm=tcp_sigma(res, cell, cov3)["tcp_sigma_mm"])
+            offline_state(view, img, assessed[-1])
+            if change:
+                view.update(numbers=view.state()["numbers"] | {
+                    "against the previous: TCP moved x y z [mm]": " ".join(f"{v:+.4f}" for v in change["tcp_moved_mm"]),
+                    "against the previous: rotated [deg]": change["rotated_deg"],
+                    "against the previous: f changed [px]": change["f_changed_px"]})
 
     if args.image:
         if args.real or url:
@@ -107,8 +129,8 @@ def _run(args, view) -> int:
             view.frame(img)
         res = calibrate_offline(img, cell, state=args.state, mode=args.mode, points=args.points, image_sha256=sha,
                                 camera=camera, camera_file=camera_file)
-        fit = refuse_unfitting_camera(res, camera, cam_path, args.force)  # before anything is written
-        before_save(img, res)
+        session = None
+        before_save(img, res)  # refuses an unfitting camera file before anything is written
         kept = save_calibration(res.calibration, args.out)
         source = args.image
     else:
@@ -121,27 +143,19 @@ def _run(args, view) -> int:
         if res is None:  # dry run
             return 0
         kept = session.calibration_kept
-        fit = session.camera_file_fit
         source = "the cell's picture"
-    s = res.summary()
+    pc = assessed[-1]
+    s = pc.to_dict()
     s["out"] = str(args.out)
     s["previous_kept_as"] = str(kept) if kept else None
     s["camera_file"] = camera_file
-    s["camera_file_fit"] = fit
     s["pictures"] = dict(res.calibration.pictures)
-    warnings = list(res.warnings)  # what the picture cannot tell (the plate's origin)
-    if fit and not fit["fits"]:
-        warnings.append(f"{fit['refusal']}; written because of --force (measure this camera with "
-                        "'selfview intrinsics')")
-    chk = camera_check(res, cell, camera)
-    if chk.get("warning"):
-        w = chk["warning"]
-        if camera is not None:
-            w = "the picture disagrees with the camera file " + str(cam_path) + ": " + w
-        warnings.append(w)
-    s["camera_check"] = {k: v for k, v in chk.items() if k != "warning"}
-    s["tcp_sigma_mm"] = tcp_sigma(res, cell, cov3)["tcp_sigma_mm"]
-    s["warnings"] = warnings
+    s["against_previous"] = change or None
+    warnings = s["warnings"]
+    if pc.camera_file_fit and not pc.camera_file_fit["fits"]:
+        refusal = pc.camera_file_fit["refusal"]
+        warnings[:] = [w.replace("; measure", "; written because of --force (measure") + ")" if w.startswith(refusal)
+                       else w for w in warnings]
     for w in warnings:
         print(f"selfview calibrate: warning: {w}", file=sys.stderr)
     if args.json:
@@ -154,12 +168,19 @@ def _run(args, view) -> int:
         + (f" with the camera of {cam_path}" if cam_path else " with the cell's nominal camera"),
         f"  f = {s['f']:.2f} px   kappa = {s['kappa']:.4e} px^-2   residual rms {s['rms_px']:.3f} px, max {s['max_px']:.3f} px",
         f"  TCP in camera: x {H[0, 3]:+.3f}  y {H[1, 3]:+.3f}  z {H[2, 3]:+.3f} mm   PCC residual {s['pcc_rms_mm']:.3f} mm",
-        f"  TCP 1-sigma:   x {sg[0]:.4f}  y {sg[1]:.4f}  z {sg[2]:.4f} mm",
+        f"  TCP 1-sigma:   x {sg[0]:.4f}  y {sg[1]:.4f}  z {sg[2]:.4f} mm (every part: "
+        + ", ".join(f"{k} {max(v):.4f}" for k, v in s["tcp_sigma_parts_mm"].items()) + ")",
         "  C_H_G =",
         *(f"    [{' '.join(f'{v:+.6f}' for v in row)}]" for row in H),
         f"written to {args.out}" + (f" (previous kept as {kept})" if kept else ""),
     ]
     if s["pictures"]:
         lines.append(f"picture kept as {s['pictures']['picture']}, annotated as {s['pictures']['annotated']}")
+    if change:
+        lines.append("against the previous calibration: TCP moved "
+                     + "  ".join(f"{a} {v:+.4f}" for a, v in zip("xyz", change["tcp_moved_mm"]))
+                     + f" mm ({change['tcp_moved_norm_mm']:.4f} mm), rotated {change['rotated_deg']:.4f} deg, "
+                     f"f {change['f_changed_px']:+.2f} px")
+    lines.append(f"{'GO' if pc.go else 'NO-GO'}: {pc.reason}")
     print("\n".join(lines), file=sys.stdout)
     return 0

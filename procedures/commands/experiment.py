@@ -27,10 +27,9 @@ def register(sub):
             "errors.png. A run never overwrites an earlier run's folder."
         ),
     )
-    # a real cell's imperfections and a camera that is not the nominal one by default, measured first as a
-    # lab would with a new camera: the figures a lab should expect (--profile ideal --sim-camera ideal: a
-    # perfect cell)
-    add_session_arguments(p, profile_default="realistic", sim_camera_default="realistic")
+    # the same simulated cell as every command's; --profile realistic --sim-camera realistic: a real cell's
+    # imperfections and a camera that is not the nominal one, measured first as a lab would with a new camera
+    add_session_arguments(p)
     p.add_argument("--trials", type=numeric(integer=True, lo=1, hi=10_000, name="trials"), default=20, help="trials per series (default %(default)s)")
     p.add_argument("--series", nargs="+", default=["cable", "tilt"], help="series to run (default: cable tilt)")
     p.add_argument("--out", metavar="DIR", help="results folder (must be new or empty; default runs/experiment-TIME)")
@@ -59,7 +58,7 @@ def _start(args, view) -> int:
     try:
         return _run(args, cell, session, folder, say, view)
     except BaseException:
-        if folder is not None:
+        if folder is not None and not getattr(session, "experiment_kept", False):
             _discard(folder, keep_folder=given_existed)
         raise
 
@@ -77,7 +76,46 @@ def _discard(folder: Path, *, keep_folder: bool) -> None:
               file=sys.stderr)
 
 
+def _config(args, session, intrinsics) -> dict:
+    return {"trials": args.trials, "series": list(args.series), "seed": args.seed, "real": args.real,
+            "profile": None if args.real else args.profile,
+            "time_scale": args.time_scale, "urls": vars(session.urls), "sim_camera": args.sim_camera,
+            "intrinsics": bool(intrinsics)}
+
+
+def _camera_info(summary, cam_info, session) -> None:
+    if cam_info is not None:
+        if session.sim is not None:
+            cam_info["truth"] = session.sim.world.camera.to_dict()
+        summary["camera"] = cam_info
+
+
+def _keep_finished(exc, args, cell, session, folder, cam_info, intrinsics):
+    """An interrupted run: the trials it finished written to ``folder`` (marked interrupted), and the
+    interruption's error saying so (one message: the stop and what was kept)."""
+    from selfview.procedures.engine import Cancelled
+    from selfview.procedures.experiment import summarise
+    from selfview.procedures.runs import write_experiment_folder
+
+    part = getattr(session, "experiment_partial", None) or {}
+    records = part.get("records") or []
+    if folder is None or not records:
+        return exc
+    summary = summarise(records)
+    summary["failures"] = part.get("failures", [])
+    summary["interrupted"] = str(exc)
+    _camera_info(summary, cam_info, session)
+    config = _config(args, session, intrinsics) | {"trials_finished": len(records)}
+    try:
+        write_experiment_folder(folder, records, summary, part.get("first"), cell=cell, config=config)
+    except Exception as err:  # noqa: BLE001 - the interruption is what the operator must hear about
+        return Cancelled(f"{exc}; the {len(records)} finished trial(s) could not be kept ({err})", exc.signum)
+    session.experiment_kept = True
+    return Cancelled(f"{exc}; the {len(records)} finished trial(s) are kept in {folder}/", exc.signum)
+
+
 def _run(args, cell, session, folder, say, view) -> int:
+    from selfview.procedures.engine import Cancelled
     from selfview.procedures.experiment import tables_markdown
     from selfview.procedures.runs import write_experiment_folder
 
@@ -87,6 +125,8 @@ def _run(args, cell, session, folder, say, view) -> int:
     rows = []
 
     def on_trial(series, k, n, rec):
+        if session.engine is not None and session.engine.cancel.is_set():
+            return  # interrupted: the stop is reported once, nothing after it
         done[0] += 1
         el = time.monotonic() - t0[0]
         rem = el / done[0] * (total - done[0])
@@ -118,19 +158,17 @@ def _run(args, cell, session, folder, say, view) -> int:
                     f"aspect {camera.aspect:.5f}, f {camera.f:.2f} px (the camera took {time.monotonic() - t_cam:.1f} s)")
             watch(view, session)
         t0[0] = time.monotonic()
-        out = session.experiment(series=tuple(args.series), trials=args.trials, on_trial=on_trial, camera=camera)
+        try:
+            out = session.experiment(series=tuple(args.series), trials=args.trials, on_trial=on_trial, camera=camera)
+        except Cancelled as exc:
+            exc = _keep_finished(exc, args, cell, session, folder, cam_info, intrinsics)
+            raise exc from None
     if args.dry_run:
         return 0
     records, summary, first = out
-    if cam_info is not None:
-        if session.sim is not None:
-            cam_info["truth"] = session.sim.world.camera.to_dict()
-        summary["camera"] = cam_info
-    config = {"trials": args.trials, "series": list(args.series), "seed": args.seed, "real": args.real,
-              "profile": None if args.real else args.profile,
-              "time_scale": args.time_scale, "urls": vars(session.urls), "sim_camera": args.sim_camera,
-              "intrinsics": bool(intrinsics)}
-    results = write_experiment_folder(folder, records, summary, first, cell=cell, config=config)
+    _camera_info(summary, cam_info, session)
+    results = write_experiment_folder(folder, records, summary, first, cell=cell,
+                                      config=_config(args, session, intrinsics))
     if view:
         fails = summary.get("failures") or []
         view.verdict(not fails, f"{len(records)} trials done, results in {folder}" if not fails else

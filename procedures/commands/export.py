@@ -12,13 +12,16 @@ from pathlib import Path
 
 import numpy as np
 
-from selfview.procedures.commands._common import print_json
+from selfview.procedures.commands._common import output_file, print_json
 
-CAMERA_FRAME = "camera"  # the wrist camera: x along the picture's rows, y down its columns, z along the optical axis
+#: The wrist camera's optical frame: x along the picture's rows, y down its columns, z along the optical axis,
+#: which ROS names ``*_optical_frame`` (REP 103: "suffix frames with _optical"; REP 105).
+CAMERA_FRAME = "camera_optical_frame"
+CAMERA_NAME = "camera"  # camera_info's camera_name: the device, not a frame
 GRIPPER_FRAME = "gripper_tcp"  # G: the gripper's TCP between the fingertips
-DIRECTION = ("C_H_G maps gripper_tcp coordinates to camera coordinates: p_camera = C_H_G p_gripper_tcp; it is the "
-             "pose of gripper_tcp in the camera frame (parent camera, child gripper_tcp); lengths in mm, "
-             "in metres in the ROS file")
+DIRECTION = (f"C_H_G maps {GRIPPER_FRAME} coordinates to {CAMERA_FRAME} coordinates: p_camera = C_H_G p_gripper_tcp; "
+             f"it is the pose of {GRIPPER_FRAME} in the camera's optical frame (parent {CAMERA_FRAME}, child "
+             f"{GRIPPER_FRAME}; x right, y down, z along the optical axis); lengths in mm, in metres in the ROS file")
 
 
 def register(sub):
@@ -29,7 +32,7 @@ def register(sub):
             "Writes the camera (OpenCV's camera matrix K and plumb_bob distortion k1 k2 p1 p2 k3, or the rational model's 8 "
             "coefficients where plumb_bob misses by over 0.05 px; fitted to the "
             "calibration's kappa model over a grid of the whole picture; the fit's RMS and maximum in pixels are "
-            "written beside them) and C_H_G as a transform from frame gripper_tcp to frame camera. opencv: one "
+            "written beside them) and C_H_G as a transform from frame gripper_tcp to frame camera_optical_frame (REP 103). opencv: one "
             "FileStorage YAML (cv2.FileStorage reads it); ros: OUT is sensor_msgs/CameraInfo YAML and "
             "NAME.transform.yaml beside it (NAME: OUT up to its first dot) a geometry_msgs/TransformStamped (metres, quaternion x y z w); json: one file."
         ),
@@ -112,8 +115,7 @@ def run(args) -> int:
     src = Path(args.calibration)
     default = {"opencv": ".opencv.yml", "ros": ".camera_info.yaml", "json": ".export.json"}[args.format]
     out = Path(args.out) if args.out else src.with_name(src.stem + default)
-    if not out.parent.is_dir():
-        raise ConfigError(f"--out {out}: folder {out.parent} does not exist")
+    output_file(str(out), "--out")
     H = np.asarray(cal.C_H_G, float)
     fit_note = (f"OpenCV {fit['model']} fitted to the kappa model (kappa {cam.kappa:.6e} px^-2) over the whole picture: "
                 f"rms {fit['rms_px']:.4f} px, max {fit['max_px']:.4f} px"
@@ -145,7 +147,7 @@ def run(args) -> int:
         K = fit["K"]
         P = np.column_stack([K, np.zeros(3)])
         info = {
-            "image_width": int(cam.width), "image_height": int(cam.height), "camera_name": CAMERA_FRAME,
+            "image_width": int(cam.width), "image_height": int(cam.height), "camera_name": CAMERA_NAME,
             "camera_matrix": {"rows": 3, "cols": 3, "data": K.ravel().tolist()},
             "distortion_model": fit["model"],
             "distortion_coefficients": {"rows": 1, "cols": len(fit["dist"]), "data": fit["dist"].tolist()},

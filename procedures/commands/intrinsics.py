@@ -11,7 +11,7 @@ import datetime as _dt
 import sys
 from pathlib import Path
 
-from selfview.procedures.commands._common import COUNT, print_json
+from selfview.procedures.commands._common import COUNT, SECONDS, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
 from selfview.procedures.view import ViewProgress, add_view_arguments, intrinsics_state, viewing, watch, with_progress
 
@@ -38,6 +38,9 @@ def register(sub):
     p.add_argument("--out", metavar="CAMERA.yaml", help="write the camera file here")
     p.add_argument("--force", action="store_true", help="write --out even when the stop rule is not met")
     p.add_argument("--save-views", metavar="DIR", help="on the cell: write the pictures taken into DIR")
+    p.add_argument("--review", nargs="?", type=SECONDS, const=600.0, default=None, metavar="S",
+                   help="with --view: before anything is written, the page lists the views; reject any, CALIBRATE "
+                        "again without them, and SAVE (waits S seconds for the operator, default 600)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     add_view_arguments(p)
     p.set_defaults(func=run)
@@ -49,6 +52,8 @@ def _check_args(args) -> None:
 
     if args.images and args.real:
         raise ConfigError("--images calibrates picture files; --real takes the views on the cell: give one of them")
+    if args.review is not None and args.view is None:
+        raise ConfigError("--review asks on the page: give --view too")
     if args.views < 1:
         raise ConfigError(f"--views: expected a positive number of views, got {args.views}")
     if args.out:
@@ -62,11 +67,35 @@ def run(args) -> int:
         return _run(args, view)
 
 
+def _measure(args, view, say, images, names, cell):
+    """(the camera measured from the views, the views the operator rejected). With --review the page lists
+    the views and waits: CALIBRATE measures again without the views marked, SAVE goes on with the last
+    measurement. ``ConfigError`` when nobody answers in time (nothing written)."""
+    from selfview.errors import ConfigError
+    from selfview.intrinsics import calibrate_intrinsics
+
+    rejected: list[str] = []
+    while True:
+        keep = [i for i, nm in enumerate(names) if nm not in rejected]
+        say(f"measuring the camera from {len(keep)} views" + (f" ({len(rejected)} rejected)" if rejected else ""))
+        res = calibrate_intrinsics([images[i] for i in keep], cell.plate, cell.camera.guess(), [names[i] for i in keep],
+                                   skip_unusable=args.skip_unusable or not args.images)
+        if not (view and args.review):
+            return res, rejected
+        intrinsics_state(view, res, cell.plate, rejected)
+        got = view.ask("check the views: mark any to reject and CALIBRATE again, or SAVE this camera",
+                       [("calibrate", "CALIBRATE"), ("save", "SAVE")], select_views=True, timeout_s=args.review)
+        if got is None:
+            raise ConfigError(f"--review: no answer on the page within {args.review:g} s; nothing written")
+        if got[0] == "save":
+            return res, rejected
+        rejected = [nm for nm in names if nm in set(got[1]["reject"])]
+
+
 def _run(args, view) -> int:
     from selfview import __version__
     from selfview.camfile import CameraFile, save_camera_file
     from selfview.cell import default_cell_path, load_cell
-    from selfview.intrinsics import calibrate_intrinsics
     from selfview.procedures.commands._common import write_image
     from selfview.procedures.commands.calibrate import read_picture
 
@@ -102,8 +131,7 @@ def _run(args, view) -> int:
             for i, img in enumerate(images):
                 write_image(folder / f"view_{i + 1:02d}.png", img, "--save-views")
         source = "cell (real)" if args.real else f"simulated cell (seed {args.seed}, camera {args.sim_camera})"
-    say(f"measuring the camera from {len(images)} views")
-    res = calibrate_intrinsics(images, cell.plate, cell.camera.guess(), names, skip_unusable=args.skip_unusable or not args.images)
+    res, rejected = _measure(args, view, say, images, names, cell)
     s = res.summary()
     s["source"] = source
     warnings = []
@@ -119,8 +147,10 @@ def _run(args, view) -> int:
         warnings.append(f"the two halves of the views disagree: {worst} differs by {xc['ratio'][worst]:.1f} combined sigmas "
                         f"(limit {xc['limit_sigmas']:g}); a view may be blurred, or the camera moved between views")
     s["warnings"] = warnings
+    if rejected:
+        s["views_rejected"] = rejected
     if view:
-        intrinsics_state(view, res)
+        intrinsics_state(view, res, cell.plate, rejected)
     if not args.images and getattr(session, "sim", None) is not None:
         t = session.sim.world.camera
         s["truth"] = {"f": t.f, "kappa": t.kappa, "principal_point": [t.cx, t.cy], "aspect": t.aspect}

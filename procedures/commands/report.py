@@ -71,4 +71,14 @@ def run(args) -> int:
     else:
         print(f"wrote {res['markdown']} and {res['results']}/ in {res['seconds']:.0f} s: "
               + ", ".join(f"{k} {v}" for k, v in res["runs"].items()))
-    return 0
+    bad = {k: v for k, v in res["runs"].items() if v != "ok"}
+    if res.get("experiment_failed"):
+        bad["experiment"] = f"failed ({res['experiment_failed']})"
+    if not bad:
+        return 0
+    print("selfview report: error: " + ", ".join(f"{k} {v}" for k, v in bad.items()) + " (the report says so)\n"
+          "  what to do: " + ("run it from a checkout, or give --bench-dir the checkout's bench/ folder"
+                              if set(bad.values()) == {"not available"} else
+                              "rerun the part named above alone (--only NAME) and read its error"), file=sys.stderr)
+    # a part that is not there is a matter of files (3); one that ran and failed, of the program (1)
+    return 3 if set(bad.values()) == {"not available"} else 1

@@ -29,6 +29,11 @@ _ACTIONS = {
 }
 
 
+#: What each motion is called when it is done.
+_DONE = {"ready": "READY", "move": "MOVE", "moves": "MOVES (straight line)", "appro": "APPRO", "depart": "DEPART",
+         "drive": "DRIVE"}
+
+
 def _number(text: str, what: str) -> float:
     """A coordinate, angle, distance or speed typed on the command line: ASCII digits, finite, within
     +-10,000 (a wider number is a typing error, not a pose); exit 2 otherwise."""
@@ -161,6 +166,8 @@ def run(args) -> int:
             out["where"] = w.to_dict()
         else:
             w = None
+    if step is not None:
+        out["done"] = step.describe()
     if args.json:
         print_json(out)
         return 0
@@ -169,6 +176,11 @@ def run(args) -> int:
         print(f"{out['location']['name']}:")
         print(d.format_header(d.pose_header))
         print(d.format_values(out["location"]["pose"]))
+    if step is not None:
+        desc = step.describe()
+        print(f"{_DONE[act]} done" + (f" ({desc})" if desc != act else "") + "; the arm is now at:")
+    elif act == "calibrate":
+        print("CAL done: the arm is calibrated; it is now at:")
     if w is not None:
         print(d.format_header(d.pose_header))
         print(d.format_values(w.pose))

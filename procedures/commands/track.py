@@ -47,96 +47,32 @@ def run(args) -> int:
 
 
 def _run(args, view) -> int:
+    from selfview.api import track
     from selfview.procedures.commands.calibrate import read_picture
     from selfview.procedures.results import draw_tracked, keep_pictures
     from selfview.calfile import load_calibration, save_calibration
-    from selfview.cell import POINT_NAMES
-    from selfview.errors import AlarmError, CalibrationError, ConfigError
-    from selfview.fingertips import find_fingertips
-    from selfview.offline import check_picture
-    from selfview.online import estimate
+    from selfview.errors import AlarmError
     from selfview.pcc import jaw_gap_of
-    from selfview.policy import Monitor
 
     cell = load_cell_arg(args)
     cal = load_calibration(args.calibration)
-    state = args.state or cal.state
-    if state not in cal.points_G:
-        raise ConfigError(f"--state {state!r}: the calibration has points for {', '.join(cal.points_G)}")
     img, _ = read_picture(args.image)
-    img = check_picture(img, cal.camera.width, cal.camera.height)
-    pG = cal.points_G[state]
-    gap = jaw_gap_of(pG)
     if view:
         view.doing(f"finding the fingertips in {args.image}")
         view.frame(img)
-    ft = find_fingertips(img, cal.camera, cal.C_H_G, cell.gripper, gap, model=args.measure == "model")
-    found_names = [nm for nm, ok in zip(POINT_NAMES, ft.found) if ok]
-    if args.method == "auto":
-        if ft.lost is not None or int(np.sum(ft.found)) < 3:
-            n = int(np.sum(ft.found))
-            raise CalibrationError(f"fingertips not found: {ft.lost or f'{n} point(s) found, 3 needed'}")
-        mon = Monitor(cal.C_H_G, cal.camera, pG, cell.monitor, max_missed_frames=1)  # one picture: no next frame
-        d = mon.step(ft.uv, ft.found, lost=ft.lost)
-        out = {
-            "method": d.method or "auto",
-            "C_H_G": np.asarray(d.C_H_G).tolist(),
-            "delta_deg": d.delta_deg,
-            "d_mm": d.d_mm,
-            "decision": d.action,
-            "reason": d.reason,
-            "points_used": list(d.points_used or []),
-            "rms_px": d.rms_px,
-            "points_found": found_names,
-            "quality": ft.quality,
-        }
-        new = None if d.action == "alarm" else np.asarray(d.C_H_G, float)
-    elif args.method == "E":
-        if ft.lost is not None:
-            raise CalibrationError(f"fingertips not found: {ft.lost}")
-        if ft.C_H_G is None:
-            raise ConfigError("--method E is the model's own estimate: it needs --measure model")
-        from selfview.geometry import pose_difference
-
-        H = np.asarray(ft.C_H_G, float)
-        M = H @ np.linalg.inv(cal.C_H_G)  # the camera's motion C'_H_C
-        out = {
-            "method": "E",
-            "C_H_G": H.tolist(),
-            "C_H_G_orthonormal": H.tolist(),
-            "delta_deg": float(pose_difference(H, cal.C_H_G)[0]),
-            "d_mm": float(np.linalg.norm(M[:3, 3])),
-            "decision": "update",
-            "points_used": [],
-            "rms_px": float(ft.quality["rms_px"]),
-            "points_found": found_names,
-            "quality": ft.quality,
-        }
-        new = H
-    else:
-        if ft.lost is not None:
-            raise CalibrationError(f"fingertips not found: {ft.lost}")
-        est = estimate(args.method, cal.C_H_G, pG, ft.uv, ft.found, cal.camera)
-        decision = "recalibrate" if args.method.endswith("R") else "update"
-        out = {
-            "method": args.method,
-            "C_H_G": est.C_H_G.tolist(),
-            "C_H_G_orthonormal": est.C_H_G_orth.tolist(),
-            "delta_deg": est.delta_deg,
-            "d_mm": est.d_mm,
-            "decision": decision,
-            "points_used": list(est.points_used),
-            "rms_px": est.rms_px,
-            "points_found": found_names,
-            "quality": ft.quality,
-        }
-        new = est.C_H_G_orth
+    tr = track(img, cal, args.method, cell=cell, state=args.state, measure=args.measure)
+    out = tr.to_dict()
+    ft = tr.fingertips
+    found_names = tr.points_found
+    pG = cal.points_G[args.state or cal.state]
+    gap = jaw_gap_of(pG)
+    new = None if tr.decision == "alarm" else np.asarray(tr.C_H_G_orthonormal, float)
     shown = new if new is not None else cal.C_H_G
     draw = lambda im: draw_tracked(im, cal.camera, shown, pG, ft, boxes=cell.gripper.finger_boxes_G(gap))  # noqa: E731
     if view:
         view.frame(draw(img))
         view.update(numbers={k: out[k] for k in ("method", "decision", "delta_deg", "d_mm", "rms_px")}
-                    | {"points found": ", ".join(found_names)})
+                    | {"points found": ", ".join(found_names), "TCP 1-sigma x y z [mm]": _sigma_text(tr.tcp_sigma_mm)})
         view.verdict(out["decision"] != "alarm", f"{out['decision']}: {out.get('reason') or out['method']}")
     if not args.no_pictures:
         out["pictures"] = keep_pictures(args.calibration, img, draw, "track-")
@@ -158,6 +94,13 @@ def _run(args, view) -> int:
               f"rms {out['rms_px']:.3f} px  points {', '.join(out['points_used'])}")
         print(f"  TCP in camera: x {H[0, 3]:+.3f}  y {H[1, 3]:+.3f}  z {H[2, 3]:+.3f} mm"
               + ("  (written to the calibration file)" if out["applied"] else ""))
+        print(f"  TCP 1-sigma:   {_sigma_text(tr.tcp_sigma_mm)} mm (the estimate's and the calibration's)")
     if out["decision"] == "alarm":
         raise AlarmError(out.get("reason", "alarm"))
     return 0
+
+
+def _sigma_text(sg) -> str:
+    if sg is None:
+        return "not known (no redundant point, or the model's estimate)"
+    return "  ".join(f"{a} {v:.4f}" for a, v in zip("xyz", sg))

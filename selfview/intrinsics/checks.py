@@ -170,7 +170,7 @@ def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
     return out
 
 
-def tcp_sigma(result, cell, camera_cov3: np.ndarray | None = None) -> dict:
+def tcp_sigma(result, cell, camera_cov3: np.ndarray | None = None, camera_error: dict | None = None) -> dict:
     """1-sigma of the TCP in camera axes [mm] of an off-line calibration, from the covariance of the camera
     calibration and the PCC together.
 
@@ -180,7 +180,10 @@ def tcp_sigma(result, cell, camera_cov3: np.ndarray | None = None) -> dict:
     point and aspect (``camera_cov3`` (3, 3) of cx, cy, aspect, or (4, 4) with the skew, from a camera file;
     None: taken as exact),
     through the pose and f they shift and directly; the fingertip corners' (each from two line fits: the
-    edge points' RMS over sqrt(n/2) per axis). Returns {tcp_sigma_mm [3], parts {...}}.
+    edge points' RMS over sqrt(n/2) per axis). ``camera_error``: ``camera_check``'s answer for this
+    picture; when the picture shows the assumed centre and aspect wrong (its ``tcp_shift_mm``), that shift
+    is a fourth part, ``camera_model`` (the error of the camera model the sigma would otherwise leave out).
+    Returns {tcp_sigma_mm [3], parts {...}}.
     """
     cal = result.calibration
     cam = cal.camera
@@ -233,6 +236,9 @@ def tcp_sigma(result, cell, camera_cov3: np.ndarray | None = None) -> dict:
             g = (tcp(x, up) - tcp(x, um)) / 2e-3
             Cc += np.outer(g, g) * sc[k] ** 2
     parts["corners"] = Cc
+    shift = (camera_error or {}).get("tcp_shift_mm") if (camera_error or {}).get("significant") else None
+    if shift is not None:
+        parts["camera_model"] = np.outer(shift, shift)
     total = sum(parts.values())
     return {"tcp_sigma_mm": [float(v) for v in np.sqrt(np.clip(np.diag(total), 0, None))],
             "parts": {k: [float(v) for v in np.sqrt(np.clip(np.diag(c), 0, None))] for k, c in parts.items()}}

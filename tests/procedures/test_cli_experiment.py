@@ -59,8 +59,12 @@ def test_bad_arguments_name_the_problem(capsys):
 @pytest.mark.parametrize("script, args, expect", [
     ("offline_calibration.py", ["cal.yaml"], "saved to cal.yaml"),
     ("monitoring_loop.py", ["6"], "frame 6:"),
+    ("picture_files.py", ["parked.png", "moved.png"], "tracking: "),
 ])
 def test_examples_run(tmp_path, script, args, expect):
+    if script == "picture_files.py":
+        assert main(["render", "--out", str(tmp_path / "parked.png")]) == 0
+        assert main(["render", "--out", str(tmp_path / "moved.png"), "--disturb", "cable"]) == 0
     r = subprocess.run([sys.executable, str(REPO / "examples" / script), *args], cwd=tmp_path,
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
@@ -68,18 +72,18 @@ def test_examples_run(tmp_path, script, args, expect):
 
 
 def test_profile_option_where_a_simulated_cell_is_built():
-    """``selfview experiment`` runs the realistic cell by default; the commands that build a simulated
-    cell take ``--profile`` (ideal by default) and pass it to the world."""
+    """Every command that builds a simulated cell builds the same one by default (ideal, the nominal camera),
+    takes ``--profile`` and ``--sim-camera`` and passes them to the world."""
     from selfview.procedures.cli import build_parser
     from selfview.procedures.simcell import SimulatedCell
     from selfview.cell import default_cell_path, load_cell
 
     p = build_parser()
-    assert p.parse_args(["experiment"]).profile == "realistic"
-    assert p.parse_args(["experiment"]).sim_camera == "realistic"  # a new camera, measured first as a lab would
-    for cmd in ("park", "monitor", "devices", "render"):
+    for cmd in ("park", "monitor", "devices", "render", "experiment", "verify", "calibrate", "intrinsics"):
         extra = {"render": ["--out", "x.png"], "monitor": ["--calibration", "cal.yaml"]}.get(cmd, [])
         assert p.parse_args([cmd, *extra]).profile == "ideal"
+        if cmd != "render":
+            assert p.parse_args([cmd, *extra]).sim_camera == "ideal"
         assert p.parse_args([cmd, *extra, "--profile", "paper-like"]).profile == "paper-like"
     sim = SimulatedCell(load_cell(default_cell_path()), seed=2, profile="paper-like")
     assert sim.world.imperfections.finger_dim_sd_mm > 0

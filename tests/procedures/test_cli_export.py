@@ -32,7 +32,7 @@ def test_opencv_file_loads_and_reproduces_the_kappa_model(calfile, name, capsys)
     K, dist = fs.getNode("camera_matrix").mat(), fs.getNode("distortion_coefficients").mat().ravel()
     H = fs.getNode("C_H_G").mat()
     stated = fs.getNode("distortion_fit_max_px").real()
-    assert fs.getNode("C_H_G_from_frame").string() == "gripper_tcp" and fs.getNode("C_H_G_to_frame").string() == "camera"
+    assert fs.getNode("C_H_G_from_frame").string() == "gripper_tcp" and fs.getNode("C_H_G_to_frame").string() == "camera_optical_frame"
     assert "p_camera = C_H_G p_gripper_tcp" in fs.getNode("C_H_G_direction").string()
     fs.release()
     cal = load_calibration(calfile / name)
@@ -63,7 +63,7 @@ def test_ros_files_load_as_yaml_and_name_both_frames(calfile, capsys):
     assert info["distortion_model"] == "plumb_bob" and len(info["distortion_coefficients"]["data"]) == 5  # the reference lens
     assert (info["image_width"], info["image_height"]) == (768, 576) and K[0, 0] == pytest.approx(cal.camera.f)
     tf = yaml.safe_load((calfile / "cam.transform.yaml").read_text())
-    assert tf["header"]["frame_id"] == "camera" and tf["child_frame_id"] == "gripper_tcp"
+    assert tf["header"]["frame_id"] == "camera_optical_frame" and tf["child_frame_id"] == "gripper_tcp"
     t = tf["transform"]["translation"]
     assert np.allclose([t["x"], t["y"], t["z"]], cal.C_H_G[:3, 3] / 1000.0)
     q = tf["transform"]["rotation"]
@@ -78,7 +78,7 @@ def test_ros_files_load_as_yaml_and_name_both_frames(calfile, capsys):
 def test_json_export(calfile):
     assert main(["export", str(calfile / "cal.yaml"), "--format", "json"]) == 0
     doc = json.loads((calfile / "cal.export.json").read_text())
-    assert doc["C_H_G"]["from_frame"] == "gripper_tcp" and doc["C_H_G"]["to_frame"] == "camera"
+    assert doc["C_H_G"]["from_frame"] == "gripper_tcp" and doc["C_H_G"]["to_frame"] == "camera_optical_frame"
     assert doc["camera"]["opencv"]["fit_max_px"] < 0.05
 
 

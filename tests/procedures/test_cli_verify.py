@@ -27,7 +27,7 @@ def test_spread_of_known_transforms():
 
 
 def test_verify_on_the_realistic_cell_says_no_go_below_its_spread_and_measures_the_truth(capsys):
-    code = main(["verify", "--parks", "3", "--target-mm", "0.001", "--json"])
+    code = main(["verify", "--parks", "3", "--target-mm", "0.001", "--profile", "realistic", "--json"])
     out = json.loads(capsys.readouterr().out)
     assert code == 5 and out["verdict"] == "no-go" and "over the target 0.001 mm" in out["reason"]
     assert len(out["parks"]) == 3 and all(p["corners_found"] == 6 for p in out["parks"])

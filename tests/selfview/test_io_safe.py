@@ -102,15 +102,25 @@ def test_a_truncated_picture_is_an_image_error(tmp_path, grey):
         read_picture(p)
 
 
-def test_cli_exit_5_for_bad_pictures(tmp_path, capsys):
-    from selfview.procedures.cli import EXIT_CALIBRATION, main
+def test_cli_exit_3_for_bad_picture_files(tmp_path, capsys):
+    """A file that is not a usable picture is a file fault (exit 3, the README's), with its own advice; a
+    picture that shows nothing usable is a calibration fault (exit 5)."""
+    from selfview.procedures.cli import EXIT_CALIBRATION, EXIT_CONFIG, main
 
-    for name, content in [("zero.png", b""), ("huge.png", png_header_only(40000, 40000))]:
+    (tmp_path / "text.png").write_text("hello\n")
+    for name, content in [("zero.png", b""), ("huge.png", png_header_only(40000, 40000)), ("missing.png", None),
+                          ("text.png", None)]:
         p = tmp_path / name
-        p.write_bytes(content)
-        assert main(["calibrate", "--image", str(p), "--out", str(tmp_path / "cal.yaml")]) == EXIT_CALIBRATION
+        if content is not None:
+            p.write_bytes(content)
+        assert main(["calibrate", "--image", str(p), "--out", str(tmp_path / "cal.yaml")]) == EXIT_CONFIG
         err = capsys.readouterr().err
         assert name in err and "Traceback" not in err
+        assert "give the path of a picture file" in err and "light, focus" not in err
+    cv2.imwrite(str(tmp_path / "blank.png"), np.full((576, 768), 128, np.uint8))
+    assert main(["calibrate", "--image", str(tmp_path / "blank.png"), "--out", str(tmp_path / "cal.yaml")]) \
+        == EXIT_CALIBRATION
+    assert "blank" in capsys.readouterr().err
     assert not (tmp_path / "cal.yaml").exists()
 
 
