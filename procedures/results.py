@@ -321,11 +321,14 @@ def keep_pictures(out, image, draw, kind: str = "") -> dict:
     ``out``, named by the picture's SHA-256 (an earlier run's pictures are never overwritten); returns
     {picture, annotated}: the file names, relative to ``out``'s folder. ``kind`` starts the names
     (``track-``: a tracked picture beside its calibration file)."""
+    from selfview.errors import ConfigError
+    from selfview.io_safe import write_picture
+
     out = Path(out)
     tag = hashlib.sha256(image.tobytes()).hexdigest()[:12]
     names = {}
     for role, img in (("picture", image), ("annotated", draw(image))):
         path = out.with_name(f"{out.stem}.{kind}{role}-{tag}.png")
-        write_image(path, img, "--out")
+        write_picture(path, img, error=ConfigError, what=f"{role} (--out)")
         names[role] = path.name
     return names
