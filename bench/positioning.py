@@ -43,16 +43,17 @@ from selfview.bench.handeye import plate_pose  # noqa: E402
 from selfview.bench.kinematics_vs_selfview import F_H_G, opencv_handeye, resolve_grid, stations  # noqa: E402
 from selfview.cell import default_cell_path, load_cell  # noqa: E402
 from selfview.errors import CellError  # noqa: E402
-from selfview.geometry import R_from_rotvec, inv_H, make_H, rot_z, trans  # noqa: E402
+from selfview.geometry import inv_H, rot_z, trans  # noqa: E402
+from selfview.io_safe import atomic_write  # noqa: E402
 from selfview.mocks.kinematic_errors import WORN_PUMA, PerturbedPuma260  # noqa: E402
-from selfview.mocks.objects import grasp_outcome, place_object  # noqa: E402
+from selfview.mocks.objects import draw_start, grasp_outcome, place_object  # noqa: E402
 from selfview.mocks.puma260 import Unreachable  # noqa: E402
 from selfview.mocks.render import render  # noqa: E402
 from selfview.mocks.world import PLATE_BASE_POSE, SimWorld  # noqa: E402
 from selfview.objects import load_object, object_pose  # noqa: E402
 from selfview.offline import calibrate_offline  # noqa: E402
 from selfview.procedures.engine import tool_step_size  # noqa: E402
-from selfview.procedures.grasp import GraspResult, ServoSettings, servo_grasp  # noqa: E402
+from selfview.procedures.grasp import GraspResult, ServoSettings, pose_error, servo_grasp  # noqa: E402
 
 PROFILES = {"none": 0.0, "half-worn": 0.5, "worn": 1.0}
 CALIBRATIONS = ("truth", "selfview-offline", "selfview-online", "axxb")
@@ -96,9 +97,9 @@ class DirectRig:
         return grasp_outcome(self.world, self.world.cell.gripper.gap("open"))
 
 
-def _calibrations(cell, seed: int, level: float, n_poses: int) -> dict:
+def _calibrations(cell, seed: int, level: float, n_poses: int, imperfections: str) -> dict:
     """{name: (C_H_G, camera) or {"failed": why}} for one profile of one cell."""
-    world = SimWorld(cell, seed=seed)
+    world = SimWorld(cell, seed=seed, imperfections=imperfections)
     robot = PerturbedPuma260(WORN_PUMA.scaled(level), seed=seed)
     out = {"truth": (world.C_H_G.copy(), world.camera)}
     park = robot.move(PLATE_BASE_POSE @ trans(1.0, -1.5, 4.0) @ rot_z(np.radians(3.0)) @ inv_H(F_H_G))
@@ -122,27 +123,14 @@ def _calibrations(cell, seed: int, level: float, n_poses: int) -> dict:
     return out
 
 
-def _start(world, cell, obj, rng) -> np.ndarray:
-    """A pre-grasp pose: the stand-off goal backed off 150-250 mm along the camera's line of sight, turned
-    up to 15 deg about the target's centre, shifted up to 50 mm."""
-    base_H_pre = world.object.base_H_O @ obj.O_H_Gpre
-    z_C = inv_H(cell.mount_guess_C_H_G)[:3, 2]  # the camera's axis in G
-    back = base_H_pre @ make_H(np.eye(3), -rng.uniform(150.0, 250.0) * z_C)
-    axis = rng.normal(size=3)
-    R = R_from_rotvec(axis / np.linalg.norm(axis) * np.radians(rng.uniform(0.0, 15.0)))
-    turn = world.object.base_H_O @ make_H(R) @ inv_H(world.object.base_H_O)
-    shift = rng.normal(size=3)
-    shift *= rng.uniform(0.0, 50.0) / np.linalg.norm(shift)
-    return trans(*shift) @ turn @ back
-
-
 def run_start(seed: int, start: int, level: float, calib, online: bool, moved: bool, taught: bool,
-              settings: ServoSettings) -> dict:
-    """One servo run from one start; the figures of its end."""
+              settings: ServoSettings, imperfections: str = "realistic") -> dict:
+    """One servo run from one start; the figures of its end: the TCP against the grasp frame G* after the
+    descent, or (not converged) against the stand-off goal where the servo stopped."""
     cv2.setNumThreads(1)
     cell = load_cell(default_cell_path())
     obj = load_object()
-    world = SimWorld(cell, seed=seed)
+    world = SimWorld(cell, seed=seed, imperfections=imperfections)
     place_object(world, obj, seed=seed * 1000 + start)
     robot = PerturbedPuma260(WORN_PUMA.scaled(level), seed=seed)
     rig = DirectRig(world, robot, seed * 1000 + start)
@@ -153,8 +141,8 @@ def run_start(seed: int, start: int, level: float, calib, online: bool, moved: b
     for _ in range(MAX_DRAWS):
         rec["draws"] += 1
         try:
-            rig.place(_start(world, cell, obj, rng))
-        except Unreachable:
+            rig.place(draw_start(world, rng, draws=1))
+        except (Unreachable, CellError):
             continue
         r = render(world, seed=1)
         if r.corner_visible.sum() >= 5:
@@ -187,8 +175,8 @@ def run_start(seed: int, start: int, level: float, calib, online: bool, moved: b
     except CellError as exc:
         res.reason = f"{type(exc).__name__}: {exc}"
     t = res.true_error_mm
-    if t is None:  # failed before the descent: the distance to the goal where it stopped
-        t, a = (lambda d: (d["true_error_mm"], d["true_error_deg"]))(_final_truth(world, obj))
+    if t is None:  # failed before the descent: the distance to the servo's goal where it stopped
+        t, a = _final_truth(world, obj)
     else:
         a = res.true_error_deg
     ms = [r["processing_ms"] for r in res.iterations]
@@ -199,10 +187,10 @@ def run_start(seed: int, start: int, level: float, calib, online: bool, moved: b
                   "seconds": time.perf_counter() - t0}
 
 
-def _final_truth(world, obj) -> dict:
-    G_H_Gs = inv_H(world.base_H_G) @ world.object.base_H_O @ obj.O_H_Gstar
-    return {"true_error_mm": [float(v) for v in G_H_Gs[:3, 3]],
-            "true_error_deg": float(np.degrees(np.arccos(np.clip((np.trace(G_H_Gs[:3, :3]) - 1) / 2, -1, 1))))}
+def _final_truth(world, obj) -> tuple[list, float]:
+    """The stand-off goal in the true gripper frame now: ([x, y, z] mm, deg)."""
+    t, a = pose_error(inv_H(world.base_H_G) @ world.object.base_H_O @ obj.O_H_Gpre)
+    return [float(v) for v in t], a
 
 
 def conditions() -> list[dict]:
@@ -297,6 +285,7 @@ def main(argv=None) -> int:
     ap.add_argument("--poses", type=int, default=10, help="stations for AX=XB (default 10)")
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
     ap.add_argument("--out", metavar="DIR", help="also write positioning.json, .md and .png there")
+    ap.add_argument("--world", default="realistic", help="the simulated cell's imperfections (default %(default)s)")
     ap.add_argument("--quick", action="store_true", help="every condition with 5 starts")
     args = ap.parse_args(argv)
     if args.quick:
@@ -308,7 +297,7 @@ def main(argv=None) -> int:
     settings = ServoSettings()
     with ProcessPoolExecutor(args.jobs) as ex:
         cals = dict(zip(PROFILES, ex.map(_calibrations, [cell] * 3, [args.seed] * 3, PROFILES.values(),
-                                         [args.poses] * 3)))
+                                         [args.poses] * 3, [args.world] * 3)))
         conds = conditions()
         futs = []
         for c in conds:
@@ -317,7 +306,8 @@ def main(argv=None) -> int:
                 futs.append(None)
                 continue
             futs.append([ex.submit(run_start, args.seed, s, PROFILES[c["profile"]], cal,
-                                   c["calibration"] == "selfview-online", c["camera_moved"], c["taught_goal"], settings)
+                                   c["calibration"] == "selfview-online", c["camera_moved"], c["taught_goal"], settings,
+                                   args.world)
                          for s in range(args.starts)])
         rows, runs = [], []
         for c, fl in zip(conds, futs):
@@ -329,7 +319,7 @@ def main(argv=None) -> int:
             rows.append(_summary(c, rr))
     out = {
         "benchmark": "visually guided grasping: final TCP-to-goal error by calibration, kinematic profile, camera move",
-        "seed": args.seed, "starts": args.starts, "quick": args.quick,
+        "seed": args.seed, "starts": args.starts, "quick": args.quick, "world": args.world,
         "servo": settings.__dict__, "object": str(load_object().source),
         "profiles": {k: WORN_PUMA.scaled(v).to_dict() for k, v in PROFILES.items()},
         "calibration_errors": {p: {k: _cal_error(v, c["truth"][0]) for k, v in c.items()} for p, c in cals.items()},
@@ -343,8 +333,9 @@ def main(argv=None) -> int:
     if args.out:
         d = Path(args.out)
         d.mkdir(parents=True, exist_ok=True)
-        (d / "positioning.json").write_text(json.dumps(out, indent=1))
-        (d / "positioning.md").write_text(table_markdown([r for r in rows if "failed" not in r]) + "\n")
+        atomic_write(d / "positioning.json", json.dumps(out, indent=1).encode(), what="results")
+        atomic_write(d / "positioning.md", (table_markdown([r for r in rows if "failed" not in r]) + "\n").encode(),
+                     what="results")
         plot([r for r in rows if "failed" not in r], d / "positioning.png")
     print(json.dumps(out))
     return 0

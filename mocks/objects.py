@@ -14,10 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from selfview.errors import ConfigError
-from selfview.geometry import inv_H, make_H, rot_z, rotation_angle, transform_points
+from selfview.geometry import R_from_rotvec, inv_H, make_H, rot_z, rotation_angle, trans, transform_points
 from selfview.objects import ObjectSpec
 
-__all__ = ["SimObject", "place_object", "grasp_outcome", "MIN_GRIP_DEPTH_MM", "TABLE_MARGIN_MM"]
+__all__ = ["SimObject", "place_object", "draw_start", "grasp_outcome", "MIN_GRIP_DEPTH_MM", "TABLE_MARGIN_MM"]
 
 #: The fingertips must reach at least this far down the block's sides to hold it (mm).
 MIN_GRIP_DEPTH_MM = 10.0
@@ -49,6 +49,30 @@ def place_object(world, spec: ObjectSpec, seed: int | None = None) -> SimObject:
         world.object = obj
         world.version += 1
     return obj
+
+
+def draw_start(world, rng: np.random.Generator, reachable=None, draws: int = 8) -> np.ndarray:
+    """A pre-grasp pose ``base_H_G`` for ``world.object``: its stand-off goal backed off 150-250 mm along the
+    camera's line of sight (the mount guess's), turned up to 15 deg about a random axis through the target's
+    centre (which keeps it in view) and shifted up to 50 mm in a random direction. ``reachable(base_H_G)``
+    (optional) says whether the arm can take a pose: up to ``draws`` poses are drawn for one it can;
+    ``ConfigError`` if none."""
+    obj: SimObject = world.object
+    if obj is None:
+        raise ConfigError("draw_start: the simulated world has no object")
+    base_H_pre = obj.base_H_O @ obj.spec.O_H_Gpre
+    z_C = inv_H(world.cell.mount_guess_C_H_G)[:3, 2]  # the camera's axis in G
+    for _ in range(draws):
+        back = base_H_pre @ make_H(np.eye(3), -rng.uniform(150.0, 250.0) * z_C)
+        axis = rng.normal(size=3)
+        R = R_from_rotvec(axis / np.linalg.norm(axis) * np.radians(rng.uniform(0.0, 15.0)))
+        turn = obj.base_H_O @ make_H(R) @ inv_H(obj.base_H_O)
+        shift = rng.normal(size=3)
+        shift *= rng.uniform(0.0, 50.0) / np.linalg.norm(shift)
+        H = trans(*shift) @ turn @ back
+        if reachable is None or reachable(H):
+            return H
+    raise ConfigError(f"no reachable pre-grasp pose in {draws} draws: the object lies out of the arm's reach")
 
 
 def grasp_outcome(world, gap_open_mm: float) -> dict:

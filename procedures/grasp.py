@@ -34,8 +34,8 @@ from selfview.policy import Monitor
 from selfview.procedures.engine import Step
 from selfview.silhouette import SilhouetteTracker
 
-__all__ = ["ServoSettings", "GraspRig", "EngineRig", "GraspFailed", "GraspResult", "servo_grasp", "pose_error",
-           "TABLE_MARGIN_MM"]
+__all__ = ["ServoSettings", "GraspRig", "EngineRig", "GraspFailed", "GraspResult", "servo_grasp", "run_grasp",
+           "draw_servo", "pose_error", "TABLE_MARGIN_MM"]
 
 #: A commanded pose whose fingertips (as measured) come closer than this to the table is refused (mm).
 TABLE_MARGIN_MM = 2.0
@@ -261,3 +261,61 @@ class EngineRig:
 
     def outcome(self) -> dict | None:
         return self._outcome() if self._outcome is not None else None
+
+
+def run_grasp(session, obj: ObjectSpec, calibration, settings: ServoSettings = ServoSettings(), *,
+              start="pregrasp", result: GraspResult | None = None,
+              on_iteration: Callable[[dict, np.ndarray, object], None] | None = None) -> GraspResult:
+    """On an open ``CellSession``: move to the pre-grasp pose ``start`` (a taught location's name or a (4, 4)
+    ``base_H_G``; checked against the limits before anything moves), servo, descend and close the jaws
+    (``servo_grasp``). ``calibration`` a ``selfview.calfile`` calibration (its ``C_H_G``, camera and the
+    fingertip points of ``settings.state``). In simulation the world's verdict on the grasp is in
+    ``result.outcome``. The engine stops the robot and leaves the valve safe on any error or signal.
+
+    Lab script::
+
+        from selfview.procedures.grasp import run_grasp
+        with CellSession.real(cell, robot=..., gripper=..., camera=...) as s:
+            res = run_grasp(s, load_object("part.yaml"), load_calibration("calibration.yaml"))
+    """
+    if settings.state not in calibration.points_G:
+        raise ConfigError(f"the calibration has no fingertip points for the jaws {settings.state!r} "
+                          f"(it has {', '.join(calibration.points_G)})")
+    res = result if result is not None else GraspResult()
+    outcome = None
+    if session.sim is not None and session.sim.world.object is not None:
+        from selfview.mocks.objects import grasp_outcome
+
+        world = session.sim.world
+        outcome = lambda: grasp_outcome(world, session.cell.gripper.gap(settings.state))  # noqa: E731
+    plan = [Step("speed", {"pct": session.settings.speed_pct}), Step("move", {"target": start}, note="pre-grasp")]
+
+    def body(e):
+        for st in plan:
+            e.execute(st)
+        return servo_grasp(EngineRig(e, outcome), session.cell, obj, calibration.C_H_G, calibration.camera,
+                           calibration.points_G[settings.state], settings, result=res, on_iteration=on_iteration)
+
+    return session.engine.run(body, plan)
+
+
+def draw_servo(image: np.ndarray, camera: CameraModel, pose, C_H_G, obj: ObjectSpec, axis_mm: float = 20.0) -> np.ndarray:
+    """A BGR copy of ``image`` with the object's frame O (thin), the gripper frame G at the TCP and the
+    stand-off goal (thick) drawn as x red, y green, z blue axes of ``axis_mm``."""
+    import cv2
+
+    out = cv2.cvtColor(np.asarray(image, np.uint8), cv2.COLOR_GRAY2BGR) if np.ndim(image) == 2 else np.array(image)
+    frames = [(C_H_G, 2)]
+    if pose is not None:
+        frames += [(pose.C_H_O, 1), (pose.C_H_O @ obj.O_H_Gpre, 2)]
+    for H, width in frames:
+        p = transform_points(H, np.array([[0, 0, 0], [axis_mm, 0, 0], [0, axis_mm, 0], [0, 0, axis_mm]], float))
+        if np.any(p[:, 2] <= 1.0):
+            continue
+        uv = camera.project(p)
+        if not np.isfinite(uv).all():
+            continue
+        o = tuple(int(round(v)) for v in uv[0])
+        for k, colour in zip(range(1, 4), ((0, 0, 255), (0, 200, 0), (255, 0, 0))):
+            cv2.line(out, o, tuple(int(round(v)) for v in uv[k]), colour, width, cv2.LINE_AA)
+    return out
