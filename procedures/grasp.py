@@ -10,7 +10,7 @@ of the tool frame by ``gain`` times the error, capped per step, through the engi
 checked before anything is sent). The loop stops when |t| < ``stop_mm`` and theta < ``stop_deg``; it fails
 (``GraspFailed``, the engine then stops the robot and leaves the valve safe) after ``max_iterations``, when
 the target or the fingertips leave the picture, when the error keeps growing, or when a step would bring
-the fingertips (as measured) to the table. Then a straight descent of ``approach_mm`` along the tool z
+the fingertips to the table (as this picture's fingertips and target place them, whichever C_H_G drives). Then a straight descent of ``approach_mm`` along the tool z
 and the jaws close.
 
 The loop takes a ``GraspRig`` (grab, tool step, jaws, truth): ``EngineRig`` drives the engine's devices (a
@@ -201,11 +201,13 @@ def servo_grasp(rig: GraspRig, cell: Cell, obj: ObjectSpec, C_H_G, camera: Camer
             O_H_pre = inv_H(taught_C_H_O) @ C_now
         G_H_O = inv_H(C_now) @ pose.C_H_O
         G_H_pre = G_H_O @ O_H_pre
+        # the table's clearance from the fingertips as measured in this picture, whichever C_H_G drives
+        G_H_O_seen = inv_H(mon.C_H_G) @ pose.C_H_O
         e_t, e_deg = pose_error(G_H_pre)
         done = float(np.linalg.norm(e_t)) < s.stop_mm and e_deg < s.stop_deg
         delta = None if done else _step_towards(G_H_pre, s)
         if delta is not None:
-            _table_check(G_H_O, delta, obj, p_G6, f"iteration {k + 1}'s step")
+            _table_check(G_H_O_seen, delta, obj, p_G6, f"iteration {k + 1}'s step")
         ms = (time.perf_counter() - t0) * 1e3
         true_t, true_deg = _true_errors(rig.truth(), obj, O_H_pre)
         rec = {"iteration": k + 1, "error_mm": [float(v) for v in e_t], "error_deg": e_deg,
@@ -225,7 +227,7 @@ def servo_grasp(rig: GraspRig, cell: Cell, obj: ObjectSpec, C_H_G, camera: Camer
     # the last straight descent along the tool z, then hold
     descent = np.eye(4)
     descent[2, 3] = obj.approach_mm
-    _table_check(G_H_O, descent, obj, p_G6, "the descent")
+    _table_check(G_H_O_seen, descent, obj, p_G6, "the descent")
     rig.tool_step(descent, max(obj.approach_mm, 0.001), 0.001)
     truth = rig.truth()
     res.true_error_mm, res.true_error_deg = _true_errors(truth, obj, obj.O_H_Gstar)  # the TCP against G*
