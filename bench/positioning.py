@@ -333,7 +333,7 @@ def main(argv=None) -> int:
     out = {
         "benchmark": "visually guided grasping: final TCP-to-goal error by calibration, kinematic profile, camera move",
         "seed": args.seed, "starts": args.starts, "quick": args.quick, "world": args.world,
-        "servo": settings.__dict__, "object": str(load_object().source),
+        "servo": settings.__dict__, "object": load_object().name,
         "profiles": {k: WORN_PUMA.scaled(PROFILES[k]).to_dict() for k in profiles},
         "calibration_errors": {p: {k: _cal_error(v, c["truth"][0]) for k, v in c.items()} for p, c in cals.items()},
         "conditions": [r for r in rows],
