@@ -58,8 +58,8 @@ def _run(args, view) -> int:
     from selfview.objects import load_object
     from selfview.procedures.grasp import GraspResult, ServoSettings, draw_servo, run_grasp
 
-    if args.real and not args.calibration:
-        raise ConfigError("--real needs --calibration CAL.yaml (the cell's calibration file)")
+    if (args.real or args.dry_run) and not args.calibration:
+        raise ConfigError(f"{'--real' if args.real else '--dry-run'} needs --calibration CAL.yaml (the cell's calibration file)")
     obj = load_object(args.object)
     settings = ServoSettings(online=not args.offline, max_iterations=int(args.max_iterations)).check()
     say = with_progress(view, progress_printer(quiet=args.json))
@@ -86,7 +86,8 @@ def _run(args, view) -> int:
         if session.sim is not None:
             start = _simulated_start(session, obj, args.seed)
         try:
-            run_grasp(session, obj, cal, settings, start=start, result=res, on_iteration=shown)
+            if run_grasp(session, obj, cal, settings, start=start, result=res, on_iteration=shown) is None:
+                return 0  # --dry-run: the plan was printed, nothing moved
         except CellError as exc:
             res.reason = f"{type(exc).__name__}: {exc}"
             _report(args, res, view)
