@@ -330,6 +330,11 @@ def main(argv=None) -> int:
             rr = [f.result() for f in fl]
             runs.append(c | {"runs": rr})
             rows.append(_summary(c, rr))
+            r = rows[-1]
+            print(f"[{time.perf_counter() - t0:6.0f} s] {c['calibration']} {c['profile']}"
+                  f"{' moved' if c['camera_moved'] else ''}{' taught' if c['taught_goal'] else ''}: median "
+                  f"{r['median_mm']:.3f} mm, converged {r['converged']}/{r['starts']}, held {r['held']}",
+                  file=sys.stderr, flush=True)
     out = {
         "benchmark": "visually guided grasping: final TCP-to-goal error by calibration, kinematic profile, camera move",
         "seed": args.seed, "starts": args.starts, "quick": args.quick, "world": args.world,
