@@ -627,7 +627,8 @@ def _positioning(run: BenchRun | None) -> list[str]:
         table_markdown([c for c in d["conditions"] if "failed" not in c]), "",
         f"On the {h['profile']} arm: AX=XB / self-viewing on-line = {_f(h['axxb_over_online'])}; after the camera moved "
         f"mid-approach, on-line {_f(h['online_moved_over_unmoved'])} and off-line {_f(h['offline_moved_over_unmoved'])} "
-        f"times their unmoved error; processing per iteration at most {_f(h['processing_ms_max'])} ms.", ""]
+        f"times their unmoved error; processing per iteration at most {_f(h['processing_ms_max'])} ms. A run that did not "
+        "converge stopped before the descent: its distance is to the stand-off goal where it stopped.", ""]
 
 
 def _section(fn, *args) -> list[str]:
