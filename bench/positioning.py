@@ -43,7 +43,7 @@ from selfview.bench.handeye import plate_pose  # noqa: E402
 from selfview.bench.kinematics_vs_selfview import F_H_G, opencv_handeye, resolve_grid, stations  # noqa: E402
 from selfview.cell import default_cell_path, load_cell  # noqa: E402
 from selfview.errors import CellError  # noqa: E402
-from selfview.geometry import inv_H, rot_z, trans  # noqa: E402
+from selfview.geometry import inv_H, make_H, rot_z, trans  # noqa: E402
 from selfview.io_safe import atomic_write  # noqa: E402
 from selfview.mocks.kinematic_errors import WORN_PUMA, PerturbedPuma260  # noqa: E402
 from selfview.mocks.objects import draw_start, grasp_outcome, place_object  # noqa: E402
@@ -195,6 +195,21 @@ def _final_truth(world, obj) -> tuple[list, float]:
     return [float(v) for v in t], a
 
 
+def arm_repeatability(seed: int, level: float, moves: int = 30) -> dict:
+    """How closely the arm of a profile lands on one commanded pose over the block (tool point, mm): the RMS
+    distance of ``moves`` landings from their mean (repeatability) and from the command (accuracy)."""
+    robot = PerturbedPuma260(WORN_PUMA.scaled(level), seed=seed)
+    target = make_H(np.diag([1.0, -1.0, -1.0]), (350.0, 170.0, 60.0))
+    rng = np.random.default_rng([seed, 9])
+    land = []
+    for _ in range(moves):
+        robot.move((trans(*rng.uniform(-20, 20, 3)) @ target) @ inv_H(F_H_G))  # from somewhere near
+        land.append((robot.move(target @ inv_H(F_H_G)).base_H_F_true @ F_H_G)[:3, 3])
+    land = np.array(land)
+    return {"repeatability_mm": float(np.sqrt(np.mean(np.sum((land - land.mean(axis=0)) ** 2, axis=1)))),
+            "accuracy_mm": float(np.sqrt(np.mean(np.sum((land - target[:3, 3]) ** 2, axis=1))))}
+
+
 def conditions(profiles=DEFAULT_PROFILES) -> list[dict]:
     """Every condition of the study: (calibration, profile, camera moved, taught goal). The camera move and
     the taught goal (the control) on the most worn profile, with the three measured calibrations."""
@@ -339,7 +354,8 @@ def main(argv=None) -> int:
         "benchmark": "visually guided grasping: final TCP-to-goal error by calibration, kinematic profile, camera move",
         "seed": args.seed, "starts": args.starts, "quick": args.quick, "world": args.world,
         "servo": settings.__dict__, "object": load_object().name,
-        "profiles": {k: WORN_PUMA.scaled(PROFILES[k]).to_dict() for k in profiles},
+        "profiles": {k: WORN_PUMA.scaled(PROFILES[k]).to_dict() | arm_repeatability(args.seed, PROFILES[k])
+                     for k in profiles},
         "calibration_errors": {p: {k: _cal_error(v, c["truth"][0]) for k, v in c.items()} for p, c in cals.items()},
         "conditions": [r for r in rows],
         "headline": _headline([r for r in rows if "failed" not in r]),
