@@ -62,11 +62,16 @@ _SHADOW_STEP = 4
 
 # Surface labels; finger faces follow from _FINGER0 + 6 * finger + face (faces: -x, +x, -y, +y, -z, +z).
 _ROOM, _TABLE, _FOAM_TOP, _FOAM_SIDE, _PAPER, _INK, _PRINT, _BOARD_SIDE, _FINGER0 = range(9)
-_N_LABELS = _FINGER0 + 12
-#: Bit masks of what shows a label: bit k the box ``_Scene.boxes[k]`` (board, foam, finger A, finger B),
-#: _PRINT_BIT the printed face of the board; the table and the room have none (the table is always traced).
-_PRINT_BIT = 16
-_LABEL_BITS = np.array([0, 0, 2, 2, _PRINT_BIT, _PRINT_BIT, _PRINT_BIT, 1] + [4] * 6 + [8] * 6, np.uint8)
+# an object's block (``selfview.mocks.objects``): its sides and its top face with the printed target
+_BLOCK_SIDE, _TARGET = _FINGER0 + 12, _FINGER0 + 13
+_N_LABELS = _FINGER0 + 14
+#: Bit masks of what shows a label: bit k the box ``_Scene.boxes[k]`` (board, foam, finger A, finger B, the
+#: object's block), _PRINT_BIT the printed face of the board; the table and the room have none (the table is
+#: always traced).
+_PRINT_BIT = 128
+_LABEL_BITS = np.array([0, 0, 2, 2, _PRINT_BIT, _PRINT_BIT, _PRINT_BIT, 1] + [4] * 6 + [8] * 6 + [16, 16], np.uint8)
+#: The object's target texture: mm per texel.
+_TARGET_RES = 0.05
 _FACE_NORMALS = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], float)
 
 
@@ -326,6 +331,8 @@ class _Scene:
             imp, self.imperfect = world.imperfections, world.imperfect
             self.world_truth = world.truth()
             world_seed = world.seed
+            obj = world.object
+            C_H_O = world.C_H_O
         cell = world.cell
         self.C_H_G, self.C_H_W = C_H_G, C_H_W
         self.plate: PlateSpec = cell.plate
@@ -353,6 +360,17 @@ class _Scene:
         h = FOAM_SIZE_MM / 2
         self.foam = _Box(C_H_W, (-h, -h, FOAM_GAP_MM), (h, h, FOAM_GAP_MM + FOAM_THICKNESS_MM), foam)
         self.boxes = [self.board, self.foam, *self.fingers]
+        self.target = None
+        if obj is not None:  # the block to grasp, its top face (z = 0 of O, towards the camera) printed
+            bx, by, bh = obj.spec.block
+            faces = [_BLOCK_SIDE] * 6
+            faces[4] = _TARGET
+            self.boxes.append(_Box(C_H_O, (-bx / 2, -by / 2, 0.0), (bx / 2, by / 2, bh), faces))
+            self.target = _Plane(C_H_O)
+            sigma = 0.5 * float(C_H_O[2, 3]) / float(self.camera.f) / _TARGET_RES  # a pixel's footprint
+            tex, origin = _target_texture(obj.spec.target, (bx, by), spec.paper, spec.ink)
+            self.target_texture = _blurred(tex, sigma)
+            self.target_map = (*origin, _TARGET_RES)
         self.traced = self.boxes  # the boxes rays can meet (a backdrop takes the plate and foam away)
         self.sheet = _Plane(C_H_W)
         self.table = _Plane(C_H_B)
@@ -378,7 +396,8 @@ class _Scene:
         dark, mid, bright = sorted(spec.finger)
         lit = _FACE_NORMALS @ LIGHT_G
         face_level = np.where(lit >= 0.5, bright, np.where(lit >= 0.0, mid, dark))
-        levels[_FINGER0:] = np.tile(face_level, 2)
+        levels[_FINGER0 : _FINGER0 + 12] = np.tile(face_level, 2)
+        levels[[_BLOCK_SIDE, _TARGET]] = (0.75 * spec.paper, spec.paper)
         self.levels = levels
 
     # -- rays --
@@ -426,6 +445,10 @@ class _Scene:
         if np.any(on_table):
             xb, yb = self.table.coords(x[on_table], y[on_table], t[on_table])
             value[on_table] = self.texture_at(xb, yb)
+        on_target = label == _TARGET
+        if self.target is not None and np.any(on_target):
+            xo, yo = self.target.coords(x[on_target], y[on_target], t[on_target])
+            value[on_target] = _sample_texture(self.target_texture, self.target_map, xo, yo)
         return value, label
 
     def shade_print(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -437,17 +460,22 @@ class _Scene:
 
     def texture_at(self, xb, yb) -> np.ndarray:
         """Table texture at table points (x_B, y_B) [mm] (any shape), bilinear."""
-        shape = np.shape(xb)
-        tx, ty = _texel(np.ravel(xb), np.ravel(yb), self.tex_map)
-        n = tx.size
-        cols = 1024
-        rows = max(1, -(-n // cols))
-        mx = np.zeros(rows * cols, np.float32)
-        my = np.zeros(rows * cols, np.float32)
-        mx[:n], my[:n] = tx, ty
-        out = cv2.remap(self.texture, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_REFLECT_101)
-        return out.ravel()[:n].astype(float).reshape(shape)
+        return _sample_texture(self.texture, self.tex_map, xb, yb)
+
+
+def _sample_texture(texture: np.ndarray, tex_map, xb, yb) -> np.ndarray:
+    """``texture`` at plane points (x, y) [mm] (any shape), bilinear; ``tex_map`` as for ``_texel``."""
+    shape = np.shape(xb)
+    tx, ty = _texel(np.ravel(xb), np.ravel(yb), tex_map)
+    n = tx.size
+    cols = 1024
+    rows = max(1, -(-n // cols))
+    mx = np.zeros(rows * cols, np.float32)
+    my = np.zeros(rows * cols, np.float32)
+    mx[:n], my[:n] = tx, ty
+    out = cv2.remap(texture, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REFLECT_101)
+    return out.ravel()[:n].astype(float).reshape(shape)
 
 
 def _texel(xb, yb, tex_map=(_TABLE_X0, _TABLE_Y0, _TABLE_RES)) -> tuple[np.ndarray, np.ndarray]:
@@ -480,6 +508,29 @@ def _table_texture(world_seed: int) -> np.ndarray:
     tex = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.0)
     tex.flags.writeable = False  # shared by every render of worlds with this seed
     return tex
+
+
+@functools.lru_cache(maxsize=4)
+def _target_texture(target, size_mm: tuple[float, float], paper: float, ink: float) -> tuple[np.ndarray, tuple]:
+    """The block's top face (``size_mm`` x, y) with the ChArUco target centred on it, ``_TARGET_RES`` mm per
+    texel, grey levels ``ink``..``paper`` (float32, read-only), and the O coordinates (x, y) [mm] of its
+    first texel's centre."""
+    from selfview.objects import target_board
+
+    w, h = (int(round(v / _TARGET_RES)) for v in size_mm)
+    tw, th = (int(round(v / _TARGET_RES)) for v in target.size)
+    board = target_board(target).generateImage((tw, th), marginSize=0)
+    tex = np.full((h, w), 255, np.uint8)
+    x0, y0 = (w - tw) // 2, (h - th) // 2
+    tex[y0 : y0 + th, x0 : x0 + tw] = board
+    out = (ink + (paper - ink) * (tex.astype(np.float32) / 255.0)).astype(np.float32)
+    out.flags.writeable = False
+    return out, ((0.5 - x0 - tw / 2) * _TARGET_RES, (0.5 - y0 - th / 2) * _TARGET_RES)
+
+
+def _blurred(tex: np.ndarray, sigma: float) -> np.ndarray:
+    """``tex`` smoothed by a Gaussian of ``sigma`` texels (a pixel's footprint: the texture is sampled once per ray)."""
+    return cv2.GaussianBlur(tex, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE) if sigma > 0.3 else tex
 
 
 # --- projection helpers ---------------------------------------------------------------------------

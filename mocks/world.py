@@ -138,6 +138,7 @@ class SimWorld:
         self.base_H_G: np.ndarray = make_H(np.diag([1.0, -1.0, -1.0]), (350.0, 0.0, 200.0))
         self.base_H_plate0: np.ndarray = PLATE_BASE_POSE.copy()
         self.W_H_G: np.ndarray | None = None  # set while parked on the plate
+        self.object = None  # a block to grasp on the table (selfview.mocks.objects.SimObject) or None
         self.version = 0  # bumped on every change, so a camera can tell a new scene
         # a real cell's imperfections (mocks/imperfections.py; None or 'ideal': none), drawn from their
         # own generator so that they change nothing else in the world
@@ -332,10 +333,20 @@ class SimWorld:
         """The true fingers' boxes [(lo, hi)] in G [mm] for a jaw gap (default: the current one)."""
         return self.imperfect.finger_boxes_G(self.cell.gripper, self.jaw_gap_mm if gap is None else gap)
 
+    @property
+    def C_H_O(self) -> np.ndarray | None:
+        """The true pose of the object to grasp in the camera frame now (None: no object)."""
+        with self.lock:
+            if self.object is None:
+                return None
+            return self.C_H_G @ inv_H(self.base_H_G) @ self.object.base_H_O
+
     def truth(self) -> dict:
         """The ground truth a test or a report compares against (plain lists, mm, px)."""
         with self.lock:
-            return {
+            extra = {} if self.object is None else {"C_H_O": self.C_H_O.tolist(),
+                                                    "base_H_O": self.object.base_H_O.tolist()}
+            return extra | {
                 "f": self.camera.f,
                 "kappa": self.camera.kappa,
                 "principal_point": [self.camera.cx, self.camera.cy],

@@ -18,19 +18,22 @@ from typing import Any, Callable
 import numpy as np
 
 from selfview.errors import CellError, ConfigError, LimitError
-from selfview.geometry import trans
-from selfview.signals import TERMINATION_SIGNALS, Interrupted, signal_name
+from selfview.geometry import rotation_angle, trans
 
 __all__ = ["Step", "Engine", "Cancelled", "Interrupted", "CellDevices", "StepRecord", "TERMINATION_SIGNALS",
            "signal_name"]
 
 log = logging.getLogger("selfview.engine")
 
-MOTION_KINDS = ("move", "moves", "appro", "depart", "drive", "ready")
+MOTION_KINDS = ("move", "moves", "appro", "depart", "drive", "ready", "tool")
 KINDS = MOTION_KINDS + ("speed", "define", "gripper", "grab", "wait", "ask", "disturb", "restore", "compute")
 
 
 _WATCH_S = 0.02  # how often the main thread looks at the signal flag while the procedure runs
+
+#: A tool-relative straight motion ("tool" step) is refused beyond these unless the step sets its own caps.
+TOOL_STEP_MAX_MM = 50.0
+TOOL_STEP_MAX_DEG = 10.0
 
 
 class Cancelled(CellError):
@@ -132,7 +135,8 @@ class Step:
     """One step of a procedure.
 
     ``kind`` one of ``KINDS``; ``params`` its arguments (``target`` a location name or a (4, 4) pose for
-    motions, ``distance_mm`` for appro/depart, ``joint``, ``deg``, ``speed`` for drive, ``state`` for the gripper, ``seconds`` for wait, ``text`` for
+    motions, ``distance_mm`` for appro/depart, ``joint``, ``deg``, ``speed`` for drive, ``delta`` (4, 4) for tool (a straight motion to ``where() @ delta``,
+    the tool frame's own motion; ``max_mm``, ``max_deg`` its caps), ``state`` for the gripper, ``seconds`` for wait, ``text`` for
     ask, ``series`` for disturb, ``fn`` a callable taking the engine for compute); ``name`` stores the
     step's result in ``engine.results``; ``note`` says what the step is for.
     """
@@ -150,6 +154,8 @@ class Step:
         p = {k: v for k, v in self.params.items() if k != "fn"}
         if isinstance(p.get("target"), np.ndarray):
             p["target"] = "pose " + " ".join(f"{v:.1f}" for v in p["target"][:3, 3])
+        if isinstance(p.get("delta"), np.ndarray):
+            p["delta"] = "by " + " ".join(f"{v:.2f}" for v in p["delta"][:3, 3]) + " mm"
         args = ", ".join(f"{k}={v}" for k, v in p.items())
         out = f"{self.kind}({args})" if args else self.kind
         if self.note:
@@ -244,6 +250,10 @@ class Engine:
                 if s.kind == "drive":
                     limits.check_speed(s.params["speed"], f"step {i + 1} DRIVE")
                     last = None
+                    continue
+                if s.kind == "tool":
+                    tool_step_size(s.params, f"step {i + 1} TOOL")
+                    last = None  # relative to wherever the robot is: checked against the limits when sent
                     continue
                 if s.kind not in MOTION_KINDS:
                     continue
@@ -373,6 +383,8 @@ class Engine:
                 return d.robot.drive(p["joint"], p["deg"], p["speed"])
             if k == "ready":
                 return d.robot.ready()
+            if k == "tool":
+                return self._tool_motion(p)
             if k == "speed":
                 return d.robot.speed(p["pct"])
             return d.robot.define(p["name"], p["pose"])
@@ -405,6 +417,19 @@ class Engine:
         if k == "compute":
             return p["fn"](self)
         raise ConfigError(f"step kind {k!r} has no executor")  # pragma: no cover
+
+    def _tool_motion(self, p: dict) -> np.ndarray:
+        """A straight motion of the tool frame by ``p['delta']`` (in the tool frame): the goal
+        ``where().base_H_T @ delta`` checked against the caps and the limits before anything is sent.
+        Returns the goal (4, 4)."""
+        robot = self.devices.robot
+        tool_step_size(p, "TOOL")
+        goal = robot.where().base_H_T @ np.asarray(p["delta"], float)
+        robot.limits.check_position(goal[:3, 3], "TOOL step goal")
+        if self.cancel.is_set():
+            raise Cancelled("run cancelled")
+        robot.moves(goal)
+        return goal
 
     def ask(self, text: str) -> str:
         if self._ask is None:
@@ -500,6 +525,20 @@ def _one_abort(first: str, second: str, stopped: bool) -> str:
     if stopped:
         return f"{second} (the ABORT at the interrupt was not confirmed)"
     return f"{first}; the cleanup's ABORT was not confirmed either ({second})"
+def tool_step_size(p: dict, what: str) -> tuple[float, float]:
+    """(mm, deg) of a tool step's ``delta``; ``ConfigError`` for a malformed one, ``LimitError`` when it
+    exceeds its caps (``max_mm``, ``max_deg``; defaults ``TOOL_STEP_MAX_MM``, ``TOOL_STEP_MAX_DEG``)."""
+    D = np.asarray(p.get("delta"), float) if p.get("delta") is not None else None
+    if D is None or D.shape != (4, 4) or not np.isfinite(D).all():
+        raise ConfigError(f"{what}: expected a finite (4, 4) 'delta' transform")
+    mm = float(np.linalg.norm(D[:3, 3]))
+    deg = float(np.degrees(rotation_angle(D[:3, :3])))
+    cap_mm = float(p.get("max_mm", TOOL_STEP_MAX_MM))
+    cap_deg = float(p.get("max_deg", TOOL_STEP_MAX_DEG))
+    if mm > cap_mm or deg > cap_deg:
+        raise LimitError(f"{what}: a step of {mm:.2f} mm and {deg:.2f} deg exceeds its cap of {cap_mm:g} mm and "
+                         f"{cap_deg:g} deg; nothing was sent")
+    return mm, deg
 
 
 def _brief(out) -> str:

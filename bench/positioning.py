@@ -1,0 +1,388 @@
+"""Study: visually guided grasping with C_H_G from the truth, self-viewing (off-line, on-line) and AX = XB.
+
+The paper's application: the gripper servoed to an object (``selfview.procedures.grasp``: PBVS in the gripper
+frame, the stand-off goal, a straight descent, the jaws closed) on the simulated cell, the world moved by a
+PUMA 260 of each kinematic error profile (``selfview.mocks.kinematic_errors``: none, half the worn robot, the
+worn robot). Per profile one cell (``--seed``) and three calibrations: self-viewing off-line (the robot parks
+the gripper on the plate, one picture), AX = XB (Tsai-Lenz, ``cv2.calibrateHandEye`` with
+``CALIB_HAND_EYE_TSAI``, from ``--poses`` stations of the same robot, the plate's pose per picture with the
+off-line calibration's f and kappa, ``C_H_G`` through the NOMINAL flange-to-TCP offset) and the truth. Each
+condition servos from ``--starts`` starts: the block placed per start on the table, the gripper at a pre-grasp
+pose 150-250 mm from the stand-off goal back along the camera's line of sight, turned up to 15 deg about the
+target and shifted up to 50 mm (a start whose first picture does not show the target and the fingertips, or
+that the arm cannot reach, is drawn again and counted). Conditions also with the camera moved on its mount
+(1 deg about a random axis through the cable pivot, about 2 mm at the TCP) before the fourth frame, and a
+control where the goal is taught by a picture taken with the gripper truly at the stand-off pose (every
+calibration should then agree). Prints one JSON object; ``--out DIR`` also writes the JSON, a markdown
+table and a PNG plot.
+
+    python bench/positioning.py [--quick] [--seed N] [--starts 20] [--jobs 2] [--out DIR]
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from concurrent.futures import ProcessPoolExecutor  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").is_file():
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from selfview.bench.handeye import plate_pose  # noqa: E402
+from selfview.bench.kinematics_vs_selfview import F_H_G, opencv_handeye, resolve_grid, stations  # noqa: E402
+from selfview.cell import default_cell_path, load_cell  # noqa: E402
+from selfview.errors import CellError  # noqa: E402
+from selfview.geometry import inv_H, make_H, rot_z, trans  # noqa: E402
+from selfview.io_safe import atomic_write  # noqa: E402
+from selfview.mocks.kinematic_errors import WORN_PUMA, PerturbedPuma260  # noqa: E402
+from selfview.mocks.objects import draw_start, grasp_outcome, place_object  # noqa: E402
+from selfview.mocks.puma260 import Unreachable  # noqa: E402
+from selfview.mocks.render import render  # noqa: E402
+from selfview.mocks.world import PLATE_BASE_POSE, SimWorld  # noqa: E402
+from selfview.objects import load_object, object_pose  # noqa: E402
+from selfview.offline import calibrate_offline  # noqa: E402
+from selfview.procedures.engine import tool_step_size  # noqa: E402
+from selfview.procedures.grasp import GraspResult, ServoSettings, pose_error, servo_grasp  # noqa: E402
+
+#: The kinematic error profiles: fractions of the worn PUMA 260 (``WORN_PUMA``).
+PROFILES = {"none": 0.0, "half-worn": 0.5, "worn": 1.0}
+DEFAULT_PROFILES = ("none", "worn")
+CALIBRATIONS = ("truth", "selfview-offline", "selfview-online", "axxb")
+MOVE_DEG = 1.0
+MOVE_BEFORE_FRAME = 3
+MAX_DRAWS = 8
+
+
+class DirectRig:
+    """A ``GraspRig`` straight on a ``SimWorld``: the arm a ``PerturbedPuma260`` (the controller's nominal
+    kinematics, the world moved by the true ones), every step checked against its caps as the engine does."""
+
+    def __init__(self, world, robot: PerturbedPuma260, seed: int):
+        self.world, self.robot, self.seed = world, robot, seed
+        self.q_read = None
+        self.frames = 0
+
+    def place(self, base_H_G) -> None:
+        st = self.robot.move(np.asarray(base_H_G) @ inv_H(F_H_G), self.q_read)
+        self.q_read = st.q_read
+        self.world.set_tcp(st.base_H_F_true @ F_H_G)
+
+    def where(self) -> np.ndarray:
+        return self.robot.nominal.fk(self.q_read) @ F_H_G
+
+    def grab(self) -> np.ndarray:
+        self.frames += 1
+        return render(self.world, seed=self.seed * 100_000 + self.frames).image
+
+    def tool_step(self, delta, max_mm, max_deg) -> None:
+        tool_step_size({"delta": delta, "max_mm": max_mm, "max_deg": max_deg}, "TOOL")
+        self.place(self.where() @ delta)
+
+    def jaws(self, state: str) -> None:
+        self.world.set_jaw(self.world.cell.gripper.gap(state), state)
+
+    def truth(self) -> dict:
+        return self.world.truth()
+
+    def outcome(self) -> dict:
+        return grasp_outcome(self.world, self.world.cell.gripper.gap("open"))
+
+
+def _calibrations(cell, seed: int, level: float, n_poses: int, imperfections: str) -> dict:
+    """{name: (C_H_G, camera) or {"failed": why}} for one profile of one cell."""
+    world = SimWorld(cell, seed=seed, imperfections=imperfections)
+    robot = PerturbedPuma260(WORN_PUMA.scaled(level), seed=seed)
+    out = {"truth": (world.C_H_G.copy(), world.camera)}
+    park = robot.move(PLATE_BASE_POSE @ trans(1.0, -1.5, 4.0) @ rot_z(np.radians(3.0)) @ inv_H(F_H_G))
+    if world.set_tcp(park.base_H_F_true @ F_H_G) != "parked":
+        return out | {k: {"failed": "parking on the plate failed"} for k in CALIBRATIONS[1:]}
+    off = calibrate_offline(render(world, seed=seed * 1000 + 7).image, cell).calibration
+    out["selfview-offline"] = out["selfview-online"] = (off.C_H_G, off.camera)
+    world.unpark()
+    st, _ = stations(world, cell, seed, n_poses, 3 * n_poses + 10)
+    base_H_F, C_H_W = [], []
+    for base_H_G, det, _true in st:
+        try:
+            base_H_F.append(robot.observe(base_H_G @ inv_H(F_H_G)).base_H_F_nominal)
+            C_H_W.append(plate_pose(det, off.camera, cell.plate))
+        except (CellError, Unreachable):
+            if len(base_H_F) > len(C_H_W):
+                base_H_F.pop()
+    C_H_W, _ = resolve_grid(C_H_W, base_H_F, F_H_G @ inv_H(cell.mount_guess_C_H_G))
+    X = opencv_handeye(base_H_F, C_H_W, "CALIB_HAND_EYE_TSAI") if len(base_H_F) >= 3 else None
+    out["axxb"] = (inv_H(X) @ F_H_G, off.camera) if X is not None else {"failed": f"{len(base_H_F)} stations"}
+    return out
+
+
+def run_start(seed: int, start: int, level: float, calib, online: bool, moved: bool, taught: bool,
+              settings: ServoSettings, imperfections: str = "realistic") -> dict:
+    """One servo run from one start; the figures of its end: the TCP against the grasp frame G* after the
+    descent, or (not converged) against the stand-off goal where the servo stopped."""
+    cv2.setNumThreads(1)
+    cell = load_cell(default_cell_path())
+    obj = load_object()
+    world = SimWorld(cell, seed=seed, imperfections=imperfections)
+    place_object(world, obj, seed=seed * 1000 + start)
+    robot = PerturbedPuma260(WORN_PUMA.scaled(level), seed=seed)
+    rig = DirectRig(world, robot, seed * 1000 + start)
+    rng = np.random.default_rng([seed, start, 5])
+    C_H_G, camera = calib
+    rec = {"start": start, "draws": 0}
+    rig.jaws(settings.state)
+    for _ in range(MAX_DRAWS):
+        rec["draws"] += 1
+        try:
+            rig.place(draw_start(world, rng, draws=1))
+        except (Unreachable, CellError):
+            continue
+        r = render(world, seed=1)
+        if r.corner_visible.sum() >= 5:
+            try:
+                object_pose(r.image, world.camera, obj)
+                break
+            except CellError:
+                continue
+    else:
+        return rec | {"failed": f"no usable start in {MAX_DRAWS} draws"}
+    taught_C_H_O = None
+    if taught:  # the gripper truly at the stand-off pose, one picture: the goal in the camera frame
+        here = world.base_H_G.copy()
+        world.set_tcp(world.object.base_H_O @ obj.O_H_Gpre)
+        taught_C_H_O = object_pose(render(world, seed=2).image, camera, obj).C_H_O
+        world.set_tcp(here)
+    axis = rng.normal(size=3)
+    pivot = cell.simulation.disturbances["cable"].pivot_C
+
+    def before(k):
+        if moved and k == MOVE_BEFORE_FRAME:
+            world.disturb_by_angle(axis, MOVE_DEG, pivot, series="moved")
+
+    res = GraspResult()
+    t0 = time.perf_counter()
+    try:
+        servo_grasp(rig, cell, obj, C_H_G, camera, cell.gripper.points_G(settings.state),
+                    ServoSettings(**{**settings.__dict__, "online": online}), result=res, before_frame=before,
+                    taught_C_H_O=taught_C_H_O)
+    except CellError as exc:
+        res.reason = f"{type(exc).__name__}: {exc}"
+    t = res.true_error_mm
+    if t is None:  # failed before the descent: the distance to the servo's goal where it stopped
+        t, a = _final_truth(world, obj)
+    else:
+        a = res.true_error_deg
+    ms = [r["processing_ms"] for r in res.iterations]
+    return rec | {"converged": res.converged, "held": bool(res.held), "iterations": len(res.iterations),
+                  "reason": res.reason, "true_error_mm": t, "true_error_deg": a,
+                  "processing_ms_median": float(np.median(ms)) if ms else None,
+                  "processing_ms_max": float(np.max(ms)) if ms else None,
+                  "seconds": time.perf_counter() - t0}
+
+
+def _final_truth(world, obj) -> tuple[list, float]:
+    """The stand-off goal in the true gripper frame now: ([x, y, z] mm, deg)."""
+    t, a = pose_error(inv_H(world.base_H_G) @ world.object.base_H_O @ obj.O_H_Gpre)
+    return [float(v) for v in t], a
+
+
+def arm_repeatability(seed: int, level: float, moves: int = 30) -> dict:
+    """How closely the arm of a profile lands on one commanded pose over the block (tool point, mm): the RMS
+    distance of ``moves`` landings from their mean (repeatability) and from the command (accuracy)."""
+    robot = PerturbedPuma260(WORN_PUMA.scaled(level), seed=seed)
+    target = make_H(np.diag([1.0, -1.0, -1.0]), (350.0, 170.0, 60.0))
+    rng = np.random.default_rng([seed, 9])
+    land = []
+    for _ in range(moves):
+        robot.move((trans(*rng.uniform(-20, 20, 3)) @ target) @ inv_H(F_H_G))  # from somewhere near
+        land.append((robot.move(target @ inv_H(F_H_G)).base_H_F_true @ F_H_G)[:3, 3])
+    land = np.array(land)
+    return {"repeatability_mm": float(np.sqrt(np.mean(np.sum((land - land.mean(axis=0)) ** 2, axis=1)))),
+            "accuracy_mm": float(np.sqrt(np.mean(np.sum((land - target[:3, 3]) ** 2, axis=1))))}
+
+
+def conditions(profiles=DEFAULT_PROFILES) -> list[dict]:
+    """Every condition of the study: (calibration, profile, camera moved, taught goal). The camera move and
+    the taught goal (the control) on the most worn profile, with the three measured calibrations."""
+    out = [{"calibration": c, "profile": p, "camera_moved": False, "taught_goal": False}
+           for p in profiles for c in CALIBRATIONS]
+    last = profiles[-1]
+    out += [{"calibration": c, "profile": last, "camera_moved": True, "taught_goal": False} for c in CALIBRATIONS[1:]]
+    out += [{"calibration": c, "profile": last, "camera_moved": False, "taught_goal": True} for c in CALIBRATIONS[1:]]
+    return out
+
+
+def _summary(cond: dict, runs: list[dict]) -> dict:
+    ok = [r for r in runs if "failed" not in r]
+    mm = np.array([np.linalg.norm(r["true_error_mm"]) for r in ok]) if ok else np.array([np.nan])
+    deg = np.array([r["true_error_deg"] for r in ok]) if ok else np.array([np.nan])
+    xyz = np.array([np.abs(r["true_error_mm"]) for r in ok]) if ok else np.full((1, 3), np.nan)
+    conv = [r for r in ok if r["converged"]]
+    ms = [r["processing_ms_median"] for r in ok if r.get("processing_ms_median") is not None]
+    msmax = [r["processing_ms_max"] for r in ok if r.get("processing_ms_max") is not None]
+    return cond | {
+        "starts": len(runs),
+        "median_mm": float(np.median(mm)), "p95_mm": float(np.percentile(mm, 95)), "max_mm": float(np.max(mm)),
+        "median_mm_xyz": [float(v) for v in np.median(xyz, axis=0)],
+        "median_deg": float(np.median(deg)), "p95_deg": float(np.percentile(deg, 95)),
+        "converged": len(conv), "held": sum(bool(r["held"]) for r in ok),
+        "iterations_median": float(np.median([r["iterations"] for r in conv])) if conv else None,
+        "repeatability_mm": [float(v) for v in np.std([r["true_error_mm"] for r in conv], axis=0)] if len(conv) > 1 else None,
+        "processing_ms_median": float(np.median(ms)) if ms else None,
+        "processing_ms_max": float(np.max(msmax)) if msmax else None,
+        "failures": sorted({r.get("reason", r.get("failed", "")) for r in runs if not r.get("converged")})[:5],
+    }
+
+
+def table_markdown(rows: list[dict]) -> str:
+    head = ("| calibration | profile | camera moved | taught goal | starts | median mm | p95 mm | max mm | median deg "
+            "| converged | held | iterations | ms/iteration |\n|" + "---|" * 13)
+    lines = [head]
+    for r in rows:
+        f = (lambda v, d=3: "-" if v is None or not np.isfinite(v) else f"{v:.{d}f}")
+        lines.append(f"| {r['calibration']} | {r['profile']} | {'yes' if r['camera_moved'] else 'no'} | "
+                     f"{'yes' if r['taught_goal'] else 'no'} | {r['starts']} | {f(r['median_mm'])} | {f(r['p95_mm'])} | "
+                     f"{f(r['max_mm'])} | {f(r['median_deg'])} | {r['converged']} | {r['held']} | "
+                     f"{f(r['iterations_median'], 1)} | {f(r['processing_ms_median'], 1)} |")
+    return "\n".join(lines)
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    plain = [r for r in rows if not r["camera_moved"] and not r["taught_goal"]]
+    profs = list(dict.fromkeys(r["profile"] for r in plain))
+    for c in CALIBRATIONS:
+        pts = [(profs.index(r["profile"]), r["median_mm"], r["p95_mm"]) for r in plain if r["calibration"] == c]
+        if pts:
+            x, m, p = zip(*pts)
+            ax.errorbar(x, m, yerr=[np.zeros(len(m)), np.array(p) - np.array(m)], marker="o", capsize=3, label=c)
+    ax.set_xticks(range(len(profs)), profs)
+    ax.set_yscale("log")
+    ax.set_xlabel("kinematic error profile")
+    ax.set_ylabel("final TCP to goal [mm] (median, bar to p95)")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _headline(rows: list[dict]) -> dict:
+    prof_last = rows[-1]["profile"] if rows else "worn"
+
+    def get(cal, prof=None, moved=False, taught=False):
+        prof = prof or prof_last
+        for r in rows:
+            if (r["calibration"], r["profile"], r["camera_moved"], r["taught_goal"]) == (cal, prof, moved, taught):
+                return r
+        return None
+
+    on, ax_, on_m, off_m, off = (get("selfview-online"), get("axxb"), get("selfview-online", moved=True),
+                                 get("selfview-offline", moved=True), get("selfview-offline"))
+    return {
+        "profile": prof_last,
+        "axxb_over_online": ax_["median_mm"] / on["median_mm"] if on and ax_ and on["median_mm"] > 0 else None,
+        "online_moved_over_unmoved": on_m["median_mm"] / on["median_mm"] if on and on_m and on["median_mm"] > 0 else None,
+        "offline_moved_over_unmoved": off_m["median_mm"] / off["median_mm"] if off and off_m and off["median_mm"] > 0 else None,
+        "processing_ms_max": max((r["processing_ms_max"] or 0) for r in rows),
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=1, help="the simulated cell (default 1)")
+    ap.add_argument("--profiles", default=",".join(DEFAULT_PROFILES),
+                    help=f"kinematic error profiles, of {', '.join(PROFILES)} (default %(default)s)")
+    ap.add_argument("--starts", type=int, default=20, help="starts per condition (default 20)")
+    ap.add_argument("--poses", type=int, default=10, help="stations for AX=XB (default 10)")
+    ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
+    ap.add_argument("--out", metavar="DIR", help="also write positioning.json, .md and .png there")
+    ap.add_argument("--world", default="realistic", help="the simulated cell's imperfections (default %(default)s)")
+    ap.add_argument("--quick", action="store_true", help="every condition with 5 starts")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.starts = 5
+    profiles = tuple(p for p in args.profiles.split(",") if p)
+    if args.starts < 1 or args.poses < 3 or args.jobs < 1 or not profiles or set(profiles) - set(PROFILES):
+        ap.error(f"expected --starts >= 1, --poses >= 3, --jobs >= 1, --profiles of {', '.join(PROFILES)}")
+    t0 = time.perf_counter()
+    cell = load_cell(default_cell_path())
+    settings = ServoSettings()
+    with ProcessPoolExecutor(args.jobs) as ex:
+        n = len(profiles)
+        cals = dict(zip(profiles, ex.map(_calibrations, [cell] * n, [args.seed] * n, [PROFILES[p] for p in profiles],
+                                         [args.poses] * n, [args.world] * n)))
+        conds = conditions(profiles)
+        futs = []
+        for c in conds:
+            cal = cals[c["profile"]][c["calibration"]]
+            if isinstance(cal, dict):
+                futs.append(None)
+                continue
+            futs.append([ex.submit(run_start, args.seed, s, PROFILES[c["profile"]], cal,
+                                   c["calibration"] == "selfview-online", c["camera_moved"], c["taught_goal"], settings,
+                                   args.world)
+                         for s in range(args.starts)])
+        rows, runs = [], []
+        for c, fl in zip(conds, futs):
+            if fl is None:
+                rows.append(c | {"starts": 0, "failed": cals[c["profile"]][c["calibration"]]["failed"]})
+                continue
+            rr = [f.result() for f in fl]
+            runs.append(c | {"runs": rr})
+            rows.append(_summary(c, rr))
+            r = rows[-1]
+            print(f"[{time.perf_counter() - t0:6.0f} s] {c['calibration']} {c['profile']}"
+                  f"{' moved' if c['camera_moved'] else ''}{' taught' if c['taught_goal'] else ''}: median "
+                  f"{r['median_mm']:.3f} mm, converged {r['converged']}/{r['starts']}, held {r['held']}",
+                  file=sys.stderr, flush=True)
+    out = {
+        "benchmark": "visually guided grasping: final TCP-to-goal error by calibration, kinematic profile, camera move",
+        "seed": args.seed, "starts": args.starts, "quick": args.quick, "world": args.world,
+        "servo": settings.__dict__, "object": load_object().name,
+        "profiles": {k: WORN_PUMA.scaled(PROFILES[k]).to_dict() | arm_repeatability(args.seed, PROFILES[k])
+                     for k in profiles},
+        "calibration_errors": {p: {k: _cal_error(v, c["truth"][0]) for k, v in c.items()} for p, c in cals.items()},
+        "conditions": [r for r in rows],
+        "headline": _headline([r for r in rows if "failed" not in r]),
+        "runs": runs,
+        "seconds": round(time.perf_counter() - t0, 1),
+        "jobs": args.jobs,
+        "versions": {"numpy": np.__version__, "opencv": cv2.__version__, "python": sys.version.split()[0]},
+    }
+    if args.out:
+        d = Path(args.out)
+        d.mkdir(parents=True, exist_ok=True)
+        atomic_write(d / "positioning.json", json.dumps(out, indent=1).encode(), what="results")
+        atomic_write(d / "positioning.md", (table_markdown([r for r in rows if "failed" not in r]) + "\n").encode(),
+                     what="results")
+        plot([r for r in rows if "failed" not in r], d / "positioning.png")
+    print(json.dumps(out))
+    return 0
+
+
+def _cal_error(cal, truth) -> dict:
+    if isinstance(cal, dict):
+        return cal
+    from selfview.geometry import pose_difference
+
+    rot, mm = pose_difference(cal[0], truth)
+    return {"tcp_mm": mm, "rot_deg": rot}
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,276 @@
+"""Objects to grasp: their description (YAML), their printed target, and their pose from one picture.
+
+An object is a block lying on the table with a small printed target on its top face. Its frame O has
+its origin at the target's centre, x and y along the target's squares, z into the block (as the plate's
+W, CONVENTIONS.md). The object file gives the target (a ``plate:``-style section: ``{pattern: charuco,
+squares: [NX, NY], square: MM, marker: MM, dictionary: DICT_4X4_50}``), the block's size, the grasp
+frame ``G*`` in O (``O_H_Gstar``: where the gripper's TCP and axes must be to hold it) and the stand-off
+``approach_mm`` along G*'s z from which the last straight descent starts.
+
+``object_pose`` measures ``C_H_O`` from a picture with the project's camera model (kappa included: the
+detected corners are undistorted by ``CameraModel``, never by OpenCV's model), with its standard
+deviations and the planar target's two-fold ambiguity resolved (IPPE's two solutions' residuals
+compared) or refused.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from selfview.camera import CameraModel
+from selfview.errors import CalibrationError, ConfigError
+from selfview.geometry import H_from_rotvec, R_from_rpy, inv_H, make_H
+from selfview.io_safe import load_yaml_file
+
+__all__ = ["TargetSpec", "ObjectSpec", "TargetDetection", "ObjectPose", "load_object", "parse_object",
+           "default_object_path", "detect_target", "object_pose", "target_board", "AMBIGUITY_RATIO", "MIN_CORNERS"]
+
+#: IPPE's second solution must leave at least this many times the first's residual, else the pose is refused.
+AMBIGUITY_RATIO = 3.0
+#: A pose needs at least this many ChArUco corners (fewer cannot tell the flip apart).
+MIN_CORNERS = 6
+_DICTIONARIES = ("DICT_4X4_50", "DICT_4X4_100", "DICT_5X5_50", "DICT_5X5_100", "DICT_6X6_50", "DICT_6X6_250")
+
+
+@dataclass(frozen=True)
+class TargetSpec:
+    """A ChArUco patch: ``squares`` (NX, NY), ``square`` and ``marker`` side [mm], ``dictionary`` (cv2.aruco name)."""
+
+    squares: tuple[int, int]
+    square: float
+    marker: float
+    dictionary: str = "DICT_4X4_50"
+    pattern: str = "charuco"
+
+    @property
+    def size(self) -> tuple[float, float]:
+        """(x, y) extent of the printed squares [mm]."""
+        return (self.squares[0] * self.square, self.squares[1] * self.square)
+
+    def to_dict(self) -> dict:
+        return {"pattern": self.pattern, "squares": list(self.squares), "square": self.square, "marker": self.marker,
+                "dictionary": self.dictionary}
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """An object to grasp. ``block`` (x, y, height) [mm], x between the jaws; ``target`` its ``TargetSpec``;
+    ``O_H_Gstar`` (4, 4) the grasp frame in O; ``approach_mm`` the stand-off along G*'s z where the servo
+    aims before the last descent; ``placement`` (simulation) ranges of the block's centre on the table
+    ``x``, ``y`` [mm, base frame] and ``yaw_deg``; ``source`` where it was read."""
+
+    name: str
+    block: tuple[float, float, float]
+    target: TargetSpec
+    O_H_Gstar: np.ndarray
+    approach_mm: float = 30.0
+    placement: dict = field(default_factory=lambda: {"x": (330.0, 370.0), "y": (150.0, 190.0), "yaw_deg": (-20.0, 20.0)})
+    source: str = "<object>"
+
+    @property
+    def Gstar_H_O(self) -> np.ndarray:
+        return inv_H(self.O_H_Gstar)
+
+    @property
+    def O_H_Gpre(self) -> np.ndarray:
+        """The stand-off pose: G* backed off ``approach_mm`` along its own z."""
+        return self.O_H_Gstar @ make_H(np.eye(3), (0.0, 0.0, -self.approach_mm))
+
+    def jaw_clearance_mm(self, open_gap_mm: float) -> float:
+        """How far the block may lie off centre between the open jaws (each side) [mm]."""
+        return (float(open_gap_mm) - self.block[0]) / 2.0
+
+
+def default_object_path() -> Path:
+    return Path(__file__).resolve().parent / "data" / "block.yaml"
+
+
+def _number(v, what: str, lo: float, hi: float) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or not lo <= v <= hi:
+        raise ConfigError(f"{what}: expected a number in {lo:g}..{hi:g}, got {v!r}")
+    return float(v)
+
+
+def _parse_target(t, src: str) -> TargetSpec:
+    if not isinstance(t, dict):
+        raise ConfigError(f"{src}: target: expected a mapping {{pattern, squares, square, marker, dictionary}}")
+    unknown = set(t) - {"pattern", "squares", "square", "marker", "dictionary"}
+    if unknown:
+        raise ConfigError(f"{src}: target: unknown key(s) {', '.join(sorted(unknown))}")
+    if t.get("pattern", "charuco") != "charuco":
+        raise ConfigError(f"{src}: target.pattern {t.get('pattern')!r}: only 'charuco' targets are measured")
+    sq = t.get("squares")
+    if (not isinstance(sq, list) or len(sq) != 2 or any(isinstance(n, bool) or not isinstance(n, int) or not 3 <= n <= 20
+                                                         for n in sq)):
+        raise ConfigError(f"{src}: target.squares: expected [NX, NY], whole numbers 3..20, got {sq!r}")
+    square = _number(t.get("square"), f"{src}: target.square [mm]", 1.0, 200.0)
+    marker = _number(t.get("marker"), f"{src}: target.marker [mm]", 0.5, 200.0)
+    if marker >= square:
+        raise ConfigError(f"{src}: target.marker {marker:g} mm must be smaller than target.square {square:g} mm")
+    d = t.get("dictionary", "DICT_4X4_50")
+    if d not in _DICTIONARIES:
+        raise ConfigError(f"{src}: target.dictionary {d!r}: expected one of {', '.join(_DICTIONARIES)}")
+    return TargetSpec((int(sq[0]), int(sq[1])), square, marker, d)
+
+
+def _parse_frame(g, src: str) -> np.ndarray:
+    if not isinstance(g, dict) or set(g) - {"xyz", "rpy_deg"}:
+        raise ConfigError(f"{src}: grasp: expected {{xyz: [x, y, z] mm, rpy_deg: [roll, pitch, yaw]}} (G* in O)")
+    xyz = g.get("xyz", [0, 0, 0])
+    rpy = g.get("rpy_deg", [0, 0, 0])
+    for nm, v in (("xyz", xyz), ("rpy_deg", rpy)):
+        if not isinstance(v, list) or len(v) != 3:
+            raise ConfigError(f"{src}: grasp.{nm}: expected three numbers, got {v!r}")
+    p = [_number(v, f"{src}: grasp.xyz", -1000, 1000) for v in xyz]
+    a = [np.radians(_number(v, f"{src}: grasp.rpy_deg", -360, 360)) for v in rpy]
+    return make_H(R_from_rpy(*a), p)
+
+
+def parse_object(data, source: str = "<object>") -> ObjectSpec:
+    """An ``ObjectSpec`` from the mapping of an object file; ``ConfigError`` naming what is wrong."""
+    if not isinstance(data, dict) or not isinstance(data.get("object"), dict):
+        raise ConfigError(f"{source}: expected a mapping with an 'object' section")
+    o = data["object"]
+    unknown = set(o) - {"name", "block", "target", "grasp", "approach_mm", "placement"}
+    if unknown:
+        raise ConfigError(f"{source}: object: unknown key(s) {', '.join(sorted(unknown))}")
+    b = o.get("block")
+    if not isinstance(b, list) or len(b) != 3:
+        raise ConfigError(f"{source}: object.block: expected [x, y, height] in mm, got {b!r}")
+    block = tuple(_number(v, f"{source}: object.block [mm]", 1.0, 500.0) for v in b)
+    target = _parse_target(o.get("target"), source)
+    if target.size[0] > block[0] or target.size[1] > block[1]:
+        raise ConfigError(f"{source}: the target ({target.size[0]:g} x {target.size[1]:g} mm) does not fit on the "
+                          f"block's top ({block[0]:g} x {block[1]:g} mm)")
+    approach = _number(o.get("approach_mm", 30.0), f"{source}: object.approach_mm", 0.0, 300.0)
+    placement = {"x": (330.0, 370.0), "y": (150.0, 190.0), "yaw_deg": (-20.0, 20.0)}
+    for k, v in (o.get("placement") or {}).items():
+        if k not in placement or not isinstance(v, list) or len(v) != 2:
+            raise ConfigError(f"{source}: object.placement.{k}: expected one of x, y, yaw_deg as [low, high]")
+        lo, hi = (_number(x, f"{source}: object.placement.{k}", -2000, 2000) for x in v)
+        if lo > hi:
+            raise ConfigError(f"{source}: object.placement.{k}: low {lo:g} above high {hi:g}")
+        placement[k] = (lo, hi)
+    return ObjectSpec(str(o.get("name", "object")), block, target, _parse_frame(o.get("grasp", {}), source),
+                      approach, placement, source)
+
+
+def load_object(path=None) -> ObjectSpec:
+    """Read an object file (default: the package's block); ``ConfigError`` naming what is wrong."""
+    p = Path(path) if path is not None else default_object_path()
+    return parse_object(load_yaml_file(p, what="object file"), f"object file {str(p)!r}")
+
+
+# --- the target in a picture -------------------------------------------------------------------------
+def target_board(target: TargetSpec):
+    """The ``cv2.aruco.CharucoBoard`` of ``target`` (board frame: origin at a corner, units mm)."""
+    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, target.dictionary))
+    return cv2.aruco.CharucoBoard(tuple(target.squares), float(target.square), float(target.marker), dictionary)
+
+
+@dataclass(frozen=True)
+class TargetDetection:
+    """The target's corners found in a picture: ``uv`` (N, 2) distorted pixels, ``p_O`` (N, 3) the same
+    corners in O [mm], ``ids`` (N,) their ChArUco ids, ``markers`` how many markers were decoded."""
+
+    uv: np.ndarray
+    p_O: np.ndarray
+    ids: np.ndarray
+    markers: int
+
+
+def detect_target(image: np.ndarray, target: TargetSpec) -> TargetDetection:
+    """The ChArUco corners of ``target`` in a grey picture (OpenCV's aruco API of 4.10 and later).
+
+    Raises ``CalibrationError`` when the target is not seen (too few corners) or seen twice (a marker id
+    decoded more than once: two targets in view)."""
+    board = target_board(target)
+    detector = cv2.aruco.CharucoDetector(board)
+    img = np.ascontiguousarray(image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
+    corners, ids, marker_corners, marker_ids = detector.detectBoard(img)
+    n_markers = 0 if marker_ids is None else len(marker_ids)
+    if marker_ids is not None and len(np.unique(marker_ids)) < n_markers:
+        raise CalibrationError(f"target seen twice: {n_markers - len(np.unique(marker_ids))} marker id(s) decoded "
+                               "more than once (two targets in view); refused")
+    n = 0 if ids is None else len(ids)
+    if n < MIN_CORNERS:
+        raise CalibrationError(f"target not seen: {n} ChArUco corner(s) found ({n_markers} marker(s)), "
+                               f"at least {MIN_CORNERS} needed")
+    obj, imgp = board.matchImagePoints(corners, ids)
+    half = np.array([target.size[0] / 2, target.size[1] / 2, 0.0])
+    return TargetDetection(imgp.reshape(-1, 2).astype(float), obj.reshape(-1, 3).astype(float) - half,
+                           ids.reshape(-1).astype(int), n_markers)
+
+
+# --- the object's pose ------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ObjectPose:
+    """``C_H_O`` (4, 4) the object in the camera frame; ``sigma_mm`` (3,) and ``sigma_deg`` (3,) standard
+    deviations of its translation and rotation (camera axes) from the residual; ``rms_px`` residual of the
+    chosen solution, ``rms_px_other`` of IPPE's flipped one; ``corners`` how many were used."""
+
+    C_H_O: np.ndarray
+    sigma_mm: np.ndarray
+    sigma_deg: np.ndarray
+    rms_px: float
+    rms_px_other: float
+    corners: int
+    detection: TargetDetection | None = None
+
+    def to_dict(self) -> dict:
+        return {"C_H_O": np.round(self.C_H_O, 6).tolist(), "sigma_mm": [float(v) for v in self.sigma_mm],
+                "sigma_deg": [float(v) for v in self.sigma_deg], "rms_px": self.rms_px,
+                "rms_px_other": self.rms_px_other, "corners": self.corners}
+
+
+def _residual_px(rv, tv, p_O, xy, f: float) -> float:
+    proj, _ = cv2.projectPoints(p_O, rv, tv, np.eye(3), None)
+    return float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - xy) ** 2, axis=1)))) * f
+
+
+def object_pose(image: np.ndarray, camera: CameraModel, obj: ObjectSpec | TargetSpec,
+                detection: TargetDetection | None = None) -> ObjectPose:
+    """``C_H_O`` of the object's target in ``image`` through ``camera`` (eq. 3-4: the corners undistorted
+    by the camera model, then IPPE on the normalised rays and a Levenberg-Marquardt refinement).
+
+    Raises ``CalibrationError``: target not seen or seen twice (``detect_target``), or ambiguous (IPPE's
+    flipped solution fits within ``AMBIGUITY_RATIO`` times the chosen one's residual)."""
+    target = obj.target if isinstance(obj, ObjectSpec) else obj
+    det = detection if detection is not None else detect_target(image, target)
+    f = float(camera.f)
+    xy = camera.undistort_pixels(det.uv) / f  # normalised, distortion-free (X / f, Y / f)
+    p = np.ascontiguousarray(det.p_O, np.float64)
+    q = np.ascontiguousarray(xy, np.float64)
+    n, rvecs, tvecs, _ = cv2.solvePnPGeneric(p, q, np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
+    if n < 1:
+        raise CalibrationError("target seen but no pose fits its corners")
+    sols = []
+    for rv, tv in zip(rvecs, tvecs):
+        rv, tv = cv2.solvePnPRefineLM(p, q, np.eye(3), None, rv.copy(), tv.copy())
+        if tv[2, 0] > 0:
+            sols.append((_residual_px(rv, tv, p, q, f), rv, tv))
+    if not sols:
+        raise CalibrationError("target seen but every pose fitting it lies behind the camera")
+    sols.sort(key=lambda s: s[0])
+    rms, rv, tv = sols[0]
+    other = sols[1][0] if len(sols) > 1 else float("inf")
+    if other < AMBIGUITY_RATIO * max(rms, 0.02):
+        raise CalibrationError(f"target pose ambiguous: the flipped solution fits with {other:.3f} px against "
+                               f"{rms:.3f} px (needs {AMBIGUITY_RATIO:g} times more); seen too small or too frontal")
+    # standard deviations from the residual and the Jacobian of the normalised projections
+    _, J = cv2.projectPoints(p, rv, tv, np.eye(3), None)
+    J = J[:, :6] * f
+    dof = max(2 * len(p) - 6, 1)
+    s2 = (rms ** 2) * 2 * len(p) / dof
+    try:
+        cov = np.linalg.inv(J.T @ J) * s2
+    except np.linalg.LinAlgError:
+        raise CalibrationError("target pose: its corners do not fix the pose (degenerate)") from None
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    C_H_O = H_from_rotvec(rv.reshape(3), tv.reshape(3))
+    return ObjectPose(C_H_O, sd[3:], np.degrees(sd[:3]), rms, float(other), len(p), det)
+

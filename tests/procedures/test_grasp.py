@@ -1,0 +1,246 @@
+"""Visually guided grasping: the servo loop, its failures and the safety of every way it can stop."""
+
+import json
+import signal
+import threading
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+from selfview.errors import AlarmError, ConfigError, LimitError
+from selfview.geometry import inv_H, trans, transform_points
+from selfview.mocks.objects import draw_start, grasp_outcome, place_object
+from selfview.mocks.render import render
+from selfview.mocks.world import SimWorld
+from selfview.objects import load_object
+from selfview.procedures.engine import CellDevices, Engine, Step
+from selfview.procedures.grasp import GraspFailed, GraspResult, ServoSettings, servo_grasp
+
+
+class PerfectArm:
+    """A ``GraspRig`` on a SimWorld: the tool moves exactly as told (``sign`` -1: the wrong way)."""
+
+    def __init__(self, world, sign=1.0, hide=None):
+        self.world, self.sign, self.hide, self.frames, self.steps = world, sign, hide, 0, []
+
+    def grab(self):
+        self.frames += 1
+        img = render(self.world, seed=self.frames).image
+        return self.hide(img) if self.hide else img
+
+    def tool_step(self, delta, max_mm, max_deg):
+        self.steps.append(delta)
+        d = delta if self.sign > 0 else inv_H(delta)
+        self.world.set_tcp(self.world.base_H_G @ d)
+
+    def jaws(self, state):
+        self.world.set_jaw(self.world.cell.gripper.gap(state), state)
+
+    def truth(self):
+        return self.world.truth()
+
+    def outcome(self):
+        return grasp_outcome(self.world, self.world.cell.gripper.gap("open"))
+
+
+@pytest.fixture
+def scene(cell):
+    world = SimWorld(cell, seed=3)
+    obj = load_object()
+    place_object(world, obj, seed=3)
+    world.set_tcp(draw_start(world, np.random.default_rng(3)))
+    return world, obj
+
+
+def _servo(world, obj, arm, C_H_G=None, **kw):
+    res = GraspResult()
+    cell = world.cell
+    s = ServoSettings(**kw)
+    C = world.C_H_G if C_H_G is None else C_H_G
+    try:
+        return servo_grasp(arm, cell, obj, C, world.camera, cell.gripper.points_G("open"), s, result=res)
+    finally:
+        arm.result = res
+
+
+def _tips_above_table(world, obj):
+    tips = transform_points(inv_H(world.object.base_H_O) @ world.base_H_G, world.points_G())
+    return obj.block[2] - np.max(tips[:, 2])
+
+
+def test_the_servo_converges_and_the_block_is_held(scene):
+    world, obj = scene
+    arm = PerfectArm(world)
+    res = _servo(world, obj, arm)
+    assert res.converged and res.held, res.reason
+    assert len(res.iterations) <= 20
+    assert np.linalg.norm(res.true_error_mm) < 0.2 and res.true_error_deg < 0.2
+    last = res.iterations[-1]
+    assert np.linalg.norm(last["error_mm"]) < 0.1 and last["error_deg"] < 0.1
+    # the measured error follows the true one
+    for r in res.iterations:
+        assert np.linalg.norm(np.subtract(r["error_mm"], r["true_error_mm"])) < 0.5
+    # each step within its cap
+    for d in arm.steps[:-1]:
+        assert np.linalg.norm(d[:3, 3]) <= ServoSettings().max_step_mm
+
+
+def test_an_error_that_grows_stops_the_servo(scene):
+    world, obj = scene
+    arm = PerfectArm(world, sign=-1.0)
+    with pytest.raises(GraspFailed, match="error grows|target"):
+        _servo(world, obj, arm)
+    assert arm.result.converged is False and len(arm.result.iterations) <= 5
+
+
+def test_a_target_out_of_the_picture_stops_the_servo(scene):
+    world, obj = scene
+    world.object.base_H_O = trans(0, 0, -5000.0) @ world.object.base_H_O  # far out of view
+    arm = PerfectArm(world)
+    with pytest.raises(GraspFailed, match="target not seen"):
+        _servo(world, obj, arm)
+    assert arm.steps == []
+
+
+def test_fingertips_hidden_frame_after_frame_raise_the_alarm(scene):
+    world, obj = scene
+
+    def hide(img):  # something covers the fingers (the block, a hand): their whole silhouettes go flat
+        out = img.copy()
+        for lo, hi in world.finger_boxes_G():
+            corners = np.array([[(hi if i >> k & 1 else lo)[k] for k in range(3)] for i in range(8)])
+            uv = world.camera.project(transform_points(world.C_H_G, corners))
+            cv2.fillConvexPoly(out, cv2.convexHull(np.rint(uv).astype(np.int32)), 110)
+        return out
+
+    arm = PerfectArm(world, hide=hide)
+    with pytest.raises(AlarmError, match="without the fingertips"):
+        _servo(world, obj, arm)
+    assert len(arm.result.iterations) == 2  # two missed frames pass, the third raises the alarm
+
+
+def test_a_wrong_C_H_G_is_never_turned_into_a_collision_with_the_table(scene):
+    world, obj = scene
+    wrong = world.C_H_G @ trans(0.0, 0.0, -8.0)  # the TCP believed 8 mm short of where it is
+    arm = PerfectArm(world)
+    with pytest.raises(GraspFailed, match="table"):
+        _servo(world, obj, arm, C_H_G=wrong, online=False)
+    assert _tips_above_table(world, obj) > 2.0
+    # far off, the other way along the approach: stopped by the table's clearance or the alarm, never in the table
+    world.set_tcp(draw_start(world, np.random.default_rng(4)))
+    arm = PerfectArm(world)
+    with pytest.raises((GraspFailed, AlarmError)):
+        _servo(world, obj, arm, C_H_G=world.C_H_G @ trans(0.0, 0.0, -25.0), online=False)
+    assert _tips_above_table(world, obj) > 2.0
+
+
+def test_servo_settings_out_of_range_are_refused():
+    with pytest.raises(ConfigError, match="gain"):
+        ServoSettings(gain=3.0).check()
+    with pytest.raises(ConfigError, match="max_iterations"):
+        ServoSettings(max_iterations=0).check()
+
+
+class _Limits:
+    def __init__(self):
+        self.checked = []
+
+    def check_position(self, p, what):
+        self.checked.append(p)
+        if p[2] < 0:
+            raise LimitError(f"{what}: z {p[2]:.1f} below the table")
+
+
+class _Robot:
+    connected = True
+
+    def __init__(self):
+        self.limits, self.sent = _Limits(), []
+        self.H = trans(350.0, 0.0, 100.0)
+
+    def where(self):
+        return SimpleNamespace(base_H_T=self.H.copy())
+
+    def moves(self, H):
+        self.sent.append(H)
+        self.H = H
+
+    def abort(self):
+        return None
+
+    def close(self):
+        pass
+
+
+def test_the_engine_tool_step_moves_relative_to_the_tool_and_checks_caps_and_limits():
+    robot = _Robot()
+    e = Engine(CellDevices(robot=robot))
+    e.run(lambda e: e.execute(Step("tool", {"delta": trans(0, 0, 10.0)})), [])
+    assert np.allclose(robot.sent[-1][:3, 3], [350.0, 0.0, 110.0])
+    # over the cap: refused before anything is sent
+    with pytest.raises(LimitError, match="exceeds its cap"):
+        Engine(CellDevices(robot=robot)).run(lambda e: e.execute(Step("tool", {"delta": trans(0, 0, 30.0), "max_mm": 20.0})), [])
+    # a goal out of the limits: refused before anything is sent
+    robot.H = trans(350.0, 0.0, 20.0)
+    with pytest.raises(LimitError, match="below the table"):
+        Engine(CellDevices(robot=robot)).run(lambda e: e.execute(Step("tool", {"delta": trans(0, 0, -40.0)})), [])
+    assert len(robot.sent) == 1
+    # a cap broken in a plan is refused before the run starts
+    with pytest.raises(LimitError, match="plan refused"):
+        Engine(CellDevices(robot=robot)).run(lambda e: None, [Step("tool", {"delta": trans(80.0, 0, 0)})])
+
+
+def test_selfview_grasp_json_on_the_simulated_cell(capsys):
+    from selfview.procedures.cli import main as cli
+
+    code = cli(["grasp", "--json", "--seed", "3", "--time-scale", "0.01"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    d = json.loads(out.out)
+    assert d["converged"] is True and d["held"] is True and isinstance(d["iterations"], int)
+    assert len(d["true_error_mm"]) == 3 and np.linalg.norm(d["true_error_mm"]) < 0.3 and d["true_error_deg"] < 0.3
+    assert all(r["true_error_mm"] is not None and len(r["error_mm"]) == 3 for r in d["records"])
+
+
+def test_selfview_grasp_real_needs_a_calibration(capsys):
+    from selfview.procedures.cli import main as cli
+
+    code = cli(["grasp", "--real", "--robot", "/dev/null", "--gripper", "modbus-tcp://127.0.0.1:1", "--camera", "sim://"])
+    assert code == 3 and "--calibration" in capsys.readouterr().err
+
+
+def test_ctrl_c_mid_approach_stops_the_robot_and_leaves_the_valve_safe(capsys, monkeypatch):
+    from selfview.procedures.cli import main as cli
+
+    steps = []
+    real = Engine.execute
+
+    def execute(self, step):
+        if step.kind == "tool":
+            steps.append(step)
+        return real(self, step)
+
+    monkeypatch.setattr(Engine, "execute", execute)
+    main = threading.get_ident()
+    ctrl_c = threading.Thread(target=lambda: _wait_for(lambda: len(steps) >= 2) and signal.pthread_kill(main, signal.SIGINT))
+    ctrl_c.start()
+    try:
+        code = cli(["grasp", "--seed", "3", "--time-scale", "0.2"])
+    finally:
+        ctrl_c.join(60.0)
+    err = capsys.readouterr().err
+    assert code == 130, err
+    assert "ABORT" in err and "valve set to its safe state" in err
+
+
+def _wait_for(cond, timeout_s=120.0):
+    import time
+
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout_s:
+        if cond():
+            return True
+        time.sleep(0.01)
+    return False

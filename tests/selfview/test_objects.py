@@ -1,0 +1,98 @@
+"""Objects to grasp: the object file, the target's detection and the object's pose from a picture."""
+
+import numpy as np
+import pytest
+
+from selfview.errors import CalibrationError, ConfigError
+from selfview.geometry import H_from_rotvec, rotation_angle, transform_points
+from selfview.objects import TargetDetection, detect_target, load_object, object_pose, parse_object, target_board
+
+
+def _block(**changes):
+    o = {"name": "b", "block": [54.0, 44.0, 30.0],
+         "target": {"pattern": "charuco", "squares": [4, 4], "square": 10.0, "marker": 7.0, "dictionary": "DICT_4X4_50"},
+         "grasp": {"xyz": [0, 0, 25], "rpy_deg": [0, 0, 180]}, "approach_mm": 30}
+    o.update(changes)
+    return {"object": o}
+
+
+def test_the_shipped_block_reads_and_its_grasp_frame_lies_inside_the_block():
+    obj = load_object()
+    assert obj.target.size == (40.0, 40.0)
+    g = obj.O_H_Gstar[:3, 3]
+    assert 0 < g[2] < obj.block[2]  # below the top face (z into the block), above the table
+    assert obj.O_H_Gpre[2, 3] == pytest.approx(g[2] - obj.approach_mm)
+    assert obj.jaw_clearance_mm(56.0) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("changes, says", [
+    ({"block": [54, 44]}, "object.block"),
+    ({"target": {"pattern": "charuco", "squares": [4, 4], "square": 10.0, "marker": 12.0}}, "smaller than"),
+    ({"target": {"pattern": "charuco", "squares": [8, 8], "square": 10.0, "marker": 7.0}}, "does not fit"),
+    ({"target": {"pattern": "discs", "squares": [4, 4], "square": 10.0, "marker": 7.0}}, "only 'charuco'"),
+    ({"target": {"squares": [4, 4], "square": 10.0, "marker": 7.0, "dictionary": "DICT_9X9"}}, "dictionary"),
+    ({"grasp": {"xyz": [0, 0]}}, "grasp.xyz"),
+    ({"colour": "red"}, "unknown key"),
+    ({"approach_mm": -3}, "approach_mm"),
+])
+def test_a_bad_object_file_is_refused_naming_what_is_wrong(changes, says):
+    with pytest.raises(ConfigError, match=says):
+        parse_object(_block(**changes), "obj.yaml")
+
+
+def test_a_missing_object_file_is_a_file_error(tmp_path):
+    with pytest.raises(ConfigError):
+        load_object(tmp_path / "nope.yaml")
+
+
+def _board_picture(target, size=(300, 300), at=(100, 100)):
+    img = np.full((576, 768), 200, np.uint8)
+    board = target_board(target).generateImage(size, marginSize=0)
+    img[at[1]:at[1] + size[1], at[0]:at[0] + size[0]] = board // 2 + 40
+    return img
+
+
+def test_a_target_seen_twice_is_refused():
+    t = load_object().target
+    img = _board_picture(t, at=(20, 100))
+    img[100:400, 420:720] = _board_picture(t, at=(20, 100))[100:400, 20:320]
+    with pytest.raises(CalibrationError, match="seen twice"):
+        detect_target(img, t)
+
+
+def test_a_picture_without_the_target_is_refused():
+    with pytest.raises(CalibrationError, match="target not seen"):
+        detect_target(np.full((576, 768), 120, np.uint8), load_object().target)
+
+
+def test_the_object_pose_through_the_camera_model_matches_the_truth(cell):
+    from selfview.mocks.objects import place_object
+    from selfview.mocks.render import render
+    from selfview.mocks.world import SimWorld
+
+    world = SimWorld(cell, seed=2)
+    obj = load_object()
+    o = place_object(world, obj, seed=5)
+    world.set_tcp(o.base_H_O @ obj.O_H_Gpre @ H_from_rotvec([0.05, -0.04, 0.1], [5.0, -60.0, -90.0]))
+    assert world.camera.kappa != 0  # kappa is in the model the corners are undistorted with
+    pose = object_pose(render(world, seed=3).image, world.camera, obj)
+    C_H_O = world.C_H_O
+    assert np.linalg.norm(pose.C_H_O[:3, 3] - C_H_O[:3, 3]) < 0.1
+    assert np.degrees(rotation_angle(pose.C_H_O[:3, :3].T @ C_H_O[:3, :3])) < 0.2
+    assert pose.corners >= 6 and pose.rms_px < 0.3 and pose.rms_px_other > 3 * pose.rms_px
+    assert np.all(pose.sigma_mm > 0) and np.all(pose.sigma_mm < 0.5) and np.all(pose.sigma_deg < 0.5)
+    # without kappa the same corners give another pose: the model's distortion is applied
+    flat = object_pose(None, world.camera.with_(kappa=0.0), obj, detection=pose.detection)
+    assert np.linalg.norm(flat.C_H_O[:3, 3] - pose.C_H_O[:3, 3]) > 0.01
+
+
+def test_a_far_frontal_target_is_ambiguous_and_refused(cell):
+    obj = load_object()
+    cam = cell.camera.guess()
+    board = target_board(obj.target)
+    ids = np.arange(len(board.getChessboardCorners()))
+    p_O = board.getChessboardCorners().astype(float) - np.array([20.0, 20.0, 0.0])
+    C_H_O = H_from_rotvec([np.radians(1.0), 0.0, 0.0], [0.0, 0.0, 2500.0])  # 40 mm seen from 2.5 m, face on
+    uv = cam.project(transform_points(C_H_O, p_O)) + np.random.default_rng(1).normal(0, 0.1, (len(p_O), 2))
+    with pytest.raises(CalibrationError, match="ambiguous"):
+        object_pose(None, cam, obj, detection=TargetDetection(uv, p_O, ids, 8))
