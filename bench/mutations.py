@@ -114,7 +114,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "disc-bias-correction-removed",
         "selfview/offline.py",
-        "    uv_c = correct_disc_bias(det, ts.camera.with_(skew=nominal.skew), ts.C_H_W, cell.plate)\n",
+        "    uv_c = correct_plate_bias(det, ts.camera.with_(skew=nominal.skew), ts.C_H_W, cell.plate)\n",
         "    uv_c = det.uv\n",
         ("tests/selfview/test_offline.py::test_accuracy_on_an_independent_renderer",
          "tests/selfview/test_offline.py::test_accuracy_over_30_seeds_on_the_project_renderer"),

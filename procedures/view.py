@@ -320,7 +320,7 @@ class ViewProgress:
         import cv2
         import numpy as np
 
-        from selfview.discs import detect_discs
+        from selfview.plates import detect_plate
         from selfview.errors import ImageError
 
         img = self.engine.results.get(name)
@@ -330,7 +330,7 @@ class ViewProgress:
         if self.canvas is None:
             self.canvas = np.zeros_like(big)
         try:
-            uv = detect_discs(img, self.cell.plate, camera=self.cell.camera.guess()).uv
+            uv = detect_plate(img, self.cell.plate, camera=self.cell.camera.guess()).uv
         except ImageError as exc:
             self.view.doing(f"{name}: no plate found ({exc})")
             uv = np.zeros((0, 2))

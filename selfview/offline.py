@@ -16,7 +16,8 @@ import numpy as np
 from selfview.calfile import Calibration
 from selfview.camera import CameraModel
 from selfview.cell import POINT_NAMES, Cell
-from selfview.discs import DiscDetections, correct_disc_bias, detect_discs
+from selfview.discs import DiscDetections
+from selfview.plates import correct_plate_bias, detect_plate
 from selfview.errors import CalibrationError, ConfigError, ImageError
 from selfview.fingertips import FingertipResult, find_fingertips, model_measurement
 from selfview.geometry import inv_H, make_H, rot_z
@@ -166,7 +167,7 @@ def calibrate_offline(
     if measurement not in ("auto", "corners", "model"):
         raise CalibrationError(f"measurement: expected 'auto', 'corners' or 'model', got {measurement!r}")
 
-    det = detect_discs(img, cell.plate, camera=nominal)
+    det = detect_plate(img, cell.plate, camera=nominal)
     timings["discs"] = (time.perf_counter() - t0) * 1e3
 
     t = time.perf_counter()
@@ -175,7 +176,7 @@ def calibrate_offline(
     # (CameraModel.deskew_pixels: the same rays in the camera without skew) and given back to its result
     ts = calibrate_coplanar(det.p_W, nominal.deskew_pixels(det.uv), **kw)
     # the image of a disc's centre is not the centroid of its ellipse: correct with the first pose, refit
-    uv_c = correct_disc_bias(det, ts.camera.with_(skew=nominal.skew), ts.C_H_W, cell.plate)
+    uv_c = correct_plate_bias(det, ts.camera.with_(skew=nominal.skew), ts.C_H_W, cell.plate)
     ts = calibrate_coplanar(det.p_W, nominal.deskew_pixels(uv_c), **kw)
     camera: CameraModel = ts.camera.with_(skew=nominal.skew)
     timings["tsai"] = (time.perf_counter() - t) * 1e3

@@ -10,12 +10,13 @@ import numpy as np
 
 from selfview.camera import CameraModel
 from selfview.cell import PlateSpec
-from selfview.discs import DiscDetections, detect_discs, disc_image_bias
+from selfview.discs import DiscDetections
 from selfview.errors import CalibrationError, ConfigError, ImageError
 from selfview.geometry import make_H
 from selfview.intrinsics.model import _STEP, _Joint, _intr, _project, _with_intr
 from selfview.intrinsics.plate import PLATE_DOT_PRIOR_MM, PLATE_DOT_SD_RANGE_MM, PLATE_MODELS, _align_views, _PlateShape
 from selfview.lm import covariance, levenberg_marquardt
+from selfview.plates import detect_plate, plate_image_bias
 
 
 #: The intrinsics in the order of the covariance: the skew last, absent when it is not fitted.
@@ -152,7 +153,7 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
 
 
 def _bias_corrected(dets, camera, poses, plate) -> list:
-    return [d.uv - disc_image_bias(camera, H, d.p_W, plate.disc_diameter / 2) for d, H in zip(dets, poses)]
+    return [d.uv - plate_image_bias(plate, camera, H, d.p_W) for d, H in zip(dets, poses)]
 
 def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel, names: list[str] | None = None,
               *, bias: bool = True, plate_model: str = "bow+dots", fit_skew: bool = True) -> _Fit:
@@ -232,7 +233,7 @@ def detect_views(images, plate: PlateSpec, camera: CameraModel, names=None, *, s
     dets, kept, skipped = [], [], []
     for img, nm in zip(images, names):
         try:
-            dets.append(detect_discs(img, plate, camera=camera))
+            dets.append(detect_plate(img, plate, camera=camera))
             kept.append(nm)
         except ImageError as exc:
             if not skip_unusable:
