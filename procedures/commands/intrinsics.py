@@ -11,6 +11,7 @@ import datetime as _dt
 import sys
 from pathlib import Path
 
+from selfview.intrinsics.plate import PLATE_MODELS
 from selfview.procedures.commands._common import COUNT, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
 from selfview.procedures.view import ViewProgress, add_view_arguments, intrinsics_state, viewing, watch, with_progress
@@ -32,6 +33,11 @@ def register(sub):
     )
     add_session_arguments(p)
     p.add_argument("--images", nargs="+", metavar="IMG", help="pictures of the plate from different poses (no devices)")
+    p.add_argument("--plate", metavar="PLATE.yaml",
+                   help="with --images: a file whose 'plate:' section describes the plate (discs, chessboard or charuco); "
+                        "without --cell the starting camera comes from the pictures")
+    p.add_argument("--plate-model", choices=PLATE_MODELS, default="bow+dots",
+                   help="what of the printed plate's shape is fitted with the camera (default %(default)s)")
     p.add_argument("--views", type=COUNT, default=12, help="views the robot takes on the cell (default %(default)s)")
     p.add_argument("--skip-unusable", action="store_true",
                    help="skip a picture without the plate (listed in the output) instead of refusing the set")
@@ -47,6 +53,8 @@ def register(sub):
 def _check_args(args) -> None:
     from selfview.errors import ConfigError
 
+    if args.plate and not args.images:
+        raise ConfigError("--plate describes the plate of --images; on the cell the cell file's plate is used")
     if args.images and args.real:
         raise ConfigError("--images calibrates picture files; --real takes the views on the cell: give one of them")
     if args.views < 1:
@@ -65,15 +73,19 @@ def run(args) -> int:
 def _run(args, view) -> int:
     from selfview import __version__
     from selfview.camfile import CameraFile, save_camera_file
-    from selfview.cell import default_cell_path, load_cell
-    from selfview.intrinsics import calibrate_intrinsics
+    from selfview.cell import default_cell_path, load_cell, load_plate
+    from selfview.procedures.intrinsics import measure_intrinsics
     from selfview.procedures.commands._common import write_image
     from selfview.procedures.commands.calibrate import read_picture
 
     _check_args(args)
     say = with_progress(view, progress_printer())
+    plate = camera = cell_sha = None
     if args.images:
-        cell = load_cell(args.cell or default_cell_path())
+        if args.plate is None or args.cell:
+            cell = load_cell(args.cell or default_cell_path())
+            camera, cell_sha = cell.camera.guess(), cell.sha256
+        plate = load_plate(args.plate) if args.plate else cell.plate
         images, names, pictures = [], [], []
         for path in args.images:
             img, sha = read_picture(path)
@@ -102,8 +114,10 @@ def _run(args, view) -> int:
             for i, img in enumerate(images):
                 write_image(folder / f"view_{i + 1:02d}.png", img, "--save-views")
         source = "cell (real)" if args.real else f"simulated cell (seed {args.seed}, camera {args.sim_camera})"
+        plate, camera, cell_sha = cell.plate, cell.camera.guess(), cell.sha256
     say(f"measuring the camera from {len(images)} views")
-    res = calibrate_intrinsics(images, cell.plate, cell.camera.guess(), names, skip_unusable=args.skip_unusable or not args.images)
+    res = measure_intrinsics(images, plate, camera, names, skip_unusable=args.skip_unusable or not args.images,
+                             plate_model=args.plate_model)
     s = res.summary()
     s["source"] = source
     warnings = []
@@ -133,7 +147,7 @@ def _run(args, view) -> int:
                 res.camera, res.sigma, res.covariance,
                 figures={k: s[k] for k in ("rms_px", "views_used", "projection_sigma_px", "stop_rule", "cross_check",
                                           "skew_fit")},
-                provenance={"pictures": pictures, "source": source, "cell_sha256": cell.sha256,
+                provenance={"pictures": pictures, "source": source, "cell_sha256": cell_sha,
                             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                             "software": f"selfview {__version__}"},
             )

@@ -241,6 +241,28 @@ def detect_views(images, plate: PlateSpec, camera: CameraModel, names=None, *, s
             skipped.append({"name": nm, "reason": str(exc)})
     return dets, kept, skipped
 
+def guess_camera(dets: list[DiscDetections], width: int, height: int) -> CameraModel:
+    """A starting camera for pictures of ``width`` x ``height`` px without a cell file: the principal point
+    at the picture's centre, aspect 1, kappa 0 and f from the views' plate-to-picture homographies (Zhang's
+    two constraints per view with the centre known, least squares in 1/f^2). Raises ``CalibrationError``
+    when the views do not determine f (all square-on)."""
+    cx, cy = (width - 1) / 2, (height - 1) / 2
+    A, b = [], []
+    for d in dets:
+        H, _ = cv2.findHomography(d.p_W[:, :2], d.uv - [cx, cy])
+        if H is None:
+            continue
+        h1, h2 = H[:, 0], H[:, 1]
+        A += [h1[0] * h2[0] + h1[1] * h2[1], h1[0] ** 2 + h1[1] ** 2 - h2[0] ** 2 - h2[1] ** 2]
+        b += [-h1[2] * h2[2], -(h1[2] ** 2 - h2[2] ** 2)]
+    A, b = np.asarray(A), np.asarray(b)
+    w = float(A @ b / (A @ A)) if len(A) and A @ A > 0 else 0.0
+    if not w > 0:
+        raise CalibrationError("intrinsics: the views do not give a first focal length (all seen square-on?); "
+                               "give a cell file with the camera's focal_guess (--cell)")
+    return CameraModel(f=1 / np.sqrt(w), kappa=0.0, cx=cx, cy=cy, aspect=1.0, width=int(width), height=int(height))
+
+
 # --- uncertainty figures --------------------------------------------------------------------------
 def _pixel_jacobian(camera: CameraModel, uv, ni: int = 5) -> np.ndarray:
     """(2, ni) derivative of where the ray of pixel ``uv`` lands, w.r.t. (f, kappa, cx, cy, aspect[, skew])."""

@@ -1,0 +1,33 @@
+"""Measuring a camera from pictures of a plate, as a lab script calls it (``selfview intrinsics --images``).
+
+    from selfview.cell import load_plate
+    from selfview.procedures.intrinsics import measure_intrinsics
+    res = measure_intrinsics(pictures, load_plate("plate.yaml"))
+"""
+
+from __future__ import annotations
+
+from selfview.camera import CameraModel
+from selfview.cell import PlateSpec
+from selfview.errors import ImageError
+from selfview.intrinsics import IntrinsicsResult, calibrate_intrinsics, detect_views, guess_camera
+
+
+def measure_intrinsics(images, plate: PlateSpec, camera: CameraModel | None = None, names=None, *,
+                       skip_unusable: bool = False, plate_model: str = "bow+dots") -> IntrinsicsResult:
+    """``calibrate_intrinsics`` of (H, W) pictures of ``plate``; ``camera`` the starting camera (a cell's
+    nominal one), or None: one from the pictures themselves (``intrinsics.guess_camera``; every picture
+    of the first one's size). Raises ``ImageError`` or ``CalibrationError`` as ``calibrate_intrinsics``."""
+    if camera is not None:
+        return calibrate_intrinsics(images, plate, camera, names, skip_unusable=skip_unusable, plate_model=plate_model)
+    names = list(names) if names is not None else [f"view {i + 1}" for i in range(len(images))]
+    if not images:
+        raise ImageError("intrinsics: no pictures given")
+    sizes = {tuple(getattr(im, "shape", (0, 0))[:2]) for im in images}
+    if len(sizes) != 1:
+        raise ImageError(f"intrinsics: the pictures have different sizes {sorted(sizes)}; one camera gives one size")
+    h, w = sizes.pop()
+    dets, kept, skipped = detect_views(images, plate, None, names, skip_unusable=skip_unusable)
+    res = calibrate_intrinsics(None, plate, guess_camera(dets, w, h), kept, detections=dets, plate_model=plate_model)
+    res.skipped = list(skipped) + list(res.skipped)
+    return res
