@@ -245,6 +245,9 @@ class Engine:
         robot = self.devices.robot
         if robot is None or not any(s.kind in MOTION_KINDS + ("speed",) for s in steps):
             return
+        if not getattr(robot, "knows_poses", True):
+            self._check_plan_without_poses(steps)
+            return
         limits = robot.limits
         last = None
         for i, s in enumerate(steps):
@@ -279,14 +282,21 @@ class Engine:
             except LimitError as exc:
                 raise LimitError(f"plan refused before anything moved: {exc}") from None
 
+    def _check_plan_without_poses(self, steps: list[Step]) -> None:
+        """A robot that knows no pose (``manual://``) reaches named locations only: a numeric target or a
+        joint drive is refused (``ConfigError``) before anything moves."""
+        for i, s in enumerate(steps):
+            if s.kind == "drive" or (s.kind in MOTION_KINDS and "target" in s.params and not isinstance(s.params["target"], str)):
+                raise ConfigError(f"plan refused before anything moved: step {i + 1} {s.describe()}: "
+                                  f"{self.devices.robot!r} knows no pose; only named locations can be reached")
+
     def _pose_of(self, target) -> np.ndarray:
+        robot = self.devices.robot
         if isinstance(target, str):
-            robot = self.devices.robot
-            pose = robot.location(target)
-            return robot.dialect.pose_to_H(pose)
+            return robot.pose_to_H(robot.location(target))
         H = np.asarray(target, float)
         if H.shape == (6,):
-            return self.devices.robot.dialect.pose_to_H(H)
+            return robot.pose_to_H(H)
         return H
 
     # --- running --------------------------------------------------------------------------------

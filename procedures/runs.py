@@ -130,7 +130,7 @@ class CellSession:
     def open(self) -> "CellSession":
         from selfview.drivers.frame_grabber_v4l2 import FrameGrabber
         from selfview.drivers.pneumatic_gripper import PneumaticGripper
-        from selfview.drivers.puma_val_serial import PumaVAL
+        from selfview.drivers.robot import open_robot
 
         if self.sim is not None:
             self.sim.start()
@@ -138,7 +138,7 @@ class CellSession:
             if getattr(self, "camera_url", None):
                 self.urls = CellURLs(self.urls.robot, self.urls.gripper, self.camera_url)
         cs = self.cell.camera
-        robot = PumaVAL(self.urls.robot, timeout_s=self.timeout_s)
+        robot = open_robot(self.urls.robot, self.cell, timeout_s=self.timeout_s, ask=self.ask)
         gripper = PneumaticGripper(self.urls.gripper)
         camera = FrameGrabber(self.urls.camera, width=cs.width, height=cs.height, timeout_s=self.timeout_s)
         devs = CellDevices(robot=robot, gripper=gripper, camera=camera)
@@ -275,7 +275,7 @@ class CellSession:
             plate_H, lean = None, None
         else:
             robot = self.devices.robot
-            plate_H = robot.dialect.pose_to_H(robot.location(s.plate))
+            plate_H = robot.pose_to_H(robot.location(s.plate))
             lean = (np.linalg.inv(plate_H) @ np.array([0.0, 0.0, 0.0, 1.0]))[:2]  # towards the robot's base
         poses = plan_view_poses(self.cell, views, state=state, lean_W=lean)
         plan = [Step("speed", {"pct": s.speed_pct}),

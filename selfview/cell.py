@@ -297,6 +297,35 @@ class SimulationSpec:
 
 
 @dataclass(frozen=True)
+class RobotSpec:
+    """The optional ``robot:`` section: settings files of the robot's driver (``drivers/robot.open_robot``),
+    paths resolved against the cell file's folder: ``dialect``, ``limits``, ``kinematics``; ``max_speed``
+    [%] a lower speed limit than the limits file's."""
+
+    dialect: str | None = None
+    limits: str | None = None
+    kinematics: str | None = None
+    max_speed: float | None = None
+
+
+def _parse_robot(s: _Section, source: str) -> RobotSpec:
+    base = Path(source).parent if source and not source.startswith("<") else Path(".")
+
+    def path(key):
+        v = s.raw(key, None)
+        if v is None:
+            return None
+        if not isinstance(v, str) or not v.strip():
+            raise ConfigError(f"robot.{key}: expected a file name, got {short_repr(v)}")
+        return str(base / v)
+
+    spec = RobotSpec(dialect=path("dialect"), limits=path("limits"), kinematics=path("kinematics"),
+                     max_speed=s.number("max_speed", None, lo=1.0, hi=100.0) if s.has("max_speed") else None)
+    s.done()
+    return spec
+
+
+@dataclass(frozen=True)
 class Cell:
     """The whole cell description. ``source`` is the file it came from, ``sha256`` its hash."""
 
@@ -309,6 +338,7 @@ class Cell:
     source: str = "<memory>"
     sha256: str = ""
     raw: dict = field(default_factory=dict, repr=False)
+    robot: RobotSpec | None = None
 
     def camera_guess(self) -> CameraModel:
         return self.camera.guess()
@@ -528,6 +558,7 @@ def parse_cell(data: Any, source: str = "<memory>", sha256: str = "") -> Cell:
         raise ConfigError(f"mount_guess.C_H_G: the TCP must lie in front of the camera (z > 0), got z={C_H_G[2, 3]}")
     monitor = _parse_monitor(top.section("monitor"))
     sim = _parse_simulation(top.section("simulation")) if top.has("simulation") else None
+    robot = _parse_robot(top.section("robot"), source) if top.has("robot") else None
     top.done()
     return Cell(
         camera=camera,
@@ -536,6 +567,7 @@ def parse_cell(data: Any, source: str = "<memory>", sha256: str = "") -> Cell:
         mount_guess_C_H_G=C_H_G,
         monitor=monitor,
         simulation=sim,
+        robot=robot,
         source=source,
         sha256=sha256,
         raw=data,

@@ -116,7 +116,7 @@ def _run(args, view) -> int:
             targets = [f"{s.plate} shifted {dx:+.0f} {dy:+.0f} mm, turned {t:+.0f} deg" for dx, dy, t in places]
         else:
             robot = session.devices.robot
-            plate_H = robot.dialect.pose_to_H(robot.location(s.plate))
+            plate_H = robot.pose_to_H(robot.location(s.plate))
             targets = [plate_H @ trans(dx, dy, 0.0) @ rot_z(np.radians(t)) for dx, dy, t in places]
         plan = [Step("speed", {"pct": s.speed_pct})]
         for k, target in enumerate(targets):
