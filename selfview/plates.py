@@ -103,6 +103,8 @@ def _chessboard(u8: np.ndarray, plate: PlateSpec) -> tuple[np.ndarray, np.ndarra
             raise ImageError(f"the chessboard seen has {meta.shape[1]}x{meta.shape[0]} inner corners, more than the "
                              f"plate's {nx - 1}x{ny - 1}: the plate file describes another board")
         basis = "partial view"
+    if basis != "board":
+        _check_alternation(u8, g)
     a, b = g[0, 1] - g[0, 0], g[1, 0] - g[0, 0]
     if a[0] * b[1] - a[1] * b[0] < 0:  # W's x, y, z (into the plate) right-handed: x to y turns clockwise on screen
         g = g[:, ::-1]
@@ -118,6 +120,18 @@ def _chessboard(u8: np.ndarray, plate: PlateSpec) -> tuple[np.ndarray, np.ndarra
         if r.min() < 0 or c.min() < 0 or r.max() >= ny - 1 or c.max() >= nx - 1:
             raise ImageError("the part of the chessboard seen cannot be placed on the plate's grid")
     return g.reshape(-1, 2), (r * (nx - 1) + c).ravel(), g.shape[0] * g.shape[1], basis
+
+
+def _check_alternation(u8: np.ndarray, g: np.ndarray) -> None:
+    """A partial grid's cells must alternate dark and light like the squares (OpenCV may return every
+    other corner of a board as a grid of its own): ``ImageError`` otherwise."""
+    lv = np.array([[_cell_level(u8, g, r, c) for c in range(g.shape[1] - 1)] for r in range(g.shape[0] - 1)])
+    dark = lv < np.median(lv)
+    parity = (np.add.outer(np.arange(lv.shape[0]), np.arange(lv.shape[1])) % 2) == 0
+    agree = max(np.mean(dark == parity), np.mean(dark != parity))
+    if agree < 0.9:
+        raise ImageError(f"the part of the chessboard found is not a grid of alternating squares ({agree:.0%} of its "
+                         "cells alternate): fingers or the picture's edge cut the board too much; use a ChArUco plate")
 
 
 def _cell_level(u8: np.ndarray, g: np.ndarray, r: int, c: int) -> float:
