@@ -304,8 +304,8 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "calfile-without-checksum-accepted",
         "selfview/calfile.py",
-        "if want != _checksum(body):",
-        "if want is not None and want != _checksum(body):",
+        "if want != doc_checksum(body):",
+        "if want is not None and want != doc_checksum(body):",
         ("tests/selfview/test_calfile.py::test_a_file_without_a_checksum_is_refused",),
         "a calibration file with no checksum at all is accepted (only a wrong one is refused)",
     ),

@@ -14,7 +14,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from selfview.drivers.robot import AbortResult, Where
+from selfview.drivers.robot_protocol import AbortResult, Where
 from selfview.errors import ConfigError, DeviceError
 
 __all__ = ["ManualRobot", "ManualLimits"]

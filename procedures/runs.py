@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from selfview.procedures.engine import Cancelled, CellDevices, Engine, RaiseOnSignal, Step, _SignalFlag, signal_name
+from selfview.procedures.engine import Cancelled, CellDevices, Engine, RaiseOnSignal, Step, SignalFlag, signal_name
 from selfview.procedures.experiment import TrialRecord, run_trial, summarise, tables_markdown
 from selfview.procedures.simcell import CellURLs, SimulatedCell
 from selfview.calfile import load_calibration, save_calibration
@@ -185,7 +185,7 @@ class CellSession:
         try:
             if isinstance(exc, KeyboardInterrupt) and self.engine is not None and not self.dry_run:
                 self._interrupted(exc)
-            with _SignalFlag() as flag:  # closing is short and bounded: a signal now is noted, not raised
+            with SignalFlag() as flag:  # closing is short and bounded: a signal now is noted, not raised
                 self.close()
             if flag.signum is not None and exc is None:
                 raise Cancelled(f"{signal_name(flag.signum)} while the devices were closing, after the procedures "

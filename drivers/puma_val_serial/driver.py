@@ -28,7 +28,7 @@ from selfview.drivers.puma_val_serial.dialect import OAT_CONVENTIONS, ValDialect
 from selfview.drivers.puma_val_serial.errors import ControllerError, MotionAborted, ProgramRunning
 from selfview.drivers.puma_val_serial.kinematics import PumaKinematics
 from selfview.drivers.puma_val_serial.limits import ValLimits
-from selfview.drivers.robot import AbortResult, Where
+from selfview.drivers.robot_protocol import AbortResult, Where
 from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout, ProtocolError
 from selfview.io_safe import parse_number
 from selfview.geometry import check_rigid, rotation_angle, trans

@@ -59,7 +59,7 @@ def register(sub):
     return p
 
 
-def _camera_file(path, cell):
+def camera_file_arg(path, cell):
     """(camera model, {path, sha256}, covariance of cx, cy, aspect (3, 3), and skew (4, 4) when the file
     has it) of a camera file, checked against the cell's picture size."""
     from selfview.camfile import file_sha256, load_camera_file
@@ -87,7 +87,7 @@ def _run(args, view) -> int:
     cell = load_cell_arg(args)
     camera = camera_file = cov3 = None
     if cam_path:
-        camera, camera_file, cov3 = _camera_file(cam_path, cell)
+        camera, camera_file, cov3 = camera_file_arg(cam_path, cell)
 
     def before_save(img, res):
         if not args.no_pictures:

@@ -87,7 +87,7 @@ def _run(args, view) -> int:
     from selfview.geometry import rot_z, rotation_angle, trans
     from selfview.intrinsics import tcp_sigma
     from selfview.offline import calibrate_offline
-    from selfview.procedures.commands.calibrate import _camera_file
+    from selfview.procedures.commands.calibrate import camera_file_arg
     from selfview.procedures.engine import Step
     from selfview.procedures.runs import depart_plan, park_plan
 
@@ -101,7 +101,7 @@ def _run(args, view) -> int:
     cell, session = open_session(args, say)
     camera = camera_file = cov3 = None
     if cam_path:
-        camera, camera_file, cov3 = _camera_file(cam_path, cell)
+        camera, camera_file, cov3 = camera_file_arg(cam_path, cell)
     state = args.state or cell.gripper.calibrate_in
     pG = cell.gripper.points_G(state)
     places = PLACES[: args.parks]

@@ -10,10 +10,10 @@ import numpy as np
 from selfview.camera import CameraModel
 from selfview.cell import PlateSpec
 from selfview.errors import CalibrationError
-from selfview.intrinsics.advice import STOP_ASPECT_REL, STOP_CENTRE_PX, MAX_MORE_VIEWS, _stop_met, more_views_advice
-from selfview.intrinsics.checks import _cross_check
+from selfview.intrinsics.advice import STOP_ASPECT_REL, STOP_CENTRE_PX, MAX_MORE_VIEWS, stop_met, more_views_advice
+from selfview.intrinsics.checks import halves_cross_check
 from selfview.intrinsics.fit import (
-    MIN_VIEWS, UNDETERMINED_CENTRE_PX, VIEW_MAX_RMS_PX, _Fit, _sigmas, detect_views, fit_views, projection_sigma_px,
+    MIN_VIEWS, UNDETERMINED_CENTRE_PX, VIEW_MAX_RMS_PX, JointFit, sigmas_of, detect_views, fit_views, projection_sigma_px,
 )
 
 #: The skew is kept only when the views pin it: its estimate at least this many sigmas from 0 (a grabber
@@ -68,7 +68,7 @@ class IntrinsicsResult:
         }
 
 
-def _plate_summary(fit: _Fit) -> dict:
+def _plate_summary(fit: JointFit) -> dict:
     """What the fit found of the printed plate: its model, the bow's coefficients [mm] (z at the grid's
     half-width: xx, xy, yy) with their 1-sigma, the discs' position error sd [mm] and rms of their fitted
     corrections, each view's turn of its disc indices onto the plate's grid [deg] (None: kept as found)."""
@@ -153,7 +153,7 @@ fits it; False holds it at ``camera_guess``'s, the spec's model.
     used = {v.name for v in fit.views}
     keep = [k for k in range(len(dets)) if names[k] in used]
     dets, names = [dets[k] for k in keep], [names[k] for k in keep]
-    sig = _sigmas(fit.cov5)
+    sig = sigmas_of(fit.cov5)
     tilts = [v.tilt_deg for v in fit.views]
     if not (np.all(np.isfinite(fit.cov5)) and max(sig["cx"], sig["cy"]) < UNDETERMINED_CENTRE_PX):
         raise CalibrationError(
@@ -161,7 +161,7 @@ fits it; False holds it at ``camera_guess``'s, the spec's model.
             f"{max(sig['cx'], sig['cy']):.3g} px): they see the plate {min(tilts):.0f}-{max(tilts):.0f} deg from "
             "square-on; take views tilted 20-40 deg in different directions"
         )
-    met = _stop_met(sig, fit.camera.aspect)
+    met = stop_met(sig, fit.camera.aspect)
     stop = {
         "met": met,
         "sigma_centre_px": max(sig["cx"], sig["cy"]),
@@ -180,7 +180,7 @@ fits it; False holds it at ``camera_guess``'s, the spec's model.
                               f"aspect to < {100 * STOP_ASPECT_REL:g} %")
         else:
             stop["advice"] = f"more than {MAX_MORE_VIEWS} further views of any kind would be needed"
-    xc = _cross_check(dets, names, plate, fit) if cross_check else {"done": False, "why": "not asked for"}
+    xc = halves_cross_check(dets, names, plate, fit) if cross_check else {"done": False, "why": "not asked for"}
     return IntrinsicsResult(
         camera=fit.camera, covariance=fit.cov5, sigma=sig, rms_px=fit.rms_px, views=fit.views, skipped=skipped,
         projection_sigma_px=projection_sigma_px(fit.camera, fit.cov5), stop_rule=stop, cross_check=xc,
@@ -188,7 +188,7 @@ fits it; False holds it at ``camera_guess``'s, the spec's model.
     )
 
 
-def _skew_jackknife(dets, names, plate, fit: _Fit, plate_model: str) -> float | None:
+def _skew_jackknife(dets, names, plate, fit: JointFit, plate_model: str) -> float | None:
     """The skew's leave-one-group-out jackknife sigma over the views ``fit`` used (at most
     ``SKEW_JACKKNIFE_GROUPS`` groups, each leaving ``MIN_VIEWS`` or more views); None when the views are
     too few, or when a group left out makes the rest unsolvable."""
