@@ -28,7 +28,7 @@ from selfview.procedures.simcell import CellURLs, SimulatedCell
 from selfview.calfile import load_calibration, save_calibration
 from selfview.cell import Cell
 from selfview.errors import AlarmError, CalibrationError, ConfigError, DeviceTimeout, ImageError
-from selfview.silhouette import SilhouetteTracker
+from selfview.fingers import SilhouetteTracker
 from selfview.offline import OfflineResult, calibrate_offline
 from selfview.pcc import jaw_gap_of
 from selfview.online import METHODS

@@ -19,7 +19,8 @@ from selfview.cell import POINT_NAMES, Cell
 from selfview.discs import DiscDetections
 from selfview.plates import correct_plate_bias, detect_plate
 from selfview.errors import CalibrationError, ConfigError, ImageError
-from selfview.fingertips import FingertipResult, find_fingertips, model_measurement
+from selfview.fingertips import FingertipResult
+from selfview.fingers import find_fingertips, model_measurement
 from selfview.geometry import inv_H, make_H, rot_z
 from selfview.pcc import PCCResult, measure_points_G, points_G_for_state, solve_pcc
 from selfview.tsai import TsaiResult, calibrate_coplanar

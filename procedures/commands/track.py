@@ -52,7 +52,7 @@ def _run(args, view) -> int:
     from selfview.calfile import load_calibration, save_calibration
     from selfview.cell import POINT_NAMES
     from selfview.errors import AlarmError, CalibrationError, ConfigError
-    from selfview.fingertips import find_fingertips
+    from selfview.fingers import find_fingertips
     from selfview.offline import check_picture
     from selfview.online import estimate
     from selfview.pcc import jaw_gap_of
@@ -91,32 +91,13 @@ def _run(args, view) -> int:
             "quality": ft.quality,
         }
         new = None if d.action == "alarm" else np.asarray(d.C_H_G, float)
-    elif args.method == "E":
-        if ft.lost is not None:
-            raise CalibrationError(f"fingertips not found: {ft.lost}")
-        if ft.C_H_G is None:
-            raise ConfigError("--method E is the model's own estimate: it needs --measure model")
-        from selfview.geometry import pose_difference
-
-        H = np.asarray(ft.C_H_G, float)
-        M = H @ np.linalg.inv(cal.C_H_G)  # the camera's motion C'_H_C
-        out = {
-            "method": "E",
-            "C_H_G": H.tolist(),
-            "C_H_G_orthonormal": H.tolist(),
-            "delta_deg": float(pose_difference(H, cal.C_H_G)[0]),
-            "d_mm": float(np.linalg.norm(M[:3, 3])),
-            "decision": "update",
-            "points_used": [],
-            "rms_px": float(ft.quality["rms_px"]),
-            "points_found": found_names,
-            "quality": ft.quality,
-        }
-        new = H
     else:
         if ft.lost is not None:
             raise CalibrationError(f"fingertips not found: {ft.lost}")
-        est = estimate(args.method, cal.C_H_G, pG, ft.uv, ft.found, cal.camera)
+        if args.method == "E" and ft.C_H_G is None:
+            raise ConfigError("--method E is the model's own estimate: it needs --measure model")
+        est = estimate(args.method, cal.C_H_G, pG, ft.uv, ft.found, cal.camera, model_C_H_G=ft.C_H_G,
+                       model_rms_px=float((ft.quality or {}).get("rms_px", float("nan"))))
         decision = "recalibrate" if args.method.endswith("R") else "update"
         out = {
             "method": args.method,
