@@ -271,13 +271,25 @@ def plot_errors(summary: dict, path: Path, methods) -> Path:
     return path
 
 
+def write_image(path, image, what: str = "--out") -> None:
+    """Write a picture with OpenCV; ``ConfigError`` naming ``what`` if it cannot be written."""
+    import cv2
+
+    from selfview.errors import ConfigError
+
+    try:
+        ok = cv2.imwrite(str(path), image)
+    except cv2.error as exc:
+        raise ConfigError(f"{what} {path}: cannot write the picture ({exc})") from exc
+    if not ok:
+        raise ConfigError(f"{what} {path}: cannot write the picture (no such folder, or an extension OpenCV cannot write)")
+
+
 def keep_pictures(out, image, draw, kind: str = "") -> dict:
     """Write the picture a result was computed from and its annotated copy (``draw(image)``, BGR) beside
     ``out``, named by the picture's SHA-256 (an earlier run's pictures are never overwritten); returns
     {picture, annotated}: the file names, relative to ``out``'s folder. ``kind`` starts the names
     (``track-``: a tracked picture beside its calibration file)."""
-    from selfview.procedures.commands._common import write_image
-
     out = Path(out)
     tag = hashlib.sha256(image.tobytes()).hexdigest()[:12]
     names = {}

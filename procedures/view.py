@@ -7,7 +7,6 @@ and ``/frame.jpg``. Nothing on the page comes from the internet.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import sys
@@ -17,17 +16,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import numpy as np
 
-from selfview.procedures.commands._common import PORT, SECONDS_OR_ZERO
-
-__all__ = ["LiveView", "ViewProgress", "add_view_arguments", "open_view", "viewing", "with_progress", "watch", "offline_state", "intrinsics_state", "tracked_frames", "decision_state"]
-
-
-def add_view_arguments(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("live view", "a page in the browser on 127.0.0.1 showing the run as it goes")
-    g.add_argument("--view", nargs="?", type=PORT, const=0, default=None, metavar="PORT",
-                   help="serve the live view (a free port, or PORT); its address is printed on stderr")
-    g.add_argument("--view-linger", type=SECONDS_OR_ZERO, default=0.0, metavar="S",
-                   help="keep serving the final state S seconds after the command is done (default 0)")
+__all__ = ["LiveView", "ViewProgress", "open_view", "viewing", "with_progress", "watch", "offline_state", "intrinsics_state", "tracked_frames", "decision_state"]
 
 
 def open_view(args, command: str) -> "LiveView | None":

@@ -94,15 +94,9 @@ def serve_until(url: str, duration_s: float | None) -> None:
         pass
 
 
-def write_image(path, image, what: str = "--out") -> None:
-    """Write a picture with OpenCV; ``ConfigError`` naming ``what`` if it cannot be written."""
-    import cv2
-
-    from selfview.errors import ConfigError
-
-    try:
-        ok = cv2.imwrite(str(path), image)
-    except cv2.error as exc:
-        raise ConfigError(f"{what} {path}: cannot write the picture ({exc})") from exc
-    if not ok:
-        raise ConfigError(f"{what} {path}: cannot write the picture (no such folder, or an extension OpenCV cannot write)")
+def add_view_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("live view", "a page in the browser on 127.0.0.1 showing the run as it goes")
+    g.add_argument("--view", nargs="?", type=PORT, const=0, default=None, metavar="PORT",
+                   help="serve the live view (a free port, or PORT); its address is printed on stderr")
+    g.add_argument("--view-linger", type=SECONDS_OR_ZERO, default=0.0, metavar="S",
+                   help="keep serving the final state S seconds after the command is done (default 0)")

@@ -10,7 +10,8 @@ import sys
 
 from selfview.procedures.commands._common import load_cell_arg, print_json
 from selfview.procedures.commands._session import add_session_arguments, camera_arguments, open_session, progress_printer
-from selfview.procedures.view import add_view_arguments, watch, offline_state, viewing, with_progress
+from selfview.procedures.commands._common import add_view_arguments
+from selfview.procedures.view import watch, offline_state, viewing, with_progress
 
 
 def read_picture(path) -> tuple:

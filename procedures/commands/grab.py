@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from selfview.procedures.commands._common import COUNT, SECONDS, SEED, add_cell_argument, load_cell_arg, print_json, write_image
+from selfview.procedures.commands._common import COUNT, SECONDS, SEED, add_cell_argument, load_cell_arg, print_json
+
+from selfview.procedures.results import write_image
 from selfview.errors import ConfigError
 
 

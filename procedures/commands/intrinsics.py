@@ -14,7 +14,8 @@ from pathlib import Path
 from selfview.intrinsics.plate import PLATE_MODELS
 from selfview.procedures.commands._common import COUNT, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
-from selfview.procedures.view import ViewProgress, add_view_arguments, intrinsics_state, viewing, watch, with_progress
+from selfview.procedures.commands._common import add_view_arguments
+from selfview.procedures.view import ViewProgress, intrinsics_state, viewing, watch, with_progress
 
 
 def register(sub):
@@ -75,7 +76,7 @@ def _run(args, view) -> int:
     from selfview.camfile import CameraFile, save_camera_file
     from selfview.cell import default_cell_path, load_cell, load_plate
     from selfview.procedures.intrinsics import measure_intrinsics
-    from selfview.procedures.commands._common import write_image
+    from selfview.procedures.results import write_image
     from selfview.procedures.commands.calibrate import read_picture
 
     _check_args(args)

@@ -13,7 +13,8 @@ import numpy as np
 
 from selfview.procedures.commands._common import numeric, print_json
 from selfview.procedures.commands._session import add_session_arguments, camera_arguments, open_session, progress_printer
-from selfview.procedures.view import add_view_arguments, offline_state, viewing, watch, with_progress
+from selfview.procedures.commands._common import add_view_arguments
+from selfview.procedures.view import offline_state, viewing, watch, with_progress
 
 #: Where the parks go, relative to the taught plate location: in-plane shift x, y [mm] along the gripper's
 #: axes and turn about the approach axis [deg]. The fingers lie along G's x (+-28..36 mm) and are 12 mm
