@@ -8,7 +8,7 @@ from selfview.procedures.commands._common import add_cell_argument, load_cell_ar
 from selfview.procedures.commands._common import add_view_arguments
 from selfview.procedures.view import viewing
 
-METHOD_CHOICES = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R", "E", "auto")
+from selfview.procedures.tracking import METHOD_CHOICES
 
 
 def register(sub):
@@ -51,68 +51,20 @@ def _run(args, view) -> int:
     from selfview.procedures.commands.calibrate import read_picture
     from selfview.procedures.results import draw_tracked, keep_pictures
     from selfview.calfile import load_calibration, save_calibration
-    from selfview.cell import POINT_NAMES
-    from selfview.errors import AlarmError, CalibrationError, ConfigError
-    from selfview.fingers import find_fingertips
+    from selfview.errors import AlarmError
     from selfview.offline import check_picture
-    from selfview.online import estimate
-    from selfview.pcc import jaw_gap_of
-    from selfview.policy import Monitor
+    from selfview.procedures.tracking import track_picture
 
     cell = load_cell_arg(args)
     cal = load_calibration(args.calibration)
-    state = args.state or cal.state
-    if state not in cal.points_G:
-        raise ConfigError(f"--state {state!r}: the calibration has points for {', '.join(cal.points_G)}")
     img, _ = read_picture(args.image)
     img = check_picture(img, cal.camera.width, cal.camera.height)
-    pG = cal.points_G[state]
-    gap = jaw_gap_of(pG)
     if view:
         view.doing(f"finding the fingertips in {args.image}")
         view.frame(img)
-    ft = find_fingertips(img, cal.camera, cal.C_H_G, cell.gripper, gap, model=args.measure == "model")
-    found_names = [nm for nm, ok in zip(POINT_NAMES, ft.found) if ok]
-    if args.method == "auto":
-        if ft.lost is not None or int(np.sum(ft.found)) < 3:
-            n = int(np.sum(ft.found))
-            raise CalibrationError(f"fingertips not found: {ft.lost or f'{n} point(s) found, 3 needed'}")
-        mon = Monitor(cal.C_H_G, cal.camera, pG, cell.monitor, max_missed_frames=1)  # one picture: no next frame
-        d = mon.step(ft.uv, ft.found, lost=ft.lost)
-        out = {
-            "method": d.method or "auto",
-            "C_H_G": np.asarray(d.C_H_G).tolist(),
-            "delta_deg": d.delta_deg,
-            "d_mm": d.d_mm,
-            "decision": d.action,
-            "reason": d.reason,
-            "points_used": list(d.points_used or []),
-            "rms_px": d.rms_px,
-            "points_found": found_names,
-            "quality": ft.quality,
-        }
-        new = None if d.action == "alarm" else np.asarray(d.C_H_G, float)
-    else:
-        if ft.lost is not None:
-            raise CalibrationError(f"fingertips not found: {ft.lost}")
-        if args.method == "E" and ft.C_H_G is None:
-            raise ConfigError("--method E is the model's own estimate: it needs --measure model")
-        est = estimate(args.method, cal.C_H_G, pG, ft.uv, ft.found, cal.camera, model_C_H_G=ft.C_H_G,
-                       model_rms_px=float((ft.quality or {}).get("rms_px", float("nan"))))
-        decision = "recalibrate" if args.method.endswith("R") else "update"
-        out = {
-            "method": args.method,
-            "C_H_G": est.C_H_G.tolist(),
-            "C_H_G_orthonormal": est.C_H_G_orth.tolist(),
-            "delta_deg": est.delta_deg,
-            "d_mm": est.d_mm,
-            "decision": decision,
-            "points_used": list(est.points_used),
-            "rms_px": est.rms_px,
-            "points_found": found_names,
-            "quality": ft.quality,
-        }
-        new = est.C_H_G_orth
+    res = track_picture(img, cal, cell, method=args.method, state=args.state, measure=args.measure)
+    out, new, ft, pG, gap = res.summary, res.C_H_G, res.fingertips, res.points_G, res.gap_mm
+    found_names = out["points_found"]
     shown = new if new is not None else cal.C_H_G
     draw = lambda im: draw_tracked(im, cal.camera, shown, pG, ft, boxes=cell.gripper.finger_boxes_G(gap))  # noqa: E731
     if view:
