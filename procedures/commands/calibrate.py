@@ -79,7 +79,8 @@ def _run(args, view) -> int:
     from selfview.calfile import save_calibration
     from selfview.procedures.results import draw_offline, keep_pictures
     from selfview.errors import ConfigError
-    from selfview.intrinsics import camera_check, tcp_sigma
+    from selfview.intrinsics import tcp_sigma
+    from selfview.procedures.calibration import calibration_summary
     from selfview.offline import calibrate_offline
     from selfview.procedures.runs import refuse_unfitting_camera
 
@@ -121,25 +122,10 @@ def _run(args, view) -> int:
         kept = session.calibration_kept
         fit = session.camera_file_fit
         source = "the cell's picture"
-    s = res.summary()
+    s = calibration_summary(res, cell, camera=camera, camera_file=camera_file, cov3=cov3, fit=fit, cam_path=cam_path)
     s["out"] = str(args.out)
     s["previous_kept_as"] = str(kept) if kept else None
-    s["camera_file"] = camera_file
-    s["camera_file_fit"] = fit
-    s["pictures"] = dict(res.calibration.pictures)
-    warnings = []
-    if fit and not fit["fits"]:
-        warnings.append(f"{fit['refusal']}; written because of --force (measure this camera with "
-                        "'selfview intrinsics')")
-    chk = camera_check(res, cell, camera)
-    if chk.get("warning"):
-        w = chk["warning"]
-        if camera is not None:
-            w = "the picture disagrees with the camera file " + str(cam_path) + ": " + w
-        warnings.append(w)
-    s["camera_check"] = {k: v for k, v in chk.items() if k != "warning"}
-    s["tcp_sigma_mm"] = tcp_sigma(res, cell, cov3)["tcp_sigma_mm"]
-    s["warnings"] = warnings
+    warnings = s["warnings"]
     for w in warnings:
         print(f"selfview calibrate: warning: {w}", file=sys.stderr)
     if args.json:
