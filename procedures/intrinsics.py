@@ -31,3 +31,19 @@ def measure_intrinsics(images, plate: PlateSpec, camera: CameraModel | None = No
     res = calibrate_intrinsics(None, plate, guess_camera(dets, w, h), kept, detections=dets, plate_model=plate_model)
     res.skipped = list(skipped) + list(res.skipped)
     return res
+
+
+def intrinsics_warnings(res: IntrinsicsResult) -> list[str]:
+    """What the operator must know about a measured camera: pictures not used, the stop rule not met (with
+    the advice), the two halves of the views disagreeing."""
+    warnings = [f"{sk['name']} not used: {sk['reason']}" for sk in res.skipped]
+    if not res.stop_rule["met"]:
+        warnings.append("stop rule not met: sigma of the centre {:.3f} px (limit {}), of the aspect {:.4f} % (limit {} %); {}".format(
+            res.stop_rule["sigma_centre_px"], res.stop_rule["limit_centre_px"], res.stop_rule["sigma_aspect_pct"],
+            res.stop_rule["limit_aspect_pct"], res.stop_rule.get("advice", "")))
+    xc = res.cross_check
+    if xc.get("done") and not xc.get("agree"):
+        worst = max(xc["ratio"], key=xc["ratio"].get)
+        warnings.append(f"the two halves of the views disagree: {worst} differs by {xc['ratio'][worst]:.1f} combined sigmas "
+                        f"(limit {xc['limit_sigmas']:g}); a view may be blurred, or the camera moved between views")
+    return warnings

@@ -66,6 +66,53 @@ def _check_args(args) -> None:
             raise ConfigError(f"--out {out}: is a folder; expected a camera file name")
 
 
+def _text(res, source: str, written, out) -> list[str]:
+    """The result as lines for the terminal."""
+    xc = res.cross_check
+    c = res.camera
+    sg = res.sigma
+    ps = res.projection_sigma_px
+    lines = [
+        f"camera from {res.views_used} views ({source}), residual rms {res.rms_px:.3f} px",
+        f"  f      = {c.f:.3f} +- {sg['f']:.3f} px",
+        f"  kappa  = {c.kappa:.4e} +- {sg['kappa']:.1e} px^-2",
+        f"  centre = ({c.cx:.2f}, {c.cy:.2f}) +- ({sg['cx']:.2f}, {sg['cy']:.2f}) px",
+        f"  aspect = {c.aspect:.5f} +- {sg['aspect']:.5f}",
+        *([f"  skew   = {c.skew:.2e} +- {sg['skew']:.1e} (the grabber's shear: "
+           f"{c.skew * c.height:+.2f} px from the top line to the bottom one)"] if "skew" in sg
+          else [f"  {res.skew_fit.get('note', 'skew not fitted')}"]),
+        f"  projection uncertainty: centre {ps['centre']:.3f} px, corners "
+        + ", ".join(f"{ps[k]:.3f}" for k in ("top_left", "top_right", "bottom_left", "bottom_right")) + " px",
+        "  stop rule: " + ("met" if res.stop_rule["met"] else "NOT met: " + res.stop_rule.get("advice", "")),
+        "  cross-check: " + (("halves agree" if xc["agree"] else "halves DISAGREE") if xc.get("done") else xc["why"]),
+    ]
+    if written:
+        lines.append(f"written to {written}")
+    elif out:
+        lines.append(f"{out} not written: the stop rule is not met (take the views advised, or --force)")
+    return lines
+
+
+def _picture_files(args):
+    """--images with --plate or --cell: (plate, starting camera or None, cell file hash or None, pictures,
+    their names, [{name, sha256}])."""
+    from selfview.cell import default_cell_path, load_cell, load_plate
+    from selfview.procedures.commands.calibrate import read_picture
+
+    camera = cell_sha = None
+    if args.plate is None or args.cell:
+        cell = load_cell(args.cell or default_cell_path())
+        camera, cell_sha = cell.camera.guess(), cell.sha256
+    plate = load_plate(args.plate) if args.plate else cell.plate
+    images, names, pictures = [], [], []
+    for path in args.images:
+        img, sha = read_picture(path)
+        images.append(img)
+        names.append(str(path))
+        pictures.append({"name": Path(path).name, "sha256": sha})
+    return plate, camera, cell_sha, images, names, pictures
+
+
 def run(args) -> int:
     with viewing(args, "intrinsics") as view:
         return _run(args, view)
@@ -74,25 +121,13 @@ def run(args) -> int:
 def _run(args, view) -> int:
     from selfview import __version__
     from selfview.camfile import CameraFile, save_camera_file
-    from selfview.cell import default_cell_path, load_cell, load_plate
-    from selfview.procedures.intrinsics import measure_intrinsics
+    from selfview.procedures.intrinsics import intrinsics_warnings, measure_intrinsics
     from selfview.procedures.results import write_image
-    from selfview.procedures.commands.calibrate import read_picture
 
     _check_args(args)
     say = with_progress(view, progress_printer())
-    plate = camera = cell_sha = None
     if args.images:
-        if args.plate is None or args.cell:
-            cell = load_cell(args.cell or default_cell_path())
-            camera, cell_sha = cell.camera.guess(), cell.sha256
-        plate = load_plate(args.plate) if args.plate else cell.plate
-        images, names, pictures = [], [], []
-        for path in args.images:
-            img, sha = read_picture(path)
-            images.append(img)
-            names.append(str(path))
-            pictures.append({"name": Path(path).name, "sha256": sha})
+        plate, camera, cell_sha, images, names, pictures = _picture_files(args)
         source = "pictures"
     else:
         cell, session = open_session(args, say)
@@ -121,18 +156,7 @@ def _run(args, view) -> int:
                              plate_model=args.plate_model)
     s = res.summary()
     s["source"] = source
-    warnings = []
-    for sk in res.skipped:
-        warnings.append(f"{sk['name']} not used: {sk['reason']}")
-    if not res.stop_rule["met"]:
-        warnings.append("stop rule not met: sigma of the centre {:.3f} px (limit {}), of the aspect {:.4f} % (limit {} %); {}".format(
-            res.stop_rule["sigma_centre_px"], res.stop_rule["limit_centre_px"], res.stop_rule["sigma_aspect_pct"],
-            res.stop_rule["limit_aspect_pct"], res.stop_rule.get("advice", "")))
-    xc = res.cross_check
-    if xc.get("done") and not xc.get("agree"):
-        worst = max(xc["ratio"], key=xc["ratio"].get)
-        warnings.append(f"the two halves of the views disagree: {worst} differs by {xc['ratio'][worst]:.1f} combined sigmas "
-                        f"(limit {xc['limit_sigmas']:g}); a view may be blurred, or the camera moved between views")
+    warnings = intrinsics_warnings(res)
     s["warnings"] = warnings
     if view:
         intrinsics_state(view, res)
@@ -161,27 +185,7 @@ def _run(args, view) -> int:
     if args.json:
         print_json(s)
     else:
-        c = res.camera
-        sg = res.sigma
-        ps = res.projection_sigma_px
-        lines = [
-            f"camera from {res.views_used} views ({source}), residual rms {res.rms_px:.3f} px",
-            f"  f      = {c.f:.3f} +- {sg['f']:.3f} px",
-            f"  kappa  = {c.kappa:.4e} +- {sg['kappa']:.1e} px^-2",
-            f"  centre = ({c.cx:.2f}, {c.cy:.2f}) +- ({sg['cx']:.2f}, {sg['cy']:.2f}) px",
-            f"  aspect = {c.aspect:.5f} +- {sg['aspect']:.5f}",
-            *([f"  skew   = {c.skew:.2e} +- {sg['skew']:.1e} (the grabber's shear: "
-               f"{c.skew * c.height:+.2f} px from the top line to the bottom one)"] if "skew" in sg
-              else [f"  {res.skew_fit.get('note', 'skew not fitted')}"]),
-            f"  projection uncertainty: centre {ps['centre']:.3f} px, corners "
-            + ", ".join(f"{ps[k]:.3f}" for k in ("top_left", "top_right", "bottom_left", "bottom_right")) + " px",
-            "  stop rule: " + ("met" if res.stop_rule["met"] else "NOT met: " + res.stop_rule.get("advice", "")),
-            "  cross-check: " + (("halves agree" if xc["agree"] else "halves DISAGREE") if xc.get("done") else xc["why"]),
-        ]
-        if written:
-            lines.append(f"written to {written}")
-        elif args.out:
-            lines.append(f"{args.out} not written: the stop rule is not met (take the views advised, or --force)")
+        lines = _text(res, source, written, args.out)
         print("\n".join(lines))
     if args.out and not written:
         return 5
