@@ -107,8 +107,8 @@ def measure_sequence(seq: Sequence, cell, methods=("search", "model-tracker")) -
     model=True)``) and ``model-tracker`` (a ``SilhouetteTracker`` run over the sequence, primed by a search
     of the undisturbed picture) the model-based measurement, whose own pose is also scored as method E
     (``E_tcp_err_*``). The same frames for all; each followed by 4P-I."""
-    from selfview.fingertips import find_fingertips
-    from selfview.silhouette import SilhouetteTracker
+    from selfview.fingers import find_fingertips
+    from selfview.fingers import SilhouetteTracker
 
     out = {}
     if seq.kind == "disc":

@@ -15,7 +15,8 @@ import numpy as np
 
 from selfview.camera import CameraModel
 from selfview.cell import PlateSpec
-from selfview.discs import DiscDetections, correct_disc_bias
+from selfview.discs import DiscDetections
+from selfview.plates import correct_plate_bias
 from selfview.errors import CalibrationError, ConfigError
 from selfview.geometry import R_from_rotvec, check_rigid, inv_H, make_H, rotation_angle, rotvec_from_R
 from selfview.online import recalibrate
@@ -85,7 +86,7 @@ def plate_pose(det: DiscDetections, camera: CameraModel, plate: PlateSpec) -> np
                             width=camera.width, height=camera.height,
                             f_guess=camera.f, kappa_guess=camera.kappa)
     C_H_W = recalibrate(ts.C_H_W, det.p_W, det.uv, camera).C_H_G
-    uv_c = correct_disc_bias(det, camera, C_H_W, plate)
+    uv_c = correct_plate_bias(det, camera, C_H_W, plate)
     return recalibrate(C_H_W, det.p_W, uv_c, camera).C_H_G
 
 

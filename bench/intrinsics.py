@@ -37,7 +37,7 @@ from selfview.intrinsics import (  # noqa: E402
     TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics, camera_check, detect_views, tcp_sigma,
 )
 from selfview.procedures.viewplan import plan_view_poses  # noqa: E402
-from selfview.discs import disc_image_bias  # noqa: E402
+from selfview.plates import plate_image_bias  # noqa: E402
 from selfview.geometry import trans, transform_points  # noqa: E402
 from selfview.mocks.imperfections import PROFILES  # noqa: E402
 from selfview.mocks.render import render as _project_render  # noqa: E402
@@ -185,7 +185,7 @@ def one_camera(args) -> dict:
     size = (cam0.width, cam0.height)
     raw = _cv2(dets, [d.uv for d in dets], cam0, size)
     out["cv2_raw"] = {**raw, **_errors(raw, w.camera)}
-    corrected = [d.uv - disc_image_bias(c, v.C_H_W, d.p_W, cell.plate.disc_diameter / 2) for d, v in zip(dets, r.views)]
+    corrected = [d.uv - plate_image_bias(cell.plate, c, v.C_H_W, d.p_W) for d, v in zip(dets, r.views)]
     cor = _cv2(dets, corrected, cam0, size)
     out["cv2_bias_corrected"] = {**cor, **_errors(cor, w.camera)}
     _add_mrcal(out, dets, cell, cam0, w.camera)
@@ -272,7 +272,7 @@ def one_camera_profile(args) -> dict:
     raw = _cv2(dets, [d.uv for d in dets], cam0, size)
     out["cv2_raw"] = {**raw, **_errors(raw, w.camera)}
     if flat is not None:  # the flat fit's poses are on the detections' own grids
-        corrected = [d.uv - disc_image_bias(flat.camera, v.C_H_W, d.p_W, cell.plate.disc_diameter / 2)
+        corrected = [d.uv - plate_image_bias(cell.plate, flat.camera, v.C_H_W, d.p_W)
                      for d, v in zip(dets, flat.views)]
         cor = _cv2(dets, corrected, cam0, size)
         out["cv2_bias_corrected"] = {**cor, **_errors(cor, w.camera)}
@@ -423,7 +423,7 @@ def photo_study() -> dict:
     """Study 5: ours beside findCirclesGrid and cv2.calibrateCamera on real photographs.
 
     Each set of printed dot-grid photographs the project did not make (``PHOTO_SETS``, in ``tests/data``,
-    each with a cell file per picture size). Per picture the discs ``detect_discs`` finds beside
+    each with a cell file per picture size). Per picture the discs ``detect_plate`` finds beside
     ``cv2.findCirclesGrid``'s (symmetric grid) and the distance between the centres both found [px]; per
     camera (pictures of one size, at least 4) ``calibrate_intrinsics`` run as ``selfview intrinsics`` runs
     it (the skew fitted only when the views pin it, ``skew_fit`` says which and why; the skew always fitted
@@ -432,7 +432,7 @@ def photo_study() -> dict:
     """
     from types import SimpleNamespace
 
-    from selfview.discs import detect_discs
+    from selfview.plates import detect_plate
 
     out = {}
     for folder, pattern in PHOTO_SETS:
@@ -446,7 +446,7 @@ def photo_study() -> dict:
             ok, ref = cv2.findCirclesGrid(img, (pl.cols, pl.rows), flags=cv2.CALIB_CB_SYMMETRIC_GRID)
             row = {"picture": f.name, "size": [img.shape[1], img.shape[0]], "opencv": len(ref) if ok else 0}
             try:
-                det = detect_discs(img, pl, camera=cell.camera_guess())
+                det = detect_plate(img, pl, camera=cell.camera_guess())
             except CellError as exc:
                 row.update(ours=0, refused=str(exc))
                 rows.append(row)

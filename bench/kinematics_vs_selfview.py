@@ -35,7 +35,7 @@ from selfview.mocks.render import render  # noqa: E402
 from selfview.mocks.val_controller import TOOL_LENGTH_MM  # noqa: E402
 from selfview.mocks.world import PLATE_BASE_POSE, SimWorld  # noqa: E402
 from selfview.cell import default_cell_path, load_cell  # noqa: E402
-from selfview.discs import detect_discs  # noqa: E402
+from selfview.plates import detect_plate  # noqa: E402
 from selfview.errors import CellError  # noqa: E402
 from selfview.geometry import (  # noqa: E402
     R_from_rotvec, inv_H, make_H, pose_difference, rot_z, rotation_angle, trans, transform_points,
@@ -89,7 +89,7 @@ def stations(world, cell, seed: int, n: int, max_tries: int) -> tuple[list, dict
             continue
         img = render(world, seed=seed * 1000 + k).image
         try:
-            det = detect_discs(img, plate, camera=guess)
+            det = detect_plate(img, plate, camera=guess)
         except Exception:  # a fault in a module under study is this trial's result, not the end of the study
             skipped["no plate"] += 1
             continue
@@ -108,7 +108,7 @@ _GRID_TURNS = [rot_z(k * np.pi / 2) for k in range(4)]
 
 def resolve_grid(C_H_W_list, base_H_F_list, F_H_C_guess) -> tuple[list[np.ndarray], int]:
     """Index every station's plate frame like the first one's: of the grid's four quarter turns about
-    its centre (``detect_discs`` orients W by the picture), take the one whose plate orientation in the
+    its centre (``detect_plate`` orients W by the picture), take the one whose plate orientation in the
     base frame (robot pose times the mount guess) agrees best with station 0's. Returns the poses and
     how many were turned."""
     ref = None

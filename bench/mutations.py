@@ -114,7 +114,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "disc-bias-correction-removed",
         "selfview/offline.py",
-        "    uv_c = correct_disc_bias(det, ts.camera.with_(skew=nominal.skew), ts.C_H_W, cell.plate)\n",
+        "    uv_c = correct_plate_bias(det, ts.camera.with_(skew=nominal.skew), ts.C_H_W, cell.plate)\n",
         "    uv_c = det.uv\n",
         ("tests/selfview/test_offline.py::test_accuracy_on_an_independent_renderer",
          "tests/selfview/test_offline.py::test_accuracy_over_30_seeds_on_the_project_renderer"),
@@ -304,8 +304,8 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "calfile-without-checksum-accepted",
         "selfview/calfile.py",
-        "if want != _checksum(body):",
-        "if want is not None and want != _checksum(body):",
+        "if want != doc_checksum(body):",
+        "if want is not None and want != doc_checksum(body):",
         ("tests/selfview/test_calfile.py::test_a_file_without_a_checksum_is_refused",),
         "a calibration file with no checksum at all is accepted (only a wrong one is refused)",
     ),

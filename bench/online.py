@@ -104,9 +104,9 @@ def model_step(cell, world, C_H_G_before, *, backdrop=None, frames: int = 8, rou
     search once it has lost the fingertips (``search_ms``: from the prediction, with the corner search's
     pose and the wide ranges where that fails) and the corner search alone (``corner_search_ms``)."""
     from selfview.errors import CalibrationError
-    from selfview.fingertips import find_fingertips
+    from selfview.fingers import find_fingertips
     from selfview.online import estimate
-    from selfview.silhouette import SilhouetteTracker
+    from selfview.fingers import SilhouetteTracker
 
     gap = world.jaw_gap_mm
     cam = world.camera

@@ -34,7 +34,7 @@ if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").
 from selfview.mocks.render import render  # noqa: E402
 from selfview.mocks.world import SimWorld, random_small_rotation  # noqa: E402
 from selfview.cell import default_cell_path, load_cell  # noqa: E402
-from selfview.fingertips import find_fingertips  # noqa: E402
+from selfview.fingers import find_fingertips  # noqa: E402
 from selfview.geometry import make_H, pose_difference  # noqa: E402
 from selfview.offline import calibrate_offline  # noqa: E402
 from selfview.online import estimate  # noqa: E402

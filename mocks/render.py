@@ -18,6 +18,7 @@ import numpy as np
 from selfview.mocks.imperfections import chamfer_cuts, picture_effects
 from selfview.mocks.world import SimWorld
 from selfview.camera import CameraModel, max_undistorted_radius
+from selfview.plates import board_edges_W, board_ink
 from selfview.cell import POINT_NAMES, ImageSpec, PlateSpec
 from selfview.errors import ConfigError
 from selfview.geometry import rot_x, rot_z, trans, transform_points
@@ -345,7 +346,7 @@ class _Scene:
         # the printed discs' centres on the sheet's plane (W, z = 0): a disc lifted by the bow is drawn
         # where the camera's ray through it meets the plane, so its image is where the lifted disc's is
         self.disc_centres_W = None
-        if imp.plate_scale or imp.plate_dot_sd_mm or imp.plate_bow_mm:
+        if cell.plate.pattern == "discs" and (imp.plate_scale or imp.plate_dot_sd_mm or imp.plate_bow_mm):
             lifted_C = transform_points(C_H_W, self.imperfect.disc_centres_W)
             n, c0 = C_H_W[:3, 2], float(C_H_W[:3, 2] @ C_H_W[:3, 3])
             on_plane_C = lifted_C * (c0 / (lifted_C @ n))[:, None]
@@ -424,8 +425,10 @@ class _Scene:
         return t_best, label
 
     def _in_disc(self, xw: np.ndarray, yw: np.ndarray) -> np.ndarray:
-        """Whether plate points (x_W, y_W) [mm] lie on a printed disc."""
+        """Whether plate points (x_W, y_W) [mm] lie on the print (a disc; a board's dark print)."""
         p = self.plate
+        if p.pattern != "discs":
+            return board_ink(p, xw, yw)
         c = np.clip(np.rint(xw / p.pitch + (p.cols - 1) / 2), 0, p.cols - 1)
         r = np.clip(np.rint(yw / p.pitch + (p.rows - 1) / 2), 0, p.rows - 1)
         if self.disc_centres_W is not None:  # an imperfect print (imperfections.py): each disc where it is
@@ -642,7 +645,8 @@ def _edge_bits(scene: _Scene, shape: tuple[int, int], m: int) -> np.ndarray:
         if pts:
             _mark(bits, cam, np.concatenate(pts), m, np.uint8(1 << k))
     if scene.print_seen:
-        _mark(bits, cam, _rim_points(scene, lo, hi, step), m, np.uint8(_PRINT_BIT))
+        rims = _rim_points(scene, lo, hi, step) if scene.plate.pattern == "discs" else _board_edge_points(scene, lo, hi, step)
+        _mark(bits, cam, rims, m, np.uint8(_PRINT_BIT))
     return bits
 
 
@@ -657,6 +661,18 @@ def _rim_points(scene: _Scene, lo, hi, step: float) -> np.ndarray:
     rim = rim[rim[:, 2] > 1e-3]
     XY = cam.f * rim[:, :2] / rim[:, 2:3]
     return XY[np.all((XY >= lo) & (XY <= hi), axis=1)]
+
+
+def _board_edge_points(scene: _Scene, lo, hi, step: float) -> np.ndarray:
+    """(N, 2) undistorted sensor coordinates along the board's print edges inside lo..hi, spaced under ``step``."""
+    pts = [np.zeros((0, 2))]
+    for p0, p1 in board_edges_W(scene.plate):
+        seg = _clip_segment(scene.camera.f, *transform_points(scene.C_H_W, np.array([p0, p1])), lo, hi)
+        if seg is not None:
+            a, b = seg
+            n = int(np.ceil(np.linalg.norm(b - a) / step)) + 1
+            pts.append(a + np.linspace(0, 1, n)[:, None] * (b - a))
+    return np.concatenate(pts)
 
 
 def _mark(bits: np.ndarray, cam: CameraModel, XY: np.ndarray, m: int, bit: np.uint8) -> None:

@@ -19,6 +19,39 @@ from selfview.mocks.modbus_server import EXCEPTION_CODES, ILLEGAL_ADDRESS, ILLEG
 
 __all__ = ["ValveTerminal"]
 
+def _check_settings(framing, travel_s, travel_sd_s, watchdog_s, unit, initial, tick_s) -> None:
+    """The valve terminal's settings, each checked (``ConfigError`` naming it)."""
+    if framing not in ("mbap", "rtu"):
+        raise ConfigError(f"valve terminal framing {framing!r}: expected 'mbap' or 'rtu'")
+    for name, v in (("travel_s", travel_s), ("travel_sd_s", travel_sd_s)):
+        if not (isinstance(v, (int, float)) and v >= 0):
+            raise ConfigError(f"valve terminal {name}={v!r}: expected a number of seconds >= 0")
+    if watchdog_s is not None and not watchdog_s > 0:
+        raise ConfigError(f"valve terminal watchdog_s={watchdog_s!r}: expected seconds > 0 or None")
+    if not 0 <= int(unit) <= 255:
+        raise ConfigError(f"valve terminal unit={unit!r}: expected 0..255")
+    if initial not in ("open", "closed"):
+        raise ConfigError(f"valve terminal initial={initial!r}: expected 'open' or 'closed'")
+    if not 0 < tick_s <= 0.1:
+        raise ConfigError(f"valve terminal tick_s={tick_s!r}: expected 0 < tick_s <= 0.1")
+
+
+def _tables(io_map) -> dict[str, list]:
+    """The terminal's process image: every Modbus table, at least the usual size and reaching every
+    address of ``io_map``'s valves and sensors."""
+    points = list(io_map.valves.values()) + [io_map.open_sensor, io_map.closed_sensor]
+
+    def size(kind, n):
+        return max([n] + [p.address + 1 for p in points if p.kind == kind])
+
+    return {
+        "coil": [False] * size("coil", 64),
+        "discrete_input": [False] * size("discrete_input", 64),
+        "holding_register": [0] * size("holding_register", 16),
+        "input_register": [0] * size("input_register", 16),
+    }
+
+
 class ValveTerminal:
     """Simulated valve terminal serving Modbus on 127.0.0.1.
 
@@ -52,19 +85,7 @@ class ValveTerminal:
         clock: Callable[[], float] = time.monotonic,
     ):
         self.io_map = io_map if io_map is not None else IoMap()
-        if framing not in ("mbap", "rtu"):
-            raise ConfigError(f"valve terminal framing {framing!r}: expected 'mbap' or 'rtu'")
-        for name, v in (("travel_s", travel_s), ("travel_sd_s", travel_sd_s)):
-            if not (isinstance(v, (int, float)) and v >= 0):
-                raise ConfigError(f"valve terminal {name}={v!r}: expected a number of seconds >= 0")
-        if watchdog_s is not None and not watchdog_s > 0:
-            raise ConfigError(f"valve terminal watchdog_s={watchdog_s!r}: expected seconds > 0 or None")
-        if not 0 <= int(unit) <= 255:
-            raise ConfigError(f"valve terminal unit={unit!r}: expected 0..255")
-        if initial not in ("open", "closed"):
-            raise ConfigError(f"valve terminal initial={initial!r}: expected 'open' or 'closed'")
-        if not 0 < tick_s <= 0.1:
-            raise ConfigError(f"valve terminal tick_s={tick_s!r}: expected 0 < tick_s <= 0.1")
+        _check_settings(framing, travel_s, travel_sd_s, watchdog_s, unit, initial, tick_s)
         self.world = world
         self.seed = int(seed)
         self.rng = np.random.default_rng(self.seed)
@@ -88,17 +109,7 @@ class ValveTerminal:
             self.gaps = (states["closed"], states["open"])
             initial = "closed" if world.jaw_state == "closed" else "open"
 
-        points = list(self.io_map.valves.values()) + [self.io_map.open_sensor, self.io_map.closed_sensor]
-
-        def size(kind, n):
-            return max([n] + [p.address + 1 for p in points if p.kind == kind])
-
-        self._image: dict[str, list] = {
-            "coil": [False] * size("coil", 64),
-            "discrete_input": [False] * size("discrete_input", 64),
-            "holding_register": [0] * size("holding_register", 16),
-            "input_register": [0] * size("input_register", 16),
-        }
+        self._image: dict[str, list] = _tables(self.io_map)
         self._lock = threading.RLock()
         self.position = 1.0 if initial == "open" else 0.0
         self._stroke_travel_s = self._draw_travel()

@@ -45,7 +45,7 @@ class Cancelled(CellError):
         self.signum = int(signum)
 
 
-class _SignalFlag:
+class SignalFlag:
     """While active (main thread only), each signal of ``TERMINATION_SIGNALS`` that is not ignored only records itself:
     the first in ``signum``, every one in ``count``. Restores the previous handlers on exit. ``seen``
     (shared): the first signal any run of this process has noted, or None."""
@@ -61,10 +61,10 @@ class _SignalFlag:
         self.count += 1
         if self.signum is None:
             self.signum = signum
-        if _SignalFlag.seen is None:
-            _SignalFlag.seen = signum
+        if SignalFlag.seen is None:
+            SignalFlag.seen = signum
 
-    def __enter__(self) -> "_SignalFlag":
+    def __enter__(self) -> "SignalFlag":
         if threading.current_thread() is threading.main_thread():
             for sig in TERMINATION_SIGNALS:
                 if signal.getsignal(sig) is signal.SIG_IGN:
@@ -85,7 +85,7 @@ class RaiseOnSignal:
     """While active (main thread only), the first termination signal raises where the program is
     (``KeyboardInterrupt`` for SIGINT, ``Interrupted`` for the others); every later one is only noted, so
     the cleanup the first one started (ABORT, safe valve, closes, the report) is never cut short. Inside an
-    engine run the run's own flag takes them (``_SignalFlag``). Signals ignored on purpose (nohup, a
+    engine run the run's own flag takes them (``SignalFlag``). Signals ignored on purpose (nohup, a
     background job) stay ignored. Nested uses share one first signal.
 
     On exit the previous handlers come back, unless ``keep`` (a program about to end): then the signals are
@@ -99,15 +99,15 @@ class RaiseOnSignal:
 
     @staticmethod
     def _raise(signum, frame):
-        if _SignalFlag.seen is not None:
+        if SignalFlag.seen is not None:
             return
-        _SignalFlag.seen = signum
+        SignalFlag.seen = signum
         raise KeyboardInterrupt() if signum == signal.SIGINT else Interrupted(signum)
 
     def __enter__(self) -> "RaiseOnSignal":
         if threading.current_thread() is threading.main_thread():
             if RaiseOnSignal._depth == 0:
-                _SignalFlag.seen = None
+                SignalFlag.seen = None
             RaiseOnSignal._depth += 1
             for sig in TERMINATION_SIGNALS:
                 if signal.getsignal(sig) is not signal.SIG_IGN:
@@ -235,6 +235,9 @@ class Engine:
         robot = self.devices.robot
         if robot is None or not any(s.kind in MOTION_KINDS + ("speed",) for s in steps):
             return
+        if not getattr(robot, "knows_poses", True):
+            self._check_plan_without_poses(steps)
+            return
         limits = robot.limits
         last = None
         for i, s in enumerate(steps):
@@ -273,14 +276,21 @@ class Engine:
             except LimitError as exc:
                 raise LimitError(f"plan refused before anything moved: {exc}") from None
 
+    def _check_plan_without_poses(self, steps: list[Step]) -> None:
+        """A robot that knows no pose (``manual://``) reaches named locations only: a numeric target or a
+        joint drive is refused (``ConfigError``) before anything moves."""
+        for i, s in enumerate(steps):
+            if s.kind == "drive" or (s.kind in MOTION_KINDS and "target" in s.params and not isinstance(s.params["target"], str)):
+                raise ConfigError(f"plan refused before anything moved: step {i + 1} {s.describe()}: "
+                                  f"{self.devices.robot!r} knows no pose; only named locations can be reached")
+
     def _pose_of(self, target) -> np.ndarray:
+        robot = self.devices.robot
         if isinstance(target, str):
-            robot = self.devices.robot
-            pose = robot.location(target)
-            return robot.dialect.pose_to_H(pose)
+            return robot.pose_to_H(robot.location(target))
         H = np.asarray(target, float)
         if H.shape == (6,):
-            return self.devices.robot.dialect.pose_to_H(H)
+            return robot.pose_to_H(H)
         return H
 
     # --- running --------------------------------------------------------------------------------
@@ -316,7 +326,7 @@ class Engine:
             finally:
                 done.set()
 
-        with _SignalFlag() as flag:
+        with SignalFlag() as flag:
             try:
                 threading.Thread(target=worker, name="procedure", daemon=True).start()
                 while not done.wait(_WATCH_S) and flag.signum is None:

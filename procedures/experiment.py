@@ -22,7 +22,7 @@ import numpy as np
 from selfview.procedures.paper import PAPER_SERIES, PAPER_TABLES
 from selfview.cell import Cell
 from selfview.errors import CalibrationError, CellError
-from selfview.fingertips import find_fingertips
+from selfview.fingers import find_fingertips
 from selfview.geometry import pose_difference
 from selfview.offline import OfflineResult, calibrate_offline
 from selfview.online import METHODS, estimate

@@ -22,14 +22,14 @@ from typing import Callable
 
 import numpy as np
 
-from selfview.procedures.engine import Cancelled, CellDevices, Engine, RaiseOnSignal, Step, _SignalFlag, signal_name
+from selfview.procedures.engine import Cancelled, CellDevices, Engine, RaiseOnSignal, Step, SignalFlag, signal_name
 from selfview.procedures.experiment import TrialRecord, run_trial, summarise, tables_markdown
 from selfview.procedures.simcell import CellURLs, SimulatedCell
 from selfview.calfile import load_calibration, save_calibration
 from selfview.cell import Cell
 from selfview.errors import AlarmError, CalibrationError, ConfigError, DeviceTimeout, ImageError
+from selfview.fingers import SilhouetteTracker
 from selfview.io_safe import atomic_write, write_picture
-from selfview.silhouette import SilhouetteTracker
 from selfview.offline import OfflineResult, calibrate_offline
 from selfview.pcc import jaw_gap_of
 from selfview.online import METHODS
@@ -131,7 +131,7 @@ class CellSession:
     def open(self) -> "CellSession":
         from selfview.drivers.frame_grabber_v4l2 import FrameGrabber
         from selfview.drivers.pneumatic_gripper import PneumaticGripper
-        from selfview.drivers.puma_val_serial import PumaVAL
+        from selfview.drivers.robot import open_robot
 
         if self.sim is not None:
             self.sim.start()
@@ -139,7 +139,7 @@ class CellSession:
             if getattr(self, "camera_url", None):
                 self.urls = CellURLs(self.urls.robot, self.urls.gripper, self.camera_url)
         cs = self.cell.camera
-        robot = PumaVAL(self.urls.robot, timeout_s=self.timeout_s)
+        robot = open_robot(self.urls.robot, self.cell, timeout_s=self.timeout_s, ask=self.ask)
         gripper = PneumaticGripper(self.urls.gripper)
         camera = FrameGrabber(self.urls.camera, width=cs.width, height=cs.height, timeout_s=self.timeout_s)
         devs = CellDevices(robot=robot, gripper=gripper, camera=camera)
@@ -186,7 +186,7 @@ class CellSession:
         try:
             if isinstance(exc, KeyboardInterrupt) and self.engine is not None and not self.dry_run:
                 self._interrupted(exc)
-            with _SignalFlag() as flag:  # closing is short and bounded: a signal now is noted, not raised
+            with SignalFlag() as flag:  # closing is short and bounded: a signal now is noted, not raised
                 self.close()
             if flag.signum is not None and exc is None:
                 raise Cancelled(f"{signal_name(flag.signum)} while the devices were closing, after the procedures "
@@ -276,7 +276,7 @@ class CellSession:
             plate_H, lean = None, None
         else:
             robot = self.devices.robot
-            plate_H = robot.dialect.pose_to_H(robot.location(s.plate))
+            plate_H = robot.pose_to_H(robot.location(s.plate))
             lean = (np.linalg.inv(plate_H) @ np.array([0.0, 0.0, 0.0, 1.0]))[:2]  # towards the robot's base
         poses = plan_view_poses(self.cell, views, state=state, lean_W=lean)
         plan = [Step("speed", {"pct": s.speed_pct}),

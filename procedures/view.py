@@ -9,7 +9,6 @@ which only the page served by this run holds; a request naming another host (DNS
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import hmac
 import json
@@ -22,17 +21,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import numpy as np
 
-from selfview.procedures.commands._common import PORT, SECONDS_OR_ZERO
-
-__all__ = ["LiveView", "ViewProgress", "add_view_arguments", "open_view", "viewing", "with_progress", "watch", "offline_state", "intrinsics_state", "view_coverage", "tracked_frames", "decision_state"]
-
-
-def add_view_arguments(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("live view", "a page in the browser on 127.0.0.1 showing the run as it goes")
-    g.add_argument("--view", nargs="?", type=PORT, const=0, default=None, metavar="PORT",
-                   help="serve the live view (a free port, or PORT); its address is printed on stderr")
-    g.add_argument("--view-linger", type=SECONDS_OR_ZERO, default=0.0, metavar="S",
-                   help="keep serving the final state S seconds after the command is done (default 0)")
+__all__ = ["LiveView", "ViewProgress", "open_view", "viewing", "with_progress", "watch", "offline_state", "intrinsics_state", "tracked_frames", "decision_state"]
 
 
 def open_view(args, command: str) -> "LiveView | None":
@@ -454,7 +443,7 @@ class ViewProgress:
         import cv2
         import numpy as np
 
-        from selfview.discs import detect_discs
+        from selfview.plates import detect_plate
         from selfview.errors import ImageError
 
         img = self.engine.results.get(name)
@@ -464,7 +453,7 @@ class ViewProgress:
         if self.canvas is None:
             self.canvas = np.zeros_like(big)
         try:
-            uv = detect_discs(img, self.cell.plate, camera=self.cell.camera.guess()).uv
+            uv = detect_plate(img, self.cell.plate, camera=self.cell.camera.guess()).uv
         except ImageError as exc:
             self.view.doing(f"{name}: no plate found ({exc})")
             uv = np.zeros((0, 2))

@@ -11,11 +11,11 @@ PURE_PYTHON_ENV = "SELFVIEW_PURE_PYTHON"
 
 
 def _load(name: str):
-    """The compiled module ``selfview.<name>``, or None (not built, or pure Python asked for)."""
+    """The compiled module ``<name>`` beside this one, or None (not built, or pure Python asked for)."""
     if os.environ.get(PURE_PYTHON_ENV, "").strip() not in ("", "0"):
         return None
     try:
-        return importlib.import_module(f"selfview.{name}")
+        return importlib.import_module(f"{__package__}.{name}")
     except ImportError:
         return None
 

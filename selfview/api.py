@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -20,14 +21,17 @@ from selfview.calfile import Calibration, load_calibration, save_calibration
 from selfview.camera import CameraModel
 from selfview.cell import POINT_NAMES, Cell, default_cell_path, load_cell
 from selfview.errors import CalibrationError, ConfigError
-from selfview.fingertips import FingertipResult
-from selfview.offline import OfflineResult
+
+if TYPE_CHECKING:  # the command line reads METHODS without loading the measurement
+    from selfview.fingertips import FingertipResult
+    from selfview.offline import OfflineResult
 
 __all__ = ["PictureCalibration", "TrackResult", "assess_offline", "calibrate_picture", "calibration_change", "track",
            "RMS_LIMIT_PX"]
 
 #: A disc residual RMS [px] above this says the picture is out of focus or badly lit.
 RMS_LIMIT_PX = 0.5
+#: what ``track`` takes as ``method``: an on-line method, the model's own estimate 'E', or the policy 'auto'
 METHODS = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R", "E", "auto")
 
 

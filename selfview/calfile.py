@@ -81,12 +81,12 @@ class Calibration:
                     for st, P in self.points_G.items()
                 },
             },
-            "residuals": _plain(self.residuals),
-            "updates": _plain(self.updates),
+            "residuals": plain_data(self.residuals),
+            "updates": plain_data(self.updates),
         }
         if self.pictures:
             doc["pictures"] = {str(k): str(v) for k, v in self.pictures.items()}
-        doc["checksum"] = _checksum(doc)
+        doc["checksum"] = doc_checksum(doc)
         return doc
 
     @classmethod
@@ -100,7 +100,7 @@ class Calibration:
             )
         want = doc.get("checksum")
         body = {k: v for k, v in doc.items() if k != "checksum"}
-        if want != _checksum(body):
+        if want != doc_checksum(body):
             raise CalibrationFileError(
                 f"{source}: checksum mismatch; the file was altered or corrupted (recalibrate, or restore a copy "
                 f"from its .history folder)"
@@ -300,14 +300,14 @@ def _mat(H) -> list[list[float]]:
     return [[float(v) for v in row] for row in np.asarray(H, float)]
 
 
-def _plain(x):
+def plain_data(x):
     """Convert numpy scalars/arrays in nested containers to plain Python for YAML/JSON."""
     if isinstance(x, dict):
-        return {str(k): _plain(v) for k, v in x.items()}
+        return {str(k): plain_data(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
+        return [plain_data(v) for v in x]
     if isinstance(x, np.ndarray):
-        return _plain(x.tolist())
+        return plain_data(x.tolist())
     if isinstance(x, (np.floating, float)):
         return float(x)
     if isinstance(x, (np.integer,)):
@@ -317,7 +317,7 @@ def _plain(x):
     return x
 
 
-def _checksum(body: dict) -> str:
+def doc_checksum(body: dict) -> str:
     # floats go through repr, which YAML round-trips exactly
     blob = json.dumps(body, sort_keys=True, separators=(",", ":"), default=str)
     return "sha256:" + hashlib.sha256(blob.encode()).hexdigest()

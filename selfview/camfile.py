@@ -23,7 +23,7 @@ import numpy as np
 import yaml
 
 from selfview import __version__
-from selfview.calfile import _checksum, _plain, replace_keeping_history
+from selfview.calfile import doc_checksum, plain_data, replace_keeping_history
 from selfview.io_safe import load_yaml, load_yaml_file
 from selfview.camera import CameraModel
 from selfview.errors import CalibrationFileError, ConfigError
@@ -64,10 +64,10 @@ class CameraFile:
             "camera": camera,
             "sigma": {k: float(self.sigma[k]) for k in INTRINSIC_NAMES[:n]},
             "covariance": [[float(v) for v in row] for row in cov],
-            "figures": _plain(self.figures),
-            "provenance": _plain(prov),
+            "figures": plain_data(self.figures),
+            "provenance": plain_data(prov),
         }
-        doc["checksum"] = _checksum(doc)
+        doc["checksum"] = doc_checksum(doc)
         return doc
 
     @classmethod
@@ -79,7 +79,7 @@ class CameraFile:
             raise CalibrationFileError(
                 f"{source}: camera file version {doc.get('version')!r}; this selfview reads version {VERSION}")
         body = {k: v for k, v in doc.items() if k != "checksum"}
-        if doc.get("checksum") != _checksum(body):
+        if doc.get("checksum") != doc_checksum(body):
             raise CalibrationFileError(f"{source}: checksum mismatch; the camera file was altered or corrupted "
                                        "(measure again with 'selfview intrinsics', or restore it from its .history folder)")
         try:

@@ -37,6 +37,8 @@ __all__ = [
 ]
 
 #: The six fingertip calibration points of CONVENTIONS.md, in their order.
+#: The plate patterns ``selfview.plates.detect_plate`` measures.
+PLATE_PATTERNS = ("discs", "chessboard", "charuco")
 POINT_NAMES: tuple[str, ...] = (
     "A-inner-front",
     "A-inner-back",
@@ -187,12 +189,22 @@ class CameraSpec:
 
 @dataclass(frozen=True)
 class PlateSpec:
+    """The calibration plate. ``rows`` x ``cols`` plate points (disc centres; a board's inner corners) at
+    ``pitch`` mm, centred on W's origin; ``pattern`` ('discs', 'chessboard', 'charuco'; ``selfview.plates``);
+    a board's ``squares`` (NX, NY) of ``pitch`` mm, its ArUco ``marker`` side [mm], ``dictionary`` and
+    ``legacy_pattern``; ``disc_diameter`` 0 for a board."""
+
     rows: int
     cols: int
     pitch: float
     disc_diameter: float
     size: tuple[float, float]
     polarity: str
+    pattern: str = "discs"
+    squares: tuple[int, int] = (0, 0)
+    marker: float = 0.0
+    dictionary: str = ""
+    legacy_pattern: bool = False
 
     def disc_centres_W(self) -> np.ndarray:
         """(rows*cols, 3) disc centres in W [mm], row-major (index = row * cols + col), grid centred on 0."""
@@ -285,6 +297,35 @@ class SimulationSpec:
 
 
 @dataclass(frozen=True)
+class RobotSpec:
+    """The optional ``robot:`` section: settings files of the robot's driver (``drivers/robot.open_robot``),
+    paths resolved against the cell file's folder: ``dialect``, ``limits``, ``kinematics``; ``max_speed``
+    [%] a lower speed limit than the limits file's."""
+
+    dialect: str | None = None
+    limits: str | None = None
+    kinematics: str | None = None
+    max_speed: float | None = None
+
+
+def _parse_robot(s: _Section, source: str) -> RobotSpec:
+    base = Path(source).parent if source and not source.startswith("<") else Path(".")
+
+    def path(key):
+        v = s.raw(key, None)
+        if v is None:
+            return None
+        if not isinstance(v, str) or not v.strip():
+            raise ConfigError(f"robot.{key}: expected a file name, got {short_repr(v)}")
+        return str(base / v)
+
+    spec = RobotSpec(dialect=path("dialect"), limits=path("limits"), kinematics=path("kinematics"),
+                     max_speed=s.number("max_speed", None, lo=1.0, hi=100.0) if s.has("max_speed") else None)
+    s.done()
+    return spec
+
+
+@dataclass(frozen=True)
 class Cell:
     """The whole cell description. ``source`` is the file it came from, ``sha256`` its hash."""
 
@@ -297,6 +338,7 @@ class Cell:
     source: str = "<memory>"
     sha256: str = ""
     raw: dict = field(default_factory=dict, repr=False)
+    robot: RobotSpec | None = None
 
     def camera_guess(self) -> CameraModel:
         return self.camera.guess()
@@ -325,6 +367,9 @@ def _parse_camera(s: _Section) -> CameraSpec:
 
 
 def _parse_plate(s: _Section) -> PlateSpec:
+    pattern = s.string("pattern", "discs", choices=PLATE_PATTERNS)
+    if pattern != "discs":
+        return _parse_board(s, pattern)
     spec = PlateSpec(
         rows=s.integer("rows", positive=True),
         cols=s.integer("cols", positive=True),
@@ -344,6 +389,75 @@ def _parse_plate(s: _Section) -> PlateSpec:
     if spec.size[0] < need[0] or spec.size[1] < need[1]:
         raise ConfigError(f"plate.size: {list(spec.size)} mm is smaller than the disc grid {list(need)} mm")
     return spec
+
+
+def _parse_board(s: _Section, pattern: str) -> PlateSpec:
+    """A chessboard or ChArUco plate: ``squares: [NX, NY]``, ``square`` [mm]; ChArUco also ``marker`` [mm],
+    ``dictionary`` (an OpenCV predefined one) and ``legacy_pattern``; ``size`` [mm] the sheet (default:
+    the board and a square's margin round it)."""
+    sq = s.raw("squares")
+    if not (isinstance(sq, (list, tuple)) and len(sq) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in sq)):
+        raise ConfigError(f"plate.squares: expected [NX, NY], two whole numbers of squares, got {short_repr(sq)}")
+    nx, ny = int(sq[0]), int(sq[1])
+    if nx < 3 or ny < 3 or nx > 100 or ny > 100:
+        raise ConfigError(f"plate.squares: {nx}x{ny}; expected 3 to 100 squares a side (a board's inner corners "
+                          "must hold at least 2x2 points)")
+    square = s.number("square", positive=True)
+    marker, dictionary, legacy = 0.0, "", False
+    if pattern == "charuco":
+        marker = s.number("marker", positive=True)
+        if marker >= square:
+            raise ConfigError(f"plate.marker: {marker} mm; expected less than the square {square} mm")
+        dictionary = s.string("dictionary")
+        legacy = s.raw("legacy_pattern", False)
+        if not isinstance(legacy, bool):
+            raise ConfigError(f"plate.legacy_pattern: expected true or false, got {short_repr(legacy)}")
+    board = (nx * square, ny * square)
+    size = s.vector("size", 2, (board[0] + 2 * square, board[1] + 2 * square))
+    if size[0] < board[0] or size[1] < board[1]:
+        raise ConfigError(f"plate.size: {list(size)} mm is smaller than the board {list(board)} mm")
+    s.done()
+    spec = PlateSpec(rows=ny - 1, cols=nx - 1, pitch=square, disc_diameter=0.0, size=size, polarity="dark_on_light",
+                     pattern=pattern, squares=(nx, ny), marker=marker, dictionary=dictionary, legacy_pattern=legacy)
+    if pattern == "charuco":
+        _check_dictionary(spec)
+    return spec
+
+
+def _check_dictionary(spec: PlateSpec) -> None:
+    """The ChArUco plate's dictionary is an OpenCV predefined one holding the board's markers."""
+    import cv2
+
+    name = spec.dictionary
+    code = getattr(cv2.aruco, name, None) if name.startswith("DICT_") else None
+    if not isinstance(code, int):
+        known = sorted(k for k in dir(cv2.aruco) if k.startswith("DICT_"))
+        raise ConfigError(f"plate.dictionary: {name!r} is not an OpenCV predefined dictionary; expected one of "
+                          f"{', '.join(known)}")
+    size = cv2.aruco.getPredefinedDictionary(code).bytesList.shape[0]
+    need = spec.squares[0] * spec.squares[1] // 2
+    if size < need:
+        raise ConfigError(f"plate.dictionary: {name} holds {size} markers; a {spec.squares[0]}x{spec.squares[1]} "
+                          f"ChArUco board needs {need}")
+
+
+def parse_plate(data: Any) -> PlateSpec:
+    """The ``plate:`` mapping of a cell or plate file, validated; raises ``ConfigError``."""
+    return _parse_plate(_Section(data, "plate"))
+
+
+def load_plate(path) -> PlateSpec:
+    """The plate of a YAML file holding a ``plate:`` section (a plate file, or a cell file: its other
+    sections are not read). Raises ``ConfigError`` naming the file and what is wrong."""
+    p = Path(path)
+    blob = read_bounded(p, MAX_YAML_BYTES, error=ConfigError, what="plate file", source=f"plate file {str(p)!r}")
+    data = load_yaml(blob, f"plate file {str(p)!r}", error=ConfigError, what="file")
+    if not isinstance(data, dict) or "plate" not in data:
+        raise ConfigError(f"plate file {str(p)!r}: expected a mapping with a 'plate:' section")
+    try:
+        return parse_plate(data["plate"])
+    except ConfigError as exc:
+        raise ConfigError(f"{p.name}: {exc}") from None
 
 
 def _parse_gripper(s: _Section) -> GripperSpec:
@@ -444,6 +558,7 @@ def parse_cell(data: Any, source: str = "<memory>", sha256: str = "") -> Cell:
         raise ConfigError(f"mount_guess.C_H_G: the TCP must lie in front of the camera (z > 0), got z={C_H_G[2, 3]}")
     monitor = _parse_monitor(top.section("monitor"))
     sim = _parse_simulation(top.section("simulation")) if top.has("simulation") else None
+    robot = _parse_robot(top.section("robot"), source) if top.has("robot") else None
     top.done()
     return Cell(
         camera=camera,
@@ -452,6 +567,7 @@ def parse_cell(data: Any, source: str = "<memory>", sha256: str = "") -> Cell:
         mount_guess_C_H_G=C_H_G,
         monitor=monitor,
         simulation=sim,
+        robot=robot,
         source=source,
         sha256=sha256,
         raw=data,

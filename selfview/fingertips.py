@@ -23,7 +23,7 @@ from selfview.discs import as_gray
 from selfview.errors import CalibrationError
 from selfview.geometry import inv_H, transform_points
 
-__all__ = ["FingertipResult", "PredictedFingers", "find_fingertips", "predict_fingertips", "visible_edges"]
+__all__ = ["FingertipResult", "PredictedFingers", "box_edges", "predict_fingertips", "search_corners", "visible_edges"]
 
 FINGERS = ("A", "B")
 #: finger of each point, in POINT_NAMES order
@@ -52,7 +52,7 @@ class FingertipResult:
     lines (undistorted pixels), NaN if not found; ``names`` the point names; ``n_edge_points`` (6,)
     edge points that the corner's lines rest on; ``tracked`` True when a tracker followed
     the corners from the previous frame instead of searching for them. From the model-based measurement
-    (``find_fingertips(..., model=True)``, ``selfview.silhouette.SilhouetteTracker``) also: ``quality`` the
+    (``fingers.find_fingertips(..., model=True)``, ``fingers.SilhouetteTracker``) also: ``quality`` the
     fit's quality (``selfview.silhouette.SilhouetteFit.quality``: share of good edge samples, residual,
     the TCP's standard deviation), ``lost`` why the frame says "not found" (None: it does not), and
     ``C_H_G`` the fitted pose (None if none was believed).
@@ -91,7 +91,7 @@ class _Edge:
         return len(self.into) == 2
 
 
-def _box_edges(lo, hi, cam_G, finger: int) -> dict[tuple, _Edge]:
+def box_edges(lo, hi, cam_G, finger: int) -> dict[tuple, _Edge]:
     """The visible edges of a box (lo, hi) seen from ``cam_G`` (3,), keyed by axis and sides."""
     edges = {}
     eye = np.eye(3)
@@ -189,7 +189,7 @@ class _Model:
         cam_G = inv_H(self.C_H_G)[:3, 3]
         self.edges: dict[tuple, _Edge] = {}
         for f, (lo, hi) in enumerate(self.boxes):
-            self.edges.update(_box_edges(lo, hi, cam_G, f))
+            self.edges.update(box_edges(lo, hi, cam_G, f))
         pts_C = transform_points(self.C_H_G, self.points_G)
         if np.any(pts_C[:, 2] <= 0):
             raise CalibrationError("C_H_G puts fingertip points behind the camera")
@@ -727,108 +727,7 @@ def _move_poly(cam, poly, fit: _Fit) -> np.ndarray:
     return cam.distort_to_pixels(cam.pixel_to_sensor(q))
 
 
-# --- the finder -----------------------------------------------------------------------------------
-def find_fingertips(
-    image,
-    camera: CameraModel,
-    C_H_G_pred,
-    gripper: GripperSpec,
-    gap_mm: float,
-    *,
-    search_px: float = 60.0,
-    points=range(6),
-    model: bool = False,
-    appearance=None,
-) -> FingertipResult:
-    """Locate the fingertip corners ``points`` (indices into POINT_NAMES) near their prediction from
-    ``C_H_G_pred`` (4, 4) with jaw gap ``gap_mm`` [mm], within ``search_px`` [px] of it. ``camera``
-    projects the prediction and undistorts the edge points (off-line the one Tsai's method just
-    calibrated, on-line the last calibration's); corners come back in distorted pixels.
-
-    ``model=True``: the model-based measurement (``selfview.silhouette``): the whole silhouette of both
-    fingers fitted from the best start (the prediction, or the pose the corners found here give), the
-    corners the model's points at the fitted pose; the result's ``quality``, ``lost`` and ``C_H_G`` say
-    how well it fits, and a fit below the thresholds reports every point as not found with the reason.
-    ``appearance`` (``selfview.silhouette.Appearance``) the faces' grey levels, if known (else read at the start).
-
-    Returns a ``FingertipResult``; points not found carry a reason and are NaN. Raises ``ImageError``
-    for a blank picture or one of the wrong size, ``CalibrationError`` if the prediction puts the
-    fingertips behind the camera or is not finite, ``ValueError`` for a transform that is not (4, 4) or a
-    jaw gap that is not a positive number.
-    """
-    pred = PredictedFingers(camera, C_H_G_pred, gripper, gap_mm)
-    result = _search(image, pred, search_px, points)
-    if not model:
-        return result
-    return _model_measurement(image, pred, points, result, appearance)[0]
-
-
-def _pose_from_corners(pred: PredictedFingers, res: FingertipResult):
-    """The pose the found corners give (NP-I from the prediction on them), or None (fewer than 3)."""
-    from selfview.online import iterative_update
-
-    k = np.flatnonzero(res.found)
-    if len(k) < 3:
-        return None
-    try:
-        return iterative_update(pred.C_H_G, pred.gripper.points_G(gap=pred.gap_mm)[k], res.uv[k], pred.camera).C_H_G_orth
-    except CalibrationError:
-        return None
-
-
-def _fit_result(fit, searched: FingertipResult | None, points) -> FingertipResult:
-    want = {int(k) for k in points}
-    if fit.ok:
-        reasons = [None if fit.found[k] else (fit.reasons[k] or "not found") for k in range(6)]
-        reasons = [r if k in want else "not requested" for k, r in enumerate(reasons)]
-        found = fit.found & np.array([k in want for k in range(6)])
-        uv = np.where(found[:, None], fit.uv, np.nan)
-        return FingertipResult(uv=uv, found=found, reasons=reasons, edge_rms_px=np.where(found, fit.rms_px, np.nan),
-                               names=POINT_NAMES, n_edge_points=np.where(found, fit.n_samples, 0),
-                               quality=fit.quality(), C_H_G=fit.C_H_G)
-    why = fit.reason or "the silhouette does not fit"
-    reasons = [why if k in want else "not requested" for k in range(6)]
-    return FingertipResult(uv=np.full((6, 2), np.nan), found=np.zeros(6, bool), reasons=reasons,
-                           edge_rms_px=np.full(6, np.nan), names=POINT_NAMES, n_edge_points=np.zeros(6, int),
-                           quality=fit.quality(), lost=why)
-
-
-def model_measurement(image, camera, C_H_G_pred, gripper, gap_mm, points=range(6), searched=None, appearance=None,
-                      starts=None, rounds=None):
-    """The model-based measurement from the prediction and, if the corner search ``searched`` found three
-    or more corners, from the pose they give; the believed fit with the larger share of good samples
-    wins. Returns (FingertipResult, SilhouetteFit)."""
-    return _model_measurement(image, PredictedFingers(camera, C_H_G_pred, gripper, gap_mm), points, searched,
-                              appearance, starts, rounds)
-
-
-def _model_measurement(image, pred: PredictedFingers, points=range(6), searched=None, appearance=None, starts=None,
-                       rounds=None):
-    from selfview.silhouette import fit_silhouette, learn_appearance
-
-    cands = list(starts) if starts is not None else [pred.C_H_G]
-    if searched is not None:
-        H = _pose_from_corners(pred, searched)
-        if H is not None:
-            cands.insert(0, H)
-    if not cands:
-        cands = [pred.C_H_G]
-    cam, gripper, gap = pred.camera, pred.gripper, pred.gap_mm
-    if appearance is None or not appearance.levels:
-        # the faces' levels where the fingers most likely are: at the found corners' pose, else the first start
-        appearance = learn_appearance(image, cam, cands[0], gripper, gap)
-    best = None
-    for H in cands:
-        kw = {} if rounds is None else {"rounds": rounds}
-        fit = fit_silhouette(image, cam, H, gripper, gap, appearance=appearance, points=points, **kw)
-        if best is None or (fit.ok, fit.good_fraction) > (best.ok, best.good_fraction):
-            best = fit
-        if fit.ok and fit.good_fraction > 0.8:
-            break
-    return _fit_result(best, searched, points), best
-
-
-def _search(image, pred: PredictedFingers, search_px, points):
+def search_corners(image, pred: PredictedFingers, search_px, points):
     """The corner search of ``find_fingertips``: a ``FingertipResult``."""
     camera = pred.camera
     img = as_gray(image, camera)

@@ -16,9 +16,11 @@ import numpy as np
 from selfview.calfile import Calibration
 from selfview.camera import CameraModel
 from selfview.cell import POINT_NAMES, Cell
-from selfview.discs import DiscDetections, correct_disc_bias, detect_discs
+from selfview.discs import DiscDetections
+from selfview.plates import correct_plate_bias, detect_plate
 from selfview.errors import CalibrationError, ConfigError, ImageError
-from selfview.fingertips import FingertipResult, find_fingertips, model_measurement
+from selfview.fingertips import FingertipResult
+from selfview.fingers import find_fingertips, model_measurement
 from selfview.geometry import inv_H, make_H, rot_z
 from selfview.pcc import PCCResult, measure_points_G, points_G_for_state, solve_pcc
 from selfview.tsai import TsaiResult, calibrate_coplanar
@@ -125,6 +127,88 @@ def predict_parked_C_H_G(C_H_W: np.ndarray, C_H_G_guess: np.ndarray) -> np.ndarr
     return C_H_W @ W_H_G
 
 
+def _parked_fingertips(img, camera: CameraModel, C_H_G_pred, cell: Cell, gap: float, search_px: float,
+                       measurement: str) -> tuple[FingertipResult, str]:
+    """The parked fingertips' corners (``calibrate_offline``'s ``measurement``) and how they were measured
+    ('corners' or 'model'); ``CalibrationError`` when fewer than 2 are found."""
+    ft = find_fingertips(img, camera, C_H_G_pred, cell.gripper, gap, search_px=search_px)
+    measured_by = "corners"
+    if measurement == "model" or (measurement == "auto" and _misses_a_corner(ft)):
+        res, fit = model_measurement(img, camera, C_H_G_pred, cell.gripper, gap, range(6), searched=ft)
+        if measurement == "model" or (fit.ok and res.found.sum() > ft.found.sum()):
+            ft, measured_by = res, "model"
+    found = np.asarray(ft.found, bool)
+    if found.sum() < 2:
+        why = "; ".join(f"{nm}: {r}" for nm, r, ok in zip(POINT_NAMES, ft.reasons, found) if not ok)
+        raise CalibrationError(
+            f"only {int(found.sum())} fingertip corner(s) found, the PCC needs at least 2 ({why})"
+        )
+    return ft, measured_by
+
+
+def _gripper_points(ft: FingertipResult, camera: CameraModel, C_H_W, cell: Cell, state: str, points: str):
+    """(dims or None, {state: (6, 3) points in G [mm]}): measured in the picture (``points`` 'measured' and
+    the inner four corners found: back-projected onto the plate, ``measure_points_G``), else the cell's."""
+    found = np.asarray(ft.found, bool)
+    if points == "measured" and found[:4].all():
+        p_W, _ = camera.backproject_to_plane(ft.uv[found], C_H_W, 0.0)
+        full = np.full((6, 3), np.nan)
+        full[found] = p_W
+        dims = measure_points_G(full, found)
+        return dims, points_G_for_state(dims, state, cell.gripper)
+    return None, {s: cell.gripper.points_G(s) for s in cell.gripper.states}
+
+
+def _tsai_bias_corrected(det, nominal: CameraModel, cell: Cell, mode: str):
+    """Tsai's fit of the plate points, their bias corrected at its pose and fitted again: (the second
+    ``TsaiResult``, the corrected pixels)."""
+    kw = dict(cx=nominal.cx, cy=nominal.cy, aspect=nominal.aspect, mode=mode, width=cell.camera.width, height=cell.camera.height)
+    # Tsai's method takes (cx, cy, aspect): a measured camera's skew is taken off the pixels first
+    # (CameraModel.deskew_pixels: the same rays in the camera without skew) and given back to its result
+    ts = calibrate_coplanar(det.p_W, nominal.deskew_pixels(det.uv), **kw)
+    # the image of a disc's centre is not the centroid of its ellipse: correct with the first pose, refit
+    uv_c = correct_plate_bias(det, ts.camera.with_(skew=nominal.skew), ts.C_H_W, cell.plate)
+    return calibrate_coplanar(det.p_W, nominal.deskew_pixels(uv_c), **kw), uv_c
+
+
+def _residuals(mode: str, ts, det, ft: FingertipResult, pcc, dims, measured_by: str, camera_file, noise_mm: float,
+               warnings: list[str]) -> dict:
+    """The calibration file's ``residuals``: Tsai's fit, the plate points and corners used, the PCC's (and the
+    picture's own noise at the TCP), whether the plate's origin is pinned, the warnings."""
+    found = np.asarray(ft.found, bool)
+    return {
+        "tsai_mode": mode,
+        "rms_px": float(ts.rms_px),
+        "max_px": float(ts.max_px),
+        "discs_used": int(len(det.uv)),
+        "corners_found": [nm for nm, ok in zip(POINT_NAMES, found) if ok],
+        "corner_edge_rms_px": {nm: float(ft.edge_rms_px[i]) for i, nm in enumerate(POINT_NAMES) if found[i]},
+        "pcc_rms_mm": float(pcc.rms_mm),
+        "pcc_q_norm": float(pcc.q_norm),
+        "pcc_noise_mm": float(noise_mm),
+        "points_from": "picture" if dims is not None else "cell",
+        "corners_measured_by": measured_by,
+        "plate_origin": "pinned" if det.origin_pinned else "ambiguous",
+        **({"warnings": warnings} if warnings else {}),
+        **({"camera_file": dict(camera_file)} if camera_file else {}),
+    }
+
+
+def _check_offline_args(cell: Cell, camera: CameraModel | None, points: str, measurement: str) -> CameraModel:
+    """``calibrate_offline``'s options checked; the starting camera (``camera``, else the cell's nominal)."""
+    cs = cell.camera
+    if camera is not None and (int(camera.width), int(camera.height)) != (cs.width, cs.height):
+        raise ConfigError(
+            f"the camera file was measured on {camera.width}x{camera.height} pictures; this cell's camera gives "
+            f"{cs.width}x{cs.height}: it belongs to another camera or grabber setting"
+        )
+    if points not in ("measured", "cell"):
+        raise CalibrationError(f"points: expected 'measured' or 'cell', got {points!r}")
+    if measurement not in ("auto", "corners", "model"):
+        raise CalibrationError(f"measurement: expected 'auto', 'corners' or 'model', got {measurement!r}")
+    return cs.guess() if camera is None else camera
+
+
 def _misses_a_corner(ft: FingertipResult) -> bool:
     """Whether the corner search left a corner unfound that is neither outside the picture nor hidden."""
     return any(not ok and not (r and (r.startswith("outside") or r.startswith("occluded")))
@@ -166,62 +250,28 @@ def calibrate_offline(
     """
     t0 = time.perf_counter()
     timings = {}
-    cs = cell.camera
-    if camera is not None and (int(camera.width), int(camera.height)) != (cs.width, cs.height):
-        raise ConfigError(
-            f"the camera file was measured on {camera.width}x{camera.height} pictures; this cell's camera gives "
-            f"{cs.width}x{cs.height}: it belongs to another camera or grabber setting"
-        )
-    nominal = cs.guess() if camera is None else camera
-    img = check_picture(image, cs.width, cs.height)
+    nominal = _check_offline_args(cell, camera, points, measurement)
+    img = check_picture(image, cell.camera.width, cell.camera.height)
     state = state or cell.gripper.calibrate_in
     gap = cell.gripper.gap(state)
-    if points not in ("measured", "cell"):
-        raise CalibrationError(f"points: expected 'measured' or 'cell', got {points!r}")
-    if measurement not in ("auto", "corners", "model"):
-        raise CalibrationError(f"measurement: expected 'auto', 'corners' or 'model', got {measurement!r}")
 
-    det = detect_discs(img, cell.plate, camera=nominal)
+    det = detect_plate(img, cell.plate, camera=nominal)
     timings["discs"] = (time.perf_counter() - t0) * 1e3
 
     t = time.perf_counter()
-    kw = dict(cx=nominal.cx, cy=nominal.cy, aspect=nominal.aspect, mode=mode, width=cs.width, height=cs.height)
-    # Tsai's method takes (cx, cy, aspect): a measured camera's skew is taken off the pixels first
-    # (CameraModel.deskew_pixels: the same rays in the camera without skew) and given back to its result
-    ts = calibrate_coplanar(det.p_W, nominal.deskew_pixels(det.uv), **kw)
-    # the image of a disc's centre is not the centroid of its ellipse: correct with the first pose, refit
-    uv_c = correct_disc_bias(det, ts.camera.with_(skew=nominal.skew), ts.C_H_W, cell.plate)
-    ts = calibrate_coplanar(det.p_W, nominal.deskew_pixels(uv_c), **kw)
+    ts, uv_c = _tsai_bias_corrected(det, nominal, cell, mode)
     camera: CameraModel = ts.camera.with_(skew=nominal.skew)
     timings["tsai"] = (time.perf_counter() - t) * 1e3
 
     t = time.perf_counter()
     guess = cell.mount_guess_C_H_G if C_H_G_guess is None else np.asarray(C_H_G_guess, float)
-    C_H_G_pred = predict_parked_C_H_G(ts.C_H_W, guess)
-    ft = find_fingertips(img, camera, C_H_G_pred, cell.gripper, gap, search_px=search_px)
-    measured_by = "corners"
-    if measurement == "model" or (measurement == "auto" and _misses_a_corner(ft)):
-        res, fit = model_measurement(img, camera, C_H_G_pred, cell.gripper, gap, range(6), searched=ft)
-        if measurement == "model" or (fit.ok and res.found.sum() > ft.found.sum()):
-            ft, measured_by = res, "model"
+    ft, measured_by = _parked_fingertips(img, camera, predict_parked_C_H_G(ts.C_H_W, guess), cell, gap, search_px,
+                                         measurement)
     timings["fingertips"] = (time.perf_counter() - t) * 1e3
     found = np.asarray(ft.found, bool)
-    if found.sum() < 2:
-        why = "; ".join(f"{nm}: {r}" for nm, r, ok in zip(POINT_NAMES, ft.reasons, found) if not ok)
-        raise CalibrationError(
-            f"only {int(found.sum())} fingertip corner(s) found, the PCC needs at least 2 ({why})"
-        )
 
     t = time.perf_counter()
-    dims = None
-    if points == "measured" and found[:4].all():
-        p_W, _ = camera.backproject_to_plane(ft.uv[found], ts.C_H_W, 0.0)
-        full = np.full((6, 3), np.nan)
-        full[found] = p_W
-        dims = measure_points_G(full, found)
-        per_state = points_G_for_state(dims, state, cell.gripper)
-    else:
-        per_state = {s: cell.gripper.points_G(s) for s in cell.gripper.states}
+    dims, per_state = _gripper_points(ft, camera, ts.C_H_W, cell, state, points)
     pG = per_state[state]
     names = [nm for nm, ok in zip(POINT_NAMES, found) if ok]
     pcc = solve_pcc(ft.uv[found], pG[found], ts.C_H_W, camera, names)
@@ -231,31 +281,9 @@ def calibrate_offline(
     noise_mm = _picture_noise_mm(ft, found, camera, pcc.C_H_G)
     warnings = _warnings(det, pcc, noise_mm)
     sha = image_sha256 or hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest()
-    cal = Calibration(
-        camera=camera,
-        C_H_W=ts.C_H_W,
-        C_H_G=make_H(pcc.C_H_G[:3, :3], pcc.C_H_G[:3, 3]),
-        points_G=per_state,
-        state=state,
-        residuals={
-            "tsai_mode": mode,
-            "rms_px": float(ts.rms_px),
-            "max_px": float(ts.max_px),
-            "discs_used": int(len(det.uv)),
-            "corners_found": names,
-            "corner_edge_rms_px": {nm: float(ft.edge_rms_px[i]) for i, nm in enumerate(POINT_NAMES) if found[i]},
-            "pcc_rms_mm": float(pcc.rms_mm),
-            "pcc_q_norm": float(pcc.q_norm),
-            "pcc_noise_mm": float(noise_mm),
-            "points_from": "picture" if dims is not None else "cell",
-            "corners_measured_by": measured_by,
-            "plate_origin": "pinned" if det.origin_pinned else "ambiguous",
-            **({"warnings": warnings} if warnings else {}),
-            **({"camera_file": dict(camera_file)} if camera_file else {}),
-        },
-        image_sha256=sha,
-        cell_sha256=cell.sha256,
-    )
+    residuals = _residuals(mode, ts, det, ft, pcc, dims, measured_by, camera_file, noise_mm, warnings)
+    cal = Calibration(camera=camera, C_H_W=ts.C_H_W, C_H_G=make_H(pcc.C_H_G[:3, :3], pcc.C_H_G[:3, 3]),
+                      points_G=per_state, state=state, residuals=residuals, image_sha256=sha, cell_sha256=cell.sha256)
     return OfflineResult(
         calibration=cal,
         tsai=ts,

@@ -25,6 +25,7 @@ from selfview.geometry import R_from_rotvec, delta_star, orthonormalize, rotvec_
 
 __all__ = [
     "METHODS",
+    "MODEL_METHOD",
     "MAX_CONDITION",
     "MotionEstimate",
     "differential_update",
@@ -32,6 +33,7 @@ __all__ = [
     "recalibrate",
     "select_points",
     "estimate",
+    "model_estimate",
     "parse_method",
 ]
 
@@ -462,13 +464,39 @@ def select_points(method: str, found) -> list[int]:
     return base
 
 
-def estimate(method: str, C_H_G, p_G6, uv6, found6, camera: CameraModel, **kwargs) -> MotionEstimate:
-    """Run the on-line method named ``method`` (one of ``METHODS``) on the six points.
+#: The model's own estimate: the pose the silhouette fit gives (``FingertipResult.C_H_G`` of a model-based
+#: measurement), a method beside ``METHODS``.
+MODEL_METHOD = "E"
+
+
+def model_estimate(C_H_G, C_H_G_model, rms_px: float = float("nan")) -> MotionEstimate:
+    """The estimate 'E': the model-based measurement's fitted pose ``C_H_G_model`` (4, 4) as the new
+    ``C_H_G``; the camera's motion ``C'_H_C = C_H_G_model C_H_G^-1`` gives ``motion``, ``delta_deg`` and
+    ``d_mm`` (eq. 14); ``rms_px`` the fit's residual. No points, no covariance (NaN)."""
+    H0 = np.asarray(C_H_G, dtype=float)
+    H = np.asarray(C_H_G_model, dtype=float)
+    if H.shape != (4, 4) or not np.all(np.isfinite(H)):
+        raise CalibrationError("E: the model-based measurement gave no pose (measure with the model)")
+    M = H @ np.linalg.inv(H0)
+    w = rotvec_from_R(M[:3, :3])
+    return MotionEstimate(MODEL_METHOD, H.copy(), H.copy(), np.r_[w, M[:3, 3]], float(np.degrees(np.linalg.norm(w))),
+                          float(np.linalg.norm(M[:3, 3])), np.zeros((0, 2)), float(rms_px), np.full((6, 6), np.nan),
+                          float("nan"), (), 0, H0.copy())
+
+
+def estimate(method: str, C_H_G, p_G6, uv6, found6, camera: CameraModel, *, model_C_H_G=None,
+             model_rms_px: float = float("nan"), **kwargs) -> MotionEstimate:
+    """Run the on-line method named ``method`` (one of ``METHODS``, or ``MODEL_METHOD`` 'E' with the
+    model-based measurement's pose ``model_C_H_G`` and residual ``model_rms_px``) on the six points.
 
     ``p_G6`` (6, 3) gripper points [mm], ``uv6`` (6, 2) observed distorted pixels (NaN where not found),
     ``found6`` (6,) bool; the method picks its points by ``select_points``. ``kwargs`` go to the solver
     (``prior_sigma_px``; ``tol``, ``max_iter`` for I and R). Raises ``ConfigError`` for an unknown
     method, ``CalibrationError`` as the solvers do."""
+    if method == MODEL_METHOD:
+        if model_C_H_G is None:
+            raise ConfigError("on-line method 'E' is the model's own estimate: it needs the model-based measurement's pose")
+        return model_estimate(C_H_G, model_C_H_G, model_rms_px)
     _, kind = parse_method(method)
     p_G6 = np.asarray(p_G6, dtype=float)
     uv6 = np.asarray(uv6, dtype=float)

@@ -198,6 +198,11 @@ class Policy:
                 est,
             )
         why = f"{where} exceeds the update limit {u.angle_deg} deg / {u.shift_mm} mm"
+        return self._recalibrated(why, delta, d, est, int(n_found), unchanged, recalibration, C_H_G_calibrated, alarm)
+
+    def _recalibrated(self, why, delta, d, est, n_found, unchanged, recalibration, C_H_G_calibrated, alarm) -> Decision:
+        """``decide`` beyond the update limit: the recalibration's decision (``alarm`` the alarm maker)."""
+        lim = self.limits
         if recalibration is None:
             return Decision(
                 "recalibrate", f"{why}; no recalibration supplied, C_H_G unchanged", delta, d, est.rms_px,

@@ -23,8 +23,7 @@ from selfview import _native
 from selfview.camera import CameraModel
 from selfview.cell import GripperSpec
 from selfview.discs import as_gray
-from selfview.fingertips import (FingertipResult, PredictedFingers, _box_edges, _fit_result, _model_measurement,
-                                 _search, tukey_weights)
+from selfview.fingertips import FingertipResult, PredictedFingers, box_edges, tukey_weights
 from selfview.geometry import R_from_rotvec, inv_H, make_H, transform_points
 
 __all__ = ["Appearance", "SilhouetteFit", "SilhouetteTracker", "fit_silhouette", "learn_appearance", "MIN_GOOD_FRACTION"]
@@ -133,7 +132,7 @@ def _visible_edges(boxes, C_H_G) -> _EdgeSet:
 
 def _visible_edges_of(boxes, cam_G) -> _EdgeSet:
     edges = [e for f, (lo, hi) in enumerate(boxes)
-             for e in _box_edges(np.asarray(lo, float), np.asarray(hi, float), cam_G, f).values()]
+             for e in box_edges(np.asarray(lo, float), np.asarray(hi, float), cam_G, f).values()]
     return _EdgeSet(np.array([e.a_G for e in edges]), np.array([e.b_G for e in edges]),
                     np.array([e.finger for e in edges]), [e.faces for e in edges], [e.into for e in edges])
 
@@ -770,116 +769,3 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
         new_app.levels[es.faces[e][0]] = float(tot[e] / cnt[e])
     return SilhouetteFit(H, np.where(found[:, None], uv6, np.nan), found, True, None, gf, ff, rms, tcp_sd, n_s,
                          new_app, reasons, cov, visible)
-
-
-WIDE_ROUNDS = (60.0, 24.0, 10.0, 5.0, 3.0)  # a search's fit from a start that may be far off [px]
-
-
-class SilhouetteTracker:
-    """The fingertips of a sequence of pictures by the model-based measurement (``selfview.silhouette``).
-
-    ``find(image, C_H_G_pred, gap_mm)`` returns a ``FingertipResult`` (``tracked`` when it followed the
-    last frame); ``searches``, ``tracked_frames``, ``lost_frames`` count the kinds of frame,
-    ``last_failure`` says why the last frame was searched (None: tracked), ``reset()`` forgets the last
-    pose. Every frame fits the whole silhouette of both fingers: from the last fitted pose with the short ranges ``track_rounds``
-    [px] (the camera moves little between frames), with the faces' grey levels of the last fit; once more
-    within 3 px of the new pose when the fingertips moved more than ``refine_px`` [px]. When
-    that fit is not believed (its quality under the thresholds: the reason is ``last_failure``), the frame
-    is searched: fits with the full ranges from the last pose and from ``C_H_G_pred``, then from the
-    pose the corner search (``selfview.fingertips``) gives. A frame where none holds reports every point
-    as not found, with the reason in ``result.lost``: a missed frame, never a pose. Every result carries
-    the fit's ``quality``.
-    """
-
-    def __init__(self, camera: CameraModel, gripper: GripperSpec, *, points=range(4), search_px: float = 60.0,
-                 track_rounds=(8.0,), refine_px: float = 2.0, appearance=None):
-        if not isinstance(camera, CameraModel):
-            raise TypeError(f"camera: expected a selfview.camera.CameraModel, got {type(camera).__name__}")
-        want = sorted({int(k) for k in points})
-        if not want or any(k < 0 or k > 5 for k in want):
-            raise ValueError(f"points: expected indices 0..5 into POINT_NAMES, got {list(points)}")
-        rounds = tuple(float(r) for r in track_rounds)
-        if not rounds or any(not (1.0 <= r <= 60.0) for r in rounds):
-            raise ValueError(f"track_rounds: expected search ranges of 1..60 px, got {track_rounds!r}")
-        self.camera = camera
-        self.gripper = gripper
-        self.points = tuple(want)
-        self.search_px = float(search_px)
-        self.track_rounds = rounds
-        self.refine_px = float(refine_px)
-        self.searches = 0
-        self.tracked_frames = 0
-        self.lost_frames = 0
-        self.last_failure: str | None = None
-        self.last_fit = None
-        self._app0 = appearance
-        self.reset()
-
-    def reset(self) -> None:
-        """Forget the last pose: the next frame is searched for."""
-        self._H = None
-        self._gap = None
-        self._app = self._app0
-
-    @property
-    def primed(self) -> bool:
-        return self._H is not None
-
-    def find(self, image, C_H_G_pred, gap_mm: float) -> FingertipResult:
-        pred = PredictedFingers(self.camera, C_H_G_pred, self.gripper, gap_mm)
-        gap_mm = pred.gap_mm
-        a = np.asarray(image)
-        if a.dtype == np.uint8 and a.shape == (int(self.camera.height), int(self.camera.width)):
-            img = a  # a grabber's frame: no other check needed per frame (float32 where the search needs it)
-        else:
-            img = as_gray(image, self.camera)  # float32, checked
-        why = None
-        if self._H is not None and self._gap is not None and abs(gap_mm - self._gap) > 1e-6:
-            why = f"the jaw gap changed ({self._gap:.2f} -> {gap_mm:.2f} mm)"
-            self.reset()
-        if self._H is not None:
-            fit = fit_silhouette(img, self.camera, self._H, self.gripper, gap_mm, appearance=self._app,
-                                 rounds=self.track_rounds, points=self.points, frame=True)
-            if fit.C_H_G is not None and self._moved_px(fit.C_H_G, gap_mm) > self.refine_px:
-                # a larger step than usual: once more with a short range around the new pose
-                again = fit_silhouette(img, self.camera, fit.C_H_G, self.gripper, gap_mm, appearance=fit.appearance,
-                                       rounds=(min(self.track_rounds[-1], 3.0),), points=self.points, frame=True)
-                fit = again if again.ok or not fit.ok else fit
-            if fit.ok:
-                self._take(fit, gap_mm)
-                self.tracked_frames += 1
-                self.last_failure = None
-                res = _fit_result(fit, None, self.points)
-                res.tracked = True
-                return res
-            why = fit.reason
-        self.last_failure = why
-        img = img.astype(np.float32, copy=False)
-        starts = ([self._H] if self._H is not None else []) + [pred.C_H_G]
-        res, fit = _model_measurement(img, pred, self.points, appearance=self._app, starts=starts)
-        if not fit.ok:
-            # the corner search's pose (three corners or more), and fits reaching as far as it searches
-            searched = _search(img, pred, self.search_px, range(6))
-            res2, fit2 = _model_measurement(img, pred, self.points, searched=searched, appearance=self._app,
-                                            starts=[], rounds=WIDE_ROUNDS)
-            if fit2.ok:
-                res, fit = res2, fit2
-        self.searches += 1
-        if fit.ok:
-            self._take(fit, gap_mm)
-        else:
-            self.lost_frames += 1
-        return res
-
-    def _moved_px(self, H, gap_mm: float) -> float:
-        """How far [px] the fingertip points moved in the picture from the last pose to ``H``."""
-        p = self.gripper.points_G(gap=gap_mm)
-        a = self.camera.project_undistorted(transform_points(self._H, p))
-        b = self.camera.project_undistorted(transform_points(H, p))
-        return float(np.max(np.linalg.norm(a - b, axis=1)))
-
-    def _take(self, fit, gap_mm: float) -> None:
-        self._H = fit.C_H_G.copy()
-        self._gap = float(gap_mm)
-        self._app = fit.appearance
-        self.last_fit = fit

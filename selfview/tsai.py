@@ -316,7 +316,7 @@ def _refine_tsai(model: _FTzKappa, f, tz, kappa, willson: bool):
     return levenberg_marquardt(model.residuals, [f, tz, kappa], model.jacobian, ftol=INIT_FTOL, xtol=INIT_XTOL)
 
 
-def _left_jacobian(omega: np.ndarray) -> np.ndarray:
+def so3_left_jacobian(omega: np.ndarray) -> np.ndarray:
     """Left Jacobian of SO(3) at rotation vector ``omega``: exp(omega + d) = exp(J_l d) exp(omega)."""
     th = float(np.linalg.norm(omega))
     K = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
@@ -359,14 +359,14 @@ class _FullModel:
         # d(distorted)/d(undistorted) = (a I + 2 k Xh Xh^T)^-1 = (I - c Xh Xh^T) / a  (eq. 4 inverted)
         c = 2.0 * k_ / (a + 2.0 * k_ * rh2)
         m01 = -c * Xh * Yh / a
-        Jl = _left_jacobian(x[:3])
+        Jl = so3_left_jacobian(x[:3])
         rows = []
         m00, m11 = (1.0 - c * Xh * Xh) / a, (1.0 - c * Yh * Yh) / a
         for mu0, mu1 in ((m00 / self.aspect, m01 / self.aspect), (m01, m11)):
             # d(pixel)/d(p_C) through eq. 3, X = f x / z, Y = f y / z
             g = np.column_stack([mu0, mu1, -(mu0 * X + mu1 * Y) / f_]) * (f_ / z)[:, None]
             rows.append(np.hstack([
-                _cross(d, g) @ Jl,  # g d p_C / d omega = g (-[R q]x) J_l(omega) = (R q x g) J_l
+                cross_rows(d, g) @ Jl,  # g d p_C / d omega = g (-[R q]x) J_l(omega) = (R q x g) J_l
                 g,
                 ((mu0 * X + mu1 * Y) / f_)[:, None],
                 (-(mu0 * Xh + mu1 * Yh) * rh2)[:, None],
@@ -391,7 +391,7 @@ def _refine_full(p_W, uv, R0, t0, f, kappa, cx, cy, aspect, free_centre):
     return res, R_from_rotvec(res.x[:3]) @ R0
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise cross product of (N, 3) arrays (np.cross costs more than the arithmetic here)."""
     return np.column_stack([
         a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],

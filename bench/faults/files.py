@@ -197,7 +197,7 @@ class FileFaults:
 
         import yaml
 
-        from selfview.calfile import _checksum
+        from selfview.calfile import doc_checksum
 
         text = self.clean[what]
         raw = text.encode()
@@ -205,7 +205,7 @@ class FileFaults:
 
         def dump(doc):
             if signed:
-                doc["checksum"] = _checksum({k: v for k, v in doc.items() if k != "checksum"})
+                doc["checksum"] = doc_checksum({k: v for k, v in doc.items() if k != "checksum"})
             return yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120).encode()
 
         def top_key_line():

@@ -28,6 +28,7 @@ from selfview.drivers.puma_val_serial.dialect import OAT_CONVENTIONS, ValDialect
 from selfview.drivers.puma_val_serial.errors import ControllerError, MotionAborted, ProgramRunning
 from selfview.drivers.puma_val_serial.kinematics import PumaKinematics
 from selfview.drivers.puma_val_serial.limits import ValLimits
+from selfview.drivers.robot_protocol import AbortResult, Where
 from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout, ProtocolError
 from selfview.io_safe import parse_number
 from selfview import signals
@@ -46,38 +47,6 @@ _RESYNC_QUIET_S = 0.2
 
 #: How many times a location is read at most, looking for two replies in a row that agree.
 LOCATION_READS = 4
-
-
-@dataclass(frozen=True)
-class Where:
-    """The robot's pose as ``WHERE`` reports it: ``pose`` (x, y, z mm, o, a, t deg) of the tool point,
-    ``joints`` JT1..JT6 (deg), ``base_H_T`` (4, 4) the tool point in the base frame."""
-
-    pose: tuple[float, ...]
-    joints: tuple[float, ...]
-    base_H_T: np.ndarray
-
-    def to_dict(self) -> dict:
-        return {
-            "pose": dict(zip(("x", "y", "z", "o", "a", "t"), self.pose)),
-            "joints": list(self.joints),
-            "base_H_T": np.round(self.base_H_T, 6).tolist(),
-        }
-
-
-@dataclass(frozen=True)
-class AbortResult:
-    """What ``abort()`` achieved: ``written`` ABORT went out; ``confirmed`` the controller answered it
-    (``*Motion aborted*`` or its prompt: nothing moves); ``detail`` says how (or why not)."""
-
-    written: bool
-    confirmed: bool
-    detail: str
-
-    def __str__(self) -> str:
-        if not self.written:
-            return f"ABORT not written: {self.detail}"
-        return f"ABORT sent and confirmed ({self.detail})" if self.confirmed else f"ABORT sent, NOT confirmed: {self.detail}"
 
 
 def _noted(exc: BaseException, note: str) -> BaseException:
@@ -245,6 +214,13 @@ class PumaVAL:
         self._motion_outcome: tuple[bool, str] = (True, "no motion")
         self._speed_pct: float | None = None
         self.last_rx_bytes = 0  # bytes received for the last command (benchmarks)
+
+    #: a ``Robot`` (drivers/robot.py) that reports and reaches numeric poses
+    knows_poses = True
+
+    def pose_to_H(self, pose) -> np.ndarray:
+        """(4, 4) ``base_H_T`` of a pose (x, y, z mm, o, a, t deg) in the dialect's O/A/T convention."""
+        return self.dialect.pose_to_H(pose)
 
     def __repr__(self) -> str:
         return f"PumaVAL({self.url or self._given!r}, {'open' if self._ser else 'closed'})"

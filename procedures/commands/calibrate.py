@@ -10,7 +10,8 @@ import sys
 
 from selfview.procedures.commands._common import load_cell_arg, output_file, print_json
 from selfview.procedures.commands._session import add_session_arguments, camera_arguments, open_session, progress_printer
-from selfview.procedures.view import add_view_arguments, watch, offline_state, viewing, with_progress
+from selfview.procedures.commands._common import add_view_arguments
+from selfview.procedures.view import watch, offline_state, viewing, with_progress
 
 
 def read_picture(path) -> tuple:
@@ -59,7 +60,7 @@ def register(sub):
     return p
 
 
-def _camera_file(path, cell):
+def camera_file_arg(path, cell):
     """(camera model, {path, sha256}, covariance of cx, cy, aspect (3, 3), and skew (4, 4) when the file
     has it) of a camera file, checked against the cell's picture size."""
     from selfview.camfile import file_sha256, load_camera_file
@@ -99,7 +100,7 @@ def _run(args, view) -> int:
     cell = load_cell_arg(args)
     camera = camera_file = cov3 = None
     if cam_path:
-        camera, camera_file, cov3 = _camera_file(cam_path, cell)
+        camera, camera_file, cov3 = camera_file_arg(cam_path, cell)
 
     assessed, change = [], {}
 

@@ -28,9 +28,9 @@ def register(sub):
 
 
 def _robot(url, cell, timeout_s):
-    from selfview.drivers.puma_val_serial import PumaVAL
+    from selfview.drivers.robot import open_robot
 
-    with PumaVAL(url, timeout_s=timeout_s) as robot:
+    with open_robot(url, cell, timeout_s=timeout_s) as robot:
         w = robot.where()
         pose, joints = list(w.pose), list(w.joints)
     return (f"at x y z o a t = {' '.join(f'{v:.2f}' for v in pose)}; joints {' '.join(f'{v:.2f}' for v in joints)} deg",

@@ -10,7 +10,8 @@ from pathlib import Path
 
 from selfview.procedures.commands._common import numeric, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
-from selfview.procedures.view import ViewProgress, add_view_arguments, viewing, watch, with_progress
+from selfview.procedures.commands._common import add_view_arguments
+from selfview.procedures.view import ViewProgress, viewing, watch, with_progress
 
 
 def register(sub):

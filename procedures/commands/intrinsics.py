@@ -11,9 +11,11 @@ import datetime as _dt
 import sys
 from pathlib import Path
 
+from selfview.intrinsics.plate import PLATE_MODELS
 from selfview.procedures.commands._common import COUNT, SECONDS, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
-from selfview.procedures.view import ViewProgress, add_view_arguments, intrinsics_state, viewing, watch, with_progress
+from selfview.procedures.commands._common import add_view_arguments
+from selfview.procedures.view import ViewProgress, intrinsics_state, viewing, watch, with_progress
 
 
 def register(sub):
@@ -32,6 +34,11 @@ def register(sub):
     )
     add_session_arguments(p)
     p.add_argument("--images", nargs="+", metavar="IMG", help="pictures of the plate from different poses (no devices)")
+    p.add_argument("--plate", metavar="PLATE.yaml",
+                   help="with --images: a file whose 'plate:' section describes the plate (discs, chessboard or charuco); "
+                        "without --cell the starting camera comes from the pictures")
+    p.add_argument("--plate-model", choices=PLATE_MODELS, default="bow+dots",
+                   help="what of the printed plate's shape is fitted with the camera (default %(default)s)")
     p.add_argument("--views", type=COUNT, default=12, help="views the robot takes on the cell (default %(default)s)")
     p.add_argument("--skip-unusable", action="store_true",
                    help="skip a picture without the plate (listed in the output) instead of refusing the set")
@@ -50,6 +57,8 @@ def register(sub):
 def _check_args(args) -> None:
     from selfview.errors import ConfigError
 
+    if args.plate and not args.images:
+        raise ConfigError("--plate describes the plate of --images; on the cell the cell file's plate is used")
     if args.images and args.real:
         raise ConfigError("--images calibrates picture files; --real takes the views on the cell: give one of them")
     if args.review is not None and args.view is None:
@@ -62,27 +71,74 @@ def _check_args(args) -> None:
             raise ConfigError(f"--out {out}: is a folder; expected a camera file name")
 
 
+def _text(res, source: str, written, out) -> list[str]:
+    """The result as lines for the terminal."""
+    xc = res.cross_check
+    c = res.camera
+    sg = res.sigma
+    ps = res.projection_sigma_px
+    lines = [
+        f"camera from {res.views_used} views ({source}), residual rms {res.rms_px:.3f} px",
+        f"  f      = {c.f:.3f} +- {sg['f']:.3f} px",
+        f"  kappa  = {c.kappa:.4e} +- {sg['kappa']:.1e} px^-2",
+        f"  centre = ({c.cx:.2f}, {c.cy:.2f}) +- ({sg['cx']:.2f}, {sg['cy']:.2f}) px",
+        f"  aspect = {c.aspect:.5f} +- {sg['aspect']:.5f}",
+        *([f"  skew   = {c.skew:.2e} +- {sg['skew']:.1e} (the grabber's shear: "
+           f"{c.skew * c.height:+.2f} px from the top line to the bottom one)"] if "skew" in sg
+          else [f"  {res.skew_fit.get('note', 'skew not fitted')}"]),
+        f"  projection uncertainty: centre {ps['centre']:.3f} px, corners "
+        + ", ".join(f"{ps[k]:.3f}" for k in ("top_left", "top_right", "bottom_left", "bottom_right")) + " px",
+        "  stop rule: " + ("met" if res.stop_rule["met"] else "NOT met: " + res.stop_rule.get("advice", "")),
+        "  cross-check: " + (("halves agree" if xc["agree"] else "halves DISAGREE") if xc.get("done") else xc["why"]),
+    ]
+    if written:
+        lines.append(f"written to {written}")
+    elif out:
+        lines.append(f"{out} not written: the stop rule is not met (take the views advised, or --force)")
+    return lines
+
+
+def _picture_files(args):
+    """--images with --plate or --cell: (plate, starting camera or None, cell file hash or None, pictures,
+    their names, [{name, sha256}])."""
+    from selfview.cell import default_cell_path, load_cell, load_plate
+    from selfview.procedures.commands.calibrate import read_picture
+
+    camera = cell_sha = None
+    if args.plate is None or args.cell:
+        cell = load_cell(args.cell or default_cell_path())
+        camera, cell_sha = cell.camera.guess(), cell.sha256
+    plate = load_plate(args.plate) if args.plate else cell.plate
+    images, names, pictures = [], [], []
+    for path in args.images:
+        img, sha = read_picture(path)
+        images.append(img)
+        names.append(str(path))
+        pictures.append({"name": Path(path).name, "sha256": sha})
+    return plate, camera, cell_sha, images, names, pictures
+
+
 def run(args) -> int:
     with viewing(args, "intrinsics") as view:
         return _run(args, view)
 
 
-def _measure(args, view, say, images, names, cell):
+def _measure(args, view, say, images, names, plate, camera):
     """(the camera measured from the views, the views the operator rejected). With --review the page lists
     the views and waits: CALIBRATE measures again without the views marked, SAVE goes on with the last
     measurement. ``ConfigError`` when nobody answers in time (nothing written)."""
     from selfview.errors import ConfigError
-    from selfview.intrinsics import calibrate_intrinsics
+    from selfview.procedures.intrinsics import measure_intrinsics
 
     rejected: list[str] = []
     while True:
         keep = [i for i, nm in enumerate(names) if nm not in rejected]
         say(f"measuring the camera from {len(keep)} views" + (f" ({len(rejected)} rejected)" if rejected else ""))
-        res = calibrate_intrinsics([images[i] for i in keep], cell.plate, cell.camera.guess(), [names[i] for i in keep],
-                                   skip_unusable=args.skip_unusable or not args.images)
+        res = measure_intrinsics([images[i] for i in keep], plate, camera, [names[i] for i in keep],
+                                 skip_unusable=args.skip_unusable or not args.images, plate_model=args.plate_model)
         if not (view and args.review):
             return res, rejected
-        intrinsics_state(view, res, cell.plate, rejected)
+        intrinsics_state(view, res, plate, rejected)
         got = view.ask("check the views: mark any to reject and CALIBRATE again, or SAVE this camera",
                        [("calibrate", "CALIBRATE"), ("save", "SAVE")], select_views=True, timeout_s=args.review)
         if got is None:
@@ -95,20 +151,13 @@ def _measure(args, view, say, images, names, cell):
 def _run(args, view) -> int:
     from selfview import __version__
     from selfview.camfile import CameraFile, save_camera_file
-    from selfview.cell import default_cell_path, load_cell
+    from selfview.procedures.intrinsics import intrinsics_warnings, measure_intrinsics
     from selfview.procedures.commands._common import write_image
-    from selfview.procedures.commands.calibrate import read_picture
 
     _check_args(args)
     say = with_progress(view, progress_printer())
     if args.images:
-        cell = load_cell(args.cell or default_cell_path())
-        images, names, pictures = [], [], []
-        for path in args.images:
-            img, sha = read_picture(path)
-            images.append(img)
-            names.append(str(path))
-            pictures.append({"name": Path(path).name, "sha256": sha})
+        plate, camera, cell_sha, images, names, pictures = _picture_files(args)
         source = "pictures"
     else:
         cell, session = open_session(args, say)
@@ -131,26 +180,16 @@ def _run(args, view) -> int:
             for i, img in enumerate(images):
                 write_image(folder / f"view_{i + 1:02d}.png", img, "--save-views")
         source = "cell (real)" if args.real else f"simulated cell (seed {args.seed}, camera {args.sim_camera})"
-    res, rejected = _measure(args, view, say, images, names, cell)
+        plate, camera, cell_sha = cell.plate, cell.camera.guess(), cell.sha256
+    res, rejected = _measure(args, view, say, images, names, plate, camera)
     s = res.summary()
     s["source"] = source
-    warnings = []
-    for sk in res.skipped:
-        warnings.append(f"{sk['name']} not used: {sk['reason']}")
-    if not res.stop_rule["met"]:
-        warnings.append("stop rule not met: sigma of the centre {:.3f} px (limit {}), of the aspect {:.4f} % (limit {} %); {}".format(
-            res.stop_rule["sigma_centre_px"], res.stop_rule["limit_centre_px"], res.stop_rule["sigma_aspect_pct"],
-            res.stop_rule["limit_aspect_pct"], res.stop_rule.get("advice", "")))
-    xc = res.cross_check
-    if xc.get("done") and not xc.get("agree"):
-        worst = max(xc["ratio"], key=xc["ratio"].get)
-        warnings.append(f"the two halves of the views disagree: {worst} differs by {xc['ratio'][worst]:.1f} combined sigmas "
-                        f"(limit {xc['limit_sigmas']:g}); a view may be blurred, or the camera moved between views")
+    warnings = intrinsics_warnings(res)
     s["warnings"] = warnings
     if rejected:
         s["views_rejected"] = rejected
     if view:
-        intrinsics_state(view, res, cell.plate, rejected)
+        intrinsics_state(view, res, plate, rejected)
     if not args.images and getattr(session, "sim", None) is not None:
         t = session.sim.world.camera
         s["truth"] = {"f": t.f, "kappa": t.kappa, "principal_point": [t.cx, t.cy], "aspect": t.aspect}
@@ -163,7 +202,7 @@ def _run(args, view) -> int:
                 res.camera, res.sigma, res.covariance,
                 figures={k: s[k] for k in ("rms_px", "views_used", "projection_sigma_px", "stop_rule", "cross_check",
                                           "skew_fit")},
-                provenance={"pictures": pictures, "source": source, "cell_sha256": cell.sha256,
+                provenance={"pictures": pictures, "source": source, "cell_sha256": cell_sha,
                             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                             "software": f"selfview {__version__}"},
             )
@@ -176,27 +215,7 @@ def _run(args, view) -> int:
     if args.json:
         print_json(s)
     else:
-        c = res.camera
-        sg = res.sigma
-        ps = res.projection_sigma_px
-        lines = [
-            f"camera from {res.views_used} views ({source}), residual rms {res.rms_px:.3f} px",
-            f"  f      = {c.f:.3f} +- {sg['f']:.3f} px",
-            f"  kappa  = {c.kappa:.4e} +- {sg['kappa']:.1e} px^-2",
-            f"  centre = ({c.cx:.2f}, {c.cy:.2f}) +- ({sg['cx']:.2f}, {sg['cy']:.2f}) px",
-            f"  aspect = {c.aspect:.5f} +- {sg['aspect']:.5f}",
-            *([f"  skew   = {c.skew:.2e} +- {sg['skew']:.1e} (the grabber's shear: "
-               f"{c.skew * c.height:+.2f} px from the top line to the bottom one)"] if "skew" in sg
-              else [f"  {res.skew_fit.get('note', 'skew not fitted')}"]),
-            f"  projection uncertainty: centre {ps['centre']:.3f} px, corners "
-            + ", ".join(f"{ps[k]:.3f}" for k in ("top_left", "top_right", "bottom_left", "bottom_right")) + " px",
-            "  stop rule: " + ("met" if res.stop_rule["met"] else "NOT met: " + res.stop_rule.get("advice", "")),
-            "  cross-check: " + (("halves agree" if xc["agree"] else "halves DISAGREE") if xc.get("done") else xc["why"]),
-        ]
-        if written:
-            lines.append(f"written to {written}")
-        elif args.out:
-            lines.append(f"{args.out} not written: the stop rule is not met (take the views advised, or --force)")
+        lines = _text(res, source, written, args.out)
         print("\n".join(lines))
     if args.out and not written:
         return 5

@@ -7,7 +7,8 @@ import sys
 
 from selfview.procedures.commands._common import COUNT, numeric
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
-from selfview.procedures.view import add_view_arguments, decision_state, tracked_frames, viewing, watch, with_progress
+from selfview.procedures.commands._common import add_view_arguments
+from selfview.procedures.view import decision_state, tracked_frames, viewing, watch, with_progress
 
 
 def register(sub):

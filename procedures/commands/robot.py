@@ -90,17 +90,11 @@ def register(sub):
 
 def make_robot(args):
     """The driver the arguments describe (not connected)."""
-    from dataclasses import replace
+    from selfview.drivers.robot import open_robot
 
-    from selfview.drivers.puma_val_serial import PumaKinematics, PumaVAL, ValLimits, load_dialect
-
-    dialect = load_dialect(args.dialect) if args.dialect else None
-    limits = ValLimits.load(args.limits) if args.limits else ValLimits()
-    kinematics = PumaKinematics.load(args.kinematics) if getattr(args, "kinematics", None) else None
-    if args.max_speed is not None:
-        limits = replace(limits, max_speed_pct=args.max_speed)
-    return PumaVAL(args.url, dialect=dialect, limits=limits, kinematics=kinematics, timeout_s=args.timeout,
-                   baudrate=args.baud)
+    return open_robot(args.url, None, dialect=args.dialect, limits=args.limits,
+                      kinematics=getattr(args, "kinematics", None), max_speed=args.max_speed, timeout_s=args.timeout,
+                      baudrate=args.baud)
 
 
 def _motion_step(args):

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from selfview.procedures.commands._common import add_cell_argument, load_cell_arg, print_json
-from selfview.procedures.view import add_view_arguments, viewing
+from selfview.procedures.commands._common import add_view_arguments
+from selfview.procedures.view import viewing
 
-METHOD_CHOICES = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R", "E", "auto")
+from selfview.api import METHODS as METHOD_CHOICES
 
 
 def register(sub):

@@ -8,9 +8,9 @@ import numpy as np
 from selfview.camera import CameraModel
 from selfview.cell import PlateSpec
 from selfview.geometry import rot_axis, trans
-from selfview.intrinsics.fit import _Fit, _sigmas
-from selfview.intrinsics.model import _Joint, _intr, _project
-from selfview.intrinsics.plate import _PlateShape
+from selfview.intrinsics.fit import JointFit, sigmas_of
+from selfview.intrinsics.model import JointProblem, intrinsics_vector, project_points
+from selfview.intrinsics.plate import PlateShape
 
 
 #: Stop rule: the centre pinned to sigma below this in each axis [px], the aspect to this relative sigma.
@@ -20,7 +20,7 @@ STOP_ASPECT_REL = 0.0005
 #: Most further views the advice considers per kind.
 MAX_MORE_VIEWS = 60
 
-def _stop_met(sig: dict, aspect: float) -> bool:
+def stop_met(sig: dict, aspect: float) -> bool:
     return bool(max(sig["cx"], sig["cy"]) < STOP_CENTRE_PX and sig["aspect"] / aspect < STOP_ASPECT_REL)
 
 
@@ -29,7 +29,7 @@ VIEW_KINDS = (("tilted 35 deg", 35.0), ("tilted 20 deg", 20.0), ("square-on", 0.
 
 
 def _view_information(camera: CameraModel, plate: PlateSpec, distance: float, tilt_deg: float, azimuth_deg: float,
-                      s2: float, ni: int = 5, shape: "_PlateShape | None" = None, y=None) -> np.ndarray | None:
+                      s2: float, ni: int = 5, shape: "PlateShape | None" = None, y=None) -> np.ndarray | None:
     """(ni, ni) information on the intrinsics that one view of the plate adds, its pose eliminated: the
     plate's centre at ``distance`` on the optical axis, tilted ``tilt_deg`` about an in-plane axis at
     ``azimuth_deg``; the discs that fall in the picture. With the plate's shape (``shape`` at parameters
@@ -37,19 +37,19 @@ def _view_information(camera: CameraModel, plate: PlateSpec, distance: float, ti
     a = np.radians(azimuth_deg)
     H = trans(0, 0, distance) @ rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt_deg))
     p = plate.disc_centres_W()
-    x = _intr(camera, ni)
-    uv = _project(x, H[:3, :3], H[:3, 3], p, camera.skew)
+    x = intrinsics_vector(camera, ni)
+    uv = project_points(x, H[:3, :3], H[:3, 3], p, camera.skew)
     ok = np.all(np.isfinite(uv), axis=1)
     ok[ok] = camera.in_image(uv[ok], margin=10)
     if ok.sum() < 8:
         return None
     if shape is None:
-        model = _Joint([p[ok]], [uv[ok]], [H[:3, :3]], ni=ni, skew=camera.skew)
+        model = JointProblem([p[ok]], [uv[ok]], [H[:3, :3]], ni=ni, skew=camera.skew)
         J = model.jacobian(np.concatenate([x, np.zeros(3), H[:3, 3]]))
         A = J.T @ J / s2
         Aii, Aip, App = A[:ni, :ni], A[:ni, ni:], A[ni:, ni:]
         return Aii - Aip @ np.linalg.solve(App, Aip.T)
-    model = _Joint([p[ok]], [uv[ok]], [H[:3, :3]], shape, [np.flatnonzero(ok)], ni=ni, skew=camera.skew)
+    model = JointProblem([p[ok]], [uv[ok]], [H[:3, :3]], shape, [np.flatnonzero(ok)], ni=ni, skew=camera.skew)
     J = model.jacobian(np.concatenate([x, np.zeros(3), H[:3, 3], y]))[: model.m_data]  # no second prior
     A = J.T @ J / s2
     keep = np.r_[0:ni, ni + 6 : len(A)]
@@ -57,7 +57,7 @@ def _view_information(camera: CameraModel, plate: PlateSpec, distance: float, ti
     return Ak - Akp @ np.linalg.solve(App, Akp.T)
 
 
-def more_views_advice(fit: _Fit, plate: PlateSpec) -> dict:
+def more_views_advice(fit: JointFit, plate: PlateSpec) -> dict:
     """How many more views of each kind (``VIEW_KINDS``) would meet the stop rule, from the covariance.
 
     With the plate's shape fitted, on the joint information of the intrinsics and the shape: a further
@@ -71,7 +71,7 @@ def more_views_advice(fit: _Fit, plate: PlateSpec) -> dict:
         n = len(fit.cov_full)
         idx = np.r_[0:ni, n - ns : n]
         cov0 = fit.cov_full[np.ix_(idx, idx)]
-        shape = _PlateShape(plate, fit.plate_model, fit.prior_noise_px, fit.dot_sd_mm)
+        shape = PlateShape(plate, fit.plate_model, fit.prior_noise_px, fit.dot_sd_mm)
         if shape.n != ns:
             shape, cov0 = None, fit.cov5
     else:
@@ -99,7 +99,7 @@ def more_views_advice(fit: _Fit, plate: PlateSpec) -> dict:
             except np.linalg.LinAlgError:
                 continue
             cov = cov[:ni, :ni]
-            if np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0) and _stop_met(_sigmas(cov), fit.camera.aspect):
+            if np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0) and stop_met(sigmas_of(cov), fit.camera.aspect):
                 need = n
                 break
         out[label] = need

@@ -10,10 +10,10 @@ import numpy as np
 from selfview.camera import CameraModel
 from selfview.cell import PlateSpec
 from selfview.errors import CalibrationError
-from selfview.intrinsics.advice import STOP_ASPECT_REL, STOP_CENTRE_PX, MAX_MORE_VIEWS, _stop_met, more_views_advice
-from selfview.intrinsics.checks import _cross_check
+from selfview.intrinsics.advice import STOP_ASPECT_REL, STOP_CENTRE_PX, MAX_MORE_VIEWS, stop_met, more_views_advice
+from selfview.intrinsics.checks import halves_cross_check
 from selfview.intrinsics.fit import (
-    MIN_VIEWS, UNDETERMINED_CENTRE_PX, VIEW_MAX_RMS_PX, _Fit, _sigmas, detect_views, fit_views, projection_sigma_px,
+    MIN_VIEWS, UNDETERMINED_CENTRE_PX, VIEW_MAX_RMS_PX, JointFit, sigmas_of, detect_views, fit_views, projection_sigma_px,
 )
 
 #: The skew is kept only when the views pin it: its estimate at least this many sigmas from 0 (a grabber
@@ -68,7 +68,7 @@ class IntrinsicsResult:
         }
 
 
-def _plate_summary(fit: _Fit) -> dict:
+def _plate_summary(fit: JointFit) -> dict:
     """What the fit found of the printed plate: its model, the bow's coefficients [mm] (z at the grid's
     half-width: xx, xy, yy) with their 1-sigma, the discs' position error sd [mm] and rms of their fitted
     corrections, each view's turn of its disc indices onto the plate's grid [deg] (None: kept as found)."""
@@ -113,15 +113,7 @@ fits it; False holds it at ``camera_guess``'s, the spec's model.
     if skew not in (True, False, "auto"):
         raise CalibrationError(f"intrinsics: skew={skew!r}: expected 'auto', True or False")
     fit = fit_views(dets, plate, camera_guess, names, plate_model=plate_model, fit_skew=skew is not False)
-    # a view that does not fit the others: drop it and refit
-    bad = {v.name: v.rms_px for v in fit.views if v.rms_px > VIEW_MAX_RMS_PX}
-    if bad and len(fit.views) - len(bad) >= MIN_VIEWS:
-        for nm, rms in bad.items():
-            skipped.append({"name": nm, "reason": f"does not fit the other views (residual rms "
-                                                  f"{rms:.2f} px > {VIEW_MAX_RMS_PX} px)"})
-        keep = [k for k in range(len(dets)) if names[k] not in bad]
-        dets, names = [dets[k] for k in keep], [names[k] for k in keep]
-        fit = fit_views(dets, plate, fit.camera, names, plate_model=plate_model, fit_skew=skew is not False)
+    fit, dets, names = _drop_misfits(fit, dets, names, plate, plate_model, skew is not False, skipped)
     skew_fit = {"fitted": skew is not False, "note": "skew fitted" if skew is True else "skew held at the guess's"}
     if skew is not False:
         val, sd = fit.camera.skew, float(np.sqrt(max(fit.cov5[5, 5], 0.0)))
@@ -153,7 +145,7 @@ fits it; False holds it at ``camera_guess``'s, the spec's model.
     used = {v.name for v in fit.views}
     keep = [k for k in range(len(dets)) if names[k] in used]
     dets, names = [dets[k] for k in keep], [names[k] for k in keep]
-    sig = _sigmas(fit.cov5)
+    sig = sigmas_of(fit.cov5)
     tilts = [v.tilt_deg for v in fit.views]
     if not (np.all(np.isfinite(fit.cov5)) and max(sig["cx"], sig["cy"]) < UNDETERMINED_CENTRE_PX):
         raise CalibrationError(
@@ -161,7 +153,33 @@ fits it; False holds it at ``camera_guess``'s, the spec's model.
             f"{max(sig['cx'], sig['cy']):.3g} px): they see the plate {min(tilts):.0f}-{max(tilts):.0f} deg from "
             "square-on; take views tilted 20-40 deg in different directions"
         )
-    met = _stop_met(sig, fit.camera.aspect)
+    stop = _stop_rule(fit, plate, sig)
+    xc = halves_cross_check(dets, names, plate, fit) if cross_check else {"done": False, "why": "not asked for"}
+    return IntrinsicsResult(
+        camera=fit.camera, covariance=fit.cov5, sigma=sig, rms_px=fit.rms_px, views=fit.views, skipped=skipped,
+        projection_sigma_px=projection_sigma_px(fit.camera, fit.cov5), stop_rule=stop, cross_check=xc,
+        residual_sigma_px=float(np.sqrt(fit.s2)), plate_shape=_plate_summary(fit), skew_fit=skew_fit,
+    )
+
+
+def _drop_misfits(fit: JointFit, dets, names, plate: PlateSpec, plate_model: str, fit_skew: bool, skipped: list):
+    """A view that does not fit the others (residual rms over ``VIEW_MAX_RMS_PX``) dropped, listed in
+    ``skipped``, and the rest refitted (while ``MIN_VIEWS`` remain): (fit, detections, names)."""
+    bad = {v.name: v.rms_px for v in fit.views if v.rms_px > VIEW_MAX_RMS_PX}
+    if not bad or len(fit.views) - len(bad) < MIN_VIEWS:
+        return fit, dets, names
+    for nm, rms in bad.items():
+        skipped.append({"name": nm, "reason": f"does not fit the other views (residual rms "
+                                              f"{rms:.2f} px > {VIEW_MAX_RMS_PX} px)"})
+    keep = [k for k in range(len(dets)) if names[k] not in bad]
+    dets, names = [dets[k] for k in keep], [names[k] for k in keep]
+    return fit_views(dets, plate, fit.camera, names, plate_model=plate_model, fit_skew=fit_skew), dets, names
+
+
+def _stop_rule(fit: JointFit, plate: PlateSpec, sig: dict) -> dict:
+    """Whether the views pin the centre and the aspect (``stop_met``), the sigmas against the limits and,
+    if not, how many more views of which kind would (``more_views_advice``)."""
+    met = stop_met(sig, fit.camera.aspect)
     stop = {
         "met": met,
         "sigma_centre_px": max(sig["cx"], sig["cy"]),
@@ -180,15 +198,10 @@ fits it; False holds it at ``camera_guess``'s, the spec's model.
                               f"aspect to < {100 * STOP_ASPECT_REL:g} %")
         else:
             stop["advice"] = f"more than {MAX_MORE_VIEWS} further views of any kind would be needed"
-    xc = _cross_check(dets, names, plate, fit) if cross_check else {"done": False, "why": "not asked for"}
-    return IntrinsicsResult(
-        camera=fit.camera, covariance=fit.cov5, sigma=sig, rms_px=fit.rms_px, views=fit.views, skipped=skipped,
-        projection_sigma_px=projection_sigma_px(fit.camera, fit.cov5), stop_rule=stop, cross_check=xc,
-        residual_sigma_px=float(np.sqrt(fit.s2)), plate_shape=_plate_summary(fit), skew_fit=skew_fit,
-    )
+    return stop
 
 
-def _skew_jackknife(dets, names, plate, fit: _Fit, plate_model: str) -> float | None:
+def _skew_jackknife(dets, names, plate, fit: JointFit, plate_model: str) -> float | None:
     """The skew's leave-one-group-out jackknife sigma over the views ``fit`` used (at most
     ``SKEW_JACKKNIFE_GROUPS`` groups, each leaving ``MIN_VIEWS`` or more views); None when the views are
     too few, or when a group left out makes the rest unsolvable."""

@@ -8,15 +8,15 @@ import numpy as np
 from selfview.camera import CameraModel
 from selfview.errors import CalibrationError
 from selfview.geometry import R_from_rotvec, make_H
-from selfview.intrinsics.fit import INTRINSIC_NAMES, MIN_VIEWS_HALF, _Fit, fit_views
-from selfview.intrinsics.model import _POSE_STEP, _STEP, _Joint, _intr, _with_intr
+from selfview.intrinsics.fit import INTRINSIC_NAMES, MIN_VIEWS_HALF, JointFit, fit_views
+from selfview.intrinsics.model import POSE_STEP, STEP, JointProblem, intrinsics_vector, with_intrinsics
 from selfview.lm import covariance, levenberg_marquardt
 
 
 #: The halves of the cross-check agree when no parameter differs by more than this many combined sigmas.
 AGREE_SIGMAS = 3.0
 
-def _cross_check(dets, names, plate, fit: _Fit) -> dict:
+def halves_cross_check(dets, names, plate, fit: JointFit) -> dict:
     n = len(dets)
     if n < 2 * MIN_VIEWS_HALF:
         return {"done": False, "why": f"{n} views; the cross-check needs {2 * MIN_VIEWS_HALF} (two halves of "
@@ -31,7 +31,7 @@ def _cross_check(dets, names, plate, fit: _Fit) -> dict:
             return {"done": False, "why": f"a half could not be calibrated: {exc}"}
         halves.append(h)
     a, b = halves
-    xa, xb = _intr(a.camera, len(a.cov5)), _intr(b.camera, len(b.cov5))
+    xa, xb = intrinsics_vector(a.camera, len(a.cov5)), intrinsics_vector(b.camera, len(b.cov5))
     comb = np.sqrt(np.diag(a.cov5) + np.diag(b.cov5))
     ratio = np.abs(xa - xb) / comb
     agree = bool(np.all(np.isfinite(ratio)) and np.all(ratio <= AGREE_SIGMAS))
@@ -59,8 +59,8 @@ def _one_view(result, camera: CameraModel, ni: int = 5):
     the rest ``camera``'s; ``ni`` 5: the skew held at ``camera``'s, 6: free) and the pose."""
     ts = result.tsai
     H = ts.C_H_W
-    model = _Joint([result.discs.p_W], [result.disc_uv_corrected], [H[:3, :3]], ni=ni, skew=camera.skew)
-    x = np.concatenate([_intr(camera.with_(f=ts.camera.f, kappa=ts.camera.kappa), ni), np.zeros(3), H[:3, 3]])
+    model = JointProblem([result.discs.p_W], [result.disc_uv_corrected], [H[:3, :3]], ni=ni, skew=camera.skew)
+    x = np.concatenate([intrinsics_vector(camera.with_(f=ts.camera.f, kappa=ts.camera.kappa), ni), np.zeros(3), H[:3, 3]])
     return model, x
 
 
@@ -88,7 +88,7 @@ def camera_file_fit(result, camera: CameraModel, source: str = "the camera file"
     every intrinsic held at ``camera``'s. Returns {rms_px, own_rms_px (f and kappa the picture's), excess_px,
     limit_px, fits, refusal (why it does not fit, naming ``source``; None when it fits)}."""
     model, x = _one_view(result, camera, ni=6)
-    x[:6] = _intr(camera, 6)
+    x[:6] = intrinsics_vector(camera, 6)
     own = float(result.tsai.rms_px)
     try:
         res = levenberg_marquardt(lambda y: model.residuals(np.r_[x[:6], y]), x[6:],
@@ -205,11 +205,11 @@ def tcp_sigma(result, cell, camera_cov3: np.ndarray | None = None, camera_error:
     from selfview.pcc import solve_pcc
 
     def tcp(xv, uv=None):
-        c = _with_intr(cam, xv[:6])
+        c = with_intrinsics(cam, xv[:6])
         H = make_H(R_from_rotvec(xv[6:9]) @ R0, xv[9:12])
         return solve_pcc(ft.uv[found] if uv is None else uv, pG, H, c).C_H_G[:3, 3]
 
-    steps = np.r_[_STEP[0] * x[0], _STEP[1:], _POSE_STEP]
+    steps = np.r_[STEP[0] * x[0], STEP[1:], POSE_STEP]
     G = np.zeros((3, 12))
     for i in range(12):
         xp, xm = x.copy(), x.copy()

@@ -10,12 +10,13 @@ import numpy as np
 
 from selfview.camera import CameraModel
 from selfview.cell import PlateSpec
-from selfview.discs import DiscDetections, detect_discs, disc_image_bias
+from selfview.discs import DiscDetections
 from selfview.errors import CalibrationError, ConfigError, ImageError
 from selfview.geometry import make_H
-from selfview.intrinsics.model import _STEP, _Joint, _intr, _project, _with_intr
-from selfview.intrinsics.plate import PLATE_DOT_PRIOR_MM, PLATE_DOT_SD_RANGE_MM, PLATE_MODELS, _align_views, _PlateShape
+from selfview.intrinsics.model import STEP, JointProblem, intrinsics_vector, project_points, with_intrinsics
+from selfview.intrinsics.plate import PLATE_DOT_PRIOR_MM, PLATE_DOT_SD_RANGE_MM, PLATE_MODELS, align_views, PlateShape
 from selfview.lm import covariance, levenberg_marquardt
+from selfview.plates import detect_plate, plate_image_bias
 
 
 #: The intrinsics in the order of the covariance: the skew last, absent when it is not fitted.
@@ -62,7 +63,7 @@ class ViewFit:
 
 
 @dataclass
-class _Fit:
+class JointFit:
     camera: CameraModel
     cov5: np.ndarray  # (ni, ni) of the intrinsics fitted: INTRINSIC_NAMES[:ni]
     cov_full: np.ndarray
@@ -95,7 +96,7 @@ def _initial_pose(p_W, uv, camera: CameraModel) -> np.ndarray:
 
 def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list, *, rc: list | None = None,
            plate: PlateSpec | None = None, plate_model: str = "flat", shape0=None, noise_px: float = 0.05,
-           dot_sd_mm: float = PLATE_DOT_PRIOR_MM, fit_skew: bool = True) -> _Fit:
+           dot_sd_mm: float = PLATE_DOT_PRIOR_MM, fit_skew: bool = True) -> JointFit:
     """Joint LM from ``camera0``, ``poses0`` (and the plate's shape ``shape0``); drops outlying discs once
     and refits. ``plate_model`` (``PLATE_MODELS``; needs ``rc`` and ``plate``): what of the plate's shape is
     fitted; ``noise_px`` the disc centres' noise that weighs the shape's prior against the pixels;
@@ -105,7 +106,7 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
     if plate_model != "flat":
         if rc is None or plate is None:
             raise CalibrationError("intrinsics: fitting the plate's shape needs the discs' grid indices and the plate")
-        shape = _PlateShape(plate, plate_model, float(noise_px), float(dot_sd_mm))
+        shape = PlateShape(plate, plate_model, float(noise_px), float(dot_sd_mm))
     ns = shape.n if shape else 0
     y0 = np.zeros(ns) if shape0 is None or len(shape0) != ns else np.asarray(shape0, float)
     keep = [np.ones(len(p), bool) for p in p_W]
@@ -113,13 +114,13 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
         P = [p[k] for p, k in zip(p_W, keep)]
         U = [u[k] for u, k in zip(uv, keep)]
         idx = [shape.index(r[k]) for r, k in zip(rc, keep)] if shape else None
-        model = _Joint(P, U, [H[:3, :3] for H in poses0], shape, idx, ni=ni, skew=camera0.skew)
-        x0 = np.concatenate([_intr(camera0, ni), *[np.concatenate([np.zeros(3), H[:3, 3]]) for H in poses0], y0])
+        model = JointProblem(P, U, [H[:3, :3] for H in poses0], shape, idx, ni=ni, skew=camera0.skew)
+        x0 = np.concatenate([intrinsics_vector(camera0, ni), *[np.concatenate([np.zeros(3), H[:3, 3]]) for H in poses0], y0])
         res = levenberg_marquardt(model.residuals, x0, model.jacobian, normal=True)
         poses0 = [model.pose(res.x, k) for k in range(len(P))]
         y0 = res.x[len(res.x) - ns :] if ns else y0
         try:
-            camera0 = _with_intr(camera0, res.x[:ni])
+            camera0 = with_intrinsics(camera0, res.x[:ni])
         except ConfigError as exc:  # a skew no grabber has: the views do not fit this camera model
             raise CalibrationError(f"intrinsics: the joint fit left the camera model ({exc})") from None
         dist = [np.hypot(*model.view(res.x, k).reshape(2, -1)) for k in range(len(P))]
@@ -147,15 +148,15 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
         tilt = float(np.degrees(np.arccos(min(1.0, abs(H[2, 2])))))
         views.append(ViewFit(names[k], H, int(keep[k].sum()), float(np.sqrt(np.mean(dist[k] ** 2))), tilt,
                              float(np.linalg.norm(H[:3, 3])), int((~keep[k]).sum())))
-    return _Fit(camera0, cov[:ni, :ni], cov, res.jacobian, float(s2), rms, views, U, P, plate_model,
+    return JointFit(camera0, cov[:ni, :ni], cov, res.jacobian, float(s2), rms, views, U, P, plate_model,
                 np.asarray(y0, float), cov[n - ns :, n - ns :] if ns else np.zeros((0, 0)), float(noise_px), float(dot_sd_mm))
 
 
 def _bias_corrected(dets, camera, poses, plate) -> list:
-    return [d.uv - disc_image_bias(camera, H, d.p_W, plate.disc_diameter / 2) for d, H in zip(dets, poses)]
+    return [d.uv - plate_image_bias(plate, camera, H, d.p_W) for d, H in zip(dets, poses)]
 
 def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel, names: list[str] | None = None,
-              *, bias: bool = True, plate_model: str = "bow+dots", fit_skew: bool = True) -> _Fit:
+              *, bias: bool = True, plate_model: str = "bow+dots", fit_skew: bool = True) -> JointFit:
     """The joint fit of views' disc detections from ``camera0`` (a starting camera): first poses by
     planar PnP, a fit on the centroids, then ``BIAS_ROUNDS`` rounds of bias correction and refit
     (``bias=False``: the centroids as measured). ``plate_model`` (``PLATE_MODELS``): what of the printed
@@ -183,7 +184,7 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
         # a first camera on the plate as specified, then the views' discs on one physical grid
         fit = _solve([d.p_W for d in dets], uv, camera0, poses, names, fit_skew=fit_skew)
         uv = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate)
-        dets, turns = _align_views(dets, uv, fit, plate)
+        dets, turns = align_views(dets, uv, fit, plate)
         if plate_model == "bow+dots" and sum(t is not None for t in turns) < max(2, (len(dets) + 1) // 2):
             # the dot pattern is not seen in most views (a print better than the noise shows): per-disc
             # corrections could not be tied to the physical discs, and on the pictures' own grids they
@@ -232,7 +233,7 @@ def detect_views(images, plate: PlateSpec, camera: CameraModel, names=None, *, s
     dets, kept, skipped = [], [], []
     for img, nm in zip(images, names):
         try:
-            dets.append(detect_discs(img, plate, camera=camera))
+            dets.append(detect_plate(img, plate, camera=camera))
             kept.append(nm)
         except ImageError as exc:
             if not skip_unusable:
@@ -240,20 +241,42 @@ def detect_views(images, plate: PlateSpec, camera: CameraModel, names=None, *, s
             skipped.append({"name": nm, "reason": str(exc)})
     return dets, kept, skipped
 
+def guess_camera(dets: list[DiscDetections], width: int, height: int) -> CameraModel:
+    """A starting camera for pictures of ``width`` x ``height`` px without a cell file: the principal point
+    at the picture's centre, aspect 1, kappa 0 and f from the views' plate-to-picture homographies (Zhang's
+    two constraints per view with the centre known, least squares in 1/f^2). Raises ``CalibrationError``
+    when the views do not determine f (all square-on)."""
+    cx, cy = (width - 1) / 2, (height - 1) / 2
+    A, b = [], []
+    for d in dets:
+        H, _ = cv2.findHomography(d.p_W[:, :2], d.uv - [cx, cy])
+        if H is None:
+            continue
+        h1, h2 = H[:, 0], H[:, 1]
+        A += [h1[0] * h2[0] + h1[1] * h2[1], h1[0] ** 2 + h1[1] ** 2 - h2[0] ** 2 - h2[1] ** 2]
+        b += [-h1[2] * h2[2], -(h1[2] ** 2 - h2[2] ** 2)]
+    A, b = np.asarray(A), np.asarray(b)
+    w = float(A @ b / (A @ A)) if len(A) and A @ A > 0 else 0.0
+    if not w > 0:
+        raise CalibrationError("intrinsics: the views do not give a first focal length (all seen square-on?); "
+                               "give a cell file with the camera's focal_guess (--cell)")
+    return CameraModel(f=1 / np.sqrt(w), kappa=0.0, cx=cx, cy=cy, aspect=1.0, width=int(width), height=int(height))
+
+
 # --- uncertainty figures --------------------------------------------------------------------------
 def _pixel_jacobian(camera: CameraModel, uv, ni: int = 5) -> np.ndarray:
     """(2, ni) derivative of where the ray of pixel ``uv`` lands, w.r.t. (f, kappa, cx, cy, aspect[, skew])."""
     xy = camera.undistort_pixels(np.atleast_2d(uv))[0] / camera.f
     p = np.array([[xy[0], xy[1], 1.0]])
-    x = _intr(camera, ni)
+    x = intrinsics_vector(camera, ni)
     J = np.zeros((2, ni))
     for i in range(ni):
-        h = _STEP[i] * (abs(x[i]) if i == 0 else 1.0)
+        h = STEP[i] * (abs(x[i]) if i == 0 else 1.0)
         xp, xm = x.copy(), x.copy()
         xp[i] += h
         xm[i] -= h
-        J[:, i] = (_project(xp, np.eye(3), np.zeros(3), p, camera.skew)[0]
-                   - _project(xm, np.eye(3), np.zeros(3), p, camera.skew)[0]) / (2 * h)
+        J[:, i] = (project_points(xp, np.eye(3), np.zeros(3), p, camera.skew)[0]
+                   - project_points(xm, np.eye(3), np.zeros(3), p, camera.skew)[0]) / (2 * h)
     return J
 
 
@@ -270,6 +293,6 @@ def projection_sigma_px(camera: CameraModel, cov5: np.ndarray) -> dict:
     return out
 
 
-def _sigmas(cov5) -> dict:
+def sigmas_of(cov5) -> dict:
     d = np.sqrt(np.clip(np.diag(cov5), 0, None))
     return {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, d)}

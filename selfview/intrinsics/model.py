@@ -8,17 +8,17 @@ import numpy as np
 from selfview.camera import CameraModel, distort
 from selfview.errors import CalibrationError
 from selfview.geometry import R_from_rotvec, make_H
-from selfview.tsai import _cross, _left_jacobian
+from selfview.tsai import cross_rows, so3_left_jacobian
 
 
 #: Finite-difference steps of the numeric Jacobian: f (relative), kappa [px^-2], cx, cy [px], aspect,
 #: rotation [rad], translation [mm].
-_STEP = np.array([1e-6, 1e-12, 1e-4, 1e-4, 1e-7, 1e-7])
-_POSE_STEP = np.array([1e-7, 1e-7, 1e-7, 1e-5, 1e-5, 1e-5])
+STEP = np.array([1e-6, 1e-12, 1e-4, 1e-4, 1e-7, 1e-7])
+POSE_STEP = np.array([1e-7, 1e-7, 1e-7, 1e-5, 1e-5, 1e-5])
 
 
 # --- the model ------------------------------------------------------------------------------------
-def _project(intr, R, t, p_W, skew: float = 0.0) -> np.ndarray:
+def project_points(intr, R, t, p_W, skew: float = 0.0) -> np.ndarray:
     """(N, 2) distorted pixels of plate points ``p_W`` (N, 3) seen at pose (R, t) by intrinsics
     ``intr`` = (f, kappa, cx, cy, aspect[, skew]) (``skew`` when ``intr`` has five); NaN where a point is
     behind the camera or beyond the fold."""
@@ -37,20 +37,20 @@ def _project(intr, R, t, p_W, skew: float = 0.0) -> np.ndarray:
     return np.column_stack([XYh[:, 0] / aspect + skew * XYh[:, 1] + cx, XYh[:, 1] + cy])
 
 
-def _intr(camera: CameraModel, ni: int = 6) -> np.ndarray:
+def intrinsics_vector(camera: CameraModel, ni: int = 6) -> np.ndarray:
     """The intrinsics vector of ``camera``: (f, kappa, cx, cy, aspect[, skew]) (``ni`` 5 or 6)."""
     return np.array([camera.f, camera.kappa, camera.cx, camera.cy, camera.aspect, camera.skew][:ni])
 
 
-def _with_intr(camera: CameraModel, x) -> CameraModel:
+def with_intrinsics(camera: CameraModel, x) -> CameraModel:
     """``camera`` with the intrinsics ``x[:5]`` (and ``x[5]``, its skew, when given)."""
     c = camera.with_(f=float(x[0]), kappa=float(x[1]), cx=float(x[2]), cy=float(x[3]), aspect=float(x[4]))
     return c.with_(skew=float(x[5])) if len(x) > 5 else c
 
 
-class _Joint:
+class JointProblem:
     """Parameters x = (f, kappa, cx, cy, aspect, [skew,] then per view omega (3), t (3), then the plate's
-    shape (``_PlateShape``: bow, disc corrections) if ``shape``) with view k's rotation exp(omega_k) R0_k;
+    shape (``PlateShape``: bow, disc corrections) if ``shape``) with view k's rotation exp(omega_k) R0_k;
     ``ni`` intrinsics: 6 with the skew free, 5 with it held at ``skew``. Residuals model minus observation,
     per view (u then v of its points), then the shape's prior rows."""
 
@@ -74,7 +74,7 @@ class _Joint:
     def view(self, x, k) -> np.ndarray:
         j = self.ni + 6 * k
         R = R_from_rotvec(x[j : j + 3]) @ self.R0[k]
-        m = _project(x[: self.ni], R, x[j + 3 : j + 6], self.points(x, k), self.skew)
+        m = project_points(x[: self.ni], R, x[j + 3 : j + 6], self.points(x, k), self.skew)
         return (m - self.uv[k]).T.ravel()
 
     def residuals(self, x) -> np.ndarray:
@@ -107,7 +107,7 @@ class _Joint:
             a = 1.0 + kappa * rh2
             c = 2.0 * kappa / (a + 2.0 * kappa * rh2)
             m00, m11, m01 = (1.0 - c * Xh * Xh) / a, (1.0 - c * Yh * Yh) / a, -c * Xh * Yh / a
-            Jl = _left_jacobian(x[j : j + 3])
+            Jl = so3_left_jacobian(x[j : j + 3])
             n = len(z)
             r0 = self.off[k]
             D = self.shape.dp_dy(self.idx[k]) if self.shape else None
@@ -116,7 +116,7 @@ class _Joint:
                 rows = slice(r0 + row * n, r0 + (row + 1) * n)
                 J[rows, 0] = (mu0 * X + mu1 * Y) / f
                 J[rows, 1] = -(mu0 * Xh + mu1 * Yh) * rh2
-                J[rows, j : j + 3] = _cross(d, g) @ Jl
+                J[rows, j : j + 3] = cross_rows(d, g) @ Jl
                 J[rows, j + 3 : j + 6] = g
                 if D is not None:
                     J[rows, s0:] = np.einsum("na,nas->ns", g @ R, D)

@@ -10,7 +10,7 @@ import numpy as np
 from selfview.camera import CameraModel
 from selfview.cell import PlateSpec
 from selfview.errors import CalibrationError
-from selfview.intrinsics.model import _intr, _project
+from selfview.intrinsics.model import intrinsics_vector, project_points
 
 
 #: Plate models of the joint fit (``plate_model``): 'flat' (the plate as specified, every disc exactly
@@ -45,7 +45,7 @@ def _similarity_complement(p0: np.ndarray) -> np.ndarray:
     return u[:, : 2 * n - 4]
 
 
-class _PlateShape:
+class PlateShape:
     """The printed plate's shape as parameters: a bow z = b0 xn^2 + b1 xn yn + b2 yn^2 (xn, yn the disc's
     nominal position over the grid's half-width; constant and linear terms are the pose's) and the discs'
     in-plane corrections ``B u`` (``_similarity_complement``), all discs of the grid indexed row * cols + col."""
@@ -103,13 +103,13 @@ def _dot_field(det, uv, camera: CameraModel, H) -> np.ndarray | None:
     None with too few discs."""
     if len(uv) < 15:
         return None
-    x = _intr(camera)
+    x = intrinsics_vector(camera)
     R, t = H[:3, :3], H[:3, 3]
     p = det.p_W
-    m = _project(x, R, t, p)
+    m = project_points(x, R, t, p)
     h = 0.01
-    jx = (_project(x, R, t, p + [h, 0, 0]) - m) / h
-    jy = (_project(x, R, t, p + [0, h, 0]) - m) / h
+    jx = (project_points(x, R, t, p + [h, 0, 0]) - m) / h
+    jy = (project_points(x, R, t, p + [0, h, 0]) - m) / h
     Jp = np.stack([jx, jy], axis=2)  # (N, 2 px, 2 mm)
     r = uv - m
     if not (np.all(np.isfinite(Jp)) and np.all(np.isfinite(r))):
@@ -137,7 +137,7 @@ def _turned(det, k: int, plate: PlateSpec):
     return replace(det, rc=rc, p_W=p0[rc[:, 0] * plate.cols + rc[:, 1]].copy())
 
 
-def _align_views(dets, uvs, fit, plate: PlateSpec):
+def align_views(dets, uvs, fit, plate: PlateSpec):
     """(detections re-indexed on one physical grid, [turn in deg per view or None when kept as found])."""
     n_disc = plate.rows * plate.cols
     fields = [_dot_field(d, u, fit.camera, v.C_H_W) for d, u, v in zip(dets, uvs, fit.views)]

@@ -282,7 +282,7 @@ def test_pipeline_on_an_imperfect_grabbers_pictures(cell, seed):
     about that; 0.05 px without the grabber), none over 0.8 px (seed 13's A-inner-back corner is off by
     0.65 px along v: its short back edge is fitted on few lines, each moved by the jitter); every visible
     inner corner found; the calibration's TCP within 0.1 mm of the truth."""
-    from selfview.fingertips import find_fingertips
+    from selfview.fingers import find_fingertips
     from selfview.offline import calibrate_offline
     from tests.alt_render import render_world
 

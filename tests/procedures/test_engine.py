@@ -321,7 +321,7 @@ def test_the_cell_is_reported_safe_only_once_the_worker_has_ended():
 
 
 def test_the_command_line_raises_for_the_first_signal_only():
-    from selfview.procedures.engine import Interrupted, RaiseOnSignal, _SignalFlag
+    from selfview.procedures.engine import Interrupted, RaiseOnSignal, SignalFlag
 
     before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
     try:
@@ -331,10 +331,10 @@ def test_the_command_line_raises_for_the_first_signal_only():
             assert info.value.signum == signal.SIGTERM
             signal.raise_signal(signal.SIGINT)  # the cleanup the first one started goes on
             signal.raise_signal(signal.SIGHUP)
-            assert _SignalFlag.seen == signal.SIGTERM
+            assert SignalFlag.seen == signal.SIGTERM
         assert {s: signal.getsignal(s) for s in before} == before  # the handlers come back
     finally:
-        _SignalFlag.seen = None
+        SignalFlag.seen = None
 
 
 class _Device:

@@ -96,10 +96,10 @@ def test_unknown_version_and_missing_file(tmp_path, rng):
 # --- hostile files --------------------------------------------------------------------------------
 def _rechecksummed(p, doc):
     """Write ``doc`` with a valid checksum, as somebody re-checksumming an edited file would."""
-    from selfview.calfile import _checksum
+    from selfview.calfile import doc_checksum
 
     body = {k: v for k, v in doc.items() if k != "checksum"}
-    doc = dict(body, checksum=_checksum(body))
+    doc = dict(body, checksum=doc_checksum(body))
     p.write_text(yaml.safe_dump(doc, sort_keys=False))
 
 
@@ -329,7 +329,7 @@ def test_a_calibration_that_does_not_read_back_is_never_written(tmp_path, rng):
 def test_values_no_camera_or_cell_has_are_refused_even_with_a_good_checksum(tmp_path, where, value):
     """A corrupted number that still parses and is re-checksummed (the fault campaign's huge_number and
     nan cases) is refused by its physical range, naming the value."""
-    from selfview.calfile import _checksum
+    from selfview.calfile import doc_checksum
 
     p = tmp_path / "cal.yaml"
     save_calibration(make_cal(np.random.default_rng(3)), p)
@@ -338,7 +338,7 @@ def test_values_no_camera_or_cell_has_are_refused_even_with_a_good_checksum(tmp_
     for k in where[:-1]:
         node = node[k]
     node[where[-1]] = value
-    doc["checksum"] = _checksum({k: v for k, v in doc.items() if k != "checksum"})
+    doc["checksum"] = doc_checksum({k: v for k, v in doc.items() if k != "checksum"})
     p.write_text(yaml.safe_dump(doc, sort_keys=False))
     with pytest.raises(CalibrationFileError, match="not a|outside|over|plausible"):
         load_calibration(p)

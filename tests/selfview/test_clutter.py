@@ -15,12 +15,12 @@ import pytest
 from tests import clutter_scenes as clutter
 from selfview.cell import default_cell_path, load_cell
 from selfview.errors import AlarmError, ConfigError
-from selfview.fingertips import find_fingertips
+from selfview.fingers import find_fingertips
 from selfview.geometry import transform_points, trans
 from selfview.online import estimate
 from selfview.policy import Monitor
 from selfview.silhouette import fit_silhouette
-from selfview.silhouette import SilhouetteTracker
+from selfview.fingers import SilhouetteTracker
 
 # a pose marked good may be this far off in any TCP axis (a wrong one is off by 0.1 mm or more; a
 # right one is typically 0.01 mm: 0.05 leaves room for one frame's noise, not for a wrong edge)

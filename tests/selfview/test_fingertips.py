@@ -12,7 +12,8 @@ import pytest
 
 from selfview.cell import POINT_NAMES
 from selfview.errors import CalibrationError, ImageError
-from selfview.fingertips import find_fingertips, predict_fingertips, visible_edges
+from selfview.fingertips import predict_fingertips, visible_edges
+from selfview.fingers import find_fingertips
 from selfview.geometry import make_H, transform_points
 from tests.alt_render import case, grid_symmetry, render_world
 

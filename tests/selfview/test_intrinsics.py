@@ -302,7 +302,7 @@ def test_a_camera_file_whose_covariance_holds_nan_is_refused(tmp_path):
     recomputed checksum: the on-line updates propagate it into every sigma they report."""
     import yaml
 
-    from selfview.calfile import _checksum
+    from selfview.calfile import doc_checksum
 
     cov = np.diag([0.1, 1e-10, 0.05, 0.06, 2e-5]) ** 2
     cf = CameraFile(TRUE, {"f": 0.1, "kappa": 1e-10, "cx": 0.05, "cy": 0.06, "aspect": 2e-5}, cov)
@@ -311,7 +311,7 @@ def test_a_camera_file_whose_covariance_holds_nan_is_refused(tmp_path):
     doc = yaml.safe_load(p.read_text())
     doc["covariance"][0][1] = doc["covariance"][1][0] = float("nan")
     body = {k: v for k, v in doc.items() if k != "checksum"}
-    doc["checksum"] = _checksum(body)
+    doc["checksum"] = doc_checksum(body)
     p.write_text(yaml.safe_dump(doc))
     with pytest.raises(CalibrationFileError, match="covariance holds a number that is not finite"):
         load_camera_file(p)

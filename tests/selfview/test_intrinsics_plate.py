@@ -12,8 +12,8 @@ import pytest
 
 from selfview.geometry import R_from_rotvec, inv_H, make_H, trans
 from selfview.intrinsics import calibrate_intrinsics, detect_views, fit_views
-from selfview.intrinsics.model import _Joint
-from selfview.intrinsics.plate import _PlateShape, _similarity_complement
+from selfview.intrinsics.model import JointProblem
+from selfview.intrinsics.plate import PlateShape, _similarity_complement
 from selfview.mocks.imperfections import PROFILES
 from selfview.mocks.render import render
 from selfview.mocks.world import PLATE_BASE_POSE, SimWorld
@@ -95,7 +95,7 @@ def test_joint_jacobian_with_the_plate_shape_matches_differences(cell):
     rng = np.random.default_rng(3)
     cam = cell.camera.guess()
     p0 = cell.plate.disc_centres_W()
-    shape = _PlateShape(cell.plate, "bow+dots", 0.02)
+    shape = PlateShape(cell.plate, "bow+dots", 0.02)
     poses, P, uv, idx = [], [], [], []
     for k in range(3):
         H = make_H(R_from_rotvec(rng.normal(0, 0.3, 3)), (rng.normal(0, 5), rng.normal(0, 5), 180.0 + 20 * k))
@@ -104,7 +104,7 @@ def test_joint_jacobian_with_the_plate_shape_matches_differences(cell):
         P.append(p0[keep])
         uv.append(rng.normal(0, 1, (40, 2)) + (cam.cx, cam.cy))
         idx.append(keep)
-    model = _Joint(P, uv, [H[:3, :3] for H in poses], shape, idx)
+    model = JointProblem(P, uv, [H[:3, :3] for H in poses], shape, idx)
     x = np.concatenate([[cam.f, cam.kappa, cam.cx, cam.cy, cam.aspect],
                         *[np.r_[np.zeros(3), H[:3, 3]] for H in poses], rng.normal(0, 0.05, shape.n)])
     J = model.jacobian(x)

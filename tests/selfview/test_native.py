@@ -32,7 +32,7 @@ def test_pure_python_switch_turns_the_kernel_off():
 
 def test_the_kernel_loads_unless_switched_off():
     expect = {
-        name: any((ROOT / "selfview" / f"{name}{suffix}").exists() for suffix in EXTENSION_SUFFIXES)
+        name: any((Path(_native.__file__).resolve().parent / f"{name}{suffix}").exists() for suffix in EXTENSION_SUFFIXES)
         for name in ("_csil",)
     }
     assert _status_with(None) == expect

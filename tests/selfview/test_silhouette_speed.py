@@ -20,9 +20,9 @@ import pytest
 import selfview.silhouette as sil
 from selfview import _native
 from selfview.cell import default_cell_path, load_cell
-from selfview.fingertips import model_measurement
+from selfview.fingers import model_measurement
 from selfview.geometry import inv_H, make_H
-from selfview.silhouette import WIDE_ROUNDS, SilhouetteTracker
+from selfview.fingers import WIDE_ROUNDS, SilhouetteTracker
 from tests import clutter_scenes as clutter
 
 CORNER_TOL_PX = 0.01

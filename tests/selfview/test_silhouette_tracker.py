@@ -15,7 +15,8 @@ from selfview.geometry import trans
 from selfview.mocks.render import render
 from selfview.mocks.world import SimWorld
 from selfview.online import estimate
-from selfview.silhouette import SilhouetteTracker, fit_silhouette, learn_appearance
+from selfview.silhouette import fit_silhouette, learn_appearance
+from selfview.fingers import SilhouetteTracker
 from tests.selfview.test_silhouette_speed import _looking_at
 
 TCP_MM = 0.05  # the on-line accuracy a tracked frame must give (4P-I on its corners, any TCP axis)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from selfview.calfile import _checksum, load_calibration, save_calibration
+from selfview.calfile import doc_checksum, load_calibration, save_calibration
 from selfview.camera import MAX_SKEW, CameraModel
 from selfview.camfile import CameraFile, load_camera_file, save_camera_file
 from selfview.errors import CalibrationFileError, ConfigError
@@ -183,7 +183,7 @@ def test_camera_files_with_and_without_skew(tmp_path):
     doc = yaml.safe_load(new.read_text())
     doc["camera"]["skew"] = 0.2
     doc.pop("checksum")
-    doc["checksum"] = _checksum(doc)
+    doc["checksum"] = doc_checksum(doc)
     bad.write_text(yaml.safe_dump(doc, sort_keys=False))
     with pytest.raises(CalibrationFileError, match="camera skew"):
         load_camera_file(bad)
@@ -210,7 +210,7 @@ def test_cli_calibrate_refuses_an_absurd_skew_and_uses_a_good_one(cell, sheared,
     doc = yaml.safe_load(good.read_text())
     doc["camera"]["skew"] = -0.03
     doc.pop("checksum")
-    doc["checksum"] = _checksum(doc)
+    doc["checksum"] = doc_checksum(doc)
     absurd = tmp_path / "absurd.yaml"
     absurd.write_text(yaml.safe_dump(doc, sort_keys=False))
     out2 = tmp_path / "cal2.yaml"

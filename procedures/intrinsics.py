@@ -1,0 +1,49 @@
+"""Measuring a camera from pictures of a plate, as a lab script calls it (``selfview intrinsics --images``).
+
+    from selfview.cell import load_plate
+    from selfview.procedures.intrinsics import measure_intrinsics
+    res = measure_intrinsics(pictures, load_plate("plate.yaml"))
+"""
+
+from __future__ import annotations
+
+from selfview.camera import CameraModel
+from selfview.cell import PlateSpec
+from selfview.errors import ImageError
+from selfview.intrinsics import IntrinsicsResult, calibrate_intrinsics, detect_views, guess_camera
+
+
+def measure_intrinsics(images, plate: PlateSpec, camera: CameraModel | None = None, names=None, *,
+                       skip_unusable: bool = False, plate_model: str = "bow+dots") -> IntrinsicsResult:
+    """``calibrate_intrinsics`` of (H, W) pictures of ``plate``; ``camera`` the starting camera (a cell's
+    nominal one), or None: one from the pictures themselves (``intrinsics.guess_camera``; every picture
+    of the first one's size). Raises ``ImageError`` or ``CalibrationError`` as ``calibrate_intrinsics``."""
+    if camera is not None:
+        return calibrate_intrinsics(images, plate, camera, names, skip_unusable=skip_unusable, plate_model=plate_model)
+    names = list(names) if names is not None else [f"view {i + 1}" for i in range(len(images))]
+    if not images:
+        raise ImageError("intrinsics: no pictures given")
+    sizes = {tuple(getattr(im, "shape", (0, 0))[:2]) for im in images}
+    if len(sizes) != 1:
+        raise ImageError(f"intrinsics: the pictures have different sizes {sorted(sizes)}; one camera gives one size")
+    h, w = sizes.pop()
+    dets, kept, skipped = detect_views(images, plate, None, names, skip_unusable=skip_unusable)
+    res = calibrate_intrinsics(None, plate, guess_camera(dets, w, h), kept, detections=dets, plate_model=plate_model)
+    res.skipped = list(skipped) + list(res.skipped)
+    return res
+
+
+def intrinsics_warnings(res: IntrinsicsResult) -> list[str]:
+    """What the operator must know about a measured camera: pictures not used, the stop rule not met (with
+    the advice), the two halves of the views disagreeing."""
+    warnings = [f"{sk['name']} not used: {sk['reason']}" for sk in res.skipped]
+    if not res.stop_rule["met"]:
+        warnings.append("stop rule not met: sigma of the centre {:.3f} px (limit {}), of the aspect {:.4f} % (limit {} %); {}".format(
+            res.stop_rule["sigma_centre_px"], res.stop_rule["limit_centre_px"], res.stop_rule["sigma_aspect_pct"],
+            res.stop_rule["limit_aspect_pct"], res.stop_rule.get("advice", "")))
+    xc = res.cross_check
+    if xc.get("done") and not xc.get("agree"):
+        worst = max(xc["ratio"], key=xc["ratio"].get)
+        warnings.append(f"the two halves of the views disagree: {worst} differs by {xc['ratio'][worst]:.1f} combined sigmas "
+                        f"(limit {xc['limit_sigmas']:g}); a view may be blurred, or the camera moved between views")
+    return warnings

@@ -1,0 +1,232 @@
+"""The finger-measurement layer's entry points: the fingertip corners of a picture from a predicted pose.
+
+``find_fingertips`` (one picture) and ``SilhouetteTracker`` (a sequence) take a prediction
+(``fingertips.PredictedFingers``: camera, ``C_H_G``, gripper, jaw gap) and measure by the corner search
+(``selfview.fingertips``), the model-based silhouette fit (``selfview.silhouette``) or both
+(``measure_model``); every result is a ``fingertips.FingertipResult``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from selfview.camera import CameraModel
+from selfview.cell import POINT_NAMES, GripperSpec
+from selfview.discs import as_gray
+from selfview.errors import CalibrationError
+from selfview.fingertips import FingertipResult, PredictedFingers, search_corners
+from selfview.geometry import transform_points
+from selfview.silhouette import fit_silhouette, learn_appearance
+
+__all__ = ["find_fingertips", "model_measurement", "measure_model", "fit_result", "SilhouetteTracker", "WIDE_ROUNDS"]
+
+
+def find_fingertips(
+    image,
+    camera: CameraModel,
+    C_H_G_pred,
+    gripper: GripperSpec,
+    gap_mm: float,
+    *,
+    search_px: float = 60.0,
+    points=range(6),
+    model: bool = False,
+    appearance=None,
+) -> FingertipResult:
+    """Locate the fingertip corners ``points`` (indices into POINT_NAMES) near their prediction from
+    ``C_H_G_pred`` (4, 4) with jaw gap ``gap_mm`` [mm], within ``search_px`` [px] of it. ``camera``
+    projects the prediction and undistorts the edge points (off-line the one Tsai's method just
+    calibrated, on-line the last calibration's); corners come back in distorted pixels.
+
+    ``model=True``: the model-based measurement (``selfview.silhouette``): the whole silhouette of both
+    fingers fitted from the best start (the prediction, or the pose the corners found here give), the
+    corners the model's points at the fitted pose; the result's ``quality``, ``lost`` and ``C_H_G`` say
+    how well it fits, and a fit below the thresholds reports every point as not found with the reason.
+    ``appearance`` (``selfview.silhouette.Appearance``) the faces' grey levels, if known (else read at the start).
+
+    Returns a ``FingertipResult``; points not found carry a reason and are NaN. Raises ``ImageError``
+    for a blank picture or one of the wrong size, ``CalibrationError`` if the prediction puts the
+    fingertips behind the camera or is not finite, ``ValueError`` for a transform that is not (4, 4) or a
+    jaw gap that is not a positive number.
+    """
+    pred = PredictedFingers(camera, C_H_G_pred, gripper, gap_mm)
+    result = search_corners(image, pred, search_px, points)
+    if not model:
+        return result
+    return measure_model(image, pred, points, result, appearance)[0]
+
+
+def _pose_from_corners(pred: PredictedFingers, res: FingertipResult):
+    """The pose the found corners give (NP-I from the prediction on them), or None (fewer than 3)."""
+    from selfview.online import iterative_update
+
+    k = np.flatnonzero(res.found)
+    if len(k) < 3:
+        return None
+    try:
+        return iterative_update(pred.C_H_G, pred.gripper.points_G(gap=pred.gap_mm)[k], res.uv[k], pred.camera).C_H_G_orth
+    except CalibrationError:
+        return None
+
+
+def fit_result(fit, searched: FingertipResult | None, points) -> FingertipResult:
+    want = {int(k) for k in points}
+    if fit.ok:
+        reasons = [None if fit.found[k] else (fit.reasons[k] or "not found") for k in range(6)]
+        reasons = [r if k in want else "not requested" for k, r in enumerate(reasons)]
+        found = fit.found & np.array([k in want for k in range(6)])
+        uv = np.where(found[:, None], fit.uv, np.nan)
+        return FingertipResult(uv=uv, found=found, reasons=reasons, edge_rms_px=np.where(found, fit.rms_px, np.nan),
+                               names=POINT_NAMES, n_edge_points=np.where(found, fit.n_samples, 0),
+                               quality=fit.quality(), C_H_G=fit.C_H_G)
+    why = fit.reason or "the silhouette does not fit"
+    reasons = [why if k in want else "not requested" for k in range(6)]
+    return FingertipResult(uv=np.full((6, 2), np.nan), found=np.zeros(6, bool), reasons=reasons,
+                           edge_rms_px=np.full(6, np.nan), names=POINT_NAMES, n_edge_points=np.zeros(6, int),
+                           quality=fit.quality(), lost=why)
+
+
+def model_measurement(image, camera, C_H_G_pred, gripper, gap_mm, points=range(6), searched=None, appearance=None,
+                      starts=None, rounds=None):
+    """The model-based measurement from the prediction and, if the corner search ``searched`` found three
+    or more corners, from the pose they give; the believed fit with the larger share of good samples
+    wins. Returns (FingertipResult, SilhouetteFit)."""
+    return measure_model(image, PredictedFingers(camera, C_H_G_pred, gripper, gap_mm), points, searched,
+                              appearance, starts, rounds)
+
+
+def measure_model(image, pred: PredictedFingers, points=range(6), searched=None, appearance=None, starts=None,
+                       rounds=None):
+    cands = list(starts) if starts is not None else [pred.C_H_G]
+    if searched is not None:
+        H = _pose_from_corners(pred, searched)
+        if H is not None:
+            cands.insert(0, H)
+    if not cands:
+        cands = [pred.C_H_G]
+    cam, gripper, gap = pred.camera, pred.gripper, pred.gap_mm
+    if appearance is None or not appearance.levels:
+        # the faces' levels where the fingers most likely are: at the found corners' pose, else the first start
+        appearance = learn_appearance(image, cam, cands[0], gripper, gap)
+    best = None
+    for H in cands:
+        kw = {} if rounds is None else {"rounds": rounds}
+        fit = fit_silhouette(image, cam, H, gripper, gap, appearance=appearance, points=points, **kw)
+        if best is None or (fit.ok, fit.good_fraction) > (best.ok, best.good_fraction):
+            best = fit
+        if fit.ok and fit.good_fraction > 0.8:
+            break
+    return fit_result(best, searched, points), best
+
+
+WIDE_ROUNDS = (60.0, 24.0, 10.0, 5.0, 3.0)  # a search's fit from a start that may be far off [px]
+
+
+class SilhouetteTracker:
+    """The fingertips of a sequence of pictures by the model-based measurement (``selfview.silhouette``).
+
+    ``find(image, C_H_G_pred, gap_mm)`` returns a ``FingertipResult`` (``tracked`` when it followed the
+    last frame); ``searches``, ``tracked_frames``, ``lost_frames`` count the kinds of frame,
+    ``last_failure`` says why the last frame was searched (None: tracked), ``reset()`` forgets the last
+    pose. Every frame fits the whole silhouette of both fingers: from the last fitted pose with the short ranges ``track_rounds``
+    [px] (the camera moves little between frames), with the faces' grey levels of the last fit; once more
+    within 3 px of the new pose when the fingertips moved more than ``refine_px`` [px]. When
+    that fit is not believed (its quality under the thresholds: the reason is ``last_failure``), the frame
+    is searched: fits with the full ranges from the last pose and from ``C_H_G_pred``, then from the
+    pose the corner search (``selfview.fingertips``) gives. A frame where none holds reports every point
+    as not found, with the reason in ``result.lost``: a missed frame, never a pose. Every result carries
+    the fit's ``quality``.
+    """
+
+    def __init__(self, camera: CameraModel, gripper: GripperSpec, *, points=range(4), search_px: float = 60.0,
+                 track_rounds=(8.0,), refine_px: float = 2.0, appearance=None):
+        if not isinstance(camera, CameraModel):
+            raise TypeError(f"camera: expected a selfview.camera.CameraModel, got {type(camera).__name__}")
+        want = sorted({int(k) for k in points})
+        if not want or any(k < 0 or k > 5 for k in want):
+            raise ValueError(f"points: expected indices 0..5 into POINT_NAMES, got {list(points)}")
+        rounds = tuple(float(r) for r in track_rounds)
+        if not rounds or any(not (1.0 <= r <= 60.0) for r in rounds):
+            raise ValueError(f"track_rounds: expected search ranges of 1..60 px, got {track_rounds!r}")
+        self.camera = camera
+        self.gripper = gripper
+        self.points = tuple(want)
+        self.search_px = float(search_px)
+        self.track_rounds = rounds
+        self.refine_px = float(refine_px)
+        self.searches = 0
+        self.tracked_frames = 0
+        self.lost_frames = 0
+        self.last_failure: str | None = None
+        self.last_fit = None
+        self._app0 = appearance
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the last pose: the next frame is searched for."""
+        self._H = None
+        self._gap = None
+        self._app = self._app0
+
+    @property
+    def primed(self) -> bool:
+        return self._H is not None
+
+    def find(self, image, C_H_G_pred, gap_mm: float) -> FingertipResult:
+        pred = PredictedFingers(self.camera, C_H_G_pred, self.gripper, gap_mm)
+        gap_mm = pred.gap_mm
+        a = np.asarray(image)
+        if a.dtype == np.uint8 and a.shape == (int(self.camera.height), int(self.camera.width)):
+            img = a  # a grabber's frame: no other check needed per frame (float32 where the search needs it)
+        else:
+            img = as_gray(image, self.camera)  # float32, checked
+        why = None
+        if self._H is not None and self._gap is not None and abs(gap_mm - self._gap) > 1e-6:
+            why = f"the jaw gap changed ({self._gap:.2f} -> {gap_mm:.2f} mm)"
+            self.reset()
+        if self._H is not None:
+            fit = fit_silhouette(img, self.camera, self._H, self.gripper, gap_mm, appearance=self._app,
+                                 rounds=self.track_rounds, points=self.points, frame=True)
+            if fit.C_H_G is not None and self._moved_px(fit.C_H_G, gap_mm) > self.refine_px:
+                # a larger step than usual: once more with a short range around the new pose
+                again = fit_silhouette(img, self.camera, fit.C_H_G, self.gripper, gap_mm, appearance=fit.appearance,
+                                       rounds=(min(self.track_rounds[-1], 3.0),), points=self.points, frame=True)
+                fit = again if again.ok or not fit.ok else fit
+            if fit.ok:
+                self._take(fit, gap_mm)
+                self.tracked_frames += 1
+                self.last_failure = None
+                res = fit_result(fit, None, self.points)
+                res.tracked = True
+                return res
+            why = fit.reason
+        self.last_failure = why
+        img = img.astype(np.float32, copy=False)
+        starts = ([self._H] if self._H is not None else []) + [pred.C_H_G]
+        res, fit = measure_model(img, pred, self.points, appearance=self._app, starts=starts)
+        if not fit.ok:
+            # the corner search's pose (three corners or more), and fits reaching as far as it searches
+            searched = search_corners(img, pred, self.search_px, range(6))
+            res2, fit2 = measure_model(img, pred, self.points, searched=searched, appearance=self._app,
+                                            starts=[], rounds=WIDE_ROUNDS)
+            if fit2.ok:
+                res, fit = res2, fit2
+        self.searches += 1
+        if fit.ok:
+            self._take(fit, gap_mm)
+        else:
+            self.lost_frames += 1
+        return res
+
+    def _moved_px(self, H, gap_mm: float) -> float:
+        """How far [px] the fingertip points moved in the picture from the last pose to ``H``."""
+        p = self.gripper.points_G(gap=gap_mm)
+        a = self.camera.project_undistorted(transform_points(self._H, p))
+        b = self.camera.project_undistorted(transform_points(H, p))
+        return float(np.max(np.linalg.norm(a - b, axis=1)))
+
+    def _take(self, fit, gap_mm: float) -> None:
+        self._H = fit.C_H_G.copy()
+        self._gap = float(gap_mm)
+        self._app = fit.appearance
+        self.last_fit = fit

@@ -1,0 +1,25 @@
+"""The model's own estimate 'E' through ``online.estimate``, like the point methods."""
+
+import numpy as np
+import pytest
+
+from selfview.camera import CameraModel
+from selfview.errors import ConfigError
+from selfview.geometry import pose_difference, rot_x, trans
+from selfview.online import MODEL_METHOD, estimate
+
+
+def test_E_is_the_fitted_pose_and_the_camera_motion_it_implies():
+    cam = CameraModel(f=950.0, kappa=0.0, cx=383.5, cy=287.5, aspect=1.0, width=768, height=576)
+    C_H_G = trans(0.0, 1.0, 110.0) @ rot_x(np.radians(30.0))
+    moved = trans(0.8, -0.2, 0.1) @ rot_x(np.radians(0.3)) @ C_H_G
+    nan6 = np.full((6, 2), np.nan)
+    est = estimate(MODEL_METHOD, C_H_G, np.zeros((6, 3)), nan6, np.zeros(6, bool), cam, model_C_H_G=moved,
+                   model_rms_px=0.12)
+    assert est.method == "E" and np.allclose(est.C_H_G_orth, moved) and est.points_used == ()
+    M = moved @ np.linalg.inv(C_H_G)
+    assert est.d_mm == pytest.approx(np.linalg.norm(M[:3, 3]))
+    assert est.delta_deg == pytest.approx(pose_difference(moved, C_H_G)[0]) and est.delta_deg == pytest.approx(0.3)
+    assert est.rms_px == 0.12
+    with pytest.raises(ConfigError, match="model's own estimate"):
+        estimate(MODEL_METHOD, C_H_G, np.zeros((6, 3)), nan6, np.zeros(6, bool), cam)
