@@ -267,10 +267,9 @@ def track(image, calibration, method: str = "auto", *, cell=None, state: str | N
     An alarm is a result (``decision`` 'alarm', verdict no-go), not an exception. Raises ``ImageError``,
     ``ConfigError`` (a method, state or measure unknown), ``CalibrationError`` (the fingertips not found).
     """
-    from selfview.fingertips import find_fingertips
-    from selfview.geometry import pose_difference
+    from selfview.fingers import find_fingertips
     from selfview.offline import check_picture
-    from selfview.online import estimate
+    from selfview.online import MODEL_METHOD, estimate
     from selfview.pcc import jaw_gap_of
     from selfview.policy import Monitor
 
@@ -299,16 +298,12 @@ def track(image, calibration, method: str = "auto", *, cell=None, state: str | N
         return TrackResult(H, d.method or "auto", d.action, d.reason, d.delta_deg, d.d_mm, d.rms_px,
                            None if d.action == "alarm" else _tcp_sigma_after(d.estimate, H, cal),
                            list(d.points_used or []), **common)
-    if method == "E":
-        if ft.C_H_G is None:
-            raise ConfigError("method E is the model's own estimate: it needs measure='model'")
-        H = np.asarray(ft.C_H_G, float)
-        M = H @ np.linalg.inv(cal.C_H_G)  # the camera's motion C'_H_C
-        return TrackResult(H, "E", "update", "the fingers' model fitted to the picture",
-                           float(pose_difference(H, cal.C_H_G)[0]), float(np.linalg.norm(M[:3, 3])),
-                           float(ft.quality["rms_px"]), None, [], C_H_G_orthonormal=H, **common)
-    est = estimate(method, cal.C_H_G, pG, ft.uv, ft.found, cal.camera)
+    if method == MODEL_METHOD and ft.C_H_G is None:
+        raise ConfigError("method E is the model's own estimate: it needs measure='model'")
+    est = estimate(method, cal.C_H_G, pG, ft.uv, ft.found, cal.camera, model_C_H_G=ft.C_H_G,
+                   model_rms_px=float(ft.quality.get("rms_px", float("nan"))) if ft.quality else float("nan"))
     decision = "recalibrate" if method.endswith("R") else "update"
-    return TrackResult(est.C_H_G, method, decision, method, est.delta_deg, est.d_mm, est.rms_px,
-                       _tcp_sigma_after(est, est.C_H_G_orth, cal), list(est.points_used),
-                       C_H_G_orthonormal=est.C_H_G_orth, **common)
+    reason = "the fingers' model fitted to the picture" if method == MODEL_METHOD else method
+    sigma = None if method == MODEL_METHOD else _tcp_sigma_after(est, est.C_H_G_orth, cal)
+    return TrackResult(est.C_H_G, method, decision, reason, est.delta_deg, est.d_mm, est.rms_px, sigma,
+                       list(est.points_used), C_H_G_orthonormal=est.C_H_G_orth, **common)

@@ -6,7 +6,8 @@ import sys
 
 from selfview.procedures.commands._common import COUNT, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
-from selfview.procedures.view import add_view_arguments, viewing, watch, with_progress
+from selfview.procedures.view import viewing, watch, with_progress
+from selfview.procedures.commands._common import add_view_arguments
 
 
 def register(sub):
