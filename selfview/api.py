@@ -297,7 +297,7 @@ def track(image, calibration, method: str = "auto", *, cell=None, state: str | N
                            list(d.points_used or []), **common)
     if method == "E":
         if ft.C_H_G is None:
-            raise ConfigError("method E is the model's own estimate: it needs measure='model'")
+            raise ConfigError("method E is the model's own estimate: it needs --measure model (measure='model' in Python)")
         H = np.asarray(ft.C_H_G, float)
         M = H @ np.linalg.inv(cal.C_H_G)  # the camera's motion C'_H_C
         return TrackResult(H, "E", "update", "the fingers' model fitted to the picture",
