@@ -416,7 +416,7 @@ def decision_state(view: LiveView, rec: dict, limits) -> None:
                          "fingertips": rec.get("fingertips", "")})
     view.log({"frame": rec.get("frame"), "decision": rec.get("action"), "method": rec.get("method") or "",
               "delta [deg]": rec.get("delta_deg"), "d [mm]": rec.get("d_mm"), "rms [px]": rec.get("rms_px"),
-              "why": rec.get("reason") or ""})
+              "TCP 1-sigma z [mm]": (rec.get("tcp_sigma_mm") or [None] * 3)[2], "why": rec.get("reason") or ""})
     if rec.get("action") == "alarm":
         view.alarm(f"alarm at frame {rec.get('frame')}: {rec.get('reason')}")
     else:

@@ -24,7 +24,7 @@ from selfview.fingertips import FingertipResult
 from selfview.offline import OfflineResult
 
 __all__ = ["PictureCalibration", "TrackResult", "assess_offline", "calibrate_picture", "calibration_change", "track",
-           "RMS_LIMIT_PX"]
+           "tcp_sigma_after", "RMS_LIMIT_PX"]
 
 #: A disc residual RMS [px] above this says the picture is out of focus or badly lit.
 RMS_LIMIT_PX = 0.5
@@ -236,7 +236,7 @@ class TrackResult:
         return out
 
 
-def _tcp_sigma_after(est, H, cal: Calibration) -> list | None:
+def tcp_sigma_after(est, H, cal: Calibration) -> list | None:
     """1-sigma [mm] of the TCP at ``H`` (4, 4) after the motion ``est`` (its covariance over rotation [rad]
     and shift [mm]; ``dp = -[p]x d_rot + d_shift``), with the calibration's recorded sigma added."""
     if est is None or not np.all(np.isfinite(est.covariance)):
@@ -293,7 +293,7 @@ def track(image, calibration, method: str = "auto", *, cell=None, state: str | N
         d = mon.step(ft.uv, ft.found, lost=ft.lost)
         H = np.asarray(d.C_H_G, float)
         return TrackResult(H, d.method or "auto", d.action, d.reason, d.delta_deg, d.d_mm, d.rms_px,
-                           None if d.action == "alarm" else _tcp_sigma_after(d.estimate, H, cal),
+                           None if d.action == "alarm" else tcp_sigma_after(d.estimate, H, cal),
                            list(d.points_used or []), **common)
     if method == "E":
         if ft.C_H_G is None:
@@ -306,5 +306,5 @@ def track(image, calibration, method: str = "auto", *, cell=None, state: str | N
     est = estimate(method, cal.C_H_G, pG, ft.uv, ft.found, cal.camera)
     decision = "recalibrate" if method.endswith("R") else "update"
     return TrackResult(est.C_H_G, method, decision, method, est.delta_deg, est.d_mm, est.rms_px,
-                       _tcp_sigma_after(est, est.C_H_G_orth, cal), list(est.points_used),
+                       tcp_sigma_after(est, est.C_H_G_orth, cal), list(est.points_used),
                        C_H_G_orthonormal=est.C_H_G_orth, **common)

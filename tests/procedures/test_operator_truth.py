@@ -270,3 +270,18 @@ def test_ctrl_c_in_an_experiment_keeps_the_finished_trials_and_says_one_thing(tm
     assert f"the {n} finished trial(s) are kept in {out}/" in tail
     assert tail.count("ABORT sent") == 2  # once in the cleanup's line, once in the error; one outcome each
     assert "confirmed" in tail and not re.search(r"trial \d+ of", tail)  # no progress after the interrupt
+
+
+def test_the_monitors_updates_carry_their_sigma_with_the_calibrations(tmp_path, capsys):
+    cal = tmp_path / "cal.yaml"
+    assert main(["calibrate", "--out", str(cal), "--no-pictures", "--json"]) == 0
+    own = np.asarray(json.loads(capsys.readouterr().out)["tcp_sigma_mm"])
+    assert main(["monitor", "--calibration", str(cal), "--frames", "4", "--drift", "0.05", "--json"]) == 0
+    recs = [json.loads(ln) for ln in capsys.readouterr().out.splitlines() if ln.startswith("{")]
+    updates = [r for r in recs if r["action"] in ("update", "recalibrate")]
+    assert len(updates) >= 3
+    for r in updates:
+        sg = np.asarray(r["tcp_sigma_mm"])
+        assert sg.shape == (3,) and np.all(sg >= own - 1e-12) and np.all(sg < 0.5)
+    assert main(["monitor", "--calibration", str(cal), "--frames", "2"]) == 0
+    assert re.search(r"rms \d\.\d{3} px, TCP 1-sigma z \d\.\d{4} mm - ", capsys.readouterr().out)
