@@ -136,11 +136,11 @@ class LiveView:
         self.update()
 
     # --- the page's controls (run in the server's thread) -----------------------------------------
-    def ask(self, prompt: str, buttons, *, select_views: bool = False, timeout_s: float = 600.0):
+    def ask(self, prompt: str, buttons, *, select_views: bool = False, timeout_s: float = 600.0, cancel=None):
         """Offer ``buttons`` [(action, label)] on the page under ``prompt`` and wait for the operator's click
         (STOP and Ctrl-C still end the run); with ``select_views`` the page's per-view table offers a reject
         box per view, sent with the click as ``reject`` (view names). Returns (action, {"reject": [...]}),
-        or None when nobody answered within ``timeout_s``."""
+        or None when nobody answered within ``timeout_s`` or ``cancel`` (an event: the run is stopping) was set."""
         done = threading.Event()
         box = {}
 
@@ -159,7 +159,7 @@ class LiveView:
         try:
             end = time.monotonic() + timeout_s
             while not done.wait(0.1):
-                if time.monotonic() > end:
+                if time.monotonic() > end or (cancel is not None and cancel.is_set()):
                     return None
         finally:
             for a in names:
