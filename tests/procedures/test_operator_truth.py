@@ -285,3 +285,25 @@ def test_the_monitors_updates_carry_their_sigma_with_the_calibrations(tmp_path, 
         assert sg.shape == (3,) and np.all(sg >= own - 1e-12) and np.all(sg < 0.5)
     assert main(["monitor", "--calibration", str(cal), "--frames", "2"]) == 0
     assert re.search(r"rms \d\.\d{3} px, TCP 1-sigma z \d\.\d{4} mm - ", capsys.readouterr().out)
+
+
+def test_the_corner_floor_is_what_the_corner_search_achieves_and_the_sigma_covers_the_error(cell):
+    """``CORNER_FLOOR_PX`` against the corner search's error on rendered pictures whose corners are known, and
+    the TCP's sigma (ideal camera) against the TCP's error: neither a sigma far below the error nor far above."""
+    from selfview.geometry import transform_points
+    from selfview.intrinsics.checks import CORNER_FLOOR_PX
+
+    errs, ratios = [], []
+    for seed in (11, 12, 13, 14):
+        w = SimWorld(cell, seed=seed)
+        w.park()
+        pc = selfview.calibrate_picture(render(w, seed=1).image, cell=cell)
+        ft = pc.offline.fingertips
+        found = np.asarray(ft.found, bool)
+        truth = w.camera.project(transform_points(w.C_H_G, cell.gripper.points_G(pc.calibration.state)))
+        errs.append(ft.uv[found] - truth[found])
+        ratios.append((pc.C_H_G[:3, 3] - w.C_H_G[:3, 3]) / np.asarray(pc.tcp_sigma_mm))
+    rms = np.sqrt(np.mean(np.vstack(errs) ** 2, axis=0))
+    assert np.all(rms > 0.5 * np.asarray(CORNER_FLOOR_PX)) and np.all(rms < 2.0 * np.asarray(CORNER_FLOOR_PX)), rms
+    r = np.sqrt(np.mean(np.square(ratios), axis=0))  # 1: the sigma is the error's size
+    assert np.all(r < 2.0) and np.all(r > 0.2), r
