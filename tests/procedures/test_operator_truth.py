@@ -307,3 +307,17 @@ def test_the_corner_floor_is_what_the_corner_search_achieves_and_the_sigma_cover
     assert np.all(rms > 0.5 * np.asarray(CORNER_FLOOR_PX)) and np.all(rms < 2.0 * np.asarray(CORNER_FLOOR_PX)), rms
     r = np.sqrt(np.mean(np.square(ratios), axis=0))  # 1: the sigma is the error's size
     assert np.all(r < 2.0) and np.all(r > 0.2), r
+
+
+def test_verify_with_an_unmeasured_camera_says_no_go_whatever_the_spread(capsys):
+    """The parks share the camera's error, so they agree with each other while all are millimetres off: the
+    verdict names it instead of passing on the spread."""
+    code = main(["verify", "--parks", "3", "--sim-camera", "realistic", "--target-mm", "0.5", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 5 and out["verdict"] == "no-go"
+    assert max(out["spread_mm"]) < 0.5  # the spread alone would say go
+    assert "which the spread cannot see" in out["reason"] and "selfview intrinsics" in out["reason"]
+    shared = np.asarray(out["camera_model_sigma_mm"])
+    assert shared.max() > 0.5 and np.all(np.asarray(out["sigma_mm"]) >= shared - 1e-9)
+    err = np.abs(np.asarray(out["truth_error_mm"]))
+    assert err.max() > 0.5 and np.all(err <= 3 * np.asarray(out["sigma_mm"]))  # the sigma covers the error
