@@ -308,6 +308,8 @@ class CellSession:
         The robot moves between ``settings.work_locations``; ``disturb(k)`` (simulation) may move the
         camera before frame k. On an alarm the engine stops the robot and ``AlarmError`` is raised.
         ``on_frame(picture, fingertips, C_H_G)`` sees each tracked frame. Returns the monitor's decision records."""
+        from selfview.api import tcp_sigma_after
+
         cal = load_calibration(calibration)
         state = state or cal.state
         pG = cal.points_G[state]
@@ -348,10 +350,15 @@ class CellSession:
                     if on_frame is not None:
                         on_frame(img, ft, mon.C_H_G)
                     logged = len(mon.records)
+                    d = None
                     try:
-                        return mon.step(ft.uv, ft.found, lost=ft.lost)
+                        d = mon.step(ft.uv, ft.found, lost=ft.lost)
+                        return d
                     finally:  # how the fingertips were found, beside the decision (an alarm too)
                         if len(mon.records) > logged:
+                            if d is not None and d.action in ("update", "recalibrate"):
+                                # the new TCP's sigma: the estimate's and the calibration's own
+                                mon.records[-1]["tcp_sigma_mm"] = tcp_sigma_after(d.estimate, d.C_H_G, cal)
                             mon.records[-1]["fingertips"] = (
                                 "tracked" if ft.tracked else f"searched ({tracker.last_failure or 'no earlier frame'})"
                             )

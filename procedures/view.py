@@ -125,11 +125,11 @@ class LiveView:
         self.update()
 
     # --- the page's controls (run in the server's thread) -----------------------------------------
-    def ask(self, prompt: str, buttons, *, select_views: bool = False, timeout_s: float = 600.0):
+    def ask(self, prompt: str, buttons, *, select_views: bool = False, timeout_s: float = 600.0, cancel=None):
         """Offer ``buttons`` [(action, label)] on the page under ``prompt`` and wait for the operator's click
         (STOP and Ctrl-C still end the run); with ``select_views`` the page's per-view table offers a reject
         box per view, sent with the click as ``reject`` (view names). Returns (action, {"reject": [...]}),
-        or None when nobody answered within ``timeout_s``."""
+        or None when nobody answered within ``timeout_s`` or ``cancel`` (an event: the run is stopping) was set."""
         done = threading.Event()
         box = {}
 
@@ -148,7 +148,7 @@ class LiveView:
         try:
             end = time.monotonic() + timeout_s
             while not done.wait(0.1):
-                if time.monotonic() > end:
+                if time.monotonic() > end or (cancel is not None and cancel.is_set()):
                     return None
         finally:
             for a in names:
@@ -405,7 +405,7 @@ def decision_state(view: LiveView, rec: dict, limits) -> None:
                          "fingertips": rec.get("fingertips", "")})
     view.log({"frame": rec.get("frame"), "decision": rec.get("action"), "method": rec.get("method") or "",
               "delta [deg]": rec.get("delta_deg"), "d [mm]": rec.get("d_mm"), "rms [px]": rec.get("rms_px"),
-              "why": rec.get("reason") or ""})
+              "TCP 1-sigma z [mm]": (rec.get("tcp_sigma_mm") or [None] * 3)[2], "why": rec.get("reason") or ""})
     if rec.get("action") == "alarm":
         view.alarm(f"alarm at frame {rec.get('frame')}: {rec.get('reason')}")
     else:

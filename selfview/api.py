@@ -27,7 +27,7 @@ if TYPE_CHECKING:  # the command line reads METHODS without loading the measurem
     from selfview.offline import OfflineResult
 
 __all__ = ["PictureCalibration", "TrackResult", "assess_offline", "calibrate_picture", "calibration_change", "track",
-           "RMS_LIMIT_PX"]
+           "tcp_sigma_after", "RMS_LIMIT_PX"]
 
 #: A disc residual RMS [px] above this says the picture is out of focus or badly lit.
 RMS_LIMIT_PX = 0.5
@@ -240,7 +240,7 @@ class TrackResult:
         return out
 
 
-def _tcp_sigma_after(est, H, cal: Calibration) -> list | None:
+def tcp_sigma_after(est, H, cal: Calibration) -> list | None:
     """1-sigma [mm] of the TCP at ``H`` (4, 4) after the motion ``est`` (its covariance over rotation [rad]
     and shift [mm]; ``dp = -[p]x d_rot + d_shift``), with the calibration's recorded sigma added."""
     if est is None or not np.all(np.isfinite(est.covariance)):
@@ -296,14 +296,14 @@ def track(image, calibration, method: str = "auto", *, cell=None, state: str | N
         d = mon.step(ft.uv, ft.found, lost=ft.lost)
         H = np.asarray(d.C_H_G, float)
         return TrackResult(H, d.method or "auto", d.action, d.reason, d.delta_deg, d.d_mm, d.rms_px,
-                           None if d.action == "alarm" else _tcp_sigma_after(d.estimate, H, cal),
+                           None if d.action == "alarm" else tcp_sigma_after(d.estimate, H, cal),
                            list(d.points_used or []), **common)
     if method == MODEL_METHOD and ft.C_H_G is None:
-        raise ConfigError("method E is the model's own estimate: it needs measure='model'")
+        raise ConfigError("method E is the model's own estimate: it needs --measure model (measure='model' in Python)")
     est = estimate(method, cal.C_H_G, pG, ft.uv, ft.found, cal.camera, model_C_H_G=ft.C_H_G,
                    model_rms_px=float(ft.quality.get("rms_px", float("nan"))) if ft.quality else float("nan"))
     decision = "recalibrate" if method.endswith("R") else "update"
     reason = "the fingers' model fitted to the picture" if method == MODEL_METHOD else method
-    sigma = None if method == MODEL_METHOD else _tcp_sigma_after(est, est.C_H_G_orth, cal)
+    sigma = None if method == MODEL_METHOD else tcp_sigma_after(est, est.C_H_G_orth, cal)
     return TrackResult(est.C_H_G, method, decision, reason, est.delta_deg, est.d_mm, est.rms_px, sigma,
                        list(est.points_used), C_H_G_orthonormal=est.C_H_G_orth, **common)

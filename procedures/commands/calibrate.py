@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sys
 
-from selfview.procedures.commands._common import load_cell_arg, output_file, print_json
+from selfview.procedures.commands._common import SECONDS, load_cell_arg, output_file, print_json
 from selfview.procedures.commands._session import add_session_arguments, camera_arguments, open_session, progress_printer
 from selfview.procedures.commands._common import add_view_arguments
 from selfview.procedures.view import watch, offline_state, viewing, with_progress
@@ -55,6 +55,9 @@ def register(sub):
     p.add_argument("--no-pictures", action="store_true",
                    help="do not keep the picture and its annotated copy beside --out (kept by default, named in the file)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.add_argument("--review", nargs="?", type=SECONDS, const=600.0, default=None, metavar="S",
+                   help="with --view: show the calibration on the page and write it only when SAVE is clicked "
+                        "(DISCARD, or no answer within S seconds, default 600: nothing written, exit 5)")
     add_view_arguments(p)
     p.set_defaults(func=run)
     return p
@@ -81,6 +84,17 @@ def _previous(out):
         return None
 
 
+def _review(view, timeout_s, cancel) -> None:
+    """Wait for SAVE on the page; ``CalibrationError`` (nothing written) on DISCARD or no answer."""
+    from selfview.errors import CalibrationError
+
+    got = view.ask("check the calibration: SAVE writes it, DISCARD writes nothing",
+                   [("save", "SAVE"), ("discard", "DISCARD")], timeout_s=timeout_s, cancel=cancel)
+    if got is None or got[0] != "save":
+        why = "discarded on the page" if got else f"not saved on the page within {timeout_s:g} s"
+        raise CalibrationError(f"calibration {why}; nothing written")
+
+
 def run(args) -> int:
     output_file(args.out, "--out")  # before anything moves: a name that cannot be written is refused now
     with viewing(args, "calibrate") as view:
@@ -97,6 +111,8 @@ def _run(args, view) -> int:
 
     url, cam_path = camera_arguments(args.camera)
     args.camera = url
+    if args.review is not None and view is None:
+        raise ConfigError("--review asks on the page: give --view too")
     cell = load_cell_arg(args)
     camera = camera_file = cov3 = None
     if cam_path:
@@ -120,6 +136,8 @@ def _run(args, view) -> int:
                     "against the previous: TCP moved x y z [mm]": " ".join(f"{v:+.4f}" for v in change["tcp_moved_mm"]),
                     "against the previous: rotated [deg]": change["rotated_deg"],
                     "against the previous: f changed [px]": change["f_changed_px"]})
+            if args.review is not None:
+                _review(view, args.review, getattr(getattr(session, "engine", None), "cancel", None))
 
     if args.image:
         if args.real or url:

@@ -69,8 +69,9 @@ def _run(args, view) -> int:
                 v = rec.get(key)
                 return "  -  " if v is None else f"{v:.3f}"
 
+            sg = rec.get("tcp_sigma_mm")
             print(f"frame {rec['frame']:3d}: {rec['action']:<11s} delta {num('delta_deg')} deg, d {num('d_mm')} mm, "
-                  f"rms {num('rms_px')} px - {rec['reason']}"
+                  f"rms {num('rms_px')} px" + (f", TCP 1-sigma z {sg[2]:.4f} mm" if sg else "") + f" - {rec['reason']}"
                   + (f" [fingertips {rec['fingertips']}]" if rec.get("fingertips") else ""), flush=True)
 
     from selfview.calfile import load_calibration, save_calibration

@@ -70,7 +70,7 @@ def test_calibrate_writes_the_file_and_prints_json(pictures, tmp_path, capsys):
 @pytest.mark.parametrize("picture, code_expected, words", [
     ("blank.png", 5, "blank"),
     ("small.png", 5, "640x480"),
-    ("missing.png", 5, "cannot read"),
+    ("missing.png", 3, "cannot read"),  # a file fault: the README's 3
 ])
 def test_calibrate_failures_write_nothing(pictures, tmp_path, capsys, picture, code_expected, words):
     d, _, _ = pictures

@@ -270,3 +270,54 @@ def test_ctrl_c_in_an_experiment_keeps_the_finished_trials_and_says_one_thing(tm
     assert f"the {n} finished trial(s) are kept in {out}/" in tail
     assert tail.count("ABORT sent") == 2  # once in the cleanup's line, once in the error; one outcome each
     assert "confirmed" in tail and not re.search(r"trial \d+ of", tail)  # no progress after the interrupt
+
+
+def test_the_monitors_updates_carry_their_sigma_with_the_calibrations(tmp_path, capsys):
+    cal = tmp_path / "cal.yaml"
+    assert main(["calibrate", "--out", str(cal), "--no-pictures", "--json"]) == 0
+    own = np.asarray(json.loads(capsys.readouterr().out)["tcp_sigma_mm"])
+    assert main(["monitor", "--calibration", str(cal), "--frames", "4", "--drift", "0.05", "--json"]) == 0
+    recs = [json.loads(ln) for ln in capsys.readouterr().out.splitlines() if ln.startswith("{")]
+    updates = [r for r in recs if r["action"] in ("update", "recalibrate")]
+    assert len(updates) >= 3
+    for r in updates:
+        sg = np.asarray(r["tcp_sigma_mm"])
+        assert sg.shape == (3,) and np.all(sg >= own - 1e-12) and np.all(sg < 0.5)
+    assert main(["monitor", "--calibration", str(cal), "--frames", "2"]) == 0
+    assert re.search(r"rms \d\.\d{3} px, TCP 1-sigma z \d\.\d{4} mm - ", capsys.readouterr().out)
+
+
+def test_the_corner_floor_is_what_the_corner_search_achieves_and_the_sigma_covers_the_error(cell):
+    """``CORNER_FLOOR_PX`` against the corner search's error on rendered pictures whose corners are known, and
+    the TCP's sigma (ideal camera) against the TCP's error: neither a sigma far below the error nor far above."""
+    from selfview.geometry import transform_points
+    from selfview.intrinsics.checks import CORNER_FLOOR_PX
+
+    errs, ratios = [], []
+    for seed in (11, 12, 13, 14):
+        w = SimWorld(cell, seed=seed)
+        w.park()
+        pc = selfview.calibrate_picture(render(w, seed=1).image, cell=cell)
+        ft = pc.offline.fingertips
+        found = np.asarray(ft.found, bool)
+        truth = w.camera.project(transform_points(w.C_H_G, cell.gripper.points_G(pc.calibration.state)))
+        errs.append(ft.uv[found] - truth[found])
+        ratios.append((pc.C_H_G[:3, 3] - w.C_H_G[:3, 3]) / np.asarray(pc.tcp_sigma_mm))
+    rms = np.sqrt(np.mean(np.vstack(errs) ** 2, axis=0))
+    assert np.all(rms > 0.5 * np.asarray(CORNER_FLOOR_PX)) and np.all(rms < 2.0 * np.asarray(CORNER_FLOOR_PX)), rms
+    r = np.sqrt(np.mean(np.square(ratios), axis=0))  # 1: the sigma is the error's size
+    assert np.all(r < 2.0) and np.all(r > 0.2), r
+
+
+def test_verify_with_an_unmeasured_camera_says_no_go_whatever_the_spread(capsys):
+    """The parks share the camera's error, so they agree with each other while all are millimetres off: the
+    verdict names it instead of passing on the spread."""
+    code = main(["verify", "--parks", "3", "--sim-camera", "realistic", "--target-mm", "0.5", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 5 and out["verdict"] == "no-go"
+    assert max(out["spread_mm"]) < 0.5  # the spread alone would say go
+    assert "which the spread cannot see" in out["reason"] and "selfview intrinsics" in out["reason"]
+    shared = np.asarray(out["camera_model_sigma_mm"])
+    assert shared.max() > 0.5 and np.all(np.asarray(out["sigma_mm"]) >= shared - 1e-9)
+    err = np.abs(np.asarray(out["truth_error_mm"]))
+    assert err.max() > 0.5 and np.all(err <= 3 * np.asarray(out["sigma_mm"]))  # the sigma covers the error

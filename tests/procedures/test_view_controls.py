@@ -258,3 +258,37 @@ def test_views_are_rejected_recalibrated_and_saved_by_clicks(tmp_path):
     res = json.loads(out)
     assert res["views_used"] == 11 and res["views_rejected"] == ["view 3"] and res["out"] == "cam.yaml"
     assert (tmp_path / "cam.yaml").is_file()
+
+
+@needs_chromium
+@pytest.mark.parametrize("button, code", [("ask-discard", 5), ("ask-save", 0)])
+def test_a_calibration_is_saved_or_discarded_by_a_click(tmp_path, button, code):
+    from selfview.cell import default_cell_path, load_cell
+    from selfview.mocks.render import render
+    from selfview.mocks.world import SimWorld
+
+    w = SimWorld(load_cell(default_cell_path()), seed=3)
+    w.park()
+    cv2.imwrite(str(tmp_path / "parked.png"), render(w, seed=1).image)
+    p, url = start(["calibrate", "--image", "parked.png", "--out", "cal.yaml", "--no-pictures", "--view",
+                    "--review", "60"], tmp_path)
+    b = None
+    try:
+        s = wait_for(url, lambda s: s["ask"] is not None)
+        assert s["verdict"]["go"] and "TCP 1-sigma x y z [mm]" in s["numbers"] and not (tmp_path / "cal.yaml").exists()
+        b = DevTools(url, tmp_path)
+        b.wait_js(f"document.getElementById('{button}')!==null")
+        b.click(button)
+        out, err = p.communicate(timeout=60)
+    finally:
+        if b is not None:
+            b.close()
+        if p.poll() is None:
+            p.kill()
+            p.communicate(timeout=10)
+    assert p.returncode == code, err[-2000:]
+    assert (tmp_path / "cal.yaml").exists() == (code == 0)
+    if code:
+        assert "calibration discarded on the page; nothing written" in err
+    else:
+        assert "written to cal.yaml" in out
