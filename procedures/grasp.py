@@ -32,7 +32,7 @@ from selfview.geometry import H_from_rotvec, inv_H, rotation_angle, rotvec_from_
 from selfview.objects import ObjectSpec, object_pose
 from selfview.policy import Monitor
 from selfview.procedures.engine import Step
-from selfview.silhouette import SilhouetteTracker
+from selfview.fingers import SilhouetteTracker
 
 __all__ = ["ServoSettings", "GraspRig", "EngineRig", "GraspFailed", "GraspResult", "servo_grasp", "run_grasp",
            "draw_servo", "pose_error", "TABLE_MARGIN_MM"]
