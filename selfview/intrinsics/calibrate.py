@@ -121,8 +121,9 @@ fits it; False holds it at ``camera_guess``'s, the spec's model. ``plate_model``
     plate_why = f"{plate_model}: as asked"
     if plate_model == "auto":
         plate_model, plate_why = _choose_plate_model(dets, names, plate, camera_guess)
-    # a bow the views measure but cannot confirm, left out of a flat plate, is what a skew would take up
-    bow_unconfirmed = plate_model == "flat" and plate_why.startswith("flat: the bow measures")
+    # a bow the views measure but are too few to check, left out of a flat plate, is what a skew would take
+    # up (a bow the views left out do not confirm is no shape of the plate, and no reason to hold the skew)
+    bow_unconfirmed = plate_model == "flat" and "too few to check" in plate_why
     fit = fit_views(dets, plate, camera_guess, names, plate_model=plate_model, fit_skew=skew is not False)
     # a view that does not fit the others: drop it and refit
     bad = {v.name: v.rms_px for v in fit.views if v.rms_px > VIEW_MAX_RMS_PX}
@@ -140,8 +141,8 @@ fits it; False holds it at ``camera_guess``'s, the spec's model. ``plate_model``
         skew_fit.update(value=float(val), sigma=sd, sigmas_from_zero=float(z), limit_sigmas=SKEW_SIGNIFICANCE)
         why = None
         if skew == "auto" and bow_unconfirmed:
-            why = (f"it measures {val:.1e} +- {sd:.1e}, but the plate's bow, which the views measure and cannot "
-                   "confirm, is left out of the flat plate, and a skew would take it up")
+            why = (f"it measures {val:.1e} +- {sd:.1e}, but the plate's bow, which the views measure and are too "
+                   "few to check, is left out of the flat plate, and a skew would take it up")
         elif skew == "auto" and not z >= SKEW_SIGNIFICANCE:
             why = (f"the views measure it as {val:.1e} +- {sd:.1e} ({z:.1f} sigmas from 0, under "
                    f"{SKEW_SIGNIFICANCE:g})")
