@@ -473,8 +473,9 @@ def photo_study() -> dict:
             entry = {"size": list(size), "pictures": len(views)}
             try:
                 fits = {}
-                variants = (("selfview", "auto", "bow+dots"), ("selfview_skew_fitted", True, "bow+dots"),
-                            ("selfview_flat_plate", "auto", "flat"))
+                variants = (("selfview", "auto", "auto"), ("selfview_bent_plate", "auto", "bow+dots"),
+                            ("selfview_skew_fitted", True, "auto"), ("selfview_flat_plate", "auto", "flat"),
+                            ("selfview_flat_no_skew", False, "flat"))
                 for key, skew, plate_model in variants:
                     r = calibrate_intrinsics(None, cell.plate, cam0, [v[3] for v in views], detections=dets,
                                              skew=skew, cross_check=False, plate_model=plate_model)
@@ -484,6 +485,7 @@ def photo_study() -> dict:
                                  "skew": c.skew, "rms_px": r.rms_px, "discs": int(sum(v.discs for v in r.views)),
                                  "views_left_out": [list(x) if isinstance(x, tuple) else x for x in r.skipped],
                                  "plate_model": r.plate_shape.get("model", plate_model),
+                                 "plate_model_why": r.plate_shape.get("why"),
                                  "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect", "skew") if k in r.sigma},
                                  "skew_fit": r.skew_fit}
                 entry.update(fits)
@@ -502,6 +504,8 @@ def photo_study() -> dict:
                     entry["selfview"], entry["cv2_on_our_discs"])
                 entry["flat_plate_minus_cv2_in_combined_sigmas"] = _in_sigmas(entry["selfview_flat_plate"], cvd)
                 entry["skew_fitted_minus_cv2_in_combined_sigmas"] = _in_sigmas(entry["selfview_skew_fitted"], cvd)
+                entry["bent_plate_minus_cv2_in_combined_sigmas"] = _in_sigmas(entry["selfview_bent_plate"], cvd)
+                entry["flat_no_skew_minus_cv2_in_combined_sigmas"] = _in_sigmas(entry["selfview_flat_no_skew"], cvd)
                 entry["within_3_sigmas"] = all(abs(v) <= 3 for v in entry["ours_minus_cv2_in_combined_sigmas"].values())
             cams.append(entry)
         out.setdefault(folder, {"pictures": [], "cameras": []})

@@ -31,6 +31,9 @@ SLOPE_RMS = 0.025
 CURVED_SHARE = 0.6
 #: Size test: a disc's area over its lattice cell's, relative to the plate's pi/4 (d/pitch)^2, lies in this range.
 DISC_SHARE = (0.5, 2.0)
+#: Square test: the plate's axes as the camera sees the lattice within this cosine of a right angle, their
+#: lengths within this share of each other.
+SQUARE_TOLERANCE = 0.3
 #: Lattice test: a disc off the midpoint of its two neighbours on a line by more than this (of a step).
 LATTICE_TOLERANCE = 0.15
 
@@ -425,6 +428,26 @@ def _orient(P, index, plate: PlateSpec) -> np.ndarray:
     )
 
 
+def _check_square(xy: np.ndarray, cr: np.ndarray) -> None:
+    """``ImageError`` unless the lattice indices ``cr`` (N, 2) (col, row) and the discs' rays ``xy`` (N, 2)
+    (undistorted, over f) are a square grid seen by the camera: the homography from the indices to the rays
+    has the plate's two axes as its first columns, which must be at right angles and of one length (to
+    ``SQUARE_TOLERANCE``: the camera guess's error); a lattice indexed along a diagonal under strong
+    perspective has them 45 deg apart."""
+    Hm, _ = cv2.findHomography(cr.astype(np.float64), xy.astype(np.float64))
+    if Hm is None:
+        return
+    a, b = Hm[:, 0], Hm[:, 1]
+    cos = abs(a @ b) / (np.linalg.norm(a) * np.linalg.norm(b))
+    ratio = np.linalg.norm(a) / np.linalg.norm(b)
+    if cos > SQUARE_TOLERANCE or not 1 - SQUARE_TOLERANCE < ratio < 1 / (1 - SQUARE_TOLERANCE):
+        raise ImageError(
+            f"the discs' lattice is no square grid as the camera sees it (its axes {np.degrees(np.arccos(cos)):.0f} "
+            f"deg apart, their lengths {ratio:.2f} to 1): the plate is seen too obliquely to index it (or the "
+            "camera guess is far off)"
+        )
+
+
 def _grid_end(P_img, cr, axis, side, dark, r_px, shape) -> bool:
     """True when one lattice step beyond the last column/row (``axis`` 0/1, ``side`` -1 low, +1 high)
     the picture shows blank paper at two or more places and a disc at none."""
@@ -558,6 +581,8 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
         rejected["off lattice"] = rejected.get("off lattice", 0) + off
     ids = np.array(sorted(index))
     cr = _orient(P[ids], {n_: index[k] for n_, k in enumerate(ids)}, plate)
+    if camera is not None:
+        _check_square(camera.undistort_pixels(uv[ids]) / camera.f, cr)
     r_px = float(np.sqrt(np.median(areas) / np.pi))
     basis, ambiguous = {}, {}
     for axis, name, count in ((0, "cols", plate.cols), (1, "rows", plate.rows)):

@@ -32,3 +32,22 @@ def ramp(img: np.ndarray) -> np.ndarray:
     h, w = img.shape
     light = np.linspace(0.5, 1.0, w, dtype=np.float32)[None, :]
     return np.clip(img * light, 0, 255).astype(np.uint8)
+
+
+def camera_turned(img: np.ndarray, camera, axis: str, deg: float):
+    """The picture as the camera ``camera`` (kappa taken as 0) would have taken it turned by ``deg`` about
+    its own x or y ``axis`` (a homography K R K^-1), on a canvas that holds the grid's part of it, and that
+    camera for the new canvas (its centre moved with the canvas), and the homography from the old picture's
+    pixels to the new: (picture, camera, H)."""
+    h, w = img.shape
+    K = np.array([[camera.f / camera.aspect, 0, camera.cx], [0, camera.f, camera.cy], [0, 0, 1.0]])
+    R = cv2.Rodrigues(np.radians(deg) * (np.array([1.0, 0, 0]) if axis == "x" else np.array([0, 1.0, 0])))[0]
+    H = K @ R @ np.linalg.inv(K)
+    corners = cv2.perspectiveTransform(np.array([[[0, 0]], [[w, 0]], [[0, h]], [[w, h]]], np.float32), H).reshape(-1, 2)
+    lo, hi = corners.min(0) - 10, corners.max(0) + 10
+    T = np.array([[1, 0, -lo[0]], [0, 1, -lo[1]], [0, 0, 1.0]])
+    size = (int(hi[0] - lo[0]), int(hi[1] - lo[1]))
+    out = cv2.warpPerspective(img, T @ H, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                              borderValue=float(np.percentile(img, 75)))
+    cam = camera.with_(kappa=0.0, cx=camera.cx - lo[0], cy=camera.cy - lo[1], width=size[0], height=size[1])
+    return out, cam, T @ H

@@ -24,6 +24,10 @@ from selfview.intrinsics.fit import (
 SKEW_SIGNIFICANCE = 3.0
 #: at most this many groups of views are left out in turn for the jackknife
 SKEW_JACKKNIFE_GROUPS = 6
+#: The bent plate (``plate_model='auto'``) is kept only when the views pin its bow like the skew: some bow
+#: coefficient this many sigmas from 0 by its formal sigma and by the jackknife's, and every view used;
+#: otherwise the plate is taken flat, as printed.
+PLATE_SIGNIFICANCE = 3.0
 
 
 # --- the result -----------------------------------------------------------------------------------
@@ -86,11 +90,13 @@ def _plate_summary(fit: JointFit) -> dict:
 
 def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, names=None, *,
                          skip_unusable: bool = False, cross_check: bool = True, detections=None,
-                         plate_model: str = "bow+dots", skew: bool | str = "auto") -> IntrinsicsResult:
+                         plate_model: str = "auto", skew: bool | str = "auto") -> IntrinsicsResult:
     """Joint calibration of f, kappa, cx, cy, aspect, the grabber's skew and each view's ``C_H_W`` from
     pictures of the plate. ``skew``: 'auto' fits the skew and keeps it only when the views pin it
 (``SKEW_SIGNIFICANCE``), else refits with it held at 0 (``skew_fit`` says which and why); True always
-fits it; False holds it at ``camera_guess``'s, the spec's model.
+fits it; False holds it at ``camera_guess``'s, the spec's model. ``plate_model`` ('auto' or one of
+``PLATE_MODELS``): 'auto' fits the bent plate ('bow+dots') only when the views pin it
+(``PLATE_SIGNIFICANCE``, views left out), else the flat plate; ``plate_shape`` says which and why.
 
     ``images`` (H, W) pictures (or ``detections``, a list of ``DiscDetections``, instead); ``plate`` the
     plate; ``camera_guess`` the starting camera (the cell's nominal one: its size checks the pictures);
@@ -112,6 +118,12 @@ fits it; False holds it at ``camera_guess``'s, the spec's model.
         )
     if skew not in (True, False, "auto"):
         raise CalibrationError(f"intrinsics: skew={skew!r}: expected 'auto', True or False")
+    plate_why = f"{plate_model}: as asked"
+    if plate_model == "auto":
+        plate_model, plate_why = _choose_plate_model(dets, names, plate, camera_guess)
+    # a bow the views measure but are too few to check, left out of a flat plate, is what a skew would take
+    # up (a bow the views left out do not confirm is no shape of the plate, and no reason to hold the skew)
+    bow_unconfirmed = plate_model == "flat" and "too few to check" in plate_why
     fit = fit_views(dets, plate, camera_guess, names, plate_model=plate_model, fit_skew=skew is not False)
     fit, dets, names = _drop_misfits(fit, dets, names, plate, plate_model, skew is not False, skipped)
     skew_fit = {"fitted": skew is not False, "note": "skew fitted" if skew is True else "skew held at the guess's"}
@@ -120,7 +132,10 @@ fits it; False holds it at ``camera_guess``'s, the spec's model.
         z = abs(val) / sd if sd > 0 and np.isfinite(sd) else 0.0
         skew_fit.update(value=float(val), sigma=sd, sigmas_from_zero=float(z), limit_sigmas=SKEW_SIGNIFICANCE)
         why = None
-        if skew == "auto" and not z >= SKEW_SIGNIFICANCE:
+        if skew == "auto" and bow_unconfirmed:
+            why = (f"it measures {val:.1e} +- {sd:.1e}, but the plate's bow, which the views measure and are too "
+                   "few to check, is left out of the flat plate, and a skew would take it up")
+        elif skew == "auto" and not z >= SKEW_SIGNIFICANCE:
             why = (f"the views measure it as {val:.1e} +- {sd:.1e} ({z:.1f} sigmas from 0, under "
                    f"{SKEW_SIGNIFICANCE:g})")
         elif skew == "auto":
@@ -158,7 +173,8 @@ fits it; False holds it at ``camera_guess``'s, the spec's model.
     return IntrinsicsResult(
         camera=fit.camera, covariance=fit.cov5, sigma=sig, rms_px=fit.rms_px, views=fit.views, skipped=skipped,
         projection_sigma_px=projection_sigma_px(fit.camera, fit.cov5), stop_rule=stop, cross_check=xc,
-        residual_sigma_px=float(np.sqrt(fit.s2)), plate_shape=_plate_summary(fit), skew_fit=skew_fit,
+        residual_sigma_px=float(np.sqrt(fit.s2)), plate_shape={**_plate_summary(fit), "why": plate_why},
+        skew_fit=skew_fit,
     )
 
 
@@ -202,8 +218,15 @@ def _stop_rule(fit: JointFit, plate: PlateSpec, sig: dict) -> dict:
 
 
 def _skew_jackknife(dets, names, plate, fit: JointFit, plate_model: str) -> float | None:
-    """The skew's leave-one-group-out jackknife sigma over the views ``fit`` used (at most
-    ``SKEW_JACKKNIFE_GROUPS`` groups, each leaving ``MIN_VIEWS`` or more views); None when the views are
+    """The skew's leave-one-group-out jackknife sigma over the views ``fit`` used; None when the views are
+    too few, or when a group left out makes the rest unsolvable (``_jackknife``)."""
+    sd = _jackknife(dets, names, plate, fit, plate_model, True, lambda f: [f.camera.skew])
+    return None if sd is None else float(sd[0])
+
+
+def _jackknife(dets, names, plate, fit: JointFit, plate_model: str, fit_skew: bool, value) -> np.ndarray | None:
+    """The leave-one-group-out jackknife sigmas of ``value(fit)`` (a vector) over the views ``fit`` used (at
+    most ``SKEW_JACKKNIFE_GROUPS`` groups, each leaving ``MIN_VIEWS`` or more views); None when the views are
     too few, or when a group left out makes the rest unsolvable."""
     used = [k for k in range(len(dets)) if names[k] in {v.name for v in fit.views}]
     g = min(SKEW_JACKKNIFE_GROUPS, len(used))
@@ -214,9 +237,43 @@ def _skew_jackknife(dets, names, plate, fit: JointFit, plate_model: str) -> floa
         keep = [k for i, k in enumerate(used) if i % g != j]
         try:
             sub = fit_views([dets[k] for k in keep], plate, fit.camera, [names[k] for k in keep],
-                            plate_model=plate_model, fit_skew=True)
+                            plate_model=plate_model, fit_skew=fit_skew)
         except CalibrationError:
             return None
-        vals.append(sub.camera.skew)
+        vals.append(np.asarray(value(sub), float))
     v = np.asarray(vals)
-    return float(np.sqrt((g - 1) / g * np.sum((v - v.mean()) ** 2)))
+    return np.sqrt((g - 1) / g * np.sum((v - v.mean(axis=0)) ** 2, axis=0))
+
+
+def _bow_as(b, ref) -> np.ndarray:
+    """The bow ``b`` (b0, b1, b2) of a fit whose grid indices may be turned by 90 deg against those of the fit
+    whose bow is ``ref`` (a square grid's views are tied to one grid up to its turns): as that fit has it."""
+    b = np.asarray(b, float)
+    turned = np.array([b[2], -b[1], b[0]])
+    return b if np.linalg.norm(b - ref) <= np.linalg.norm(turned - ref) else turned
+
+
+def _choose_plate_model(dets, names, plate, camera_guess: CameraModel) -> tuple[str, str]:
+    """('bow+dots' or 'flat', why): the bent plate only when its bow stands ``PLATE_SIGNIFICANCE`` sigmas
+    from 0 by its formal sigma and by its jackknife's (views left out in turn). A view the bent plate cannot
+    tie to the printed grid is left out of it: kept only when the other views confirm the bow on their own."""
+    try:
+        bent = fit_views(dets, plate, camera_guess, names, plate_model="bow+dots", fit_skew=False)
+    except CalibrationError as e:
+        return "flat", f"flat: the bent plate's fit failed ({e})"
+    left = (f"; flat keeps the {len(bent.dropped)} view(s) the bent plate could not tie to the printed grid "
+            f"({', '.join(nm for nm, _ in bent.dropped)})") if bent.dropped else ""
+    bow = bent.shape[:3]
+    sd = np.sqrt(np.clip(np.diag(bent.shape_cov)[:3], 0, None))
+    z = float(np.max(np.abs(bow) / np.where(sd > 0, sd, np.inf)))
+    if not z >= PLATE_SIGNIFICANCE:
+        return "flat", f"flat: the views measure no bow ({z:.1f} sigmas from 0 at most, under {PLATE_SIGNIFICANCE:g}){left}"
+    sd_jk = _jackknife(dets, names, plate, bent, "bow+dots", False, lambda f: _bow_as(f.shape[:3], bow))
+    if sd_jk is None:
+        return "flat", (f"flat: the bow measures {z:.1f} sigmas from 0, but {len(bent.views)} views are too few to "
+                        f"check it with views left out (at least {MIN_VIEWS + 1}){left}")
+    z_jk = float(np.max(np.abs(bow) / np.where(sd_jk > 0, sd_jk, np.inf)))
+    if not z_jk >= PLATE_SIGNIFICANCE:
+        return "flat", (f"flat: the bow measures {z:.1f} sigmas from 0, but leaving views out moves it by as much "
+                        f"({z_jk:.1f} of those from 0): not a shape the views share{left}")
+    return "bow+dots", f"bent: the bow stands {z:.0f} sigmas from 0 ({z_jk:.0f} by the views left out in turn)"
