@@ -58,6 +58,16 @@ LONG_NAMES = (
     ("track.calibration", ["track", "--calibration", "{W}/{L}.yaml", "--image", "{P}"]),
 )
 
+#: file names holding bytes that are not UTF-8 (as a shell passes $'cal\xff.yaml'): written as given, or a
+#: clear refusal; never a crash inside a native call (``{B}``: such a name; whether it must be refused)
+NON_UTF8 = (
+    ("render.out", ["render", "--out", "{W}/{B}.png"], False),
+    ("calibrate.out", ["calibrate", "--image", "{P}", "--out", "{W}/{B}.yaml", "--json"], False),
+    ("render.out.extension", ["render", "--out", "{W}/frame.pn{B}"], True),
+    ("calibrate.out.empty", ["calibrate", "--image", "{P}", "--out", ""], True),
+)
+_BYTES_NAME = os.fsdecode(b"cal\xff\xfe")
+
 
 def _run(argv: list[str], cwd: Path, timeout_s: float = CASE_TIMEOUT_S) -> tuple[int | None, str, float, float]:
     """``selfview argv``: (exit code or None when killed at the timeout, stderr, seconds, peak resident MB)."""
@@ -192,7 +202,14 @@ def long_name_case(i: int, fixtures: dict, tally: Tally, work: Path) -> None:
     _judge(tally, f"fuzz.{name}.long_name", f"selfview {argv[0]} with a 300-character file name", res, must_refuse=True)
 
 
-FAMILIES = ("endless", "disk", "numbers", "long_names")
+def non_utf8_case(i: int, fixtures: dict, tally: Tally, work: Path) -> None:
+    name, argv, must_refuse = NON_UTF8[i % len(NON_UTF8)]
+    res = _run(_fill(argv, W=str(work), B=_BYTES_NAME, P=fixtures["picture"]), work)
+    _judge(tally, f"fuzz.{name}.non_utf8", f"selfview {argv[0]} with a file name that is not UTF-8", res,
+           must_refuse=must_refuse)
+
+
+FAMILIES = ("endless", "disk", "numbers", "long_names", "non_utf8")
 
 
 def run_paths(n: int, seed: int, deadline: float, tally: Tally, fixtures: dict, workers: int = 2) -> None:
@@ -221,6 +238,8 @@ def run_paths(n: int, seed: int, deadline: float, tally: Tally, fixtures: dict, 
                     disk_case(j, fixtures, hostile, tally, work)
                 elif fam == "numbers":
                     number_case(j, fixtures, devices, tally, work)
+                elif fam == "non_utf8":
+                    non_utf8_case(j, fixtures, tally, work)
                 else:
                     long_name_case(j, fixtures, tally, work)
         finally:
