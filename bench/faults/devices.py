@@ -1,5 +1,6 @@
 """A second process on each device while ``selfview park`` owns it: ``selfview robot speed`` on the robot's
-serial port (a pty), ``selfview gripper open`` on the valve terminal. One process owns a device: the second
+serial port (a pty, or a link to it), ``selfview gripper open`` on the valve terminal (its address as park
+wrote it, or spelled otherwise). One process owns a device: the second
 must be refused. Judged from the simulators' side: the controller received the second's command, or the
 jaws moved at its request."""
 
@@ -14,7 +15,10 @@ import numpy as np
 
 from selfview.bench.faults.common import Tally, _cli_outcome, _in_threads, _quiet_logs, _selfview
 
-DEVICES = ("robot", "gripper")
+#: the second process names the device as park does, or (``-spelling``) another way: the valve terminal's
+#: address spelled otherwise (localhost, 127.000.000.001, 2130706433), the robot's port through a symbolic link
+DEVICES = ("robot", "gripper", "robot-spelling", "gripper-spelling")
+_HOST_SPELLINGS = ("localhost", "127.000.000.001", "2130706433")
 SECOND_TIMEOUT_S = 20.0
 
 
@@ -26,15 +30,23 @@ def second_process_case(device: str, fixtures: dict, rng, tally: Tally, workdir:
     frames = workdir / "frames"
     frames.mkdir(exist_ok=True)
     shutil.copyfile(fixtures["picture"], frames / "img_000.png")
-    scale = 0.1
+    scale = 0.4  # park lasts a few seconds: the second (a Python start-up, slow on a loaded machine) comes during it
     sim = ValController(None, seed=int(rng.integers(1 << 30)), time_scale=scale, calibrated=True)
     tty = sim.start_pty()
     valve = ValveTerminal(None, travel_s=0.05, watchdog_s=None, initial="closed").start()
     argv = ["park", "--real", "--robot", tty, "--gripper", valve.url, "--camera", f"frames://{frames}/img_%03d.png?loop=1",
             "--time-scale", str(scale)]
     speed = int(rng.integers(31, 60))  # a speed park never sets: seen at the controller if the second got through
-    second = (["robot", "--url", tty, "--timeout", "3", "speed", str(speed)] if device == "robot"
-              else ["gripper", "--url", valve.url, "--timeout", "3", "open"])
+    device, spelled = device.split("-")[0], device.endswith("-spelling")
+    robot_url, valve_url = tty, valve.url
+    if spelled and device == "robot":
+        robot_url = str(workdir / "robot-port")  # the same pseudo-terminal through a link
+        Path(robot_url).unlink(missing_ok=True)
+        Path(robot_url).symlink_to(tty)
+    elif spelled:
+        valve_url = valve.url.replace("127.0.0.1", _HOST_SPELLINGS[int(rng.integers(len(_HOST_SPELLINGS)))])
+    second = (["robot", "--url", robot_url, "--timeout", "3", "speed", str(speed)] if device == "robot"
+              else ["gripper", "--url", valve_url, "--timeout", "3", "open"])
     delay = float(rng.uniform(0.0, 0.5))
     box: dict = {}
 
@@ -45,7 +57,19 @@ def second_process_case(device: str, fixtures: dict, rng, tally: Tally, workdir:
                 time.sleep(0.005)
             time.sleep(delay)
             box["during"] = proc.poll() is None
+            done = threading.Event()
+            box["most_connections"] = 0
+
+            def count():  # how many programs the valve terminal served at once while the second ran
+                while not done.wait(0.005):
+                    box["most_connections"] = max(box["most_connections"], valve.active_connections)
+
+            counter = threading.Thread(target=count, name="connections", daemon=True)
+            counter.start()
             box["result"] = _selfview(second, workdir, timeout_s=SECOND_TIMEOUT_S)
+            box["park_after"] = proc.poll() is None
+            done.set()
+            counter.join(1.0)
 
         t = threading.Thread(target=run, name="second-process", daemon=True)
         t.start()
@@ -58,7 +82,7 @@ def second_process_case(device: str, fixtures: dict, rng, tally: Tally, workdir:
     finally:
         sim.stop()
         valve.stop()
-    k = f"devices.{device}"
+    k = f"devices.{device}" + (".spelling" if spelled else "")
     action = " ".join(second[-2:]) if device == "robot" else second[-1]
     what = f"selfview {second[0]} {action} {delay:.2f} s into selfview park"
     code2, err2 = box.get("result", (None, "the second process never ran"))
@@ -70,6 +94,10 @@ def second_process_case(device: str, fixtures: dict, rng, tally: Tally, workdir:
         # its devices before it exits, and on a loaded machine the second takes a second to start). It owned
         # the robot when the SPEED arrived only if it went on driving the arm after it: nothing of park's
         # follows the second's SPEED and its read-back (STATUS), so the port was free when it came.
+        box["during"] = False
+    if got_through and device == "gripper" and not (box.get("park_after") and box.get("most_connections", 0) >= 2):
+        # likewise: park holds its connection to the terminal for as long as it owns it; the second drove a
+        # terminal park owned only if both were connected at once and park still ran when the second ended
         box["during"] = False
     if not box.get("during"):
         outcome, seen = "no_effect", ""  # park had ended (or let go of the device): nothing owned it
@@ -99,6 +127,7 @@ def run_devices(n: int, seed: int, deadline: float, tally: Tally, fixtures: dict
         for i in range(share):
             if time.monotonic() >= deadline:
                 break
-            second_process_case(DEVICES[(index + i) % 2], fixtures, rng, tally, Path(fixtures["dir"]) / f"devices{index}")
+            second_process_case(DEVICES[(index + workers * i) % len(DEVICES)], fixtures, rng, tally,
+                                Path(fixtures["dir"]) / f"devices{index}")
 
     _in_threads(worker, n, seed, deadline, tally, workers)
