@@ -49,7 +49,8 @@ def signal_name(signum: int) -> str:
 
 
 class Interrupted(KeyboardInterrupt):
-    """A termination signal other than SIGINT, raised where Ctrl-C would raise ``KeyboardInterrupt``."""
+    """A termination signal (``signum``), raised where Ctrl-C would raise ``KeyboardInterrupt``: for SIGTERM,
+    SIGHUP and SIGQUIT by the engine and the command line, for any of them by this module's handler."""
 
     def __init__(self, signum: int):
         super().__init__(signal_name(signum))
