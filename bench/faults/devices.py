@@ -1,6 +1,7 @@
 """A second process on each device while ``selfview park`` owns it: ``selfview robot speed`` on the robot's
 serial port (a pty, or a link to it), ``selfview gripper open`` on the valve terminal (its address as park
-wrote it, or spelled otherwise). One process owns a device: the second
+wrote it, or spelled otherwise); and a robot command killed (SIGKILL) during its motion, then the next one
+(``killed_case``). One process owns a device: the second
 must be refused. Judged from the simulators' side: the controller received the second's command, or the
 jaws moved at its request."""
 
@@ -17,15 +18,65 @@ from selfview.bench.faults.common import Tally, _cli_outcome, _in_threads, _quie
 
 #: the second process names the device as park does, or (``-spelling``) another way: the valve terminal's
 #: address spelled otherwise (localhost, 127.000.000.001, 2130706433), the robot's port through a symbolic link
-DEVICES = ("robot", "gripper", "robot-spelling", "gripper-spelling")
+DEVICES = ("robot", "gripper", "robot-spelling", "gripper-spelling", "robot-killed")
 _HOST_SPELLINGS = ("localhost", "127.000.000.001", "2130706433")
 SECOND_TIMEOUT_S = 20.0
+
+
+def killed_case(rng, tally: Tally, workdir: Path) -> None:
+    """``selfview robot ready`` killed (SIGKILL: no handler, no cleanup, as a power cut of the host) during
+    its motion; the next ``selfview robot where`` must refuse with a message and send nothing, and go on
+    once ``selfview devices --reset`` has stopped the arm and cleared the record."""
+    from selfview.mocks.val_controller import ValController
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    sim = ValController(None, seed=int(rng.integers(1 << 30)), time_scale=0.5, calibrated=True, speed_pct=10.0)
+    with sim._state:  # from a pose away from READY (the simulator owns its state; no motion)
+        sim._joints = sim._joints + np.array([60.0, -30.0, 40.0, 30.0, 30.0, 45.0])
+    tty = sim.start_pty()
+    delay = float(rng.uniform(0.0, 0.3))
+
+    def kill_when(proc):
+        t0 = time.monotonic()
+        while not sim.moving.is_set() and proc.poll() is None and time.monotonic() - t0 < 30.0:
+            time.sleep(0.005)
+        time.sleep(delay)
+        if proc.poll() is None:
+            proc.kill()
+
+    try:
+        code, _ = _selfview(["robot", "--url", tty, "ready"], workdir, timeout_s=SECOND_TIMEOUT_S, sigint_when=kill_when)
+        moving, n = sim.moving.is_set(), len(sim.received)
+        code2, err2 = _selfview(["robot", "--url", tty, "where"], workdir, timeout_s=SECOND_TIMEOUT_S)
+        sent = [ln.strip() for ln in sim.received[n:] if ln.strip()]
+        code3, err3 = _selfview(["devices", "--real", "--robot", tty, "--reset"], workdir, timeout_s=SECOND_TIMEOUT_S)
+        code4, err4 = _selfview(["robot", "--url", tty, "where"], workdir, timeout_s=SECOND_TIMEOUT_S)
+    finally:
+        sim.stop()
+    k, what = "devices.robot.killed", f"selfview robot ready killed {delay:.2f} s into its motion, then robot where"
+    bad = next((b for b in (_cli_outcome(c, e) for c, e in ((code2, err2), (code3, err3), (code4, err4))) if b[0]), None)
+    if code != -9 or not moving:
+        outcome, seen = "no_effect", ""  # the motion had ended before the kill: nothing was left running
+    elif bad:
+        outcome, seen = bad[0], f"{what}: {bad[1]}"
+    elif code2 == 0 or sent:
+        outcome, seen = "unsafe", f"{what}: the next command went on (exit {code2}, sent {sent[:3]}) unaware of the motion"
+    elif code2 != 4 or "--reset" not in err2:
+        outcome, seen = "wrong_value", f"{what}: exit {code2} without naming the way on: {err2.strip()[-200:]!r}"
+    elif code4 != 0:
+        outcome, seen = "wrong_value", f"{what}: after devices --reset (exit {code3}) robot where still exits {code4}: {err4.strip()[-200:]!r}"
+    else:
+        outcome, seen = "clear_error", ""
+    tally.add(k, outcome, seen)
 
 
 def second_process_case(device: str, fixtures: dict, rng, tally: Tally, workdir: Path) -> None:
     from selfview.mocks.val_controller import ValController
     from selfview.mocks.valve_terminal import ValveTerminal
 
+    if device == "robot-killed":
+        killed_case(rng, tally, workdir)
+        return
     workdir.mkdir(parents=True, exist_ok=True)
     frames = workdir / "frames"
     frames.mkdir(exist_ok=True)
