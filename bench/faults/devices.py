@@ -7,6 +7,7 @@ jaws moved at its request."""
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import threading
 import time
@@ -21,6 +22,25 @@ from selfview.bench.faults.common import Tally, _cli_outcome, _in_threads, _quie
 DEVICES = ("robot", "gripper", "robot-spelling", "gripper-spelling", "robot-killed")
 _HOST_SPELLINGS = ("localhost", "127.000.000.001", "2130706433")
 SECOND_TIMEOUT_S = 20.0
+
+
+@contextlib.contextmanager
+def _most_connections(valve, box: dict):
+    """While inside: the most programs the valve terminal served at once, in ``box["most_connections"]``."""
+    done = threading.Event()
+    box["most_connections"] = 0
+
+    def count():
+        while not done.wait(0.005):
+            box["most_connections"] = max(box["most_connections"], valve.active_connections)
+
+    counter = threading.Thread(target=count, name="connections", daemon=True)
+    counter.start()
+    try:
+        yield
+    finally:
+        done.set()
+        counter.join(1.0)
 
 
 def killed_case(rng, tally: Tally, workdir: Path) -> None:
@@ -108,19 +128,9 @@ def second_process_case(device: str, fixtures: dict, rng, tally: Tally, workdir:
                 time.sleep(0.005)
             time.sleep(delay)
             box["during"] = proc.poll() is None
-            done = threading.Event()
-            box["most_connections"] = 0
-
-            def count():  # how many programs the valve terminal served at once while the second ran
-                while not done.wait(0.005):
-                    box["most_connections"] = max(box["most_connections"], valve.active_connections)
-
-            counter = threading.Thread(target=count, name="connections", daemon=True)
-            counter.start()
-            box["result"] = _selfview(second, workdir, timeout_s=SECOND_TIMEOUT_S)
-            box["park_after"] = proc.poll() is None
-            done.set()
-            counter.join(1.0)
+            with _most_connections(valve, box):
+                box["result"] = _selfview(second, workdir, timeout_s=SECOND_TIMEOUT_S)
+                box["park_after"] = proc.poll() is None
 
         t = threading.Thread(target=run, name="second-process", daemon=True)
         t.start()
@@ -140,15 +150,7 @@ def second_process_case(device: str, fixtures: dict, rng, tally: Tally, workdir:
     bad, seen = _cli_outcome(code, err)
     bad2, seen2 = _cli_outcome(code2, err2)
     got_through = (f"SPEED {speed}" in received) if device == "robot" else code2 == 0
-    if got_through and device == "robot" and not _park_went_on(received, speed):
-        # "during" was sampled before the second started; park may have let go of the port since (it closes
-        # its devices before it exits, and on a loaded machine the second takes a second to start). It owned
-        # the robot when the SPEED arrived only if it went on driving the arm after it: nothing of park's
-        # follows the second's SPEED and its read-back (STATUS), so the port was free when it came.
-        box["during"] = False
-    if got_through and device == "gripper" and not (box.get("park_after") and box.get("most_connections", 0) >= 2):
-        # likewise: park holds its connection to the terminal for as long as it owns it; the second drove a
-        # terminal park owned only if both were connected at once and park still ran when the second ended
+    if got_through and not _park_owned_it(device, received, speed, box):
         box["during"] = False
     if not box.get("during"):
         outcome, seen = "no_effect", ""  # park had ended (or let go of the device): nothing owned it
@@ -161,6 +163,17 @@ def second_process_case(device: str, fixtures: dict, rng, tally: Tally, workdir:
     else:
         outcome, seen = "wrong_value", f"{what}: the second exited {code2} without a clear refusal: {err2.strip()[-200:]!r}"
     tally.add(k, outcome, seen)
+
+
+def _park_owned_it(device: str, received: list[str], speed: int, box: dict) -> bool:
+    """Whether park still owned the device when the second process got through. "during" was sampled
+    before the second started; park may have let go since (it closes its devices before it exits, and on a
+    loaded machine the second takes a second to start). The robot: park went on driving the arm after the
+    second's SPEED (``_park_went_on``). The valve terminal: park holds its connection for as long as it owns
+    it, so both were connected at once, and park still ran when the second ended."""
+    if device == "robot":
+        return _park_went_on(received, speed)
+    return bool(box.get("park_after")) and box.get("most_connections", 0) >= 2
 
 
 def _park_went_on(received: list[str], speed: int) -> bool:
