@@ -212,7 +212,9 @@ def run_sigint(n: int, seed: int, deadline: float, tally: Tally, fixtures: dict,
     _quiet_logs()
     plan = [(c, "SIGINT", False) for c in ("park", "calibrate")]
     if signals_too:
-        plan += [(c, sg, tw) for c in COMMANDS for sg in SIGNALS for tw in (False, True)
+        # command by command within each signal: a section cut short by its budget (a loaded machine) has
+        # still tried every command
+        plan += [(c, sg, tw) for sg in SIGNALS for tw in (False, True) for c in COMMANDS
                  if (c, sg, tw) not in plan]
 
     def worker(share, seed_, index, deadline_, tally_):
