@@ -116,7 +116,8 @@ class DeviceLock:
                 try:
                     fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 except OSError:
-                    holder = os.pread(fd, 4096, 0).decode("utf-8", errors="replace").strip() or "a program that wrote no name"
+                    holder = (os.pread(fd, 4096, 0).decode("utf-8", errors="replace").strip().split("\n")[0]
+                              or "a program that wrote no name")
                     os.close(fd)
                     raise DeviceBusy(f"{self.kind} {self.key} is in use by pid {holder}; one program drives a device at "
                                      f"a time: stop that one first (its lock: {path}, {key})") from None

@@ -8,9 +8,9 @@ SIGTERM's, SIGHUP's, SIGQUIT's death) is taken by the main thread's handler, whi
 
 1. writes ABORT to every connected robot and ends every jaw wait at once, then, in a helper thread, waits
    for the robots' motions to end and puts every valve in its safe state;
-2. raises where the main thread is (``KeyboardInterrupt`` for SIGINT, ``Interrupted`` for the others), so
-   the script's ``finally`` and ``with`` blocks run; a program left by that exception ends, once the
-   helper is done, by the signal itself (the status a shell reports as 128 + N).
+2. raises ``Interrupted`` (a ``KeyboardInterrupt`` carrying the signal's number) where the main thread is,
+   so the script's ``finally`` and ``with`` blocks run; a program left by that exception says so in one
+   line and ends, once the helper is done, by the signal itself (the status a shell reports as 128 + N).
 
 Ctrl-Z (SIGTSTP) holds the arm: ABORT first, then the program stops; when it is resumed it says so on
 stderr, and the motion that was stopped is not taken up again (its driver reports the ABORT).
@@ -49,7 +49,8 @@ def signal_name(signum: int) -> str:
 
 
 class Interrupted(KeyboardInterrupt):
-    """A termination signal other than SIGINT, raised where Ctrl-C would raise ``KeyboardInterrupt``."""
+    """A termination signal (``signum``), raised where Ctrl-C would raise ``KeyboardInterrupt``: for SIGTERM,
+    SIGHUP and SIGQUIT by the engine and the command line, for any of them by this module's handler."""
 
     def __init__(self, signum: int):
         super().__init__(signal_name(signum))
@@ -135,13 +136,13 @@ def _handle(signum, frame) -> None:
             raise KeyboardInterrupt
         signal.raise_signal(signum)
         return
+    if _helpers and _helpers[-1].is_alive():
+        return  # the stop the first one started is under way: a second signal is only noted, never cuts it short
     _say(f"{signal_name(signum)}: stopping the robot (ABORT) and making the valve safe")
     # in a helper: the main thread may hold a driver's write lock right now; a short wait lets the ABORT
     # go out before this thread raises (the rest goes on meanwhile, and the program's end waits for it)
     _run_helper(devices).join(0.5)
-    if signum == signal.SIGINT:
-        raise KeyboardInterrupt
-    raise Interrupted(signum)
+    raise Interrupted(signum)  # a KeyboardInterrupt: what Ctrl-C raises, carrying the signal's number
 
 
 def _suspend(devices: list) -> None:
@@ -171,7 +172,7 @@ def _say(text: str) -> None:
 def _excepthook(exc_type, exc, tb, _previous=sys.excepthook) -> None:
     if isinstance(exc, Interrupted) and threading.current_thread() is threading.main_thread():
         _ended_by.append(exc.signum)
-        _say(f"terminated by {signal_name(exc.signum)}")
+        _say("interrupted (Ctrl-C)" if exc.signum == signal.SIGINT else f"terminated by {signal_name(exc.signum)}")
         return
     _previous(exc_type, exc, tb)
 

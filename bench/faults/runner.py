@@ -24,7 +24,7 @@ from selfview.bench.faults.signals import run_sigint
 
 
 #: rough seconds of budget per fault, per section, on 2 cores (the ones that start a process cost most)
-COST_S = {"signals": 1.2, "devices": 1.7, "saves": 0.8, "paths": 1.6, "cli": 1.25, "files": 0.045, "modbus": 0.026,
+COST_S = {"signals": 1.2, "devices": 3.5, "saves": 0.8, "paths": 1.6, "cli": 1.25, "files": 0.045, "modbus": 0.026,
           "val": 0.042}
 ORDER = ("signals", "devices", "saves", "paths", "cli", "files", "modbus", "val")
 #: the sections that start a process per fault: a fixed number each (quick, full)

@@ -1,6 +1,7 @@
 """Termination signals (SIGINT, SIGTERM, SIGHUP, SIGQUIT; one, or two 0-30 ms apart) at a random moment of every
-command that moves the arm: ``selfview park``, ``selfview robot ready`` / ``depart``, the cell's calibrate
-procedure. Judged from the simulators' side: the arm stopped (ABORT received if it was moving), the valve's
+command that moves the arm or switches the valve: ``selfview park``, ``selfview robot ready`` / ``depart``,
+``selfview gripper open`` (its stroke held by a stuck jaw), the cell's calibrate procedure, and a lab script
+driving the devices from a worker thread. Judged from the simulators' side: the arm stopped (ABORT received if it was moving), the valve's
 outputs in their safe state, the exit status 128 + the signal's number, the calibration file intact. The devices are held in this
 process and the command talks to them with ``--real`` through the proxy's serial-cable model, so the
 controller goes on when the host leaves, as a real one does; the calibrate procedure runs as a lab script
@@ -24,7 +25,9 @@ from selfview.bench.faults.common import CLI_TIMEOUT_S, Tally, _cli_outcome, _fi
 
 # --- signals during the commands that move the arm -------------------------------------------------------
 SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT")
-COMMANDS = ("park", "calibrate", "robot-ready", "robot-depart")
+COMMANDS = ("park", "calibrate", "robot-ready", "robot-depart", "gripper-open", "script-thread")
+#: the commands whose valve must be in its safe state after a signal
+_VALVE_SAFE = ("park", "calibrate", "gripper-open", "script-thread")
 
 
 def _kind(command: str, signame: str, twice: bool) -> str:
@@ -49,11 +52,13 @@ def sigint_case(command: str, fixtures: dict, rng, tally: Tally, workdir: Path, 
         shutil.rmtree(p)
     scale = 0.1
     sim = ValController(None, seed=int(rng.integers(1 << 30)), time_scale=scale, calibrated=True)
-    if command == "robot-ready":  # from a pose away from READY (the simulator owns its state; no motion)
+    if command in ("robot-ready", "script-thread"):  # from a pose away from READY (the simulator owns its state)
         with sim._state:
             sim._joints = sim._joints + np.array([60.0, -30.0, 40.0, 30.0, 30.0, 45.0])
     proxy = FaultProxy(sim.start_tcp(0), serial=True).start()
     valve = ValveTerminal(None, travel_s=0.05, watchdog_s=None, initial="closed").start()
+    if command == "gripper-open":
+        valve.stick_jaw()  # the stroke never confirms: the command waits, the valve energised, until the signal
     urls = (f"socket://127.0.0.1:{proxy.port}", valve.url, f"frames://{frames}/img_%03d.png?loop=1")
     if command == "park":
         argv = ["park", "--real", "--robot", urls[0], "--gripper", urls[1], "--camera", urls[2], "--time-scale", str(scale)]
@@ -61,15 +66,22 @@ def sigint_case(command: str, fixtures: dict, rng, tally: Tally, workdir: Path, 
         argv = ["robot", "--url", urls[0], "ready"]
     elif command == "robot-depart":
         argv = ["robot", "--url", urls[0], "depart", "80"]
+    elif command == "gripper-open":
+        argv = ["gripper", "--url", urls[1], "--timeout", "20", "open"]
+    elif command == "script-thread":  # a lab script driving the devices from a worker thread
+        argv = ["-c", _THREAD_SCRIPT, *urls[:2]]
     else:  # `selfview calibrate` needs --image (its parser), so the cell's calibrate runs through the Python API
         argv = ["-c", _CALIBRATE_SCRIPT, *urls, str(guard)]
     delay = float(rng.uniform(0.0, {"park": 1.2, "calibrate": 2.5}.get(command, 0.8)))
     gap = float(rng.uniform(0.0, 0.03))
     sent = {}
 
+    def started():
+        return valve.valve_outputs["open"] if command == "gripper-open" else bool(sim.received)
+
     def sigint_when(proc):
         t0 = time.monotonic()
-        while not sim.received and proc.poll() is None and time.monotonic() - t0 < 30.0:
+        while not started() and proc.poll() is None and time.monotonic() - t0 < 30.0:
             time.sleep(0.005)
         time.sleep(delay)
         if proc.poll() is None:
@@ -86,6 +98,11 @@ def sigint_case(command: str, fixtures: dict, rng, tally: Tally, workdir: Path, 
     outputs_before = valve.valve_outputs
     try:
         code, err = _selfview_cell(argv, workdir, sigint_when)
+        if command == "script-thread":
+            if code == -signum and signum != signal.SIGINT:
+                code = 128 + signum  # a script ends by the signal itself (the shell's 128 + N)
+            if "work done" in err and code == -signal.SIGINT and err.rstrip().endswith("\nKeyboardInterrupt"):
+                err = ""  # Ctrl-C once its work was done: the interpreter's own report of an unhandled Ctrl-C
         q_exit, moving_exit = sim.joints, sim.moving.is_set()
         time.sleep(0.3)  # 3 s of simulated time
         q_later = sim.joints
@@ -105,9 +122,10 @@ def sigint_case(command: str, fixtures: dict, rng, tally: Tally, workdir: Path, 
     interrupted = "q" in sent and code not in (0, None)
     # the procedure had ended when the signal came (its file written, its last motion, the DEPART, done and
     # nothing moving, as the simulator saw it): the valve as the procedure left it is what is expected
-    ended = (command == "calibrate" and not sent.get("moving") and after != before
-             and any(ln.strip().upper().startswith("DO DEPART") for ln in sim.received[:sent.get("n_received", 0)]))
-    valve_unsafe = (command in ("park", "calibrate") and interrupted and outputs != safe and not ended
+    ended = ((command == "calibrate" and not sent.get("moving") and after != before
+              and any(ln.strip().upper().startswith("DO DEPART") for ln in sim.received[:sent.get("n_received", 0)]))
+             or (command == "script-thread" and "work done" in err))  # the script had let go of the devices
+    valve_unsafe = (command in _VALVE_SAFE and interrupted and outputs != safe and not ended
                     and (outputs != outputs_before or "cell left" in err))
     lost = False
     if command == "calibrate" and after != before:
@@ -162,6 +180,25 @@ except CellError as exc:
 '''
 
 
+#: a lab script that drives the arm and the valve itself, from a worker thread (no engine in the main thread)
+_THREAD_SCRIPT = r'''
+import sys, threading
+from selfview.drivers.pneumatic_gripper import PneumaticGripper
+from selfview.drivers.puma_val_serial import PumaVAL
+robot_url, gripper_url = sys.argv[1:3]
+
+def work():
+    with PumaVAL(robot_url) as robot, PneumaticGripper(gripper_url, poll_s=None) as gripper:
+        gripper.open_jaws()
+        robot.ready()
+        print("work done", file=sys.stderr, flush=True)  # what the script set out to do is done
+
+t = threading.Thread(target=work)
+t.start()
+t.join()
+'''
+
+
 def _selfview_cell(argv, cwd, sigint_when):
     if argv[0] == "-c":  # a script, not the selfview command
         return _run_child([sys.executable, *argv], cwd, CLI_TIMEOUT_S, sigint_when)
@@ -175,7 +212,9 @@ def run_sigint(n: int, seed: int, deadline: float, tally: Tally, fixtures: dict,
     _quiet_logs()
     plan = [(c, "SIGINT", False) for c in ("park", "calibrate")]
     if signals_too:
-        plan += [(c, sg, tw) for c in COMMANDS for sg in SIGNALS for tw in (False, True)
+        # command by command within each signal: a section cut short by its budget (a loaded machine) has
+        # still tried every command
+        plan += [(c, sg, tw) for sg in SIGNALS for tw in (False, True) for c in COMMANDS
                  if (c, sg, tw) not in plan]
 
     def worker(share, seed_, index, deadline_, tally_):

@@ -313,8 +313,11 @@ def test_ctrl_z_stops_the_arm_before_the_program_and_resume_says_so(cell):
     with ValController(SimWorld(cell, seed=2), time_scale=1.0, calibrated=True, speed_pct=5.0) as c:
         c.start_pty()
         env = dict(os.environ, PYTHONPATH=str(REPO))
+        # its own process group in this session, whose parent is outside it: a group the kernel may stop (an
+        # orphaned one, as under setsid or with a parent gone, has SIGTSTP discarded, as POSIX says)
         proc = subprocess.Popen([sys.executable, "-m", "selfview.procedures.cli", "robot", "--url", c.url, "ready"],
-                                cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                                cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                process_group=0)
         try:
             assert c.moving.wait(60.0), "the arm never started moving"
             time.sleep(0.3)
