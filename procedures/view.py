@@ -136,6 +136,15 @@ class LiveView:
             self._state["series"] = s
         self.update()
 
+    def series_limits(self, **limits) -> None:
+        """The plot's scale and dashed lines (``alarm_deg``, ``alarm_mm``, ``update_deg``, ``update_mm``, and
+        ``names`` [scale line, dashed lines, what the scale is] for a plot other than the monitor's)."""
+        with self._lock:
+            s = self._state.get("series") or {"points": []}
+            s["limits"] = dict(limits)
+            self._state["series"] = s
+        self.update()
+
     def state(self) -> dict:
         with self._lock:
             return json.loads(json.dumps(self._state, default=_plain))
@@ -374,14 +383,15 @@ function plot(s){const svg=document.getElementById("plot");svg.innerHTML="";if(!
  const L=s.limits||{},P=s.points,W=420,H=200,n=Math.max(P.length,2),x=i=>10+i*(W-20)/(n-1);
  const top=Math.max(1.2,...P.map(p=>Math.max((p.delta_deg||0)/L.alarm_deg,(p.d_mm||0)/L.alarm_mm)))*1.05;
  const y=v=>H-10-(v/top)*(H-30);let h="";
- const lines=[[1,"#ff4040",`alarm limit ${L.alarm_deg} deg / ${L.alarm_mm} mm`],
-  [L.update_deg/L.alarm_deg,"#e0c000",`update limit ${L.update_deg} deg`],[L.update_mm/L.alarm_mm,"#c08000",`update limit ${L.update_mm} mm`]];
+ const N=L.names||["alarm limit","update limit","the alarm limit"];
+ const lines=[[1,"#ff4040",`${N[0]} ${L.alarm_deg} deg / ${L.alarm_mm} mm`],
+  [L.update_deg/L.alarm_deg,"#e0c000",`${N[1]} ${L.update_deg} deg`],[L.update_mm/L.alarm_mm,"#c08000",`${N[1]} ${L.update_mm} mm`]];
  for(const [v,c,t] of lines)h+=`<line x1="0" x2="${W}" y1="${y(v)}" y2="${y(v)}" stroke="${c}" stroke-dasharray="4"/>`+
    `<text x="${W-200}" y="${y(v)-3}" fill="${c}" font-size="11">${t}</text>`;
  for(const [k,c,a] of [["delta_deg","#6cf",L.alarm_deg],["d_mm","#f8a",L.alarm_mm]])
   h+=`<polyline fill="none" stroke="${c}" points="${P.map((p,i)=>x(i)+","+y((p[k]||0)/a)).join(" ")}"/>`;
  h+=`<text x="4" y="12" font-size="11"><tspan fill="#6cf">rotation</tspan> <tspan fill="#f8a">shift</tspan>`+
-  `<tspan fill="#ccc"> as a fraction of the alarm limit, ${P.length} frames</tspan></text>`;svg.innerHTML=h;}
+  `<tspan fill="#ccc"> as a fraction of ${N[2]}, ${P.length} frames</tspan></text>`;svg.innerHTML=h;}
 async function poll(){let s;try{s=await (await fetch("state.json",{cache:"no-store"})).json();}
  catch(e){document.getElementById("doing").textContent="the command has ended; this is its last state";
   setTimeout(poll,1000);return;}
