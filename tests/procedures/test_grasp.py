@@ -252,3 +252,18 @@ def _wait_for(cond, timeout_s=120.0):
             return True
         time.sleep(0.01)
     return False
+
+
+def test_a_pre_grasp_pose_outside_the_limits_is_refused_before_anything_moves(cell):
+    from selfview.procedures.grasp import run_grasp
+    from selfview.procedures.runs import CellSession
+
+    world = SimWorld(cell, seed=3)
+    cal = SimpleNamespace(C_H_G=world.C_H_G, camera=world.camera, points_G={"open": cell.gripper.points_G("open")})
+    far = trans(900.0, 0.0, 200.0) @ np.diag([1.0, -1.0, -1.0, 1.0])  # beyond the driver's workspace box
+    with CellSession.simulated(cell, seed=3, time_scale=0.01) as s:
+        place_object(s.sim.world, load_object(), seed=3)
+        with pytest.raises(LimitError, match="plan refused before anything moved"):
+            run_grasp(s, load_object(), cal, start=far)
+        assert not [ln for ln in s.sim.robot_sim.received if ln.upper().startswith(("DO MOVE", "DO MOVES"))]
+        assert s.engine.records == []
