@@ -27,6 +27,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUME
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import dataclasses  # noqa: E402
 import json  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -172,7 +173,7 @@ def run_start(seed: int, start: int, level: float, calib, online: bool, moved: b
     t0 = time.perf_counter()
     try:
         servo_grasp(rig, cell, obj, C_H_G, camera, cell.gripper.points_G(settings.state),
-                    ServoSettings(**{**settings.__dict__, "online": online}), result=res, before_frame=before,
+                    dataclasses.replace(settings, online=online), result=res, before_frame=before,
                     taught_C_H_O=taught_C_H_O)
     except CellError as exc:
         res.reason = f"{type(exc).__name__}: {exc}"
@@ -353,7 +354,7 @@ def main(argv=None) -> int:
     out = {
         "benchmark": "visually guided grasping: final TCP-to-goal error by calibration, kinematic profile, camera move",
         "seed": args.seed, "starts": args.starts, "quick": args.quick, "world": args.world,
-        "servo": settings.__dict__, "object": load_object().name,
+        "servo": dataclasses.asdict(settings), "object": load_object().name,
         "profiles": {k: WORN_PUMA.scaled(PROFILES[k]).to_dict() | arm_repeatability(args.seed, PROFILES[k])
                      for k in profiles},
         "calibration_errors": {p: {k: _cal_error(v, c["truth"][0]) for k, v in c.items()} for p, c in cals.items()},

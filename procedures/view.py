@@ -194,6 +194,15 @@ class LiveView:
             self._state["series"] = s
         self.update()
 
+    def series_limits(self, **limits) -> None:
+        """The plot's scale and dashed lines (``alarm_deg``, ``alarm_mm``, ``update_deg``, ``update_mm``, and
+        ``names`` [scale line, dashed lines, what the scale is] for a plot other than the monitor's)."""
+        with self._lock:
+            s = self._state.get("series") or {"points": []}
+            s["limits"] = dict(limits)
+            self._state["series"] = s
+        self.update()
+
     def state(self) -> dict:
         with self._lock:
             return json.loads(json.dumps(self._state, default=_plain))

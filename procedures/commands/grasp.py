@@ -71,9 +71,16 @@ def _run(args, view) -> int:
         say(f"iteration {rec['iteration']}: error {np.linalg.norm(rec['error_mm']):.3f} mm {rec['error_deg']:.3f} deg "
             f"(fingertips: {rec['fingertips']}, {rec['processing_ms']:.0f} ms)")
         if view:
+            mm = float(np.linalg.norm(rec["error_mm"]))
             view.frame(draw_servo(img, cal.camera, pose, np.asarray(cal.C_H_G), obj))
-            view.point("error", {"iteration": rec["iteration"], "mm": float(np.linalg.norm(rec["error_mm"])),
-                                 "deg": rec["error_deg"]})
+            view.point("grasp", {"frame": rec["iteration"], "delta_deg": rec["error_deg"], "d_mm": mm})
+            first = res.iterations[0]  # the plot's scale: the first error; its dashed lines: where the servo stops
+            view.series_limits(alarm_deg=max(first["error_deg"], settings.stop_deg),
+                               alarm_mm=max(float(np.linalg.norm(first["error_mm"])), settings.stop_mm),
+                               update_deg=settings.stop_deg, update_mm=settings.stop_mm,
+                               names=["the first error", "stop at", "the first error"])
+            view.update(numbers={"iteration": rec["iteration"], "error [mm]": mm, "error [deg]": rec["error_deg"],
+                                 "fingertips": rec["fingertips"], "processing [ms]": rec["processing_ms"]})
 
     with tempfile.TemporaryDirectory(prefix="selfview-grasp-") as tmp, session:
         watch(view, session)

@@ -192,16 +192,24 @@ def test_the_engine_tool_step_moves_relative_to_the_tool_and_checks_caps_and_lim
         Engine(CellDevices(robot=robot)).run(lambda e: None, [Step("tool", {"delta": trans(80.0, 0, 0)})])
 
 
-def test_selfview_grasp_json_on_the_simulated_cell(capsys):
+def test_selfview_grasp_json_on_the_simulated_cell_and_its_live_view(capsys, monkeypatch):
+    from selfview.procedures import view as live
     from selfview.procedures.cli import main as cli
 
-    code = cli(["grasp", "--json", "--seed", "3", "--time-scale", "0.01"])
+    pages = []
+    finish = live.LiveView.finish
+    monkeypatch.setattr(live.LiveView, "finish", lambda self: (pages.append(self.state()), finish(self))[1])
+    code = cli(["grasp", "--json", "--seed", "3", "--time-scale", "0.01", "--view"])
     out = capsys.readouterr()
     assert code == 0, out.err
     d = json.loads(out.out)
     assert d["converged"] is True and d["held"] is True and isinstance(d["iterations"], int)
     assert len(d["true_error_mm"]) == 3 and np.linalg.norm(d["true_error_mm"]) < 0.3 and d["true_error_deg"] < 0.3
     assert all(r["true_error_mm"] is not None and len(r["error_mm"]) == 3 for r in d["records"])
+    page = pages[-1]  # the error falling, one point per iteration, and the verdict
+    assert page["verdict"]["go"] and len(page["series"]["points"]) == d["iterations"]
+    mm = [p["d_mm"] for p in page["series"]["points"]]
+    assert mm[-1] < 0.1 < mm[0] and page["frame_seq"] >= d["iterations"]
 
 
 def test_selfview_grasp_real_needs_a_calibration(capsys):
@@ -244,3 +252,18 @@ def _wait_for(cond, timeout_s=120.0):
             return True
         time.sleep(0.01)
     return False
+
+
+def test_a_pre_grasp_pose_outside_the_limits_is_refused_before_anything_moves(cell):
+    from selfview.procedures.grasp import run_grasp
+    from selfview.procedures.runs import CellSession
+
+    world = SimWorld(cell, seed=3)
+    cal = SimpleNamespace(C_H_G=world.C_H_G, camera=world.camera, points_G={"open": cell.gripper.points_G("open")})
+    far = trans(900.0, 0.0, 200.0) @ np.diag([1.0, -1.0, -1.0, 1.0])  # beyond the driver's workspace box
+    with CellSession.simulated(cell, seed=3, time_scale=0.01) as s:
+        place_object(s.sim.world, load_object(), seed=3)
+        with pytest.raises(LimitError, match="plan refused before anything moved"):
+            run_grasp(s, load_object(), cal, start=far)
+        assert not [ln for ln in s.sim.robot_sim.received if ln.upper().startswith(("DO MOVE", "DO MOVES"))]
+        assert s.engine.records == []

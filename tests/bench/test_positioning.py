@@ -1,0 +1,36 @@
+"""The positioning study's pieces: its conditions, one servo run on a worn arm's cell, the summary the checks read."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from selfview.bench.positioning import (CALIBRATIONS, ServoSettings, _summary, arm_repeatability, conditions,
+                                        run_start)
+from selfview.mocks.world import SimWorld
+
+
+def test_every_calibration_is_compared_and_the_move_and_the_control_are_on_the_worn_arm():
+    conds = conditions(("none", "worn"))
+    plain = {(c["calibration"], c["profile"]) for c in conds if not c["camera_moved"] and not c["taught_goal"]}
+    assert plain == {(c, p) for c in CALIBRATIONS for p in ("none", "worn")}
+    assert {c["calibration"] for c in conds if c["camera_moved"]} == {"selfview-offline", "selfview-online", "axxb"}
+    assert all(c["profile"] == "worn" for c in conds if c["camera_moved"] or c["taught_goal"])
+
+
+def test_a_worn_arm_lands_off_its_command_and_a_perfect_one_does_not():
+    assert arm_repeatability(1, 0.0)["repeatability_mm"] < 1e-6
+    worn = arm_repeatability(1, 1.0)
+    assert 0.05 < worn["repeatability_mm"] < worn["accuracy_mm"]
+
+
+def test_one_start_with_the_true_calibration_converges_and_the_summary_has_the_keys_the_checks_read(cell):
+    world = SimWorld(cell, seed=1, imperfections="ideal")
+    runs = [run_start(1, 0, 0.0, (world.C_H_G, world.camera), True, False, False, ServoSettings(), "ideal")]
+    r = runs[0]
+    assert r["converged"] and r["held"], r["reason"]
+    assert np.linalg.norm(r["true_error_mm"]) < 0.2 and r["true_error_deg"] < 0.2 and r["iterations"] <= 20
+    s = _summary({"calibration": "truth", "profile": "none", "camera_moved": False, "taught_goal": False}, runs)
+    for key in ("calibration", "profile", "camera_moved", "starts", "median_mm", "p95_mm", "max_mm", "median_deg",
+                "converged", "held"):
+        assert key in s
+    assert s["starts"] == 1 and s["converged"] == 1 and s["held"] == 1 and s["median_mm"] == s["max_mm"]
