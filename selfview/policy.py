@@ -20,7 +20,7 @@ from selfview.camera import CameraModel
 from selfview.cell import POINT_NAMES, MonitorLimits
 from selfview.errors import AlarmError, CalibrationError, ConfigError
 from selfview.geometry import check_rigid, inv_H, orthonormalize, rotation_angle
-from selfview.online import MotionEstimate, estimate, parse_method, select_points
+from selfview.online import MODEL_METHOD, MotionEstimate, estimate, parse_method, select_points
 
 __all__ = ["ACTIONS", "Decision", "Policy", "Monitor"]
 
@@ -253,7 +253,8 @@ class Monitor:
     interior orientation; ``p_G6`` (6, 3) the fingertip points [mm] for the gripper state in use
     (``GripperSpec.points_G``); ``limits`` the cell's ``MonitorLimits`` or a ``Policy``.
     ``update_method`` an NP-U or NP-I method (default '4P-U' as the paper; when its points are not all
-    found the same kind with fewer points is used, down to 3P). ``recalibration_method`` '4P-R', '5P-R'
+    found the same kind with fewer points is used, down to 3P), or 'E': the model-based measurement's own
+    pose (``step``'s ``model_C_H_G``). ``recalibration_method`` '4P-R', '5P-R'
     or 'auto' (5P-R when a fifth point is found, else 4P-R). ``raise_on_alarm``: raise ``AlarmError``
     after logging an alarm instead of returning the decision. Every decision is logged (``logger``,
     default 'selfview.policy') and kept in ``records`` (plain dicts with the frame number).
@@ -289,9 +290,9 @@ class Monitor:
             raise ConfigError(f"max_missed_frames: expected a positive whole number of frames, got {n_miss!r}")
         self.max_missed_frames = int(n_miss)
         self.missed_in_a_row = 0
-        n, kind = parse_method(update_method)
-        if kind not in ("U", "I"):
-            raise ConfigError(f"update_method {update_method!r}: expected an NP-U or NP-I method, e.g. 4P-U or 4P-I")
+        if update_method != MODEL_METHOD and parse_method(update_method)[1] not in ("U", "I"):
+            raise ConfigError(f"update_method {update_method!r}: expected an NP-U or NP-I method, e.g. 4P-U or 4P-I, "
+                              "or E (the model's own estimate)")
         if recalibration_method != "auto" and parse_method(recalibration_method)[1] != "R":
             raise ConfigError(
                 f"recalibration_method {recalibration_method!r}: expected 'auto', '4P-R' or '5P-R'"
@@ -349,6 +350,8 @@ class Monitor:
         self._record("calibrated", reason, self.C_H_G)
 
     def _update_method(self, found: np.ndarray) -> str:
+        if self.update_method == MODEL_METHOD:
+            return MODEL_METHOD
         n, kind = parse_method(self.update_method)
         for k in range(n, 2, -1):
             try:
@@ -415,13 +418,16 @@ class Monitor:
             raise AlarmError(f"frame {self.frame}: {d.reason}")
         return d
 
-    def step(self, uv6, found6, p_G6=None, *, lost: str | None = None) -> Decision:
+    def step(self, uv6, found6, p_G6=None, *, lost: str | None = None, model_C_H_G=None,
+             model_rms_px: float = float("nan")) -> Decision:
         """Judge one picture: ``uv6`` (6, 2) observed distorted pixels of the fingertips (NaN where not
         found), ``found6`` (6,) bool, ``p_G6`` the points if the gripper state changed, ``lost`` why the
         measurement says it lost the fingertips (its quality under its thresholds; None: it did not).
         A lost frame, or one with fewer than 3 points found, is a missed frame (``missed``). Otherwise
         applies the decision (update: new ``C_H_G``; recalibrate: new ``C_H_G`` and new reference),
-        logs and keeps it, and returns it. Raises ``AlarmError`` on an alarm if ``raise_on_alarm``."""
+        logs and keeps it, and returns it. Raises ``AlarmError`` on an alarm if ``raise_on_alarm``.
+        ``model_C_H_G`` (4, 4) and ``model_rms_px``: the model-based measurement's pose and residual
+        (``FingertipResult.C_H_G``, ``quality['rms_px']``), the update when ``update_method`` is 'E'."""
         self.frame += 1
         p = self.p_G6 if p_G6 is None else self._points(p_G6)
         uv = np.asarray(uv6, dtype=float)
@@ -441,8 +447,9 @@ class Monitor:
         est_U, err = None, None
         if n_found >= 3:
             try:
-                est_U = estimate(self._update_method(found), self.C_H_G, p, uv, found, self.camera)
-            except CalibrationError as exc:
+                est_U = estimate(self._update_method(found), self.C_H_G, p, uv, found, self.camera,
+                                 model_C_H_G=model_C_H_G, model_rms_px=model_rms_px)
+            except (CalibrationError, ConfigError) as exc:  # E without the model's pose: no estimate
                 err = str(exc)
         C_H_G = self.C_H_G
 

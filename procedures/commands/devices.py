@@ -31,6 +31,8 @@ def _robot(url, cell, timeout_s):
     from selfview.drivers.robot import open_robot
 
     with open_robot(url, cell, timeout_s=timeout_s) as robot:
+        if not robot.knows_poses:
+            return "the operator's arm (manual://): it reports no pose", {"manual": True}
         w = robot.where()
         pose, joints = list(w.pose), list(w.joints)
     return (f"at x y z o a t = {' '.join(f'{v:.2f}' for v in pose)}; joints {' '.join(f'{v:.2f}' for v in joints)} deg",

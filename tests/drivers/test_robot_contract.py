@@ -86,3 +86,10 @@ def test_open_robot_honours_the_cell_robot_section(tmp_path):
         parse_cell(raw)
     with pytest.raises(ConfigError, match="robot URL"):
         open_robot("", cell)
+
+
+def test_the_devices_table_names_the_operators_arm(cell):
+    from selfview.procedures.commands.devices import _robot
+
+    text, row = _robot("manual://", cell, 1.0)
+    assert "operator's arm" in text and row == {"manual": True}

@@ -23,3 +23,19 @@ def test_E_is_the_fitted_pose_and_the_camera_motion_it_implies():
     assert est.rms_px == 0.12
     with pytest.raises(ConfigError, match="model's own estimate"):
         estimate(MODEL_METHOD, C_H_G, np.zeros((6, 3)), nan6, np.zeros(6, bool), cam)
+
+
+def test_the_monitor_takes_E_like_the_other_update_methods(cell):
+    from selfview.policy import Monitor
+
+    cam = CameraModel(f=950.0, kappa=0.0, cx=383.5, cy=287.5, aspect=1.0, width=768, height=576)
+    C_H_G = trans(0.0, 1.0, 110.0) @ rot_x(np.radians(30.0))
+    pG = cell.gripper.points_G()
+    uv = cam.project((C_H_G @ np.c_[pG, np.ones(6)].T).T[:, :3])
+    found = np.ones(6, bool)
+    mon = Monitor(C_H_G, cam, pG, cell.monitor, update_method="E")
+    small = trans(0.05, 0.0, 0.0) @ C_H_G
+    d = mon.step(uv, found, model_C_H_G=small, model_rms_px=0.1)
+    assert d.action == "update" and d.method == "E" and np.allclose(mon.C_H_G, small)
+    d = mon.step(uv, found)  # no model pose: no estimate, an alarm naming why
+    assert d.action == "alarm" and "model's own estimate" in d.reason
