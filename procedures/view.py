@@ -542,15 +542,16 @@ function plot(s){const svg=document.getElementById("plot");svg.innerHTML="";if(!
  P.forEach((p,i)=>{if(i%every===0||i===P.length-1)h+=`<line x1="${x(i)}" x2="${x(i)}" y1="${Y0}" y2="${Y0+4}" stroke="#888"/>`+
   `<text class="tick" x="${x(i)}" y="${Y0+15}" fill="#aaa" font-size="10" text-anchor="middle">${p.frame}</text>`;});
  h+=`<text x="${X1}" y="${H-2}" fill="#aaa" font-size="10" text-anchor="end">frame</text>`;
- const lines=[[1,"#ff4040",`alarm limit ${L.alarm_deg} deg / ${L.alarm_mm} mm`],
-  [L.update_deg/L.alarm_deg,"#e0c000",`update limit ${L.update_deg} deg`],[L.update_mm/L.alarm_mm,"#c08000",`update limit ${L.update_mm} mm`]];
+ const N=L.names||["alarm limit","update limit","the alarm limit"];
+ const lines=[[1,"#ff4040",`${N[0]} ${L.alarm_deg} deg / ${L.alarm_mm} mm`],
+  [L.update_deg/L.alarm_deg,"#e0c000",`${N[1]} ${L.update_deg} deg`],[L.update_mm/L.alarm_mm,"#c08000",`${N[1]} ${L.update_mm} mm`]];
  const used=[];for(const [v,c,t] of lines){let ly=y(v)-3;while(used.some(u=>Math.abs(u-ly)<12))ly-=12;used.push(ly);
   h+=`<line x1="${X0}" x2="${X1}" y1="${y(v)}" y2="${y(v)}" stroke="${c}" stroke-dasharray="4"/>`+
   `<text class="limit" x="${X1-4}" y="${ly}" fill="${c}" font-size="11" text-anchor="end">${t}</text>`;}
  for(const [k,c,a] of [["delta_deg","#6cf",L.alarm_deg],["d_mm","#f8a",L.alarm_mm]])
   h+=`<polyline fill="none" stroke="${c}" points="${P.map((p,i)=>x(i)+","+y((p[k]||0)/a)).join(" ")}"/>`;
  h+=`<text x="${X0}" y="12" font-size="11"><tspan fill="#6cf">rotation</tspan> <tspan fill="#f8a">shift</tspan>`+
-  `<tspan fill="#ccc"> as a fraction of the alarm limit, ${P.length} frames</tspan></text>`;svg.innerHTML=h;}
+  `<tspan fill="#ccc"> as a fraction of ${N[2]}, ${P.length} frames</tspan></text>`;svg.innerHTML=h;}
 async function poll(){let s;try{s=await (await fetch("state.json",{cache:"no-store"})).json();}
  catch(e){document.getElementById("doing").textContent="the command has ended; this is its last state";
   document.getElementById("stop").disabled=true;setTimeout(poll,1000);return;}
