@@ -27,7 +27,7 @@ import numpy as np  # noqa: E402
 if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").is_file():
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from selfview.cell import default_cell_path, load_cell  # noqa: E402
+from selfview.files.cell import default_cell_path, load_cell  # noqa: E402
 from selfview.errors import CalibrationError  # noqa: E402
 
 if str(Path(__file__).resolve().parents[1]) not in sys.path:
@@ -58,7 +58,7 @@ def judge_pose(result, seq: Sequence, frame: Frame) -> dict:
     ``found``: marked good and right; ``missed``: not marked good (points not found, 4P-I refused, or the
     measurement's own quality check said "not found"); ``wrong``: marked good but the pose more than
     ``WRONG_MM`` off in some axis of the TCP."""
-    from selfview.online import estimate
+    from selfview.estimation.online import estimate
 
     quality_ok = getattr(result, "quality_ok", True)
     need = list(ONLINE_POINTS)
@@ -107,8 +107,8 @@ def measure_sequence(seq: Sequence, cell, methods=("search", "model-tracker")) -
     model=True)``) and ``model-tracker`` (a ``SilhouetteTracker`` run over the sequence, primed by a search
     of the undisturbed picture) the model-based measurement, whose own pose is also scored as method E
     (``E_tcp_err_*``). The same frames for all; each followed by 4P-I."""
-    from selfview.fingers import find_fingertips
-    from selfview.fingers import SilhouetteTracker
+    from selfview.measurement.fingers import find_fingertips
+    from selfview.measurement.fingers import SilhouetteTracker
 
     out = {}
     if seq.kind == "disc":

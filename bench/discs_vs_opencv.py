@@ -27,8 +27,8 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from selfview.cell import load_cell  # noqa: E402
-from selfview.discs import detect_discs  # noqa: E402
+from selfview.files.cell import load_cell  # noqa: E402
+from selfview.measurement.discs import detect_discs  # noqa: E402
 from selfview.errors import ImageError  # noqa: E402
 
 if str(Path(__file__).resolve().parents[1]) not in sys.path:

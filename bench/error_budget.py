@@ -23,7 +23,7 @@ import time  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from selfview.cell import default_cell_path, load_cell  # noqa: E402
+from selfview.files.cell import default_cell_path, load_cell  # noqa: E402
 from selfview.mocks.imperfections import PARTS, PROFILES, Imperfections  # noqa: E402
 from selfview.procedures.paper import PAPER_TABLES  # noqa: E402
 

@@ -13,14 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from selfview.camera import CameraModel
-from selfview.cell import PlateSpec
-from selfview.discs import DiscDetections
-from selfview.plates import correct_plate_bias
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import PlateSpec
+from selfview.measurement.discs import DiscDetections
+from selfview.measurement.plates import correct_plate_bias
 from selfview.errors import CalibrationError, ConfigError
-from selfview.geometry import R_from_rotvec, check_rigid, inv_H, make_H, rotation_angle, rotvec_from_R
-from selfview.online import recalibrate
-from selfview.tsai import calibrate_coplanar
+from selfview.maths.geometry import R_from_rotvec, check_rigid, inv_H, make_H, rotation_angle, rotvec_from_R
+from selfview.estimation.online import recalibrate
+from selfview.estimation.tsai import calibrate_coplanar
 
 __all__ = ["METHODS", "HandEyeResult", "plate_pose", "relative_motions", "calibrate_handeye"]
 
@@ -78,9 +78,9 @@ class HandEyeResult:
 
 
 def plate_pose(det: DiscDetections, camera: CameraModel, plate: PlateSpec) -> np.ndarray:
-    """``C_H_W`` (4, 4) of a plate from its detected discs (``selfview.discs.DiscDetections``) with the
+    """``C_H_W`` (4, 4) of a plate from its detected discs (``selfview.measurement.discs.DiscDetections``) with the
     interior orientation ``camera`` held fixed (f, kappa from an earlier calibration): Tsai's pose as
-    the start, the exterior orientation refined over all discs (``selfview.online.recalibrate``), the
+    the start, the exterior orientation refined over all discs (``selfview.estimation.online.recalibrate``), the
     discs' perspective bias removed and the pose refined again. Raises ``CalibrationError``."""
     ts = calibrate_coplanar(det.p_W, det.uv, cx=camera.cx, cy=camera.cy, aspect=camera.aspect,
                             width=camera.width, height=camera.height,

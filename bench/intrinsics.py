@@ -30,19 +30,19 @@ import numpy as np  # noqa: E402
 if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").is_file():
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from selfview.cell import default_cell_path, load_cell  # noqa: E402
+from selfview.files.cell import default_cell_path, load_cell  # noqa: E402
 from selfview.errors import CellError, ConfigError  # noqa: E402
-from selfview.geometry import inv_H  # noqa: E402
-from selfview.intrinsics import (  # noqa: E402
+from selfview.maths.geometry import inv_H  # noqa: E402
+from selfview.estimation.intrinsics import (  # noqa: E402
     TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics, camera_check, detect_views, tcp_sigma,
 )
 from selfview.procedures.viewplan import plan_view_poses  # noqa: E402
-from selfview.plates import plate_image_bias  # noqa: E402
-from selfview.geometry import trans, transform_points  # noqa: E402
+from selfview.measurement.plates import plate_image_bias  # noqa: E402
+from selfview.maths.geometry import trans, transform_points  # noqa: E402
 from selfview.mocks.imperfections import PROFILES  # noqa: E402
 from selfview.mocks.render import render as _project_render  # noqa: E402
 from selfview.mocks.world import PLATE_BASE_POSE, SimWorld  # noqa: E402
-from selfview.offline import calibrate_offline  # noqa: E402
+from selfview.estimation.offline import calibrate_offline  # noqa: E402
 
 try:  # the independent renderer lives beside the tests, in a source tree
     from tests import alt_render as _alt
@@ -432,7 +432,7 @@ def photo_study() -> dict:
     """
     from types import SimpleNamespace
 
-    from selfview.plates import detect_plate
+    from selfview.measurement.plates import detect_plate
 
     out = {}
     for folder, pattern in PHOTO_SETS:

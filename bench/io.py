@@ -3,7 +3,7 @@
 - gripper: open/close-to-confirmed latency against the simulated valve terminal, minus the stroke's
   simulated travel time (what the driver and Modbus add), and the Modbus request round trip (one FC2
   read), for Modbus TCP and RTU frames over TCP;
-- pictures: the checked reader (``selfview.io_safe.read_picture``: header size check, then OpenCV's
+- pictures: the checked reader (``selfview.files.io_safe.read_picture``: header size check, then OpenCV's
   decoder) against ``cv2.imread`` on a 768 x 576 PNG, and the time to refuse a 0.3 MB PNG whose header
   says 30000 x 30000 (refused from the header; OpenCV would decode 900 Mpx);
 - frames per second from ``sim://`` (cached render: the world at rest; and a world that changes every
@@ -35,7 +35,7 @@ from selfview.mocks.sim_camera import attach_world  # noqa: E402
 from selfview.mocks.valve_terminal import ValveTerminal  # noqa: E402
 from selfview.mocks.world import SimWorld  # noqa: E402
 from selfview import __version__  # noqa: E402
-from selfview.cell import default_cell_path, load_cell  # noqa: E402
+from selfview.files.cell import default_cell_path, load_cell  # noqa: E402
 
 
 def stats(values_s: list[float]) -> dict:
@@ -117,7 +117,7 @@ def bench_pictures(repeats: int) -> dict:
     import struct
     import zlib
 
-    from selfview.io_safe import read_picture
+    from selfview.files.io_safe import read_picture
     from selfview.errors import ImageError
 
     rng = np.random.default_rng(0)

@@ -34,14 +34,14 @@ from selfview.mocks.puma260 import Unreachable, make_tool  # noqa: E402
 from selfview.mocks.render import render  # noqa: E402
 from selfview.mocks.val_controller import TOOL_LENGTH_MM  # noqa: E402
 from selfview.mocks.world import PLATE_BASE_POSE, SimWorld  # noqa: E402
-from selfview.cell import default_cell_path, load_cell  # noqa: E402
-from selfview.plates import detect_plate  # noqa: E402
+from selfview.files.cell import default_cell_path, load_cell  # noqa: E402
+from selfview.measurement.plates import detect_plate  # noqa: E402
 from selfview.errors import CellError  # noqa: E402
-from selfview.geometry import (  # noqa: E402
+from selfview.maths.geometry import (  # noqa: E402
     R_from_rotvec, inv_H, make_H, pose_difference, rot_z, rotation_angle, trans, transform_points,
 )
 from selfview.bench.handeye import calibrate_handeye, plate_pose  # noqa: E402
-from selfview.offline import calibrate_offline  # noqa: E402
+from selfview.estimation.offline import calibrate_offline  # noqa: E402
 
 MIN_DISCS = 20
 MIN_CLEARANCE_MM = 10.0  # fingertips at least this far above the plate at a station

@@ -51,7 +51,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     ),
     Mutation(
         "calfile-written-in-place",
-        "selfview/io_safe.py",
+        "selfview/files/io_safe.py",
         '    tmp = folder / f".{path.name}.{os.getpid()}.{secrets.token_hex(6)}.tmp"  # see remove_leftovers\n    try:\n'
         "        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666 if old_mode is None else old_mode)\n",
         "    tmp = path\n    try:\n"
@@ -62,7 +62,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     ),
     Mutation(
         "calfile-written-before-read-back",
-        "selfview/calfile.py",
+        "selfview/files/calfile.py",
         "    # check what we are about to write reads back, before it replaces anything\n",
         '    atomic_write(p, text.encode("utf-8"), error=CalibrationFileError, what="calibration file")\n',
         ("tests/selfview/test_calfile.py::test_a_calibration_that_does_not_read_back_is_never_written",
@@ -71,7 +71,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     ),
     Mutation(
         "recalibration-alarm-limit-unchecked",
-        "selfview/policy.py",
+        "selfview/estimation/policy.py",
         '        if self.classify(delta_R, d_R) == "alarm":\n',
         "        if False:\n",
         ("tests/selfview/test_policy.py::test_a_recalibration_beyond_the_alarm_limit_raises_the_alarm",),
@@ -95,7 +95,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     ),
     Mutation(
         "min-discs-60",
-        "selfview/discs.py",
+        "selfview/measurement/discs.py",
         "min_discs: int = 12) -> DiscDetections:",
         "min_discs: int = 60) -> DiscDetections:",
         ("tests/selfview/test_discs.py::test_the_minimum_disc_count", "tests/selfview/test_offline.py::test_robustness"),
@@ -104,7 +104,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     # --- the independence of the test renderer and the off-line pipeline's steps ----------------------------
     Mutation(
         "camera-half-pixel-shift",
-        "selfview/camera.py",
+        "selfview/maths/camera.py",
         "        u = XY_hat[:, 0] / self.aspect + self.cx\n",
         "        u = XY_hat[:, 0] / self.aspect + self.cx + 0.5\n",
         ("tests/selfview/test_discs.py::test_alt_renderer_truth_is_self_consistent",
@@ -113,7 +113,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     ),
     Mutation(
         "disc-bias-correction-removed",
-        "selfview/offline.py",
+        "selfview/estimation/offline.py",
         "    uv_c = correct_plate_bias(det, ts.camera.with_(skew=nominal.skew), ts.C_H_W, cell.plate)\n",
         "    uv_c = det.uv\n",
         ("tests/selfview/test_offline.py::test_accuracy_on_an_independent_renderer",
@@ -230,7 +230,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     ),
     Mutation(
         "yaml-aliases-accepted",
-        "selfview/io_safe.py",
+        "selfview/files/io_safe.py",
         "            if self.check_event(yaml.AliasEvent):\n",
         "            if False and self.check_event(yaml.AliasEvent):\n",
         ("tests/selfview/test_calfile.py::test_hostile_yaml_is_refused_at_once",),
@@ -238,7 +238,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     ),
     Mutation(
         "picture-size-unchecked",
-        "selfview/io_safe.py",
+        "selfview/files/io_safe.py",
         "    if w > max_side or h > max_side or w * h > max_pixels:\n",
         "    if False:\n",
         ("tests/selfview/test_io_safe.py::test_a_huge_png_is_refused_from_its_header",),
@@ -303,7 +303,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     ),
     Mutation(
         "calfile-without-checksum-accepted",
-        "selfview/calfile.py",
+        "selfview/files/calfile.py",
         "if want != doc_checksum(body):",
         "if want is not None and want != doc_checksum(body):",
         ("tests/selfview/test_calfile.py::test_a_file_without_a_checksum_is_refused",),
@@ -376,7 +376,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     ),
     Mutation(
         "lock-file-follows-links",
-        "selfview/lockdir.py",
+        "selfview/files/lockdir.py",
         "os.O_NOFOLLOW | ",
         "",
         ("tests/drivers/test_ownership.py::test_a_planted_link_in_the_lock_folder_is_not_followed",),
@@ -384,7 +384,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     ),
     Mutation(
         "lock-folder-mode-unchecked",
-        "selfview/lockdir.py",
+        "selfview/files/lockdir.py",
         "    if stat.S_IMODE(st.st_mode) & 0o077:\n",
         "    if False:\n",
         ("tests/drivers/test_ownership.py::test_a_lock_folder_others_may_use_is_refused_by_name",),
@@ -432,7 +432,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     ),
     Mutation(
         "camfile-nan-covariance-accepted",
-        "selfview/camfile.py",
+        "selfview/files/camfile.py",
         "np.all(np.isfinite(cov)) and ",
         "",
         ("tests/selfview/test_intrinsics.py::test_a_camera_file_whose_covariance_holds_nan_is_refused",),

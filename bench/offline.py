@@ -32,13 +32,13 @@ if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").
 
 from selfview.mocks.render import render  # noqa: E402
 from selfview.mocks.world import SimWorld  # noqa: E402
-from selfview.camera import CameraModel  # noqa: E402
-from selfview.cell import POINT_NAMES, default_cell_path, load_cell  # noqa: E402
+from selfview.maths.camera import CameraModel  # noqa: E402
+from selfview.files.cell import POINT_NAMES, default_cell_path, load_cell  # noqa: E402
 from selfview.errors import CellError  # noqa: E402
-from selfview.geometry import make_H, pose_difference  # noqa: E402
-from selfview.offline import calibrate_offline  # noqa: E402
-from selfview.pcc import measure_points_G, points_G_for_state, solve_pcc  # noqa: E402
-from selfview.tsai import calibrate_coplanar  # noqa: E402
+from selfview.maths.geometry import make_H, pose_difference  # noqa: E402
+from selfview.estimation.offline import calibrate_offline  # noqa: E402
+from selfview.estimation.pcc import measure_points_G, points_G_for_state, solve_pcc  # noqa: E402
+from selfview.estimation.tsai import calibrate_coplanar  # noqa: E402
 
 TARGETS = {"f_pct": 0.2, "kappa_pct": 3.0, "tcp_across_mm": 0.02, "tcp_along_mm": 0.08, "rot_deg": 0.02}
 TARGET_TOTAL_MS = 150.0

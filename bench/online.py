@@ -40,10 +40,10 @@ if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from selfview.mocks.world import SimWorld  # noqa: E402
-from selfview.cell import default_cell_path, load_cell  # noqa: E402
-from selfview.geometry import make_H, transform_points  # noqa: E402
-from selfview._native import status as native_status  # noqa: E402
-from selfview.online import differential_update, iterative_update, recalibrate  # noqa: E402
+from selfview.files.cell import default_cell_path, load_cell  # noqa: E402
+from selfview.maths.geometry import make_H, transform_points  # noqa: E402
+from selfview.measurement._native import status as native_status  # noqa: E402
+from selfview.estimation.online import differential_update, iterative_update, recalibrate  # noqa: E402
 
 TARGET_SOLVE_US = 50.0
 TARGET_STEP_MS = 2.0  # 5 % of a frame
@@ -104,9 +104,9 @@ def model_step(cell, world, C_H_G_before, *, backdrop=None, frames: int = 8, rou
     search once it has lost the fingertips (``search_ms``: from the prediction, with the corner search's
     pose and the wide ranges where that fails) and the corner search alone (``corner_search_ms``)."""
     from selfview.errors import CalibrationError
-    from selfview.fingers import find_fingertips
-    from selfview.online import estimate
-    from selfview.fingers import SilhouetteTracker
+    from selfview.measurement.fingers import find_fingertips
+    from selfview.estimation.online import estimate
+    from selfview.measurement.fingers import SilhouetteTracker
 
     gap = world.jaw_gap_mm
     cam = world.camera
@@ -239,7 +239,7 @@ def main(argv=None) -> int:
             "search_ms_cluttered": None if not cluttered or "search_ms" not in cluttered else cluttered["search_ms"],
             "target_step_ms": TARGET_STEP_MS,
             "target_search_ms": FRAME_MS,
-            "implementation": "compiled kernel selfview._csil" if native_status()["_csil"] else "numpy",
+            "implementation": "compiled kernel selfview.measurement._csil" if native_status()["_csil"] else "numpy",
         },
         "compiled_kernels": native_status(),
         "repeat": args.repeat,

@@ -42,17 +42,17 @@ if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").
 
 from selfview.bench.handeye import plate_pose  # noqa: E402
 from selfview.bench.kinematics_vs_selfview import F_H_G, opencv_handeye, resolve_grid, stations  # noqa: E402
-from selfview.cell import default_cell_path, load_cell  # noqa: E402
+from selfview.files.cell import default_cell_path, load_cell  # noqa: E402
 from selfview.errors import CellError  # noqa: E402
-from selfview.geometry import inv_H, make_H, rot_z, trans  # noqa: E402
-from selfview.io_safe import atomic_write  # noqa: E402
+from selfview.maths.geometry import inv_H, make_H, rot_z, trans  # noqa: E402
+from selfview.files.io_safe import atomic_write  # noqa: E402
 from selfview.mocks.kinematic_errors import WORN_PUMA, PerturbedPuma260  # noqa: E402
 from selfview.mocks.objects import draw_start, grasp_outcome, place_object  # noqa: E402
 from selfview.mocks.puma260 import Unreachable  # noqa: E402
 from selfview.mocks.render import render  # noqa: E402
 from selfview.mocks.world import PLATE_BASE_POSE, SimWorld  # noqa: E402
-from selfview.objects import load_object, object_pose  # noqa: E402
-from selfview.offline import calibrate_offline  # noqa: E402
+from selfview.measurement.objects import load_object, object_pose  # noqa: E402
+from selfview.estimation.offline import calibrate_offline  # noqa: E402
 from selfview.procedures.engine import tool_step_size  # noqa: E402
 from selfview.procedures.grasp import GraspResult, ServoSettings, pose_error, servo_grasp  # noqa: E402
 
@@ -379,7 +379,7 @@ def main(argv=None) -> int:
 def _cal_error(cal, truth) -> dict:
     if isinstance(cal, dict):
         return cal
-    from selfview.geometry import pose_difference
+    from selfview.maths.geometry import pose_difference
 
     rot, mm = pose_difference(cal[0], truth)
     return {"tcp_mm": mm, "rot_deg": rot}

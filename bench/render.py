@@ -27,7 +27,7 @@ import numpy as np  # noqa: E402
 
 from selfview.mocks.render import LIFTED_W_H_G, render  # noqa: E402
 from selfview.mocks.world import SimWorld  # noqa: E402
-from selfview.cell import default_cell_path, load_cell  # noqa: E402
+from selfview.files.cell import default_cell_path, load_cell  # noqa: E402
 
 
 def _time(world: SimWorld, repeat: int) -> dict:

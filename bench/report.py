@@ -4,7 +4,7 @@
 collects the one JSON object it prints; a script that is missing, fails, times out or prints no JSON is
 recorded as such, never dropped. In the same run it carries out the paper's experiment on the simulated
 cell (``selfview.procedures.experiment.run_direct``, both series in parallel), Tsai's calibration on Willson's
-reference points (``selfview.tsai``), and notes the machine. It writes ``RESULTS.md`` and, beside it in
+reference points (``selfview.estimation.tsai``), and notes the machine. It writes ``RESULTS.md`` and, beside it in
 ``results/``, every JSON object, the studies' tables and the plots. Every figure in the report is read
 from that run's results; none is typed in.
 """
@@ -28,7 +28,7 @@ import numpy as np
 
 from selfview.procedures.results import environment, plot_errors, write_json
 from selfview.errors import ConfigError
-from selfview.online import METHODS
+from selfview.estimation.online import METHODS
 
 __all__ = ["Bench", "BenchRun", "BENCHES", "find_bench_dir", "find_reference_dir", "run_bench", "machine",
            "run_experiment", "willson_check", "render_markdown", "make_report"]
@@ -186,7 +186,7 @@ def _experiment_series(cell_path: str, series: str, trials: int, seed: int):
     """One series, trial by trial (world seeds ``seed + k``, as ``run_direct`` gives them): a trial that
     fails, even by a fault of a module under study, is listed as failed and the series goes on."""
     from selfview.procedures.experiment import run_direct
-    from selfview.cell import load_cell
+    from selfview.files.cell import load_cell
 
     cell = load_cell(cell_path)
     records, failures = [], []
@@ -208,7 +208,7 @@ def run_experiment(trials: int, *, jobs: int = 2, series=("cable", "tilt"), seed
     (each with the seeds ``run_direct`` gives it in a joint run). Returns the summary, its tables
     (ours beside the paper's) and the time taken."""
     from selfview.procedures.experiment import summarise, tables_markdown
-    from selfview.cell import default_cell_path
+    from selfview.files.cell import default_cell_path
 
     t0 = time.monotonic()
     seeds = [seed + 10_000 * i for i in range(len(series))]
@@ -228,7 +228,7 @@ def run_experiment(trials: int, *, jobs: int = 2, series=("cable", "tilt"), seed
 def _willson_log(text: str) -> dict[str, dict[str, float]]:
     """Willson's calibration sections by title: f, kappa1, Tx, Ty, Tz, Rx, Ry, Rz, Cx, Cy and the
     distorted image-plane error's mean and max (as mean_px, max_px)."""
-    from selfview.tsai import parse_willson_log
+    from selfview.estimation.tsai import parse_willson_log
 
     keep = ("f", "kappa1", "Tx", "Ty", "Tz", "Rx", "Ry", "Rz", "Cx", "Cy")
     out = {}
@@ -241,13 +241,13 @@ def _willson_log(text: str) -> dict[str, dict[str, float]]:
 
 
 def willson_check(ref_dir: Path | None) -> dict | None:
-    """``selfview.tsai`` on Willson's coplanar points (``cc_cd.dat``) beside his published runs
+    """``selfview.estimation.tsai`` on Willson's coplanar points (``cc_cd.dat``) beside his published runs
     (``ccal.log``): mode 'tsai' with his fixed centre, mode 'full+centre' beside his full optimisation.
     Units converted with his sensor's pixel size from ``cc_cpcc.dat``. None without the data."""
     if ref_dir is None:
         return None
-    from selfview.geometry import rpy_from_R
-    from selfview.tsai import calibrate_coplanar, load_willson_points
+    from selfview.maths.geometry import rpy_from_R
+    from selfview.estimation.tsai import calibrate_coplanar, load_willson_points
 
     p_W, uv = load_willson_points(ref_dir / "cc_cd.dat")
     dpy = float(np.loadtxt(ref_dir / "cc_cpcc.dat")[5])
@@ -422,7 +422,7 @@ def _willson(w: dict | None) -> list[str]:
     lines = [f"### Tsai's method on Willson's reference data ({_link('willson.json')})", ""]
     if not w:
         return lines + ["Not available: Willson's data (`reference/tsai-willson`) not found; pass --reference.", ""]
-    lines += [f"`selfview.tsai.calibrate_coplanar` on `cc_cd.dat` ({w['points']} points) beside his published runs.", "",
+    lines += [f"`selfview.estimation.tsai.calibrate_coplanar` on `cc_cd.dat` ({w['points']} points) beside his published runs.", "",
               "| mode | | f [mm] | kappa1 [mm^-2] | Tz [mm] | mean / max error [px] |", "|---|---|---|---|---|---|"]
     for r in w["runs"]:
         for who, v in (("ours", r["ours"]), ("Willson", r["willson"])):
@@ -695,7 +695,7 @@ def make_report(out: Path, *, quick: bool = False, benches=BENCHES, bench_dir: P
     out = Path(out)
     if out.suffix.lower() != ".md":
         raise ConfigError(f"--out {out}: expected a markdown file such as docs/RESULTS.md")
-    from selfview.cell import default_cell_path, load_cell
+    from selfview.files.cell import default_cell_path, load_cell
 
     say = progress or (lambda msg: None)
     t0 = time.monotonic()
@@ -755,7 +755,7 @@ def make_report(out: Path, *, quick: bool = False, benches=BENCHES, bench_dir: P
     text = render_markdown(runs, mach, exp, willson, quick=bool(meta.get("quick", quick)),
                            seconds=meta.get("seconds"), command=meta.get("command", command), cell_limit=cell_limit,
                            results_dir=results, when=meta.get("when"))
-    from selfview.io_safe import atomic_write
+    from selfview.files.io_safe import atomic_write
 
     atomic_write(out, text.encode("utf-8"), what="report")
     return {"markdown": str(out), "results": str(results), "runs": {k: r.status for k, r in runs.items()},

@@ -33,12 +33,12 @@ if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").
 
 from selfview.mocks.render import render  # noqa: E402
 from selfview.mocks.world import SimWorld, random_small_rotation  # noqa: E402
-from selfview.cell import default_cell_path, load_cell  # noqa: E402
-from selfview.fingers import find_fingertips  # noqa: E402
-from selfview.geometry import make_H, pose_difference  # noqa: E402
-from selfview.offline import calibrate_offline  # noqa: E402
-from selfview.online import estimate  # noqa: E402
-from selfview.policy import Policy  # noqa: E402
+from selfview.files.cell import default_cell_path, load_cell  # noqa: E402
+from selfview.measurement.fingers import find_fingertips  # noqa: E402
+from selfview.maths.geometry import make_H, pose_difference  # noqa: E402
+from selfview.estimation.offline import calibrate_offline  # noqa: E402
+from selfview.estimation.online import estimate  # noqa: E402
+from selfview.estimation.policy import Policy  # noqa: E402
 
 METHODS = ("4P-U", "4P-I", "4P-R")
 AXES = {"C x": (1.0, 0.0, 0.0), "C y": (0.0, 1.0, 0.0), "C z": (0.0, 0.0, 1.0)}
@@ -221,7 +221,7 @@ def write_cell(path: Path, limit: dict, note: str) -> None:
     """Rewrite only ``monitor.update_limit``'s two values in ``path`` and put ``note`` as a comment
     line above it (replacing an earlier such note); every other byte stays. Raises ``ValueError``
     if the line is not found or the result does not load."""
-    from selfview.cell import load_cell
+    from selfview.files.cell import load_cell
 
     text = path.read_text(encoding="utf-8")
     pat = re.compile(r"^(?P<indent>[ \t]+)update_limit: \{angle_deg: [^,}]+, shift_mm: [^}]+\}(?P<tail>.*)$", re.M)

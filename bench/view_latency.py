@@ -28,10 +28,10 @@ if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").
 
 import numpy as np  # noqa: E402
 
-from selfview.cell import default_cell_path, load_cell  # noqa: E402
+from selfview.files.cell import default_cell_path, load_cell  # noqa: E402
 from selfview.mocks.render import render  # noqa: E402
 from selfview.mocks.world import SimWorld  # noqa: E402
-from selfview.offline import calibrate_offline  # noqa: E402
+from selfview.estimation.offline import calibrate_offline  # noqa: E402
 from selfview.procedures.results import draw_offline  # noqa: E402
 from selfview.procedures.view import LiveView  # noqa: E402
 

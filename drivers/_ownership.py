@@ -1,6 +1,6 @@
 """One program owns a device: a lock file per device, naming its holder (pid and command line).
 
-The lock is an ``flock`` on a file in the user's lock folder (``selfview.lockdir``: ``$SELFVIEW_LOCK_DIR``,
+The lock is an ``flock`` on a file in the user's lock folder (``selfview.files.lockdir``: ``$SELFVIEW_LOCK_DIR``,
 else ``$XDG_RUNTIME_DIR/selfview``, else ``selfview-UID`` in the temporary directory; the user's own, mode
 0700, lock files opened without following links). It is keyed on what the kernel says the device is, not
 on how its name is spelled: a host on every address it resolves to (with the port), a device path on its
@@ -22,8 +22,8 @@ from pathlib import Path
 from typing import Callable
 
 from selfview.errors import DeviceError
-from selfview.lockdir import lock_dir as _lock_dir
-from selfview.lockdir import lock_slug, open_lock_file
+from selfview.files.lockdir import lock_dir as _lock_dir
+from selfview.files.lockdir import lock_slug, open_lock_file
 
 __all__ = ["DeviceBusy", "StaleState", "DeviceLock", "claim_for", "lock_dir", "host_identity", "path_identity"]
 

@@ -12,7 +12,7 @@ import tempfile
 from pathlib import Path
 
 from selfview.procedures.runs import CellSession
-from selfview.cell import default_cell_path, load_cell
+from selfview.files.cell import default_cell_path, load_cell
 from selfview.errors import AlarmError
 
 frames = int(sys.argv[1]) if len(sys.argv) > 1 else 8

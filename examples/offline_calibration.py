@@ -10,7 +10,7 @@ camera="v4l2:///dev/video0?input=1&std=pal")``.
 import sys
 
 from selfview.procedures.runs import CellSession
-from selfview.cell import default_cell_path, load_cell
+from selfview.files.cell import default_cell_path, load_cell
 
 out = sys.argv[1] if len(sys.argv) > 1 else "calibration.yaml"
 cell = load_cell(default_cell_path())

@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass, fields, replace
 
 import numpy as np
 
-from selfview.cell import Cell, GripperSpec, PlateSpec
+from selfview.files.cell import Cell, GripperSpec, PlateSpec
 from selfview.errors import ConfigError
 
 __all__ = [

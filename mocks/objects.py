@@ -1,6 +1,6 @@
 """A block to grasp in the simulated cell: where it lies, and whether a closing gripper holds it.
 
-The block (``selfview.objects.ObjectSpec``) lies on the table (the base frame's z = 0 plane) at a pose drawn
+The block (``selfview.measurement.objects.ObjectSpec``) lies on the table (the base frame's z = 0 plane) at a pose drawn
 per seed within the object file's ``placement``; the renderer draws it and its printed target
 (``selfview.mocks.render``). ``grasp_outcome`` is the world's verdict when the jaws close: held when the
 block lies between the open jaws within their clearance, the fingers' width on its faces, the fingertips
@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from selfview.errors import ConfigError
-from selfview.geometry import R_from_rotvec, inv_H, make_H, rot_z, rotation_angle, trans, transform_points
-from selfview.objects import ObjectSpec
+from selfview.maths.geometry import R_from_rotvec, inv_H, make_H, rot_z, rotation_angle, trans, transform_points
+from selfview.measurement.objects import ObjectSpec
 
 __all__ = ["SimObject", "place_object", "draw_start", "grasp_outcome", "MIN_GRIP_DEPTH_MM", "TABLE_MARGIN_MM"]
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from selfview.drivers.puma_val_serial.limits import PUMA260_JOINT_LIMITS_DEG, PUMA260_JOINT_SPEED_DEG_S, VAL_READY_DEG
-from selfview.geometry import make_H, trans
+from selfview.maths.geometry import make_H, trans
 
 __all__ = ["Puma260Geometry", "ArmConfig", "Puma260", "Unreachable", "READY_DEG", "make_tool"]
 

@@ -17,11 +17,11 @@ import numpy as np
 
 from selfview.mocks.imperfections import chamfer_cuts, picture_effects
 from selfview.mocks.world import SimWorld
-from selfview.camera import CameraModel, max_undistorted_radius
-from selfview.plates import board_edges_W, board_ink
-from selfview.cell import POINT_NAMES, ImageSpec, PlateSpec
+from selfview.maths.camera import CameraModel, max_undistorted_radius
+from selfview.measurement.plates import board_edges_W, board_ink
+from selfview.files.cell import POINT_NAMES, ImageSpec, PlateSpec
 from selfview.errors import ConfigError
-from selfview.geometry import rot_x, rot_z, trans, transform_points
+from selfview.maths.geometry import rot_x, rot_z, trans, transform_points
 
 __all__ = [
     "Backdrop",
@@ -518,7 +518,7 @@ def _target_texture(target, size_mm: tuple[float, float], paper: float, ink: flo
     """The block's top face (``size_mm`` x, y) with the ChArUco target centred on it, ``_TARGET_RES`` mm per
     texel, grey levels ``ink``..``paper`` (float32, read-only), and the O coordinates (x, y) [mm] of its
     first texel's centre."""
-    from selfview.objects import target_board
+    from selfview.measurement.objects import target_board
 
     w, h = (int(round(v / _TARGET_RES)) for v in size_mm)
     tw, th = (int(round(v / _TARGET_RES)) for v in target.size)
@@ -854,7 +854,7 @@ def _check_args(world, blur_px, gain, supersample, image_spec) -> ImageSpec:
         raise ConfigError(f"render: expected a SimWorld, got {type(world).__name__}")
     spec = image_spec if image_spec is not None else world.cell.simulation.image
     if not isinstance(spec, ImageSpec):
-        raise ConfigError(f"render image_spec: expected a selfview.cell.ImageSpec, got {type(spec).__name__}")
+        raise ConfigError(f"render image_spec: expected a selfview.files.cell.ImageSpec, got {type(spec).__name__}")
     if isinstance(supersample, bool) or not isinstance(supersample, (int, np.integer)) or not 4 <= supersample <= 16:
         raise ConfigError(
             f"render supersample: expected a whole number of samples per pixel axis, 4..16, got {supersample!r}"

@@ -25,7 +25,7 @@ from selfview.drivers.puma_val_serial.errors import ArmPowerOff
 from selfview.mocks.puma260 import READY_DEG, ArmConfig, Puma260, Puma260Geometry, Unreachable, make_tool
 from selfview.mocks.world import PLATE_BASE_POSE, SimWorld
 from selfview.errors import ConfigError
-from selfview.geometry import R_from_rotvec, inv_H, make_H, rotation_angle, rotvec_from_R, trans
+from selfview.maths.geometry import R_from_rotvec, inv_H, make_H, rotation_angle, rotvec_from_R, trans
 
 __all__ = ["ValController", "FAULTS", "trapezoid_time", "trapezoid_fraction", "TOOL_LENGTH_MM"]
 

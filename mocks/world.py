@@ -21,10 +21,10 @@ import numpy as np
 
 from selfview.mocks.imperfections import realise as realise_imperfections
 from selfview.mocks.imperfections import resolve as resolve_imperfections
-from selfview.camera import CameraModel
-from selfview.cell import Cell
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import Cell
 from selfview.errors import ConfigError
-from selfview.geometry import (
+from selfview.maths.geometry import (
     R_from_rotvec,
     inv_H,
     trans,

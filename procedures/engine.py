@@ -18,7 +18,7 @@ from typing import Any, Callable
 import numpy as np
 
 from selfview.errors import CellError, ConfigError, LimitError
-from selfview.geometry import rotation_angle, trans
+from selfview.maths.geometry import rotation_angle, trans
 from selfview.signals import TERMINATION_SIGNALS, Interrupted, signal_name
 
 __all__ = ["Step", "Engine", "Cancelled", "Interrupted", "CellDevices", "StepRecord", "TERMINATION_SIGNALS",

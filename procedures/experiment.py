@@ -20,12 +20,12 @@ from typing import Protocol
 import numpy as np
 
 from selfview.procedures.paper import PAPER_SERIES, PAPER_TABLES
-from selfview.cell import Cell
+from selfview.files.cell import Cell
 from selfview.errors import CalibrationError, CellError
-from selfview.fingers import find_fingertips
-from selfview.geometry import pose_difference
-from selfview.offline import OfflineResult, calibrate_offline
-from selfview.online import METHODS, estimate
+from selfview.measurement.fingers import find_fingertips
+from selfview.maths.geometry import pose_difference
+from selfview.estimation.offline import OfflineResult, calibrate_offline
+from selfview.estimation.online import METHODS, estimate
 
 __all__ = ["TrialRig", "DirectSimRig", "TrialRecord", "run_trial", "summarise", "tables_markdown", "METHODS"]
 
@@ -70,7 +70,7 @@ def run_trial(rig: TrialRig, cell: Cell, series: str, index: int, *, seed: int |
               state: str | None = None, methods=METHODS, camera=None) -> tuple[TrialRecord, dict]:
     """One trial of the paper's protocol. Returns the record and the pictures/results for annotation.
 
-    ``camera`` a measured camera (``selfview.intrinsics``) whose principal point and aspect the off-line
+    ``camera`` a measured camera (``selfview.estimation.intrinsics``) whose principal point and aspect the off-line
     calibrations use; None: the cell's nominal ones."""
     state = state or cell.gripper.calibrate_in
     t0 = time.perf_counter()
@@ -237,11 +237,11 @@ class DirectSimRig:
 
 
 def measure_intrinsics_direct(world, views: int = 12, render_seed: int = 0):
-    """``selfview.intrinsics`` on a simulated world without device channels: the gripper through the
+    """``selfview.estimation.intrinsics`` on a simulated world without device channels: the gripper through the
     planned views above the plate (``plan_view_poses``, from the plate's taught pressing pose), a picture
     at each by the project's renderer. The world is left unparked. Returns the ``IntrinsicsResult``."""
-    from selfview.geometry import inv_H, trans
-    from selfview.intrinsics import calibrate_intrinsics
+    from selfview.maths.geometry import inv_H, trans
+    from selfview.estimation.intrinsics import calibrate_intrinsics
     from selfview.procedures.viewplan import plan_view_poses
     from selfview.mocks.render import render
     from selfview.mocks.world import PLATE_BASE_POSE

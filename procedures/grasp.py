@@ -1,7 +1,7 @@
 """Visually guided grasping: position-based visual servoing in the gripper frame (the paper's application).
 
 Each frame measures the object in the gripper frame, ``G_H_O = inv(C_H_G) C_H_O``: ``C_H_O`` from the
-object's printed target (``selfview.objects.object_pose``), ``C_H_G`` kept current by the on-line update
+object's printed target (``selfview.measurement.objects.object_pose``), ``C_H_G`` kept current by the on-line update
 from the fingertips of the same picture (``SilhouetteTracker`` and the monitor policy, as ``selfview track``
 and ``monitor`` do; off-line: the calibration's, the fingertips still watched for the alarm). The error is
 the stand-off goal ``Gpre`` (the grasp frame G* backed off ``approach_mm`` along its z) in the current
@@ -25,14 +25,14 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from selfview.camera import CameraModel
-from selfview.cell import Cell
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import Cell
 from selfview.errors import AlarmError, CalibrationError, ConfigError
-from selfview.geometry import H_from_rotvec, inv_H, rotation_angle, rotvec_from_R, transform_points
-from selfview.objects import ObjectSpec, object_pose
-from selfview.policy import Monitor
+from selfview.maths.geometry import H_from_rotvec, inv_H, rotation_angle, rotvec_from_R, transform_points
+from selfview.measurement.objects import ObjectSpec, object_pose
+from selfview.estimation.policy import Monitor
 from selfview.procedures.engine import Step
-from selfview.fingers import SilhouetteTracker
+from selfview.measurement.fingers import SilhouetteTracker
 
 __all__ = ["ServoSettings", "GraspRig", "EngineRig", "GraspFailed", "GraspResult", "servo_grasp", "run_grasp",
            "draw_servo", "pose_error", "TABLE_MARGIN_MM"]
@@ -270,7 +270,7 @@ def run_grasp(session, obj: ObjectSpec, calibration, settings: ServoSettings = S
               on_iteration: Callable[[dict, np.ndarray, object], None] | None = None) -> GraspResult:
     """On an open ``CellSession``: move to the pre-grasp pose ``start`` (a taught location's name or a (4, 4)
     ``base_H_G``; checked against the limits before anything moves), servo, descend and close the jaws
-    (``servo_grasp``). ``calibration`` a ``selfview.calfile`` calibration (its ``C_H_G``, camera and the
+    (``servo_grasp``). ``calibration`` a ``selfview.files.calfile`` calibration (its ``C_H_G``, camera and the
     fingertip points of ``settings.state``). In simulation the world's verdict on the grasp is in
     ``result.outcome``. The engine stops the robot and leaves the valve safe on any error or signal.
 

@@ -1,16 +1,16 @@
 """Measuring a camera from pictures of a plate, as a lab script calls it (``selfview intrinsics --images``).
 
-    from selfview.cell import load_plate
+    from selfview.files.cell import load_plate
     from selfview.procedures.intrinsics import measure_intrinsics
     res = measure_intrinsics(pictures, load_plate("plate.yaml"))
 """
 
 from __future__ import annotations
 
-from selfview.camera import CameraModel
-from selfview.cell import PlateSpec
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import PlateSpec
 from selfview.errors import ImageError
-from selfview.intrinsics import IntrinsicsResult, calibrate_intrinsics, detect_views, guess_camera
+from selfview.estimation.intrinsics import IntrinsicsResult, calibrate_intrinsics, detect_views, guess_camera
 
 
 def measure_intrinsics(images, plate: PlateSpec, camera: CameraModel | None = None, names=None, *,

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from selfview import __version__
-from selfview.cell import POINT_NAMES
-from selfview.geometry import transform_points
+from selfview.files.cell import POINT_NAMES
+from selfview.maths.geometry import transform_points
 
 __all__ = ["new_run_dir", "write_json", "annotate_offline", "draw_offline", "offline_residuals", "draw_tracked", "keep_pictures", "annotate_online", "plot_errors", "environment"]
 
@@ -47,8 +47,8 @@ def new_run_dir(out: str | os.PathLike | None, base: str | os.PathLike = "runs",
 
 
 def write_json(path: Path, obj) -> None:
-    """``obj`` as JSON in ``path``, written atomically (``selfview.io_safe.atomic_write``)."""
-    from selfview.io_safe import atomic_write
+    """``obj`` as JSON in ``path``, written atomically (``selfview.files.io_safe.atomic_write``)."""
+    from selfview.files.io_safe import atomic_write
 
     atomic_write(path, json.dumps(obj, indent=1, allow_nan=True, default=_default).encode("utf-8"), what="results file")
 
@@ -105,7 +105,7 @@ def _pt(uv, scale):
 
 def annotate_offline(image, result, path: Path, scale: int = 2) -> Path:
     """``draw_offline`` written to ``path``."""
-    from selfview.io_safe import write_picture
+    from selfview.files.io_safe import write_picture
 
     write_picture(path, draw_offline(image, result, scale), what="annotated picture")
     return path
@@ -235,7 +235,7 @@ def annotate_online(image, camera, C_H_G_before, estimates: dict, fingertips, pG
            (10, 24), (220, 220, 220))
     if len(tcp) > 1:
         _tcp_inset(big, tcp)
-    from selfview.io_safe import write_picture
+    from selfview.files.io_safe import write_picture
 
     write_picture(path, big, what="annotated picture")
     return path
@@ -322,7 +322,7 @@ def keep_pictures(out, image, draw, kind: str = "") -> dict:
     {picture, annotated}: the file names, relative to ``out``'s folder. ``kind`` starts the names
     (``track-``: a tracked picture beside its calibration file)."""
     from selfview.errors import ConfigError
-    from selfview.io_safe import write_picture
+    from selfview.files.io_safe import write_picture
 
     out = Path(out)
     tag = hashlib.sha256(image.tobytes()).hexdigest()[:12]

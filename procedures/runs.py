@@ -25,15 +25,15 @@ import numpy as np
 from selfview.procedures.engine import Cancelled, CellDevices, Engine, RaiseOnSignal, Step, SignalFlag, signal_name
 from selfview.procedures.experiment import TrialRecord, run_trial, summarise, tables_markdown
 from selfview.procedures.simcell import CellURLs, SimulatedCell
-from selfview.calfile import load_calibration, save_calibration
-from selfview.cell import Cell
+from selfview.files.calfile import load_calibration, save_calibration
+from selfview.files.cell import Cell
 from selfview.errors import AlarmError, CalibrationError, ConfigError, DeviceTimeout, ImageError
-from selfview.fingers import SilhouetteTracker
-from selfview.io_safe import atomic_write, write_picture
-from selfview.offline import OfflineResult, calibrate_offline
-from selfview.pcc import jaw_gap_of
-from selfview.online import METHODS
-from selfview.policy import Monitor
+from selfview.measurement.fingers import SilhouetteTracker
+from selfview.files.io_safe import atomic_write, write_picture
+from selfview.estimation.offline import OfflineResult, calibrate_offline
+from selfview.estimation.pcc import jaw_gap_of
+from selfview.estimation.online import METHODS
+from selfview.estimation.policy import Monitor
 
 __all__ = ["RunSettings", "CellSession", "park_plan", "depart_plan", "refuse_unfitting_camera"]
 
@@ -71,9 +71,9 @@ def depart_plan(s: RunSettings) -> list[Step]:
 
 
 def refuse_unfitting_camera(res: OfflineResult, camera, cam_path, force: bool) -> dict | None:
-    """The camera file's fit to the picture (``selfview.intrinsics.camera_file_fit``; None without a camera
+    """The camera file's fit to the picture (``selfview.estimation.intrinsics.camera_file_fit``; None without a camera
     file); ``CalibrationError`` when it does not fit, unless ``force``."""
-    from selfview.intrinsics import camera_file_fit
+    from selfview.estimation.intrinsics import camera_file_fit
 
     if camera is None:
         return None
@@ -235,7 +235,7 @@ class CellSession:
         with ``camera``'s principal point and aspect (None: the cell's nominal ones), save the calibration
         file (recording ``camera_file`` {path, sha256}), depart. Nothing is written on a failure; the
         previous file's history copy is left in ``calibration_kept``. A camera file that does not fit the
-        picture (``selfview.intrinsics.camera_file_fit``, in ``camera_file_fit``) stops the run with a
+        picture (``selfview.estimation.intrinsics.camera_file_fit``, in ``camera_file_fit``) stops the run with a
         ``CalibrationError`` before anything is written, unless ``force``. ``before_save(picture, result)``
         runs between the calibration and the save (to keep the picture beside the file, to show it)."""
         self.calibration_kept = self.camera_file_fit = None
@@ -261,13 +261,13 @@ class CellSession:
         return self._run(body, plan)
 
     def intrinsics_views(self, views: int = 12, state: str | None = None) -> tuple[list, list[dict]] | None:
-        """Take the pictures for ``selfview.intrinsics``: from above the plate, the robot moves in straight
+        """Take the pictures for ``selfview.estimation.intrinsics``: from above the plate, the robot moves in straight
         lines through ``views`` planned poses (``selfview.procedures.viewplan.plan_view_poses``: lifted 15-120 mm,
         tilted up to 40 deg about axes in the plate, turned about the approach axis, the fingers clear of
         the plate), grabs a picture at each, and goes back above the plate. Every pose is checked against
         the robot's limits before the first motion. Returns (pictures, the poses' descriptions), or None
         in a dry run."""
-        from selfview.geometry import trans
+        from selfview.maths.geometry import trans
         from selfview.procedures.viewplan import plan_view_poses
 
         state = state or self.cell.gripper.calibrate_in
@@ -383,7 +383,7 @@ class CellSession:
         """The paper's section 5 on this cell: per series, ``trials`` times park, calibrate, disturb,
         re-measure with every on-line method and the off-line reference. Returns (records, summary,
         artefacts of the first trial). ``camera``: a measured camera for the off-line calibrations
-        (``selfview.intrinsics``; None: the cell's nominal one)."""
+        (``selfview.estimation.intrinsics``; None: the cell's nominal one)."""
         state = state or self.cell.gripper.calibrate_in
         s = self.settings
         for name in series:

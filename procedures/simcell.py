@@ -14,7 +14,7 @@ from selfview.mocks.sim_camera import attach_world
 from selfview.mocks.val_controller import ValController
 from selfview.mocks.valve_terminal import ValveTerminal
 from selfview.mocks.world import SimWorld
-from selfview.cell import Cell
+from selfview.files.cell import Cell
 
 __all__ = ["SimulatedCell", "CellURLs"]
 

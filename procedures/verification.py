@@ -40,7 +40,7 @@ def centre_in_hull(points_G, shift_xy, turn_deg) -> bool:
 def spread(Hs) -> dict:
     """Spread of a set of C_H_G: per-axis sample sd of the TCP [mm], the rotations' RMS angle from their
     mean [deg], and the mean transform."""
-    from selfview.geometry import make_H, orthonormalize, rotation_angle
+    from selfview.maths.geometry import make_H, orthonormalize, rotation_angle
 
     Hs = np.asarray(Hs, float)
     t = Hs[:, :3, 3]
@@ -58,8 +58,8 @@ def park_and_calibrate(session, cell, places, state: str, *, camera=None, camera
     plan checked first; the robot departs at the end). ``on_result(k, picture, result)`` after each park.
     Returns the ``PictureCalibration`` list, or None on a dry run."""
     from selfview.api import assess_offline
-    from selfview.geometry import rot_z, trans
-    from selfview.offline import calibrate_offline
+    from selfview.maths.geometry import rot_z, trans
+    from selfview.estimation.offline import calibrate_offline
     from selfview.procedures.engine import Step
     from selfview.procedures.runs import depart_plan, park_plan
 
@@ -101,7 +101,7 @@ def verify_summary(results, places, target_mm: float, truth: dict | None = None)
     (``spread``), the calibrations' own 1-sigma (each park's, the camera model's error its picture shows
     included), go when every axis' spread and the camera model's shared part are within ``target_mm``, the
     reason, what the spread cannot see (``BLIND``) and, with the simulator's ``truth``, the error against it."""
-    from selfview.geometry import rotation_angle
+    from selfview.maths.geometry import rotation_angle
 
     Hs = [r.C_H_G for r in results]
     sp = spread(Hs)

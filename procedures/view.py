@@ -338,7 +338,7 @@ def offline_state(view: LiveView, image, assessed) -> None:
 
 
 def intrinsics_state(view: LiveView, res, plate=None, rejected=()) -> None:
-    """A camera measured from several views (``selfview.intrinsics``) on the page: its figures, the stop
+    """A camera measured from several views (``selfview.estimation.intrinsics``) on the page: its figures, the stop
     rule's state, a row per view (used or why not), the views' coverage bars (with the ``plate``) and a
     verdict (go when the rule is met and the two halves of the views agree)."""
     xc = res.cross_check
@@ -368,11 +368,11 @@ COVERAGE_GOALS = {"x": 0.6, "y": 0.6, "size": 0.25, "tilt": 30.0}
 
 
 def view_coverage(res, plate) -> dict:
-    """Coverage bars of a set of views (``selfview.intrinsics`` result) of ``plate`` (``selfview.cell``'s):
+    """Coverage bars of a set of views (``selfview.estimation.intrinsics`` result) of ``plate`` (``selfview.files.cell``'s):
     x, y the span of the discs the views put in the picture over its width and height, size the span of
     the plate's distance over its mean, tilt the largest tilt [deg]; each {value, goal, fraction (0..1)}.
     The stop rule decides; the bars say which kind of view would help."""
-    from selfview.geometry import transform_points
+    from selfview.maths.geometry import transform_points
 
     cam = res.camera
     if not res.views:
@@ -390,8 +390,8 @@ def view_coverage(res, plate) -> dict:
 def tracked_frames(view: LiveView, calibration, cell):
     """``CellSession.monitor``'s ``on_frame``: each tracked frame on the page, the fingers' silhouette and
     corners drawn where the current C_H_G puts them."""
-    from selfview.calfile import load_calibration
-    from selfview.pcc import jaw_gap_of
+    from selfview.files.calfile import load_calibration
+    from selfview.estimation.pcc import jaw_gap_of
     from selfview.procedures.results import draw_tracked
 
     cal = load_calibration(calibration)
@@ -452,7 +452,7 @@ class ViewProgress:
         import cv2
         import numpy as np
 
-        from selfview.plates import detect_plate
+        from selfview.measurement.plates import detect_plate
         from selfview.errors import ImageError
 
         img = self.engine.results.get(name)

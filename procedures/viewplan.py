@@ -1,4 +1,4 @@
-"""The robot's views of the plate for ``selfview.intrinsics.calibrate_intrinsics``: gripper poses over the
+"""The robot's views of the plate for ``selfview.estimation.intrinsics.calibrate_intrinsics``: gripper poses over the
 plate, tilted about different axes, lifted and turned, the fingers clear of the plate and the plate in view."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from selfview.errors import CalibrationError
-from selfview.geometry import R_from_rotvec, make_H, rot_axis, trans, transform_points
+from selfview.maths.geometry import R_from_rotvec, make_H, rot_axis, trans, transform_points
 
 __all__ = ["CLEARANCE_MM", "LIFT_MM", "MAX_TILT_DEG", "plan_view_poses"]
 

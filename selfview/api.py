@@ -1,9 +1,9 @@
 """One call per task for lab scripts: calibrate a picture, track one.
 
 ``calibrate_picture(image, cell=..., camera=...)`` is the off-line calibration of one picture of the gripper
-parked on the plate (``selfview.offline.calibrate_offline``) with its honest uncertainty and a verdict;
+parked on the plate (``selfview.estimation.offline.calibrate_offline``) with its honest uncertainty and a verdict;
 ``track(image, calibration, method="auto")`` the on-line estimate from one picture of the fingertips
-(``selfview.online.estimate`` or the monitor's policy, ``selfview.policy.Monitor``). Pictures, cells,
+(``selfview.estimation.online.estimate`` or the monitor's policy, ``selfview.estimation.policy.Monitor``). Pictures, cells,
 cameras and calibrations are given as files or as the loaded objects. The ``selfview calibrate`` and
 ``selfview track`` commands print what these return.
 """
@@ -17,14 +17,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from selfview.calfile import Calibration, load_calibration, save_calibration
-from selfview.camera import CameraModel
-from selfview.cell import POINT_NAMES, Cell, default_cell_path, load_cell
+from selfview.files.calfile import Calibration, load_calibration, save_calibration
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import POINT_NAMES, Cell, default_cell_path, load_cell
 from selfview.errors import CalibrationError, ConfigError
 
 if TYPE_CHECKING:  # the command line reads METHODS without loading the measurement
-    from selfview.fingertips import FingertipResult
-    from selfview.offline import OfflineResult
+    from selfview.measurement.fingertips import FingertipResult
+    from selfview.estimation.offline import OfflineResult
 
 __all__ = ["PictureCalibration", "TrackResult", "assess_offline", "calibrate_picture", "calibration_change", "track",
            "tcp_sigma_after", "RMS_LIMIT_PX"]
@@ -44,7 +44,7 @@ def _cell(cell) -> Cell:
 def _picture(image) -> tuple[np.ndarray, str | None]:
     """(grey uint8 picture, SHA-256 of its file or None for an array)."""
     if isinstance(image, (str, Path)):
-        from selfview.io_safe import read_picture
+        from selfview.files.io_safe import read_picture
 
         return read_picture(image)
     return np.asarray(image), None
@@ -59,7 +59,7 @@ class PictureCalibration:
     [mm], every part included (``sigma_parts_mm``: the picture's noise, the camera file's uncertainty, the
     corners', and ``camera_model`` when the picture shows the assumed camera wrong); ``verdict`` 'go' or
     'no-go' and ``reason``; ``warnings`` sentences for the operator; ``camera_check`` and
-    ``camera_file_fit`` the checks behind them (``selfview.intrinsics``).
+    ``camera_file_fit`` the checks behind them (``selfview.estimation.intrinsics``).
     """
 
     calibration: Calibration
@@ -102,7 +102,7 @@ def calibration_change(previous: Calibration, new: Calibration) -> dict:
     length), the rotation of ``C_H_G`` [deg], f [px] and kappa [px^-2], and whether both saw the same
     picture and gripper state. Two calibrations of one mount differ by their sigmas; more means the
     camera moved on its mount or one of them is wrong."""
-    from selfview.geometry import pose_difference
+    from selfview.maths.geometry import pose_difference
 
     d = np.asarray(new.C_H_G, float)[:3, 3] - np.asarray(previous.C_H_G, float)[:3, 3]
     deg, mm = pose_difference(new.C_H_G, previous.C_H_G)
@@ -126,7 +126,7 @@ def assess_offline(res: OfflineResult, cell: Cell, camera: CameraModel | None = 
     ``TARGET_ALONG_MM`` along the optical axis). The calibration's residuals record the sigma
     (``tcp_sigma_mm``), which ``track`` adds to its own.
     """
-    from selfview.intrinsics import TARGET_ACROSS_MM, TARGET_ALONG_MM, camera_check, camera_file_fit, tcp_sigma
+    from selfview.estimation.intrinsics import TARGET_ACROSS_MM, TARGET_ALONG_MM, camera_check, camera_file_fit, tcp_sigma
 
     if camera is not None and fit is None:
         fit = camera_file_fit(res, camera, f"the camera file {camera_name}" if camera_name else "the camera")
@@ -176,7 +176,7 @@ def calibrate_picture(image, cell=None, camera=None, *, state: str | None = None
     ``save(path)`` on the result. Raises ``ImageError`` (unusable picture), ``ConfigError`` /
     ``CalibrationFileError`` (cell or camera file), ``CalibrationError`` (too few discs or corners).
     """
-    from selfview.offline import calibrate_offline
+    from selfview.estimation.offline import calibrate_offline
 
     c = _cell(cell)
     img, sha = _picture(image)
@@ -184,7 +184,7 @@ def calibrate_picture(image, cell=None, camera=None, *, state: str | None = None
     if isinstance(camera, CameraModel):
         cam = camera
     elif camera is not None:
-        from selfview.camfile import file_sha256, load_camera_file
+        from selfview.files.camfile import file_sha256, load_camera_file
 
         cf = load_camera_file(camera)
         cf.check_size(c.camera.width, c.camera.height, f"camera file {camera}")
@@ -260,18 +260,18 @@ def track(image, calibration, method: str = "auto", *, cell=None, state: str | N
     """On-line estimate of where the camera moved on its mount, from one picture of the fingertips.
 
     ``image`` a picture file or a (H, W) uint8 array; ``calibration`` a calibration file or ``Calibration``;
-    ``method`` one of NP-U / NP-I / NP-R (``selfview.online``), E (the fingers' model fitted directly,
+    ``method`` one of NP-U / NP-I / NP-R (``selfview.estimation.online``), E (the fingers' model fitted directly,
     ``measure='model'``) or 'auto' (the cell's monitor policy: update, recalibrate or alarm); ``cell`` a
     cell file or ``Cell`` (None: the reference cell); ``state`` the gripper state (default the
     calibration's); ``measure`` 'model' (the fingers' silhouette) or 'corners'. Nothing is written.
     An alarm is a result (``decision`` 'alarm', verdict no-go), not an exception. Raises ``ImageError``,
     ``ConfigError`` (a method, state or measure unknown), ``CalibrationError`` (the fingertips not found).
     """
-    from selfview.fingers import find_fingertips
-    from selfview.offline import check_picture
-    from selfview.online import MODEL_METHOD, estimate
-    from selfview.pcc import jaw_gap_of
-    from selfview.policy import Monitor
+    from selfview.measurement.fingers import find_fingertips
+    from selfview.estimation.offline import check_picture
+    from selfview.estimation.online import MODEL_METHOD, estimate
+    from selfview.estimation.pcc import jaw_gap_of
+    from selfview.estimation.policy import Monitor
 
     if method not in METHODS:
         raise ConfigError(f"method {method!r}: expected one of {', '.join(METHODS)}")

@@ -87,7 +87,7 @@ class _Camera:
 
     Projected with this module's own code from the conventions (``X^ = aspect (u - cx)``, ``Y^ = v - cy``,
     ``X = X^ (1 + kappa r^2)``, ``X = f x / z``; the inverse of the radial correction by Newton's method on
-    the radius), never through ``selfview.camera``."""
+    the radius), never through ``selfview.maths.camera``."""
 
     NEWTON_STEPS = 40  # the radius's Newton iteration: quadratic, converged in a handful; bounded
 
@@ -606,7 +606,7 @@ def case(cell_path: str, seed: int, *, turn_deg: float | None = None, online: st
     table and its camera disturbed by that series. ``options`` (name, value) pairs of ``AltOptions``;
     the noise seed is the world's."""
     from selfview.mocks.world import SimWorld  # tests only: the renderer itself does not need the world
-    from selfview.cell import load_cell
+    from selfview.files.cell import load_cell
 
     cell = load_cell(cell_path)
     world = SimWorld(cell, seed)

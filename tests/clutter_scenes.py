@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from selfview.geometry import transform_points
+from selfview.maths.geometry import transform_points
 
 #: background family of each photograph
 FAMILIES = {
@@ -102,7 +102,7 @@ def render_frame(renderer: str, world, photo, distance_mm, defocus_px, seed, occ
     alt = _alt()
     kw = {"seed": int(seed)}
     if photo is not None:
-        from selfview.geometry import rot_z, trans
+        from selfview.maths.geometry import rot_z, trans
 
         # the same plane as the Backdrop's (distance beyond the plate's plane), its own blur model (mm on the table)
         C_H_T = world.C_H_W @ trans(0, 0, distance_mm) @ rot_z(np.radians(float(seed % 7) * 23.0))

@@ -44,7 +44,7 @@ def cell_path() -> Path:
 
 @pytest.fixture(scope="session")
 def cell(cell_path):
-    from selfview.cell import load_cell
+    from selfview.files.cell import load_cell
 
     return load_cell(cell_path)
 

@@ -63,7 +63,7 @@ def test_only_the_driver_adapter_imports_pymodbus():
 def test_bilinear_samples_lie_on_the_1_32_px_grid_on_every_opencv():
     """OpenCV 4 rounds INTER_LINEAR positions to 1/32 px, OpenCV 5 interpolates exactly: the silhouette's
     sampler (and the C kernel that reproduces it) rounds first, so both give 4's samples."""
-    from selfview.silhouette import _remap
+    from selfview.measurement.silhouette import _remap
 
     img = np.tile(np.arange(10, dtype=np.float32) * 10, (4, 1))
     x = np.array([[0.51, 1.01, 2.3]], np.float32)

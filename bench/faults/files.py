@@ -21,8 +21,8 @@ from selfview.bench.faults.common import Tally, _draw, _in_threads, _limit_child
 _WORKER = r'''
 import dataclasses, json, sys
 import numpy as np
-from selfview.calfile import load_calibration
-from selfview.cell import load_cell
+from selfview.files.calfile import load_calibration
+from selfview.files.cell import load_cell
 from selfview.errors import CellError
 
 def fp(x, budget):
@@ -197,7 +197,7 @@ class FileFaults:
 
         import yaml
 
-        from selfview.calfile import doc_checksum
+        from selfview.files.calfile import doc_checksum
 
         text = self.clean[what]
         raw = text.encode()
@@ -346,11 +346,11 @@ def make_fixtures(folder: Path, seed: int) -> dict:
     calibration ``selfview calibrate`` makes from it, the reference cell file."""
     import cv2
 
-    from selfview.calfile import save_calibration
-    from selfview.cell import default_cell_path, load_cell
+    from selfview.files.calfile import save_calibration
+    from selfview.files.cell import default_cell_path, load_cell
     from selfview.mocks.render import render
     from selfview.mocks.world import SimWorld
-    from selfview.offline import calibrate_offline
+    from selfview.estimation.offline import calibrate_offline
 
     cell_path = default_cell_path()
     cell = load_cell(cell_path)

@@ -18,7 +18,7 @@ CALLS = ("open", "write", "fsync", "fdatasync", "close", "replace", "rename", "l
 
 _SAVER = r'''
 import os, signal, sys
-from selfview.calfile import load_calibration, save_calibration
+from selfview.files.calfile import load_calibration, save_calibration
 src, out, k = sys.argv[1], sys.argv[2], int(sys.argv[3])
 cal = load_calibration(src)
 seen = []
@@ -58,7 +58,7 @@ def calls_of_a_save(fixtures: dict, workdir: Path) -> int:
 
 
 def save_case(k: int, fixtures: dict, tally: Tally, workdir: Path) -> None:
-    from selfview.calfile import load_calibration, save_calibration
+    from selfview.files.calfile import load_calibration, save_calibration
 
     workdir.mkdir(parents=True, exist_ok=True)
     for p in workdir.iterdir():  # a fresh folder per case

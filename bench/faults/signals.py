@@ -129,7 +129,7 @@ def sigint_case(command: str, fixtures: dict, rng, tally: Tally, workdir: Path, 
                     and (outputs != outputs_before or "cell left" in err))
     lost = False
     if command == "calibrate" and after != before:
-        from selfview.calfile import load_calibration
+        from selfview.files.calfile import load_calibration
 
         try:
             load_calibration(guard)
@@ -161,7 +161,7 @@ def sigint_case(command: str, fixtures: dict, rng, tally: Tally, workdir: Path, 
 #: the cell's calibration procedure as a lab script runs it, with the CLI's exit codes
 _CALIBRATE_SCRIPT = r'''
 import sys
-from selfview.cell import default_cell_path, load_cell
+from selfview.files.cell import default_cell_path, load_cell
 from selfview.errors import CellError
 from selfview.procedures.cli import exit_code_for
 from selfview.procedures.runs import CellSession

@@ -45,7 +45,7 @@ class ValRig:
         self.taught = self.sim.locations()
         self.ready_q = np.array(self.robot.limits.ready_joints_deg, float)
         self.above_q = self.sim.kin.ik(self.taught["ABOVE"] @ _inv(self.sim.tool), self.ready_q)
-        from selfview.geometry import trans
+        from selfview.maths.geometry import trans
 
         # 40 mm back from 'above' along its tool z: a straight line from there to 'above' is reachable
         self.back_q = self.sim.kin.ik(self.taught["ABOVE"] @ trans(0.0, 0.0, -40.0) @ _inv(self.sim.tool), self.above_q)
@@ -112,13 +112,13 @@ class ValRig:
 
 
 def _inv(H):
-    from selfview.geometry import inv_H
+    from selfview.maths.geometry import inv_H
 
     return inv_H(H)
 
 
 def _pose_err(A, B) -> tuple[float, float]:
-    from selfview.geometry import rotation_angle
+    from selfview.maths.geometry import rotation_angle
 
     return float(np.linalg.norm(A[:3, 3] - B[:3, 3])), float(np.degrees(rotation_angle(A[:3, :3].T @ B[:3, :3])))
 
@@ -138,13 +138,13 @@ def _val_plan(rig: ValRig, op: str, rng):
         return (rig.ready_q if op == "move" else rig.back_q), Step(op, {"target": "above"}), (op, {"name": "ABOVE"}), {"goal": rig.taught["ABOVE"]}
     if op == "appro":
         dist = float(rng.choice([30.0, 50.0, 80.0]))
-        from selfview.geometry import trans
+        from selfview.maths.geometry import trans
 
         return rig.ready_q, Step("appro", {"target": "plate", "distance_mm": dist}), ("appro", {"name": "PLATE", "d": dist}), {
             "goal": rig.taught["PLATE"] @ trans(0.0, 0.0, -dist)}
     if op == "depart":
         dist = float(rng.choice([20.0, 40.0, 60.0]))
-        from selfview.geometry import trans
+        from selfview.maths.geometry import trans
 
         return rig.above_q, Step("depart", {"distance_mm": dist}), ("depart", {"d": dist}), {
             "goal": fk(rig.above_q) @ tool @ trans(0.0, 0.0, -dist)}

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from urllib.parse import parse_qsl, urlsplit
 
 from selfview.errors import ConfigError
-from selfview.io_safe import parse_number
+from selfview.files.io_safe import parse_number
 
 __all__ = ["ModbusUrl", "parse_modbus_url"]
 

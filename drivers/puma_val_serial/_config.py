@@ -6,7 +6,7 @@ from dataclasses import fields
 from pathlib import Path
 
 from selfview.errors import ConfigError
-from selfview.io_safe import load_yaml_file
+from selfview.files.io_safe import load_yaml_file
 
 
 def read_yaml(path, what: str) -> dict:

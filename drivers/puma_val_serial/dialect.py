@@ -21,7 +21,7 @@ import numpy as np
 from selfview.drivers.puma_val_serial._config import check_keys, read_yaml
 from selfview.drivers.puma_val_serial.errors import ERROR_CLASSES, ControllerError
 from selfview.errors import ConfigError, ProtocolError
-from selfview.geometry import VAL_OAT, EulerConvention, H_from_xyzoat, xyzoat_from_H
+from selfview.maths.geometry import VAL_OAT, EulerConvention, H_from_xyzoat, xyzoat_from_H
 
 __all__ = ["ValDialect", "DEFAULT_COMMANDS", "DEFAULT_ERRORS", "OAT_CONVENTIONS", "load_dialect"]
 

@@ -30,10 +30,10 @@ from selfview.drivers.puma_val_serial.kinematics import PumaKinematics
 from selfview.drivers.puma_val_serial.limits import ValLimits
 from selfview.drivers.robot_protocol import AbortResult, Where
 from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout, ProtocolError
-from selfview.io_safe import parse_number
+from selfview.files.io_safe import parse_number
 from selfview import signals
 from selfview.drivers._ownership import DeviceLock
-from selfview.geometry import check_rigid, rotation_angle, trans
+from selfview.maths.geometry import check_rigid, rotation_angle, trans
 
 __all__ = ["PumaVAL", "Where", "AbortResult", "parse_serial_url"]
 

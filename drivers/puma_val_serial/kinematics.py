@@ -16,7 +16,7 @@ import numpy as np
 
 from selfview.drivers.puma_val_serial._config import check_keys, read_yaml
 from selfview.errors import ConfigError
-from selfview.geometry import EulerConvention, rotvec_from_R
+from selfview.maths.geometry import EulerConvention, rotvec_from_R
 
 __all__ = ["PumaKinematics", "WhereFit"]
 

@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from selfview.cell import Cell, default_cell_path, load_cell
+from selfview.files.cell import Cell, default_cell_path, load_cell
 
 
 def add_cell_argument(p: argparse.ArgumentParser) -> None:
@@ -50,9 +50,9 @@ def print_json(obj) -> None:
 
 def number(text: str, what: str, *, integer: bool = False, lo: float | None = None, hi: float | None = None,
            lo_open: bool = False) -> float | int:
-    """A number a person typed (``selfview.io_safe.parse_number``: ASCII digits, finite, in range), or
+    """A number a person typed (``selfview.files.io_safe.parse_number``: ASCII digits, finite, in range), or
     ``argparse.ArgumentTypeError`` naming ``what``, which the command line turns into exit 2."""
-    from selfview.io_safe import parse_number
+    from selfview.files.io_safe import parse_number
 
     try:
         return parse_number(text, integer=integer, lo=lo, hi=hi, lo_open=lo_open)
@@ -116,10 +116,10 @@ def output_file(value: str, option: str, suffixes: tuple[str, ...] = ()) -> "Pat
 
 
 def write_image(path, image, what: str = "--out") -> None:
-    """Write a picture (``selfview.io_safe.write_picture``: encoded in memory, written atomically);
+    """Write a picture (``selfview.files.io_safe.write_picture``: encoded in memory, written atomically);
     ``ConfigError`` naming ``what`` and the path if it cannot be written."""
     from selfview.errors import ConfigError
-    from selfview.io_safe import write_picture
+    from selfview.files.io_safe import write_picture
 
     write_picture(path, image, error=ConfigError, what=f"picture ({what})")
 def add_view_arguments(p: argparse.ArgumentParser) -> None:

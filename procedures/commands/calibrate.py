@@ -16,8 +16,8 @@ from selfview.procedures.view import watch, offline_state, viewing, with_progres
 
 def read_picture(path) -> tuple:
     """(grey picture as a 2-D uint8 array, SHA-256 of the file) or ``ImageError`` naming the file; the
-    picture's size is checked in its header before it is decoded (``selfview.io_safe.read_picture``)."""
-    from selfview.io_safe import read_picture as checked_read
+    picture's size is checked in its header before it is decoded (``selfview.files.io_safe.read_picture``)."""
+    from selfview.files.io_safe import read_picture as checked_read
 
     return checked_read(path)
 
@@ -66,7 +66,7 @@ def register(sub):
 def camera_file_arg(path, cell):
     """(camera model, {path, sha256}, covariance of cx, cy, aspect (3, 3), and skew (4, 4) when the file
     has it) of a camera file, checked against the cell's picture size."""
-    from selfview.camfile import file_sha256, load_camera_file
+    from selfview.files.camfile import file_sha256, load_camera_file
 
     cf = load_camera_file(path)
     cf.check_size(cell.camera.width, cell.camera.height, f"camera file {path}")
@@ -75,7 +75,7 @@ def camera_file_arg(path, cell):
 
 def _previous(out):
     """The calibration ``out`` holds now (the one this run replaces), or None (no file, or not a calibration)."""
-    from selfview.calfile import load_calibration
+    from selfview.files.calfile import load_calibration
     from selfview.errors import CellError
 
     try:
@@ -103,10 +103,10 @@ def run(args) -> int:
 
 def _run(args, view) -> int:
     from selfview.api import assess_offline, calibration_change
-    from selfview.calfile import save_calibration
+    from selfview.files.calfile import save_calibration
     from selfview.procedures.results import draw_offline, keep_pictures
     from selfview.errors import ConfigError
-    from selfview.offline import calibrate_offline
+    from selfview.estimation.offline import calibrate_offline
     from selfview.procedures.runs import refuse_unfitting_camera
 
     url, cam_path = camera_arguments(args.camera)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from selfview.procedures.commands._common import numeric, print_json
-from selfview.geometry import rpy_from_R
-from selfview.tsai import FREE_CENTRE_MODES, MODES, calibrate_coplanar, load_willson_points
+from selfview.maths.geometry import rpy_from_R
+from selfview.estimation.tsai import FREE_CENTRE_MODES, MODES, calibrate_coplanar, load_willson_points
 
 
 def register(sub):

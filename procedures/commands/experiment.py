@@ -144,7 +144,7 @@ def _run(args, cell, session, folder, say, view) -> int:
         watch(view, session)
         camera = None
         if intrinsics:
-            from selfview.intrinsics import calibrate_intrinsics
+            from selfview.estimation.intrinsics import calibrate_intrinsics
 
             t_cam = time.monotonic()
             watch(view, session, ViewProgress(say, 12, session.engine, cell, view))

@@ -47,7 +47,7 @@ def register(sub):
 
 
 def opencv_camera(camera, grid: int = 40, plumb_bob_max_px: float = 0.05) -> dict:
-    """OpenCV's K and distortion for ``camera`` (``selfview.camera.CameraModel``): K from f, the aspect, the
+    """OpenCV's K and distortion for ``camera`` (``selfview.maths.camera.CameraModel``): K from f, the aspect, the
     skew and the centre; the radial coefficients by linear least squares so that OpenCV's forward model maps
     each undistorted ray to the pixel the kappa model gives, over a ``grid`` x ``grid`` lattice of the whole
     picture. plumb_bob (k1 k2 p1 p2 k3) when it holds to ``plumb_bob_max_px``, else OpenCV's rational model
@@ -86,7 +86,7 @@ def opencv_camera(camera, grid: int = 40, plumb_bob_max_px: float = 0.05) -> dic
 
 def _quaternion(R) -> list[float]:
     """x y z w of a rotation matrix."""
-    from selfview.geometry import rotvec_from_R
+    from selfview.maths.geometry import rotvec_from_R
 
     rv = rotvec_from_R(R)
     th = float(np.linalg.norm(rv))
@@ -97,7 +97,7 @@ def _quaternion(R) -> list[float]:
 def _atomic_write_text(path: Path, text: str) -> None:
     """The export's file, by the atomic writer (no temporary file left, the old file kept on failure)."""
     from selfview.errors import ConfigError
-    from selfview.io_safe import atomic_write
+    from selfview.files.io_safe import atomic_write
 
     atomic_write(path, text.encode("utf-8"), error=ConfigError, what="export")
 
@@ -106,7 +106,7 @@ def run(args) -> int:
     import cv2
     import yaml
 
-    from selfview.calfile import load_calibration
+    from selfview.files.calfile import load_calibration
     from selfview.errors import ConfigError
 
     cal = load_calibration(args.calibration)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from selfview.io_safe import PICTURE_EXTENSIONS
+from selfview.files.io_safe import PICTURE_EXTENSIONS
 from selfview.procedures.commands._common import COUNT, SECONDS, SEED, add_cell_argument, load_cell_arg, output_file, print_json, write_image
 from selfview.errors import ConfigError
 

@@ -54,9 +54,9 @@ def _run(args, view) -> int:
 
     import numpy as np
 
-    from selfview.calfile import load_calibration
+    from selfview.files.calfile import load_calibration
     from selfview.errors import CellError, ConfigError
-    from selfview.objects import load_object
+    from selfview.measurement.objects import load_object
     from selfview.procedures.grasp import GraspResult, ServoSettings, draw_servo, run_grasp
 
     if (args.real or args.dry_run) and not args.calibration:
@@ -110,7 +110,7 @@ def _simulated_start(session, obj, seed: int):
     """Put the object on the simulated table and draw the pre-grasp pose (one the arm can take)."""
     import numpy as np
 
-    from selfview.geometry import inv_H
+    from selfview.maths.geometry import inv_H
     from selfview.mocks.objects import draw_start, place_object
     from selfview.mocks.puma260 import Unreachable
 

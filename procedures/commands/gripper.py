@@ -26,7 +26,7 @@ def load_io_map_arg(args):
 
     if args.io_map is None:
         return IoMap()
-    from selfview.io_safe import load_yaml_file
+    from selfview.files.io_safe import load_yaml_file
 
     path = Path(args.io_map)
     # every value as text: a YAML number would turn 40001.10 into 40001.1 and 00001 into 1

@@ -11,7 +11,7 @@ import datetime as _dt
 import sys
 from pathlib import Path
 
-from selfview.intrinsics.plate import PLATE_MODELS
+from selfview.estimation.intrinsics.plate import PLATE_MODELS
 from selfview.procedures.commands._common import COUNT, SECONDS, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
 from selfview.procedures.commands._common import add_view_arguments
@@ -101,7 +101,7 @@ def _text(res, source: str, written, out) -> list[str]:
 def _picture_files(args):
     """--images with --plate or --cell: (plate, starting camera or None, cell file hash or None, pictures,
     their names, [{name, sha256}])."""
-    from selfview.cell import default_cell_path, load_cell, load_plate
+    from selfview.files.cell import default_cell_path, load_cell, load_plate
     from selfview.procedures.commands.calibrate import read_picture
 
     camera = cell_sha = None
@@ -150,7 +150,7 @@ def _measure(args, view, say, images, names, plate, camera):
 
 def _run(args, view) -> int:
     from selfview import __version__
-    from selfview.camfile import CameraFile, save_camera_file
+    from selfview.files.camfile import CameraFile, save_camera_file
     from selfview.procedures.intrinsics import intrinsics_warnings, measure_intrinsics
     from selfview.procedures.commands._common import write_image
 

@@ -74,7 +74,7 @@ def _run(args, view) -> int:
                   f"rms {num('rms_px')} px" + (f", TCP 1-sigma z {sg[2]:.4f} mm" if sg else "") + f" - {rec['reason']}"
                   + (f" [fingertips {rec['fingertips']}]" if rec.get("fingertips") else ""), flush=True)
 
-    from selfview.calfile import load_calibration, save_calibration
+    from selfview.files.calfile import load_calibration, save_calibration
 
     started = load_calibration(args.calibration)  # the version a final --apply may replace
     with session:

@@ -30,7 +30,7 @@ def register(sub):
 
 def run(args) -> int:
     if args.out is not None:
-        from selfview.io_safe import PICTURE_EXTENSIONS
+        from selfview.files.io_safe import PICTURE_EXTENSIONS
         from selfview.procedures.commands._common import output_file
 
         output_file(args.out, "--out", PICTURE_EXTENSIONS)  # before anything moves

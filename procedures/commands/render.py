@@ -71,7 +71,7 @@ def run(args) -> int:
 
     write_image(out, result.image)
     if truth_path is not None:
-        from selfview.io_safe import atomic_write
+        from selfview.files.io_safe import atomic_write
 
         atomic_write(truth_path, _json_text(result.truth).encode("utf-8"), error=ConfigError, what="ground truth (--truth)")
     print_json(

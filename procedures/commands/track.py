@@ -51,9 +51,9 @@ def _run(args, view) -> int:
     from selfview.api import track
     from selfview.procedures.commands.calibrate import read_picture
     from selfview.procedures.results import draw_tracked, keep_pictures
-    from selfview.calfile import load_calibration, save_calibration
+    from selfview.files.calfile import load_calibration, save_calibration
     from selfview.errors import AlarmError
-    from selfview.pcc import jaw_gap_of
+    from selfview.estimation.pcc import jaw_gap_of
 
     cell = load_cell_arg(args)
     cal = load_calibration(args.calibration)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from selfview.errors import CalibrationError, ConfigError
-from selfview.geometry import R_from_rotvec, inv_H, make_H, pose_difference, rot_z, transform_points
+from selfview.maths.geometry import R_from_rotvec, inv_H, make_H, pose_difference, rot_z, transform_points
 from selfview.bench.handeye import METHODS, calibrate_handeye, plate_pose, relative_motions
 
 
@@ -132,7 +132,7 @@ def test_bad_input_names_what_is_wrong(rng):
 
 
 def test_plate_pose_with_a_fixed_camera(cell):
-    from selfview.discs import DiscDetections
+    from selfview.measurement.discs import DiscDetections
     from tests.alt_render import disc_centroids
 
     cam = cell.camera.guess().with_(f=962.0, kappa=1.9e-7)

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from selfview.bench import _mrcal_peer as P
-from selfview.camera import CameraModel
-from selfview.geometry import R_from_rpy, make_H
+from selfview.maths.camera import CameraModel
+from selfview.maths.geometry import R_from_rpy, make_H
 
 
 def test_without_mrcal_the_peer_says_none(monkeypatch):

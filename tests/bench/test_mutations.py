@@ -29,7 +29,7 @@ def test_every_mutation_applies_to_this_tree_once(tmp_path):
 
 
 def test_one_mutation_is_applied_to_a_copy_and_caught():
-    before = (ROOT / "selfview" / "policy.py").read_bytes()
+    before = (ROOT / "selfview" / "estimation" / "policy.py").read_bytes()
     out = subprocess.run([sys.executable, str(ROOT / "bench" / "mutations.py"), "--only", CHEAP, "--timeout", "300"],
                          cwd=ROOT, capture_output=True, text=True, timeout=400)
     assert out.returncode == 0, out.stderr
@@ -38,15 +38,15 @@ def test_one_mutation_is_applied_to_a_copy_and_caught():
     assert (res["caught"], res["total"], res["errors"]) == (1, 1, 0), res
     (m,) = res["mutations"]
     assert {"name", "file", "caught", "failed_tests", "error"} <= set(m)
-    assert m["name"] == CHEAP and m["file"] == "selfview/policy.py" and m["caught"] is True and m["error"] is None
+    assert m["name"] == CHEAP and m["file"] == "selfview/estimation/policy.py" and m["caught"] is True and m["error"] is None
     assert any("test_a_recalibration_beyond_the_alarm_limit_raises_the_alarm" in t for t in m["failed_tests"]), m
-    assert (ROOT / "selfview" / "policy.py").read_bytes() == before  # the repository itself is untouched
+    assert (ROOT / "selfview" / "estimation" / "policy.py").read_bytes() == before  # the repository itself is untouched
 
 
 def test_a_mutation_that_no_longer_applies_is_reported_not_counted(capsys):
-    gone = M.Mutation("gone", "selfview/policy.py", "text that is not in the file\n", "x\n",
+    gone = M.Mutation("gone", "selfview/estimation/policy.py", "text that is not in the file\n", "x\n",
                       ("tests/selfview/test_policy.py",))
-    twice = M.Mutation("twice", "selfview/policy.py", "import", "imp0rt", ("tests/selfview/test_policy.py",))
+    twice = M.Mutation("twice", "selfview/estimation/policy.py", "import", "imp0rt", ("tests/selfview/test_policy.py",))
     missing = M.Mutation("missing", "selfview/no_such_file.py", "a", "b", ("tests/selfview/test_policy.py",))
     assert M.main(["--timeout", "60"], mutations=(gone, twice, missing)) == 0
     res = json.loads(capsys.readouterr().out)

@@ -16,9 +16,9 @@ import pytest
 from selfview.procedures.cli import main
 from selfview.bench.report import (Bench, BenchRun, find_bench_dir, find_reference_dir, make_report, render_markdown,
                                         run_bench, willson_check)
-from selfview.cell import default_cell_path, load_cell
+from selfview.files.cell import default_cell_path, load_cell
 from selfview.errors import ConfigError
-from selfview.geometry import R_from_rotvec, inv_H, make_H, rot_z
+from selfview.maths.geometry import R_from_rotvec, inv_H, make_H, rot_z
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -9,7 +9,7 @@ import pytest
 
 from selfview.drivers.robot import AbortResult, Robot, Where
 from selfview.errors import CellError, ConfigError, LimitError
-from selfview.geometry import check_rigid, pose_difference, trans
+from selfview.maths.geometry import check_rigid, pose_difference, trans
 from selfview.procedures.engine import CellDevices, Engine, Step
 
 

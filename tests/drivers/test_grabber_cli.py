@@ -30,7 +30,7 @@ def test_grab_from_the_simulated_cell(tmp_path, capsys):
     assert img.shape == (576, 768) and img.dtype == np.uint8
     from selfview.mocks.render import render
     from selfview.mocks.world import SimWorld
-    from selfview.cell import default_cell_path, load_cell
+    from selfview.files.cell import default_cell_path, load_cell
 
     world = SimWorld(load_cell(default_cell_path()), seed=4)
     world.park()

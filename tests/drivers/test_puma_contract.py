@@ -27,7 +27,7 @@ from selfview.drivers.puma_val_serial import (
 from selfview.mocks.val_controller import ValController
 from selfview.mocks.world import PLATE_BASE_POSE, SimWorld
 from selfview.errors import DeviceTimeout, LimitError, ProtocolError
-from selfview.geometry import pose_difference, trans
+from selfview.maths.geometry import pose_difference, trans
 
 SCALE = 0.02  # motions run at 1/50 of real time
 

@@ -26,7 +26,7 @@ from selfview.drivers.puma_val_serial import (
 )
 from selfview.drivers.puma_val_serial import OAT_CONVENTIONS, ProgramRunning
 from selfview.errors import ConfigError, DeviceTimeout, LimitError, ProtocolError
-from selfview.geometry import R_from_rpy, inv_H, rotation_angle, trans
+from selfview.maths.geometry import R_from_rpy, inv_H, rotation_angle, trans
 from selfview.mocks.puma260 import READY_DEG, Puma260, make_tool
 from selfview.mocks.val_controller import TOOL_LENGTH_MM
 

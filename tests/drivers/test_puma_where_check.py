@@ -21,7 +21,7 @@ import pytest
 
 from selfview.drivers.puma_val_serial import OAT_CONVENTIONS, PumaKinematics, PumaVAL, ValDialect
 from selfview.errors import ConfigError, ProtocolError
-from selfview.geometry import inv_H, rotation_angle
+from selfview.maths.geometry import inv_H, rotation_angle
 from selfview.mocks.puma260 import READY_DEG, ArmConfig, Puma260, Unreachable, make_tool
 from selfview.mocks.val_controller import TOOL_LENGTH_MM, ValController
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from selfview.cell import default_cell_path, parse_cell
+from selfview.files.cell import default_cell_path, parse_cell
 from selfview.drivers.manual_robot import ManualRobot
 from selfview.drivers.puma_val_serial import PumaVAL
 from selfview.drivers.robot import open_robot
@@ -75,7 +75,7 @@ def test_open_robot_honours_the_cell_robot_section(tmp_path):
     raw["robot"] = {"limits": "limits.yaml", "max_speed": 25}
     path = tmp_path / "cell.yaml"
     path.write_text(yaml.safe_dump(raw))
-    from selfview.cell import load_cell
+    from selfview.files.cell import load_cell
 
     cell = load_cell(path)
     r = open_robot("loop://", cell)

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from selfview.errors import ConfigError
-from selfview.geometry import transform_points
+from selfview.maths.geometry import transform_points
 from selfview.mocks.imperfections import PARTS, PROFILES, Imperfections, chamfer_cuts, resolve
 from selfview.mocks.render import render
 from selfview.mocks.world import SimWorld
@@ -282,8 +282,8 @@ def test_pipeline_on_an_imperfect_grabbers_pictures(cell, seed):
     about that; 0.05 px without the grabber), none over 0.8 px (seed 13's A-inner-back corner is off by
     0.65 px along v: its short back edge is fitted on few lines, each moved by the jitter); every visible
     inner corner found; the calibration's TCP within 0.1 mm of the truth."""
-    from selfview.fingers import find_fingertips
-    from selfview.offline import calibrate_offline
+    from selfview.measurement.fingers import find_fingertips
+    from selfview.estimation.offline import calibrate_offline
     from tests.alt_render import render_world
 
     w = parked(cell, seed)
@@ -303,7 +303,7 @@ def test_disturbance_roll(cell):
     """A roll about the optical axis of sd 0.5 deg per mm^2 of TCP shift: over 30 cable disturbances
     (1.5 mm) the rotation's component about C z has sd 1.1 deg (to 30 %: 30 draws); the ideal one's stays
     under the axis jitter's 5 % of a ~0.8 deg rotation."""
-    from selfview.geometry import rotvec_from_R
+    from selfview.maths.geometry import rotvec_from_R
 
     def roll(imp):
         out = []

@@ -11,7 +11,7 @@ from selfview.mocks.puma260 import Puma260Geometry, make_tool
 from selfview.mocks.val_controller import TOOL_LENGTH_MM
 from selfview.mocks.world import PLATE_BASE_POSE, SimWorld
 from selfview.errors import ConfigError
-from selfview.geometry import inv_H, pose_difference, trans
+from selfview.maths.geometry import inv_H, pose_difference, trans
 
 TOOL = make_tool(TOOL_LENGTH_MM)
 ABOVE_F = PLATE_BASE_POSE @ trans(0.0, 0.0, -60.0) @ inv_H(TOOL)  # flange pose with the TCP above the plate

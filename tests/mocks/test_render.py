@@ -18,10 +18,10 @@ import pytest
 import selfview.mocks.render as rmod
 from selfview.mocks.render import LIFTED_W_H_G, RenderResult, disc_image_centroids, render
 from selfview.mocks.world import SimWorld
-from selfview.camera import CameraModel
-from selfview.cell import POINT_NAMES
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import POINT_NAMES
 from selfview.errors import ConfigError
-from selfview.geometry import make_H, rot_x, transform_points
+from selfview.maths.geometry import make_H, rot_x, transform_points
 
 CENTROID_TOL_PX = 0.02
 CORNER_TOL_PX = 0.05
@@ -117,7 +117,7 @@ def test_blob_centroid_is_projected_centre_plus_ellipse_bias(cell, seed, state):
 def test_ellipse_centre_bias_agrees_with_the_conic_centre():
     """Without distortion the centroid of a projected circle is the centre of its conic (exact)."""
     cam = CameraModel(f=962.0, kappa=0.0)
-    from selfview.cell import PlateSpec
+    from selfview.files.cell import PlateSpec
 
     plate = PlateSpec(rows=3, cols=3, pitch=9.0, disc_diameter=4.5, size=(40.0, 40.0), polarity="dark_on_light")
     C_H_W = make_H(rot_x(np.radians(35))[:3, :3], (4.0, -3.0, 110.0))

@@ -12,7 +12,7 @@ from selfview.mocks.puma260 import READY_DEG, ArmConfig, Puma260, Puma260Geometr
 from selfview.mocks.val_controller import TOOL_LENGTH_MM, ValController, trapezoid_fraction, trapezoid_time
 from selfview.mocks.world import PLATE_BASE_POSE, SimWorld
 from selfview.errors import ConfigError
-from selfview.geometry import inv_H
+from selfview.maths.geometry import inv_H
 
 CONFIGS = [ArmConfig(r, e, w) for r in ("front", "back") for e in ("above", "below") for w in ("noflip", "flip")]
 

@@ -3,7 +3,7 @@ import pytest
 
 from selfview.mocks.world import PLATE_BASE_POSE, SimWorld
 from selfview.errors import ConfigError
-from selfview.geometry import inv_H, pose_difference, rot_z, transform_points
+from selfview.maths.geometry import inv_H, pose_difference, rot_z, transform_points
 
 
 def test_true_mount_lies_within_the_configured_error(cell):

@@ -12,7 +12,7 @@ import yaml
 from selfview.mocks.render import render
 from selfview.mocks.world import SimWorld
 from selfview.procedures.cli import main
-from selfview.calfile import history_dir, load_calibration
+from selfview.files.calfile import history_dir, load_calibration
 
 
 @pytest.fixture(scope="module")
@@ -220,7 +220,7 @@ def test_monitor_whose_output_goes_away_ends_non_zero_after_the_cleanup(tmp_path
 
 def _another_writer(path):
     """What another program does meanwhile: its own update of the calibration file (a different C_H_G)."""
-    from selfview.calfile import save_calibration
+    from selfview.files.calfile import save_calibration
 
     other = load_calibration(path)
     other.C_H_G = other.C_H_G.copy()

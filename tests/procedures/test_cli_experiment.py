@@ -76,7 +76,7 @@ def test_profile_option_where_a_simulated_cell_is_built():
     takes ``--profile`` and ``--sim-camera`` and passes them to the world."""
     from selfview.procedures.cli import build_parser
     from selfview.procedures.simcell import SimulatedCell
-    from selfview.cell import default_cell_path, load_cell
+    from selfview.files.cell import default_cell_path, load_cell
 
     p = build_parser()
     for cmd in ("park", "monitor", "devices", "render", "experiment", "verify", "calibrate", "intrinsics"):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import yaml
 
-from selfview.calfile import load_calibration, save_calibration
+from selfview.files.calfile import load_calibration, save_calibration
 from selfview.procedures.cli import main
 
 
@@ -92,7 +92,7 @@ def test_an_export_on_a_full_disk_says_so_and_leaves_no_file(calfile, tmp_path, 
     import errno
     import shutil
 
-    from selfview import io_safe
+    from selfview.files import io_safe
 
     shutil.copy(calfile / "cal.yaml", tmp_path / "cal.yaml")
     real = io_safe._write_all

@@ -7,9 +7,9 @@ import cv2
 import numpy as np
 import pytest
 
-from selfview.calfile import load_calibration
-from selfview.camfile import CameraFile, load_camera_file, save_camera_file
-from selfview.intrinsics import TARGET_ACROSS_MM, TARGET_ALONG_MM
+from selfview.files.calfile import load_calibration
+from selfview.files.camfile import CameraFile, load_camera_file, save_camera_file
+from selfview.estimation.intrinsics import TARGET_ACROSS_MM, TARGET_ALONG_MM
 from selfview.mocks.world import SimWorld
 from selfview.procedures.cli import main
 

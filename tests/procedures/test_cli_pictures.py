@@ -6,7 +6,7 @@ import os
 import cv2
 import numpy as np
 
-from selfview.calfile import load_calibration
+from selfview.files.calfile import load_calibration
 from selfview.mocks.render import render
 from selfview.mocks.world import SimWorld
 from selfview.procedures.cli import main
@@ -84,7 +84,7 @@ def test_a_picture_that_cannot_be_written_is_named_with_its_cause(tmp_path, monk
 
     import pytest
 
-    from selfview import io_safe
+    from selfview.files import io_safe
     from selfview.errors import ConfigError
 
     img = np.zeros((8, 8), np.uint8)

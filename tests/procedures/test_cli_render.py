@@ -11,7 +11,7 @@ import pytest
 from selfview.mocks.render import render
 from selfview.mocks.world import SimWorld
 from selfview.procedures.cli import EXIT_CONFIG, main
-from selfview.cell import POINT_NAMES
+from selfview.files.cell import POINT_NAMES
 
 
 def run(capsys, *argv):

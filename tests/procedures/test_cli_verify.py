@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from selfview.cell import default_cell_path, load_cell
+from selfview.files.cell import default_cell_path, load_cell
 from selfview.procedures.cli import main
 from selfview.procedures.commands.verify import PLACES, centre_in_hull, spread
 
@@ -18,7 +18,7 @@ def test_every_park_keeps_the_plate_centre_between_the_fingertips():
 
 
 def test_spread_of_known_transforms():
-    from selfview.geometry import make_H, rot_z
+    from selfview.maths.geometry import make_H, rot_z
 
     Hs = [make_H(rot_z(np.radians(a))[:3, :3], (x, 0.0, 100.0)) for a, x in ((-0.1, -1.0), (0.0, 0.0), (0.1, 1.0))]
     sp = spread(Hs)

@@ -129,7 +129,7 @@ def test_monitor_page_updates_as_frames_arrive(tmp_path):
 
 @pytest.fixture(scope="module")
 def pictures(tmp_path_factory):
-    from selfview.cell import default_cell_path, load_cell
+    from selfview.files.cell import default_cell_path, load_cell
     from selfview.mocks.render import render
     from selfview.mocks.world import SimWorld
 

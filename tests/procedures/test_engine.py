@@ -10,9 +10,9 @@ import pytest
 from selfview.mocks.world import PLATE_BASE_POSE
 from selfview.procedures.engine import Cancelled, CellDevices, Engine, Step
 from selfview.procedures.runs import CellSession
-from selfview.calfile import load_calibration
+from selfview.files.calfile import load_calibration
 from selfview.errors import CalibrationError, ConfigError, DeviceError, DeviceTimeout, ImageError, LimitError
-from selfview.geometry import trans
+from selfview.maths.geometry import trans
 
 MOTIONS = ("DO MOVE", "DO MOVES", "DO APPRO", "DO DEPART", "DO DRIVE", "DO READY")
 

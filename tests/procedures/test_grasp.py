@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from selfview.errors import AlarmError, ConfigError, LimitError
-from selfview.geometry import inv_H, trans, transform_points
+from selfview.maths.geometry import inv_H, trans, transform_points
 from selfview.mocks.objects import draw_start, grasp_outcome, place_object
 from selfview.mocks.render import render
 from selfview.mocks.world import SimWorld
-from selfview.objects import load_object
+from selfview.measurement.objects import load_object
 from selfview.procedures.engine import CellDevices, Engine, Step
 from selfview.procedures.grasp import GraspFailed, GraspResult, ServoSettings, servo_grasp
 

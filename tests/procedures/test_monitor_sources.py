@@ -6,11 +6,11 @@ import cv2
 import numpy as np
 import pytest
 
-from selfview.calfile import save_calibration
+from selfview.files.calfile import save_calibration
 from selfview.errors import AlarmError
 from selfview.mocks.render import LIFTED_W_H_G, render
 from selfview.mocks.world import SimWorld
-from selfview.offline import calibrate_offline
+from selfview.estimation.offline import calibrate_offline
 from selfview.procedures.runs import CellSession
 
 SEED = 2

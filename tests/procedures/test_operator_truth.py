@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import selfview
-from selfview.calfile import load_calibration
+from selfview.files.calfile import load_calibration
 from selfview.mocks.render import render
 from selfview.mocks.world import SimWorld
 from selfview.procedures.cli import main
@@ -290,8 +290,8 @@ def test_the_monitors_updates_carry_their_sigma_with_the_calibrations(tmp_path, 
 def test_the_corner_floor_is_what_the_corner_search_achieves_and_the_sigma_covers_the_error(cell):
     """``CORNER_FLOOR_PX`` against the corner search's error on rendered pictures whose corners are known, and
     the TCP's sigma (ideal camera) against the TCP's error: neither a sigma far below the error nor far above."""
-    from selfview.geometry import transform_points
-    from selfview.intrinsics.checks import CORNER_FLOOR_PX
+    from selfview.maths.geometry import transform_points
+    from selfview.estimation.intrinsics.checks import CORNER_FLOOR_PX
 
     errs, ratios = [], []
     for seed in (11, 12, 13, 14):

@@ -263,7 +263,7 @@ def test_views_are_rejected_recalibrated_and_saved_by_clicks(tmp_path):
 @needs_chromium
 @pytest.mark.parametrize("button, code", [("ask-discard", 5), ("ask-save", 0)])
 def test_a_calibration_is_saved_or_discarded_by_a_click(tmp_path, button, code):
-    from selfview.cell import default_cell_path, load_cell
+    from selfview.files.cell import default_cell_path, load_cell
     from selfview.mocks.render import render
     from selfview.mocks.world import SimWorld
 

@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 import yaml
 
-from selfview.calfile import Calibration, history_dir, load_calibration, save_calibration
-from selfview.camera import CameraModel
+from selfview.files.calfile import Calibration, history_dir, load_calibration, save_calibration
+from selfview.maths.camera import CameraModel
 from selfview.errors import CalibrationFileError
-from selfview.geometry import H_from_rotvec
+from selfview.maths.geometry import H_from_rotvec
 
 
 def make_cal(rng, f=962.0):
@@ -96,7 +96,7 @@ def test_unknown_version_and_missing_file(tmp_path, rng):
 # --- hostile files --------------------------------------------------------------------------------
 def _rechecksummed(p, doc):
     """Write ``doc`` with a valid checksum, as somebody re-checksumming an edited file would."""
-    from selfview.calfile import doc_checksum
+    from selfview.files.calfile import doc_checksum
 
     body = {k: v for k, v in doc.items() if k != "checksum"}
     doc = dict(body, checksum=doc_checksum(body))
@@ -183,7 +183,7 @@ def test_a_write_that_fails_half_way_leaves_the_old_file(tmp_path, rng, monkeypa
     intact (the writer never writes in place), no temporary file is left."""
     import errno
 
-    from selfview import io_safe
+    from selfview.files import io_safe
 
     p = tmp_path / "cal.yaml"
     save_calibration(make_cal(rng, f=950.0), p)
@@ -205,8 +205,8 @@ def test_a_write_that_fails_half_way_leaves_the_old_file(tmp_path, rng, monkeypa
 _CRASH = r"""
 import os, signal, sys
 import numpy as np
-from selfview import io_safe
-from selfview.calfile import save_calibration, load_calibration
+from selfview.files import io_safe
+from selfview.files.calfile import save_calibration, load_calibration
 cal = load_calibration(sys.argv[1])
 import dataclasses
 cal.camera = dataclasses.replace(cal.camera, f=975.0)
@@ -252,7 +252,7 @@ def test_a_file_size_limit_is_a_clear_error(tmp_path, rng):
     save_calibration(make_cal(rng, f=950.0), p)
     old = p.read_bytes()
     code = (
-        "import sys\nfrom selfview.calfile import load_calibration, save_calibration\n"
+        "import sys\nfrom selfview.files.calfile import load_calibration, save_calibration\n"
         "from selfview.errors import CalibrationFileError\n"
         "cal = load_calibration(sys.argv[1]); cal.residuals = {'note': 'x' * 100000}\n"
         "try:\n    save_calibration(cal, sys.argv[1], keep_history=False)\n"
@@ -329,7 +329,7 @@ def test_a_calibration_that_does_not_read_back_is_never_written(tmp_path, rng):
 def test_values_no_camera_or_cell_has_are_refused_even_with_a_good_checksum(tmp_path, where, value):
     """A corrupted number that still parses and is re-checksummed (the fault campaign's huge_number and
     nan cases) is refused by its physical range, naming the value."""
-    from selfview.calfile import doc_checksum
+    from selfview.files.calfile import doc_checksum
 
     p = tmp_path / "cal.yaml"
     save_calibration(make_cal(np.random.default_rng(3)), p)
@@ -373,7 +373,7 @@ def test_writers_of_one_file_take_turns(tmp_path, rng):
     import threading
     import time
 
-    from selfview.io_safe import file_lock
+    from selfview.files.io_safe import file_lock
 
     p = tmp_path / "cal.yaml"
     save_calibration(make_cal(rng, f=950.0), p)

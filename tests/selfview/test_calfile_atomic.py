@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from selfview.calfile import history_dir, load_calibration, save_calibration
+from selfview.files.calfile import history_dir, load_calibration, save_calibration
 from selfview.errors import CalibrationFileError
 from tests.selfview.test_calfile import make_cal
 

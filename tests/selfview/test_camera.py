@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from selfview.camera import CameraModel, distort, max_undistorted_radius, undistort
+from selfview.maths.camera import CameraModel, distort, max_undistorted_radius, undistort
 from selfview.errors import CalibrationError, ConfigError
-from selfview.geometry import H_from_rotvec, transform_points
+from selfview.maths.geometry import H_from_rotvec, transform_points
 
 
 def grid(cam, n=60):

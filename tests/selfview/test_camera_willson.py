@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from selfview.camera import CameraModel
-from selfview.geometry import R_from_rpy, make_H, transform_points
-from selfview.tsai import load_willson_points
-from selfview.tsai import parse_willson_log as willson_sections
+from selfview.maths.camera import CameraModel
+from selfview.maths.geometry import R_from_rpy, make_H, transform_points
+from selfview.estimation.tsai import load_willson_points
+from selfview.estimation.tsai import parse_willson_log as willson_sections
 
 
 

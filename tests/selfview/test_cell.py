@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import yaml
 
-from selfview.cell import POINT_NAMES, default_cell_path, load_cell, parse_cell
+from selfview.files.cell import POINT_NAMES, default_cell_path, load_cell, parse_cell
 from selfview.errors import ConfigError
 
 
@@ -170,7 +170,7 @@ def test_cli_maps_a_hostile_cell_file_to_exit_3(tmp_path, capsys):
                                          ("- [-1.0,  0.0,     0.0,     0.0]", "- [-1.0,  0.0,     0.0,  1.0e+30]")])
 def test_numbers_no_cell_has_are_refused(tmp_path, cell_path, line, value):
     """A number that parses but is no plausible cell value (the fault campaign's huge_number) is refused."""
-    from selfview.cell import load_cell
+    from selfview.files.cell import load_cell
     from selfview.errors import ConfigError
 
     text = cell_path.read_text()

@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 
 from tests import clutter_scenes as clutter
-from selfview.cell import default_cell_path, load_cell
+from selfview.files.cell import default_cell_path, load_cell
 from selfview.errors import AlarmError, ConfigError
-from selfview.fingers import find_fingertips
-from selfview.geometry import transform_points, trans
-from selfview.online import estimate
-from selfview.policy import Monitor
-from selfview.silhouette import fit_silhouette
-from selfview.fingers import SilhouetteTracker
+from selfview.measurement.fingers import find_fingertips
+from selfview.maths.geometry import transform_points, trans
+from selfview.estimation.online import estimate
+from selfview.estimation.policy import Monitor
+from selfview.measurement.silhouette import fit_silhouette
+from selfview.measurement.fingers import SilhouetteTracker
 
 # a pose marked good may be this far off in any TCP axis (a wrong one is off by 0.1 mm or more; a
 # right one is typically 0.01 mm: 0.05 leaves room for one frame's noise, not for a wrong edge)
@@ -142,7 +142,7 @@ def test_a_frame_without_the_fingers_is_lost_with_the_reason_never_a_pose():
     lost = tr.find(empty, seq.C_H_G_pred, seq.gap)
     assert lost.lost and not lost.found.any() and tr.lost_frames == 1
     # and a fit started 1 mm and 2 degrees off, with the short ranges of a tracked frame, does not hold
-    from selfview.geometry import rot_axis
+    from selfview.maths.geometry import rot_axis
 
     far = rot_axis((0.0, 1.0, 0.0), np.radians(6.0), (0.0, -15.0, -20.0)) @ seq.frames[1].C_H_G
     fit = fit_silhouette(seq.frames[1].image, seq.camera, far, cell.gripper, seq.gap, rounds=(8.0, 4.0, 2.5))
@@ -253,7 +253,7 @@ def test_offline_calibration_takes_the_model_where_the_corner_search_misses_corn
     corner search alone ('corners') is left with three. An unknown measurement is refused by name."""
     from dataclasses import replace
 
-    import selfview.offline as offline
+    import selfview.estimation.offline as offline
     from selfview.errors import CalibrationError
 
     cell = _cell()

@@ -11,13 +11,13 @@ was lost ("0 % of finger A's edge samples support the fit").
 import numpy as np
 import pytest
 
-from selfview.cell import POINT_NAMES
-from selfview.fingertips import model_measurement
-from selfview.geometry import pose_difference
+from selfview.files.cell import POINT_NAMES
+from selfview.measurement.fingertips import model_measurement
+from selfview.maths.geometry import pose_difference
 from selfview.mocks.render import render
 from selfview.mocks.world import SimWorld
-from selfview.offline import calibrate_offline
-from selfview.online import estimate
+from selfview.estimation.offline import calibrate_offline
+from selfview.estimation.online import estimate
 
 
 @pytest.fixture(scope="module")

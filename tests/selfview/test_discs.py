@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from selfview.discs import as_gray, correct_disc_bias, detect_discs, disc_image_bias
+from selfview.measurement.discs import as_gray, correct_disc_bias, detect_discs, disc_image_bias
 from selfview.errors import ImageError
-from selfview.geometry import make_H, rot_z, transform_points
+from selfview.maths.geometry import make_H, rot_z, transform_points
 from tests.alt_render import case, grid_symmetry, render
 
 
@@ -179,7 +179,7 @@ def test_bias_agrees_with_an_area_integral(cell_path):
 
 
 def test_bias_vanishes_for_a_disc_facing_the_camera(cell):
-    from selfview.camera import CameraModel
+    from selfview.maths.camera import CameraModel
 
     cam = CameraModel(f=962.0, kappa=1.9e-7)
     C_H_W = make_H(np.eye(3), (0.0, 0.0, 110.0))
@@ -203,7 +203,7 @@ def test_as_gray_checks(cell):
 def test_on_the_project_renderer(cell_path):
     render_mod = pytest.importorskip("selfview.mocks.render")
     from selfview.mocks.world import SimWorld
-    from selfview.cell import load_cell
+    from selfview.files.cell import load_cell
 
     cell = load_cell(cell_path)
     errs = []

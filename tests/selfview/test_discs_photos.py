@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 import pytest
 
-from selfview.cell import load_cell
-from selfview.discs import detect_discs
+from selfview.files.cell import load_cell
+from selfview.measurement.discs import detect_discs
 from selfview.errors import ImageError
 
 SET = Path(__file__).resolve().parents[1] / "data" / "visp-circles"

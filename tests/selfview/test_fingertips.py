@@ -10,11 +10,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from selfview.cell import POINT_NAMES
+from selfview.files.cell import POINT_NAMES
 from selfview.errors import CalibrationError, ImageError
-from selfview.fingertips import predict_fingertips, visible_edges
-from selfview.fingers import find_fingertips
-from selfview.geometry import make_H, transform_points
+from selfview.measurement.fingertips import predict_fingertips, visible_edges
+from selfview.measurement.fingers import find_fingertips
+from selfview.maths.geometry import make_H, transform_points
 from tests.alt_render import case, grid_symmetry, render_world
 
 
@@ -65,7 +65,7 @@ def test_prediction_agrees_with_the_independent_renderer(cell_path, camera):
     equations, so they agree to a millionth of a pixel; a convention slip (half a pixel in the principal
     point, the aspect on the wrong axis) is hundreds of thousands of times that. Nominal and non-nominal
     cameras alike."""
-    from selfview.cell import load_cell
+    from selfview.files.cell import load_cell
     from selfview.mocks.world import SimWorld
     from tests.alt_render import render
 
@@ -184,7 +184,7 @@ def test_subset_of_points_and_bad_input(cell_path):
 def test_on_the_project_renderer(cell_path):
     render_mod = pytest.importorskip("selfview.mocks.render")
     from selfview.mocks.world import SimWorld
-    from selfview.cell import load_cell
+    from selfview.files.cell import load_cell
 
     cell = load_cell(cell_path)
     errs = []
@@ -206,7 +206,7 @@ def test_on_the_project_renderer(cell_path):
 
 def _statistics(pictures, cell):
     """Disc-centre and corner errors (px) over pictures [(world, image, truth-like object)]."""
-    from selfview.discs import correct_disc_bias, detect_discs
+    from selfview.measurement.discs import correct_disc_bias, detect_discs
 
     disc_err, corner_err, used, whole = [], [], 0, 0
     for w, img, t in pictures:
@@ -271,7 +271,7 @@ def test_corners_beside_ink_at_the_tip(cell, renderer):
 
 
 def test_unique_rows_is_numpys():
-    from selfview import fingertips as F
+    from selfview.measurement import fingertips as F
 
     rng = np.random.default_rng(4)
     for a in (rng.integers(-50, 50, (300, 2)), rng.integers(0, 3, (40, 2)), np.zeros((0, 2), int),
@@ -282,7 +282,7 @@ def test_unique_rows_is_numpys():
 def test_finger_a_cut_by_the_left_border_keeps_its_inner_corners():
     """The camera turned until finger A's outer corner and most of the finger lie beyond the left border:
     the search still finds A's two inner corners (and B's), and says the outer one is outside the picture."""
-    from selfview.cell import default_cell_path, load_cell
+    from selfview.files.cell import default_cell_path, load_cell
     from selfview.mocks.render import render
     from selfview.mocks.world import SimWorld
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from selfview.errors import ConfigError
-from selfview.geometry import (
+from selfview.maths.geometry import (
     EulerConvention,
     H_from_rotvec,
     H_from_xyzoat,

@@ -1,4 +1,4 @@
-"""selfview.intrinsics: the joint camera calibration, its uncertainty, stop rule, cross-check and refusals;
+"""selfview.estimation.intrinsics: the joint camera calibration, its uncertainty, stop rule, cross-check and refusals;
 the one-picture camera check and TCP uncertainty; camera files; the simulated world's camera."""
 
 from __future__ import annotations
@@ -8,15 +8,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from selfview.camera import CameraModel
-from selfview.camfile import CameraFile, load_camera_file, save_camera_file
-from selfview.calfile import history_dir
-from selfview.discs import DiscDetections, disc_image_bias
+from selfview.maths.camera import CameraModel
+from selfview.files.camfile import CameraFile, load_camera_file, save_camera_file
+from selfview.files.calfile import history_dir
+from selfview.measurement.discs import DiscDetections, disc_image_bias
 from selfview.errors import CalibrationError, CalibrationFileError, ConfigError, ImageError
-from selfview.geometry import inv_H, make_H, rot_axis, transform_points, trans
-from selfview.intrinsics import TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics, camera_check, tcp_sigma
+from selfview.maths.geometry import inv_H, make_H, rot_axis, transform_points, trans
+from selfview.estimation.intrinsics import TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics, camera_check, tcp_sigma
 from selfview.mocks.world import REALISTIC_ASPECT, REALISTIC_OFFSET_PX, SimWorld, draw_camera
-from selfview.offline import calibrate_offline
+from selfview.estimation.offline import calibrate_offline
 from selfview.procedures.viewplan import CLEARANCE_MM, LIFT_MM, MAX_TILT_DEG, plan_view_poses
 from tests import alt_render
 
@@ -53,7 +53,7 @@ def test_world_camera_ideal_realistic_and_explicit(cell):
 def test_both_renderers_draw_the_discs_where_the_offset_camera_puts_them(cell):
     """A 10 px offset and a 5 % aspect must move the discs in both renderers' pictures (their truth
     comes from the camera model; the detected centroids must follow it)."""
-    from selfview.discs import detect_discs
+    from selfview.measurement.discs import detect_discs
     from selfview.mocks.render import render
 
     w = SimWorld(cell, seed=2, camera={"principal_point": [393.5, 281.5], "aspect": 1.05})
@@ -302,7 +302,7 @@ def test_a_camera_file_whose_covariance_holds_nan_is_refused(tmp_path):
     recomputed checksum: the on-line updates propagate it into every sigma they report."""
     import yaml
 
-    from selfview.calfile import doc_checksum
+    from selfview.files.calfile import doc_checksum
 
     cov = np.diag([0.1, 1e-10, 0.05, 0.06, 2e-5]) ** 2
     cf = CameraFile(TRUE, {"f": 0.1, "kappa": 1e-10, "cx": 0.05, "cy": 0.06, "aspect": 2e-5}, cov)

@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 import pytest
 
-from selfview.cell import load_cell
-from selfview.intrinsics import detect_views
+from selfview.files.cell import load_cell
+from selfview.estimation.intrinsics import detect_views
 from selfview.procedures.cli import main
 
 VISP = Path(__file__).resolve().parents[1] / "data" / "visp-circles"

@@ -1,4 +1,4 @@
-"""selfview.intrinsics on a printed plate that is not the specified one: the plate's bow and its discs'
+"""selfview.estimation.intrinsics on a printed plate that is not the specified one: the plate's bow and its discs'
 position errors fitted with the camera (fitted as
 specified, the realistic plate puts the image centre 1.3-4.2 px off).
 
@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from selfview.geometry import R_from_rotvec, inv_H, make_H, trans
-from selfview.intrinsics import calibrate_intrinsics, detect_views, fit_views
-from selfview.intrinsics.model import JointProblem
-from selfview.intrinsics.plate import PlateShape, _similarity_complement
+from selfview.maths.geometry import R_from_rotvec, inv_H, make_H, trans
+from selfview.estimation.intrinsics import calibrate_intrinsics, detect_views, fit_views
+from selfview.estimation.intrinsics.model import JointProblem
+from selfview.estimation.intrinsics.plate import PlateShape, _similarity_complement
 from selfview.mocks.imperfections import PROFILES
 from selfview.mocks.render import render
 from selfview.mocks.world import PLATE_BASE_POSE, SimWorld

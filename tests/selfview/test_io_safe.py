@@ -1,4 +1,4 @@
-"""selfview.io_safe: pictures checked in their header before decoding, the strict YAML reader,
+"""selfview.files.io_safe: pictures checked in their header before decoding, the strict YAML reader,
 and the atomic writer's refusals."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from selfview.errors import ConfigError, ImageError
-from selfview.io_safe import atomic_write, load_yaml, picture_size, read_picture
+from selfview.files.io_safe import atomic_write, load_yaml, picture_size, read_picture
 
 from tests.conftest import REPO
 
@@ -142,7 +142,7 @@ def test_atomic_write_refuses_a_folder_target(tmp_path):
 
 # --- files checked before they are read -----------------------------------------------------------
 def test_bounded_reads_refuse_what_is_not_a_regular_file(tmp_path):
-    from selfview.io_safe import read_bounded
+    from selfview.files.io_safe import read_bounded
 
     fifo = tmp_path / "pipe"
     os.mkfifo(fifo)  # opening it to read would block until a writer came
@@ -206,7 +206,7 @@ def test_endless_files_are_refused_at_the_command_line(tmp_path, kind):
 
 
 def test_numbers_in_files_and_typed_are_plain_ascii_digits():
-    from selfview.io_safe import parse_number
+    from selfview.files.io_safe import parse_number
 
     for text in ("a: 1_0\n", "a: 1:30\n", "a: 1_000.5\n"):  # YAML 1.1 reads 10, 90 and 1000.5
         with pytest.raises(ConfigError, match="plain digits"):

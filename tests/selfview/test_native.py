@@ -1,4 +1,4 @@
-"""The switch between the compiled kernel and the numpy code (selfview._native)."""
+"""The switch between the compiled kernel and the numpy code (selfview.measurement._native)."""
 
 import json
 import os
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from selfview import _native
+from selfview.measurement import _native
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -19,7 +19,7 @@ def _status_with(env_value: str | None) -> dict:
     env.pop(_native.PURE_PYTHON_ENV, None)
     if env_value is not None:
         env[_native.PURE_PYTHON_ENV] = env_value
-    code = "import json, selfview._native as n; print(json.dumps(n.status()))"
+    code = "import json, selfview.measurement._native as n; print(json.dumps(n.status()))"
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     return json.loads(out.stdout)

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from selfview.errors import CalibrationError, ConfigError
-from selfview.geometry import H_from_rotvec, rotation_angle, transform_points
-from selfview.objects import TargetDetection, detect_target, load_object, object_pose, parse_object, target_board
+from selfview.maths.geometry import H_from_rotvec, rotation_angle, transform_points
+from selfview.measurement.objects import TargetDetection, detect_target, load_object, object_pose, parse_object, target_board
 
 
 def _block(**changes):

@@ -12,8 +12,8 @@ import pytest
 from selfview.mocks.render import render
 from selfview.errors import CalibrationError, ImageError
 from selfview.mocks.world import SimWorld
-from selfview.geometry import pose_difference
-from selfview.offline import calibrate_offline
+from selfview.maths.geometry import pose_difference
+from selfview.estimation.offline import calibrate_offline
 from tests import alt_render
 
 TARGET = {"f_rel": 0.002, "kappa_rel": 0.03, "across_mm": 0.02, "along_mm": 0.08, "rot_deg": 0.02}  # the accuracy targets

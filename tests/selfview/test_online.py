@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from selfview.cell import POINT_NAMES
+from selfview.files.cell import POINT_NAMES
 from selfview.errors import CalibrationError, ConfigError
-from selfview.geometry import R_from_rotvec, delta_star, inv_H, is_rigid, make_H, rot_axis, transform_points, trans
-from selfview.online import (
+from selfview.maths.geometry import R_from_rotvec, delta_star, inv_H, is_rigid, make_H, rot_axis, transform_points, trans
+from selfview.estimation.online import (
     MAX_CONDITION,
     METHODS,
     differential_update,

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from selfview.camera import CameraModel
+from selfview.maths.camera import CameraModel
 from selfview.errors import ConfigError
-from selfview.geometry import pose_difference, rot_x, trans
-from selfview.online import MODEL_METHOD, estimate
+from selfview.maths.geometry import pose_difference, rot_x, trans
+from selfview.estimation.online import MODEL_METHOD, estimate
 
 
 def test_E_is_the_fitted_pose_and_the_camera_motion_it_implies():
@@ -26,7 +26,7 @@ def test_E_is_the_fitted_pose_and_the_camera_motion_it_implies():
 
 
 def test_the_monitor_takes_E_like_the_other_update_methods(cell):
-    from selfview.policy import Monitor
+    from selfview.estimation.policy import Monitor
 
     cam = CameraModel(f=950.0, kappa=0.0, cx=383.5, cy=287.5, aspect=1.0, width=768, height=576)
     C_H_G = trans(0.0, 1.0, 110.0) @ rot_x(np.radians(30.0))

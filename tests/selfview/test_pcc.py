@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
-from selfview.cell import POINT_NAMES
+from selfview.files.cell import POINT_NAMES
 from selfview.errors import CalibrationError
-from selfview.geometry import H_from_rotvec, inv_H, pose_difference, rot_z, transform_points
-from selfview.pcc import measure_points_G, points_G_for_state, solve_pcc
+from selfview.maths.geometry import H_from_rotvec, inv_H, pose_difference, rot_z, transform_points
+from selfview.estimation.pcc import measure_points_G, points_G_for_state, solve_pcc
 
 
 def scene(cell, rng, gap=56.0):

@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 import yaml
 
-from selfview.camera import CameraModel
-from selfview.cell import default_cell_path, load_plate, parse_cell, parse_plate
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import default_cell_path, load_plate, parse_cell, parse_plate
 from selfview.errors import ConfigError, ImageError
-from selfview.geometry import transform_points
+from selfview.maths.geometry import transform_points
 from selfview.mocks.render import render
 from selfview.mocks.world import SimWorld
-from selfview.offline import calibrate_offline
-from selfview.plates import board_ink, detect_plate, plate_image_bias
+from selfview.estimation.offline import calibrate_offline
+from selfview.measurement.plates import board_ink, detect_plate, plate_image_bias
 from selfview.procedures.cli import main
 from selfview.procedures.intrinsics import measure_intrinsics
 
@@ -73,7 +73,7 @@ def charuco_photos():
 
 def test_charuco_photographs_are_indexed_as_opencv_numbers_them(charuco_photos):
     plate, images, _ = charuco_photos
-    from selfview.plates import charuco_board
+    from selfview.measurement.plates import charuco_board
 
     for img in images:
         det = detect_plate(img, plate)

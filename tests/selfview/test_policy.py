@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from selfview.errors import AlarmError, CalibrationError, ConfigError
-from selfview.geometry import inv_H, is_rigid, rot_axis, transform_points, trans
-from selfview.online import differential_update, recalibrate
-from selfview.policy import Decision, Monitor, Policy
+from selfview.maths.geometry import inv_H, is_rigid, rot_axis, transform_points, trans
+from selfview.estimation.online import differential_update, recalibrate
+from selfview.estimation.policy import Decision, Monitor, Policy
 
 F, KAPPA = 962.0, 1.9e-7
 PIVOT = (0.0, -15.0, -20.0)  # the cell's disturbance pivot in the camera frame
@@ -147,10 +147,10 @@ def test_limits_refer_to_the_last_calibration(mon):
 
 def test_every_decision_is_logged_with_its_measures(mon, caplog):
     m, H0, P, cam = mon
-    with caplog.at_level(logging.INFO, logger="selfview.policy"):
+    with caplog.at_level(logging.INFO, logger="selfview.estimation.policy"):
         for a in (0.3, 2.0, 9.0):
             m.step(*frame(turned(H0, a), P, cam))
-    msgs = [r for r in caplog.records if r.name == "selfview.policy"]
+    msgs = [r for r in caplog.records if r.name == "selfview.estimation.policy"]
     assert [r.levelno for r in msgs] == [logging.INFO, logging.WARNING, logging.ERROR]
     assert "frame 1: update by 4P-U" in msgs[0].getMessage() and "delta 0.3000 deg" in msgs[0].getMessage()
     assert "frame 3: alarm" in msgs[2].getMessage()

@@ -15,13 +15,13 @@ import cv2
 import numpy as np
 import pytest
 
-from selfview.cell import load_cell
-from selfview.discs import detect_discs
+from selfview.files.cell import load_cell
+from selfview.measurement.discs import detect_discs
 from selfview.errors import ConfigError, ImageError
-from selfview.geometry import pose_difference
+from selfview.maths.geometry import pose_difference
 from selfview.mocks.render import Lamp, render
 from selfview.mocks.world import SimWorld
-from selfview.offline import calibrate_offline
+from selfview.estimation.offline import calibrate_offline
 from selfview.mocks.render import disc_image_centroids
 from selfview.procedures.cli import main
 from tests.photo_variants import camera_turned, shadowed, turned

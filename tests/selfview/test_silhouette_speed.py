@@ -1,4 +1,4 @@
-"""The silhouette fit's compiled kernel (``selfview._csil``) against its numpy code.
+"""The silhouette fit's compiled kernel (``selfview.measurement._csil``) against its numpy code.
 
 Both must give the same measurement: on the same frames, both renderers, plain and over a photograph,
 tracked and searched, the corners within CORNER_TOL_PX and the fitted pose's TCP within TCP_TOL_MM, the
@@ -17,18 +17,18 @@ import functools
 import numpy as np
 import pytest
 
-import selfview.silhouette as sil
-from selfview import _native
-from selfview.cell import default_cell_path, load_cell
-from selfview.fingers import model_measurement
-from selfview.geometry import inv_H, make_H
-from selfview.fingers import WIDE_ROUNDS, SilhouetteTracker
+import selfview.measurement.silhouette as sil
+from selfview.measurement import _native
+from selfview.files.cell import default_cell_path, load_cell
+from selfview.measurement.fingers import model_measurement
+from selfview.maths.geometry import inv_H, make_H
+from selfview.measurement.fingers import WIDE_ROUNDS, SilhouetteTracker
 from tests import clutter_scenes as clutter
 
 CORNER_TOL_PX = 0.01
 TCP_TOL_MM = 1e-4
 KERNEL = _native.sil
-needs_kernel = pytest.mark.skipif(KERNEL is None, reason="the compiled kernel selfview._csil is not built")
+needs_kernel = pytest.mark.skipif(KERNEL is None, reason="the compiled kernel selfview.measurement._csil is not built")
 
 
 @functools.lru_cache(maxsize=None)
@@ -132,7 +132,7 @@ def test_kernel_steps_match_their_numpy_code_on_one_frame(monkeypatch):
     assert np.allclose(Jb, Jc, rtol=1e-6, atol=1e-9 * np.abs(Jb).max())
 
 
-@pytest.mark.skipif(_native.sil is None, reason="the compiled kernel selfview._csil is not built")
+@pytest.mark.skipif(_native.sil is None, reason="the compiled kernel selfview.measurement._csil is not built")
 def test_the_kernel_refuses_bad_arguments_by_name():
     k = _native.sil
     S, C, E = 20, 3, 2

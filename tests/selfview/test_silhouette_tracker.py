@@ -8,15 +8,15 @@ import functools
 import numpy as np
 import pytest
 
-import selfview.silhouette as sil
-from selfview import _native
-from selfview.cell import default_cell_path, load_cell
-from selfview.geometry import trans
+import selfview.measurement.silhouette as sil
+from selfview.measurement import _native
+from selfview.files.cell import default_cell_path, load_cell
+from selfview.maths.geometry import trans
 from selfview.mocks.render import render
 from selfview.mocks.world import SimWorld
-from selfview.online import estimate
-from selfview.silhouette import fit_silhouette, learn_appearance
-from selfview.fingers import SilhouetteTracker
+from selfview.estimation.online import estimate
+from selfview.measurement.silhouette import fit_silhouette, learn_appearance
+from selfview.measurement.fingers import SilhouetteTracker
 from tests.selfview.test_silhouette_speed import _looking_at
 
 TCP_MM = 0.05  # the on-line accuracy a tracked frame must give (4P-I on its corners, any TCP axis)

@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 import yaml
 
-from selfview.calfile import doc_checksum, load_calibration, save_calibration
-from selfview.camera import MAX_SKEW, CameraModel
-from selfview.camfile import CameraFile, load_camera_file, save_camera_file
+from selfview.files.calfile import doc_checksum, load_calibration, save_calibration
+from selfview.maths.camera import MAX_SKEW, CameraModel
+from selfview.files.camfile import CameraFile, load_camera_file, save_camera_file
 from selfview.errors import CalibrationFileError, ConfigError
-from selfview.geometry import R_from_rotvec, inv_H, make_H, transform_points
-from selfview.intrinsics import TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics
+from selfview.maths.geometry import R_from_rotvec, inv_H, make_H, transform_points
+from selfview.estimation.intrinsics import TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics
 from selfview.mocks.world import SimWorld
-from selfview.offline import calibrate_offline
-from selfview.online import differential_update, iterative_update, recalibrate
+from selfview.estimation.offline import calibrate_offline
+from selfview.estimation.online import differential_update, iterative_update, recalibrate
 from selfview.procedures.viewplan import plan_view_poses
 from tests import alt_render
 
@@ -102,7 +102,7 @@ def test_a_skew_that_changes_from_view_to_view_is_not_fitted(cell, sheared):
     formal sigmas from 0, but the views left out in turn move it by as much as it measures: held at 0."""
     import dataclasses
 
-    from selfview.intrinsics import detect_views
+    from selfview.estimation.intrinsics import detect_views
 
     w, truth, imgs = sheared
     dets, names, _ = detect_views(imgs, cell.plate, cell.camera.guess())
@@ -225,7 +225,7 @@ def test_the_simulated_grabber_shears_by_what_it_says(cell):
     and 0.005 px (its resampling once made it 1.2-1.3 times as strong, which a fitted skew then showed)."""
     from dataclasses import replace
 
-    from selfview.discs import detect_discs
+    from selfview.measurement.discs import detect_discs
     from selfview.mocks.imperfections import PROFILES
     from selfview.mocks.render import render
 

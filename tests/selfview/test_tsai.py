@@ -1,4 +1,4 @@
-"""Tsai's coplanar calibration (selfview.tsai) and the Levenberg-Marquardt solver it runs on (selfview.lm).
+"""Tsai's coplanar calibration (selfview.estimation.tsai) and the Levenberg-Marquardt solver it runs on (selfview.maths.lm).
 
 References: Willson's published run (``reference/tsai-willson/ccal.log``), NiftyCal's real dot grid
 (``reference/niftycal-dots``), and seeded synthetic views of the reference cell's plate.
@@ -9,11 +9,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from selfview.camera import CameraModel
+from selfview.maths.camera import CameraModel
 from selfview.errors import CalibrationError, CalibrationFileError, ConfigError
-from selfview.geometry import R_from_rotvec, R_from_rpy, make_H, pose_difference, rpy_from_R, transform_points
-from selfview.lm import levenberg_marquardt, numeric_jacobian
-from selfview.tsai import (
+from selfview.maths.geometry import R_from_rotvec, R_from_rpy, make_H, pose_difference, rpy_from_R, transform_points
+from selfview.maths.lm import levenberg_marquardt, numeric_jacobian
+from selfview.estimation.tsai import (
     FREE_CENTRE_MODES, MODES, TsaiResult, _FullModel, _WillsonStages, calibrate_coplanar, load_willson_points,
     residual_stats,
 )

@@ -23,7 +23,7 @@ import numpy as np
 import yaml
 
 from selfview.errors import CellError, ConfigError, ImageError, PictureFileError
-from selfview.lockdir import lock_slug, open_lock_file, os_cause
+from selfview.files.lockdir import lock_slug, open_lock_file, os_cause
 
 __all__ = ["load_yaml", "load_yaml_file", "read_bounded", "parse_number", "read_picture", "picture_size", "atomic_write", "write_picture", "MAX_YAML_BYTES", "MAX_YAML_DEPTH",
            "MAX_PICTURE_SIDE", "MAX_PICTURE_PIXELS"]
@@ -325,7 +325,7 @@ def remove_leftovers(folder, name: str | None = None) -> None:
 def file_lock(path, *, error: type[CellError] = ConfigError, what: str = "file", timeout_s: float = 10.0):
     """Hold an exclusive flock for writing ``path`` (writers of one file take turns), waiting at most
     ``timeout_s``; ``error`` naming the file if another process holds it longer. The lock file is in the
-    user's lock folder (``selfview.lockdir``), keyed on the file's folder as the kernel knows it (device
+    user's lock folder (``selfview.files.lockdir``), keyed on the file's folder as the kernel knows it (device
     and inode: two spellings of one folder share the lock), never beside the user's files."""
     path = Path(path)
     try:

@@ -13,10 +13,10 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from selfview.camera import CameraModel
-from selfview.cell import PlateSpec
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import PlateSpec
 from selfview.errors import ImageError
-from selfview.geometry import transform_points
+from selfview.maths.geometry import transform_points
 
 __all__ = ["DiscDetections", "detect_discs", "correct_disc_bias", "disc_image_bias", "as_gray"]
 

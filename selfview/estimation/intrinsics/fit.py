@@ -8,15 +8,15 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from selfview.camera import CameraModel
-from selfview.cell import PlateSpec
-from selfview.discs import DiscDetections
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import PlateSpec
+from selfview.measurement.discs import DiscDetections
 from selfview.errors import CalibrationError, ConfigError, ImageError
-from selfview.geometry import make_H
-from selfview.intrinsics.model import STEP, JointProblem, intrinsics_vector, project_points, with_intrinsics
-from selfview.intrinsics.plate import PLATE_DOT_PRIOR_MM, PLATE_DOT_SD_RANGE_MM, PLATE_MODELS, align_views, PlateShape
-from selfview.lm import covariance, levenberg_marquardt
-from selfview.plates import detect_plate, plate_image_bias
+from selfview.maths.geometry import make_H
+from selfview.estimation.intrinsics.model import STEP, JointProblem, intrinsics_vector, project_points, with_intrinsics
+from selfview.estimation.intrinsics.plate import PLATE_DOT_PRIOR_MM, PLATE_DOT_SD_RANGE_MM, PLATE_MODELS, align_views, PlateShape
+from selfview.maths.lm import covariance, levenberg_marquardt
+from selfview.measurement.plates import detect_plate, plate_image_bias
 
 
 #: The intrinsics in the order of the covariance: the skew last, absent when it is not fitted.

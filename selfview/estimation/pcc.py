@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from selfview.camera import CameraModel
-from selfview.cell import POINT_NAMES, GripperSpec
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import POINT_NAMES, GripperSpec
 from selfview.errors import CalibrationError
 
 __all__ = ["PCCResult", "solve_pcc", "measure_points_G", "points_G_for_state", "w_h_g_from_params", "jaw_gap_of"]

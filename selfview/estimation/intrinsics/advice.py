@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from selfview.camera import CameraModel
-from selfview.cell import PlateSpec
-from selfview.geometry import rot_axis, trans
-from selfview.intrinsics.fit import JointFit, sigmas_of
-from selfview.intrinsics.model import JointProblem, intrinsics_vector, project_points
-from selfview.intrinsics.plate import PlateShape
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import PlateSpec
+from selfview.maths.geometry import rot_axis, trans
+from selfview.estimation.intrinsics.fit import JointFit, sigmas_of
+from selfview.estimation.intrinsics.model import JointProblem, intrinsics_vector, project_points
+from selfview.estimation.intrinsics.plate import PlateShape
 
 
 #: Stop rule: the centre pinned to sigma below this in each axis [px], the aspect to this relative sigma.

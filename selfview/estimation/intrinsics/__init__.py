@@ -8,16 +8,16 @@ each: ``model`` (the projection and the joint least-squares problem), ``plate`` 
 ``calibrate`` (``calibrate_intrinsics``, all of it as one result).
 """
 
-from selfview.intrinsics.advice import MAX_MORE_VIEWS, STOP_ASPECT_REL, STOP_CENTRE_PX, VIEW_KINDS, more_views_advice
-from selfview.intrinsics.calibrate import IntrinsicsResult, calibrate_intrinsics
-from selfview.intrinsics.checks import (
+from selfview.estimation.intrinsics.advice import MAX_MORE_VIEWS, STOP_ASPECT_REL, STOP_CENTRE_PX, VIEW_KINDS, more_views_advice
+from selfview.estimation.intrinsics.calibrate import IntrinsicsResult, calibrate_intrinsics
+from selfview.estimation.intrinsics.checks import (
     AGREE_SIGMAS, CAMERA_CHI2_LIMIT, CAMERA_FILE_MAX_EXCESS_PX, TARGET_ACROSS_MM, TARGET_ALONG_MM, camera_check,
     camera_file_fit, tcp_sigma,
 )
-from selfview.intrinsics.fit import (
+from selfview.estimation.intrinsics.fit import (
     INTRINSIC_NAMES, MIN_VIEWS, ViewFit, detect_views, fit_views, guess_camera, projection_sigma_px,
 )
-from selfview.intrinsics.plate import PLATE_MODELS
+from selfview.estimation.intrinsics.plate import PLATE_MODELS
 
 __all__ = [
     "AGREE_SIGMAS", "CAMERA_CHI2_LIMIT", "CAMERA_FILE_MAX_EXCESS_PX", "INTRINSIC_NAMES", "IntrinsicsResult",

@@ -18,10 +18,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from selfview.camera import CameraModel, distort
-from selfview.cell import POINT_NAMES
+from selfview.maths.camera import CameraModel, distort
+from selfview.files.cell import POINT_NAMES
 from selfview.errors import CalibrationError, ConfigError
-from selfview.geometry import R_from_rotvec, delta_star, orthonormalize, rotvec_from_R
+from selfview.maths.geometry import R_from_rotvec, delta_star, orthonormalize, rotvec_from_R
 
 __all__ = [
     "METHODS",
@@ -120,7 +120,7 @@ def _estimate(label, H, H_orth, motion, res_px, N, cond, rss, names, iters, H0, 
 def _prepare(C_H_G, p_G, uv, camera, names, kind: str):
     """Validated input: H (4, 4), P (N, 3), uv (N, 2) float arrays, the point names and the method label."""
     if not isinstance(camera, CameraModel):
-        raise TypeError(f"camera: expected a selfview.camera.CameraModel, got {type(camera).__name__}")
+        raise TypeError(f"camera: expected a selfview.maths.camera.CameraModel, got {type(camera).__name__}")
     H = np.asarray(C_H_G, dtype=float)
     P = np.asarray(p_G, dtype=float)
     uv = np.asarray(uv, dtype=float)

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from selfview.camera import CameraModel
+from selfview.maths.camera import CameraModel
 from selfview.errors import CalibrationError
-from selfview.geometry import R_from_rotvec, make_H
-from selfview.intrinsics.fit import INTRINSIC_NAMES, MIN_VIEWS_HALF, JointFit, fit_views
-from selfview.intrinsics.model import POSE_STEP, STEP, JointProblem, intrinsics_vector, with_intrinsics
-from selfview.lm import covariance, levenberg_marquardt
+from selfview.maths.geometry import R_from_rotvec, make_H
+from selfview.estimation.intrinsics.fit import INTRINSIC_NAMES, MIN_VIEWS_HALF, JointFit, fit_views
+from selfview.estimation.intrinsics.model import POSE_STEP, STEP, JointProblem, intrinsics_vector, with_intrinsics
+from selfview.maths.lm import covariance, levenberg_marquardt
 
 
 #: The halves of the cross-check agree when no parameter differs by more than this many combined sigmas.
@@ -65,7 +65,7 @@ def _one_view(result, camera: CameraModel, ni: int = 5):
 
 
 def _tcp_of(result, cell, cam: CameraModel, C_H_W) -> np.ndarray:
-    from selfview.pcc import solve_pcc
+    from selfview.estimation.pcc import solve_pcc
 
     ft = result.fingertips
     found = np.asarray(ft.found, bool)
@@ -84,7 +84,7 @@ CAMERA_FILE_MAX_EXCESS_PX = 0.1
 
 def camera_file_fit(result, camera: CameraModel, source: str = "the camera file") -> dict:
     """Does ``camera`` (from a camera file: f, kappa, centre, aspect, skew) fit the picture of an off-line
-    calibration (``selfview.offline.OfflineResult``)? The plate's pose alone is fitted to the disc centres with
+    calibration (``selfview.estimation.offline.OfflineResult``)? The plate's pose alone is fitted to the disc centres with
     every intrinsic held at ``camera``'s. Returns {rms_px, own_rms_px (f and kappa the picture's), excess_px,
     limit_px, fits, refusal (why it does not fit, naming ``source``; None when it fits)}."""
     model, x = _one_view(result, camera, ni=6)
@@ -107,7 +107,7 @@ def camera_file_fit(result, camera: CameraModel, source: str = "the camera file"
 
 
 def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
-    """Does the picture of an off-line calibration (``selfview.offline.OfflineResult``) show that the
+    """Does the picture of an off-line calibration (``selfview.estimation.offline.OfflineResult``) show that the
     assumed camera's principal point or aspect (``camera``, default the cell's nominal one) is wrong by
     enough to cost more than the accuracy targets?
 
@@ -118,7 +118,7 @@ def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
     Returns {significant, chi2, centre_offset_px [dx, dy], aspect, aspect_sigma, centre_sigma_px,
     tcp_shift_mm [3], costly, warning (str or None)}.
     """
-    from selfview.tsai import calibrate_coplanar
+    from selfview.estimation.tsai import calibrate_coplanar
 
     cam0 = camera or cell.camera.guess()
     model, x0 = _one_view(result, cam0)
@@ -182,7 +182,7 @@ def tcp_sigma(result, cell, camera_cov3: np.ndarray | None = None, camera_error:
     calibration and the PCC together.
 
     Three parts, propagated to ``C_H_G``'s translation by its derivatives (central differences through
-    Tsai's pose and ``selfview.pcc.solve_pcc``): the picture's own noise in the disc centres (the
+    Tsai's pose and ``selfview.estimation.pcc.solve_pcc``): the picture's own noise in the disc centres (the
     covariance of f, kappa and the plate pose, scaled by the residual); the uncertainty of the principal
     point and aspect (``camera_cov3`` (3, 3) of cx, cy, aspect, or (4, 4) with the skew, from a camera file;
     None: taken as exact),
@@ -209,7 +209,7 @@ def tcp_sigma(result, cell, camera_cov3: np.ndarray | None = None, camera_error:
     ft = result.fingertips
     found = np.asarray(ft.found, bool)
     pG = cal.points_G[cal.state][found]
-    from selfview.pcc import solve_pcc
+    from selfview.estimation.pcc import solve_pcc
 
     def tcp(xv, uv=None):
         c = with_intrinsics(cam, xv[:6])

@@ -16,11 +16,11 @@ from typing import Callable
 
 import numpy as np
 
-from selfview.camera import CameraModel
-from selfview.cell import POINT_NAMES, MonitorLimits
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import POINT_NAMES, MonitorLimits
 from selfview.errors import AlarmError, CalibrationError, ConfigError
-from selfview.geometry import check_rigid, inv_H, orthonormalize, rotation_angle
-from selfview.online import MODEL_METHOD, MotionEstimate, estimate, parse_method, select_points
+from selfview.maths.geometry import check_rigid, inv_H, orthonormalize, rotation_angle
+from selfview.estimation.online import MODEL_METHOD, MotionEstimate, estimate, parse_method, select_points
 
 __all__ = ["ACTIONS", "Decision", "Policy", "Monitor"]
 
@@ -32,7 +32,7 @@ BLANK_CONTRAST_GREY = 8.0
 #: of the one before that, alternate between two values: the alarm.
 ALTERNATION_WINDOW = 6
 
-_LOG = logging.getLogger("selfview.policy")
+_LOG = logging.getLogger("selfview.estimation.policy")
 _LEVEL = {"update": logging.INFO, "recalibrate": logging.WARNING, "alarm": logging.ERROR, "calibrated": logging.INFO,
           "missed": logging.WARNING}
 
@@ -101,7 +101,7 @@ class Policy:
 
     def __init__(self, limits: MonitorLimits):
         if not isinstance(limits, MonitorLimits):
-            raise ConfigError(f"policy limits: expected selfview.cell.MonitorLimits, got {type(limits).__name__}")
+            raise ConfigError(f"policy limits: expected selfview.files.cell.MonitorLimits, got {type(limits).__name__}")
         self.limits = limits
 
     @staticmethod
@@ -257,7 +257,7 @@ class Monitor:
     pose (``step``'s ``model_C_H_G``). ``recalibration_method`` '4P-R', '5P-R'
     or 'auto' (5P-R when a fifth point is found, else 4P-R). ``raise_on_alarm``: raise ``AlarmError``
     after logging an alarm instead of returning the decision. Every decision is logged (``logger``,
-    default 'selfview.policy') and kept in ``records`` (plain dicts with the frame number).
+    default 'selfview.estimation.policy') and kept in ``records`` (plain dicts with the frame number).
     ``max_missed_frames`` (default: the limits' ``max_missed_frames``, the cell's
     ``monitor.max_missed_frames``) consecutive missed frames raise the alarm; ``missed_in_a_row`` counts
     them.
@@ -298,7 +298,7 @@ class Monitor:
                 f"recalibration_method {recalibration_method!r}: expected 'auto', '4P-R' or '5P-R'"
             )
         if not isinstance(camera, CameraModel):
-            raise ConfigError(f"camera: expected a selfview.camera.CameraModel, got {type(camera).__name__}")
+            raise ConfigError(f"camera: expected a selfview.maths.camera.CameraModel, got {type(camera).__name__}")
         self.camera = camera
         self.p_G6 = self._points(p_G6)
         self.update_method = update_method

@@ -2,7 +2,7 @@
 
 From N >= 5 plate points ``p_W`` (z = 0, mm) and their pictures ``uv`` (pixels), with the principal
 point and the aspect ratio known, find f [px], kappa [px^-2] and ``C_H_W`` (the paper's eq. 1-4 in the
-pixel units of ``selfview.camera``: ``X^ = aspect (u - cx)``, ``Y^ = v - cy``, ``X = X^ (1 + kappa r^2)``).
+pixel units of ``selfview.maths.camera``: ``X^ = aspect (u - cx)``, ``Y^ = v - cy``, ``X = X^ (1 + kappa r^2)``).
 The stages follow Willson's v3.0b3 (``cal_main.c``): linear stages 1-4, then a refinement by mode
 (5a ``tsai``, 5b ``full`` / ``full+centre``, 5c ``willson``), each function naming its stage.
 """
@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from selfview.camera import CameraModel, distort
+from selfview.maths.camera import CameraModel, distort
 from selfview.errors import CalibrationError, CalibrationFileError, ConfigError
-from selfview.geometry import R_from_rotvec, R_from_rpy, make_H, transform_points
-from selfview.io_safe import parse_number, read_bounded
-from selfview.lm import covariance, levenberg_marquardt
+from selfview.maths.geometry import R_from_rotvec, R_from_rpy, make_H, transform_points
+from selfview.files.io_safe import parse_number, read_bounded
+from selfview.maths.lm import covariance, levenberg_marquardt
 
 __all__ = [
     "FREE_CENTRE_MODES", "MODES", "TsaiResult", "calibrate_coplanar", "load_willson_points", "parse_willson_log",

@@ -6,7 +6,7 @@ covariance (a file without ``skew``, as written before it was measured, reads as
 covariance of the others); the
 residual, the stop rule and the cross-check; provenance (the pictures' SHA-256, the time, the software
 and Python/NumPy/OpenCV versions, the cell file's hash) and a checksum over all of it. It is written
-like a calibration file (``selfview.calfile``): atomically, the previous file kept in ``<name>.history/``,
+like a calibration file (``selfview.files.calfile``): atomically, the previous file kept in ``<name>.history/``,
 and a foreign or altered file is refused (``CalibrationFileError``) and never overwritten.
 """
 
@@ -23,9 +23,9 @@ import numpy as np
 import yaml
 
 from selfview import __version__
-from selfview.calfile import doc_checksum, plain_data, replace_keeping_history
-from selfview.io_safe import load_yaml, load_yaml_file
-from selfview.camera import CameraModel
+from selfview.files.calfile import doc_checksum, plain_data, replace_keeping_history
+from selfview.files.io_safe import load_yaml, load_yaml_file
+from selfview.maths.camera import CameraModel
 from selfview.errors import CalibrationFileError, ConfigError
 
 __all__ = ["CameraFile", "load_camera_file", "save_camera_file", "FORMAT", "VERSION", "INTRINSIC_NAMES"]

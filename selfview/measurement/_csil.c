@@ -1,4 +1,4 @@
-/* selfview._csil: the compiled per-round steps of the model-based fingertip measurement (selfview.silhouette):
+/* selfview.measurement._csil: the compiled per-round steps of the model-based fingertip measurement (selfview.measurement.silhouette):
  * the sampling of the model's edges, the candidates along each sample's normal, the IRLS and the vote.
  *
  *   sample(a_G, b_G, d_in, finger, box, H, cam, margin, step, p, edge, uv, nrm) -> S, or -1
@@ -981,7 +981,7 @@ static PyMethodDef methods[] = {
 
 static struct PyModuleDef moddef = {
     PyModuleDef_HEAD_INIT, "_csil",
-    "The model-based fingertip measurement's IRLS (see selfview/silhouette.py, the reference).",
+    "The model-based fingertip measurement's IRLS (see selfview/measurement/silhouette.py, the reference).",
     -1, methods, NULL, NULL, NULL, NULL,
 };
 

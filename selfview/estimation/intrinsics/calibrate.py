@@ -7,12 +7,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from selfview.camera import CameraModel
-from selfview.cell import PlateSpec
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import PlateSpec
 from selfview.errors import CalibrationError
-from selfview.intrinsics.advice import STOP_ASPECT_REL, STOP_CENTRE_PX, MAX_MORE_VIEWS, stop_met, more_views_advice
-from selfview.intrinsics.checks import halves_cross_check
-from selfview.intrinsics.fit import (
+from selfview.estimation.intrinsics.advice import STOP_ASPECT_REL, STOP_CENTRE_PX, MAX_MORE_VIEWS, stop_met, more_views_advice
+from selfview.estimation.intrinsics.checks import halves_cross_check
+from selfview.estimation.intrinsics.fit import (
     MIN_VIEWS, UNDETERMINED_CENTRE_PX, VIEW_MAX_RMS_PX, JointFit, sigmas_of, detect_views, fit_views, projection_sigma_px,
 )
 

@@ -7,10 +7,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from selfview.camera import CameraModel
-from selfview.cell import PlateSpec
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import PlateSpec
 from selfview.errors import CalibrationError
-from selfview.intrinsics.model import intrinsics_vector, project_points
+from selfview.estimation.intrinsics.model import intrinsics_vector, project_points
 
 
 #: Plate models of the joint fit (``plate_model``): 'flat' (the plate as specified, every disc exactly

@@ -17,11 +17,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from selfview.camera import CameraModel
-from selfview.cell import POINT_NAMES, GripperSpec
-from selfview.discs import as_gray
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import POINT_NAMES, GripperSpec
+from selfview.measurement.discs import as_gray
 from selfview.errors import CalibrationError
-from selfview.geometry import inv_H, transform_points
+from selfview.maths.geometry import inv_H, transform_points
 
 __all__ = ["FingertipResult", "PredictedFingers", "box_edges", "predict_fingertips", "search_corners", "visible_edges"]
 
@@ -53,7 +53,7 @@ class FingertipResult:
     edge points that the corner's lines rest on; ``tracked`` True when a tracker followed
     the corners from the previous frame instead of searching for them. From the model-based measurement
     (``fingers.find_fingertips(..., model=True)``, ``fingers.SilhouetteTracker``) also: ``quality`` the
-    fit's quality (``selfview.silhouette.SilhouetteFit.quality``: share of good edge samples, residual,
+    fit's quality (``selfview.measurement.silhouette.SilhouetteFit.quality``: share of good edge samples, residual,
     the TCP's standard deviation), ``lost`` why the frame says "not found" (None: it does not), and
     ``C_H_G`` the fitted pose (None if none was believed).
     """

@@ -21,10 +21,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from selfview.camera import CameraModel
+from selfview.maths.camera import CameraModel
 from selfview.errors import CalibrationError, ConfigError
-from selfview.geometry import H_from_rotvec, R_from_rpy, inv_H, make_H
-from selfview.io_safe import load_yaml_file
+from selfview.maths.geometry import H_from_rotvec, R_from_rpy, inv_H, make_H
+from selfview.files.io_safe import load_yaml_file
 
 __all__ = ["TargetSpec", "ObjectSpec", "TargetDetection", "ObjectPose", "load_object", "parse_object",
            "default_object_path", "detect_target", "object_pose", "target_board", "AMBIGUITY_RATIO", "MIN_CORNERS"]
@@ -86,7 +86,7 @@ class ObjectSpec:
 
 
 def default_object_path() -> Path:
-    return Path(__file__).resolve().parent / "data" / "block.yaml"
+    return Path(__file__).resolve().parents[1] / "data" / "block.yaml"
 
 
 def _number(v, what: str, lo: float, hi: float) -> float:

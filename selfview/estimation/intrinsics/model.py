@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from selfview.camera import CameraModel, distort
+from selfview.maths.camera import CameraModel, distort
 from selfview.errors import CalibrationError
-from selfview.geometry import R_from_rotvec, make_H
-from selfview.tsai import cross_rows, so3_left_jacobian
+from selfview.maths.geometry import R_from_rotvec, make_H
+from selfview.estimation.tsai import cross_rows, so3_left_jacobian
 
 
 #: Finite-difference steps of the numeric Jacobian: f (relative), kappa [px^-2], cx, cy [px], aspect,
@@ -84,7 +84,7 @@ class JointProblem:
         return np.concatenate(r)
 
     def jacobian(self, x) -> np.ndarray:
-        """Analytic (as ``selfview.tsai``'s full model, with cx, cy, the aspect, the skew and the plate's shape
+        """Analytic (as ``selfview.estimation.tsai``'s full model, with cx, cy, the aspect, the skew and the plate's shape
         added: u = X^ / aspect + skew Y^ + cx)."""
         f, kappa, cx, cy, aspect = x[:5]
         ni = self.ni

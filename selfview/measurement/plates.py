@@ -24,9 +24,9 @@ import functools
 import cv2
 import numpy as np
 
-from selfview.camera import CameraModel
-from selfview.cell import PLATE_PATTERNS, PlateSpec
-from selfview.discs import DiscDetections, as_gray, detect_discs, disc_image_bias
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import PLATE_PATTERNS, PlateSpec
+from selfview.measurement.discs import DiscDetections, as_gray, detect_discs, disc_image_bias
 from selfview.errors import ConfigError, ImageError
 
 __all__ = ["PLATE_PATTERNS", "PlateDetections", "detect_plate", "plate_image_bias", "correct_plate_bias",

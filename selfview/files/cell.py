@@ -1,6 +1,6 @@
 """The cell description (``cell.yaml``) as typed, validated objects.
 
-The file is read as it is (safe YAML only, through ``selfview.io_safe.load_yaml``: no aliases, bounded size and
+The file is read as it is (safe YAML only, through ``selfview.files.io_safe.load_yaml``: no aliases, bounded size and
 depth). Unknown keys, missing keys, wrong types and
 impossible values raise ``ConfigError`` with a message that names the key path, the value and what was
 expected. Keys this project adds beyond the shared reference file have defaults.
@@ -15,10 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from selfview.camera import CameraModel
+from selfview.maths.camera import CameraModel
 from selfview.errors import ConfigError
-from selfview.geometry import check_rigid
-from selfview.io_safe import MAX_YAML_BYTES, load_yaml, read_bounded, short_repr
+from selfview.maths.geometry import check_rigid
+from selfview.files.io_safe import MAX_YAML_BYTES, load_yaml, read_bounded, short_repr
 
 __all__ = [
     "POINT_NAMES",
@@ -37,7 +37,7 @@ __all__ = [
 ]
 
 #: The six fingertip calibration points of CONVENTIONS.md, in their order.
-#: The plate patterns ``selfview.plates.detect_plate`` measures.
+#: The plate patterns ``selfview.measurement.plates.detect_plate`` measures.
 PLATE_PATTERNS = ("discs", "chessboard", "charuco")
 POINT_NAMES: tuple[str, ...] = (
     "A-inner-front",
@@ -190,7 +190,7 @@ class CameraSpec:
 @dataclass(frozen=True)
 class PlateSpec:
     """The calibration plate. ``rows`` x ``cols`` plate points (disc centres; a board's inner corners) at
-    ``pitch`` mm, centred on W's origin; ``pattern`` ('discs', 'chessboard', 'charuco'; ``selfview.plates``);
+    ``pitch`` mm, centred on W's origin; ``pattern`` ('discs', 'chessboard', 'charuco'; ``selfview.measurement.plates``);
     a board's ``squares`` (NX, NY) of ``pitch`` mm, its ArUco ``marker`` side [mm], ``dictionary`` and
     ``legacy_pattern``; ``disc_diameter`` 0 for a board."""
 
@@ -589,4 +589,4 @@ def load_cell(path) -> Cell:
 
 def default_cell_path() -> Path:
     """The reference cell that ships with the package (a copy of the shared ``cell.yaml``)."""
-    return Path(__file__).resolve().parent / "data" / "cell.yaml"
+    return Path(__file__).resolve().parents[1] / "data" / "cell.yaml"

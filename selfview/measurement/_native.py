@@ -1,5 +1,5 @@
-"""The optional compiled kernel of the silhouette fit, ``selfview._csil`` (built by ``pip install`` when a
-C compiler is present; see ``selfview.silhouette``). ``SELFVIEW_PURE_PYTHON=1`` selects the numpy code.
+"""The optional compiled kernel of the silhouette fit, ``selfview.measurement._csil`` (built by ``pip install`` when a
+C compiler is present; see ``selfview.measurement.silhouette``). ``SELFVIEW_PURE_PYTHON=1`` selects the numpy code.
 ``sil`` is the module or None, read at each call (a test may set it to None)."""
 
 from __future__ import annotations

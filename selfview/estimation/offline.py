@@ -13,17 +13,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from selfview.calfile import Calibration
-from selfview.camera import CameraModel
-from selfview.cell import POINT_NAMES, Cell
-from selfview.discs import DiscDetections
-from selfview.plates import correct_plate_bias, detect_plate
+from selfview.files.calfile import Calibration
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import POINT_NAMES, Cell
+from selfview.measurement.discs import DiscDetections
+from selfview.measurement.plates import correct_plate_bias, detect_plate
 from selfview.errors import CalibrationError, ConfigError, ImageError
-from selfview.fingertips import FingertipResult
-from selfview.fingers import find_fingertips, model_measurement
-from selfview.geometry import inv_H, make_H, rot_z
-from selfview.pcc import PCCResult, measure_points_G, points_G_for_state, solve_pcc
-from selfview.tsai import TsaiResult, calibrate_coplanar
+from selfview.measurement.fingertips import FingertipResult
+from selfview.measurement.fingers import find_fingertips, model_measurement
+from selfview.maths.geometry import inv_H, make_H, rot_z
+from selfview.estimation.pcc import PCCResult, measure_points_G, points_G_for_state, solve_pcc
+from selfview.estimation.tsai import TsaiResult, calibrate_coplanar
 
 __all__ = ["OfflineResult", "check_picture", "calibrate_offline", "predict_parked_C_H_G"]
 

@@ -23,12 +23,12 @@ import numpy as np
 import yaml
 
 from selfview import __version__
-from selfview.camera import CameraModel
-from selfview.cell import POINT_NAMES
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import POINT_NAMES
 from selfview.errors import CalibrationFileError, ConfigError
-from selfview.geometry import check_rigid
-from selfview.io_safe import MAX_YAML_BYTES, atomic_write, file_lock, load_yaml, read_bounded, remove_leftovers, short_repr
-from selfview.tsai import MODES as TSAI_MODES
+from selfview.maths.geometry import check_rigid
+from selfview.files.io_safe import MAX_YAML_BYTES, atomic_write, file_lock, load_yaml, read_bounded, remove_leftovers, short_repr
+from selfview.estimation.tsai import MODES as TSAI_MODES
 
 __all__ = ["Calibration", "save_calibration", "load_calibration", "history_dir", "FORMAT", "VERSION"]
 
@@ -353,7 +353,7 @@ def save_calibration(cal: Calibration, path, *, keep_history: bool = True,
     is replaced (the link stays). Returns the path of the history copy, or None.
 
     The new document is read back and checked before anything is written; the write goes through
-    ``selfview.io_safe.atomic_write`` (temporary file, fsync, rename, permissions kept) after the
+    ``selfview.files.io_safe.atomic_write`` (temporary file, fsync, rename, permissions kept) after the
     previous file is copied into ``<name>.history/``. A write that fails (full disk, size limit, missing
     folder) raises ``CalibrationFileError`` naming the path.
     """

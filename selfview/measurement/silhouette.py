@@ -6,7 +6,7 @@ lines onto the nearest candidates is found by IRLS with Tukey weights in undisto
 over rounds of shrinking search ranges (a vote for the image shift first when the start may be far off).
 The corners are the model's points at the fitted pose; a fit below the quality thresholds is reported
 as lost with the reason, never as a pose. ``SilhouetteTracker`` follows the fit from frame to frame.
-The sampling, candidates, IRLS and vote run in the compiled kernel ``selfview._csil`` when it is built,
+The sampling, candidates, IRLS and vote run in the compiled kernel ``selfview.measurement._csil`` when it is built,
 else in the numpy code here (the tests hold the two to stated tolerances).
 """
 
@@ -19,12 +19,12 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from selfview import _native
-from selfview.camera import CameraModel
-from selfview.cell import GripperSpec
-from selfview.discs import as_gray
-from selfview.fingertips import FingertipResult, PredictedFingers, box_edges, tukey_weights
-from selfview.geometry import R_from_rotvec, inv_H, make_H, transform_points
+from selfview.measurement import _native
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import GripperSpec
+from selfview.measurement.discs import as_gray
+from selfview.measurement.fingertips import FingertipResult, PredictedFingers, box_edges, tukey_weights
+from selfview.maths.geometry import R_from_rotvec, inv_H, make_H, transform_points
 
 __all__ = ["Appearance", "SilhouetteFit", "SilhouetteTracker", "fit_silhouette", "learn_appearance", "MIN_GOOD_FRACTION"]
 

@@ -2,7 +2,7 @@
 
 ``find_fingertips`` (one picture) and ``SilhouetteTracker`` (a sequence) take a prediction
 (``fingertips.PredictedFingers``: camera, ``C_H_G``, gripper, jaw gap) and measure by the corner search
-(``selfview.fingertips``), the model-based silhouette fit (``selfview.silhouette``) or both
+(``selfview.measurement.fingertips``), the model-based silhouette fit (``selfview.measurement.silhouette``) or both
 (``measure_model``); every result is a ``fingertips.FingertipResult``.
 """
 
@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from selfview.camera import CameraModel
-from selfview.cell import POINT_NAMES, GripperSpec
-from selfview.discs import as_gray
+from selfview.maths.camera import CameraModel
+from selfview.files.cell import POINT_NAMES, GripperSpec
+from selfview.measurement.discs import as_gray
 from selfview.errors import CalibrationError
-from selfview.fingertips import FingertipResult, PredictedFingers, search_corners
-from selfview.geometry import transform_points
-from selfview.silhouette import fit_silhouette, learn_appearance
+from selfview.measurement.fingertips import FingertipResult, PredictedFingers, search_corners
+from selfview.maths.geometry import transform_points
+from selfview.measurement.silhouette import fit_silhouette, learn_appearance
 
 __all__ = ["find_fingertips", "model_measurement", "measure_model", "fit_result", "SilhouetteTracker", "WIDE_ROUNDS"]
 
@@ -38,11 +38,11 @@ def find_fingertips(
     projects the prediction and undistorts the edge points (off-line the one Tsai's method just
     calibrated, on-line the last calibration's); corners come back in distorted pixels.
 
-    ``model=True``: the model-based measurement (``selfview.silhouette``): the whole silhouette of both
+    ``model=True``: the model-based measurement (``selfview.measurement.silhouette``): the whole silhouette of both
     fingers fitted from the best start (the prediction, or the pose the corners found here give), the
     corners the model's points at the fitted pose; the result's ``quality``, ``lost`` and ``C_H_G`` say
     how well it fits, and a fit below the thresholds reports every point as not found with the reason.
-    ``appearance`` (``selfview.silhouette.Appearance``) the faces' grey levels, if known (else read at the start).
+    ``appearance`` (``selfview.measurement.silhouette.Appearance``) the faces' grey levels, if known (else read at the start).
 
     Returns a ``FingertipResult``; points not found carry a reason and are NaN. Raises ``ImageError``
     for a blank picture or one of the wrong size, ``CalibrationError`` if the prediction puts the
@@ -58,7 +58,7 @@ def find_fingertips(
 
 def _pose_from_corners(pred: PredictedFingers, res: FingertipResult):
     """The pose the found corners give (NP-I from the prediction on them), or None (fewer than 3)."""
-    from selfview.online import iterative_update
+    from selfview.estimation.online import iterative_update
 
     k = np.flatnonzero(res.found)
     if len(k) < 3:
@@ -123,7 +123,7 @@ WIDE_ROUNDS = (60.0, 24.0, 10.0, 5.0, 3.0)  # a search's fit from a start that m
 
 
 class SilhouetteTracker:
-    """The fingertips of a sequence of pictures by the model-based measurement (``selfview.silhouette``).
+    """The fingertips of a sequence of pictures by the model-based measurement (``selfview.measurement.silhouette``).
 
     ``find(image, C_H_G_pred, gap_mm)`` returns a ``FingertipResult`` (``tracked`` when it followed the
     last frame); ``searches``, ``tracked_frames``, ``lost_frames`` count the kinds of frame,
@@ -133,7 +133,7 @@ class SilhouetteTracker:
     within 3 px of the new pose when the fingertips moved more than ``refine_px`` [px]. When
     that fit is not believed (its quality under the thresholds: the reason is ``last_failure``), the frame
     is searched: fits with the full ranges from the last pose and from ``C_H_G_pred``, then from the
-    pose the corner search (``selfview.fingertips``) gives. A frame where none holds reports every point
+    pose the corner search (``selfview.measurement.fingertips``) gives. A frame where none holds reports every point
     as not found, with the reason in ``result.lost``: a missed frame, never a pose. Every result carries
     the fit's ``quality``.
     """
@@ -141,7 +141,7 @@ class SilhouetteTracker:
     def __init__(self, camera: CameraModel, gripper: GripperSpec, *, points=range(4), search_px: float = 60.0,
                  track_rounds=(8.0,), refine_px: float = 2.0, appearance=None):
         if not isinstance(camera, CameraModel):
-            raise TypeError(f"camera: expected a selfview.camera.CameraModel, got {type(camera).__name__}")
+            raise TypeError(f"camera: expected a selfview.maths.camera.CameraModel, got {type(camera).__name__}")
         want = sorted({int(k) for k in points})
         if not want or any(k < 0 or k > 5 for k in want):
             raise ValueError(f"points: expected indices 0..5 into POINT_NAMES, got {list(points)}")
