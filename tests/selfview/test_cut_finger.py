@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from selfview.cell import POINT_NAMES
-from selfview.fingertips import model_measurement
+from selfview.fingers import model_measurement
 from selfview.geometry import pose_difference
 from selfview.mocks.render import render
 from selfview.mocks.world import SimWorld
