@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from selfview.files.cell import POINT_NAMES
-from selfview.measurement.fingertips import model_measurement
+from selfview.measurement.fingers import model_measurement
 from selfview.maths.geometry import pose_difference
 from selfview.mocks.render import render
 from selfview.mocks.world import SimWorld
