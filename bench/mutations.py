@@ -264,8 +264,8 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "engine-cancel-unchecked-between-steps",
         "procedures/engine.py",
-        "        if self.cancel.is_set():\n",
-        "        if False:\n",
+        "        if self.cancel.is_set():\n            raise Cancelled(\"run cancelled\")\n        self._n += 1\n",
+        "        if False:\n            raise Cancelled(\"run cancelled\")\n        self._n += 1\n",
         ("tests/procedures/test_engine.py::test_no_step_starts_after_a_cancellation",),
         "a cancellation is not checked before the next step (the next motion starts after Ctrl-C)",
     ),

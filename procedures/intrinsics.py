@@ -14,7 +14,7 @@ from selfview.estimation.intrinsics import IntrinsicsResult, calibrate_intrinsic
 
 
 def measure_intrinsics(images, plate: PlateSpec, camera: CameraModel | None = None, names=None, *,
-                       skip_unusable: bool = False, plate_model: str = "bow+dots") -> IntrinsicsResult:
+                       skip_unusable: bool = False, plate_model: str = "auto") -> IntrinsicsResult:
     """``calibrate_intrinsics`` of (H, W) pictures of ``plate``; ``camera`` the starting camera (a cell's
     nominal one), or None: one from the pictures themselves (``intrinsics.guess_camera``; every picture
     of the first one's size). Raises ``ImageError`` or ``CalibrationError`` as ``calibrate_intrinsics``."""

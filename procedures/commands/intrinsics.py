@@ -37,8 +37,8 @@ def register(sub):
     p.add_argument("--plate", metavar="PLATE.yaml",
                    help="with --images: a file whose 'plate:' section describes the plate (discs, chessboard or charuco); "
                         "without --cell the starting camera comes from the pictures")
-    p.add_argument("--plate-model", choices=PLATE_MODELS, default="bow+dots",
-                   help="what of the printed plate's shape is fitted with the camera (default %(default)s)")
+    p.add_argument("--plate-model", choices=("auto",) + PLATE_MODELS, default="auto",
+                   help="what of the printed plate's shape is fitted with the camera; auto: a bent plate only when the views pin it and views left out confirm it (default %(default)s)")
     p.add_argument("--views", type=COUNT, default=12, help="views the robot takes on the cell (default %(default)s)")
     p.add_argument("--skip-unusable", action="store_true",
                    help="skip a picture without the plate (listed in the output) instead of refusing the set")
