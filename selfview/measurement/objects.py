@@ -189,6 +189,9 @@ def detect_target(image: np.ndarray, target: TargetSpec) -> TargetDetection:
     Raises ``CalibrationError`` when the target is not seen (too few corners) or seen twice (a marker id
     decoded more than once: two targets in view)."""
     board = target_board(target)
+    from selfview.measurement.plates import warn_if_charuco_biased
+
+    warn_if_charuco_biased()
     detector = cv2.aruco.CharucoDetector(board)
     img = np.ascontiguousarray(image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
     corners, ids, marker_corners, marker_ids = detector.detectBoard(img)

@@ -20,6 +20,7 @@ simulated camera (``mocks/render.py``). A new pattern: its detector and drawing 
 from __future__ import annotations
 
 import functools
+import warnings
 
 import cv2
 import numpy as np
@@ -147,6 +148,19 @@ def _cell_level(u8: np.ndarray, g: np.ndarray, r: int, c: int) -> float:
 
 
 # --- ChArUco ----------------------------------------------------------------------------------------
+#: OpenCV releases whose ChArUco corners were measured about 0.5 px off in u and v against the simulated
+#: cell's truth (4.10, 4.11; 4.14 and 5.1 within 0.1 px); 4.12 and 4.13 were not measured.
+CHARUCO_BIASED_BEFORE = (4, 12)
+
+
+def warn_if_charuco_biased() -> None:
+    """A ``UserWarning`` on an OpenCV whose ChArUco corners carry the half-pixel bias above."""
+    v = tuple(int(x) for x in cv2.__version__.split(".")[:2])
+    if v < CHARUCO_BIASED_BEFORE:
+        warnings.warn(f"OpenCV {cv2.__version__} places ChArUco corners about 0.5 px off (measured); the poses "
+                      "from a ChArUco board carry it: use OpenCV 4.14 or newer for ChArUco", stacklevel=3)
+
+
 @functools.lru_cache(maxsize=8)
 def _board(squares: tuple[int, int], square: float, marker: float, dictionary: str, legacy: bool):
     code = getattr(cv2.aruco, dictionary, None) if dictionary.startswith("DICT_") else None
@@ -165,6 +179,7 @@ def charuco_board(plate: PlateSpec):
 
 def _charuco(u8: np.ndarray, plate: PlateSpec, min_points: int) -> tuple[np.ndarray, np.ndarray, int]:
     board = charuco_board(plate)
+    warn_if_charuco_biased()
     corners, ids, _, marker_ids = cv2.aruco.CharucoDetector(board).detectBoard(u8)
     n_markers = 0 if marker_ids is None else len(marker_ids)
     n = 0 if ids is None else len(ids)

@@ -1,5 +1,6 @@
 """Objects to grasp: the object file, the target's detection and the object's pose from a picture."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -65,6 +66,8 @@ def test_a_picture_without_the_target_is_refused():
         detect_target(np.full((576, 768), 120, np.uint8), load_object().target)
 
 
+@pytest.mark.skipif(tuple(int(x) for x in cv2.__version__.split(".")[:2]) < (4, 12),
+                    reason="OpenCV before 4.12 places ChArUco corners about 0.5 px off (warned at run time)")
 def test_the_object_pose_through_the_camera_model_matches_the_truth(cell):
     from selfview.mocks.objects import place_object
     from selfview.mocks.render import render

@@ -150,6 +150,8 @@ def test_intrinsics_command_with_a_plate_file(charuco_photos, capsys, tmp_path):
 
 
 # --- the simulated cell ------------------------------------------------------------------------------
+@pytest.mark.skipif(tuple(int(x) for x in cv2.__version__.split(".")[:2]) < (4, 12),
+                    reason="OpenCV before 4.12 places ChArUco corners about 0.5 px off (warned at run time)")
 def test_offline_C_H_G_with_a_charuco_plate_under_the_gripper():
     """The ideal cell with a ChArUco plate: the fingers hide part of it, the ids index the rest; C_H_G as
     accurate as with discs (0.02 mm across, 0.08 mm along the optical axis)."""
