@@ -1,8 +1,9 @@
 """A small Modbus server for the simulated devices: Modbus TCP (MBAP) or RTU frames over TCP, on 127.0.0.1.
 
 Written from the Modbus Application Protocol v1.1b3 and the serial line guide (CRC-16, RTU framing), so that
-the simulated valve terminal depends on no Modbus library's server API (pymodbus rewrote its data store four
-times between 3.11 and 3.16) and the driver's client is tested against a server it shares no code with. It
+the simulated valve terminal depends on no Modbus library's server API (pymodbus's server data store changes
+between its releases, and pymodbus 4 removes it) and the driver's client is tested against a server it shares
+no code with. The CRC-16 here is the server's own; the tests check its frames with a CRC written separately. It
 serves one unit; a request for another unit gets exception 11 (gateway target failed to respond), as a
 gateway would say. Requests of one connection are answered in order, in the caller's event loop.
 """
@@ -141,6 +142,8 @@ class ModbusServer:
                  on_request: Callable[[int, bytes], str] | None = None, on_connect: Callable[[], None] | None = None):
         if framing not in ("mbap", "rtu"):
             raise ValueError(f"framing {framing!r}: expected 'mbap' or 'rtu'")
+        if isinstance(unit, bool) or not isinstance(unit, int) or not 0 <= unit <= 255:
+            raise ValueError(f"Modbus unit {unit!r}: expected a whole number 0..255")
         self.image, self.unit, self.framing, self._want_port = image, int(unit), framing, int(port)
         self.on_request = on_request or (lambda unit, pdu: "answer")
         self.on_connect = on_connect or (lambda: None)
@@ -177,6 +180,8 @@ class ModbusServer:
             return None
         if what == "silent":
             return None
+        if what != "answer":
+            raise ValueError(f"on_request returned {what!r}: expected 'answer', 'silent' or 'drop'")
         if unit != self.unit:
             return _exception(pdu[0], GATEWAY_NO_RESPONSE)
         return execute(self.image, pdu)

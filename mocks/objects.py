@@ -60,6 +60,8 @@ def draw_start(world, rng: np.random.Generator, reachable=None, draws: int = 8) 
     obj: SimObject = world.object
     if obj is None:
         raise ConfigError("draw_start: the simulated world has no object")
+    if isinstance(draws, bool) or not isinstance(draws, (int, np.integer)) or draws < 1:
+        raise ConfigError(f"draw_start draws: expected a whole number >= 1, got {draws!r}")
     base_H_pre = obj.base_H_O @ obj.spec.O_H_Gpre
     z_C = inv_H(world.cell.mount_guess_C_H_G)[:3, 2]  # the camera's axis in G
     for _ in range(draws):
@@ -82,6 +84,9 @@ def grasp_outcome(world, gap_open_mm: float) -> dict:
     obj: SimObject | None = world.object
     if obj is None:
         raise ConfigError("grasp_outcome: the simulated world has no object")
+    if not (isinstance(gap_open_mm, (int, float, np.number)) and np.isfinite(gap_open_mm) and gap_open_mm > 0):
+        raise ConfigError(f"grasp_outcome gap_open_mm: expected the open jaws' gap in mm (> 0), got {gap_open_mm!r}; "
+                          "take it from the cell's gripper states (cell.gripper.gap('open'))")
     spec = obj.spec
     with world.lock:
         base_H_G = world.base_H_G.copy()
@@ -94,9 +99,9 @@ def grasp_outcome(world, gap_open_mm: float) -> dict:
     # the block's footprint across the jaws when turned by the yaw between G and G*
     yaw = abs(float(np.arctan2(Gs_H_G[1, 0], Gs_H_G[0, 0])))
     across = bx * np.cos(yaw) + by * np.sin(yaw)
-    tips_O = transform_points(inv_H(obj.base_H_O) @ base_H_G, pG)
-    out = {"offset_mm": [float(v) for v in off], "angle_deg": ang, "clearance_mm": float(clearance)}
     O_H_G = inv_H(obj.base_H_O) @ base_H_G
+    tips_O = transform_points(O_H_G, pG)
+    out = {"offset_mm": [float(v) for v in off], "angle_deg": ang, "clearance_mm": float(clearance)}
     reasons = []
     if np.max(tips_O[:, 2]) > h - TABLE_MARGIN_MM:
         reasons.append(f"a fingertip touches the table ({np.max(tips_O[:, 2]) - h:+.2f} mm into it)")

@@ -152,8 +152,7 @@ class Lamp:
         if isinstance(self.samples, bool) or not isinstance(self.samples, (int, np.integer)) or not 1 <= self.samples <= 256:
             raise ConfigError(f"lamp samples: expected a whole number 1..256, got {self.samples!r}")
         for box in self.occluders:
-            lo, hi = (np.asarray(b, float) for b in box)
-            if lo.shape != (3,) or hi.shape != (3,) or not np.all(lo < hi):
+            if not _is_box(box):
                 raise ConfigError(f"lamp occluder: expected ((x0, y0, z0), (x1, y1, z1)) mm with x0 < x1 etc., got {box!r}")
 
     def points_W(self) -> np.ndarray:
@@ -167,6 +166,15 @@ class Lamp:
         r = self.radius_mm * np.sqrt(k / self.samples)
         t = k * np.pi * (3.0 - np.sqrt(5.0))
         return c + (r * np.cos(t))[:, None] * a + (r * np.sin(t))[:, None] * b
+
+
+def _is_box(box) -> bool:
+    """Whether ``box`` is ((x0, y0, z0), (x1, y1, z1)) of finite numbers with x0 < x1, y0 < y1, z0 < z1."""
+    try:
+        lo, hi = (np.asarray(b, float) for b in box)
+    except (TypeError, ValueError):
+        return False
+    return lo.shape == hi.shape == (3,) and bool(np.all(np.isfinite(lo) & np.isfinite(hi) & (lo < hi)))
 
 
 @dataclass

@@ -19,6 +19,7 @@ from selfview.mocks.modbus_server import EXCEPTION_CODES, ILLEGAL_ADDRESS, ILLEG
 
 __all__ = ["ValveTerminal"]
 
+
 def _check_settings(framing, travel_s, travel_sd_s, watchdog_s, unit, initial, tick_s) -> None:
     """The valve terminal's settings, each checked (``ConfigError`` naming it)."""
     if framing not in ("mbap", "rtu"):
@@ -238,13 +239,9 @@ class ValveTerminal:
                 return "drop"
         return "answer"
 
-    def read(self, table: str, address: int, count: int):
-        return self._get(table, address, count)
-
-    def write(self, table: str, address: int, values):
-        return self._set(table, address, values)
-
-    def _get(self, table: str | None, address: int, count: int):
+    # --- the process image the server reads and writes (modbus_server.ProcessImage) -------------
+    def read(self, table: str, address: int, count: int) -> list | int:
+        """``count`` values of ``table`` from ``address``, or a Modbus exception code."""
         with self._lock:
             self.advance()
             if self.exception_code is not None:
@@ -256,7 +253,8 @@ class ValveTerminal:
                 return ILLEGAL_ADDRESS
             return list(data[address : address + count])
 
-    def _set(self, table: str | None, address: int, values):
+    def write(self, table: str, address: int, values) -> int | None:
+        """Write ``values`` to ``table`` from ``address``: None, or a Modbus exception code."""
         with self._lock:
             self.advance()
             if self.exception_code is not None:

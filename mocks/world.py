@@ -339,7 +339,7 @@ class SimWorld:
         with self.lock:
             if self.object is None:
                 return None
-            return self.C_H_G @ inv_H(self.base_H_G) @ self.object.base_H_O
+            return self.C_H_B @ self.object.base_H_O
 
     def truth(self) -> dict:
         """The ground truth a test or a report compares against (plain lists, mm, px)."""

@@ -39,6 +39,10 @@ def camera_turned(img: np.ndarray, camera, axis: str, deg: float):
     its own x or y ``axis`` (a homography K R K^-1), on a canvas that holds the grid's part of it, and that
     camera for the new canvas (its centre moved with the canvas), and the homography from the old picture's
     pixels to the new: (picture, camera, H)."""
+    if axis not in ("x", "y"):
+        raise ValueError(f"camera_turned axis {axis!r}: expected 'x' or 'y'")
+    if not (np.isfinite(deg) and abs(deg) < 90):
+        raise ValueError(f"camera_turned deg {deg!r}: expected a turn under 90 deg (the picture's plane seen edge-on)")
     h, w = img.shape
     K = np.array([[camera.f / camera.aspect, 0, camera.cx], [0, camera.f, camera.cy], [0, 0, 1.0]])
     R = cv2.Rodrigues(np.radians(deg) * (np.array([1.0, 0, 0]) if axis == "x" else np.array([0, 1.0, 0])))[0]

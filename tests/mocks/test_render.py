@@ -449,6 +449,12 @@ def test_corner_hidden_behind_its_own_finger_is_not_visible(cell):
         ({"gain": 0.0}, "gain"),
         ({"blur_px": -1.0}, "blur_px"),
         ({"image_spec": {"paper": 200}}, "image_spec"),
+        ({"lamp": "overhead"}, "lamp"),
+        ({"lamp": rmod.Lamp(position_W=(0.0, 0.0, 250.0))}, "position_W"),
+        ({"lamp": rmod.Lamp(samples=0)}, "samples"),
+        ({"lamp": rmod.Lamp(occluders=((0.0, 1.0),))}, "occluder"),  # not a pair of corners
+        ({"lamp": rmod.Lamp(occluders=(((0, 0, 0), (1, 1)),))}, "occluder"),  # a corner of two numbers
+        ({"lamp": rmod.Lamp(occluders=(((0, 0, 0), (1, 1, float("inf"))),))}, "occluder"),
     ],
 )
 def test_bad_arguments_are_named(cell, kwargs, word):

@@ -286,3 +286,21 @@ def test_mbap_header_that_is_not_modbus_ends_the_connection(terminal):
         assert terminal.valve_outputs == {"open": False, "close": False}
     finally:
         c.close()
+
+
+@pytest.mark.parametrize("unit", [-1, 256, 1.0, True])
+def test_the_server_refuses_a_unit_that_is_not_a_modbus_address(unit):
+    from selfview.mocks.modbus_server import ModbusServer
+
+    with pytest.raises(ValueError, match="unit"):
+        ModbusServer(ValveTerminal(), unit=unit)
+
+
+def test_the_servers_crc_is_the_specifications():
+    """The server's own CRC-16 against the one written from the specification, and the serial line guide's
+    worked example (Read Exception Status to unit 2: frame 02 07, CRC 41 12 sent low byte first)."""
+    from selfview.mocks.modbus_server import crc16 as server_crc16
+
+    assert crc16(bytes.fromhex("0207")) == bytes.fromhex("4112") == server_crc16(bytes.fromhex("0207"))
+    for frame in (b"", bytes.fromhex("01 05 0001 FF00"), bytes(range(256))):
+        assert server_crc16(frame) == crc16(frame)
