@@ -18,6 +18,7 @@ import numpy as np
 from selfview.mocks.imperfections import chamfer_cuts, picture_effects
 from selfview.mocks.world import SimWorld
 from selfview.maths.camera import CameraModel, max_undistorted_radius
+from selfview.measurement.objects import target_board
 from selfview.measurement.plates import board_edges_W, board_ink
 from selfview.files.cell import POINT_NAMES, ImageSpec, PlateSpec
 from selfview.errors import ConfigError
@@ -526,8 +527,6 @@ def _target_texture(target, size_mm: tuple[float, float], paper: float, ink: flo
     """The block's top face (``size_mm`` x, y) with the ChArUco target centred on it, ``_TARGET_RES`` mm per
     texel, grey levels ``ink``..``paper`` (float32, read-only), and the O coordinates (x, y) [mm] of its
     first texel's centre."""
-    from selfview.measurement.objects import target_board
-
     w, h = (int(round(v / _TARGET_RES)) for v in size_mm)
     tw, th = (int(round(v / _TARGET_RES)) for v in target.size)
     board = target_board(target).generateImage((tw, th), marginSize=0)
