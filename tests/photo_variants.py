@@ -41,12 +41,15 @@ def camera_turned(img: np.ndarray, camera, axis: str, deg: float):
     pixels to the new: (picture, camera, H)."""
     if axis not in ("x", "y"):
         raise ValueError(f"camera_turned axis {axis!r}: expected 'x' or 'y'")
-    if not (np.isfinite(deg) and abs(deg) < 90):
-        raise ValueError(f"camera_turned deg {deg!r}: expected a turn under 90 deg (the picture's plane seen edge-on)")
+    if not np.isfinite(deg):
+        raise ValueError(f"camera_turned deg {deg!r}: expected a finite angle in degrees")
     h, w = img.shape
     K = np.array([[camera.f / camera.aspect, 0, camera.cx], [0, camera.f, camera.cy], [0, 0, 1.0]])
     R = cv2.Rodrigues(np.radians(deg) * (np.array([1.0, 0, 0]) if axis == "x" else np.array([0, 1.0, 0])))[0]
     H = K @ R @ np.linalg.inv(K)
+    if np.any(H[2] @ np.array([[0, w, 0, w], [0, 0, h, h], [1.0, 1, 1, 1]]) <= 0):
+        raise ValueError(f"camera_turned deg {deg!r}: part of the picture would lie behind the turned camera "
+                         f"(keep the turn about {axis} under 90 deg less half the field of view)")
     corners = cv2.perspectiveTransform(np.array([[[0, 0]], [[w, 0]], [[0, h]], [[w, h]]], np.float32), H).reshape(-1, 2)
     lo, hi = corners.min(0) - 10, corners.max(0) + 10
     T = np.array([[1, 0, -lo[0]], [0, 1, -lo[1]], [0, 0, 1.0]])
