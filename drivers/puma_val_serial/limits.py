@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from selfview.drivers.puma_val_serial._config import check_keys, read_yaml
+from selfview.drivers.robot_protocol import check_distance_mm, check_speed_pct
 from selfview.errors import ConfigError, LimitError
 
 __all__ = ["ValLimits", "PUMA260_JOINT_LIMITS_DEG", "PUMA260_JOINT_SPEED_DEG_S", "VAL_READY_DEG"]
@@ -119,19 +120,12 @@ class ValLimits:
                 raise LimitError(f"{what}: {axis} = {v:.2f} mm is outside the workspace {lo:g}..{hi:g} mm; nothing was sent")
 
     def check_speed(self, pct: float, what: str) -> float:
-        pct = float(pct)
-        if not np.isfinite(pct) or not 0 < pct <= self.max_speed_pct:
-            raise LimitError(f"{what}: speed {pct:g} % is outside 0 < speed <= {self.max_speed_pct:g} %; nothing was sent")
-        return pct
+        """A SPEED (or DRIVE speed): finite, above 0 and at most ``max_speed_pct``. Returns it as a float."""
+        return check_speed_pct(pct, self.max_speed_pct, what)
 
     def check_distance(self, d_mm: float, what: str) -> float:
-        """An APPRO / DEPART distance: finite and >= 0 (a negative one would drive the tool beyond its
-        location, into what it approaches). Returns it as a float."""
-        d = float(d_mm)
-        if not np.isfinite(d) or d < 0:
-            raise LimitError(f"{what}: distance {d:g} mm; expected a finite distance >= 0 mm along the tool's "
-                             "approach side (a negative one passes beyond the location); nothing was sent")
-        return d
+        """An APPRO / DEPART distance (``check_distance_mm``). Returns it as a float."""
+        return check_distance_mm(d_mm, what)
 
     def check_joint(self, joint: int, value_deg: float, what: str) -> None:
         lo, hi = self.joint_limits_deg[joint - 1]

@@ -11,7 +11,7 @@ from selfview.files.cell import default_cell_path, parse_cell
 from selfview.drivers.manual_robot import ManualRobot
 from selfview.drivers.puma_val_serial import PumaVAL
 from selfview.drivers.robot import open_robot
-from selfview.errors import ConfigError
+from selfview.errors import ConfigError, LimitError
 from selfview.mocks.val_controller import ValController
 from selfview.mocks.world import SimWorld
 from tests.drivers import robot_contract as contract
@@ -67,6 +67,20 @@ def test_manual_keeps_the_contract(manual, operator):
     contract.check_abort_when_idle(manual)
     answers.append("no")
     contract.check_a_refused_request_is_an_error(manual)
+
+
+def test_manual_refuses_a_distance_or_speed_that_is_none_before_asking(manual, operator):
+    """A negative or non-finite APPRO / DEPART distance, or a speed that is no percentage, never reaches the
+    operator as a request ('Lift the arm nan mm'): ``LimitError`` naming it, nobody asked."""
+    asked, _, _ = operator
+    for call in (lambda: manual.appro("plate", -10.0), lambda: manual.appro("plate", float("nan")),
+                 lambda: manual.depart(float("inf")), lambda: manual.depart("up"), lambda: manual.speed(0),
+                 lambda: manual.speed(float("nan"))):
+        with pytest.raises(LimitError, match="nothing was sent"):
+            call()
+    assert asked == []
+    manual.appro("plate", 10.0)
+    assert asked == ["Bring the arm 10 mm above plate (along the tool's z), then press Enter (n: refuse)"]
 
 
 def test_open_robot_honours_the_cell_robot_section(tmp_path):
