@@ -35,7 +35,11 @@ def _puma(url: str, cell, kw: dict) -> Robot:
     dialect, limits, kinematics = setting("dialect"), setting("limits"), setting("kinematics")
     limits = ValLimits.load(limits) if limits else ValLimits()
     if setting("max_speed") is not None:
-        limits = replace(limits, max_speed_pct=float(setting("max_speed")))
+        try:
+            max_speed = float(setting("max_speed"))
+        except (TypeError, ValueError):
+            raise ConfigError(f"robot max_speed {setting('max_speed')!r}: expected a number of percent") from None
+        limits = replace(limits, max_speed_pct=max_speed)
     return PumaVAL(url, dialect=load_dialect(dialect) if dialect else None, limits=limits,
                    kinematics=PumaKinematics.load(kinematics) if kinematics else None,
                    timeout_s=kw.get("timeout_s") or 2.0, baudrate=kw.get("baudrate") or 9600)

@@ -124,6 +124,14 @@ def _garbage(command: str, buf) -> str:
             f"{bytes(buf[max(0, bad[0] - 20) : bad[0] + 20])!r}" + (_BREAK_HINT if 0 in buf else ""))
 
 
+def _numbers(target) -> np.ndarray | None:
+    """``target`` as a float array, or None for a name or what is no array of numbers."""
+    try:
+        return None if isinstance(target, str) else np.asarray(target, dtype=float)
+    except (TypeError, ValueError):
+        return None
+
+
 def _norm(s: str) -> str:
     return " ".join(s.split()).upper()
 
@@ -219,8 +227,12 @@ class PumaVAL:
     knows_poses = True
 
     def pose_to_H(self, pose) -> np.ndarray:
-        """(4, 4) ``base_H_T`` of a pose (x, y, z mm, o, a, t deg) in the dialect's O/A/T convention."""
-        return self.dialect.pose_to_H(pose)
+        """(4, 4) ``base_H_T`` of a pose (x, y, z mm, o, a, t deg) in the dialect's O/A/T convention;
+        ``ConfigError`` for anything but six finite numbers."""
+        a = _numbers(pose)
+        if a is None or a.shape != (6,) or not np.all(np.isfinite(a)):
+            raise ConfigError(f"pose: expected 6 finite numbers (x, y, z mm, o, a, t deg), got {pose!r}")
+        return self.dialect.pose_to_H(a)
 
     def __repr__(self) -> str:
         return f"PumaVAL({self.url or self._given!r}, {'open' if self._ser else 'closed'})"
@@ -672,10 +684,7 @@ class PumaVAL:
 
     # --- targets and limits ---------------------------------------------------------------------------
     def _as_H(self, target, what: str) -> np.ndarray:
-        try:
-            a = None if isinstance(target, str) else np.asarray(target, dtype=float)
-        except (TypeError, ValueError):
-            a = None
+        a = _numbers(target)
         if a is not None and a.shape == (4, 4):
             return check_rigid(a, what)
         if a is not None and a.shape == (6,) and np.all(np.isfinite(a)):

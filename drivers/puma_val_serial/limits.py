@@ -128,6 +128,9 @@ class ValLimits:
         return check_distance_mm(d_mm, what)
 
     def check_joint(self, joint: int, value_deg: float, what: str) -> None:
+        """JT``joint`` (1..6; ``ConfigError`` otherwise) at ``value_deg`` must lie within its limits."""
+        if isinstance(joint, bool) or not isinstance(joint, (int, np.integer)) or not 1 <= joint <= 6:
+            raise ConfigError(f"{what}: joint {joint!r}; expected 1..6")
         lo, hi = self.joint_limits_deg[joint - 1]
         if not lo <= value_deg <= hi:
             raise LimitError(

@@ -100,6 +100,22 @@ def test_open_robot_honours_the_cell_robot_section(tmp_path):
         parse_cell(raw)
     with pytest.raises(ConfigError, match="robot URL"):
         open_robot("", cell)
+    with pytest.raises(ConfigError, match="robot max_speed 'fast': expected a number"):
+        open_robot("loop://", cell, max_speed="fast")
+
+
+def test_the_puma_converts_only_six_finite_numbers_to_a_pose():
+    """``pose_to_H`` (the seam's pose convention) names a wrong pose instead of unpacking it or returning NaN."""
+    from selfview.drivers.puma_val_serial import ValLimits
+
+    r = open_robot("loop://")
+    for bad in ((300, 0, 50, 90, 90), (300, 0, 50, 90, 90, float("nan")), "above", None):
+        with pytest.raises(ConfigError, match="pose: expected 6 finite numbers"):
+            r.pose_to_H(bad)
+    assert r.pose_to_H((300, 0, 50, 90, 90, 0))[:3, 3].tolist() == [300.0, 0.0, 50.0]
+    for joint in (0, 7, True, 1.0):
+        with pytest.raises(ConfigError, match="expected 1..6"):
+            ValLimits().check_joint(joint, 0.0, "DRIVE")
 
 
 def test_the_devices_table_names_the_operators_arm(cell):
