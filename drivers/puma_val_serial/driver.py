@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass
+from urllib.parse import urlsplit
 
 import numpy as np
 import serial
@@ -141,10 +142,14 @@ def _record_lock(port: str) -> DeviceLock | None:
     device path or socket://HOST:PORT); None for other URLs (a spy or loop, no record)."""
     if "://" not in port:
         return DeviceLock.for_path("robot", port)
-    if port.lower().startswith("socket://"):
-        host, _, p = port[len("socket://"):].split("/")[0].split("?")[0].rpartition(":")
-        if host and p.isdigit():
-            return DeviceLock.for_host("robot", host.strip("[]"), int(p))
+    parts = urlsplit(port)
+    if parts.scheme.lower() == "socket":
+        try:
+            host, p = parts.hostname, parts.port
+        except ValueError:  # a port out of range: connect() names it
+            return None
+        if host and p:
+            return DeviceLock.for_host("robot", host, p)
     return None
 
 
