@@ -107,3 +107,26 @@ def test_a_signal_inherited_as_ignored_stays_ignored(cell, tmp_path):
     assert "ABORT" not in received, err
     assert np.abs(q1 - q0).max() > 6.0  # the arm went on (SIGKILL ended the test)
     assert valve == {"open": False, "close": True}
+
+
+def test_a_device_a_signal_could_not_stop_is_refused_when_watched():
+    """``signals.watch`` takes a robot (abort_now, wait_motion_end) or a gripper (interrupt, safe): half of
+    one, or neither, is a TypeError naming what is missing, not a failure in the stop's helper thread."""
+    from selfview import signals
+
+    class HalfRobot:
+        def abort_now(self):
+            return None
+
+    class HalfGripper:
+        def interrupt(self):
+            pass
+
+    robot, gripper, other = HalfRobot(), HalfGripper(), object()
+    with pytest.raises(TypeError, match=r"abort_now\(\) but no wait_motion_end\(\)"):
+        signals.watch(robot)
+    with pytest.raises(TypeError, match=r"interrupt\(\) but no safe\(\)"):
+        signals.watch(gripper)
+    with pytest.raises(TypeError, match="neither a robot"):
+        signals.watch(other)
+    assert not any(d in (robot, gripper) for d in signals._devices())
