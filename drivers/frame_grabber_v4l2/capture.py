@@ -160,7 +160,11 @@ class _ImageSequence:
         width = int(m.group(2) or 0) if m.group(1) else 0
         digits = rf"\d{{{width},}}" if width else r"\d+"
         rx = re.compile(re.escape(self._head) + f"({digits})" + re.escape(self._tail) + "$")
-        found = [int(mm.group(1)) for f in os.listdir(self._folder) if (mm := rx.match(f))]
+        try:
+            names = os.listdir(self._folder)
+        except OSError as exc:
+            raise DeviceError(f"{pattern}: cannot list the folder {self._folder}: {exc.strerror or exc}") from None
+        found = [int(mm.group(1)) for f in names if (mm := rx.match(f))]
         self._next = min(found) if found else None
 
     def isOpened(self) -> bool:

@@ -251,3 +251,14 @@ def test_a_frame_that_is_no_usable_picture_is_a_device_error_naming_it(tmp_path)
             with pytest.raises(DeviceError, match=rf"b_001\.png: .*{why}") as info:
                 g.grab()
         assert not isinstance(info.value, EndOfStream)
+
+
+def test_a_sequence_folder_that_cannot_be_listed_is_named(tmp_path, monkeypatch):
+    import os
+
+    def refuse(folder):
+        raise PermissionError(13, "Permission denied", folder)
+
+    monkeypatch.setattr(os, "listdir", refuse)
+    with pytest.raises(DeviceError, match=f"cannot list the folder {tmp_path}: Permission denied"):
+        FrameGrabber(f"frames://{tmp_path}/c_%03d.png").connect()
