@@ -211,6 +211,10 @@ def test_bad_grab_arguments(sequence):
     url, _ = sequence
     with pytest.raises(ConfigError):
         FrameGrabber(url, timeout_s=0)
+    for kw in ({"timeout_s": float("inf")}, {"timeout_s": float("nan")}, {"width": -768}, {"height": "576"},
+               {"width": 768.0}):
+        with pytest.raises(ConfigError, match=f"frame grabber {next(iter(kw))}="):
+            FrameGrabber(url, **kw)
     with pytest.raises(ConfigError):
         FrameGrabber(url, black_level=300)
     with FrameGrabber(url) as g:
