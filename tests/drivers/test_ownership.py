@@ -158,3 +158,15 @@ def test_the_robots_record_is_keyed_on_its_port_or_socket_address():
         assert _record_lock(url).path == DeviceLock.for_host("robot", "127.0.0.1", 5000).path, url
     for url in ("loop://", "spy:///dev/ttyS0", "socket://localhost", "socket://localhost:99999"):
         assert _record_lock(url) is None, url
+
+
+def test_a_lock_on_no_port_or_on_nothing_is_refused_by_name():
+    """A host lock with a port that is no TCP port (it would be keyed on '127.0.0.1:None'), or a lock whose
+    identity names nothing, is refused naming it, not an IndexError."""
+    from selfview.drivers._ownership import host_identity
+
+    for port in (None, 70000, 0, "502", True):
+        with pytest.raises(ConfigError, match="is no TCP port"):
+            host_identity("localhost", port)
+    with pytest.raises(DeviceError, match="valve terminal k: nothing identifies the device"):
+        DeviceLock("valve terminal", "k", lambda: []).acquire()
