@@ -96,7 +96,9 @@ def test_a_termination_signal_stops_the_arm_and_makes_the_valve_safe_in_any_thre
                                                                   locks=tmp_path)
     assert "ABORT" in received, (received[-5:], err)
     assert stopped_after < 1.0, f"the arm stopped {stopped_after:.2f} s after the signal"
-    assert np.abs(q1 - q0).max() < 6.0  # SPEED 5: at most 6 deg/s
+    # READY at SPEED 5 from this world's start turns JT4 fastest, 25.6 deg/s at its peak (the simulated controller's
+    # joint motion: 180 deg in 7.0 s), so 6 deg is under a quarter second of travel after the signal
+    assert np.abs(q1 - q0).max() < 6.0
     assert valve == {"open": False, "close": False}, err
     assert code == -sig, err  # it ends by the signal, as an unhandled one would (128 + N in a shell)
     assert "finished" not in out
