@@ -292,7 +292,8 @@ def test_a_stall_of_the_host_longer_than_the_reply_limit_is_no_device_fault():
             t0 = time.monotonic()
             while c.moving.is_set() and time.monotonic() - t0 < 30:
                 time.sleep(0.01)
-            # the motion's wait is its expected duration (about 1.2 s) plus a margin of a few seconds
+            # the motion (READY to 'above' at SPEED 50) takes 1.1 s here and its wait is 4.8 s (its expected
+            # duration plus a margin, measured on this simulated controller): 12 s is well past both
             time.sleep(12.0)
             proc.send_signal(signal.SIGCONT)
             out, err = proc.communicate(timeout=60)
