@@ -118,9 +118,7 @@ def _discard_unasked(sock) -> None:
     try:
         while sock.recv(4096, socket.MSG_DONTWAIT):
             pass
-    except (BlockingIOError, InterruptedError):
-        pass
-    except OSError:  # a broken connection: the request itself reports it
+    except OSError:  # nothing more waiting (BlockingIOError), or a broken connection the request will report
         pass
 
 
