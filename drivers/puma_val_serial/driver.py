@@ -203,9 +203,9 @@ class PumaVAL:
                 raise ConfigError("robot URL: expected a device path or URL such as socket://127.0.0.1:5000, got ''")
         elif not all(hasattr(url_or_port, a) for a in ("read", "write", "in_waiting")):
             raise ConfigError(f"robot port: expected a URL, a path or a serial-like object, got {url_or_port!r}")
-        if not (isinstance(timeout_s, (int, float)) and np.isfinite(timeout_s) and timeout_s > 0):
+        if isinstance(timeout_s, bool) or not (isinstance(timeout_s, (int, float)) and np.isfinite(timeout_s) and timeout_s > 0):
             raise ConfigError(f"timeout_s: expected a positive number of seconds, got {timeout_s!r}")
-        if not (isinstance(baudrate, int) and baudrate > 0):
+        if isinstance(baudrate, bool) or not (isinstance(baudrate, int) and baudrate > 0):
             raise ConfigError(f"baudrate: expected a positive whole number, got {baudrate!r}")
         self.url = url_or_port if isinstance(url_or_port, str) else None
         self._given = None if isinstance(url_or_port, str) else url_or_port
