@@ -43,7 +43,8 @@ def _puma(url: str, cell, kw: dict) -> Robot:
         limits = replace(limits, max_speed_pct=max_speed)
     return PumaVAL(url, dialect=load_dialect(dialect) if dialect else None, limits=limits,
                    kinematics=PumaKinematics.load(kinematics) if kinematics else None,
-                   timeout_s=kw.get("timeout_s") or 2.0, baudrate=kw.get("baudrate") or 9600)
+                   timeout_s=2.0 if kw.get("timeout_s") is None else kw["timeout_s"],
+                   baudrate=9600 if kw.get("baudrate") is None else kw["baudrate"])
 
 
 def _manual(url: str, cell, kw: dict) -> Robot:

@@ -102,6 +102,11 @@ def test_open_robot_honours_the_cell_robot_section(tmp_path):
         open_robot("", cell)
     with pytest.raises(ConfigError, match="robot max_speed 'fast': expected a number"):
         open_robot("loop://", cell, max_speed="fast")
+    with pytest.raises(ConfigError, match="timeout_s"):  # refused, not silently the default 2 s
+        open_robot("loop://", cell, timeout_s=0)
+    with pytest.raises(ConfigError, match="baudrate"):
+        open_robot("loop://", cell, baudrate=0)
+    assert open_robot("loop://", cell).timeout_s == 2.0 and open_robot("loop://", cell, timeout_s=0.5).timeout_s == 0.5
 
 
 def test_the_puma_converts_only_six_finite_numbers_to_a_pose():
