@@ -937,7 +937,10 @@ class PumaVAL:
         """
         if isinstance(joint, bool) or not isinstance(joint, (int, np.integer)) or not 1 <= joint <= 6:
             raise ConfigError(f"DRIVE joint: expected 1..6, got {joint!r}")
-        delta = float(delta_deg)
+        try:
+            delta = float(delta_deg)
+        except (TypeError, ValueError):
+            delta = float("nan")
         if not np.isfinite(delta):
             raise ConfigError(f"DRIVE angle: expected a finite number of degrees, got {delta_deg!r}")
         sp = self.limits.check_speed(speed_pct, "DRIVE")

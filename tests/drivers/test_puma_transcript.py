@@ -551,6 +551,9 @@ def test_motion_limits_are_checked_before_sending():
         r.drive(1, 10, 50)
     with pytest.raises(ConfigError, match="DRIVE joint"):
         r.drive(7, 10, 10)
+    for deg in ("ten", None, float("nan")):
+        with pytest.raises(ConfigError, match="DRIVE angle: expected a finite number of degrees"):
+            r.drive(1, deg, 10)
     with pytest.raises(LimitError, match="x = 500.00"):
         r.move((500, 0, 100, 90, 90, 0))
     assert not any(w.startswith((b"DO APPRO", b"DO DEPART", b"DO DRIVE", b"DO MOVE")) for w in port.written)
