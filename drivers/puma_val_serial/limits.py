@@ -113,8 +113,11 @@ class ValLimits:
 
     # --- checks (raise LimitError; nothing has been sent) ---------------------------------------
     def check_position(self, p_mm, what: str) -> None:
-        """The tool point ``p_mm`` (3,) must lie in the workspace box."""
-        p = np.asarray(p_mm, dtype=float).reshape(3)
+        """The tool point ``p_mm`` (3,) must lie in the workspace box (``ConfigError`` for what is no point)."""
+        try:
+            p = np.asarray(p_mm, dtype=float).reshape(3)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{what}: expected a tool point (x, y, z) in mm, got {p_mm!r}") from None
         for axis, v, (lo, hi) in zip("xyz", p, self.workspace_mm):
             if not lo <= v <= hi:
                 raise LimitError(f"{what}: {axis} = {v:.2f} mm is outside the workspace {lo:g}..{hi:g} mm; nothing was sent")

@@ -4,6 +4,7 @@ against the simulated controller over a real pseudo-terminal, and ``manual://`` 
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import yaml
 
@@ -121,6 +122,11 @@ def test_the_puma_converts_only_six_finite_numbers_to_a_pose():
     for joint in (0, 7, True, 1.0):
         with pytest.raises(ConfigError, match="expected 1..6"):
             ValLimits().check_joint(joint, 0.0, "DRIVE")
+    for p in ((300, 0), np.eye(4), "above"):
+        with pytest.raises(ConfigError, match="MOVE: expected a tool point"):
+            ValLimits().check_position(p, "MOVE")
+    with pytest.raises(LimitError, match="x = nan mm is outside the workspace"):
+        ValLimits().check_position((float("nan"), 0, 100), "MOVE")
 
 
 def test_the_devices_table_names_the_operators_arm(cell):
