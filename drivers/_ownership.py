@@ -21,7 +21,7 @@ import weakref
 from pathlib import Path
 from typing import Callable
 
-from selfview.errors import DeviceError
+from selfview.errors import ConfigError, DeviceError
 from selfview.files.lockdir import lock_dir as _lock_dir
 from selfview.files.lockdir import lock_slug, open_lock_file
 
@@ -49,7 +49,9 @@ def lock_dir() -> Path:
 def host_identity(host: str, port: int) -> list[str]:
     """The keys of a TCP device: every address ``host`` resolves to, with ``port`` ('127.0.0.1:502',
     '[::1]:502'); ``localhost``, ``127.000.000.001`` and ``2130706433`` all include '127.0.0.1:502'.
-    ``DeviceError`` if the name does not resolve."""
+    ``DeviceError`` if the name does not resolve, ``ConfigError`` for a port that is no TCP port."""
+    if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
+        raise ConfigError(f"{host}:{port}: the port {port!r} is no TCP port; expected a whole number 1..65535")
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
     except (socket.gaierror, UnicodeError) as exc:
@@ -110,8 +112,11 @@ class DeviceLock:
         ``StaleState`` and is kept for the next one, unless ``clear_stale`` (the operator has checked)."""
         if self._fds:
             return self
+        keys = sorted(self._identity())
+        if not keys:
+            raise DeviceError(f"{self.kind} {self.key}: nothing identifies the device, so no lock can be taken on it")
         try:
-            for key in sorted(self._identity()):
+            for key in keys:
                 fd, path = open_lock_file(lock_slug(self.kind, key), error=DeviceError, what=f"{self.kind} {self.key}")
                 try:
                     fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -14,24 +14,25 @@ from collections.abc import Callable
 
 import numpy as np
 
-from selfview.drivers.robot_protocol import AbortResult, Where
+from selfview.drivers.robot_protocol import AbortResult, Where, check_distance_mm, check_speed_pct
 from selfview.errors import ConfigError, DeviceError
 
 __all__ = ["ManualRobot", "ManualLimits"]
 
 
 class ManualLimits:
-    """The manual robot's limits: the operator's. Speeds and distances pass (the operator moves the arm);
-    a position cannot be checked (the robot knows none) and is refused."""
+    """The manual robot's limits: the operator's. Any speed up to 100 % and any distance >= 0 pass (the
+    operator moves the arm; a non-finite or negative one is refused, ``LimitError``, before the operator is
+    asked); a position cannot be checked (the robot knows none) and is refused."""
 
     def check_position(self, p_mm, what: str) -> None:
         raise ConfigError(f"{what}: manual:// knows no pose, so no position can be checked or reached")
 
     def check_speed(self, pct: float, what: str) -> float:
-        return float(pct)
+        return check_speed_pct(pct, 100.0, what)
 
     def check_distance(self, d_mm: float, what: str) -> float:
-        return float(d_mm)
+        return check_distance_mm(d_mm, what)
 
 
 def _terminal_ask(prompt: str) -> str:
@@ -122,16 +123,21 @@ class ManualRobot:
         self._request(f"Bring the arm in a straight line to {self._named(target, 'move in a straight line')}")
 
     def appro(self, target, distance_mm: float) -> None:
-        self._request(f"Bring the arm {float(distance_mm):g} mm above {self._named(target, 'approach')} (along the tool's z)")
+        name = self._named(target, "approach")
+        d = self.limits.check_distance(distance_mm, "APPRO")
+        self._request(f"Bring the arm {d:g} mm above {name} (along the tool's z)")
 
     def depart(self, distance_mm: float) -> None:
-        self._request(f"Lift the arm {float(distance_mm):g} mm back along the tool's z")
+        d = self.limits.check_distance(distance_mm, "DEPART")
+        self._request(f"Lift the arm {d:g} mm back along the tool's z")
 
     def ready(self) -> None:
         self._request("Bring the arm to its ready position")
 
     def speed(self, pct: float) -> None:
-        """Nothing to set: the operator moves the arm at the pace the pendant allows."""
+        """Nothing to set: the operator moves the arm at the pace the pendant allows (a speed that is no
+        percentage is still refused, ``LimitError``)."""
+        self.limits.check_speed(pct, "SPEED")
 
     def abort(self) -> AbortResult:
         """The software moves nothing; the operator holds the arm (and its emergency stop)."""

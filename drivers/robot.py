@@ -3,8 +3,9 @@
 A robot is chosen by its URL: ``manual://`` is the operator's arm (``drivers/manual_robot.py``); any other
 URL (a device path, ``serial://``, ``socket://``, ``rfc2217://``, ``loop://``) is a PUMA on a VAL-II
 controller (``drivers/puma_val_serial``), the first implementation. A new robot: its driver module
-implementing ``Robot``, one entry in ``ROBOT_SCHEMES``, and ``tests/drivers/robot_contract.py`` run
-against it.
+implementing ``Robot`` (one that moves under software control also calls ``selfview.signals.watch`` at
+connect, so that a termination signal ABORTs it: ``abort_now`` and ``wait_motion_end``), one entry in
+``ROBOT_SCHEMES``, and ``tests/drivers/robot_contract.py`` run against it.
 
 Poses: the tool point T in the robot's base frame B, ``base_H_T`` (4, 4) [mm]; a robot's own pose
 convention (VAL's x y z o a t) goes through ``pose_to_H``. A motion relative to the tool frame is
@@ -35,10 +36,15 @@ def _puma(url: str, cell, kw: dict) -> Robot:
     dialect, limits, kinematics = setting("dialect"), setting("limits"), setting("kinematics")
     limits = ValLimits.load(limits) if limits else ValLimits()
     if setting("max_speed") is not None:
-        limits = replace(limits, max_speed_pct=float(setting("max_speed")))
+        try:
+            max_speed = float(setting("max_speed"))
+        except (TypeError, ValueError):
+            raise ConfigError(f"robot max_speed {setting('max_speed')!r}: expected a number of percent") from None
+        limits = replace(limits, max_speed_pct=max_speed)
     return PumaVAL(url, dialect=load_dialect(dialect) if dialect else None, limits=limits,
                    kinematics=PumaKinematics.load(kinematics) if kinematics else None,
-                   timeout_s=kw.get("timeout_s") or 2.0, baudrate=kw.get("baudrate") or 9600)
+                   timeout_s=2.0 if kw.get("timeout_s") is None else kw["timeout_s"],
+                   baudrate=9600 if kw.get("baudrate") is None else kw["baudrate"])
 
 
 def _manual(url: str, cell, kw: dict) -> Robot:

@@ -8,7 +8,34 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["Robot", "RobotLimits", "Where", "AbortResult"]
+from selfview.errors import LimitError
+
+__all__ = ["Robot", "RobotLimits", "Where", "AbortResult", "check_speed_pct", "check_distance_mm"]
+
+
+def check_speed_pct(pct, max_pct: float, what: str) -> float:
+    """A speed in percent, finite and in ``0 < pct <= max_pct``, as a float; else ``LimitError`` naming
+    ``what`` (nothing has been sent)."""
+    try:
+        v = float(pct)
+    except (TypeError, ValueError):
+        raise LimitError(f"{what}: speed {pct!r}; expected a number of percent; nothing was sent") from None
+    if not np.isfinite(v) or not 0 < v <= max_pct:
+        raise LimitError(f"{what}: speed {v:g} % is outside 0 < speed <= {max_pct:g} %; nothing was sent")
+    return v
+
+
+def check_distance_mm(d_mm, what: str) -> float:
+    """An APPRO / DEPART distance, finite and >= 0 (a negative one would drive the tool beyond its location,
+    into what it approaches), as a float; else ``LimitError`` naming ``what`` (nothing has been sent)."""
+    try:
+        d = float(d_mm)
+    except (TypeError, ValueError):
+        raise LimitError(f"{what}: distance {d_mm!r}; expected a number of mm; nothing was sent") from None
+    if not np.isfinite(d) or d < 0:
+        raise LimitError(f"{what}: distance {d:g} mm; expected a finite distance >= 0 mm along the tool's "
+                         "approach side (a negative one passes beyond the location); nothing was sent")
+    return d
 
 
 @dataclass(frozen=True)

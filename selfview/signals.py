@@ -65,7 +65,16 @@ _ended_by: list[int] = []  # the signal an uncaught Interrupted came from: the p
 
 def watch(device) -> None:
     """A device was connected: a termination signal stops it from now on (``unwatch`` at close). A
-    robot has ``abort_now()`` and ``wait_motion_end(timeout_s)``; a gripper ``interrupt()`` and ``safe()``."""
+    robot has ``abort_now()`` and ``wait_motion_end(timeout_s)``; a gripper ``interrupt()`` and ``safe()``
+    (``TypeError`` naming what is missing: the stop on a signal would otherwise fail in its helper thread)."""
+    for pair in (("abort_now", "wait_motion_end"), ("interrupt", "safe")):
+        have = [hasattr(device, m) for m in pair]
+        if any(have) and not all(have):
+            raise TypeError(f"signals.watch({device!r}): it has {pair[have.index(True)]}() but no "
+                            f"{pair[have.index(False)]}(); a signal could not stop it")
+    if not (hasattr(device, "abort_now") or hasattr(device, "interrupt")):
+        raise TypeError(f"signals.watch({device!r}): neither a robot (abort_now, wait_motion_end) nor a gripper "
+                        "(interrupt, safe); a signal could not stop it")
     with _live_lock:
         _live.add(device)
     install()

@@ -24,6 +24,7 @@ from selfview.drivers.frame_grabber_v4l2.url import GrabberUrl
 from selfview.drivers.frame_grabber_v4l2 import v4l2 as _v4l2
 from selfview.drivers.frame_grabber_v4l2.v4l2 import FIELD_NAMES, V4L2Device, fields_per_buffer, std_name
 from selfview.errors import ConfigError, DeviceError, DeviceTimeout, ImageError
+from selfview.files.io_safe import read_picture
 
 log = logging.getLogger(__name__)
 
@@ -147,8 +148,9 @@ class _Paced:
 class _ImageSequence:
     """A numbered image sequence (``img_%03d.png``) read in index order from the smallest index present up to
     the first gap, as OpenCV's CAP_IMAGES reader does; written here because that reader's behaviour changes
-    between OpenCV releases (4.10 cannot open a sequence of one picture). Files are read as bytes and decoded
-    in memory: no native call sees the path. The VideoCapture calls ``RecordedSource`` makes of it."""
+    between OpenCV releases (4.10 cannot open a sequence of one picture). Each file is read by
+    ``selfview.files.io_safe.read_picture`` (decoded in memory, no native call sees the path, a picture too
+    large refused from its header), as a grey picture. The VideoCapture calls ``RecordedSource`` makes of it."""
 
     def __init__(self, pattern: str):
         folder, name = os.path.split(pattern)
@@ -158,7 +160,11 @@ class _ImageSequence:
         width = int(m.group(2) or 0) if m.group(1) else 0
         digits = rf"\d{{{width},}}" if width else r"\d+"
         rx = re.compile(re.escape(self._head) + f"({digits})" + re.escape(self._tail) + "$")
-        found = [int(mm.group(1)) for f in os.listdir(self._folder) if (mm := rx.match(f))]
+        try:
+            names = os.listdir(self._folder)
+        except OSError as exc:
+            raise DeviceError(f"{pattern}: cannot list the folder {self._folder}: {exc.strerror or exc}") from None
+        found = [int(mm.group(1)) for f in names if (mm := rx.match(f))]
         self._next = min(found) if found else None
 
     def isOpened(self) -> bool:
@@ -168,16 +174,12 @@ class _ImageSequence:
         if self._next is None:
             return False, None
         path = self._format % self._next
-        try:
-            with open(path, "rb") as fh:
-                data = np.frombuffer(fh.read(), np.uint8)
-        except FileNotFoundError:
+        if not os.path.exists(path):  # the first gap ends the sequence
             return False, None
-        except OSError as exc:
-            raise DeviceError(f"cannot read {path}: {exc.strerror or exc}") from exc
-        img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
-        if img is None:
-            raise DeviceError(f"{path}: not a picture OpenCV can decode")
+        try:
+            img, _ = read_picture(path, what="frame")  # bounded in its header before it is decoded
+        except ImageError as exc:
+            raise DeviceError(str(exc)) from None
         self._next += 1
         return True, img
 

@@ -81,8 +81,12 @@ class FrameGrabber:
         sources: dict[str, SourceFactory] | None = None,
     ):
         self.url: GrabberUrl = parse_grabber_url(url)
-        if isinstance(timeout_s, bool) or not isinstance(timeout_s, (int, float)) or not timeout_s > 0:
-            raise ConfigError(f"frame grabber timeout_s={timeout_s!r}: expected a positive number of seconds")
+        if isinstance(timeout_s, bool) or not isinstance(timeout_s, (int, float)) or not 0 < timeout_s < float("inf"):
+            raise ConfigError(f"frame grabber timeout_s={timeout_s!r}: expected a finite positive number of seconds "
+                              "(every wait ends)")
+        for name, v in (("width", width), ("height", height)):
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1):
+                raise ConfigError(f"frame grabber {name}={v!r}: expected a positive whole number of pixels or None")
         for name, v in (("black_level", black_level), ("saturation_level", saturation_level)):
             if v is not None and not 0 <= v <= 255:
                 raise ConfigError(f"frame grabber {name}={v!r}: expected a grey level 0..255 or None")

@@ -150,8 +150,11 @@ def parse_grabber_url(url: str) -> GrabberUrl:
         kw["fourcc"] = fourcc
         kw["buffers"] = _int(url, "buffers", params.get("buffers", "2"), 1, 2)
     else:
-        if scheme == "frames" and not re.search(r"%0?\d*d", path):
-            raise ConfigError(f"{url}: an image sequence needs a printf number in its name, e.g. img_%03d.png")
+        if scheme == "frames":
+            name = path.rsplit("/", 1)[-1]  # the sequence reader numbers the file name, never a folder
+            if len(re.findall(r"%0?\d*d", name)) != 1 or "%" in re.sub(r"%0?\d*d", "", name):
+                raise ConfigError(f"{url}: an image sequence needs one printf number in its file name and no other "
+                                  f"'%', e.g. img_%03d.png; got {name!r}")
         loop = params.get("loop", "0")
         if loop not in ("0", "1"):
             raise ConfigError(f"{url}: loop={loop!r}; expected 0 or 1")

@@ -65,6 +65,18 @@ _READS = {
 }
 
 
+#: The most values one read may ask for, per reply field (Modbus Application Protocol v1.1b3, 6.1-6.4).
+_MAX_READ = {"bits": 2000, "registers": 125}
+
+
+def _whole(what: str, name: str, v, lo: int, hi: int) -> int:
+    """``v`` as an int in ``lo..hi``, else ``ConfigError`` naming the request and the value: checked
+    before anything is sent (pymodbus would fail to encode it, which reads as a broken reply)."""
+    if isinstance(v, bool) or not hasattr(v, "__index__") or not lo <= int(v) <= hi:
+        raise ConfigError(f"Modbus {what}: {name} {v!r}: expected a whole number {lo}..{hi}; nothing was sent")
+    return int(v)
+
+
 class ModbusExceptionReply(DeviceError):
     """The device answered a request with a Modbus exception response."""
 
@@ -106,9 +118,7 @@ def _discard_unasked(sock) -> None:
     try:
         while sock.recv(4096, socket.MSG_DONTWAIT):
             pass
-    except (BlockingIOError, InterruptedError):
-        pass
-    except OSError:  # a broken connection: the request itself reports it
+    except OSError:  # nothing more waiting (BlockingIOError), or a broken connection the request will report
         pass
 
 
@@ -318,6 +328,8 @@ class ModbusLink:
         if kind not in _READS:
             raise ConfigError(f"Modbus read: unknown table {kind!r}; expected one of {', '.join(_READS)}")
         function, name, method, field = _READS[kind]
+        address = _whole(f"read {name}", "address", address, 0, 0xFFFF)
+        count = _whole(f"read {name}", "count", count, 1, min(_MAX_READ[field], 0x10000 - address))
         rsp = self._request(
             f"read {name} {address}+{count}",
             function,
@@ -340,6 +352,9 @@ class ModbusLink:
 
     def write_coil(self, address: int, value: bool) -> None:
         """FC5 Write Single Coil (the reply must echo address and value)."""
+        address = _whole("write coil", "address", address, 0, 0xFFFF)
+        if isinstance(value, str) or value not in (0, 1):  # True / False / 0 / 1: not whatever is truthy (NaN)
+            raise ConfigError(f"Modbus write coil {address}: value {value!r}: expected True or False; nothing was sent")
         what = f"write coil {address}={int(bool(value))}"
         rsp = self._request(what, 5, lambda c, u: c.write_coil(address, bool(value), device_id=u))
         rsp.value = bool(rsp.bits[0]) if getattr(rsp, "bits", None) else None
@@ -347,8 +362,8 @@ class ModbusLink:
 
     def write_register(self, address: int, value: int) -> None:
         """FC6 Write Single Register, value 0..65535 (the reply must echo address and value)."""
-        if not 0 <= int(value) <= 0xFFFF:
-            raise ConfigError(f"write_register: value {value} out of 0..65535")
+        address = _whole("write register", "address", address, 0, 0xFFFF)
+        value = _whole("write register", "value", value, 0, 0xFFFF)
         what = f"write register {address}={int(value):#06x}"
         rsp = self._request(what, 6, lambda c, u: c.write_register(address, int(value), device_id=u))
         rsp.value = rsp.registers[0] if getattr(rsp, "registers", None) else None
@@ -356,6 +371,9 @@ class ModbusLink:
 
     def mask_write_register(self, address: int, and_mask: int, or_mask: int) -> None:
         """FC22 Mask Write Register: new = (old AND and_mask) OR (or_mask AND NOT and_mask)."""
+        address = _whole("mask write register", "address", address, 0, 0xFFFF)
+        and_mask = _whole("mask write register", "and_mask", and_mask, 0, 0xFFFF)
+        or_mask = _whole("mask write register", "or_mask", or_mask, 0, 0xFFFF)
         what = f"mask write register {address} and={and_mask:#06x} or={or_mask:#06x}"
         rsp = self._request(
             what,

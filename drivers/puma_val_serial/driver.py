@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass
+from urllib.parse import urlsplit
 
 import numpy as np
 import serial
@@ -124,6 +125,14 @@ def _garbage(command: str, buf) -> str:
             f"{bytes(buf[max(0, bad[0] - 20) : bad[0] + 20])!r}" + (_BREAK_HINT if 0 in buf else ""))
 
 
+def _numbers(target) -> np.ndarray | None:
+    """``target`` as a float array, or None for a name or what is no array of numbers."""
+    try:
+        return None if isinstance(target, str) else np.asarray(target, dtype=float)
+    except (TypeError, ValueError):
+        return None
+
+
 def _norm(s: str) -> str:
     return " ".join(s.split()).upper()
 
@@ -133,10 +142,14 @@ def _record_lock(port: str) -> DeviceLock | None:
     device path or socket://HOST:PORT); None for other URLs (a spy or loop, no record)."""
     if "://" not in port:
         return DeviceLock.for_path("robot", port)
-    if port.lower().startswith("socket://"):
-        host, _, p = port[len("socket://"):].split("/")[0].split("?")[0].rpartition(":")
-        if host and p.isdigit():
-            return DeviceLock.for_host("robot", host.strip("[]"), int(p))
+    parts = urlsplit(port)
+    if parts.scheme.lower() == "socket":
+        try:
+            host, p = parts.hostname, parts.port
+        except ValueError:  # a port out of range: connect() names it
+            return None
+        if host and p:
+            return DeviceLock.for_host("robot", host, p)
     return None
 
 
@@ -190,9 +203,9 @@ class PumaVAL:
                 raise ConfigError("robot URL: expected a device path or URL such as socket://127.0.0.1:5000, got ''")
         elif not all(hasattr(url_or_port, a) for a in ("read", "write", "in_waiting")):
             raise ConfigError(f"robot port: expected a URL, a path or a serial-like object, got {url_or_port!r}")
-        if not (isinstance(timeout_s, (int, float)) and np.isfinite(timeout_s) and timeout_s > 0):
+        if isinstance(timeout_s, bool) or not (isinstance(timeout_s, (int, float)) and np.isfinite(timeout_s) and timeout_s > 0):
             raise ConfigError(f"timeout_s: expected a positive number of seconds, got {timeout_s!r}")
-        if not (isinstance(baudrate, int) and baudrate > 0):
+        if isinstance(baudrate, bool) or not (isinstance(baudrate, int) and baudrate > 0):
             raise ConfigError(f"baudrate: expected a positive whole number, got {baudrate!r}")
         self.url = url_or_port if isinstance(url_or_port, str) else None
         self._given = None if isinstance(url_or_port, str) else url_or_port
@@ -219,8 +232,12 @@ class PumaVAL:
     knows_poses = True
 
     def pose_to_H(self, pose) -> np.ndarray:
-        """(4, 4) ``base_H_T`` of a pose (x, y, z mm, o, a, t deg) in the dialect's O/A/T convention."""
-        return self.dialect.pose_to_H(pose)
+        """(4, 4) ``base_H_T`` of a pose (x, y, z mm, o, a, t deg) in the dialect's O/A/T convention;
+        ``ConfigError`` for anything but six finite numbers."""
+        a = _numbers(pose)
+        if a is None or a.shape != (6,) or not np.all(np.isfinite(a)):
+            raise ConfigError(f"pose: expected 6 finite numbers (x, y, z mm, o, a, t deg), got {pose!r}")
+        return self.dialect.pose_to_H(a)
 
     def __repr__(self) -> str:
         return f"PumaVAL({self.url or self._given!r}, {'open' if self._ser else 'closed'})"
@@ -672,10 +689,7 @@ class PumaVAL:
 
     # --- targets and limits ---------------------------------------------------------------------------
     def _as_H(self, target, what: str) -> np.ndarray:
-        try:
-            a = None if isinstance(target, str) else np.asarray(target, dtype=float)
-        except (TypeError, ValueError):
-            a = None
+        a = _numbers(target)
         if a is not None and a.shape == (4, 4):
             return check_rigid(a, what)
         if a is not None and a.shape == (6,) and np.all(np.isfinite(a)):
@@ -923,7 +937,10 @@ class PumaVAL:
         """
         if isinstance(joint, bool) or not isinstance(joint, (int, np.integer)) or not 1 <= joint <= 6:
             raise ConfigError(f"DRIVE joint: expected 1..6, got {joint!r}")
-        delta = float(delta_deg)
+        try:
+            delta = float(delta_deg)
+        except (TypeError, ValueError):
+            delta = float("nan")
         if not np.isfinite(delta):
             raise ConfigError(f"DRIVE angle: expected a finite number of degrees, got {delta_deg!r}")
         sp = self.limits.check_speed(speed_pct, "DRIVE")

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from selfview.drivers.puma_val_serial._config import check_keys, read_yaml
+from selfview.drivers.robot_protocol import check_distance_mm, check_speed_pct
 from selfview.errors import ConfigError, LimitError
 
 __all__ = ["ValLimits", "PUMA260_JOINT_LIMITS_DEG", "PUMA260_JOINT_SPEED_DEG_S", "VAL_READY_DEG"]
@@ -112,28 +113,27 @@ class ValLimits:
 
     # --- checks (raise LimitError; nothing has been sent) ---------------------------------------
     def check_position(self, p_mm, what: str) -> None:
-        """The tool point ``p_mm`` (3,) must lie in the workspace box."""
-        p = np.asarray(p_mm, dtype=float).reshape(3)
+        """The tool point ``p_mm`` (3,) must lie in the workspace box (``ConfigError`` for what is no point)."""
+        try:
+            p = np.asarray(p_mm, dtype=float).reshape(3)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{what}: expected a tool point (x, y, z) in mm, got {p_mm!r}") from None
         for axis, v, (lo, hi) in zip("xyz", p, self.workspace_mm):
             if not lo <= v <= hi:
                 raise LimitError(f"{what}: {axis} = {v:.2f} mm is outside the workspace {lo:g}..{hi:g} mm; nothing was sent")
 
     def check_speed(self, pct: float, what: str) -> float:
-        pct = float(pct)
-        if not np.isfinite(pct) or not 0 < pct <= self.max_speed_pct:
-            raise LimitError(f"{what}: speed {pct:g} % is outside 0 < speed <= {self.max_speed_pct:g} %; nothing was sent")
-        return pct
+        """A SPEED (or DRIVE speed): finite, above 0 and at most ``max_speed_pct``. Returns it as a float."""
+        return check_speed_pct(pct, self.max_speed_pct, what)
 
     def check_distance(self, d_mm: float, what: str) -> float:
-        """An APPRO / DEPART distance: finite and >= 0 (a negative one would drive the tool beyond its
-        location, into what it approaches). Returns it as a float."""
-        d = float(d_mm)
-        if not np.isfinite(d) or d < 0:
-            raise LimitError(f"{what}: distance {d:g} mm; expected a finite distance >= 0 mm along the tool's "
-                             "approach side (a negative one passes beyond the location); nothing was sent")
-        return d
+        """An APPRO / DEPART distance (``check_distance_mm``). Returns it as a float."""
+        return check_distance_mm(d_mm, what)
 
     def check_joint(self, joint: int, value_deg: float, what: str) -> None:
+        """JT``joint`` (1..6; ``ConfigError`` otherwise) at ``value_deg`` must lie within its limits."""
+        if isinstance(joint, bool) or not isinstance(joint, (int, np.integer)) or not 1 <= joint <= 6:
+            raise ConfigError(f"{what}: joint {joint!r}; expected 1..6")
         lo, hi = self.joint_limits_deg[joint - 1]
         if not lo <= value_deg <= hi:
             raise LimitError(

@@ -424,15 +424,20 @@ def write_picture(path, image, *, error: type[CellError] = ConfigError, what: st
     memory (OpenCV never sees the path, whatever bytes it holds) and written by ``atomic_write`` (a full
     disk or a killed writer leaves the old file or none, and no temporary file). Raises ``error`` naming the
     path and the cause: an extension not in ``PICTURE_EXTENSIONS``, a picture OpenCV cannot encode, or the
-    write's own failure."""
+    write's own failure, or a picture that is not 8-bit grey or BGR(A) (OpenCV would write a float or wider one
+    after converting it to 8 bits by itself)."""
     import cv2
 
     path = Path(path)
     ext = path.suffix.lower()
     if ext not in PICTURE_EXTENSIONS:
         raise error(f"{path}: cannot write the {what}: the name must end in one of {', '.join(PICTURE_EXTENSIONS)}")
+    img = np.asarray(image)
+    if img.dtype != np.uint8 or img.size == 0 or not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] in (1, 3, 4))):
+        raise error(f"{path}: cannot write the {what}: expected an 8-bit grey or BGR picture, got {img.dtype} "
+                    f"pixels of shape {img.shape}")
     try:
-        ok, buf = cv2.imencode(ext, np.asarray(image))
+        ok, buf = cv2.imencode(ext, img)
     except cv2.error as exc:
         raise error(f"{path}: cannot write the {what}: OpenCV cannot encode it ({str(exc).strip()})") from None
     if not ok:

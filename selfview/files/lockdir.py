@@ -24,19 +24,18 @@ __all__ = ["lock_dir", "open_lock_file", "lock_slug", "os_cause"]
 _FIX = "set SELFVIEW_LOCK_DIR to a folder of yours with mode 0700"
 
 
+_CAUSES = {
+    errno.ENOSPC: "no space left on the device",
+    errno.EFBIG: "file too large (a file-size limit)",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EROFS: "a read-only file system",
+    errno.ELOOP: "it is a symbolic link (not followed)",
+}
+
+
 def os_cause(exc: OSError) -> str:
     """What an operating-system error means for the file being written or read, in words."""
-    if exc.errno == errno.ENOSPC:
-        return "no space left on the device"
-    if exc.errno == errno.EFBIG:
-        return "file too large (a file-size limit)"
-    if exc.errno == errno.EDQUOT:
-        return "disk quota exceeded"
-    if exc.errno == errno.EROFS:
-        return "a read-only file system"
-    if exc.errno == errno.ELOOP:
-        return "it is a symbolic link (not followed)"
-    return exc.strerror or str(exc)
+    return _CAUSES.get(exc.errno) or exc.strerror or str(exc)
 
 
 def lock_dir(*, error: type[CellError]) -> Path:

@@ -20,6 +20,12 @@ def check_is_a_robot(robot) -> None:
     assert isinstance(robot.knows_poses, bool)
     assert robot.limits.check_distance(10.0, "contract") == 10.0
     assert robot.limits.check_speed(20.0, "contract") == 20.0
+    for bad in (-1.0, float("nan"), float("inf"), "ten"):
+        with pytest.raises(LimitError, match="contract: distance"):
+            robot.limits.check_distance(bad, "contract")
+    for bad in (0.0, -5.0, float("nan"), 101.0, "fast"):
+        with pytest.raises(LimitError, match="contract: speed"):
+            robot.limits.check_speed(bad, "contract")
 
 
 def check_abort_when_idle(robot) -> None:

@@ -6,6 +6,7 @@ import json
 
 import cv2
 import numpy as np
+import pytest
 
 from selfview.procedures.cli import EXIT_CALIBRATION, EXIT_CONFIG, EXIT_DEVICE, main
 
@@ -52,9 +53,8 @@ def test_grab_needs_a_camera_and_still_reads_url(tmp_path, capsys):
     assert "--camera URL is required" in capsys.readouterr().err
     assert main(["grab", "--url", "sim://?noise=0", "--out", str(tmp_path / "x.png")]) == 0
     capsys.readouterr()
-    try:
+    with pytest.raises(SystemExit) as info:
         main(["grab", "--help"])
-    except SystemExit:
-        pass
+    assert info.value.code == 0
     help_text = capsys.readouterr().out
     assert "--camera URL" in help_text and "--url" not in help_text

@@ -211,6 +211,10 @@ def test_bad_grab_arguments(sequence):
     url, _ = sequence
     with pytest.raises(ConfigError):
         FrameGrabber(url, timeout_s=0)
+    for kw in ({"timeout_s": float("inf")}, {"timeout_s": float("nan")}, {"width": -768}, {"height": "576"},
+               {"width": 768.0}):
+        with pytest.raises(ConfigError, match=f"frame grabber {next(iter(kw))}="):
+            FrameGrabber(url, **kw)
     with pytest.raises(ConfigError):
         FrameGrabber(url, black_level=300)
     with FrameGrabber(url) as g:
@@ -234,3 +238,31 @@ def test_a_sequence_runs_from_its_smallest_index_to_the_first_gap(tmp_path):
         with pytest.raises(EndOfStream):
             g.grab()
     assert all(np.array_equal(a, b) for a, b in zip(got, imgs[:3]))
+
+
+def test_a_frame_that_is_no_usable_picture_is_a_device_error_naming_it(tmp_path):
+    """A sequence's files are read as the picture files of the rest of the project (``read_picture``): one that
+    is no picture, or whose header claims a picture far beyond any camera's, stops the grab with the file's
+    name, before the huge one is decoded; the frames before it were read."""
+    from tests.selfview.test_io_safe import png_header_only
+
+    imgs = pictures(1)
+    for bad, why in ((b"not a picture\n", "not a usable frame"), (png_header_only(40000, 40000), "refused before decoding")):
+        cv2.imwrite(str(tmp_path / "b_000.png"), imgs[0])
+        (tmp_path / "b_001.png").write_bytes(bad)
+        with FrameGrabber(f"frames://{tmp_path}/b_%03d.png") as g:
+            assert np.array_equal(g.grab().image, imgs[0])
+            with pytest.raises(DeviceError, match=rf"b_001\.png: .*{why}") as info:
+                g.grab()
+        assert not isinstance(info.value, EndOfStream)
+
+
+def test_a_sequence_folder_that_cannot_be_listed_is_named(tmp_path, monkeypatch):
+    import os
+
+    def refuse(folder):
+        raise PermissionError(13, "Permission denied", folder)
+
+    monkeypatch.setattr(os, "listdir", refuse)
+    with pytest.raises(DeviceError, match=f"cannot list the folder {tmp_path}: Permission denied"):
+        FrameGrabber(f"frames://{tmp_path}/c_%03d.png").connect()

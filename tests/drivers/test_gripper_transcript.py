@@ -552,3 +552,37 @@ def test_a_register_write_whose_echo_differs_is_a_protocol_error(device):
     assert isinstance(e.value, ProtocolError) and e.value.sent == (0, 0x8002) and e.value.echoed == (0, 0x8003)
     assert not link.connected
     d.check()
+
+
+def test_a_request_the_protocol_cannot_carry_is_refused_before_it_is_sent(device):
+    """An address, count, value or mask outside what a Modbus frame carries is a ``ConfigError`` naming it,
+    and nothing goes on the wire: the link stays up, the next request is answered (tid 1)."""
+    from selfview.drivers.pneumatic_gripper.modbus import ModbusLink
+    from selfview.errors import ConfigError
+
+    d = device([(mbap(1, "01 0000 0002"), mbap(1, "01 01 01"))])
+    link = ModbusLink(d.url, timeout_s=0.5)
+    link.connect()
+    bad = [
+        (lambda: link.read("coil", -1), "address -1"),
+        (lambda: link.read("coil", 70000), "address 70000"),
+        (lambda: link.read("coil", 1.5), "address 1.5"),
+        (lambda: link.read("coil", True), "address True"),
+        (lambda: link.read("coil", 0, 0), "count 0"),
+        (lambda: link.read("coil", 0, 2001), "count 2001"),
+        (lambda: link.read("holding_register", 0, 126), "count 126"),
+        (lambda: link.read("coil", 0xFFFF, 2), "count 2"),  # past the last address
+        (lambda: link.write_coil(70000, True), "address 70000"),
+        (lambda: link.write_coil(0, float("nan")), "value nan"),
+        (lambda: link.write_register(0, 1.7), "value 1.7"),
+        (lambda: link.write_register(0, 0x10000), "value 65536"),
+        (lambda: link.mask_write_register(0, -1, 0), "and_mask -1"),
+        (lambda: link.mask_write_register(0, 0xFFFF, 0x1FFFF), "or_mask 131071"),
+    ]
+    for call, named in bad:
+        with pytest.raises(ConfigError, match=f"{named}.*nothing was sent"):
+            call()
+    assert link.connected and d.received == []
+    assert link.read("coil", 0, 2) == [True, False]
+    link.close()
+    d.check()

@@ -146,3 +146,27 @@ def test_a_lock_folder_others_may_use_is_refused_by_name(tmp_path, monkeypatch):
     monkeypatch.setenv("SELFVIEW_LOCK_DIR", str(link))
     with pytest.raises(DeviceError, match=f"lock folder {link} is a symbolic link"):
         DeviceLock("valve terminal", "10.0.0.5:502").acquire()
+
+
+def test_the_robots_record_is_keyed_on_its_port_or_socket_address():
+    """The PUMA driver's record lock: a device path by its identity, socket://HOST:PORT by the address it
+    resolves to, nothing for a URL that names no device of its own (loop://) or no usable port."""
+    from selfview.drivers.puma_val_serial.driver import _record_lock
+
+    assert _record_lock("/dev/null").path == DeviceLock.for_path("robot", "/dev/null").path
+    for url in ("socket://localhost:5000", "socket://127.0.0.1:5000/?logging=debug", "socket://[::ffff:127.0.0.1]:5000"):
+        assert _record_lock(url).path == DeviceLock.for_host("robot", "127.0.0.1", 5000).path, url
+    for url in ("loop://", "spy:///dev/ttyS0", "socket://localhost", "socket://localhost:99999"):
+        assert _record_lock(url) is None, url
+
+
+def test_a_lock_on_no_port_or_on_nothing_is_refused_by_name():
+    """A host lock with a port that is no TCP port (it would be keyed on '127.0.0.1:None'), or a lock whose
+    identity names nothing, is refused naming it, not an IndexError."""
+    from selfview.drivers._ownership import host_identity
+
+    for port in (None, 70000, 0, "502", True):
+        with pytest.raises(ConfigError, match="is no TCP port"):
+            host_identity("localhost", port)
+    with pytest.raises(DeviceError, match="valve terminal k: nothing identifies the device"):
+        DeviceLock("valve terminal", "k", lambda: []).acquire()

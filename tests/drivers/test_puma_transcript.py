@@ -25,7 +25,7 @@ from selfview.drivers.puma_val_serial import (
     load_dialect,
 )
 from selfview.drivers.puma_val_serial import OAT_CONVENTIONS, ProgramRunning
-from selfview.errors import ConfigError, DeviceTimeout, LimitError, ProtocolError
+from selfview.errors import ConfigError, DeviceError, DeviceTimeout, LimitError, ProtocolError
 from selfview.maths.geometry import R_from_rpy, inv_H, rotation_angle, trans
 from selfview.mocks.puma260 import READY_DEG, Puma260, make_tool
 from selfview.mocks.val_controller import TOOL_LENGTH_MM
@@ -177,14 +177,18 @@ def test_connect_over_loop_url_times_out_without_a_prompt():
 def test_bad_arguments_are_named():
     with pytest.raises(ConfigError, match="robot URL"):
         PumaVAL("")
-    with pytest.raises(ConfigError, match="timeout_s"):
-        PumaVAL("loop://", timeout_s=0)
+    for t in (0, float("inf"), True):
+        with pytest.raises(ConfigError, match="timeout_s"):
+            PumaVAL("loop://", timeout_s=t)
+    for b in (0, True, 9600.0):
+        with pytest.raises(ConfigError, match="baudrate"):
+            PumaVAL("loop://", baudrate=b)
     with pytest.raises(ConfigError, match="protocol 'nope'"):
         PumaVAL("nope://x").connect()
 
 
 def test_command_before_connect_is_a_device_error():
-    with pytest.raises(Exception, match="not open"):
+    with pytest.raises(DeviceError, match="not open"):
         PumaVAL(ScriptedPort([])).where()
 
 
@@ -547,6 +551,9 @@ def test_motion_limits_are_checked_before_sending():
         r.drive(1, 10, 50)
     with pytest.raises(ConfigError, match="DRIVE joint"):
         r.drive(7, 10, 10)
+    for deg in ("ten", None, float("nan")):
+        with pytest.raises(ConfigError, match="DRIVE angle: expected a finite number of degrees"):
+            r.drive(1, deg, 10)
     with pytest.raises(LimitError, match="x = 500.00"):
         r.move((500, 0, 100, 90, 90, 0))
     assert not any(w.startswith((b"DO APPRO", b"DO DEPART", b"DO DRIVE", b"DO MOVE")) for w in port.written)

@@ -4,6 +4,7 @@ against the simulated controller over a real pseudo-terminal, and ``manual://`` 
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import yaml
 
@@ -11,7 +12,7 @@ from selfview.files.cell import default_cell_path, parse_cell
 from selfview.drivers.manual_robot import ManualRobot
 from selfview.drivers.puma_val_serial import PumaVAL
 from selfview.drivers.robot import open_robot
-from selfview.errors import ConfigError
+from selfview.errors import ConfigError, LimitError
 from selfview.mocks.val_controller import ValController
 from selfview.mocks.world import SimWorld
 from tests.drivers import robot_contract as contract
@@ -69,6 +70,20 @@ def test_manual_keeps_the_contract(manual, operator):
     contract.check_a_refused_request_is_an_error(manual)
 
 
+def test_manual_refuses_a_distance_or_speed_that_is_none_before_asking(manual, operator):
+    """A negative or non-finite APPRO / DEPART distance, or a speed that is no percentage, never reaches the
+    operator as a request ('Lift the arm nan mm'): ``LimitError`` naming it, nobody asked."""
+    asked, _, _ = operator
+    for call in (lambda: manual.appro("plate", -10.0), lambda: manual.appro("plate", float("nan")),
+                 lambda: manual.depart(float("inf")), lambda: manual.depart("up"), lambda: manual.speed(0),
+                 lambda: manual.speed(float("nan"))):
+        with pytest.raises(LimitError, match="nothing was sent"):
+            call()
+    assert asked == []
+    manual.appro("plate", 10.0)
+    assert asked == ["Bring the arm 10 mm above plate (along the tool's z), then press Enter (n: refuse)"]
+
+
 def test_open_robot_honours_the_cell_robot_section(tmp_path):
     raw = yaml.safe_load(default_cell_path().read_text())
     (tmp_path / "limits.yaml").write_text("max_speed_pct: 40\n")
@@ -86,6 +101,32 @@ def test_open_robot_honours_the_cell_robot_section(tmp_path):
         parse_cell(raw)
     with pytest.raises(ConfigError, match="robot URL"):
         open_robot("", cell)
+    with pytest.raises(ConfigError, match="robot max_speed 'fast': expected a number"):
+        open_robot("loop://", cell, max_speed="fast")
+    with pytest.raises(ConfigError, match="timeout_s"):  # refused, not silently the default 2 s
+        open_robot("loop://", cell, timeout_s=0)
+    with pytest.raises(ConfigError, match="baudrate"):
+        open_robot("loop://", cell, baudrate=0)
+    assert open_robot("loop://", cell).timeout_s == 2.0 and open_robot("loop://", cell, timeout_s=0.5).timeout_s == 0.5
+
+
+def test_the_puma_converts_only_six_finite_numbers_to_a_pose():
+    """``pose_to_H`` (the seam's pose convention) names a wrong pose instead of unpacking it or returning NaN."""
+    from selfview.drivers.puma_val_serial import ValLimits
+
+    r = open_robot("loop://")
+    for bad in ((300, 0, 50, 90, 90), (300, 0, 50, 90, 90, float("nan")), "above", None):
+        with pytest.raises(ConfigError, match="pose: expected 6 finite numbers"):
+            r.pose_to_H(bad)
+    assert r.pose_to_H((300, 0, 50, 90, 90, 0))[:3, 3].tolist() == [300.0, 0.0, 50.0]
+    for joint in (0, 7, True, 1.0):
+        with pytest.raises(ConfigError, match="expected 1..6"):
+            ValLimits().check_joint(joint, 0.0, "DRIVE")
+    for p in ((300, 0), np.eye(4), "above"):
+        with pytest.raises(ConfigError, match="MOVE: expected a tool point"):
+            ValLimits().check_position(p, "MOVE")
+    with pytest.raises(LimitError, match="x = nan mm is outside the workspace"):
+        ValLimits().check_position((float("nan"), 0, 100), "MOVE")
 
 
 def test_the_devices_table_names_the_operators_arm(cell):

@@ -218,3 +218,17 @@ def test_numbers_in_files_and_typed_are_plain_ascii_digits():
                           ("1e308", {"lo": -360, "hi": 360}, "out of range"), ("0", {"lo": 0, "lo_open": True}, "> 0")):
         with pytest.raises(ValueError, match=why):
             parse_number(text, **kw)
+
+
+def test_write_picture_refuses_what_is_no_8_bit_picture(tmp_path):
+    """A float, wider, empty or oddly shaped array is refused by name (OpenCV would convert a float one to 8
+    bits itself, NaN included, and write it); nothing is written."""
+    from selfview.files.io_safe import write_picture
+
+    for bad in (np.zeros((4, 4)), np.full((4, 4), np.nan, np.float32), np.zeros((4, 4), np.uint16),
+                np.zeros((0, 0), np.uint8), np.zeros((4, 4, 2), np.uint8), [[1, 2], [3, 4]]):
+        with pytest.raises(ConfigError, match=r"p\.png: cannot write the picture: expected an 8-bit grey or BGR"):
+            write_picture(tmp_path / "p.png", bad)
+    assert list(tmp_path.iterdir()) == []
+    write_picture(tmp_path / "p.png", np.full((4, 4, 3), 7, np.uint8))
+    assert read_picture(tmp_path / "p.png")[0].tolist() == [[7] * 4] * 4
