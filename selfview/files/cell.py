@@ -34,11 +34,12 @@ __all__ = [
     "load_cell",
     "parse_cell",
     "default_cell_path",
+    "aruco_dictionary",
 ]
 
-#: The six fingertip calibration points of CONVENTIONS.md, in their order.
 #: The plate patterns ``selfview.measurement.plates.detect_plate`` measures.
 PLATE_PATTERNS = ("discs", "chessboard", "charuco")
+#: The six fingertip calibration points of CONVENTIONS.md, in their order.
 POINT_NAMES: tuple[str, ...] = (
     "A-inner-front",
     "A-inner-back",
@@ -424,17 +425,25 @@ def _parse_board(s: _Section, pattern: str) -> PlateSpec:
     return spec
 
 
+def aruco_dictionary(name: str, what: str = "plate.dictionary") -> int:
+    """OpenCV's code of the predefined ArUco dictionary ``name`` ('DICT_4X4_50', ...); ``ConfigError``
+    naming ``what`` and the known names for any other."""
+    import cv2
+
+    code = getattr(cv2.aruco, name, None) if isinstance(name, str) and name.startswith("DICT_") else None
+    if not isinstance(code, int):
+        known = sorted(k for k in dir(cv2.aruco) if k.startswith("DICT_"))
+        raise ConfigError(f"{what}: {name!r} is not an OpenCV predefined dictionary; expected one of "
+                          f"{', '.join(known)}")
+    return code
+
+
 def _check_dictionary(spec: PlateSpec) -> None:
     """The ChArUco plate's dictionary is an OpenCV predefined one holding the board's markers."""
     import cv2
 
     name = spec.dictionary
-    code = getattr(cv2.aruco, name, None) if name.startswith("DICT_") else None
-    if not isinstance(code, int):
-        known = sorted(k for k in dir(cv2.aruco) if k.startswith("DICT_"))
-        raise ConfigError(f"plate.dictionary: {name!r} is not an OpenCV predefined dictionary; expected one of "
-                          f"{', '.join(known)}")
-    size = cv2.aruco.getPredefinedDictionary(code).bytesList.shape[0]
+    size = cv2.aruco.getPredefinedDictionary(aruco_dictionary(name)).bytesList.shape[0]
     need = spec.squares[0] * spec.squares[1] // 2
     if size < need:
         raise ConfigError(f"plate.dictionary: {name} holds {size} markers; a {spec.squares[0]}x{spec.squares[1]} "

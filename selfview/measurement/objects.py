@@ -167,9 +167,12 @@ def load_object(path=None) -> ObjectSpec:
 
 # --- the target in a picture -------------------------------------------------------------------------
 def target_board(target: TargetSpec):
-    """The ``cv2.aruco.CharucoBoard`` of ``target`` (board frame: origin at a corner, units mm)."""
-    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, target.dictionary))
-    return cv2.aruco.CharucoBoard(tuple(target.squares), float(target.square), float(target.marker), dictionary)
+    """The ``cv2.aruco.CharucoBoard`` of ``target`` (board frame: origin at a corner, units mm; shared, do
+    not modify it)."""
+    from selfview.measurement.plates import make_charuco_board
+
+    return make_charuco_board(tuple(target.squares), target.square, target.marker, target.dictionary,
+                              what="target.dictionary")
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ import pytest
 
 from selfview.errors import CalibrationError, ConfigError
 from selfview.maths.geometry import H_from_rotvec, rotation_angle, transform_points
-from selfview.measurement.objects import TargetDetection, detect_target, load_object, object_pose, parse_object, target_board
+from selfview.measurement.objects import TargetDetection, TargetSpec, detect_target, load_object, object_pose, parse_object, target_board
 
 
 def _block(**changes):
@@ -99,3 +99,9 @@ def test_a_far_frontal_target_is_ambiguous_and_refused(cell):
     uv = cam.project(transform_points(C_H_O, p_O)) + np.random.default_rng(1).normal(0, 0.1, (len(p_O), 2))
     with pytest.raises(CalibrationError, match="ambiguous"):
         object_pose(None, cam, obj, detection=TargetDetection(uv, p_O, ids, 8))
+
+
+def test_a_target_of_an_unknown_dictionary_is_a_config_error():
+    t = TargetSpec((4, 4), 10.0, 7.0, "DICT_9X9_1")
+    with pytest.raises(ConfigError, match="target.dictionary: 'DICT_9X9_1' is not an OpenCV predefined dictionary"):
+        target_board(t)
