@@ -35,6 +35,7 @@ __all__ = [
     "parse_cell",
     "default_cell_path",
     "aruco_dictionary",
+    "fingertip_points_G",
 ]
 
 #: The plate patterns ``selfview.measurement.plates.detect_plate`` measures.
@@ -215,6 +216,22 @@ class PlateSpec:
         return np.column_stack([x, y, np.zeros_like(x)])
 
 
+def fingertip_points_G(gap: float, width: float, thickness_A: float, thickness_B: float) -> np.ndarray:
+    """(6, 3) the fingertip points in G [mm], in the order of ``POINT_NAMES`` (CONVENTIONS.md), for a jaw
+    ``gap``, finger ``width`` and the fingers' thicknesses [mm]."""
+    g, w = gap, width
+    return np.array(
+        [
+            [g / 2, -w / 2, 0.0],
+            [g / 2, w / 2, 0.0],
+            [-g / 2, -w / 2, 0.0],
+            [-g / 2, w / 2, 0.0],
+            [g / 2 + thickness_A, -w / 2, 0.0],
+            [-g / 2 - thickness_B, -w / 2, 0.0],
+        ]
+    )
+
+
 @dataclass(frozen=True)
 class GripperSpec:
     finger_width: float
@@ -232,17 +249,7 @@ class GripperSpec:
     def points_G(self, state: str | None = None, gap: float | None = None) -> np.ndarray:
         """(6, 3) nominal fingertip points in G [mm], in the order of ``POINT_NAMES``."""
         g = self.gap(state or self.calibrate_in) if gap is None else float(gap)
-        w, t = self.finger_width, self.finger_thickness
-        return np.array(
-            [
-                [g / 2, -w / 2, 0.0],
-                [g / 2, w / 2, 0.0],
-                [-g / 2, -w / 2, 0.0],
-                [-g / 2, w / 2, 0.0],
-                [g / 2 + t, -w / 2, 0.0],
-                [-g / 2 - t, -w / 2, 0.0],
-            ]
-        )
+        return fingertip_points_G(g, self.finger_width, self.finger_thickness, self.finger_thickness)
 
     def finger_boxes_G(self, gap: float) -> list[tuple[np.ndarray, np.ndarray]]:
         """[(min corner, max corner)] of fingers A and B in G [mm] for a jaw gap."""
