@@ -238,15 +238,33 @@ def _residual_px(rv, tv, p_O, xy, f: float) -> float:
     return float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - xy) ** 2, axis=1)))) * f
 
 
+def _check_detection(det: TargetDetection) -> None:
+    """A detection the pose can rest on: (N, 2) pixels and (N, 3) points, finite, at least ``MIN_CORNERS``,
+    not on one line."""
+    uv, p = np.asarray(det.uv, float), np.asarray(det.p_O, float)
+    if uv.ndim != 2 or uv.shape[1] != 2 or p.shape != (len(uv), 3):
+        raise ValueError(f"target detection: expected uv (N, 2) and p_O (N, 3), got {uv.shape} and {p.shape}")
+    if len(uv) < MIN_CORNERS:
+        raise CalibrationError(f"target pose: {len(uv)} corner(s), at least {MIN_CORNERS} needed")
+    if not (np.all(np.isfinite(uv)) and np.all(np.isfinite(p))):
+        raise CalibrationError("target pose: a corner's pixel or target point is not finite")
+    s = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
+    if not s[1] > 1e-2 * s[0]:
+        raise CalibrationError("target pose: the corners lie on one line; they do not fix the pose")
+
+
 def object_pose(image: np.ndarray, camera: CameraModel, obj: ObjectSpec | TargetSpec,
                 detection: TargetDetection | None = None) -> ObjectPose:
     """``C_H_O`` of the object's target in ``image`` through ``camera`` (eq. 3-4: the corners undistorted
     by the camera model, then IPPE on the normalised rays and a Levenberg-Marquardt refinement).
 
-    Raises ``CalibrationError``: target not seen or seen twice (``detect_target``), or ambiguous (IPPE's
-    flipped solution fits within ``AMBIGUITY_RATIO`` times the chosen one's residual)."""
+    Raises ``CalibrationError``: target not seen or seen twice (``detect_target``), a given ``detection``
+    with fewer than ``MIN_CORNERS`` corners, non-finite ones or corners on one line, or ambiguous (IPPE's
+    flipped solution fits within ``AMBIGUITY_RATIO`` times the chosen one's residual); ``ValueError`` for a
+    ``detection`` whose arrays do not match ((N, 2) pixels, (N, 3) points)."""
     target = obj.target if isinstance(obj, ObjectSpec) else obj
     det = detection if detection is not None else detect_target(image, target)
+    _check_detection(det)
     f = float(camera.f)
     xy = camera.undistort_pixels(det.uv) / f  # normalised, distortion-free (X / f, Y / f)
     p = np.ascontiguousarray(det.p_O, np.float64)

@@ -43,7 +43,10 @@ def detect_plate(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     lattice and sorted by (row, col): pixels (distorted, as measured), grid indices and W points [mm].
 
     Raises ``ImageError`` (no plate, fewer than ``min_points`` points, a chessboard of ambiguous
-    orientation, markers of another board) or ``ConfigError`` (an unknown pattern or dictionary)."""
+    orientation, markers of another board), ``ConfigError`` (an unknown pattern or dictionary) or
+    ``ValueError`` (``min_points`` not a whole number >= 1)."""
+    if isinstance(min_points, bool) or not isinstance(min_points, (int, np.integer)) or min_points < 1:
+        raise ValueError(f"min_points: expected a whole number of plate points >= 1, got {min_points!r}")
     if plate.pattern == "discs":
         return detect_discs(image, plate, camera=camera, min_discs=min_points)
     gray = as_gray(image, camera)

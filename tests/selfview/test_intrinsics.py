@@ -190,6 +190,9 @@ def test_stop_rule_advises_more_views_when_too_few_pin_the_centre(cell):
 def test_refusals_too_few_views_and_all_square_on(cell):
     with pytest.raises(CalibrationError, match="3 usable view.*at least 4"):
         calibrate_intrinsics(None, cell.plate, cell.camera.guess(), detections=_views(cell, TRUE, n=12)[:3])
+    with pytest.raises(CalibrationError, match="plate model 'bent': expected 'auto' or one of flat, bow, bow\\+dots"):
+        calibrate_intrinsics(None, cell.plate, cell.camera.guess(), detections=_views(cell, TRUE, n=4),
+                             plate_model="bent")
     # every view square-on (the plate's normal on the optical axis), without distortion to tell the centre
     flat = TRUE.with_(kappa=0.0)
     poses = []

@@ -42,7 +42,7 @@ def test_a_bad_object_file_is_refused_naming_what_is_wrong(changes, says):
 
 
 def test_a_missing_object_file_is_a_file_error(tmp_path):
-    with pytest.raises(ConfigError):
+    with pytest.raises(ConfigError, match=r"nope\.yaml: cannot read the object file \(no such file\)"):
         load_object(tmp_path / "nope.yaml")
 
 
@@ -105,3 +105,25 @@ def test_a_target_of_an_unknown_dictionary_is_a_config_error():
     t = TargetSpec((4, 4), 10.0, 7.0, "DICT_9X9_1")
     with pytest.raises(ConfigError, match="target.dictionary: 'DICT_9X9_1' is not an OpenCV predefined dictionary"):
         target_board(t)
+
+
+def test_a_given_detection_that_cannot_fix_a_pose_is_refused_naming_why(cell):
+    obj = load_object()
+    cam = cell.camera.guess()
+    board = target_board(obj.target)
+    p_O = board.getChessboardCorners().astype(float) - np.array([20.0, 20.0, 0.0])
+    C_H_O = H_from_rotvec([np.radians(30.0), 0.0, 0.0], [0.0, 0.0, 200.0])
+    uv = cam.project(transform_points(C_H_O, p_O))
+    ids = np.arange(len(p_O))
+    with pytest.raises(CalibrationError, match=r"target pose: 5 corner\(s\), at least 6 needed"):
+        object_pose(None, cam, obj, detection=TargetDetection(uv[:5], p_O[:5], ids[:5], 8))
+    row = np.flatnonzero(np.isclose(p_O[:, 1], p_O[0, 1]))  # one row of corners: on one line
+    line = np.r_[row, row]  # enough corners, all on that line
+    with pytest.raises(CalibrationError, match="on one line"):
+        object_pose(None, cam, obj, detection=TargetDetection(uv[line], p_O[line], ids[line], 8))
+    bad = uv.copy()
+    bad[2] = np.nan
+    with pytest.raises(CalibrationError, match="not finite"):
+        object_pose(None, cam, obj, detection=TargetDetection(bad, p_O, ids, 8))
+    with pytest.raises(ValueError, match=r"expected uv \(N, 2\) and p_O \(N, 3\)"):
+        object_pose(None, cam, obj, detection=TargetDetection(uv, p_O[:, :2], ids, 8))

@@ -233,6 +233,8 @@ def test_too_few_corners_are_refused():
     img[:200, :] = 220
     with pytest.raises(ImageError, match=r"only \d+ ChArUco corner\(s\) seen"):
         detect_plate(img, plate, min_points=12)
+    with pytest.raises(ValueError, match="min_points: expected a whole number"):
+        detect_plate(img, plate, min_points=0)
 
 
 def test_a_board_drawing_of_a_disc_plate_or_a_board_of_an_unknown_dictionary_is_refused():

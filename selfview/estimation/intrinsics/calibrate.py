@@ -12,6 +12,7 @@ from selfview.files.cell import PlateSpec
 from selfview.errors import CalibrationError
 from selfview.estimation.intrinsics.advice import STOP_ASPECT_REL, STOP_CENTRE_PX, MAX_MORE_VIEWS, stop_met, more_views_advice
 from selfview.estimation.intrinsics.checks import halves_cross_check
+from selfview.estimation.intrinsics.plate import PLATE_MODELS
 from selfview.estimation.intrinsics.fit import (
     MIN_VIEWS, UNDETERMINED_CENTRE_PX, VIEW_MAX_RMS_PX, JointFit, sigmas_of, detect_views, fit_views, projection_sigma_px,
 )
@@ -118,6 +119,9 @@ fits it; False holds it at ``camera_guess``'s, the spec's model. ``plate_model``
         )
     if skew not in (True, False, "auto"):
         raise CalibrationError(f"intrinsics: skew={skew!r}: expected 'auto', True or False")
+    if plate_model != "auto" and plate_model not in PLATE_MODELS:
+        raise CalibrationError(f"intrinsics: plate model {plate_model!r}: expected 'auto' or one of "
+                               f"{', '.join(PLATE_MODELS)}")
     plate_why = f"{plate_model}: as asked"
     if plate_model == "auto":
         plate_model, plate_why = _choose_plate_model(dets, names, plate, camera_guess)
