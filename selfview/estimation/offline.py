@@ -239,8 +239,9 @@ def calibrate_offline(
     fitted, ``find_fingertips(..., model=True)``), 'auto' (default) the corner search, and the model
     where the corner search misses a corner in the picture (a fingertip beside a disc, a weak tip edge)
     and the model's fit holds: then the model's corners (the found ones are not mixed with them).
-    Raises ``ImageError`` (unusable picture), ``ConfigError`` (a camera for another picture size) or
-    ``CalibrationError`` (too few discs or corners, degenerate).
+    Raises ``ImageError`` (unusable picture), ``ConfigError`` (a camera for another picture size),
+    ``CalibrationError`` (too few discs or corners, degenerate) or ``ValueError`` (a ``C_H_G_guess`` that
+    is no finite (4, 4) transform).
     """
     t0 = time.perf_counter()
     timings = {}
@@ -259,6 +260,8 @@ def calibrate_offline(
 
     t = time.perf_counter()
     guess = cell.mount_guess_C_H_G if C_H_G_guess is None else np.asarray(C_H_G_guess, float)
+    if guess.shape != (4, 4) or not np.all(np.isfinite(guess)):
+        raise ValueError(f"C_H_G_guess: expected a finite (4, 4) transform, got shape {guess.shape}")
     ft, measured_by = _parked_fingertips(img, camera, predict_parked_C_H_G(ts.C_H_W, guess), cell, gap, search_px,
                                          measurement)
     timings["fingertips"] = (time.perf_counter() - t) * 1e3
