@@ -36,6 +36,7 @@ __all__ = [
     "default_cell_path",
     "aruco_dictionary",
     "fingertip_points_G",
+    "Section",
 ]
 
 #: The plate patterns ``selfview.measurement.plates.detect_plate`` measures.
@@ -55,8 +56,10 @@ POINT_NAMES: tuple[str, ...] = (
 #: The largest magnitude any number of a cell file may have (lengths in mm, angles in degrees, grey levels).
 MAX_NUMBER = 1e9
 
-class _Section:
-    """Reads one mapping of the YAML document, tracking which keys were used."""
+class Section:
+    """Reads one mapping of a YAML document (a cell file's section, an object file's), tracking which keys
+    were used: each reader checks its value and raises ``ConfigError`` naming the key path; ``done()``
+    refuses the keys no reader took."""
 
     def __init__(self, data: Any, path: str):
         if not isinstance(data, dict):
@@ -79,9 +82,9 @@ class _Section:
             return default
         return self.data[key]
 
-    def section(self, key: str, default: Any = ...) -> "_Section":
+    def section(self, key: str, default: Any = ...) -> "Section":
         v = self.raw(key, default)
-        return _Section({} if v is None else v, self._key(key))
+        return Section({} if v is None else v, self._key(key))
 
     def number(self, key: str, default: Any = ..., *, positive=False, nonneg=False, lo=None, hi=None) -> float:
         v = self.raw(key, default)
@@ -316,7 +319,7 @@ class RobotSpec:
     max_speed: float | None = None
 
 
-def _parse_robot(s: _Section, source: str) -> RobotSpec:
+def _parse_robot(s: Section, source: str) -> RobotSpec:
     base = Path(source).parent if source and not source.startswith("<") else Path(".")
 
     def path(key):
@@ -352,7 +355,7 @@ class Cell:
         return self.camera.guess()
 
 
-def _parse_camera(s: _Section) -> CameraSpec:
+def _parse_camera(s: Section) -> CameraSpec:
     spec = CameraSpec(
         model=str(s.raw("model", "")),
         width=s.integer("width", positive=True),
@@ -374,7 +377,7 @@ def _parse_camera(s: _Section) -> CameraSpec:
     return spec
 
 
-def _parse_plate(s: _Section) -> PlateSpec:
+def _parse_plate(s: Section) -> PlateSpec:
     pattern = s.string("pattern", "discs", choices=PLATE_PATTERNS)
     if pattern != "discs":
         return _parse_board(s, pattern)
@@ -399,7 +402,7 @@ def _parse_plate(s: _Section) -> PlateSpec:
     return spec
 
 
-def _parse_board(s: _Section, pattern: str) -> PlateSpec:
+def _parse_board(s: Section, pattern: str) -> PlateSpec:
     """A chessboard or ChArUco plate: ``squares: [NX, NY]``, ``square`` [mm]; ChArUco also ``marker`` [mm],
     ``dictionary`` (an OpenCV predefined one) and ``legacy_pattern``; ``size`` [mm] the sheet (default:
     the board and a square's margin round it)."""
@@ -459,7 +462,7 @@ def _check_dictionary(spec: PlateSpec) -> None:
 
 def parse_plate(data: Any) -> PlateSpec:
     """The ``plate:`` mapping of a cell or plate file, validated; raises ``ConfigError``."""
-    return _parse_plate(_Section(data, "plate"))
+    return _parse_plate(Section(data, "plate"))
 
 
 def load_plate(path) -> PlateSpec:
@@ -476,7 +479,7 @@ def load_plate(path) -> PlateSpec:
         raise ConfigError(f"{p.name}: {exc}") from None
 
 
-def _parse_gripper(s: _Section) -> GripperSpec:
+def _parse_gripper(s: Section) -> GripperSpec:
     w = s.number("finger_width", positive=True)
     t = s.number("finger_thickness", positive=True)
     L = s.number("finger_length", positive=True)
@@ -492,13 +495,13 @@ def _parse_gripper(s: _Section) -> GripperSpec:
     return GripperSpec(finger_width=w, finger_thickness=t, finger_length=L, states=states, calibrate_in=cal)
 
 
-def _parse_limit(s: _Section) -> Limit:
+def _parse_limit(s: Section) -> Limit:
     lim = Limit(angle_deg=s.number("angle_deg", positive=True), shift_mm=s.number("shift_mm", positive=True))
     s.done()
     return lim
 
 
-def _parse_monitor(s: _Section) -> MonitorLimits:
+def _parse_monitor(s: Section) -> MonitorLimits:
     up = _parse_limit(s.section("update_limit"))
     al = _parse_limit(s.section("alarm_limit"))
     rms = s.number("max_rms_px", 1.5, positive=True)
@@ -511,7 +514,7 @@ def _parse_monitor(s: _Section) -> MonitorLimits:
     return MonitorLimits(update_limit=up, alarm_limit=al, max_rms_px=rms, max_missed_frames=missed)
 
 
-def _parse_simulation(s: _Section) -> SimulationSpec:
+def _parse_simulation(s: Section) -> SimulationSpec:
     tc = s.section("true_camera")
     f = tc.number("f", positive=True)
     kappa = tc.number("kappa")
@@ -563,7 +566,7 @@ def _parse_simulation(s: _Section) -> SimulationSpec:
 
 def parse_cell(data: Any, source: str = "<memory>", sha256: str = "") -> Cell:
     """Build a ``Cell`` from an already parsed YAML mapping; raises ``ConfigError``."""
-    top = _Section(data, "")
+    top = Section(data, "")
     camera = _parse_camera(top.section("camera"))
     plate = _parse_plate(top.section("plate"))
     gripper = _parse_gripper(top.section("gripper"))

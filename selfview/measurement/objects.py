@@ -24,6 +24,7 @@ import numpy as np
 from selfview.maths.camera import CameraModel
 from selfview.errors import CalibrationError, ConfigError
 from selfview.maths.geometry import H_from_rotvec, R_from_rpy, inv_H, make_H
+from selfview.files.cell import Section
 from selfview.files.io_safe import load_yaml_file
 
 __all__ = ["TargetSpec", "ObjectSpec", "TargetDetection", "ObjectPose", "load_object", "parse_object",
@@ -33,6 +34,8 @@ __all__ = ["TargetSpec", "ObjectSpec", "TargetDetection", "ObjectPose", "load_ob
 AMBIGUITY_RATIO = 3.0
 #: A pose needs at least this many ChArUco corners (fewer cannot tell the flip apart).
 MIN_CORNERS = 6
+#: Where the simulation places the block by default: ranges of its centre ``x``, ``y`` [mm, base frame], ``yaw_deg``.
+_PLACEMENT = {"x": (330.0, 370.0), "y": (150.0, 190.0), "yaw_deg": (-20.0, 20.0)}
 _DICTIONARIES = ("DICT_4X4_50", "DICT_4X4_100", "DICT_5X5_50", "DICT_5X5_100", "DICT_6X6_50", "DICT_6X6_250")
 
 
@@ -68,7 +71,7 @@ class ObjectSpec:
     target: TargetSpec
     O_H_Gstar: np.ndarray
     approach_mm: float = 30.0
-    placement: dict = field(default_factory=lambda: {"x": (330.0, 370.0), "y": (150.0, 190.0), "yaw_deg": (-20.0, 20.0)})
+    placement: dict = field(default_factory=lambda: dict(_PLACEMENT))
     source: str = "<object>"
 
     @property
@@ -89,74 +92,64 @@ def default_object_path() -> Path:
     return Path(__file__).resolve().parents[1] / "data" / "block.yaml"
 
 
-def _number(v, what: str, lo: float, hi: float) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or not lo <= v <= hi:
-        raise ConfigError(f"{what}: expected a number in {lo:g}..{hi:g}, got {v!r}")
-    return float(v)
+def _in_range(values, key: str, lo: float, hi: float) -> tuple[float, ...]:
+    if not all(lo <= v <= hi for v in values):
+        raise ConfigError(f"{key}: expected numbers in {lo:g}..{hi:g}, got {list(values)}")
+    return tuple(values)
 
 
-def _parse_target(t, src: str) -> TargetSpec:
-    if not isinstance(t, dict):
-        raise ConfigError(f"{src}: target: expected a mapping {{pattern, squares, square, marker, dictionary}}")
-    unknown = set(t) - {"pattern", "squares", "square", "marker", "dictionary"}
-    if unknown:
-        raise ConfigError(f"{src}: target: unknown key(s) {', '.join(sorted(unknown))}")
-    if t.get("pattern", "charuco") != "charuco":
-        raise ConfigError(f"{src}: target.pattern {t.get('pattern')!r}: only 'charuco' targets are measured")
-    sq = t.get("squares")
+def _parse_target(s: Section) -> TargetSpec:
+    if s.string("pattern", "charuco") != "charuco":
+        raise ConfigError(f"object.target.pattern {s.data['pattern']!r}: only 'charuco' targets are measured")
+    sq = s.raw("squares")
     if (not isinstance(sq, list) or len(sq) != 2 or any(isinstance(n, bool) or not isinstance(n, int) or not 3 <= n <= 20
                                                          for n in sq)):
-        raise ConfigError(f"{src}: target.squares: expected [NX, NY], whole numbers 3..20, got {sq!r}")
-    square = _number(t.get("square"), f"{src}: target.square [mm]", 1.0, 200.0)
-    marker = _number(t.get("marker"), f"{src}: target.marker [mm]", 0.5, 200.0)
+        raise ConfigError(f"object.target.squares: expected [NX, NY], whole numbers 3..20, got {sq!r}")
+    square = s.number("square", lo=1.0, hi=200.0)
+    marker = s.number("marker", lo=0.5, hi=200.0)
     if marker >= square:
-        raise ConfigError(f"{src}: target.marker {marker:g} mm must be smaller than target.square {square:g} mm")
-    d = t.get("dictionary", "DICT_4X4_50")
-    if d not in _DICTIONARIES:
-        raise ConfigError(f"{src}: target.dictionary {d!r}: expected one of {', '.join(_DICTIONARIES)}")
+        raise ConfigError(f"object.target.marker {marker:g} mm must be smaller than target.square {square:g} mm")
+    d = s.string("dictionary", "DICT_4X4_50", choices=_DICTIONARIES)
+    s.done()
     return TargetSpec((int(sq[0]), int(sq[1])), square, marker, d)
 
 
-def _parse_frame(g, src: str) -> np.ndarray:
-    if not isinstance(g, dict) or set(g) - {"xyz", "rpy_deg"}:
-        raise ConfigError(f"{src}: grasp: expected {{xyz: [x, y, z] mm, rpy_deg: [roll, pitch, yaw]}} (G* in O)")
-    xyz = g.get("xyz", [0, 0, 0])
-    rpy = g.get("rpy_deg", [0, 0, 0])
-    for nm, v in (("xyz", xyz), ("rpy_deg", rpy)):
-        if not isinstance(v, list) or len(v) != 3:
-            raise ConfigError(f"{src}: grasp.{nm}: expected three numbers, got {v!r}")
-    p = [_number(v, f"{src}: grasp.xyz", -1000, 1000) for v in xyz]
-    a = [np.radians(_number(v, f"{src}: grasp.rpy_deg", -360, 360)) for v in rpy]
-    return make_H(R_from_rpy(*a), p)
+def _parse_frame(s: Section) -> np.ndarray:
+    p = _in_range(s.vector("xyz", 3, (0.0, 0.0, 0.0)), "object.grasp.xyz [mm]", -1000, 1000)
+    a = _in_range(s.vector("rpy_deg", 3, (0.0, 0.0, 0.0)), "object.grasp.rpy_deg", -360, 360)
+    s.done()
+    return make_H(R_from_rpy(*np.radians(a)), p)
 
 
 def parse_object(data, source: str = "<object>") -> ObjectSpec:
-    """An ``ObjectSpec`` from the mapping of an object file; ``ConfigError`` naming what is wrong."""
+    """An ``ObjectSpec`` from the mapping of an object file; ``ConfigError`` naming ``source`` and what is wrong."""
     if not isinstance(data, dict) or not isinstance(data.get("object"), dict):
         raise ConfigError(f"{source}: expected a mapping with an 'object' section")
-    o = data["object"]
-    unknown = set(o) - {"name", "block", "target", "grasp", "approach_mm", "placement"}
-    if unknown:
-        raise ConfigError(f"{source}: object: unknown key(s) {', '.join(sorted(unknown))}")
-    b = o.get("block")
-    if not isinstance(b, list) or len(b) != 3:
-        raise ConfigError(f"{source}: object.block: expected [x, y, height] in mm, got {b!r}")
-    block = tuple(_number(v, f"{source}: object.block [mm]", 1.0, 500.0) for v in b)
-    target = _parse_target(o.get("target"), source)
+    try:
+        return _parse_object(Section(data["object"], "object"), source)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def _parse_object(o: Section, source: str) -> ObjectSpec:
+    block = _in_range(o.vector("block", 3), "object.block [mm]", 1.0, 500.0)
+    target = _parse_target(o.section("target"))
     if target.size[0] > block[0] or target.size[1] > block[1]:
-        raise ConfigError(f"{source}: the target ({target.size[0]:g} x {target.size[1]:g} mm) does not fit on the "
+        raise ConfigError(f"the target ({target.size[0]:g} x {target.size[1]:g} mm) does not fit on the "
                           f"block's top ({block[0]:g} x {block[1]:g} mm)")
-    approach = _number(o.get("approach_mm", 30.0), f"{source}: object.approach_mm", 0.0, 300.0)
-    placement = {"x": (330.0, 370.0), "y": (150.0, 190.0), "yaw_deg": (-20.0, 20.0)}
-    for k, v in (o.get("placement") or {}).items():
-        if k not in placement or not isinstance(v, list) or len(v) != 2:
-            raise ConfigError(f"{source}: object.placement.{k}: expected one of x, y, yaw_deg as [low, high]")
-        lo, hi = (_number(x, f"{source}: object.placement.{k}", -2000, 2000) for x in v)
+    approach = o.number("approach_mm", 30.0, lo=0.0, hi=300.0)
+    placement = dict(_PLACEMENT)
+    ps = o.section("placement", None)
+    for k, default in placement.items():
+        lo, hi = _in_range(ps.vector(k, 2, default), f"object.placement.{k}", -2000, 2000)
         if lo > hi:
-            raise ConfigError(f"{source}: object.placement.{k}: low {lo:g} above high {hi:g}")
+            raise ConfigError(f"object.placement.{k}: low {lo:g} above high {hi:g}")
         placement[k] = (lo, hi)
-    return ObjectSpec(str(o.get("name", "object")), block, target, _parse_frame(o.get("grasp", {}), source),
+    ps.done()
+    spec = ObjectSpec(str(o.raw("name", "object")), block, target, _parse_frame(o.section("grasp", None)),
                       approach, placement, source)
+    o.done()
+    return spec
 
 
 def load_object(path=None) -> ObjectSpec:
