@@ -89,14 +89,18 @@ def test_the_object_pose_through_the_camera_model_matches_the_truth(cell):
     assert np.linalg.norm(flat.C_H_O[:3, 3] - pose.C_H_O[:3, 3]) > 0.01
 
 
+def _target_seen(obj, cam, C_H_O):
+    """(p_O (N, 3), exact pixels (N, 2), ids (N,)) of every corner of the object's target at ``C_H_O``."""
+    p_O = target_board(obj.target).getChessboardCorners().astype(float) - np.array([20.0, 20.0, 0.0])
+    return p_O, cam.project(transform_points(C_H_O, p_O)), np.arange(len(p_O))
+
+
 def test_a_far_frontal_target_is_ambiguous_and_refused(cell):
     obj = load_object()
     cam = cell.camera.guess()
-    board = target_board(obj.target)
-    ids = np.arange(len(board.getChessboardCorners()))
-    p_O = board.getChessboardCorners().astype(float) - np.array([20.0, 20.0, 0.0])
     C_H_O = H_from_rotvec([np.radians(1.0), 0.0, 0.0], [0.0, 0.0, 2500.0])  # 40 mm seen from 2.5 m, face on
-    uv = cam.project(transform_points(C_H_O, p_O)) + np.random.default_rng(1).normal(0, 0.1, (len(p_O), 2))
+    p_O, uv, ids = _target_seen(obj, cam, C_H_O)
+    uv = uv + np.random.default_rng(1).normal(0, 0.1, (len(p_O), 2))
     with pytest.raises(CalibrationError, match="ambiguous"):
         object_pose(None, cam, obj, detection=TargetDetection(uv, p_O, ids, 8))
 
@@ -110,11 +114,7 @@ def test_a_target_of_an_unknown_dictionary_is_a_config_error():
 def test_a_given_detection_that_cannot_fix_a_pose_is_refused_naming_why(cell):
     obj = load_object()
     cam = cell.camera.guess()
-    board = target_board(obj.target)
-    p_O = board.getChessboardCorners().astype(float) - np.array([20.0, 20.0, 0.0])
-    C_H_O = H_from_rotvec([np.radians(30.0), 0.0, 0.0], [0.0, 0.0, 200.0])
-    uv = cam.project(transform_points(C_H_O, p_O))
-    ids = np.arange(len(p_O))
+    p_O, uv, ids = _target_seen(obj, cam, H_from_rotvec([np.radians(30.0), 0.0, 0.0], [0.0, 0.0, 200.0]))
     with pytest.raises(CalibrationError, match=r"target pose: 5 corner\(s\), at least 6 needed"):
         object_pose(None, cam, obj, detection=TargetDetection(uv[:5], p_O[:5], ids[:5], 8))
     row = np.flatnonzero(np.isclose(p_O[:, 1], p_O[0, 1]))  # one row of corners: on one line
