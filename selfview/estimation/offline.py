@@ -54,6 +54,12 @@ class OfflineResult:
     timings_ms: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
 
+    def disc_residuals_px(self) -> np.ndarray:
+        """(N, 2) each disc's model projection minus the bias-corrected centre the fit used [px], in the
+        order of ``discs``: the residuals behind ``rms_px`` and ``max_px`` (Tsai's own, in pixels with the
+        camera's skew taken off as the fit took it)."""
+        return -np.asarray(self.tsai.residuals_px, float)
+
     def summary(self) -> dict:
         """The figures a person or a script reads (plain types; units in the key names)."""
         cal = self.calibration
