@@ -31,7 +31,8 @@ from selfview.measurement.discs import DiscDetections, as_gray, detect_discs, di
 from selfview.errors import ConfigError, ImageError
 
 __all__ = ["PLATE_PATTERNS", "PlateDetections", "detect_plate", "plate_image_bias", "correct_plate_bias",
-           "charuco_board", "make_charuco_board", "board_ink", "board_edges_W"]
+           "charuco_board", "make_charuco_board", "board_ink", "board_edges_W", "charuco_biased",
+           "warn_if_charuco_biased", "CHARUCO_BIASED_BEFORE"]
 
 #: The points of one picture: ``DiscDetections`` (uv, rc, p_W, ...) whatever the pattern; for a board
 #: ``area_px`` is 0, ``n_blobs`` the markers (ChArUco) or corners (chessboard) the detector reported.
@@ -156,10 +157,14 @@ def _cell_level(u8: np.ndarray, g: np.ndarray, r: int, c: int) -> float:
 CHARUCO_BIASED_BEFORE = (4, 12)
 
 
+def charuco_biased() -> bool:
+    """Whether this OpenCV's ChArUco corners carry the half-pixel bias above."""
+    return tuple(int(x) for x in cv2.__version__.split(".")[:2]) < CHARUCO_BIASED_BEFORE
+
+
 def warn_if_charuco_biased() -> None:
     """A ``UserWarning`` on an OpenCV whose ChArUco corners carry the half-pixel bias above."""
-    v = tuple(int(x) for x in cv2.__version__.split(".")[:2])
-    if v < CHARUCO_BIASED_BEFORE:
+    if charuco_biased():
         warnings.warn(f"OpenCV {cv2.__version__} places ChArUco corners about 0.5 px off (measured); the poses "
                       "from a ChArUco board carry it: use OpenCV 4.14 or newer for ChArUco", stacklevel=3)
 
