@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from selfview.maths.camera import CameraModel
-from selfview.errors import CalibrationError, ConfigError
+from selfview.errors import CalibrationError, ConfigError, ImageError
 from selfview.maths.geometry import H_from_rotvec, R_from_rpy, inv_H, make_H
 from selfview.files.cell import Section
 from selfview.files.io_safe import load_yaml_file
@@ -179,17 +179,28 @@ class TargetDetection:
     markers: int
 
 
+def _grey_u8(image) -> np.ndarray:
+    """The (H, W) uint8 grey picture of a grey, BGR or BGRA uint8 array; ``ImageError`` for anything else."""
+    a = np.asarray(image)
+    if a.ndim == 3 and a.shape[2] in (1, 3, 4) and a.size:
+        a = a[..., 0] if a.shape[2] == 1 else cv2.cvtColor(a, cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    if a.ndim != 2 or a.size == 0 or a.dtype != np.uint8:
+        raise ImageError(f"target picture: expected an 8-bit grey or BGR image, got an array of shape {np.shape(image)} "
+                         f"and dtype {a.dtype}")
+    return np.ascontiguousarray(a)
+
+
 def detect_target(image: np.ndarray, target: TargetSpec) -> TargetDetection:
     """The ChArUco corners of ``target`` in a grey picture (OpenCV's aruco API of 4.10 and later).
 
     Raises ``CalibrationError`` when the target is not seen (too few corners) or seen twice (a marker id
-    decoded more than once: two targets in view)."""
+    decoded more than once: two targets in view), ``ImageError`` for an array that is no 8-bit picture."""
     board = target_board(target)
     from selfview.measurement.plates import warn_if_charuco_biased
 
     warn_if_charuco_biased()
     detector = cv2.aruco.CharucoDetector(board)
-    img = np.ascontiguousarray(image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
+    img = _grey_u8(image)
     corners, ids, marker_corners, marker_ids = detector.detectBoard(img)
     n_markers = 0 if marker_ids is None else len(marker_ids)
     if marker_ids is not None and len(np.unique(marker_ids)) < n_markers:

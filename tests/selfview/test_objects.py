@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from selfview.errors import CalibrationError, ConfigError
+from selfview.errors import CalibrationError, ConfigError, ImageError
 from selfview.maths.geometry import H_from_rotvec, rotation_angle, transform_points
 from selfview.measurement.plates import charuco_biased
 from selfview.measurement.objects import TargetDetection, TargetSpec, detect_target, load_object, object_pose, parse_object, target_board
@@ -127,3 +127,12 @@ def test_a_given_detection_that_cannot_fix_a_pose_is_refused_naming_why(cell):
         object_pose(None, cam, obj, detection=TargetDetection(bad, p_O, ids, 8))
     with pytest.raises(ValueError, match=r"expected uv \(N, 2\) and p_O \(N, 3\)"):
         object_pose(None, cam, obj, detection=TargetDetection(uv, p_O[:, :2], ids, 8))
+
+
+def test_a_target_picture_that_is_no_8_bit_image_is_an_image_error():
+    t = load_object().target
+    for bad in (np.zeros((10,), np.uint8), np.zeros((0, 0), np.uint8), np.zeros((576, 768), np.float32), None):
+        with pytest.raises(ImageError, match="target picture: expected an 8-bit grey or BGR image"):
+            detect_target(bad, t)
+    bgr = np.repeat(_board_picture(t)[..., None], 3, axis=2)
+    assert len(detect_target(bgr, t).ids) == len(detect_target(_board_picture(t), t).ids) > 0
