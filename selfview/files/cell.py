@@ -18,7 +18,7 @@ import numpy as np
 from selfview.maths.camera import CameraModel
 from selfview.errors import ConfigError
 from selfview.maths.geometry import check_rigid
-from selfview.files.io_safe import MAX_YAML_BYTES, load_yaml, read_bounded, short_repr
+from selfview.files.io_safe import MAX_YAML_BYTES, load_yaml, load_yaml_file, read_bounded, short_repr
 
 __all__ = [
     "POINT_NAMES",
@@ -469,8 +469,7 @@ def load_plate(path) -> PlateSpec:
     """The plate of a YAML file holding a ``plate:`` section (a plate file, or a cell file: its other
     sections are not read). Raises ``ConfigError`` naming the file and what is wrong."""
     p = Path(path)
-    blob = read_bounded(p, MAX_YAML_BYTES, error=ConfigError, what="plate file", source=f"plate file {str(p)!r}")
-    data = load_yaml(blob, f"plate file {str(p)!r}", error=ConfigError, what="file")
+    data = load_yaml_file(p, error=ConfigError, what="plate file")
     if not isinstance(data, dict) or "plate" not in data:
         raise ConfigError(f"plate file {str(p)!r}: expected a mapping with a 'plate:' section")
     try:
