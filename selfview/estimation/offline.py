@@ -34,8 +34,8 @@ MIN_CONTRAST_GRAY = 20.0
 MAX_PLANE_DISAGREEMENT_DEG = 25.0
 #: A PCC residual more than this many times what the picture's own noise gives (the fingertip edges'
 #: scatter about their fitted lines, in mm at the TCP's depth) is a warning: a corner measured off its
-#: place (on a printed disc, a mark, a shadow's edge) bends the fingertip rectangle. Measured: at most 3.1
-#: times on the realistic simulated cell (6 seeds), 2.5 times out of focus.
+#: place (on a printed disc, a mark, a shadow's edge) bends the fingertip rectangle. Measured on the
+#: realistic simulated cell (seeds 0-5): at most 3.1 times, 4.9 times with the pictures 1.5 px out of focus.
 PCC_NOISE_FACTOR = 6.0
 
 
