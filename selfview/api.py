@@ -21,6 +21,8 @@ from selfview.files.calfile import Calibration, load_calibration, save_calibrati
 from selfview.maths.camera import CameraModel
 from selfview.files.cell import POINT_NAMES, Cell, default_cell_path, load_cell
 from selfview.errors import CalibrationError, ConfigError
+from selfview.estimation.online import METHODS as ONLINE_METHODS
+from selfview.estimation.online import MODEL_METHOD
 
 if TYPE_CHECKING:  # the command line reads METHODS without loading the measurement
     from selfview.measurement.fingertips import FingertipResult
@@ -32,7 +34,7 @@ __all__ = ["PictureCalibration", "TrackResult", "assess_offline", "calibrate_pic
 #: A disc residual RMS [px] above this says the picture is out of focus or badly lit.
 RMS_LIMIT_PX = 0.5
 #: what ``track`` takes as ``method``: an on-line method, the model's own estimate 'E', or the policy 'auto'
-METHODS = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R", "E", "auto")
+METHODS = (*ONLINE_METHODS, MODEL_METHOD, "auto")
 
 
 def _cell(cell) -> Cell:
@@ -269,7 +271,7 @@ def track(image, calibration, method: str = "auto", *, cell=None, state: str | N
     """
     from selfview.measurement.fingers import find_fingertips
     from selfview.estimation.offline import check_picture
-    from selfview.estimation.online import MODEL_METHOD, estimate
+    from selfview.estimation.online import estimate
     from selfview.estimation.pcc import jaw_gap_of
     from selfview.estimation.policy import Monitor
 

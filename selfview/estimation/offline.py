@@ -34,8 +34,8 @@ MIN_CONTRAST_GRAY = 20.0
 MAX_PLANE_DISAGREEMENT_DEG = 25.0
 #: A PCC residual more than this many times what the picture's own noise gives (the fingertip edges'
 #: scatter about their fitted lines, in mm at the TCP's depth) is a warning: a corner measured off its
-#: place (on a printed disc, a mark, a shadow's edge) bends the fingertip rectangle. Measured: at most 3.1
-#: times on the realistic simulated cell (6 seeds), 2.5 times out of focus.
+#: place (on a printed disc, a mark, a shadow's edge) bends the fingertip rectangle. Measured on the
+#: realistic simulated cell (seeds 0-5): at most 3.1 times, 4.9 times with the pictures 1.5 px out of focus.
 PCC_NOISE_FACTOR = 6.0
 
 
@@ -209,6 +209,15 @@ def _check_offline_args(cell: Cell, camera: CameraModel | None, points: str, mea
     return cs.guess() if camera is None else camera
 
 
+def _mount_guess(cell: Cell, C_H_G_guess) -> np.ndarray:
+    """(4, 4) where to look for the fingertips: ``C_H_G_guess``, else the cell's mount guess; ``ValueError``
+    for a guess that is no finite (4, 4) transform."""
+    guess = cell.mount_guess_C_H_G if C_H_G_guess is None else np.asarray(C_H_G_guess, float)
+    if guess.shape != (4, 4) or not np.all(np.isfinite(guess)):
+        raise ValueError(f"C_H_G_guess: expected a finite (4, 4) transform, got shape {guess.shape}")
+    return guess
+
+
 def _misses_a_corner(ft: FingertipResult) -> bool:
     """Whether the corner search left a corner unfound that is neither outside the picture nor hidden."""
     return any(not ok and not (r and (r.startswith("outside") or r.startswith("occluded")))
@@ -245,8 +254,8 @@ def calibrate_offline(
     fitted, ``find_fingertips(..., model=True)``), 'auto' (default) the corner search, and the model
     where the corner search misses a corner in the picture (a fingertip beside a disc, a weak tip edge)
     and the model's fit holds: then the model's corners (the found ones are not mixed with them).
-    Raises ``ImageError`` (unusable picture), ``ConfigError`` (a camera for another picture size) or
-    ``CalibrationError`` (too few discs or corners, degenerate).
+    Raises ``ImageError`` (unusable picture), ``ConfigError`` (a camera for another picture size),
+    ``CalibrationError`` (too few discs or corners, degenerate) or ``ValueError`` (a bad ``C_H_G_guess``).
     """
     t0 = time.perf_counter()
     timings = {}
@@ -264,7 +273,7 @@ def calibrate_offline(
     timings["tsai"] = (time.perf_counter() - t) * 1e3
 
     t = time.perf_counter()
-    guess = cell.mount_guess_C_H_G if C_H_G_guess is None else np.asarray(C_H_G_guess, float)
+    guess = _mount_guess(cell, C_H_G_guess)
     ft, measured_by = _parked_fingertips(img, camera, predict_parked_C_H_G(ts.C_H_W, guess), cell, gap, search_px,
                                          measurement)
     timings["fingertips"] = (time.perf_counter() - t) * 1e3

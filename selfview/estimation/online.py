@@ -15,7 +15,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from selfview.maths.camera import CameraModel, distort
@@ -117,8 +116,9 @@ def _estimate(label, H, H_orth, motion, res_px, N, cond, rss, names, iters, H0, 
 
 
 # --- input checks and shared pieces ------------------------------------------------------------------
-def _prepare(C_H_G, p_G, uv, camera, names, kind: str):
-    """Validated input: H (4, 4), P (N, 3), uv (N, 2) float arrays, the point names and the method label."""
+def _prepare(C_H_G, p_G, uv, camera, names, kind: str, prior_sigma_px=None):
+    """Validated input: H (4, 4), P (N, 3), uv (N, 2) float arrays (``_deskewed``), the camera the
+    estimators take, the point names and the method label."""
     if not isinstance(camera, CameraModel):
         raise TypeError(f"camera: expected a selfview.maths.camera.CameraModel, got {type(camera).__name__}")
     H = np.asarray(C_H_G, dtype=float)
@@ -147,19 +147,19 @@ def _prepare(C_H_G, p_G, uv, camera, names, kind: str):
         if bad.any():
             which = ", ".join(names[i] for i in np.flatnonzero(bad))
             raise CalibrationError(f"{label}: {what} of {which} is not finite (NaN: not found?)")
-    return H, P, uv, names, label
+    if prior_sigma_px is not None and not (math.isfinite(prior_sigma_px) and prior_sigma_px > 0.0):
+        raise ValueError(f"prior_sigma_px: expected a positive pixel noise, got {prior_sigma_px!r}")
+    uv, camera = _deskewed(uv, camera)
+    return H, P, uv, camera, names, label
 
 
 def _deskewed(uv, camera):
     """(pixels, camera) for the estimators, which take the camera's (cx, cy, aspect) alone: a camera with a
     grabber's skew becomes the same camera without it, seeing ``deskew_pixels(uv)`` (the same rays, so
-    the same motion). A camera without skew and malformed input (left to the checks) pass as they are."""
-    if not isinstance(camera, CameraModel) or not camera.skew:
+    the same motion); a camera without skew passes as it is. ``uv`` (N, 2), checked by ``_prepare``."""
+    if not camera.skew:
         return uv, camera
-    a = np.asarray(uv, dtype=float)
-    if a.ndim != 2 or a.shape[-1] != 2:
-        return uv, camera
-    return camera.deskew_pixels(a), camera.without_skew()
+    return camera.deskew_pixels(uv), camera.without_skew()
 
 
 def _point_names(names, n: int) -> tuple[str, ...]:
@@ -265,8 +265,7 @@ def differential_update(
     Raises ``CalibrationError`` for fewer than 3 points, non-finite input, points behind the camera,
     collinear points or an ill-conditioned system; ``ValueError`` for arrays of the wrong shape.
     """
-    uv, camera = _deskewed(uv, camera)
-    H0, P, uv, names, label = _prepare(C_H_G, p_G, uv, camera, names, "U")
+    H0, P, uv, camera, names, label = _prepare(C_H_G, p_G, uv, camera, names, "U", prior_sigma_px)
     f = camera.f
     XY = camera.undistort_pixels(uv)
     p_C = _camera_points(H0, P, label)  # eq. 15
@@ -304,6 +303,12 @@ def _gauss_newton(H0, H_start, P, uv, camera, names, label, tol, max_iter, prior
     """Minimise the undistorted-sensor reprojection error of the points P (N, 3) over C_H_G from
     ``H_start`` by Gauss-Newton on SE(3) (left perturbation: the motion parameters of NP-U), damped
     (Levenberg) only after a step that raised the cost. Stops when no point moves ``tol`` mm in a step."""
+    import cv2  # here, not at the top: ``METHODS`` is read by the command line, which does not load OpenCV
+
+    if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0.0):
+        raise ValueError(f"tol: expected a positive step in mm, got {tol!r}")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
+        raise ValueError(f"max_iter: expected a whole number of iterations >= 1, got {max_iter!r}")
     XY = camera.undistort_pixels(uv)
     H = H_start.copy()
     lam, best, moved = 0.0, None, math.inf
@@ -367,8 +372,7 @@ def iterative_update(
     Raises ``CalibrationError`` for fewer than 3 points, non-finite input, a mirroring ``C_H_G``, points
     behind the camera, collinear points, an ill-conditioned system or no convergence in ``max_iter`` steps.
     """
-    uv, camera = _deskewed(uv, camera)
-    H0, P, uv, names, label = _prepare(C_H_G, p_G, uv, camera, names, "I")
+    H0, P, uv, camera, names, label = _prepare(C_H_G, p_G, uv, camera, names, "I", prior_sigma_px)
     return _gauss_newton(H0, orthonormalize(H0), P, uv, camera, names, label, tol, max_iter, prior_sigma_px)
 
 
@@ -394,8 +398,9 @@ def recalibrate(
     Raises ``CalibrationError`` for fewer than 4 points, non-finite input, a mirroring ``C_H_G``,
     collinear points, no solution, an ill-conditioned system or no convergence.
     """
-    uv, camera = _deskewed(uv, camera)
-    H0, P, uv, names, label = _prepare(C_H_G, p_G, uv, camera, names, "R")
+    import cv2  # see _gauss_newton
+
+    H0, P, uv, camera, names, label = _prepare(C_H_G, p_G, uv, camera, names, "R", prior_sigma_px)
     why = _collinear_reason(P)
     if why:
         raise CalibrationError(f"{label}: {why}; the exterior orientation is undetermined")
@@ -475,6 +480,8 @@ def model_estimate(C_H_G, C_H_G_model, rms_px: float = float("nan")) -> MotionEs
     ``d_mm`` (eq. 14); ``rms_px`` the fit's residual. No points, no covariance (NaN)."""
     H0 = np.asarray(C_H_G, dtype=float)
     H = np.asarray(C_H_G_model, dtype=float)
+    if H0.shape != (4, 4) or not np.all(np.isfinite(H0)):
+        raise ValueError(f"C_H_G: expected a finite (4, 4) transform, got shape {H0.shape}")
     if H.shape != (4, 4) or not np.all(np.isfinite(H)):
         raise CalibrationError("E: the model-based measurement gave no pose (measure with the model)")
     M = H @ np.linalg.inv(H0)

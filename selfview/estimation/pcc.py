@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from selfview.maths.camera import CameraModel
-from selfview.files.cell import POINT_NAMES, GripperSpec
+from selfview.files.cell import POINT_NAMES, GripperSpec, fingertip_points_G
 from selfview.errors import CalibrationError
 
 __all__ = ["PCCResult", "solve_pcc", "measure_points_G", "points_G_for_state", "w_h_g_from_params", "jaw_gap_of"]
@@ -54,10 +54,18 @@ def solve_pcc(uv, points_G, C_H_W, camera: CameraModel, names=None) -> PCCResult
     ``uv`` (N, 2) distorted pixels of the fingertip points, ``points_G`` (N, 3) their G coordinates [mm]
     (z is their distance from the contact plane, normally 0), ``C_H_W`` (4, 4) the plate pose from camera
     calibration, ``camera`` with the calibrated f and kappa.
-    Raises ``CalibrationError`` with fewer than two points, coincident points or non-finite input.
+    Raises ``CalibrationError`` with fewer than two points, coincident points or non-finite input;
+    ``ValueError`` for arrays of the wrong shape.
     """
-    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
-    pG = np.asarray(points_G, dtype=float).reshape(-1, 3)
+    uv = np.asarray(uv, dtype=float)
+    pG = np.asarray(points_G, dtype=float)
+    H = np.asarray(C_H_W, dtype=float)
+    if uv.ndim != 2 or uv.shape[1] != 2:
+        raise ValueError(f"PCC: uv: expected shape (N, 2), got {uv.shape}")
+    if pG.ndim != 2 or pG.shape[1] != 3:
+        raise ValueError(f"PCC: points_G: expected shape (N, 3), got {pG.shape}")
+    if H.shape != (4, 4):
+        raise ValueError(f"PCC: C_H_W: expected a (4, 4) transform, got shape {H.shape}")
     names = tuple(names) if names is not None else tuple(f"p{i + 1}" for i in range(len(uv)))
     if len(uv) != len(pG) or len(names) != len(uv):
         raise CalibrationError(f"PCC: {len(uv)} pixels for {len(pG)} gripper points and {len(names)} names")
@@ -65,11 +73,13 @@ def solve_pcc(uv, points_G, C_H_W, camera: CameraModel, names=None) -> PCCResult
         raise CalibrationError(f"PCC needs at least 2 fingertip points (eq. 10), got {len(uv)}")
     if not (np.all(np.isfinite(uv)) and np.all(np.isfinite(pG))):
         raise CalibrationError("PCC: fingertip pixels or gripper points contain NaN or infinity")
+    if not np.all(np.isfinite(H)):
+        raise CalibrationError("PCC: the plate pose C_H_W contains NaN or infinity")
     spread = np.ptp(pG[:, :2], axis=0).max()
     if spread < 1e-6:
         raise CalibrationError("PCC: the gripper points coincide in the contact plane; their layout fixes no rotation")
     # eq. 8: back-projection onto the plane z_W = z_G (the planes coincide)
-    p_W, z_C = camera.backproject_to_plane(uv, C_H_W, pG[:, 2])
+    p_W, z_C = camera.backproject_to_plane(uv, H, pG[:, 2])
     # eq. 10: two rows per point in (q1, q2, s_x, s_y)
     n = len(pG)
     A = np.zeros((2 * n, 4))
@@ -85,7 +95,7 @@ def solve_pcc(uv, points_G, C_H_W, camera: CameraModel, names=None) -> PCCResult
     res = p_W[:, :2] - model
     return PCCResult(
         W_H_G=W_H_G,
-        C_H_G=np.asarray(C_H_W, float) @ W_H_G,
+        C_H_G=H @ W_H_G,
         p_W=p_W,
         z_C=z_C,
         residuals_mm=res,
@@ -105,8 +115,11 @@ def measure_points_G(p_W: np.ndarray, found: np.ndarray) -> dict[str, float]:
     Returns {'gap', 'width', 'thickness_A', 'thickness_B'} [mm] (thickness NaN where its point is missing).
     Raises ``CalibrationError`` unless all four inner points were found.
     """
-    p = np.asarray(p_W, float)[:, :2]
+    p = np.asarray(p_W, float)
     found = np.asarray(found, bool)
+    if p.ndim != 2 or p.shape[0] != len(POINT_NAMES) or p.shape[1] not in (2, 3) or found.shape != (len(POINT_NAMES),):
+        raise ValueError(f"measuring the gripper: expected p_W (6, 3) and found (6,), got {p.shape} and {found.shape}")
+    p = p[:, :2]
     if not found[:4].all():
         missing = [POINT_NAMES[i] for i in range(4) if not found[i]]
         raise CalibrationError(f"measuring the gripper needs the four inner points; missing {', '.join(missing)}")
@@ -135,15 +148,5 @@ def points_G_for_state(dims: dict[str, float], measured_state: str, gripper: Gri
     tB = dims["thickness_B"] if np.isfinite(dims.get("thickness_B", np.nan)) else t_nom
     w = dims["width"]
     for state, g_nom in gripper.states.items():
-        g = dims["gap"] + (g_nom - gripper.gap(measured_state))
-        out[state] = np.array(
-            [
-                [g / 2, -w / 2, 0.0],
-                [g / 2, w / 2, 0.0],
-                [-g / 2, -w / 2, 0.0],
-                [-g / 2, w / 2, 0.0],
-                [g / 2 + tA, -w / 2, 0.0],
-                [-g / 2 - tB, -w / 2, 0.0],
-            ]
-        )
+        out[state] = fingertip_points_G(dims["gap"] + (g_nom - gripper.gap(measured_state)), w, tA, tB)
     return out

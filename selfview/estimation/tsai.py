@@ -19,7 +19,7 @@ import numpy as np
 
 from selfview.maths.camera import CameraModel, distort
 from selfview.errors import CalibrationError, CalibrationFileError, ConfigError
-from selfview.maths.geometry import R_from_rotvec, R_from_rpy, make_H, transform_points
+from selfview.maths.geometry import R_from_rotvec, R_from_rpy, cross_rows, make_H, so3_left_jacobian, transform_points
 from selfview.files.io_safe import parse_number, read_bounded
 from selfview.maths.lm import covariance, levenberg_marquardt
 
@@ -316,15 +316,6 @@ def _refine_tsai(model: _FTzKappa, f, tz, kappa, willson: bool):
     return levenberg_marquardt(model.residuals, [f, tz, kappa], model.jacobian, ftol=INIT_FTOL, xtol=INIT_XTOL)
 
 
-def so3_left_jacobian(omega: np.ndarray) -> np.ndarray:
-    """Left Jacobian of SO(3) at rotation vector ``omega``: exp(omega + d) = exp(J_l d) exp(omega)."""
-    th = float(np.linalg.norm(omega))
-    K = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
-    if th < 1e-8:
-        return np.eye(3) + 0.5 * K
-    return np.eye(3) + (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * (K @ K)
-
-
 class _FullModel:
     """Stage 5b's model: parameters x = (omega (3), t (3) [mm], f [px], kappa [px^-2] [, cx, cy]) with
     R = exp(omega) R0; residuals in distorted pixels, model minus observation (u of all points, then
@@ -389,15 +380,6 @@ def _refine_full(p_W, uv, R0, t0, f, kappa, cx, cy, aspect, free_centre):
         model.residuals, x0, model.jacobian, ftol=FULL_FTOL, xtol=FULL_XTOL, max_nfev=FULL_MAX_NFEV
     )
     return res, R_from_rotvec(res.x[:3]) @ R0
-
-
-def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of (N, 3) arrays (np.cross costs more than the arithmetic here)."""
-    return np.column_stack([
-        a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
-        a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-        a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
-    ])
 
 
 def _project_full(q, x, cx, cy, aspect, free_centre):

@@ -18,7 +18,7 @@ import numpy as np
 from selfview.maths.camera import CameraModel
 from selfview.errors import ConfigError
 from selfview.maths.geometry import check_rigid
-from selfview.files.io_safe import MAX_YAML_BYTES, load_yaml, read_bounded, short_repr
+from selfview.files.io_safe import MAX_YAML_BYTES, load_yaml, load_yaml_file, read_bounded, short_repr
 
 __all__ = [
     "POINT_NAMES",
@@ -34,11 +34,14 @@ __all__ = [
     "load_cell",
     "parse_cell",
     "default_cell_path",
+    "aruco_dictionary",
+    "fingertip_points_G",
+    "Section",
 ]
 
-#: The six fingertip calibration points of CONVENTIONS.md, in their order.
 #: The plate patterns ``selfview.measurement.plates.detect_plate`` measures.
 PLATE_PATTERNS = ("discs", "chessboard", "charuco")
+#: The six fingertip calibration points of CONVENTIONS.md, in their order.
 POINT_NAMES: tuple[str, ...] = (
     "A-inner-front",
     "A-inner-back",
@@ -53,8 +56,10 @@ POINT_NAMES: tuple[str, ...] = (
 #: The largest magnitude any number of a cell file may have (lengths in mm, angles in degrees, grey levels).
 MAX_NUMBER = 1e9
 
-class _Section:
-    """Reads one mapping of the YAML document, tracking which keys were used."""
+class Section:
+    """Reads one mapping of a YAML document (a cell file's section, an object file's), tracking which keys
+    were used: each reader checks its value and raises ``ConfigError`` naming the key path; ``done()``
+    refuses the keys no reader took."""
 
     def __init__(self, data: Any, path: str):
         if not isinstance(data, dict):
@@ -77,9 +82,9 @@ class _Section:
             return default
         return self.data[key]
 
-    def section(self, key: str, default: Any = ...) -> "_Section":
+    def section(self, key: str, default: Any = ...) -> "Section":
         v = self.raw(key, default)
-        return _Section({} if v is None else v, self._key(key))
+        return Section({} if v is None else v, self._key(key))
 
     def number(self, key: str, default: Any = ..., *, positive=False, nonneg=False, lo=None, hi=None) -> float:
         v = self.raw(key, default)
@@ -214,6 +219,22 @@ class PlateSpec:
         return np.column_stack([x, y, np.zeros_like(x)])
 
 
+def fingertip_points_G(gap: float, width: float, thickness_A: float, thickness_B: float) -> np.ndarray:
+    """(6, 3) the fingertip points in G [mm], in the order of ``POINT_NAMES`` (CONVENTIONS.md), for a jaw
+    ``gap``, finger ``width`` and the fingers' thicknesses [mm]."""
+    g, w = gap, width
+    return np.array(
+        [
+            [g / 2, -w / 2, 0.0],
+            [g / 2, w / 2, 0.0],
+            [-g / 2, -w / 2, 0.0],
+            [-g / 2, w / 2, 0.0],
+            [g / 2 + thickness_A, -w / 2, 0.0],
+            [-g / 2 - thickness_B, -w / 2, 0.0],
+        ]
+    )
+
+
 @dataclass(frozen=True)
 class GripperSpec:
     finger_width: float
@@ -231,17 +252,7 @@ class GripperSpec:
     def points_G(self, state: str | None = None, gap: float | None = None) -> np.ndarray:
         """(6, 3) nominal fingertip points in G [mm], in the order of ``POINT_NAMES``."""
         g = self.gap(state or self.calibrate_in) if gap is None else float(gap)
-        w, t = self.finger_width, self.finger_thickness
-        return np.array(
-            [
-                [g / 2, -w / 2, 0.0],
-                [g / 2, w / 2, 0.0],
-                [-g / 2, -w / 2, 0.0],
-                [-g / 2, w / 2, 0.0],
-                [g / 2 + t, -w / 2, 0.0],
-                [-g / 2 - t, -w / 2, 0.0],
-            ]
-        )
+        return fingertip_points_G(g, self.finger_width, self.finger_thickness, self.finger_thickness)
 
     def finger_boxes_G(self, gap: float) -> list[tuple[np.ndarray, np.ndarray]]:
         """[(min corner, max corner)] of fingers A and B in G [mm] for a jaw gap."""
@@ -308,7 +319,7 @@ class RobotSpec:
     max_speed: float | None = None
 
 
-def _parse_robot(s: _Section, source: str) -> RobotSpec:
+def _parse_robot(s: Section, source: str) -> RobotSpec:
     base = Path(source).parent if source and not source.startswith("<") else Path(".")
 
     def path(key):
@@ -344,7 +355,7 @@ class Cell:
         return self.camera.guess()
 
 
-def _parse_camera(s: _Section) -> CameraSpec:
+def _parse_camera(s: Section) -> CameraSpec:
     spec = CameraSpec(
         model=str(s.raw("model", "")),
         width=s.integer("width", positive=True),
@@ -366,7 +377,7 @@ def _parse_camera(s: _Section) -> CameraSpec:
     return spec
 
 
-def _parse_plate(s: _Section) -> PlateSpec:
+def _parse_plate(s: Section) -> PlateSpec:
     pattern = s.string("pattern", "discs", choices=PLATE_PATTERNS)
     if pattern != "discs":
         return _parse_board(s, pattern)
@@ -391,7 +402,7 @@ def _parse_plate(s: _Section) -> PlateSpec:
     return spec
 
 
-def _parse_board(s: _Section, pattern: str) -> PlateSpec:
+def _parse_board(s: Section, pattern: str) -> PlateSpec:
     """A chessboard or ChArUco plate: ``squares: [NX, NY]``, ``square`` [mm]; ChArUco also ``marker`` [mm],
     ``dictionary`` (an OpenCV predefined one) and ``legacy_pattern``; ``size`` [mm] the sheet (default:
     the board and a square's margin round it)."""
@@ -424,17 +435,25 @@ def _parse_board(s: _Section, pattern: str) -> PlateSpec:
     return spec
 
 
+def aruco_dictionary(name: str, what: str = "plate.dictionary") -> int:
+    """OpenCV's code of the predefined ArUco dictionary ``name`` ('DICT_4X4_50', ...); ``ConfigError``
+    naming ``what`` and the known names for any other."""
+    import cv2
+
+    code = getattr(cv2.aruco, name, None) if isinstance(name, str) and name.startswith("DICT_") else None
+    if not isinstance(code, int):
+        known = sorted(k for k in dir(cv2.aruco) if k.startswith("DICT_"))
+        raise ConfigError(f"{what}: {name!r} is not an OpenCV predefined dictionary; expected one of "
+                          f"{', '.join(known)}")
+    return code
+
+
 def _check_dictionary(spec: PlateSpec) -> None:
     """The ChArUco plate's dictionary is an OpenCV predefined one holding the board's markers."""
     import cv2
 
     name = spec.dictionary
-    code = getattr(cv2.aruco, name, None) if name.startswith("DICT_") else None
-    if not isinstance(code, int):
-        known = sorted(k for k in dir(cv2.aruco) if k.startswith("DICT_"))
-        raise ConfigError(f"plate.dictionary: {name!r} is not an OpenCV predefined dictionary; expected one of "
-                          f"{', '.join(known)}")
-    size = cv2.aruco.getPredefinedDictionary(code).bytesList.shape[0]
+    size = cv2.aruco.getPredefinedDictionary(aruco_dictionary(name)).bytesList.shape[0]
     need = spec.squares[0] * spec.squares[1] // 2
     if size < need:
         raise ConfigError(f"plate.dictionary: {name} holds {size} markers; a {spec.squares[0]}x{spec.squares[1]} "
@@ -443,15 +462,14 @@ def _check_dictionary(spec: PlateSpec) -> None:
 
 def parse_plate(data: Any) -> PlateSpec:
     """The ``plate:`` mapping of a cell or plate file, validated; raises ``ConfigError``."""
-    return _parse_plate(_Section(data, "plate"))
+    return _parse_plate(Section(data, "plate"))
 
 
 def load_plate(path) -> PlateSpec:
     """The plate of a YAML file holding a ``plate:`` section (a plate file, or a cell file: its other
     sections are not read). Raises ``ConfigError`` naming the file and what is wrong."""
     p = Path(path)
-    blob = read_bounded(p, MAX_YAML_BYTES, error=ConfigError, what="plate file", source=f"plate file {str(p)!r}")
-    data = load_yaml(blob, f"plate file {str(p)!r}", error=ConfigError, what="file")
+    data = load_yaml_file(p, error=ConfigError, what="plate file")
     if not isinstance(data, dict) or "plate" not in data:
         raise ConfigError(f"plate file {str(p)!r}: expected a mapping with a 'plate:' section")
     try:
@@ -460,7 +478,7 @@ def load_plate(path) -> PlateSpec:
         raise ConfigError(f"{p.name}: {exc}") from None
 
 
-def _parse_gripper(s: _Section) -> GripperSpec:
+def _parse_gripper(s: Section) -> GripperSpec:
     w = s.number("finger_width", positive=True)
     t = s.number("finger_thickness", positive=True)
     L = s.number("finger_length", positive=True)
@@ -476,13 +494,13 @@ def _parse_gripper(s: _Section) -> GripperSpec:
     return GripperSpec(finger_width=w, finger_thickness=t, finger_length=L, states=states, calibrate_in=cal)
 
 
-def _parse_limit(s: _Section) -> Limit:
+def _parse_limit(s: Section) -> Limit:
     lim = Limit(angle_deg=s.number("angle_deg", positive=True), shift_mm=s.number("shift_mm", positive=True))
     s.done()
     return lim
 
 
-def _parse_monitor(s: _Section) -> MonitorLimits:
+def _parse_monitor(s: Section) -> MonitorLimits:
     up = _parse_limit(s.section("update_limit"))
     al = _parse_limit(s.section("alarm_limit"))
     rms = s.number("max_rms_px", 1.5, positive=True)
@@ -495,7 +513,7 @@ def _parse_monitor(s: _Section) -> MonitorLimits:
     return MonitorLimits(update_limit=up, alarm_limit=al, max_rms_px=rms, max_missed_frames=missed)
 
 
-def _parse_simulation(s: _Section) -> SimulationSpec:
+def _parse_simulation(s: Section) -> SimulationSpec:
     tc = s.section("true_camera")
     f = tc.number("f", positive=True)
     kappa = tc.number("kappa")
@@ -547,7 +565,7 @@ def _parse_simulation(s: _Section) -> SimulationSpec:
 
 def parse_cell(data: Any, source: str = "<memory>", sha256: str = "") -> Cell:
     """Build a ``Cell`` from an already parsed YAML mapping; raises ``ConfigError``."""
-    top = _Section(data, "")
+    top = Section(data, "")
     camera = _parse_camera(top.section("camera"))
     plate = _parse_plate(top.section("plate"))
     gripper = _parse_gripper(top.section("gripper"))

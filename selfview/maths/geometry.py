@@ -37,6 +37,8 @@ __all__ = [
     "transform_points",
     "rotation_angle",
     "pose_difference",
+    "so3_left_jacobian",
+    "cross_rows",
 ]
 
 
@@ -327,3 +329,21 @@ def pose_difference(A_H_B, A_H_B_ref) -> tuple[float, float]:
     B = np.asarray(A_H_B_ref, dtype=float)
     dR = orthonormalize(A[:3, :3]) @ B[:3, :3].T
     return float(np.degrees(rotation_angle(dR))), float(np.linalg.norm(A[:3, 3] - B[:3, 3]))
+
+
+def so3_left_jacobian(omega: np.ndarray) -> np.ndarray:
+    """Left Jacobian of SO(3) at rotation vector ``omega``: exp(omega + d) = exp(J_l d) exp(omega)."""
+    th = float(np.linalg.norm(omega))
+    K = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
+    if th < 1e-8:
+        return np.eye(3) + 0.5 * K
+    return np.eye(3) + (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * (K @ K)
+
+
+def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (N, 3) arrays (np.cross costs more than the arithmetic here)."""
+    return np.column_stack([
+        a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+        a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+        a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
+    ])

@@ -69,7 +69,9 @@ def _pose_from_corners(pred: PredictedFingers, res: FingertipResult):
         return None
 
 
-def fit_result(fit, searched: FingertipResult | None, points) -> FingertipResult:
+def fit_result(fit, points) -> FingertipResult:
+    """The ``FingertipResult`` of a silhouette fit for the requested ``points``: the model's corners where
+    the fit holds, else every point not found with the fit's reason (``lost``)."""
     want = {int(k) for k in points}
     if fit.ok:
         reasons = [None if fit.found[k] else (fit.reasons[k] or "not found") for k in range(6)]
@@ -92,11 +94,13 @@ def model_measurement(image, camera, C_H_G_pred, gripper, gap_mm, points=range(6
     or more corners, from the pose they give; the believed fit with the larger share of good samples
     wins. Returns (FingertipResult, SilhouetteFit)."""
     return measure_model(image, PredictedFingers(camera, C_H_G_pred, gripper, gap_mm), points, searched,
-                              appearance, starts, rounds)
+                         appearance, starts, rounds)
 
 
 def measure_model(image, pred: PredictedFingers, points=range(6), searched=None, appearance=None, starts=None,
-                       rounds=None):
+                  rounds=None):
+    """``model_measurement`` from a ``PredictedFingers``: fits from ``starts`` (default the prediction),
+    the corners' pose of ``searched`` first; returns (FingertipResult, SilhouetteFit)."""
     cands = list(starts) if starts is not None else [pred.C_H_G]
     if searched is not None:
         H = _pose_from_corners(pred, searched)
@@ -116,7 +120,7 @@ def measure_model(image, pred: PredictedFingers, points=range(6), searched=None,
             best = fit
         if fit.ok and fit.good_fraction > 0.8:
             break
-    return fit_result(best, searched, points), best
+    return fit_result(best, points), best
 
 
 WIDE_ROUNDS = (60.0, 24.0, 10.0, 5.0, 3.0)  # a search's fit from a start that may be far off [px]
@@ -196,7 +200,7 @@ class SilhouetteTracker:
                 self._take(fit, gap_mm)
                 self.tracked_frames += 1
                 self.last_failure = None
-                res = fit_result(fit, None, self.points)
+                res = fit_result(fit, self.points)
                 res.tracked = True
                 return res
             why = fit.reason
@@ -208,7 +212,7 @@ class SilhouetteTracker:
             # the corner search's pose (three corners or more), and fits reaching as far as it searches
             searched = search_corners(img, pred, self.search_px, range(6))
             res2, fit2 = measure_model(img, pred, self.points, searched=searched, appearance=self._app,
-                                            starts=[], rounds=WIDE_ROUNDS)
+                                       starts=[], rounds=WIDE_ROUNDS)
             if fit2.ok:
                 res, fit = res2, fit2
         self.searches += 1

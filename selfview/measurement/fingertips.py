@@ -728,7 +728,11 @@ def _move_poly(cam, poly, fit: _Fit) -> np.ndarray:
 
 
 def search_corners(image, pred: PredictedFingers, search_px, points):
-    """The corner search of ``find_fingertips``: a ``FingertipResult``."""
+    """The corner search of ``find_fingertips``: a ``FingertipResult``. ``ValueError`` for a ``search_px``
+    that is not a positive number of pixels or ``points`` outside 0..5."""
+    if isinstance(search_px, bool) or not isinstance(search_px, (int, float, np.number)) \
+            or not (math.isfinite(search_px) and search_px > 0):
+        raise ValueError(f"search_px: expected a positive number of pixels, got {search_px!r}")
     camera = pred.camera
     img = as_gray(image, camera)
     model = _Model(pred)

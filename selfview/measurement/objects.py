@@ -22,8 +22,9 @@ import cv2
 import numpy as np
 
 from selfview.maths.camera import CameraModel
-from selfview.errors import CalibrationError, ConfigError
+from selfview.errors import CalibrationError, ConfigError, ImageError
 from selfview.maths.geometry import H_from_rotvec, R_from_rpy, inv_H, make_H
+from selfview.files.cell import Section
 from selfview.files.io_safe import load_yaml_file
 
 __all__ = ["TargetSpec", "ObjectSpec", "TargetDetection", "ObjectPose", "load_object", "parse_object",
@@ -33,6 +34,8 @@ __all__ = ["TargetSpec", "ObjectSpec", "TargetDetection", "ObjectPose", "load_ob
 AMBIGUITY_RATIO = 3.0
 #: A pose needs at least this many ChArUco corners (fewer cannot tell the flip apart).
 MIN_CORNERS = 6
+#: Where the simulation places the block by default: ranges of its centre ``x``, ``y`` [mm, base frame], ``yaw_deg``.
+_PLACEMENT = {"x": (330.0, 370.0), "y": (150.0, 190.0), "yaw_deg": (-20.0, 20.0)}
 _DICTIONARIES = ("DICT_4X4_50", "DICT_4X4_100", "DICT_5X5_50", "DICT_5X5_100", "DICT_6X6_50", "DICT_6X6_250")
 
 
@@ -68,7 +71,7 @@ class ObjectSpec:
     target: TargetSpec
     O_H_Gstar: np.ndarray
     approach_mm: float = 30.0
-    placement: dict = field(default_factory=lambda: {"x": (330.0, 370.0), "y": (150.0, 190.0), "yaw_deg": (-20.0, 20.0)})
+    placement: dict = field(default_factory=lambda: dict(_PLACEMENT))
     source: str = "<object>"
 
     @property
@@ -89,74 +92,64 @@ def default_object_path() -> Path:
     return Path(__file__).resolve().parents[1] / "data" / "block.yaml"
 
 
-def _number(v, what: str, lo: float, hi: float) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or not lo <= v <= hi:
-        raise ConfigError(f"{what}: expected a number in {lo:g}..{hi:g}, got {v!r}")
-    return float(v)
+def _in_range(values, key: str, lo: float, hi: float) -> tuple[float, ...]:
+    if not all(lo <= v <= hi for v in values):
+        raise ConfigError(f"{key}: expected numbers in {lo:g}..{hi:g}, got {list(values)}")
+    return tuple(values)
 
 
-def _parse_target(t, src: str) -> TargetSpec:
-    if not isinstance(t, dict):
-        raise ConfigError(f"{src}: target: expected a mapping {{pattern, squares, square, marker, dictionary}}")
-    unknown = set(t) - {"pattern", "squares", "square", "marker", "dictionary"}
-    if unknown:
-        raise ConfigError(f"{src}: target: unknown key(s) {', '.join(sorted(unknown))}")
-    if t.get("pattern", "charuco") != "charuco":
-        raise ConfigError(f"{src}: target.pattern {t.get('pattern')!r}: only 'charuco' targets are measured")
-    sq = t.get("squares")
+def _parse_target(s: Section) -> TargetSpec:
+    if s.string("pattern", "charuco") != "charuco":
+        raise ConfigError(f"object.target.pattern {s.data['pattern']!r}: only 'charuco' targets are measured")
+    sq = s.raw("squares")
     if (not isinstance(sq, list) or len(sq) != 2 or any(isinstance(n, bool) or not isinstance(n, int) or not 3 <= n <= 20
                                                          for n in sq)):
-        raise ConfigError(f"{src}: target.squares: expected [NX, NY], whole numbers 3..20, got {sq!r}")
-    square = _number(t.get("square"), f"{src}: target.square [mm]", 1.0, 200.0)
-    marker = _number(t.get("marker"), f"{src}: target.marker [mm]", 0.5, 200.0)
+        raise ConfigError(f"object.target.squares: expected [NX, NY], whole numbers 3..20, got {sq!r}")
+    square = s.number("square", lo=1.0, hi=200.0)
+    marker = s.number("marker", lo=0.5, hi=200.0)
     if marker >= square:
-        raise ConfigError(f"{src}: target.marker {marker:g} mm must be smaller than target.square {square:g} mm")
-    d = t.get("dictionary", "DICT_4X4_50")
-    if d not in _DICTIONARIES:
-        raise ConfigError(f"{src}: target.dictionary {d!r}: expected one of {', '.join(_DICTIONARIES)}")
+        raise ConfigError(f"object.target.marker {marker:g} mm must be smaller than target.square {square:g} mm")
+    d = s.string("dictionary", "DICT_4X4_50", choices=_DICTIONARIES)
+    s.done()
     return TargetSpec((int(sq[0]), int(sq[1])), square, marker, d)
 
 
-def _parse_frame(g, src: str) -> np.ndarray:
-    if not isinstance(g, dict) or set(g) - {"xyz", "rpy_deg"}:
-        raise ConfigError(f"{src}: grasp: expected {{xyz: [x, y, z] mm, rpy_deg: [roll, pitch, yaw]}} (G* in O)")
-    xyz = g.get("xyz", [0, 0, 0])
-    rpy = g.get("rpy_deg", [0, 0, 0])
-    for nm, v in (("xyz", xyz), ("rpy_deg", rpy)):
-        if not isinstance(v, list) or len(v) != 3:
-            raise ConfigError(f"{src}: grasp.{nm}: expected three numbers, got {v!r}")
-    p = [_number(v, f"{src}: grasp.xyz", -1000, 1000) for v in xyz]
-    a = [np.radians(_number(v, f"{src}: grasp.rpy_deg", -360, 360)) for v in rpy]
-    return make_H(R_from_rpy(*a), p)
+def _parse_frame(s: Section) -> np.ndarray:
+    p = _in_range(s.vector("xyz", 3, (0.0, 0.0, 0.0)), "object.grasp.xyz [mm]", -1000, 1000)
+    a = _in_range(s.vector("rpy_deg", 3, (0.0, 0.0, 0.0)), "object.grasp.rpy_deg", -360, 360)
+    s.done()
+    return make_H(R_from_rpy(*np.radians(a)), p)
 
 
 def parse_object(data, source: str = "<object>") -> ObjectSpec:
-    """An ``ObjectSpec`` from the mapping of an object file; ``ConfigError`` naming what is wrong."""
+    """An ``ObjectSpec`` from the mapping of an object file; ``ConfigError`` naming ``source`` and what is wrong."""
     if not isinstance(data, dict) or not isinstance(data.get("object"), dict):
         raise ConfigError(f"{source}: expected a mapping with an 'object' section")
-    o = data["object"]
-    unknown = set(o) - {"name", "block", "target", "grasp", "approach_mm", "placement"}
-    if unknown:
-        raise ConfigError(f"{source}: object: unknown key(s) {', '.join(sorted(unknown))}")
-    b = o.get("block")
-    if not isinstance(b, list) or len(b) != 3:
-        raise ConfigError(f"{source}: object.block: expected [x, y, height] in mm, got {b!r}")
-    block = tuple(_number(v, f"{source}: object.block [mm]", 1.0, 500.0) for v in b)
-    target = _parse_target(o.get("target"), source)
+    try:
+        return _parse_object(Section(data["object"], "object"), source)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def _parse_object(o: Section, source: str) -> ObjectSpec:
+    block = _in_range(o.vector("block", 3), "object.block [mm]", 1.0, 500.0)
+    target = _parse_target(o.section("target"))
     if target.size[0] > block[0] or target.size[1] > block[1]:
-        raise ConfigError(f"{source}: the target ({target.size[0]:g} x {target.size[1]:g} mm) does not fit on the "
+        raise ConfigError(f"the target ({target.size[0]:g} x {target.size[1]:g} mm) does not fit on the "
                           f"block's top ({block[0]:g} x {block[1]:g} mm)")
-    approach = _number(o.get("approach_mm", 30.0), f"{source}: object.approach_mm", 0.0, 300.0)
-    placement = {"x": (330.0, 370.0), "y": (150.0, 190.0), "yaw_deg": (-20.0, 20.0)}
-    for k, v in (o.get("placement") or {}).items():
-        if k not in placement or not isinstance(v, list) or len(v) != 2:
-            raise ConfigError(f"{source}: object.placement.{k}: expected one of x, y, yaw_deg as [low, high]")
-        lo, hi = (_number(x, f"{source}: object.placement.{k}", -2000, 2000) for x in v)
+    approach = o.number("approach_mm", 30.0, lo=0.0, hi=300.0)
+    placement = dict(_PLACEMENT)
+    ps = o.section("placement", None)
+    for k, default in placement.items():
+        lo, hi = _in_range(ps.vector(k, 2, default), f"object.placement.{k}", -2000, 2000)
         if lo > hi:
-            raise ConfigError(f"{source}: object.placement.{k}: low {lo:g} above high {hi:g}")
+            raise ConfigError(f"object.placement.{k}: low {lo:g} above high {hi:g}")
         placement[k] = (lo, hi)
-    return ObjectSpec(str(o.get("name", "object")), block, target, _parse_frame(o.get("grasp", {}), source),
+    ps.done()
+    spec = ObjectSpec(str(o.raw("name", "object")), block, target, _parse_frame(o.section("grasp", None)),
                       approach, placement, source)
+    o.done()
+    return spec
 
 
 def load_object(path=None) -> ObjectSpec:
@@ -167,9 +160,12 @@ def load_object(path=None) -> ObjectSpec:
 
 # --- the target in a picture -------------------------------------------------------------------------
 def target_board(target: TargetSpec):
-    """The ``cv2.aruco.CharucoBoard`` of ``target`` (board frame: origin at a corner, units mm)."""
-    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, target.dictionary))
-    return cv2.aruco.CharucoBoard(tuple(target.squares), float(target.square), float(target.marker), dictionary)
+    """The ``cv2.aruco.CharucoBoard`` of ``target`` (board frame: origin at a corner, units mm; shared, do
+    not modify it)."""
+    from selfview.measurement.plates import make_charuco_board
+
+    return make_charuco_board(tuple(target.squares), target.square, target.marker, target.dictionary,
+                              what="target.dictionary")
 
 
 @dataclass(frozen=True)
@@ -183,17 +179,28 @@ class TargetDetection:
     markers: int
 
 
+def _grey_u8(image) -> np.ndarray:
+    """The (H, W) uint8 grey picture of a grey, BGR or BGRA uint8 array; ``ImageError`` for anything else."""
+    a = np.asarray(image)
+    if a.ndim == 3 and a.shape[2] in (1, 3, 4) and a.size:
+        a = a[..., 0] if a.shape[2] == 1 else cv2.cvtColor(a, cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    if a.ndim != 2 or a.size == 0 or a.dtype != np.uint8:
+        raise ImageError(f"target picture: expected an 8-bit grey or BGR image, got an array of shape {np.shape(image)} "
+                         f"and dtype {a.dtype}")
+    return np.ascontiguousarray(a)
+
+
 def detect_target(image: np.ndarray, target: TargetSpec) -> TargetDetection:
     """The ChArUco corners of ``target`` in a grey picture (OpenCV's aruco API of 4.10 and later).
 
     Raises ``CalibrationError`` when the target is not seen (too few corners) or seen twice (a marker id
-    decoded more than once: two targets in view)."""
+    decoded more than once: two targets in view), ``ImageError`` for an array that is no 8-bit picture."""
     board = target_board(target)
     from selfview.measurement.plates import warn_if_charuco_biased
 
     warn_if_charuco_biased()
     detector = cv2.aruco.CharucoDetector(board)
-    img = np.ascontiguousarray(image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
+    img = _grey_u8(image)
     corners, ids, marker_corners, marker_ids = detector.detectBoard(img)
     n_markers = 0 if marker_ids is None else len(marker_ids)
     if marker_ids is not None and len(np.unique(marker_ids)) < n_markers:
@@ -235,15 +242,33 @@ def _residual_px(rv, tv, p_O, xy, f: float) -> float:
     return float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - xy) ** 2, axis=1)))) * f
 
 
+def _check_detection(det: TargetDetection) -> None:
+    """A detection the pose can rest on: (N, 2) pixels and (N, 3) points, finite, at least ``MIN_CORNERS``,
+    not on one line."""
+    uv, p = np.asarray(det.uv, float), np.asarray(det.p_O, float)
+    if uv.ndim != 2 or uv.shape[1] != 2 or p.shape != (len(uv), 3):
+        raise ValueError(f"target detection: expected uv (N, 2) and p_O (N, 3), got {uv.shape} and {p.shape}")
+    if len(uv) < MIN_CORNERS:
+        raise CalibrationError(f"target pose: {len(uv)} corner(s), at least {MIN_CORNERS} needed")
+    if not (np.all(np.isfinite(uv)) and np.all(np.isfinite(p))):
+        raise CalibrationError("target pose: a corner's pixel or target point is not finite")
+    s = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
+    if not s[1] > 1e-2 * s[0]:
+        raise CalibrationError("target pose: the corners lie on one line; they do not fix the pose")
+
+
 def object_pose(image: np.ndarray, camera: CameraModel, obj: ObjectSpec | TargetSpec,
                 detection: TargetDetection | None = None) -> ObjectPose:
     """``C_H_O`` of the object's target in ``image`` through ``camera`` (eq. 3-4: the corners undistorted
     by the camera model, then IPPE on the normalised rays and a Levenberg-Marquardt refinement).
 
-    Raises ``CalibrationError``: target not seen or seen twice (``detect_target``), or ambiguous (IPPE's
-    flipped solution fits within ``AMBIGUITY_RATIO`` times the chosen one's residual)."""
+    Raises ``CalibrationError``: target not seen or seen twice (``detect_target``), a given ``detection``
+    with fewer than ``MIN_CORNERS`` corners, non-finite ones or corners on one line, or ambiguous (IPPE's
+    flipped solution fits within ``AMBIGUITY_RATIO`` times the chosen one's residual); ``ValueError`` for a
+    ``detection`` whose arrays do not match ((N, 2) pixels, (N, 3) points)."""
     target = obj.target if isinstance(obj, ObjectSpec) else obj
     det = detection if detection is not None else detect_target(image, target)
+    _check_detection(det)
     f = float(camera.f)
     xy = camera.undistort_pixels(det.uv) / f  # normalised, distortion-free (X / f, Y / f)
     p = np.ascontiguousarray(det.p_O, np.float64)

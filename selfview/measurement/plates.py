@@ -26,12 +26,13 @@ import cv2
 import numpy as np
 
 from selfview.maths.camera import CameraModel
-from selfview.files.cell import PLATE_PATTERNS, PlateSpec
+from selfview.files.cell import PLATE_PATTERNS, PlateSpec, aruco_dictionary
 from selfview.measurement.discs import DiscDetections, as_gray, detect_discs, disc_image_bias
 from selfview.errors import ConfigError, ImageError
 
 __all__ = ["PLATE_PATTERNS", "PlateDetections", "detect_plate", "plate_image_bias", "correct_plate_bias",
-           "charuco_board", "board_ink", "board_edges_W"]
+           "charuco_board", "make_charuco_board", "board_ink", "board_edges_W", "charuco_biased",
+           "warn_if_charuco_biased", "CHARUCO_BIASED_BEFORE"]
 
 #: The points of one picture: ``DiscDetections`` (uv, rc, p_W, ...) whatever the pattern; for a board
 #: ``area_px`` is 0, ``n_blobs`` the markers (ChArUco) or corners (chessboard) the detector reported.
@@ -43,7 +44,10 @@ def detect_plate(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     lattice and sorted by (row, col): pixels (distorted, as measured), grid indices and W points [mm].
 
     Raises ``ImageError`` (no plate, fewer than ``min_points`` points, a chessboard of ambiguous
-    orientation, markers of another board) or ``ConfigError`` (an unknown pattern or dictionary)."""
+    orientation, markers of another board), ``ConfigError`` (an unknown pattern or dictionary) or
+    ``ValueError`` (``min_points`` not a whole number >= 1)."""
+    if isinstance(min_points, bool) or not isinstance(min_points, (int, np.integer)) or min_points < 1:
+        raise ValueError(f"min_points: expected a whole number of plate points >= 1, got {min_points!r}")
     if plate.pattern == "discs":
         return detect_discs(image, plate, camera=camera, min_discs=min_points)
     gray = as_gray(image, camera)
@@ -153,28 +157,33 @@ def _cell_level(u8: np.ndarray, g: np.ndarray, r: int, c: int) -> float:
 CHARUCO_BIASED_BEFORE = (4, 12)
 
 
+def charuco_biased() -> bool:
+    """Whether this OpenCV's ChArUco corners carry the half-pixel bias above."""
+    return tuple(int(x) for x in cv2.__version__.split(".")[:2]) < CHARUCO_BIASED_BEFORE
+
+
 def warn_if_charuco_biased() -> None:
     """A ``UserWarning`` on an OpenCV whose ChArUco corners carry the half-pixel bias above."""
-    v = tuple(int(x) for x in cv2.__version__.split(".")[:2])
-    if v < CHARUCO_BIASED_BEFORE:
+    if charuco_biased():
         warnings.warn(f"OpenCV {cv2.__version__} places ChArUco corners about 0.5 px off (measured); the poses "
                       "from a ChArUco board carry it: use OpenCV 4.14 or newer for ChArUco", stacklevel=3)
 
 
 @functools.lru_cache(maxsize=8)
-def _board(squares: tuple[int, int], square: float, marker: float, dictionary: str, legacy: bool):
-    code = getattr(cv2.aruco, dictionary, None) if dictionary.startswith("DICT_") else None
-    if not isinstance(code, int):
-        raise ConfigError(f"plate.dictionary: {dictionary!r} is not an OpenCV predefined dictionary")
+def make_charuco_board(squares: tuple[int, int], square: float, marker: float, dictionary: str,
+                       legacy: bool = False, what: str = "plate.dictionary"):
+    """A ``cv2.aruco.CharucoBoard`` of ``squares`` (NX, NY) of ``square`` mm with ``marker`` mm markers of
+    the predefined ``dictionary`` (shared, cached: do not modify it). ``ConfigError`` naming ``what`` for
+    an unknown dictionary."""
     board = cv2.aruco.CharucoBoard(tuple(int(v) for v in squares), float(square), float(marker),
-                                   cv2.aruco.getPredefinedDictionary(code))
+                                   cv2.aruco.getPredefinedDictionary(aruco_dictionary(dictionary, what)))
     board.setLegacyPattern(bool(legacy))
     return board
 
 
 def charuco_board(plate: PlateSpec):
     """The plate's ``cv2.aruco.CharucoBoard`` (board coordinates: origin at the board's corner, mm)."""
-    return _board(tuple(plate.squares), plate.pitch, plate.marker, plate.dictionary, plate.legacy_pattern)
+    return make_charuco_board(tuple(plate.squares), plate.pitch, plate.marker, plate.dictionary, plate.legacy_pattern)
 
 
 def _charuco(u8: np.ndarray, plate: PlateSpec, min_points: int) -> tuple[np.ndarray, np.ndarray, int]:
@@ -198,11 +207,17 @@ def _charuco(u8: np.ndarray, plate: PlateSpec, min_points: int) -> tuple[np.ndar
 
 
 # --- drawing (the simulated camera) -----------------------------------------------------------------
+def _require_board(plate: PlateSpec) -> None:
+    if plate.pattern not in ("chessboard", "charuco"):
+        raise ConfigError(f"plate.pattern: {plate.pattern!r} is not a board; a board's print is drawn for "
+                          "'chessboard' or 'charuco' plates only")
+
+
 @functools.lru_cache(maxsize=8)
 def _charuco_print(squares, square, marker, dictionary, legacy) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(NY, NX) marker index per square (-1: none), (M, 2) marker top-left corners [mm, board], (M, k, k)
     marker cells (True: dark), k = marker bits + 2 (the black border)."""
-    board = _board(squares, square, marker, dictionary, legacy)
+    board = make_charuco_board(squares, square, marker, dictionary, legacy)
     nx, ny = squares
     k = board.getDictionary().markerSize + 2
     where = np.full((ny, nx), -1, int)
@@ -216,7 +231,9 @@ def _charuco_print(squares, square, marker, dictionary, legacy) -> tuple[np.ndar
 
 
 def board_ink(plate: PlateSpec, xw: np.ndarray, yw: np.ndarray) -> np.ndarray:
-    """Whether plate points (x_W, y_W) [mm] (any shape) lie on the board's dark print."""
+    """Whether plate points (x_W, y_W) [mm] (any shape) lie on the board's dark print. ``ConfigError`` for
+    a plate that is no board."""
+    _require_board(plate)
     nx, ny = plate.squares
     sq = plate.pitch
     bx, by = np.asarray(xw) + nx * sq / 2, np.asarray(yw) + ny * sq / 2
@@ -242,7 +259,8 @@ def board_ink(plate: PlateSpec, xw: np.ndarray, yw: np.ndarray) -> np.ndarray:
 
 def board_edges_W(plate: PlateSpec) -> list[tuple[np.ndarray, np.ndarray]]:
     """Segments (p0, p1) in W [mm] holding every edge of the board's print (lines across the whole board:
-    square sides, and for ChArUco every marker cell's sides)."""
+    square sides, and for ChArUco every marker cell's sides). ``ConfigError`` for a plate that is no board."""
+    _require_board(plate)
     nx, ny = plate.squares
     sq = plate.pitch
     xs = [i * sq for i in range(nx + 1)]

@@ -26,7 +26,7 @@ from selfview.measurement.discs import as_gray
 from selfview.measurement.fingertips import FingertipResult, PredictedFingers, box_edges, tukey_weights
 from selfview.maths.geometry import R_from_rotvec, inv_H, make_H, transform_points
 
-__all__ = ["Appearance", "SilhouetteFit", "SilhouetteTracker", "fit_silhouette", "learn_appearance", "MIN_GOOD_FRACTION"]
+__all__ = ["Appearance", "SilhouetteFit", "fit_silhouette", "learn_appearance", "MIN_GOOD_FRACTION"]
 
 STEP_PX = 4.0  # samples along each edge
 PLATEAU_PX = 3  # px each side of a step that show its two grey levels

@@ -175,6 +175,9 @@ def test_subset_of_points_and_bad_input(cell_path):
     assert res.reasons[2:] == ["not requested"] * 4 and res.names == POINT_NAMES
     with pytest.raises(ValueError, match="indices 0..5"):
         find_fingertips(c.pic.image, w.camera, c.C_H_G_pred, c.cell.gripper, w.jaw_gap_mm, points=[6])
+    for bad in (0.0, -5.0, float("nan")):
+        with pytest.raises(ValueError, match="search_px: expected a positive number of pixels"):
+            find_fingertips(c.pic.image, w.camera, c.C_H_G_pred, c.cell.gripper, w.jaw_gap_mm, search_px=bad)
     with pytest.raises(ImageError, match="blank"):
         find_fingertips(np.zeros((576, 768), np.uint8), w.camera, c.C_H_G_pred, c.cell.gripper, w.jaw_gap_mm)
     with pytest.raises(ImageError, match="camera model expects"):

@@ -150,3 +150,17 @@ def test_pose_difference():
     A = H_from_rotvec([0, 0, np.radians(2.0)], [0, 0, 3.0])
     ang, dist = pose_difference(A, np.eye(4))
     assert ang == pytest.approx(2.0) and dist == pytest.approx(3.0)
+
+
+def test_so3_left_jacobian_and_cross_rows():
+    from selfview.maths.geometry import cross_rows, so3_left_jacobian
+
+    rng = np.random.default_rng(7)
+    for omega in (rng.normal(0, 1, 3), np.array([1e-10, 0.0, 0.0])):
+        d = rng.normal(0, 1e-6, 3)
+        lhs = R_from_rotvec(omega + d)
+        rhs = R_from_rotvec(so3_left_jacobian(omega) @ d) @ R_from_rotvec(omega)
+        assert np.abs(lhs - rhs).max() < 1e-11  # first order in |d| ~ 1e-6: the rest is ~1e-12
+        assert np.abs(lhs - R_from_rotvec(omega)).max() > 1e-7  # the step itself is seen
+    a, b = rng.normal(size=(5, 3)), rng.normal(size=(5, 3))
+    assert np.allclose(cross_rows(a, b), np.cross(a, b), rtol=0, atol=1e-14)

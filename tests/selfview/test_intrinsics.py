@@ -14,7 +14,8 @@ from selfview.files.calfile import history_dir
 from selfview.measurement.discs import DiscDetections, disc_image_bias
 from selfview.errors import CalibrationError, CalibrationFileError, ConfigError, ImageError
 from selfview.maths.geometry import inv_H, make_H, rot_axis, transform_points, trans
-from selfview.estimation.intrinsics import TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics, camera_check, tcp_sigma
+from selfview.estimation.intrinsics import (TARGET_ACROSS_MM, TARGET_ALONG_MM, calibrate_intrinsics, camera_check, fit_views,
+                                            tcp_sigma)
 from selfview.mocks.world import REALISTIC_ASPECT, REALISTIC_OFFSET_PX, SimWorld, draw_camera
 from selfview.estimation.offline import calibrate_offline
 from selfview.procedures.viewplan import CLEARANCE_MM, LIFT_MM, MAX_TILT_DEG, plan_view_poses
@@ -190,6 +191,14 @@ def test_stop_rule_advises_more_views_when_too_few_pin_the_centre(cell):
 def test_refusals_too_few_views_and_all_square_on(cell):
     with pytest.raises(CalibrationError, match="3 usable view.*at least 4"):
         calibrate_intrinsics(None, cell.plate, cell.camera.guess(), detections=_views(cell, TRUE, n=12)[:3])
+    with pytest.raises(CalibrationError, match="plate model 'bent': expected 'auto' or one of flat, bow, bow\\+dots"):
+        calibrate_intrinsics(None, cell.plate, cell.camera.guess(), detections=_views(cell, TRUE, n=4),
+                             plate_model="bent")
+    views = _views(cell, TRUE, n=4)
+    with pytest.raises(CalibrationError, match=r"0 view\(s\) of the plate; a joint fit needs at least 3"):
+        fit_views([], cell.plate, cell.camera.guess())
+    with pytest.raises(ValueError, match="names: expected 4 names for 4 views, got 2"):
+        fit_views(views, cell.plate, cell.camera.guess(), ["a", "b"])
     # every view square-on (the plate's normal on the optical axis), without distortion to tell the centre
     flat = TRUE.with_(kappa=0.0)
     poses = []

@@ -1,12 +1,12 @@
 """Objects to grasp: the object file, the target's detection and the object's pose from a picture."""
 
-import cv2
 import numpy as np
 import pytest
 
-from selfview.errors import CalibrationError, ConfigError
+from selfview.errors import CalibrationError, ConfigError, ImageError
 from selfview.maths.geometry import H_from_rotvec, rotation_angle, transform_points
-from selfview.measurement.objects import TargetDetection, detect_target, load_object, object_pose, parse_object, target_board
+from selfview.measurement.plates import charuco_biased
+from selfview.measurement.objects import TargetDetection, TargetSpec, detect_target, load_object, object_pose, parse_object, target_board
 
 
 def _block(**changes):
@@ -42,7 +42,7 @@ def test_a_bad_object_file_is_refused_naming_what_is_wrong(changes, says):
 
 
 def test_a_missing_object_file_is_a_file_error(tmp_path):
-    with pytest.raises(ConfigError):
+    with pytest.raises(ConfigError, match=r"nope\.yaml: cannot read the object file \(no such file\)"):
         load_object(tmp_path / "nope.yaml")
 
 
@@ -66,7 +66,7 @@ def test_a_picture_without_the_target_is_refused():
         detect_target(np.full((576, 768), 120, np.uint8), load_object().target)
 
 
-@pytest.mark.skipif(tuple(int(x) for x in cv2.__version__.split(".")[:2]) < (4, 12),
+@pytest.mark.skipif(charuco_biased(),
                     reason="OpenCV before 4.12 places ChArUco corners about 0.5 px off (warned at run time)")
 def test_the_object_pose_through_the_camera_model_matches_the_truth(cell):
     from selfview.mocks.objects import place_object
@@ -89,13 +89,50 @@ def test_the_object_pose_through_the_camera_model_matches_the_truth(cell):
     assert np.linalg.norm(flat.C_H_O[:3, 3] - pose.C_H_O[:3, 3]) > 0.01
 
 
+def _target_seen(obj, cam, C_H_O):
+    """(p_O (N, 3), exact pixels (N, 2), ids (N,)) of every corner of the object's target at ``C_H_O``."""
+    p_O = target_board(obj.target).getChessboardCorners().astype(float) - np.array([20.0, 20.0, 0.0])
+    return p_O, cam.project(transform_points(C_H_O, p_O)), np.arange(len(p_O))
+
+
 def test_a_far_frontal_target_is_ambiguous_and_refused(cell):
     obj = load_object()
     cam = cell.camera.guess()
-    board = target_board(obj.target)
-    ids = np.arange(len(board.getChessboardCorners()))
-    p_O = board.getChessboardCorners().astype(float) - np.array([20.0, 20.0, 0.0])
     C_H_O = H_from_rotvec([np.radians(1.0), 0.0, 0.0], [0.0, 0.0, 2500.0])  # 40 mm seen from 2.5 m, face on
-    uv = cam.project(transform_points(C_H_O, p_O)) + np.random.default_rng(1).normal(0, 0.1, (len(p_O), 2))
+    p_O, uv, ids = _target_seen(obj, cam, C_H_O)
+    uv = uv + np.random.default_rng(1).normal(0, 0.1, (len(p_O), 2))
     with pytest.raises(CalibrationError, match="ambiguous"):
         object_pose(None, cam, obj, detection=TargetDetection(uv, p_O, ids, 8))
+
+
+def test_a_target_of_an_unknown_dictionary_is_a_config_error():
+    t = TargetSpec((4, 4), 10.0, 7.0, "DICT_9X9_1")
+    with pytest.raises(ConfigError, match="target.dictionary: 'DICT_9X9_1' is not an OpenCV predefined dictionary"):
+        target_board(t)
+
+
+def test_a_given_detection_that_cannot_fix_a_pose_is_refused_naming_why(cell):
+    obj = load_object()
+    cam = cell.camera.guess()
+    p_O, uv, ids = _target_seen(obj, cam, H_from_rotvec([np.radians(30.0), 0.0, 0.0], [0.0, 0.0, 200.0]))
+    with pytest.raises(CalibrationError, match=r"target pose: 5 corner\(s\), at least 6 needed"):
+        object_pose(None, cam, obj, detection=TargetDetection(uv[:5], p_O[:5], ids[:5], 8))
+    row = np.flatnonzero(np.isclose(p_O[:, 1], p_O[0, 1]))  # one row of corners: on one line
+    line = np.r_[row, row]  # enough corners, all on that line
+    with pytest.raises(CalibrationError, match="on one line"):
+        object_pose(None, cam, obj, detection=TargetDetection(uv[line], p_O[line], ids[line], 8))
+    bad = uv.copy()
+    bad[2] = np.nan
+    with pytest.raises(CalibrationError, match="not finite"):
+        object_pose(None, cam, obj, detection=TargetDetection(bad, p_O, ids, 8))
+    with pytest.raises(ValueError, match=r"expected uv \(N, 2\) and p_O \(N, 3\)"):
+        object_pose(None, cam, obj, detection=TargetDetection(uv, p_O[:, :2], ids, 8))
+
+
+def test_a_target_picture_that_is_no_8_bit_image_is_an_image_error():
+    t = load_object().target
+    for bad in (np.zeros((10,), np.uint8), np.zeros((0, 0), np.uint8), np.zeros((576, 768), np.float32), None):
+        with pytest.raises(ImageError, match="target picture: expected an 8-bit grey or BGR image"):
+            detect_target(bad, t)
+    bgr = np.repeat(_board_picture(t)[..., None], 3, axis=2)
+    assert len(detect_target(bgr, t).ids) == len(detect_target(_board_picture(t), t).ids) > 0

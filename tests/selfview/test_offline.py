@@ -163,3 +163,12 @@ def test_unusable_pictures_fail_clearly(cell):
     pic = alt_render.render_world(w2, fingers=False)
     with pytest.raises(CalibrationError, match="fingertip"):
         calibrate_offline(pic.image, cell)
+
+
+def test_a_mount_guess_that_is_no_transform_is_named(cell):
+    w = SimWorld(cell, seed=3)
+    w.park()
+    img = render(w, seed=1).image
+    for bad in (np.eye(3), np.full((4, 4), np.nan)):
+        with pytest.raises(ValueError, match=r"C_H_G_guess: expected a finite \(4, 4\) transform"):
+            calibrate_offline(img, cell, C_H_G_guess=bad)

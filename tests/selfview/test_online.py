@@ -374,6 +374,27 @@ def test_no_convergence_is_an_error(ref):
         iterative_update(H0, P[:4], observe(H1, P[:4], cam), cam, max_iter=2)
 
 
+@pytest.mark.parametrize("kw, match", [
+    ({"tol": 0.0}, "tol: expected a positive step"),
+    ({"tol": float("nan")}, "tol: expected a positive step"),
+    ({"max_iter": 0}, "max_iter: expected a whole number"),
+    ({"max_iter": 2.5}, "max_iter: expected a whole number"),
+    ({"prior_sigma_px": -0.1}, "prior_sigma_px: expected a positive pixel noise"),
+    ({"prior_sigma_px": float("inf")}, "prior_sigma_px: expected a positive pixel noise"),
+])
+@pytest.mark.parametrize("solver", [iterative_update, recalibrate])
+def test_bad_solver_settings_are_named(ref, solver, kw, match):
+    H0, P, cam = ref
+    with pytest.raises(ValueError, match=match):
+        solver(H0, P[:4], observe(H0, P[:4], cam), cam, **kw)
+
+
+def test_a_bad_prior_noise_is_named_by_the_differential_update(ref):
+    H0, P, cam = ref
+    with pytest.raises(ValueError, match="prior_sigma_px"):
+        differential_update(H0, P[:4], observe(H0, P[:4], cam), cam, prior_sigma_px=0.0)
+
+
 # --- methods by name -------------------------------------------------------------------------------
 def test_select_points():
     all6 = np.ones(6, bool)

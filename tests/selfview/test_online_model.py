@@ -39,3 +39,12 @@ def test_the_monitor_takes_E_like_the_other_update_methods(cell):
     assert d.action == "update" and d.method == "E" and np.allclose(mon.C_H_G, small)
     d = mon.step(uv, found)  # no model pose: no estimate, an alarm naming why
     assert d.action == "alarm" and "model's own estimate" in d.reason
+
+
+def test_E_refuses_a_current_transform_that_is_no_transform():
+    cam = CameraModel(f=950.0, kappa=0.0, cx=383.5, cy=287.5, aspect=1.0, width=768, height=576)
+    moved = trans(0.8, -0.2, 0.1)
+    nan6 = np.full((6, 2), np.nan)
+    for bad in (np.eye(3), np.full((4, 4), np.nan)):
+        with pytest.raises(ValueError, match=r"C_H_G: expected a finite \(4, 4\) transform"):
+            estimate(MODEL_METHOD, bad, np.zeros((6, 3)), nan6, np.zeros(6, bool), cam, model_C_H_G=moved)

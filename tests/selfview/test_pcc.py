@@ -68,3 +68,17 @@ def test_degenerate_input_raises(cell, rng):
     behind[:3, 3] = -C_H_W[:3, 3]
     with pytest.raises(CalibrationError, match="behind"):
         solve_pcc(uv, pG, behind, cam)
+
+
+def test_wrong_shapes_and_a_non_finite_plate_pose_are_named(cell, rng):
+    cam, C_H_G, C_H_W, W_H_G, pG, uv = scene(cell, rng)
+    with pytest.raises(ValueError, match=r"uv: expected shape \(N, 2\), got \(6, 3\)"):
+        solve_pcc(np.c_[uv, np.ones(6)], pG, C_H_W, cam)  # reshaped, these would be 9 points
+    with pytest.raises(ValueError, match=r"points_G: expected shape \(N, 3\)"):
+        solve_pcc(uv, pG[:, :2], C_H_W, cam)
+    with pytest.raises(ValueError, match=r"C_H_W: expected a \(4, 4\) transform"):
+        solve_pcc(uv, pG, C_H_W[:3], cam)
+    with pytest.raises(CalibrationError, match="C_H_W contains NaN"):
+        solve_pcc(uv, pG, np.where(np.eye(4) == 1, np.nan, C_H_W), cam)
+    with pytest.raises(ValueError, match=r"expected p_W \(6, 3\) and found \(6,\)"):
+        measure_points_G(np.zeros((4, 3)), np.ones(4, bool))

@@ -17,7 +17,8 @@ from selfview.maths.geometry import transform_points
 from selfview.mocks.render import render
 from selfview.mocks.world import SimWorld
 from selfview.estimation.offline import calibrate_offline
-from selfview.measurement.plates import board_ink, detect_plate, plate_image_bias
+from selfview.measurement.plates import (board_edges_W, board_ink, charuco_biased, detect_plate, make_charuco_board,
+                                        plate_image_bias)
 from selfview.procedures.cli import main
 from selfview.procedures.intrinsics import measure_intrinsics
 
@@ -150,7 +151,7 @@ def test_intrinsics_command_with_a_plate_file(charuco_photos, capsys, tmp_path):
 
 
 # --- the simulated cell ------------------------------------------------------------------------------
-@pytest.mark.skipif(tuple(int(x) for x in cv2.__version__.split(".")[:2]) < (4, 12),
+@pytest.mark.skipif(charuco_biased(),
                     reason="OpenCV before 4.12 places ChArUco corners about 0.5 px off (warned at run time)")
 def test_offline_C_H_G_with_a_charuco_plate_under_the_gripper():
     """The ideal cell with a ChArUco plate: the fingers hide part of it, the ids index the rest; C_H_G as
@@ -233,3 +234,15 @@ def test_too_few_corners_are_refused():
     img[:200, :] = 220
     with pytest.raises(ImageError, match=r"only \d+ ChArUco corner\(s\) seen"):
         detect_plate(img, plate, min_points=12)
+    with pytest.raises(ValueError, match="min_points: expected a whole number"):
+        detect_plate(img, plate, min_points=0)
+
+
+def test_a_board_drawing_of_a_disc_plate_or_a_board_of_an_unknown_dictionary_is_refused():
+    discs = cell_with({"rows": 8, "cols": 8, "pitch": 9.0, "disc_diameter": 4.5, "size": [110, 110]}).plate
+    with pytest.raises(ConfigError, match="'discs' is not a board"):
+        board_ink(discs, np.zeros(3), np.zeros(3))
+    with pytest.raises(ConfigError, match="'discs' is not a board"):
+        board_edges_W(discs)
+    with pytest.raises(ConfigError, match="plate.dictionary: 'DICT_NONE' is not an OpenCV predefined dictionary"):
+        make_charuco_board((5, 5), 10.0, 7.0, "DICT_NONE")

@@ -12,6 +12,7 @@ from selfview.files.cell import PlateSpec
 from selfview.errors import CalibrationError
 from selfview.estimation.intrinsics.advice import STOP_ASPECT_REL, STOP_CENTRE_PX, MAX_MORE_VIEWS, stop_met, more_views_advice
 from selfview.estimation.intrinsics.checks import halves_cross_check
+from selfview.estimation.intrinsics.plate import PLATE_MODELS
 from selfview.estimation.intrinsics.fit import (
     MIN_VIEWS, UNDETERMINED_CENTRE_PX, VIEW_MAX_RMS_PX, JointFit, sigmas_of, detect_views, fit_views, projection_sigma_px,
 )
@@ -116,8 +117,7 @@ fits it; False holds it at ``camera_guess``'s, the spec's model. ``plate_model``
             f"intrinsics: {len(dets)} usable view(s) of the plate; at least {MIN_VIEWS} are needed (12 or more, "
             "tilted 20-40 deg in different directions, pin the centre and the aspect)"
         )
-    if skew not in (True, False, "auto"):
-        raise CalibrationError(f"intrinsics: skew={skew!r}: expected 'auto', True or False")
+    _check_options(skew, plate_model)
     plate_why = f"{plate_model}: as asked"
     if plate_model == "auto":
         plate_model, plate_why = _choose_plate_model(dets, names, plate, camera_guess)
@@ -176,6 +176,15 @@ fits it; False holds it at ``camera_guess``'s, the spec's model. ``plate_model``
         residual_sigma_px=float(np.sqrt(fit.s2)), plate_shape={**_plate_summary(fit), "why": plate_why},
         skew_fit=skew_fit,
     )
+
+
+def _check_options(skew, plate_model: str) -> None:
+    """``calibrate_intrinsics``'s ``skew`` and ``plate_model``, or ``CalibrationError`` naming the one at fault."""
+    if skew not in (True, False, "auto"):
+        raise CalibrationError(f"intrinsics: skew={skew!r}: expected 'auto', True or False")
+    if plate_model != "auto" and plate_model not in PLATE_MODELS:
+        raise CalibrationError(f"intrinsics: plate model {plate_model!r}: expected 'auto' or one of "
+                               f"{', '.join(PLATE_MODELS)}")
 
 
 def _drop_misfits(fit: JointFit, dets, names, plate: PlateSpec, plate_model: str, fit_skew: bool, skipped: list):

@@ -161,10 +161,15 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
     planar PnP, a fit on the centroids, then ``BIAS_ROUNDS`` rounds of bias correction and refit
     (``bias=False``: the centroids as measured). ``plate_model`` (``PLATE_MODELS``): what of the printed
     plate's shape is fitted with the camera; ``fit_skew``: the grabber's skew too. The shape's prior is weighed with the previous fit's noise
-    (its residual sigma); the fit is repeated (at most ``NOISE_ROUNDS`` times) until that noise settles."""
+    (its residual sigma); the fit is repeated (at most ``NOISE_ROUNDS`` times) until that noise settles.
+    ``CalibrationError`` for fewer than ``MIN_VIEWS_HALF`` views, ``ValueError`` for names not one per view."""
     if plate_model not in PLATE_MODELS:
         raise CalibrationError(f"intrinsics: plate model {plate_model!r}: expected one of {', '.join(PLATE_MODELS)}")
+    if len(dets) < MIN_VIEWS_HALF:  # the fewest a half of the cross-check fits
+        raise CalibrationError(f"intrinsics: {len(dets)} view(s) of the plate; a joint fit needs at least {MIN_VIEWS_HALF}")
     names = names or [f"view {i + 1}" for i in range(len(dets))]
+    if len(names) != len(dets):
+        raise ValueError(f"names: expected {len(dets)} names for {len(dets)} views, got {len(names)}")
     poses = [_initial_pose(d.p_W, d.uv, camera0) for d in dets]
     normals = np.array([H[:3, 2] for H in poses])
     mean = normals.sum(0) / np.linalg.norm(normals.sum(0))

@@ -7,8 +7,7 @@ import numpy as np
 
 from selfview.maths.camera import CameraModel, distort
 from selfview.errors import CalibrationError
-from selfview.maths.geometry import R_from_rotvec, make_H
-from selfview.estimation.tsai import cross_rows, so3_left_jacobian
+from selfview.maths.geometry import R_from_rotvec, cross_rows, make_H, so3_left_jacobian
 
 
 #: Finite-difference steps of the numeric Jacobian: f (relative), kappa [px^-2], cx, cy [px], aspect,
