@@ -12,9 +12,8 @@ import sys
 from pathlib import Path
 
 from selfview.estimation.intrinsics.plate import PLATE_MODELS
-from selfview.procedures.commands._common import COUNT, SECONDS, print_json
+from selfview.procedures.commands._common import COUNT, SECONDS, add_view_arguments, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
-from selfview.procedures.commands._common import add_view_arguments
 from selfview.procedures.view import ViewProgress, intrinsics_state, viewing, watch, with_progress
 
 
