@@ -150,7 +150,7 @@ def _measure(args, view, say, images, names, plate, camera):
 def _run(args, view) -> int:
     from selfview import __version__
     from selfview.files.camfile import CameraFile, save_camera_file
-    from selfview.procedures.intrinsics import intrinsics_warnings, measure_intrinsics
+    from selfview.procedures.intrinsics import intrinsics_warnings
     from selfview.procedures.commands._common import write_image
 
     _check_args(args)
