@@ -69,7 +69,7 @@ class ServoSettings:
         for nm, lo, hi in (("gain", 0.05, 1.0), ("max_step_mm", 0.1, 100.0), ("max_step_deg", 0.05, 30.0),
                            ("stop_mm", 0.001, 10.0), ("stop_deg", 0.001, 10.0)):
             v = getattr(self, nm)
-            if not (isinstance(v, (int, float)) and np.isfinite(v) and lo <= v <= hi):
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and np.isfinite(v) and lo <= v <= hi):
                 raise ConfigError(f"servo {nm}: expected {lo:g}..{hi:g}, got {v!r}")
         if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, int) or not 1 <= self.max_iterations <= 1000:
             raise ConfigError(f"servo max_iterations: expected 1..1000, got {self.max_iterations!r}")
@@ -194,6 +194,7 @@ def servo_grasp(rig: GraspRig, cell: Cell, obj: ObjectSpec, C_H_G, camera: Camer
     _check_inputs(C_H_G, camera, p_G6, taught_C_H_O)
     res = result if result is not None else GraspResult()
     gap = cell.gripper.gap(s.state)
+    cell.gripper.gap(s.grip_state)  # an unknown holding state is named now, not after the descent
     C0 = np.asarray(C_H_G, float)
     mon = Monitor(C0, camera, p_G6, cell.monitor, update_method=s.method)
     tracker = SilhouetteTracker(camera, cell.gripper, points=range(6))
@@ -290,8 +291,9 @@ def run_grasp(session, obj: ObjectSpec, calibration, settings: ServoSettings = S
     (``servo_grasp``). ``calibration`` a ``selfview.files.calfile`` calibration (its ``C_H_G``, camera and the
     fingertip points of ``settings.state``). In simulation the world's verdict on the grasp is in
     ``result.outcome``. The engine stops the robot and leaves the valve safe on any error or signal.
-    ``ConfigError`` before anything moves for settings out of range or a calibration that is not usable
-    (C_H_G not a finite rigid transform, no fingertip points for ``settings.state``).
+    ``ConfigError`` before anything moves for settings out of range, a jaw state the cell does not have, or
+    a calibration that is not usable (C_H_G not a finite rigid transform, no fingertip points for
+    ``settings.state``).
 
     Lab script::
 
@@ -300,6 +302,8 @@ def run_grasp(session, obj: ObjectSpec, calibration, settings: ServoSettings = S
             res = run_grasp(s, load_object("part.yaml"), load_calibration("calibration.yaml"))
     """
     settings.check()
+    for st in (settings.state, settings.grip_state):
+        session.cell.gripper.gap(st)  # ConfigError naming the cell's states
     if settings.state not in calibration.points_G:
         raise ConfigError(f"the calibration has no fingertip points for the jaws {settings.state!r} "
                           f"(it has {', '.join(calibration.points_G)})")

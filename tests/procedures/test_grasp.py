@@ -335,3 +335,24 @@ def test_a_step_describes_a_six_number_pose_and_a_malformed_delta_without_failin
         "moves(target=numbers 350.0 0.0 100.0 90.0 90.0 0.0)"
     assert Step("tool", {"delta": np.eye(3)}).describe() == "tool(delta=a (3, 3) array)"
     assert Step("tool", {"delta": trans(1.0, 0, 0)}).describe() == "tool(delta=by 1.00 0.00 0.00 mm)"
+
+
+def test_an_unknown_holding_state_or_a_non_finite_cap_is_refused_before_anything_moves(scene, cell):
+    from selfview.procedures.grasp import run_grasp
+    from selfview.procedures.runs import CellSession
+
+    world, obj = scene
+    arm = PerfectArm(world)
+    moved = []
+    arm.jaws = moved.append
+    with pytest.raises(ConfigError, match="gripper state 'clamped'"):
+        _servo(world, obj, arm, grip_state="clamped")
+    for bad in (np.nan, 0.0, -1.0, True):
+        with pytest.raises(ConfigError, match="max_step_mm"):
+            _servo(world, obj, arm, max_step_mm=bad)
+    assert moved == [] and arm.steps == [] and arm.frames == 0
+    cal = SimpleNamespace(C_H_G=world.C_H_G, camera=world.camera, points_G={"open": cell.gripper.points_G("open")})
+    with CellSession.simulated(cell, seed=3, time_scale=0.01) as s:
+        with pytest.raises(ConfigError, match="gripper state 'clamped'"):
+            run_grasp(s, obj, cal, ServoSettings(grip_state="clamped"))
+        assert s.engine.records == []
