@@ -384,6 +384,10 @@ class CellSession:
         re-measure with every on-line method and the off-line reference. Returns (records, summary,
         artefacts of the first trial). ``camera``: a measured camera for the off-line calibrations
         (``selfview.estimation.intrinsics``; None: the cell's nominal one)."""
+        if isinstance(series, str) or not series:
+            raise ConfigError(f"series {series!r}: expected a list of one or more series names, e.g. ['cable', 'tilt']")
+        if isinstance(trials, bool) or not isinstance(trials, (int, np.integer)) or trials < 1:
+            raise ConfigError(f"trials {trials!r}: expected a whole number >= 1")
         state = state or self.cell.gripper.calibrate_in
         s = self.settings
         for name in series:

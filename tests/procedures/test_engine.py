@@ -55,6 +55,15 @@ def test_dry_run_moves_nothing(cell, capsys):
     assert any("appro" in ln for ln in lines) and any("disturb" in ln for ln in lines)
 
 
+@pytest.mark.parametrize("kw, match", [({"series": "cable"}, "list of one or more"), ({"series": ()}, "list of one or more"),
+                                       ({"trials": 0}, "trials 0"), ({"trials": -1}, "trials -1"),
+                                       ({"trials": 2.5}, "trials 2.5")])
+def test_an_experiment_without_series_or_trials_is_refused_before_anything_moves(session, kw, match):
+    with pytest.raises(ConfigError, match=match):
+        session.experiment(**kw)
+    assert motions(session) == [] and session.engine.records == []
+
+
 def test_a_plan_out_of_limits_is_refused_before_anything_moves(cell):
     far = PLATE_BASE_POSE @ trans(0, 0, -60.0)
     far[0, 3] = 900.0  # outside the driver's workspace box
