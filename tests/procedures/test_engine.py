@@ -238,6 +238,21 @@ def test_monitor_updates_then_recalibrates_then_raises_the_alarm(cell, tmp_path)
         assert valve_is_safe(s)
 
 
+def test_monitor_refuses_no_frames_an_unknown_state_or_no_work_locations_before_anything_moves(session, tmp_path):
+    import dataclasses
+
+    out = tmp_path / "cal.yaml"
+    session.calibrate(out=out)
+    n_rx, n_rec = len(motions(session)), len(session.engine.records)
+    for kw, match in (({"frames": 0}, "frames 0"), ({"frames": 2.5}, "frames 2.5"), ({"state": "clamped"}, "'clamped'")):
+        with pytest.raises(ConfigError, match=match):
+            session.monitor(out, **kw)
+    session.settings = dataclasses.replace(session.settings, work_locations=())
+    with pytest.raises(ConfigError, match="no work_locations"):
+        session.monitor(out, frames=2)
+    assert len(motions(session)) == n_rx and len(session.engine.records) == n_rec
+
+
 @pytest.mark.parametrize("signals, gap_s", [((signal.SIGTERM,), 0.0), ((signal.SIGHUP,), 0.0), ((signal.SIGQUIT,), 0.0),
                                             ((signal.SIGINT, signal.SIGINT), 0.0), ((signal.SIGINT, signal.SIGINT), 0.01),
                                             ((signal.SIGINT, signal.SIGINT), 0.03), ((signal.SIGTERM, signal.SIGINT), 0.02)],
