@@ -202,8 +202,6 @@ def _main(argv: list[str] | None) -> int:
 
 def _stdout_gone() -> None:
     """Point standard output at /dev/null, so that flushing it at exit raises no second EPIPE."""
-    import os
-
     try:
         fd = os.open(os.devnull, os.O_WRONLY)
         os.dup2(fd, sys.stdout.fileno())

@@ -18,7 +18,7 @@ from typing import Any, Callable
 import numpy as np
 
 from selfview.errors import CellError, ConfigError, LimitError
-from selfview.maths.geometry import rotation_angle, trans
+from selfview.maths.geometry import check_rigid, rotation_angle, trans
 from selfview.signals import TERMINATION_SIGNALS, Interrupted, signal_name
 
 __all__ = ["Step", "Engine", "Cancelled", "Interrupted", "CellDevices", "StepRecord", "TERMINATION_SIGNALS",
@@ -154,9 +154,11 @@ class Step:
     def describe(self) -> str:
         p = {k: v for k, v in self.params.items() if k != "fn"}
         if isinstance(p.get("target"), np.ndarray):
-            p["target"] = "pose " + " ".join(f"{v:.1f}" for v in p["target"][:3, 3])
+            p["target"] = ("pose " + " ".join(f"{v:.1f}" for v in p["target"][:3, 3]) if p["target"].shape == (4, 4)
+                           else "numbers " + " ".join(f"{v:.1f}" for v in p["target"].ravel()[:6]))
         if isinstance(p.get("delta"), np.ndarray):
-            p["delta"] = "by " + " ".join(f"{v:.2f}" for v in p["delta"][:3, 3]) + " mm"
+            p["delta"] = ("by " + " ".join(f"{v:.2f}" for v in p["delta"][:3, 3]) + " mm" if p["delta"].shape == (4, 4)
+                          else f"a {p['delta'].shape} array")  # malformed: the check says so, the description must not fail
         args = ", ".join(f"{k}={v}" for k, v in p.items())
         out = f"{self.kind}({args})" if args else self.kind
         if self.note:
@@ -277,10 +279,12 @@ class Engine:
                 raise LimitError(f"plan refused before anything moved: {exc}") from None
 
     def _check_plan_without_poses(self, steps: list[Step]) -> None:
-        """A robot that knows no pose (``manual://``) reaches named locations only: a numeric target or a
-        joint drive is refused (``ConfigError``) before anything moves."""
+        """A robot that knows no pose (``manual://``) reaches named locations only: a numeric target, a
+        joint drive or a tool-relative step (it starts from where the arm is) is refused (``ConfigError``)
+        before anything moves."""
         for i, s in enumerate(steps):
-            if s.kind == "drive" or (s.kind in MOTION_KINDS and "target" in s.params and not isinstance(s.params["target"], str)):
+            if s.kind in ("drive", "tool") or (s.kind in MOTION_KINDS and "target" in s.params
+                                               and not isinstance(s.params["target"], str)):
                 raise ConfigError(f"plan refused before anything moved: step {i + 1} {s.describe()}: "
                                   f"{self.devices.robot!r} knows no pose; only named locations can be reached")
 
@@ -288,7 +292,13 @@ class Engine:
         robot = self.devices.robot
         if isinstance(target, str):
             return robot.pose_to_H(robot.location(target))
-        H = np.asarray(target, float)
+        try:
+            H = np.asarray(target, float)
+        except (TypeError, ValueError):
+            H = np.full(1, np.nan)
+        if H.shape not in ((6,), (4, 4)) or not np.isfinite(H).all():
+            raise ConfigError(f"motion target {target!r}: expected a location name, a finite (4, 4) pose or "
+                              "6 numbers (x, y, z, O, A, T); nothing was sent")
         if H.shape == (6,):
             return robot.pose_to_H(H)
         return H
@@ -536,16 +546,27 @@ def _one_abort(first: str, second: str, stopped: bool) -> str:
     if stopped:
         return f"{second} (the ABORT at the interrupt was not confirmed)"
     return f"{first}; the cleanup's ABORT was not confirmed either ({second})"
+
+
 def tool_step_size(p: dict, what: str) -> tuple[float, float]:
-    """(mm, deg) of a tool step's ``delta``; ``ConfigError`` for a malformed one, ``LimitError`` when it
-    exceeds its caps (``max_mm``, ``max_deg``; defaults ``TOOL_STEP_MAX_MM``, ``TOOL_STEP_MAX_DEG``)."""
-    D = np.asarray(p.get("delta"), float) if p.get("delta") is not None else None
-    if D is None or D.shape != (4, 4) or not np.isfinite(D).all():
-        raise ConfigError(f"{what}: expected a finite (4, 4) 'delta' transform")
+    """(mm, deg) of a tool step's ``delta``; ``ConfigError`` for a malformed one (not a finite rigid (4, 4)
+    transform, ``selfview.maths.geometry.check_rigid``) or a cap that is not a finite number > 0,
+    ``LimitError`` when it exceeds its caps (``max_mm``, ``max_deg``; defaults ``TOOL_STEP_MAX_MM``,
+    ``TOOL_STEP_MAX_DEG``)."""
+    D = check_rigid(p.get("delta"), f"{what}: 'delta'")
+    caps = []
+    for key, default in (("max_mm", TOOL_STEP_MAX_MM), ("max_deg", TOOL_STEP_MAX_DEG)):
+        cap = p.get(key, default)
+        try:
+            cap = float(cap)
+        except (TypeError, ValueError):
+            cap = float("nan")
+        if not (np.isfinite(cap) and cap > 0):  # a NaN cap would let any step through, 0 or less none
+            raise ConfigError(f"{what}: cap {key} {p.get(key)!r}: expected a finite number > 0; nothing was sent")
+        caps.append(cap)
+    cap_mm, cap_deg = caps
     mm = float(np.linalg.norm(D[:3, 3]))
     deg = float(np.degrees(rotation_angle(D[:3, :3])))
-    cap_mm = float(p.get("max_mm", TOOL_STEP_MAX_MM))
-    cap_deg = float(p.get("max_deg", TOOL_STEP_MAX_DEG))
     if mm > cap_mm or deg > cap_deg:
         raise LimitError(f"{what}: a step of {mm:.2f} mm and {deg:.2f} deg exceeds its cap of {cap_mm:g} mm and "
                          f"{cap_deg:g} deg; nothing was sent")

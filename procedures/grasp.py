@@ -28,7 +28,7 @@ import numpy as np
 from selfview.maths.camera import CameraModel
 from selfview.files.cell import Cell
 from selfview.errors import AlarmError, CalibrationError, ConfigError
-from selfview.maths.geometry import H_from_rotvec, inv_H, rotation_angle, rotvec_from_R, transform_points
+from selfview.maths.geometry import H_from_rotvec, check_rigid, inv_H, rotation_angle, rotvec_from_R, transform_points
 from selfview.measurement.objects import ObjectSpec, object_pose
 from selfview.estimation.policy import Monitor
 from selfview.procedures.engine import Step
@@ -69,7 +69,7 @@ class ServoSettings:
         for nm, lo, hi in (("gain", 0.05, 1.0), ("max_step_mm", 0.1, 100.0), ("max_step_deg", 0.05, 30.0),
                            ("stop_mm", 0.001, 10.0), ("stop_deg", 0.001, 10.0)):
             v = getattr(self, nm)
-            if not (isinstance(v, (int, float)) and np.isfinite(v) and lo <= v <= hi):
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and np.isfinite(v) and lo <= v <= hi):
                 raise ConfigError(f"servo {nm}: expected {lo:g}..{hi:g}, got {v!r}")
         if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, int) or not 1 <= self.max_iterations <= 1000:
             raise ConfigError(f"servo max_iterations: expected 1..1000, got {self.max_iterations!r}")
@@ -160,6 +160,22 @@ class _Growth:
                               f"{GROWING_ITERATIONS} iterations; stopped")
 
 
+def _check_inputs(C_H_G, camera, p_G6, taught_C_H_O=None) -> None:
+    """``ConfigError`` naming the input at fault, before anything moves: ``C_H_G`` (and ``taught_C_H_O``) a
+    finite rigid (4, 4) transform, ``camera`` a ``CameraModel``, ``p_G6`` (6, 3) finite fingertip points."""
+    check_rigid(C_H_G, "the calibration's C_H_G")
+    if taught_C_H_O is not None:
+        check_rigid(taught_C_H_O, "taught_C_H_O")
+    if not isinstance(camera, CameraModel):
+        raise ConfigError(f"camera: expected a selfview.maths.camera.CameraModel, got {type(camera).__name__}")
+    try:
+        p = np.asarray(p_G6, float)
+    except (TypeError, ValueError):
+        p = np.full(1, np.nan)
+    if p.shape != (6, 3) or not np.isfinite(p).all():
+        raise ConfigError(f"fingertip points p_G6: expected (6, 3) finite points in G [mm], got shape {p.shape}")
+
+
 def servo_grasp(rig: GraspRig, cell: Cell, obj: ObjectSpec, C_H_G, camera: CameraModel, p_G6,
                 settings: ServoSettings = ServoSettings(), *, result: GraspResult | None = None,
                 on_iteration: Callable[[dict, np.ndarray, object], None] | None = None,
@@ -175,8 +191,10 @@ def servo_grasp(rig: GraspRig, cell: Cell, obj: ObjectSpec, C_H_G, camera: Camer
     converged, target or fingertips lost, error growing, the table too near), ``AlarmError`` (the
     fingertips say the calibration is off beyond the alarm limit)."""
     s = settings.check()
+    _check_inputs(C_H_G, camera, p_G6, taught_C_H_O)
     res = result if result is not None else GraspResult()
     gap = cell.gripper.gap(s.state)
+    cell.gripper.gap(s.grip_state)  # an unknown holding state is named now, not after the descent
     C0 = np.asarray(C_H_G, float)
     mon = Monitor(C0, camera, p_G6, cell.monitor, update_method=s.method)
     tracker = SilhouetteTracker(camera, cell.gripper, points=range(6))
@@ -273,6 +291,9 @@ def run_grasp(session, obj: ObjectSpec, calibration, settings: ServoSettings = S
     (``servo_grasp``). ``calibration`` a ``selfview.files.calfile`` calibration (its ``C_H_G``, camera and the
     fingertip points of ``settings.state``). In simulation the world's verdict on the grasp is in
     ``result.outcome``. The engine stops the robot and leaves the valve safe on any error or signal.
+    ``ConfigError`` before anything moves for settings out of range, a jaw state the cell does not have, or
+    a calibration that is not usable (C_H_G not a finite rigid transform, no fingertip points for
+    ``settings.state``).
 
     Lab script::
 
@@ -280,9 +301,13 @@ def run_grasp(session, obj: ObjectSpec, calibration, settings: ServoSettings = S
         with CellSession.real(cell, robot=..., gripper=..., camera=...) as s:
             res = run_grasp(s, load_object("part.yaml"), load_calibration("calibration.yaml"))
     """
+    settings.check()
+    for st in (settings.state, settings.grip_state):
+        session.cell.gripper.gap(st)  # ConfigError naming the cell's states
     if settings.state not in calibration.points_G:
         raise ConfigError(f"the calibration has no fingertip points for the jaws {settings.state!r} "
                           f"(it has {', '.join(calibration.points_G)})")
+    _check_inputs(calibration.C_H_G, calibration.camera, calibration.points_G[settings.state])
     res = result if result is not None else GraspResult()
     outcome = None
     if session.sim is not None and session.sim.world.object is not None:

@@ -17,10 +17,18 @@ def measure_intrinsics(images, plate: PlateSpec, camera: CameraModel | None = No
                        skip_unusable: bool = False, plate_model: str = "auto") -> IntrinsicsResult:
     """``calibrate_intrinsics`` of (H, W) pictures of ``plate``; ``camera`` the starting camera (a cell's
     nominal one), or None: one from the pictures themselves (``intrinsics.guess_camera``; every picture
-    of the first one's size). Raises ``ImageError`` or ``CalibrationError`` as ``calibrate_intrinsics``."""
+    of the first one's size). Raises ``ImageError`` or ``CalibrationError`` as ``calibrate_intrinsics``,
+    ``ConfigError`` when ``names`` does not name every picture once."""
+    from selfview.errors import ConfigError
+
+    images = list(images)
+    if names is not None:
+        names = list(names)
+        if len(names) != len(images):  # zipped, the pictures past the last name would be dropped unsaid
+            raise ConfigError(f"intrinsics: {len(images)} picture(s) but {len(names)} name(s); give one name per picture")
     if camera is not None:
         return calibrate_intrinsics(images, plate, camera, names, skip_unusable=skip_unusable, plate_model=plate_model)
-    names = list(names) if names is not None else [f"view {i + 1}" for i in range(len(images))]
+    names = names if names is not None else [f"view {i + 1}" for i in range(len(images))]
     if not images:
         raise ImageError("intrinsics: no pictures given")
     sizes = {tuple(getattr(im, "shape", (0, 0))[:2]) for im in images}

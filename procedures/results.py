@@ -216,6 +216,8 @@ def annotate_online(image, camera, C_H_G_before, estimates: dict, fingertips, pG
     offset from their mean, magnified (the factor and the largest offset written in it)."""
     import cv2
 
+    from selfview.errors import CalibrationError
+
     big = cv2.resize(_bgr(image), None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
     _draw_gripper(big, camera, C_H_G_before, pG, scale, (160, 160, 160))
     colours = [(0, 0, 255), (0, 128, 255), (0, 200, 0), (255, 0, 0), (255, 0, 255), (0, 255, 255), (128, 0, 128), (0, 100, 0)]
@@ -226,7 +228,7 @@ def annotate_online(image, camera, C_H_G_before, estimates: dict, fingertips, pG
         _label(big, m, (10, 50 + 20 * k), c)
         try:
             tcp[m] = (camera.project(transform_points(est.C_H_G_orth, np.zeros((1, 3))))[0], c)
-        except Exception:  # an estimate behind the camera has no TCP in the picture
+        except CalibrationError:  # an estimate behind the camera has no TCP in the picture
             pass
     for i in range(6):
         if fingertips.found[i]:

@@ -310,8 +310,15 @@ class CellSession:
         ``on_frame(picture, fingertips, C_H_G)`` sees each tracked frame. Returns the monitor's decision records."""
         from selfview.api import tcp_sigma_after
 
+        if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1:
+            raise ConfigError(f"frames {frames!r}: expected a whole number >= 1")
+        if not self.settings.work_locations:
+            raise ConfigError("the run settings name no work_locations for the robot to move between while monitored")
         cal = load_calibration(calibration)
         state = state or cal.state
+        if state not in cal.points_G:
+            raise ConfigError(f"gripper state {state!r}: the calibration {calibration} has fingertip points for "
+                              f"{', '.join(cal.points_G)} only")
         pG = cal.points_G[state]
         gap = jaw_gap_of(pG)
         mon = Monitor(cal.C_H_G, cal.camera, pG, self.cell.monitor, update_method=method,
@@ -384,6 +391,10 @@ class CellSession:
         re-measure with every on-line method and the off-line reference. Returns (records, summary,
         artefacts of the first trial). ``camera``: a measured camera for the off-line calibrations
         (``selfview.estimation.intrinsics``; None: the cell's nominal one)."""
+        if isinstance(series, str) or not series:
+            raise ConfigError(f"series {series!r}: expected a list of one or more series names, e.g. ['cable', 'tilt']")
+        if isinstance(trials, bool) or not isinstance(trials, (int, np.integer)) or trials < 1:
+            raise ConfigError(f"trials {trials!r}: expected a whole number >= 1")
         state = state or self.cell.gripper.calibrate_in
         s = self.settings
         for name in series:

@@ -4,7 +4,7 @@ is set against the calibration's own sigma and a target.
 
     with session:  # a procedures.runs.CellSession
         results = park_and_calibrate(session, cell, PLACES[:5], state)
-    summary = verify_summary(results, PLACES[:5], cell, None, target_mm=0.25)
+    summary = verify_summary(results, PLACES[:5], target_mm=0.25)
 """
 
 from __future__ import annotations
@@ -43,6 +43,8 @@ def spread(Hs) -> dict:
     from selfview.maths.geometry import make_H, orthonormalize, rotation_angle
 
     Hs = np.asarray(Hs, float)
+    if Hs.ndim != 3 or Hs.shape[1:] != (4, 4) or len(Hs) < 2 or not np.isfinite(Hs).all():
+        raise ValueError(f"spread: expected at least 2 finite (4, 4) transforms, got an array of shape {Hs.shape}")
     t = Hs[:, :3, 3]
     R = orthonormalize(Hs[:, :3, :3].mean(axis=0))
     ang = np.array([np.degrees(rotation_angle(R.T @ H[:3, :3])) for H in Hs])
@@ -63,6 +65,10 @@ def park_and_calibrate(session, cell, places, state: str, *, camera=None, camera
     from selfview.procedures.engine import Step
     from selfview.procedures.runs import depart_plan, park_plan
 
+    from selfview.errors import ConfigError
+
+    if not places:
+        raise ConfigError("verify: no places to park at; give at least one (shift x, y [mm], turn [deg])")
     s = session.settings
     if session.dry_run:
         targets = [f"{s.plate} shifted {dx:+.0f} {dy:+.0f} mm, turned {t:+.0f} deg" for dx, dy, t in places]
@@ -101,8 +107,14 @@ def verify_summary(results, places, target_mm: float, truth: dict | None = None)
     (``spread``), the calibrations' own 1-sigma (each park's, the camera model's error its picture shows
     included), go when every axis' spread and the camera model's shared part are within ``target_mm``, the
     reason, what the spread cannot see (``BLIND``) and, with the simulator's ``truth``, the error against it."""
+    from selfview.errors import ConfigError
     from selfview.maths.geometry import rotation_angle
 
+    if len(results) < 2 or len(results) != len(places):
+        raise ConfigError(f"verify: {len(results)} result(s) for {len(places)} place(s); a spread needs one result "
+                          "per place and at least 2 places")
+    if not (np.isfinite(target_mm) and target_mm > 0):
+        raise ConfigError(f"verify: target {target_mm!r} mm: expected a finite length > 0")
     Hs = [r.C_H_G for r in results]
     sp = spread(Hs)
     sigmas = np.array([r.tcp_sigma_mm for r in results])

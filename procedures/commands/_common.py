@@ -122,7 +122,10 @@ def write_image(path, image, what: str = "--out") -> None:
     from selfview.files.io_safe import write_picture
 
     write_picture(path, image, error=ConfigError, what=f"picture ({what})")
+
+
 def add_view_arguments(p: argparse.ArgumentParser) -> None:
+    """``--view [PORT]`` and ``--view-linger S``: the live view (``selfview.procedures.view.viewing``)."""
     g = p.add_argument_group("live view", "a page in the browser on 127.0.0.1 showing the run as it goes")
     g.add_argument("--view", nargs="?", type=PORT, const=0, default=None, metavar="PORT",
                    help="serve the live view (a free port, or PORT); its address is printed on stderr")

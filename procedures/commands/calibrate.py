@@ -8,9 +8,8 @@ from __future__ import annotations
 
 import sys
 
-from selfview.procedures.commands._common import SECONDS, load_cell_arg, output_file, print_json
+from selfview.procedures.commands._common import SECONDS, add_view_arguments, load_cell_arg, output_file, print_json
 from selfview.procedures.commands._session import add_session_arguments, camera_arguments, open_session, progress_printer
-from selfview.procedures.commands._common import add_view_arguments
 from selfview.procedures.view import watch, offline_state, viewing, with_progress
 
 

@@ -69,12 +69,16 @@ PROBES = (("robot", _robot), ("gripper", _gripper), ("camera", _camera))
 def reset_devices(urls: dict, timeout_s: float = 2.0) -> list[str]:
     """The operator has checked the cell after a program died holding a device: ABORT the robot, make
     the valve safe, and clear the records that made the other commands refuse. What was done, one line
-    per device; the devices' errors are raised."""
+    per device; the devices' errors are raised. The operator's arm (``manual://``) has no controller to
+    ABORT or record to clear: its line says so."""
     from selfview.drivers.pneumatic_gripper import PneumaticGripper
     from selfview.drivers.puma_val_serial import PumaVAL
+    from selfview.drivers.robot import robot_scheme
 
     done = []
-    if urls.get("robot"):
+    if urls.get("robot") and robot_scheme(urls["robot"]) == "manual":
+        done.append("robot: the operator's arm (manual://) has no controller to ABORT; stop it by hand")
+    elif urls.get("robot"):
         robot = PumaVAL(urls["robot"], timeout_s=timeout_s)
         robot.connect(sync=False, clear_stale=True)
         try:

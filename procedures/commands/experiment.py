@@ -8,9 +8,8 @@ import sys
 import time
 from pathlib import Path
 
-from selfview.procedures.commands._common import numeric, print_json
+from selfview.procedures.commands._common import add_view_arguments, numeric, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
-from selfview.procedures.commands._common import add_view_arguments
 from selfview.procedures.view import ViewProgress, viewing, watch, with_progress
 
 

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import sys
 
-from selfview.procedures.commands._common import COUNT, print_json
+from selfview.procedures.commands._common import COUNT, add_view_arguments, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
 from selfview.procedures.view import viewing, watch, with_progress
-from selfview.procedures.commands._common import add_view_arguments
 
 
 def register(sub):

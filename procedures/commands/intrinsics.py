@@ -12,9 +12,8 @@ import sys
 from pathlib import Path
 
 from selfview.estimation.intrinsics.plate import PLATE_MODELS
-from selfview.procedures.commands._common import COUNT, SECONDS, print_json
+from selfview.procedures.commands._common import COUNT, SECONDS, add_view_arguments, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
-from selfview.procedures.commands._common import add_view_arguments
 from selfview.procedures.view import ViewProgress, intrinsics_state, viewing, watch, with_progress
 
 
@@ -151,7 +150,7 @@ def _measure(args, view, say, images, names, plate, camera):
 def _run(args, view) -> int:
     from selfview import __version__
     from selfview.files.camfile import CameraFile, save_camera_file
-    from selfview.procedures.intrinsics import intrinsics_warnings, measure_intrinsics
+    from selfview.procedures.intrinsics import intrinsics_warnings
     from selfview.procedures.commands._common import write_image
 
     _check_args(args)

@@ -5,9 +5,8 @@ from __future__ import annotations
 import json
 import sys
 
-from selfview.procedures.commands._common import COUNT, numeric
+from selfview.procedures.commands._common import COUNT, add_view_arguments, numeric
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
-from selfview.procedures.commands._common import add_view_arguments
 from selfview.procedures.view import decision_state, tracked_frames, viewing, watch, with_progress
 
 

@@ -2,11 +2,8 @@
 
 from __future__ import annotations
 
-from selfview.procedures.commands._common import print_json
-
-from selfview.procedures.commands._common import write_image
+from selfview.procedures.commands._common import add_view_arguments, print_json, write_image
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
-from selfview.procedures.commands._common import add_view_arguments
 from selfview.procedures.view import watch, viewing, with_progress
 
 

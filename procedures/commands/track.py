@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from selfview.procedures.commands._common import add_cell_argument, load_cell_arg, print_json
-from selfview.procedures.commands._common import add_view_arguments
+from selfview.procedures.commands._common import add_cell_argument, add_view_arguments, load_cell_arg, print_json
 from selfview.procedures.view import viewing
 
 from selfview.api import METHODS as METHOD_CHOICES

@@ -7,11 +7,11 @@ parks is compared with the calibration's own sigma and with a target the user se
 
 from __future__ import annotations
 
-from selfview.procedures.commands._common import numeric, print_json
+from selfview.procedures.commands._common import add_view_arguments, numeric, print_json
 from selfview.procedures.commands._session import add_session_arguments, camera_arguments, open_session, progress_printer
-from selfview.procedures.commands._common import add_view_arguments
-from selfview.procedures.verification import BLIND, PLACES, centre_in_hull, spread  # noqa: F401 (the command's names)
+from selfview.procedures.verification import BLIND, PLACES, centre_in_hull
 from selfview.procedures.view import offline_state, viewing, watch, with_progress
+
 
 def register(sub):
     p = sub.add_parser(

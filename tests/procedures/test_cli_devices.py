@@ -51,3 +51,10 @@ def test_a_device_without_url_is_not_tried(tmp_path, capsys):
     rows = {r["device"]: r for r in json.loads(capsys.readouterr().out)["devices"]}
     assert rows["robot"]["status"] == rows["gripper"]["status"] == "not tried"
     assert "--robot URL" in rows["robot"]["detail"] and rows["camera"]["status"] == "answered"
+
+
+def test_reset_of_the_operators_arm_says_there_is_nothing_to_abort():
+    from selfview.procedures.commands.devices import reset_devices
+
+    assert reset_devices({"robot": "manual://"}) == [
+        "robot: the operator's arm (manual://) has no controller to ABORT; stop it by hand"]

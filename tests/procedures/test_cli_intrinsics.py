@@ -163,3 +163,13 @@ def test_experiment_on_a_realistic_camera_measures_it_first(cell):
     assert np.hypot(*np.subtract(t["principal_point"], m["principal_point"])) < 0.5
     e = records[0].reference_err_truth_mm
     assert np.hypot(e[0], e[1]) < TARGET_ACROSS_MM and e[2] < TARGET_ALONG_MM
+
+
+def test_measure_intrinsics_refuses_names_that_do_not_match_the_pictures(cell):
+    from selfview.errors import ConfigError
+    from selfview.procedures.intrinsics import measure_intrinsics
+
+    pictures = [np.zeros((576, 768), np.uint8)] * 3
+    for camera in (None, cell.camera.guess()):
+        with pytest.raises(ConfigError, match="3 picture\\(s\\) but 2 name\\(s\\)"):
+            measure_intrinsics(pictures, cell.plate, camera, ["a", "b"])

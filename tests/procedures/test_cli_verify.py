@@ -7,7 +7,7 @@ import pytest
 
 from selfview.files.cell import default_cell_path, load_cell
 from selfview.procedures.cli import main
-from selfview.procedures.commands.verify import PLACES, centre_in_hull, spread
+from selfview.procedures.verification import PLACES, centre_in_hull, spread
 
 
 def test_every_park_keeps_the_plate_centre_between_the_fingertips():
@@ -49,3 +49,19 @@ def test_verify_on_the_ideal_cell_is_go_within_a_target(capsys):
     with pytest.raises(SystemExit) as stop:  # fewer parks than a spread needs: a usage error
         main(["verify", "--parks", "2"])
     assert stop.value.code == 2
+
+
+def test_too_few_parks_or_no_places_are_refused_with_the_reason():
+    from types import SimpleNamespace
+
+    from selfview.errors import ConfigError
+    from selfview.procedures.verification import park_and_calibrate, verify_summary
+
+    with pytest.raises(ValueError, match="at least 2"):
+        spread([np.eye(4)])
+    with pytest.raises(ValueError, match="at least 2"):
+        spread([np.eye(4), np.full((4, 4), np.nan)])
+    with pytest.raises(ConfigError, match="at least 2 places"):
+        verify_summary([], [], 0.25)
+    with pytest.raises(ConfigError, match="no places"):  # nothing is planned, nothing moves
+        park_and_calibrate(SimpleNamespace(), None, [], "open")

@@ -55,6 +55,15 @@ def test_dry_run_moves_nothing(cell, capsys):
     assert any("appro" in ln for ln in lines) and any("disturb" in ln for ln in lines)
 
 
+@pytest.mark.parametrize("kw, match", [({"series": "cable"}, "list of one or more"), ({"series": ()}, "list of one or more"),
+                                       ({"trials": 0}, "trials 0"), ({"trials": -1}, "trials -1"),
+                                       ({"trials": 2.5}, "trials 2.5")])
+def test_an_experiment_without_series_or_trials_is_refused_before_anything_moves(session, kw, match):
+    with pytest.raises(ConfigError, match=match):
+        session.experiment(**kw)
+    assert motions(session) == [] and session.engine.records == []
+
+
 def test_a_plan_out_of_limits_is_refused_before_anything_moves(cell):
     far = PLATE_BASE_POSE @ trans(0, 0, -60.0)
     far[0, 3] = 900.0  # outside the driver's workspace box
@@ -227,6 +236,21 @@ def test_monitor_updates_then_recalibrates_then_raises_the_alarm(cell, tmp_path)
         assert how[0] == "searched (no earlier frame)" and "tracked" in how[1:4], how
         assert "ABORT" in [ln.upper() for ln in s.sim.robot_sim.received[n_rx:]]
         assert valve_is_safe(s)
+
+
+def test_monitor_refuses_no_frames_an_unknown_state_or_no_work_locations_before_anything_moves(session, tmp_path):
+    import dataclasses
+
+    out = tmp_path / "cal.yaml"
+    session.calibrate(out=out)
+    n_rx, n_rec = len(motions(session)), len(session.engine.records)
+    for kw, match in (({"frames": 0}, "frames 0"), ({"frames": 2.5}, "frames 2.5"), ({"state": "clamped"}, "'clamped'")):
+        with pytest.raises(ConfigError, match=match):
+            session.monitor(out, **kw)
+    session.settings = dataclasses.replace(session.settings, work_locations=())
+    with pytest.raises(ConfigError, match="no work_locations"):
+        session.monitor(out, frames=2)
+    assert len(motions(session)) == n_rx and len(session.engine.records) == n_rec
 
 
 @pytest.mark.parametrize("signals, gap_s", [((signal.SIGTERM,), 0.0), ((signal.SIGHUP,), 0.0), ((signal.SIGQUIT,), 0.0),

@@ -267,3 +267,92 @@ def test_a_pre_grasp_pose_outside_the_limits_is_refused_before_anything_moves(ce
             run_grasp(s, load_object(), cal, start=far)
         assert not [ln for ln in s.sim.robot_sim.received if ln.upper().startswith(("DO MOVE", "DO MOVES"))]
         assert s.engine.records == []
+
+
+@pytest.mark.parametrize("params, match", [
+    ({"delta": trans(0, 0, np.nan)}, "non-finite"),
+    ({"delta": trans(0, 0, np.inf)}, "non-finite"),
+    ({"delta": np.eye(3)}, "4x4"),
+    ({"delta": None}, "4x4"),
+    ({"delta": np.diag([2.0, 1.0, 1.0, 1.0])}, "not a rigid transform"),
+    ({"delta": trans(0, 0, 1.0), "max_mm": 0.0}, "max_mm"),
+    ({"delta": trans(0, 0, 1.0), "max_mm": -5.0}, "max_mm"),
+    ({"delta": trans(0, 0, 1.0), "max_mm": np.nan}, "max_mm"),
+    ({"delta": trans(0, 0, 1.0), "max_deg": 0.0}, "max_deg"),
+    ({"delta": trans(0, 0, 1.0), "max_deg": float("inf")}, "max_deg"),
+])
+def test_a_malformed_tool_step_or_cap_is_refused_before_anything_is_sent(params, match):
+    robot = _Robot()
+    with pytest.raises(ConfigError, match=match):
+        Engine(CellDevices(robot=robot)).run(lambda e: e.execute(Step("tool", params)), [])
+    assert robot.sent == []
+    # in a plan: refused before the run starts
+    with pytest.raises(ConfigError, match=match):
+        Engine(CellDevices(robot=robot)).run(lambda e: pytest.fail("the plan ran"), [Step("tool", params)])
+    assert robot.sent == []
+
+
+def test_a_tool_step_for_a_robot_that_knows_no_pose_is_refused_in_the_plan():
+    robot = _Robot()
+    robot.knows_poses = False
+    with pytest.raises(ConfigError, match="knows no pose"):
+        Engine(CellDevices(robot=robot)).run(lambda e: pytest.fail("the plan ran"), [Step("tool", {"delta": trans(0, 0, 1.0)})])
+    assert robot.sent == []
+
+
+@pytest.mark.parametrize("target", [np.full((4, 4), np.nan), np.eye(3), [1.0, 2.0]])
+def test_a_malformed_numeric_target_is_refused_in_the_plan(target):
+    robot = _Robot()
+    with pytest.raises(ConfigError, match="motion target"):
+        Engine(CellDevices(robot=robot)).check_plan([Step("moves", {"target": target})])
+
+
+def test_a_non_finite_calibration_is_refused_before_the_jaws_or_the_arm_move(scene, cell):
+    from selfview.procedures.grasp import run_grasp
+    from selfview.procedures.runs import CellSession
+
+    world, obj = scene
+    arm = PerfectArm(world)
+    moved = []
+    arm.jaws = moved.append
+    bad = world.C_H_G.copy()
+    bad[0, 3] = np.nan
+    with pytest.raises(ConfigError, match="C_H_G: contains non-finite"):
+        _servo(world, obj, arm, C_H_G=bad)
+    with pytest.raises(ConfigError, match="p_G6"):
+        servo_grasp(arm, world.cell, obj, world.C_H_G, world.camera, np.zeros((4, 3)))
+    assert moved == [] and arm.steps == [] and arm.frames == 0
+    cal = SimpleNamespace(C_H_G=bad, camera=world.camera, points_G={"open": cell.gripper.points_G("open")})
+    with CellSession.simulated(cell, seed=3, time_scale=0.01) as s:
+        with pytest.raises(ConfigError, match="C_H_G: contains non-finite"):
+            run_grasp(s, obj, cal)
+        assert not [ln for ln in s.sim.robot_sim.received if ln.upper().startswith(("DO MOVE", "DO MOVES"))]
+        assert s.engine.records == []
+
+
+def test_a_step_describes_a_six_number_pose_and_a_malformed_delta_without_failing():
+    assert Step("moves", {"target": np.array([350.0, 0, 100.0, 90.0, 90.0, 0])}).describe() == \
+        "moves(target=numbers 350.0 0.0 100.0 90.0 90.0 0.0)"
+    assert Step("tool", {"delta": np.eye(3)}).describe() == "tool(delta=a (3, 3) array)"
+    assert Step("tool", {"delta": trans(1.0, 0, 0)}).describe() == "tool(delta=by 1.00 0.00 0.00 mm)"
+
+
+def test_an_unknown_holding_state_or_a_non_finite_cap_is_refused_before_anything_moves(scene, cell):
+    from selfview.procedures.grasp import run_grasp
+    from selfview.procedures.runs import CellSession
+
+    world, obj = scene
+    arm = PerfectArm(world)
+    moved = []
+    arm.jaws = moved.append
+    with pytest.raises(ConfigError, match="gripper state 'clamped'"):
+        _servo(world, obj, arm, grip_state="clamped")
+    for bad in (np.nan, 0.0, -1.0, True):
+        with pytest.raises(ConfigError, match="max_step_mm"):
+            _servo(world, obj, arm, max_step_mm=bad)
+    assert moved == [] and arm.steps == [] and arm.frames == 0
+    cal = SimpleNamespace(C_H_G=world.C_H_G, camera=world.camera, points_G={"open": cell.gripper.points_G("open")})
+    with CellSession.simulated(cell, seed=3, time_scale=0.01) as s:
+        with pytest.raises(ConfigError, match="gripper state 'clamped'"):
+            run_grasp(s, obj, cal, ServoSettings(grip_state="clamped"))
+        assert s.engine.records == []

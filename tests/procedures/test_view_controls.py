@@ -102,6 +102,15 @@ class DevTools:
         self.proc.wait(10)
 
 
+def _close(browser, p) -> None:
+    """The browser closed, and the command killed if it still runs (the test failed before it ended)."""
+    if browser is not None:
+        browser.close()
+    if p.poll() is None:
+        p.kill()
+        p.communicate(timeout=10)
+
+
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory):
     d = tmp_path_factory.mktemp("controls")
@@ -132,11 +141,7 @@ def test_stop_on_the_page_aborts_the_robot_and_makes_the_valve_safe(calibrated, 
         b.click("stop")
         out, err = p.communicate(timeout=60)
     finally:
-        if b is not None:
-            b.close()
-        if p.poll() is None:
-            p.kill()
-            p.communicate(timeout=10)
+        _close(b, p)
     assert p.returncode in (130, 143), err[-2000:]
     assert "view: STOP pressed on the page" in err
     assert "ABORT sent and confirmed" in err and "valve set to its safe state" in err
@@ -249,11 +254,7 @@ def test_views_are_rejected_recalibrated_and_saved_by_clicks(tmp_path):
         b.click("ask-save")
         out, err = p.communicate(timeout=120)
     finally:
-        if b is not None:
-            b.close()
-        if p.poll() is None:
-            p.kill()
-            p.communicate(timeout=10)
+        _close(b, p)
     assert p.returncode == 0, err[-2000:]
     res = json.loads(out)
     assert res["views_used"] == 11 and res["views_rejected"] == ["view 3"] and res["out"] == "cam.yaml"
@@ -281,11 +282,7 @@ def test_a_calibration_is_saved_or_discarded_by_a_click(tmp_path, button, code):
         b.click(button)
         out, err = p.communicate(timeout=60)
     finally:
-        if b is not None:
-            b.close()
-        if p.poll() is None:
-            p.kill()
-            p.communicate(timeout=10)
+        _close(b, p)
     assert p.returncode == code, err[-2000:]
     assert (tmp_path / "cal.yaml").exists() == (code == 0)
     if code:
