@@ -209,7 +209,8 @@ def arm_repeatability(seed: int, level: float, moves: int = 30) -> dict:
         land.append((robot.move(target @ inv_H(F_H_G)).base_H_F_true @ F_H_G)[:3, 3])
     land = np.array(land)
     return {"repeatability_mm": float(np.sqrt(np.mean(np.sum((land - land.mean(axis=0)) ** 2, axis=1)))),
-            "accuracy_mm": float(np.sqrt(np.mean(np.sum((land - target[:3, 3]) ** 2, axis=1))))}
+            "accuracy_mm": float(np.sqrt(np.mean(np.sum((land - target[:3, 3]) ** 2, axis=1)))),
+            "landings": moves}
 
 
 def conditions(profiles=DEFAULT_PROFILES) -> list[dict]:

@@ -620,16 +620,19 @@ def _positioning(run: BenchRun | None) -> list[str]:
     from selfview.bench.positioning import table_markdown
 
     d, h = run.data, run.data["headline"]
+    landings = {v.get("landings") for v in d["profiles"].values()}
+    landings = f"{landings.pop()} landings" if len(landings) == 1 and None not in landings else "their landings"
     return lines + [
         f"The gripper servoed to a block's grasp frame (PBVS in the gripper frame, stop at {d['servo']['stop_mm']:g} mm "
         f"and {d['servo']['stop_deg']:g} deg, at most {d['servo']['max_iterations']} iterations), {d['starts']} starts per "
-        f"condition, the '{d['world']}' cell of seed {d['seed']}; the final true TCP-to-goal distance:", "",
+        f"condition{' (a --quick run)' if d.get('quick') else ''}, the '{d['world']}' cell of seed {d['seed']}; the final "
+        "true TCP-to-goal distance:", "",
         table_markdown([c for c in d["conditions"] if "failed" not in c]), "",
         f"On the {h['profile']} arm: AX=XB / self-viewing on-line = {_f(h['axxb_over_online'])}; after the camera moved "
         f"mid-approach, on-line {_f(h['online_moved_over_unmoved'])} and off-line {_f(h['offline_moved_over_unmoved'])} "
         f"times their unmoved error; processing per iteration at most {_f(h['processing_ms_max'])} ms. A run that did not "
         "converge stopped before the descent: its distance is to the stand-off goal where it stopped. The arms land on "
-        "one command within (RMS of 30 landings) " + ", ".join(
+        f"one command within (RMS of {landings}) " + ", ".join(
             f"{k} {_f(v.get('repeatability_mm'), '.3f')} mm" for k, v in d["profiles"].items()) + ".", ""]
 
 
