@@ -358,20 +358,22 @@ def _intrinsics(run: BenchRun | None) -> list[str]:
         found = sum(1 for r in pics if r.get("opencv") and r.get("opencv_found_by_ours") == r.get("opencv"))
         lines += [f"Real photographs of a printed dot grid (`tests/data/{name}`): every disc cv2.findCirclesGrid finds "
                   f"is found in {found} of {len(pics)} pictures, none refused: {'yes' if s.get('none_refused') else 'no'}. "
-                  "Ours (the skew as `selfview intrinsics` decides it) beside cv2.calibrateCamera on the same pictures:", "",
-                  "| camera | pictures | f | cx | cy | aspect | ours - cv2 [combined sigmas] f / cx / cy / aspect | skew |",
-                  "|---|---|---|---|---|---|---|---|"]
+                  "Ours (the skew as `selfview intrinsics` decides it; the plate model the run fitted, as recorded) beside "
+                  "cv2.calibrateCamera on the same pictures:", "",
+                  "| camera | pictures | f | cx | cy | aspect | ours - cv2 [combined sigmas] f / cx / cy / aspect | skew "
+                  "| plate model |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         for c in s.get("cameras", []):
             ours, cv = c.get("selfview", {}), c.get("cv2_on_findCirclesGrid", {})
             if "f" not in ours:
-                lines.append(f"| {c['size'][0]}x{c['size'][1]} | {c.get('pictures')} | {ours.get('error', '-')} | | | | | |")
+                lines.append(f"| {c['size'][0]}x{c['size'][1]} | {c.get('pictures')} | {ours.get('error', '-')} | | | | | | |")
                 continue
             z = c.get("ours_minus_cv2_in_combined_sigmas", {})
             lines.append(f"| {c['size'][0]}x{c['size'][1]} | {c.get('pictures')} | {_f(ours['f'], '.1f')} / {_f(cv.get('f'), '.1f')} | "
                          f"{_f(ours['cx'], '.1f')} / {_f(cv.get('cx'), '.1f')} | {_f(ours['cy'], '.1f')} / {_f(cv.get('cy'), '.1f')} | "
                          f"{_f(ours['aspect'], '.4f')} / {_f(cv.get('aspect'), '.4f')} | "
                          + " / ".join(_f(z.get(k), '.1f') for k in ("f", "cx", "cy", "aspect"))
-                         + f" | {(ours.get('skew_fit') or {}).get('note', '-').split(':')[0]} |")
+                         + f" | {(ours.get('skew_fit') or {}).get('note', '-').split(':')[0]} | {ours.get('plate_model', '-')} |")
         lines.append("")
     return lines
 
