@@ -215,10 +215,13 @@ def arm_repeatability(seed: int, level: float, moves: int = 30) -> dict:
 
 def conditions(profiles=DEFAULT_PROFILES) -> list[dict]:
     """Every condition of the study: (calibration, profile, camera moved, taught goal). The camera move and
-    the taught goal (the control) on the most worn profile, with the three measured calibrations."""
+    the taught goal (the control) on the most worn profile, with the three measured calibrations. Raises
+    ``ValueError`` for no profile or one not in ``PROFILES``."""
+    if not profiles or set(profiles) - set(PROFILES):
+        raise ValueError(f"profiles: expected one or more of {', '.join(PROFILES)}, got {list(profiles)}")
     out = [{"calibration": c, "profile": p, "camera_moved": False, "taught_goal": False}
            for p in profiles for c in CALIBRATIONS]
-    last = profiles[-1]
+    last = max(profiles, key=PROFILES.__getitem__)  # the most worn, in whatever order --profiles names them
     out += [{"calibration": c, "profile": last, "camera_moved": True, "taught_goal": False} for c in CALIBRATIONS[1:]]
     out += [{"calibration": c, "profile": last, "camera_moved": False, "taught_goal": True} for c in CALIBRATIONS[1:]]
     return out
