@@ -41,11 +41,12 @@ if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from selfview.bench.handeye import plate_pose  # noqa: E402
-from selfview.bench.kinematics_vs_selfview import F_H_G, opencv_handeye, resolve_grid, stations  # noqa: E402
+from selfview.bench.kinematics_vs_selfview import F_H_G, errors, opencv_handeye, resolve_grid, stations  # noqa: E402
 from selfview.files.cell import default_cell_path, load_cell  # noqa: E402
 from selfview.errors import CellError  # noqa: E402
 from selfview.maths.geometry import inv_H, make_H, rot_z, trans  # noqa: E402
 from selfview.files.io_safe import atomic_write  # noqa: E402
+from selfview.mocks.imperfections import PROFILES as WORLDS  # noqa: E402
 from selfview.mocks.kinematic_errors import WORN_PUMA, PerturbedPuma260  # noqa: E402
 from selfview.mocks.objects import draw_start, grasp_outcome, place_object  # noqa: E402
 from selfview.mocks.puma260 import Unreachable  # noqa: E402
@@ -208,15 +209,19 @@ def arm_repeatability(seed: int, level: float, moves: int = 30) -> dict:
         land.append((robot.move(target @ inv_H(F_H_G)).base_H_F_true @ F_H_G)[:3, 3])
     land = np.array(land)
     return {"repeatability_mm": float(np.sqrt(np.mean(np.sum((land - land.mean(axis=0)) ** 2, axis=1)))),
-            "accuracy_mm": float(np.sqrt(np.mean(np.sum((land - target[:3, 3]) ** 2, axis=1))))}
+            "accuracy_mm": float(np.sqrt(np.mean(np.sum((land - target[:3, 3]) ** 2, axis=1)))),
+            "landings": moves}
 
 
 def conditions(profiles=DEFAULT_PROFILES) -> list[dict]:
     """Every condition of the study: (calibration, profile, camera moved, taught goal). The camera move and
-    the taught goal (the control) on the most worn profile, with the three measured calibrations."""
+    the taught goal (the control) on the most worn profile, with the three measured calibrations. Raises
+    ``ValueError`` for no profile or one not in ``PROFILES``."""
+    if not profiles or set(profiles) - set(PROFILES):
+        raise ValueError(f"profiles: expected one or more of {', '.join(PROFILES)}, got {list(profiles)}")
     out = [{"calibration": c, "profile": p, "camera_moved": False, "taught_goal": False}
            for p in profiles for c in CALIBRATIONS]
-    last = profiles[-1]
+    last = max(profiles, key=PROFILES.__getitem__)  # the most worn, in whatever order --profiles names them
     out += [{"calibration": c, "profile": last, "camera_moved": True, "taught_goal": False} for c in CALIBRATIONS[1:]]
     out += [{"calibration": c, "profile": last, "camera_moved": False, "taught_goal": True} for c in CALIBRATIONS[1:]]
     return out
@@ -312,7 +317,8 @@ def main(argv=None) -> int:
     ap.add_argument("--poses", type=int, default=10, help="stations for AX=XB (default 10)")
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
     ap.add_argument("--out", metavar="DIR", help="also write positioning.json, .md and .png there")
-    ap.add_argument("--world", default="realistic", help="the simulated cell's imperfections (default %(default)s)")
+    ap.add_argument("--world", default="realistic", choices=sorted(WORLDS),
+                    help="the simulated cell's imperfections (default %(default)s)")
     ap.add_argument("--quick", action="store_true", help="every condition with 5 starts")
     args = ap.parse_args(argv)
     if args.quick:
@@ -377,12 +383,8 @@ def main(argv=None) -> int:
 
 
 def _cal_error(cal, truth) -> dict:
-    if isinstance(cal, dict):
-        return cal
-    from selfview.maths.geometry import pose_difference
-
-    rot, mm = pose_difference(cal[0], truth)
-    return {"tcp_mm": mm, "rot_deg": rot}
+    """A calibration's ``C_H_G`` against the truth (``errors``), or the reason it failed."""
+    return cal if isinstance(cal, dict) else errors(cal[0], truth)
 
 
 if __name__ == "__main__":

@@ -39,8 +39,6 @@ KNOWN_DEFECTS = {
     "cli.calfile.wrong_type": "likewise",
 }
 
-#: fault families (kind prefixes) whose behaviour is being fixed: counted, held to the targets once fixed
-
 
 @pytest.fixture(scope="module")
 def campaign():

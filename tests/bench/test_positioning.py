@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from selfview.bench.positioning import (CALIBRATIONS, ServoSettings, _summary, arm_repeatability, conditions,
                                         run_start)
@@ -15,6 +16,10 @@ def test_every_calibration_is_compared_and_the_move_and_the_control_are_on_the_w
     assert plain == {(c, p) for c in CALIBRATIONS for p in ("none", "worn")}
     assert {c["calibration"] for c in conds if c["camera_moved"]} == {"selfview-offline", "selfview-online", "axxb"}
     assert all(c["profile"] == "worn" for c in conds if c["camera_moved"] or c["taught_goal"])
+    # the most worn profile, whatever the order the profiles are named in; an unknown one is named
+    assert all(c["profile"] == "worn" for c in conditions(("worn", "none")) if c["camera_moved"] or c["taught_goal"])
+    with pytest.raises(ValueError, match="'worst'"):
+        conditions(("none", "worst"))
 
 
 def test_a_worn_arm_lands_off_its_command_and_a_perfect_one_does_not():

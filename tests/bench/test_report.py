@@ -301,3 +301,41 @@ def test_the_published_page_is_short_and_every_figure_links_its_json():
             assert links, f"section '{title}' shows figures but links no JSON file"
         for ln in links:
             assert (page.parent / ln).is_file(), f"section '{title}' links {ln}, which does not exist"
+
+
+def test_the_published_page_is_what_its_stored_results_render(tmp_path):
+    """docs/RESULTS.md holds no figure typed in by hand: ``--render-only`` on a copy of docs/results/ writes
+    the same page, line for line (a section or a table row edited by hand, or a JSON file changed without
+    the page, shows here)."""
+    import shutil
+
+    docs = tmp_path / "docs"
+    shutil.copytree(REPO / "docs" / "results", docs / "results")
+    shutil.copyfile(REPO / "docs" / "RESULTS.md", docs / "RESULTS.md")
+    make_report(docs / "RESULTS.md", render_only=True)
+    published = (REPO / "docs" / "RESULTS.md").read_text(encoding="utf-8").splitlines()
+    rendered = (docs / "RESULTS.md").read_text(encoding="utf-8").splitlines()
+    assert rendered == published, [ln for ln in rendered if ln not in published] + [ln for ln in published if ln not in rendered]
+
+
+def test_the_grasping_section_reads_its_run_size_and_landings_from_the_json():
+    """The section types in no figure: the landings behind the arms' RMS and whether the run was quick come
+    from positioning.json (a run that did not record its landings does not get a count made up)."""
+    cell = load_cell(default_cell_path())
+    mach = {"cpu": "test cpu", "cores": 2, "usable_cores": 2, "python": "3", "numpy": "2", "opencv": "4",
+            "platform": "test", "selfview": "0"}
+    data = json.loads((REPO / "docs" / "results" / "positioning.json").read_text())
+
+    def section(d):
+        runs = {"positioning": BenchRun("positioning", "grasping", "ok", data=d)}
+        text = render_markdown(runs, mach, None, None, quick=False, seconds=1.0, command="c",
+                               cell_limit=cell.monitor.update_limit, results_dir=Path("."))
+        return text.split("### Visually guided grasping", 1)[1].split("\n### ", 1)[0]
+
+    counted = dict(data, quick=False, profiles={k: v | {"landings": 17} for k, v in data["profiles"].items()})
+    text = section(counted)
+    assert "(RMS of 17 landings)" in text and "--quick" not in text
+    text = section(dict(data, quick=True, profiles={k: {kk: vv for kk, vv in v.items() if kk != "landings"}
+                                                    for k, v in data["profiles"].items()}))
+    assert "(RMS of their landings)" in text and "starts per condition (a --quick run)" in text
+    assert "30 landings" not in text
