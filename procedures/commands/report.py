@@ -13,13 +13,14 @@ def register(sub):
         help="rerun every benchmark and study and write docs/RESULTS.md with its JSON and plots",
         description=(
             "Reruns every bench/ script (render, offline, online, robot, io, kinematics_vs_selfview, update_limit, error_budget, "
-            "intrinsics, clutter, faults) as a "
+            "intrinsics, clutter, faults, positioning) as a "
             "subprocess with a time limit each, the paper's experiment on the simulated cell (20 trials per series) and "
             "Tsai's method on Willson's reference data, and writes RESULTS.md with speed (OpenCV's peers timed in the same "
             "run), accuracy against the truth and the peers, the fault campaign and what to expect on a real cell, and "
             "beside it results/ with every JSON object, table and plot, which the page links. A missing or failing "
             "benchmark is reported as such. "
-            "About 5 to 10 minutes on 2 cores; --quick runs every part at small sizes."
+            "The grasping study alone took 1449 s with --quick on 2 cores (its full run, 20 starts per condition, about four "
+            "times that); --quick runs every part at small sizes."
         ),
     )
     p.add_argument("--out", default="docs/RESULTS.md", metavar="RESULTS.md", help="the report (default %(default)s)")
