@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from selfview.procedures.commands._common import COUNT, add_view_arguments, print_json
+from selfview.procedures.commands._common import add_view_arguments, numeric, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
 from selfview.procedures.view import viewing, watch, with_progress
 
@@ -36,7 +36,8 @@ def register(sub):
     p.add_argument("--start", default="pregrasp", metavar="LOCATION",
                    help="the taught pre-grasp location (default %(default)s); in simulation drawn per --seed")
     p.add_argument("--offline", action="store_true", help="servo with the calibration's C_H_G, no on-line update")
-    p.add_argument("--max-iterations", type=COUNT, default=20, help="default %(default)s")
+    p.add_argument("--max-iterations", type=numeric(integer=True, lo=1, hi=1000, name="count"), default=20,
+                   help="1 to 1000 (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     add_view_arguments(p)
     p.set_defaults(func=run)

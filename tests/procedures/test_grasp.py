@@ -356,3 +356,14 @@ def test_an_unknown_holding_state_or_a_non_finite_cap_is_refused_before_anything
         with pytest.raises(ConfigError, match="gripper state 'clamped'"):
             run_grasp(s, obj, cal, ServoSettings(grip_state="clamped"))
         assert s.engine.records == []
+
+
+def test_grasp_max_iterations_out_of_range_is_a_usage_error(capsys):
+    """The option's range is the servo's own (1..1000): a count beyond it is refused by argparse (exit 2) before
+    any device is opened, naming the option."""
+    from selfview.procedures.cli import main
+
+    for bad in ("1001", "0"):
+        with pytest.raises(SystemExit) as stop:
+            main(["grasp", "--max-iterations", bad])
+        assert stop.value.code == 2 and "--max-iterations" in capsys.readouterr().err
