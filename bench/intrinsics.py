@@ -178,7 +178,7 @@ def one_camera(args) -> dict:
         return out
     c = r.camera
     ours = {"f": c.f, "cx": c.cx, "cy": c.cy, "aspect": c.aspect, "kappa": c.kappa, "skew": c.skew,
-            "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect", "skew")}, "rms_px": r.rms_px, "seconds": dt,
+            "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect", "skew") if k in r.sigma}, "rms_px": r.rms_px, "seconds": dt,
             "stop_rule_met": r.stop_rule["met"], "cross_check_agree": r.cross_check.get("agree"),
             "views_used": r.views_used}
     out["selfview"] = {**ours, **_errors(ours, w.camera, 0.0)}
