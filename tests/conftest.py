@@ -5,6 +5,7 @@ from __future__ import annotations
 import atexit
 import os
 import shutil
+import signal
 import tempfile
 from pathlib import Path
 
@@ -22,6 +23,21 @@ DATA = REPO / "tests" / "data"  # reference material copied into the repository:
 _LOCKS = tempfile.mkdtemp(prefix="selfview-test-locks-")
 os.environ["SELFVIEW_LOCK_DIR"] = _LOCKS
 atexit.register(shutil.rmtree, _LOCKS, ignore_errors=True)
+
+
+def _ignore(signum, frame):
+    """Ignore the signal here, as the harness asked, without handing the ignoring down to the children."""
+
+
+# A harness that starts the suite as a background job (SIGINT and SIGQUIT ignored) or under nohup (SIGHUP
+# ignored) hands those ignored signals down to every program the tests start, and selfview rightly keeps an
+# inherited ignored signal ignored (a calibration under nohup goes on when the terminal closes). The tests that
+# send a program Ctrl-C or a hang-up expect the dispositions a terminal gives. So the suite's own process keeps
+# ignoring what it was told to ignore, through a handler that does nothing, which exec resets to the default in
+# each child. (The tests of an inherited ignored signal set SIG_IGN in their child themselves.)
+for _sig in (signal.SIGINT, signal.SIGQUIT, signal.SIGHUP, signal.SIGTERM, signal.SIGTSTP):
+    if signal.getsignal(_sig) == signal.SIG_IGN:
+        signal.signal(_sig, _ignore)
 
 
 @pytest.fixture(scope="session")
