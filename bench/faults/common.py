@@ -122,7 +122,12 @@ def _call(fn, timeout_s: float, after=None):
 
 
 def _limit_child():
-    """preexec_fn of every child: an address-space limit (a YAML or PNG bomb cannot take the machine)."""
+    """preexec_fn of every child: an address-space limit (a YAML or PNG bomb cannot take the machine), and a
+    terminal's signal dispositions, as an operator's shell gives them (a campaign started as a background job
+    or under nohup would otherwise hand its ignored SIGINT, SIGQUIT and SIGHUP down, and the children would
+    rightly keep ignoring them)."""
+    for sig in (signal.SIGINT, signal.SIGQUIT, signal.SIGHUP, signal.SIGTERM, signal.SIGTSTP):
+        signal.signal(sig, signal.SIG_DFL)
     try:
         resource.setrlimit(resource.RLIMIT_AS, (MEM_LIMIT, MEM_LIMIT))
     except (ValueError, OSError):
