@@ -83,7 +83,7 @@ def run_trial(rig: TrialRig, cell: Cell, series: str, index: int, *, seed: int |
     img2 = rig.grab()
     truth2 = rig.truth()
     t1 = time.perf_counter()
-    ft = find_fingertips(img2, cal.camera, cal.C_H_G, cell.gripper, cell.gripper.gap(state))
+    ft = find_fingertips(img2, cal.camera, cal.C_H_G, cell.gripper, cell.gripper.gap(state), model="auto")
     pG = cal.points_G[state]
     estimates, errors = {}, {}
     for m in methods:

@@ -273,9 +273,10 @@ def _label(img, text, org, colour):
     cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, 1, cv2.LINE_AA)
 
 
-def plot_errors(summary: dict, path: Path, methods) -> Path:
+def plot_errors(summary: dict, path: Path, methods) -> Path | None:
     """Bar chart (log scale): mean (bar) and max (whisker, named in the legend) TCP error per method and camera
-    axis, per series, against the off-line reference and against the truth; the paper's means as black ticks."""
+    axis, per series, against the off-line reference and against the truth; the paper's means as black ticks.
+    None (nothing written) when no series has a trial that ran (every trial failed)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -284,6 +285,8 @@ def plot_errors(summary: dict, path: Path, methods) -> Path:
     from selfview.procedures.paper import PAPER_TABLES
 
     series = [s for s, v in summary.items() if isinstance(v, dict) and "methods" in v]
+    if not series:
+        return None
     fig, axes = plt.subplots(len(series), 2, figsize=(13, 4.2 * len(series)), squeeze=False)
     axis_names = ("c_x", "c_y", "c_z")
     for i, s in enumerate(series):

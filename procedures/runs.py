@@ -484,7 +484,9 @@ def write_experiment_folder(folder: Path, records, summary, first, *, cell: Cell
                                                     folder / "trial1_online.png").name
         write_picture(folder / "trial1_picture1.png", first["img1"])
         write_picture(folder / "trial1_picture2.png", first["img2"])
-    files["plot"] = plot_errors(summary, folder / "errors.png", METHODS).name
+    plot = plot_errors(summary, folder / "errors.png", METHODS)
+    if plot is not None:
+        files["plot"] = plot.name
     atomic_write(folder / "tables.md", (tables_markdown(summary) + "\n").encode("utf-8"), what="tables")
     files["tables"] = "tables.md"
     results = {

@@ -20,7 +20,7 @@ from selfview.measurement.discs import DiscDetections
 from selfview.measurement.plates import correct_plate_bias, detect_plate
 from selfview.errors import CalibrationError, ConfigError, ImageError
 from selfview.measurement.fingertips import FingertipResult
-from selfview.measurement.fingers import find_fingertips, model_measurement
+from selfview.measurement.fingers import find_fingertips
 from selfview.maths.geometry import inv_H, make_H, rot_z
 from selfview.estimation.pcc import PCCResult, measure_points_G, points_G_for_state, solve_pcc
 from selfview.estimation.tsai import TsaiResult, calibrate_coplanar
@@ -131,12 +131,9 @@ def _parked_fingertips(img, camera: CameraModel, C_H_G_pred, cell: Cell, gap: fl
                        measurement: str) -> tuple[FingertipResult, str]:
     """The parked fingertips' corners (``calibrate_offline``'s ``measurement``) and how they were measured
     ('corners' or 'model'); ``CalibrationError`` when fewer than 2 are found."""
-    ft = find_fingertips(img, camera, C_H_G_pred, cell.gripper, gap, search_px=search_px)
-    measured_by = "corners"
-    if measurement == "model" or (measurement == "auto" and _misses_a_corner(ft)):
-        res, fit = model_measurement(img, camera, C_H_G_pred, cell.gripper, gap, range(6), searched=ft)
-        if measurement == "model" or (fit.ok and res.found.sum() > ft.found.sum()):
-            ft, measured_by = res, "model"
+    how = {"corners": False, "model": True, "auto": "auto"}[measurement]
+    ft = find_fingertips(img, camera, C_H_G_pred, cell.gripper, gap, search_px=search_px, model=how)
+    measured_by = "corners" if ft.quality is None else "model"
     found = np.asarray(ft.found, bool)
     if found.sum() < 2:
         why = "; ".join(f"{nm}: {r}" for nm, r, ok in zip(POINT_NAMES, ft.reasons, found) if not ok)
@@ -216,12 +213,6 @@ def _mount_guess(cell: Cell, C_H_G_guess) -> np.ndarray:
     if guess.shape != (4, 4) or not np.all(np.isfinite(guess)):
         raise ValueError(f"C_H_G_guess: expected a finite (4, 4) transform, got shape {guess.shape}")
     return guess
-
-
-def _misses_a_corner(ft: FingertipResult) -> bool:
-    """Whether the corner search left a corner unfound that is neither outside the picture nor hidden."""
-    return any(not ok and not (r and (r.startswith("outside") or r.startswith("occluded")))
-               for ok, r in zip(ft.found, ft.reasons))
 
 
 def calibrate_offline(

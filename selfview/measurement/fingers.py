@@ -18,7 +18,7 @@ from selfview.measurement.fingertips import FingertipResult, PredictedFingers, s
 from selfview.maths.geometry import transform_points
 from selfview.measurement.silhouette import fit_silhouette, learn_appearance
 
-__all__ = ["find_fingertips", "model_measurement", "measure_model", "fit_result", "SilhouetteTracker", "WIDE_ROUNDS"]
+__all__ = ["find_fingertips", "misses_a_corner", "model_measurement", "measure_model", "fit_result", "SilhouetteTracker", "WIDE_ROUNDS"]
 
 
 def find_fingertips(
@@ -30,7 +30,7 @@ def find_fingertips(
     *,
     search_px: float = 60.0,
     points=range(6),
-    model: bool = False,
+    model: bool | str = False,
     appearance=None,
 ) -> FingertipResult:
     """Locate the fingertip corners ``points`` (indices into POINT_NAMES) near their prediction from
@@ -43,17 +43,33 @@ def find_fingertips(
     corners the model's points at the fitted pose; the result's ``quality``, ``lost`` and ``C_H_G`` say
     how well it fits, and a fit below the thresholds reports every point as not found with the reason.
     ``appearance`` (``selfview.measurement.silhouette.Appearance``) the faces' grey levels, if known (else read at the start).
+    ``model='auto'``: the corner search, and the model-based measurement where the search misses a corner
+    in the picture (``misses_a_corner``: a fingertip beside a disc, a weak tip edge, or a busy plate such as
+    a chessboard or ChArUco board, whose square edges outscore the fingers' own in the search's coarse
+    alignment) and the model's fit holds and finds more corners: then the model's corners (the searched
+    ones are not mixed with them; the result's ``quality`` is set). ``model=False`` the corner search only.
 
     Returns a ``FingertipResult``; points not found carry a reason and are NaN. Raises ``ImageError``
     for a blank picture or one of the wrong size, ``CalibrationError`` if the prediction puts the
     fingertips behind the camera or is not finite, ``ValueError`` for a transform that is not (4, 4) or a
     jaw gap that is not a positive number.
     """
+    if model not in (False, True, "auto"):
+        raise ValueError(f"model: expected False (the corner search), True (the model) or 'auto', got {model!r}")
     pred = PredictedFingers(camera, C_H_G_pred, gripper, gap_mm)
     result = search_corners(image, pred, search_px, points)
-    if not model:
+    if model is False or (model == "auto" and not misses_a_corner(result)):
         return result
-    return measure_model(image, pred, points, result, appearance)[0]
+    fitted, fit = measure_model(image, pred, points, result, appearance)
+    if model is True or (fit.ok and fitted.found.sum() > result.found.sum()):
+        return fitted
+    return result
+
+
+def misses_a_corner(result: FingertipResult) -> bool:
+    """Whether a measurement left a requested corner unfound that is neither outside the picture nor hidden."""
+    return any(not ok and not (r and (r.startswith("outside") or r.startswith("occluded") or r == "not requested"))
+               for ok, r in zip(result.found, result.reasons))
 
 
 def _pose_from_corners(pred: PredictedFingers, res: FingertipResult):

@@ -114,3 +114,13 @@ def test_a_failed_write_leaves_no_partial_results_folder(tmp_path, capsys, monke
     assert out.is_dir() == existed and (not existed or list(out.iterdir()) == [])
     monkeypatch.setattr(runs, "write_experiment_folder", real_write)
     assert main(argv) == 0 and (out / "results.json").is_file()
+
+
+def test_no_error_plot_when_every_trial_failed(tmp_path):
+    """A run whose every trial failed (e.g. no fingertip found off-line) writes its folder without the plot
+    instead of crashing in matplotlib (0 rows of subplots)."""
+    from selfview.procedures.results import plot_errors
+
+    summary = {"failures": [{"series": "cable", "index": 0, "seed": 0, "error": "CalibrationError: ..."}]}
+    assert plot_errors(summary, tmp_path / "errors.png", METHODS) is None
+    assert not (tmp_path / "errors.png").exists()
