@@ -23,8 +23,8 @@ __all__ = ["LIVE_RATE_HZ", "LiveFeed", "live_feed"]
 
 log = logging.getLogger("selfview.view")
 
-#: Live frames per second at most; a frame that takes longer (a simulated camera renders it) waits as long
-#: again before the next, so the feed takes at most half of the time.
+#: Live frames per second at most; a frame that takes longer (a simulated camera renders it) waits twice as
+#: long before the next, so the feed takes at most a third of the time.
 LIVE_RATE_HZ = 3.0
 
 #: Fewer plate points than this is "plate not found" (a pose of the view needs at least 4).
@@ -35,15 +35,19 @@ class LiveFeed:
     """The live feed of ``camera`` (a connected ``FrameGrabber``) on ``view`` (``LiveView``), the plate found with
     the cell's ``plate`` and starting camera ``model``. ``taken()``: the plate found in each view taken so far
     (``ViewProgress.taken``), for the coverage. ``cancel``: an event that ends the feed (the engine's). Use
-    ``on_step`` as an ``Engine.on_step`` hook (``view.watch``); ``start`` and ``close``."""
+    ``on_step`` as an ``Engine.on_step`` hook (``view.watch``); ``start`` and ``close``. ``until_grab``: the feed
+    ends at the first grab step (a command that takes one picture: ``park``, ``calibrate``); ``taken`` None: no
+    coverage (views are for ``intrinsics``)."""
 
-    def __init__(self, view, camera, plate, model, *, taken=None, rate_hz: float = LIVE_RATE_HZ, cancel=None):
+    def __init__(self, view, camera, plate, model, *, taken=None, rate_hz: float = LIVE_RATE_HZ, cancel=None,
+                 until_grab: bool = False):
         from selfview.errors import ConfigError
 
         if not 0 < rate_hz <= 25:
             raise ConfigError(f"live feed rate {rate_hz!r}: expected 0 < frames per second <= 25")
         self.view, self.camera, self.plate, self.model = view, camera, plate, model
-        self.taken = taken or (lambda: [])
+        self.taken = taken
+        self.until_grab = bool(until_grab)
         self.period_s = 1.0 / float(rate_hz)
         self.cancel = cancel
         self.frames = 0  # live frames shown
@@ -56,8 +60,14 @@ class LiveFeed:
     # --- the engine's hook ----------------------------------------------------------------------
     def on_step(self, n, step) -> None:
         """``Engine.on_step``: a grab step pauses the feed until the next step starts (or ``resume``), at most
-        the grab's own time limit (the grabber's timeout for each frame it averages)."""
-        if step.kind == "grab":
+        the grab's own time limit (the grabber's timeout for each frame it averages); so does the settling
+        wait before it (at most its seconds and half a second more)."""
+        if step.kind == "wait":  # the settling before a picture: the picture's grab comes next
+            self._paused_until = time.monotonic() + float(step.params.get("seconds", 0.0)) + 0.5
+        elif step.kind == "grab" and self.until_grab:
+            self._stop.set()
+            self.view.live_state(on=False, text="live feed ended: the picture is taken")
+        elif step.kind == "grab":
             frames = int(step.params.get("average", 1)) + 1
             self._paused_until = time.monotonic() + frames * float(getattr(self.camera, "timeout_s", 1.0))
         else:
@@ -100,7 +110,7 @@ class LiveFeed:
                     self.view.live_state(error=f"{type(exc).__name__}: {exc}",
                                          text=f"live feed: the grab failed ({exc}); trying again")
             took = time.monotonic() - t0
-            delay = max(self.period_s - took, took, 0.05)
+            delay = max(self.period_s - took, 2.0 * took, 0.05)
 
     def once(self) -> dict:
         """Grab one frame, find the plate, publish it; returns what was published (the state's ``live``).
@@ -114,7 +124,7 @@ class LiveFeed:
         text = (f"LIVE: {len(det.uv)} of {of} plate points found" if found else f"LIVE: plate not found ({why})")
         info = {"found": len(det.uv) if found else 0, "of": of, "text": text, "error": None,
                 "at": time.strftime("%H:%M:%S"), "frame": int(frame.index),
-                "coverage": self._coverage(det)}
+                "coverage": self._coverage(det) if self.taken is not None else {}}
         self.view.live_frame(draw_plate_points(frame.image, det, text, found=found), info)
         self.frames += 1
         return info
@@ -158,22 +168,26 @@ class LiveFeed:
 
     def close(self, why: str = "the views are taken") -> None:
         """Stop the feed (waits at most one grab's timeout for the frame in flight) and hide it on the page."""
+        ended = self._stop.is_set()
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=float(getattr(self.camera, "timeout_s", 1.0)) + 2.0)
             self._thread = None
-        self.view.live_state(on=False, text=f"live feed ended: {why}")
+        if not ended:
+            self.view.live_state(on=False, text=f"live feed ended: {why}")
 
 
 @contextlib.contextmanager
 def live_feed(view, session, progress=None):
     """A started ``LiveFeed`` of ``session``'s camera for ``view`` (None without a view or in a dry run),
-    closed at the end; ``progress``: the command's ``ViewProgress`` (the views taken)."""
+    closed at the end; ``progress``: the command's ``ViewProgress`` (the views taken, for the coverage), None:
+    a command that takes one picture (the feed ends at its grab)."""
     if view is None or session.dry_run or session.devices is None or session.devices.camera is None:
         yield None
         return
     feed = LiveFeed(view, session.devices.camera, session.cell.plate, session.cell.camera.guess(),
-                    taken=(lambda: progress.taken) if progress is not None else None, cancel=session.engine.cancel)
+                    taken=(lambda: progress.taken) if progress is not None else None, cancel=session.engine.cancel,
+                    until_grab=progress is None)
     feed.start()
     try:
         yield feed

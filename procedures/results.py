@@ -171,9 +171,10 @@ def draw_plate_points(image, det, title: str, scale: int = 2, found: bool = True
     big = cv2.resize(_bgr(image), None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
     if det is not None:
         for (u, v), (r, c) in zip(det.uv, det.rc):
-            cv2.circle(big, _pt((u, v), scale), 4 * scale, (0, 200, 0), 2, cv2.LINE_AA)
-            cv2.putText(big, f"{r},{c}", _pt((u + 5, v - 5), scale), cv2.FONT_HERSHEY_PLAIN, 0.6 * scale,
-                        (0, 160, 0), 1, cv2.LINE_AA)
+            cv2.circle(big, _pt((u, v), scale), 3 * scale, (0, 230, 0), 2, cv2.LINE_AA)
+            org = _pt((u + 7, v - 7), scale)
+            cv2.putText(big, f"{r},{c}", org, cv2.FONT_HERSHEY_PLAIN, 0.7 * scale, (0, 0, 0), 4, cv2.LINE_AA)
+            cv2.putText(big, f"{r},{c}", org, cv2.FONT_HERSHEY_PLAIN, 0.7 * scale, (90, 255, 90), 1, cv2.LINE_AA)
     cv2.putText(big, title, (12, 34), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (0, 0, 0), 5, cv2.LINE_AA)
     cv2.putText(big, title, (12, 34), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (0, 220, 0) if found else (40, 40, 255), 2,
                 cv2.LINE_AA)

@@ -555,7 +555,7 @@ th{background:#333}section{min-width:320px}h2{font-size:15px;margin:8px 0 4px}
 #views td:first-child{white-space:nowrap}
 .barout{width:220px;height:14px;background:#444}.barin{height:14px;background:#3a9}
 #livebox{margin-bottom:12px}#live{width:100%;background:#000;display:block;outline:3px solid #3a9}
-#livecov .barin{position:relative}#livecaption{font-size:18px;margin:0 0 6px;color:#7f7}#livecaption.nf{color:#f77}
+.barnow{position:relative;height:14px;background:#3a9}#livecaption{font-size:18px;margin:0 0 6px;color:#7f7}#livecaption.nf{color:#f77}
 .barout{position:relative}.barnext{position:absolute;top:0;left:0;height:14px;background:#3a96;outline:1px dashed #9fc}
 </style></head><body>
 <div id="bar"><div id="verdict">waiting for a verdict</div>
@@ -564,11 +564,11 @@ th{background:#333}section{min-width:320px}h2{font-size:15px;margin:8px 0 4px}
 <div id="askbox" hidden><span id="asktext"></span><span id="askbuttons"></span></div>
 <div id="doing">connecting</div>
 <main><section id="framebox"><div id="livebox" hidden><h2 id="livecaption">live</h2>
-<img id="live" alt="the camera now, with the plate found in it">
-<h2>coverage now, and with this view taken (dashed)</h2><table id="livecov"></table></div>
+<img id="live" alt="the camera now, with the plate found in it"></div>
 <h2 id="framecaption" hidden>the last view taken</h2><a href="frame.jpg" target="_blank" title="the frame at full size">
 <img id="frame" alt="latest frame"></a></section>
-<section id="side"><h2 id="cmd">figures</h2><table id="numbers"></table>
+<section id="side"><div id="livecovbox" hidden><h2>coverage of the views taken, and with the live view (dashed)</h2>
+<table id="livecov"></table></div><h2 id="cmd">figures</h2><table id="numbers"></table>
 <div id="plotbox" hidden><h2>change of the camera over time</h2><svg id="plot" width="360" height="240"></svg></div>
 <div id="logbox" hidden><h2>decision per frame (newest first)</h2><div id="logwrap"><table id="log"></table></div></div>
 <div id="barbox" hidden><h2>coverage of the views (the stop rule decides)</h2><table id="bars"></table></div>
@@ -580,14 +580,14 @@ const TOKEN="__TOKEN__";let lastFrame=-1,askKey="",viewsKey="",lastLive=-1,liveB
 async function showLive(seq){liveBusy=true;try{const r=await fetch("live.jpg",{headers:{"X-Selfview-Token":TOKEN},cache:"no-store"});
  if(r.ok){const u=URL.createObjectURL(await r.blob());document.getElementById("live").src=u;
   if(liveURL)URL.revokeObjectURL(liveURL);liveURL=u;lastLive=seq;}}catch(e){}finally{liveBusy=false;}}
-function live(L){const box=document.getElementById("livebox");box.hidden=!(L&&L.on);
- document.getElementById("framecaption").hidden=!(L&&L.on);if(!L)return;
+function live(L){const on=!!(L&&L.on);document.getElementById("livebox").hidden=!on;
+ document.getElementById("framecaption").hidden=!on;document.getElementById("livecovbox").hidden=!(on&&L.coverage&&Object.keys(L.coverage).length);if(!L)return;
  const c=document.getElementById("livecaption");c.textContent=L.text+(L.at?" at "+L.at:"");c.className=L.found?"":"nf";
  if(L.on&&L.seq>0&&L.seq!==lastLive&&!liveBusy)showLive(L.seq);
- const t=document.getElementById("livecov");t.innerHTML="";for(const k in (L.coverage||{})){const b=L.coverage[k],r=t.insertRow();
+ const t=document.getElementById("livecov");t.innerHTML="";for(const k in (on&&L.coverage||{})){const b=L.coverage[k],r=t.insertRow();
   const f=v=>Math.round(100*Math.min(1,v/b.goal));r.insertCell().textContent=k;
   r.insertCell().innerHTML=`<div class="barout"><div class="barnext" style="width:${f(b.if_taken)}%"></div>`+
-   `<div class="barin" style="width:${f(b.now)}%"></div></div>`;
+   `<div class="barnow" style="width:${f(b.now)}%"></div></div>`;
   r.insertCell().textContent=fmt(b.now)+" \u2192 "+fmt(b.if_taken)+" of "+b.goal;}}
 async function act(name,extra){const r=await fetch("action",{method:"POST",headers:{"Content-Type":"application/json",
  "X-Selfview-Token":TOKEN},body:JSON.stringify(Object.assign({action:name},extra||{}))});

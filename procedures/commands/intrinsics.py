@@ -169,6 +169,7 @@ def _take_on_page(view, feed, progress, timeout_s: float, cancel):
             feed.resume()
         note = ""
         while True:
+            view.doing(f"waiting for the operator: {n} view(s) taken")
             got = view.ask(f"{n} view(s) taken{note}: move the arm until the live picture shows the plate where the "
                            "coverage needs it, then TAKE THIS VIEW; MEASURE when done",
                            [("take", "TAKE THIS VIEW"), ("done", "MEASURE")], timeout_s=timeout_s, cancel=cancel)
