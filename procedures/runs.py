@@ -276,6 +276,10 @@ class CellSession:
             plate_H, lean = None, None
         else:
             robot = self.devices.robot
+            if not getattr(robot, "knows_poses", True):
+                raise ConfigError(f"intrinsics: {getattr(robot, 'url', robot)} knows no pose, so the planned views "
+                                  "cannot be reached; the operator takes them instead ('selfview intrinsics --view "
+                                  "--operator-views', CellSession.operator_views), or give pictures (--images)")
             plate_H = robot.pose_to_H(robot.location(s.plate))
             lean = (np.linalg.inv(plate_H) @ np.array([0.0, 0.0, 0.0, 1.0]))[:2]  # towards the robot's base
         poses = plan_view_poses(self.cell, views, state=state, lean_W=lean)

@@ -2,9 +2,11 @@
 
 A command publishes its state (what it does now, the latest annotated frame, numbers, a verdict, a log)
 to a ``LiveView``; a small HTTP server in a thread serves one self-contained page that polls
-``/state.json`` and ``/frame.jpg``. Nothing on the page comes from the internet. GET never changes
-anything: the page's controls (STOP, the alarm's acknowledge) POST to ``/action`` with the run's token,
-which only the page served by this run holds; a request naming another host (DNS rebinding) is refused.
+``/state.json`` and ``/frame.jpg``, and ``/live.jpg`` (the camera's current frame, ``selfview.procedures.livefeed``)
+with the run's token. Nothing on the page comes from the internet. GET never changes anything: the page's
+controls (STOP, the alarm's acknowledge, the buttons a command asks with, such as TAKE THIS VIEW) POST to
+``/action`` with the run's token, which only the page served by this run holds; a request naming another
+host (DNS rebinding) is refused.
 """
 
 from __future__ import annotations

@@ -253,3 +253,51 @@ def test_the_operator_sees_the_live_plate_and_takes_views_by_clicks(tmp_path):
         _close(b, p)
     assert p.returncode in (130, 143), err[-2000:]
     assert "view 2: taken on the page" in err and "ABORT sent and confirmed" in err
+
+
+def test_a_robot_without_poses_is_told_to_let_the_operator_take_the_views():
+    from selfview.drivers.manual_robot import ManualRobot
+    from selfview.errors import ConfigError
+    from selfview.files.cell import default_cell_path, load_cell
+    from selfview.procedures.runs import CellSession
+
+    asked = []
+    with CellSession.simulated(load_cell(default_cell_path()), seed=0) as s:
+        val = s.devices.robot
+        s.devices.robot = ManualRobot(ask=lambda q: asked.append(q) or "")
+        try:
+            with pytest.raises(ConfigError, match="knows no pose.*--operator-views"):
+                s.intrinsics_views(4)
+        finally:
+            s.devices.robot = val
+    assert asked == []  # refused before the operator was asked anything
+
+
+def test_views_the_operator_takes_measure_the_camera():
+    """``CellSession.operator_views``: the robot goes above the plate and waits; the operator moves the arm
+    (here through the driver, as a pendant would) and says 'take' for each view, then 'done'."""
+    from selfview.files.cell import default_cell_path, load_cell
+    from selfview.procedures.intrinsics import measure_intrinsics
+    from selfview.procedures.runs import CellSession
+    from selfview.procedures.viewplan import plan_view_poses
+
+    cell = load_cell(default_cell_path())
+    with CellSession.simulated(cell, seed=0) as s:
+        robot = s.devices.robot
+        plate_H = robot.pose_to_H(robot.location(s.settings.plate))
+        lean = (np.linalg.inv(plate_H) @ np.array([0.0, 0.0, 0.0, 1.0]))[:2]
+        poses = plan_view_poses(cell, 4, lean_W=lean)
+
+        def take(n):
+            if n == len(poses):
+                return "done"
+            robot.moves(plate_H @ poses[n]["W_H_G"])  # the operator's pendant
+            return "take"
+
+        images, taken = s.operator_views(take)
+        steps = [r.step for r in s.engine.records]
+        truth = s.sim.world.camera
+    assert len(images) == 4 and taken == [{"taken_by": "operator"}] * 4
+    assert sum(st.startswith("grab") for st in steps) == 4 and not any(st.startswith("moves") for st in steps)
+    res = measure_intrinsics(images, cell.plate, cell.camera.guess())
+    assert res.views_used == 4 and abs(res.camera.f - truth.f) < 1.0
