@@ -54,6 +54,7 @@ class LiveFeed:
         self.errors = 0  # grabs that failed
         self._paused_until = 0.0  # the engine is grabbing a view: no live grab starts before (time.monotonic)
         self._stop = threading.Event()
+        self._publishing = threading.Lock()  # a frame is published only while the feed has not been stopped
         self._thread: threading.Thread | None = None
         self._poses: list = []  # the taken views' poses (from the starting camera), computed once each
 
@@ -65,8 +66,9 @@ class LiveFeed:
         if step.kind == "wait":  # the settling before a picture: the picture's grab comes next
             self._paused_until = time.monotonic() + float(step.params.get("seconds", 0.0)) + 0.5
         elif step.kind == "grab" and self.until_grab:
-            self._stop.set()
-            self.view.live_state(on=False, text="live feed ended: the picture is taken")
+            with self._publishing:  # a live frame in flight is not shown after this
+                self._stop.set()
+                self.view.live_state(on=False, text="live feed ended: the picture is taken")
         elif step.kind == "grab":
             frames = int(step.params.get("average", 1)) + 1
             self._paused_until = time.monotonic() + frames * float(getattr(self.camera, "timeout_s", 1.0))
@@ -106,9 +108,10 @@ class LiveFeed:
             except Exception as exc:  # shown on the page; the command goes on
                 self.errors += 1
                 log.warning("live feed: %s", exc)
-                if not self._stopping():
-                    self.view.live_state(error=f"{type(exc).__name__}: {exc}",
-                                         text=f"live feed: the grab failed ({exc}); trying again")
+                with self._publishing:
+                    if not self._stopping():
+                        self.view.live_state(error=f"{type(exc).__name__}: {exc}",
+                                             text=f"live feed: the grab failed ({exc}); trying again")
             took = time.monotonic() - t0
             delay = max(self.period_s - took, 2.0 * took, 0.05)
 
@@ -125,8 +128,11 @@ class LiveFeed:
         info = {"found": len(det.uv) if found else 0, "of": of, "text": text, "error": None,
                 "at": time.strftime("%H:%M:%S"), "frame": int(frame.index),
                 "coverage": self._coverage(det) if self.taken is not None else {}}
-        self.view.live_frame(draw_plate_points(frame.image, det, text, found=found), info)
-        self.frames += 1
+        drawn = draw_plate_points(frame.image, det, text, found=found)
+        with self._publishing:
+            if not self._stop.is_set():
+                self.view.live_frame(drawn, info)
+                self.frames += 1
         return info
 
     def _detect(self, image):

@@ -301,3 +301,15 @@ def test_views_the_operator_takes_measure_the_camera():
     assert sum(st.startswith("grab") for st in steps) == 4 and not any(st.startswith("moves") for st in steps)
     res = measure_intrinsics(images, cell.plate, cell.camera.guess())
     assert res.views_used == 4 and abs(res.camera.f - truth.f) < 1.0
+
+
+def test_park_shows_the_live_feed_until_its_picture_is_grabbed(tmp_path):
+    p, url = start(["park", "--view", "--view-linger", "5"], tmp_path)
+    try:
+        s = wait_for(url, lambda s: s["done"], timeout_s=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+        p.communicate(timeout=10)
+    assert s["live"]["on"] is False and s["live"]["text"] == "live feed ended: the picture is taken"
+    assert s["live"].get("coverage", {}) == {}  # no views, no coverage
