@@ -62,9 +62,9 @@ class LiveFeed:
     def on_step(self, n, step) -> None:
         """``Engine.on_step``: a grab step pauses the feed until the next step starts (or ``resume``), at most
         the grab's own time limit (the grabber's timeout for each frame it averages); so does the settling
-        wait before it (at most its seconds and half a second more)."""
+        wait before it (at most its seconds, up to 2 s, and half a second more)."""
         if step.kind == "wait":  # the settling before a picture: the picture's grab comes next
-            self._paused_until = time.monotonic() + float(step.params.get("seconds", 0.0)) + 0.5
+            self._paused_until = time.monotonic() + min(float(step.params.get("seconds", 0.0)), 2.0) + 0.5
         elif step.kind == "grab" and self.until_grab:
             with self._publishing:  # a live frame in flight is not shown after this
                 self._stop.set()
@@ -107,9 +107,9 @@ class LiveFeed:
                 self.once()
             except Exception as exc:  # shown on the page; the command goes on
                 self.errors += 1
-                log.warning("live feed: %s", exc)
                 with self._publishing:
                     if not self._stopping():
+                        log.info("live feed: %s", exc)
                         self.view.live_state(error=f"{type(exc).__name__}: {exc}",
                                              text=f"live feed: the grab failed ({exc}); trying again")
             took = time.monotonic() - t0

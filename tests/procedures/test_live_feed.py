@@ -50,7 +50,7 @@ def cell_and_parked():
     return cell, render(w, seed=1).image
 
 
-def _feed(cell, frames, view=None, **kw):
+def _feed(cell, frames, view=None, plate=None, model=None, **kw):
     from selfview.drivers.frame_grabber_v4l2 import FrameGrabber
     from selfview.procedures.livefeed import LiveFeed
     from selfview.procedures.view import LiveView
@@ -58,7 +58,7 @@ def _feed(cell, frames, view=None, **kw):
     src = Frames(frames)
     grabber = FrameGrabber("test://", sources={"test": lambda url: src}, timeout_s=1.0).connect()
     view = view or LiveView("intrinsics")
-    return LiveFeed(view, grabber, cell.plate, cell.camera.guess(), **kw), view, src
+    return LiveFeed(view, grabber, plate or cell.plate, model or cell.camera.guess(), **kw), view, src
 
 
 def test_the_feed_shows_the_plate_found_and_a_grab_error_without_ending(cell_and_parked):
@@ -313,3 +313,24 @@ def test_park_shows_the_live_feed_until_its_picture_is_grabbed(tmp_path):
         p.communicate(timeout=10)
     assert s["live"]["on"] is False and s["live"]["text"] == "live feed ended: the picture is taken"
     assert s["live"].get("coverage", {}) == {}  # no views, no coverage
+
+
+def test_the_live_feed_finds_a_charuco_board_in_photographs():
+    """The plate seam: a ChArUco board (real photographs) is found and counted by its corners."""
+    from pathlib import Path
+
+    from selfview.estimation.intrinsics import guess_camera
+    from selfview.files.cell import load_cell, default_cell_path, load_plate
+    from selfview.measurement.plates import detect_plate
+
+    photos = Path(__file__).resolve().parents[1] / "data" / "charuco-basler"
+    plate = load_plate(photos / "plate.yaml")
+    images = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in sorted(photos.glob("basler-*.jpg"))[:2]]
+    h, w = images[0].shape
+    model = guess_camera([detect_plate(images[0], plate)], w, h)
+    feed, view, src = _feed(load_cell(default_cell_path()), images, plate=plate, model=model, taken=lambda: [])
+    for img in images:
+        info = feed.once()
+        assert info["of"] == plate.rows * plate.cols and info["found"] == len(detect_plate(img, plate, camera=model).uv)
+        assert info["found"] >= 12 and info["text"] == f"LIVE: {info['found']} of {plate.rows * plate.cols} plate points found"
+        assert info["coverage"]["x"]["if_taken"] > 0.1
