@@ -52,7 +52,7 @@ def register(sub):
                    help="with --view, on the cell: the robot goes above the plate and makes no planned views; the "
                         "operator moves the arm (pendant, hand guiding, manual://), watches the live picture with the "
                         "plate found in it and the coverage it would add, and takes each view with TAKE THIS VIEW, "
-                        "then MEASURE (waits S seconds for each click, default 600)")
+                        "then MEASURE (waits S seconds for each click, default 600; --views is not used)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     add_view_arguments(p)
     p.set_defaults(func=run)
