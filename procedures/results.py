@@ -19,7 +19,7 @@ from selfview import __version__
 from selfview.files.cell import POINT_NAMES
 from selfview.maths.geometry import transform_points
 
-__all__ = ["new_run_dir", "write_json", "annotate_offline", "draw_offline", "offline_residuals", "draw_tracked", "keep_pictures", "annotate_online", "plot_errors", "environment"]
+__all__ = ["new_run_dir", "write_json", "annotate_offline", "draw_offline", "draw_plate_points", "offline_residuals", "draw_tracked", "keep_pictures", "annotate_online", "plot_errors", "environment"]
 
 
 def new_run_dir(out: str | os.PathLike | None, base: str | os.PathLike = "runs", prefix: str = "experiment") -> Path:
@@ -159,6 +159,25 @@ def draw_offline(image, result, scale: int = 2, vector_scale: float = 50.0):
               ("cyan: gripper points and the TCP; magenta: G's x axis; blue: G's y axis", (255, 255, 0))]
     for k, (text, colour) in enumerate(legend):
         _label(big, text, (10, 48 + 20 * k), colour)
+    return big
+
+
+def draw_plate_points(image, det, title: str, scale: int = 2, found: bool = True):
+    """The picture (``scale`` times bigger, BGR) with the plate points ``det`` found in it (``detect_plate``'s, or
+    None) circled with their grid indices row,col (green) and ``title`` at the top (green when ``found``, else
+    red): what the live feed shows of the camera's current frame."""
+    import cv2
+
+    big = cv2.resize(_bgr(image), None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    if det is not None:
+        for (u, v), (r, c) in zip(det.uv, det.rc):
+            cv2.circle(big, _pt((u, v), scale), 3 * scale, (0, 230, 0), 2, cv2.LINE_AA)
+            org = _pt((u + 7, v - 7), scale)
+            cv2.putText(big, f"{r},{c}", org, cv2.FONT_HERSHEY_PLAIN, 0.7 * scale, (0, 0, 0), 4, cv2.LINE_AA)
+            cv2.putText(big, f"{r},{c}", org, cv2.FONT_HERSHEY_PLAIN, 0.7 * scale, (90, 255, 90), 1, cv2.LINE_AA)
+    cv2.putText(big, title, (12, 34), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (0, 0, 0), 5, cv2.LINE_AA)
+    cv2.putText(big, title, (12, 34), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (0, 220, 0) if found else (40, 40, 255), 2,
+                cv2.LINE_AA)
     return big
 
 

@@ -276,12 +276,14 @@ class CellSession:
             plate_H, lean = None, None
         else:
             robot = self.devices.robot
+            if not getattr(robot, "knows_poses", True):
+                raise ConfigError(f"intrinsics: {getattr(robot, 'url', robot)} knows no pose, so the planned views "
+                                  "cannot be reached; the operator takes them instead ('selfview intrinsics --view "
+                                  "--operator-views', CellSession.operator_views), or give pictures (--images)")
             plate_H = robot.pose_to_H(robot.location(s.plate))
             lean = (np.linalg.inv(plate_H) @ np.array([0.0, 0.0, 0.0, 1.0]))[:2]  # towards the robot's base
         poses = plan_view_poses(self.cell, views, state=state, lean_W=lean)
-        plan = [Step("speed", {"pct": s.speed_pct}),
-                Step("appro", {"target": s.plate, "distance_mm": s.approach_mm}, note="above the plate"),
-                Step("gripper", {"state": state}, note="jaws as in the calibration")]
+        plan = self._views_start(state)
         for i, v in enumerate(poses):
             target = f"{s.plate} view {i + 1}" if plate_H is None else plate_H @ v["W_H_G"]
             plan += [Step("moves", {"target": target},
@@ -296,6 +298,35 @@ class CellSession:
             for st in plan:
                 e.execute(st)
             return [e.results[f"view{i + 1}"] for i in range(len(poses))], poses
+
+        return self._run(body, plan)
+
+    def _views_start(self, state: str) -> list[Step]:
+        """The steps before views of the plate: the monitor speed, above the plate, the jaws as in the calibration."""
+        s = self.settings
+        return [Step("speed", {"pct": s.speed_pct}),
+                Step("appro", {"target": s.plate, "distance_mm": s.approach_mm}, note="above the plate"),
+                Step("gripper", {"state": state}, note="jaws as in the calibration")]
+
+    def operator_views(self, take: Callable[[int], str], state: str | None = None) -> tuple[list, list[dict]] | None:
+        """The pictures for ``selfview.estimation.intrinsics``, taken by the operator: the robot goes above the plate
+        (the jaws as in the calibration) and moves no more; then ``take(n)`` (n: views taken so far) waits for
+        the operator, who moves the arm (pendant, hand guiding, ``manual://``) and answers 'take' (a picture
+        is grabbed now, exposed after the answer) or 'done'; ``take`` raises to end the run. Returns (the
+        pictures, a description of each), or None in a dry run."""
+        state = state or self.cell.gripper.calibrate_in
+        plan = self._views_start(state)
+
+        def body(e: Engine):
+            for st in plan:
+                e.execute(st)
+            images = []
+            while (answer := take(len(images))) == "take":
+                images.append(e.execute(Step("grab", {"average": self.settings.average}, name=f"view{len(images) + 1}",
+                                             note="taken by the operator")))
+            if answer != "done":
+                raise ConfigError(f"operator views: the answer {answer!r}; expected 'take' or 'done'")
+            return images, [{"taken_by": "operator"} for _ in images]
 
         return self._run(body, plan)
 

@@ -2,9 +2,11 @@
 
 A command publishes its state (what it does now, the latest annotated frame, numbers, a verdict, a log)
 to a ``LiveView``; a small HTTP server in a thread serves one self-contained page that polls
-``/state.json`` and ``/frame.jpg``. Nothing on the page comes from the internet. GET never changes
-anything: the page's controls (STOP, the alarm's acknowledge) POST to ``/action`` with the run's token,
-which only the page served by this run holds; a request naming another host (DNS rebinding) is refused.
+``/state.json`` and ``/frame.jpg``, and ``/live.jpg`` (the camera's current frame, ``selfview.procedures.livefeed``)
+with the run's token. Nothing on the page comes from the internet. GET never changes anything: the page's
+controls (STOP, the alarm's acknowledge, the buttons a command asks with, such as TAKE THIS VIEW) POST to
+``/action`` with the run's token, which only the page served by this run holds; a request naming another
+host (DNS rebinding) is refused.
 """
 
 from __future__ import annotations
@@ -88,9 +90,10 @@ class LiveView:
         self.linger_s = float(linger_s)
         self._lock = threading.Lock()
         self._jpeg = b""
+        self._live_jpeg = b""  # the camera's current frame (``live_frame``); the one kept, so memory is bounded
         self._state = {"command": command, "doing": "starting", "seq": 0, "frame_seq": 0, "verdict": None,
                        "numbers": {}, "residuals": [], "series": None, "coverage": None, "done": False,
-                       "log": [], "alarm": None, "stop_requested": False, "bars": None, "views": [], "ask": None, "updated": time.time()}
+                       "log": [], "alarm": None, "stop_requested": False, "bars": None, "views": [], "ask": None, "live": None, "updated": time.time()}
         self._server = None
         self.token = secrets.token_urlsafe(24)  # per run; only the page this run serves holds it
         self._actions = {"stop": self._stop, "acknowledge": self._acknowledge}
@@ -185,6 +188,26 @@ class LiveView:
                 self._state["frame_seq"] += 1
             self.update()
 
+    def live_frame(self, image, info: dict) -> None:
+        """The camera's current frame (``selfview.procedures.livefeed``: drawn, BGR) as JPEG at ``/live.jpg``, and
+        ``info`` (what was found in it) as the state's ``live``; only the latest frame is kept."""
+        import cv2
+
+        ok, buf = cv2.imencode(".jpg", np.asarray(image), [cv2.IMWRITE_JPEG_QUALITY, 80])
+        if not ok:
+            return
+        with self._lock:
+            self._live_jpeg = buf.tobytes()
+            seq = ((self._state.get("live") or {}).get("seq") or 0) + 1
+            self._state["live"] = {**info, "on": True, "seq": seq}
+        self.update()
+
+    def live_state(self, **info) -> None:
+        """The live feed's state without a new frame (a grab error, paused, ended: ``on`` False hides it)."""
+        with self._lock:
+            self._state["live"] = {**(self._state.get("live") or {"seq": 0}), **info}
+        self.update()
+
     def point(self, key: str, value: dict, keep: int = 500) -> None:
         """Append one point to the series ``key`` (the monitor's change over time)."""
         with self._lock:
@@ -219,14 +242,20 @@ class LiveView:
                 self.send_error(403, "not this host")
                 return False
 
+            def _token(self) -> bool:
+                """The run's token in the request's header (only the page this run served holds it)."""
+                if hmac.compare_digest(self.headers.get("X-Selfview-Token", ""), view.token):
+                    return True
+                self.send_error(403, "missing or wrong token: use the page this run serves")
+                return False
+
             def do_POST(self):  # noqa: N802 (http.server's name)
                 if not self._local():
                     return
                 if self.path != "/action":
                     self.send_error(404)
                     return
-                if not hmac.compare_digest(self.headers.get("X-Selfview-Token", ""), view.token):
-                    self.send_error(403, "missing or wrong token: use the page this run serves")
+                if not self._token():
                     return
                 try:
                     n = min(int(self.headers.get("Content-Length", "0")), 65536)
@@ -252,12 +281,15 @@ class LiveView:
                     body, ctype = _PAGE.replace("__TOKEN__", view.token).encode(), "text/html; charset=utf-8"
                 elif path == "/state.json":
                     body, ctype = json.dumps(view.state()).encode(), "application/json"
-                elif path == "/frame.jpg":
+                elif path in ("/frame.jpg", "/live.jpg"):  # live: the camera now, for this run's page only (its token)
+                    live = path == "/live.jpg"
+                    if live and not self._token():
+                        return
                     with view._lock:
-                        body = view._jpeg
+                        body = view._live_jpeg if live else view._jpeg
                     ctype = "image/jpeg"
                     if not body:
-                        self.send_error(404, "no frame yet")
+                        self.send_error(404, "no live frame yet" if live else "no frame yet")
                         return
                 else:
                     self.send_error(404)
@@ -369,9 +401,7 @@ COVERAGE_GOALS = {"x": 0.6, "y": 0.6, "size": 0.25, "tilt": 30.0}
 
 def view_coverage(res, plate) -> dict:
     """Coverage bars of a set of views (``selfview.estimation.intrinsics`` result) of ``plate`` (``selfview.files.cell``'s):
-    x, y the span of the discs the views put in the picture over its width and height, size the span of
-    the plate's distance over its mean, tilt the largest tilt [deg]; each {value, goal, fraction (0..1)}.
-    The stop rule decides; the bars say which kind of view would help."""
+    ``coverage_bars`` of the disc centres the fitted poses put in the picture and of the fitted poses."""
     from selfview.maths.geometry import transform_points
 
     cam = res.camera
@@ -379,11 +409,25 @@ def view_coverage(res, plate) -> dict:
         return {}
     pW = plate.disc_centres_W()
     uv = np.vstack([cam.project(transform_points(np.asarray(v.C_H_W, float), pW)) for v in res.views])
-    uv = uv[(uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)]
+    return coverage_bars(uv, cam.width, cam.height, [v.C_H_W for v in res.views])
+
+
+def coverage_bars(uv, width: int, height: int, poses) -> dict:
+    """Coverage bars of views: x, y the span of the plate points ``uv`` (N, 2) of every view in a
+    ``width`` x ``height`` picture (5th to 95th percentile) over its width and height, size the span of the
+    plate's distance over its mean, tilt the largest tilt [deg] (``poses``: each view's ``C_H_W``,
+    ``selfview.estimation.intrinsics.view_tilt_distance``); each {value, goal, fraction (0..1)}. The stop
+    rule decides; the bars say which kind of view would help."""
+    from selfview.estimation.intrinsics import view_tilt_distance
+
+    if not len(poses):
+        return {}
+    uv = np.asarray(uv, float).reshape(-1, 2)
+    uv = uv[(uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)]
     span = (np.percentile(uv, 95, axis=0) - np.percentile(uv, 5, axis=0)) if len(uv) else np.zeros(2)
-    d = np.array([v.distance_mm for v in res.views])
-    vals = {"x": float(span[0] / cam.width), "y": float(span[1] / cam.height),
-            "size": float(np.ptp(d) / d.mean()), "tilt": float(max(v.tilt_deg for v in res.views))}
+    td = np.array([view_tilt_distance(H) for H in poses])
+    vals = {"x": float(span[0] / width), "y": float(span[1] / height),
+            "size": float(np.ptp(td[:, 1]) / td[:, 1].mean()), "tilt": float(td[:, 0].max())}
     return {k: {"value": vals[k], "goal": g, "fraction": float(min(1.0, vals[k] / g))} for k, g in COVERAGE_GOALS.items()}
 
 
@@ -422,8 +466,9 @@ def decision_state(view: LiveView, rec: dict, limits) -> None:
 
 
 class ViewProgress:
-    """``Engine.on_step`` for the views of ``CellSession.intrinsics_views``: one line per view with the time
-    left for the views (from the time per view so far), and on the live view each picture as it comes with
+    """``Engine.on_step`` for the views of ``CellSession.intrinsics_views`` (``views`` planned; None: the operator's,
+    ``CellSession.operator_views``): one line per view with the time left for the views (from the time per view
+    so far), and on the live view each picture as it comes with
     the plate's discs found in it and the picture's coverage by all the views so far."""
 
     def __init__(self, say, views: int, engine, cell, view=None, grid: int = 4):
@@ -434,19 +479,27 @@ class ViewProgress:
         self.pending = None
         self.covered = set()
         self.canvas = None
+        self.taken: list = []  # the plate found in each view taken (``detect_plate``'s), for the live feed's coverage
 
     def __call__(self, n, step) -> None:
         import time
 
-        if self.pending:
-            self._show(self.pending)
-            self.pending = None
+        self.flush()
         if step.kind == "grab" and (step.name or "").startswith("view"):
             i = int(step.name[4:])
             el = time.monotonic() - self.t0
-            self.say(f"view {i} of {self.views}: at its pose, grabbing; elapsed {el:.1f} s, "
-                     f"views left ~{el / i * (self.views - i):.0f} s")
+            if self.views is None:  # the operator takes the views: no plan, no time left
+                self.say(f"view {i}: taken on the page, grabbing; elapsed {el:.1f} s")
+            else:
+                self.say(f"view {i} of {self.views}: at its pose, grabbing; elapsed {el:.1f} s, "
+                         f"views left ~{el / i * (self.views - i):.0f} s")
             self.pending = step.name if self.view is not None else None
+
+    def flush(self) -> None:
+        """Show the view just grabbed now (else the next step's start shows it)."""
+        if self.pending:
+            self._show(self.pending)
+            self.pending = None
 
     def _show(self, name) -> None:
         import cv2
@@ -462,7 +515,9 @@ class ViewProgress:
         if self.canvas is None:
             self.canvas = np.zeros_like(big)
         try:
-            uv = detect_plate(img, self.cell.plate, camera=self.cell.camera.guess()).uv
+            det = detect_plate(img, self.cell.plate, camera=self.cell.camera.guess())
+            uv = det.uv
+            self.taken.append(det)
         except ImageError as exc:
             self.view.doing(f"{name}: no plate found ({exc})")
             uv = np.zeros((0, 2))
@@ -501,15 +556,21 @@ th{background:#333}section{min-width:320px}h2{font-size:15px;margin:8px 0 4px}
 #log td:last-child{text-align:left;min-width:300px;font-size:11px}
 #views td:first-child{white-space:nowrap}
 .barout{width:220px;height:14px;background:#444}.barin{height:14px;background:#3a9}
+#livebox{margin-bottom:12px}#live{width:100%;background:#000;display:block;outline:3px solid #3a9}
+.barnow{position:relative;height:14px;background:#3a9}#livecaption{font-size:18px;margin:0 0 6px;color:#7f7}#livecaption.nf{color:#f77}
+.barout{position:relative}.barnext{position:absolute;top:0;left:0;height:14px;background:#3a96;outline:1px dashed #9fc}
 </style></head><body>
 <div id="bar"><div id="verdict">waiting for a verdict</div>
 <button id="stop" title="abort the robot and make the valve safe (as Ctrl-C)">STOP</button></div>
 <div id="alarmbox" hidden><span id="alarmtext"></span><button id="ack">acknowledge the alarm</button></div>
 <div id="askbox" hidden><span id="asktext"></span><span id="askbuttons"></span></div>
 <div id="doing">connecting</div>
-<main><section id="framebox"><a href="frame.jpg" target="_blank" title="the frame at full size">
+<main><section id="framebox"><div id="livebox" hidden><h2 id="livecaption">live</h2>
+<img id="live" alt="the camera now, with the plate found in it"></div>
+<h2 id="framecaption" hidden>the last view taken</h2><a href="frame.jpg" target="_blank" title="the frame at full size">
 <img id="frame" alt="latest frame"></a></section>
-<section id="side"><h2 id="cmd">figures</h2><table id="numbers"></table>
+<section id="side"><div id="livecovbox" hidden><h2>coverage of the views taken, and with the live view (dashed)</h2>
+<table id="livecov"></table></div><h2 id="cmd">figures</h2><table id="numbers"></table>
 <div id="plotbox" hidden><h2>change of the camera over time</h2><svg id="plot" width="360" height="240"></svg></div>
 <div id="logbox" hidden><h2>decision per frame (newest first)</h2><div id="logwrap"><table id="log"></table></div></div>
 <div id="barbox" hidden><h2>coverage of the views (the stop rule decides)</h2><table id="bars"></table></div>
@@ -517,7 +578,19 @@ th{background:#333}section{min-width:320px}h2{font-size:15px;margin:8px 0 4px}
 <div id="viewbox" hidden><h2>per view</h2><table id="views"></table></div>
 <div id="residualbox" hidden><h2>residuals per point</h2><table id="residuals"></table></div></section></main>
 <script>
-const TOKEN="__TOKEN__";let lastFrame=-1,askKey="",viewsKey="";const rejected=new Set();
+const TOKEN="__TOKEN__";let lastFrame=-1,askKey="",viewsKey="",lastLive=-1,liveBusy=false,liveURL=null;const rejected=new Set();
+async function showLive(seq){liveBusy=true;try{const r=await fetch("live.jpg",{headers:{"X-Selfview-Token":TOKEN},cache:"no-store"});
+ if(r.ok){const u=URL.createObjectURL(await r.blob());document.getElementById("live").src=u;
+  if(liveURL)URL.revokeObjectURL(liveURL);liveURL=u;lastLive=seq;}}catch(e){}finally{liveBusy=false;}}
+function live(L){const on=!!(L&&L.on);document.getElementById("livebox").hidden=!on;
+ document.getElementById("framecaption").hidden=!on;document.getElementById("livecovbox").hidden=!(on&&L.coverage&&Object.keys(L.coverage).length);if(!L)return;
+ const c=document.getElementById("livecaption");c.textContent=L.text+(L.at?" at "+L.at:"");c.className=L.found?"":"nf";
+ if(L.on&&L.seq>0&&L.seq!==lastLive&&!liveBusy)showLive(L.seq);
+ const t=document.getElementById("livecov");t.innerHTML="";for(const k in (on&&L.coverage||{})){const b=L.coverage[k],r=t.insertRow();
+  const f=v=>Math.round(100*Math.min(1,v/b.goal));r.insertCell().textContent=k;
+  r.insertCell().innerHTML=`<div class="barout"><div class="barnext" style="width:${f(b.if_taken)}%"></div>`+
+   `<div class="barnow" style="width:${f(b.now)}%"></div></div>`;
+  r.insertCell().textContent=fmt(b.now)+" \u2192 "+fmt(b.if_taken)+" of "+b.goal;}}
 async function act(name,extra){const r=await fetch("action",{method:"POST",headers:{"Content-Type":"application/json",
  "X-Selfview-Token":TOKEN},body:JSON.stringify(Object.assign({action:name},extra||{}))});
  document.getElementById("doing").textContent=r.ok?(await r.json()).said:"refused: "+r.status;}
@@ -564,7 +637,7 @@ async function poll(){let s;try{s=await (await fetch("state.json",{cache:"no-sto
  const a=document.getElementById("alarmbox");a.hidden=!s.alarm;
  if(s.alarm){document.getElementById("alarmtext").textContent=s.alarm.acknowledged?
   "ALARM acknowledged at "+s.alarm.at+": "+s.alarm.why:"ALARM: "+s.alarm.why;document.getElementById("ack").hidden=s.alarm.acknowledged;}
- rows(document.getElementById("numbers"),s.numbers);plot(s.series);
+ rows(document.getElementById("numbers"),s.numbers);plot(s.series);live(s.live);
  document.getElementById("plotbox").hidden=!s.series;document.getElementById("coveragebox").hidden=!s.coverage;
  document.getElementById("residualbox").hidden=!s.residuals.length;document.getElementById("logbox").hidden=!s.log.length;
  if(s.coverage)rows(document.getElementById("coverage"),s.coverage);

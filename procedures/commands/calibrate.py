@@ -10,6 +10,7 @@ import sys
 
 from selfview.procedures.commands._common import SECONDS, add_view_arguments, load_cell_arg, output_file, print_json
 from selfview.procedures.commands._session import add_session_arguments, camera_arguments, open_session, progress_printer
+from selfview.procedures.livefeed import live_feed
 from selfview.procedures.view import watch, offline_state, viewing, with_progress
 
 
@@ -154,8 +155,8 @@ def _run(args, view) -> int:
     else:
         say = with_progress(view, progress_printer())
         cell, session = open_session(args, say)
-        with session:
-            watch(view, session)
+        with session, live_feed(view, session) as feed:
+            watch(view, session, feed and feed.on_step)
             res = session.calibrate_camera(args.out, camera=camera, camera_file=camera_file, state=args.state,
                                            mode=args.mode, force=args.force, before_save=before_save)
         if res is None:  # dry run

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from selfview.procedures.commands._common import add_view_arguments, numeric, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
+from selfview.procedures.livefeed import live_feed
 from selfview.procedures.view import ViewProgress, viewing, watch, with_progress
 
 
@@ -146,8 +147,10 @@ def _run(args, cell, session, folder, say, view) -> int:
             from selfview.estimation.intrinsics import calibrate_intrinsics
 
             t_cam = time.monotonic()
-            watch(view, session, ViewProgress(say, 12, session.engine, cell, view))
-            got = session.intrinsics_views(12)
+            progress = ViewProgress(say, 12, session.engine, cell, view)
+            with live_feed(view, session, progress) as feed:
+                watch(view, session, progress, feed and feed.on_step)
+                got = session.intrinsics_views(12)
             if got is not None:
                 say(f"measuring the camera from {len(got[0])} views")
                 intr = calibrate_intrinsics(got[0], cell.plate, cell.camera.guess(), skip_unusable=True)

@@ -14,6 +14,7 @@ from pathlib import Path
 from selfview.estimation.intrinsics.plate import PLATE_MODELS
 from selfview.procedures.commands._common import COUNT, SECONDS, add_view_arguments, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
+from selfview.procedures.livefeed import live_feed
 from selfview.procedures.view import ViewProgress, intrinsics_state, viewing, watch, with_progress
 
 
@@ -47,6 +48,11 @@ def register(sub):
     p.add_argument("--review", nargs="?", type=SECONDS, const=600.0, default=None, metavar="S",
                    help="with --view: before anything is written, the page lists the views; reject any, CALIBRATE "
                         "again without them, and SAVE (waits S seconds for the operator, default 600)")
+    p.add_argument("--operator-views", nargs="?", type=SECONDS, const=600.0, default=None, metavar="S",
+                   help="with --view, on the cell: the robot goes above the plate and makes no planned views; the "
+                        "operator moves the arm (pendant, hand guiding, manual://), watches the live picture with the "
+                        "plate found in it and the coverage it would add, and takes each view with TAKE THIS VIEW, "
+                        "then MEASURE (waits S seconds for each click, default 600; --views is not used)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     add_view_arguments(p)
     p.set_defaults(func=run)
@@ -62,6 +68,9 @@ def _check_args(args) -> None:
         raise ConfigError("--images calibrates picture files; --real takes the views on the cell: give one of them")
     if args.review is not None and args.view is None:
         raise ConfigError("--review asks on the page: give --view too")
+    if args.operator_views is not None and (args.view is None or args.images):
+        raise ConfigError("--operator-views takes the views on the cell with the page's TAKE THIS VIEW: give --view "
+                          "and no --images")
     if args.views < 1:
         raise ConfigError(f"--views: expected a positive number of views, got {args.views}")
     if args.out:
@@ -147,6 +156,32 @@ def _measure(args, view, say, images, names, plate, camera):
         rejected = [nm for nm in names if nm in set(got[1]["reject"])]
 
 
+def _take_on_page(view, feed, progress, timeout_s: float, cancel):
+    """``CellSession.operator_views``'s ``take``: the page offers TAKE THIS VIEW and MEASURE (MEASURE only
+    ends the views once there are enough for a measurement) beside the live feed; ``ConfigError`` when
+    nobody clicks within ``timeout_s`` (or the run is stopping: ``cancel`` set)."""
+    from selfview.errors import ConfigError
+    from selfview.estimation.intrinsics import MIN_VIEWS
+
+    def take(n: int) -> str:
+        progress.flush()
+        if feed is not None:
+            feed.resume()
+        note = ""
+        while True:
+            view.doing(f"waiting for the operator: {n} view(s) taken")
+            got = view.ask(f"{n} view(s) taken{note}: move the arm until the live picture shows the plate where the "
+                           "coverage needs it, then TAKE THIS VIEW; MEASURE when done",
+                           [("take", "TAKE THIS VIEW"), ("done", "MEASURE")], timeout_s=timeout_s, cancel=cancel)
+            if got is None:
+                raise ConfigError(f"--operator-views: no click on the page within {timeout_s:g} s; nothing measured")
+            if got[0] == "take" or n >= MIN_VIEWS:
+                return got[0]
+            note = f" (MEASURE needs at least {MIN_VIEWS})"
+
+    return take
+
+
 def _run(args, view) -> int:
     from selfview import __version__
     from selfview.files.camfile import CameraFile, save_camera_file
@@ -161,8 +196,14 @@ def _run(args, view) -> int:
     else:
         cell, session = open_session(args, say)
         with session:
-            watch(view, session, ViewProgress(say, args.views, session.engine, cell, view))
-            got = session.intrinsics_views(args.views)
+            by_operator = args.operator_views is not None
+            progress = ViewProgress(say, None if by_operator else args.views, session.engine, cell, view)
+            with live_feed(view, session, progress) as feed:
+                watch(view, session, progress, feed and feed.on_step)
+                if by_operator:
+                    got = session.operator_views(_take_on_page(view, feed, progress, args.operator_views, session.engine.cancel))
+                else:
+                    got = session.intrinsics_views(args.views)
         if got is None:  # dry run
             return 0
         images, poses = got

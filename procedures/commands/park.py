@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from selfview.procedures.commands._common import add_view_arguments, print_json, write_image
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
+from selfview.procedures.livefeed import live_feed
 from selfview.procedures.view import watch, viewing, with_progress
 
 
@@ -38,8 +39,8 @@ def run(args) -> int:
 def _run(args, view) -> int:
     say = with_progress(view, progress_printer())
     cell, session = open_session(args, say)
-    with session:
-        watch(view, session)
+    with session, live_feed(view, session) as feed:
+        watch(view, session, feed and feed.on_step)
         img = session.park()
     if img is None:  # dry run
         return 0

@@ -15,7 +15,8 @@ from selfview.estimation.intrinsics.checks import (
     camera_file_fit, tcp_sigma,
 )
 from selfview.estimation.intrinsics.fit import (
-    INTRINSIC_NAMES, MIN_VIEWS, ViewFit, detect_views, fit_views, guess_camera, projection_sigma_px,
+    INTRINSIC_NAMES, MIN_VIEWS, ViewFit, detect_views, fit_views, guess_camera, initial_pose, projection_sigma_px,
+    view_tilt_distance,
 )
 from selfview.estimation.intrinsics.plate import PLATE_MODELS
 
@@ -23,5 +24,5 @@ __all__ = [
     "AGREE_SIGMAS", "CAMERA_CHI2_LIMIT", "CAMERA_FILE_MAX_EXCESS_PX", "INTRINSIC_NAMES", "IntrinsicsResult",
     "MAX_MORE_VIEWS", "MIN_VIEWS", "PLATE_MODELS", "STOP_ASPECT_REL", "STOP_CENTRE_PX", "TARGET_ACROSS_MM",
     "TARGET_ALONG_MM", "VIEW_KINDS", "ViewFit", "calibrate_intrinsics", "camera_check", "camera_file_fit",
-    "detect_views", "fit_views", "guess_camera", "more_views_advice", "projection_sigma_px", "tcp_sigma",
+    "detect_views", "fit_views", "guess_camera", "initial_pose", "more_views_advice", "projection_sigma_px", "tcp_sigma", "view_tilt_distance",
 ]

@@ -81,7 +81,14 @@ class JointFit:
     turns: list = field(default_factory=list)
     dropped: list = field(default_factory=list)  # [(view name, why)] left out of the fit
 
-def _initial_pose(p_W, uv, camera: CameraModel) -> np.ndarray:
+def view_tilt_distance(C_H_W) -> tuple[float, float]:
+    """(tilt [deg], distance [mm]) of a view of the plate: the angle between the plate's normal and the
+    optical axis, and the distance from the camera to W's origin (``ViewFit``'s)."""
+    H = np.asarray(C_H_W, float)
+    return float(np.degrees(np.arccos(min(1.0, abs(H[2, 2]))))), float(np.linalg.norm(H[:3, 3]))
+
+
+def initial_pose(p_W, uv, camera: CameraModel) -> np.ndarray:
     """A first ``C_H_W`` of one view: planar PnP (IPPE) on the undistorted pixels of ``camera``."""
     und = camera.undistorted_pixels(uv)
     K = np.array([[camera.f / camera.aspect, 0, camera.cx], [0, camera.f, camera.cy], [0, 0, 1.0]])
@@ -145,9 +152,9 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
     views = []
     for k in range(len(P)):
         H = poses0[k]
-        tilt = float(np.degrees(np.arccos(min(1.0, abs(H[2, 2])))))
+        tilt, distance = view_tilt_distance(H)
         views.append(ViewFit(names[k], H, int(keep[k].sum()), float(np.sqrt(np.mean(dist[k] ** 2))), tilt,
-                             float(np.linalg.norm(H[:3, 3])), int((~keep[k]).sum())))
+                             distance, int((~keep[k]).sum())))
     return JointFit(camera0, cov[:ni, :ni], cov, res.jacobian, float(s2), rms, views, U, P, plate_model,
                 np.asarray(y0, float), cov[n - ns :, n - ns :] if ns else np.zeros((0, 0)), float(noise_px), float(dot_sd_mm))
 
@@ -170,7 +177,7 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
     names = names or [f"view {i + 1}" for i in range(len(dets))]
     if len(names) != len(dets):
         raise ValueError(f"names: expected {len(dets)} names for {len(dets)} views, got {len(names)}")
-    poses = [_initial_pose(d.p_W, d.uv, camera0) for d in dets]
+    poses = [initial_pose(d.p_W, d.uv, camera0) for d in dets]
     normals = np.array([H[:3, 2] for H in poses])
     mean = normals.sum(0) / np.linalg.norm(normals.sum(0))
     spread = float(np.degrees(np.arccos(np.clip(normals @ mean, -1, 1))).max())
@@ -205,7 +212,7 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
                                   "not recognised in it), so the plate's per-disc corrections cannot apply")
                        for k in unaligned]
             dets, uv, names, turns = ([a[k] for k in keep] for a in (dets, uv, names, turns))
-        poses = [_initial_pose(d.p_W, u, fit.camera) for d, u in zip(dets, uv)]
+        poses = [initial_pose(d.p_W, u, fit.camera) for d, u in zip(dets, uv)]
         camera0 = fit.camera
     P = [d.p_W for d in dets]
     rc = [d.rc for d in dets]
