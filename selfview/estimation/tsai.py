@@ -301,13 +301,8 @@ def _relative_sd(C: np.ndarray, x, i: int) -> float:
 
 def _refine_tsai(model: _FTzKappa, f, tz, kappa, willson: bool):
     """Stage 5a: f, Tz, kappa minimising the undistorted sensor-plane error, pose from stages 1-3.
-
-    ``willson``: as his ``cc_compute_exact_f_and_Tz`` does it: one residual per point (its
-    distance), lmdif's forward-difference Jacobian and his tolerances. In a flat f-Tz valley the ftol
-    test stops short of the minimum at a point that depends on the path (1.5e-3 in f on his data),
-    so the path must be his. kappa's difference step at 0 is relative to 1 / r_max^2, independent of
-    units. Otherwise (to start the full refinement): x and y residuals, analytic Jacobian.
-    """
+    ``willson``: his path (``cc_compute_exact_f_and_Tz``: per-point distances, forward differences, his
+    tolerances; kappa's step relative to 1 / r_max^2); otherwise x and y residuals, analytic Jacobian."""
     if willson:
         return levenberg_marquardt(
             model.distances, [f, tz, kappa], "forward", ftol=WILLSON_FTOL, xtol=WILLSON_XTOL,
@@ -468,10 +463,8 @@ class _WillsonStages:
 
 
 def _willson_stage(fun, x0):
-    """One lmdif call as Willson makes it: forward differences (step sqrt(eps) |x_j|, or sqrt(eps)
-    where x_j = 0), ftol 1e-5, xtol 1e-7, gtol 0, factor 100, scaling by the Jacobian's column norms
-    (lmdif mode 1), at most 1000 evaluations per parameter counting the differences. Like him it
-    takes the point where lmdif stopped, also when the budget ran out."""
+    """One lmdif call as Willson makes it (forward differences, his tolerances and budget, scaling by the
+    Jacobian's column norms); like him it takes the point where lmdif stopped, also out of budget."""
     n = len(x0)
     return levenberg_marquardt(
         fun, x0, "forward", ftol=WILLSON_FTOL, xtol=WILLSON_XTOL, max_nfev=WILLSON_MAXFEV_PER_PARAM * n,
@@ -480,20 +473,11 @@ def _willson_stage(fun, x0):
 
 
 def _willson_full(p, uv, xy, origin, aspect, f, tz, kappa, cx, cy):
-    """Stages after Willson's f/Tz/kappa one (``coplanar_calibration_with_full_optimization`` of his
-    v3.0b3), from its f [px], Tz [mm], kappa [px^-2] and the given centre; plate points ``p`` (N, 3),
-    the same in the stages' plate frame ``xy`` (N, 2) whose origin is ``origin`` (2,) in W:
-      1. f, Tz, kappa, cx, cy, the pose re-solved linearly from the distorted observations;
-      2. the same, the linear stages on observations undistorted with the current kappa;
-      3. Rx, Ry, Rz, Tx, Ty, Tz, kappa, f from the pose of stage 2's last evaluation, centre fixed;
-      4. all ten parameters.
-    Every stage minimises the undistorted sensor-plane error with lmdif's forward differences and
-    ftol 1e-5: in the flat f-Tz valley of a far plate each stops on the ftol test short of the
-    minimum, at a point set by the path (a stage that spends its budget ends there, as his do).
-    Returns (C_H_W (4, 4), f, kappa, cx, cy, Levenberg-Marquardt iterations). Raises
-    ``CalibrationError`` if the linear stages fail where the five-parameter stages end, the result has
-    f <= 0 or a point behind the camera, or one view does not determine the centre
-    (``FULL_REL_SD_LIMIT``)."""
+    """Stages after Willson's f/Tz/kappa one (his ``coplanar_calibration_with_full_optimization``, the
+    four stages of ``docs/tsai-willson.md``), from its f [px], Tz [mm], kappa [px^-2] and the given centre;
+    plate points ``p`` (N, 3), the same in the stages' frame ``xy`` (N, 2) whose origin is ``origin`` in W.
+    Returns (C_H_W (4, 4), f, kappa, cx, cy, iterations); ``CalibrationError`` if the linear stages fail,
+    f <= 0, a point lies behind the camera or one view does not determine the centre."""
     stages = _WillsonStages(xy, uv, aspect)
     x, iterations = np.array([f, tz, kappa, cx, cy], dtype=float), 0
     for early in (False, True):
@@ -547,40 +531,18 @@ def calibrate_coplanar(
     ``full+centre`` also the principal point; ``willson`` reproduces Willson's full optimisation
     (centre free) as his v3.0b3 runs it. ``width``, ``height`` [px] pass through to the camera.
 
-    ``willson`` reproduces where Willson's optimiser stops, not a minimum. After the ``tsai`` stages it
-    runs the rest of his chain (``_willson_full``): f, Tz, kappa and the centre with the pose re-solved
-    linearly (distortion removed late, then early), then pose, f and kappa, then all ten parameters.
-    Each stage minimises his objective, the distance between projection and undistorted observation
-    in the undistorted sensor plane (his log's "undistorted image plane error"; at his published
-    parameters it gives that block's figures to every digit), by lmdif's method with forward
-    differences, ftol 1e-5 and xtol 1e-7. A far plate (his is 6.3 m away) leaves a flat f-Tz valley
-    in which each stage stops on the ftol test short of its minimum, at a point its path sets. On his
-    ``cc_cd.dat`` this lands 0.07 % below his f (257.13 mm) and 0.2 px from his centre, with his
-    distorted error mean and sse to 2e-4 and Tz / f to 1e-5. Neither point is a minimum:
-    ``full+centre`` minimises the distorted pixel error (f 0.65 % above his, sse 1.21365 < his
-    1.21378 px^2), and his own objective's minimum lies 1.0 % above his f. Where a stage stops in such
-    a valley hangs on rounding: perturbing the pixels by 1e-12 (relative) moves the final f by 0.05 %
-    (median) to 0.2 % (99th percentile) here, and MINPACK's own lmdif scatters as much. Where the data
-    determine f (a near, tilted plate), ``willson`` ends near the ``full+centre`` fit.
-
-    Beyond Willson: the linear stage divides by Ty and fails when the plate's origin lies near the
-    camera's y-z plane (his FAQ 3.3); the disc grid's origin is its centre, often in mid-picture, so the
-    stages then run in a plate frame moved to the point farthest from the centre row, and the pose is
-    moved back. Whether f can be separated from Tz is judged by the standard error of f that the data
-    imply.
+    ``willson`` reproduces where Willson's optimiser stops in a far plate's flat f-Tz valley, not a
+    minimum (``docs/tsai-willson.md`` gives the chain and the figures on his ``cc_cd.dat``). Beyond
+    Willson: when the plate's origin lies near the camera's y-z plane (his FAQ 3.3: the linear stage
+    divides by Ty) the stages run in a plate frame moved to the point farthest from the centre row.
 
     ``kappa_guess`` [px^-2] is removed from the observations before the linear stages and starts the
     refinement (0 reproduces Willson); ``f_guess`` [px], if given, starts the refinement in place of
     the linear f (Tz re-solved for it).
 
-    Raises ``CalibrationError`` naming the cause: mismatched shapes, NaN, fewer than 5 points,
-    non-coplanar points, collinear points, the plate seen edge-on (image points collinear or tilted
-    beyond ``EDGE_ON_LIMIT_DEG``), f not separable from Tz (plate square-on or too far: the linear
-    f/Tz system singular, or the f/Tz/kappa stage implying a standard error of f above
-    ``F_REL_SD_LIMIT``; with the principal point free, ``FULL_REL_SD_LIMIT`` after the full
-    refinement), plate coordinates mirrored (the camera on W's +z side, against
-    ``CONVENTIONS.md``), no pose with f > 0, no convergence. ``ConfigError`` for a bad mode,
-    principal point, aspect or ``f_guess``.
+    Raises ``CalibrationError`` naming the cause (bad points, the plate edge-on, f not separable from Tz,
+    plate coordinates mirrored against ``CONVENTIONS.md``, no pose with f > 0, no convergence);
+    ``ConfigError`` for a bad mode, principal point, aspect or ``f_guess``.
     """
     p, q = _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height)
     if f_guess is not None and not (np.isfinite(f_guess) and f_guess > 0):
