@@ -114,7 +114,7 @@ def residual_stats(residuals) -> tuple[float, float, float, float]:
 
 
 # --- input checks ------------------------------------------------------------------------------------
-def _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height):
+def _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height, f_guess=None):
     try:
         p = np.asarray(p_W, dtype=float)
         q = np.asarray(uv, dtype=float)
@@ -144,6 +144,8 @@ def _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height):
         raise ConfigError(f"coplanar calibration: mode must be one of {', '.join(MODES)}; got {mode!r}")
     if int(width) <= 0 or int(height) <= 0:
         raise ConfigError(f"coplanar calibration: picture size must be positive, got {width}x{height}")
+    if f_guess is not None and not (np.isfinite(f_guess) and f_guess > 0):
+        raise ConfigError(f"coplanar calibration: f_guess must be a positive focal length in px, got {f_guess!r}")
     extent = float(np.ptp(p[:, :2], axis=0).max())
     zmax = float(np.abs(p[:, 2]).max())
     if zmax > 1e-6 * max(extent, 1.0):
@@ -259,6 +261,31 @@ def _linear_pose(xw, yw, Xd, Yd, with_cond=True):
     return tx, ty, r, f, tz, cond
 
 
+def _linear_stages(xy, Xd, Yd):
+    """Stages 1-4, in the given plate frame unless its origin lies too near the camera's y-z plane:
+    (origin (2,) of the stages' frame in W, xy in it, Tx, Ty, r, f, Tz, R_lin, tilt [deg]); refuses a
+    plate seen edge-on or a singular f/Tz system."""
+    origin = np.zeros(2)
+    try:
+        tx, ty, r, f_lin, tz, cond = _linear_pose(xy[:, 0], xy[:, 1], Xd, Yd)
+        moved = abs(ty) < 0.25 * np.abs(r[1, 0] * xy[:, 0] + r[1, 1] * xy[:, 1] + ty).max()
+    except CalibrationError:
+        moved = True
+    if moved:
+        origin = xy[int(np.argmax(np.abs(Yd)))].copy()
+        xy = xy - origin
+        tx, ty, r, f_lin, tz, cond = _linear_pose(xy[:, 0], xy[:, 1], Xd, Yd)
+    R_lin = R_from_rpy(*_rpy_paul(r))
+    tilt = float(np.degrees(np.arccos(min(abs(R_lin[2, 2]), 1.0))))
+    if tilt > EDGE_ON_LIMIT_DEG:
+        raise CalibrationError(
+            f"plate seen nearly edge-on: tilted {tilt:.1f} deg from square-on (limit {EDGE_ON_LIMIT_DEG:g} deg)"
+        )
+    if not cond <= F_TZ_COND_LIMIT:
+        raise _inseparable(tilt, f"the linear f/Tz system is singular, condition number {cond:.3g}")
+    return origin, xy, tx, ty, r, f_lin, tz, R_lin, tilt
+
+
 # --- non-linear stages ---------------------------------------------------------------------------------
 class _FTzKappa:
     """Stage 5a's model: pose from stages 1-3 (camera x, y of each point ``xc``, ``yc`` and its
@@ -366,15 +393,22 @@ class _FullModel:
         return J
 
 
-def _refine_full(p_W, uv, R0, t0, f, kappa, cx, cy, aspect, free_centre):
+def _refine_full(p_W, uv, C_H_W, f, kappa, cx, cy, aspect, free_centre):
     """Stage 5b, ``full``/``full+centre``: pose, f, kappa [, cx, cy] minimising the distorted pixel
-    error from R0, t0. Returns (LM result, R)."""
+    error from ``C_H_W``. Returns (C_H_W, f, kappa, cx, cy, residuals (N, 2) [px], iterations)."""
+    R0 = C_H_W[:3, :3]
     model = _FullModel(p_W, uv, R0, cx, cy, aspect, free_centre)
-    x0 = np.concatenate([np.zeros(3), t0, [f, kappa], [cx, cy] if free_centre else []])
-    res = levenberg_marquardt(
-        model.residuals, x0, model.jacobian, ftol=FULL_FTOL, xtol=FULL_XTOL, max_nfev=FULL_MAX_NFEV
-    )
-    return res, R_from_rotvec(res.x[:3]) @ R0
+    x0 = np.concatenate([np.zeros(3), C_H_W[:3, 3], [f, kappa], [cx, cy] if free_centre else []])
+    lm = levenberg_marquardt(model.residuals, x0, model.jacobian, ftol=FULL_FTOL, xtol=FULL_XTOL,
+                             max_nfev=FULL_MAX_NFEV)
+    f, kappa = float(lm.x[6]), float(lm.x[7])
+    if free_centre:
+        cx, cy = float(lm.x[8]), float(lm.x[9])
+    _check_full_separable(lm.jacobian, lm.cost, lm.x, free_centre)
+    if not (lm.converged and f > 0):
+        raise CalibrationError(f"full refinement failed ({lm.message}; f = {f:.4g} px)")
+    C_H_W = make_H(R_from_rotvec(lm.x[:3]) @ R0, lm.x[3:6])
+    return C_H_W, f, kappa, cx, cy, -lm.residuals.reshape(2, -1).T, lm.iterations
 
 
 def _project_full(q, x, cx, cy, aspect, free_centre):
@@ -528,13 +562,10 @@ def calibrate_coplanar(
     ``uv`` (N, 2), principal point (``cx``, ``cy``) [px] and ``aspect`` known.
 
     ``mode``: ``tsai`` refines f, Tz, kappa as Tsai published it; ``full`` (default) pose, f and kappa;
-    ``full+centre`` also the principal point; ``willson`` reproduces Willson's full optimisation
-    (centre free) as his v3.0b3 runs it. ``width``, ``height`` [px] pass through to the camera.
-
-    ``willson`` reproduces where Willson's optimiser stops in a far plate's flat f-Tz valley, not a
-    minimum (``docs/tsai-willson.md`` gives the chain and the figures on his ``cc_cd.dat``). Beyond
-    Willson: when the plate's origin lies near the camera's y-z plane (his FAQ 3.3: the linear stage
-    divides by Ty) the stages run in a plate frame moved to the point farthest from the centre row.
+    ``full+centre`` also the principal point; ``willson`` reproduces where Willson's full optimisation
+    (centre free, his v3.0b3) stops, not a minimum (``docs/tsai-willson.md``). ``width``, ``height`` [px]
+    pass through to the camera. When the plate's origin lies near the camera's y-z plane (his FAQ 3.3)
+    the linear stages run in a plate frame moved to the point farthest from the centre row.
 
     ``kappa_guess`` [px^-2] is removed from the observations before the linear stages and starts the
     refinement (0 reproduces Willson); ``f_guess`` [px], if given, starts the refinement in place of
@@ -544,34 +575,14 @@ def calibrate_coplanar(
     plate coordinates mirrored against ``CONVENTIONS.md``, no pose with f > 0, no convergence);
     ``ConfigError`` for a bad mode, principal point, aspect or ``f_guess``.
     """
-    p, q = _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height)
-    if f_guess is not None and not (np.isfinite(f_guess) and f_guess > 0):
-        raise ConfigError(f"coplanar calibration: f_guess must be a positive focal length in px, got {f_guess!r}")
+    p, q = _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height, f_guess)
     xy = p[:, :2]
     XYh = np.column_stack([aspect * (q[:, 0] - cx), q[:, 1] - cy])
     _check_spread(XYh, "image points", "image points collinear: the plate is seen edge-on")
     XYu = XYh * (1.0 + kappa_guess * np.sum(XYh * XYh, axis=1, keepdims=True))
     Xd, Yd = XYu[:, 0], XYu[:, 1]
 
-    # Stages 1-4, in the given plate frame unless its origin lies too near the camera's y-z plane.
-    origin = np.zeros(2)
-    try:
-        tx, ty, r, f_lin, tz, cond = _linear_pose(xy[:, 0], xy[:, 1], Xd, Yd)
-        moved = abs(ty) < 0.25 * np.abs(r[1, 0] * xy[:, 0] + r[1, 1] * xy[:, 1] + ty).max()
-    except CalibrationError:
-        moved = True
-    if moved:
-        origin = xy[int(np.argmax(np.abs(Yd)))].copy()
-        xy = xy - origin
-        tx, ty, r, f_lin, tz, cond = _linear_pose(xy[:, 0], xy[:, 1], Xd, Yd)
-    R_lin = R_from_rpy(*_rpy_paul(r))
-    tilt = float(np.degrees(np.arccos(min(abs(R_lin[2, 2]), 1.0))))
-    if tilt > EDGE_ON_LIMIT_DEG:
-        raise CalibrationError(
-            f"plate seen nearly edge-on: tilted {tilt:.1f} deg from square-on (limit {EDGE_ON_LIMIT_DEG:g} deg)"
-        )
-    if not cond <= F_TZ_COND_LIMIT:
-        raise _inseparable(tilt, f"the linear f/Tz system is singular, condition number {cond:.3g}")
+    origin, xy, tx, ty, r, f_lin, tz, R_lin, tilt = _linear_stages(xy, Xd, Yd)
     xc, yc, w = (r @ np.column_stack([xy, np.zeros(len(xy))]).T + np.array([[tx], [ty], [0.0]]))
     if f_guess is not None:
         f_lin = float(f_guess)
@@ -602,29 +613,24 @@ def calibrate_coplanar(
         C_H_W, f, kappa, ccx, ccy, its = _willson_full(p, q, xy, origin, aspect, f, tz, kappa, cx, cy)
         iterations += its
     if mode in ("tsai", "willson"):
-        cam = CameraModel(f=f, kappa=kappa, cx=ccx, cy=ccy, aspect=aspect, width=int(width), height=int(height))
         try:
-            residuals = q - cam.project(transform_points(C_H_W, p))
+            residuals = q - _camera(f, kappa, ccx, ccy, aspect, width, height).project(transform_points(C_H_W, p))
         except CalibrationError as exc:
             raise CalibrationError(f"Tsai's model does not reach every point: {exc}") from exc
     else:
-        free = mode == "full+centre"
-        lm, R = _refine_full(p, q, R_lin, C_H_W[:3, 3], f, kappa, cx, cy, aspect, free)
-        iterations += lm.iterations
-        f, kappa = float(lm.x[6]), float(lm.x[7])
-        if free:
-            ccx, ccy = float(lm.x[8]), float(lm.x[9])
-        _check_full_separable(lm.jacobian, lm.cost, lm.x, free)
-        if not (lm.converged and f > 0):
-            raise CalibrationError(f"full refinement failed ({lm.message}; f = {f:.4g} px)")
-        C_H_W = make_H(R, lm.x[3:6])
-        cam = CameraModel(f=f, kappa=kappa, cx=ccx, cy=ccy, aspect=aspect, width=int(width), height=int(height))
-        residuals = -lm.residuals.reshape(2, -1).T
+        C_H_W, f, kappa, ccx, ccy, residuals, its = _refine_full(p, q, C_H_W, f, kappa, cx, cy, aspect,
+                                                                 mode == "full+centre")
+        iterations += its
     rms, mean, mx, sse = residual_stats(residuals)
     return TsaiResult(
-        camera=cam, C_H_W=C_H_W, residuals_px=residuals, rms_px=rms, mean_px=mean, max_px=mx, sse_px2=sse,
+        camera=_camera(f, kappa, ccx, ccy, aspect, width, height), C_H_W=C_H_W, residuals_px=residuals,
+        rms_px=rms, mean_px=mean, max_px=mx, sse_px2=sse,
         mode=mode, iterations=int(iterations),
     )
+
+
+def _camera(f, kappa, cx, cy, aspect, width, height) -> CameraModel:
+    return CameraModel(f=f, kappa=kappa, cx=cx, cy=cy, aspect=aspect, width=int(width), height=int(height))
 
 
 def _check_full_separable(J, cost: float, x, free: bool) -> None:
