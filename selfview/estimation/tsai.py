@@ -600,14 +600,7 @@ def calibrate_coplanar(
             f"Tsai refinement of f, Tz, kappa failed ({lm.message}; f = {f:.4g} px, Tz = {tz:.4g} mm)"
         )
     iterations = lm.iterations
-    C_H_W = make_H(R_lin, np.array([tx, ty, tz]) - R_lin @ np.array([origin[0], origin[1], 0.0]))
-    if float(R_lin[:, 2] @ C_H_W[:3, 3]) <= 0:
-        # The camera's position in W, -R^T t, has z >= 0: it sits on the side z points to.
-        raise CalibrationError(
-            "plate coordinates mirrored: the camera comes out on the +z side of the plate, but W must be "
-            "right-handed with z pointing into the plate, away from the camera (index the grid so that "
-            "x cross y points away from the camera)"
-        )
+    C_H_W = _unmirrored(make_H(R_lin, np.array([tx, ty, tz]) - R_lin @ np.array([origin[0], origin[1], 0.0])))
     ccx, ccy = cx, cy
     if mode == "willson":
         C_H_W, f, kappa, ccx, ccy, its = _willson_full(p, q, xy, origin, aspect, f, tz, kappa, cx, cy)
@@ -627,6 +620,17 @@ def calibrate_coplanar(
         rms_px=rms, mean_px=mean, max_px=mx, sse_px2=sse,
         mode=mode, iterations=int(iterations),
     )
+
+
+def _unmirrored(C_H_W: np.ndarray) -> np.ndarray:
+    """``C_H_W``, unless the camera's position in W, -R^T t, has z >= 0 (the side z points to)."""
+    if float(C_H_W[:3, 2] @ C_H_W[:3, 3]) <= 0:
+        raise CalibrationError(
+            "plate coordinates mirrored: the camera comes out on the +z side of the plate, but W must be "
+            "right-handed with z pointing into the plate, away from the camera (index the grid so that "
+            "x cross y points away from the camera)"
+        )
+    return C_H_W
 
 
 def _camera(f, kappa, cx, cy, aspect, width, height) -> CameraModel:
