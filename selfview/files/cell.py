@@ -188,9 +188,6 @@ class CameraSpec:
             height=self.height,
         )
 
-    def model_with(self, f: float, kappa: float) -> CameraModel:
-        return self.guess().with_(f=float(f), kappa=float(kappa))
-
 
 @dataclass(frozen=True)
 class PlateSpec:

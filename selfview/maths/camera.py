@@ -248,10 +248,7 @@ class CameraModel:
         A[:, 1, 2] = -XY[:, 1] / self.f
         A[:, 2, 2] = -1.0
         b = -(R[:, 2][None, :] * zP[:, None]) - t[None, :]
-        # Edge-on test: angle between ray and plane normal.
-        d = np.column_stack([XY / self.f, np.ones(n)])
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        cosang = np.abs(d @ R[:, 2])
+        cosang = np.abs(self.rays(uv) @ R[:, 2])  # edge-on test: angle between ray and plane normal
         if np.any(cosang < min_cos):
             raise CalibrationError(
                 f"plane seen nearly edge-on: a viewing ray meets it at {np.degrees(np.arcsin(cosang.min())):.1f} deg"
