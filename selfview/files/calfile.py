@@ -297,13 +297,7 @@ def plain_data(x):
         return [plain_data(v) for v in x]
     if isinstance(x, np.ndarray):
         return plain_data(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        return float(x)
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x
+    return x.item() if isinstance(x, np.generic) else x
 
 
 def doc_checksum(body: dict) -> str:
@@ -339,12 +333,8 @@ def save_calibration(cal: Calibration, path, *, keep_history: bool = True,
     calibration: it may be somebody else's file. ``expected``: the version ``cal`` was derived from (the
     Calibration as loaded, or its file's SHA-256); the file is replaced only if it still is that version,
     so a recalibration saved meanwhile is never overwritten (the refusal names both). A symlink's target
-    is replaced (the link stays). Returns the path of the history copy, or None.
-
-    The new document is read back and checked before anything is written; the write goes through
-    ``selfview.files.io_safe.atomic_write`` (temporary file, fsync, rename, permissions kept) after the
-    previous file is copied into ``<name>.history/``. A write that fails (full disk, size limit, missing
-    folder) raises ``CalibrationFileError`` naming the path.
+    is replaced (the link stays). The new document is read back and checked before anything is written
+    (then ``replace_keeping_history``). Returns the path of the history copy, or None.
     """
     p = Path(path)
     text = yaml.safe_dump(cal.to_document(), sort_keys=False, default_flow_style=None, width=120)
