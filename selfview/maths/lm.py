@@ -44,11 +44,11 @@ class LMResult:
     converged: bool
     message: str
 
-    def covariance(self, sigma2: float | None = None) -> np.ndarray:
+    def covariance(self, sigma2: float | None = None, *, normal: bool = False) -> np.ndarray:
         """(P, P) covariance of ``x`` (see ``covariance``), by default with the residual variance
         ``cost / (M - P)``."""
         m, p = self.jacobian.shape
-        return covariance(self.jacobian, self.cost / max(m - p, 1) if sigma2 is None else sigma2)
+        return covariance(self.jacobian, self.cost / max(m - p, 1) if sigma2 is None else sigma2, normal=normal)
 
 
 def _r_factor(A) -> np.ndarray:
