@@ -138,6 +138,12 @@ class CameraModel:
         if int(self.width) <= 0 or int(self.height) <= 0:
             raise ConfigError(f"camera size: expected positive width and height, got {self.width}x{self.height}")
 
+    def check_size(self, width: int, height: int, source: str = "the camera file") -> None:
+        """``ConfigError`` unless this camera was measured on ``width`` x ``height`` pictures (the cell's)."""
+        if (int(self.width), int(self.height)) != (int(width), int(height)):
+            raise ConfigError(f"{source} was measured on {self.width}x{self.height} pictures; this cell's camera "
+                              f"gives {width}x{height}: it belongs to another camera or grabber setting")
+
     def with_(self, **changes) -> "CameraModel":
         """A copy with some parameters changed."""
         return replace(self, **changes)
