@@ -233,12 +233,11 @@ class TrackResult:
         return "no-go" if self.decision == "alarm" else "go"
 
     def to_dict(self) -> dict:
-        out = {"method": self.method, "C_H_G": np.asarray(self.C_H_G).tolist(), "delta_deg": self.delta_deg,
+        return {"method": self.method, "C_H_G": np.asarray(self.C_H_G).tolist(), "delta_deg": self.delta_deg,
                "d_mm": self.d_mm, "decision": self.decision, "reason": self.reason, "verdict": self.verdict,
                "points_used": list(self.points_used), "rms_px": self.rms_px, "tcp_sigma_mm": self.tcp_sigma_mm,
                "points_found": list(self.points_found), "quality": self.quality,
                "C_H_G_orthonormal": np.asarray(self.C_H_G_orthonormal).tolist()}
-        return out
 
 
 def tcp_sigma_after(est, H, cal: Calibration) -> list | None:
