@@ -27,7 +27,7 @@ from selfview.maths.camera import CameraModel
 from selfview.files.cell import POINT_NAMES
 from selfview.errors import CalibrationFileError, ConfigError
 from selfview.maths.geometry import check_rigid
-from selfview.files.io_safe import MAX_YAML_BYTES, atomic_write, file_lock, load_yaml, read_bounded, remove_leftovers, short_repr
+from selfview.files.io_safe import MAX_YAML_BYTES, atomic_write, check_folder, file_lock, load_yaml, read_bounded, remove_leftovers, short_repr
 from selfview.estimation.tsai import MODES as TSAI_MODES
 
 __all__ = ["Calibration", "save_calibration", "load_calibration", "history_dir", "FORMAT", "VERSION"]
@@ -358,9 +358,7 @@ def replace_keeping_history(p: Path, text: str, load_existing, *, what: str, kee
     p = Path(p)
     if p.is_symlink():
         p = Path(os.path.realpath(p))  # replace the file the link names; the link stays a link
-    if not p.parent.is_dir():
-        why = "does not exist (it is not created)" if not p.parent.exists() else "is a file, not a folder"
-        raise CalibrationFileError(f"{p}: cannot write the {what}: the folder {p.parent} {why}")
+    check_folder(p, error=CalibrationFileError, what=what)
     with file_lock(p, error=CalibrationFileError, what=what):
         kept = None
         if expected_sha256 is not None:
