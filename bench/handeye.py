@@ -18,7 +18,7 @@ from selfview.files.cell import PlateSpec
 from selfview.measurement.discs import DiscDetections
 from selfview.measurement.plates import correct_plate_bias
 from selfview.errors import CalibrationError, ConfigError
-from selfview.maths.geometry import R_from_rotvec, check_rigid, inv_H, make_H, rotation_angle, rotvec_from_R
+from selfview.maths.geometry import R_from_rotvec, check_rigid, hat, inv_H, make_H, rotation_angle, rotvec_from_R
 from selfview.estimation.online import recalibrate
 from selfview.estimation.tsai import calibrate_coplanar
 
@@ -120,10 +120,6 @@ def relative_motions(base_H_F, C_H_W) -> tuple[np.ndarray, np.ndarray]:
     return np.array(A), np.array(B)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def _check_motions(A: np.ndarray, B: np.ndarray) -> None:
     """Refuse motions that cannot determine X, naming why."""
     ang_A = np.array([np.degrees(rotation_angle(a)) for a in A])
@@ -162,7 +158,7 @@ def _rotation_tsai_lenz(A: np.ndarray, B: np.ndarray) -> np.ndarray:
             ra, rb = a[:3, :3], Q @ b[:3, :3] @ Q.T
             pa = 2.0 * np.sin(rotation_angle(ra) / 2.0) * _unit_axis(ra)
             pb = 2.0 * np.sin(rotation_angle(rb) / 2.0) * _unit_axis(rb)
-            rows.append(_skew(pa + pb))
+            rows.append(hat(pa + pb))
             rhs.append(pb - pa)
         c, *_ = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)
         theta = 2.0 * np.arctan(np.linalg.norm(c))

@@ -21,6 +21,7 @@ from selfview.files.calfile import Calibration, load_calibration, save_calibrati
 from selfview.maths.camera import CameraModel
 from selfview.files.cell import POINT_NAMES, Cell, default_cell_path, load_cell
 from selfview.errors import CalibrationError, ConfigError
+from selfview.maths.geometry import hat, pose_difference
 from selfview.estimation.online import METHODS as ONLINE_METHODS
 from selfview.estimation.online import MODEL_METHOD
 
@@ -104,8 +105,6 @@ def calibration_change(previous: Calibration, new: Calibration) -> dict:
     length), the rotation of ``C_H_G`` [deg], f [px] and kappa [px^-2], and whether both saw the same
     picture and gripper state. Two calibrations of one mount differ by their sigmas; more means the
     camera moved on its mount or one of them is wrong."""
-    from selfview.maths.geometry import pose_difference
-
     d = np.asarray(new.C_H_G, float)[:3, 3] - np.asarray(previous.C_H_G, float)[:3, 3]
     deg, mm = pose_difference(new.C_H_G, previous.C_H_G)
     return {"previous_created": previous.created, "tcp_moved_mm": [float(v) for v in d], "tcp_moved_norm_mm": mm,
@@ -234,12 +233,11 @@ class TrackResult:
         return "no-go" if self.decision == "alarm" else "go"
 
     def to_dict(self) -> dict:
-        out = {"method": self.method, "C_H_G": np.asarray(self.C_H_G).tolist(), "delta_deg": self.delta_deg,
+        return {"method": self.method, "C_H_G": np.asarray(self.C_H_G).tolist(), "delta_deg": self.delta_deg,
                "d_mm": self.d_mm, "decision": self.decision, "reason": self.reason, "verdict": self.verdict,
                "points_used": list(self.points_used), "rms_px": self.rms_px, "tcp_sigma_mm": self.tcp_sigma_mm,
                "points_found": list(self.points_found), "quality": self.quality,
                "C_H_G_orthonormal": np.asarray(self.C_H_G_orthonormal).tolist()}
-        return out
 
 
 def tcp_sigma_after(est, H, cal: Calibration) -> list | None:
@@ -248,8 +246,7 @@ def tcp_sigma_after(est, H, cal: Calibration) -> list | None:
     if est is None or not np.all(np.isfinite(est.covariance)):
         return None
     p = np.asarray(H, float)[:3, 3]
-    px = np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])
-    J = np.hstack([-px, np.eye(3)])
+    J = np.hstack([-hat(p), np.eye(3)])
     var = np.diag(J @ est.covariance @ J.T)
     own = cal.residuals.get("tcp_sigma_mm")
     if own is not None:

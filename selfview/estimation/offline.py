@@ -18,7 +18,7 @@ from selfview.maths.camera import CameraModel
 from selfview.files.cell import POINT_NAMES, Cell
 from selfview.measurement.discs import DiscDetections
 from selfview.measurement.plates import correct_plate_bias, detect_plate
-from selfview.errors import CalibrationError, ConfigError, ImageError
+from selfview.errors import CalibrationError, ImageError
 from selfview.measurement.fingertips import FingertipResult
 from selfview.measurement.fingers import find_fingertips
 from selfview.maths.geometry import inv_H, make_H, rot_z
@@ -194,11 +194,8 @@ def _residuals(mode: str, ts, det, ft: FingertipResult, pcc, dims, measured_by: 
 def _check_offline_args(cell: Cell, camera: CameraModel | None, points: str, measurement: str) -> CameraModel:
     """``calibrate_offline``'s options checked; the starting camera (``camera``, else the cell's nominal)."""
     cs = cell.camera
-    if camera is not None and (int(camera.width), int(camera.height)) != (cs.width, cs.height):
-        raise ConfigError(
-            f"the camera file was measured on {camera.width}x{camera.height} pictures; this cell's camera gives "
-            f"{cs.width}x{cs.height}: it belongs to another camera or grabber setting"
-        )
+    if camera is not None:
+        camera.check_size(cs.width, cs.height)
     if points not in ("measured", "cell"):
         raise CalibrationError(f"points: expected 'measured' or 'cell', got {points!r}")
     if measurement not in ("auto", "corners", "model"):

@@ -20,7 +20,7 @@ import numpy as np
 from selfview.maths.camera import CameraModel, distort
 from selfview.files.cell import POINT_NAMES
 from selfview.errors import CalibrationError, ConfigError
-from selfview.maths.geometry import R_from_rotvec, delta_star, orthonormalize, rotvec_from_R
+from selfview.maths.geometry import H_from_rotvec, cross_rows, delta_star, make_H, orthonormalize, rotvec_from_R
 
 __all__ = [
     "METHODS",
@@ -227,15 +227,6 @@ def _check_conditioning(N: np.ndarray, P: np.ndarray, label: str) -> float:
     return cond
 
 
-def _cross(w: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """w x p_i for a vector w (3,) and points p (N, 3) (np.cross costs more at this size)."""
-    out = np.empty_like(p)
-    out[:, 0] = w[1] * p[:, 2] - w[2] * p[:, 1]
-    out[:, 1] = w[2] * p[:, 0] - w[0] * p[:, 2]
-    out[:, 2] = w[0] * p[:, 1] - w[1] * p[:, 0]
-    return out
-
-
 # --- NP-U -------------------------------------------------------------------------------------------
 def _eq17(p_C: np.ndarray, XY: np.ndarray, f: float) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 17: (A (2N, 6), b (2N,)), rows X_i then Y_i per point, each divided by the point's depth z_i
@@ -274,7 +265,7 @@ def differential_update(
     cond = _check_conditioning(N, P, label)
     x = np.linalg.solve(N, A.T @ b)
     H = delta_star(x[:3], x[3:]) @ H0  # eq. 13
-    p_new = p_C + _cross(x[:3], p_C) + x[3:]  # eq. 16: C'p_i = Delta* C p_i
+    p_new = p_C + cross_rows(x[None, :3], p_C) + x[3:]  # eq. 16: C'p_i = Delta* C p_i
     if not np.all(p_new[:, 2] > 0.0):
         raise CalibrationError(f"{label}: the update moves a point behind the camera; the motion is not small")
     res = _pixel_residuals(camera, uv, f * p_new[:, :2] / p_new[:, 2:3])
@@ -330,12 +321,8 @@ def _gauss_newton(H0, H_start, P, uv, camera, names, label, tol, max_iter, prior
             raise CalibrationError(f"{label}: the normal system became singular during the iteration")
         step = step.ravel()
         w, t = step[:3], step[3:]
-        moved = math.sqrt(float(np.max(np.sum((_cross(w, p) + t) ** 2, axis=1))))
-        Rw = R_from_rotvec(w)
-        H_next = np.eye(4)
-        H_next[:3, :3] = Rw @ H[:3, :3]
-        H_next[:3, 3] = Rw @ H[:3, 3] + t
-        H = H_next
+        moved = math.sqrt(float(np.max(np.sum((cross_rows(w[None], p) + t) ** 2, axis=1))))
+        H = H_from_rotvec(w, t) @ H
         if moved < tol:
             break
     else:
@@ -421,10 +408,7 @@ def recalibrate(
     for rv, tv in zip(rvecs[:n_sol], tvecs[:n_sol]):
         if not (np.isfinite(rv).all() and np.isfinite(tv).all()):
             continue
-        Hc = np.eye(4)  # C_H_G = C_H_F F_H_G
-        Hc[:3, :3] = cv2.Rodrigues(rv)[0] @ R0
-        Hc[:3, 3] = tv.ravel()
-        cands.append(Hc)
+        cands.append(make_H(cv2.Rodrigues(rv)[0] @ R0, tv.ravel()))  # C_H_G = C_H_F F_H_G
     if not cands:
         raise CalibrationError(f"{label}: the exterior orientation has no solution for these points")
 

@@ -62,6 +62,14 @@ class Decision:
     points_used: tuple[str, ...] = ()
     estimate: MotionEstimate | None = field(default=None, repr=False, compare=False)
 
+    @classmethod
+    def of(cls, action: str, reason: str, C_H_G, est: MotionEstimate | None = None, n_found: int = 0,
+           delta: float = math.nan, d: float = math.nan) -> "Decision":
+        """The decision with the residual, method and points of the estimate ``est`` it judged (if any)."""
+        if est is None:
+            return cls(action, reason, delta, d, math.nan, C_H_G, None, int(n_found))
+        return cls(action, reason, delta, d, est.rms_px, C_H_G, est.method, int(n_found), est.points_used, est)
+
     def to_dict(self) -> dict:
         """Plain JSON-ready record (NaN as None)."""
 
@@ -147,21 +155,9 @@ class Policy:
         if C_H_G is None and estimate_U is not None:
             C_H_G = estimate_U.C_H_G_prior
         unchanged = None if C_H_G is None else np.asarray(C_H_G, dtype=float).copy()
-        nan = math.nan
 
-        def alarm(reason, delta=nan, d=nan, est=None):
-            return Decision(
-                "alarm",
-                reason,
-                delta,
-                d,
-                est.rms_px if est is not None else nan,
-                unchanged,
-                est.method if est is not None else None,
-                int(n_found),
-                est.points_used if est is not None else (),
-                est,
-            )
+        def alarm(reason, delta=math.nan, d=math.nan, est=None):
+            return Decision.of("alarm", reason, unchanged, est, n_found, delta, d)
 
         if n_found < 3:
             return alarm(f"only {n_found} fingertip point(s) found; at least 3 are needed to follow the camera")
@@ -185,18 +181,8 @@ class Policy:
             return alarm(f"{where} exceeds the alarm limit {a.angle_deg} deg / {a.shift_mm} mm", delta, d, est)
         u = lim.update_limit
         if action == "update":
-            return Decision(
-                "update",
-                f"{where} within the update limit {u.angle_deg} deg / {u.shift_mm} mm",
-                delta,
-                d,
-                est.rms_px,
-                est.C_H_G_orth.copy(),
-                est.method,
-                int(n_found),
-                est.points_used,
-                est,
-            )
+            return Decision.of("update", f"{where} within the update limit {u.angle_deg} deg / {u.shift_mm} mm",
+                               est.C_H_G_orth.copy(), est, n_found, delta, d)
         why = f"{where} exceeds the update limit {u.angle_deg} deg / {u.shift_mm} mm"
         return self._recalibrated(why, delta, d, est, int(n_found), unchanged, recalibration, C_H_G_calibrated, alarm)
 
@@ -204,10 +190,8 @@ class Policy:
         """``decide`` beyond the update limit: the recalibration's decision (``alarm`` the alarm maker)."""
         lim = self.limits
         if recalibration is None:
-            return Decision(
-                "recalibrate", f"{why}; no recalibration supplied, C_H_G unchanged", delta, d, est.rms_px,
-                unchanged, est.method, int(n_found), est.points_used, est,
-            )
+            return Decision.of("recalibrate", f"{why}; no recalibration supplied, C_H_G unchanged", unchanged, est,
+                               n_found, delta, d)
         try:
             est_R = recalibration() if callable(recalibration) else recalibration
         except CalibrationError as exc:
@@ -231,19 +215,8 @@ class Policy:
                 d_R,
                 est_R,
             )
-        return Decision(
-            "recalibrate",
-            f"{why}; recalibrated by {est_R.method} ({delta_R:.3f} deg / {d_R:.3f} mm, "
-            f"residual {est_R.rms_px:.3f} px)",
-            delta,
-            d,
-            est_R.rms_px,
-            est_R.C_H_G.copy(),
-            est_R.method,
-            int(n_found),
-            est_R.points_used,
-            est_R,
-        )
+        return Decision.of("recalibrate", f"{why}; recalibrated by {est_R.method} ({delta_R:.3f} deg / {d_R:.3f} mm, "
+                           f"residual {est_R.rms_px:.3f} px)", est_R.C_H_G.copy(), est_R, n_found, delta, d)
 
 
 class Monitor:
@@ -405,13 +378,12 @@ class Monitor:
     def _missed(self, why: str, n_found: int) -> Decision:
         self.missed_in_a_row += 1
         k, n = self.missed_in_a_row, self.max_missed_frames
-        nan = math.nan
         if k >= n:
-            d = Decision("alarm", f"{k} frames in a row without the fingertips (monitor.max_missed_frames {n}); "
-                         f"the last: {why}", nan, nan, nan, self.C_H_G.copy(), None, n_found)
+            d = Decision.of("alarm", f"{k} frames in a row without the fingertips (monitor.max_missed_frames {n}); "
+                            f"the last: {why}", self.C_H_G.copy(), None, n_found)
         else:
-            d = Decision("missed", f"fingertips not found ({k} of {n} missed frames before the alarm): {why}",
-                         nan, nan, nan, self.C_H_G.copy(), None, n_found)
+            d = Decision.of("missed", f"fingertips not found ({k} of {n} missed frames before the alarm): {why}",
+                            self.C_H_G.copy(), None, n_found)
         self.alarmed = d.action == "alarm"
         self._record(d.action, d.reason, d.C_H_G, d)
         if self.alarmed and self.raise_on_alarm:
@@ -468,11 +440,11 @@ class Monitor:
             self._poses.append(np.asarray(decision.estimate.C_H_G, float))
             if self._alternating():
                 n = ALTERNATION_WINDOW
-                decision = Decision(
+                decision = Decision.of(
                     "alarm", f"camera mount loose or source switching: the measured pose alternated between two "
                     f"values over the last {n} frames (each beyond the update limit from the one before, within it "
-                    "of the one before that)", decision.delta_deg, decision.d_mm, decision.rms_px, self.C_H_G.copy(),
-                    decision.method, int(n_found), decision.points_used, decision.estimate)
+                    "of the one before that)", self.C_H_G.copy(), decision.estimate, n_found, decision.delta_deg,
+                    decision.d_mm)
         if decision.action == "update":
             self.C_H_G = decision.C_H_G.copy()
         elif decision.action == "recalibrate" and decision.estimate is not None and decision.method.endswith("R"):

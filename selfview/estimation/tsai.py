@@ -114,7 +114,7 @@ def residual_stats(residuals) -> tuple[float, float, float, float]:
 
 
 # --- input checks ------------------------------------------------------------------------------------
-def _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height):
+def _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height, f_guess=None):
     try:
         p = np.asarray(p_W, dtype=float)
         q = np.asarray(uv, dtype=float)
@@ -144,6 +144,8 @@ def _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height):
         raise ConfigError(f"coplanar calibration: mode must be one of {', '.join(MODES)}; got {mode!r}")
     if int(width) <= 0 or int(height) <= 0:
         raise ConfigError(f"coplanar calibration: picture size must be positive, got {width}x{height}")
+    if f_guess is not None and not (np.isfinite(f_guess) and f_guess > 0):
+        raise ConfigError(f"coplanar calibration: f_guess must be a positive focal length in px, got {f_guess!r}")
     extent = float(np.ptp(p[:, :2], axis=0).max())
     zmax = float(np.abs(p[:, 2]).max())
     if zmax > 1e-6 * max(extent, 1.0):
@@ -259,6 +261,31 @@ def _linear_pose(xw, yw, Xd, Yd, with_cond=True):
     return tx, ty, r, f, tz, cond
 
 
+def _linear_stages(xy, Xd, Yd):
+    """Stages 1-4, in the given plate frame unless its origin lies too near the camera's y-z plane:
+    (origin (2,) of the stages' frame in W, xy in it, Tx, Ty, r, f, Tz, R_lin, tilt [deg]); refuses a
+    plate seen edge-on or a singular f/Tz system."""
+    origin = np.zeros(2)
+    try:
+        tx, ty, r, f_lin, tz, cond = _linear_pose(xy[:, 0], xy[:, 1], Xd, Yd)
+        moved = abs(ty) < 0.25 * np.abs(r[1, 0] * xy[:, 0] + r[1, 1] * xy[:, 1] + ty).max()
+    except CalibrationError:
+        moved = True
+    if moved:
+        origin = xy[int(np.argmax(np.abs(Yd)))].copy()
+        xy = xy - origin
+        tx, ty, r, f_lin, tz, cond = _linear_pose(xy[:, 0], xy[:, 1], Xd, Yd)
+    R_lin = R_from_rpy(*_rpy_paul(r))
+    tilt = float(np.degrees(np.arccos(min(abs(R_lin[2, 2]), 1.0))))
+    if tilt > EDGE_ON_LIMIT_DEG:
+        raise CalibrationError(
+            f"plate seen nearly edge-on: tilted {tilt:.1f} deg from square-on (limit {EDGE_ON_LIMIT_DEG:g} deg)"
+        )
+    if not cond <= F_TZ_COND_LIMIT:
+        raise _inseparable(tilt, f"the linear f/Tz system is singular, condition number {cond:.3g}")
+    return origin, xy, tx, ty, r, f_lin, tz, R_lin, tilt
+
+
 # --- non-linear stages ---------------------------------------------------------------------------------
 class _FTzKappa:
     """Stage 5a's model: pose from stages 1-3 (camera x, y of each point ``xc``, ``yc`` and its
@@ -301,13 +328,8 @@ def _relative_sd(C: np.ndarray, x, i: int) -> float:
 
 def _refine_tsai(model: _FTzKappa, f, tz, kappa, willson: bool):
     """Stage 5a: f, Tz, kappa minimising the undistorted sensor-plane error, pose from stages 1-3.
-
-    ``willson``: as his ``cc_compute_exact_f_and_Tz`` does it: one residual per point (its
-    distance), lmdif's forward-difference Jacobian and his tolerances. In a flat f-Tz valley the ftol
-    test stops short of the minimum at a point that depends on the path (1.5e-3 in f on his data),
-    so the path must be his. kappa's difference step at 0 is relative to 1 / r_max^2, independent of
-    units. Otherwise (to start the full refinement): x and y residuals, analytic Jacobian.
-    """
+    ``willson``: his path (``cc_compute_exact_f_and_Tz``: per-point distances, forward differences, his
+    tolerances; kappa's step relative to 1 / r_max^2); otherwise x and y residuals, analytic Jacobian."""
     if willson:
         return levenberg_marquardt(
             model.distances, [f, tz, kappa], "forward", ftol=WILLSON_FTOL, xtol=WILLSON_XTOL,
@@ -371,15 +393,22 @@ class _FullModel:
         return J
 
 
-def _refine_full(p_W, uv, R0, t0, f, kappa, cx, cy, aspect, free_centre):
+def _refine_full(p_W, uv, C_H_W, f, kappa, cx, cy, aspect, free_centre):
     """Stage 5b, ``full``/``full+centre``: pose, f, kappa [, cx, cy] minimising the distorted pixel
-    error from R0, t0. Returns (LM result, R)."""
+    error from ``C_H_W``. Returns (C_H_W, f, kappa, cx, cy, residuals (N, 2) [px], iterations)."""
+    R0 = C_H_W[:3, :3]
     model = _FullModel(p_W, uv, R0, cx, cy, aspect, free_centre)
-    x0 = np.concatenate([np.zeros(3), t0, [f, kappa], [cx, cy] if free_centre else []])
-    res = levenberg_marquardt(
-        model.residuals, x0, model.jacobian, ftol=FULL_FTOL, xtol=FULL_XTOL, max_nfev=FULL_MAX_NFEV
-    )
-    return res, R_from_rotvec(res.x[:3]) @ R0
+    x0 = np.concatenate([np.zeros(3), C_H_W[:3, 3], [f, kappa], [cx, cy] if free_centre else []])
+    lm = levenberg_marquardt(model.residuals, x0, model.jacobian, ftol=FULL_FTOL, xtol=FULL_XTOL,
+                             max_nfev=FULL_MAX_NFEV)
+    f, kappa = float(lm.x[6]), float(lm.x[7])
+    if free_centre:
+        cx, cy = float(lm.x[8]), float(lm.x[9])
+    _check_full_separable(lm.jacobian, lm.cost, lm.x, free_centre)
+    if not (lm.converged and f > 0):
+        raise CalibrationError(f"full refinement failed ({lm.message}; f = {f:.4g} px)")
+    C_H_W = make_H(R_from_rotvec(lm.x[:3]) @ R0, lm.x[3:6])
+    return C_H_W, f, kappa, cx, cy, -lm.residuals.reshape(2, -1).T, lm.iterations
 
 
 def _project_full(q, x, cx, cy, aspect, free_centre):
@@ -468,10 +497,8 @@ class _WillsonStages:
 
 
 def _willson_stage(fun, x0):
-    """One lmdif call as Willson makes it: forward differences (step sqrt(eps) |x_j|, or sqrt(eps)
-    where x_j = 0), ftol 1e-5, xtol 1e-7, gtol 0, factor 100, scaling by the Jacobian's column norms
-    (lmdif mode 1), at most 1000 evaluations per parameter counting the differences. Like him it
-    takes the point where lmdif stopped, also when the budget ran out."""
+    """One lmdif call as Willson makes it (forward differences, his tolerances and budget, scaling by the
+    Jacobian's column norms); like him it takes the point where lmdif stopped, also out of budget."""
     n = len(x0)
     return levenberg_marquardt(
         fun, x0, "forward", ftol=WILLSON_FTOL, xtol=WILLSON_XTOL, max_nfev=WILLSON_MAXFEV_PER_PARAM * n,
@@ -480,20 +507,11 @@ def _willson_stage(fun, x0):
 
 
 def _willson_full(p, uv, xy, origin, aspect, f, tz, kappa, cx, cy):
-    """Stages after Willson's f/Tz/kappa one (``coplanar_calibration_with_full_optimization`` of his
-    v3.0b3), from its f [px], Tz [mm], kappa [px^-2] and the given centre; plate points ``p`` (N, 3),
-    the same in the stages' plate frame ``xy`` (N, 2) whose origin is ``origin`` (2,) in W:
-      1. f, Tz, kappa, cx, cy, the pose re-solved linearly from the distorted observations;
-      2. the same, the linear stages on observations undistorted with the current kappa;
-      3. Rx, Ry, Rz, Tx, Ty, Tz, kappa, f from the pose of stage 2's last evaluation, centre fixed;
-      4. all ten parameters.
-    Every stage minimises the undistorted sensor-plane error with lmdif's forward differences and
-    ftol 1e-5: in the flat f-Tz valley of a far plate each stops on the ftol test short of the
-    minimum, at a point set by the path (a stage that spends its budget ends there, as his do).
-    Returns (C_H_W (4, 4), f, kappa, cx, cy, Levenberg-Marquardt iterations). Raises
-    ``CalibrationError`` if the linear stages fail where the five-parameter stages end, the result has
-    f <= 0 or a point behind the camera, or one view does not determine the centre
-    (``FULL_REL_SD_LIMIT``)."""
+    """Stages after Willson's f/Tz/kappa one (his ``coplanar_calibration_with_full_optimization``, the
+    four stages of ``docs/tsai-willson.md``), from its f [px], Tz [mm], kappa [px^-2] and the given centre;
+    plate points ``p`` (N, 3), the same in the stages' frame ``xy`` (N, 2) whose origin is ``origin`` in W.
+    Returns (C_H_W (4, 4), f, kappa, cx, cy, iterations); ``CalibrationError`` if the linear stages fail,
+    f <= 0, a point lies behind the camera or one view does not determine the centre."""
     stages = _WillsonStages(xy, uv, aspect)
     x, iterations = np.array([f, tz, kappa, cx, cy], dtype=float), 0
     for early in (False, True):
@@ -544,72 +562,27 @@ def calibrate_coplanar(
     ``uv`` (N, 2), principal point (``cx``, ``cy``) [px] and ``aspect`` known.
 
     ``mode``: ``tsai`` refines f, Tz, kappa as Tsai published it; ``full`` (default) pose, f and kappa;
-    ``full+centre`` also the principal point; ``willson`` reproduces Willson's full optimisation
-    (centre free) as his v3.0b3 runs it. ``width``, ``height`` [px] pass through to the camera.
-
-    ``willson`` reproduces where Willson's optimiser stops, not a minimum. After the ``tsai`` stages it
-    runs the rest of his chain (``_willson_full``): f, Tz, kappa and the centre with the pose re-solved
-    linearly (distortion removed late, then early), then pose, f and kappa, then all ten parameters.
-    Each stage minimises his objective, the distance between projection and undistorted observation
-    in the undistorted sensor plane (his log's "undistorted image plane error"; at his published
-    parameters it gives that block's figures to every digit), by lmdif's method with forward
-    differences, ftol 1e-5 and xtol 1e-7. A far plate (his is 6.3 m away) leaves a flat f-Tz valley
-    in which each stage stops on the ftol test short of its minimum, at a point its path sets. On his
-    ``cc_cd.dat`` this lands 0.07 % below his f (257.13 mm) and 0.2 px from his centre, with his
-    distorted error mean and sse to 2e-4 and Tz / f to 1e-5. Neither point is a minimum:
-    ``full+centre`` minimises the distorted pixel error (f 0.65 % above his, sse 1.21365 < his
-    1.21378 px^2), and his own objective's minimum lies 1.0 % above his f. Where a stage stops in such
-    a valley hangs on rounding: perturbing the pixels by 1e-12 (relative) moves the final f by 0.05 %
-    (median) to 0.2 % (99th percentile) here, and MINPACK's own lmdif scatters as much. Where the data
-    determine f (a near, tilted plate), ``willson`` ends near the ``full+centre`` fit.
-
-    Beyond Willson: the linear stage divides by Ty and fails when the plate's origin lies near the
-    camera's y-z plane (his FAQ 3.3); the disc grid's origin is its centre, often in mid-picture, so the
-    stages then run in a plate frame moved to the point farthest from the centre row, and the pose is
-    moved back. Whether f can be separated from Tz is judged by the standard error of f that the data
-    imply.
+    ``full+centre`` also the principal point; ``willson`` reproduces where Willson's full optimisation
+    (centre free, his v3.0b3) stops, not a minimum (``docs/tsai-willson.md``). ``width``, ``height`` [px]
+    pass through to the camera. When the plate's origin lies near the camera's y-z plane (his FAQ 3.3)
+    the linear stages run in a plate frame moved to the point farthest from the centre row.
 
     ``kappa_guess`` [px^-2] is removed from the observations before the linear stages and starts the
     refinement (0 reproduces Willson); ``f_guess`` [px], if given, starts the refinement in place of
     the linear f (Tz re-solved for it).
 
-    Raises ``CalibrationError`` naming the cause: mismatched shapes, NaN, fewer than 5 points,
-    non-coplanar points, collinear points, the plate seen edge-on (image points collinear or tilted
-    beyond ``EDGE_ON_LIMIT_DEG``), f not separable from Tz (plate square-on or too far: the linear
-    f/Tz system singular, or the f/Tz/kappa stage implying a standard error of f above
-    ``F_REL_SD_LIMIT``; with the principal point free, ``FULL_REL_SD_LIMIT`` after the full
-    refinement), plate coordinates mirrored (the camera on W's +z side, against
-    ``CONVENTIONS.md``), no pose with f > 0, no convergence. ``ConfigError`` for a bad mode,
-    principal point, aspect or ``f_guess``.
+    Raises ``CalibrationError`` naming the cause (bad points, the plate edge-on, f not separable from Tz,
+    plate coordinates mirrored against ``CONVENTIONS.md``, no pose with f > 0, no convergence);
+    ``ConfigError`` for a bad mode, principal point, aspect or ``f_guess``.
     """
-    p, q = _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height)
-    if f_guess is not None and not (np.isfinite(f_guess) and f_guess > 0):
-        raise ConfigError(f"coplanar calibration: f_guess must be a positive focal length in px, got {f_guess!r}")
+    p, q = _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height, f_guess)
     xy = p[:, :2]
     XYh = np.column_stack([aspect * (q[:, 0] - cx), q[:, 1] - cy])
     _check_spread(XYh, "image points", "image points collinear: the plate is seen edge-on")
     XYu = XYh * (1.0 + kappa_guess * np.sum(XYh * XYh, axis=1, keepdims=True))
     Xd, Yd = XYu[:, 0], XYu[:, 1]
 
-    # Stages 1-4, in the given plate frame unless its origin lies too near the camera's y-z plane.
-    origin = np.zeros(2)
-    try:
-        tx, ty, r, f_lin, tz, cond = _linear_pose(xy[:, 0], xy[:, 1], Xd, Yd)
-        moved = abs(ty) < 0.25 * np.abs(r[1, 0] * xy[:, 0] + r[1, 1] * xy[:, 1] + ty).max()
-    except CalibrationError:
-        moved = True
-    if moved:
-        origin = xy[int(np.argmax(np.abs(Yd)))].copy()
-        xy = xy - origin
-        tx, ty, r, f_lin, tz, cond = _linear_pose(xy[:, 0], xy[:, 1], Xd, Yd)
-    R_lin = R_from_rpy(*_rpy_paul(r))
-    tilt = float(np.degrees(np.arccos(min(abs(R_lin[2, 2]), 1.0))))
-    if tilt > EDGE_ON_LIMIT_DEG:
-        raise CalibrationError(
-            f"plate seen nearly edge-on: tilted {tilt:.1f} deg from square-on (limit {EDGE_ON_LIMIT_DEG:g} deg)"
-        )
-    if not cond <= F_TZ_COND_LIMIT:
-        raise _inseparable(tilt, f"the linear f/Tz system is singular, condition number {cond:.3g}")
+    origin, xy, tx, ty, r, f_lin, tz, R_lin, tilt = _linear_stages(xy, Xd, Yd)
     xc, yc, w = (r @ np.column_stack([xy, np.zeros(len(xy))]).T + np.array([[tx], [ty], [0.0]]))
     if f_guess is not None:
         f_lin = float(f_guess)
@@ -627,42 +600,41 @@ def calibrate_coplanar(
             f"Tsai refinement of f, Tz, kappa failed ({lm.message}; f = {f:.4g} px, Tz = {tz:.4g} mm)"
         )
     iterations = lm.iterations
-    C_H_W = make_H(R_lin, np.array([tx, ty, tz]) - R_lin @ np.array([origin[0], origin[1], 0.0]))
-    if float(R_lin[:, 2] @ C_H_W[:3, 3]) <= 0:
-        # The camera's position in W, -R^T t, has z >= 0: it sits on the side z points to.
-        raise CalibrationError(
-            "plate coordinates mirrored: the camera comes out on the +z side of the plate, but W must be "
-            "right-handed with z pointing into the plate, away from the camera (index the grid so that "
-            "x cross y points away from the camera)"
-        )
+    C_H_W = _unmirrored(make_H(R_lin, np.array([tx, ty, tz]) - R_lin @ np.array([origin[0], origin[1], 0.0])))
     ccx, ccy = cx, cy
     if mode == "willson":
         C_H_W, f, kappa, ccx, ccy, its = _willson_full(p, q, xy, origin, aspect, f, tz, kappa, cx, cy)
         iterations += its
     if mode in ("tsai", "willson"):
-        cam = CameraModel(f=f, kappa=kappa, cx=ccx, cy=ccy, aspect=aspect, width=int(width), height=int(height))
         try:
-            residuals = q - cam.project(transform_points(C_H_W, p))
+            residuals = q - _camera(f, kappa, ccx, ccy, aspect, width, height).project(transform_points(C_H_W, p))
         except CalibrationError as exc:
             raise CalibrationError(f"Tsai's model does not reach every point: {exc}") from exc
     else:
-        free = mode == "full+centre"
-        lm, R = _refine_full(p, q, R_lin, C_H_W[:3, 3], f, kappa, cx, cy, aspect, free)
-        iterations += lm.iterations
-        f, kappa = float(lm.x[6]), float(lm.x[7])
-        if free:
-            ccx, ccy = float(lm.x[8]), float(lm.x[9])
-        _check_full_separable(lm.jacobian, lm.cost, lm.x, free)
-        if not (lm.converged and f > 0):
-            raise CalibrationError(f"full refinement failed ({lm.message}; f = {f:.4g} px)")
-        C_H_W = make_H(R, lm.x[3:6])
-        cam = CameraModel(f=f, kappa=kappa, cx=ccx, cy=ccy, aspect=aspect, width=int(width), height=int(height))
-        residuals = -lm.residuals.reshape(2, -1).T
+        C_H_W, f, kappa, ccx, ccy, residuals, its = _refine_full(p, q, C_H_W, f, kappa, cx, cy, aspect,
+                                                                 mode == "full+centre")
+        iterations += its
     rms, mean, mx, sse = residual_stats(residuals)
     return TsaiResult(
-        camera=cam, C_H_W=C_H_W, residuals_px=residuals, rms_px=rms, mean_px=mean, max_px=mx, sse_px2=sse,
+        camera=_camera(f, kappa, ccx, ccy, aspect, width, height), C_H_W=C_H_W, residuals_px=residuals,
+        rms_px=rms, mean_px=mean, max_px=mx, sse_px2=sse,
         mode=mode, iterations=int(iterations),
     )
+
+
+def _unmirrored(C_H_W: np.ndarray) -> np.ndarray:
+    """``C_H_W``, unless the camera's position in W, -R^T t, has z >= 0 (the side z points to)."""
+    if float(C_H_W[:3, 2] @ C_H_W[:3, 3]) <= 0:
+        raise CalibrationError(
+            "plate coordinates mirrored: the camera comes out on the +z side of the plate, but W must be "
+            "right-handed with z pointing into the plate, away from the camera (index the grid so that "
+            "x cross y points away from the camera)"
+        )
+    return C_H_W
+
+
+def _camera(f, kappa, cx, cy, aspect, width, height) -> CameraModel:
+    return CameraModel(f=f, kappa=kappa, cx=cx, cy=cy, aspect=aspect, width=int(width), height=int(height))
 
 
 def _check_full_separable(J, cost: float, x, free: bool) -> None:

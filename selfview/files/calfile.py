@@ -27,7 +27,7 @@ from selfview.maths.camera import CameraModel
 from selfview.files.cell import POINT_NAMES
 from selfview.errors import CalibrationFileError, ConfigError
 from selfview.maths.geometry import check_rigid
-from selfview.files.io_safe import MAX_YAML_BYTES, atomic_write, file_lock, load_yaml, read_bounded, remove_leftovers, short_repr
+from selfview.files.io_safe import MAX_YAML_BYTES, atomic_write, check_folder, file_lock, load_yaml, read_bounded, remove_leftovers, short_repr
 from selfview.estimation.tsai import MODES as TSAI_MODES
 
 __all__ = ["Calibration", "save_calibration", "load_calibration", "history_dir", "FORMAT", "VERSION"]
@@ -118,9 +118,6 @@ class Calibration:
                 height=int(cam["height"]),
                 skew=float(cam.get("skew", 0.0)),  # a measured grabber's shear; absent: 0 (the spec's model)
             )
-            for name in ("f", "kappa", "cx", "cy", "aspect", "skew"):
-                if not math.isfinite(getattr(camera, name)):
-                    raise ValueError(f"camera {name} is {getattr(camera, name)}, not a finite number")
             _plausible_camera(camera)
             pts = {}
             for st, d in doc["gripper"]["points_G"].items():
@@ -135,15 +132,7 @@ class Calibration:
             for name, H in (("C_H_W", C_H_W), ("C_H_G", C_H_G)):
                 if np.linalg.norm(H[:3, 3]) > MAX_LENGTH_MM:
                     raise ValueError(f"{name} puts its origin over {MAX_LENGTH_MM:g} mm from the camera")
-            _plausible_figures(doc.get("residuals") or {}, "residuals")
-            for key, kind in (("residuals", dict), ("updates", list)):
-                if not isinstance(doc.get(key) or kind(), kind):
-                    raise ValueError(f"{key} is {short_repr(doc.get(key), 60)}, expected a {kind.__name__}")
-            if not all(isinstance(u, dict) for u in doc.get("updates") or []):
-                raise ValueError("updates holds an entry that is not a record")
-            for key in ("image_sha256", "cell_sha256", "created", "software"):
-                if not isinstance(doc.get(key, ""), str):
-                    raise ValueError(f"{key} is {short_repr(doc.get(key), 60)}, expected text")
+            _plausible_figures(doc.get("residuals") or {}, "residuals")  # types: _check_types
             return cls(
                 camera=camera,
                 C_H_W=C_H_W,
@@ -308,13 +297,7 @@ def plain_data(x):
         return [plain_data(v) for v in x]
     if isinstance(x, np.ndarray):
         return plain_data(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        return float(x)
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x
+    return x.item() if isinstance(x, np.generic) else x
 
 
 def doc_checksum(body: dict) -> str:
@@ -350,12 +333,8 @@ def save_calibration(cal: Calibration, path, *, keep_history: bool = True,
     calibration: it may be somebody else's file. ``expected``: the version ``cal`` was derived from (the
     Calibration as loaded, or its file's SHA-256); the file is replaced only if it still is that version,
     so a recalibration saved meanwhile is never overwritten (the refusal names both). A symlink's target
-    is replaced (the link stays). Returns the path of the history copy, or None.
-
-    The new document is read back and checked before anything is written; the write goes through
-    ``selfview.files.io_safe.atomic_write`` (temporary file, fsync, rename, permissions kept) after the
-    previous file is copied into ``<name>.history/``. A write that fails (full disk, size limit, missing
-    folder) raises ``CalibrationFileError`` naming the path.
+    is replaced (the link stays). The new document is read back and checked before anything is written
+    (then ``replace_keeping_history``). Returns the path of the history copy, or None.
     """
     p = Path(path)
     text = yaml.safe_dump(cal.to_document(), sort_keys=False, default_flow_style=None, width=120)
@@ -379,9 +358,7 @@ def replace_keeping_history(p: Path, text: str, load_existing, *, what: str, kee
     p = Path(p)
     if p.is_symlink():
         p = Path(os.path.realpath(p))  # replace the file the link names; the link stays a link
-    if not p.parent.is_dir():
-        why = "does not exist (it is not created)" if not p.parent.exists() else "is a file, not a folder"
-        raise CalibrationFileError(f"{p}: cannot write the {what}: the folder {p.parent} {why}")
+    check_folder(p, error=CalibrationFileError, what=what)
     with file_lock(p, error=CalibrationFileError, what=what):
         kept = None
         if expected_sha256 is not None:

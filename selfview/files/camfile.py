@@ -114,10 +114,7 @@ class CameraFile:
 
     def check_size(self, width: int, height: int, source: str = "camera file") -> None:
         """``ConfigError`` unless the file's picture size is ``width`` x ``height``."""
-        c = self.camera
-        if (int(c.width), int(c.height)) != (int(width), int(height)):
-            raise ConfigError(f"{source} was measured on {c.width}x{c.height} pictures; this cell's camera gives "
-                              f"{width}x{height}: it belongs to another camera or grabber setting")
+        self.camera.check_size(width, height, source)
 
 
 def _versions() -> dict:

@@ -90,14 +90,7 @@ class Section:
         v = self.raw(key, default)
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise ConfigError(f"{self._key(key)}: expected a number, got {short_repr(v)}")
-        try:
-            v = float(v)
-        except OverflowError:
-            raise ConfigError(f"{self._key(key)}: the number {short_repr(v)} is too large") from None
-        if not np.isfinite(v):
-            raise ConfigError(f"{self._key(key)}: expected a finite number, got {v!r}")
-        if abs(v) > MAX_NUMBER:  # no length, angle, level or limit of a cell comes near: a corrupted number
-            raise ConfigError(f"{self._key(key)}: the number {v!r} is not a plausible value (over {MAX_NUMBER:g})")
+        v = self._plausible(key, v)
         if positive and v <= 0:
             raise ConfigError(f"{self._key(key)}: expected a positive number, got {v!r}")
         if nonneg and v < 0:
@@ -134,16 +127,20 @@ class Section:
             or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)
         ):
             raise ConfigError(f"{self._key(key)}: expected a list of {n} numbers, got {short_repr(v)}")
+        return tuple(self._plausible(key, x) for x in v)
+
+    def _plausible(self, key: str, v) -> float:
+        """``v`` as a finite float of at most ``MAX_NUMBER``: no length, angle, level or limit of a cell comes
+        near, a larger number is a corrupted one."""
         try:
-            out = tuple(float(x) for x in v)
+            v = float(v)
         except OverflowError:
-            raise ConfigError(f"{self._key(key)}: a number of {short_repr(v)} is too large") from None
-        if not all(np.isfinite(out)):
-            raise ConfigError(f"{self._key(key)}: expected finite numbers, got {v!r}")
-        if any(abs(x) > MAX_NUMBER for x in out):
-            raise ConfigError(f"{self._key(key)}: {short_repr(v)} holds a number that is not a plausible value "
-                              f"(over {MAX_NUMBER:g})")
-        return out
+            raise ConfigError(f"{self._key(key)}: the number {short_repr(v)} is too large") from None
+        if not np.isfinite(v):
+            raise ConfigError(f"{self._key(key)}: expected a finite number, got {v!r}")
+        if abs(v) > MAX_NUMBER:
+            raise ConfigError(f"{self._key(key)}: the number {v!r} is not a plausible value (over {MAX_NUMBER:g})")
+        return v
 
     def transform(self, key: str, default: Any = ...) -> np.ndarray:
         v = self.raw(key, default)
@@ -187,9 +184,6 @@ class CameraSpec:
             width=self.width,
             height=self.height,
         )
-
-    def model_with(self, f: float, kappa: float) -> CameraModel:
-        return self.guess().with_(f=float(f), kappa=float(kappa))
 
 
 @dataclass(frozen=True)

@@ -354,6 +354,14 @@ def _try_flock(fd: int) -> bool:
         return False
 
 
+def check_folder(path, *, error: type[CellError] = ConfigError, what: str = "file") -> None:
+    """``error`` naming ``path`` unless its folder exists (a writer here never creates one)."""
+    folder = Path(path).parent
+    if not folder.is_dir():
+        why = "does not exist (it is not created)" if not folder.exists() else "is a file, not a folder"
+        raise error(f"{path}: cannot write the {what}: the folder {folder} {why}")
+
+
 def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, what: str = "file",
                  mode: int | None = None) -> None:
     """Replace ``path`` with ``data`` atomically: the new content goes to a temporary file in the same
@@ -368,10 +376,7 @@ def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, wha
     if path.is_symlink():
         path = Path(os.path.realpath(path))
     folder = path.parent
-    if not folder.exists():
-        raise error(f"{path}: cannot write the {what}: the folder {folder} does not exist (it is not created)")
-    if not folder.is_dir():
-        raise error(f"{path}: cannot write the {what}: {folder} is a file, not a folder")
+    check_folder(path, error=error, what=what)
     try:
         old_mode = stat.S_IMODE(os.stat(path).st_mode)
     except FileNotFoundError:

@@ -138,6 +138,12 @@ class CameraModel:
         if int(self.width) <= 0 or int(self.height) <= 0:
             raise ConfigError(f"camera size: expected positive width and height, got {self.width}x{self.height}")
 
+    def check_size(self, width: int, height: int, source: str = "the camera file") -> None:
+        """``ConfigError`` unless this camera was measured on ``width`` x ``height`` pictures (the cell's)."""
+        if (int(self.width), int(self.height)) != (int(width), int(height)):
+            raise ConfigError(f"{source} was measured on {self.width}x{self.height} pictures; this cell's camera "
+                              f"gives {width}x{height}: it belongs to another camera or grabber setting")
+
     def with_(self, **changes) -> "CameraModel":
         """A copy with some parameters changed."""
         return replace(self, **changes)
@@ -248,10 +254,7 @@ class CameraModel:
         A[:, 1, 2] = -XY[:, 1] / self.f
         A[:, 2, 2] = -1.0
         b = -(R[:, 2][None, :] * zP[:, None]) - t[None, :]
-        # Edge-on test: angle between ray and plane normal.
-        d = np.column_stack([XY / self.f, np.ones(n)])
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        cosang = np.abs(d @ R[:, 2])
+        cosang = np.abs(self.rays(uv) @ R[:, 2])  # edge-on test: angle between ray and plane normal
         if np.any(cosang < min_cos):
             raise CalibrationError(
                 f"plane seen nearly edge-on: a viewing ray meets it at {np.degrees(np.arcsin(cosang.min())):.1f} deg"

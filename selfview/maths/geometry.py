@@ -39,6 +39,7 @@ __all__ = [
     "pose_difference",
     "so3_left_jacobian",
     "cross_rows",
+    "hat",
 ]
 
 
@@ -53,11 +54,7 @@ def make_H(R: np.ndarray, t=(0.0, 0.0, 0.0)) -> np.ndarray:
 def inv_H(H: np.ndarray) -> np.ndarray:
     """Inverse of a rigid (4, 4) transform (uses R^T, not a general inverse)."""
     H = np.asarray(H, dtype=float)
-    R = H[:3, :3]
-    out = np.eye(4)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ H[:3, 3]
-    return out
+    return make_H(H[:3, :3].T, -H[:3, :3].T @ H[:3, 3])
 
 
 def trans(dx: float, dy: float, dz: float) -> np.ndarray:
@@ -165,11 +162,16 @@ def check_rigid(H, name: str = "transform", tol: float = 1e-3) -> np.ndarray:
     return orthonormalize(A)
 
 
+def hat(v) -> np.ndarray:
+    """(3, 3) cross-product matrix [v]x of a vector v (3,): hat(v) @ p = v x p."""
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
 def R_from_rotvec(v) -> np.ndarray:
     """(3, 3) rotation from a rotation vector (axis * angle, rad), Rodrigues' formula."""
     v = np.asarray(v, dtype=float).reshape(3)
     th = np.linalg.norm(v)
-    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    K = hat(v)
     if th < 1e-12:
         return np.eye(3) + K
     K /= th
@@ -334,7 +336,7 @@ def pose_difference(A_H_B, A_H_B_ref) -> tuple[float, float]:
 def so3_left_jacobian(omega: np.ndarray) -> np.ndarray:
     """Left Jacobian of SO(3) at rotation vector ``omega``: exp(omega + d) = exp(J_l d) exp(omega)."""
     th = float(np.linalg.norm(omega))
-    K = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
+    K = hat(omega)
     if th < 1e-8:
         return np.eye(3) + 0.5 * K
     return np.eye(3) + (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * (K @ K)

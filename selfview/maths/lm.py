@@ -44,11 +44,11 @@ class LMResult:
     converged: bool
     message: str
 
-    def covariance(self, sigma2: float | None = None) -> np.ndarray:
+    def covariance(self, sigma2: float | None = None, *, normal: bool = False) -> np.ndarray:
         """(P, P) covariance of ``x`` (see ``covariance``), by default with the residual variance
         ``cost / (M - P)``."""
         m, p = self.jacobian.shape
-        return covariance(self.jacobian, self.cost / max(m - p, 1) if sigma2 is None else sigma2)
+        return covariance(self.jacobian, self.cost / max(m - p, 1) if sigma2 is None else sigma2, normal=normal)
 
 
 def _r_factor(A) -> np.ndarray:
@@ -191,6 +191,14 @@ class _ScaledNormal:
         return float(np.sqrt(max(zv @ self.A @ zv, 0.0)))
 
 
+def _factor(J, r, d, normal: bool):
+    """The factorisation of an iteration: the normal equations' when asked and positive definite, else the SVD."""
+    try:
+        return _ScaledNormal(J, r, d) if normal else _ScaledSVD(J, r, d)
+    except np.linalg.LinAlgError:
+        return _ScaledSVD(J, r, d)
+
+
 def _lm_parameter(svd, delta, par):
     """Moré's safeguarded Newton iteration for the damping ``par`` whose step has ||D x|| within 10 %
     of ``delta`` (MINPACK's ``lmpar``, on the SVD); returns (par, scaled step in the V basis)."""
@@ -224,6 +232,81 @@ def _lm_parameter(svd, delta, par):
     return par, zv
 
 
+def _start(fun: Residuals, x0) -> tuple[np.ndarray, np.ndarray]:
+    """(x (P,), residuals (M,) at x) checked: P > 0, M >= P, the residuals finite."""
+    x = np.array(x0, dtype=float).ravel()
+    if x.size == 0:
+        raise ValueError("levenberg_marquardt: no parameters")
+    r = np.asarray(fun(x), dtype=float).ravel()
+    if r.size < x.size:
+        raise ValueError(f"levenberg_marquardt: {r.size} residuals cannot determine {x.size} parameters")
+    if not np.all(np.isfinite(r)):
+        raise CalibrationError("least squares: the residuals are not finite at the start point")
+    return x, r
+
+
+def _jacobian_function(fun: Residuals, jac, m: int, n: int, scale):
+    """(jacobian(x, r) -> (M, P) checked, residual evaluations each call costs) for ``jac``: a callable,
+    'central' or 'forward' differences (``r`` the residuals at x, which forward differences reuse)."""
+    numeric = isinstance(jac, str)
+    if numeric and jac not in ("central", "forward"):
+        raise ValueError(f"levenberg_marquardt: jac must be a callable, 'central' or 'forward', got {jac!r}")
+
+    def jacobian(xv, r):
+        if numeric:
+            J = numeric_jacobian(fun, xv, r0=r if jac == "forward" else None, method=jac, scale=scale)
+        else:
+            J = np.asarray(jac(xv), dtype=float)
+        if J.shape != (m, n):
+            raise ValueError(f"levenberg_marquardt: Jacobian of shape {J.shape}, expected {(m, n)}")
+        return J
+
+    return jacobian, ({"central": 2 * n, "forward": n}[jac] if numeric else 0)
+
+
+def _gradient_cosine(J, r, fnorm: float, acnorm) -> float:
+    """MINPACK's gtol measure: the largest cosine between the residuals and a Jacobian column."""
+    if fnorm <= 0:
+        return 0.0
+    nz = acnorm > 0
+    return float(np.max(np.abs((J.T @ r)[nz] / (fnorm * acnorm[nz])), initial=0.0))
+
+
+def _predicted_reduction(svd, zv, par, pnorm: float, fnorm: float) -> tuple[float, float]:
+    """(predicted relative reduction of the cost, directional derivative) of the scaled step ``zv``."""
+    t1 = svd.jnorm(zv) / fnorm  # ||J p|| / ||r||
+    t2 = np.sqrt(par) * pnorm / fnorm
+    return t1 * t1 + 2.0 * t2 * t2, -(t1 * t1 + t2 * t2)
+
+
+def _stop_test(actred, prered, ratio, delta, xnorm, gnorm, ftol, xtol, out_of_budget: bool):
+    """MINPACK's tests after a trial step, in its order: ``ftol`` on the actual and predicted relative cost
+    reductions, ``xtol`` on the step bound relative to the scaled parameters' norm, the budget, machine
+    precision. (converged, message; None for the budget's) or None to go on."""
+    small_f = abs(actred) <= ftol and prered <= ftol and ratio <= 2.0
+    small_x = delta <= xtol * xnorm
+    if small_f or small_x:
+        return True, " and ".join(m for m, hit in (("relative cost reduction at most ftol", small_f),
+                                                   ("relative step bound at most xtol", small_x)) if hit)
+    if out_of_budget:
+        return False, None
+    if (abs(actred) <= _EPS and prered <= _EPS and ratio <= 2.0) or delta <= _EPS * xnorm or gnorm <= _EPS:
+        return True, "no further reduction possible at machine precision"
+    return None
+
+
+def _new_bound(ratio, actred, dirder, fnorm, fnorm1, delta, pnorm, par):
+    """MINPACK's update of the step bound and the damping from the ratio of actual to predicted reduction."""
+    if ratio <= 0.25:
+        temp = 0.5 if actred >= 0 else 0.5 * dirder / (dirder + 0.5 * actred)
+        if 0.1 * fnorm1 >= fnorm or temp < 0.1:
+            temp = 0.1
+        return temp * min(delta, pnorm / 0.1), par / temp
+    if par == 0 or ratio >= 0.75:
+        return pnorm / 0.5, 0.5 * par
+    return delta, par
+
+
 def levenberg_marquardt(
     fun: Residuals,
     x0,
@@ -239,66 +322,26 @@ def levenberg_marquardt(
 ) -> LMResult:
     """Minimise ``sum(fun(x)**2)`` from ``x0`` (P,).
 
-    ``jac(x)`` returns the (M, P) Jacobian of the residuals; ``None`` or ``"central"`` takes central
-    differences, ``"forward"`` forward differences as ``lmdif`` does (``scale`` (P,): typical
-    parameter sizes, for the steps of parameters that are 0; see ``numeric_jacobian``).
-    MINPACK's tests: converged when both the actual and the predicted relative reduction of the cost
-    are at most ``ftol``, when the step bound is at most ``xtol`` times the scaled parameters' norm,
-    or when the cosine between the residuals and any Jacobian column is at most ``gtol``; also when
-    a tolerance reaches machine precision. ``factor`` sets the first step bound
-    (``factor * ||D x0||``). ``normal``: each iteration factors the P-square normal equations instead of
-    the (M, P) Jacobian (for thousands of residuals on well-scaled parameters). Gives up after
-    ``max_nfev`` residual evaluations (default 200 (P + 1))
-    with ``converged`` False.
+    ``jac(x)`` returns the (M, P) Jacobian, or ``None``/``"central"``/``"forward"`` differences as in
+    ``numeric_jacobian`` (forward: ``lmdif``'s). MINPACK's tests and constants (``_stop_test``), ``factor
+    * ||D x0||`` the first step bound, ``converged`` False after ``max_nfev`` evaluations (default
+    200 (P + 1)); ``normal``: factor the P-square normal equations instead of J (``_factor``). A trial
+    step whose residuals are not finite (a point behind the camera) is rejected and the bound shrinks.
     Raises ``ValueError`` for M < P or a Jacobian of the wrong shape, ``CalibrationError`` when the
     residuals are not finite at ``x0``.
-
-    A step bound ``delta`` in parameters scaled by the Jacobian's largest column norms so far, the
-    damping found by a safeguarded Newton iteration on ``||D p(lambda)|| = delta``, MINPACK's tests and
-    constants; one factorisation per iteration serves every damping trial of it. A residual
-    function may return non-finite values for a parameter vector it cannot evaluate (a point behind the
-    camera, beyond the lens's fold): such a trial step is rejected and the step bound shrinks.
     """
-    x = np.array(x0, dtype=float).ravel()
-    n = x.size
-    if n == 0:
-        raise ValueError("levenberg_marquardt: no parameters")
+    x, r = _start(fun, x0)
+    m, n = r.size, x.size
     max_nfev = 200 * (n + 1) if max_nfev is None else int(max_nfev)
-    r = np.asarray(fun(x), dtype=float).ravel()
-    m = r.size
-    if m < n:
-        raise ValueError(f"levenberg_marquardt: {m} residuals cannot determine {n} parameters")
-    if not np.all(np.isfinite(r)):
-        raise CalibrationError("least squares: the residuals are not finite at the start point")
-
-    if jac is None:
-        jac = "central"
-    numeric = isinstance(jac, str)
-    if numeric and jac not in ("central", "forward"):
-        raise ValueError(f"levenberg_marquardt: jac must be a callable, 'central' or 'forward', got {jac!r}")
-
-    def jacobian(xv):
-        if numeric:
-            J = numeric_jacobian(fun, xv, r0=r if jac == "forward" else None, method=jac, scale=scale)
-        else:
-            J = np.asarray(jac(xv), dtype=float)
-        if J.shape != (m, n):
-            raise ValueError(f"levenberg_marquardt: Jacobian of shape {J.shape}, expected {(m, n)}")
-        return J
-
-    extra = {"central": 2 * n, "forward": n}.get(jac, 0) if numeric else 0  # evaluations per Jacobian
+    jacobian, extra = _jacobian_function(fun, "central" if jac is None else jac, m, n, scale)
     nfev = 1
     fnorm = float(np.linalg.norm(r))
     par = 0.0
-    delta = xnorm = 0.0
-    d = np.zeros(n)
     iterations = 0
     converged, message = False, f"gave up after {max_nfev} residual evaluations"
-    J = None
-    J_at_x = False
     done = False
     while not done:
-        J = jacobian(x)
+        J = jacobian(x, r)
         nfev += extra
         J_at_x = True
         iterations += 1
@@ -307,23 +350,15 @@ def levenberg_marquardt(
             d = np.where(acnorm > 0, acnorm, 1.0)
             xnorm = float(np.linalg.norm(d * x))
             delta = factor * xnorm if xnorm > 0 else factor
-        if fnorm > 0:
-            nz = acnorm > 0
-            gnorm = float(np.max(np.abs((J.T @ r)[nz] / (fnorm * acnorm[nz])), initial=0.0))
-        else:
-            gnorm = 0.0
+        gnorm = _gradient_cosine(J, r, fnorm, acnorm)
         if gnorm <= gtol:
             converged, message = True, "residuals orthogonal to the Jacobian (gtol)"
             break
         d = np.maximum(d, acnorm)
-        try:
-            svd = _ScaledNormal(J, r, d) if normal else _ScaledSVD(J, r, d)
-        except np.linalg.LinAlgError:
-            svd = _ScaledSVD(J, r, d)
+        svd = _factor(J, r, d, normal)
         while True:
             par, zv = _lm_parameter(svd, delta, par)
-            p = -svd.step(zv)
-            x_new = x + p
+            x_new = x - svd.step(zv)
             pnorm = float(np.linalg.norm(zv))
             if iterations == 1:
                 delta = min(delta, pnorm)
@@ -331,44 +366,21 @@ def levenberg_marquardt(
             nfev += 1
             fnorm1 = float(np.linalg.norm(r_new)) if np.all(np.isfinite(r_new)) else np.inf
             actred = 1.0 - (fnorm1 / fnorm) ** 2 if 0.1 * fnorm1 < fnorm else -1.0
-            t1 = svd.jnorm(zv) / fnorm  # ||J p|| / ||r||
-            t2 = np.sqrt(par) * pnorm / fnorm
-            prered = t1 * t1 + 2.0 * t2 * t2
-            dirder = -(t1 * t1 + t2 * t2)
+            prered, dirder = _predicted_reduction(svd, zv, par, pnorm, fnorm)
             ratio = actred / prered if prered != 0 else 0.0
-            if ratio <= 0.25:
-                temp = 0.5 if actred >= 0 else 0.5 * dirder / (dirder + 0.5 * actred)
-                if 0.1 * fnorm1 >= fnorm or temp < 0.1:
-                    temp = 0.1
-                delta = temp * min(delta, pnorm / 0.1)
-                par = par / temp
-            elif par == 0 or ratio >= 0.75:
-                delta = pnorm / 0.5
-                par = 0.5 * par
+            delta, par = _new_bound(ratio, actred, dirder, fnorm, fnorm1, delta, pnorm, par)
             if ratio >= 1e-4:
                 x, r, fnorm = x_new, r_new, fnorm1
                 xnorm = float(np.linalg.norm(d * x))
                 J_at_x = False
-            small_f = abs(actred) <= ftol and prered <= ftol and ratio <= 2.0
-            small_x = delta <= xtol * xnorm
-            if small_f or small_x:
-                converged, done = True, True
-                message = " and ".join(
-                    m for m, hit in (("relative cost reduction at most ftol", small_f),
-                                     ("relative step bound at most xtol", small_x)) if hit
-                )
-                break
-            if nfev >= max_nfev:
-                done = True
-                break
-            if (abs(actred) <= _EPS and prered <= _EPS and ratio <= 2.0) or delta <= _EPS * xnorm or gnorm <= _EPS:
-                converged, message = True, "no further reduction possible at machine precision"
-                done = True
+            stop = _stop_test(actred, prered, ratio, delta, xnorm, gnorm, ftol, xtol, nfev >= max_nfev)
+            if stop is not None:
+                converged, message, done = stop[0], stop[1] or message, True
                 break
             if ratio >= 1e-4:
                 break
     if not J_at_x:
-        J = jacobian(x)
+        J = jacobian(x, r)
         nfev += extra
     return LMResult(
         x=x, residuals=r, jacobian=J, cost=fnorm * fnorm, iterations=iterations, nfev=nfev,

@@ -134,6 +134,55 @@ def _ellipse_misfit(blob: np.ndarray) -> tuple[float, float]:
     return solidity, float(np.max(np.abs(rho - 1)) * (da + db) / 4)
 
 
+def _round_blobs(labels, stats, reject) -> list[int]:
+    """The labels of the elliptical blobs clear of the picture's border, the others ``reject``ed by reason."""
+    H, W = labels.shape
+    cand = []
+    for k in range(1, len(stats)):
+        x, y, w, h, area = (int(v) for v in stats[k])
+        if area < 20:
+            reject("speck")
+        elif x == 0 or y == 0 or x + w == W or y + h == H:
+            reject("picture edge")
+        else:
+            cand.append(k)
+    round_ = []
+    for k in cand:
+        x, y, w, h, area = (int(v) for v in stats[k])
+        if area > 0.05 * H * W:
+            reject("too large")
+            continue
+        solidity, misfit = _ellipse_misfit(labels[y : y + h, x : x + w] == k)
+        if solidity < 0.9 or misfit > max(1.6, 0.035 * np.sqrt(area)):
+            reject("not elliptical")
+        else:
+            round_.append(k)
+    return round_
+
+
+def _measure_discs(work, labels, stats, round_: list[int], reject) -> tuple[list, list]:
+    """(centres, areas [px]) of the round blobs of the plate's disc size (``_typical_area``), measured by
+    ``_centroid``; the others ``reject``ed by reason."""
+    typical = _typical_area(stats[round_, cv2.CC_STAT_AREA]) if round_ else 0.0
+    small = stats[:, cv2.CC_STAT_AREA] < 0.25 * typical
+    uv, areas = [], []
+    for k in round_:
+        x, y, w, h, area = (int(v) for v in stats[k])
+        if area < 0.25 * typical:
+            reject("speck")
+            continue
+        if area > 4 * typical:
+            reject("too large")
+            continue
+        why, c = _centroid(work, labels, k, (x, y, w, h), area, small)
+        if why:
+            reject(why)
+            continue
+        uv.append(c)
+        areas.append(area)
+    return uv, areas
+
+
 def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarray | None]:
     """Sub-pixel centre of blob ``k`` (contrast-weighted centroid over a support around it, paper level a
     plane fitted to the ring around the support), or the reason it is not a whole, clean disc.
@@ -511,49 +560,12 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     # the blobs' outlines from a lightly smoothed contrast, so pixel noise does not fray them
     mask = (cv2.GaussianBlur(dark, (0, 0), 0.7) > DARK_FRACTION).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    H, W = img.shape
     rejected: dict[str, int] = {}
 
     def reject(reason):
         rejected[reason] = rejected.get(reason, 0) + 1
 
-    cand = []
-    for k in range(1, n):
-        x, y, w, h, area = (int(v) for v in stats[k])
-        if area < 20:
-            reject("speck")
-        elif x == 0 or y == 0 or x + w == W or y + h == H:
-            reject("picture edge")
-        else:
-            cand.append(k)
-    round_ = []
-    for k in cand:
-        x, y, w, h, area = (int(v) for v in stats[k])
-        if area > 0.05 * H * W:
-            reject("too large")
-            continue
-        solidity, misfit = _ellipse_misfit(labels[y : y + h, x : x + w] == k)
-        if solidity < 0.9 or misfit > max(1.6, 0.035 * np.sqrt(area)):
-            reject("not elliptical")
-        else:
-            round_.append(k)
-    typical = _typical_area(stats[round_, cv2.CC_STAT_AREA]) if round_ else 0.0
-    small = stats[:, cv2.CC_STAT_AREA] < 0.25 * typical
-    uv, areas = [], []
-    for k in round_:
-        x, y, w, h, area = (int(v) for v in stats[k])
-        if area < 0.25 * typical:
-            reject("speck")
-            continue
-        if area > 4 * typical:
-            reject("too large")
-            continue
-        why, c = _centroid(work, labels, k, (x, y, w, h), area, small)
-        if why:
-            reject(why)
-            continue
-        uv.append(c)
-        areas.append(area)
+    uv, areas = _measure_discs(work, labels, stats, _round_blobs(labels, stats, reject), reject)
     n_blobs = n - 1
     if len(uv) < min_discs:
         why = ", ".join(f"{v} {k}" for k, v in sorted(rejected.items())) or "none"
@@ -583,15 +595,29 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     cr = _orient(P[ids], {n_: index[k] for n_, k in enumerate(ids)}, plate)
     if camera is not None:
         _check_square(camera.undistort_pixels(uv[ids]) / camera.f, cr)
-    r_px = float(np.sqrt(np.median(areas) / np.pi))
+    basis, ambiguous = _anchor(cr, uv[ids], plate, dark, float(np.sqrt(np.median(areas) / np.pi)))
+    order = np.lexsort((cr[:, 0], cr[:, 1]))
+    cr = cr[order]
+    ids = ids[order]
+    rc = cr[:, ::-1].astype(int)
+    p_W = plate.disc_centres_W()[rc[:, 0] * plate.cols + rc[:, 1]]
+    return DiscDetections(
+        uv=uv[ids], rc=rc, p_W=p_W, area_px=areas[ids].astype(float), n_blobs=n_blobs,
+        rejected=rejected, index_basis=basis, ambiguous=ambiguous,
+    )
+
+
+def _anchor(cr, uv, plate: PlateSpec, dark, r_px: float) -> tuple[dict, dict]:
+    """Shift the seen (col, row) indices ``cr`` (in place) onto the plate's grid, per axis: (how each axis
+    was anchored, the sentence naming the indices an unanchored axis may take)."""
     basis, ambiguous = {}, {}
     for axis, name, count in ((0, "cols", plate.cols), (1, "rows", plate.rows)):
         ext = cr[:, axis].max() + 1
         if ext == count:
             basis[name] = "all seen"
-        elif _grid_end(uv[ids], cr, axis, -1, dark, r_px, (H, W)):
+        elif _grid_end(uv, cr, axis, -1, dark, r_px, dark.shape):
             basis[name] = "low end seen"
-        elif _grid_end(uv[ids], cr, axis, +1, dark, r_px, (H, W)):
+        elif _grid_end(uv, cr, axis, +1, dark, r_px, dark.shape):
             cr[:, axis] += count - ext
             basis[name] = "high end seen"
         else:
@@ -604,21 +630,7 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
                 f"{word} on either side lies outside the picture or is not blank paper): they may be {word} "
                 f"{_span(0, ext)} up to {_span(count - ext, ext)}, taken as {_span(shift, ext)}"
             )
-    order = np.lexsort((cr[:, 0], cr[:, 1]))
-    cr = cr[order]
-    ids = ids[order]
-    rc = cr[:, ::-1].astype(int)
-    p_W = np.column_stack(
-        [
-            (rc[:, 1] - (plate.cols - 1) / 2) * plate.pitch,
-            (rc[:, 0] - (plate.rows - 1) / 2) * plate.pitch,
-            np.zeros(len(rc)),
-        ]
-    )
-    return DiscDetections(
-        uv=uv[ids], rc=rc, p_W=p_W, area_px=areas[ids].astype(float), n_blobs=n_blobs,
-        rejected=rejected, index_basis=basis, ambiguous=ambiguous,
-    )
+    return basis, ambiguous
 
 
 def _span(first: int, n: int) -> str:

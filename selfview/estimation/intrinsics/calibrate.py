@@ -126,40 +126,10 @@ fits it; False holds it at ``camera_guess``'s, the spec's model. ``plate_model``
     bow_unconfirmed = plate_model == "flat" and "too few to check" in plate_why
     fit = fit_views(dets, plate, camera_guess, names, plate_model=plate_model, fit_skew=skew is not False)
     fit, dets, names = _drop_misfits(fit, dets, names, plate, plate_model, skew is not False, skipped)
-    skew_fit = {"fitted": skew is not False, "note": "skew fitted" if skew is True else "skew held at the guess's"}
-    if skew is not False:
-        val, sd = fit.camera.skew, float(np.sqrt(max(fit.cov5[5, 5], 0.0)))
-        z = abs(val) / sd if sd > 0 and np.isfinite(sd) else 0.0
-        skew_fit.update(value=float(val), sigma=sd, sigmas_from_zero=float(z), limit_sigmas=SKEW_SIGNIFICANCE)
-        why = None
-        if skew == "auto" and bow_unconfirmed:
-            why = (f"it measures {val:.1e} +- {sd:.1e}, but the plate's bow, which the views measure and are too "
-                   "few to check, is left out of the flat plate, and a skew would take it up")
-        elif skew == "auto" and not z >= SKEW_SIGNIFICANCE:
-            why = (f"the views measure it as {val:.1e} +- {sd:.1e} ({z:.1f} sigmas from 0, under "
-                   f"{SKEW_SIGNIFICANCE:g})")
-        elif skew == "auto":
-            sd_jk = _skew_jackknife(dets, names, plate, fit, plate_model)
-            z_jk = abs(val) / sd_jk if sd_jk and np.isfinite(sd_jk) else 0.0
-            skew_fit.update(jackknife_sigma=sd_jk, jackknife_sigmas_from_zero=float(z_jk))
-            if sd_jk is None:
-                why = (f"it measures {val:.1e} +- {sd:.1e}, but {len(fit.views)} views are too few to check it "
-                       f"with views left out (at least {MIN_VIEWS + 1})")
-            elif not z_jk >= SKEW_SIGNIFICANCE:
-                why = (f"it measures {val:.1e} +- {sd:.1e}, but leaving views out moves it by {sd_jk:.1e} "
-                       f"({z_jk:.1f} of those from 0): it stands for something the views do not share, not "
-                       "for the grabber's shear")
-            else:
-                skew_fit["note"] = (f"skew fitted: {val:.2e} +- {sd:.1e}, {z:.0f} sigmas from 0 ({z_jk:.0f} by "
-                                    "the views left out in turn)")
-        if why is not None:
-            skew_fit.update(fitted=False, note=f"skew not fitted: {why}; it is held at 0 (the spec's camera model)")
-            fit = fit_views(dets, plate, fit.camera.with_(skew=0.0), names, plate_model=plate_model, fit_skew=False)
+    fit, skew_fit = _decide_skew(fit, skew, bow_unconfirmed, dets, names, plate, plate_model)
     for nm, why in fit.dropped:
         skipped.append({"name": nm, "reason": why})
-    used = {v.name for v in fit.views}
-    keep = [k for k in range(len(dets)) if names[k] in used]
-    dets, names = [dets[k] for k in keep], [names[k] for k in keep]
+    dets, names = _used(fit, dets, names)
     sig = sigmas_of(fit.cov5)
     tilts = [v.tilt_deg for v in fit.views]
     if not (np.all(np.isfinite(fit.cov5)) and max(sig["cx"], sig["cy"]) < UNDETERMINED_CENTRE_PX):
@@ -176,6 +146,50 @@ fits it; False holds it at ``camera_guess``'s, the spec's model. ``plate_model``
         residual_sigma_px=float(np.sqrt(fit.s2)), plate_shape={**_plate_summary(fit), "why": plate_why},
         skew_fit=skew_fit,
     )
+
+
+def _decide_skew(fit: JointFit, skew, bow_unconfirmed: bool, dets, names, plate, plate_model: str):
+    """(fit, skew_fit): with ``skew`` 'auto', the skew kept only when the views pin it (``SKEW_SIGNIFICANCE``
+    by its formal sigma and by the jackknife's), else the fit redone with it held at 0; ``skew_fit`` says
+    which and why."""
+    skew_fit = {"fitted": skew is not False, "note": "skew fitted" if skew is True else "skew held at the guess's"}
+    if skew is False:
+        return fit, skew_fit
+    val, sd = fit.camera.skew, float(np.sqrt(max(fit.cov5[5, 5], 0.0)))
+    z = abs(val) / sd if sd > 0 and np.isfinite(sd) else 0.0
+    skew_fit.update(value=float(val), sigma=sd, sigmas_from_zero=float(z), limit_sigmas=SKEW_SIGNIFICANCE)
+    why = None
+    if skew == "auto" and bow_unconfirmed:
+        why = (f"it measures {val:.1e} +- {sd:.1e}, but the plate's bow, which the views measure and are too "
+               "few to check, is left out of the flat plate, and a skew would take it up")
+    elif skew == "auto" and not z >= SKEW_SIGNIFICANCE:
+        why = f"the views measure it as {val:.1e} +- {sd:.1e} ({z:.1f} sigmas from 0, under {SKEW_SIGNIFICANCE:g})"
+    elif skew == "auto":
+        sd_jk = _jackknife(dets, names, plate, fit, plate_model, True, lambda f: [f.camera.skew])
+        sd_jk = None if sd_jk is None else float(sd_jk[0])
+        z_jk = abs(val) / sd_jk if sd_jk and np.isfinite(sd_jk) else 0.0
+        skew_fit.update(jackknife_sigma=sd_jk, jackknife_sigmas_from_zero=float(z_jk))
+        if sd_jk is None:
+            why = (f"it measures {val:.1e} +- {sd:.1e}, but {len(fit.views)} views are too few to check it "
+                   f"with views left out (at least {MIN_VIEWS + 1})")
+        elif not z_jk >= SKEW_SIGNIFICANCE:
+            why = (f"it measures {val:.1e} +- {sd:.1e}, but leaving views out moves it by {sd_jk:.1e} "
+                   f"({z_jk:.1f} of those from 0): it stands for something the views do not share, not "
+                   "for the grabber's shear")
+        else:
+            skew_fit["note"] = (f"skew fitted: {val:.2e} +- {sd:.1e}, {z:.0f} sigmas from 0 ({z_jk:.0f} by "
+                                "the views left out in turn)")
+    if why is not None:
+        skew_fit.update(fitted=False, note=f"skew not fitted: {why}; it is held at 0 (the spec's camera model)")
+        fit = fit_views(dets, plate, fit.camera.with_(skew=0.0), names, plate_model=plate_model, fit_skew=False)
+    return fit, skew_fit
+
+
+def _used(fit: JointFit, dets, names):
+    """(detections, names) of the views ``fit`` used."""
+    used = {v.name for v in fit.views}
+    keep = [k for k in range(len(dets)) if names[k] in used]
+    return [dets[k] for k in keep], [names[k] for k in keep]
 
 
 def _check_options(skew, plate_model: str) -> None:
@@ -226,18 +240,12 @@ def _stop_rule(fit: JointFit, plate: PlateSpec, sig: dict) -> dict:
     return stop
 
 
-def _skew_jackknife(dets, names, plate, fit: JointFit, plate_model: str) -> float | None:
-    """The skew's leave-one-group-out jackknife sigma over the views ``fit`` used; None when the views are
-    too few, or when a group left out makes the rest unsolvable (``_jackknife``)."""
-    sd = _jackknife(dets, names, plate, fit, plate_model, True, lambda f: [f.camera.skew])
-    return None if sd is None else float(sd[0])
-
-
 def _jackknife(dets, names, plate, fit: JointFit, plate_model: str, fit_skew: bool, value) -> np.ndarray | None:
     """The leave-one-group-out jackknife sigmas of ``value(fit)`` (a vector) over the views ``fit`` used (at
     most ``SKEW_JACKKNIFE_GROUPS`` groups, each leaving ``MIN_VIEWS`` or more views); None when the views are
     too few, or when a group left out makes the rest unsolvable."""
-    used = [k for k in range(len(dets)) if names[k] in {v.name for v in fit.views}]
+    dets, names = _used(fit, dets, names)
+    used = range(len(dets))
     g = min(SKEW_JACKKNIFE_GROUPS, len(used))
     if len(used) - -(-len(used) // g) < MIN_VIEWS or g < 2:
         return None

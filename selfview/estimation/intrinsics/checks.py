@@ -10,7 +10,7 @@ from selfview.errors import CalibrationError
 from selfview.maths.geometry import R_from_rotvec, make_H
 from selfview.estimation.intrinsics.fit import INTRINSIC_NAMES, MIN_VIEWS_HALF, JointFit, fit_views
 from selfview.estimation.intrinsics.model import POSE_STEP, STEP, JointProblem, intrinsics_vector, with_intrinsics
-from selfview.maths.lm import covariance, levenberg_marquardt
+from selfview.maths.lm import levenberg_marquardt
 
 
 #: The halves of the cross-check agree when no parameter differs by more than this many combined sigmas.
@@ -128,9 +128,7 @@ def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
     except (CalibrationError, np.linalg.LinAlgError) as exc:
         out["why"] = f"the one-view fit failed: {exc}"
         return out
-    m, n = res.jacobian.shape
-    s2 = res.cost / max(m - n, 1)
-    cov = covariance(res.jacobian, s2, normal=True)
+    cov = res.covariance(normal=True)
     d = res.x[2:5] - np.array([cam0.cx, cam0.cy, cam0.aspect])
     C3 = cov[2:5, 2:5]
     if not (res.converged and np.all(np.isfinite(C3))):
