@@ -1,4 +1,6 @@
-"""Fault campaign: corrupted links, hostile files and pictures, signals, against the drivers and the CLI.
+"""Fault campaign: corrupted links, hostile files and pictures, signals, host stalls, standard output closed early.
+
+Against the drivers and the CLI.
 
 Prints one JSON object: every fault (kind ``section.detail``) classified into exactly one outcome
 (``common.OUTCOMES``), judged against the truth the simulators own, never from the driver. Each

@@ -21,14 +21,17 @@ from selfview.bench.faults.devices import run_devices
 from selfview.bench.faults.paths import run_paths
 from selfview.bench.faults.saves import run_saves
 from selfview.bench.faults.signals import run_sigint
+from selfview.bench.faults.stalls import run_stalls
+from selfview.bench.faults.epipe import run_epipe
 
 
 #: rough seconds of budget per fault, per section, on 2 cores (the ones that start a process cost most)
-COST_S = {"signals": 1.2, "devices": 3.5, "saves": 0.8, "paths": 1.6, "cli": 1.25, "files": 0.045, "modbus": 0.026,
-          "val": 0.042}
-ORDER = ("signals", "devices", "saves", "paths", "cli", "files", "modbus", "val")
+COST_S = {"signals": 1.2, "devices": 3.5, "stalls": 5.0, "epipe": 2.6, "saves": 0.8, "paths": 1.6, "cli": 1.25,
+          "files": 0.045, "modbus": 0.026, "val": 0.042}
+ORDER = ("signals", "devices", "stalls", "epipe", "saves", "paths", "cli", "files", "modbus", "val")
 #: the sections that start a process per fault: a fixed number each (quick, full)
-FIXED = {"signals": (3, 48), "devices": (1, 12), "saves": (3, 36), "paths": (4, 36), "cli": (8, 80)}
+FIXED = {"signals": (3, 48), "devices": (1, 12), "stalls": (2, 48), "epipe": (2, 40), "saves": (3, 36), "paths": (4, 36),
+         "cli": (8, 80)}
 
 
 def plan_counts(faults: int, quick: bool) -> dict:
@@ -76,6 +79,8 @@ def main(argv=None) -> int:
         sections = {}
         runs = {"signals": lambda d: run_sigint(counts["signals"], args.seed, d, tally, fixtures),
                 "devices": lambda d: run_devices(counts["devices"], args.seed, d, tally, fixtures),
+                "stalls": lambda d: run_stalls(counts["stalls"], args.seed, d, tally, fixtures),
+                "epipe": lambda d: run_epipe(counts["epipe"], args.seed, d, tally, fixtures),
                 "saves": lambda d: run_saves(counts["saves"], args.seed, d, tally, fixtures),
                 "paths": lambda d: run_paths(counts["paths"], args.seed, d, tally, fixtures),
                 "cli": lambda d: run_cli(counts["cli"], args.seed, d, tally, fixtures),
