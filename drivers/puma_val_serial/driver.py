@@ -438,7 +438,9 @@ class PumaVAL:
                     return self._split(buf, end, command, strict)
             now = time.monotonic()
             if now >= deadline:
-                if chunk and (overtime_end is None or now < overtime_end):  # bytes were waiting: do they end the reply?
+                # at the deadline the line is read once more before it is judged (the host may have been
+                # stopped right after a silent read, the reply arriving meanwhile), and on while bytes come
+                if overtime_end is None or (chunk and now < overtime_end):
                     overtime_end = overtime_end or now + _OVERTIME_S
                     continue
                 self._need_resync = True
