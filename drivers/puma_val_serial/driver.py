@@ -595,6 +595,7 @@ class PumaVAL:
         """Read the controller's answer to ABORT (the command lock held): (confirmed, how)."""
         deadline = time.monotonic() + budget_s
         buf = bytearray()
+        looked_again = False  # at the deadline the line is read once more (the host may have stalled after a silent read)
         try:
             while True:
                 chunk = self._read()
@@ -609,6 +610,9 @@ class PumaVAL:
                             return True, "the controller answered *Motion aborted*"
                         return True, "the controller answered with its prompt" + (f" after *{errors[0]}*" if errors else "")
                     if time.monotonic() >= deadline:
+                        if not looked_again:
+                            looked_again = True
+                            continue
                         return False, f"no prompt within {budget_s:g} s after ABORT (received {bytes(buf[-60:])!r})"
         except CellError as exc:
             return False, f"reading the answer to ABORT failed: {exc}"

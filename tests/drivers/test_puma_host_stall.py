@@ -47,3 +47,13 @@ def test_a_reply_that_arrived_while_the_host_was_stopped_after_a_silent_read_cou
     robot.connect()  # CR, then the prompt: read after the stall, past the 0.2 s deadline
     assert port.written.endswith(b"\r")
     robot.close()
+
+
+def test_an_abort_confirmed_while_the_host_was_stopped_after_a_silent_read_counts_as_confirmed():
+    port = _StalledAfterSilence(stall_s=0.4)
+    robot = PumaVAL(port, timeout_s=0.2)
+    robot.connect()
+    res = robot.abort()  # ABORT, then the prompt arrives while the host is stopped past the 0.2 s budget
+    assert port.written.rstrip(b"\r").endswith(b"ABORT")
+    assert res.written and res.confirmed, res.detail
+    robot.close()
