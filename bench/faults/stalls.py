@@ -30,7 +30,7 @@ from selfview.bench.faults.common import (CLI_TIMEOUT_S, Tally, _arm_after_exit,
                                           _cli_outcome, _in_threads, _limit_child, _quiet_logs)
 
 COMMANDS = ("ready", "depart")
-MODES = ("sigstop-short", "sigstop-long", "sigtstp", "reply")
+MODES = ("sigtstp", "sigstop-long", "reply", "sigstop-short")  # in turn: a short run still holds Ctrl-Z and a long stall
 ABORT_AFTER_END_S = 5.0  # the target: a stalled reply's ABORT at most this long after the motion's end
 ABORT_BEFORE_STOP_S = 1.0  # Ctrl-Z: the ABORT at the controller at most this long after the signal
 DEPART_MM = 60.0
@@ -229,7 +229,7 @@ def stall_case(command: str, mode: str, rng, tally: Tally, workdir: Path) -> Non
 def run_stalls(n: int, seed: int, deadline: float, tally: Tally, fixtures: dict, workers: int = 2) -> None:
     """``n`` cases: each mode against each command, in turn."""
     _quiet_logs()
-    plan = [(c, m) for m in MODES for c in COMMANDS]
+    plan = [(c, m) for c in COMMANDS for m in MODES]
 
     def worker(share, seed_, index, deadline_, tally_):
         rng = np.random.default_rng([seed, 9, index])
