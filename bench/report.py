@@ -534,7 +534,7 @@ def _family(kind: str) -> str:
         return f"{parts[0]}.{parts[-1]}"  # the signal (once or twice), the kind of hostile file
     if parts[0] == "fuzz":
         return "fuzz.long_name" if parts[-1] == "long_name" else "fuzz.numbers"
-    if parts[0] in ("cli", "sigint", "devices"):
+    if parts[0] in ("cli", "sigint", "devices", "stall", "epipe"):  # stall: the mode; epipe: the command
         return ".".join(parts[:2])
     return parts[0]
 

@@ -211,8 +211,7 @@ def _draw(kinds, weights, rng) -> str:
 def _selfview(argv, cwd, timeout_s=CLI_TIMEOUT_S, sigint_when=None):
     """Run ``selfview argv``; (returncode or None on a hang, stderr). ``sigint_when(proc)`` (optional)
     is called in this thread once the process runs, to send Ctrl-C."""
-    cmd = [sys.executable, "-c", "import sys; from selfview.procedures.cli import main; sys.exit(main())", *argv]
-    return _run_child(cmd, cwd, timeout_s, sigint_when)
+    return _run_child(_cli_command(argv), cwd, timeout_s, sigint_when)
 
 
 def _run_child(cmd, cwd, timeout_s, sigint_when=None):
@@ -258,3 +257,28 @@ def _thread_deaths(tally: Tally):
     threading.excepthook = hook
 
 
+
+
+def _away_from_ready(sim) -> None:
+    """Put the VAL simulator's arm at a pose away from READY (the simulator owns its state; no motion)."""
+    with sim._state:
+        sim._joints = sim._joints + np.array([60.0, -30.0, 40.0, 30.0, 30.0, 45.0])
+
+
+def _cli_command(argv) -> list[str]:
+    """The command line of ``selfview argv`` as ``_selfview`` runs it (for a child this process drives itself)."""
+    return [sys.executable, "-c", "import sys; from selfview.procedures.cli import main; sys.exit(main())", *argv]
+
+
+def _arm_after_exit(rec: dict) -> tuple[str, str] | None:
+    """The first rule a command driving the VAL simulator broke, from a case's record (``code``, None when it
+    was killed at the bound; ``err``; ``moving_exit``; ``moved_after`` deg of joints after it exited;
+    ``motion_after_abort``, a motion line the controller received after an ABORT): hang or unsafe, or None."""
+    code = rec["code"]
+    if code is None:
+        return "hang", _cli_outcome(code, rec["err"])[1]
+    if rec["moving_exit"] or rec["moved_after"] > 0.01:
+        return "unsafe", f"exit {code}, the arm moved {rec['moved_after']:.2f} deg after the command exited"
+    if rec["motion_after_abort"]:
+        return "unsafe", f"exit {code}, a motion ({rec['motion_after_abort']!r}) was sent after the ABORT"
+    return None

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from selfview.bench.faults.common import Tally, _cli_outcome, _in_threads, _quiet_logs, _selfview
+from selfview.bench.faults.common import Tally, _away_from_ready, _cli_outcome, _in_threads, _quiet_logs, _selfview
 
 #: the second process names the device as park does, or (``-spelling``) another way: the valve terminal's
 #: address spelled otherwise (localhost, 127.000.000.001, 2130706433), the robot's port through a symbolic link
@@ -51,8 +51,7 @@ def killed_case(rng, tally: Tally, workdir: Path) -> None:
 
     workdir.mkdir(parents=True, exist_ok=True)
     sim = ValController(None, seed=int(rng.integers(1 << 30)), time_scale=0.5, calibrated=True, speed_pct=10.0)
-    with sim._state:  # from a pose away from READY (the simulator owns its state; no motion)
-        sim._joints = sim._joints + np.array([60.0, -30.0, 40.0, 30.0, 30.0, 45.0])
+    _away_from_ready(sim)
     tty = sim.start_pty()
     delay = float(rng.uniform(0.0, 0.3))
 

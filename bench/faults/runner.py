@@ -21,14 +21,17 @@ from selfview.bench.faults.devices import run_devices
 from selfview.bench.faults.paths import run_paths
 from selfview.bench.faults.saves import run_saves
 from selfview.bench.faults.signals import run_sigint
+from selfview.bench.faults.stalls import run_stalls
+from selfview.bench.faults.epipe import run_epipe
 
 
 #: rough seconds of budget per fault, per section, on 2 cores (the ones that start a process cost most)
-COST_S = {"signals": 1.2, "devices": 3.5, "saves": 0.8, "paths": 1.6, "cli": 1.25, "files": 0.045, "modbus": 0.026,
-          "val": 0.042}
-ORDER = ("signals", "devices", "saves", "paths", "cli", "files", "modbus", "val")
+COST_S = {"signals": 1.2, "devices": 3.5, "stalls": 3.0, "epipe": 1.4, "saves": 0.8, "paths": 1.6, "cli": 1.25,
+          "files": 0.045, "modbus": 0.026, "val": 0.042}
+ORDER = ("signals", "devices", "stalls", "epipe", "saves", "paths", "cli", "files", "modbus", "val")
 #: the sections that start a process per fault: a fixed number each (quick, full)
-FIXED = {"signals": (3, 48), "devices": (1, 12), "saves": (3, 36), "paths": (4, 36), "cli": (8, 80)}
+FIXED = {"signals": (3, 48), "devices": (1, 12), "stalls": (2, 40), "epipe": (2, 32), "saves": (3, 36), "paths": (4, 36),
+         "cli": (8, 80)}
 
 
 def plan_counts(faults: int, quick: bool) -> dict:
@@ -45,11 +48,11 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--faults", type=int, default=None, help="faults to inject (default 10000; --quick 300)")
     ap.add_argument("--budget-s", type=float, default=None,
-                    help="stop injecting after this many seconds (default 480; --quick 50); the JSON says how many were injected")
+                    help="stop injecting after this many seconds (default 600; --quick 50); the JSON says how many were injected")
     ap.add_argument("--quick", action="store_true", help="a few hundred faults in well under a minute")
     args = ap.parse_args(argv)
     faults = args.faults if args.faults is not None else (300 if args.quick else 10000)
-    budget = args.budget_s if args.budget_s is not None else (50.0 if args.quick else 480.0)
+    budget = args.budget_s if args.budget_s is not None else (50.0 if args.quick else 600.0)
     counts = plan_counts(faults, args.quick)
     tally = Tally()
     common.set_notes(tally)
@@ -76,6 +79,8 @@ def main(argv=None) -> int:
         sections = {}
         runs = {"signals": lambda d: run_sigint(counts["signals"], args.seed, d, tally, fixtures),
                 "devices": lambda d: run_devices(counts["devices"], args.seed, d, tally, fixtures),
+                "stalls": lambda d: run_stalls(counts["stalls"], args.seed, d, tally, fixtures),
+                "epipe": lambda d: run_epipe(counts["epipe"], args.seed, d, tally, fixtures),
                 "saves": lambda d: run_saves(counts["saves"], args.seed, d, tally, fixtures),
                 "paths": lambda d: run_paths(counts["paths"], args.seed, d, tally, fixtures),
                 "cli": lambda d: run_cli(counts["cli"], args.seed, d, tally, fixtures),
@@ -106,6 +111,10 @@ def main(argv=None) -> int:
         "signals: a run that ended before the signal counts as no_effect; its results are not checked",
         "a second process: the robot's port and the valve terminal; the grabber is not (the simulated cell's camera is "
         "frames://, which has no owner)",
+        "host stalls: the robot commands only (ready, depart); a Ctrl-Z's stop is carried out because each child runs "
+        "in its own process group of the campaign's session (in an orphaned group the kernel discards it: ABORT only)",
+        "closed standard output: robot and park write only once their devices are closed, so their cases check the exit "
+        "and its message; monitor's (0 to 2 lines read) check the stop of a running cell",
         "a read-only folder is made with chattr +i (or permissions, which root ignores): where neither holds, its "
         "cases do not run and the notes say so",
     ]

@@ -20,7 +20,7 @@ import numpy as np
 
 from selfview.bench._proxy import FaultProxy
 from selfview.errors import CellError
-from selfview.bench.faults.common import CLI_TIMEOUT_S, Tally, _cli_outcome, _file_state, _in_threads, _quiet_logs, _run_child, _selfview
+from selfview.bench.faults.common import CLI_TIMEOUT_S, Tally, _away_from_ready, _cli_outcome, _file_state, _in_threads, _quiet_logs, _run_child, _selfview
 
 
 # --- signals during the commands that move the arm -------------------------------------------------------
@@ -52,9 +52,8 @@ def sigint_case(command: str, fixtures: dict, rng, tally: Tally, workdir: Path, 
         shutil.rmtree(p)
     scale = 0.1
     sim = ValController(None, seed=int(rng.integers(1 << 30)), time_scale=scale, calibrated=True)
-    if command in ("robot-ready", "script-thread"):  # from a pose away from READY (the simulator owns its state)
-        with sim._state:
-            sim._joints = sim._joints + np.array([60.0, -30.0, 40.0, 30.0, 30.0, 45.0])
+    if command in ("robot-ready", "script-thread"):  # from a pose away from READY
+        _away_from_ready(sim)
     proxy = FaultProxy(sim.start_tcp(0), serial=True).start()
     valve = ValveTerminal(None, travel_s=0.05, watchdog_s=None, initial="closed").start()
     if command == "gripper-open":

@@ -438,7 +438,9 @@ class PumaVAL:
                     return self._split(buf, end, command, strict)
             now = time.monotonic()
             if now >= deadline:
-                if chunk and (overtime_end is None or now < overtime_end):  # bytes were waiting: do they end the reply?
+                # at the deadline the line is read once more before it is judged (the host may have been
+                # stopped right after a silent read, the reply arriving meanwhile), and on while bytes come
+                if overtime_end is None or (chunk and now < overtime_end):
                     overtime_end = overtime_end or now + _OVERTIME_S
                     continue
                 self._need_resync = True
@@ -593,6 +595,7 @@ class PumaVAL:
         """Read the controller's answer to ABORT (the command lock held): (confirmed, how)."""
         deadline = time.monotonic() + budget_s
         buf = bytearray()
+        looked_again = False  # at the deadline the line is read once more (the host may have stalled after a silent read)
         try:
             while True:
                 chunk = self._read()
@@ -607,6 +610,9 @@ class PumaVAL:
                             return True, "the controller answered *Motion aborted*"
                         return True, "the controller answered with its prompt" + (f" after *{errors[0]}*" if errors else "")
                     if time.monotonic() >= deadline:
+                        if not looked_again:
+                            looked_again = True
+                            continue
                         return False, f"no prompt within {budget_s:g} s after ABORT (received {bytes(buf[-60:])!r})"
         except CellError as exc:
             return False, f"reading the answer to ABORT failed: {exc}"

@@ -65,7 +65,7 @@ def test_the_json_has_the_documented_shape(campaign):
     sections = {k.split(".")[0] for k in campaign["kinds"]}
     assert sections >= {"val", "modbus", "calfile", "cellfile", "cli", "sigint"}, sections
     # the families that start a process per fault: each ran, within its small share
-    for name in ("signals", "devices", "saves", "paths"):
+    for name in ("signals", "devices", "stalls", "epipe", "saves", "paths"):
         assert 0 < campaign["sections"][name]["faults"] <= campaign["planned"][name], (name, campaign["sections"])
     assert campaign["total"] >= 120
 

@@ -1,0 +1,97 @@
+"""The scoring of the fault campaign's host-stall and closed-output families (``bench/faults/stalls.py``,
+``bench/faults/epipe.py``): synthetic records of what the simulators saw, each rule broken once, must be
+classified as the failure they are; and one real case of each family, end to end."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from selfview.bench.faults import epipe, stalls
+from selfview.bench.faults.common import Tally
+
+STOP = "selfview robot: error: controller reported *Motion aborted* after 'DO READY'\n  what to do: ..."
+
+
+def _stall(**kw):
+    rec = {"code": 0, "err": "", "moving_exit": False, "moved_after": 0.0, "aborts": [], "motion_after_abort": None,
+           "at_target": None, "moving_at_signal": True, "held": True, "moved_suspended": 0.0}
+    rec.update(kw)
+    return rec
+
+
+def test_a_host_stall_that_the_command_rides_out_is_no_fault():
+    assert stalls.judge("sigstop-long", _stall()) == ("no_effect", "")
+
+
+@pytest.mark.parametrize("mode, rec, outcome", [
+    # the controller finished during the stall: exit 4 is a false device fault
+    ("sigstop-long", _stall(code=4, err="no prompt after 'DO READY'", aborts=[5.1]), "wrong_value"),
+    ("sigstop-short", _stall(code=0, at_target="12.00 deg (joints) from READY"), "unsafe"),  # done, arm elsewhere
+    ("sigstop-long", _stall(code=0, moving_exit=True), "unsafe"),
+    ("sigstop-long", _stall(code=4, err=STOP, moved_after=3.0), "unsafe"),
+    ("sigstop-long", _stall(code=None, err=""), "hang"),
+    ("sigstop-short", _stall(code=1, err="Traceback (most recent call last):\nValueError: x"), "traceback"),
+    # Ctrl-Z: no ABORT, a late one, the arm going on while suspended, a motion after the ABORT
+    ("sigtstp", _stall(code=4, err=STOP, aborts=[]), "unsafe"),
+    ("sigtstp", _stall(code=4, err=STOP, aborts=[2.5]), "unsafe"),
+    ("sigtstp", _stall(code=4, err=STOP, aborts=[0.05], held=False), "unsafe"),
+    ("sigtstp", _stall(code=4, err=STOP, aborts=[0.05], moved_suspended=4.0), "unsafe"),
+    ("sigtstp", _stall(code=4, err=STOP, aborts=[0.05], motion_after_abort="DO READY"), "unsafe"),
+    ("sigtstp", _stall(code=0, aborts=[0.05], at_target="3.00 deg (joints) from READY"), "unsafe"),
+    ("sigtstp", _stall(code=4, err=STOP, aborts=[0.05]), "clear_error"),
+    ("sigtstp", _stall(code=4, err="", aborts=[0.05]), "wrong_value"),  # no message
+    # a stalled reply: the ABORT within the target after the motion's end
+    ("reply", _stall(code=4, err=STOP, aborts=[6.2], moving_at_signal=False), "unsafe"),
+    ("reply", _stall(code=4, err=STOP, aborts=[], moving_at_signal=False), "unsafe"),
+    ("reply", _stall(code=4, err=STOP, aborts=[3.9], moving_at_signal=False), "clear_error"),
+    ("reply", _stall(code=0, aborts=[3.9], moving_at_signal=False), "wrong_value"),
+])
+def test_each_broken_rule_of_a_host_stall_is_flagged(mode, rec, outcome):
+    got, seen = stalls.judge(mode, rec)
+    assert got == outcome, (got, seen)
+    assert outcome in ("no_effect", "clear_error") or seen
+
+
+def _pipe(**kw):
+    rec = {"code": 141, "err": "selfview monitor: its standard output was closed (the reader of a pipe ended) ...",
+           "closed_early": True, "moving_exit": False, "moved_after": 0.0, "motion_after_abort": None,
+           "valve": {"open": False, "close": False}, "safe": {"open": False, "close": False}, "temp_files": []}
+    rec.update(kw)
+    return rec
+
+
+@pytest.mark.parametrize("rec, outcome", [
+    (_pipe(), "clear_error"),
+    (_pipe(code=0, closed_early=False), "no_effect"),  # it had finished before its reader ended
+    (_pipe(code=0), "wrong_value"),  # the run cut short, reported as a success
+    (_pipe(code=141, err=""), "wrong_value"),  # no message
+    (_pipe(valve={"open": True, "close": False}), "unsafe"),
+    (_pipe(moved_after=5.0), "unsafe"),
+    (_pipe(moving_exit=True), "unsafe"),
+    (_pipe(motion_after_abort="DO MOVE ABOVE"), "unsafe"),
+    (_pipe(code=1, err="Traceback (most recent call last):\nBrokenPipeError: [Errno 32] Broken pipe"), "traceback"),
+    (_pipe(code=-13, err=""), "traceback"),  # killed by SIGPIPE: no cleanup
+    (_pipe(temp_files=[".cal.yaml.tmp"]), "lost_file"),
+    (_pipe(code=None), "hang"),
+])
+def test_each_broken_rule_of_a_closed_output_is_flagged(rec, outcome):
+    assert epipe.judge(rec)[0] == outcome
+
+
+def test_a_suspended_command_holds_the_arm_and_a_stalled_host_reports_no_fault(tmp_path):
+    """End to end, one case each: Ctrl-Z during ``robot ready`` (ABORT before the stop, exit 4), and a
+    SIGSTOP during ``robot depart`` shorter than the reply limit (exit 0, no ABORT)."""
+    tally = Tally()
+    rng = np.random.default_rng(4)
+    stalls.stall_case("ready", "sigtstp", rng, tally, tmp_path / "a")
+    stalls.stall_case("depart", "sigstop-short", rng, tally, tmp_path / "b")
+    kinds = tally.to_json()["kinds"]
+    assert kinds["stall.sigtstp.ready"]["clear_error"] == 1, tally.to_json()["examples"]
+    assert kinds["stall.sigstop-short.depart"]["no_effect"] == 1, tally.to_json()["examples"]
+
+
+def test_a_command_whose_output_goes_away_ends_141_with_the_arm_still(tmp_path):
+    tally = Tally()
+    epipe.epipe_case("robot-depart", {}, np.random.default_rng(1), tally, tmp_path)
+    assert tally.to_json()["kinds"]["epipe.robot-depart"]["clear_error"] == 1, tally.to_json()["examples"]
