@@ -97,9 +97,12 @@ def sigint_case(command: str, fixtures: dict, rng, tally: Tally, workdir: Path, 
     outputs_before = valve.valve_outputs
     try:
         code, err = _selfview_cell(argv, workdir, sigint_when)
+        if code == -signum and signum != signal.SIGINT and command in ("script-thread", "calibrate"):
+            # a lab script ends by the signal itself (the shell's 128 + N) once the session has made the cell
+            # safe and given the script back its own dispositions (Python's default for SIGTERM, SIGHUP,
+            # SIGQUIT: the end of the program), e.g. at a second signal; the cell's state is judged below
+            code = 128 + signum
         if command == "script-thread":
-            if code == -signum and signum != signal.SIGINT:
-                code = 128 + signum  # a script ends by the signal itself (the shell's 128 + N)
             if "work done" in err and code == -signal.SIGINT and err.rstrip().endswith("\nKeyboardInterrupt"):
                 err = ""  # Ctrl-C once its work was done: the interpreter's own report of an unhandled Ctrl-C
         q_exit, moving_exit = sim.joints, sim.moving.is_set()
@@ -116,14 +119,14 @@ def sigint_case(command: str, fixtures: dict, rng, tally: Tally, workdir: Path, 
     what = (f"selfview {command.replace('-', ' ')}, {signame}{' twice' if twice else ''} {delay:.2f} s after the "
             "first command" + (" during a motion" if sent.get("moving") else ""))
     after = _file_state(guard)
-    bad_exit, seen = _cli_outcome(code, err)
-    moved = float(np.max(np.abs(q_later - q_exit)))
-    interrupted = "q" in sent and code not in (0, None)
     # the procedure had ended when the signal came (its file written, its last motion, the DEPART, done and
     # nothing moving, as the simulator saw it): the valve as the procedure left it is what is expected
     ended = ((command == "calibrate" and not sent.get("moving") and after != before
               and any(ln.strip().upper().startswith("DO DEPART") for ln in sim.received[:sent.get("n_received", 0)]))
              or (command == "script-thread" and "work done" in err))  # the script had let go of the devices
+    bad_exit, seen = _cli_outcome(code, err)
+    moved = float(np.max(np.abs(q_later - q_exit)))
+    interrupted = "q" in sent and code not in (0, None)
     valve_unsafe = (command in _VALVE_SAFE and interrupted and outputs != safe and not ended
                     and (outputs != outputs_before or "cell left" in err))
     lost = False
