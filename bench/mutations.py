@@ -361,10 +361,19 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "stall-reply-judged-at-the-deadline",
         "drivers/puma_val_serial/driver.py",
-        "if chunk and (overtime_end is None or now < overtime_end):",
+        "if overtime_end is None or (chunk and now < overtime_end):",
         "if False:",
         ("tests/drivers/test_puma_cli.py::test_a_stall_of_the_host_longer_than_the_reply_limit_is_no_device_fault",),
         "a reply that arrived complete while the host was stalled is a device fault: ABORT and exit 4",
+    ),
+    Mutation(
+        "abort-confirmation-judged-at-the-deadline",
+        "drivers/puma_val_serial/driver.py",
+        "                        if not looked_again:",
+        "                        if False:",
+        ("tests/drivers/test_puma_host_stall.py::"
+         "test_an_abort_confirmed_while_the_host_was_stopped_after_a_silent_read_counts_as_confirmed",),
+        "an ABORT the controller confirmed while the host was stalled is reported unconfirmed",
     ),
     Mutation(
         "lock-keyed-on-the-spelling",

@@ -9,12 +9,15 @@ import yaml
 from selfview.files.cell import default_cell_path, parse_cell
 from selfview.maths.geometry import transform_points
 from selfview.measurement.fingers import find_fingertips
+from selfview.measurement.plates import CHARUCO_BIASED_BEFORE, charuco_biased
 from selfview.mocks.world import SimWorld
 from selfview.procedures.experiment import METHODS, DirectSimRig, run_trial
 
 CHARUCO = {"pattern": "charuco", "squares": [10, 10], "square": 8.0, "marker": 6.0, "dictionary": "DICT_4X4_50"}
 
 
+@pytest.mark.skipif(charuco_biased(), reason=f"OpenCV before {CHARUCO_BIASED_BEFORE} places ChArUco corners about 0.5 px "
+                    "off (measured; the run warns): the off-line reference, and so each update, carries it")
 def test_a_trial_over_a_charuco_plate_finds_the_corners_and_updates_with_every_method():
     """One ideal-cell trial (cable series, the TCP moves about 0.8 mm along C x): all six corners within
     0.4 px of the truth's projection, and every method's TCP within 0.02 mm of the truth across the optical
