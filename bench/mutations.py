@@ -376,6 +376,14 @@ MUTATIONS: tuple[Mutation, ...] = (
         "an ABORT the controller confirmed while the host was stalled is reported unconfirmed",
     ),
     Mutation(
+        "valve-recorded-after-its-write",
+        "drivers/pneumatic_gripper/gripper.py",
+        "        if on:  # written ahead",
+        "        if False:  # written ahead",
+        ("tests/drivers/test_stale_state.py::test_the_energised_valve_is_recorded_before_the_write_that_energises_it",),
+        "a host that dies between the valve's write and its answer leaves no record: the next run goes on",
+    ),
+    Mutation(
         "lock-keyed-on-the-spelling",
         "drivers/_ownership.py",
         'return cls(kind, f"{host}:{port}", lambda: host_identity(host, port))',

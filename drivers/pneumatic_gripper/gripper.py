@@ -448,6 +448,9 @@ class PneumaticGripper:
                 (coils_on if value else coils_off).append(p.address)
             else:
                 registers.setdefault(p.address, []).append((p.bit, value))
+        on = [name for name, v in want.items() if v]
+        if on:  # written ahead: a host that dies during or right after the write leaves this for the next one
+            self._owner.note(f"the valve was energised ({', '.join(on)} on)")
         try:
             # break before make: a double valve never sees both solenoids energised by this driver
             for a in coils_off:
@@ -474,8 +477,8 @@ class PneumaticGripper:
             raise
         self._commanded = dict(want)
         self.valve_outputs = dict(want)
-        on = [name for name, v in want.items() if v]
-        self._owner.note(f"the valve was energised ({', '.join(on)} on)" if on else None)
+        if not on:  # every output off, as read back by the write: nothing is left to notice
+            self._owner.note(None)
 
     def _stray_write(self, exc: WriteEchoMismatch) -> CellError:
         """The error for a write whose echo names another coil switched on: with ``stray_coils:

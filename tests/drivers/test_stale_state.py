@@ -81,3 +81,24 @@ def test_a_program_that_ends_normally_leaves_no_record(capsys):
         assert main(["gripper", "--url", t.url, "close"]) == 0  # the valve stays energised, as asked
         assert t.valve_outputs == {"open": False, "close": True}
         assert main(["gripper", "--url", t.url, "state"]) == 0, capsys.readouterr().err
+
+
+def test_the_energised_valve_is_recorded_before_the_write_that_energises_it(lock_dir):
+    """A host that dies between the terminal taking the write and the driver hearing its answer (under load
+    that window is wide) must still leave the record: the record is written ahead of the write."""
+    from selfview.drivers.pneumatic_gripper import PneumaticGripper
+
+    with ValveTerminal(travel_s=0.02, watchdog_s=None) as t, PneumaticGripper(t.url, poll_s=None) as g:
+        seen = []
+        for name in ("write_coil", "write_register", "mask_write_register"):
+            real = getattr(g.link, name)
+
+            def spy(*a, _real=real, **k):
+                seen.append(" ".join(p.read_text() for p in lock_dir.iterdir() if p.is_file()))
+                return _real(*a, **k)
+
+            setattr(g.link, name, spy)
+        g.close_jaws()
+        assert seen and "busy: the valve was energised (close on)" in seen[-1], seen
+        g.open_jaws()
+        assert "busy: the valve was energised (open on)" in seen[-1], seen
