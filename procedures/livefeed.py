@@ -27,6 +27,11 @@ log = logging.getLogger("selfview.view")
 #: long before the next, so the feed takes at most a third of the time.
 LIVE_RATE_HZ = 3.0
 
+#: Before each planned view the engine waits at most this long for a live frame shown since the last view, so
+#: the operator has seen the plate at the view's pose (or on the way to it) before it is taken, whatever the
+#: machine's load (a simulated frame renders in about 0.2-2 s).
+LIVE_FRAME_WAIT_S = 5.0
+
 #: Fewer plate points than this is "plate not found" (a pose of the view needs at least 4).
 LIVE_MIN_POINTS = 4
 
@@ -53,27 +58,50 @@ class LiveFeed:
         self.frames = 0  # live frames shown
         self.errors = 0  # grabs that failed
         self._paused_until = 0.0  # the engine is grabbing a view: no live grab starts before (time.monotonic)
+        self._frames_at_view = 0  # live frames shown when the last view was taken
+        self._last_kind = None  # the engine's previous step
         self._stop = threading.Event()
+        self._wake = threading.Event()  # ends the feed's wait between frames (a view waits for a frame, or the end)
         self._publishing = threading.Lock()  # a frame is published only while the feed has not been stopped
         self._thread: threading.Thread | None = None
         self._poses: list = []  # the taken views' poses (from the starting camera), computed once each
 
     # --- the engine's hook ----------------------------------------------------------------------
     def on_step(self, n, step) -> None:
+        try:
+            self._on_step(step)
+        finally:
+            self._last_kind = step.kind
+
+    def _on_step(self, step) -> None:
         """``Engine.on_step``: a grab step pauses the feed until the next step starts (or ``resume``), at most
         the grab's own time limit (the grabber's timeout for each frame it averages); so does the settling
         wait before it (at most its seconds, up to 2 s, and half a second more)."""
         if step.kind == "wait":  # the settling before a picture: the picture's grab comes next
+            self.frame_before_view()
             self._paused_until = time.monotonic() + min(float(step.params.get("seconds", 0.0)), 2.0) + 0.5
         elif step.kind == "grab" and self.until_grab:
             with self._publishing:  # a live frame in flight is not shown after this
                 self._stop.set()
+                self._wake.set()
                 self.view.live_state(on=False, text="live feed ended: the picture is taken")
         elif step.kind == "grab":
+            if self._last_kind != "wait":  # (after a settling wait, the frame came before it)
+                self.frame_before_view()
             frames = int(step.params.get("average", 1)) + 1
             self._paused_until = time.monotonic() + frames * float(getattr(self.camera, "timeout_s", 1.0))
         else:
             self.resume()
+
+    def frame_before_view(self) -> None:
+        """A view is about to be taken: wait (at most ``LIVE_FRAME_WAIT_S``, and not once the feed or the run is
+        ending) until a live frame has been shown since the last view, so that one always comes before it."""
+        if self._thread is not None and self._thread.is_alive():
+            end = time.monotonic() + LIVE_FRAME_WAIT_S
+            self._wake.set()  # no pause between frames now
+            while self.frames <= self._frames_at_view and not self._stopping() and time.monotonic() < end:
+                time.sleep(0.01)
+        self._frames_at_view = self.frames
 
     def resume(self) -> None:
         """The view is taken: the feed goes on."""
@@ -96,7 +124,9 @@ class LiveFeed:
 
     def _run(self) -> None:
         delay = 0.0
-        while not self._stop.wait(delay):
+        while True:
+            self._wake.wait(delay)
+            self._wake.clear()
             if self._stopping():
                 return
             if time.monotonic() < self._paused_until:
@@ -176,6 +206,7 @@ class LiveFeed:
         """Stop the feed (waits at most one grab's timeout for the frame in flight) and hide it on the page."""
         ended = self._stop.is_set()
         self._stop.set()
+        self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout=float(getattr(self.camera, "timeout_s", 1.0)) + 2.0)
             self._thread = None
