@@ -363,7 +363,8 @@ MUTATIONS: tuple[Mutation, ...] = (
         "drivers/puma_val_serial/driver.py",
         "if overtime_end is None or (chunk and now < overtime_end):",
         "if False:",
-        ("tests/drivers/test_puma_cli.py::test_a_stall_of_the_host_longer_than_the_reply_limit_is_no_device_fault",),
+        ("tests/drivers/test_puma_cli.py::test_a_stall_of_the_host_longer_than_the_reply_limit_is_no_device_fault",
+         "tests/drivers/test_puma_host_stall.py::test_a_reply_that_arrived_while_the_host_was_stopped_after_a_silent_read_counts"),
         "a reply that arrived complete while the host was stalled is a device fault: ABORT and exit 4",
     ),
     Mutation(

@@ -179,6 +179,21 @@ def _in_threads(fn, n, seed, deadline, tally, workers):
             tally.notes[f"{fn.__name__}: a worker did not finish"] += 1
 
 
+def _in_turn(plan, case, salt: int, name: str, n, seed, deadline, tally, fixtures, workers) -> None:
+    """``n`` cases over ``plan``'s items in turn, shared among ``workers`` threads until ``deadline``: each
+    worker calls ``case(item, rng, folder)`` with its own random stream (``salt`` keeps the families'
+    streams apart) and its own folder ``<name><worker>`` below the campaign's."""
+
+    def worker(share, seed_, index, deadline_, tally_):
+        rng = np.random.default_rng([seed, salt, index])
+        for i in range(share):
+            if time.monotonic() >= deadline:
+                break
+            case(plan[(index + workers * i) % len(plan)], rng, Path(fixtures["dir"]) / f"{name}{index}")
+
+    _in_threads(worker, n, seed, deadline, tally, workers)
+
+
 def _guarded(fn, share, seed, i, deadline, tally):
     try:
         fn(share, seed, i, deadline, tally)

@@ -13,9 +13,7 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
-
-from selfview.bench.faults.common import Tally, _away_from_ready, _cli_outcome, _in_threads, _quiet_logs, _selfview
+from selfview.bench.faults.common import Tally, _away_from_ready, _cli_outcome, _in_turn, _quiet_logs, _selfview
 
 #: the second process names the device as park does, or (``-spelling``) another way: the valve terminal's
 #: address spelled otherwise (localhost, 127.000.000.001, 2130706433), the robot's port through a symbolic link
@@ -185,12 +183,5 @@ def _park_went_on(received: list[str], speed: int) -> bool:
 def run_devices(n: int, seed: int, deadline: float, tally: Tally, fixtures: dict, workers: int = 2) -> None:
     _quiet_logs()
 
-    def worker(share, seed_, index, deadline_, tally_):
-        rng = np.random.default_rng([seed, 6, index])
-        for i in range(share):
-            if time.monotonic() >= deadline:
-                break
-            second_process_case(DEVICES[(index + workers * i) % len(DEVICES)], fixtures, rng, tally,
-                                Path(fixtures["dir"]) / f"devices{index}")
-
-    _in_threads(worker, n, seed, deadline, tally, workers)
+    _in_turn(DEVICES, lambda device, rng, folder: second_process_case(device, fixtures, rng, tally, folder),
+             6, "devices", n, seed, deadline, tally, fixtures, workers)

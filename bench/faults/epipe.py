@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from selfview.bench.faults.common import (CLI_TIMEOUT_S, Tally, _arm_after_exit, _away_from_ready, _cli_command,
-                                          _cli_outcome, _in_threads, _limit_child, _quiet_logs)
+                                          _cli_outcome, _in_turn, _limit_child, _quiet_logs)
 
 COMMANDS = ("monitor", "robot-ready", "robot-depart", "park")
 EXIT_PIPE = 128 + signal.SIGPIPE
@@ -141,12 +141,5 @@ def run_epipe(n: int, seed: int, deadline: float, tally: Tally, fixtures: dict, 
     """``n`` cases, the commands in turn."""
     _quiet_logs()
 
-    def worker(share, seed_, index, deadline_, tally_):
-        rng = np.random.default_rng([seed, 10, index])
-        for i in range(share):
-            if time.monotonic() >= deadline:
-                break
-            epipe_case(COMMANDS[(index + workers * i) % len(COMMANDS)], fixtures, rng, tally,
-                       Path(fixtures["dir"]) / f"epipe{index}")
-
-    _in_threads(worker, n, seed, deadline, tally, workers)
+    _in_turn(COMMANDS, lambda command, rng, folder: epipe_case(command, fixtures, rng, tally, folder),
+             10, "epipe", n, seed, deadline, tally, fixtures, workers)

@@ -20,7 +20,7 @@ import numpy as np
 
 from selfview.bench._proxy import FaultProxy
 from selfview.errors import CellError
-from selfview.bench.faults.common import CLI_TIMEOUT_S, Tally, _away_from_ready, _cli_outcome, _file_state, _in_threads, _quiet_logs, _run_child, _selfview
+from selfview.bench.faults.common import CLI_TIMEOUT_S, Tally, _away_from_ready, _cli_outcome, _file_state, _in_turn, _quiet_logs, _run_child, _selfview
 
 
 # --- signals during the commands that move the arm -------------------------------------------------------
@@ -219,12 +219,5 @@ def run_sigint(n: int, seed: int, deadline: float, tally: Tally, fixtures: dict,
         plan += [(c, sg, tw) for sg in SIGNALS for tw in (False, True) for c in COMMANDS
                  if (c, sg, tw) not in plan]
 
-    def worker(share, seed_, index, deadline_, tally_):
-        rng = np.random.default_rng([seed, 5, index])
-        for i in range(share):
-            if time.monotonic() >= deadline:
-                break
-            command, signame, twice = plan[(index + workers * i) % len(plan)]
-            sigint_case(command, fixtures, rng, tally, Path(fixtures["dir"]) / f"sigint{index}", signame, twice)
-
-    _in_threads(worker, n, seed, deadline, tally, workers)
+    _in_turn(plan, lambda item, rng, folder: sigint_case(item[0], fixtures, rng, tally, folder, item[1], item[2]),
+             5, "sigint", n, seed, deadline, tally, fixtures, workers)

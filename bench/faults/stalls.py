@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from selfview.bench.faults.common import (CLI_TIMEOUT_S, Tally, _arm_after_exit, _away_from_ready, _cli_command,
-                                          _cli_outcome, _in_threads, _limit_child, _quiet_logs)
+                                          _cli_outcome, _in_turn, _limit_child, _quiet_logs)
 
 COMMANDS = ("ready", "depart")
 MODES = ("sigtstp", "sigstop-long", "reply", "sigstop-short")  # in turn: a short run still holds Ctrl-Z and a long stall
@@ -231,15 +231,8 @@ def run_stalls(n: int, seed: int, deadline: float, tally: Tally, fixtures: dict,
     _quiet_logs()
     plan = [(c, m) for c in COMMANDS for m in MODES]
 
-    def worker(share, seed_, index, deadline_, tally_):
-        rng = np.random.default_rng([seed, 9, index])
-        for i in range(share):
-            if time.monotonic() >= deadline:
-                break
-            command, mode = plan[(index + workers * i) % len(plan)]
-            stall_case(command, mode, rng, tally, Path(fixtures["dir"]) / f"stalls{index}")
-
-    _in_threads(worker, n, seed, deadline, tally, workers)
+    _in_turn(plan, lambda item, rng, folder: stall_case(*item, rng, tally, folder),
+             9, "stalls", n, seed, deadline, tally, fixtures, workers)
     if "s" in _LATEST:
         tally.notes[f"stall.reply: the latest ABORT after a stalled reply came {_LATEST['s']:.2f} s after the motion's end "
                     f"(target {ABORT_AFTER_END_S:g} s)"] += 1
