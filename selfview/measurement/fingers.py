@@ -54,7 +54,7 @@ def find_fingertips(
     fingertips behind the camera or is not finite, ``ValueError`` for a transform that is not (4, 4) or a
     jaw gap that is not a positive number.
     """
-    if model not in (False, True, "auto"):
+    if not (model is False or model is True or model == "auto"):  # 0 and 1 compare equal to False and True
         raise ValueError(f"model: expected False (the corner search), True (the model) or 'auto', got {model!r}")
     pred = PredictedFingers(camera, C_H_G_pred, gripper, gap_mm)
     result = search_corners(image, pred, search_px, points)

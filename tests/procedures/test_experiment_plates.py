@@ -44,3 +44,6 @@ def test_find_fingertips_names_a_bad_model_choice():
     cell = parse_cell(yaml.safe_load(default_cell_path().read_text()))
     with pytest.raises(ValueError, match="model: expected False .* or 'auto', got 'silhouette'"):
         find_fingertips(np.zeros((576, 768), np.uint8), None, np.eye(4), cell.gripper, 10.0, model="silhouette")
+    for number in (0, 1):  # equal to False and True, but not the documented choices
+        with pytest.raises(ValueError, match=f"model: expected .*, got {number}$"):
+            find_fingertips(np.zeros((576, 768), np.uint8), None, np.eye(4), cell.gripper, 10.0, model=number)
