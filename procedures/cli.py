@@ -188,7 +188,7 @@ def _main(argv: list[str] | None) -> int:
         if isinstance(exc, BrokenPipeError):  # stdout's reader went away (``| head -1``): the run did not finish
             _stdout_gone()
             _say(f"selfview {args.command}: its standard output was closed (the reader of a pipe ended) before it "
-                 "finished; the cell was left as stated above")
+                 "finished; what it had done stays done (its cleanup, where it has one, is said above)")
             return 128 + signal.SIGPIPE
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"selfview {args.command}: error: {where}{exc.strerror or exc}\n  what to do: correct the file or "

@@ -1,7 +1,8 @@
 """Standard output gone (``epipe.<command>``): a command driving the simulated devices (the VAL simulator on a
 pty, the valve terminal on 127.0.0.1, a camera of pictures) with its standard output a pipe whose reader
 ends early, as ``| head -1`` does: ``selfview monitor --real --json`` (the reader takes 0 to 2 lines),
-``selfview robot ready`` / ``depart`` and ``selfview park --real`` (the reader takes none).
+``selfview robot ready`` / ``depart``, ``selfview park --real``, ``selfview gripper close`` and ``selfview devices
+--real`` (the reader takes none).
 
 The command must end 141 (128 + SIGPIPE, documented in ``selfview --help``) once the cell is safe, with no
 traceback on stderr and no temporary file left; judged from the simulators' side: the arm still after the
@@ -23,7 +24,7 @@ import numpy as np
 from selfview.bench.faults.common import (CLI_TIMEOUT_S, Tally, _arm_after_exit, _away_from_ready, _cli_command,
                                           _cli_outcome, _in_turn, _limit_child, _quiet_logs)
 
-COMMANDS = ("monitor", "robot-ready", "robot-depart", "park")
+COMMANDS = ("monitor", "robot-ready", "robot-depart", "park", "gripper-close", "devices")
 EXIT_PIPE = 128 + signal.SIGPIPE
 SCALE = 0.1  # the simulator's motions take this fraction of real time
 
@@ -87,6 +88,11 @@ def epipe_case(command: str, fixtures: dict, rng, tally: Tally, workdir: Path) -
     elif command == "park":
         frames = _frames(fixtures, workdir, rng)
         argv = ["park", *cell, "--camera", f"frames://{frames}/img_%03d.png?loop=1", "--out", str(workdir / "parked.png")]
+    elif command == "gripper-close":
+        argv = ["gripper", "--url", valve.url, "close"]
+    elif command == "devices":
+        frames = _frames(fixtures, workdir, rng)
+        argv = ["devices", *cell, "--camera", f"frames://{frames}/img_%03d.png?loop=1"]
     else:
         argv = ["robot", "--url", tty, *(["ready"] if command == "robot-ready" else ["depart", "60"])]
     box: dict = {}

@@ -91,7 +91,8 @@ def test_a_suspended_command_holds_the_arm_and_a_stalled_host_reports_no_fault(t
     assert kinds["stall.sigstop-short.depart"]["no_effect"] == 1, tally.to_json()["examples"]
 
 
-def test_a_command_whose_output_goes_away_ends_141_with_the_arm_still(tmp_path):
+@pytest.mark.parametrize("command", ["robot-depart", "gripper-close"])
+def test_a_command_whose_output_goes_away_ends_141_with_the_arm_still(command, tmp_path):
     tally = Tally()
-    epipe.epipe_case("robot-depart", {}, np.random.default_rng(1), tally, tmp_path)
-    assert tally.to_json()["kinds"]["epipe.robot-depart"]["clear_error"] == 1, tally.to_json()["examples"]
+    epipe.epipe_case(command, {}, np.random.default_rng(1), tally, tmp_path)
+    assert tally.to_json()["kinds"][f"epipe.{command}"]["clear_error"] == 1, tally.to_json()["examples"]
