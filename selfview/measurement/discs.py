@@ -203,48 +203,51 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     x, y, w, h = bbox
     H, W = work.shape
     d = 2 * np.sqrt(area / np.pi)
-    m_in = int(np.clip(round(0.2 * d), 3, 10))
-    m_ring = int(np.clip(round(0.15 * d), 2, 8))
+    m_in = min(max(round(0.2 * d), 3), 10)
+    m_ring = min(max(round(0.15 * d), 2), 8)
     m = m_in + m_ring
     if x < 2 or y < 2 or x + w > W - 2 or y + h > H - 2:
         return "picture edge", None
     x0, y0, x1, y1 = max(x - m, 0), max(y - m, 0), min(x + w + m, W), min(y + h + m, H)
     lab = labels[y0:y1, x0:x1]
     # distance (px) from the blob: the support holds the blurred edge, the ring beyond it is paper
-    dist = cv2.distanceTransform((lab != k).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
-    other = (lab != k) & (lab > 0)
-    d_other = cv2.distanceTransform((~other).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
-    if np.any(other & ~small[lab] & (dist <= 2.0)):
+    not_k = lab != k
+    dist = cv2.distanceTransform(not_k.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+    other = not_k & (lab > 0)
+    d_other = cv2.distanceTransform((~other).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+    if not small[lab[other & (dist <= 2.0)]].all():
         return "crowded", None
     mine = d_other > np.maximum(dist, 2.0)  # nearer this blob, and not beside another
-    outer = (dist <= m) & mine
-    support = (dist <= m_in) & mine
-    ring = outer & (dist > m_in) & (d_other > 2.5)
-    full_ring = np.count_nonzero((dist <= m) & (dist > m_in))
-    fr_ring = np.count_nonzero(ring) / max(full_ring, 1)
-    fr_sup = np.count_nonzero(support & (dist > 0)) / max(np.count_nonzero((dist <= m_in) & (dist > 0)), 1)
-    if fr_ring < 0.05 or np.count_nonzero(ring) < 12 or fr_sup < 0.5:
+    in_sup = dist <= m_in
+    band = (dist <= m) & ~in_sup
+    support = in_sup & mine
+    ring = band & mine & (d_other > 2.5)
+    n_ring = np.count_nonzero(ring)
+    fr_ring = n_ring / max(np.count_nonzero(band), 1)
+    fr_sup = np.count_nonzero(support & not_k) / max(np.count_nonzero(in_sup) - area, 1)
+    if fr_ring < 0.05 or n_ring < 12 or fr_sup < 0.5:
         return "crowded", None
-    crop = work[y0:y1, x0:x1].astype(np.float64)
+    crop = work[y0:y1, x0:x1]
     rv, ru = np.nonzero(ring)
     cu, cv_ = (x1 - x0 - 1) / 2, (y1 - y0 - 1) / 2
     A = np.column_stack([np.ones(len(ru)), ru - cu, rv - cv_])
-    z = crop[rv, ru]
+    z = crop[rv, ru].astype(np.float64)
     coef = np.linalg.solve(A.T @ A, A.T @ z)
     off = np.abs(z - A @ coef) > RING_TOLERANCE * coef[0]
-    if coef[0] > 0 and (np.mean(off) > 0.01 or _curved(A, z, coef)):
+    share_off = np.count_nonzero(off) / len(off)
+    if coef[0] > 0 and (share_off > 0.01 or _curved(A, z, coef)):
         # the ring is not one plane: a shadow's edge across the disc (sharp or soft), where the paper's
         # level changes along one direction only; a mark in the ring does not fit that
         level = _edge_level(ru - cu, rv - cv_, z, np.arctan2(coef[2], coef[1]))
         if level is not None:
             sv, su = np.nonzero(support)
-            return _weighted_centre(crop[sv, su], level(su - cu, sv - cv_), su, sv, x0, y0, area)
-    if coef[0] > 0 and 0.01 < np.mean(off) < 0.3:
+            return _weighted_centre(crop[sv, su].astype(np.float64), level(su - cu, sv - cv_), su, sv, x0, y0, area)
+    if coef[0] > 0 and 0.01 < share_off < 0.3:
         # something not paper in the ring (a mark, the sheet's edge): refit on the paper, and keep the
         # disc only if that thing stays clear of the disc's edge, leaving it out of the support
         coef = np.linalg.lstsq(A[~off], z[~off], rcond=None)[0]
         gu, gv = np.meshgrid(np.arange(x1 - x0) - cu, np.arange(y1 - y0) - cv_)
-        resid = cv2.blur((crop - (coef[0] + coef[1] * gu + coef[2] * gv)).astype(np.float32), (3, 3))  # noise-proof
+        resid = cv2.blur((crop.astype(np.float64) - (coef[0] + coef[1] * gu + coef[2] * gv)).astype(np.float32), (3, 3))  # noise-proof
         foreign = (np.abs(resid) > RING_TOLERANCE * coef[0]) & (dist > 2)
         nf, flab, fst, _ = cv2.connectedComponentsWithStats(foreign.astype(np.uint8), connectivity=8)
         # a thing touching the disc hides part of it, unless it is the halo of another dark blob or a
@@ -253,13 +256,13 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
         near = {j for j in near if fst[j, cv2.CC_STAT_AREA] > 3}
         if near:
             return "occluded", None
-        off = foreign[rv, ru]
+        share_off = np.count_nonzero(foreign[rv, ru]) / len(rv)
         support &= ~foreign
-    if coef[0] <= 0 or np.mean(off) >= 0.3:
+    if coef[0] <= 0 or share_off >= 0.3:
         return "occluded", None
     sv, su = np.nonzero(support)
     plane = coef[0] + coef[1] * (su - cu) + coef[2] * (sv - cv_)
-    return _weighted_centre(crop[sv, su], plane, su, sv, x0, y0, area)
+    return _weighted_centre(crop[sv, su].astype(np.float64), plane, su, sv, x0, y0, area)
 
 
 def _weighted_centre(grey, level, su, sv, x0, y0, area) -> tuple[str | None, np.ndarray | None]:
@@ -275,7 +278,8 @@ def _weighted_centre(grey, level, su, sv, x0, y0, area) -> tuple[str | None, np.
 def _curved(A, z, coef) -> bool:
     """Whether the ring's paper (``z`` at the rows (1, x, y) of ``A``) departs from the plane ``coef``:
     by more than ``SLOPE_RMS`` rms, or a quadratic fitting it much better (the knee of a soft shadow)."""
-    mse = float(np.mean((z - A @ coef) ** 2))
+    r = z - A @ coef
+    mse = float(r @ r) / len(z)
     if mse > (SLOPE_RMS * coef[0]) ** 2:
         return True
     Q = np.column_stack([A, A[:, 1] ** 2, A[:, 1] * A[:, 2], A[:, 2] ** 2])
@@ -283,7 +287,8 @@ def _curved(A, z, coef) -> bool:
         q = np.linalg.solve(Q.T @ Q, Q.T @ z)
     except np.linalg.LinAlgError:  # a ring too small to tell
         return False
-    return float(np.mean((z - Q @ q) ** 2)) < CURVED_SHARE * mse
+    r = z - Q @ q
+    return float(r @ r) / len(z) < CURVED_SHARE * mse
 
 
 def _edge_level(x, y, z, angle):
@@ -293,21 +298,39 @@ def _edge_level(x, y, z, angle):
     fits best (every 15 deg from ``angle``, the ring's slope, then refined to 1 deg). Returns the level as
     a function of (x, y), or None when the ring is not paper under such a light (a mark, an occluder)."""
 
-    def fit(a):
+    def fits(angles):
+        """(mse, share of bad pixels, cos, sin, bin centres, profile) per angle, all angles at once (one
+        interpolation: each angle's bins shifted clear of the others', its positions clamped to its bins as
+        ``np.interp`` clamps them)."""
+        a = np.asarray(angles, float)
         c, s = np.cos(a), np.sin(a)
-        t = x * c + y * s
-        b = np.floor(t - t.min()).astype(int)
-        cnt = np.bincount(b)
+        t = np.outer(c, x) + np.outer(s, y)
+        t0 = t.min(1)
+        u = t - t0[:, None]
+        b = u.astype(np.intp)  # floor: u >= 0
+        nb = int(b.max()) + 1
+        rows = np.arange(len(a))[:, None]
+        flat = (b + nb * rows).ravel()
+        cnt = np.bincount(flat, minlength=nb * len(a)).reshape(len(a), nb)
+        tot = np.bincount(flat, np.broadcast_to(z, t.shape).ravel(), minlength=nb * len(a)).reshape(len(a), nb)
         have = cnt > 0
-        prof = np.bincount(b, z)[have] / cnt[have]
-        at = (np.arange(len(cnt)) + 0.5 + t.min())[have]
-        lev = np.interp(t, at, prof)
-        return float(np.mean((z - lev) ** 2)), float(np.mean(np.abs(z - lev) > RING_TOLERANCE * lev)), c, s, at, prof
+        centres = np.arange(nb) + 0.5
+        prof = np.divide(tot, cnt, out=np.zeros_like(tot), where=have)
+        lo = centres[np.argmax(have, axis=1)]
+        hi = centres[nb - 1 - np.argmax(have[:, ::-1], axis=1)]
+        gap = nb + 2.0
+        xp = (centres + gap * rows)[have]
+        lev = np.interp((np.clip(u, lo[:, None], hi[:, None]) + gap * rows).ravel(), xp, prof[have]).reshape(t.shape)
+        r = z - lev
+        mse = np.einsum("ij,ij->i", r, r) / len(z)
+        bad = np.count_nonzero(np.abs(r) > RING_TOLERANCE * lev, axis=1) / len(z)
+        return [(float(mse[i]), float(bad[i]), c[i], s[i], centres[have[i]] + t0[i], prof[i, have[i]])
+                for i in range(len(a))]
 
-    best = min((fit(angle + np.radians(d)) for d in range(0, 180, 15)), key=lambda r: r[0])
+    best = min(fits(angle + np.radians(np.arange(0, 180, 15))), key=lambda r: r[0])
     for step in (8.0, 4.0, 2.0, 1.0):
         a0 = np.arctan2(best[3], best[2])
-        best = min([best, fit(a0 - np.radians(step)), fit(a0 + np.radians(step))], key=lambda r: r[0])
+        best = min([best, *fits([a0 - np.radians(step), a0 + np.radians(step)])], key=lambda r: r[0])
     _, bad, c, s, at, prof = best
     if bad > 0.01:
         return None
