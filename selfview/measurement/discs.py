@@ -8,6 +8,7 @@ pose of the plate is known.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import cv2
@@ -117,21 +118,20 @@ def _paper_level(work: np.ndarray) -> np.ndarray:
 # --- one blob -------------------------------------------------------------------------------------
 def _ellipse_misfit(blob: np.ndarray) -> tuple[float, float]:
     """(solidity, max distance in px of the outline from its fitted ellipse) of a blob mask."""
-    contours, _ = cv2.findContours(blob.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    contours, _ = cv2.findContours(blob.view(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     c = max(contours, key=len)
     if len(c) < 6:
         return 0.0, np.inf
     hull = cv2.contourArea(cv2.convexHull(c))
-    solidity = float(blob.sum()) / max(hull + len(c) / 2.0, 1.0)  # contour runs through pixel centres
+    solidity = np.count_nonzero(blob) / max(hull + len(c) / 2.0, 1.0)  # contour runs through pixel centres
     (ex, ey), (da, db), ang = cv2.fitEllipse(c)
     if min(da, db) <= 0:
         return solidity, np.inf
-    p = c[:, 0, :].astype(float) - (ex, ey)
-    t = np.radians(ang)
-    x = p[:, 0] * np.cos(t) + p[:, 1] * np.sin(t)
-    y = -p[:, 0] * np.sin(t) + p[:, 1] * np.cos(t)
-    rho = np.hypot(x / (da / 2), y / (db / 2))
-    return solidity, float(np.max(np.abs(rho - 1)) * (da + db) / 4)
+    t = math.radians(ang)
+    # the outline in the ellipse's axes, each axis over its semi-axis
+    p = (c[:, 0, :] - (ex, ey)) @ (np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]]) / (da / 2, db / 2))
+    rho = np.hypot(p[:, 0], p[:, 1])
+    return solidity, float(np.abs(rho - 1).max()) * (da + db) / 4
 
 
 def _round_blobs(labels, stats, reject) -> list[int]:
@@ -230,9 +230,14 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     crop = work[y0:y1, x0:x1]
     rv, ru = np.nonzero(ring)
     cu, cv_ = (x1 - x0 - 1) / 2, (y1 - y0 - 1) / 2
-    A = np.column_stack([np.ones(len(ru)), ru - cu, rv - cv_])
+    A = np.empty((len(ru), 3))
+    A[:, 0] = 1.0
+    A[:, 1] = ru - cu
+    A[:, 2] = rv - cv_
     z = crop[rv, ru].astype(np.float64)
-    coef = np.linalg.solve(A.T @ A, A.T @ z)
+    coef = _least_squares(A, z)
+    if coef is None:  # ring pixels on one line: no paper around the disc
+        return "crowded", None
     off = np.abs(z - A @ coef) > RING_TOLERANCE * coef[0]
     share_off = np.count_nonzero(off) / len(off)
     if coef[0] > 0 and (share_off > 0.01 or _curved(A, z, coef)):
@@ -272,7 +277,14 @@ def _weighted_centre(grey, level, su, sv, x0, y0, area) -> tuple[str | None, np.
     s = wgt.sum()
     if s <= 0.25 * area * DARK_FRACTION:
         return "occluded", None
-    return None, np.array([(wgt * su).sum() / s + x0, (wgt * sv).sum() / s + y0])
+    return None, np.array([float(wgt @ su) / s + x0, float(wgt @ sv) / s + y0])
+
+
+def _least_squares(A: np.ndarray, z: np.ndarray) -> np.ndarray | None:
+    """The least-squares solution of ``A x = z`` from the normal equations (LU, as ``np.linalg.solve`` but
+    without its per-call cost, which dominated on a disc's small ring), or None when they are singular."""
+    ok, x = cv2.solve(A.T @ A, (A.T @ z)[:, None], flags=cv2.DECOMP_LU)
+    return x[:, 0] if ok else None
 
 
 def _curved(A, z, coef) -> bool:
@@ -282,10 +294,13 @@ def _curved(A, z, coef) -> bool:
     mse = float(r @ r) / len(z)
     if mse > (SLOPE_RMS * coef[0]) ** 2:
         return True
-    Q = np.column_stack([A, A[:, 1] ** 2, A[:, 1] * A[:, 2], A[:, 2] ** 2])
-    try:
-        q = np.linalg.solve(Q.T @ Q, Q.T @ z)
-    except np.linalg.LinAlgError:  # a ring too small to tell
+    Q = np.empty((len(z), 6))
+    Q[:, :3] = A
+    np.multiply(A[:, 1], A[:, 1], out=Q[:, 3])
+    np.multiply(A[:, 1], A[:, 2], out=Q[:, 4])
+    np.multiply(A[:, 2], A[:, 2], out=Q[:, 5])
+    q = _least_squares(Q, z)
+    if q is None:  # a ring too small to tell
         return False
     r = z - Q @ q
     return float(r @ r) / len(z) < CURVED_SHARE * mse
@@ -380,11 +395,10 @@ def _propagate(P: np.ndarray) -> dict[int, tuple[int, int]]:
                     break
                 back = at.get((i - di, j - dj))
                 step = (P[p] - P[back]) if back is not None else (steps[p][0] * di + steps[p][1] * dj)
-                pred = P[p] + jump * step
-                tol = 0.3 * np.linalg.norm(step)
-                dd = np.linalg.norm(P - pred, axis=1)
+                off = P - (P[p] + jump * step)
+                dd = np.einsum("ij,ij->i", off, off)  # squared distances to the prediction
                 q = int(np.argmin(dd))
-                if dd[q] >= tol or q in index:
+                if dd[q] >= 0.09 * float(step @ step) or q in index:  # 0.3 steps
                     continue
                 index[q] = key
                 at[key] = q
