@@ -214,14 +214,19 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     not_k = lab != k
     dist = cv2.distanceTransform(not_k.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
     other = not_k & (lab > 0)
-    d_other = cv2.distanceTransform((~other).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
-    if not small[lab[other & (dist <= 2.0)]].all():
-        return "crowded", None
-    mine = d_other > np.maximum(dist, 2.0)  # nearer this blob, and not beside another
+    if other.any():
+        d_other = cv2.distanceTransform((~other).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+        if not small[lab[other & (dist <= 2.0)]].all():
+            return "crowded", None
+        mine = d_other > np.maximum(dist, 2.0)  # nearer this blob, and not beside another
+        clear = mine & (d_other > 2.5)  # ... and not within the blur of another
+        halo = d_other <= 2.5
+    else:  # no other blob in reach (about half the discs): every pixel is this blob's
+        mine, clear, halo = True, True, False
     in_sup = dist <= m_in
     band = (dist <= m) & ~in_sup
     support = in_sup & mine
-    ring = band & mine & (d_other > 2.5)
+    ring = band & clear
     n_ring = np.count_nonzero(ring)
     fr_ring = n_ring / max(np.count_nonzero(band), 1)
     fr_sup = np.count_nonzero(support & not_k) / max(np.count_nonzero(in_sup) - area, 1)
@@ -257,7 +262,7 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
         nf, flab, fst, _ = cv2.connectedComponentsWithStats(foreign.astype(np.uint8), connectivity=8)
         # a thing touching the disc hides part of it, unless it is the halo of another dark blob or a
         # pixel or two of noise
-        near = set(np.unique(flab[foreign & (dist <= 3)])) - set(np.unique(flab[foreign & (d_other <= 2.5)])) - {0}
+        near = set(np.unique(flab[foreign & (dist <= 3)])) - set(np.unique(flab[foreign & halo])) - {0}
         near = {j for j in near if fst[j, cv2.CC_STAT_AREA] > 3}
         if near:
             return "occluded", None
@@ -313,16 +318,16 @@ def _edge_level(x, y, z, angle):
     fits best (every 15 deg from ``angle``, the ring's slope, then refined to 1 deg). Returns the level as
     a function of (x, y), or None when the ring is not paper under such a light (a mark, an occluder)."""
 
-    def fits(angles):
-        """(mse, share of bad pixels, cos, sin, bin centres, profile) per angle, all angles at once (one
-        interpolation: each angle's bins shifted clear of the others', its positions clamped to its bins as
-        ``np.interp`` clamps them)."""
+    def best_of(angles):
+        """(mse, share of bad pixels, cos, sin, bin centres, profile) of the best fitting of ``angles`` (the
+        first of equals), all fitted at once: one interpolation, each angle's bins shifted clear of the
+        others', its positions clamped to its bins as ``np.interp`` clamps them."""
         a = np.asarray(angles, float)
         c, s = np.cos(a), np.sin(a)
         t = np.outer(c, x) + np.outer(s, y)
         t0 = t.min(1)
         u = t - t0[:, None]
-        b = u.astype(np.intp)  # floor: u >= 0
+        b = u.astype(np.intp)  # floor: u >= 0, and every angle's first bin is filled
         nb = int(b.max()) + 1
         rows = np.arange(len(a))[:, None]
         flat = (b + nb * rows).ravel()
@@ -331,21 +336,21 @@ def _edge_level(x, y, z, angle):
         have = cnt > 0
         centres = np.arange(nb) + 0.5
         prof = np.divide(tot, cnt, out=np.zeros_like(tot), where=have)
-        lo = centres[np.argmax(have, axis=1)]
         hi = centres[nb - 1 - np.argmax(have[:, ::-1], axis=1)]
         gap = nb + 2.0
         xp = (centres + gap * rows)[have]
-        lev = np.interp((np.clip(u, lo[:, None], hi[:, None]) + gap * rows).ravel(), xp, prof[have]).reshape(t.shape)
+        uc = np.minimum(np.maximum(u, 0.5), hi[:, None]) + gap * rows
+        lev = np.interp(uc.ravel(), xp, prof[have]).reshape(t.shape)
         r = z - lev
         mse = np.einsum("ij,ij->i", r, r) / len(z)
-        bad = np.count_nonzero(np.abs(r) > RING_TOLERANCE * lev, axis=1) / len(z)
-        return [(float(mse[i]), float(bad[i]), c[i], s[i], centres[have[i]] + t0[i], prof[i, have[i]])
-                for i in range(len(a))]
+        i = int(np.argmin(mse))
+        bad = np.count_nonzero(np.abs(r[i]) > RING_TOLERANCE * lev[i]) / len(z)
+        return float(mse[i]), float(bad), c[i], s[i], centres[have[i]] + t0[i], prof[i, have[i]]
 
-    best = min(fits(angle + np.radians(np.arange(0, 180, 15))), key=lambda r: r[0])
-    for step in (8.0, 4.0, 2.0, 1.0):
+    best = best_of(angle + np.radians(np.arange(0, 180, 15)))
+    for step in np.radians([8.0, 4.0, 2.0, 1.0]):
         a0 = np.arctan2(best[3], best[2])
-        best = min([best, *fits([a0 - np.radians(step), a0 + np.radians(step)])], key=lambda r: r[0])
+        best = min([best, best_of([a0 - step, a0 + step])], key=lambda r: r[0])
     _, bad, c, s, at, prof = best
     if bad > 0.01:
         return None
