@@ -209,29 +209,10 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     if x < 2 or y < 2 or x + w > W - 2 or y + h > H - 2:
         return "picture edge", None
     x0, y0, x1, y1 = max(x - m, 0), max(y - m, 0), min(x + w + m, W), min(y + h + m, H)
-    lab = labels[y0:y1, x0:x1]
-    # distance (px) from the blob: the support holds the blurred edge, the ring beyond it is paper
-    not_k = lab != k
-    dist = cv2.distanceTransform(not_k.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
-    other = not_k & (lab > 0)
-    if other.any():
-        d_other = cv2.distanceTransform((~other).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
-        if not small[lab[other & (dist <= 2.0)]].all():
-            return "crowded", None
-        mine = d_other > np.maximum(dist, 2.0)  # nearer this blob, and not beside another
-        clear = mine & (d_other > 2.5)  # ... and not within the blur of another
-        halo = d_other <= 2.5
-    else:  # no other blob in reach (about half the discs): every pixel is this blob's
-        mine, clear, halo = True, True, False
-    in_sup = dist <= m_in
-    band = (dist <= m) & ~in_sup
-    support = in_sup & mine
-    ring = band & clear
-    n_ring = np.count_nonzero(ring)
-    fr_ring = n_ring / max(np.count_nonzero(band), 1)
-    fr_sup = np.count_nonzero(support & not_k) / max(np.count_nonzero(in_sup) - area, 1)
-    if fr_ring < 0.05 or n_ring < 12 or fr_sup < 0.5:
+    masks = _support_and_ring(labels[y0:y1, x0:x1], k, area, small, m_in, m)
+    if masks is None:
         return "crowded", None
+    dist, support, ring, halo = masks
     crop = work[y0:y1, x0:x1]
     rv, ru = np.nonzero(ring)
     cu, cv_ = (x1 - x0 - 1) / 2, (y1 - y0 - 1) / 2
@@ -273,6 +254,35 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     sv, su = np.nonzero(support)
     plane = coef[0] + coef[1] * (su - cu) + coef[2] * (sv - cv_)
     return _weighted_centre(crop[sv, su].astype(np.float64), plane, su, sv, x0, y0, area)
+
+
+def _support_and_ring(lab, k, area, small, m_in, m):
+    """(distance from blob ``k`` [px], support, ring, halo of the other blobs) as masks of the crop ``lab`` of
+    the labels, for ``_centroid``; None when the disc is crowded (a blob larger than a mark beside it, or too
+    little of its support or ring its own)."""
+    # distance (px) from the blob: the support holds the blurred edge, the ring beyond it is paper
+    not_k = lab != k
+    dist = cv2.distanceTransform(not_k.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+    other = not_k & (lab > 0)
+    if other.any():
+        d_other = cv2.distanceTransform((~other).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+        if not small[lab[other & (dist <= 2.0)]].all():
+            return None
+        mine = d_other > np.maximum(dist, 2.0)  # nearer this blob, and not beside another
+        clear = mine & (d_other > 2.5)  # ... and not within the blur of another
+        halo = d_other <= 2.5
+    else:  # no other blob in reach (about half the discs): every pixel is this blob's
+        mine, clear, halo = True, True, False
+    in_sup = dist <= m_in
+    band = (dist <= m) & ~in_sup
+    support = in_sup & mine
+    ring = band & clear
+    n_ring = np.count_nonzero(ring)
+    fr_ring = n_ring / max(np.count_nonzero(band), 1)
+    fr_sup = np.count_nonzero(support & not_k) / max(np.count_nonzero(in_sup) - area, 1)
+    if fr_ring < 0.05 or n_ring < 12 or fr_sup < 0.5:
+        return None
+    return dist, support, ring, halo
 
 
 def _weighted_centre(grey, level, su, sv, x0, y0, area) -> tuple[str | None, np.ndarray | None]:
