@@ -8,6 +8,7 @@ pose of the plate is known.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import cv2
@@ -117,21 +118,20 @@ def _paper_level(work: np.ndarray) -> np.ndarray:
 # --- one blob -------------------------------------------------------------------------------------
 def _ellipse_misfit(blob: np.ndarray) -> tuple[float, float]:
     """(solidity, max distance in px of the outline from its fitted ellipse) of a blob mask."""
-    contours, _ = cv2.findContours(blob.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    contours, _ = cv2.findContours(blob.view(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     c = max(contours, key=len)
     if len(c) < 6:
         return 0.0, np.inf
     hull = cv2.contourArea(cv2.convexHull(c))
-    solidity = float(blob.sum()) / max(hull + len(c) / 2.0, 1.0)  # contour runs through pixel centres
+    solidity = np.count_nonzero(blob) / max(hull + len(c) / 2.0, 1.0)  # contour runs through pixel centres
     (ex, ey), (da, db), ang = cv2.fitEllipse(c)
     if min(da, db) <= 0:
         return solidity, np.inf
-    p = c[:, 0, :].astype(float) - (ex, ey)
-    t = np.radians(ang)
-    x = p[:, 0] * np.cos(t) + p[:, 1] * np.sin(t)
-    y = -p[:, 0] * np.sin(t) + p[:, 1] * np.cos(t)
-    rho = np.hypot(x / (da / 2), y / (db / 2))
-    return solidity, float(np.max(np.abs(rho - 1)) * (da + db) / 4)
+    t = math.radians(ang)
+    # the outline in the ellipse's axes, each axis over its semi-axis
+    p = (c[:, 0, :] - (ex, ey)) @ (np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]]) / (da / 2, db / 2))
+    rho = np.hypot(p[:, 0], p[:, 1])
+    return solidity, float(np.abs(rho - 1).max()) * (da + db) / 4
 
 
 def _round_blobs(labels, stats, reject) -> list[int]:
@@ -203,63 +203,86 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     x, y, w, h = bbox
     H, W = work.shape
     d = 2 * np.sqrt(area / np.pi)
-    m_in = int(np.clip(round(0.2 * d), 3, 10))
-    m_ring = int(np.clip(round(0.15 * d), 2, 8))
+    m_in = min(max(round(0.2 * d), 3), 10)
+    m_ring = min(max(round(0.15 * d), 2), 8)
     m = m_in + m_ring
     if x < 2 or y < 2 or x + w > W - 2 or y + h > H - 2:
         return "picture edge", None
     x0, y0, x1, y1 = max(x - m, 0), max(y - m, 0), min(x + w + m, W), min(y + h + m, H)
-    lab = labels[y0:y1, x0:x1]
-    # distance (px) from the blob: the support holds the blurred edge, the ring beyond it is paper
-    dist = cv2.distanceTransform((lab != k).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
-    other = (lab != k) & (lab > 0)
-    d_other = cv2.distanceTransform((~other).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
-    if np.any(other & ~small[lab] & (dist <= 2.0)):
+    masks = _support_and_ring(labels[y0:y1, x0:x1], k, area, small, m_in, m)
+    if masks is None:
         return "crowded", None
-    mine = d_other > np.maximum(dist, 2.0)  # nearer this blob, and not beside another
-    outer = (dist <= m) & mine
-    support = (dist <= m_in) & mine
-    ring = outer & (dist > m_in) & (d_other > 2.5)
-    full_ring = np.count_nonzero((dist <= m) & (dist > m_in))
-    fr_ring = np.count_nonzero(ring) / max(full_ring, 1)
-    fr_sup = np.count_nonzero(support & (dist > 0)) / max(np.count_nonzero((dist <= m_in) & (dist > 0)), 1)
-    if fr_ring < 0.05 or np.count_nonzero(ring) < 12 or fr_sup < 0.5:
-        return "crowded", None
-    crop = work[y0:y1, x0:x1].astype(np.float64)
+    dist, support, ring, halo = masks
+    crop = work[y0:y1, x0:x1]
     rv, ru = np.nonzero(ring)
     cu, cv_ = (x1 - x0 - 1) / 2, (y1 - y0 - 1) / 2
-    A = np.column_stack([np.ones(len(ru)), ru - cu, rv - cv_])
-    z = crop[rv, ru]
-    coef = np.linalg.solve(A.T @ A, A.T @ z)
+    A = np.empty((len(ru), 3))
+    A[:, 0] = 1.0
+    A[:, 1] = ru - cu
+    A[:, 2] = rv - cv_
+    z = crop[rv, ru].astype(np.float64)
+    coef = _least_squares(A, z)
+    if coef is None:  # ring pixels on one line: no paper around the disc
+        return "crowded", None
     off = np.abs(z - A @ coef) > RING_TOLERANCE * coef[0]
-    if coef[0] > 0 and (np.mean(off) > 0.01 or _curved(A, z, coef)):
+    share_off = np.count_nonzero(off) / len(off)
+    if coef[0] > 0 and (share_off > 0.01 or _curved(A, z, coef)):
         # the ring is not one plane: a shadow's edge across the disc (sharp or soft), where the paper's
         # level changes along one direction only; a mark in the ring does not fit that
         level = _edge_level(ru - cu, rv - cv_, z, np.arctan2(coef[2], coef[1]))
         if level is not None:
             sv, su = np.nonzero(support)
-            return _weighted_centre(crop[sv, su], level(su - cu, sv - cv_), su, sv, x0, y0, area)
-    if coef[0] > 0 and 0.01 < np.mean(off) < 0.3:
+            return _weighted_centre(crop[sv, su].astype(np.float64), level(su - cu, sv - cv_), su, sv, x0, y0, area)
+    if coef[0] > 0 and 0.01 < share_off < 0.3:
         # something not paper in the ring (a mark, the sheet's edge): refit on the paper, and keep the
         # disc only if that thing stays clear of the disc's edge, leaving it out of the support
         coef = np.linalg.lstsq(A[~off], z[~off], rcond=None)[0]
         gu, gv = np.meshgrid(np.arange(x1 - x0) - cu, np.arange(y1 - y0) - cv_)
-        resid = cv2.blur((crop - (coef[0] + coef[1] * gu + coef[2] * gv)).astype(np.float32), (3, 3))  # noise-proof
+        resid = cv2.blur((crop.astype(np.float64) - (coef[0] + coef[1] * gu + coef[2] * gv)).astype(np.float32), (3, 3))  # noise-proof
         foreign = (np.abs(resid) > RING_TOLERANCE * coef[0]) & (dist > 2)
         nf, flab, fst, _ = cv2.connectedComponentsWithStats(foreign.astype(np.uint8), connectivity=8)
         # a thing touching the disc hides part of it, unless it is the halo of another dark blob or a
         # pixel or two of noise
-        near = set(np.unique(flab[foreign & (dist <= 3)])) - set(np.unique(flab[foreign & (d_other <= 2.5)])) - {0}
+        near = set(np.unique(flab[foreign & (dist <= 3)])) - set(np.unique(flab[foreign & halo])) - {0}
         near = {j for j in near if fst[j, cv2.CC_STAT_AREA] > 3}
         if near:
             return "occluded", None
-        off = foreign[rv, ru]
+        share_off = np.count_nonzero(foreign[rv, ru]) / len(rv)
         support &= ~foreign
-    if coef[0] <= 0 or np.mean(off) >= 0.3:
+    if coef[0] <= 0 or share_off >= 0.3:
         return "occluded", None
     sv, su = np.nonzero(support)
     plane = coef[0] + coef[1] * (su - cu) + coef[2] * (sv - cv_)
-    return _weighted_centre(crop[sv, su], plane, su, sv, x0, y0, area)
+    return _weighted_centre(crop[sv, su].astype(np.float64), plane, su, sv, x0, y0, area)
+
+
+def _support_and_ring(lab, k, area, small, m_in, m):
+    """(distance from blob ``k`` [px], support, ring, halo of the other blobs) as masks of the crop ``lab`` of
+    the labels, for ``_centroid``; None when the disc is crowded (a blob larger than a mark beside it, or too
+    little of its support or ring its own)."""
+    # distance (px) from the blob: the support holds the blurred edge, the ring beyond it is paper
+    not_k = lab != k
+    dist = cv2.distanceTransform(not_k.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+    other = not_k & (lab > 0)
+    if other.any():
+        d_other = cv2.distanceTransform((~other).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+        if not small[lab[other & (dist <= 2.0)]].all():
+            return None
+        mine = d_other > np.maximum(dist, 2.0)  # nearer this blob, and not beside another
+        clear = mine & (d_other > 2.5)  # ... and not within the blur of another
+        halo = d_other <= 2.5
+    else:  # no other blob in reach (about half the discs): every pixel is this blob's
+        mine, clear, halo = True, True, False
+    in_sup = dist <= m_in
+    band = (dist <= m) & ~in_sup
+    support = in_sup & mine
+    ring = band & clear
+    n_ring = np.count_nonzero(ring)
+    fr_ring = n_ring / max(np.count_nonzero(band), 1)
+    fr_sup = np.count_nonzero(support & not_k) / max(np.count_nonzero(in_sup) - area, 1)
+    if fr_ring < 0.05 or n_ring < 12 or fr_sup < 0.5:
+        return None
+    return dist, support, ring, halo
 
 
 def _weighted_centre(grey, level, su, sv, x0, y0, area) -> tuple[str | None, np.ndarray | None]:
@@ -269,21 +292,33 @@ def _weighted_centre(grey, level, su, sv, x0, y0, area) -> tuple[str | None, np.
     s = wgt.sum()
     if s <= 0.25 * area * DARK_FRACTION:
         return "occluded", None
-    return None, np.array([(wgt * su).sum() / s + x0, (wgt * sv).sum() / s + y0])
+    return None, np.array([float(wgt @ su) / s + x0, float(wgt @ sv) / s + y0])
+
+
+def _least_squares(A: np.ndarray, z: np.ndarray) -> np.ndarray | None:
+    """The least-squares solution of ``A x = z`` from the normal equations (LU, as ``np.linalg.solve`` but
+    without its per-call cost, which dominated on a disc's small ring), or None when they are singular."""
+    ok, x = cv2.solve(A.T @ A, (A.T @ z)[:, None], flags=cv2.DECOMP_LU)
+    return x[:, 0] if ok else None
 
 
 def _curved(A, z, coef) -> bool:
     """Whether the ring's paper (``z`` at the rows (1, x, y) of ``A``) departs from the plane ``coef``:
     by more than ``SLOPE_RMS`` rms, or a quadratic fitting it much better (the knee of a soft shadow)."""
-    mse = float(np.mean((z - A @ coef) ** 2))
+    r = z - A @ coef
+    mse = float(r @ r) / len(z)
     if mse > (SLOPE_RMS * coef[0]) ** 2:
         return True
-    Q = np.column_stack([A, A[:, 1] ** 2, A[:, 1] * A[:, 2], A[:, 2] ** 2])
-    try:
-        q = np.linalg.solve(Q.T @ Q, Q.T @ z)
-    except np.linalg.LinAlgError:  # a ring too small to tell
+    Q = np.empty((len(z), 6))
+    Q[:, :3] = A
+    np.multiply(A[:, 1], A[:, 1], out=Q[:, 3])
+    np.multiply(A[:, 1], A[:, 2], out=Q[:, 4])
+    np.multiply(A[:, 2], A[:, 2], out=Q[:, 5])
+    q = _least_squares(Q, z)
+    if q is None:  # a ring too small to tell
         return False
-    return float(np.mean((z - Q @ q) ** 2)) < CURVED_SHARE * mse
+    r = z - Q @ q
+    return float(r @ r) / len(z) < CURVED_SHARE * mse
 
 
 def _edge_level(x, y, z, angle):
@@ -293,21 +328,39 @@ def _edge_level(x, y, z, angle):
     fits best (every 15 deg from ``angle``, the ring's slope, then refined to 1 deg). Returns the level as
     a function of (x, y), or None when the ring is not paper under such a light (a mark, an occluder)."""
 
-    def fit(a):
+    def best_of(angles):
+        """(mse, share of bad pixels, cos, sin, bin centres, profile) of the best fitting of ``angles`` (the
+        first of equals), all fitted at once: one interpolation, each angle's bins shifted clear of the
+        others', its positions clamped to its bins as ``np.interp`` clamps them."""
+        a = np.asarray(angles, float)
         c, s = np.cos(a), np.sin(a)
-        t = x * c + y * s
-        b = np.floor(t - t.min()).astype(int)
-        cnt = np.bincount(b)
+        t = np.outer(c, x) + np.outer(s, y)
+        t0 = t.min(1)
+        u = t - t0[:, None]
+        b = u.astype(np.intp)  # floor: u >= 0, and every angle's first bin is filled
+        nb = int(b.max()) + 1
+        rows = np.arange(len(a))[:, None]
+        flat = (b + nb * rows).ravel()
+        cnt = np.bincount(flat, minlength=nb * len(a)).reshape(len(a), nb)
+        tot = np.bincount(flat, np.broadcast_to(z, t.shape).ravel(), minlength=nb * len(a)).reshape(len(a), nb)
         have = cnt > 0
-        prof = np.bincount(b, z)[have] / cnt[have]
-        at = (np.arange(len(cnt)) + 0.5 + t.min())[have]
-        lev = np.interp(t, at, prof)
-        return float(np.mean((z - lev) ** 2)), float(np.mean(np.abs(z - lev) > RING_TOLERANCE * lev)), c, s, at, prof
+        centres = np.arange(nb) + 0.5
+        prof = np.divide(tot, cnt, out=np.zeros_like(tot), where=have)
+        hi = centres[nb - 1 - np.argmax(have[:, ::-1], axis=1)]
+        gap = nb + 2.0
+        xp = (centres + gap * rows)[have]
+        uc = np.minimum(np.maximum(u, 0.5), hi[:, None]) + gap * rows
+        lev = np.interp(uc.ravel(), xp, prof[have]).reshape(t.shape)
+        r = z - lev
+        mse = np.einsum("ij,ij->i", r, r) / len(z)
+        i = int(np.argmin(mse))
+        bad = np.count_nonzero(np.abs(r[i]) > RING_TOLERANCE * lev[i]) / len(z)
+        return float(mse[i]), float(bad), c[i], s[i], centres[have[i]] + t0[i], prof[i, have[i]]
 
-    best = min((fit(angle + np.radians(d)) for d in range(0, 180, 15)), key=lambda r: r[0])
-    for step in (8.0, 4.0, 2.0, 1.0):
+    best = best_of(angle + np.radians(np.arange(0, 180, 15)))
+    for step in np.radians([8.0, 4.0, 2.0, 1.0]):
         a0 = np.arctan2(best[3], best[2])
-        best = min([best, fit(a0 - np.radians(step)), fit(a0 + np.radians(step))], key=lambda r: r[0])
+        best = min([best, best_of([a0 - step, a0 + step])], key=lambda r: r[0])
     _, bad, c, s, at, prof = best
     if bad > 0.01:
         return None
@@ -357,11 +410,10 @@ def _propagate(P: np.ndarray) -> dict[int, tuple[int, int]]:
                     break
                 back = at.get((i - di, j - dj))
                 step = (P[p] - P[back]) if back is not None else (steps[p][0] * di + steps[p][1] * dj)
-                pred = P[p] + jump * step
-                tol = 0.3 * np.linalg.norm(step)
-                dd = np.linalg.norm(P - pred, axis=1)
+                off = P - (P[p] + jump * step)
+                dd = np.einsum("ij,ij->i", off, off)  # squared distances to the prediction
                 q = int(np.argmin(dd))
-                if dd[q] >= tol or q in index:
+                if dd[q] >= 0.09 * float(step @ step) or q in index:  # 0.3 steps
                     continue
                 index[q] = key
                 at[key] = q
