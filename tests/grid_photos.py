@@ -1,6 +1,6 @@
 """Judging disc detections on real photographs against ``cv2.findCirclesGrid``: its grid in both of its
 modes, the nearest of its centres to each of ours, and whether our (row, col) indexing is OpenCV's up to
-a symmetry of the grid. Shared by the disc-photograph tests."""
+a symmetry of the grid; ``cv2.calibrateCamera`` on our discs. Shared by the disc-photograph tests."""
 
 from __future__ import annotations
 
@@ -37,3 +37,14 @@ def same_indexing(rc, ref_idx, cols):
             if np.all(mapped - mapped[0] == ref - ref[0]):
                 return True
     return False
+
+
+def opencv_intrinsics(dets, cam0, size):
+    """cv2.calibrateCamera (fx, fy, cx, cy, k1 free) on our discs ``dets`` from ``cam0``: (f, cx, cy) and
+    their sigmas; f is fy (the spec's aspect scales u)."""
+    obj = [d.p_W.astype(np.float32) for d in dets]
+    img = [d.uv.astype(np.float32).reshape(-1, 1, 2) for d in dets]
+    K0 = np.array([[cam0.f, 0, cam0.cx], [0, cam0.f, cam0.cy], [0, 0, 1.0]])
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3
+    _, K, _, _, _, sd, _, _ = cv2.calibrateCameraExtended(obj, img, size, K0, np.zeros(5), flags=flags)
+    return np.array([K[1, 1], K[0, 2], K[1, 2]]), np.ravel(sd)[1:4]

@@ -24,7 +24,7 @@ from selfview.estimation.intrinsics import detect_views, guess_camera
 from selfview.files.cell import load_plate
 from selfview.measurement.discs import detect_discs
 from selfview.procedures.cli import main
-from tests.grid_photos import OPENCV_MODES, nearest, opencv_grid, same_indexing
+from tests.grid_photos import OPENCV_MODES, nearest, opencv_grid, opencv_intrinsics, same_indexing
 
 SET = Path(__file__).resolve().parents[1] / "data" / "boofcv-circles"
 PICTURES = [f"image0000{i}.jpg" for i in range(6)]
@@ -88,17 +88,6 @@ def test_plain_findcirclesgrid_misses_two_views_ours_does_not():
         assert len(detect_discs(img, plate)) == plate.rows * plate.cols
 
 
-def _opencv_intrinsics(dets, cam0, size):
-    """cv2.calibrateCamera (fx, fy, cx, cy, k1 free) on our discs: (f, cx, cy) and their sigmas; f is fy
-    (the spec's aspect scales u)."""
-    obj = [d.p_W.astype(np.float32) for d in dets]
-    img = [d.uv.astype(np.float32).reshape(-1, 1, 2) for d in dets]
-    K0 = np.array([[cam0.f, 0, cam0.cx], [0, cam0.f, cam0.cy], [0, 0, 1.0]])
-    flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3
-    _, K, _, _, _, sd, _, _ = cv2.calibrateCameraExtended(obj, img, size, K0, np.zeros(5), flags=flags)
-    return np.array([K[1, 1], K[0, 2], K[1, 2]]), np.ravel(sd)[1:4]
-
-
 def test_intrinsics_command_agrees_with_opencv(capsys):
     """``selfview intrinsics --plate`` with its defaults against cv2.calibrateCamera on the same discs.
     Measured: f 455.52 +- 0.97 vs 455.04 +- 1.14 px, cx 319.12 +- 0.29 vs 318.49 +- 0.33 px, cy 238.68 +-
@@ -112,7 +101,7 @@ def test_intrinsics_command_agrees_with_opencv(capsys):
     plate = load_plate(PLATE)
     imgs = [_load(n) for n in PICTURES]
     dets, _, _ = detect_views(imgs, plate, None)
-    theirs, their_sd = _opencv_intrinsics(dets, guess_camera(dets, 640, 480), (640, 480))
+    theirs, their_sd = opencv_intrinsics(dets, guess_camera(dets, 640, 480), (640, 480))
     ours = np.array([doc["f"], *doc["principal_point"]])
     our_sd = np.array([doc["sigma"][k] for k in ("f", "cx", "cy")])
     z = (ours - theirs) / np.hypot(our_sd, their_sd)
