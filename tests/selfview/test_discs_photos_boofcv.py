@@ -41,7 +41,7 @@ SETS = {
     "video": (DATA / "boofcv-circles-video", [f"frame{i:03d}.jpg" for i in (30, 75, 150, 210, 285, 360, 435, 510, 555, 615)]),
 }
 #: Our centres against OpenCV's [px]: the median as for ViSP's set; any one of ours within this of one of
-#: OpenCV's is on that disc (the discs lie 15-60 px apart here); the largest measured, 1.26 and 1.64 px, are
+#: OpenCV's is on that disc (neighbours lie 9-70 px apart here); the largest measured, 1.26 and 1.64 px, are
 #: a disc half in the hand's shadow and one beside the clip of a blurred frame.
 MEDIAN_PX, SAME_DISC_PX = 0.3, 1.8
 
