@@ -9,8 +9,15 @@ import signal
 import tempfile
 from pathlib import Path
 
-import numpy as np
-import pytest
+# One BLAS thread unless the run says otherwise (before numpy loads), as the command line has it
+# (procedures/cli.py): the tests that run a command in this process otherwise fit with OpenBLAS's threads,
+# which only contend on a loaded machine (the BoofCV photographs' intrinsics command: 47 s with them,
+# 9 s without, at load 7 on 2 cores).
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 

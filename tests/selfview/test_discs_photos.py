@@ -17,6 +17,7 @@ import pytest
 from selfview.files.cell import load_cell
 from selfview.measurement.discs import detect_discs
 from selfview.errors import ImageError
+from tests.grid_photos import nearest, opencv_grid, same_indexing
 
 SET = Path(__file__).resolve().parents[1] / "data" / "visp-circles"
 PICTURES = [f"circles-0{i}.jpg" for i in range(1, 6)] + [f"grid36-0{i}.png" for i in range(1, 5)]
@@ -35,42 +36,19 @@ def _load(name):
     return img
 
 
-def _opencv(img, plate):
-    ok, c = cv2.findCirclesGrid(img, (plate.cols, plate.rows), flags=cv2.CALIB_CB_SYMMETRIC_GRID)
-    return (c.reshape(-1, 2).astype(float) if ok else None)
-
-
-def _match(uv, ref):
-    """For each of ``uv`` the index of and distance to the nearest of ``ref``."""
-    d = np.linalg.norm(uv[:, None, :] - ref[None, :, :], axis=2)
-    return np.argmin(d, axis=1), np.min(d, axis=1)
-
-
-def _same_indexing(rc, ref_idx, cols):
-    """True when our (row, col) map onto OpenCV's (row, col) by one symmetry of the square plus a shift."""
-    ref = np.column_stack([ref_idx // cols, ref_idx % cols])
-    for M in ([[1, 0], [0, 1]], [[0, 1], [1, 0]]):
-        for s in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
-            m = np.asarray(M) * np.asarray(s)[:, None]
-            mapped = rc @ m.T
-            if np.all(mapped - mapped[0] == ref - ref[0]):
-                return True
-    return False
-
-
 @pytest.mark.parametrize("name", PICTURES)
 def test_every_disc_opencv_finds_is_found(name):
     img, plate = _load(name), _cell(name).plate
-    ref = _opencv(img, plate)
+    ref = opencv_grid(img, plate)
     assert ref is not None and len(ref) == plate.rows * plate.cols
     det = detect_discs(img, plate)
     assert len(det) == plate.rows * plate.cols, det.rejected
     assert det.index_basis == {"cols": "all seen", "rows": "all seen"}
-    idx, d = _match(det.uv, ref)
+    idx, d = nearest(det.uv, ref)
     # one detection per disc, none on a label, a mark or the map: each sits on one of OpenCV's centres
     assert len(set(idx)) == len(idx)
     assert np.median(d) < MEDIAN_PX and d.max() < MAX_PX, (np.median(d), d.max())
-    assert _same_indexing(det.rc, idx, plate.cols)
+    assert same_indexing(det.rc, idx, plate.cols)
 
 
 def _paper_and_ink(img, centre, r):
@@ -81,7 +59,7 @@ def _paper_and_ink(img, centre, r):
 
 def test_a_grid_partly_hidden_by_a_finger():
     img, plate = _load("grid36-03.png"), _cell("grid36-03.png").plate
-    ref = _opencv(img, plate)
+    ref = opencv_grid(img, plate)
     # a finger-like dark bar along the grid's diagonal from outside its top-left corner, hiding discs
     # whole (on the diagonal) and in part (beside it)
     su, sv = ref[1] - ref[0], ref[plate.cols] - ref[0]
@@ -90,9 +68,9 @@ def test_a_grid_partly_hidden_by_a_finger():
     poly = np.array([start + across, end + across, end - across, start - across])
     hidden = img.copy()
     cv2.fillConvexPoly(hidden, np.round(poly).astype(np.int32), 85, cv2.LINE_AA)
-    assert _opencv(hidden, plate) is None, "OpenCV needs the whole grid"
+    assert opencv_grid(hidden, plate) is None, "OpenCV needs the whole grid"
     det = detect_discs(hidden, plate)
-    idx, d = _match(det.uv, ref)
+    idx, d = nearest(det.uv, ref)
     assert d.max() < MAX_PX and len(set(idx)) == len(idx)
     assert 28 <= len(det) <= 34, len(det)
     # never a disc the bar touches: every one found keeps clear of it
@@ -101,18 +79,18 @@ def test_a_grid_partly_hidden_by_a_finger():
     dist = cv2.distanceTransform((bar == 0).astype(np.uint8), cv2.DIST_L2, 5)
     r = np.sqrt(np.median(det.area_px) / np.pi)
     assert np.all(dist[np.round(det.uv[:, 1]).astype(int), np.round(det.uv[:, 0]).astype(int)] > r)
-    assert _same_indexing(det.rc, idx, plate.cols)
+    assert same_indexing(det.rc, idx, plate.cols)
 
 
 def test_a_disc_off_its_lattice_place_is_dropped():
     """A disc moved by a quarter of a step (diagonally: 0.18 of a step off the midpoint of its neighbours on
     each line) is taken by the walk and must be dropped by the lattice's outlier test."""
     img, plate = _load("grid36-03.png"), _cell("grid36-03.png").plate
-    ref = _opencv(img, plate)
+    ref = opencv_grid(img, plate)
     k = 2 * plate.cols + 3  # an inner disc
     step_u, step_v = ref[k + 1] - ref[k], ref[k + plate.cols] - ref[k]
     det0 = detect_discs(img, plate)
-    r = np.sqrt(det0.area_px[_match(ref[k : k + 1], det0.uv)[0][0]] / np.pi)
+    r = np.sqrt(det0.area_px[nearest(ref[k : k + 1], det0.uv)[0][0]] / np.pi)
     paper, ink = _paper_and_ink(img, ref[k], r)
     moved = img.copy()
     cv2.circle(moved, tuple(int(v) for v in np.round(ref[k])), int(np.ceil(r + 3)), paper, -1, cv2.LINE_AA)
@@ -149,7 +127,7 @@ def _discs_beside_the_grid(img, ref, plate, rows, scale=1.0):
 
 def test_blobs_beyond_the_sheet_on_the_lattice_are_not_the_plate():
     img, plate = _load("grid36-03.png"), _cell("grid36-03.png").plate
-    ref = _opencv(img, plate)
+    ref = opencv_grid(img, plate)
     more, extra = _discs_beside_the_grid(img, ref, plate, rows=(1, 2, 3))
     det = detect_discs(more, plate)
     assert len(det) == 36 and np.min(np.linalg.norm(det.uv[:, None] - extra[None], axis=2)) > 10
@@ -163,7 +141,7 @@ def test_blobs_beyond_the_sheet_on_the_lattice_are_not_the_plate():
 def test_a_dot_too_small_for_the_plate_is_no_disc():
     """A mark at a disc's place (the disc itself hidden) is a third of a disc's area: not one of the plate's."""
     img, plate = _load("grid36-03.png"), _cell("grid36-03.png").plate
-    ref = _opencv(img, plate)
+    ref = opencv_grid(img, plate)
     k = 3 * plate.cols + 2
     det0 = detect_discs(img, plate)
     r = np.sqrt(np.median(det0.area_px) / np.pi)
@@ -184,12 +162,12 @@ def test_any_resolution(scale):
     plate = _cell("circles-01.jpg").plate
     for name in PICTURES[:5]:
         img = _load(name)
-        ref = (_opencv(img, plate) + 0.5) * scale - 0.5
+        ref = (opencv_grid(img, plate) + 0.5) * scale - 0.5
         how = cv2.INTER_AREA if scale < 1 else cv2.INTER_CUBIC
         small = cv2.resize(img, None, fx=scale, fy=scale, interpolation=how)
         det = detect_discs(small, plate)
         assert len(det) == 36, (name, det.rejected)
-        idx, d = _match(det.uv, ref)
+        idx, d = nearest(det.uv, ref)
         assert len(set(idx)) == 36 and d.max() < MAX_PX * max(scale, 1.0), (name, d.max())
 
 

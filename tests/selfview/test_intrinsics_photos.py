@@ -18,20 +18,10 @@ import pytest
 from selfview.files.cell import load_cell
 from selfview.estimation.intrinsics import detect_views
 from selfview.procedures.cli import main
+from tests.grid_photos import opencv_intrinsics
 
 VISP = Path(__file__).resolve().parents[1] / "data" / "visp-circles"
 SETS = {"stills": ("cell.yaml", "circles-0*.jpg"), "640x480": ("cell-640x480.yaml", "grid36-0*.png")}
-
-
-def _opencv(dets, cam0, size):
-    """cv2.calibrateCamera (fx, fy, cx, cy, k1 free) on our discs: (f, cx, cy) and their sigmas."""
-    obj = [d.p_W.astype(np.float32) for d in dets]
-    img = [d.uv.astype(np.float32).reshape(-1, 1, 2) for d in dets]
-    K0 = np.array([[cam0.f, 0, cam0.cx], [0, cam0.f, cam0.cy], [0, 0, 1.0]])
-    flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3
-    _, K, _, _, _, sd, _, _ = cv2.calibrateCameraExtended(obj, img, size, K0, np.zeros(5), flags=flags)
-    sd = np.ravel(sd)
-    return np.array([K[1, 1], K[0, 2], K[1, 2]]), sd[1:4]
 
 
 @pytest.mark.parametrize("which", sorted(SETS))
@@ -48,7 +38,7 @@ def test_intrinsics_defaults_agree_with_opencv_and_use_every_picture(which, caps
     cell = load_cell(VISP / cell_name)
     imgs = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in pictures]
     dets, _, _ = detect_views(imgs, cell.plate, cell.camera.guess())
-    theirs, their_sd = _opencv(dets, cell.camera.guess(), (imgs[0].shape[1], imgs[0].shape[0]))
+    theirs, their_sd = opencv_intrinsics(dets, cell.camera.guess(), (imgs[0].shape[1], imgs[0].shape[0]))
     ours = np.array([doc["f"], *doc["principal_point"]])
     our_sd = np.array([doc["sigma"][k] for k in ("f", "cx", "cy")])
     z = (ours - theirs) / np.hypot(our_sd, their_sd)

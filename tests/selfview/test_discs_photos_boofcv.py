@@ -1,0 +1,191 @@
+"""Disc detection and intrinsics on two more public sets of real photographs of one printed disc grid: BoofCV's.
+
+An 8 x 10 grid of dark discs (15 mm at 25 mm pitch: a disc-to-pitch ratio of 0.6, a rectangular grid) on a
+sheet clipped to a clipboard, by two cameras (CC BY 4.0, ``tests/data/boofcv-circles*``):
+
+- ``stills``: six 640 x 480 colour JPEGs by a Sony DSC-HX5V indoors; the clipboard's metal clip beside the
+  grid, a bent sheet, two steep views (00000, 00004) that plain ``cv2.findCirclesGrid`` does not assemble
+  (its clustering mode does) and a hand's shadow over a quarter of the grid (00005).
+- ``video``: ten frames of a 640 x 480 video by a wide-angle camera (OpenCV's k1 about -0.25) outdoors, the
+  plate on a wooden bench among grass and gravel: a view with discs cut by the picture's edge (030, which
+  OpenCV does not take), two that plain findCirclesGrid does not assemble (510, 555), and a small turned
+  plate on end in the picture (435) that ours refuses.
+
+Measured (ours / findCirclesGrid / clustering discs; our centres against OpenCV's, median and max px):
+stills 00000 80 / 0 / 80, 0.047, 0.22; 00001 80 / 80 / 80, 0.042, 0.71; 00002 80 / 80 / 80, 0.055, 0.48;
+00003 80 / 80 / 80, 0.038, 0.11; 00004 80 / 0 / 80, 0.036, 0.18; 00005 71 / 80 / 80, 0.068, 1.26.
+video 030 78 / 0 / 0; 075 80 / 80 / 80, 0.050, 0.11; 150 80 / 80 / 80, 0.029, 0.08; 210 80 / 80 / 80,
+0.054, 0.17; 285 80 / 80 / 80, 0.041, 0.12; 360 80 / 80 / 80, 0.060, 1.64; 435 refused / 80 / 80;
+510 80 / 0 / 80, 0.040, 0.11; 555 80 / 0 / 80, 0.036, 0.13; 615 80 / 80 / 80, 0.042, 0.11.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from selfview.errors import ImageError
+from selfview.estimation.intrinsics import detect_views, guess_camera
+from selfview.files.cell import load_plate
+from selfview.measurement.discs import detect_discs
+from selfview.procedures.cli import main
+from tests.grid_photos import OPENCV_MODES, nearest, opencv_grid, opencv_intrinsics, same_indexing
+
+DATA = Path(__file__).resolve().parents[1] / "data"
+SETS = {
+    "stills": (DATA / "boofcv-circles", [f"image0000{i}.jpg" for i in range(6)]),
+    "video": (DATA / "boofcv-circles-video", [f"frame{i:03d}.jpg" for i in (30, 75, 150, 210, 285, 360, 435, 510, 555, 615)]),
+}
+#: Our centres against OpenCV's [px]: the median as for ViSP's set; any one of ours within this of one of
+#: OpenCV's is on that disc (neighbours lie 9-70 px apart here); the largest measured, 1.26 and 1.64 px, are
+#: a disc half in the hand's shadow and one beside the clip of a blurred frame.
+MEDIAN_PX, SAME_DISC_PX = 0.3, 1.8
+
+SHADOW = pytest.mark.xfail(
+    strict=True,
+    reason="a hand's shadow over a quarter of the grid: OpenCV (both modes) finds all 80 discs, ours 71; "
+    "the 9 in or at the edge of the shadow are rejected as 'not elliptical' (merged with the shadow) or "
+    "'crowded' (measured; the detector is not tuned to this set)",
+)
+TURNED = pytest.mark.xfail(
+    strict=True, raises=ImageError,
+    reason="a small plate (discs 12-19 px apart) on end in the picture (its rows 93-96 deg from the picture's) "
+    "on a bench among gravel: OpenCV (both modes) finds all 80 discs; ours refuses the picture: 'the discs "
+    "form a lattice of 10 x 17, larger than the plate's 10 x 8' (measured; the detector is not tuned to this set)",
+)
+XFAIL = {("stills", "image00005.jpg"): SHADOW, ("video", "frame435.jpg"): TURNED}
+PICTURES = [pytest.param(s, n, marks=XFAIL.get((s, n), ()), id=f"{s}-{n}") for s in SETS for n in SETS[s][1]]
+#: where both OpenCV (one mode or the other) and ours take the picture
+BOTH = [pytest.param(s, n, id=f"{s}-{n}") for s in SETS for n in SETS[s][1]
+        if (s, n) not in {("video", "frame030.jpg"), ("video", "frame435.jpg")}]
+
+
+def _plate(which):
+    return load_plate(SETS[which][0] / "plate.yaml")
+
+
+def _load(which, name):
+    img = cv2.imread(str(SETS[which][0] / name), cv2.IMREAD_GRAYSCALE)
+    assert img is not None, f"missing test picture {which}/{name}"
+    return img
+
+
+@pytest.mark.parametrize("which, name", PICTURES)
+def test_as_many_discs_as_the_better_of_opencvs_modes(which, name):
+    img, plate = _load(which, name), _plate(which)
+    theirs = max(len(g) if (g := opencv_grid(img, plate, mode)) is not None else 0 for mode in OPENCV_MODES)
+    det = detect_discs(img, plate)
+    assert len(det) >= theirs, (name, len(det), theirs, det.rejected)
+
+
+@pytest.mark.parametrize("which, name", BOTH)
+def test_centres_where_both_find_the_grid(which, name):
+    img, plate = _load(which, name), _plate(which)
+    grids = [g for g in (opencv_grid(img, plate, mode) for mode in OPENCV_MODES) if g is not None]
+    assert grids, f"{name}: OpenCV found the grid in neither mode (the set's figures say it does)"
+    det = detect_discs(img, plate)
+    assert len(det) >= 70, (name, det.rejected)
+    assert det.index_basis == {"cols": "all seen", "rows": "all seen"}
+    idx, d = nearest(det.uv, grids[0])
+    # one detection per disc, none on the clip, the board, the bench or the shadow's edge
+    assert len(set(idx)) == len(idx)
+    assert np.median(d) < MEDIAN_PX and d.max() < SAME_DISC_PX, (name, np.median(d), d.max())
+    assert same_indexing(det.rc, idx, plate.cols)
+
+
+@pytest.mark.parametrize("which, names", [("stills", ("image00000.jpg", "image00004.jpg")),
+                                          ("video", ("frame510.jpg", "frame555.jpg"))])
+def test_views_plain_findcirclesgrid_does_not_assemble(which, names):
+    """The defect the sets have for OpenCV: views its plain mode does not assemble (its clustering mode does)."""
+    plate = _plate(which)
+    for name in names:
+        img = _load(which, name)
+        assert opencv_grid(img, plate) is None and opencv_grid(img, plate, "clustering") is not None
+        assert len(detect_discs(img, plate)) == plate.rows * plate.cols
+
+
+def test_discs_cut_by_the_picture_edge():
+    """Video frame 030: the grid's left column runs off the picture, two of its discs cut by the edge.
+    OpenCV takes nothing; ours takes the 78 whole discs, indexed on the plate's 8 x 10, and the two it leaves
+    are the cut ones: the plate-to-picture homography of the 78 puts them within a disc of the edge."""
+    img, plate = _load("video", "frame030.jpg"), _plate("video")
+    assert all(opencv_grid(img, plate, mode) is None for mode in OPENCV_MODES)
+    det = detect_discs(img, plate)
+    assert len(det) == plate.rows * plate.cols - 2, det.rejected
+    assert np.ptp(det.rc, axis=0).tolist() == [plate.rows - 1, plate.cols - 1]
+    H, _ = cv2.findHomography(det.p_W[:, :2], det.uv)
+    seen = {tuple(rc) for rc in det.rc.tolist()}
+    lo = det.rc.min(axis=0)
+    missing = [(r, c) for r in range(lo[0], lo[0] + plate.rows) for c in range(lo[1], lo[1] + plate.cols)
+               if (r, c) not in seen]
+    assert len(missing) == 2
+    # the W points of the missing lattice places, from the found ones' (row, col) -> W map (affine)
+    A = np.column_stack([det.rc, np.ones(len(det))])
+    coef, *_ = np.linalg.lstsq(A, det.p_W[:, :2], rcond=None)
+    p = cv2.perspectiveTransform((np.column_stack([missing, np.ones(2)]) @ coef).reshape(-1, 1, 2), H).reshape(-1, 2)
+    r = np.sqrt(np.median(det.area_px) / np.pi)
+    h, w = img.shape
+    edge = np.minimum.reduce([p[:, 0], p[:, 1], w - 1 - p[:, 0], h - 1 - p[:, 1]])
+    assert np.all(edge < 1.5 * r), (p, r)
+
+
+def _run(which, capsys, extra=()):
+    """The JSON of ``selfview intrinsics --plate --skip-unusable`` (with ``extra``) on a set, and its pictures."""
+    folder, names = SETS[which]
+    files = [str(folder / n) for n in names]
+    code = main(["intrinsics", "--plate", str(folder / "plate.yaml"), "--images", *files, "--skip-unusable",
+                 "--json", *extra])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    return json.loads(out), names
+
+
+def _z(doc, which, names):
+    """cv2.calibrateCamera on our discs of the set beside the command's ``doc``: the z of (f, cx, cy) in
+    combined sigmas, ours and theirs."""
+    plate = _plate(which)
+    imgs = [_load(which, n) for n in names]
+    dets, _, _ = detect_views(imgs, plate, None, skip_unusable=True)
+    h, w = imgs[0].shape
+    theirs, their_sd = opencv_intrinsics(dets, guess_camera(dets, w, h), (w, h))
+    ours = np.array([doc["f"], *doc["principal_point"]])
+    our_sd = np.array([doc["sigma"][k] for k in ("f", "cx", "cy")])
+    return (ours - theirs) / np.hypot(our_sd, their_sd), ours, theirs
+
+
+def test_stills_intrinsics_command_agrees_with_opencv(capsys):
+    """``selfview intrinsics --plate`` with its defaults against cv2.calibrateCamera on the same discs.
+    Measured: f 455.52 +- 0.97 vs 455.04 +- 1.14 px, cx 319.12 +- 0.29 vs 318.49 +- 0.33 px, cy 238.68 +-
+    0.63 vs 237.87 +- 0.79 px: 0.3, 1.4 and 0.8 combined sigmas. The sheet on its clipboard is bent: the
+    default plate model takes the bow (13 sigmas from flat, 9 by the views left out in turn). (OpenCV on its
+    own centres: f 454.34 +- 1.10, cx 318.35 +- 0.32, cy 238.69 +- 0.75 px.)"""
+    doc, names = _run("stills", capsys)
+    assert doc["views_used"] == len(names) and doc["width"] == 640 and doc["height"] == 480
+    assert doc["plate_shape"]["model"] == "bow+dots", doc["plate_shape"]
+    z, ours, theirs = _z(doc, "stills", names)
+    assert np.all(np.abs(z) < 2.0), (ours, theirs, z)
+
+
+def test_video_intrinsics_flat_plate_agrees_with_opencv(capsys):
+    """The video frames with the plate taken flat: within 2 combined sigmas of cv2.calibrateCamera (k1
+    -0.247). Measured: f 701.87 +- 1.56 vs 703.76 +- 1.58 px, cx 290.67 +- 1.06 vs 291.60 +- 1.12 px, cy
+    238.77 +- 1.38 vs 237.45 +- 1.38 px: -0.85, -0.61, 0.68 sigmas. The refused frame is listed, not used."""
+    doc, names = _run("video", capsys, ("--plate-model", "flat"))
+    assert doc["views_used"] == len(names) - 1
+    assert [s["name"].rsplit("/", 1)[-1] for s in doc["views_skipped"]] == ["frame435.jpg"]
+    z, ours, theirs = _z(doc, "video", names)
+    assert np.all(np.abs(z) < 2.0), (ours, theirs, z)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "the default plate model takes a bow (6 sigmas from flat, 4 by the views left out) and moves the camera "
+    "from cv2.calibrateCamera's: f 698.17 +- 1.85 vs 703.76 +- 1.58 px (-2.3 sigmas), cx 288.74 +- 1.14 vs "
+    "291.60 +- 1.12 (-1.8), cy 245.33 +- 2.53 vs 237.45 +- 1.38 (2.7); the flat plate agrees within 0.9"))
+def test_video_intrinsics_defaults_agree_with_opencv(capsys):
+    doc, names = _run("video", capsys)
+    z, ours, theirs = _z(doc, "video", names)
+    assert np.all(np.abs(z) < 2.0), (doc["plate_shape"]["model"], ours, theirs, z)
