@@ -14,8 +14,8 @@ that the arm cannot reach, is drawn again and counted); each start's arm draws e
 same for every calibration of that start (``start_arm``: the calibrations compared on the same landings).
 Conditions also with the camera moved on its mount (1 deg about a random axis through the cable pivot, about
 2 mm at the TCP) before the fourth frame, and a control where the goal is taught by a picture taken with the
-gripper truly at the stand-off pose (every calibration should then agree). Prints one JSON object; ``--out DIR`` also writes the JSON, a markdown
-table and a PNG plot.
+gripper truly at the stand-off pose (every calibration should then agree). Prints one JSON object; ``--out DIR``
+also writes the JSON, a markdown table and a PNG plot.
 
     python bench/positioning.py [--quick] [--seed N] [--starts 20] [--jobs 2] [--out DIR]
 """
