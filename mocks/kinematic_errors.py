@@ -74,16 +74,21 @@ class Station:
 class PerturbedPuma260:
     """A PUMA 260 whose true geometry differs from the nominal one of its controller (module docstring).
 
-    ``errors`` the error bounds; ``seed`` fixes the error pattern and the encoder noise; ``nominal`` the
-    geometry the controller uses (default the published one); ``config`` the arm configuration of the
-    inverse kinematics. ``nominal`` and ``true`` are ``Puma260`` models; ``link_errors_mm`` and
+    ``errors`` the error bounds; ``seed`` fixes the error pattern (which robot) and, unless ``noise_seed``
+    is given, the encoder noise; ``noise_seed`` (an int) a stream of encoder draws of its own for the same
+    robot (so independent runs of one arm do not repeat each other's landing errors draw for draw);
+    ``nominal`` the geometry the controller uses (default the published one); ``config`` the arm
+    configuration of the inverse kinematics. ``nominal`` and ``true`` are ``Puma260`` models; ``link_errors_mm`` and
     ``joint_offset_errors_deg`` what was drawn.
     """
 
-    def __init__(self, errors: KinematicErrors = KinematicErrors(), *, seed: int = 0,
+    def __init__(self, errors: KinematicErrors = KinematicErrors(), *, seed: int = 0, noise_seed: int | None = None,
                  nominal: Puma260Geometry | None = None, config: ArmConfig | None = None):
         if not isinstance(errors, KinematicErrors):
             raise ConfigError(f"errors: expected a KinematicErrors, got {type(errors).__name__}")
+        if noise_seed is not None and (isinstance(noise_seed, bool) or not isinstance(noise_seed, (int, np.integer))
+                                       or noise_seed < 0):
+            raise ConfigError(f"noise_seed: expected a whole number >= 0 or None, got {noise_seed!r}")
         nominal = nominal or Puma260Geometry()
         config = config or ArmConfig()
         self.errors = errors
@@ -97,7 +102,9 @@ class PerturbedPuma260:
         )
         self.nominal = Puma260(nominal, config)
         self.true = Puma260(nominal.with_errors(**changes), config)
-        self._noise = np.random.default_rng([self.seed, 1])
+        self.noise_seed = None if noise_seed is None else int(noise_seed)
+        # a stream of its own: [seed, 2, n] (a trailing 0 seeds as [seed, 2]), never the robot's own [seed, 1]
+        self._noise = np.random.default_rng([self.seed, 1] if noise_seed is None else [self.seed, 2, self.noise_seed])
 
     def encoder_error_deg(self) -> np.ndarray:
         """(6,) one fresh draw of the joint encoders' errors [deg]."""

@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from selfview.bench.kinematics_vs_selfview import F_H_G
 from selfview.bench.positioning import (CALIBRATIONS, ServoSettings, _summary, arm_repeatability, conditions,
-                                        run_start)
+                                        run_start, start_arm)
+from selfview.maths.geometry import inv_H, make_H
 from selfview.mocks.world import SimWorld
 
 
@@ -26,6 +28,19 @@ def test_a_worn_arm_lands_off_its_command_and_a_perfect_one_does_not():
     assert arm_repeatability(1, 0.0)["repeatability_mm"] < 1e-6
     worn = arm_repeatability(1, 1.0)
     assert 0.05 < worn["repeatability_mm"] < worn["accuracy_mm"]
+
+
+def test_every_start_drives_the_same_worn_arm_but_lands_with_encoder_draws_of_its_own():
+    # one noise stream for every start made each run's k-th motion land off by the same draw: the worn rows'
+    # final errors were one vector for every start and every calibration
+    arms = [start_arm(1, s, 1.0) for s in range(3)]
+    assert all(a.link_errors_mm == arms[0].link_errors_mm for a in arms)
+    target = make_H(np.diag([1.0, -1.0, -1.0]), (350.0, 170.0, 60.0)) @ inv_H(F_H_G)
+    landed = np.array([[a.move(target).base_H_F_true[:3, 3] for _ in range(3)] for a in arms])  # (start, k, xyz)
+    for i in range(3):
+        for j in range(i):
+            assert np.all(np.linalg.norm(landed[i] - landed[j], axis=1) > 0.01), (i, j)
+    assert np.all(np.linalg.norm(landed - target[:3, 3], axis=2) < 3.0)  # each still near its command
 
 
 def test_one_start_with_the_true_calibration_converges_and_the_summary_has_the_keys_the_checks_read(cell):

@@ -70,6 +70,22 @@ def test_encoder_noise_has_its_standard_deviation():
     assert np.allclose(PerturbedPuma260(seed=1).observe(ABOVE_F, q_true).q_read, q_true)
 
 
+def test_a_noise_seed_gives_the_same_robot_encoder_draws_of_its_own():
+    base, same = PerturbedPuma260(WORN_PUMA, seed=1), PerturbedPuma260(WORN_PUMA, seed=1)
+    a, b = PerturbedPuma260(WORN_PUMA, seed=1, noise_seed=0), PerturbedPuma260(WORN_PUMA, seed=1, noise_seed=1)
+    for r in (a, b):  # the same worn robot
+        assert r.link_errors_mm == base.link_errors_mm and r.joint_offset_errors_deg == base.joint_offset_errors_deg
+    draws = {nm: np.array([r.encoder_error_deg() for _ in range(4)])
+             for nm, r in (("base", base), ("same", same), ("a", a), ("b", b))}
+    np.testing.assert_array_equal(draws["base"], draws["same"])  # without a noise seed: the robot's one stream
+    for x, y in (("a", "b"), ("a", "base"), ("b", "base")):
+        assert np.all(np.abs(draws[x] - draws[y]).max(axis=1) > 1e-4), (x, y)
+    with pytest.raises(ConfigError, match="noise_seed"):
+        PerturbedPuma260(WORN_PUMA, seed=1, noise_seed=-1)
+    with pytest.raises(ConfigError, match="noise_seed"):
+        PerturbedPuma260(WORN_PUMA, seed=1, noise_seed=True)
+
+
 @pytest.mark.parametrize("kwargs, match", [
     ({"link_mm": -1.0}, "link_mm"), ({"joint_offset_deg": float("nan")}, "joint_offset_deg"),
     ({"encoder_sd_deg": "0.02"}, "encoder_sd_deg"),
