@@ -7,7 +7,7 @@ import numpy as np
 
 from selfview.maths.camera import CameraModel, distort
 from selfview.errors import CalibrationError
-from selfview.maths.geometry import R_from_rotvec, cross_rows, make_H, so3_left_jacobian
+from selfview.maths.geometry import R_from_rotvec, R_from_rotvecs, cross_rows, make_H, so3_left_jacobians
 
 
 #: Finite-difference steps of the numeric Jacobian: f (relative), kappa [px^-2], cx, cy [px], aspect,
@@ -90,7 +90,7 @@ class JointProblem:
     def _rotations(self, x) -> np.ndarray:
         """(V, 3, 3) each view's rotation exp(omega_k) R0_k."""
         om = x[self.ni : self.ni + 6 * len(self.p_W)].reshape(-1, 6)[:, :3]
-        return np.array([R_from_rotvec(o) for o in om]) @ self.R0
+        return R_from_rotvecs(om) @ self.R0
 
     def view(self, x, k) -> np.ndarray:
         j = self.ni + 6 * k
@@ -146,7 +146,7 @@ class JointProblem:
         a = 1.0 + kappa * rh2
         c = 2.0 * kappa / (a + 2.0 * kappa * rh2)
         m00, m11, m01 = (1.0 - c * Xh * Xh) / a, (1.0 - c * Yh * Yh) / a, -c * Xh * Yh / a
-        Jl = np.array([so3_left_jacobian(o[:3]) for o in om])[vid]
+        Jl = so3_left_jacobians(om[:, :3])[vid]
         D = self.shape.dp_dy(self.idx_all) if self.shape else None
         for rows, (mu0, mu1) in ((self.ru, (m00 / aspect + skew * m01, m01 / aspect + skew * m11)),
                                  (self.rv, (m01, m11))):
