@@ -139,7 +139,7 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
         idx = [shape.index(r[k]) for r, k in zip(rc, keep)] if shape else None
         model = JointProblem(P, U, [H[:3, :3] for H in poses0], shape, idx, ni=ni, skew=camera0.skew)
         x0 = np.concatenate([intrinsics_vector(camera0, ni), *[np.concatenate([np.zeros(3), H[:3, 3]]) for H in poses0], y0])
-        res = levenberg_marquardt(model.residuals, x0, model.jacobian, normal=True)
+        res = levenberg_marquardt(model.residuals, x0, model.jacobian, normal=model.normal_matrix)
         poses0 = [model.pose(res.x, k) for k in range(len(P))]
         y0 = res.x[len(res.x) - ns :] if ns else y0
         try:

@@ -167,6 +167,23 @@ class JointProblem:
             raise CalibrationError("intrinsics: the model cannot see every disc near the current parameters")
         return J
 
+    def normal_matrix(self, J) -> np.ndarray:
+        """J^T J of this problem's Jacobian ``J`` without its zero blocks: view k's pose columns meet only its
+        own rows, so the poses' block is block-diagonal; the intrinsics and the shape meet every row."""
+        V = len(self.p_W)
+        s0 = self.ni + 6 * V
+        shared = np.r_[0 : self.ni, s0 : J.shape[1]]
+        Js = J[:, shared]
+        A = np.zeros((J.shape[1], J.shape[1]))
+        A[np.ix_(shared, shared)] = Js.T @ Js
+        for k in range(V):
+            rows, c = slice(self.off[k], self.off[k + 1]), self.ni + 6 * k
+            Jp = J[rows, c : c + 6]
+            A[c : c + 6, c : c + 6] = Jp.T @ Jp
+            A[c : c + 6, shared] = Jp.T @ Js[rows]
+            A[shared, c : c + 6] = A[c : c + 6, shared].T
+        return A
+
     def pose(self, x, k) -> np.ndarray:
         j = self.ni + 6 * k
         return make_H(R_from_rotvec(x[j : j + 3]) @ self.R0[k], x[j + 3 : j + 6])
