@@ -74,6 +74,7 @@ class JointProblem:
         self.P = np.concatenate(p_W).reshape(-1, 3) if len(self.vid) else np.zeros((0, 3))
         self.UV = np.concatenate(uv).reshape(-1, 2) if len(self.vid) else np.zeros((0, 2))
         self.idx_all = np.concatenate(idx) if self.shape else None
+        self.dp_dy = self.shape.dp_dy(self.idx_all) if self.shape else None  # constant: the shape is linear
         self.pose_cols = self.ni + 6 * self.vid[:, None] + np.arange(6)
 
     def _y(self, x):
@@ -147,7 +148,7 @@ class JointProblem:
         c = 2.0 * kappa / (a + 2.0 * kappa * rh2)
         m00, m11, m01 = (1.0 - c * Xh * Xh) / a, (1.0 - c * Yh * Yh) / a, -c * Xh * Yh / a
         Jl = so3_left_jacobians(om[:, :3])[vid]
-        D = self.shape.dp_dy(self.idx_all) if self.shape else None
+        D = self.dp_dy
         for rows, (mu0, mu1) in ((self.ru, (m00 / aspect + skew * m01, m01 / aspect + skew * m11)),
                                  (self.rv, (m01, m11))):
             g = np.column_stack([mu0, mu1, -(mu0 * X + mu1 * Y) / f]) * (f / z)[:, None]
