@@ -98,11 +98,10 @@ def more_views_advice(fit: JointFit, plate: PlateSpec) -> dict:
             if add is None:
                 break
             info += add
-            try:
-                cov = np.linalg.inv(info)
+            try:  # the intrinsics' block of the inverse: a solve for its ni columns, not a whole inverse
+                cov = np.linalg.solve(info, np.eye(m)[:, :ni])[:ni]
             except np.linalg.LinAlgError:
                 continue
-            cov = cov[:ni, :ni]
             if np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0) and stop_met(sigmas_of(cov), fit.camera.aspect):
                 need = n
                 break
