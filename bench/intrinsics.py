@@ -351,6 +351,9 @@ def table(per_camera):
             "median_f_err_pct": _median([r["f_pct"] for r in rows]),
             "median_kappa_err_pct": _median([r["kappa_pct"] for r in rows]),
             "median_seconds": _median([r["seconds"] for r in rows]),
+            # the fit's time over cv2.calibrateCamera's on the same detections, the same run (issue 31: <= 10)
+            "median_seconds_over_cv2": _median([p[m]["seconds"] / p["cv2_raw"]["seconds"] for p in ok
+                                                if m in p and "error" not in p[m] and "cv2_raw" in p]),
             "median_sigma": {k: _median([r["sigma"][k] for r in rows]) for k in ("f", "cx", "cy", "aspect")},
         }
         # observed spread (RMS of the errors) over the RMS of the reported sigmas, per parameter
@@ -429,6 +432,8 @@ def photo_study() -> dict:
     it (the skew fitted only when the views pin it, ``skew_fit`` says which and why; the skew always fitted
     is listed apart) beside ``cv2.calibrateCamera`` (``CV_FLAGS``) on findCirclesGrid's centres and on ours,
     each difference in units of the combined sigmas sqrt(s_ours^2 + s_cv2^2) for f, cx, cy and the aspect.
+    Each fit's ``seconds`` on the detections (detection not counted); ``fit_seconds_over_cv2_on_our_discs``
+    the first one's (with the halves' cross-check, as the command runs it) over cv2's on the same discs.
     """
     from types import SimpleNamespace
 
@@ -477,8 +482,10 @@ def photo_study() -> dict:
                             ("selfview_skew_fitted", True, "auto"), ("selfview_flat_plate", "auto", "flat"),
                             ("selfview_flat_no_skew", False, "flat"))
                 for key, skew, plate_model in variants:
+                    t = time.perf_counter()
                     r = calibrate_intrinsics(None, cell.plate, cam0, [v[3] for v in views], detections=dets,
-                                             skew=skew, cross_check=False, plate_model=plate_model)
+                                             skew=skew, cross_check=key == "selfview", plate_model=plate_model)
+                    dt = time.perf_counter() - t
                     c = r.camera
                     fits[key] = {"views_used": r.views_used, "f": c.f, "cx": c.cx, "cy": c.cy, "aspect": c.aspect,
                                  "kappa": c.kappa,
@@ -487,7 +494,7 @@ def photo_study() -> dict:
                                  "plate_model": r.plate_shape.get("model", plate_model),
                                  "plate_model_why": r.plate_shape.get("why"),
                                  "sigma": {k: r.sigma[k] for k in ("f", "cx", "cy", "aspect", "skew") if k in r.sigma},
-                                 "skew_fit": r.skew_fit}
+                                 "skew_fit": r.skew_fit, "seconds": dt}
                 entry.update(fits)
                 entry["selfview"]["skew_note"] = fits["selfview"]["skew_fit"]["note"] + " (selfview_skew_fitted has it free)"
                 entry["selfview_flat_plate"]["note"] = "the plate taken as specified, as cv2.calibrateCamera takes it"
@@ -498,6 +505,10 @@ def photo_study() -> dict:
             entry["cv2_on_findCirclesGrid"] = cvd
             entry["cv2_on_our_discs"] = {**_cv2(dets, [d.uv for d in dets], cam0, size),
                                          "discs": int(sum(len(d) for d in dets))}
+            if "seconds" in entry.get("selfview", {}):
+                # as `selfview intrinsics` fits (with the halves' cross-check), over cv2 on the same discs
+                entry["fit_seconds_over_cv2_on_our_discs"] = (entry["selfview"]["seconds"]
+                                                              / entry["cv2_on_our_discs"]["seconds"])
             if "error" not in entry.get("selfview", {"error": 1}):
                 entry["ours_minus_cv2_in_combined_sigmas"] = _in_sigmas(entry["selfview"], cvd)
                 entry["ours_minus_cv2_on_our_discs_in_combined_sigmas"] = _in_sigmas(

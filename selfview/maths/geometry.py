@@ -169,13 +169,27 @@ def hat(v) -> np.ndarray:
 
 def R_from_rotvec(v) -> np.ndarray:
     """(3, 3) rotation from a rotation vector (axis * angle, rad), Rodrigues' formula."""
-    v = np.asarray(v, dtype=float).reshape(3)
-    th = np.linalg.norm(v)
-    K = hat(v)
-    if th < 1e-12:
-        return np.eye(3) + K
-    K /= th
-    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * (K @ K)
+    return R_from_rotvecs(np.asarray(v, dtype=float).reshape(1, 3))[0]
+
+
+def _hats(V: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) cross-product matrices of the rows of ``V`` (N, 3) (``hat`` of each)."""
+    K = np.zeros((len(V), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -V[:, 2], V[:, 1], -V[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = V[:, 2], -V[:, 1], V[:, 0]
+    return K
+
+
+def R_from_rotvecs(V) -> np.ndarray:
+    """(N, 3, 3) rotations from the rotation vectors (N, 3) (``R_from_rotvec`` of each row, at once)."""
+    V = np.asarray(V, dtype=float).reshape(-1, 3)
+    th = np.linalg.norm(V, axis=1)
+    small = th < 1e-12
+    K = _hats(V)
+    Kn = K / np.where(small, 1.0, th)[:, None, None]
+    s = np.where(small, 1.0, np.sin(th))[:, None, None]
+    c = np.where(small, 0.0, 1 - np.cos(th))[:, None, None]
+    return np.eye(3) + s * Kn + c * (Kn @ Kn)
 
 
 def rotvec_from_R(R) -> np.ndarray:
@@ -335,11 +349,19 @@ def pose_difference(A_H_B, A_H_B_ref) -> tuple[float, float]:
 
 def so3_left_jacobian(omega: np.ndarray) -> np.ndarray:
     """Left Jacobian of SO(3) at rotation vector ``omega``: exp(omega + d) = exp(J_l d) exp(omega)."""
-    th = float(np.linalg.norm(omega))
-    K = hat(omega)
-    if th < 1e-8:
-        return np.eye(3) + 0.5 * K
-    return np.eye(3) + (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * (K @ K)
+    return so3_left_jacobians(np.asarray(omega, dtype=float).reshape(1, 3))[0]
+
+
+def so3_left_jacobians(Omega) -> np.ndarray:
+    """(N, 3, 3) left Jacobians of SO(3) at the rotation vectors (N, 3) (``so3_left_jacobian`` of each row)."""
+    Omega = np.asarray(Omega, dtype=float).reshape(-1, 3)
+    th = np.linalg.norm(Omega, axis=1)
+    small = th < 1e-8
+    K = _hats(Omega)
+    t = np.where(small, 1.0, th)
+    a = np.where(small, 0.5, (1 - np.cos(t)) / t**2)[:, None, None]
+    b = np.where(small, 0.0, (t - np.sin(t)) / t**3)[:, None, None]
+    return np.eye(3) + a * K + b * (K @ K)
 
 
 def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -57,17 +57,27 @@ def _r_factor(A) -> np.ndarray:
     return np.linalg.qr(A, mode="r")
 
 
-def covariance(J, sigma2: float, *, normal: bool = False) -> np.ndarray:
+def _normal_matrix(J, d, normal) -> np.ndarray:
+    """``D^-1 J^T J D^-1`` of the column scales ``d``: the dense product, or ``normal(J)`` (a callable: the
+    problem's own J^T J, which skips the blocks it knows are zero) scaled."""
+    if callable(normal):
+        return np.asarray(normal(J), dtype=float) / np.outer(d, d)
+    Js = J / d
+    return Js.T @ Js
+
+
+def covariance(J, sigma2: float, *, normal=False) -> np.ndarray:
     """(P, P) covariance ``sigma2 (J^T J)^-1`` of a least-squares estimate with Jacobian ``J`` (M, P)
     and residual variance ``sigma2``. Computed from the SVD of the column-scaled Jacobian (inverting
     J^T J would square its condition); if the data do not determine some direction at all, every
-    entry is infinite. ``normal``: from the normal equations (see ``levenberg_marquardt``)."""
+    entry is infinite. ``normal``: from the normal equations (see ``levenberg_marquardt``; a function of J:
+    the problem's own J^T J)."""
     J = np.asarray(J, dtype=float)
     m, p = J.shape
     cn = np.linalg.norm(J, axis=0)
     cn = np.where(cn > 0, cn, 1.0)
     if normal:
-        A = (J / cn).T @ (J / cn)
+        A = _normal_matrix(J, cn, normal)
         w = np.linalg.eigvalsh(A)
         if not (np.all(np.isfinite(w)) and w[0] > _NORMAL_FLOOR**2 * w[-1]):
             return np.full((p, p), np.inf)
@@ -161,19 +171,16 @@ class _ScaledNormal:
     well-scaled parameters, where factoring J itself costs far more. ``LinAlgError`` when A is not
     positive definite to ``_NORMAL_FLOOR`` (the caller then takes the SVD)."""
 
-    def __init__(self, J, r, d):
-        Js = J / d
-        self.A, self.g, self.d = Js.T @ Js, Js.T @ r, d
+    def __init__(self, J, r, d, normal=True):
+        self.A, self.g, self.d = _normal_matrix(J, d, normal), (J.T @ r) / d, d
         L = np.linalg.cholesky(self.A)
         if not np.min(np.diag(L)) ** 2 > _NORMAL_FLOOR**2 * np.max(np.diag(self.A)):
             raise np.linalg.LinAlgError("normal equations: not positive definite")
         self.full_rank = True
-        self._par, self._inv = None, None
 
     def _solve(self, par, b):
-        if par != self._par:  # one inverse per damping, for both of Moré's solves with it
-            self._inv, self._par = np.linalg.inv(self.A + par * np.eye(len(self.A))), par
-        return self._inv @ b
+        # a solve per right-hand side (Moré's two per damping) costs far less than an inverse per damping
+        return np.linalg.solve(self.A + par * np.eye(len(self.A)), b)
 
     def z(self, par):
         return self._solve(par, self.g)
@@ -191,10 +198,10 @@ class _ScaledNormal:
         return float(np.sqrt(max(zv @ self.A @ zv, 0.0)))
 
 
-def _factor(J, r, d, normal: bool):
+def _factor(J, r, d, normal):
     """The factorisation of an iteration: the normal equations' when asked and positive definite, else the SVD."""
     try:
-        return _ScaledNormal(J, r, d) if normal else _ScaledSVD(J, r, d)
+        return _ScaledNormal(J, r, d, normal) if normal else _ScaledSVD(J, r, d)
     except np.linalg.LinAlgError:
         return _ScaledSVD(J, r, d)
 
@@ -318,14 +325,15 @@ def levenberg_marquardt(
     max_nfev: int | None = None,
     factor: float = 100.0,
     scale=None,
-    normal: bool = False,
+    normal=False,
 ) -> LMResult:
     """Minimise ``sum(fun(x)**2)`` from ``x0`` (P,).
 
     ``jac(x)`` returns the (M, P) Jacobian, or ``None``/``"central"``/``"forward"`` differences as in
     ``numeric_jacobian`` (forward: ``lmdif``'s). MINPACK's tests and constants (``_stop_test``), ``factor
     * ||D x0||`` the first step bound, ``converged`` False after ``max_nfev`` evaluations (default
-    200 (P + 1)); ``normal``: factor the P-square normal equations instead of J (``_factor``). A trial
+    200 (P + 1)); ``normal``: factor the P-square normal equations instead of J (``_factor``); a function of J instead of
+    True gives their J^T J (a problem's own product, which skips the blocks it knows are zero). A trial
     step whose residuals are not finite (a point behind the camera) is rejected and the bound shrinks.
     Raises ``ValueError`` for M < P or a Jacobian of the wrong shape, ``CalibrationError`` when the
     residuals are not finite at ``x0``.

@@ -164,3 +164,18 @@ def test_so3_left_jacobian_and_cross_rows():
         assert np.abs(lhs - R_from_rotvec(omega)).max() > 1e-7  # the step itself is seen
     a, b = rng.normal(size=(5, 3)), rng.normal(size=(5, 3))
     assert np.allclose(cross_rows(a, b), np.cross(a, b), rtol=0, atol=1e-14)
+
+
+def test_batched_rotations_and_left_jacobians_are_each_rows_own():
+    """Rows near 0 (the series branch) mixed with large and near-pi ones: each row as the one-vector function."""
+    from selfview.maths.geometry import R_from_rotvecs, so3_left_jacobian, so3_left_jacobians
+
+    V = np.vstack([np.random.default_rng(8).normal(0, 1, (4, 3)), [[0, 0, 0], [1e-13, 0, 0], [3e-9, 0, 0],
+                                                                   [0, np.pi - 1e-9, 0]]])
+    Rs, Js = R_from_rotvecs(V), so3_left_jacobians(V)
+    assert Rs.shape == Js.shape == (len(V), 3, 3)
+    for v, R, J in zip(V, Rs, Js):
+        assert np.abs(R - R_from_rotvec(v)).max() < 1e-15 and np.abs(R @ R.T - np.eye(3)).max() < 1e-14
+        assert np.abs(J - so3_left_jacobian(v)).max() < 1e-15
+    K = np.array([[0, 0, 0], [0, 0, -3e-9], [0, 3e-9, 0]])  # [v]x of (3e-9, 0, 0)
+    assert np.abs(Js[6] - (np.eye(3) + 0.5 * K)).max() < 1e-20  # the series below 1e-8 rad

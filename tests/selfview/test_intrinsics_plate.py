@@ -118,6 +118,12 @@ def test_joint_jacobian_with_the_plate_shape_matches_differences(cell):
         xm[i] -= h
         num = (model.residuals(xp) - model.residuals(xm)) / (2 * h)
         assert np.abs(J[:, i] - num).max() < 1e-5 * max(np.abs(num).max(), 1e-9), i
+    # the stacked views' residuals are each view's own, in order; the blocked normal matrix is J^T J
+    r = model.residuals(x)
+    assert np.allclose(r[: model.m_data], np.concatenate([model.view(x, k) for k in range(3)]), rtol=0, atol=1e-9)
+    assert np.allclose(r[model.m_data :], shape.w * x[5 + 18 :], rtol=0, atol=0)
+    A = J.T @ J
+    assert np.abs(model.normal_matrix(J) - A).max() <= 1e-12 * np.abs(A).max()
 
 
 def test_a_view_of_another_print_is_left_out_and_named(cell, plate_views):

@@ -88,17 +88,20 @@ def more_views_advice(fit: JointFit, plate: PlateSpec) -> dict:
     for label, tilt in VIEW_KINDS:
         info = info0.copy()
         need = None
+        seen = {}  # the azimuths repeat every 8 views: each one's information computed once
         for n in range(1, MAX_MORE_VIEWS + 1):
-            add = _view_information(fit.camera, plate, dist, tilt, 90.0 * (n - 1) + 45.0 * ((n - 1) // 4), fit.s2, ni,
-                                    shape, fit.shape if shape is not None else None)
+            azimuth = (90.0 * (n - 1) + 45.0 * ((n - 1) // 4)) % 360.0
+            if azimuth not in seen:
+                seen[azimuth] = _view_information(fit.camera, plate, dist, tilt, azimuth, fit.s2, ni, shape,
+                                                  fit.shape if shape is not None else None)
+            add = seen[azimuth]
             if add is None:
                 break
             info += add
-            try:
-                cov = np.linalg.inv(info)
+            try:  # the intrinsics' block of the inverse: a solve for its ni columns, not a whole inverse
+                cov = np.linalg.solve(info, np.eye(m)[:, :ni])[:ni]
             except np.linalg.LinAlgError:
                 continue
-            cov = cov[:ni, :ni]
             if np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0) and stop_met(sigmas_of(cov), fit.camera.aspect):
                 need = n
                 break

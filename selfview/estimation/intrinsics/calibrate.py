@@ -118,15 +118,18 @@ fits it; False holds it at ``camera_guess``'s, the spec's model. ``plate_model``
             "tilted 20-40 deg in different directions, pin the centre and the aspect)"
         )
     _check_options(skew, plate_model)
-    plate_why = f"{plate_model}: as asked"
+    plate_why, held = f"{plate_model}: as asked", None
     if plate_model == "auto":
-        plate_model, plate_why = _choose_plate_model(dets, names, plate, camera_guess)
+        plate_model, plate_why, bent = _choose_plate_model(dets, names, plate, camera_guess)
+        if plate_model == "bow+dots" and camera_guess.skew == 0.0:
+            held = (list(names), bent)  # the fit the skew decision would redo, if it comes to it on these views
     # a bow the views measure but are too few to check, left out of a flat plate, is what a skew would take
     # up (a bow the views left out do not confirm is no shape of the plate, and no reason to hold the skew)
     bow_unconfirmed = plate_model == "flat" and "too few to check" in plate_why
     fit = fit_views(dets, plate, camera_guess, names, plate_model=plate_model, fit_skew=skew is not False)
     fit, dets, names = _drop_misfits(fit, dets, names, plate, plate_model, skew is not False, skipped)
-    fit, skew_fit = _decide_skew(fit, skew, bow_unconfirmed, dets, names, plate, plate_model)
+    fit, skew_fit = _decide_skew(fit, skew, bow_unconfirmed, dets, names, plate, plate_model,
+                                 held[1] if held and held[0] == names else None)
     for nm, why in fit.dropped:
         skipped.append({"name": nm, "reason": why})
     dets, names = _used(fit, dets, names)
@@ -148,10 +151,12 @@ fits it; False holds it at ``camera_guess``'s, the spec's model. ``plate_model``
     )
 
 
-def _decide_skew(fit: JointFit, skew, bow_unconfirmed: bool, dets, names, plate, plate_model: str):
+def _decide_skew(fit: JointFit, skew, bow_unconfirmed: bool, dets, names, plate, plate_model: str,
+                 held: JointFit | None = None):
     """(fit, skew_fit): with ``skew`` 'auto', the skew kept only when the views pin it (``SKEW_SIGNIFICANCE``
-    by its formal sigma and by the jackknife's), else the fit redone with it held at 0; ``skew_fit`` says
-    which and why."""
+    by its formal sigma and by the jackknife's), else the fit redone with it held at 0 (``held``, when given:
+    that fit, already made on the same views and plate model from another start, which converges to the
+    same solution); ``skew_fit`` says which and why."""
     skew_fit = {"fitted": skew is not False, "note": "skew fitted" if skew is True else "skew held at the guess's"}
     if skew is False:
         return fit, skew_fit
@@ -181,7 +186,8 @@ def _decide_skew(fit: JointFit, skew, bow_unconfirmed: bool, dets, names, plate,
                                 "the views left out in turn)")
     if why is not None:
         skew_fit.update(fitted=False, note=f"skew not fitted: {why}; it is held at 0 (the spec's camera model)")
-        fit = fit_views(dets, plate, fit.camera.with_(skew=0.0), names, plate_model=plate_model, fit_skew=False)
+        fit = held or fit_views(dets, plate, fit.camera.with_(skew=0.0), names, plate_model=plate_model,
+                                fit_skew=False)
     return fit, skew_fit
 
 
@@ -270,27 +276,28 @@ def _bow_as(b, ref) -> np.ndarray:
     return b if np.linalg.norm(b - ref) <= np.linalg.norm(turned - ref) else turned
 
 
-def _choose_plate_model(dets, names, plate, camera_guess: CameraModel) -> tuple[str, str]:
-    """('bow+dots' or 'flat', why): the bent plate only when its bow stands ``PLATE_SIGNIFICANCE`` sigmas
-    from 0 by its formal sigma and by its jackknife's (views left out in turn). A view the bent plate cannot
-    tie to the printed grid is left out of it: kept only when the other views confirm the bow on their own."""
+def _choose_plate_model(dets, names, plate, camera_guess: CameraModel) -> tuple[str, str, JointFit | None]:
+    """('bow+dots' or 'flat', why, the bent plate's fit with the skew held at the guess's): the bent plate
+    only when its bow stands ``PLATE_SIGNIFICANCE`` sigmas from 0 by its formal sigma and by its jackknife's
+    (views left out in turn). A view the bent plate cannot tie to the printed grid is left out of it: kept
+    only when the other views confirm the bow on their own."""
     try:
         bent = fit_views(dets, plate, camera_guess, names, plate_model="bow+dots", fit_skew=False)
     except CalibrationError as e:
-        return "flat", f"flat: the bent plate's fit failed ({e})"
+        return "flat", f"flat: the bent plate's fit failed ({e})", None
     left = (f"; flat keeps the {len(bent.dropped)} view(s) the bent plate could not tie to the printed grid "
             f"({', '.join(nm for nm, _ in bent.dropped)})") if bent.dropped else ""
     bow = bent.shape[:3]
     sd = np.sqrt(np.clip(np.diag(bent.shape_cov)[:3], 0, None))
     z = float(np.max(np.abs(bow) / np.where(sd > 0, sd, np.inf)))
     if not z >= PLATE_SIGNIFICANCE:
-        return "flat", f"flat: the views measure no bow ({z:.1f} sigmas from 0 at most, under {PLATE_SIGNIFICANCE:g}){left}"
+        return "flat", f"flat: the views measure no bow ({z:.1f} sigmas from 0 at most, under {PLATE_SIGNIFICANCE:g}){left}", bent
     sd_jk = _jackknife(dets, names, plate, bent, "bow+dots", False, lambda f: _bow_as(f.shape[:3], bow))
     if sd_jk is None:
         return "flat", (f"flat: the bow measures {z:.1f} sigmas from 0, but {len(bent.views)} views are too few to "
-                        f"check it with views left out (at least {MIN_VIEWS + 1}){left}")
+                        f"check it with views left out (at least {MIN_VIEWS + 1}){left}"), bent
     z_jk = float(np.max(np.abs(bow) / np.where(sd_jk > 0, sd_jk, np.inf)))
     if not z_jk >= PLATE_SIGNIFICANCE:
         return "flat", (f"flat: the bow measures {z:.1f} sigmas from 0, but leaving views out moves it by as much "
-                        f"({z_jk:.1f} of those from 0): not a shape the views share{left}")
-    return "bow+dots", f"bent: the bow stands {z:.0f} sigmas from 0 ({z_jk:.0f} by the views left out in turn)"
+                        f"({z_jk:.1f} of those from 0): not a shape the views share{left}"), bent
+    return "bow+dots", f"bent: the bow stands {z:.0f} sigmas from 0 ({z_jk:.0f} by the views left out in turn)", bent

@@ -4,6 +4,7 @@ outlying discs dropped; the fit's uncertainty figures."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -64,9 +65,12 @@ class ViewFit:
 
 @dataclass
 class JointFit:
+    """A joint fit: its ``camera``, the Jacobian ``jac`` and residual variance ``s2`` at its solution, whose
+    covariance (``cov_full``; ``cov5`` of the ``ni`` intrinsics fitted, INTRINSIC_NAMES[:ni]; ``shape_cov``
+    of the plate's shape) is computed when first asked for (most intermediate fits never are)."""
+
     camera: CameraModel
-    cov5: np.ndarray  # (ni, ni) of the intrinsics fitted: INTRINSIC_NAMES[:ni]
-    cov_full: np.ndarray
+    ni: int
     jac: np.ndarray
     s2: float
     rms_px: float
@@ -75,11 +79,23 @@ class JointFit:
     p_W_used: list
     plate_model: str = "flat"
     shape: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    shape_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     prior_noise_px: float = 0.0
     dot_sd_mm: float = PLATE_DOT_PRIOR_MM
     turns: list = field(default_factory=list)
     dropped: list = field(default_factory=list)  # [(view name, why)] left out of the fit
+
+    @cached_property
+    def cov_full(self) -> np.ndarray:
+        return covariance(self.jac, self.s2, normal=True)
+
+    @property
+    def cov5(self) -> np.ndarray:
+        return self.cov_full[: self.ni, : self.ni]
+
+    @property
+    def shape_cov(self) -> np.ndarray:
+        ns, n = len(self.shape), len(self.cov_full)
+        return self.cov_full[n - ns :, n - ns :] if ns else np.zeros((0, 0))
 
 def view_tilt_distance(C_H_W) -> tuple[float, float]:
     """(tilt [deg], distance [mm]) of a view of the plate: the angle between the plate's normal and the
@@ -123,14 +139,14 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
         idx = [shape.index(r[k]) for r, k in zip(rc, keep)] if shape else None
         model = JointProblem(P, U, [H[:3, :3] for H in poses0], shape, idx, ni=ni, skew=camera0.skew)
         x0 = np.concatenate([intrinsics_vector(camera0, ni), *[np.concatenate([np.zeros(3), H[:3, 3]]) for H in poses0], y0])
-        res = levenberg_marquardt(model.residuals, x0, model.jacobian, normal=True)
+        res = levenberg_marquardt(model.residuals, x0, model.jacobian, normal=model.normal_matrix)
         poses0 = [model.pose(res.x, k) for k in range(len(P))]
         y0 = res.x[len(res.x) - ns :] if ns else y0
         try:
             camera0 = with_intrinsics(camera0, res.x[:ni])
         except ConfigError as exc:  # a skew no grabber has: the views do not fit this camera model
             raise CalibrationError(f"intrinsics: the joint fit left the camera model ({exc})") from None
-        dist = [np.hypot(*model.view(res.x, k).reshape(2, -1)) for k in range(len(P))]
+        dist = [np.hypot(*res.residuals[model.off[k] : model.off[k + 1]].reshape(2, -1)) for k in range(len(P))]
         rms = float(np.sqrt(np.mean(np.concatenate(dist) ** 2)))
         if attempt == 1:
             break
@@ -148,15 +164,14 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
         raise CalibrationError(f"intrinsics: the joint fit did not converge ({res.message})")
     m, n = res.jacobian.shape
     s2 = res.cost / max(m - n, 1)  # the prior rows count as observations of the shape's parameters
-    cov = covariance(res.jacobian, s2, normal=True)
     views = []
     for k in range(len(P)):
         H = poses0[k]
         tilt, distance = view_tilt_distance(H)
         views.append(ViewFit(names[k], H, int(keep[k].sum()), float(np.sqrt(np.mean(dist[k] ** 2))), tilt,
                              distance, int((~keep[k]).sum())))
-    return JointFit(camera0, cov[:ni, :ni], cov, res.jacobian, float(s2), rms, views, U, P, plate_model,
-                np.asarray(y0, float), cov[n - ns :, n - ns :] if ns else np.zeros((0, 0)), float(noise_px), float(dot_sd_mm))
+    return JointFit(camera0, ni, res.jacobian, float(s2), rms, views, U, P, plate_model, np.asarray(y0, float),
+                    float(noise_px), float(dot_sd_mm))
 
 
 def _bias_corrected(dets, camera, poses, plate) -> list:

@@ -7,7 +7,7 @@ import numpy as np
 
 from selfview.maths.camera import CameraModel, distort
 from selfview.errors import CalibrationError
-from selfview.maths.geometry import R_from_rotvec, cross_rows, make_H, so3_left_jacobian
+from selfview.maths.geometry import R_from_rotvec, R_from_rotvecs, cross_rows, make_H, so3_left_jacobians
 
 
 #: Finite-difference steps of the numeric Jacobian: f (relative), kappa [px^-2], cx, cy [px], aspect,
@@ -51,24 +51,47 @@ class JointProblem:
     """Parameters x = (f, kappa, cx, cy, aspect, [skew,] then per view omega (3), t (3), then the plate's
     shape (``PlateShape``: bow, disc corrections) if ``shape``) with view k's rotation exp(omega_k) R0_k;
     ``ni`` intrinsics: 6 with the skew free, 5 with it held at ``skew``. Residuals model minus observation,
-    per view (u then v of its points), then the shape's prior rows."""
+    per view (u then v of its points), then the shape's prior rows. Every view's points are projected at
+    once (the views' points stacked, each with its view's pose); a view's pose parameters touch only its
+    own rows of the Jacobian."""
 
     def __init__(self, p_W: list, uv: list, R0: list, shape=None, idx: list | None = None,
                  *, ni: int = 5, skew: float = 0.0):
         if ni not in (5, 6):
             raise ValueError(f"intrinsics: expected 5 or 6 intrinsic parameters, got {ni}")
-        self.p_W, self.uv, self.R0 = p_W, uv, R0
+        self.p_W, self.uv, self.R0 = p_W, uv, np.asarray(R0, float).reshape(-1, 3, 3)
         self.ni, self.skew = int(ni), float(skew)
         self.n = [len(p) for p in p_W]
-        self.off = np.concatenate([[0], np.cumsum([2 * k for k in self.n])])
+        self.off = np.concatenate([[0], np.cumsum([2 * k for k in self.n])]).astype(int)
         self.shape = shape if shape is not None and shape.n else None
         self.idx = idx
         self.m_data = int(self.off[-1])
+        # the stacked points: each one's view, its u and v rows in the residuals, its pose columns
+        self.vid = np.repeat(np.arange(len(p_W)), self.n)
+        first = np.repeat(self.off[:-1], self.n)
+        local = np.arange(len(self.vid)) - np.repeat(np.cumsum([0, *self.n[:-1]]), self.n)
+        self.ru, self.rv = first + local, first + local + np.repeat(self.n, self.n)
+        self.P = np.concatenate(p_W).reshape(-1, 3) if len(self.vid) else np.zeros((0, 3))
+        self.UV = np.concatenate(uv).reshape(-1, 2) if len(self.vid) else np.zeros((0, 2))
+        self.idx_all = np.concatenate(idx) if self.shape else None
+        self.dp_dy = self.shape.dp_dy(self.idx_all) if self.shape else None  # constant: the shape is linear
+        self.pose_cols = self.ni + 6 * self.vid[:, None] + np.arange(6)
+
+    def _y(self, x):
+        return x[self.ni + 6 * len(self.p_W) :]
 
     def points(self, x, k) -> np.ndarray:
         if not self.shape:
             return self.p_W[k]
-        return self.p_W[k] + self.shape.offsets(x[self.ni + 6 * len(self.p_W) :], self.idx[k])
+        return self.p_W[k] + self.shape.offsets(self._y(x), self.idx[k])
+
+    def _all_points(self, x) -> np.ndarray:
+        return self.P + self.shape.offsets(self._y(x), self.idx_all) if self.shape else self.P
+
+    def _rotations(self, x) -> np.ndarray:
+        """(V, 3, 3) each view's rotation exp(omega_k) R0_k."""
+        om = x[self.ni : self.ni + 6 * len(self.p_W)].reshape(-1, 6)[:, :3]
+        return R_from_rotvecs(om) @ self.R0
 
     def view(self, x, k) -> np.ndarray:
         j = self.ni + 6 * k
@@ -77,10 +100,27 @@ class JointProblem:
         return (m - self.uv[k]).T.ravel()
 
     def residuals(self, x) -> np.ndarray:
-        r = [self.view(x, k) for k in range(len(self.p_W))]
+        """Every view's residuals from one projection of all points (NaN throughout where any point is
+        behind the camera or beyond the fold: no step the solver takes to such parameters is accepted)."""
+        R = self._rotations(x)
+        t = x[self.ni : self.ni + 6 * len(self.p_W)].reshape(-1, 6)[:, 3:]
+        P = self._all_points(x)
+        pc = np.einsum("nij,nj->ni", R[self.vid], P) + t[self.vid]
+        r = np.full(self.m_data, np.nan)
+        z = pc[:, 2]
+        f, kappa, cx, cy, aspect = x[:5]
+        skew = x[5] if self.ni > 5 else self.skew
+        if not (np.any(z <= 0) or f <= 0 or aspect <= 0):
+            try:
+                XYh = distort(f * pc[:, :2] / z[:, None], kappa)
+            except CalibrationError:
+                XYh = None
+            if XYh is not None:
+                r[self.ru] = XYh[:, 0] / aspect + skew * XYh[:, 1] + cx - self.UV[:, 0]
+                r[self.rv] = XYh[:, 1] + cy - self.UV[:, 1]
         if self.shape:
-            r.append(self.shape.w * x[self.ni + 6 * len(self.p_W) :])
-        return np.concatenate(r)
+            r = np.concatenate([r, self.shape.w * self._y(x)])
+        return r
 
     def jacobian(self, x) -> np.ndarray:
         """Analytic (as ``selfview.estimation.tsai``'s full model, with cx, cy, the aspect, the skew and the plate's shape
@@ -90,45 +130,60 @@ class JointProblem:
         skew = x[5] if ni > 5 else self.skew
         V = len(self.p_W)
         s0 = ni + 6 * V
-        J = np.zeros((int(self.off[-1]) + (self.shape.n if self.shape else 0), len(x)))
-        for k in range(V):
-            j = ni + 6 * k
-            R = R_from_rotvec(x[j : j + 3]) @ self.R0[k]
-            d = self.points(x, k) @ R.T
-            pc = d + x[j + 3 : j + 6]
-            z = pc[:, 2]
-            if np.any(z <= 0):
-                raise CalibrationError("intrinsics: a disc lies behind the camera near the current parameters")
-            X, Y = f * pc[:, 0] / z, f * pc[:, 1] / z
-            XYh = distort(np.column_stack([X, Y]), kappa)
-            Xh, Yh = XYh[:, 0], XYh[:, 1]
-            rh2 = Xh * Xh + Yh * Yh
-            a = 1.0 + kappa * rh2
-            c = 2.0 * kappa / (a + 2.0 * kappa * rh2)
-            m00, m11, m01 = (1.0 - c * Xh * Xh) / a, (1.0 - c * Yh * Yh) / a, -c * Xh * Yh / a
-            Jl = so3_left_jacobian(x[j : j + 3])
-            n = len(z)
-            r0 = self.off[k]
-            D = self.shape.dp_dy(self.idx[k]) if self.shape else None
-            for row, (mu0, mu1) in ((0, (m00 / aspect + skew * m01, m01 / aspect + skew * m11)), (1, (m01, m11))):
-                g = np.column_stack([mu0, mu1, -(mu0 * X + mu1 * Y) / f]) * (f / z)[:, None]
-                rows = slice(r0 + row * n, r0 + (row + 1) * n)
-                J[rows, 0] = (mu0 * X + mu1 * Y) / f
-                J[rows, 1] = -(mu0 * Xh + mu1 * Yh) * rh2
-                J[rows, j : j + 3] = cross_rows(d, g) @ Jl
-                J[rows, j + 3 : j + 6] = g
-                if D is not None:
-                    J[rows, s0:] = np.einsum("na,nas->ns", g @ R, D)
-            J[r0 : r0 + n, 2] = 1.0
-            J[r0 + n : r0 + 2 * n, 3] = 1.0
-            J[r0 : r0 + n, 4] = -Xh / aspect**2
-            if ni > 5:
-                J[r0 : r0 + n, 5] = Yh
+        J = np.zeros((self.m_data + (self.shape.n if self.shape else 0), len(x)))
+        R = self._rotations(x)
+        om = x[ni:s0].reshape(-1, 6)
+        vid = self.vid
+        Rv = R[vid]
+        d = np.einsum("nij,nj->ni", Rv, self._all_points(x))
+        pc = d + om[vid, 3:]
+        z = pc[:, 2]
+        if np.any(z <= 0):
+            raise CalibrationError("intrinsics: a disc lies behind the camera near the current parameters")
+        X, Y = f * pc[:, 0] / z, f * pc[:, 1] / z
+        XYh = distort(np.column_stack([X, Y]), kappa)
+        Xh, Yh = XYh[:, 0], XYh[:, 1]
+        rh2 = Xh * Xh + Yh * Yh
+        a = 1.0 + kappa * rh2
+        c = 2.0 * kappa / (a + 2.0 * kappa * rh2)
+        m00, m11, m01 = (1.0 - c * Xh * Xh) / a, (1.0 - c * Yh * Yh) / a, -c * Xh * Yh / a
+        Jl = so3_left_jacobians(om[:, :3])[vid]
+        D = self.dp_dy
+        for rows, (mu0, mu1) in ((self.ru, (m00 / aspect + skew * m01, m01 / aspect + skew * m11)),
+                                 (self.rv, (m01, m11))):
+            g = np.column_stack([mu0, mu1, -(mu0 * X + mu1 * Y) / f]) * (f / z)[:, None]
+            J[rows, 0] = (mu0 * X + mu1 * Y) / f
+            J[rows, 1] = -(mu0 * Xh + mu1 * Yh) * rh2
+            J[rows[:, None], self.pose_cols] = np.column_stack([np.einsum("na,nab->nb", cross_rows(d, g), Jl), g])
+            if D is not None:
+                J[rows, s0:] = np.einsum("na,nas->ns", np.einsum("na,nab->nb", g, Rv), D)
+        J[self.ru, 2] = 1.0
+        J[self.rv, 3] = 1.0
+        J[self.ru, 4] = -Xh / aspect**2
+        if ni > 5:
+            J[self.ru, 5] = Yh
         if self.shape:
-            J[int(self.off[-1]) :, s0:] = np.diag(self.shape.w)
+            J[self.m_data :, s0:] = np.diag(self.shape.w)
         if not np.all(np.isfinite(J)):
             raise CalibrationError("intrinsics: the model cannot see every disc near the current parameters")
         return J
+
+    def normal_matrix(self, J) -> np.ndarray:
+        """J^T J of this problem's Jacobian ``J`` without its zero blocks: view k's pose columns meet only its
+        own rows, so the poses' block is block-diagonal; the intrinsics and the shape meet every row."""
+        V = len(self.p_W)
+        s0 = self.ni + 6 * V
+        shared = np.r_[0 : self.ni, s0 : J.shape[1]]
+        Js = J[:, shared]
+        A = np.zeros((J.shape[1], J.shape[1]))
+        A[np.ix_(shared, shared)] = Js.T @ Js
+        for k in range(V):
+            rows, c = slice(self.off[k], self.off[k + 1]), self.ni + 6 * k
+            Jp = J[rows, c : c + 6]
+            A[c : c + 6, c : c + 6] = Jp.T @ Jp
+            A[c : c + 6, shared] = Jp.T @ Js[rows]
+            A[shared, c : c + 6] = A[c : c + 6, shared].T
+        return A
 
     def pose(self, x, k) -> np.ndarray:
         j = self.ni + 6 * k
