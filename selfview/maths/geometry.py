@@ -164,7 +164,7 @@ def check_rigid(H, name: str = "transform", tol: float = 1e-3) -> np.ndarray:
 
 def hat(v) -> np.ndarray:
     """(3, 3) cross-product matrix [v]x of a vector v (3,): hat(v) @ p = v x p."""
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return _hats(np.asarray(v, dtype=float).reshape(1, 3))[0]
 
 
 def R_from_rotvec(v) -> np.ndarray:

@@ -21,18 +21,22 @@ def project_points(intr, R, t, p_W, skew: float = 0.0) -> np.ndarray:
     """(N, 2) distorted pixels of plate points ``p_W`` (N, 3) seen at pose (R, t) by intrinsics
     ``intr`` = (f, kappa, cx, cy, aspect[, skew]) (``skew`` when ``intr`` has five); NaN where a point is
     behind the camera or beyond the fold."""
+    return pixels_from_camera(intr, p_W @ R.T + t, skew)
+
+
+def pixels_from_camera(intr, pc, skew: float = 0.0) -> np.ndarray:
+    """(N, 2) distorted pixels of points ``pc`` (N, 3) in the camera frame, intrinsics as ``project_points``;
+    NaN throughout where any point is behind the camera or beyond the fold."""
     f, kappa, cx, cy, aspect = intr[:5]
     if len(intr) > 5:
         skew = intr[5]
-    pc = p_W @ R.T + t
     z = pc[:, 2]
     if np.any(z <= 0) or f <= 0 or aspect <= 0:
-        return np.full((len(p_W), 2), np.nan)
-    XY = f * pc[:, :2] / z[:, None]
+        return np.full((len(pc), 2), np.nan)
     try:
-        XYh = distort(XY, kappa)
+        XYh = distort(f * pc[:, :2] / z[:, None], kappa)
     except CalibrationError:
-        return np.full((len(p_W), 2), np.nan)
+        return np.full((len(pc), 2), np.nan)
     return np.column_stack([XYh[:, 0] / aspect + skew * XYh[:, 1] + cx, XYh[:, 1] + cy])
 
 
@@ -106,18 +110,9 @@ class JointProblem:
         t = x[self.ni : self.ni + 6 * len(self.p_W)].reshape(-1, 6)[:, 3:]
         P = self._all_points(x)
         pc = np.einsum("nij,nj->ni", R[self.vid], P) + t[self.vid]
-        r = np.full(self.m_data, np.nan)
-        z = pc[:, 2]
-        f, kappa, cx, cy, aspect = x[:5]
-        skew = x[5] if self.ni > 5 else self.skew
-        if not (np.any(z <= 0) or f <= 0 or aspect <= 0):
-            try:
-                XYh = distort(f * pc[:, :2] / z[:, None], kappa)
-            except CalibrationError:
-                XYh = None
-            if XYh is not None:
-                r[self.ru] = XYh[:, 0] / aspect + skew * XYh[:, 1] + cx - self.UV[:, 0]
-                r[self.rv] = XYh[:, 1] + cy - self.UV[:, 1]
+        m = pixels_from_camera(x[: self.ni], pc, self.skew) - self.UV
+        r = np.empty(self.m_data)
+        r[self.ru], r[self.rv] = m[:, 0], m[:, 1]
         if self.shape:
             r = np.concatenate([r, self.shape.w * self._y(x)])
         return r
