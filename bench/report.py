@@ -649,13 +649,22 @@ def _section(fn, *args) -> list[str]:
                 f"{type(exc).__name__} {exc})", ""]
 
 
+def _quick_note(quick, runs: dict[str, BenchRun]) -> str:
+    """The header's word on run sizes: ``quick`` True (every part small), False, or the names of the parts
+    that ran with --quick (a --keep run refreshes some parts at small sizes beside full-size stored ones)."""
+    if quick is True:
+        return " (QUICK run: small sizes, for tests)"
+    parts = [n for n in (quick or ()) if n in runs]
+    return f" (run with --quick, small sizes: {', '.join(parts)}; every other part at full size)" if parts else ""
+
+
 def render_markdown(runs: dict[str, BenchRun], mach: dict, exp: dict | None, willson: dict | None, *,
-                    quick: bool, seconds: float | None, command: str, cell_limit, results_dir: Path,
+                    quick, seconds: float | None, command: str, cell_limit, results_dir: Path,
                     when: str | None = None) -> str:
     """The text of RESULTS.md from the results (``runs``: each benchmark's JSON as read or rerun)."""
     lines = ["# Results", "",
              f"Produced by `{command}`" + (f" in {seconds:.0f} s" if seconds is not None else "")
-             + (" (QUICK run: small sizes, for tests)" if quick else "")
+             + _quick_note(quick, runs)
              + f" on {when or time.strftime('%Y-%m-%d %H:%M %Z')}, on {mach['cpu']} ({mach['cores']} cores, "
              f"{mach['usable_cores']} usable), {mach['platform']}: Python {mach['python']}, numpy {mach['numpy']}, "
              f"OpenCV {mach['opencv']}, selfview {mach['selfview']} ({_link('machine.json')}).", "",
@@ -756,10 +765,13 @@ def make_report(out: Path, *, quick: bool = False, benches=BENCHES, bench_dir: P
     seconds = time.monotonic() - t0
     if not render_only:
         meta = {"command": command, "when": time.strftime("%Y-%m-%d %H:%M %Z"), "seconds": round(seconds, 1),
-                "quick": quick, "runs": {**past, **{k: {"status": r.status, "seconds": round(r.seconds, 1)}
+                "quick": quick, "runs": {**past, **{k: {"status": r.status, "seconds": round(r.seconds, 1), "quick": quick}
                                                     for k, r in runs.items() if r.detail != KEPT}}}
         write_json(results / "report.json", meta)
-    text = render_markdown(runs, mach, exp, willson, quick=bool(meta.get("quick", quick)),
+    # which parts ran small: all of them in a plain --quick run, else those whose stored run says so
+    parts = {k for k, v in meta.get("runs", {}).items() if isinstance(v, dict) and v.get("quick")}
+    small = quick if not (keep or render_only) else (True if parts and parts >= set(runs) else sorted(parts))
+    text = render_markdown(runs, mach, exp, willson, quick=small,
                            seconds=meta.get("seconds"), command=meta.get("command", command), cell_limit=cell_limit,
                            results_dir=results, when=meta.get("when"))
     from selfview.files.io_safe import atomic_write

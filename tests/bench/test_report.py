@@ -260,9 +260,11 @@ def test_keep_refreshes_one_benchmark_and_keeps_the_others_figures(fake_benches,
     stored = {"speed": {"solve_us": 99.0}, "ok": True, "args": ["stored"]}
     (tmp_path / "docs" / "results" / "online.json").write_text(json.dumps(stored))
     benches = (Bench("good", "a good one", ("--out", "{out}")),)
-    res = make_report(out, benches=benches, bench_dir=fake_benches, trials=0, keep=True)
+    res = make_report(out, benches=benches, bench_dir=fake_benches, trials=0, keep=True, quick=True)
     assert res["runs"]["good"] == "ok" and res["runs"]["online"] == "ok"
     text = out.read_text()
+    # the header names the one part refreshed at small sizes; the kept full-size part is not called quick
+    assert "(run with --quick, small sizes: good; every other part at full size)" in text and "QUICK run" not in text
     assert "| `bench/online` | on-line solves vs cv2.solvePnP, per-frame step | ok | - | [online.json]" in text
     assert json.loads((tmp_path / "docs" / "results" / "online.json").read_text()) == stored
 
