@@ -91,33 +91,10 @@ class Calibration:
 
     @classmethod
     def from_document(cls, doc: Any, source: str = "<memory>") -> "Calibration":
-        if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-            raise CalibrationFileError(f"{source}: not a selfview calibration file (no 'format: {FORMAT}')")
-        if doc.get("version") != VERSION:
-            raise CalibrationFileError(
-                f"{source}: calibration file version {short_repr(doc.get('version'))}; this selfview reads "
-                f"version {VERSION}"
-            )
-        want = doc.get("checksum")
-        body = {k: v for k, v in doc.items() if k != "checksum"}
-        if want != doc_checksum(body):
-            raise CalibrationFileError(
-                f"{source}: checksum mismatch; the file was altered or corrupted (recalibrate, or restore a copy "
-                f"from its .history folder)"
-            )
+        check_document(doc, FORMAT, VERSION, "calibration file", source, redo="recalibrate")
         try:
             _check_types(doc)
-            cam = doc["camera"]
-            camera = CameraModel(
-                f=float(cam["f"]),
-                kappa=float(cam["kappa"]),
-                cx=float(cam["principal_point"][0]),
-                cy=float(cam["principal_point"][1]),
-                aspect=float(cam["aspect"]),
-                width=int(cam["width"]),
-                height=int(cam["height"]),
-                skew=float(cam.get("skew", 0.0)),  # a measured grabber's shear; absent: 0 (the spec's model)
-            )
+            camera = CameraModel.from_dict(doc["camera"])  # no skew: 0, the spec's model
             _plausible_camera(camera)
             pts = {}
             for st, d in doc["gripper"]["points_G"].items():
@@ -298,6 +275,21 @@ def plain_data(x):
     if isinstance(x, np.ndarray):
         return plain_data(x.tolist())
     return x.item() if isinstance(x, np.generic) else x
+
+
+def check_document(doc, fmt: str, version: int, kind: str, source: str, *, redo: str, hint: str = "") -> None:
+    """``CalibrationFileError`` naming ``source`` unless ``doc`` is a mapping of format ``fmt`` and ``version``
+    whose checksum holds; ``kind`` names the file, ``redo`` how to make a new one, ``hint`` how to write one."""
+    if not isinstance(doc, dict) or doc.get("format") != fmt:
+        raise CalibrationFileError(f"{source}: not a selfview {kind} (no 'format: {fmt}'{hint})")
+    if doc.get("version") != version:
+        raise CalibrationFileError(f"{source}: {kind} version {short_repr(doc.get('version'))}; this selfview reads "
+                                   f"version {version}")
+    want = doc.get("checksum")
+    body = {k: v for k, v in doc.items() if k != "checksum"}
+    if want != doc_checksum(body):
+        raise CalibrationFileError(f"{source}: checksum mismatch; the {kind} was altered or corrupted ({redo}, or "
+                                   "restore a copy from its .history folder)")
 
 
 def doc_checksum(body: dict) -> str:

@@ -23,7 +23,7 @@ import numpy as np
 import yaml
 
 from selfview import __version__
-from selfview.files.calfile import doc_checksum, plain_data, replace_keeping_history
+from selfview.files.calfile import check_document, doc_checksum, plain_data, replace_keeping_history
 from selfview.files.io_safe import load_yaml, load_yaml_file
 from selfview.maths.camera import CameraModel
 from selfview.errors import CalibrationFileError, ConfigError
@@ -72,24 +72,14 @@ class CameraFile:
 
     @classmethod
     def from_document(cls, doc: Any, source: str = "<memory>") -> "CameraFile":
-        if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-            raise CalibrationFileError(f"{source}: not a selfview camera file (no 'format: {FORMAT}'; "
-                                       "write one with 'selfview intrinsics --out')")
-        if doc.get("version") != VERSION:
-            raise CalibrationFileError(
-                f"{source}: camera file version {doc.get('version')!r}; this selfview reads version {VERSION}")
-        body = {k: v for k, v in doc.items() if k != "checksum"}
-        if doc.get("checksum") != doc_checksum(body):
-            raise CalibrationFileError(f"{source}: checksum mismatch; the camera file was altered or corrupted "
-                                       "(measure again with 'selfview intrinsics', or restore it from its .history folder)")
+        check_document(doc, FORMAT, VERSION, "camera file", source, redo="measure again with 'selfview intrinsics'",
+                       hint="; write one with 'selfview intrinsics --out'")
         try:
             c = doc["camera"]
             n = 6 if "skew" in c else 5
             if n == 6 and (isinstance(c["skew"], bool) or not isinstance(c["skew"], (int, float))):
                 raise ValueError(f"camera skew is {c['skew']!r}, not a number")
-            camera = CameraModel(f=float(c["f"]), kappa=float(c["kappa"]), cx=float(c["principal_point"][0]),
-                                 cy=float(c["principal_point"][1]), aspect=float(c["aspect"]),
-                                 width=int(c["width"]), height=int(c["height"]), skew=float(c.get("skew", 0.0)))
+            camera = CameraModel.from_dict(c)
             sigma = {k: float(doc["sigma"][k]) for k in INTRINSIC_NAMES[:n]}
             cov = np.array(doc["covariance"], dtype=float).reshape(n, n)
             if not (np.all(np.isfinite(cov)) and np.all(np.isfinite(list(sigma.values())))):

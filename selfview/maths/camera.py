@@ -266,6 +266,14 @@ class CameraModel:
         pts = np.column_stack([sol[:, 0], sol[:, 1], zP])
         return (pts[0], zc[0]) if single else (pts, zc)
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "CameraModel":
+        """The camera of a ``to_dict`` mapping (no ``skew``: 0); ``KeyError``, ``TypeError`` or ``ValueError`` for a
+        malformed one, ``ConfigError`` for impossible values."""
+        pp = d["principal_point"]
+        return cls(f=float(d["f"]), kappa=float(d["kappa"]), cx=float(pp[0]), cy=float(pp[1]), aspect=float(d["aspect"]),
+                   width=int(d["width"]), height=int(d["height"]), skew=float(d.get("skew", 0.0)))
+
     def to_dict(self) -> dict:
         return {
             "f": float(self.f),
