@@ -477,9 +477,7 @@ def _parse_gripper(s: Section) -> GripperSpec:
     t = s.number("finger_thickness", positive=True)
     L = s.number("finger_length", positive=True)
     st = s.section("states")
-    states = {}
-    for name in list(st.data):
-        states[str(name)] = st.number(name, positive=True)
+    states = {str(name): st.number(name, positive=True) for name in list(st.data)}
     st.done()
     if not states:
         raise ConfigError("gripper.states: expected at least one state with its jaw gap")

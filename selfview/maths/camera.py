@@ -80,9 +80,7 @@ def _distorted_radius(R: np.ndarray, kappa: float) -> np.ndarray:
         r = m * np.cos(np.arccos(arg) / 3.0 - 2.0 * np.pi / 3.0)
     # Newton polish: the closed forms lose digits through cancellation for small kappa r^2.
     for _ in range(3):
-        g = kappa * r**3 + r - R
-        dg = 3 * kappa * r**2 + 1.0
-        r = r - g / dg
+        r = r - (kappa * r**3 + r - R) / (3 * kappa * r**2 + 1.0)
     return r
 
 
