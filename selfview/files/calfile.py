@@ -319,14 +319,11 @@ def load_calibration(path) -> Calibration:
 
 def save_calibration(cal: Calibration, path, *, keep_history: bool = True,
                      expected: "Calibration | str | None" = None) -> Path:
-    """Write ``cal`` to ``path`` atomically, keeping the previous file in ``<name>.history/``.
+    """Write ``cal`` to ``path`` by ``replace_keeping_history``, once the new document reads back.
 
-    Refuses (``CalibrationFileError``, nothing written) when the existing file is not a valid selfview
-    calibration: it may be somebody else's file. ``expected``: the version ``cal`` was derived from (the
-    Calibration as loaded, or its file's SHA-256); the file is replaced only if it still is that version,
-    so a recalibration saved meanwhile is never overwritten (the refusal names both). A symlink's target
-    is replaced (the link stays). The new document is read back and checked before anything is written
-    (then ``replace_keeping_history``). Returns the path of the history copy, or None.
+    ``expected``: the version ``cal`` was derived from (the Calibration as loaded, or its file's SHA-256);
+    the file is replaced only if it still is that version, so a recalibration saved meanwhile is never
+    overwritten (the refusal names both). Returns the path of the history copy, or None.
     """
     p = Path(path)
     text = yaml.safe_dump(cal.to_document(), sort_keys=False, default_flow_style=None, width=120)
@@ -342,14 +339,11 @@ def save_calibration(cal: Calibration, path, *, keep_history: bool = True,
 def replace_keeping_history(p: Path, text: str, load_existing, *, what: str, keep_history: bool = True,
                             expected_sha256: str | None = None) -> Path | None:
     """Replace ``p`` with ``text`` atomically, the previous file first checked with ``load_existing`` (it
-    raises for a corrupt or foreign file, and nothing is written) and kept in ``<name>.history/``.
-    Writers of one file take turns (an flock on a lock file beside it); with ``expected_sha256`` the file
-    must still hash to it when its turn comes. A symlink is followed: its target is replaced.
-    Every failure is ``CalibrationFileError`` naming the path and the cause, with ``p`` unchanged.
-    Returns the history copy, or None."""
-    p = Path(p)
-    if p.is_symlink():
-        p = Path(os.path.realpath(p))  # replace the file the link names; the link stays a link
+    raises for a corrupt or foreign file: it may be somebody else's) and kept in ``<name>.history/``.
+    Writers of one file take turns (``file_lock``); with ``expected_sha256`` the file must still hash to it
+    when its turn comes. A symlink's target is replaced (the link stays). Every failure is
+    ``CalibrationFileError`` naming the path and the cause, with ``p`` unchanged. Returns the history copy, or None."""
+    p = Path(os.path.realpath(p)) if Path(p).is_symlink() else Path(p)
     check_folder(p, error=CalibrationFileError, what=what)
     with file_lock(p, error=CalibrationFileError, what=what):
         kept = None
