@@ -603,7 +603,6 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
     double o[3]; /* the camera's position in G */
     cam_origin(H, o);
     Py_ssize_t N = 0;
-    int any = 0;
     for (Py_ssize_t e = 0; e < E; e++) {
         double A[3], B[3], ua[2], ub[2];
         cnt[e] = 0;
@@ -611,7 +610,6 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
         apply_H(H, bG + 3 * e, B);
         if (!(A[2] > 1.0 && B[2] > 1.0))
             continue;
-        any = 1;
         if (!project(&c, A, ua) || !project(&c, B, ub))
             goto refuse;
         const double dx = ub[0] - ua[0], dy = ub[1] - ua[1];
@@ -619,8 +617,6 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
         k = k < 2 ? 2 : k > MAX_PER_EDGE ? MAX_PER_EDGE : k;
         cnt[e] = (double)(int)k;
     }
-    if (!any)
-        goto done;
     /* every sample's pixel, and each edge's side: its first face's direction in the picture */
     for (Py_ssize_t e = 0; e < E; e++) {
         const int n = (int)cnt[e];
@@ -668,34 +664,22 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
             }
             if (blocked(o, d, lo, hi))
                 continue;
-            double tx, ty;
-            if (k + 1 < n) {
-                tx = u[2] - u[0];
-                ty = u[3] - u[1];
-            } else {
-                tx = u[0] - u[-2];
-                ty = u[1] - u[-1];
-            }
+            const double *v = k + 1 < n ? u : u - 2; /* the sample and the next one, or the last two */
+            double tx = v[2] - v[0], ty = v[3] - v[1];
             const double L = sqrt(tx * tx + ty * ty) + 1e-12;
             tx /= L;
             ty /= L;
-            double nx = -ty, ny = tx;
-            const double sg = nx * side[2 * e] + ny * side[2 * e + 1];
-            if (sg < 0) {
-                nx = -nx;
-                ny = -ny;
-            }
+            const double nx = -ty, ny = tx, sg = nx * side[2 * e] + ny * side[2 * e + 1] < 0 ? -1.0 : 1.0;
             memcpy(P + 3 * S, p, sizeof p);
             EO[S] = e;
             UV[2 * S] = u[0];
             UV[2 * S + 1] = u[1];
-            NR[2 * S] = nx;
-            NR[2 * S + 1] = ny;
+            NR[2 * S] = sg * nx;
+            NR[2 * S + 1] = sg * ny;
             S++;
         }
         i0 += n;
     }
-done:
     ret = PyLong_FromSsize_t(S);
     goto out;
 refuse:
