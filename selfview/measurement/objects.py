@@ -47,16 +47,11 @@ class TargetSpec:
     square: float
     marker: float
     dictionary: str = "DICT_4X4_50"
-    pattern: str = "charuco"
 
     @property
     def size(self) -> tuple[float, float]:
         """(x, y) extent of the printed squares [mm]."""
         return (self.squares[0] * self.square, self.squares[1] * self.square)
-
-    def to_dict(self) -> dict:
-        return {"pattern": self.pattern, "squares": list(self.squares), "square": self.square, "marker": self.marker,
-                "dictionary": self.dictionary}
 
 
 @dataclass(frozen=True)
@@ -230,11 +225,6 @@ class ObjectPose:
     rms_px_other: float
     corners: int
     detection: TargetDetection | None = None
-
-    def to_dict(self) -> dict:
-        return {"C_H_O": np.round(self.C_H_O, 6).tolist(), "sigma_mm": [float(v) for v in self.sigma_mm],
-                "sigma_deg": [float(v) for v in self.sigma_deg], "rms_px": self.rms_px,
-                "rms_px_other": self.rms_px_other, "corners": self.corners}
 
 
 def _residual_px(rv, tv, p_O, xy, f: float) -> float:
