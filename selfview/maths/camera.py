@@ -246,10 +246,8 @@ class CameraModel:
         n = len(uv)
         # Eq. 8, one 3x3 system per point: [r1 r2 -X/f; r4 r5 -Y/f; r7 r8 -1] [x y zc]^T = -r3 z - t
         A = np.empty((n, 3, 3))
-        A[:, :, 0] = R[:, 0]
-        A[:, :, 1] = R[:, 1]
-        A[:, 0, 2] = -XY[:, 0] / self.f
-        A[:, 1, 2] = -XY[:, 1] / self.f
+        A[:, :, :2] = R[:, :2]
+        A[:, :2, 2] = -XY / self.f
         A[:, 2, 2] = -1.0
         b = -(R[:, 2][None, :] * zP[:, None]) - t[None, :]
         cosang = np.abs(self.rays(uv) @ R[:, 2])  # edge-on test: angle between ray and plane normal
