@@ -1,9 +1,7 @@
 """Calibration files: what an off-line calibration found, kept safe.
 
-A calibration file is a YAML document (``format: selfview-calibration``, ``version: 1``) holding the
-interior orientation, ``C_H_W`` and ``C_H_G`` (4x4, mm), the gripper points per state, the residuals,
-the picture's SHA-256, the time, the software version, the cell file's hash and a checksum over all of
-it. Nothing is lost: writes are atomic and keep the previous file (``save_calibration``); a file that is
+A calibration file is a YAML document (``format: selfview-calibration``, ``version: 1``) holding a
+``Calibration`` and a checksum over all of it. Nothing is lost: writes are atomic and keep the previous file (``save_calibration``); a file that is
 not what a calibration writes is refused and never overwritten (``load_calibration``).
 """
 

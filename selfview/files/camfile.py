@@ -1,12 +1,9 @@
 """Camera files: a camera's measured interior orientation, its uncertainty and where it came from.
 
 A camera file is a YAML document (``format: selfview-camera``, ``version: 1``) written by ``selfview
-intrinsics``: f, kappa, principal point, aspect, the grabber's skew and picture size; their 1-sigma and
-covariance (a file without ``skew``, as written before it was measured, reads as skew 0 with the 5 x 5
-covariance of the others); the
-residual, the stop rule and the cross-check; provenance (the pictures' SHA-256, the time, the software
-and Python/NumPy/OpenCV versions, the cell file's hash) and a checksum over all of it. It is written
-like a calibration file (``selfview.files.calfile``): atomically, the previous file kept in ``<name>.history/``,
+intrinsics`` (its contents: ``CameraFile``; a file without ``skew``, as written before it was measured,
+reads as skew 0 with the 5 x 5 covariance of the others) and a checksum over all of it. It is written like
+a calibration file (``selfview.files.calfile``): atomically, the previous file kept in ``<name>.history/``,
 and a foreign or altered file is refused (``CalibrationFileError``) and never overwritten.
 """
 
@@ -39,8 +36,8 @@ INTRINSIC_NAMES = ("f", "kappa", "cx", "cy", "aspect", "skew")
 class CameraFile:
     """A measured camera: ``camera``; ``sigma`` name -> 1-sigma (f, kappa, cx, cy, aspect[, skew]);
     ``covariance`` (n, n) in that order (n = 6 with the skew measured, 5 without); ``figures`` what the
-    calibration reported (rms_px, views_used, stop rule,
-    cross-check, projection uncertainty); ``provenance`` (pictures, created, software, versions, cell)."""
+    calibration reported (rms_px, views_used, stop rule, cross-check, projection uncertainty);
+    ``provenance`` (the pictures' SHA-256, created, software, Python/NumPy/OpenCV versions, the cell's hash)."""
 
     camera: CameraModel
     sigma: dict

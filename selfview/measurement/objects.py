@@ -3,14 +3,8 @@
 An object is a block lying on the table with a small printed target on its top face. Its frame O has
 its origin at the target's centre, x and y along the target's squares, z into the block (as the plate's
 W, CONVENTIONS.md). The object file gives the target (a ``plate:``-style section: ``{pattern: charuco,
-squares: [NX, NY], square: MM, marker: MM, dictionary: DICT_4X4_50}``), the block's size, the grasp
-frame ``G*`` in O (``O_H_Gstar``: where the gripper's TCP and axes must be to hold it) and the stand-off
-``approach_mm`` along G*'s z from which the last straight descent starts.
-
-``object_pose`` measures ``C_H_O`` from a picture with the project's camera model (kappa included: the
-detected corners are undistorted by ``CameraModel``, never by OpenCV's model), with its standard
-deviations and the planar target's two-fold ambiguity resolved (IPPE's two solutions' residuals
-compared) or refused.
+squares: [NX, NY], square: MM, marker: MM, dictionary: DICT_4X4_50}``) and the rest of an ``ObjectSpec``;
+``object_pose`` measures ``C_H_O`` from a picture with the project's camera model.
 """
 
 from __future__ import annotations
