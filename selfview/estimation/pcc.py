@@ -146,4 +146,5 @@ def points_G_for_state(dims: dict[str, float], measured_state: str, gripper: Gri
     tA = dims["thickness_A"] if np.isfinite(dims.get("thickness_A", np.nan)) else t_nom
     tB = dims["thickness_B"] if np.isfinite(dims.get("thickness_B", np.nan)) else t_nom
     g, g_meas = dims["gap"], gripper.gap(measured_state)
-    return {state: fingertip_points_G(g + (g_nom - g_meas), dims["width"], tA, tB) for state, g_nom in gripper.states.items()}
+    return {state: fingertip_points_G(g + (g_nom - g_meas), dims["width"], tA, tB)
+            for state, g_nom in gripper.states.items()}

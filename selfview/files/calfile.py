@@ -1,8 +1,9 @@
 """Calibration files: what an off-line calibration found, kept safe.
 
 A calibration file is a YAML document (``format: selfview-calibration``, ``version: 1``) holding a
-``Calibration`` and a checksum over all of it. Nothing is lost: writes are atomic and keep the previous file (``save_calibration``); a file that is
-not what a calibration writes is refused and never overwritten (``load_calibration``).
+``Calibration`` and a checksum over all of it. Nothing is lost: writes are atomic and keep the previous
+file (``save_calibration``); a file that is not what a calibration writes is refused and never overwritten
+(``load_calibration``).
 """
 
 from __future__ import annotations

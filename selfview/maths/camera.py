@@ -267,8 +267,9 @@ class CameraModel:
         """The camera of a ``to_dict`` mapping (no ``skew``: 0); ``KeyError``, ``TypeError`` or ``ValueError`` for a
         malformed one, ``ConfigError`` for impossible values."""
         pp = d["principal_point"]
-        return cls(f=float(d["f"]), kappa=float(d["kappa"]), cx=float(pp[0]), cy=float(pp[1]), aspect=float(d["aspect"]),
-                   width=int(d["width"]), height=int(d["height"]), skew=float(d.get("skew", 0.0)))
+        return cls(f=float(d["f"]), kappa=float(d["kappa"]), cx=float(pp[0]), cy=float(pp[1]),
+                   aspect=float(d["aspect"]), width=int(d["width"]), height=int(d["height"]),
+                   skew=float(d.get("skew", 0.0)))
 
     def to_dict(self) -> dict:
         return {

@@ -1,16 +1,16 @@
 /* selfview.measurement._csil: the compiled per-round steps of the model-based fingertip measurement. Each
  * function computes what its Python reference in selfview/measurement/silhouette.py computes (the comment
- * above each gives its buffers; the tests compare the two at tolerances with a physical meaning): sample (_sample_py), points (_points_seen_py), candidates (_candidates_np, with the candidates'
- * undistorted sensor coordinates as camera.undistort_pixels), vote (_votes_py), solve (_solve_py).
+ * above each gives its buffers; the tests compare the two at tolerances with a physical meaning): sample
+ * (_sample_py), points (_points_seen_py), candidates (_candidates_np, and camera.undistort_pixels of each
+ * candidate), vote (_votes_py), solve (_solve_py).
  *
- * Where the results differ from numpy's, and why: candidates reads the profile as cv2.remap does
- * (INTER_LINEAR, BORDER_REPLICATE: the position rounded to 1/32 px, single-precision weights) and computes in
- * single precision as numpy does, so the levels agree to float rounding, and equal scores rank by position
- * (numpy's sort leaves their order open); solve sums in another order than numpy, so it agrees to rounding,
- * not bit for bit. A point the Python code refuses (behind the camera, beyond the lens's fold) makes sample
- * return -1 and points 0, and a singular system makes solve return code 2: the caller then runs the
- * reference, which raises or decides. Every buffer (type, dimensions, shape) and index is checked before it
- * is used: bad arguments raise TypeError or ValueError naming the argument. Only the CPython C API.
+ * Where the results differ from numpy's, and why: candidates reads the profile as cv2.remap does (bilinear
+ * below) and computes in single precision as numpy does, so the levels agree to float rounding, and equal
+ * scores rank by position (numpy's sort leaves their order open); solve sums in another order than numpy, so
+ * it agrees to rounding, not bit for bit. A point the Python code refuses (behind the camera, beyond the
+ * lens's fold) makes sample return -1 and points 0, and a singular system makes solve return code 2: the
+ * caller then runs the reference, which raises or decides. Every buffer (type, dimensions, shape) and index
+ * is checked before it is used: bad arguments raise TypeError or ValueError naming the argument.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
