@@ -127,13 +127,6 @@ def _stop(devices: list) -> None:
             log.error("%r: safe state on a signal: %s", g, exc)
 
 
-def _run_helper(devices: list) -> threading.Thread:
-    t = threading.Thread(target=_stop, args=(devices,), name="stop on signal", daemon=True)
-    _helpers.append(t)
-    t.start()
-    return t
-
-
 def _handle(signum, frame) -> None:
     devices = _devices()
     if signum == getattr(signal, "SIGTSTP", None):
@@ -150,7 +143,10 @@ def _handle(signum, frame) -> None:
     _say(f"{signal_name(signum)}: stopping the robot (ABORT) and making the valve safe")
     # in a helper: the main thread may hold a driver's write lock right now; a short wait lets the ABORT
     # go out before this thread raises (the rest goes on meanwhile, and the program's end waits for it)
-    _run_helper(devices).join(0.5)
+    helper = threading.Thread(target=_stop, args=(devices,), name="stop on signal", daemon=True)
+    _helpers.append(helper)
+    helper.start()
+    helper.join(0.5)
     raise Interrupted(signum)  # a KeyboardInterrupt: what Ctrl-C raises, carrying the signal's number
 
 

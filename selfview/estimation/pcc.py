@@ -142,11 +142,9 @@ def points_G_for_state(dims: dict[str, float], measured_state: str, gripper: Gri
     The other states' gaps are derived by the nominal difference of jaw gaps (the valve's end stops),
     width and thickness are the same in every state. A thickness not measured falls back to the cell's.
     """
-    out = {}
     t_nom = gripper.finger_thickness
     tA = dims["thickness_A"] if np.isfinite(dims.get("thickness_A", np.nan)) else t_nom
     tB = dims["thickness_B"] if np.isfinite(dims.get("thickness_B", np.nan)) else t_nom
-    w = dims["width"]
-    for state, g_nom in gripper.states.items():
-        out[state] = fingertip_points_G(dims["gap"] + (g_nom - gripper.gap(measured_state)), w, tA, tB)
-    return out
+    g, g_meas = dims["gap"], gripper.gap(measured_state)
+    return {state: fingertip_points_G(g + (g_nom - g_meas), dims["width"], tA, tB)
+            for state, g_nom in gripper.states.items()}

@@ -1,10 +1,9 @@
 """Calibration files: what an off-line calibration found, kept safe.
 
-A calibration file is a YAML document (``format: selfview-calibration``, ``version: 1``) holding the
-interior orientation, ``C_H_W`` and ``C_H_G`` (4x4, mm), the gripper points per state, the residuals,
-the picture's SHA-256, the time, the software version, the cell file's hash and a checksum over all of
-it. Nothing is lost: writes are atomic and keep the previous file (``save_calibration``); a file that is
-not what a calibration writes is refused and never overwritten (``load_calibration``).
+A calibration file is a YAML document (``format: selfview-calibration``, ``version: 1``) holding a
+``Calibration`` and a checksum over all of it. Nothing is lost: writes are atomic and keep the previous
+file (``save_calibration``); a file that is not what a calibration writes is refused and never overwritten
+(``load_calibration``).
 """
 
 from __future__ import annotations
@@ -91,33 +90,10 @@ class Calibration:
 
     @classmethod
     def from_document(cls, doc: Any, source: str = "<memory>") -> "Calibration":
-        if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-            raise CalibrationFileError(f"{source}: not a selfview calibration file (no 'format: {FORMAT}')")
-        if doc.get("version") != VERSION:
-            raise CalibrationFileError(
-                f"{source}: calibration file version {short_repr(doc.get('version'))}; this selfview reads "
-                f"version {VERSION}"
-            )
-        want = doc.get("checksum")
-        body = {k: v for k, v in doc.items() if k != "checksum"}
-        if want != doc_checksum(body):
-            raise CalibrationFileError(
-                f"{source}: checksum mismatch; the file was altered or corrupted (recalibrate, or restore a copy "
-                f"from its .history folder)"
-            )
+        check_document(doc, FORMAT, VERSION, "calibration file", source, redo="recalibrate")
         try:
             _check_types(doc)
-            cam = doc["camera"]
-            camera = CameraModel(
-                f=float(cam["f"]),
-                kappa=float(cam["kappa"]),
-                cx=float(cam["principal_point"][0]),
-                cy=float(cam["principal_point"][1]),
-                aspect=float(cam["aspect"]),
-                width=int(cam["width"]),
-                height=int(cam["height"]),
-                skew=float(cam.get("skew", 0.0)),  # a measured grabber's shear; absent: 0 (the spec's model)
-            )
+            camera = CameraModel.from_dict(doc["camera"])  # no skew: 0, the spec's model
             _plausible_camera(camera)
             pts = {}
             for st, d in doc["gripper"]["points_G"].items():
@@ -300,6 +276,21 @@ def plain_data(x):
     return x.item() if isinstance(x, np.generic) else x
 
 
+def check_document(doc, fmt: str, version: int, kind: str, source: str, *, redo: str, hint: str = "") -> None:
+    """``CalibrationFileError`` naming ``source`` unless ``doc`` is a mapping of format ``fmt`` and ``version``
+    whose checksum holds; ``kind`` names the file, ``redo`` how to make a new one, ``hint`` how to write one."""
+    if not isinstance(doc, dict) or doc.get("format") != fmt:
+        raise CalibrationFileError(f"{source}: not a selfview {kind} (no 'format: {fmt}'{hint})")
+    if doc.get("version") != version:
+        raise CalibrationFileError(f"{source}: {kind} version {short_repr(doc.get('version'))}; this selfview reads "
+                                   f"version {version}")
+    want = doc.get("checksum")
+    body = {k: v for k, v in doc.items() if k != "checksum"}
+    if want != doc_checksum(body):
+        raise CalibrationFileError(f"{source}: checksum mismatch; the {kind} was altered or corrupted ({redo}, or "
+                                   "restore a copy from its .history folder)")
+
+
 def doc_checksum(body: dict) -> str:
     # floats go through repr, which YAML round-trips exactly
     blob = json.dumps(body, sort_keys=True, separators=(",", ":"), default=str)
@@ -327,14 +318,11 @@ def load_calibration(path) -> Calibration:
 
 def save_calibration(cal: Calibration, path, *, keep_history: bool = True,
                      expected: "Calibration | str | None" = None) -> Path:
-    """Write ``cal`` to ``path`` atomically, keeping the previous file in ``<name>.history/``.
+    """Write ``cal`` to ``path`` by ``replace_keeping_history``, once the new document reads back.
 
-    Refuses (``CalibrationFileError``, nothing written) when the existing file is not a valid selfview
-    calibration: it may be somebody else's file. ``expected``: the version ``cal`` was derived from (the
-    Calibration as loaded, or its file's SHA-256); the file is replaced only if it still is that version,
-    so a recalibration saved meanwhile is never overwritten (the refusal names both). A symlink's target
-    is replaced (the link stays). The new document is read back and checked before anything is written
-    (then ``replace_keeping_history``). Returns the path of the history copy, or None.
+    ``expected``: the version ``cal`` was derived from (the Calibration as loaded, or its file's SHA-256);
+    the file is replaced only if it still is that version, so a recalibration saved meanwhile is never
+    overwritten (the refusal names both). Returns the path of the history copy, or None.
     """
     p = Path(path)
     text = yaml.safe_dump(cal.to_document(), sort_keys=False, default_flow_style=None, width=120)
@@ -350,14 +338,11 @@ def save_calibration(cal: Calibration, path, *, keep_history: bool = True,
 def replace_keeping_history(p: Path, text: str, load_existing, *, what: str, keep_history: bool = True,
                             expected_sha256: str | None = None) -> Path | None:
     """Replace ``p`` with ``text`` atomically, the previous file first checked with ``load_existing`` (it
-    raises for a corrupt or foreign file, and nothing is written) and kept in ``<name>.history/``.
-    Writers of one file take turns (an flock on a lock file beside it); with ``expected_sha256`` the file
-    must still hash to it when its turn comes. A symlink is followed: its target is replaced.
-    Every failure is ``CalibrationFileError`` naming the path and the cause, with ``p`` unchanged.
-    Returns the history copy, or None."""
-    p = Path(p)
-    if p.is_symlink():
-        p = Path(os.path.realpath(p))  # replace the file the link names; the link stays a link
+    raises for a corrupt or foreign file: it may be somebody else's) and kept in ``<name>.history/``.
+    Writers of one file take turns (``file_lock``); with ``expected_sha256`` the file must still hash to it
+    when its turn comes. A symlink's target is replaced (the link stays). Every failure is
+    ``CalibrationFileError`` naming the path and the cause, with ``p`` unchanged. Returns the history copy, or None."""
+    p = Path(os.path.realpath(p)) if Path(p).is_symlink() else Path(p)
     check_folder(p, error=CalibrationFileError, what=what)
     with file_lock(p, error=CalibrationFileError, what=what):
         kept = None

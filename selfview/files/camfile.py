@@ -1,12 +1,9 @@
 """Camera files: a camera's measured interior orientation, its uncertainty and where it came from.
 
 A camera file is a YAML document (``format: selfview-camera``, ``version: 1``) written by ``selfview
-intrinsics``: f, kappa, principal point, aspect, the grabber's skew and picture size; their 1-sigma and
-covariance (a file without ``skew``, as written before it was measured, reads as skew 0 with the 5 x 5
-covariance of the others); the
-residual, the stop rule and the cross-check; provenance (the pictures' SHA-256, the time, the software
-and Python/NumPy/OpenCV versions, the cell file's hash) and a checksum over all of it. It is written
-like a calibration file (``selfview.files.calfile``): atomically, the previous file kept in ``<name>.history/``,
+intrinsics`` (its contents: ``CameraFile``; a file without ``skew``, as written before it was measured,
+reads as skew 0 with the 5 x 5 covariance of the others) and a checksum over all of it. It is written like
+a calibration file (``selfview.files.calfile``): atomically, the previous file kept in ``<name>.history/``,
 and a foreign or altered file is refused (``CalibrationFileError``) and never overwritten.
 """
 
@@ -23,7 +20,7 @@ import numpy as np
 import yaml
 
 from selfview import __version__
-from selfview.files.calfile import doc_checksum, plain_data, replace_keeping_history
+from selfview.files.calfile import check_document, doc_checksum, plain_data, replace_keeping_history
 from selfview.files.io_safe import load_yaml, load_yaml_file
 from selfview.maths.camera import CameraModel
 from selfview.errors import CalibrationFileError, ConfigError
@@ -39,8 +36,8 @@ INTRINSIC_NAMES = ("f", "kappa", "cx", "cy", "aspect", "skew")
 class CameraFile:
     """A measured camera: ``camera``; ``sigma`` name -> 1-sigma (f, kappa, cx, cy, aspect[, skew]);
     ``covariance`` (n, n) in that order (n = 6 with the skew measured, 5 without); ``figures`` what the
-    calibration reported (rms_px, views_used, stop rule,
-    cross-check, projection uncertainty); ``provenance`` (pictures, created, software, versions, cell)."""
+    calibration reported (rms_px, views_used, stop rule, cross-check, projection uncertainty);
+    ``provenance`` (the pictures' SHA-256, created, software, Python/NumPy/OpenCV versions, the cell's hash)."""
 
     camera: CameraModel
     sigma: dict
@@ -72,24 +69,14 @@ class CameraFile:
 
     @classmethod
     def from_document(cls, doc: Any, source: str = "<memory>") -> "CameraFile":
-        if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-            raise CalibrationFileError(f"{source}: not a selfview camera file (no 'format: {FORMAT}'; "
-                                       "write one with 'selfview intrinsics --out')")
-        if doc.get("version") != VERSION:
-            raise CalibrationFileError(
-                f"{source}: camera file version {doc.get('version')!r}; this selfview reads version {VERSION}")
-        body = {k: v for k, v in doc.items() if k != "checksum"}
-        if doc.get("checksum") != doc_checksum(body):
-            raise CalibrationFileError(f"{source}: checksum mismatch; the camera file was altered or corrupted "
-                                       "(measure again with 'selfview intrinsics', or restore it from its .history folder)")
+        check_document(doc, FORMAT, VERSION, "camera file", source, redo="measure again with 'selfview intrinsics'",
+                       hint="; write one with 'selfview intrinsics --out'")
         try:
             c = doc["camera"]
             n = 6 if "skew" in c else 5
             if n == 6 and (isinstance(c["skew"], bool) or not isinstance(c["skew"], (int, float))):
                 raise ValueError(f"camera skew is {c['skew']!r}, not a number")
-            camera = CameraModel(f=float(c["f"]), kappa=float(c["kappa"]), cx=float(c["principal_point"][0]),
-                                 cy=float(c["principal_point"][1]), aspect=float(c["aspect"]),
-                                 width=int(c["width"]), height=int(c["height"]), skew=float(c.get("skew", 0.0)))
+            camera = CameraModel.from_dict(c)
             sigma = {k: float(doc["sigma"][k]) for k in INTRINSIC_NAMES[:n]}
             cov = np.array(doc["covariance"], dtype=float).reshape(n, n)
             if not (np.all(np.isfinite(cov)) and np.all(np.isfinite(list(sigma.values())))):

@@ -86,15 +86,13 @@ class Section:
         v = self.raw(key, default)
         return Section({} if v is None else v, self._key(key))
 
-    def number(self, key: str, default: Any = ..., *, positive=False, nonneg=False, lo=None, hi=None) -> float:
+    def number(self, key: str, default: Any = ..., *, positive=False, lo=None, hi=None) -> float:
         v = self.raw(key, default)
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise ConfigError(f"{self._key(key)}: expected a number, got {short_repr(v)}")
         v = self._plausible(key, v)
         if positive and v <= 0:
             raise ConfigError(f"{self._key(key)}: expected a positive number, got {v!r}")
-        if nonneg and v < 0:
-            raise ConfigError(f"{self._key(key)}: expected a number >= 0, got {v!r}")
         if lo is not None and v < lo:
             raise ConfigError(f"{self._key(key)}: expected a number >= {lo}, got {v!r}")
         if hi is not None and v > hi:
@@ -477,9 +475,7 @@ def _parse_gripper(s: Section) -> GripperSpec:
     t = s.number("finger_thickness", positive=True)
     L = s.number("finger_length", positive=True)
     st = s.section("states")
-    states = {}
-    for name in list(st.data):
-        states[str(name)] = st.number(name, positive=True)
+    states = {str(name): st.number(name, positive=True) for name in list(st.data)}
     st.done()
     if not states:
         raise ConfigError("gripper.states: expected at least one state with its jaw gap")
@@ -513,13 +509,13 @@ def _parse_simulation(s: Section) -> SimulationSpec:
     kappa = tc.number("kappa")
     tc.done()
     me = s.section("mount_error")
-    me_a = me.number("angle_deg", nonneg=True)
-    me_s = me.number("shift_mm", nonneg=True)
+    me_a = me.number("angle_deg", lo=0)
+    me_s = me.number("shift_mm", lo=0)
     me.done()
     im = s.section("image")
     image = ImageSpec(
-        noise_gray=im.number("noise_gray", nonneg=True),
-        blur_px=im.number("blur_px", nonneg=True),
+        noise_gray=im.number("noise_gray", lo=0),
+        blur_px=im.number("blur_px", lo=0),
         paper=im.number("paper", lo=0, hi=255),
         ink=im.number("ink", lo=0, hi=255),
         foam=im.number("foam", lo=0, hi=255),
@@ -537,9 +533,9 @@ def _parse_simulation(s: Section) -> SimulationSpec:
             name=str(name),
             pivot_C=d.vector("pivot_C", 3),
             axis_C=d.vector("axis_C", 3),
-            axis_jitter_deg=d.number("axis_jitter_deg", nonneg=True),
-            tcp_shift_mm=d.number("tcp_shift_mm", nonneg=True),
-            tcp_shift_sd_mm=d.number("tcp_shift_sd_mm", nonneg=True),
+            axis_jitter_deg=d.number("axis_jitter_deg", lo=0),
+            tcp_shift_mm=d.number("tcp_shift_mm", lo=0),
+            tcp_shift_sd_mm=d.number("tcp_shift_sd_mm", lo=0),
         )
         d.done()
         if np.linalg.norm(spec.axis_C) == 0:

@@ -260,10 +260,8 @@ def picture_size(head: bytes) -> tuple[str, int, int]:
 def read_picture(path, *, max_side: int = MAX_PICTURE_SIDE, max_pixels: int = MAX_PICTURE_PIXELS,
                  what: str = "picture") -> tuple[np.ndarray, str]:
     """(grey picture as a 2-D uint8 array, SHA-256 of the file); ``PictureFileError`` (an ``ImageError``)
-    naming the file for an unreadable, empty, unknown, oversized (checked in the header, before decoding)
-    or undecodable one.
-    The header check (PNG, JPEG, BMP, PGM/PPM) refuses at once a small file that would decode to
-    30000 x 30000 pixels."""
+    naming the file for an unreadable, empty, unknown, oversized or undecodable one. The size is checked in
+    the header, before decoding: a small file that would decode to 30000 x 30000 pixels is refused at once."""
     import cv2
 
     p = Path(path)
@@ -364,29 +362,24 @@ def check_folder(path, *, error: type[CellError] = ConfigError, what: str = "fil
 
 def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, what: str = "file",
                  mode: int | None = None) -> None:
-    """Replace ``path`` with ``data`` atomically: the new content goes to a temporary file in the same
-    folder (named with the writer's pid), is flushed to disk and renamed over the old file (atomic on
-    POSIX), so a crash or a full disk leaves either the old file or the new one. A missing folder is not
-    created. Permission bits: the replaced
-    file's, else ``mode``, else 0o666 less the umask. A symlink's target is replaced (the link stays);
-    a device, FIFO or socket is refused. Leftovers of this file's writers that were killed are removed
-    first. Raises ``error`` naming the path and the cause; the old file is then untouched and no
-    temporary file is left."""
-    path = Path(path)
-    if path.is_symlink():
-        path = Path(os.path.realpath(path))
+    """Replace ``path`` with ``data``: written to a temporary file in the same folder (named with the
+    writer's pid; killed writers' leftovers removed first), flushed to disk and renamed over the old file.
+    Permission bits: the replaced file's, else ``mode``, else 0o666 less the umask. A symlink's target is
+    replaced (the link stays); a missing folder, a device, FIFO or socket is refused. Raises ``error``
+    naming the path and the cause, the old file untouched and no temporary file left."""
+    path = Path(os.path.realpath(path)) if Path(path).is_symlink() else Path(path)
     folder = path.parent
     check_folder(path, error=error, what=what)
     try:
-        old_mode = stat.S_IMODE(os.stat(path).st_mode)
+        st_mode = os.stat(path).st_mode
     except FileNotFoundError:
-        old_mode = mode
+        st_mode = None
     except OSError as exc:
         raise error(f"{path}: cannot write the {what}: {os_cause(exc)}") from None
-    if path.is_dir():
-        raise error(f"{path}: cannot write the {what}: a folder of that name exists")
-    if path.exists() and _not_regular(path.stat().st_mode):
-        raise error(f"{path}: cannot write the {what}: it is {_not_regular(path.stat().st_mode)}, not a regular file")
+    if st_mode is not None and (kind := _not_regular(st_mode)):
+        why = "a folder of that name exists" if stat.S_ISDIR(st_mode) else f"it is {kind}, not a regular file"
+        raise error(f"{path}: cannot write the {what}: {why}")
+    old_mode = mode if st_mode is None else stat.S_IMODE(st_mode)
     remove_leftovers(folder, path.name)
     tmp = folder / f".{path.name}.{os.getpid()}.{secrets.token_hex(6)}.tmp"  # see remove_leftovers
     try:
@@ -425,12 +418,9 @@ PICTURE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", 
 
 
 def write_picture(path, image, *, error: type[CellError] = ConfigError, what: str = "picture") -> None:
-    """Write ``image`` (grey or BGR, 8-bit) to ``path`` in the format its extension names: encoded in
-    memory (OpenCV never sees the path, whatever bytes it holds) and written by ``atomic_write`` (a full
-    disk or a killed writer leaves the old file or none, and no temporary file). Raises ``error`` naming the
-    path and the cause: an extension not in ``PICTURE_EXTENSIONS``, a picture OpenCV cannot encode, or the
-    write's own failure, or a picture that is not 8-bit grey or BGR(A) (OpenCV would write a float or wider one
-    after converting it to 8 bits by itself)."""
+    """Write ``image`` (8-bit grey or BGR(A): OpenCV would convert any other to 8 bits by itself) to ``path``
+    in the format its extension names (``PICTURE_EXTENSIONS``): encoded in memory (OpenCV never sees the
+    path, whatever bytes it holds), then ``atomic_write``. Raises ``error`` naming the path and the cause."""
     import cv2
 
     path = Path(path)

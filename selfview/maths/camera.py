@@ -80,9 +80,7 @@ def _distorted_radius(R: np.ndarray, kappa: float) -> np.ndarray:
         r = m * np.cos(np.arccos(arg) / 3.0 - 2.0 * np.pi / 3.0)
     # Newton polish: the closed forms lose digits through cancellation for small kappa r^2.
     for _ in range(3):
-        g = kappa * r**3 + r - R
-        dg = 3 * kappa * r**2 + 1.0
-        r = r - g / dg
+        r = r - (kappa * r**3 + r - R) / (3 * kappa * r**2 + 1.0)
     return r
 
 
@@ -248,10 +246,8 @@ class CameraModel:
         n = len(uv)
         # Eq. 8, one 3x3 system per point: [r1 r2 -X/f; r4 r5 -Y/f; r7 r8 -1] [x y zc]^T = -r3 z - t
         A = np.empty((n, 3, 3))
-        A[:, :, 0] = R[:, 0]
-        A[:, :, 1] = R[:, 1]
-        A[:, 0, 2] = -XY[:, 0] / self.f
-        A[:, 1, 2] = -XY[:, 1] / self.f
+        A[:, :, :2] = R[:, :2]
+        A[:, :2, 2] = -XY / self.f
         A[:, 2, 2] = -1.0
         b = -(R[:, 2][None, :] * zP[:, None]) - t[None, :]
         cosang = np.abs(self.rays(uv) @ R[:, 2])  # edge-on test: angle between ray and plane normal
@@ -265,6 +261,15 @@ class CameraModel:
             raise CalibrationError("plane meets a viewing ray behind the camera")
         pts = np.column_stack([sol[:, 0], sol[:, 1], zP])
         return (pts[0], zc[0]) if single else (pts, zc)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "CameraModel":
+        """The camera of a ``to_dict`` mapping (no ``skew``: 0); ``KeyError``, ``TypeError`` or ``ValueError`` for a
+        malformed one, ``ConfigError`` for impossible values."""
+        pp = d["principal_point"]
+        return cls(f=float(d["f"]), kappa=float(d["kappa"]), cx=float(pp[0]), cy=float(pp[1]),
+                   aspect=float(d["aspect"]), width=int(d["width"]), height=int(d["height"]),
+                   skew=float(d.get("skew", 0.0)))
 
     def to_dict(self) -> dict:
         return {

@@ -124,19 +124,12 @@ def orthonormalize(M: np.ndarray) -> np.ndarray:
 
 
 def is_rigid(H, tol: float = 1e-6) -> bool:
-    """True if ``H`` is a (4, 4) rigid transform: orthonormal rotation with det +1, bottom row 0 0 0 1."""
+    """True if ``H`` is a (4, 4) rigid transform within ``tol`` (``check_rigid`` accepts it)."""
     try:
-        H = np.asarray(H, dtype=float)
-    except (TypeError, ValueError):
+        check_rigid(H, tol=tol)
+    except ConfigError:
         return False
-    if H.shape != (4, 4) or not np.all(np.isfinite(H)):
-        return False
-    R = H[:3, :3]
-    return (
-        np.allclose(R.T @ R, np.eye(3), atol=tol)
-        and abs(np.linalg.det(R) - 1.0) < tol
-        and np.allclose(H[3], [0, 0, 0, 1], atol=tol)
-    )
+    return True
 
 
 def check_rigid(H, name: str = "transform", tol: float = 1e-3) -> np.ndarray:
@@ -266,10 +259,7 @@ class EulerConvention:
         """Three angles in degrees (each in (-180, 180]) that ``to_R`` maps back to ``R``."""
         R = np.asarray(self.base, dtype=float).T @ np.asarray(R, dtype=float)[:3, :3] @ np.asarray(self.tool).T
         i, j, k = ("xyz".index(c) for c in self.sequence.lower())
-        if i == k:  # proper Euler angles (e.g. zyz)
-            angs = _proper_euler(R, i, j)
-        else:  # Tait-Bryan (e.g. zyx)
-            angs = _tait_bryan(R, i, j, k)
+        angs = _proper_euler(R, i, j) if i == k else _tait_bryan(R, i, j, k)  # zyz-like, or zyx-like
         out = []
         for a, s, o in zip(angs, self.signs, self.offsets_deg):
             v = np.degrees(a) / s - o

@@ -1,50 +1,16 @@
-/* selfview.measurement._csil: the compiled per-round steps of the model-based fingertip measurement (selfview.measurement.silhouette):
- * the sampling of the model's edges, the candidates along each sample's normal, the IRLS and the vote.
+/* selfview.measurement._csil: the compiled per-round steps of the model-based fingertip measurement. Each
+ * function computes what its Python reference in selfview/measurement/silhouette.py computes (the comment
+ * above each gives its buffers; the tests compare the two at tolerances with a physical meaning): sample
+ * (_sample_py), points (_points_seen_py), candidates (_candidates_np, and camera.undistort_pixels of each
+ * candidate), vote (_votes_py), solve (_solve_py).
  *
- *   sample(a_G, b_G, d_in, finger, box, H, cam, margin, step, p, edge, uv, nrm) -> S, or -1
- *     silhouette._sample_py (the reference): points every ``step`` px along the edges a_G -> b_G (E, 3)
- *     whose ends lie 1 mm or more in front of the camera at H (C_H_G), projected with cam (8,): f, kappa,
- *     cx, cy, aspect, width, height of camera.CameraModel (eq. 3, then the distorted radius by the same
- *     closed forms and Newton polish as camera._distorted_radius), kept when in the picture ``margin`` px
- *     inside its border and not behind the other finger's box (box (2, 2, 3): finger, lo/hi; finger (E,)
- *     int64), with unit normals towards each edge's first face (d_in (E, 3): into it, G). Outputs: the
- *     first S rows of p (Smax, 3) [G], edge (Smax,) int64, uv (Smax, 2) [px], nrm (Smax, 2); Smax at
- *     least 400 per edge. -1: a point the Python code refuses (behind the camera, beyond the lens's fold),
- *     which the caller then hands to it to raise its error.
- *   points(p_G, other, box, H, cam, margin, uv, inside, hidden) -> 1, or 0
- *     the fingertip points p_G (N, 3) at H: their pixels uv (N, 2), whether inside the picture ``margin`` px
- *     within its border, whether hidden by the box of finger other (N,) int64 (int64 0/1 each). 0: a point
- *     behind the camera or beyond the lens's fold (the caller runs the Python code).
- *   candidates(img, uv, nrm, lev1, lev2, R, gates, cam, off, face, contrast, q)
- *     silhouette._candidates_np (the reference) and the candidates' undistorted sensor coordinates
- *     (camera.undistort_pixels): img (H, W) float32 or uint8; per sample uv, nrm (S, 2), the levels of
- *     its first and second face lev1, lev2 (S,) (NaN: none learnt); R the range [px]; gates (4,): the
- *     plateau [px], the least contrast, the level tolerance (fraction) and its floor [grey]. The profile
- *     is read as cv2.remap reads it (INTER_LINEAR, BORDER_REPLICATE: the position rounded to 1/32 px,
- *     single-precision weights) and every step from there in single precision as numpy computes it, so
- *     the levels agree to float rounding; equal scores rank by position (numpy's sort leaves their order
- *     open). Outputs (S, C): off [px along nrm], face, contrast (NaN: none), q (S, C, 2).
- *
- * The Python function ``silhouette._solve_py`` is the reference of solve: this computes the same iterations (the
- * homogeneous model lines l = A x B of the edges, each sample's candidate nearest its line, Tukey's weights
- * over 1.4826 MAD floored, the scaled Gauss-Newton step with the 1e-6 ridge, the camera motion applied on
- * the left, the same stopping rule), in double precision; sums are taken in another order than numpy's, so
- * results agree with the reference to rounding, not bit for bit (the tests compare them at a tolerance
- * with a physical meaning).
- *
- *   vote(off, nrm, g, tol, votes)
- *     the vote of silhouette._coarse_shift (its numpy code the reference): votes (G * G,) int64 [iy * G + ix]
- *     the samples (off (S, C) candidates, NaN: none; nrm (S, 2)) with a candidate within tol of
- *     nrm . (g[ix], g[iy]); the same comparisons, n . d summed without the matrix product's rounding.
- *   solve(q, pos, a_G, b_G, H, f, floor, iters, start_floor, H_out, w, r, pick, JtWJ) -> (code, sigma)
- *     q (S, C, 2) float64 candidates (undistorted sensor coordinates, NaN: none); pos (S,) int64 the
- *     row of each sample's edge in a_G, b_G (E, 3) float64 (the edges' ends in G); H (4, 4) float64 the
- *     start; f the focal length; start_floor < 0 for none. Outputs (written): H_out (4, 4), w (S,),
- *     r (S,), pick (S,) int64, JtWJ (6, 6). code 0: done; 1: fewer than 12 samples with a candidate
- *     (w is zero, as the reference returns); 2: a singular system (the caller runs the reference).
- *
- * Every buffer is checked (type, dimensions, shape) and every index (pos) before it is used: bad
- * arguments raise TypeError or ValueError naming the argument. Only the CPython C API (the buffer protocol).
+ * Where the results differ from numpy's, and why: candidates reads the profile as cv2.remap does (bilinear
+ * below) and computes in single precision as numpy does, so the levels agree to float rounding, and equal
+ * scores rank by position (numpy's sort leaves their order open); solve sums in another order than numpy, so
+ * it agrees to rounding, not bit for bit. A point the Python code refuses (behind the camera, beyond the
+ * lens's fold) makes sample return -1 and points 0, and a singular system makes solve return code 2: the
+ * caller then runs the reference, which raises or decides. Every buffer (type, dimensions, shape) and index
+ * is checked before it is used: bad arguments raise TypeError or ValueError naming the argument.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -131,7 +97,7 @@ static Py_buffer *get_buf(BufSet *s, PyObject *o, const char *name, int kind, in
         const Py_ssize_t shp_[] = {__VA_ARGS__};                                                         \
         var = get_buf(&bs, obj, name, kind, wr, nd, shp_);                                               \
         if (!var)                                                                                        \
-            goto fail;                                                                                   \
+            goto out;                                                                                   \
     } while (0)
 
 /* the k-th smallest of v[0..n) (Hoare's selection; v is reordered: v[k] holds it, v[0..k) the ones not above it) */
@@ -176,19 +142,12 @@ static double median(double *v, Py_ssize_t n)
     return 0.5 * (lower + upper);
 }
 
-/* geometry.R_from_rotvec */
+/* geometry.R_from_rotvecs of one vector: I + sin(th) K + (1 - cos(th)) K^2, K = [v / th]x (I + [v]x near 0) */
 static void rotvec_R(const double *v, double R[9])
 {
-    double th = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
-    double K[9] = {0, -v[2], v[1], v[2], 0, -v[0], -v[1], v[0], 0};
-    if (th < 1e-12) {
-        for (int i = 0; i < 9; i++)
-            R[i] = K[i] + (i % 4 == 0 ? 1.0 : 0.0);
-        return;
-    }
-    for (int i = 0; i < 9; i++)
-        K[i] /= th;
-    double s = sin(th), c = 1.0 - cos(th);
+    const double th = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), n = th < 1e-12 ? 1.0 : th;
+    const double s = th < 1e-12 ? 1.0 : sin(th), c = th < 1e-12 ? 0.0 : 1.0 - cos(th);
+    const double K[9] = {0, -v[2] / n, v[1] / n, v[2] / n, 0, -v[0] / n, -v[1] / n, v[0] / n, 0};
     for (int i = 0; i < 3; i++)
         for (int j = 0; j < 3; j++) {
             double kk = 0.0;
@@ -196,6 +155,20 @@ static void rotvec_R(const double *v, double R[9])
                 kk += K[3 * i + m] * K[3 * m + j];
             R[3 * i + j] = (i == j ? 1.0 : 0.0) + s * K[3 * i + j] + c * kk;
         }
+}
+
+/* the rigid transform H (4, 4, row-major) applied to p */
+static void apply_H(const double *H, const double p[3], double out[3])
+{
+    for (int i = 0; i < 3; i++)
+        out[i] = H[4 * i] * p[0] + H[4 * i + 1] * p[1] + H[4 * i + 2] * p[2] + H[4 * i + 3];
+}
+
+/* the camera's position in the frame H maps to the camera's: -R^T t */
+static void cam_origin(const double *H, double o[3])
+{
+    for (int i = 0; i < 3; i++)
+        o[i] = -(H[i] * H[3] + H[4 + i] * H[7] + H[8 + i] * H[11]);
 }
 
 /* A x = b (6 x 6) by Gaussian elimination with partial pivoting; 0 if singular */
@@ -237,12 +210,17 @@ static int solve6(double A[36], double b[6], double x[6])
     return 1;
 }
 
+/* solve(q, pos, a_G, b_G, H, f, floor, iters, start_floor, H_out, w, r, pick, JtWJ) -> (code, sigma): q (S, C, 2)
+ * the candidates (undistorted sensor coordinates, NaN: none), pos (S,) the row of each sample's edge in its ends
+ * a_G, b_G (E, 3) [mm, G], H the start C_H_G, f [px], start_floor < 0: none. code 0 done; 1 fewer than 12 samples
+ * with a candidate (w zero, as the reference returns); 2 a singular system. */
 static PyObject *py_solve(PyObject *self, PyObject *args)
 {
     PyObject *o_q, *o_pos, *o_a, *o_b, *o_H, *o_Ho, *o_w, *o_r, *o_pick, *o_J;
     double f, floor_, start_floor;
     Py_ssize_t iters;
     BufSet bs = {.n = 0};
+    PyObject *ret = NULL;
     Py_buffer *b_q, *b_pos, *b_a, *b_b, *b_H, *b_Ho, *b_w, *b_r, *b_pick, *b_J;
     double *work = NULL;
     if (!PyArg_ParseTuple(args, "OOOOOddndOOOOO:solve", &o_q, &o_pos, &o_a, &o_b, &o_H, &f, &floor_, &iters,
@@ -262,11 +240,11 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
     GET(b_J, o_J, "JtWJ", T_F64, 1, 2, 6, 6);
     if (C < 1 || E < 1) {
         PyErr_SetString(PyExc_ValueError, "q, a_G: expected at least one candidate column and one edge");
-        goto fail;
+        goto out;
     }
     if (!(f > 0.0) || !isfinite(f) || !(floor_ > 0.0) || iters < 0 || iters > 1000) {
         PyErr_SetString(PyExc_ValueError, "f, floor, iters: expected f > 0, floor > 0, 0 <= iters <= 1000");
-        goto fail;
+        goto out;
     }
     const double *q = b_q->buf, *aG = b_a->buf, *bG = b_b->buf;
     const int64_t *pos = b_pos->buf;
@@ -274,14 +252,14 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
         if (pos[s] < 0 || pos[s] >= E) {
             PyErr_Format(PyExc_ValueError, "pos: sample %zd names edge %lld, expected 0..%zd", s, (long long)pos[s],
                          E - 1);
-            goto fail;
+            goto out;
         }
     double *Ho = b_Ho->buf, *w = b_w->buf, *r = b_r->buf, *JtWJ = b_J->buf;
     int64_t *pick = b_pick->buf;
     work = PyMem_Malloc(sizeof(double) * (size_t)(S + 13 * E + 1));
     if (!work) {
         PyErr_NoMemory();
-        goto fail;
+        goto out;
     }
     double *absr = work, *M = work + S, *Dn = M + 3 * E, *K = Dn + 3 * E;  /* V (E, 7): the r term of each edge's row */
     double H[16];
@@ -299,10 +277,8 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
         /* the model lines */
         for (Py_ssize_t e = 0; e < E; e++) {
             double A[3], B[3];
-            for (int i = 0; i < 3; i++) {
-                A[i] = H[4 * i] * aG[3 * e] + H[4 * i + 1] * aG[3 * e + 1] + H[4 * i + 2] * aG[3 * e + 2] + H[4 * i + 3];
-                B[i] = H[4 * i] * bG[3 * e] + H[4 * i + 1] * bG[3 * e + 1] + H[4 * i + 2] * bG[3 * e + 2] + H[4 * i + 3];
-            }
+            apply_H(H, aG + 3 * e, A);
+            apply_H(H, bG + 3 * e, B);
             double l0 = A[1] * B[2] - A[2] * B[1], l1 = A[2] * B[0] - A[0] * B[2], l2 = A[0] * B[1] - A[1] * B[0];
             double N = hypot(l0, l1);
             double *m = M + 3 * e, *d = Dn + 3 * e, *V = K + 7 * e;
@@ -413,22 +389,21 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
             break;
     }
     memcpy(Ho, H, sizeof H);
+    ret = Py_BuildValue("(id)", code, sigma);
+out:
     PyMem_Free(work);
     bufs_release(&bs);
-    return Py_BuildValue("(id)", code, sigma);
-fail:
-    PyMem_Free(work);
-    bufs_release(&bs);
-    return NULL;
+    return ret;
 }
 
-/* The vote of silhouette._coarse_shift: votes[iy * G + ix] = how many samples have a candidate within tol
- * of n . (g[ix], g[iy]) (candidates NaN: none). */
+/* vote(off, nrm, g, tol, votes): votes[iy * G + ix] how many samples (off (S, C) candidates, NaN: none; nrm
+ * (S, 2)) have a candidate within tol of nrm . (g[ix], g[iy]); n . d summed without a matrix product's rounding */
 static PyObject *py_vote(PyObject *self, PyObject *args)
 {
     PyObject *o_off, *o_n, *o_g, *o_v;
     double tol;
     BufSet bs = {.n = 0};
+    PyObject *ret = NULL;
     Py_buffer *b_off, *b_n, *b_g, *b_v;
     double *cand = NULL;
     if (!PyArg_ParseTuple(args, "OOOdO:vote", &o_off, &o_n, &o_g, &tol, &o_v))
@@ -441,14 +416,14 @@ static PyObject *py_vote(PyObject *self, PyObject *args)
     GET(b_v, o_v, "votes", T_I64, 1, 1, G * G);
     if (!(tol >= 0.0) || G < 1 || G > 4096) {
         PyErr_SetString(PyExc_ValueError, "tol, g: expected tol >= 0 and 1..4096 grid values");
-        goto fail;
+        goto out;
     }
     const double *off = b_off->buf, *nrm = b_n->buf, *g = b_g->buf;
     int64_t *votes = b_v->buf;
     cand = PyMem_Malloc(sizeof(double) * (size_t)(C > 0 ? C : 1));
     if (!cand) {
         PyErr_NoMemory();
-        goto fail;
+        goto out;
     }
     for (Py_ssize_t i = 0; i < G * G; i++)
         votes[i] = 0;
@@ -472,13 +447,11 @@ static PyObject *py_vote(PyObject *self, PyObject *args)
             }
         }
     }
+    ret = Py_NewRef(Py_None);
+out:
     PyMem_Free(cand);
     bufs_release(&bs);
-    Py_RETURN_NONE;
-fail:
-    PyMem_Free(cand);
-    bufs_release(&bs);
-    return NULL;
+    return ret;
 }
 
 /* ---- the sampling of the silhouette and the candidates along each sample's normal ---------------------- */
@@ -486,6 +459,7 @@ fail:
 typedef struct {
     double f, kappa, cx, cy, aspect, width, height, skew, rmax;
 } Cam;
+_Static_assert(sizeof(Cam) == 9 * sizeof(double), "Cam: nine doubles, no padding (get_cam copies cam into it)");
 
 /* cam (8,): f, kappa, cx, cy, aspect, width, height, skew of a camera.CameraModel; 0 with an exception set */
 static int get_cam(const double *v, Cam *c)
@@ -500,14 +474,7 @@ static int get_cam(const double *v, Cam *c)
         PyErr_SetString(PyExc_ValueError, "cam: expected f, aspect, width and height > 0");
         return 0;
     }
-    c->f = v[0];
-    c->kappa = v[1];
-    c->cx = v[2];
-    c->cy = v[3];
-    c->aspect = v[4];
-    c->width = v[5];
-    c->height = v[6];
-    c->skew = v[7];
+    memcpy(c, v, 8 * sizeof(double)); /* the fields in cam's order */
     c->rmax = INFINITY;
     if (c->kappa < 0) {
         double r = sqrt(-1.0 / (3.0 * c->kappa));
@@ -547,12 +514,6 @@ static int project(const Cam *c, const double p[3], double uv[2])
     return isfinite(uv[0]) && isfinite(uv[1]);
 }
 
-static void apply_H(const double *H, const double p[3], double out[3])
-{
-    for (int i = 0; i < 3; i++)
-        out[i] = H[4 * i] * p[0] + H[4 * i + 1] * p[1] + H[4 * i + 2] * p[2] + H[4 * i + 3];
-}
-
 /* silhouette._blocked for one ray o + t d: whether it passes through the box (lo, hi) before t = 1 (an axis
  * where the ray runs in a face's plane is left out, as the reference's NaN-skipping reductions do) */
 static int blocked(const double o[3], const double d[3], const double *lo, const double *hi)
@@ -581,12 +542,17 @@ static int blocked(const double o[3], const double d[3], const double *lo, const
 
 #define MAX_PER_EDGE 400
 
-/* sample(a_G, b_G, d_in, finger, box, H, cam, margin, step, p, edge, uv, nrm) -> S, or -1 */
+/* sample(a_G, b_G, d_in, finger, box, H, cam, margin, step, p, edge, uv, nrm) -> S, or -1: points every step px
+ * along the edges a_G -> b_G (E, 3) [mm, G] whose ends lie 1 mm or more in front of the camera at H (C_H_G), kept
+ * when in the picture margin px inside its border and not behind the other finger's box (box (2, 2, 3): finger,
+ * lo/hi; finger (E,)), with unit normals towards each edge's first face (d_in (E, 3): into it). Writes the first
+ * S rows of p (Smax, 3) [G], edge, uv [px], nrm; Smax at least MAX_PER_EDGE per edge. */
 static PyObject *py_sample(PyObject *self, PyObject *args)
 {
     PyObject *o_a, *o_b, *o_d, *o_fin, *o_box, *o_H, *o_cam, *o_p, *o_e, *o_uv, *o_n;
     double margin, step;
     BufSet bs = {.n = 0};
+    PyObject *ret = NULL;
     Py_buffer *b_a, *b_b, *b_d, *b_fin, *b_box, *b_H, *b_cam, *b_p, *b_e, *b_uv, *b_n;
     double *work = NULL;
     Py_ssize_t S = 0;
@@ -609,21 +575,21 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
     if (Smax < E * MAX_PER_EDGE) {
         PyErr_Format(PyExc_ValueError, "p: room for %zd samples, expected %d per edge (%zd)", Smax, MAX_PER_EDGE,
                      E * MAX_PER_EDGE);
-        goto fail;
+        goto out;
     }
     if (!(step > 0) || !isfinite(step) || !isfinite(margin)) {
         PyErr_SetString(PyExc_ValueError, "step, margin: expected step > 0 and a finite margin");
-        goto fail;
+        goto out;
     }
     const int64_t *fin = b_fin->buf;
     for (Py_ssize_t e = 0; e < E; e++)
         if (fin[e] != 0 && fin[e] != 1) {
             PyErr_Format(PyExc_ValueError, "finger: edge %zd names finger %lld, expected 0 or 1", e, (long long)fin[e]);
-            goto fail;
+            goto out;
         }
     Cam c;
     if (!get_cam(b_cam->buf, &c))
-        goto fail;
+        goto out;
     const double *aG = b_a->buf, *bG = b_b->buf, *dG = b_d->buf, *box = b_box->buf, *H = b_H->buf;
     double *P = b_p->buf, *UV = b_uv->buf, *NR = b_n->buf;
     int64_t *EO = b_e->buf;
@@ -631,15 +597,12 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
     work = PyMem_Malloc(sizeof(double) * (size_t)(3 * E + 2 * E * MAX_PER_EDGE + 1));
     if (!work) {
         PyErr_NoMemory();
-        goto fail;
+        goto out;
     }
     double *cnt = work, *side = work + E, *all = work + 3 * E;
-    /* the camera's position in G: o = -R^T t */
-    double o[3];
-    for (int i = 0; i < 3; i++)
-        o[i] = -(H[i] * H[3] + H[4 + i] * H[7] + H[8 + i] * H[11]);
+    double o[3]; /* the camera's position in G */
+    cam_origin(H, o);
     Py_ssize_t N = 0;
-    int any = 0;
     for (Py_ssize_t e = 0; e < E; e++) {
         double A[3], B[3], ua[2], ub[2];
         cnt[e] = 0;
@@ -647,7 +610,6 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
         apply_H(H, bG + 3 * e, B);
         if (!(A[2] > 1.0 && B[2] > 1.0))
             continue;
-        any = 1;
         if (!project(&c, A, ua) || !project(&c, B, ub))
             goto refuse;
         const double dx = ub[0] - ua[0], dy = ub[1] - ua[1];
@@ -655,8 +617,6 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
         k = k < 2 ? 2 : k > MAX_PER_EDGE ? MAX_PER_EDGE : k;
         cnt[e] = (double)(int)k;
     }
-    if (!any)
-        goto done;
     /* every sample's pixel, and each edge's side: its first face's direction in the picture */
     for (Py_ssize_t e = 0; e < E; e++) {
         const int n = (int)cnt[e];
@@ -704,45 +664,30 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
             }
             if (blocked(o, d, lo, hi))
                 continue;
-            double tx, ty;
-            if (k + 1 < n) {
-                tx = u[2] - u[0];
-                ty = u[3] - u[1];
-            } else {
-                tx = u[0] - u[-2];
-                ty = u[1] - u[-1];
-            }
+            const double *v = k + 1 < n ? u : u - 2; /* the sample and the next one, or the last two */
+            double tx = v[2] - v[0], ty = v[3] - v[1];
             const double L = sqrt(tx * tx + ty * ty) + 1e-12;
             tx /= L;
             ty /= L;
-            double nx = -ty, ny = tx;
-            const double sg = nx * side[2 * e] + ny * side[2 * e + 1];
-            if (sg < 0) {
-                nx = -nx;
-                ny = -ny;
-            }
+            const double nx = -ty, ny = tx, sg = nx * side[2 * e] + ny * side[2 * e + 1] < 0 ? -1.0 : 1.0;
             memcpy(P + 3 * S, p, sizeof p);
             EO[S] = e;
             UV[2 * S] = u[0];
             UV[2 * S + 1] = u[1];
-            NR[2 * S] = nx;
-            NR[2 * S + 1] = ny;
+            NR[2 * S] = sg * nx;
+            NR[2 * S + 1] = sg * ny;
             S++;
         }
         i0 += n;
     }
-done:
-    PyMem_Free(work);
-    bufs_release(&bs);
-    return PyLong_FromSsize_t(S);
+    ret = PyLong_FromSsize_t(S);
+    goto out;
 refuse:
+    ret = PyLong_FromLong(-1);
+out:
     PyMem_Free(work);
     bufs_release(&bs);
-    return PyLong_FromLong(-1);
-fail:
-    PyMem_Free(work);
-    bufs_release(&bs);
-    return NULL;
+    return ret;
 }
 
 /* cv2.remap's bilinear sample of a float32 picture (INTER_LINEAR, BORDER_REPLICATE): the position rounded
@@ -767,13 +712,16 @@ static inline float bilinear(const float *img, const uint8_t *img8, int H, int W
 
 static inline int sgnf(float v) { return (v > 0) - (v < 0); }
 
-/* candidates(img, uv, nrm, lev1, lev2, R, gates, cam, off, face, contrast, q): silhouette._candidates, and
- * each candidate's undistorted sensor coordinates q */
+/* candidates(img, uv, nrm, lev1, lev2, R, gates, cam, off, face, contrast, q): img (H, W) float32 or uint8; per
+ * sample uv, nrm (S, 2), the levels of its first and second face lev1, lev2 (S,) (NaN: none learnt); R the range
+ * [px]; gates: the plateau [px], the least contrast, the level tolerance (fraction) and its floor [grey]. Writes
+ * (S, C): off [px along nrm], face, contrast (NaN: none), q (S, C, 2) undistorted sensor coordinates. */
 static PyObject *py_candidates(PyObject *self, PyObject *args)
 {
     PyObject *o_img, *o_uv, *o_n, *o_l1, *o_l2, *o_g, *o_cam, *o_off, *o_face, *o_con, *o_q;
     double R;
     BufSet bs = {.n = 0};
+    PyObject *ret = NULL;
     Py_buffer *b_img, *b_uv, *b_n, *b_l1, *b_l2, *b_g, *b_cam, *b_off, *b_face, *b_con, *b_q;
     float *work = NULL;
     if (!PyArg_ParseTuple(args, "OOOOOdOOOOOO:candidates", &o_img, &o_uv, &o_n, &o_l1, &o_l2, &R, &o_g, &o_cam,
@@ -797,20 +745,20 @@ static PyObject *py_candidates(PyObject *self, PyObject *args)
     const int P = (int)gates[0];
     if (b_img->shape[0] < 1 || b_img->shape[1] < 1 || b_img->shape[0] > 1 << 20 || b_img->shape[1] > 1 << 20) {
         PyErr_SetString(PyExc_ValueError, "img: expected a picture of 1..2^20 rows and columns");
-        goto fail;
+        goto out;
     }
     if (!(R >= 1.0 && R <= 1000.0) || C < 1 || (double)P != gates[0] || P < 2 || P > 50) {
         PyErr_SetString(PyExc_ValueError, "R, off, gates: expected 1 <= R <= 1000, a candidate column, a plateau of 2..50 px");
-        goto fail;
+        goto out;
     }
     Cam c;
     if (!get_cam(b_cam->buf, &c))
-        goto fail;
+        goto out;
     const double *uv = b_uv->buf, *nr = b_n->buf, *l1 = b_l1->buf, *l2 = b_l2->buf;
     for (Py_ssize_t s = 0; s < 2 * S; s++)
         if (!isfinite(uv[s]) || !isfinite(nr[s])) {
             PyErr_Format(PyExc_ValueError, "uv, nrm: sample %zd is not finite", s / 2);
-            goto fail;
+            goto out;
         }
     const float min_con = (float)gates[1];
     const double ltol = gates[2], ltol_grey = gates[3];
@@ -818,7 +766,7 @@ static PyObject *py_candidates(PyObject *self, PyObject *args)
     work = PyMem_Malloc(sizeof(float) * (size_t)(4 * L) + sizeof(double) * (size_t)M);
     if (!work) {
         PyErr_NoMemory();
-        goto fail;
+        goto out;
     }
     /* per sample: the profile at offsets -Ri-P-1 .. Ri+P+1, its derivative D (at offsets -Ri-P .. Ri+P), and per
      * step m (at offset m - Ri - P + 1, D's m + 1) the mean levels 2..P px on its face side and on the other */
@@ -889,25 +837,22 @@ static PyObject *py_candidates(PyObject *self, PyObject *args)
             qo[1] = Y * (1.0 + c.kappa * r2);
         }
     }
+    ret = Py_NewRef(Py_None);
+out:
     PyMem_Free(work);
     bufs_release(&bs);
-    Py_RETURN_NONE;
-fail:
-    PyMem_Free(work);
-    bufs_release(&bs);
-    return NULL;
+    return ret;
 }
 
-/* points(p_G, other, box, H, cam, margin, uv, inside, hidden) -> 1, or 0
- *   the model's points p_G (N, 3) at H (C_H_G): their pixels uv (N, 2) (camera.CameraModel.project),
- *   inside (N,) int64 whether in the picture ``margin`` px inside its border (camera.in_image), hidden (N,)
- *   int64 whether behind the box of finger other (N,) int64 (silhouette._blocked). 0: a point behind the
- *   camera or beyond the lens's fold (nothing usable written: the caller runs the Python code). */
+/* points(p_G, other, box, H, cam, margin, uv, inside, hidden) -> 1, or 0: the points p_G (N, 3) at H (C_H_G):
+ * their pixels uv (N, 2), whether in the picture margin px inside its border, whether behind the box of finger
+ * other (N,) (int64 0/1 each) */
 static PyObject *py_points(PyObject *self, PyObject *args)
 {
     PyObject *o_p, *o_oth, *o_box, *o_H, *o_cam, *o_uv, *o_in, *o_hid;
     double margin;
     BufSet bs = {.n = 0};
+    PyObject *ret = NULL;
     Py_buffer *b_p, *b_oth, *b_box, *b_H, *b_cam, *b_uv, *b_in, *b_hid;
     if (!PyArg_ParseTuple(args, "OOOOOdOOO:points", &o_p, &o_oth, &o_box, &o_H, &o_cam, &margin, &o_uv, &o_in, &o_hid))
         return NULL;
@@ -924,27 +869,26 @@ static PyObject *py_points(PyObject *self, PyObject *args)
     for (Py_ssize_t i = 0; i < N; i++)
         if (oth[i] != 0 && oth[i] != 1) {
             PyErr_Format(PyExc_ValueError, "other: point %zd names finger %lld, expected 0 or 1", i, (long long)oth[i]);
-            goto fail;
+            goto out;
         }
     if (!isfinite(margin)) {
         PyErr_SetString(PyExc_ValueError, "margin: expected a finite number");
-        goto fail;
+        goto out;
     }
     Cam c;
     if (!get_cam(b_cam->buf, &c))
-        goto fail;
+        goto out;
     const double *pG = b_p->buf, *H = b_H->buf, *box = b_box->buf;
     double *uv = b_uv->buf;
     int64_t *ins = b_in->buf, *hid = b_hid->buf;
     double o[3];
-    for (int i = 0; i < 3; i++)
-        o[i] = -(H[i] * H[3] + H[4 + i] * H[7] + H[8 + i] * H[11]);
+    cam_origin(H, o);
     for (Py_ssize_t i = 0; i < N; i++) {
         double pc[3];
         apply_H(H, pG + 3 * i, pc);
         if (!project(&c, pc, uv + 2 * i)) {
-            bufs_release(&bs);
-            return PyLong_FromLong(0);
+            ret = PyLong_FromLong(0);
+            goto out;
         }
     }
     for (Py_ssize_t i = 0; i < N; i++) {
@@ -954,28 +898,18 @@ static PyObject *py_points(PyObject *self, PyObject *args)
         const double d[3] = {p[0] - o[0], p[1] - o[1], p[2] - o[2]};
         hid[i] = blocked(o, d, lo, lo + 3);
     }
+    ret = PyLong_FromLong(1);
+out:
     bufs_release(&bs);
-    return PyLong_FromLong(1);
-fail:
-    bufs_release(&bs);
-    return NULL;
+    return ret;
 }
 
 static PyMethodDef methods[] = {
-    {"solve", py_solve, METH_VARARGS,
-     "solve(q, pos, a_G, b_G, H, f, floor, iters, start_floor, H_out, w, r, pick, JtWJ) -> (code, sigma): "
-     "the IRLS of silhouette._solve (code 0 done, 1 too few samples, 2 singular: run the reference)."},
-    {"vote", py_vote, METH_VARARGS,
-     "vote(off, nrm, g, tol, votes): the vote of silhouette._coarse_shift over the grid g x g."},
-    {"sample", py_sample, METH_VARARGS,
-     "sample(a_G, b_G, d_in, finger, box, H, cam, margin, step, p, edge, uv, nrm) -> S: silhouette._sample_py "
-     "(-1: a point the kernel does not project: run the Python code)."},
-    {"points", py_points, METH_VARARGS,
-     "points(p_G, other, box, H, cam, margin, uv, inside, hidden) -> 1, or 0 (run the Python code): the model's "
-     "points in the picture, inside it, hidden by the other finger."},
-    {"candidates", py_candidates, METH_VARARGS,
-     "candidates(img, uv, nrm, lev1, lev2, R, gates, cam, off, face, contrast, q): silhouette._candidates and "
-     "the candidates' undistorted sensor coordinates."},
+    {"solve", py_solve, METH_VARARGS, "silhouette._solve_py's IRLS (see _csil.c)."},
+    {"vote", py_vote, METH_VARARGS, "silhouette._votes_py's vote (see _csil.c)."},
+    {"sample", py_sample, METH_VARARGS, "silhouette._sample_py (see _csil.c)."},
+    {"points", py_points, METH_VARARGS, "silhouette._points_seen_py (see _csil.c)."},
+    {"candidates", py_candidates, METH_VARARGS, "silhouette._candidates_np and camera.undistort_pixels (see _csil.c)."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -3,14 +3,8 @@
 An object is a block lying on the table with a small printed target on its top face. Its frame O has
 its origin at the target's centre, x and y along the target's squares, z into the block (as the plate's
 W, CONVENTIONS.md). The object file gives the target (a ``plate:``-style section: ``{pattern: charuco,
-squares: [NX, NY], square: MM, marker: MM, dictionary: DICT_4X4_50}``), the block's size, the grasp
-frame ``G*`` in O (``O_H_Gstar``: where the gripper's TCP and axes must be to hold it) and the stand-off
-``approach_mm`` along G*'s z from which the last straight descent starts.
-
-``object_pose`` measures ``C_H_O`` from a picture with the project's camera model (kappa included: the
-detected corners are undistorted by ``CameraModel``, never by OpenCV's model), with its standard
-deviations and the planar target's two-fold ambiguity resolved (IPPE's two solutions' residuals
-compared) or refused.
+squares: [NX, NY], square: MM, marker: MM, dictionary: DICT_4X4_50}``) and the rest of an ``ObjectSpec``;
+``object_pose`` measures ``C_H_O`` from a picture with the project's camera model.
 """
 
 from __future__ import annotations
@@ -47,16 +41,11 @@ class TargetSpec:
     square: float
     marker: float
     dictionary: str = "DICT_4X4_50"
-    pattern: str = "charuco"
 
     @property
     def size(self) -> tuple[float, float]:
         """(x, y) extent of the printed squares [mm]."""
         return (self.squares[0] * self.square, self.squares[1] * self.square)
-
-    def to_dict(self) -> dict:
-        return {"pattern": self.pattern, "squares": list(self.squares), "square": self.square, "marker": self.marker,
-                "dictionary": self.dictionary}
 
 
 @dataclass(frozen=True)
@@ -230,11 +219,6 @@ class ObjectPose:
     rms_px_other: float
     corners: int
     detection: TargetDetection | None = None
-
-    def to_dict(self) -> dict:
-        return {"C_H_O": np.round(self.C_H_O, 6).tolist(), "sigma_mm": [float(v) for v in self.sigma_mm],
-                "sigma_deg": [float(v) for v in self.sigma_deg], "rms_px": self.rms_px,
-                "rms_px_other": self.rms_px_other, "corners": self.corners}
 
 
 def _residual_px(rv, tv, p_O, xy, f: float) -> float:
