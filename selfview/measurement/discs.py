@@ -8,6 +8,7 @@ pose of the plate is known.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -473,6 +474,35 @@ def _off_size(P, index, areas, plate: PlateSpec) -> set[int]:
     return bad
 
 
+#: The changes of lattice basis tried for the plate's axes: the integer 2 x 2 matrices with entries of at
+#: most 2 and determinant +-1, which turn a reduced basis of a lattice into any other of it.
+_BASES = np.array([m for m in itertools.product(range(-2, 3), repeat=4) if abs(m[0] * m[3] - m[1] * m[2]) == 1]).reshape(-1, 2, 2)
+
+
+def _plate_axes(P, index) -> dict[int, tuple[int, int]]:
+    """``index`` re-expressed in the lattice's own axes: the basis in which the indexed discs take the
+    smallest box (the plate's rows and columns are the lattice's lines that hold the most discs each),
+    whatever two steps the seed took. A plate turned and foreshortened in the picture can make a diagonal
+    as short as a step, and a seed on it indexes a sheared lattice (a 10 x 8 grid as 17 x 10). Of bases
+    whose boxes tie, the one whose mean image steps are nearest a right angle (the seed's first)."""
+    ids = list(index)
+    keys = np.array([index[k] for k in ids])
+    K = np.einsum("mij,nj->mni", _BASES, keys)  # (bases, N, 2)
+    ext = K.max(1) - K.min(1) + 1
+    area = ext[:, 0] * ext[:, 1]
+    own = (keys.max(0) - keys.min(0) + 1).prod()
+    if area.min() == own:
+        return index
+    best, best_cos = None, None
+    for m in np.flatnonzero(area == area.min()):
+        trial = dict(zip(ids, map(tuple, K[m].tolist())))
+        a, b = _mean_step(P, trial, 0), _mean_step(P, trial, 1)
+        cos = abs(a @ b) / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-12)
+        if best_cos is None or cos < best_cos - 1e-9:
+            best, best_cos = trial, cos
+    return best
+
+
 def _plate_window(index, plate: PlateSpec) -> dict[int, tuple[int, int]]:
     """``index`` cut to the plate's ``rows x cols`` window that holds the most lattice points, when the
     lattice is larger than the plate (blobs beyond the sheet at lattice places) and one window holds more
@@ -631,6 +661,8 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     index = _propagate(P)
     for k in _lattice_outliers(P, index):
         del index[k]
+    if index:
+        index = _plate_axes(P, index)
     if len(index) >= min_discs:
         for k in _off_size(P, index, areas, plate):
             del index[k]
