@@ -410,7 +410,12 @@ def _propagate(P: np.ndarray) -> dict[int, tuple[int, int]]:
                 if key in at:
                     break
                 back = at.get((i - di, j - dj))
-                step = (P[p] - P[back]) if back is not None else (steps[p][0] * di + steps[p][1] * dj)
+                if back is not None:
+                    step = P[p] - P[back]
+                else:
+                    step = _parallel_step(P, at, (i, j), (di, dj))
+                    if step is None:
+                        step = steps[p][0] * di + steps[p][1] * dj
                 off = P - (P[p] + jump * step)
                 dd = np.einsum("ij,ij->i", off, off)  # squared distances to the prediction
                 q = int(np.argmin(dd))
@@ -424,6 +429,29 @@ def _propagate(P: np.ndarray) -> dict[int, tuple[int, int]]:
                 queue.append(q)
                 break
     return index
+
+
+def _parallel_step(P, at, ij, d) -> np.ndarray | None:
+    """The lattice step ``d`` (di, dj) at place ``ij`` as the lines beside it measure it: the mean of the
+    steps on the two neighbouring lines, or the one neighbouring line's extrapolated by the next line's
+    (perspective shrinks a step across the lines, so a step carried over from the walk's start would not
+    do); None when no neighbouring line has it."""
+    (i, j), (di, dj) = ij, d
+    side = []
+    for s in (1, -1):
+        got = []
+        for n in (1, 2):
+            lo, hi = at.get((i + s * n * dj, j + s * n * di)), at.get((i + s * n * dj + di, j + s * n * di + dj))
+            if lo is None or hi is None:
+                break
+            got.append(P[hi] - P[lo])
+        if got:
+            side.append(got)
+    if len(side) == 2:
+        return (side[0][0] + side[1][0]) / 2
+    if side:
+        return 2 * side[0][0] - side[0][1] if len(side[0]) == 2 else side[0][0]
+    return None
 
 
 def _lattice_outliers(P, index) -> set[int]:
