@@ -609,10 +609,13 @@ def _check_square(xy: np.ndarray, cr: np.ndarray) -> None:
 
 def _grid_end(P_img, cr, axis, side, dark, r_px, shape) -> bool:
     """True when one lattice step beyond the last column/row (``axis`` 0/1, ``side`` -1 low, +1 high)
-    the picture shows blank paper at two or more places and a disc at none."""
+    the picture shows blank paper at two or more places and a disc at none. A place the picture's border
+    cuts counts by its part inside the picture when that holds a third of a disc or more (a disc there
+    would show), and is not looked at otherwise."""
     at = {tuple(k): n for n, k in enumerate(cr)}
     edge = cr[:, axis].min() if side < 0 else cr[:, axis].max()
     H, W = shape
+    rr = int(np.ceil(1.5 * r_px))
     empty = 0
     for n in np.nonzero(cr[:, axis] == edge)[0]:
         inner = cr[n].copy()
@@ -622,10 +625,13 @@ def _grid_end(P_img, cr, axis, side, dark, r_px, shape) -> bool:
             continue
         pred = 2 * P_img[n] - P_img[q]
         u, v = int(round(pred[0])), int(round(pred[1]))
-        rr = int(np.ceil(1.5 * r_px))
-        if u - rr < 0 or v - rr < 0 or u + rr >= W or v + rr >= H:
+        u0, u1, v0, v1 = max(u - rr, 0), min(u + rr + 1, W), max(v - rr, 0), min(v + rr + 1, H)
+        if u1 - u0 < 5 or v1 - v0 < 5:
             continue
-        patch = cv2.blur(dark[v - rr : v + rr + 1, u - rr : u + rr + 1], (5, 5))  # 5x5 means: noise-proof
+        vv, uu = np.mgrid[v0:v1, u0:u1]
+        if np.count_nonzero((uu - u) ** 2 + (vv - v) ** 2 <= r_px**2) < np.pi * r_px**2 / 3:
+            continue
+        patch = cv2.blur(dark[v0:v1, u0:u1], (5, 5))  # 5x5 means: noise-proof
         if np.max(patch) > DARK_FRACTION / 2:
             return False
         empty += 1
@@ -721,15 +727,20 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
 
 def _anchor(cr, uv, plate: PlateSpec, dark, r_px: float) -> tuple[dict, dict]:
     """Shift the seen (col, row) indices ``cr`` (in place) onto the plate's grid, per axis: (how each axis
-    was anchored, the sentence naming the indices an unanchored axis may take)."""
+    was anchored, the sentence naming the indices an unanchored axis may take). An axis is pinned when all
+    its lines are seen, or when blank paper lies one pitch beyond its outer line on one side only; blank
+    paper beyond both (a line of discs missing from the picture: erased by glare, hidden, not found) or
+    beyond neither leaves it unpinned, taken as centred."""
     basis, ambiguous = {}, {}
     for axis, name, count in ((0, "cols", plate.cols), (1, "rows", plate.rows)):
         ext = cr[:, axis].max() + 1
         if ext == count:
             basis[name] = "all seen"
-        elif _grid_end(uv, cr, axis, -1, dark, r_px, dark.shape):
+            continue
+        low, high = (_grid_end(uv, cr, axis, side, dark, r_px, dark.shape) for side in (-1, +1))
+        if low and not high:
             basis[name] = "low end seen"
-        elif _grid_end(uv, cr, axis, +1, dark, r_px, dark.shape):
+        elif high and not low:
             cr[:, axis] += count - ext
             basis[name] = "high end seen"
         else:
@@ -737,9 +748,12 @@ def _anchor(cr, uv, plate: PlateSpec, dark, r_px: float) -> tuple[dict, dict]:
             cr[:, axis] += shift
             basis[name] = "centred"
             word = "columns" if name == "cols" else "rows"
+            why = (f"blank paper one pitch beyond the outer {word} on both sides, so a line of discs is missing "
+                   "from the picture (erased by glare, hidden or not found)" if low else
+                   f"no end of the grid (one pitch beyond the outer {word} on either side lies outside the picture "
+                   "or is not blank paper)")
             ambiguous[name] = (
-                f"{ext} of the plate's {count} {word} seen and no end of the grid (one pitch beyond the outer "
-                f"{word} on either side lies outside the picture or is not blank paper): they may be {word} "
+                f"{ext} of the plate's {count} {word} seen and {why}: they may be {word} "
                 f"{_span(0, ext)} up to {_span(count - ext, ext)}, taken as {_span(shift, ext)}"
             )
     return basis, ambiguous
