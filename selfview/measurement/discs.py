@@ -49,9 +49,10 @@ class DiscDetections:
     origin at the grid centre; ``area_px`` (N,) pixels above the darkness threshold; ``n_blobs`` how many
     candidate blobs the picture held; ``rejected`` how many of them were dropped, by reason;
     ``index_basis`` how the grid index was anchored per axis ('all seen', 'low end seen',
-    'high end seen', 'centred'); ``ambiguous`` per axis whose seen lines nothing places on the plate
-    ('centred': neither end of the grid seen) the sentence naming the indices they may take. While it is
-    not empty the grid's origin, and so ``p_W`` and any plate pose ``C_H_W`` from them, are a guess.
+    'high end seen', 'low end assumed', 'high end assumed', 'centred': see ``_anchor``); ``ambiguous`` per
+    axis whose seen lines nothing pins on the plate (the 'assumed' and 'centred' ones) the sentence naming
+    the indices they may take. While it is not empty the grid's origin, and so ``p_W`` and any plate pose
+    ``C_H_W`` from them, are a guess.
     """
 
     uv: np.ndarray
@@ -607,11 +608,12 @@ def _check_square(xy: np.ndarray, cr: np.ndarray) -> None:
         )
 
 
-def _grid_end(P_img, cr, axis, side, dark, r_px, shape) -> bool:
-    """True when one lattice step beyond the last column/row (``axis`` 0/1, ``side`` -1 low, +1 high)
-    the picture shows blank paper at two or more places and a disc at none. A place the picture's border
-    cuts counts by its part inside the picture when that holds a third of a disc or more (a disc there
-    would show), and is not looked at otherwise."""
+def _grid_end(P_img, cr, axis, side, dark, r_px, shape) -> str | None:
+    """What the picture shows one lattice step beyond the last column/row (``axis`` 0/1, ``side`` -1 low,
+    +1 high): 'disc' when something dark lies at one of those places (the grid goes on: a disc hidden, cut
+    or not found), 'blank' when blank paper lies at two or more and a disc at none, None when the picture
+    does not show them. A place the picture's border cuts counts by its part inside the picture when that
+    holds a third of a disc or more (a disc there would show), and is not looked at otherwise."""
     at = {tuple(k): n for n, k in enumerate(cr)}
     edge = cr[:, axis].min() if side < 0 else cr[:, axis].max()
     H, W = shape
@@ -633,9 +635,9 @@ def _grid_end(P_img, cr, axis, side, dark, r_px, shape) -> bool:
             continue
         patch = cv2.blur(dark[v0:v1, u0:u1], (5, 5))  # 5x5 means: noise-proof
         if np.max(patch) > DARK_FRACTION / 2:
-            return False
+            return "disc"
         empty += 1
-    return empty >= 2
+    return "blank" if empty >= 2 else None
 
 
 def _typical_area(area: np.ndarray) -> float:
@@ -662,11 +664,13 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     disc's share of its lattice cell against pi/4 (d/pitch)^2), on the lattice, inside one plate-sized
     window of it; printed labels and marks beside a disc shrink its support instead of refusing it.
     Indices are propagated from a seed disc along the lattice's neighbour steps (tolerating missing
-    discs). When all columns (rows) are seen, W's origin is the grid centre exactly; otherwise the side
-    where the grid ends is found by blank paper one pitch beyond the last column (row), and failing that
-    the seen columns (rows) are centred (``DiscDetections.index_basis`` says which), and
-    ``DiscDetections.ambiguous`` names the indices they may take: the plate's origin, and ``C_H_W``, are
-    then not known. The hand/eye result does not depend on that choice (it cancels in
+    discs, a step missing behind the walk taken from the lines beside it), then expressed in the lattice's
+    own axes (the basis in which the discs take the smallest box), whatever the plate's turn in the picture.
+    When all columns (rows) are seen, W's origin is the grid centre exactly; otherwise the side where the
+    grid ends is pinned by blank paper one pitch beyond the last column (row) with the grid seen to go on
+    beyond the other side, and otherwise (``_anchor``: ``DiscDetections.index_basis`` says which)
+    ``DiscDetections.ambiguous`` names the indices the seen lines may take: the plate's origin, and
+    ``C_H_W``, are then not known. The hand/eye result does not depend on that choice (it cancels in
     ``C_H_G = C_H_W W_H_G``).
     """
     img = as_gray(image, camera)
@@ -727,10 +731,15 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
 
 def _anchor(cr, uv, plate: PlateSpec, dark, r_px: float) -> tuple[dict, dict]:
     """Shift the seen (col, row) indices ``cr`` (in place) onto the plate's grid, per axis: (how each axis
-    was anchored, the sentence naming the indices an unanchored axis may take). An axis is pinned when all
-    its lines are seen, or when blank paper lies one pitch beyond its outer line on one side only; blank
-    paper beyond both (a line of discs missing from the picture: erased by glare, hidden, not found) or
-    beyond neither leaves it unpinned, taken as centred."""
+    was anchored, the sentence naming the indices an unpinned axis may take).
+
+    An axis is pinned when all its lines are seen, or when blank paper lies one pitch beyond its outer line
+    on one side and the grid is seen to go on beyond the other (a disc there, cut by the border, hidden or
+    not found): 'low end seen', 'high end seen'. Blank paper on one side while the other side's next line
+    lies beyond the picture is the most likely end ('low end assumed', 'high end assumed') but does not pin
+    it: the picture is the same when the grid runs out of it there and when the blank line's discs are
+    missing (erased by glare, not printed). Blank paper on both sides (a line missing) or on neither leaves
+    the seen lines centred ('centred')."""
     basis, ambiguous = {}, {}
     for axis, name, count in ((0, "cols", plate.cols), (1, "rows", plate.rows)):
         ext = cr[:, axis].max() + 1
@@ -738,20 +747,26 @@ def _anchor(cr, uv, plate: PlateSpec, dark, r_px: float) -> tuple[dict, dict]:
             basis[name] = "all seen"
             continue
         low, high = (_grid_end(uv, cr, axis, side, dark, r_px, dark.shape) for side in (-1, +1))
-        if low and not high:
-            basis[name] = "low end seen"
-        elif high and not low:
-            cr[:, axis] += count - ext
-            basis[name] = "high end seen"
+        word = "columns" if name == "cols" else "rows"
+        if {low, high} == {"blank", "disc"}:
+            basis[name] = "low end seen" if low == "blank" else "high end seen"
+            shift, why = (0 if low == "blank" else count - ext), None
+        elif {low, high} == {"blank", None}:
+            end = "low" if low == "blank" else "high"
+            basis[name] = f"{end} end assumed"
+            shift = 0 if low == "blank" else count - ext
+            why = (f"blank paper one pitch beyond the outer {word} on the {end} side only, while the next line "
+                   "on the other side lies beyond the picture: the grid may end at the blank paper or run out of "
+                   "the picture with that line's discs missing (erased by glare, hidden)")
         else:
-            shift = (count - ext) // 2
-            cr[:, axis] += shift
             basis[name] = "centred"
-            word = "columns" if name == "cols" else "rows"
+            shift = (count - ext) // 2
             why = (f"blank paper one pitch beyond the outer {word} on both sides, so a line of discs is missing "
-                   "from the picture (erased by glare, hidden or not found)" if low else
+                   "from the picture (erased by glare, hidden or not found)" if low == high == "blank" else
                    f"no end of the grid (one pitch beyond the outer {word} on either side lies outside the picture "
                    "or is not blank paper)")
+        cr[:, axis] += shift
+        if why:
             ambiguous[name] = (
                 f"{ext} of the plate's {count} {word} seen and {why}: they may be {word} "
                 f"{_span(0, ext)} up to {_span(count - ext, ext)}, taken as {_span(shift, ext)}"

@@ -292,3 +292,53 @@ def test_a_steep_view_is_indexed_right_or_refused(name, axis, deg):
     truth = cv2.perspectiveTransform(full.uv.reshape(-1, 1, 2).astype(np.float32), H).reshape(-1, 2)
     k = np.argmin(np.linalg.norm(det.uv[:, None, :] - truth[None], axis=2), axis=1)
     assert _same_lattice(det.rc, full.rc[k])
+
+
+def _erased(pic, plate, line):
+    """The picture with one outer line of discs ('row 0', 'row 7', 'col 0', 'col 7') painted over with the
+    paper's grey: the discs gone as glare or a missing print would leave them."""
+    img = pic.image.copy()
+    uv = pic.disc_uv.reshape(plate.rows, plate.cols, 2)
+    kind, k = line.split()
+    sel = uv[int(k)] if kind == "row" else uv[:, int(k)]
+    paper = int(np.median(img[img > np.percentile(img, 60)]))
+    r = np.sqrt(np.median(detect_discs(pic.image, plate).area_px) / np.pi)
+    for u, v in sel:
+        cv2.circle(img, (int(round(u)), int(round(v))), int(np.ceil(1.8 * r)), paper, -1)
+    return img
+
+
+@pytest.mark.parametrize("line", ["row 0", "row 7", "col 0", "col 7"])
+def test_an_erased_edge_line_gives_the_right_plate_pose_or_says_it_is_not_known(cell, line):
+    """An outer line of discs erased from the parked picture: seven lines seen, blank paper where the eighth
+    was. The plate pose is right or the result says it is not known, with a warning naming the indices;
+    C_H_G holds either way. Before, erasing the bottom (row 0) or top (row 7) row gave C_H_W one pitch off,
+    'known', no warning: blank paper beyond one end was taken as the grid's end while the other end was
+    blank too (row 0) or beyond the picture (row 7)."""
+    w = _world(cell)
+    res = calibrate_offline(_erased(render(w, seed=1), cell.plate, line), cell)
+    s = res.summary()
+    rot, dist = pose_difference(res.calibration.C_H_G, w.C_H_G)
+    assert dist < 0.1 and rot < 0.1
+    off = np.linalg.norm(res.calibration.C_H_W[:3, 3] - w.C_H_W[:3, 3])
+    assert off < 0.05 or s["C_H_W_known"] is False, (line, off, res.discs.index_basis)
+    assert s["C_H_W_known"] == res.discs.origin_pinned
+    if not s["C_H_W_known"]:
+        axis = line.split()[0] + "s"
+        assert set(res.discs.ambiguous) == {axis}
+        assert any("C_H_W is not known" in m and "0-6 up to 1-7" in m for m in s["warnings"])
+
+
+def test_the_command_says_when_an_erased_row_leaves_the_plate_pose_unknown(cell, tmp_path, capsys):
+    """``selfview calibrate --image`` on the parked picture with its top row erased: exit 0 with the
+    calibration written, a warning on stderr and ``C_H_W_known`` false with the warning in the JSON."""
+    w = _world(cell)
+    path = tmp_path / "erased.png"
+    cv2.imwrite(str(path), _erased(render(w, seed=1), cell.plate, "row 7"))
+    code = main(["calibrate", "--image", str(path), "--out", str(tmp_path / "cal.yaml"), "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert "warning: the plate's origin is not pinned" in err and "lies beyond the picture" in err
+    doc = json.loads(out)
+    assert doc["C_H_W_known"] is False
+    assert any("rows 0-6 up to 1-7" in m for m in doc["warnings"])
