@@ -270,9 +270,11 @@ def _cut(img, det, side):
 @pytest.mark.parametrize("name", ["grid36-01.png", "grid36-03.png", "circles-02.jpg", "circles-05.jpg"])
 def test_a_partial_grid_is_indexed_by_what_is_seen(name):
     """A photograph cut through the grid (its outer line of discs gone on one side): the indices are the
-    whole picture's where the picture pins them (the sheet's edge or blank paper seen beyond the last line),
-    and otherwise the axis cut is named ambiguous (measured: 7 of the 16 cuts pinned, all right; 9 named,
-    of which 6 would have been one line off)."""
+    whole picture's wherever blank paper beyond the last line on the other side shows where the grid ends
+    (indexed by what is seen, not centred), and the cut axis is named ambiguous unless the picture pins it:
+    the next line beyond the cut lies outside the picture, so a picture with that side's line erased would
+    look the same (measured: 7 of the 16 cuts indexed from the blank paper, all right, and named 'assumed';
+    8 centred and named, 6 of them one line off; before, 6 were pinned on blank paper alone, all right)."""
     img, plate = _photo(name)
     full = detect_discs(img, plate)
     assert full.origin_pinned and len(full) == plate.rows * plate.cols
@@ -283,6 +285,7 @@ def test_a_partial_grid_is_indexed_by_what_is_seen(name):
         right = np.array_equal(det.rc, full.rc[k])
         axis = "cols" if side in ("left", "right") else "rows"
         assert right or axis in det.ambiguous, (side, det.index_basis)
+        assert right or det.index_basis[axis] == "centred", (side, det.index_basis)
         assert det.origin_pinned == (not det.ambiguous)
 
 
