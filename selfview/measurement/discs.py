@@ -610,15 +610,16 @@ def _check_square(xy: np.ndarray, cr: np.ndarray) -> None:
 
 def _grid_end(P_img, cr, axis, side, dark, r_px, shape) -> str | None:
     """What the picture shows one lattice step beyond the last column/row (``axis`` 0/1, ``side`` -1 low,
-    +1 high): 'disc' when something dark lies at one of those places (the grid goes on: a disc hidden, cut
-    or not found), 'blank' when blank paper lies at two or more and a disc at none, None when the picture
-    does not show them. A place the picture's border cuts counts by its part inside the picture when that
-    holds a third of a disc or more (a disc there would show), and is not looked at otherwise."""
+    +1 high): 'disc' when a dark spot ringed by paper lies at one of those places (the grid goes on: a disc
+    cut by the border or not found), 'blank' when blank paper lies at two or more and nothing dark at any,
+    None otherwise (the places outside the picture, or under something dark: a finger, a shadow). A place
+    the picture's border cuts counts by its part inside the picture when that holds a third of a disc or
+    more (a disc there would show), and is not looked at otherwise."""
     at = {tuple(k): n for n, k in enumerate(cr)}
     edge = cr[:, axis].min() if side < 0 else cr[:, axis].max()
     H, W = shape
     rr = int(np.ceil(1.5 * r_px))
-    empty = 0
+    empty, covered = 0, False
     for n in np.nonzero(cr[:, axis] == edge)[0]:
         inner = cr[n].copy()
         inner[axis] -= side
@@ -631,13 +632,18 @@ def _grid_end(P_img, cr, axis, side, dark, r_px, shape) -> str | None:
         if u1 - u0 < 5 or v1 - v0 < 5:
             continue
         vv, uu = np.mgrid[v0:v1, u0:u1]
-        if np.count_nonzero((uu - u) ** 2 + (vv - v) ** 2 <= r_px**2) < np.pi * r_px**2 / 3:
+        d2 = (uu - u) ** 2 + (vv - v) ** 2
+        if np.count_nonzero(d2 <= r_px**2) < np.pi * r_px**2 / 3:
             continue
         patch = cv2.blur(dark[v0:v1, u0:u1], (5, 5))  # 5x5 means: noise-proof
-        if np.max(patch) > DARK_FRACTION / 2:
+        if np.max(patch) <= DARK_FRACTION / 2:
+            empty += 1
+            continue
+        ring = patch[d2 >= (1.3 * r_px) ** 2]
+        if ring.size and np.median(ring) <= DARK_FRACTION / 2:
             return "disc"
-        empty += 1
-    return "blank" if empty >= 2 else None
+        covered = True
+    return "blank" if empty >= 2 and not covered else None
 
 
 def _typical_area(area: np.ndarray) -> float:
