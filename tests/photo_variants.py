@@ -58,3 +58,29 @@ def camera_turned(img: np.ndarray, camera, axis: str, deg: float):
                               borderValue=float(np.percentile(img, 75)))
     cam = camera.with_(kappa=0.0, cx=camera.cx - lo[0], cy=camera.cy - lo[1], width=size[0], height=size[1])
     return out, cam, T @ H
+
+
+def plate_tilted(img: np.ndarray, p_W: np.ndarray, uv: np.ndarray, f: float, axis: str, deg: float):
+    """The photograph's plate as a camera of focal length ``f`` [px] would see it from ``deg`` off square-on
+    (the plate turned about its own x or y ``axis`` through the grid's centre, the centre on the optical
+    axis at the distance where the grid spans about half the picture's width square-on): the picture warped
+    by the homography from the photo's pixels to the new view through the plate (from the discs' plate
+    points ``p_W`` (N, 3) [mm] and their pixels ``uv`` (N, 2), lens distortion taken as none), on a canvas
+    of the photo's size. Returns (picture, H) with H the photo-to-picture homography."""
+    if axis not in ("x", "y"):
+        raise ValueError(f"plate_tilted axis {axis!r}: expected 'x' or 'y'")
+    if not 0 <= abs(deg) < 80:
+        raise ValueError(f"plate_tilted deg {deg!r}: expected a tilt under 80 deg")
+    h, w = img.shape
+    Hp, _ = cv2.findHomography(p_W[:, :2].astype(np.float64), uv.astype(np.float64))
+    centre = p_W[:, :2].mean(0)
+    span = np.ptp(p_W[:, :2], axis=0).max()
+    R = cv2.Rodrigues(np.radians(deg) * (np.array([1.0, 0, 0]) if axis == "x" else np.array([0, 1.0, 0])))[0]
+    t = np.array([0.0, 0.0, 2 * f * span / w])
+    K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+    shift = np.array([[1, 0, -centre[0]], [0, 1, -centre[1]], [0, 0, 1.0]])
+    G = K @ np.column_stack([R[:, 0], R[:, 1], t]) @ shift
+    H = G @ np.linalg.inv(Hp)
+    out = cv2.warpPerspective(img, H, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                              borderValue=float(np.percentile(img, 75)))
+    return out, H

@@ -8,6 +8,7 @@ pose of the plate is known.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -48,9 +49,10 @@ class DiscDetections:
     origin at the grid centre; ``area_px`` (N,) pixels above the darkness threshold; ``n_blobs`` how many
     candidate blobs the picture held; ``rejected`` how many of them were dropped, by reason;
     ``index_basis`` how the grid index was anchored per axis ('all seen', 'low end seen',
-    'high end seen', 'centred'); ``ambiguous`` per axis whose seen lines nothing places on the plate
-    ('centred': neither end of the grid seen) the sentence naming the indices they may take. While it is
-    not empty the grid's origin, and so ``p_W`` and any plate pose ``C_H_W`` from them, are a guess.
+    'high end seen', 'low end assumed', 'high end assumed', 'centred': see ``_anchor``); ``ambiguous`` per
+    axis whose seen lines nothing pins on the plate (the 'assumed' and 'centred' ones) the sentence naming
+    the indices they may take. While it is not empty the grid's origin, and so ``p_W`` and any plate pose
+    ``C_H_W`` from them, are a guess.
     """
 
     uv: np.ndarray
@@ -409,7 +411,12 @@ def _propagate(P: np.ndarray) -> dict[int, tuple[int, int]]:
                 if key in at:
                     break
                 back = at.get((i - di, j - dj))
-                step = (P[p] - P[back]) if back is not None else (steps[p][0] * di + steps[p][1] * dj)
+                if back is not None:
+                    step = P[p] - P[back]
+                else:
+                    step = _parallel_step(P, at, (i, j), (di, dj))
+                    if step is None:
+                        step = steps[p][0] * di + steps[p][1] * dj
                 off = P - (P[p] + jump * step)
                 dd = np.einsum("ij,ij->i", off, off)  # squared distances to the prediction
                 q = int(np.argmin(dd))
@@ -423,6 +430,29 @@ def _propagate(P: np.ndarray) -> dict[int, tuple[int, int]]:
                 queue.append(q)
                 break
     return index
+
+
+def _parallel_step(P, at, ij, d) -> np.ndarray | None:
+    """The lattice step ``d`` (di, dj) at place ``ij`` as the lines beside it measure it: the mean of the
+    steps on the two neighbouring lines, or the one neighbouring line's extrapolated by the next line's
+    (perspective shrinks a step across the lines, so a step carried over from the walk's start would not
+    do); None when no neighbouring line has it."""
+    (i, j), (di, dj) = ij, d
+    side = []
+    for s in (1, -1):
+        got = []
+        for n in (1, 2):
+            lo, hi = at.get((i + s * n * dj, j + s * n * di)), at.get((i + s * n * dj + di, j + s * n * di + dj))
+            if lo is None or hi is None:
+                break
+            got.append(P[hi] - P[lo])
+        if got:
+            side.append(got)
+    if len(side) == 2:
+        return (side[0][0] + side[1][0]) / 2
+    if side:
+        return 2 * side[0][0] - side[0][1] if len(side[0]) == 2 else side[0][0]
+    return None
 
 
 def _lattice_outliers(P, index) -> set[int]:
@@ -471,6 +501,35 @@ def _off_size(P, index, areas, plate: PlateSpec) -> set[int]:
             "check plate.disc_diameter and plate.pitch in the cell file"
         )
     return bad
+
+
+#: The changes of lattice basis tried for the plate's axes: the integer 2 x 2 matrices with entries of at
+#: most 2 and determinant +-1, which turn a reduced basis of a lattice into any other of it.
+_BASES = np.array([m for m in itertools.product(range(-2, 3), repeat=4) if abs(m[0] * m[3] - m[1] * m[2]) == 1]).reshape(-1, 2, 2)
+
+
+def _plate_axes(P, index) -> dict[int, tuple[int, int]]:
+    """``index`` re-expressed in the lattice's own axes: the basis in which the indexed discs take the
+    smallest box (the plate's rows and columns are the lattice's lines that hold the most discs each),
+    whatever two steps the seed took. A plate turned and foreshortened in the picture can make a diagonal
+    as short as a step, and a seed on it indexes a sheared lattice (a 10 x 8 grid as 17 x 10). Of bases
+    whose boxes tie, the one whose mean image steps are nearest a right angle (the seed's first)."""
+    ids = list(index)
+    keys = np.array([index[k] for k in ids])
+    K = np.einsum("mij,nj->mni", _BASES, keys)  # (bases, N, 2)
+    ext = K.max(1) - K.min(1) + 1
+    area = ext[:, 0] * ext[:, 1]
+    own = (keys.max(0) - keys.min(0) + 1).prod()
+    if area.min() == own:
+        return index
+    best, best_cos = None, None
+    for m in np.flatnonzero(area == area.min()):
+        trial = dict(zip(ids, map(tuple, K[m].tolist())))
+        a, b = _mean_step(P, trial, 0), _mean_step(P, trial, 1)
+        cos = abs(a @ b) / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-12)
+        if best_cos is None or cos < best_cos - 1e-9:
+            best, best_cos = trial, cos
+    return best
 
 
 def _plate_window(index, plate: PlateSpec) -> dict[int, tuple[int, int]]:
@@ -549,13 +608,18 @@ def _check_square(xy: np.ndarray, cr: np.ndarray) -> None:
         )
 
 
-def _grid_end(P_img, cr, axis, side, dark, r_px, shape) -> bool:
-    """True when one lattice step beyond the last column/row (``axis`` 0/1, ``side`` -1 low, +1 high)
-    the picture shows blank paper at two or more places and a disc at none."""
+def _grid_end(P_img, cr, axis, side, dark, r_px, shape) -> str | None:
+    """What the picture shows one lattice step beyond the last column/row (``axis`` 0/1, ``side`` -1 low,
+    +1 high): 'disc' when a dark spot ringed by paper lies at one of those places (the grid goes on: a disc
+    cut by the border or not found), 'blank' when blank paper lies at two or more and nothing dark at any,
+    None otherwise (the places outside the picture, or under something dark: a finger, a shadow). A place
+    the picture's border cuts counts by its part inside the picture when that holds a third of a disc or
+    more (a disc there would show), and is not looked at otherwise."""
     at = {tuple(k): n for n, k in enumerate(cr)}
     edge = cr[:, axis].min() if side < 0 else cr[:, axis].max()
     H, W = shape
-    empty = 0
+    rr = int(np.ceil(1.5 * r_px))
+    empty, covered = 0, False
     for n in np.nonzero(cr[:, axis] == edge)[0]:
         inner = cr[n].copy()
         inner[axis] -= side
@@ -564,14 +628,22 @@ def _grid_end(P_img, cr, axis, side, dark, r_px, shape) -> bool:
             continue
         pred = 2 * P_img[n] - P_img[q]
         u, v = int(round(pred[0])), int(round(pred[1]))
-        rr = int(np.ceil(1.5 * r_px))
-        if u - rr < 0 or v - rr < 0 or u + rr >= W or v + rr >= H:
+        u0, u1, v0, v1 = max(u - rr, 0), min(u + rr + 1, W), max(v - rr, 0), min(v + rr + 1, H)
+        if u1 - u0 < 5 or v1 - v0 < 5:
             continue
-        patch = cv2.blur(dark[v - rr : v + rr + 1, u - rr : u + rr + 1], (5, 5))  # 5x5 means: noise-proof
-        if np.max(patch) > DARK_FRACTION / 2:
-            return False
-        empty += 1
-    return empty >= 2
+        vv, uu = np.mgrid[v0:v1, u0:u1]
+        d2 = (uu - u) ** 2 + (vv - v) ** 2
+        if np.count_nonzero(d2 <= r_px**2) < np.pi * r_px**2 / 3:
+            continue
+        patch = cv2.blur(dark[v0:v1, u0:u1], (5, 5))  # 5x5 means: noise-proof
+        if np.max(patch) <= DARK_FRACTION / 2:
+            empty += 1
+            continue
+        ring = patch[d2 >= (1.3 * r_px) ** 2]
+        if ring.size and np.median(ring) <= DARK_FRACTION / 2:
+            return "disc"
+        covered = True
+    return "blank" if empty >= 2 and not covered else None
 
 
 def _typical_area(area: np.ndarray) -> float:
@@ -598,11 +670,13 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     disc's share of its lattice cell against pi/4 (d/pitch)^2), on the lattice, inside one plate-sized
     window of it; printed labels and marks beside a disc shrink its support instead of refusing it.
     Indices are propagated from a seed disc along the lattice's neighbour steps (tolerating missing
-    discs). When all columns (rows) are seen, W's origin is the grid centre exactly; otherwise the side
-    where the grid ends is found by blank paper one pitch beyond the last column (row), and failing that
-    the seen columns (rows) are centred (``DiscDetections.index_basis`` says which), and
-    ``DiscDetections.ambiguous`` names the indices they may take: the plate's origin, and ``C_H_W``, are
-    then not known. The hand/eye result does not depend on that choice (it cancels in
+    discs, a step missing behind the walk taken from the lines beside it), then expressed in the lattice's
+    own axes (the basis in which the discs take the smallest box), whatever the plate's turn in the picture.
+    When all columns (rows) are seen, W's origin is the grid centre exactly; otherwise the side where the
+    grid ends is pinned by blank paper one pitch beyond the last column (row) with the grid seen to go on
+    beyond the other side, and otherwise (``_anchor``: ``DiscDetections.index_basis`` says which)
+    ``DiscDetections.ambiguous`` names the indices the seen lines may take: the plate's origin, and
+    ``C_H_W``, are then not known. The hand/eye result does not depend on that choice (it cancels in
     ``C_H_G = C_H_W W_H_G``).
     """
     img = as_gray(image, camera)
@@ -631,6 +705,8 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     index = _propagate(P)
     for k in _lattice_outliers(P, index):
         del index[k]
+    if index:
+        index = _plate_axes(P, index)
     if len(index) >= min_discs:
         for k in _off_size(P, index, areas, plate):
             del index[k]
@@ -661,25 +737,44 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
 
 def _anchor(cr, uv, plate: PlateSpec, dark, r_px: float) -> tuple[dict, dict]:
     """Shift the seen (col, row) indices ``cr`` (in place) onto the plate's grid, per axis: (how each axis
-    was anchored, the sentence naming the indices an unanchored axis may take)."""
+    was anchored, the sentence naming the indices an unpinned axis may take).
+
+    An axis is pinned when all its lines are seen, or when blank paper lies one pitch beyond its outer line
+    on one side and the grid is seen to go on beyond the other (a disc there, cut by the border, hidden or
+    not found): 'low end seen', 'high end seen'. Blank paper on one side while the other side's next line
+    lies beyond the picture is the most likely end ('low end assumed', 'high end assumed') but does not pin
+    it: the picture is the same when the grid runs out of it there and when the blank line's discs are
+    missing (erased by glare, not printed). Blank paper on both sides (a line missing) or on neither leaves
+    the seen lines centred ('centred')."""
     basis, ambiguous = {}, {}
     for axis, name, count in ((0, "cols", plate.cols), (1, "rows", plate.rows)):
         ext = cr[:, axis].max() + 1
         if ext == count:
             basis[name] = "all seen"
-        elif _grid_end(uv, cr, axis, -1, dark, r_px, dark.shape):
-            basis[name] = "low end seen"
-        elif _grid_end(uv, cr, axis, +1, dark, r_px, dark.shape):
-            cr[:, axis] += count - ext
-            basis[name] = "high end seen"
+            continue
+        low, high = (_grid_end(uv, cr, axis, side, dark, r_px, dark.shape) for side in (-1, +1))
+        word = "columns" if name == "cols" else "rows"
+        if {low, high} == {"blank", "disc"}:
+            basis[name] = "low end seen" if low == "blank" else "high end seen"
+            shift, why = (0 if low == "blank" else count - ext), None
+        elif {low, high} == {"blank", None}:
+            end = "low" if low == "blank" else "high"
+            basis[name] = f"{end} end assumed"
+            shift = 0 if low == "blank" else count - ext
+            why = (f"blank paper one pitch beyond the outer {word} on the {end} side only, while the next line "
+                   "on the other side lies beyond the picture: the grid may end at the blank paper or run out of "
+                   "the picture with that line's discs missing (erased by glare, hidden)")
         else:
-            shift = (count - ext) // 2
-            cr[:, axis] += shift
             basis[name] = "centred"
-            word = "columns" if name == "cols" else "rows"
+            shift = (count - ext) // 2
+            why = (f"blank paper one pitch beyond the outer {word} on both sides, so a line of discs is missing "
+                   "from the picture (erased by glare, hidden or not found)" if low == high == "blank" else
+                   f"no end of the grid (one pitch beyond the outer {word} on either side lies outside the picture "
+                   "or is not blank paper)")
+        cr[:, axis] += shift
+        if why:
             ambiguous[name] = (
-                f"{ext} of the plate's {count} {word} seen and no end of the grid (one pitch beyond the outer "
-                f"{word} on either side lies outside the picture or is not blank paper): they may be {word} "
+                f"{ext} of the plate's {count} {word} seen and {why}: they may be {word} "
                 f"{_span(0, ext)} up to {_span(count - ext, ext)}, taken as {_span(shift, ext)}"
             )
     return basis, ambiguous
