@@ -83,6 +83,7 @@ class JointFit:
     dot_sd_mm: float = PLATE_DOT_PRIOR_MM
     turns: list = field(default_factory=list)
     dropped: list = field(default_factory=list)  # [(view name, why)] left out of the fit
+    residuals: np.ndarray = field(default_factory=lambda: np.zeros(0))  # at the solution, rows as ``jac``'s
 
     @cached_property
     def cov_full(self) -> np.ndarray:
@@ -96,6 +97,43 @@ class JointFit:
     def shape_cov(self) -> np.ndarray:
         ns, n = len(self.shape), len(self.cov_full)
         return self.cov_full[n - ns :, n - ns :] if ns else np.zeros((0, 0))
+
+def leave_views_out(fit: JointFit) -> tuple[np.ndarray, np.ndarray]:
+    """The fit's views left out one at a time, to first order about its solution (no refit): (``delta``
+    (V, P) the change of the shared parameters, the ``ni`` intrinsics then the plate's shape, when view k
+    is left out; ``heldout`` (V,) the mean square [px^2] of view k's residuals predicted by the other views'
+    parameters, with its own pose refitted to it). Each view's 6 pose parameters are eliminated from its
+    rows (Schur complement), so the reduced system has the shared parameters only; the shape's prior rows
+    stay in. ``CalibrationError`` when the views left do not determine the shared parameters."""
+    J, r, ni = fit.jac, fit.residuals, fit.ni
+    V = len(fit.views)
+    n = np.array([len(u) for u in fit.uv_used])
+    off = np.r_[0, np.cumsum(2 * n)]
+    shared = np.r_[0:ni, ni + 6 * V : J.shape[1]]
+    sc = np.linalg.norm(J[:, shared], axis=0)
+    sc = np.where(sc > 0, sc, 1.0)
+    Jh, rh = [], []
+    for k in range(V):
+        rows = slice(off[k], off[k + 1])
+        q, _ = np.linalg.qr(J[rows, ni + 6 * k : ni + 6 * k + 6])
+        js, rk = J[rows][:, shared] / sc, r[rows]
+        Jh.append(js - q @ (q.T @ js))
+        rh.append(rk - q @ (q.T @ rk))
+    jp, rp = J[off[-1] :][:, shared] / sc, r[off[-1] :]
+    Sk = np.array([a.T @ a for a in Jh])
+    gk = np.array([a.T @ b for a, b in zip(Jh, rh)])
+    S, g = Sk.sum(0) + jp.T @ jp, gk.sum(0) + jp.T @ rp
+    delta, heldout = np.zeros((V, len(shared))), np.zeros(V)
+    for k in range(V):
+        try:
+            d = np.linalg.solve(S - Sk[k], gk[k] - g)
+        except np.linalg.LinAlgError:
+            raise CalibrationError(f"intrinsics: without view {fit.views[k].name!r} the other views do not "
+                                   "determine the camera") from None
+        e = rh[k] + Jh[k] @ d
+        delta[k], heldout[k] = d / sc, float(e @ e) / n[k]
+    return delta, heldout
+
 
 def view_tilt_distance(C_H_W) -> tuple[float, float]:
     """(tilt [deg], distance [mm]) of a view of the plate: the angle between the plate's normal and the
@@ -171,7 +209,7 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
         views.append(ViewFit(names[k], H, int(keep[k].sum()), float(np.sqrt(np.mean(dist[k] ** 2))), tilt,
                              distance, int((~keep[k]).sum())))
     return JointFit(camera0, ni, res.jacobian, float(s2), rms, views, U, P, plate_model, np.asarray(y0, float),
-                    float(noise_px), float(dot_sd_mm))
+                    float(noise_px), float(dot_sd_mm), residuals=res.residuals)
 
 
 def _bias_corrected(dets, camera, poses, plate) -> list:
