@@ -13,7 +13,7 @@ from selfview.errors import CalibrationError
 from selfview.estimation.intrinsics.advice import STOP_ASPECT_REL, STOP_CENTRE_PX, MAX_MORE_VIEWS, stop_met, more_views_advice
 from selfview.estimation.intrinsics.checks import halves_cross_check
 from selfview.estimation.intrinsics.plate import PLATE_MODELS
-from selfview.estimation.intrinsics.evidence import chi2_3_sf, heldout_test, wald_chi2
+from selfview.estimation.intrinsics.evidence import chi2_3_sf, heldout_test, sign_test_p, wald_chi2
 from selfview.estimation.intrinsics.fit import (
     MIN_VIEWS, UNDETERMINED_CENTRE_PX, VIEW_MAX_RMS_PX, JointFit, sigmas_of, detect_views, fit_views, leave_views_out,
     projection_sigma_px,
@@ -28,9 +28,9 @@ from selfview.estimation.intrinsics.fit import (
 SKEW_SIGNIFICANCE = 3.0
 #: The plate model (``plate_model='auto'``) by evidence, one step at a time (flat, then 'bow', then
 #: 'bow+dots'): a step is taken only when the richer model predicts the views left out in turn better than
-#: the simpler one (``evidence.heldout_test``: a one-sided paired t-test over the views) at this level;
+#: the simpler one (``evidence.heldout_test``: a one-sided sign test over the views) at this level;
 #: otherwise the simpler model stays. The bow's chi-square against 0 at the same level says whether the
-#: views measure a bow at all (one they measure but do not confirm is what a skew would take up).
+#: views measure a bow at all (one they measure but are too few to confirm is what a skew would take up).
 PLATE_TEST_LEVEL = 0.01
 #: the plate models in the order the evidence must take them
 PLATE_STEPS = ("flat", "bow", "bow+dots")
@@ -128,7 +128,8 @@ the views left out in turn better (``PLATE_TEST_LEVEL``); ``plate_shape`` says w
         plate_model, plate_why, chosen, bow_unconfirmed = _choose_plate_model(dets, names, plate, camera_guess)
         if chosen is not None and camera_guess.skew == 0.0:
             held = (list(names), chosen)  # the fit the skew decision would redo, if it comes to it on these views
-    fit = fit_views(dets, plate, camera_guess, names, plate_model=plate_model, fit_skew=skew is not False)
+    fit = fit_views(dets, plate, camera_guess, names, plate_model=plate_model, fit_skew=skew is not False,
+                    start=held[1] if held else None)
     fit, dets, names = _drop_misfits(fit, dets, names, plate, plate_model, skew is not False, skipped)
     fit, skew_fit = _decide_skew(fit, skew, bow_unconfirmed, dets, names, plate, plate_model,
                                  held[1] if held and held[0] == names else None)
@@ -167,8 +168,8 @@ def _decide_skew(fit: JointFit, skew, bow_unconfirmed: bool, dets, names, plate,
     skew_fit.update(value=float(val), sigma=sd, sigmas_from_zero=float(z), limit_sigmas=SKEW_SIGNIFICANCE)
     why = None
     if skew == "auto" and bow_unconfirmed:
-        why = (f"it measures {val:.1e} +- {sd:.1e}, but the plate's bow, which the views measure and the views "
-               "left out do not confirm, is left out of the flat plate, and a skew would take it up")
+        why = (f"it measures {val:.1e} +- {sd:.1e}, but the plate's bow, which the views measure and are too "
+               "few to confirm, is left out of the flat plate, and a skew would take it up")
     elif skew == "auto" and not z >= SKEW_SIGNIFICANCE:
         why = f"the views measure it as {val:.1e} +- {sd:.1e} ({z:.1f} sigmas from 0, under {SKEW_SIGNIFICANCE:g})"
     elif skew == "auto":
@@ -188,7 +189,7 @@ def _decide_skew(fit: JointFit, skew, bow_unconfirmed: bool, dets, names, plate,
     if why is not None:
         skew_fit.update(fitted=False, note=f"skew not fitted: {why}; it is held at 0 (the spec's camera model)")
         fit = held or fit_views(dets, plate, fit.camera.with_(skew=0.0), names, plate_model=plate_model,
-                                fit_skew=False)
+                                fit_skew=False, start=fit)
     return fit, skew_fit
 
 
@@ -219,7 +220,7 @@ def _drop_misfits(fit: JointFit, dets, names, plate: PlateSpec, plate_model: str
                                               f"{rms:.2f} px > {VIEW_MAX_RMS_PX} px)"})
     keep = [k for k in range(len(dets)) if names[k] not in bad]
     dets, names = [dets[k] for k in keep], [names[k] for k in keep]
-    return fit_views(dets, plate, fit.camera, names, plate_model=plate_model, fit_skew=fit_skew), dets, names
+    return fit_views(dets, plate, fit.camera, names, plate_model=plate_model, fit_skew=fit_skew, start=fit), dets, names
 
 
 def _stop_rule(fit: JointFit, plate: PlateSpec, sig: dict) -> dict:
@@ -265,16 +266,18 @@ def _choose_plate_model(dets, names, plate, camera_guess: CameraModel):
     """(model, why, its fit with the skew held at the guess's or None, bow_unconfirmed): the plate's model by
     evidence (``PLATE_TEST_LEVEL``, ``PLATE_STEPS``): from the flat plate, each richer model only when it
     predicts the views left out in turn better (``heldout_test``); ``bow_unconfirmed`` when the plate stays
-    flat though the views measure a bow (its chi-square against 0 significant). A view the bent plate cannot
+    flat though the views measure a bow (its chi-square against 0 significant) and are too few for the
+    held-out check to confirm it at all (a bow they could confirm and do not is no shape of the plate, and
+    no reason to hold the skew). A view the bent plate cannot
     tie to the printed grid is left out of it (listed in the fit's ``dropped``)."""
     try:
         fits = {"flat": fit_views(dets, plate, camera_guess, names, plate_model="flat", fit_skew=False)}
     except CalibrationError as e:
         return "flat", f"flat: the flat plate's fit failed ({e})", None, False
-    chosen, notes, measured = "flat", [], False
+    chosen, notes, unconfirmable = "flat", [], False
     for simple, rich in zip(PLATE_STEPS, PLATE_STEPS[1:]):
         try:
-            f = fit_views(dets, plate, fits[simple].camera, names, plate_model=rich, fit_skew=False)
+            f = fit_views(dets, plate, fits[simple].camera, names, plate_model=rich, fit_skew=False, start=fits[simple])
         except CalibrationError as e:
             notes.append(f"the {rich} plate's fit failed ({e})")
             break
@@ -286,13 +289,18 @@ def _choose_plate_model(dets, names, plate, camera_guess: CameraModel):
             measured = chi2_3_sf(chi2) < PLATE_TEST_LEVEL
             notes.append(f"the views {'measure' if measured else 'measure no'} bow (chi-square {chi2:.3g}, 3 dof)")
         t = heldout_test(fits[simple], f)
+        if rich == "bow":  # a bow the views measure, where too few views could ever confirm it
+            unconfirmable = measured and not sign_test_p(t["views"], 0) < PLATE_TEST_LEVEL
         left = (f" ({len(f.dropped)} view(s) it could not tie to the printed grid left out: "
                 f"{', '.join(nm for nm, _ in f.dropped)})") if f.dropped else ""
         verdict = "predicts" if t["p"] < PLATE_TEST_LEVEL else "does not predict"
-        notes.append(f"{rich} {verdict} the views left out in turn better than {simple} (held-out rms "
-                     f"{t['rms_rich_px']:.3f} vs {t['rms_simple_px']:.3f} px over {t['views']} views, t = {t['t']:.2f}, "
-                     f"p = {t['p']:.2g}, level {PLATE_TEST_LEVEL:g}){left}")
+        notes.append(f"{rich} {verdict} the views left out in turn better than {simple} ({t['better']} of "
+                     f"{t['views']} views better, sign test p = {t['p']:.2g}, level {PLATE_TEST_LEVEL:g}; held-out rms "
+                     f"{t['rms_rich_px']:.3f} vs {t['rms_simple_px']:.3f} px){left}")
         if not t["p"] < PLATE_TEST_LEVEL:
             break
         fits[rich], chosen = f, rich
-    return chosen, f"{chosen}: " + "; ".join(notes), fits[chosen], measured and chosen == "flat"
+    if unconfirmable and chosen == "flat":
+        notes.append(f"{t['views']} views are too few to confirm it (all better would be p = "
+                     f"{sign_test_p(t['views'], 0):.2g})")
+    return chosen, f"{chosen}: " + "; ".join(notes), fits[chosen], unconfirmable and chosen == "flat"

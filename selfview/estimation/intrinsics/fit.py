@@ -215,14 +215,42 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
 def _bias_corrected(dets, camera, poses, plate) -> list:
     return [d.uv - plate_image_bias(plate, camera, H, d.p_W) for d, H in zip(dets, poses)]
 
+def _dot_sd(fit: JointFit) -> float:
+    """The discs' position error sd [mm] a 'bow+dots' fit's corrections say (their mean square plus their
+    posterior variance, within ``PLATE_DOT_SD_RANGE_MM``); the fit's own for another model."""
+    if fit.plate_model != "bow+dots":
+        return fit.dot_sd_mm
+    u, cu = fit.shape[3:], fit.shape_cov[3:, 3:]
+    sd = float(np.sqrt((u @ u + np.trace(cu)) / len(u))) if np.all(np.isfinite(cu)) else fit.dot_sd_mm
+    return float(np.clip(sd, *PLATE_DOT_SD_RANGE_MM))
+
+
+def _first_poses(dets, names, camera0: CameraModel, start: JointFit | None, fit_skew: bool):
+    """(camera, poses, warm) to start ``fit_views`` from: ``start``'s camera (with ``camera0``'s skew when the
+    skew is held) and poses when it fitted every view named (warm), else ``camera0`` and planar PnP. A view
+    whose indices ``start`` turned onto its grid has the start's pose of the turned grid: PnP for it."""
+    turned = {v.name for v, t in zip(start.views, start.turns) if t} if start is not None else set()
+    known = {v.name: v.C_H_W for v in start.views if v.name not in turned} if start is not None else {}
+    warm = bool(known) and all(nm in known or nm in turned for nm in names)
+    if warm:
+        camera0 = start.camera if fit_skew else start.camera.with_(skew=camera0.skew)
+    poses = [known[nm] if nm in known else initial_pose(d.p_W, d.uv, camera0) for d, nm in zip(dets, names)]
+    return camera0, poses, warm
+
+
 def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel, names: list[str] | None = None,
-              *, bias: bool = True, plate_model: str = "bow+dots", fit_skew: bool = True) -> JointFit:
+              *, bias: bool = True, plate_model: str = "bow+dots", fit_skew: bool = True,
+              start: JointFit | None = None) -> JointFit:
     """The joint fit of views' disc detections from ``camera0`` (a starting camera): first poses by
     planar PnP, a fit on the centroids, then ``BIAS_ROUNDS`` rounds of bias correction and refit
     (``bias=False``: the centroids as measured). ``plate_model`` (``PLATE_MODELS``): what of the printed
-    plate's shape is fitted with the camera; ``fit_skew``: the grabber's skew too. The shape's prior is weighed with the previous fit's noise
-    (its residual sigma); the fit is repeated (at most ``NOISE_ROUNDS`` times) until that noise settles.
-    ``CalibrationError`` for fewer than ``MIN_VIEWS_HALF`` views, ``ValueError`` for names not one per view."""
+    plate's shape is fitted with the camera; ``fit_skew``: the grabber's skew too. The shape's prior is
+    weighed with the previous fit's noise (its residual sigma); the fit is repeated (at most ``NOISE_ROUNDS``
+    times) until that noise settles.
+    ``start``: a fit of these views (or more, named alike) to start warm from (``_first_poses``), the
+    centroids bias-corrected by it at once instead of ``BIAS_ROUNDS`` rounds (its correction has settled),
+    its noise figures when of the same plate model. ``CalibrationError`` for fewer than ``MIN_VIEWS_HALF``
+    views, ``ValueError`` for names not one per view."""
     if plate_model not in PLATE_MODELS:
         raise CalibrationError(f"intrinsics: plate model {plate_model!r}: expected one of {', '.join(PLATE_MODELS)}")
     if len(dets) < MIN_VIEWS_HALF:  # the fewest a half of the cross-check fits
@@ -230,7 +258,7 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
     names = names or [f"view {i + 1}" for i in range(len(dets))]
     if len(names) != len(dets):
         raise ValueError(f"names: expected {len(dets)} names for {len(dets)} views, got {len(names)}")
-    poses = [initial_pose(d.p_W, d.uv, camera0) for d in dets]
+    camera0, poses, warm = _first_poses(dets, names, camera0, start, fit_skew)
     normals = np.array([H[:3, 2] for H in poses])
     mean = normals.sum(0) / np.linalg.norm(normals.sum(0))
     spread = float(np.degrees(np.arccos(np.clip(normals @ mean, -1, 1))).max())
@@ -242,9 +270,11 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
             f"from square-on), as when the gripper only looks straight down; take views with the gripper tilted "
             "20-40 deg about different axes in the plate"
         )
-    uv = [d.uv for d in dets]
-    turns = [0.0] * len(dets)
-    dropped: list = []
+    uv = _bias_corrected(dets, camera0, poses, plate) if warm and bias else [d.uv for d in dets]
+    rounds = BIAS_ROUNDS if bias and not warm else 0
+    same = warm and start.plate_model == plate_model and start.prior_noise_px > 0
+    noise0 = {"noise_px": start.prior_noise_px, "dot_sd_mm": start.dot_sd_mm} if same else {}
+    turns, dropped = [0.0] * len(dets), []
     if plate_model != "flat":
         # a first camera on the plate as specified, then the views' discs on one physical grid
         fit = _solve([d.p_W for d in dets], uv, camera0, poses, names, fit_skew=fit_skew)
@@ -270,19 +300,17 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
     P = [d.p_W for d in dets]
     rc = [d.rc for d in dets]
     kw = {"rc": rc, "plate": plate, "plate_model": plate_model, "fit_skew": fit_skew}
-    fit = _solve(P, uv, camera0, poses, names, **kw)
-    for rnd in range(BIAS_ROUNDS + NOISE_ROUNDS if bias else NOISE_ROUNDS):
-        noise, sd = float(np.sqrt(fit.s2)), fit.dot_sd_mm
-        if plate_model == "bow+dots":
-            nb = 3
-            u, cu = fit.shape[nb:], fit.shape_cov[nb:, nb:]
-            sd = float(np.sqrt((u @ u + np.trace(cu)) / len(u))) if np.all(np.isfinite(cu)) else sd
-            sd = float(np.clip(sd, *PLATE_DOT_SD_RANGE_MM))
-        if rnd >= (BIAS_ROUNDS if bias else 0):
+    fit = _solve(P, uv, camera0, poses, names, **kw, **noise0)
+    for rnd in range(rounds + NOISE_ROUNDS):
+        noise, sd = float(np.sqrt(fit.s2)), _dot_sd(fit)
+        if rnd < rounds:
+            new = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate)
+            if all(np.array_equal(a, b) for a, b in zip(new, uv)):
+                rounds = rnd  # no bias to correct (a board's corners): only the noise's rounds are left
+            uv = new
+        if rnd >= rounds:
             if plate_model == "flat" or (abs(noise / fit.prior_noise_px - 1.0) < 0.2 and abs(sd / fit.dot_sd_mm - 1.0) < 0.2):
                 break
-        else:
-            uv = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate)
         fit = _solve(P, uv, fit.camera, [v.C_H_W for v in fit.views], names, shape0=fit.shape, noise_px=noise,
                      dot_sd_mm=sd, **kw)
     fit.turns = turns
