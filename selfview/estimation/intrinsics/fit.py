@@ -36,6 +36,10 @@ VIEW_MAX_RMS_PX = 1.5
 BIAS_ROUNDS = 2
 #: Further refits, at most, until the noise that weighs the plate's prior settles (within 20 %).
 NOISE_ROUNDS = 4
+#: The joint LM stops when a step would lower the cost by less than this part of it: a step that moves the
+#: parameters by e of their sigmas lowers it by about e^2 / (m - n) of it (m - n, the residuals' degrees
+#: of freedom, 10^2 to 10^4 here), so 1e-10 stops within 1e-3 sigma of the minimum.
+FTOL = 1e-10
 #: Views whose plate normals (in the camera frame) all lie within this of their mean direction [deg] see
 #: parallel planes (the gripper straight down, only lifted and turned; or all square-on): they cannot pin
 #: the principal point (Zhang: parallel planes add no constraint on the interior orientation).
@@ -177,7 +181,7 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
         idx = [shape.index(r[k]) for r, k in zip(rc, keep)] if shape else None
         model = JointProblem(P, U, [H[:3, :3] for H in poses0], shape, idx, ni=ni, skew=camera0.skew)
         x0 = np.concatenate([intrinsics_vector(camera0, ni), *[np.concatenate([np.zeros(3), H[:3, 3]]) for H in poses0], y0])
-        res = levenberg_marquardt(model.residuals, x0, model.jacobian, normal=model.normal_matrix)
+        res = levenberg_marquardt(model.residuals, x0, model.jacobian, normal=model.normal_matrix, ftol=FTOL)
         poses0 = [model.pose(res.x, k) for k in range(len(P))]
         y0 = res.x[len(res.x) - ns :] if ns else y0
         try:
@@ -276,8 +280,10 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
     noise0 = {"noise_px": start.prior_noise_px, "dot_sd_mm": start.dot_sd_mm} if same else {}
     turns, dropped = [0.0] * len(dets), []
     if plate_model != "flat":
-        # a first camera on the plate as specified, then the views' discs on one physical grid
-        fit = _solve([d.p_W for d in dets], uv, camera0, poses, names, fit_skew=fit_skew)
+        # a first camera on the plate as specified (a flat start is one), then the discs on one physical grid
+        flat = warm and start.plate_model == "flat" and [v.name for v in start.views] == list(names) \
+            and start.ni == (6 if fit_skew else 5)
+        fit = start if flat else _solve([d.p_W for d in dets], uv, camera0, poses, names, fit_skew=fit_skew)
         uv = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate)
         dets, turns = align_views(dets, uv, fit, plate)
         if plate_model == "bow+dots" and sum(t is not None for t in turns) < max(2, (len(dets) + 1) // 2):
