@@ -7,6 +7,7 @@ study's function says what it measures. Prints one JSON object.
 
     python bench/intrinsics.py [--cameras 10] [--pictures 30] [--jobs 2] [--quick] [--profile ideal realistic ...]
     python bench/intrinsics.py --photos-only
+    python bench/intrinsics.py --real-sets [--repeats 3]
 """
 
 from __future__ import annotations
@@ -531,6 +532,87 @@ def photo_study() -> dict:
     return out
 
 
+#: Every real set under tests/data with several views of one camera: (name, directory, picture pattern, cell
+#: file or None: the directory's plate.yaml with a camera guessed from the views, as ``selfview intrinsics
+#: --plate`` does). NiftyCal's dots are one view per camera and cannot give a joint fit.
+REAL_SETS = (("visp-stills", "visp-circles", "circles-0*.jpg", "cell.yaml"),
+             ("visp-640x480", "visp-circles", "grid36-0*.png", "cell-640x480.yaml"),
+             ("boofcv-stills", "boofcv-circles", "image0000*.jpg", None),
+             ("boofcv-video", "boofcv-circles-video", "frame*.jpg", None),
+             ("charuco", "charuco-basler", "basler-*.jpg", None),
+             ("chessboard", "opencv-chessboard", "left*.jpg", None))
+
+
+def _counting_fits():
+    """A context that counts the joint fits (``fit_views``) and LM runs a calibration makes: {fits, lm}."""
+    import contextlib
+
+    from selfview.estimation.intrinsics import calibrate as cal_mod, checks as chk_mod, fit as fit_mod
+
+    @contextlib.contextmanager
+    def ctx():
+        n = {"fits": 0, "lm": 0}
+        saved = (cal_mod.fit_views, chk_mod.fit_views, fit_mod.levenberg_marquardt)
+
+        def fits(*a, **k):
+            n["fits"] += 1
+            return saved[0](*a, **k)
+
+        def lm(*a, **k):
+            n["lm"] += 1
+            return saved[2](*a, **k)
+
+        cal_mod.fit_views = chk_mod.fit_views = fits
+        fit_mod.levenberg_marquardt = lm
+        try:
+            yield n
+        finally:
+            cal_mod.fit_views, chk_mod.fit_views, fit_mod.levenberg_marquardt = saved
+    return ctx()
+
+
+def real_sets_study(repeats: int = 3) -> dict:
+    """Study 6: ``calibrate_intrinsics`` as ``selfview intrinsics`` runs it (its defaults: plate model and
+    skew by evidence, the halves' cross-check) beside cv2.calibrateCamera (``CV_FLAGS``) on the same
+    detections of every real set (``REAL_SETS``), timed interleaved ``repeats`` times in this run (median
+    seconds, their ratio: issue 31 asks at most 10), the joint fits and LM runs per result, the plate model
+    chosen and why, and f, cx, cy minus OpenCV's in combined sigmas (issue 31: within 2)."""
+    from selfview.estimation.intrinsics import guess_camera
+    from selfview.files.cell import load_plate
+
+    out = {}
+    for name, folder, pattern, cell_file in REAL_SETS:
+        files = sorted((PHOTO_DATA / folder).glob(pattern))
+        imgs = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in files]
+        size = (imgs[0].shape[1], imgs[0].shape[0])
+        if cell_file:
+            cell = load_cell(PHOTO_DATA / folder / cell_file)
+            plate, cam0 = cell.plate, cell.camera.guess()
+            dets, names, _ = detect_views(imgs, plate, cam0, [f.name for f in files], skip_unusable=True)
+        else:
+            plate = load_plate(PHOTO_DATA / folder / "plate.yaml")
+            dets, names, _ = detect_views(imgs, plate, None, [f.name for f in files], skip_unusable=True)
+            cam0 = guess_camera(dets, *size)
+        ours, theirs = [], []
+        for _ in range(repeats):
+            with _counting_fits() as n:
+                t = time.perf_counter()
+                r = calibrate_intrinsics(None, plate, cam0, names, detections=dets)
+                ours.append(time.perf_counter() - t)
+            cvd = _cv2(dets, [d.uv for d in dets], cam0, size)
+            theirs.append(cvd["seconds"])
+        c = r.camera
+        mine = {"f": c.f, "cx": c.cx, "cy": c.cy, "aspect": c.aspect, "sigma": r.sigma}
+        z = _in_sigmas(mine, cvd)
+        out[name] = {"views": len(dets), "views_used": r.views_used, "joint_fits": n["fits"], "lm_runs": n["lm"],
+                     "plate_model": r.plate_shape["model"], "plate_model_why": r.plate_shape["why"],
+                     "skew_note": r.skew_fit.get("note"), "seconds": _median(ours), "cv2_seconds": _median(theirs),
+                     "seconds_over_cv2": _median(ours) / _median(theirs),
+                     "minus_cv2_in_combined_sigmas": {k: z[k] for k in ("f", "cx", "cy")},
+                     "within_2_sigmas": all(abs(z[k]) <= 2 for k in ("f", "cx", "cy"))}
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cameras", type=int, default=10, help="simulated cameras for the intrinsics table (default 10)")
@@ -543,7 +625,15 @@ def main(argv=None) -> int:
                          "imperfection profiles or PROFILE:PART, e.g. realistic:plate (default: ideal realistic)")
     ap.add_argument("--no-mrcal", action="store_true", help="do not look for mrcal (the peer is then skipped)")
     ap.add_argument("--photos-only", action="store_true", help="only study 5, the real photographs")
+    ap.add_argument("--real-sets", action="store_true",
+                    help="only study 6: every real set's fit against cv2.calibrateCamera, time and agreement")
+    ap.add_argument("--repeats", type=int, default=3, help="timings per set in study 6 (default 3)")
     args = ap.parse_args(argv)
+    if args.real_sets:
+        print(json.dumps({"benchmark": "intrinsics on every real set vs cv2.calibrateCamera (same detections)",
+                          "opencv_flags": " | ".join(CV_FLAGS) + " (fx, fy, cx, cy free)",
+                          "real_sets": real_sets_study(max(1, args.repeats))}, default=float))
+        return 0
     if args.photos_only:
         print(json.dumps({"benchmark": "intrinsics on real photographs vs cv2.findCirclesGrid and cv2.calibrateCamera",
                           "opencv_flags": " | ".join(CV_FLAGS) + " (fx, fy, cx, cy free)",
@@ -619,6 +709,7 @@ def main(argv=None) -> int:
         "opencv_skew": "cv2.calibrateCamera has no skew parameter (K[0, 1] is held at 0; only cv2.fisheye has "
                        "CALIB_FIX_SKEW): it cannot model a grabber's shear",
         "real_photographs": photo_study(),
+        "real_sets": real_sets_study(1),
         "per_camera": per_camera,
         "pictures": pics,
         "seconds": round(time.perf_counter() - t0, 1),

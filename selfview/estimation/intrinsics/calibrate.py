@@ -13,22 +13,27 @@ from selfview.errors import CalibrationError
 from selfview.estimation.intrinsics.advice import STOP_ASPECT_REL, STOP_CENTRE_PX, MAX_MORE_VIEWS, stop_met, more_views_advice
 from selfview.estimation.intrinsics.checks import halves_cross_check
 from selfview.estimation.intrinsics.plate import PLATE_MODELS
+from selfview.estimation.intrinsics.evidence import chi2_3_sf, heldout_test, sign_test_p, wald_chi2
 from selfview.estimation.intrinsics.fit import (
-    MIN_VIEWS, UNDETERMINED_CENTRE_PX, VIEW_MAX_RMS_PX, JointFit, sigmas_of, detect_views, fit_views, projection_sigma_px,
+    MIN_VIEWS, UNDETERMINED_CENTRE_PX, VIEW_MAX_RMS_PX, JointFit, sigmas_of, detect_views, fit_views, leave_views_out,
+    projection_sigma_px,
 )
 
 #: The skew is kept only when the views pin it: its estimate at least this many sigmas from 0 (a grabber
 #: without shear shows one as large in 0.3 % of calibrations) by its formal sigma *and* by the spread of
-#: the estimates with groups of views left out (a leave-one-group-out jackknife), which sees what the formal
-#: sigma cannot: a skew that stands for something the model lacks (distortion beyond kappa, a plate not as
-#: modelled) changes from view to view. Otherwise it is held at 0, the spec's model.
+#: its estimates with each view left out in turn (a jackknife, to first order: ``fit.leave_views_out``),
+#: which sees what the formal sigma cannot: a skew that stands for something the model lacks (distortion
+#: beyond kappa, a plate not as modelled) changes from view to view. Otherwise it is held at 0, the spec's
+#: model.
 SKEW_SIGNIFICANCE = 3.0
-#: at most this many groups of views are left out in turn for the jackknife
-SKEW_JACKKNIFE_GROUPS = 6
-#: The bent plate (``plate_model='auto'``) is kept only when the views pin its bow like the skew: some bow
-#: coefficient this many sigmas from 0 by its formal sigma and by the jackknife's, and every view used;
-#: otherwise the plate is taken flat, as printed.
-PLATE_SIGNIFICANCE = 3.0
+#: The plate model (``plate_model='auto'``) by evidence, one step at a time (flat, then 'bow', then
+#: 'bow+dots'): a step is taken only when the richer model predicts the views left out in turn better than
+#: the simpler one (``evidence.heldout_test``: a one-sided sign test over the views) at this level;
+#: otherwise the simpler model stays. The bow's chi-square against 0 at the same level says whether the
+#: views measure a bow at all (one they measure but are too few to confirm is what a skew would take up).
+PLATE_TEST_LEVEL = 0.01
+#: the plate models in the order the evidence must take them
+PLATE_STEPS = ("flat", "bow", "bow+dots")
 
 
 # --- the result -----------------------------------------------------------------------------------
@@ -96,8 +101,8 @@ def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, na
     pictures of the plate. ``skew``: 'auto' fits the skew and keeps it only when the views pin it
 (``SKEW_SIGNIFICANCE``), else refits with it held at 0 (``skew_fit`` says which and why); True always
 fits it; False holds it at ``camera_guess``'s, the spec's model. ``plate_model`` ('auto' or one of
-``PLATE_MODELS``): 'auto' fits the bent plate ('bow+dots') only when the views pin it
-(``PLATE_SIGNIFICANCE``, views left out), else the flat plate; ``plate_shape`` says which and why.
+``PLATE_MODELS``): 'auto' takes each richer plate model (flat, 'bow', 'bow+dots') only when it predicts
+the views left out in turn better (``PLATE_TEST_LEVEL``); ``plate_shape`` says which and why.
 
     ``images`` (H, W) pictures (or ``detections``, a list of ``DiscDetections``, instead); ``plate`` the
     plate; ``camera_guess`` the starting camera (the cell's nominal one: its size checks the pictures);
@@ -118,15 +123,13 @@ fits it; False holds it at ``camera_guess``'s, the spec's model. ``plate_model``
             "tilted 20-40 deg in different directions, pin the centre and the aspect)"
         )
     _check_options(skew, plate_model)
-    plate_why, held = f"{plate_model}: as asked", None
+    plate_why, held, bow_unconfirmed = f"{plate_model}: as asked", None, False
     if plate_model == "auto":
-        plate_model, plate_why, bent = _choose_plate_model(dets, names, plate, camera_guess)
-        if plate_model == "bow+dots" and camera_guess.skew == 0.0:
-            held = (list(names), bent)  # the fit the skew decision would redo, if it comes to it on these views
-    # a bow the views measure but are too few to check, left out of a flat plate, is what a skew would take
-    # up (a bow the views left out do not confirm is no shape of the plate, and no reason to hold the skew)
-    bow_unconfirmed = plate_model == "flat" and "too few to check" in plate_why
-    fit = fit_views(dets, plate, camera_guess, names, plate_model=plate_model, fit_skew=skew is not False)
+        plate_model, plate_why, chosen, bow_unconfirmed = _choose_plate_model(dets, names, plate, camera_guess)
+        if chosen is not None and camera_guess.skew == 0.0:
+            held = (list(names), chosen)  # the fit the skew decision would redo, if it comes to it on these views
+    fit = fit_views(dets, plate, camera_guess, names, plate_model=plate_model, fit_skew=skew is not False,
+                    start=held[1] if held else None)
     fit, dets, names = _drop_misfits(fit, dets, names, plate, plate_model, skew is not False, skipped)
     fit, skew_fit = _decide_skew(fit, skew, bow_unconfirmed, dets, names, plate, plate_model,
                                  held[1] if held and held[0] == names else None)
@@ -154,7 +157,7 @@ fits it; False holds it at ``camera_guess``'s, the spec's model. ``plate_model``
 def _decide_skew(fit: JointFit, skew, bow_unconfirmed: bool, dets, names, plate, plate_model: str,
                  held: JointFit | None = None):
     """(fit, skew_fit): with ``skew`` 'auto', the skew kept only when the views pin it (``SKEW_SIGNIFICANCE``
-    by its formal sigma and by the jackknife's), else the fit redone with it held at 0 (``held``, when given:
+    by its formal sigma and by the jackknife's, each view left out in turn), else the fit redone with it held at 0 (``held``, when given:
     that fit, already made on the same views and plate model from another start, which converges to the
     same solution); ``skew_fit`` says which and why."""
     skew_fit = {"fitted": skew is not False, "note": "skew fitted" if skew is True else "skew held at the guess's"}
@@ -166,12 +169,11 @@ def _decide_skew(fit: JointFit, skew, bow_unconfirmed: bool, dets, names, plate,
     why = None
     if skew == "auto" and bow_unconfirmed:
         why = (f"it measures {val:.1e} +- {sd:.1e}, but the plate's bow, which the views measure and are too "
-               "few to check, is left out of the flat plate, and a skew would take it up")
+               "few to confirm, is left out of the flat plate, and a skew would take it up")
     elif skew == "auto" and not z >= SKEW_SIGNIFICANCE:
         why = f"the views measure it as {val:.1e} +- {sd:.1e} ({z:.1f} sigmas from 0, under {SKEW_SIGNIFICANCE:g})"
     elif skew == "auto":
-        sd_jk = _jackknife(dets, names, plate, fit, plate_model, True, lambda f: [f.camera.skew])
-        sd_jk = None if sd_jk is None else float(sd_jk[0])
+        sd_jk = _jackknife_sigma(fit, 5)
         z_jk = abs(val) / sd_jk if sd_jk and np.isfinite(sd_jk) else 0.0
         skew_fit.update(jackknife_sigma=sd_jk, jackknife_sigmas_from_zero=float(z_jk))
         if sd_jk is None:
@@ -187,7 +189,7 @@ def _decide_skew(fit: JointFit, skew, bow_unconfirmed: bool, dets, names, plate,
     if why is not None:
         skew_fit.update(fitted=False, note=f"skew not fitted: {why}; it is held at 0 (the spec's camera model)")
         fit = held or fit_views(dets, plate, fit.camera.with_(skew=0.0), names, plate_model=plate_model,
-                                fit_skew=False)
+                                fit_skew=False, start=fit)
     return fit, skew_fit
 
 
@@ -218,7 +220,7 @@ def _drop_misfits(fit: JointFit, dets, names, plate: PlateSpec, plate_model: str
                                               f"{rms:.2f} px > {VIEW_MAX_RMS_PX} px)"})
     keep = [k for k in range(len(dets)) if names[k] not in bad]
     dets, names = [dets[k] for k in keep], [names[k] for k in keep]
-    return fit_views(dets, plate, fit.camera, names, plate_model=plate_model, fit_skew=fit_skew), dets, names
+    return fit_views(dets, plate, fit.camera, names, plate_model=plate_model, fit_skew=fit_skew, start=fit), dets, names
 
 
 def _stop_rule(fit: JointFit, plate: PlateSpec, sig: dict) -> dict:
@@ -246,58 +248,59 @@ def _stop_rule(fit: JointFit, plate: PlateSpec, sig: dict) -> dict:
     return stop
 
 
-def _jackknife(dets, names, plate, fit: JointFit, plate_model: str, fit_skew: bool, value) -> np.ndarray | None:
-    """The leave-one-group-out jackknife sigmas of ``value(fit)`` (a vector) over the views ``fit`` used (at
-    most ``SKEW_JACKKNIFE_GROUPS`` groups, each leaving ``MIN_VIEWS`` or more views); None when the views are
-    too few, or when a group left out makes the rest unsolvable."""
-    dets, names = _used(fit, dets, names)
-    used = range(len(dets))
-    g = min(SKEW_JACKKNIFE_GROUPS, len(used))
-    if len(used) - -(-len(used) // g) < MIN_VIEWS or g < 2:
+def _jackknife_sigma(fit: JointFit, i: int) -> float | None:
+    """The jackknife sigma of the fit's shared parameter ``i`` (an intrinsic, then the plate's shape) over
+    its views, each left out in turn to first order (``leave_views_out``); None when the views are too few
+    (each set left needs ``MIN_VIEWS``) or the others do not determine the camera without one of them."""
+    V = len(fit.views)
+    if V - 1 < MIN_VIEWS:
         return None
-    vals = []
-    for j in range(g):
-        keep = [k for i, k in enumerate(used) if i % g != j]
-        try:
-            sub = fit_views([dets[k] for k in keep], plate, fit.camera, [names[k] for k in keep],
-                            plate_model=plate_model, fit_skew=fit_skew)
-        except CalibrationError:
-            return None
-        vals.append(np.asarray(value(sub), float))
-    v = np.asarray(vals)
-    return np.sqrt((g - 1) / g * np.sum((v - v.mean(axis=0)) ** 2, axis=0))
-
-
-def _bow_as(b, ref) -> np.ndarray:
-    """The bow ``b`` (b0, b1, b2) of a fit whose grid indices may be turned by 90 deg against those of the fit
-    whose bow is ``ref`` (a square grid's views are tied to one grid up to its turns): as that fit has it."""
-    b = np.asarray(b, float)
-    turned = np.array([b[2], -b[1], b[0]])
-    return b if np.linalg.norm(b - ref) <= np.linalg.norm(turned - ref) else turned
-
-
-def _choose_plate_model(dets, names, plate, camera_guess: CameraModel) -> tuple[str, str, JointFit | None]:
-    """('bow+dots' or 'flat', why, the bent plate's fit with the skew held at the guess's): the bent plate
-    only when its bow stands ``PLATE_SIGNIFICANCE`` sigmas from 0 by its formal sigma and by its jackknife's
-    (views left out in turn). A view the bent plate cannot tie to the printed grid is left out of it: kept
-    only when the other views confirm the bow on their own."""
     try:
-        bent = fit_views(dets, plate, camera_guess, names, plate_model="bow+dots", fit_skew=False)
+        v = leave_views_out(fit)[0][:, i]
+    except CalibrationError:
+        return None
+    return float(np.sqrt((V - 1) / V * np.sum((v - v.mean()) ** 2)))
+
+
+def _choose_plate_model(dets, names, plate, camera_guess: CameraModel):
+    """(model, why, its fit with the skew held at the guess's or None, bow_unconfirmed): the plate's model by
+    evidence (``PLATE_TEST_LEVEL``, ``PLATE_STEPS``): from the flat plate, each richer model only when it
+    predicts the views left out in turn better (``heldout_test``); ``bow_unconfirmed`` when the plate stays
+    flat though the views measure a bow (its chi-square against 0 significant) and are too few for the
+    held-out check to confirm it at all (a bow they could confirm and do not is no shape of the plate, and
+    no reason to hold the skew). A view the bent plate cannot
+    tie to the printed grid is left out of it (listed in the fit's ``dropped``)."""
+    try:
+        fits = {"flat": fit_views(dets, plate, camera_guess, names, plate_model="flat", fit_skew=False)}
     except CalibrationError as e:
-        return "flat", f"flat: the bent plate's fit failed ({e})", None
-    left = (f"; flat keeps the {len(bent.dropped)} view(s) the bent plate could not tie to the printed grid "
-            f"({', '.join(nm for nm, _ in bent.dropped)})") if bent.dropped else ""
-    bow = bent.shape[:3]
-    sd = np.sqrt(np.clip(np.diag(bent.shape_cov)[:3], 0, None))
-    z = float(np.max(np.abs(bow) / np.where(sd > 0, sd, np.inf)))
-    if not z >= PLATE_SIGNIFICANCE:
-        return "flat", f"flat: the views measure no bow ({z:.1f} sigmas from 0 at most, under {PLATE_SIGNIFICANCE:g}){left}", bent
-    sd_jk = _jackknife(dets, names, plate, bent, "bow+dots", False, lambda f: _bow_as(f.shape[:3], bow))
-    if sd_jk is None:
-        return "flat", (f"flat: the bow measures {z:.1f} sigmas from 0, but {len(bent.views)} views are too few to "
-                        f"check it with views left out (at least {MIN_VIEWS + 1}){left}"), bent
-    z_jk = float(np.max(np.abs(bow) / np.where(sd_jk > 0, sd_jk, np.inf)))
-    if not z_jk >= PLATE_SIGNIFICANCE:
-        return "flat", (f"flat: the bow measures {z:.1f} sigmas from 0, but leaving views out moves it by as much "
-                        f"({z_jk:.1f} of those from 0): not a shape the views share{left}"), bent
-    return "bow+dots", f"bent: the bow stands {z:.0f} sigmas from 0 ({z_jk:.0f} by the views left out in turn)", bent
+        return "flat", f"flat: the flat plate's fit failed ({e})", None, False
+    chosen, notes, unconfirmable = "flat", [], False
+    for simple, rich in zip(PLATE_STEPS, PLATE_STEPS[1:]):
+        try:
+            f = fit_views(dets, plate, fits[simple].camera, names, plate_model=rich, fit_skew=False, start=fits[simple])
+        except CalibrationError as e:
+            notes.append(f"the {rich} plate's fit failed ({e})")
+            break
+        if f.plate_model != rich:
+            notes.append(f"the {rich} plate is not fitted: the printed dot pattern is not recognised in most views")
+            break
+        if rich == "bow":
+            chi2 = wald_chi2(f.shape[:3], f.shape_cov[:3, :3])
+            measured = chi2_3_sf(chi2) < PLATE_TEST_LEVEL
+            notes.append(f"the views {'measure' if measured else 'measure no'} bow (chi-square {chi2:.3g}, 3 dof)")
+        t = heldout_test(fits[simple], f)
+        if rich == "bow":  # a bow the views measure, where too few views could ever confirm it
+            unconfirmable = measured and not sign_test_p(t["views"], 0) < PLATE_TEST_LEVEL
+        left = (f" ({len(f.dropped)} view(s) it could not tie to the printed grid left out: "
+                f"{', '.join(nm for nm, _ in f.dropped)})") if f.dropped else ""
+        verdict = "predicts" if t["p"] < PLATE_TEST_LEVEL else "does not predict"
+        notes.append(f"{rich} {verdict} the views left out in turn better than {simple} ({t['better']} of "
+                     f"{t['views']} views better, sign test p = {t['p']:.2g}, level {PLATE_TEST_LEVEL:g}; held-out rms "
+                     f"{t['rms_rich_px']:.3f} vs {t['rms_simple_px']:.3f} px){left}")
+        if not t["p"] < PLATE_TEST_LEVEL:
+            break
+        fits[rich], chosen = f, rich
+    if unconfirmable and chosen == "flat":
+        notes.append(f"{t['views']} views are too few to confirm it (all better would be p = "
+                     f"{sign_test_p(t['views'], 0):.2g})")
+    return chosen, f"{chosen}: " + "; ".join(notes), fits[chosen], unconfirmable and chosen == "flat"

@@ -26,7 +26,7 @@ def halves_cross_check(dets, names, plate, fit: JointFit) -> dict:
         idx = list(idx)
         try:
             h = fit_views([dets[i] for i in idx], plate, fit.camera, [names[i] for i in idx], plate_model=fit.plate_model,
-                          fit_skew=len(fit.cov5) > 5)
+                          fit_skew=len(fit.cov5) > 5, start=fit)
         except CalibrationError as exc:
             return {"done": False, "why": f"a half could not be calibrated: {exc}"}
         halves.append(h)

@@ -36,6 +36,10 @@ VIEW_MAX_RMS_PX = 1.5
 BIAS_ROUNDS = 2
 #: Further refits, at most, until the noise that weighs the plate's prior settles (within 20 %).
 NOISE_ROUNDS = 4
+#: The joint LM stops when a step would lower the cost by less than this part of it: a step that moves the
+#: parameters by e of their sigmas lowers it by about e^2 / (m - n) of it (m - n, the residuals' degrees
+#: of freedom, 10^2 to 10^4 here), so 1e-10 stops within 1e-3 sigma of the minimum.
+FTOL = 1e-10
 #: Views whose plate normals (in the camera frame) all lie within this of their mean direction [deg] see
 #: parallel planes (the gripper straight down, only lifted and turned; or all square-on): they cannot pin
 #: the principal point (Zhang: parallel planes add no constraint on the interior orientation).
@@ -83,6 +87,7 @@ class JointFit:
     dot_sd_mm: float = PLATE_DOT_PRIOR_MM
     turns: list = field(default_factory=list)
     dropped: list = field(default_factory=list)  # [(view name, why)] left out of the fit
+    residuals: np.ndarray = field(default_factory=lambda: np.zeros(0))  # at the solution, rows as ``jac``'s
 
     @cached_property
     def cov_full(self) -> np.ndarray:
@@ -96,6 +101,43 @@ class JointFit:
     def shape_cov(self) -> np.ndarray:
         ns, n = len(self.shape), len(self.cov_full)
         return self.cov_full[n - ns :, n - ns :] if ns else np.zeros((0, 0))
+
+def leave_views_out(fit: JointFit) -> tuple[np.ndarray, np.ndarray]:
+    """The fit's views left out one at a time, to first order about its solution (no refit): (``delta``
+    (V, P) the change of the shared parameters, the ``ni`` intrinsics then the plate's shape, when view k
+    is left out; ``heldout`` (V,) the mean square [px^2] of view k's residuals predicted by the other views'
+    parameters, with its own pose refitted to it). Each view's 6 pose parameters are eliminated from its
+    rows (Schur complement), so the reduced system has the shared parameters only; the shape's prior rows
+    stay in. ``CalibrationError`` when the views left do not determine the shared parameters."""
+    J, r, ni = fit.jac, fit.residuals, fit.ni
+    V = len(fit.views)
+    n = np.array([len(u) for u in fit.uv_used])
+    off = np.r_[0, np.cumsum(2 * n)]
+    shared = np.r_[0:ni, ni + 6 * V : J.shape[1]]
+    sc = np.linalg.norm(J[:, shared], axis=0)
+    sc = np.where(sc > 0, sc, 1.0)
+    Jh, rh = [], []
+    for k in range(V):
+        rows = slice(off[k], off[k + 1])
+        q, _ = np.linalg.qr(J[rows, ni + 6 * k : ni + 6 * k + 6])
+        js, rk = J[rows][:, shared] / sc, r[rows]
+        Jh.append(js - q @ (q.T @ js))
+        rh.append(rk - q @ (q.T @ rk))
+    jp, rp = J[off[-1] :][:, shared] / sc, r[off[-1] :]
+    Sk = np.array([a.T @ a for a in Jh])
+    gk = np.array([a.T @ b for a, b in zip(Jh, rh)])
+    S, g = Sk.sum(0) + jp.T @ jp, gk.sum(0) + jp.T @ rp
+    delta, heldout = np.zeros((V, len(shared))), np.zeros(V)
+    for k in range(V):
+        try:
+            d = np.linalg.solve(S - Sk[k], gk[k] - g)
+        except np.linalg.LinAlgError:
+            raise CalibrationError(f"intrinsics: without view {fit.views[k].name!r} the other views do not "
+                                   "determine the camera") from None
+        e = rh[k] + Jh[k] @ d
+        delta[k], heldout[k] = d / sc, float(e @ e) / n[k]
+    return delta, heldout
+
 
 def view_tilt_distance(C_H_W) -> tuple[float, float]:
     """(tilt [deg], distance [mm]) of a view of the plate: the angle between the plate's normal and the
@@ -139,7 +181,7 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
         idx = [shape.index(r[k]) for r, k in zip(rc, keep)] if shape else None
         model = JointProblem(P, U, [H[:3, :3] for H in poses0], shape, idx, ni=ni, skew=camera0.skew)
         x0 = np.concatenate([intrinsics_vector(camera0, ni), *[np.concatenate([np.zeros(3), H[:3, 3]]) for H in poses0], y0])
-        res = levenberg_marquardt(model.residuals, x0, model.jacobian, normal=model.normal_matrix)
+        res = levenberg_marquardt(model.residuals, x0, model.jacobian, normal=model.normal_matrix, ftol=FTOL)
         poses0 = [model.pose(res.x, k) for k in range(len(P))]
         y0 = res.x[len(res.x) - ns :] if ns else y0
         try:
@@ -171,20 +213,48 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
         views.append(ViewFit(names[k], H, int(keep[k].sum()), float(np.sqrt(np.mean(dist[k] ** 2))), tilt,
                              distance, int((~keep[k]).sum())))
     return JointFit(camera0, ni, res.jacobian, float(s2), rms, views, U, P, plate_model, np.asarray(y0, float),
-                    float(noise_px), float(dot_sd_mm))
+                    float(noise_px), float(dot_sd_mm), residuals=res.residuals)
 
 
 def _bias_corrected(dets, camera, poses, plate) -> list:
     return [d.uv - plate_image_bias(plate, camera, H, d.p_W) for d, H in zip(dets, poses)]
 
+def _dot_sd(fit: JointFit) -> float:
+    """The discs' position error sd [mm] a 'bow+dots' fit's corrections say (their mean square plus their
+    posterior variance, within ``PLATE_DOT_SD_RANGE_MM``); the fit's own for another model."""
+    if fit.plate_model != "bow+dots":
+        return fit.dot_sd_mm
+    u, cu = fit.shape[3:], fit.shape_cov[3:, 3:]
+    sd = float(np.sqrt((u @ u + np.trace(cu)) / len(u))) if np.all(np.isfinite(cu)) else fit.dot_sd_mm
+    return float(np.clip(sd, *PLATE_DOT_SD_RANGE_MM))
+
+
+def _first_poses(dets, names, camera0: CameraModel, start: JointFit | None, fit_skew: bool):
+    """(camera, poses, warm) to start ``fit_views`` from: ``start``'s camera (with ``camera0``'s skew when the
+    skew is held) and poses when it fitted every view named (warm), else ``camera0`` and planar PnP. A view
+    whose indices ``start`` turned onto its grid has the start's pose of the turned grid: PnP for it."""
+    turned = {v.name for v, t in zip(start.views, start.turns) if t} if start is not None else set()
+    known = {v.name: v.C_H_W for v in start.views if v.name not in turned} if start is not None else {}
+    warm = bool(known) and all(nm in known or nm in turned for nm in names)
+    if warm:
+        camera0 = start.camera if fit_skew else start.camera.with_(skew=camera0.skew)
+    poses = [known[nm] if nm in known else initial_pose(d.p_W, d.uv, camera0) for d, nm in zip(dets, names)]
+    return camera0, poses, warm
+
+
 def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel, names: list[str] | None = None,
-              *, bias: bool = True, plate_model: str = "bow+dots", fit_skew: bool = True) -> JointFit:
+              *, bias: bool = True, plate_model: str = "bow+dots", fit_skew: bool = True,
+              start: JointFit | None = None) -> JointFit:
     """The joint fit of views' disc detections from ``camera0`` (a starting camera): first poses by
     planar PnP, a fit on the centroids, then ``BIAS_ROUNDS`` rounds of bias correction and refit
     (``bias=False``: the centroids as measured). ``plate_model`` (``PLATE_MODELS``): what of the printed
-    plate's shape is fitted with the camera; ``fit_skew``: the grabber's skew too. The shape's prior is weighed with the previous fit's noise
-    (its residual sigma); the fit is repeated (at most ``NOISE_ROUNDS`` times) until that noise settles.
-    ``CalibrationError`` for fewer than ``MIN_VIEWS_HALF`` views, ``ValueError`` for names not one per view."""
+    plate's shape is fitted with the camera; ``fit_skew``: the grabber's skew too. The shape's prior is
+    weighed with the previous fit's noise (its residual sigma); the fit is repeated (at most ``NOISE_ROUNDS``
+    times) until that noise settles.
+    ``start``: a fit of these views (or more, named alike) to start warm from (``_first_poses``), the
+    centroids bias-corrected by it at once instead of ``BIAS_ROUNDS`` rounds (its correction has settled),
+    its noise figures when of the same plate model. ``CalibrationError`` for fewer than ``MIN_VIEWS_HALF``
+    views, ``ValueError`` for names not one per view."""
     if plate_model not in PLATE_MODELS:
         raise CalibrationError(f"intrinsics: plate model {plate_model!r}: expected one of {', '.join(PLATE_MODELS)}")
     if len(dets) < MIN_VIEWS_HALF:  # the fewest a half of the cross-check fits
@@ -192,7 +262,7 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
     names = names or [f"view {i + 1}" for i in range(len(dets))]
     if len(names) != len(dets):
         raise ValueError(f"names: expected {len(dets)} names for {len(dets)} views, got {len(names)}")
-    poses = [initial_pose(d.p_W, d.uv, camera0) for d in dets]
+    camera0, poses, warm = _first_poses(dets, names, camera0, start, fit_skew)
     normals = np.array([H[:3, 2] for H in poses])
     mean = normals.sum(0) / np.linalg.norm(normals.sum(0))
     spread = float(np.degrees(np.arccos(np.clip(normals @ mean, -1, 1))).max())
@@ -204,12 +274,16 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
             f"from square-on), as when the gripper only looks straight down; take views with the gripper tilted "
             "20-40 deg about different axes in the plate"
         )
-    uv = [d.uv for d in dets]
-    turns = [0.0] * len(dets)
-    dropped: list = []
+    uv = _bias_corrected(dets, camera0, poses, plate) if warm and bias else [d.uv for d in dets]
+    rounds = BIAS_ROUNDS if bias and not warm else 0
+    same = warm and start.plate_model == plate_model and start.prior_noise_px > 0
+    noise0 = {"noise_px": start.prior_noise_px, "dot_sd_mm": start.dot_sd_mm} if same else {}
+    turns, dropped = [0.0] * len(dets), []
     if plate_model != "flat":
-        # a first camera on the plate as specified, then the views' discs on one physical grid
-        fit = _solve([d.p_W for d in dets], uv, camera0, poses, names, fit_skew=fit_skew)
+        # a first camera on the plate as specified (a flat start is one), then the discs on one physical grid
+        flat = warm and start.plate_model == "flat" and [v.name for v in start.views] == list(names) \
+            and start.ni == (6 if fit_skew else 5)
+        fit = start if flat else _solve([d.p_W for d in dets], uv, camera0, poses, names, fit_skew=fit_skew)
         uv = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate)
         dets, turns = align_views(dets, uv, fit, plate)
         if plate_model == "bow+dots" and sum(t is not None for t in turns) < max(2, (len(dets) + 1) // 2):
@@ -232,19 +306,17 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
     P = [d.p_W for d in dets]
     rc = [d.rc for d in dets]
     kw = {"rc": rc, "plate": plate, "plate_model": plate_model, "fit_skew": fit_skew}
-    fit = _solve(P, uv, camera0, poses, names, **kw)
-    for rnd in range(BIAS_ROUNDS + NOISE_ROUNDS if bias else NOISE_ROUNDS):
-        noise, sd = float(np.sqrt(fit.s2)), fit.dot_sd_mm
-        if plate_model == "bow+dots":
-            nb = 3
-            u, cu = fit.shape[nb:], fit.shape_cov[nb:, nb:]
-            sd = float(np.sqrt((u @ u + np.trace(cu)) / len(u))) if np.all(np.isfinite(cu)) else sd
-            sd = float(np.clip(sd, *PLATE_DOT_SD_RANGE_MM))
-        if rnd >= (BIAS_ROUNDS if bias else 0):
+    fit = _solve(P, uv, camera0, poses, names, **kw, **noise0)
+    for rnd in range(rounds + NOISE_ROUNDS):
+        noise, sd = float(np.sqrt(fit.s2)), _dot_sd(fit)
+        if rnd < rounds:
+            new = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate)
+            if all(np.array_equal(a, b) for a, b in zip(new, uv)):
+                rounds = rnd  # no bias to correct (a board's corners): only the noise's rounds are left
+            uv = new
+        if rnd >= rounds:
             if plate_model == "flat" or (abs(noise / fit.prior_noise_px - 1.0) < 0.2 and abs(sd / fit.dot_sd_mm - 1.0) < 0.2):
                 break
-        else:
-            uv = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate)
         fit = _solve(P, uv, fit.camera, [v.C_H_W for v in fit.views], names, shape0=fit.shape, noise_px=noise,
                      dot_sd_mm=sd, **kw)
     fit.turns = turns

@@ -1,0 +1,51 @@
+"""What the views say about a richer model: the held-out check (each view left out in turn, to first order,
+``fit.leave_views_out``) as a one-sided sign test over the views, and the chi-square test of parameters
+against 0 with the pixel noise estimated. Both without refits."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from selfview.estimation.intrinsics.fit import JointFit, leave_views_out
+
+
+def sign_test_p(better: int, worse: int) -> float:
+    """One-sided p-value of the sign test: the chance of ``better`` or more successes in ``better + worse``
+    fair coin tosses."""
+    n = better + worse
+    if n == 0:
+        return 1.0
+    return sum(math.comb(n, k) for k in range(better, n + 1)) / 2.0**n
+
+
+def chi2_3_sf(x: float) -> float:
+    """P(X > x) of a chi-square with 3 degrees of freedom."""
+    x = max(float(x), 0.0)
+    return math.erfc(math.sqrt(x / 2)) + math.sqrt(2 * x / math.pi) * math.exp(-x / 2)
+
+
+def wald_chi2(value, cov) -> float:
+    """value^T cov^-1 value: the chi-square of ``value`` against 0 (inf when ``cov`` is singular)."""
+    value = np.asarray(value, float)
+    try:
+        return float(value @ np.linalg.solve(np.asarray(cov, float), value))
+    except np.linalg.LinAlgError:
+        return math.inf
+
+
+def heldout_test(simple: JointFit, rich: JointFit) -> dict:
+    """Does ``rich`` predict the views left out better than ``simple``? Per view common to both (by name):
+    the mean square of its residuals predicted from the other views (its pose refitted to it), by each
+    model; ``p`` the one-sided sign test's p-value of the views ``rich`` predicts better (small: it predicts
+    more of them better than chance allows; a test that needs no model of how the views' errors are
+    distributed, and one odd view weighs as one). {views, better, p, rms_simple_px, rms_rich_px}."""
+    hs, hr = leave_views_out(simple)[1], leave_views_out(rich)[1]
+    ns, nr = [v.name for v in simple.views], [v.name for v in rich.views]
+    common = [nm for nm in nr if nm in ns]
+    a = np.array([hs[ns.index(nm)] for nm in common])
+    b = np.array([hr[nr.index(nm)] for nm in common])
+    better, worse = int(np.sum(b < a)), int(np.sum(b > a))
+    return {"views": len(common), "better": better, "p": sign_test_p(better, worse),
+            "rms_simple_px": float(np.sqrt(a.mean())), "rms_rich_px": float(np.sqrt(b.mean()))}
