@@ -66,7 +66,7 @@ class Tally:
             elif outcome in EXAMPLE_OUTCOMES:
                 ex = self.examples[outcome]
                 if sum(1 for e in ex if e["kind"] == kind) < 2 and len(ex) < 40:
-                    ex.append({"kind": kind, "seen": seen[:400]})
+                    ex.append({"kind": kind, "seen": seen[: 3000 if outcome == "hang" else 400]})  # a hang's stacks
 
     @property
     def total(self) -> int:
@@ -117,8 +117,46 @@ def _call(fn, timeout_s: float, after=None):
     t.start()
     t.join(timeout_s)
     if t.is_alive():
-        return "hang", None, None
+        return "hang", thread_stacks(t), None
     return box["status"], box.get("value"), box.get("snap")
+
+
+def thread_stacks(stuck: threading.Thread, depth: int = 12) -> str:
+    """Where ``stuck`` waits and what every other thread of the process is doing, as a short text: the
+    innermost ``depth`` frames of ``stuck`` (file, line, function, source), then one line per place where
+    other threads are (their innermost frame in the project's own code, and their innermost frame), each
+    place once with its count. Files are named from the project's folders or by their last two parts."""
+    import traceback
+
+    def where(fs) -> str:
+        return f"{_short_file(fs.filename)}:{fs.lineno} {fs.name}"
+
+    frames = sys._current_frames()
+    top = frames.get(stuck.ident)
+    if top is None:
+        return f"thread {stuck.name}: ended while its stack was being taken"
+    stack = traceback.extract_stack(top)[-depth:]
+    lines = [f"thread {stuck.name} waits in:"] + [f"  {where(fs)}: {(fs.line or '').strip()[:80]}" for fs in stack]
+    others: Counter = Counter()
+    for ident, frame in frames.items():
+        if ident in (stuck.ident, threading.get_ident()):
+            continue
+        st = traceback.extract_stack(frame)
+        mine = [fs for fs in st if _PROJECT_FILE.search(fs.filename)]
+        inner = where(st[-1])
+        others[f"{where(mine[-1])} > {inner}" if mine and mine[-1] is not st[-1] else inner] += 1
+    lines.append(f"other threads ({sum(others.values())}):")
+    lines += [f"  {n} x {w}" for w, n in others.most_common()]
+    return "\n".join(lines)
+
+
+_PROJECT_FILE = re.compile(r"[/\\]((?:selfview|drivers|mocks|procedures|bench)[/\\].+)$")
+
+
+def _short_file(path: str) -> str:
+    """A source file named from the project's own folders, else by its last two parts (no path of this machine)."""
+    m = _PROJECT_FILE.search(path)
+    return m.group(1) if m else "/".join(Path(path).parts[-2:])
 
 
 def _limit_child():

@@ -214,14 +214,14 @@ def val_case(rig: ValRig, op: str, fault: str, direction: str, at: int, rng, tal
     status, value, at_end = _call(lambda: engine.run(lambda e: e.execute(step), [step]), 15.0, snap)
     rig.proxy.disarm()
     kind = f"val.{direction}.{fault}"
+    what = f"{op}: {f.fired or 'the fault never fired'}"
+    if status == "hang":  # counted whether the fault fired or not: a hang is never hidden
+        tally.add(kind, "hang", f"{what}: no return within 15 s; {value}")
+        rig.robot.close()
+        return True, True
     if f.fired is None:
         tally.not_fired[kind] += 1
         return False, True
-    what = f"{op}: {f.fired}"
-    if status == "hang":
-        tally.add(kind, "hang", f"{what}: no return within 15 s")
-        rig.robot.close()
-        return True, True
     # after the software returned (or gave up and cleaned up): does the arm keep moving?
     t_end = time.monotonic()
     while sim.moving.is_set() and time.monotonic() - t_end < 3.0:

@@ -96,3 +96,37 @@ def test_a_command_whose_output_goes_away_ends_141_with_the_arm_still(command, t
     tally = Tally()
     epipe.epipe_case(command, {}, np.random.default_rng(1), tally, tmp_path)
     assert tally.to_json()["kinds"][f"epipe.{command}"]["clear_error"] == 1, tally.to_json()["examples"]
+
+
+def test_a_call_past_its_bound_is_a_hang_that_names_where_it_waits():
+    """The campaign's bound on an in-process call: past it, the record says where the call is stuck (its
+    own frames, innermost last) and where the process's other threads are, with no path of this machine."""
+    import threading
+
+    from selfview.bench.faults.common import _call
+
+    gate, peer_gate = threading.Event(), threading.Event()
+
+    def wait_forever_here():
+        gate.wait()
+
+    def peer():
+        peer_gate.wait()
+
+    t = threading.Thread(target=peer, name="peer", daemon=True)
+    t.start()
+    try:
+        status, where, snap = _call(wait_forever_here, 0.2, after=lambda: "snapshot")
+    finally:
+        gate.set()
+        peer_gate.set()
+    assert status == "hang" and snap is None
+    head, _, rest = where.partition("other threads")
+    assert head.startswith("thread fault-op waits in:")
+    frames = [ln.strip() for ln in head.splitlines()[1:]]
+    mine = [i for i, ln in enumerate(frames) if ln.startswith("bench/test_fault_families.py:")]
+    assert mine and frames[mine[-1]].endswith("wait_forever_here: gate.wait()"), where
+    assert frames[mine[-1] - 1].startswith("bench/faults/common.py:") and frames[-1].split(":")[0].endswith("/threading.py"), where
+    assert "test_fault_families.py" in rest and "> " in rest and " peer" in rest, where  # the peer, by its own frame
+    assert "/work/" not in where and "/usr/" not in where and "site-packages" not in where
+    assert _call(lambda: 7, 1.0, after=lambda: "snapshot") == ("ok", 7, "snapshot")
