@@ -96,8 +96,11 @@ def _is_clear(exc: BaseException) -> bool:
 
 def _call(fn, timeout_s: float, after=None):
     """Run ``fn()`` in a thread; (status 'ok'|'error'|'hang', value or exception, after()'s snapshot
-    taken in the thread the instant ``fn`` ended)."""
+    taken in the thread the instant ``fn`` ended). For a hang the value is what the call was doing at the
+    bound (``thread_stacks``) and how it ended: the call is waited for once more as long, and the record
+    says when it returned and how, or that it was still running (then with its stack again)."""
     box: dict = {}
+    t0 = time.monotonic()
 
     def work():
         try:
@@ -107,6 +110,7 @@ def _call(fn, timeout_s: float, after=None):
             box["value"] = exc
             box["status"] = "error"
         finally:
+            box["took"] = time.monotonic() - t0
             if after is not None:
                 try:
                     box["snap"] = after()
@@ -117,7 +121,15 @@ def _call(fn, timeout_s: float, after=None):
     t.start()
     t.join(timeout_s)
     if t.is_alive():
-        return "hang", thread_stacks(t), None
+        at_bound = thread_stacks(t)
+        t.join(timeout_s)
+        if t.is_alive():
+            late = f"still running {time.monotonic() - t0:.1f} s after it started; " + thread_stacks(t).split("other threads")[0]
+        else:
+            got = box["value"]
+            late = (f"returned {box['took']:.1f} s after it started, "
+                    + (f"with {_err_text(got)[:300]}" if box["status"] == "error" else "with a value"))
+        return "hang", f"{late}\nat the bound of {timeout_s:g} s, {at_bound}", None
     return box["status"], box.get("value"), box.get("snap")
 
 

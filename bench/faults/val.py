@@ -64,12 +64,22 @@ class ValRig:
         self._ser._socket.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         return PumaVAL(self._ser, timeout_s=0.2, limits=self._limits)
 
-    def stop(self):
+    def _unplug(self) -> None:
+        """Close the driver's socket and mark its port closed: pyserial's close() of a socket port, which
+        its finaliser calls when the port is collected, would otherwise sleep 0.3 s in whatever thread the
+        collector runs in (a later case's, inside its bound)."""
         try:
-            self.robot.close()
             self._ser._socket.close()
         except Exception:
             pass
+        self._ser.is_open = False
+
+    def stop(self):
+        try:
+            self.robot.close()
+        except Exception:
+            pass
+        self._unplug()
         self.proxy.stop()
         try:  # a loaded machine may keep the simulator's thread in a motion past stop()'s own limit
             self.sim.stop(timeout_s=20.0)
@@ -87,10 +97,7 @@ class ValRig:
             except CellError:
                 self.robot.close()
                 if attempt >= 1:  # the link itself is gone (cut off): plug a new one in
-                    try:
-                        self._ser._socket.close()
-                    except Exception:
-                        pass
+                    self._unplug()
                     self.robot = self._driver()
                     self.fresh = True
         return False
