@@ -94,12 +94,58 @@ def _is_clear(exc: BaseException) -> bool:
     return isinstance(exc, CellError) and bool(str(exc).strip())
 
 
+class Heartbeat:
+    """A thread that sleeps ``period_s`` over and over and notes each wake-up later than ``late_s``: the
+    spans in which this process could not run its Python code (the machine's load on a niced process, a
+    stop, a thread holding the interpreter). ``stalled(since)`` is how much of the time since ``since``
+    they cover. One per process (``heartbeat()``)."""
+
+    def __init__(self, period_s: float = 0.05, late_s: float = 0.25):
+        self.period_s, self.late_s = period_s, late_s
+        self._gaps: list[tuple[float, float]] = []
+        self._lock = threading.Lock()
+        threading.Thread(target=self._run, name="campaign-heartbeat", daemon=True).start()
+
+    def _run(self) -> None:
+        while True:
+            t = time.monotonic()
+            time.sleep(self.period_s)
+            now = time.monotonic()
+            if now - t - self.period_s > self.late_s:
+                self.note_gap(t + self.period_s, now)
+
+    def note_gap(self, start: float, end: float) -> None:
+        with self._lock:
+            self._gaps = [g for g in self._gaps if g[1] > end - 3600.0] + [(start, end)]
+
+    def stalled(self, since: float) -> float:
+        """Seconds since ``since`` in which the process was seen not running."""
+        with self._lock:
+            return sum(max(0.0, e - max(s, since)) for s, e in self._gaps)
+
+
+_HEARTBEAT: list[Heartbeat] = []
+_HEARTBEAT_LOCK = threading.Lock()
+
+
+def heartbeat() -> Heartbeat:
+    with _HEARTBEAT_LOCK:
+        if not _HEARTBEAT:
+            _HEARTBEAT.append(Heartbeat())
+        return _HEARTBEAT[0]
+
+
 def _call(fn, timeout_s: float, after=None):
     """Run ``fn()`` in a thread; (status 'ok'|'error'|'hang', value or exception, after()'s snapshot
-    taken in the thread the instant ``fn`` ended). For a hang the value is what the call was doing at the
-    bound (``thread_stacks``) and how it ended: the call is waited for once more as long, and the record
-    says when it returned and how, or that it was still running (then with its stack again)."""
+    taken in the thread the instant ``fn`` ended).
+
+    The bound is ``timeout_s`` of time in which this process could run: spans in which the heartbeat saw it
+    stalled (``Heartbeat``) are added to it, up to ``timeout_s`` more, and a call that returned only thanks
+    to them is counted by its outcome and noted in the tally's notes. For a hang the value is what the call
+    was doing at the bound (``thread_stacks``) and how it ended: the call is waited for once more as long,
+    and the record says when it returned and how, or that it was still running (then with its stack again)."""
     box: dict = {}
+    beat = heartbeat()
     t0 = time.monotonic()
 
     def work():
@@ -120,6 +166,9 @@ def _call(fn, timeout_s: float, after=None):
     t = threading.Thread(target=work, name="fault-op", daemon=True)
     t.start()
     t.join(timeout_s)
+    while t.is_alive() and time.monotonic() - t0 < timeout_s + min(beat.stalled(t0), timeout_s) - 0.01:
+        t.join(t0 + timeout_s + min(beat.stalled(t0), timeout_s) - time.monotonic())
+    stalled = beat.stalled(t0)
     if t.is_alive():
         at_bound = thread_stacks(t)
         t.join(timeout_s)
@@ -129,7 +178,10 @@ def _call(fn, timeout_s: float, after=None):
             got = box["value"]
             late = (f"returned {box['took']:.1f} s after it started, "
                     + (f"with {_err_text(got)[:300]}" if box["status"] == "error" else "with a value"))
-        return "hang", f"{late}\nat the bound of {timeout_s:g} s, {at_bound}", None
+        return "hang", (f"{late}\nat the bound of {timeout_s:g} s (and {min(stalled, timeout_s):.1f} s in which the "
+                        f"process was stalled), {at_bound}"), None
+    if box["took"] > timeout_s and _NOTES is not None:
+        _NOTES.notes[f"a call ran past its {timeout_s:g} s bound while this process was stalled (counted by its outcome)"] += 1
     return box["status"], box.get("value"), box.get("snap")
 
 
