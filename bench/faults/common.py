@@ -24,7 +24,8 @@ from selfview.errors import CellError
 # - clear_error: refused or failed with one of the project's errors (a message, exit 3/4/5, or 130 after
 #   Ctrl-C), and the cell is as it should be;
 # - no_effect: the operation succeeded and what it returned or did is the truth;
-# - hang: no answer within the bound (the driver's own plus a margin; a CLI killed after its timeout);
+# - hang: no answer within the bound (the driver's own plus a margin, counted in time this process could run;
+#   a CLI killed after its timeout); its record says where the call waited and how it ended;
 # - traceback: an exception outside the project's error tree, a CLI exit 1 or a "Traceback";
 # - unsafe: a motion other than the one checked (a corrupted motion command executed, a motion run twice),
 #   a motion reported complete while the arm is elsewhere, a motion still running after the software gave
