@@ -24,7 +24,8 @@ from selfview.errors import CellError
 # - clear_error: refused or failed with one of the project's errors (a message, exit 3/4/5, or 130 after
 #   Ctrl-C), and the cell is as it should be;
 # - no_effect: the operation succeeded and what it returned or did is the truth;
-# - hang: no answer within the bound (the driver's own plus a margin; a CLI killed after its timeout);
+# - hang: no answer within the bound (the driver's own plus a margin, counted in time this process could run;
+#   a CLI killed after its timeout); its record says where the call waited and how it ended;
 # - traceback: an exception outside the project's error tree, a CLI exit 1 or a "Traceback";
 # - unsafe: a motion other than the one checked (a corrupted motion command executed, a motion run twice),
 #   a motion reported complete while the arm is elsewhere, a motion still running after the software gave
@@ -66,7 +67,7 @@ class Tally:
             elif outcome in EXAMPLE_OUTCOMES:
                 ex = self.examples[outcome]
                 if sum(1 for e in ex if e["kind"] == kind) < 2 and len(ex) < 40:
-                    ex.append({"kind": kind, "seen": seen[:400]})
+                    ex.append({"kind": kind, "seen": seen[: 3000 if outcome == "hang" else 400]})  # a hang's stacks
 
     @property
     def total(self) -> int:
@@ -94,10 +95,59 @@ def _is_clear(exc: BaseException) -> bool:
     return isinstance(exc, CellError) and bool(str(exc).strip())
 
 
+class Heartbeat:
+    """A thread that sleeps ``period_s`` over and over and notes each wake-up later than ``late_s``: the
+    spans in which this process could not run its Python code (the machine's load on a niced process, a
+    stop, a thread holding the interpreter). ``stalled(since)`` is how much of the time since ``since``
+    they cover. One per process (``heartbeat()``)."""
+
+    def __init__(self, period_s: float = 0.05, late_s: float = 0.25):
+        self.period_s, self.late_s = period_s, late_s
+        self._gaps: list[tuple[float, float]] = []
+        self._lock = threading.Lock()
+        threading.Thread(target=self._run, name="campaign-heartbeat", daemon=True).start()
+
+    def _run(self) -> None:
+        while True:
+            t = time.monotonic()
+            time.sleep(self.period_s)
+            now = time.monotonic()
+            if now - t - self.period_s > self.late_s:
+                self.note_gap(t + self.period_s, now)
+
+    def note_gap(self, start: float, end: float) -> None:
+        with self._lock:
+            self._gaps = [g for g in self._gaps if g[1] > end - 3600.0] + [(start, end)]
+
+    def stalled(self, since: float) -> float:
+        """Seconds since ``since`` in which the process was seen not running."""
+        with self._lock:
+            return sum(max(0.0, e - max(s, since)) for s, e in self._gaps)
+
+
+_HEARTBEAT: list[Heartbeat] = []
+_HEARTBEAT_LOCK = threading.Lock()
+
+
+def heartbeat() -> Heartbeat:
+    with _HEARTBEAT_LOCK:
+        if not _HEARTBEAT:
+            _HEARTBEAT.append(Heartbeat())
+        return _HEARTBEAT[0]
+
+
 def _call(fn, timeout_s: float, after=None):
     """Run ``fn()`` in a thread; (status 'ok'|'error'|'hang', value or exception, after()'s snapshot
-    taken in the thread the instant ``fn`` ended)."""
+    taken in the thread the instant ``fn`` ended).
+
+    The bound is ``timeout_s`` of time in which this process could run: spans in which the heartbeat saw it
+    stalled (``Heartbeat``) are added to it, up to ``timeout_s`` more, and a call that returned only thanks
+    to them is counted by its outcome and noted in the tally's notes. For a hang the value is what the call
+    was doing at the bound (``thread_stacks``) and how it ended: the call is waited for once more as long,
+    and the record says when it returned and how, or that it was still running (then with its stack again)."""
     box: dict = {}
+    beat = heartbeat()
+    t0 = time.monotonic()
 
     def work():
         try:
@@ -107,6 +157,7 @@ def _call(fn, timeout_s: float, after=None):
             box["value"] = exc
             box["status"] = "error"
         finally:
+            box["took"] = time.monotonic() - t0
             if after is not None:
                 try:
                     box["snap"] = after()
@@ -116,9 +167,61 @@ def _call(fn, timeout_s: float, after=None):
     t = threading.Thread(target=work, name="fault-op", daemon=True)
     t.start()
     t.join(timeout_s)
+    while t.is_alive() and time.monotonic() - t0 < timeout_s + min(beat.stalled(t0), timeout_s) - 0.01:
+        t.join(t0 + timeout_s + min(beat.stalled(t0), timeout_s) - time.monotonic())
+    stalled = beat.stalled(t0)
     if t.is_alive():
-        return "hang", None, None
+        at_bound = thread_stacks(t)
+        t.join(timeout_s)
+        if t.is_alive():
+            late = f"still running {time.monotonic() - t0:.1f} s after it started; " + thread_stacks(t).split("other threads")[0]
+        else:
+            got = box["value"]
+            late = (f"returned {box['took']:.1f} s after it started, "
+                    + (f"with {_err_text(got)[:300]}" if box["status"] == "error" else "with a value"))
+        return "hang", (f"{late}\nat the bound of {timeout_s:g} s (and {min(stalled, timeout_s):.1f} s in which the "
+                        f"process was stalled), {at_bound}"), None
+    if box["took"] > timeout_s and _NOTES is not None:
+        _NOTES.notes[f"a call ran past its {timeout_s:g} s bound while this process was stalled (counted by its outcome)"] += 1
     return box["status"], box.get("value"), box.get("snap")
+
+
+def thread_stacks(stuck: threading.Thread, depth: int = 12) -> str:
+    """Where ``stuck`` waits and what every other thread of the process is doing, as a short text: the
+    innermost ``depth`` frames of ``stuck`` (file, line, function, source), then one line per place where
+    other threads are (their innermost frame in the project's own code, and their innermost frame), each
+    place once with its count. Files are named from the project's folders or by their last two parts."""
+    import traceback
+
+    def where(fs) -> str:
+        return f"{_short_file(fs.filename)}:{fs.lineno} {fs.name}"
+
+    frames = sys._current_frames()
+    top = frames.get(stuck.ident)
+    if top is None:
+        return f"thread {stuck.name}: ended while its stack was being taken"
+    stack = traceback.extract_stack(top)[-depth:]
+    lines = [f"thread {stuck.name} waits in:"] + [f"  {where(fs)}: {(fs.line or '').strip()[:80]}" for fs in stack]
+    others: Counter = Counter()
+    for ident, frame in frames.items():
+        if ident in (stuck.ident, threading.get_ident()):
+            continue
+        st = traceback.extract_stack(frame)
+        mine = [fs for fs in st if _PROJECT_FILE.search(fs.filename)]
+        inner = where(st[-1])
+        others[f"{where(mine[-1])} > {inner}" if mine and mine[-1] is not st[-1] else inner] += 1
+    lines.append(f"other threads ({sum(others.values())}):")
+    lines += [f"  {n} x {w}" for w, n in others.most_common()]
+    return "\n".join(lines)
+
+
+_PROJECT_FILE = re.compile(r"[/\\]((?:selfview|drivers|mocks|procedures|bench)[/\\].+)$")
+
+
+def _short_file(path: str) -> str:
+    """A source file named from the project's own folders, else by its last two parts (no path of this machine)."""
+    m = _PROJECT_FILE.search(path)
+    return m.group(1) if m else "/".join(Path(path).parts[-2:])
 
 
 def _limit_child():

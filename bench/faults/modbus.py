@@ -93,14 +93,14 @@ def modbus_case(rig: ModbusRig, op: str, fault: str, direction: str, at: int, rn
     status, value, at_end = _call(lambda: engine.run(lambda e: e.execute(step), [step]), 15.0, snap)
     rig.proxy.disarm()
     kind = f"modbus.{direction}.{'stray_byte' if fault == 'stray_prompt' else fault}"
+    what = f"{op} from {start}: {f.fired or 'the fault never fired'}"
+    if status == "hang":  # counted whether the fault fired or not: a hang is never hidden
+        tally.add(kind, "hang", f"{what}: no return within 15 s; {value}")
+        g.close()
+        return True
     if f.fired is None:
         tally.not_fired[kind] += 1
         return False
-    what = f"{op} from {start}: {f.fired}"
-    if status == "hang":
-        tally.add(kind, "hang", f"{what}: no return within 15 s")
-        g.close()
-        return True
     err = value if status == "error" else None
     energised = {k: v for k, v in at_end["outputs"].items() if v}
     if err is not None and not _is_clear(err):

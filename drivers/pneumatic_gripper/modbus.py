@@ -110,14 +110,24 @@ class _NoReplyYet(Exception):
     """A read's reply did not come in time, and the read will be sent again (on the same connection)."""
 
 
+#: bytes dropped before a request at most: far more than any late reply (an RTU frame is 256 bytes at
+#: most); a line that keeps sending past it is left to the request, whose reply check refuses it
+_DISCARD_MAX = 64 * 1024
+
+
 def _discard_unasked(sock) -> None:
     """Drop the bytes waiting on an RTU-over-socket connection before a request (a reply that came too
-    late for an earlier one): RTU frames carry no transaction id to tell them from the awaited reply."""
+    late for an earlier one): RTU frames carry no transaction id to tell them from the awaited reply. At
+    most ``_DISCARD_MAX`` bytes: a peer that never stops sending cannot hold the request here."""
     if sock is None:
         return
+    dropped = 0
     try:
-        while sock.recv(4096, socket.MSG_DONTWAIT):
-            pass
+        while dropped < _DISCARD_MAX:
+            chunk = sock.recv(4096, socket.MSG_DONTWAIT)
+            if not chunk:
+                return
+            dropped += len(chunk)
     except OSError:  # nothing more waiting (BlockingIOError), or a broken connection the request will report
         pass
 

@@ -156,6 +156,27 @@ def _record_lock(port: str) -> DeviceLock | None:
 _OVERTIME_S = 1.0  # past a reply's deadline, bytes already waiting are read for at most this long before it is judged
 
 
+class _Deadline:
+    """A reply's deadline as every reader of the line keeps it: at the deadline the line is read once more
+    before it is judged (the host may have been stopped right after a silent read, the reply arriving
+    meanwhile), and on while bytes come, for at most ``_OVERTIME_S``: a line that never stops talking
+    cannot hold a reader past that."""
+
+    def __init__(self, deadline: float):
+        self.deadline = deadline
+        self._overtime_end: float | None = None
+
+    def passed(self, chunk: bytes) -> bool:
+        """Whether the reader must give up now, after a read that returned ``chunk``."""
+        now = time.monotonic()
+        if now < self.deadline:
+            return False
+        if self._overtime_end is None:
+            self._overtime_end = now + _OVERTIME_S
+            return False
+        return not (chunk and now < self._overtime_end)
+
+
 class PumaVAL:
     """Driver of a PUMA 260 on a VAL-II controller's terminal port.
 
@@ -417,7 +438,7 @@ class PumaVAL:
         the deadline are judged first (after the silence that ends a reply): a reply that arrived complete
         while this host was stalled (suspended, swapped out) counts, and the stall is no device fault."""
         buf = bytearray()
-        overtime_end = None  # set at the deadline when bytes were still coming: read on until silence, briefly
+        limit = _Deadline(deadline)
         while True:
             chunk = self._read()
             if chunk:
@@ -436,13 +457,7 @@ class PumaVAL:
                     )
                 if end is not None:
                     return self._split(buf, end, command, strict)
-            now = time.monotonic()
-            if now >= deadline:
-                # at the deadline the line is read once more before it is judged (the host may have been
-                # stopped right after a silent read, the reply arriving meanwhile), and on while bytes come
-                if overtime_end is None or (chunk and now < overtime_end):
-                    overtime_end = overtime_end or now + _OVERTIME_S
-                    continue
+            if limit.passed(chunk):
                 self._need_resync = True
                 shown = bytes(buf[-80:])
                 if not buf:
@@ -593,27 +608,21 @@ class PumaVAL:
 
     def _confirm_abort(self, budget_s: float) -> tuple[bool, str]:
         """Read the controller's answer to ABORT (the command lock held): (confirmed, how)."""
-        deadline = time.monotonic() + budget_s
+        limit = _Deadline(time.monotonic() + budget_s)
         buf = bytearray()
-        looked_again = False  # at the deadline the line is read once more (the host may have stalled after a silent read)
         try:
             while True:
                 chunk = self._read()
                 buf += chunk
-                if not chunk:
-                    end = self._terminator(buf)
-                    if end == "prompt":
-                        text = buf.decode("ascii", errors="replace")
-                        errors = [self.dialect.error_text_of(ln) for ln in re.split(r"\r\n|\r|\n", text)]
-                        errors = [e for e in errors if e]
-                        if any(isinstance(self.dialect.error_for(e), MotionAborted) for e in errors):
-                            return True, "the controller answered *Motion aborted*"
-                        return True, "the controller answered with its prompt" + (f" after *{errors[0]}*" if errors else "")
-                    if time.monotonic() >= deadline:
-                        if not looked_again:
-                            looked_again = True
-                            continue
-                        return False, f"no prompt within {budget_s:g} s after ABORT (received {bytes(buf[-60:])!r})"
+                if not chunk and self._terminator(buf) == "prompt":
+                    text = buf.decode("ascii", errors="replace")
+                    errors = [self.dialect.error_text_of(ln) for ln in re.split(r"\r\n|\r|\n", text)]
+                    errors = [e for e in errors if e]
+                    if any(isinstance(self.dialect.error_for(e), MotionAborted) for e in errors):
+                        return True, "the controller answered *Motion aborted*"
+                    return True, "the controller answered with its prompt" + (f" after *{errors[0]}*" if errors else "")
+                if limit.passed(chunk):  # a line that keeps talking ends the wait too
+                    return False, f"no prompt within {budget_s:g} s after ABORT (received {bytes(buf[-60:])!r})"
         except CellError as exc:
             return False, f"reading the answer to ABORT failed: {exc}"
         finally:

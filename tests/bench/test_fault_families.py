@@ -96,3 +96,100 @@ def test_a_command_whose_output_goes_away_ends_141_with_the_arm_still(command, t
     tally = Tally()
     epipe.epipe_case(command, {}, np.random.default_rng(1), tally, tmp_path)
     assert tally.to_json()["kinds"][f"epipe.{command}"]["clear_error"] == 1, tally.to_json()["examples"]
+
+
+def test_a_call_past_its_bound_is_a_hang_that_names_where_it_waits():
+    """The campaign's bound on an in-process call: past it, the record says where the call is stuck (its
+    own frames, innermost last) and where the process's other threads are, with no path of this machine;
+    waited for once more as long, it is still stuck, and the record says so with its stack again."""
+    import threading
+
+    from selfview.bench.faults.common import _call
+
+    gate, peer_gate = threading.Event(), threading.Event()
+
+    def wait_forever_here():
+        gate.wait()
+
+    def peer():
+        peer_gate.wait()
+
+    t = threading.Thread(target=peer, name="peer", daemon=True)
+    t.start()
+    try:
+        status, record, snap = _call(wait_forever_here, 0.2, after=lambda: "snapshot")
+    finally:
+        gate.set()
+        peer_gate.set()
+    assert status == "hang" and snap is None
+    late, _, at_bound = record.partition("\nat the bound of 0.2 s (and ")
+    at_bound = at_bound.partition(" s in which the process was stalled), ")[2]
+    assert late.startswith("still running ") and "wait_forever_here: gate.wait()" in late, record
+    head, _, rest = at_bound.partition("other threads")
+    assert head.startswith("thread fault-op waits in:"), record
+    frames = [ln.strip() for ln in head.splitlines()[1:]]
+    mine = [i for i, ln in enumerate(frames) if ln.startswith("bench/test_fault_families.py:")]
+    assert mine and frames[mine[-1]].endswith("wait_forever_here: gate.wait()"), record
+    assert frames[mine[-1] - 1].startswith("bench/faults/common.py:") and frames[-1].split(":")[0].endswith("/threading.py"), record
+    assert "test_fault_families.py" in rest and "> " in rest and " peer" in rest, record  # the peer, by its own frame
+    assert "/work/" not in record and "/usr/" not in record and "site-packages" not in record
+    assert _call(lambda: 7, 1.0, after=lambda: "snapshot") == ("ok", 7, "snapshot")
+
+
+def test_a_call_that_returns_after_its_bound_is_a_hang_that_says_when_and_how_it_ended(monkeypatch):
+    """A call released just after the bound (once its stacks are taken) is still a hang, and its record
+    says that it returned, after how long, and with which error."""
+    import threading
+
+    from selfview.bench.faults import common
+    from selfview.errors import DeviceTimeout
+
+    gate = threading.Event()
+    stacks = common.thread_stacks
+
+    def stacks_then_release(t):
+        text = stacks(t)
+        gate.set()
+        return text
+
+    def slow():
+        gate.wait()
+        raise DeviceTimeout("no reply to 'WHERE' within 0.20 s")
+
+    monkeypatch.setattr(common, "thread_stacks", stacks_then_release)
+    status, record, _ = common._call(slow, 1.0)
+    assert status == "hang"
+    late, _, at_bound = record.partition("\nat the bound of 1 s (and ")
+    at_bound = at_bound.partition(" s in which the process was stalled), ")[2]
+    took = float(late.split(" s after it started")[0].removeprefix("returned "))
+    assert took >= 1.0 and late.endswith("with DeviceTimeout: no reply to 'WHERE' within 0.20 s"), record
+    assert at_bound.startswith("thread fault-op waits in:") and "slow: gate.wait()" in at_bound, record
+
+
+def test_time_in_which_the_process_was_stalled_is_added_to_the_bound_and_noted(monkeypatch):
+    """A call that ends after the bound, within the time the heartbeat saw the process stalled (a loaded
+    machine, a stop), is counted by its outcome, and the notes say a call ran past its bound so; the added
+    time is at most one more bound, so a call that never returns is still a hang."""
+    import threading
+
+    from selfview.bench.faults import common
+
+    gate = threading.Event()
+    beat = common.heartbeat()
+
+    def stalled_then_release(since):
+        gate.set()  # the call can end now: after its bound, within the stalled time
+        return 5.0
+
+    monkeypatch.setattr(beat, "stalled", stalled_then_release)
+    tally = common.Tally()
+    monkeypatch.setattr(common, "_NOTES", tally)
+    assert common._call(lambda: gate.wait() and "done", 0.3) == ("ok", "done", None)
+    assert list(tally.notes.values()) == [1] and "ran past its 0.3 s bound while this process was stalled" in next(iter(tally.notes))
+
+    never = threading.Event()
+    try:
+        status, record, _ = common._call(never.wait, 0.2)
+    finally:
+        never.set()
+    assert status == "hang" and "at the bound of 0.2 s (and 0.2 s in which the process was stalled)" in record, record

@@ -586,3 +586,25 @@ def test_a_request_the_protocol_cannot_carry_is_refused_before_it_is_sent(device
     assert link.read("coil", 0, 2) == [True, False]
     link.close()
     d.check()
+
+
+def test_dropping_unasked_bytes_before_an_rtu_request_ends_on_a_peer_that_never_stops_sending():
+    """Before an RTU-over-socket request the bytes already waiting are dropped, but at most a bound's worth:
+    a peer that keeps sending (a babbling line) cannot hold the request there (the loop once read until the
+    line fell silent, and never returned)."""
+    from selfview.drivers.pneumatic_gripper import modbus
+
+    class Babbling:
+        def __init__(self):
+            self.given = 0
+
+        def recv(self, n, flags=0):
+            self.given += n
+            return b"\x55" * n
+
+    peer = Babbling()
+    t = threading.Thread(target=modbus._discard_unasked, args=(peer,), daemon=True)
+    t.start()
+    t.join(10.0)
+    assert not t.is_alive(), "the drop loop did not end on a peer that never stops sending"
+    assert modbus._DISCARD_MAX <= peer.given < modbus._DISCARD_MAX + 4096

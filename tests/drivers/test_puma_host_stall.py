@@ -57,3 +57,47 @@ def test_an_abort_confirmed_while_the_host_was_stopped_after_a_silent_read_count
     assert port.written.rstrip(b"\r").endswith(b"ABORT")
     assert res.written and res.confirmed, res.detail
     robot.close()
+
+
+class _TalksOnAfterAbort(_StalledAfterSilence):
+    """A port whose controller answers CR with its prompt, but after ABORT never stops sending (line noise, a
+    babbling controller): bytes are always waiting and no prompt ever ends them."""
+
+    def __init__(self):
+        super().__init__(stall_s=0.0)
+        self.babbling = False
+
+    @property
+    def in_waiting(self) -> int:
+        return 1 if self.babbling else len(self.pending)
+
+    def write(self, data: bytes) -> int:
+        if b"ABORT" in data:
+            self.babbling = True
+            self.written += data
+            return len(data)
+        return super().write(data)
+
+    def read(self, n: int = 1) -> bytes:
+        if self.babbling:
+            time.sleep(0.001)
+            return b"noise "
+        self.stall_next = False
+        return super().read(n)
+
+
+def test_an_abort_on_a_line_that_never_stops_talking_returns_unconfirmed_within_its_bound():
+    """The answer to ABORT is read for the driver's reply limit plus the overtime at most, however many bytes
+    keep arriving (the read loop once looked at its deadline only after a silent read: it never returned, and
+    neither did the motion's wait nor the cleanup's ABORT that called it)."""
+    import threading
+
+    robot = PumaVAL(_TalksOnAfterAbort(), timeout_s=0.2)
+    robot.connect()
+    box: dict = {}
+    t = threading.Thread(target=lambda: box.setdefault("res", robot.abort()), daemon=True)
+    t.start()
+    t.join(10.0)
+    assert not t.is_alive(), "abort() did not return on a line that keeps talking"
+    res = box["res"]
+    assert res.written and not res.confirmed and "no prompt within 0.2 s after ABORT" in res.detail, res
