@@ -357,12 +357,7 @@ class PumaVAL:
         with self._write_lock:
             ser = self._port()
             if motion:
-                if self._owner is not None:  # a program that dies now leaves this for the next one to see
-                    self._owner.note(f"a motion was running ({what})")
-                self._abort_sent.clear()
-                self._motion_done.clear()
-                self._motion_outcome = (False, "the motion is running")
-                self._motion_active = True
+                self._mark_motion(what)
             try:
                 ser.write(data)
             except serial.SerialTimeoutException as exc:
@@ -371,6 +366,15 @@ class PumaVAL:
             except (serial.SerialException, OSError) as exc:
                 self._need_resync = True
                 raise DeviceError(f"writing {what!r}: {exc}") from exc
+
+    def _mark_motion(self, what: str) -> None:
+        """A motion may be running from now on (called under the write lock): its stop is owed."""
+        if self._owner is not None:  # a program that dies now leaves this for the next one to see
+            self._owner.note(f"a motion was running ({what})")
+        self._abort_sent.clear()
+        self._motion_done.clear()
+        self._motion_outcome = (False, "the motion is running")
+        self._motion_active = True
 
     def _read_echo(self, n: int, deadline: float) -> bytes:
         """The next ``n`` bytes (the echo of a typed line), and whatever else has arrived with them."""
@@ -397,6 +401,15 @@ class PumaVAL:
             echo = self._read_echo(len(body), deadline)
             if echo != body:  # the whole line, byte for byte: 'SPEED 02' is not 'SPEED 20'
                 self._need_resync = True
+                if b"\r" in echo or b"\n" in echo:
+                    # noise made a line end inside the typed line: the controller ran what came before it
+                    # ('DO APPRO p1, 5' of 'DO APPRO p1, 50'). Never "nothing ran": a motion gets the stop
+                    # written first, by the caller's fault path, as any motion whose end is in doubt.
+                    if motion:
+                        with self._write_lock:
+                            self._mark_motion(text)
+                    raise ProtocolError(f"the echo of {text!r} came back as {echo!r}: a line end reached the controller "
+                                        "inside the line, so it may have run the part before it")
                 try:
                     self._write_raw(d.cancel_line.encode("ascii"), "<cancel line>")
                 except CellError:

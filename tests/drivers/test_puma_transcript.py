@@ -418,6 +418,17 @@ def test_a_corrupted_motion_command_never_runs():
     assert p1 is not None
 
 
+def test_a_line_end_noise_put_inside_a_motion_line_stops_the_arm_first():
+    # noise turned a byte into CR: the controller ran 'DO APPRO p1, 5' of 'DO APPRO p1, 50'. Not "nothing ran":
+    # ABORT goes out at once, before anything else (no CTRL-U first), and the error says the line may have run
+    script = [*point(b"p1"), *where(), *status(20)]
+    script += [(b"DO APPRO p1, 50", b"DO APPRO p1, 5\r\n"), (b"\x15ABORT\r", b"ABORT\r\n*Motion aborted*\r\n.")]
+    r, port = robot(script)
+    with pytest.raises(ProtocolError, match=r"a line end reached the controller.*may have run.*ABORT sent and confirmed"):
+        r.appro("p1", 50)
+    assert port.written[-2:] == [b"DO APPRO p1, 50", b"\x15ABORT\r"]
+
+
 def test_speed_with_unexpected_text_is_a_protocol_error():
     r, port = robot([*typed(b"SPEED 30", b"\r\nhello\r\n."), SYNC])
     with pytest.raises(ProtocolError, match="unexpected reply"):
