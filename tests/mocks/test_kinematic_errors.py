@@ -155,7 +155,8 @@ def test_the_worn_arm_has_the_worn_geometry_and_twice_the_rated_repeatability():
     assert (worn.errors.link_mm, worn.errors.joint_offset_deg) == (noisy.errors.link_mm, noisy.errors.joint_offset_deg)
     assert noisy.errors.encoder_sd_deg == 0.02 and noisy.rp_mm is None  # the sensitivity arm: its RP only measured
     assert half.errors == WORN_PUMA.scaled(0.5) and half.rp_mm == RATED_RP_MM
-    assert arm_profile("none").errors == KinematicErrors() and list(PROFILES) == ["none", "half-worn", "worn", "worn-noisy"]
+    assert arm_profile("none").errors == KinematicErrors()
+    assert list(PROFILES) == ["none", "half-worn", "worn", "worn-noisy"]
     assert worn.to_dict()["stated_rp_mm"] == 0.1 and worn.to_dict()["encoder_sd_deg"] == WORN_PUMA.encoder_sd_deg
 
 
