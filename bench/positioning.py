@@ -9,8 +9,11 @@ within 0.2 deg of the published kinematics (AP about 1 mm) repeating to RP 0.1 m
 worn-noisy, the same geometry with 0.02 deg encoder noise, RP 0.6 mm, a sensitivity profile; half-worn on
 request). Per profile one cell (``--seed``) and three calibrations: self-viewing off-line (the robot parks
 the gripper on the plate, one picture), AX = XB (Tsai-Lenz, ``cv2.calibrateHandEye`` with
-``CALIB_HAND_EYE_TSAI``, from ``--poses`` stations of the same robot, the plate's pose per picture with the
-off-line calibration's f and kappa, ``C_H_G`` through the NOMINAL flange-to-TCP offset) and the truth. Each
+``CALIB_HAND_EYE_TSAI``, from ``--poses`` stations of the same robot, the flange poses its nominal kinematics
+report at the joints read, the plate's pose per picture with the off-line calibration's f and kappa, ``C_H_G``
+through the NOMINAL flange-to-TCP offset, which the simulated gripper truly has: AX=XB's best case there; the
+stations turn the flange by tens of degrees about axes spread over all three directions, ``station_spread`` in
+the JSON's ``axxb_stations``) and the truth. Each
 condition servos from ``--starts`` starts: the block placed per start on the table, the gripper at a pre-grasp
 pose 150-250 mm from the stand-off goal back along the camera's line of sight, turned up to 15 deg about the
 target and shifted up to 50 mm (a start whose first picture does not show the target and the fingertips, or
@@ -19,7 +22,9 @@ same for every calibration of that start (``start_arm``: the calibrations compar
 Conditions also with the camera moved on its mount (1 deg about a random axis through the cable pivot, about
 2 mm at the TCP) before the fourth frame, and a control where the goal is taught by a picture taken with the
 gripper truly at the stand-off pose (every calibration should then agree). Prints one JSON object; ``--out DIR``
-also writes the JSON, a markdown table and a PNG plot.
+also writes the JSON, a markdown table and a PNG plot. ``--quick`` (5 starts, 18 conditions, 90 servo runs) took
+499 s of CPU (user + sys, about 4 min on 2 idle cores; 33 min on a machine shared 8 ways); the full study
+(20 starts) runs four times the servo runs.
 
     python bench/positioning.py [--quick] [--seed N] [--starts 20] [--jobs 2] [--out DIR]
 """
@@ -140,8 +145,8 @@ def _calibrations(cell, seed: int, profile: str, n_poses: int, imperfections: st
 def station_spread(base_H_F, C_H_W) -> dict:
     """How the AX=XB stations turn the flange (as the controller reports them): over every pair's motion
     (``relative_motions``) the rotation angle's median, minimum and maximum [deg], and the spread of the rotation
-    axes, the singular values of the unit axes stacked, over the largest (second and third: 0 for axes all
-    parallel, about 0.7 for axes spread over every direction)."""
+    axes, the second and third singular values of the unit axes stacked over the largest (both 0 for axes all
+    parallel, the third 0 for axes in one plane, both 1 for axes spread evenly over every direction)."""
     A, _ = relative_motions(base_H_F, C_H_W)
     ang = np.degrees([rotation_angle(a) for a in A])
     axes = np.array([rotvec_from_R(a) for a in A])

@@ -7,8 +7,8 @@ import pytest
 
 from selfview.bench.kinematics_vs_selfview import F_H_G
 from selfview.bench.positioning import (CALIBRATIONS, ServoSettings, _summary, arm_repeatability, conditions,
-                                        headline_profile, main, run_start, start_arm)
-from selfview.maths.geometry import inv_H, make_H
+                                        headline_profile, main, run_start, start_arm, station_spread)
+from selfview.maths.geometry import inv_H, make_H, rot_x, rot_y, rot_z, trans
 from selfview.mocks.kinematic_errors import PROFILES as ARMS
 from selfview.mocks.world import SimWorld
 
@@ -93,3 +93,13 @@ def test_one_start_with_the_true_calibration_converges_and_the_summary_has_the_k
                 "converged", "held"):
         assert key in s
     assert s["starts"] == 1 and s["converged"] == 1 and s["held"] == 1 and s["median_mm"] == s["max_mm"]
+
+
+def test_the_stations_spread_says_how_far_and_about_which_axes_the_flange_turns():
+    turns = [trans(350.0, 0.0, 300.0) @ rot_z(np.radians(20.0 * k)) for k in range(4)]  # one axis: 20, 40, 60 deg
+    one = station_spread(turns, turns)
+    assert one["stations"] == 4 and one["motions"] == 6
+    assert (one["rotation_deg_min"], one["rotation_deg_median"], one["rotation_deg_max"]) == pytest.approx((20, 30, 60))
+    assert one["axis_spread"] == pytest.approx([0.0, 0.0], abs=1e-9)
+    three = [turns[0], turns[0] @ rot_x(0.5), turns[0] @ rot_y(0.5), turns[0] @ rot_z(0.5)]  # about x, y and z
+    assert min(station_spread(three, three)["axis_spread"]) > 0.5
