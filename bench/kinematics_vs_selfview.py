@@ -1,7 +1,7 @@
 """Study: classical hand/eye calibration (AX = XB) against the self-viewing method as the robot wears.
 
 Per seed, one simulated cell and one worn PUMA 260 (``selfview.mocks.kinematic_errors``) whose errors
-scale ``WORN_PUMA`` (link lengths +-1 mm, joint zeros +-0.2 deg, encoder noise 0.02 deg sd) by each
+scale ``WORN_PUMA`` (link lengths +-1 mm, joint zeros +-0.2 deg, encoder noise 0.0033 deg sd: RP 0.1 mm) by each
 ``--levels`` value; both methods' ``C_H_G`` against the true mount (``run_seed``). Prints one JSON object;
 with ``--out DIR`` also writes ``kinematics_vs_selfview.json``, ``.md`` (table) and ``.png`` (plot) there.
 

@@ -2,11 +2,18 @@
 
 The paper's application: the gripper servoed to an object (``selfview.procedures.grasp``: PBVS in the gripper
 frame, the stand-off goal, a straight descent, the jaws closed) on the simulated cell, the world moved by a
-PUMA 260 of each kinematic error profile (``selfview.mocks.kinematic_errors``: none, half the worn robot, the
-worn robot). Per profile one cell (``--seed``) and three calibrations: self-viewing off-line (the robot parks
+PUMA 260 of each arm profile (``selfview.mocks.kinematic_errors.PROFILES``, each with its ISO 9283 repeatability
+RP and its absolute accuracy AP measured here by ``arm_repeatability`` and written in the JSON's ``profiles``
+and in every row: none, a perfect arm; worn, a worn PUMA as a lab has it, links within 1 mm and joint zeros
+within 0.2 deg of the published kinematics (AP about 1 mm) repeating to RP 0.1 mm, twice the rated +-0.05 mm;
+worn-noisy, the same geometry with 0.02 deg encoder noise, RP 0.6 mm, a sensitivity profile; half-worn on
+request). Per profile one cell (``--seed``) and three calibrations: self-viewing off-line (the robot parks
 the gripper on the plate, one picture), AX = XB (Tsai-Lenz, ``cv2.calibrateHandEye`` with
-``CALIB_HAND_EYE_TSAI``, from ``--poses`` stations of the same robot, the plate's pose per picture with the
-off-line calibration's f and kappa, ``C_H_G`` through the NOMINAL flange-to-TCP offset) and the truth. Each
+``CALIB_HAND_EYE_TSAI``, from ``--poses`` stations of the same robot, the flange poses its nominal kinematics
+report at the joints read, the plate's pose per picture with the off-line calibration's f and kappa, ``C_H_G``
+through the NOMINAL flange-to-TCP offset, which the simulated gripper truly has: AX=XB's best case there; the
+stations turn the flange by tens of degrees about axes spread over all three directions, ``station_spread`` in
+the JSON's ``axxb_stations``) and the truth. Each
 condition servos from ``--starts`` starts: the block placed per start on the table, the gripper at a pre-grasp
 pose 150-250 mm from the stand-off goal back along the camera's line of sight, turned up to 15 deg about the
 target and shifted up to 50 mm (a start whose first picture does not show the target and the fingertips, or
@@ -15,7 +22,9 @@ same for every calibration of that start (``start_arm``: the calibrations compar
 Conditions also with the camera moved on its mount (1 deg about a random axis through the cable pivot, about
 2 mm at the TCP) before the fourth frame, and a control where the goal is taught by a picture taken with the
 gripper truly at the stand-off pose (every calibration should then agree). Prints one JSON object; ``--out DIR``
-also writes the JSON, a markdown table and a PNG plot.
+also writes the JSON, a markdown table and a PNG plot. ``--quick`` (5 starts, 18 conditions, 90 servo runs) took
+499 s of CPU (user + sys, about 4 min on 2 idle cores; 33 min on a machine shared 8 ways); the full study
+(20 starts) runs four times the servo runs.
 
     python bench/positioning.py [--quick] [--seed N] [--starts 20] [--jobs 2] [--out DIR]
 """
@@ -41,14 +50,14 @@ import numpy as np  # noqa: E402
 if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").is_file():
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from selfview.bench.handeye import plate_pose  # noqa: E402
+from selfview.bench.handeye import plate_pose, relative_motions  # noqa: E402
 from selfview.bench.kinematics_vs_selfview import F_H_G, errors, opencv_handeye, resolve_grid, stations  # noqa: E402
 from selfview.files.cell import default_cell_path, load_cell  # noqa: E402
-from selfview.errors import CellError  # noqa: E402
-from selfview.maths.geometry import inv_H, make_H, rot_z, trans  # noqa: E402
+from selfview.errors import CellError, ConfigError  # noqa: E402
+from selfview.maths.geometry import inv_H, make_H, rot_z, rotation_angle, rotvec_from_R, trans  # noqa: E402
 from selfview.files.io_safe import atomic_write  # noqa: E402
 from selfview.mocks.imperfections import PROFILES as WORLDS  # noqa: E402
-from selfview.mocks.kinematic_errors import WORN_PUMA, PerturbedPuma260  # noqa: E402
+from selfview.mocks.kinematic_errors import PROFILES as ARMS, PerturbedPuma260, arm_profile, iso9283  # noqa: E402
 from selfview.mocks.objects import draw_start, grasp_outcome, place_object  # noqa: E402
 from selfview.mocks.puma260 import Unreachable  # noqa: E402
 from selfview.mocks.render import render  # noqa: E402
@@ -58,13 +67,17 @@ from selfview.estimation.offline import calibrate_offline  # noqa: E402
 from selfview.procedures.engine import tool_step_size  # noqa: E402
 from selfview.procedures.grasp import GraspResult, ServoSettings, pose_error, servo_grasp  # noqa: E402
 
-#: The kinematic error profiles: fractions of the worn PUMA 260 (``WORN_PUMA``).
-PROFILES = {"none": 0.0, "half-worn": 0.5, "worn": 1.0}
-DEFAULT_PROFILES = ("none", "worn")
+#: The arm profiles the study knows (``selfview.mocks.kinematic_errors.PROFILES``), from perfect to worn.
+PROFILES = tuple(ARMS)
+DEFAULT_PROFILES = ("none", "worn", "worn-noisy")
+#: The arm of the headline, the camera move and the control: the worn PUMA as a lab has it.
+HEADLINE_PROFILE = "worn"
 CALIBRATIONS = ("truth", "selfview-offline", "selfview-online", "axxb")
 MOVE_DEG = 1.0
 MOVE_BEFORE_FRAME = 3
 MAX_DRAWS = 8
+#: Landings per arm for its RP and AP in the JSON: ten times ISO 9283's 30 cycles (RP then within about 3 %, 1 sd).
+LANDINGS = 300
 
 
 class DirectRig:
@@ -102,14 +115,15 @@ class DirectRig:
         return grasp_outcome(self.world, self.world.cell.gripper.gap("open"))
 
 
-def _calibrations(cell, seed: int, level: float, n_poses: int, imperfections: str) -> dict:
-    """{name: (C_H_G, camera) or {"failed": why}} for one profile of one cell."""
+def _calibrations(cell, seed: int, profile: str, n_poses: int, imperfections: str) -> tuple[dict, dict]:
+    """({name: (C_H_G, camera) or {"failed": why}}, the AX=XB stations' spread (``station_spread``)) for one
+    arm profile of one cell."""
     world = SimWorld(cell, seed=seed, imperfections=imperfections)
-    robot = PerturbedPuma260(WORN_PUMA.scaled(level), seed=seed)
+    robot = PerturbedPuma260(arm_profile(profile).errors, seed=seed)
     out = {"truth": (world.C_H_G.copy(), world.camera)}
     park = robot.move(PLATE_BASE_POSE @ trans(1.0, -1.5, 4.0) @ rot_z(np.radians(3.0)) @ inv_H(F_H_G))
     if world.set_tcp(park.base_H_F_true @ F_H_G) != "parked":
-        return out | {k: {"failed": "parking on the plate failed"} for k in CALIBRATIONS[1:]}
+        return out | {k: {"failed": "parking on the plate failed"} for k in CALIBRATIONS[1:]}, {}
     off = calibrate_offline(render(world, seed=seed * 1000 + 7).image, cell).calibration
     out["selfview-offline"] = out["selfview-online"] = (off.C_H_G, off.camera)
     world.unpark()
@@ -125,18 +139,33 @@ def _calibrations(cell, seed: int, level: float, n_poses: int, imperfections: st
     C_H_W, _ = resolve_grid(C_H_W, base_H_F, F_H_G @ inv_H(cell.mount_guess_C_H_G))
     X = opencv_handeye(base_H_F, C_H_W, "CALIB_HAND_EYE_TSAI") if len(base_H_F) >= 3 else None
     out["axxb"] = (inv_H(X) @ F_H_G, off.camera) if X is not None else {"failed": f"{len(base_H_F)} stations"}
-    return out
+    return out, station_spread(base_H_F, C_H_W) if len(base_H_F) >= 2 else {"stations": len(base_H_F)}
 
 
-def start_arm(seed: int, start: int, level: float) -> PerturbedPuma260:
+def station_spread(base_H_F, C_H_W) -> dict:
+    """How the AX=XB stations turn the flange (as the controller reports them): over every pair's motion
+    (``relative_motions``) the rotation angle's median, minimum and maximum [deg], and the spread of the rotation
+    axes, the second and third singular values of the unit axes stacked over the largest (both 0 for axes all
+    parallel, the third 0 for axes in one plane, both 1 for axes spread evenly over every direction)."""
+    A, _ = relative_motions(base_H_F, C_H_W)
+    ang = np.degrees([rotation_angle(a) for a in A])
+    axes = np.array([rotvec_from_R(a) for a in A])
+    axes /= np.maximum(np.linalg.norm(axes, axis=1, keepdims=True), 1e-300)
+    sv = np.linalg.svd(axes, compute_uv=False)
+    return {"stations": len(base_H_F), "motions": len(A), "rotation_deg_median": float(np.median(ang)),
+            "rotation_deg_min": float(np.min(ang)), "rotation_deg_max": float(np.max(ang)),
+            "axis_spread": [float(v) for v in sv[1:] / sv[0]]}
+
+
+def start_arm(seed: int, start: int, profile: str) -> PerturbedPuma260:
     """The cell's arm for one start: the same worn robot for every start of a cell (its link and zero errors
     from ``seed``), its encoder draws a stream of the start's own. (One stream for every start had each run
     land its k-th motion off by the same draw: the worn rows' final errors were one vector, 0.46 mm, for every
     start and every calibration, the taught goal's included.)"""
-    return PerturbedPuma260(WORN_PUMA.scaled(level), seed=seed, noise_seed=start)
+    return PerturbedPuma260(arm_profile(profile).errors, seed=seed, noise_seed=start)
 
 
-def run_start(seed: int, start: int, level: float, calib, online: bool, moved: bool, taught: bool,
+def run_start(seed: int, start: int, profile: str, calib, online: bool, moved: bool, taught: bool,
               settings: ServoSettings, imperfections: str = "realistic") -> dict:
     """One servo run from one start; the figures of its end: the TCP against the grasp frame G* after the
     descent, or (not converged) against the stand-off goal where the servo stopped."""
@@ -145,7 +174,7 @@ def run_start(seed: int, start: int, level: float, calib, online: bool, moved: b
     obj = load_object()
     world = SimWorld(cell, seed=seed, imperfections=imperfections)
     place_object(world, obj, seed=seed * 1000 + start)
-    rig = DirectRig(world, start_arm(seed, start, level), seed * 1000 + start)
+    rig = DirectRig(world, start_arm(seed, start, profile), seed * 1000 + start)
     rng = np.random.default_rng([seed, start, 5])
     C_H_G, camera = calib
     rec = {"start": start, "draws": 0}
@@ -205,31 +234,42 @@ def _final_truth(world, obj) -> tuple[list, float]:
     return [float(v) for v in t], a
 
 
-def arm_repeatability(seed: int, level: float, moves: int = 30) -> dict:
-    """How closely the arm of a profile lands on one commanded pose over the block (tool point, mm): the RMS
-    distance of ``moves`` landings from their mean (repeatability) and from the command (accuracy)."""
-    robot = PerturbedPuma260(WORN_PUMA.scaled(level), seed=seed)
+def arm_repeatability(seed: int, profile: str, moves: int = 30) -> dict:
+    """How closely the arm of a profile (the cell's ``seed``) lands on one commanded pose over the block, each
+    time from somewhere near (tool point, mm): ``iso9283`` of ``moves`` landings (ISO 9283's 30 cycles by default),
+    its RP (``rp_mm``) and AP (``ap_mm``), with ``repeatability_mm`` the RMS distance from their barycentre and
+    ``accuracy_mm`` the RMS distance from the command."""
+    robot = PerturbedPuma260(arm_profile(profile).errors, seed=seed)
     target = make_H(np.diag([1.0, -1.0, -1.0]), (350.0, 170.0, 60.0))
     rng = np.random.default_rng([seed, 9])
     land = []
     for _ in range(moves):
         robot.move((trans(*rng.uniform(-20, 20, 3)) @ target) @ inv_H(F_H_G))  # from somewhere near
         land.append((robot.move(target @ inv_H(F_H_G)).base_H_F_true @ F_H_G)[:3, 3])
-    land = np.array(land)
-    return {"repeatability_mm": float(np.sqrt(np.mean(np.sum((land - land.mean(axis=0)) ** 2, axis=1)))),
-            "accuracy_mm": float(np.sqrt(np.mean(np.sum((land - target[:3, 3]) ** 2, axis=1)))),
+    iso = iso9283(land, target[:3, 3])
+    return {"rp_mm": iso["rp_mm"], "ap_mm": iso["ap_mm"], "repeatability_mm": iso["rms_mm"],
+            "accuracy_mm": float(np.sqrt(np.mean(np.sum((np.array(land) - target[:3, 3]) ** 2, axis=1)))),
             "landings": moves}
+
+
+def headline_profile(profiles) -> str:
+    """The profile of the headline, the camera move and the control among ``profiles``: ``HEADLINE_PROFILE``
+    when run, else the last of them in the order of ``PROFILES`` (whatever the order they are named in).
+    Raises ``ConfigError`` (a ``ValueError``) for no profile or one not in ``PROFILES``."""
+    if isinstance(profiles, str) or not profiles:
+        raise ConfigError(f"profiles: expected one or more of {', '.join(PROFILES)}, got {profiles!r}")
+    for p in profiles:
+        arm_profile(p)
+    return HEADLINE_PROFILE if HEADLINE_PROFILE in profiles else max(profiles, key=PROFILES.index)
 
 
 def conditions(profiles=DEFAULT_PROFILES) -> list[dict]:
     """Every condition of the study: (calibration, profile, camera moved, taught goal). The camera move and
-    the taught goal (the control) on the most worn profile, with the three measured calibrations. Raises
-    ``ValueError`` for no profile or one not in ``PROFILES``."""
-    if not profiles or set(profiles) - set(PROFILES):
-        raise ValueError(f"profiles: expected one or more of {', '.join(PROFILES)}, got {list(profiles)}")
+    the taught goal (the control) on the headline profile (``headline_profile``), with the three measured
+    calibrations. Raises ``ConfigError`` (a ``ValueError``) for no profile or one not in ``PROFILES``."""
+    last = headline_profile(profiles)
     out = [{"calibration": c, "profile": p, "camera_moved": False, "taught_goal": False}
            for p in profiles for c in CALIBRATIONS]
-    last = max(profiles, key=PROFILES.__getitem__)  # the most worn, in whatever order --profiles names them
     out += [{"calibration": c, "profile": last, "camera_moved": True, "taught_goal": False} for c in CALIBRATIONS[1:]]
     out += [{"calibration": c, "profile": last, "camera_moved": False, "taught_goal": True} for c in CALIBRATIONS[1:]]
     return out
@@ -258,15 +298,20 @@ def _summary(cond: dict, runs: list[dict]) -> dict:
 
 
 def table_markdown(rows: list[dict]) -> str:
-    head = ("| calibration | profile | camera moved | taught goal | starts | median mm | p95 mm | max mm | median deg "
-            "| converged | held | iterations | ms/iteration |\n|" + "---|" * 13)
-    lines = [head]
+    """The conditions' table; with each arm's ISO 9283 RP and AP (mm) where the rows carry them (a run that did
+    not measure them gets no columns made up)."""
+    arm = any("arm_rp_mm" in r for r in rows)
+    cols = ["calibration", "profile"] + (["arm RP mm", "arm AP mm"] if arm else []) + [
+        "camera moved", "taught goal", "starts", "median mm", "p95 mm", "max mm", "median deg", "converged", "held",
+        "iterations", "ms/iteration"]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in rows:
         f = (lambda v, d=3: "-" if v is None or not np.isfinite(v) else f"{v:.{d}f}")
-        lines.append(f"| {r['calibration']} | {r['profile']} | {'yes' if r['camera_moved'] else 'no'} | "
-                     f"{'yes' if r['taught_goal'] else 'no'} | {r['starts']} | {f(r['median_mm'])} | {f(r['p95_mm'])} | "
-                     f"{f(r['max_mm'])} | {f(r['median_deg'])} | {r['converged']} | {r['held']} | "
-                     f"{f(r['iterations_median'], 1)} | {f(r['processing_ms_median'], 1)} |")
+        cells = [r["calibration"], r["profile"]] + ([f(r.get("arm_rp_mm")), f(r.get("arm_ap_mm"))] if arm else []) + [
+            "yes" if r["camera_moved"] else "no", "yes" if r["taught_goal"] else "no", str(r["starts"]),
+            f(r["median_mm"]), f(r["p95_mm"]), f(r["max_mm"]), f(r["median_deg"]), str(r["converged"]), str(r["held"]),
+            f(r["iterations_median"], 1), f(r["processing_ms_median"], 1)]
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -295,8 +340,9 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def _headline(rows: list[dict]) -> dict:
-    prof_last = rows[-1]["profile"] if rows else "worn"
+def _headline(rows: list[dict], prof_last: str) -> dict:
+    """The issue's ratios on the arm ``prof_last``: AX=XB over on-line (and over off-line and the truth, the
+    stand-ins while the on-line drifts), each calibration's median after the camera move over its unmoved one."""
 
     def get(cal, prof=None, moved=False, taught=False):
         prof = prof or prof_last
@@ -305,13 +351,15 @@ def _headline(rows: list[dict]) -> dict:
                 return r
         return None
 
-    on, ax_, on_m, off_m, off = (get("selfview-online"), get("axxb"), get("selfview-online", moved=True),
-                                 get("selfview-offline", moved=True), get("selfview-offline"))
+    def ratio(a, b):
+        return a["median_mm"] / b["median_mm"] if a and b and b["median_mm"] > 0 else None
+
+    on, ax_, off, tru = get("selfview-online"), get("axxb"), get("selfview-offline"), get("truth")
     return {
         "profile": prof_last,
-        "axxb_over_online": ax_["median_mm"] / on["median_mm"] if on and ax_ and on["median_mm"] > 0 else None,
-        "online_moved_over_unmoved": on_m["median_mm"] / on["median_mm"] if on and on_m and on["median_mm"] > 0 else None,
-        "offline_moved_over_unmoved": off_m["median_mm"] / off["median_mm"] if off and off_m and off["median_mm"] > 0 else None,
+        "axxb_over_online": ratio(ax_, on), "axxb_over_offline": ratio(ax_, off), "axxb_over_truth": ratio(ax_, tru),
+        "online_moved_over_unmoved": ratio(get("selfview-online", moved=True), on),
+        "offline_moved_over_unmoved": ratio(get("selfview-offline", moved=True), off),
         "processing_ms_max": max((r["processing_ms_max"] or 0) for r in rows),
     }
 
@@ -320,7 +368,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=1, help="the simulated cell (default 1)")
     ap.add_argument("--profiles", default=",".join(DEFAULT_PROFILES),
-                    help=f"kinematic error profiles, of {', '.join(PROFILES)} (default %(default)s)")
+                    help=f"arm profiles (selfview.mocks.kinematic_errors.PROFILES), of {', '.join(PROFILES)} "
+                    "(default %(default)s)")
     ap.add_argument("--starts", type=int, default=20, help="starts per condition (default 20)")
     ap.add_argument("--poses", type=int, default=10, help="stations for AX=XB (default 10)")
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
@@ -339,16 +388,19 @@ def main(argv=None) -> int:
     settings = ServoSettings()
     with ProcessPoolExecutor(args.jobs) as ex:
         n = len(profiles)
-        cals = dict(zip(profiles, ex.map(_calibrations, [cell] * n, [args.seed] * n, [PROFILES[p] for p in profiles],
-                                         [args.poses] * n, [args.world] * n)))
-        conds = conditions(profiles)
+        made = dict(zip(profiles, ex.map(_calibrations, [cell] * n, [args.seed] * n, profiles, [args.poses] * n,
+                                         [args.world] * n)))
+        cals = {p: m[0] for p, m in made.items()}
+        arms = {p: ARMS[p].to_dict() | arm_repeatability(args.seed, p, moves=LANDINGS) for p in profiles}
+        conds = [c | {"arm_rp_mm": arms[c["profile"]]["rp_mm"], "arm_ap_mm": arms[c["profile"]]["ap_mm"]}
+                 for c in conditions(profiles)]
         futs = []
         for c in conds:
             cal = cals[c["profile"]][c["calibration"]]
             if isinstance(cal, dict):
                 futs.append(None)
                 continue
-            futs.append([ex.submit(run_start, args.seed, s, PROFILES[c["profile"]], cal,
+            futs.append([ex.submit(run_start, args.seed, s, c["profile"], cal,
                                    c["calibration"] == "selfview-online", c["camera_moved"], c["taught_goal"], settings,
                                    args.world)
                          for s in range(args.starts)])
@@ -369,11 +421,11 @@ def main(argv=None) -> int:
         "benchmark": "visually guided grasping: final TCP-to-goal error by calibration, kinematic profile, camera move",
         "seed": args.seed, "starts": args.starts, "quick": args.quick, "world": args.world,
         "servo": dataclasses.asdict(settings), "object": load_object().name,
-        "profiles": {k: WORN_PUMA.scaled(PROFILES[k]).to_dict() | arm_repeatability(args.seed, PROFILES[k])
-                     for k in profiles},
+        "profiles": arms,
         "calibration_errors": {p: {k: _cal_error(v, c["truth"][0]) for k, v in c.items()} for p, c in cals.items()},
+        "axxb_stations": {p: m[1] for p, m in made.items()},
         "conditions": [r for r in rows],
-        "headline": _headline([r for r in rows if "failed" not in r]),
+        "headline": _headline([r for r in rows if "failed" not in r], headline_profile(profiles)),
         "runs": runs,
         "seconds": round(time.perf_counter() - t0, 1),
         "jobs": args.jobs,

@@ -1,5 +1,10 @@
 """A worn PUMA 260: true link lengths and joint zeros off the published ones, and noisy joint encoders.
 
+Two figures of an arm, apart: its ABSOLUTE accuracy (where it lands against where its published kinematics say:
+the link lengths and joint zeros, what a classical hand/eye calibration inherits through the reported poses) and
+its REPEATABILITY (how closely it lands on one command again and again: here the encoder noise), which has a data
+sheet value, ISO 9283 RP (``iso9283``). ``PROFILES`` names the arms the studies use, each with its RP.
+
 The controller computes poses with the NOMINAL geometry (``selfview.mocks.puma260.Puma260Geometry()``): that is
 all a real controller knows. The arm itself follows a TRUE geometry whose six link lengths and six joint
 zeros differ from the nominal by ``KinematicErrors.link_mm`` and ``joint_offset_deg`` times a fixed
@@ -22,7 +27,8 @@ from selfview.mocks.puma260 import ArmConfig, Puma260, Puma260Geometry
 from selfview.mocks.val_controller import ValController
 from selfview.errors import ConfigError
 
-__all__ = ["KinematicErrors", "WORN_PUMA", "LINKS", "Station", "PerturbedPuma260", "PerturbedValController"]
+__all__ = ["KinematicErrors", "WORN_PUMA", "WORN_NOISY_PUMA", "RATED_RP_MM", "ArmProfile", "PROFILES", "arm_profile",
+           "iso9283", "LINKS", "Station", "PerturbedPuma260", "PerturbedValController"]
 
 #: The link lengths of ``Puma260Geometry`` that a worn or mis-built arm gets wrong.
 LINKS: tuple[str, ...] = ("shoulder_mm", "upper_arm_mm", "lateral_mm", "elbow_drop_mm", "forearm_mm", "flange_mm")
@@ -57,8 +63,67 @@ class KinematicErrors:
         return {"link_mm": self.link_mm, "joint_offset_deg": self.joint_offset_deg, "encoder_sd_deg": self.encoder_sd_deg}
 
 
-#: A worn PUMA 260: link lengths within 1 mm, joint zeros within 0.2 deg, encoders 0.02 deg.
-WORN_PUMA = KinematicErrors(link_mm=1.0, joint_offset_deg=0.2, encoder_sd_deg=0.02)
+#: The PUMA 260's rated repeatability, +-0.05 mm (Unimation's data sheet): ISO 9283 RP [mm].
+RATED_RP_MM = 0.05
+
+#: A worn PUMA 260 as a lab has it: link lengths within 1 mm and joint zeros within 0.2 deg of the published
+#: kinematics (its absolute accuracy: about 1 mm at the TCP), and a repeatability twice the rated one, RP 0.1 mm.
+#: The encoder noise is derived from that RP: the TCP's scatter is linear in the encoder sd (RP 0.603, 0.301,
+#: 0.0603 mm at 0.02, 0.01, 0.002 deg; 3000 landings on the positioning study's pose over the block, the same for
+#: arms of seeds 1, 2, 3), so RP 0.1 mm needs 0.02 x 0.1 / 0.603 = 0.0033 deg: measured RP 0.0995 mm (3000
+#: landings). ``bench/positioning.py``'s ``arm_repeatability`` measures it again (30 landings, ISO 9283's cycles).
+WORN_PUMA = KinematicErrors(link_mm=1.0, joint_offset_deg=0.2, encoder_sd_deg=0.0033)
+
+#: The same worn geometry with sloppy encoders, 0.02 deg: RP 0.60 mm (3000 landings), twelve times the rated
+#: figure. A sensitivity profile: what an arm that does not repeat does to every calibration.
+WORN_NOISY_PUMA = KinematicErrors(link_mm=1.0, joint_offset_deg=0.2, encoder_sd_deg=0.02)
+
+
+@dataclass(frozen=True)
+class ArmProfile:
+    """A named simulated arm: ``errors`` its kinematic errors; ``rp_mm`` the ISO 9283 repeatability its encoder
+    noise was set from [mm] (None: the noise is a figure of its own, the RP only measured); ``about`` one line."""
+
+    name: str
+    errors: KinematicErrors
+    rp_mm: float | None
+    about: str
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, **self.errors.to_dict(), "stated_rp_mm": self.rp_mm, "about": self.about}
+
+
+#: The arms of the studies, by name (``arm_profile``).
+PROFILES: dict[str, ArmProfile] = {p.name: p for p in (
+    ArmProfile("none", KinematicErrors(), 0.0, "a perfect arm: the published kinematics, exact encoders"),
+    ArmProfile("half-worn", WORN_PUMA.scaled(0.5), RATED_RP_MM,
+               "links within 0.5 mm, joint zeros within 0.1 deg, the rated repeatability"),
+    ArmProfile("worn", WORN_PUMA, 2 * RATED_RP_MM,
+               "a worn PUMA 260: links within 1 mm, joint zeros within 0.2 deg, twice the rated repeatability"),
+    ArmProfile("worn-noisy", WORN_NOISY_PUMA, None,
+               "the worn geometry with 0.02 deg encoder noise (sensitivity: an arm that does not repeat)"),
+)}
+
+
+def arm_profile(name: str) -> ArmProfile:
+    """The arm profile ``name`` of ``PROFILES``; raises ``ConfigError`` naming the known ones otherwise."""
+    if not isinstance(name, str) or name not in PROFILES:
+        raise ConfigError(f"arm profile {name!r}: expected one of {', '.join(PROFILES)}")
+    return PROFILES[name]
+
+
+def iso9283(landings, command) -> dict:
+    """ISO 9283 pose repeatability and accuracy of ``landings`` (n, 3) reached for one ``command`` (3,) [mm]:
+    ``rp_mm`` = mean + 3 sd (n - 1) of the landings' distances from their barycentre; ``ap_mm`` the
+    barycentre's distance from the command; ``rms_mm`` the RMS distance from the barycentre. Raises
+    ``ConfigError`` for fewer than 2 landings or a shape other than (n, 3) and (3,)."""
+    x, c = np.asarray(landings, dtype=float), np.asarray(command, dtype=float)
+    if x.ndim != 2 or x.shape[1] != 3 or len(x) < 2 or c.shape != (3,):
+        raise ConfigError(f"iso9283: expected landings (n >= 2, 3) and a command (3,), got {x.shape} and {c.shape}")
+    bary = x.mean(axis=0)
+    d = np.linalg.norm(x - bary, axis=1)
+    return {"rp_mm": float(d.mean() + 3.0 * d.std(ddof=1)), "ap_mm": float(np.linalg.norm(bary - c)),
+            "rms_mm": float(np.sqrt(np.mean(d ** 2))), "landings": len(x)}
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from selfview.drivers.puma_val_serial import PumaVAL
-from selfview.mocks.kinematic_errors import LINKS, WORN_PUMA, KinematicErrors, PerturbedPuma260, PerturbedValController
+from selfview.mocks.kinematic_errors import (LINKS, PROFILES, RATED_RP_MM, WORN_NOISY_PUMA, WORN_PUMA, KinematicErrors,
+                                             PerturbedPuma260, PerturbedValController, arm_profile, iso9283)
 from selfview.mocks.puma260 import Puma260Geometry, make_tool
 from selfview.mocks.val_controller import TOOL_LENGTH_MM
 from selfview.mocks.world import PLATE_BASE_POSE, SimWorld
@@ -135,3 +136,31 @@ def test_the_val_simulator_reports_nominal_and_moves_the_world_truly(cell, error
         assert world.parked and abs(world.W_H_G[0, 3]) < 5.0
     finally:
         sim.stop()
+
+
+def test_iso_9283_rp_is_the_mean_plus_three_sd_of_the_distances_from_the_barycentre():
+    # distances 1, 1, 3, 3 from the barycentre (0, 0, 0): mean 2, sd (n - 1) sqrt(4 / 3); the command 4 mm away
+    landings = [(1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 3.0, 0.0), (0.0, -3.0, 0.0)]
+    got = iso9283(landings, (0.0, 0.0, 4.0))
+    assert got["rp_mm"] == pytest.approx(2.0 + 3.0 * np.sqrt(4.0 / 3.0))
+    assert got["ap_mm"] == pytest.approx(4.0) and got["rms_mm"] == pytest.approx(np.sqrt(5.0)) and got["landings"] == 4
+    for bad in ([(1.0, 2.0, 3.0)], [(1.0, 2.0), (3.0, 4.0)]):
+        with pytest.raises(ConfigError, match="iso9283"):
+            iso9283(bad, (0.0, 0.0, 0.0))
+
+
+def test_the_worn_arm_has_the_worn_geometry_and_twice_the_rated_repeatability():
+    worn, noisy, half = arm_profile("worn"), arm_profile("worn-noisy"), arm_profile("half-worn")
+    assert worn.errors is WORN_PUMA and noisy.errors is WORN_NOISY_PUMA and worn.rp_mm == 2 * RATED_RP_MM
+    assert (worn.errors.link_mm, worn.errors.joint_offset_deg) == (noisy.errors.link_mm, noisy.errors.joint_offset_deg)
+    assert noisy.errors.encoder_sd_deg == 0.02 and noisy.rp_mm is None  # the sensitivity arm: its RP only measured
+    assert half.errors == WORN_PUMA.scaled(0.5) and half.rp_mm == RATED_RP_MM
+    assert arm_profile("none").errors == KinematicErrors()
+    assert list(PROFILES) == ["none", "half-worn", "worn", "worn-noisy"]
+    assert worn.to_dict()["stated_rp_mm"] == 0.1 and worn.to_dict()["encoder_sd_deg"] == WORN_PUMA.encoder_sd_deg
+
+
+@pytest.mark.parametrize("name", ["tired", "", None, "WORN"])
+def test_an_unknown_arm_profile_is_refused_naming_the_known_ones(name):
+    with pytest.raises(ConfigError, match="none, half-worn, worn, worn-noisy"):
+        arm_profile(name)
