@@ -30,7 +30,7 @@ from selfview.files.cell import Cell
 from selfview.errors import AlarmError, CalibrationError, ConfigError
 from selfview.maths.geometry import H_from_rotvec, check_rigid, inv_H, rotation_angle, rotvec_from_R, transform_points
 from selfview.measurement.objects import ObjectSpec, object_pose
-from selfview.estimation.policy import Monitor
+from selfview.estimation.policy import TRACKER_NOISE_PX, Monitor
 from selfview.procedures.engine import Step
 from selfview.measurement.fingers import SilhouetteTracker
 
@@ -196,7 +196,7 @@ def servo_grasp(rig: GraspRig, cell: Cell, obj: ObjectSpec, C_H_G, camera: Camer
     gap = cell.gripper.gap(s.state)
     cell.gripper.gap(s.grip_state)  # an unknown holding state is named now, not after the descent
     C0 = np.asarray(C_H_G, float)
-    mon = Monitor(C0, camera, p_G6, cell.monitor, update_method=s.method)
+    mon = Monitor(C0, camera, p_G6, cell.monitor, update_method=s.method, noise_px=TRACKER_NOISE_PX, learn_view=True)
     tracker = SilhouetteTracker(camera, cell.gripper, points=range(6))
     O_H_pre = obj.O_H_Gpre
     growth = _Growth()
