@@ -135,10 +135,11 @@ class Policy:
     recalibration), not since the previous frame: a camera that creeps 0.3 degrees per frame is
     recalibrated once the sum passes the update limit.
 
-    ``chi2_limit`` (e.g. ``CHI2_SIGNIFICANT``): a calibration must not follow noise. An update whose motion
+    ``chi2_limit`` (e.g. ``CHI2_SIGNIFICANT``): a calibration must not follow noise. An estimate whose motion
     since the current ``C_H_G`` scores under this chi-square against its own covariance (``significance``;
-    the estimate computed with the measurement's pixel noise as its prior) is within the noise: the decision
-    is still 'update', but ``C_H_G`` is kept. A camera that creeps is followed once the motion summed since
+    the estimate computed with the measurement's pixel noise as its prior) is within the noise, however large
+    its poorly determined part (a turn and a shift that move the fingertips' pixels alike): the decision is
+    'update' and ``C_H_G`` is kept, before the limits are looked at. A camera that creeps is followed once the motion summed since
     the kept ``C_H_G`` becomes significant. None (default): every update within the limit is applied.
     """
 
@@ -209,6 +210,12 @@ class Policy:
                 "the model no longer fits the fingertips",
                 est=est,
             )
+        chi2 = significance(est) if self.chi2_limit is not None else math.nan
+        if chi2 < self.chi2_limit if math.isfinite(chi2) else False:  # first: a large but weak motion is no move
+            kept = (0.0, 0.0) if C_H_G_calibrated is None or unchanged is None else self.change(unchanged, C_H_G_calibrated)
+            return Decision.of("update", f"the motion since the current C_H_G ({est.delta_deg:.3f} deg / {est.d_mm:.3f} mm, "
+                               f"{est.method}) is within the measurement's noise (chi-square {chi2:.1f} under "
+                               f"{self.chi2_limit:g}): C_H_G kept", unchanged, est, n_found, *kept)
         if C_H_G_calibrated is None:
             delta, d = est.delta_deg, est.d_mm
         else:
@@ -220,13 +227,8 @@ class Policy:
             return alarm(f"{where} exceeds the alarm limit {a.angle_deg} deg / {a.shift_mm} mm", delta, d, est)
         u = lim.update_limit
         if action == "update":
-            within = f"{where} within the update limit {u.angle_deg} deg / {u.shift_mm} mm"
-            chi2 = significance(est) if self.chi2_limit is not None else math.nan
-            if chi2 < self.chi2_limit if math.isfinite(chi2) else False:
-                return Decision.of("update", f"{within}; the motion since the current C_H_G ({est.delta_deg:.3f} deg / "
-                                   f"{est.d_mm:.3f} mm) is within the measurement's noise (chi-square {chi2:.1f} under "
-                                   f"{self.chi2_limit:g}): C_H_G kept", unchanged, est, n_found, delta, d)
-            return Decision.of("update", within, est.C_H_G_orth.copy(), est, n_found, delta, d)
+            return Decision.of("update", f"{where} within the update limit {u.angle_deg} deg / {u.shift_mm} mm",
+                               est.C_H_G_orth.copy(), est, n_found, delta, d)
         why = f"{where} exceeds the update limit {u.angle_deg} deg / {u.shift_mm} mm"
         return self._recalibrated(why, delta, d, est, int(n_found), unchanged, recalibration, C_H_G_calibrated, alarm)
 
