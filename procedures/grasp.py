@@ -314,16 +314,7 @@ def servo_grasp(rig: GraspRig, cell: Cell, obj: ObjectSpec, C_H_G, camera: Camer
         growth.check(float(np.linalg.norm(e_t)), e_deg)
         rig.tool_step(delta, s.max_step_mm, s.max_step_deg)
         target.moved(mon.C_H_G, delta)
-    # the last straight descent along the tool z, then the picture at the grasp pose, then hold
-    descent = np.eye(4)
-    descent[2, 3] = obj.approach_mm
-    _table_check(G_H_O_seen, descent, obj, p_G6, "the descent")
-    rig.tool_step(descent, max(obj.approach_mm, 0.001), 0.001)
-    target.moved(mon.C_H_G, descent)
-    if taught_C_H_O is None:
-        _at_grasp(rig, obj, target, C_now, mon.C_H_G, p_G6, s, res)
-    else:
-        res.grasp_note = "a taught goal holds at the stand-off only: the descent is not measured"
+    _descend(rig, obj, target, C_now, mon.C_H_G, G_H_O_seen, p_G6, s, res, taught=taught_C_H_O is not None)
     truth = rig.truth()
     res.true_error_mm, res.true_error_deg = _true_errors(truth, obj, obj.O_H_Gstar)  # the TCP against G*
     res.outcome = rig.outcome()
@@ -332,6 +323,21 @@ def servo_grasp(rig: GraspRig, cell: Cell, obj: ObjectSpec, C_H_G, camera: Camer
     res.C_H_G = np.asarray(C_now).tolist()
     res.reason = "converged" + ("" if res.held is None else ("; held" if res.held else f"; not held: {res.outcome['why']}"))
     return res
+
+
+def _descend(rig: GraspRig, obj: ObjectSpec, target: _TargetWindow, C_H_G, C_H_G_seen, G_H_O_seen, p_G6,
+             s: ServoSettings, res: GraspResult, taught: bool) -> None:
+    """The last straight descent along the tool z (the table kept as ``G_H_O_seen`` places it), then the
+    pictures at the grasp pose (``_at_grasp``; not for a goal taught at the stand-off)."""
+    descent = np.eye(4)
+    descent[2, 3] = obj.approach_mm
+    _table_check(G_H_O_seen, descent, obj, p_G6, "the descent")
+    rig.tool_step(descent, max(obj.approach_mm, 0.001), 0.001)
+    target.moved(C_H_G_seen, descent)
+    if taught:
+        res.grasp_note = "a taught goal holds at the stand-off only: the descent is not measured"
+    else:
+        _at_grasp(rig, obj, target, C_H_G, C_H_G_seen, p_G6, s, res)
 
 
 def _at_grasp(rig: GraspRig, obj: ObjectSpec, target: _TargetWindow, C_H_G, C_H_G_seen, p_G6, s: ServoSettings,
