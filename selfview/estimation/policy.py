@@ -11,7 +11,7 @@ import hashlib
 import logging
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -19,7 +19,7 @@ import numpy as np
 from selfview.maths.camera import CameraModel
 from selfview.files.cell import POINT_NAMES, MonitorLimits
 from selfview.errors import AlarmError, CalibrationError, ConfigError
-from selfview.maths.geometry import check_rigid, inv_H, orthonormalize, rotation_angle
+from selfview.maths.geometry import H_from_rotvec, check_rigid, inv_H, orthonormalize, rotation_angle, rotvec_from_R
 from selfview.estimation.online import MODEL_METHOD, MotionEstimate, estimate, parse_method, select_points
 
 __all__ = ["ACTIONS", "CHI2_SIGNIFICANT", "TRACKER_NOISE_PX", "MODEL_TOLERANCE_PX", "Decision", "Policy", "Monitor",
@@ -37,8 +37,9 @@ ALTERNATION_WINDOW = 6
 #: camera exceeds it once in a thousand frames) and is not applied.
 CHI2_SIGNIFICANT = 22.458
 #: The pixel noise of the silhouette tracker's fingertip corners from frame to frame, the background
-#: changing behind the fingers (the grasping servo on the realistic simulated cell: 0.1-0.3 px per
-#: coordinate between frames of one approach; bench/positioning.py).
+#: changing behind the fingers: the grasping servo on the realistic simulated cell (bench/positioning.py,
+#: two approaches of 9 and 10 frames, the camera still) scatters them by 0.13-0.15 px pooled, 0.29 px on
+#: the worst coordinate; the worst is taken.
 TRACKER_NOISE_PX = 0.3
 #: The fingertips as a measurement sees them against the nominal ``p_G6``: real fingers are made to
 #: ISO 2768-1 m (+-0.2 mm a face, 0.1 mm one sd) and carry an edge break, 0.1 mm at the fingertips'
@@ -300,6 +301,10 @@ class Monitor:
     their tolerance) cancels in the differential instead of moving ``C_H_G``. That first picture is judged
     at ``MODEL_TOLERANCE_PX``, as is every estimate using a point not yet learned: a change beyond it (the
     camera moved since the calibration) is applied as usual and the points learned after.
+    With ``noise_px``, the pictures after a move that was followed (an applied update or recalibration)
+    whose motion is within the noise are fused with it: ``C_H_G`` is the mean pose (rotation vector and
+    translation about the move's) of that picture and those since, so that a move is followed at once and
+    its single-picture noise then averages out. After a calibration ``C_H_G`` stays the calibration's.
     """
 
     def __init__(
@@ -355,6 +360,8 @@ class Monitor:
         self._seen_for: np.ndarray | None = None  # the nominal points the learned view belongs to
         self._seen = self.p_G6.copy()  # the fingertip points as this measurement sees them (learn_view)
         self._learned = np.zeros(len(POINT_NAMES), bool)
+        self._anchor: np.ndarray | None = None  # C_H_G applied at the last followed move (fusion), None: calibrated
+        self._fused: list[np.ndarray] = []
         self._record("calibrated", "initial calibration", self.C_H_G)
 
     @staticmethod
@@ -391,6 +398,7 @@ class Monitor:
         self.C_H_G_calibrated = self.C_H_G.copy()
         self.alarmed = False
         self._learned[:] = False  # a new reference: the next picture
+        self._anchor = None
         self._record("calibrated", reason, self.C_H_G)
 
     def _view_points(self, p_nominal: np.ndarray) -> np.ndarray:
@@ -553,10 +561,12 @@ class Monitor:
                     decision.d_mm)
         current = decision.action == "update"  # C_H_G is where the camera is (as far as this frame tells)
         if decision.action == "update":
+            decision = self._fuse(decision)
             self.C_H_G = decision.C_H_G.copy()
         elif decision.action == "recalibrate" and decision.estimate is not None and decision.method.endswith("R"):
             self.C_H_G = decision.C_H_G.copy()
             self.C_H_G_calibrated = self.C_H_G.copy()
+            self._moved_to(self.C_H_G)
             current = True
         self.alarmed = decision.action == "alarm"
         if current:
@@ -565,6 +575,31 @@ class Monitor:
         if self.alarmed and self.raise_on_alarm:
             raise AlarmError(f"frame {self.frame}: {decision.reason}")
         return decision
+
+    def _moved_to(self, C_H_G) -> None:
+        """A move was followed to ``C_H_G``: the pictures within the noise after it are fused with it."""
+        if self.policy.chi2_limit is not None:
+            self._anchor, self._fused = np.array(C_H_G, float), [np.zeros(6)]
+
+    def _fuse(self, decision: Decision) -> Decision:
+        """An 'update' decision as applied: a followed move starts a fusion (``_moved_to``); a picture within
+        the noise after one gives the mean pose of the pictures since the move (the decision's ``C_H_G`` and
+        reason say so); otherwise the decision as it is."""
+        est = decision.estimate
+        lim = self.policy.chi2_limit
+        if est is None or lim is None or not np.isfinite(est.covariance).all():
+            return decision
+        if not significance(est) < lim:
+            self._moved_to(decision.C_H_G)
+            return decision
+        if self._anchor is None:
+            return decision  # still since the calibration: kept
+        M = orthonormalize(np.asarray(est.C_H_G_orth, float)) @ inv_H(self._anchor)
+        self._fused.append(np.concatenate([rotvec_from_R(M[:3, :3]), M[:3, 3]]))
+        v = np.mean(self._fused, axis=0)
+        C = H_from_rotvec(v[:3], v[3:]) @ self._anchor
+        return replace(decision, C_H_G=C, reason=f"{decision.reason}; fused: the mean of the {len(self._fused)} "
+                       "pictures since the last move")
 
     def _prior(self, method: str, found: np.ndarray) -> dict:
         """The estimator's keyword for the prior pixel noise (``_noise``), none when there is none."""

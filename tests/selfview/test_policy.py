@@ -365,3 +365,23 @@ def test_significance_and_bad_noise(cell, ref):
         Monitor(H0, cam, P, cell.monitor, noise_px=-1.0)
     with pytest.raises(ConfigError, match="chi2_limit"):
         Policy(cell.monitor, chi2_limit=0.0)
+
+
+def test_the_pictures_after_a_followed_move_are_fused_with_it(cell, ref):
+    """After a 0.3 deg turn is followed, the still pictures that follow average its single-picture noise out:
+    over 4 runs the TCP error after 12 more pictures is under half the error right after the move."""
+    from selfview.estimation.policy import TRACKER_NOISE_PX
+
+    H0, P, cam = ref
+    at_move, fused = [], []
+    for seed in range(4):
+        m = Monitor(H0, cam, P, cell.monitor, noise_px=TRACKER_NOISE_PX)
+        rng = np.random.default_rng([33, seed])
+        H1 = turned(H0, 0.3, axis=(0.6, 0.8, 0.0))
+        m.step(*_noisy(H1, P, cam, rng, TRACKER_NOISE_PX))
+        at_move.append(tcp_error(m.C_H_G, H1))
+        for _ in range(12):
+            d = m.step(*_noisy(H1, P, cam, rng, TRACKER_NOISE_PX))
+        fused.append(tcp_error(m.C_H_G, H1))
+        assert "fused: the mean of the" in d.reason and m.records[-1]["C_H_G"] == m.C_H_G.tolist()
+    assert np.mean(fused) < 0.5 * np.mean(at_move), (fused, at_move)
