@@ -29,8 +29,8 @@ from selfview.maths.camera import CameraModel
 from selfview.files.cell import Cell
 from selfview.errors import AlarmError, CalibrationError, ConfigError
 from selfview.maths.geometry import H_from_rotvec, check_rigid, inv_H, rotation_angle, rotvec_from_R, transform_points
-from selfview.measurement.objects import ObjectSpec, object_pose
-from selfview.estimation.policy import Monitor
+from selfview.measurement.objects import ObjectSpec, TargetDetection, detect_target, object_pose
+from selfview.estimation.policy import TRACKER_NOISE_PX, Monitor
 from selfview.procedures.engine import Step
 from selfview.measurement.fingers import SilhouetteTracker
 
@@ -41,6 +41,14 @@ __all__ = ["ServoSettings", "GraspRig", "EngineRig", "GraspFailed", "GraspResult
 TABLE_MARGIN_MM = 2.0
 #: Iterations in a row in which the measured error grew before the loop gives up.
 GROWING_ITERATIONS = 3
+#: Pictures taken at the grasp pose after the descent (the target in view, the fingertips hidden by the block):
+#: each measures the TCP against G* and corrects by a bounded step; the last one only measures.
+GRASP_PICTURES = 3
+#: A correction at the grasp pose larger than this (mm, deg) is refused: the fingers straddle the block there.
+GRASP_CORRECTION_MM, GRASP_CORRECTION_DEG = 3.0, 2.0
+#: The target is searched for in a window around where the last pose and the step since put it: this much of
+#: the target's projected size around it, and ``WINDOW_MARGIN_PX`` more.
+WINDOW_MARGIN, WINDOW_MARGIN_PX = 0.25, 16
 
 
 class GraspFailed(CalibrationError):
@@ -94,7 +102,11 @@ class GraspRig(Protocol):
 class GraspResult:
     """The run's figures (plain types, JSON-ready). ``iterations`` records, one per frame: measured error
     ``error_mm`` [x, y, z] (the stand-off goal in the gripper frame) and ``error_deg``, in simulation the
-    ``true_error_mm``/``true_error_deg``, ``processing_ms`` (picture to command), what the fingertips said."""
+    ``true_error_mm``/``true_error_deg``, ``processing_ms`` (picture to command, wall clock) and ``cpu_ms`` (the
+    same, this process's CPU time: what it costs without the machine's other load), what the fingertips said.
+    ``at_grasp`` the same records of the pictures taken after the descent (the error against G*, C_H_G the
+    servo's last: the block hides the fingertips there), ``grasp_error_mm``/``grasp_error_deg`` the last
+    one's measured error (None when the target was not measured there: ``grasp_note`` says why)."""
 
     converged: bool = False
     held: bool | None = None
@@ -104,17 +116,76 @@ class GraspResult:
     true_error_deg: float | None = None
     outcome: dict | None = None
     C_H_G: list | None = None
+    at_grasp: list = field(default_factory=list)
+    grasp_error_mm: list | None = None
+    grasp_error_deg: float | None = None
+    grasp_note: str = ""
 
     def to_dict(self) -> dict:
         return {"converged": self.converged, "held": self.held, "iterations": len(self.iterations),
                 "reason": self.reason, "true_error_mm": self.true_error_mm, "true_error_deg": self.true_error_deg,
-                "outcome": self.outcome, "C_H_G": self.C_H_G, "records": self.iterations}
+                "grasp_error_mm": self.grasp_error_mm, "grasp_error_deg": self.grasp_error_deg,
+                "grasp_note": self.grasp_note, "outcome": self.outcome, "C_H_G": self.C_H_G,
+                "records": self.iterations, "at_grasp": self.at_grasp}
 
 
 def pose_error(A_H_B) -> tuple[np.ndarray, float]:
     """(translation (3,) [mm], rotation angle [deg]) of a transform."""
     H = np.asarray(A_H_B, float)
     return H[:3, 3].copy(), float(np.degrees(rotation_angle(H[:3, :3])))
+
+
+class _TargetWindow:
+    """The object's pose frame after frame (``object_pose``), its target searched for first in the part of the
+    picture where the last pose, moved by the tool step since (the camera rides on the gripper), puts it: the
+    ChArUco detection, most of an iteration's time, scales with the pixels it scans. The first picture, and any
+    whose window does not show the target, is searched whole (a second target anywhere is refused there)."""
+
+    def __init__(self, camera: CameraModel, obj: ObjectSpec):
+        self.camera, self.obj = camera, obj
+        w, h = obj.target.size
+        self.outline = np.array([[-w / 2, -h / 2, 0], [w / 2, -h / 2, 0], [w / 2, h / 2, 0], [-w / 2, h / 2, 0]], float)
+        self.C_H_O: np.ndarray | None = None
+        self.windowed = 0
+
+    def moved(self, C_H_G, delta) -> None:
+        """The tool moved by ``delta`` (4, 4, in G): where the object now is in the camera, as ``C_H_G`` says."""
+        if self.C_H_O is not None:
+            C = np.asarray(C_H_G, float)
+            self.C_H_O = C @ inv_H(delta) @ inv_H(C) @ self.C_H_O
+
+    def _window(self, shape) -> tuple[int, int, int, int] | None:
+        if self.C_H_O is None:
+            return None
+        p = transform_points(self.C_H_O, self.outline)
+        if not np.all(p[:, 2] > 1.0):
+            return None
+        uv = self.camera.project(p)
+        if not np.isfinite(uv).all():
+            return None
+        lo, hi = uv.min(axis=0), uv.max(axis=0)
+        m = WINDOW_MARGIN * (hi - lo) + WINDOW_MARGIN_PX
+        x0, y0 = np.maximum(np.floor(lo - m), 0).astype(int)
+        x1, y1 = np.minimum(np.ceil(hi + m), (shape[1], shape[0])).astype(int)
+        return (x0, y0, x1, y1) if x1 - x0 > 16 and y1 - y0 > 16 else None
+
+    def pose(self, img: np.ndarray):
+        """The object's ``ObjectPose`` in ``img``; raises as ``object_pose`` does."""
+        box = self._window(np.shape(img))
+        pose = None
+        if box is not None:
+            x0, y0, x1, y1 = box
+            try:
+                det = detect_target(np.asarray(img)[y0:y1, x0:x1], self.obj.target)
+                pose = object_pose(img, self.camera, self.obj, TargetDetection(det.uv + (x0, y0), det.p_O, det.ids,
+                                                                               det.markers))
+                self.windowed += 1
+            except CalibrationError:
+                pose = None  # not (wholly) in the window: the whole picture
+        if pose is None:
+            pose = object_pose(img, self.camera, self.obj)
+        self.C_H_O = pose.C_H_O
+        return pose
 
 
 def _true_errors(truth: dict | None, obj: ObjectSpec, O_H_goal) -> tuple[list | None, float | None]:
@@ -196,8 +267,9 @@ def servo_grasp(rig: GraspRig, cell: Cell, obj: ObjectSpec, C_H_G, camera: Camer
     gap = cell.gripper.gap(s.state)
     cell.gripper.gap(s.grip_state)  # an unknown holding state is named now, not after the descent
     C0 = np.asarray(C_H_G, float)
-    mon = Monitor(C0, camera, p_G6, cell.monitor, update_method=s.method)
+    mon = Monitor(C0, camera, p_G6, cell.monitor, update_method=s.method, noise_px=TRACKER_NOISE_PX, learn_view=True)
     tracker = SilhouetteTracker(camera, cell.gripper, points=range(6))
+    target = _TargetWindow(camera, obj)
     O_H_pre = obj.O_H_Gpre
     growth = _Growth()
     rig.jaws(s.state)
@@ -205,14 +277,14 @@ def servo_grasp(rig: GraspRig, cell: Cell, obj: ObjectSpec, C_H_G, camera: Camer
         if before_frame is not None:
             before_frame(k)
         img = rig.grab()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         ft = tracker.find(img, mon.C_H_G, gap)
         d = mon.step(ft.uv, ft.found, lost=ft.lost)
         if d.action == "alarm":
             raise AlarmError(f"iteration {k + 1}: {d.reason}")
         C_now = mon.C_H_G if s.online else C0
         try:
-            pose = object_pose(img, camera, obj)
+            pose = target.pose(img)
         except CalibrationError as exc:
             raise GraspFailed(f"iteration {k + 1}: the object's target: {exc}") from None
         if taught_C_H_O is not None:
@@ -226,10 +298,10 @@ def servo_grasp(rig: GraspRig, cell: Cell, obj: ObjectSpec, C_H_G, camera: Camer
         delta = None if done else _step_towards(G_H_pre, s)
         if delta is not None:
             _table_check(G_H_O_seen, delta, obj, p_G6, f"iteration {k + 1}'s step")
-        ms = (time.perf_counter() - t0) * 1e3
+        ms, cpu = (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
         true_t, true_deg = _true_errors(rig.truth(), obj, O_H_pre)
         rec = {"iteration": k + 1, "error_mm": [float(v) for v in e_t], "error_deg": e_deg,
-               "true_error_mm": true_t, "true_error_deg": true_deg, "processing_ms": ms,
+               "true_error_mm": true_t, "true_error_deg": true_deg, "processing_ms": ms, "cpu_ms": cpu,
                "fingertips": d.action, "target_rms_px": pose.rms_px, "target_sigma_mm": [float(v) for v in pose.sigma_mm]}
         res.iterations.append(rec)
         if on_iteration is not None:
@@ -242,11 +314,8 @@ def servo_grasp(rig: GraspRig, cell: Cell, obj: ObjectSpec, C_H_G, camera: Camer
                               f"and {e_deg:.3f} deg from the stand-off (stops at {s.stop_mm:g} mm, {s.stop_deg:g} deg)")
         growth.check(float(np.linalg.norm(e_t)), e_deg)
         rig.tool_step(delta, s.max_step_mm, s.max_step_deg)
-    # the last straight descent along the tool z, then hold
-    descent = np.eye(4)
-    descent[2, 3] = obj.approach_mm
-    _table_check(G_H_O_seen, descent, obj, p_G6, "the descent")
-    rig.tool_step(descent, max(obj.approach_mm, 0.001), 0.001)
+        target.moved(mon.C_H_G, delta)
+    _descend(rig, obj, target, C_now, mon.C_H_G, G_H_O_seen, p_G6, s, res, taught=taught_C_H_O is not None)
     truth = rig.truth()
     res.true_error_mm, res.true_error_deg = _true_errors(truth, obj, obj.O_H_Gstar)  # the TCP against G*
     res.outcome = rig.outcome()
@@ -255,6 +324,59 @@ def servo_grasp(rig: GraspRig, cell: Cell, obj: ObjectSpec, C_H_G, camera: Camer
     res.C_H_G = np.asarray(C_now).tolist()
     res.reason = "converged" + ("" if res.held is None else ("; held" if res.held else f"; not held: {res.outcome['why']}"))
     return res
+
+
+def _descend(rig: GraspRig, obj: ObjectSpec, target: _TargetWindow, C_H_G, C_H_G_seen, G_H_O_seen, p_G6,
+             s: ServoSettings, res: GraspResult, taught: bool) -> None:
+    """The last straight descent along the tool z (the table kept as ``G_H_O_seen`` places it), then the
+    pictures at the grasp pose (``_at_grasp``; not for a goal taught at the stand-off)."""
+    descent = np.eye(4)
+    descent[2, 3] = obj.approach_mm
+    _table_check(G_H_O_seen, descent, obj, p_G6, "the descent")
+    rig.tool_step(descent, max(obj.approach_mm, 0.001), 0.001)
+    target.moved(C_H_G_seen, descent)
+    if taught:
+        res.grasp_note = "a taught goal holds at the stand-off only: the descent is not measured"
+    else:
+        _at_grasp(rig, obj, target, C_H_G, C_H_G_seen, p_G6, s, res)
+
+
+def _at_grasp(rig: GraspRig, obj: ObjectSpec, target: _TargetWindow, C_H_G, C_H_G_seen, p_G6, s: ServoSettings,
+              res: GraspResult) -> None:
+    """After the descent: up to ``GRASP_PICTURES`` pictures of the target at the grasp pose, each measuring the TCP
+    against G* through ``C_H_G`` (the servo's last: the block hides the fingertips) and, while beyond the stop
+    thresholds, correcting by a bounded step (the servo's gain and caps, at most ``GRASP_CORRECTION_MM`` /
+    ``_DEG``, the table kept as ``C_H_G_seen`` places it). A target not measured there leaves the grasp as the
+    descent put it (``res.grasp_note``); a larger error raises ``GraspFailed`` before anything moves."""
+    for k in range(GRASP_PICTURES):
+        img = rig.grab()
+        t0, c0 = time.perf_counter(), time.process_time()
+        try:
+            pose = target.pose(img)
+        except CalibrationError as exc:
+            res.grasp_note = f"the target at the grasp pose: {exc}; the descent is not corrected"
+            return
+        G_H_star = inv_H(C_H_G) @ pose.C_H_O @ obj.O_H_Gstar
+        e_t, e_deg = pose_error(G_H_star)
+        n = float(np.linalg.norm(e_t))
+        done = (n < s.stop_mm and e_deg < s.stop_deg) or k == GRASP_PICTURES - 1
+        if n > GRASP_CORRECTION_MM or e_deg > GRASP_CORRECTION_DEG:
+            raise GraspFailed(f"the picture at the grasp pose puts the gripper {n:.2f} mm and {e_deg:.2f} deg from the "
+                              f"grasp frame, beyond the {GRASP_CORRECTION_MM:g} mm / {GRASP_CORRECTION_DEG:g} deg a "
+                              "correction around the block may take: stopped")
+        delta = None if done else _step_towards(G_H_star, s)
+        if delta is not None:
+            _table_check(inv_H(C_H_G_seen) @ pose.C_H_O, delta, obj, p_G6, f"the correction at the grasp pose {k + 1}")
+        ms, cpu = (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
+        true_t, true_deg = _true_errors(rig.truth(), obj, obj.O_H_Gstar)
+        res.at_grasp.append({"picture": k + 1, "error_mm": [float(v) for v in e_t], "error_deg": e_deg,
+                             "true_error_mm": true_t, "true_error_deg": true_deg, "processing_ms": ms, "cpu_ms": cpu,
+                             "target_rms_px": pose.rms_px, "target_sigma_mm": [float(v) for v in pose.sigma_mm]})
+        res.grasp_error_mm, res.grasp_error_deg = [float(v) for v in e_t], e_deg
+        if done:
+            return
+        rig.tool_step(delta, s.max_step_mm, s.max_step_deg)
+        target.moved(C_H_G_seen, delta)
 
 
 class EngineRig:

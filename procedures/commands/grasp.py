@@ -20,12 +20,13 @@ def register(sub):
             "C_H_G kept current by the on-line update (--offline: the calibration's, the fingertips watched "
             "for the alarm). The error to the stand-off goal (the object file's grasp frame backed off along "
             "its z) drives a capped straight motion of the tool; below 0.1 mm and 0.1 deg (the servo's stop_mm and "
-            "stop_deg) a straight descent and the jaws close. Fails (exit 5) when not converged after --max-iterations, when the "
+            "stop_deg) a straight descent, pictures at the grasp pose measuring and correcting it (the target in view, "
+            "the fingertips hidden by the block), and the jaws close. Fails (exit 5) when not converged after --max-iterations, when the "
             "target or the fingertips leave the picture, the error grows or a step would bring the fingertips "
             "to the table; exit 6 when the fingertips say the calibration is off beyond the alarm limit. The "
             "robot is stopped and the valve left safe on any failure or signal. --json: converged, held, "
             "iterations, true_error_mm (the grasp frame in the gripper frame, simulation) and each iteration's "
-            "measured and true error."
+            "measured and true error; grasp_error_mm and at_grasp: what the pictures at the grasp pose measured."
         ),
     )
     add_session_arguments(p)
@@ -136,6 +137,12 @@ def _report(args, res, view) -> None:
         print_json(out)
         return
     print(f"{'converged' if res.converged else 'NOT converged'} after {out['iterations']} iteration(s): {res.reason}")
+    if res.grasp_error_mm is not None:
+        g = res.grasp_error_mm
+        print(f"  measured at the grasp pose ({len(res.at_grasp)} picture(s)): x {g[0]:+.3f}  y {g[1]:+.3f}  z {g[2]:+.3f} mm, "
+              f"{res.grasp_error_deg:.3f} deg")
+    elif res.grasp_note:
+        print(f"  {res.grasp_note}")
     if res.true_error_mm is not None:
         t = res.true_error_mm
         print(f"  true TCP to grasp frame: x {t[0]:+.3f}  y {t[1]:+.3f}  z {t[2]:+.3f} mm, {res.true_error_deg:.3f} deg")

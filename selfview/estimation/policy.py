@@ -11,7 +11,7 @@ import hashlib
 import logging
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -19,10 +19,11 @@ import numpy as np
 from selfview.maths.camera import CameraModel
 from selfview.files.cell import POINT_NAMES, MonitorLimits
 from selfview.errors import AlarmError, CalibrationError, ConfigError
-from selfview.maths.geometry import check_rigid, inv_H, orthonormalize, rotation_angle
+from selfview.maths.geometry import H_from_rotvec, check_rigid, inv_H, orthonormalize, rotation_angle, rotvec_from_R
 from selfview.estimation.online import MODEL_METHOD, MotionEstimate, estimate, parse_method, select_points
 
-__all__ = ["ACTIONS", "Decision", "Policy", "Monitor"]
+__all__ = ["ACTIONS", "CHI2_SIGNIFICANT", "TRACKER_NOISE_PX", "MODEL_TOLERANCE_PX", "Decision", "Policy", "Monitor",
+           "significance"]
 
 ACTIONS: tuple[str, ...] = ("update", "recalibrate", "alarm", "missed")
 
@@ -31,6 +32,20 @@ BLANK_CONTRAST_GREY = 8.0
 #: Measured poses this many frames in a row, each beyond the update limit from the one before and within it
 #: of the one before that, alternate between two values: the alarm.
 ALTERNATION_WINDOW = 6
+#: Upper 0.1 % point of the chi-square distribution with 6 degrees of freedom: a differential update whose
+#: motion (delta, d) scores under it against its covariance is within the measurement's noise (a still
+#: camera exceeds it once in a thousand frames) and is not applied.
+CHI2_SIGNIFICANT = 22.458
+#: The pixel noise of the silhouette tracker's fingertip corners from frame to frame, the background
+#: changing behind the fingers: the grasping servo on the realistic simulated cell (bench/positioning.py,
+#: two approaches of 9 and 10 frames, the camera still) scatters them by 0.13-0.15 px pooled, 0.29 px on
+#: the worst coordinate; the worst is taken.
+TRACKER_NOISE_PX = 0.3
+#: The fingertips as a measurement sees them against the nominal ``p_G6``: real fingers are made to
+#: ISO 2768-1 m (+-0.2 mm a face, 0.1 mm one sd) and carry an edge break, 0.1 mm at the fingertips'
+#: 110 mm is 0.9 px; a measurement other than the calibration's (the silhouette fit, not the corner search)
+#: sees them up to about a pixel apart. The first picture after a calibration is compared at this noise.
+MODEL_TOLERANCE_PX = 1.0
 
 _LOG = logging.getLogger("selfview.estimation.policy")
 _LEVEL = {"update": logging.INFO, "recalibrate": logging.WARNING, "alarm": logging.ERROR, "calibrated": logging.INFO,
@@ -86,8 +101,23 @@ class Decision:
             "n_found": int(self.n_found),
             "points_used": list(self.points_used),
             "condition": num(self.estimate.condition) if self.estimate is not None else None,
+            "chi2": num(significance(self.estimate)) if self.estimate is not None else None,
             "C_H_G": None if self.C_H_G is None else np.asarray(self.C_H_G).tolist(),
         }
+
+
+def significance(est: MotionEstimate) -> float:
+    """The chi-square ``m^T C^-1 m`` of an estimate's motion ``m`` (6,) against its covariance ``C`` (6, 6):
+    how many sigmas (squared, summed over the six) the measured camera motion is from none. NaN when the
+    covariance is unknown (the model's 'E', or NP-U from 3 points without a prior pixel noise)."""
+    C = np.asarray(est.covariance, float)
+    m = np.asarray(est.motion, float)
+    if C.shape != (6, 6) or m.shape != (6,) or not (np.isfinite(C).all() and np.isfinite(m).all()):
+        return math.nan
+    try:
+        return float(m @ np.linalg.solve(C, m))
+    except np.linalg.LinAlgError:
+        return math.nan
 
 
 class Policy:
@@ -105,12 +135,23 @@ class Policy:
     the camera's motion; d is not the TCP's shift) since the LAST CALIBRATION (off-line, or the last
     recalibration), not since the previous frame: a camera that creeps 0.3 degrees per frame is
     recalibrated once the sum passes the update limit.
+
+    ``chi2_limit`` (e.g. ``CHI2_SIGNIFICANT``): a calibration must not follow noise. An estimate whose motion
+    since the current ``C_H_G`` scores under this chi-square against its own covariance (``significance``;
+    the estimate computed with the measurement's pixel noise as its prior) is within the noise, however large
+    its poorly determined part (a turn and a shift that move the fingertips' pixels alike): the decision is
+    'update' and ``C_H_G`` is kept, before the limits are looked at. A camera that creeps is followed once the motion summed since
+    the kept ``C_H_G`` becomes significant. None (default): every update within the limit is applied.
     """
 
-    def __init__(self, limits: MonitorLimits):
+    def __init__(self, limits: MonitorLimits, *, chi2_limit: float | None = None):
         if not isinstance(limits, MonitorLimits):
             raise ConfigError(f"policy limits: expected selfview.files.cell.MonitorLimits, got {type(limits).__name__}")
+        if chi2_limit is not None and not (isinstance(chi2_limit, (int, float)) and math.isfinite(chi2_limit)
+                                           and chi2_limit > 0.0):
+            raise ConfigError(f"policy chi2_limit: expected a positive chi-square or None, got {chi2_limit!r}")
         self.limits = limits
+        self.chi2_limit = None if chi2_limit is None else float(chi2_limit)
 
     @staticmethod
     def change(C_H_G_new, C_H_G_ref) -> tuple[float, float]:
@@ -170,6 +211,12 @@ class Policy:
                 "the model no longer fits the fingertips",
                 est=est,
             )
+        chi2 = significance(est) if self.chi2_limit is not None else math.nan
+        if chi2 < self.chi2_limit if math.isfinite(chi2) else False:  # first: a large but weak motion is no move
+            kept = (0.0, 0.0) if C_H_G_calibrated is None or unchanged is None else self.change(unchanged, C_H_G_calibrated)
+            return Decision.of("update", f"the motion since the current C_H_G ({est.delta_deg:.3f} deg / {est.d_mm:.3f} mm, "
+                               f"{est.method}) is within the measurement's noise (chi-square {chi2:.1f} under "
+                               f"{self.chi2_limit:g}): C_H_G kept", unchanged, est, n_found, *kept)
         if C_H_G_calibrated is None:
             delta, d = est.delta_deg, est.d_mm
         else:
@@ -242,6 +289,22 @@ class Monitor:
     repeats: the grabber is stuck) or blank (``Monitor.frame_problem``) is a missed frame too; poses that
     alternate between two values over ``ALTERNATION_WINDOW`` frames (a loose mount, or two cameras on one
     input) raise the alarm.
+
+    ``noise_px`` (e.g. ``TRACKER_NOISE_PX``): the measurement's pixel noise between frames; given, every
+    estimate's covariance is computed with it and an update whose motion is not significant
+    (``CHI2_SIGNIFICANT``) keeps ``C_H_G`` (``Policy``'s ``chi2_limit``, when ``limits`` are not already a
+    ``Policy``). ``learn_view``: compare like with like. The first picture measured after each calibration
+    is its reference: each found point back-projected onto the fingertips' plane through the calibrated
+    ``C_H_G`` replaces its nominal ``p_G6`` row in every estimate that follows (and a point first found later,
+    through the ``C_H_G`` of that frame), so that what a measurement other than the calibration's sees
+    differently of the real fingers (the silhouette fit against the corner search, fingers made within
+    their tolerance) cancels in the differential instead of moving ``C_H_G``. That first picture is judged
+    at ``MODEL_TOLERANCE_PX``, as is every estimate using a point not yet learned: a change beyond it (the
+    camera moved since the calibration) is applied as usual and the points learned after.
+    With ``noise_px``, the pictures after a move that was followed (an applied update or recalibration)
+    whose motion is within the noise are fused with it: ``C_H_G`` is the mean pose (rotation vector and
+    translation about the move's) of that picture and those since, so that a move is followed at once and
+    its single-picture noise then averages out. After a calibration ``C_H_G`` stays the calibration's.
     """
 
     def __init__(
@@ -256,8 +319,17 @@ class Monitor:
         raise_on_alarm: bool = False,
         logger: logging.Logger | None = None,
         max_missed_frames: int | None = None,
+        noise_px: float | None = None,
+        learn_view: bool = False,
     ):
-        self.policy = limits if isinstance(limits, Policy) else Policy(limits)
+        if noise_px is not None and not (isinstance(noise_px, (int, float)) and math.isfinite(noise_px) and noise_px > 0):
+            raise ConfigError(f"noise_px: expected a positive pixel noise or None, got {noise_px!r}")
+        self.noise_px = None if noise_px is None else float(noise_px)
+        self.learn_view = bool(learn_view)
+        if isinstance(limits, Policy):
+            self.policy = limits
+        else:
+            self.policy = Policy(limits, chi2_limit=CHI2_SIGNIFICANT if self.noise_px is not None else None)
         n_miss = getattr(self.policy.limits, "max_missed_frames", 3) if max_missed_frames is None else max_missed_frames
         if isinstance(n_miss, bool) or not isinstance(n_miss, (int, np.integer)) or n_miss < 1:
             raise ConfigError(f"max_missed_frames: expected a positive whole number of frames, got {n_miss!r}")
@@ -285,6 +357,11 @@ class Monitor:
         self.C_H_G_calibrated = self.C_H_G.copy()
         self._last_picture: bytes | None = None
         self._poses: deque = deque(maxlen=ALTERNATION_WINDOW)
+        self._seen_for: np.ndarray | None = None  # the nominal points the learned view belongs to
+        self._seen = self.p_G6.copy()  # the fingertip points as this measurement sees them (learn_view)
+        self._learned = np.zeros(len(POINT_NAMES), bool)
+        self._anchor: np.ndarray | None = None  # C_H_G applied at the last followed move (fusion), None: calibrated
+        self._fused: list[np.ndarray] = []
         self._record("calibrated", "initial calibration", self.C_H_G)
 
     @staticmethod
@@ -320,7 +397,42 @@ class Monitor:
         self.C_H_G = check_rigid(C_H_G, "C_H_G")
         self.C_H_G_calibrated = self.C_H_G.copy()
         self.alarmed = False
+        self._learned[:] = False  # a new reference: the next picture
+        self._anchor = None
         self._record("calibrated", reason, self.C_H_G)
+
+    def _view_points(self, p_nominal: np.ndarray) -> np.ndarray:
+        """The points the estimates use: ``p_nominal`` (6, 3), or with ``learn_view`` its learned rows."""
+        if not self.learn_view:
+            return p_nominal
+        if self._seen_for is None or not np.array_equal(self._seen_for, p_nominal):  # new points (jaw state)
+            self._seen_for, self._seen, self._learned = p_nominal.copy(), p_nominal.copy(), np.zeros(len(p_nominal), bool)
+        return self._seen
+
+    def _learn(self, uv: np.ndarray, found: np.ndarray) -> None:
+        """``learn_view``: the found points not yet learned, back-projected onto their plane in G (z of the
+        nominal points) through the current ``C_H_G``."""
+        new = found & ~self._learned
+        if not self.learn_view or not new.any():
+            return
+        try:
+            p, _ = self.camera.backproject_to_plane(uv[new], self.C_H_G, self._seen_for[new, 2])
+        except CalibrationError:  # seen edge-on: keep the nominal points
+            return
+        self._seen[new], self._learned[new] = p, True
+
+    def _noise(self, method: str, found: np.ndarray) -> float | None:
+        """The prior pixel noise of an estimate by ``method`` on the ``found`` points: ``noise_px``, or at
+        least ``MODEL_TOLERANCE_PX`` while one of its points is nominal, not yet learned (``learn_view``)."""
+        if not self.learn_view or method == MODEL_METHOD:
+            return self.noise_px
+        try:
+            idx = select_points(method, found)
+        except CalibrationError:
+            return self.noise_px
+        if self._learned[idx].all():
+            return self.noise_px
+        return max(MODEL_TOLERANCE_PX, self.noise_px or 0.0)
 
     def _update_method(self, found: np.ndarray) -> str:
         if self.update_method == MODEL_METHOD:
@@ -401,7 +513,7 @@ class Monitor:
         ``model_C_H_G`` (4, 4) and ``model_rms_px``: the model-based measurement's pose and residual
         (``FingertipResult.C_H_G``, ``quality['rms_px']``), the update when ``update_method`` is 'E'."""
         self.frame += 1
-        p = self.p_G6 if p_G6 is None else self._points(p_G6)
+        p = self._view_points(self.p_G6 if p_G6 is None else self._points(p_G6))
         uv = np.asarray(uv6, dtype=float)
         if uv.shape != (len(POINT_NAMES), 2):
             raise ValueError(f"uv6: expected shape ({len(POINT_NAMES)}, 2), got {uv.shape}")
@@ -417,16 +529,18 @@ class Monitor:
                                 n_found)
         self.missed_in_a_row = 0
         est_U, err = None, None
+        method = self._update_method(found)
         if n_found >= 3:
             try:
-                est_U = estimate(self._update_method(found), self.C_H_G, p, uv, found, self.camera,
-                                 model_C_H_G=model_C_H_G, model_rms_px=model_rms_px)
+                est_U = estimate(method, self.C_H_G, p, uv, found, self.camera, model_C_H_G=model_C_H_G,
+                                 model_rms_px=model_rms_px, **self._prior(method, found))
             except (CalibrationError, ConfigError) as exc:  # E without the model's pose: no estimate
                 err = str(exc)
         C_H_G = self.C_H_G
 
         def recalibration():
-            return estimate(self._recalibration_method(found), C_H_G, p, uv, found, self.camera)
+            m = self._recalibration_method(found)
+            return estimate(m, C_H_G, p, uv, found, self.camera, **self._prior(m, found))
 
         decision = self.policy.decide(
             est_U,
@@ -445,13 +559,49 @@ class Monitor:
                     f"values over the last {n} frames (each beyond the update limit from the one before, within it "
                     "of the one before that)", self.C_H_G.copy(), decision.estimate, n_found, decision.delta_deg,
                     decision.d_mm)
+        current = decision.action == "update"  # C_H_G is where the camera is (as far as this frame tells)
         if decision.action == "update":
+            decision = self._fuse(decision)
             self.C_H_G = decision.C_H_G.copy()
         elif decision.action == "recalibrate" and decision.estimate is not None and decision.method.endswith("R"):
             self.C_H_G = decision.C_H_G.copy()
             self.C_H_G_calibrated = self.C_H_G.copy()
+            self._moved_to(self.C_H_G)
+            current = True
         self.alarmed = decision.action == "alarm"
+        if current:
+            self._learn(uv, found)
         self._record(decision.action, decision.reason, decision.C_H_G, decision)
         if self.alarmed and self.raise_on_alarm:
             raise AlarmError(f"frame {self.frame}: {decision.reason}")
         return decision
+
+    def _moved_to(self, C_H_G) -> None:
+        """A move was followed to ``C_H_G``: the pictures within the noise after it are fused with it."""
+        if self.policy.chi2_limit is not None:
+            self._anchor, self._fused = np.array(C_H_G, float), [np.zeros(6)]
+
+    def _fuse(self, decision: Decision) -> Decision:
+        """An 'update' decision as applied: a followed move starts a fusion (``_moved_to``); a picture within
+        the noise after one gives the mean pose of the pictures since the move (the decision's ``C_H_G`` and
+        reason say so); otherwise the decision as it is."""
+        est = decision.estimate
+        lim = self.policy.chi2_limit
+        if est is None or lim is None or not np.isfinite(est.covariance).all():
+            return decision
+        if not significance(est) < lim:
+            self._moved_to(decision.C_H_G)
+            return decision
+        if self._anchor is None:
+            return decision  # still since the calibration: kept
+        M = orthonormalize(np.asarray(est.C_H_G_orth, float)) @ inv_H(self._anchor)
+        self._fused.append(np.concatenate([rotvec_from_R(M[:3, :3]), M[:3, 3]]))
+        v = np.mean(self._fused, axis=0)
+        C = H_from_rotvec(v[:3], v[3:]) @ self._anchor
+        return replace(decision, C_H_G=C, reason=f"{decision.reason}; fused: the mean of the {len(self._fused)} "
+                       "pictures since the last move")
+
+    def _prior(self, method: str, found: np.ndarray) -> dict:
+        """The estimator's keyword for the prior pixel noise (``_noise``), none when there is none."""
+        sigma = self._noise(method, found)
+        return {} if sigma is None or method == MODEL_METHOD else {"prior_sigma_px": sigma}

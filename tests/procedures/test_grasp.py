@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from selfview.errors import AlarmError, ConfigError, LimitError
-from selfview.maths.geometry import inv_H, trans, transform_points
+from selfview.maths.geometry import inv_H, rot_z, trans, transform_points
 from selfview.mocks.objects import draw_start, grasp_outcome, place_object
 from selfview.mocks.render import render
 from selfview.mocks.world import SimWorld
@@ -85,6 +85,51 @@ def test_the_servo_converges_and_the_block_is_held(scene):
     # each step within its cap
     for d in arm.steps[:-1]:
         assert np.linalg.norm(d[:3, 3]) <= ServoSettings().max_step_mm
+
+
+class SlippingArm(PerfectArm):
+    """The descent (and only it) lands ``slip`` (x, y, z mm, tool frame) off, as a worn arm's 30 mm move may."""
+
+    def __init__(self, world, slip):
+        super().__init__(world)
+        self.slip = np.asarray(slip, float)
+
+    def tool_step(self, delta, max_mm, max_deg):
+        if max_deg == 0.001:  # the descent: a pure translation along z
+            delta = delta @ trans(*self.slip)
+        super().tool_step(delta, max_mm, max_deg)
+
+
+@pytest.fixture
+def near(cell):
+    """The gripper 1 mm and 0.5 deg from the stand-off goal: a servo of two or three frames, then the descent."""
+    world = SimWorld(cell, seed=3)
+    obj = load_object()
+    place_object(world, obj, seed=3)
+    world.set_tcp(world.object.base_H_O @ obj.O_H_Gpre @ trans(0.6, -0.8, 0.0) @ rot_z(np.radians(0.5)))
+    return world, obj
+
+
+def test_the_picture_at_the_grasp_pose_measures_and_corrects_the_descent(near):
+    world, obj = near
+    arm = SlippingArm(world, (0.6, -0.5, 0.3))
+    res = _servo(world, obj, arm)
+    assert res.converged and res.held, res.reason
+    first, last = res.at_grasp[0], res.at_grasp[-1]
+    assert 2 <= len(res.at_grasp) <= 3
+    assert np.linalg.norm(first["true_error_mm"]) > 0.7  # the slip, seen at the grasp pose ...
+    assert np.linalg.norm(np.subtract(first["error_mm"], first["true_error_mm"])) < 0.1  # ... as it is
+    assert np.linalg.norm(res.true_error_mm) < 0.15 and res.grasp_error_mm == last["error_mm"]
+    assert np.linalg.norm(last["error_mm"]) < 0.15
+    assert all(np.linalg.norm(d[:3, 3]) < 1.0 for d in arm.steps[-len(res.at_grasp) + 1:])  # small corrections
+
+
+def test_a_grasp_pose_far_off_is_refused_without_a_correction(near):
+    world, obj = near
+    arm = SlippingArm(world, (4.0, 0.0, 0.0))
+    with pytest.raises(GraspFailed, match="grasp pose puts the gripper"):
+        _servo(world, obj, arm)
+    assert len(arm.result.at_grasp) == 0 and arm.result.held is None
 
 
 def test_an_error_that_grows_stops_the_servo(scene):
