@@ -321,7 +321,7 @@ def test_the_published_page_is_what_its_stored_results_render(tmp_path):
 
 
 def test_the_grasping_section_reads_its_run_size_and_landings_from_the_json():
-    """The section types in no figure: the landings behind the arms' RMS and whether the run was quick come
+    """The section types in no figure: the landings behind the arms' RP and AP and whether the run was quick come
     from positioning.json (a run that did not record its landings does not get a count made up)."""
     cell = load_cell(default_cell_path())
     mach = {"cpu": "test cpu", "cores": 2, "usable_cores": 2, "python": "3", "numpy": "2", "opencv": "4",
@@ -336,8 +336,8 @@ def test_the_grasping_section_reads_its_run_size_and_landings_from_the_json():
 
     counted = dict(data, quick=False, profiles={k: v | {"landings": 17} for k, v in data["profiles"].items()})
     text = section(counted)
-    assert "(RMS of 17 landings)" in text and "--quick" not in text
+    assert "(ISO 9283 repeatability RP and accuracy AP over 17 landings)" in text and "--quick" not in text
     text = section(dict(data, quick=True, profiles={k: {kk: vv for kk, vv in v.items() if kk != "landings"}
                                                     for k, v in data["profiles"].items()}))
-    assert "(RMS of their landings)" in text and "starts per condition (a --quick run)" in text
+    assert "AP over their landings)" in text and "starts per condition (a --quick run)" in text
     assert "30 landings" not in text
