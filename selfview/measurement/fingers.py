@@ -16,9 +16,12 @@ from selfview.measurement.discs import as_gray
 from selfview.errors import CalibrationError
 from selfview.measurement.fingertips import FingertipResult, PredictedFingers, search_corners
 from selfview.maths.geometry import transform_points
-from selfview.measurement.silhouette import fit_silhouette, learn_appearance
+from selfview.measurement.silhouette import MIN_GOOD_FRACTION, fit_silhouette, learn_appearance
 
 __all__ = ["find_fingertips", "misses_a_corner", "model_measurement", "measure_model", "fit_result", "SilhouetteTracker", "WIDE_ROUNDS"]
+
+#: The corner search's range [px] around a silhouette fit's pose (``find_fingertips``, model 'auto').
+REFINE_SEARCH_PX = 6.0
 
 
 def find_fingertips(
@@ -47,7 +50,9 @@ def find_fingertips(
     in the picture (``misses_a_corner``: a fingertip beside a disc, a weak tip edge, or a busy plate such as
     a chessboard or ChArUco board, whose square edges outscore the fingers' own in the search's coarse
     alignment) and the model's fit holds and finds more corners: then the model's corners (the searched
-    ones are not mixed with them; the result's ``quality`` is set). ``model=False`` the corner search only.
+    ones are not mixed with them; the result's ``quality`` is set); where the fit found the fingers (half
+    its samples or more support it) but is not believed, the corner search again from the fit's pose
+    within ``REFINE_SEARCH_PX``, if it finds more corners. ``model=False`` the corner search only.
 
     Returns a ``FingertipResult``; points not found carry a reason and are NaN. Raises ``ImageError``
     for a blank picture or one of the wrong size, ``CalibrationError`` if the prediction puts the
@@ -63,6 +68,14 @@ def find_fingertips(
     fitted, fit = measure_model(image, pred, points, result, appearance)
     if model is True or (fit.ok and fitted.found.sum() > result.found.sum()):
         return fitted
+    if model == "auto" and fit.C_H_G is not None and fit.good_fraction >= MIN_GOOD_FRACTION:
+        # the silhouette found the fingers but is not believed to the corners (its nominal boxes miss the
+        # real fingers' by their tolerances): search the corners again from its pose, a few px around it
+        # (a busy print, a board's squares, outscores the fingers' edges over the prediction's wider range)
+        again = search_corners(image, PredictedFingers(pred.camera, fit.C_H_G, pred.gripper, pred.gap_mm),
+                               min(float(search_px), REFINE_SEARCH_PX), points)
+        if again.found.sum() > result.found.sum():
+            return again
     return result
 
 
