@@ -21,7 +21,7 @@ from selfview.measurement.silhouette import MIN_GOOD_FRACTION, fit_silhouette, l
 __all__ = ["find_fingertips", "misses_a_corner", "model_measurement", "measure_model", "fit_result", "SilhouetteTracker", "WIDE_ROUNDS"]
 
 #: The corner search's range [px] around a silhouette fit's pose (``find_fingertips``, model 'auto').
-REFINE_SEARCH_PX = 6.0
+REFINE_SEARCH_PX = 4.0
 
 
 def find_fingertips(
