@@ -125,21 +125,73 @@ def _seed_block(u8: np.ndarray, g: np.ndarray) -> dict:
                     key=lambda rc: (rc[0] + 1 - (R - 1) / 2) ** 2 + (rc[1] + 1 - (C - 1) / 2) ** 2)
     for r, c in blocks:
         sub = g[r : r + 3, c : c + 3]
-        if _x_corner(u8, sub[:, :, :]) is not None:
+        if _x_corner(u8, sub) is not None:
             return {(i, j): sub[i, j] for i in range(3) for j in range(3)}
+    # every corner OpenCV gave is a corner of the board: a block around one of them, along the lattice
+    # vectors its nearest neighbours give, refined
+    pool = g.reshape(-1, 2)
+    for p in pool[np.argsort(np.linalg.norm(pool - pool.mean(0), axis=1))]:
+        d = pool - p
+        n = np.linalg.norm(d, axis=1)
+        order = [k for k in np.argsort(n) if n[k] > 3.0]
+        if not order:
+            continue
+        a = d[order[0]]
+        b = next((d[k] for k in order[1:] if abs(a[0] * d[k][1] - a[1] * d[k][0]) > 0.7 * n[order[0]] * n[k]), None)
+        if b is None:
+            continue
+        for fa, fb in ((1, 1), (1, 2), (2, 1), (2, 2)):  # OpenCV's grid may skip every other row or column
+            sub = _refined_block(u8, p, a / fa, b / fb)
+            if sub is not None and _x_corner(u8, sub) is not None:
+                return {(i, j): sub[i, j] for i in range(3) for j in range(3)}
     raise ImageError("no part of the chessboard found is a grid of alternating squares: fingers or the picture's "
                      "edge cut the board too much")
 
 
-def _x_corner(u8: np.ndarray, sub: np.ndarray) -> int | None:
+def _refined_block(u8: np.ndarray, p, a, b) -> np.ndarray | None:
+    """(3, 3, 2) the corners p + i a + j b (i, j in -1..1) refined by ``cv2.cornerSubPix``; None when the
+    block reaches beyond the picture."""
+    j, i = np.mgrid[-1:2, -1:2]
+    sub = p + i[..., None] * a + j[..., None] * b
+    win = int(np.clip(min(np.linalg.norm(a), np.linalg.norm(b)) / 4, 2, 15))
+    h, w = u8.shape
+    if not np.all((sub >= win + 2) & (sub < (w - win - 2, h - win - 2))):
+        return None
+    return cv2.cornerSubPix(u8, sub.reshape(-1, 1, 2).astype(np.float32), (win, win), (-1, -1),
+                            (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01)).reshape(3, 3, 2).astype(float)
+
+
+def _x_corner(u8: np.ndarray, sub: np.ndarray, levels=None) -> int | None:
     """The dark cells' parity (0: the cell at the block's (0, 0) dark, 1: light) of a 3 x 3 block of corners
-    (3, 3, 2) whose four cells alternate dark and light, else None."""
+    (3, 3, 2) whose four cells alternate dark and light, else None. ``levels`` (dark, light): the grey
+    levels the squares must show (within ``X_AGREE`` of their difference), as the seed's did. The cells are
+    read in their middles and again near the middle corner (a finger beside a square's outer corner may
+    darken a cell's middle only)."""
+    near = sub[1, 1] + 0.4 * (sub - sub[1, 1])
+    parities = {_x_cells(u8, sub, levels), _x_cells(u8, near, levels)}
+    return parities.pop() if len(parities) == 1 else None
+
+
+def _x_cells(u8: np.ndarray, sub: np.ndarray, levels) -> int | None:
+    """``_x_corner`` for the cells of one 3 x 3 block read in their middles."""
     lv = np.array([[_cell_level(u8, sub, r, c) for c in range(2)] for r in range(2)])
     d1, d2 = (lv[0, 0] + lv[1, 1]) / 2, (lv[0, 1] + lv[1, 0]) / 2
     contrast = abs(d1 - d2)
     if contrast < X_MIN_CONTRAST or max(abs(lv[0, 0] - lv[1, 1]), abs(lv[0, 1] - lv[1, 0])) > X_AGREE * contrast:
         return None
-    return 0 if d1 < d2 else 1
+    parity = 0 if d1 < d2 else 1
+    if levels is not None:
+        dark, light = levels
+        want = np.where((np.add.outer(np.arange(2), np.arange(2)) + parity) % 2 == 0, dark, light)
+        if np.max(np.abs(lv - want)) > X_AGREE * (light - dark):
+            return None
+    return parity
+
+
+def _block_levels(u8: np.ndarray, sub: np.ndarray) -> tuple[float, float]:
+    """(dark, light) grey levels of an alternating 3 x 3 block's cells."""
+    lv = np.sort([_cell_level(u8, sub, r, c) for r in range(2) for c in range(2)])
+    return float(lv[:2].mean()), float(lv[2:].mean())
 
 
 def _lattice_H(found: dict) -> np.ndarray:
@@ -163,7 +215,8 @@ def _grow_lattice(u8: np.ndarray, g: np.ndarray) -> dict:
     refined (``cv2.cornerSubPix``) and taken when it stays within a quarter square of the prediction and its
     four cells alternate with the seed's parity. A corner under a finger or beyond the board fails that."""
     found = _seed_block(u8, g)
-    parity = _x_corner(u8, np.array([[found[(i, j)] for j in range(3)] for i in range(3)]))
+    seed = np.array([[found[(i, j)] for j in range(3)] for i in range(3)])
+    parity, levels = _x_corner(u8, seed), _block_levels(u8, seed)
     h, w = u8.shape
     tried = set(found)
     grew = True
@@ -187,7 +240,7 @@ def _grow_lattice(u8: np.ndarray, g: np.ndarray) -> dict:
                 continue
             block = _at(Hn, np.tile([c - 1, c, c + 1], 3), np.repeat([r - 1, r, r + 1], 3)).reshape(3, 3, 2)
             block[1, 1] = q
-            px = _x_corner(u8, block)
+            px = _x_corner(u8, block, levels)
             if px is None or px != (parity + r - 1 + c - 1) % 2:
                 continue
             found[(r, c)] = q
