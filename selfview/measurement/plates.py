@@ -108,12 +108,24 @@ def _chessboard(u8: np.ndarray, plate: PlateSpec) -> tuple[np.ndarray, np.ndarra
         if _cell_level(u8, g, 0, 0) >= _cell_level(u8, g, 0, 1):  # the inner cell at (0, 0) is dark, as square (0, 0)
             g = g[::-1, ::-1]
         r, c = np.mgrid[0 : g.shape[0], 0 : g.shape[1]]
-        return g.reshape(-1, 2), (r * (nx - 1) + c).ravel(), g.shape[0] * g.shape[1], {"x": "board", "y": "board"}, {}
+        keep = _alternating(u8, g)  # OpenCV places a corner under a finger where the lattice puts it
+        return (g[keep], (r * (nx - 1) + c)[keep], g.shape[0] * g.shape[1], {"x": "board", "y": "board"}, {})
     ok, corners, meta = cv2.findChessboardCornersSBWithMeta(u8, (3, 3), flags | cv2.CALIB_CB_LARGER)
     if not ok or corners is None:
         raise ImageError(f"no {nx}x{ny}-square chessboard ({nx - 1}x{ny - 1} inner corners) found in the picture")
     found = _grow_lattice(u8, corners.reshape(meta.shape[0], meta.shape[1], 2).astype(float))
     return _place_lattice(u8, found, plate)
+
+
+def _alternating(u8: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """(R, C) bool: the corners of the whole board's grid g (R, C, 2) whose four cells alternate dark and
+    light with the board's parity (``_x_corner``; the grid extended by a line of corners all round)."""
+    G = np.pad(g, ((1, 1), (1, 1), (0, 0)))
+    G[1:-1, 1:-1] = g
+    G[0, 1:-1], G[-1, 1:-1] = 2 * g[0] - g[1], 2 * g[-1] - g[-2]
+    G[:, 0], G[:, -1] = 2 * G[:, 1] - G[:, 2], 2 * G[:, -2] - G[:, -3]
+    R, C = g.shape[:2]
+    return np.array([[_x_corner(u8, G[r : r + 3, c : c + 3]) == (r + c) % 2 for c in range(C)] for r in range(R)])
 
 
 def _seed_block(u8: np.ndarray, g: np.ndarray) -> dict:
