@@ -363,11 +363,13 @@ def _cell_level(u8: np.ndarray, g: np.ndarray, r: int, c: int) -> float:
     quad = np.array([g[r, c], g[r, c + 1], g[r + 1, c + 1], g[r + 1, c]])
     mid = quad.mean(0)
     pts = np.rint(mid + 0.3 * (quad - mid)).astype(np.int32)  # a small quadrilateral in the cell's middle
-    mask = np.zeros(u8.shape, np.uint8)
-    cv2.fillConvexPoly(mask, pts, 1)
+    lo = np.clip(pts.min(0), 0, (u8.shape[1] - 1, u8.shape[0] - 1))
+    hi = np.clip(pts.max(0) + 1, lo + 1, (u8.shape[1], u8.shape[0]))
+    mask = np.zeros((hi[1] - lo[1], hi[0] - lo[0]), np.uint8)  # over the quadrilateral's bounding box only
+    cv2.fillConvexPoly(mask, pts - lo, 1)
     if not mask.any():
         return float(u8[int(np.clip(round(mid[1]), 0, u8.shape[0] - 1)), int(np.clip(round(mid[0]), 0, u8.shape[1] - 1))])
-    return float(u8[mask > 0].mean())
+    return float(u8[lo[1] : hi[1], lo[0] : hi[0]][mask > 0].mean())
 
 
 # --- ChArUco ----------------------------------------------------------------------------------------
