@@ -7,8 +7,9 @@ origin (x along the columns, y along the rows, z into the plate; CONVENTIONS.md)
 - ``discs``: dark discs whose centres are the points (``discs.detect_discs``); a disc's image centroid is
   not the image of its centre, ``plate_image_bias`` gives the difference for a pose;
 - ``chessboard``: NX x NY squares, the (NX-1) x (NY-1) inner corners the points (OpenCV's
-  ``findChessboardCornersSB``); square (0, 0), on W's -x -y corner, is dark; a board with NX + NY even
-  looks the same turned by a half turn, so its orientation is ambiguous and refused;
+  ``findChessboardCornersSB``; a board the fingers cut grown along its lattice and placed by its border and
+  colours, the origin ambiguous where several placements fit); square (0, 0), on W's -x -y corner, is dark;
+  a board with NX + NY even looks the same turned by a half turn, so its orientation is ambiguous and refused;
 - ``charuco``: a chessboard with ArUco markers in its light squares (``cv2.aruco.CharucoDetector``), the
   inner corners numbered by OpenCV's ids (row-major), so a partial view (fingers over it) is indexed.
 
