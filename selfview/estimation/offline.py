@@ -276,7 +276,9 @@ def calibrate_offline(
     timings["total"] = (time.perf_counter() - t0) * 1e3
 
     noise_mm = _picture_noise_mm(ft, found, camera, pcc.C_H_G)
-    warnings = _warnings(det, pcc, noise_mm)
+    warnings = _warnings(det, pcc, noise_mm) + [
+        f"the fingertip corner {nm} was left out: {r}" for nm, r in zip(POINT_NAMES, ft.reasons)
+        if r and r.startswith("off the fingers' shape")]
     sha = image_sha256 or hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest()
     residuals = _residuals(mode, ts, det, ft, pcc, dims, measured_by, camera_file, noise_mm, warnings)
     cal = Calibration(camera=camera, C_H_W=ts.C_H_W, C_H_G=make_H(pcc.C_H_G[:3, :3], pcc.C_H_G[:3, 3]),
