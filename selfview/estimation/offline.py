@@ -276,7 +276,7 @@ def calibrate_offline(
     timings["total"] = (time.perf_counter() - t0) * 1e3
 
     noise_mm = _picture_noise_mm(ft, found, camera, pcc.C_H_G)
-    warnings = _warnings(det, pcc, noise_mm)
+    warnings = _warnings(det, pcc, noise_mm, ft)
     sha = image_sha256 or hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest()
     residuals = _residuals(mode, ts, det, ft, pcc, dims, measured_by, camera_file, noise_mm, warnings)
     cal = Calibration(camera=camera, C_H_W=ts.C_H_W, C_H_G=make_H(pcc.C_H_G[:3, :3], pcc.C_H_G[:3, 3]),
@@ -302,9 +302,10 @@ def _picture_noise_mm(ft: FingertipResult, found: np.ndarray, camera: CameraMode
     return rms_px * float(C_H_G[2, 3]) / float(camera.f)
 
 
-def _warnings(det: DiscDetections, pcc: PCCResult, noise_mm: float) -> list[str]:
+def _warnings(det: DiscDetections, pcc: PCCResult, noise_mm: float, ft: FingertipResult) -> list[str]:
     """What the picture could not tell: the plate's origin not pinned (``C_H_W`` is then a guess up to whole
-    pitches; ``C_H_G`` does not depend on it), a PCC residual far above the picture's noise ``noise_mm``."""
+    pitches; ``C_H_G`` does not depend on it), a PCC residual far above the picture's noise ``noise_mm``, a
+    fingertip corner left out as off the fingers' shape."""
     out = []
     if not det.origin_pinned:
         out.append("the plate's origin is not pinned by the picture, so C_H_W is not known (it may be off by whole "
@@ -315,4 +316,6 @@ def _warnings(det: DiscDetections, pcc: PCCResult, noise_mm: float) -> list[str]
             f"gives ({noise_mm:.4f} mm): a fingertip corner is measured off its place (on a printed disc, a mark "
             "or a shadow's edge?), or the gripper points used are not this gripper's; park the gripper elsewhere "
             "on the plate and calibrate again")
+    out += [f"the fingertip corner {nm} was left out: {r}" for nm, r in zip(POINT_NAMES, ft.reasons)
+            if r and r.startswith("off the fingers' shape")]
     return out

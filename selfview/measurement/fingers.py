@@ -16,9 +16,15 @@ from selfview.measurement.discs import as_gray
 from selfview.errors import CalibrationError
 from selfview.measurement.fingertips import FingertipResult, PredictedFingers, search_corners
 from selfview.maths.geometry import transform_points
-from selfview.measurement.silhouette import fit_silhouette, learn_appearance
+from selfview.measurement.silhouette import MIN_GOOD_FRACTION, fit_silhouette, learn_appearance
 
 __all__ = ["find_fingertips", "misses_a_corner", "model_measurement", "measure_model", "fit_result", "SilhouetteTracker", "WIDE_ROUNDS"]
+
+#: The corner search's range [px] around a silhouette fit's pose (``find_fingertips``, model 'auto').
+REFINE_SEARCH_PX = 4.0
+#: A searched corner this far [px] from where the other corners' pose puts it is not the fingers'
+#: (``find_fingertips``; the realistic cell's finger tolerances move a corner about 1 px).
+OFF_SHAPE_PX = 3.0
 
 
 def find_fingertips(
@@ -47,7 +53,9 @@ def find_fingertips(
     in the picture (``misses_a_corner``: a fingertip beside a disc, a weak tip edge, or a busy plate such as
     a chessboard or ChArUco board, whose square edges outscore the fingers' own in the search's coarse
     alignment) and the model's fit holds and finds more corners: then the model's corners (the searched
-    ones are not mixed with them; the result's ``quality`` is set). ``model=False`` the corner search only.
+    ones are not mixed with them; the result's ``quality`` is set); where the fit found the fingers (half
+    its samples or more support it) but is not believed, the corner search again from the fit's pose
+    within ``REFINE_SEARCH_PX``, if it finds more corners. ``model=False`` the corner search only.
 
     Returns a ``FingertipResult``; points not found carry a reason and are NaN. Raises ``ImageError``
     for a blank picture or one of the wrong size, ``CalibrationError`` if the prediction puts the
@@ -58,11 +66,22 @@ def find_fingertips(
         raise ValueError(f"model: expected False (the corner search), True (the model) or 'auto', got {model!r}")
     pred = PredictedFingers(camera, C_H_G_pred, gripper, gap_mm)
     result = search_corners(image, pred, search_px, points)
+    if model is not False:
+        _drop_off_shape(pred, result)
     if model is False or (model == "auto" and not misses_a_corner(result)):
         return result
     fitted, fit = measure_model(image, pred, points, result, appearance)
     if model is True or (fit.ok and fitted.found.sum() > result.found.sum()):
         return fitted
+    if model == "auto" and fit.C_H_G is not None and fit.good_fraction >= MIN_GOOD_FRACTION:
+        # the silhouette found the fingers but is not believed to the corners (its nominal boxes miss the
+        # real fingers' by their tolerances): search the corners again from its pose, a few px around it
+        # (a busy print, a board's squares, outscores the fingers' edges over the prediction's wider range)
+        again = search_corners(image, PredictedFingers(pred.camera, fit.C_H_G, pred.gripper, pred.gap_mm),
+                               min(float(search_px), REFINE_SEARCH_PX), points)
+        _drop_off_shape(pred, again)
+        if again.found.sum() > result.found.sum():
+            return again
     return result
 
 
@@ -70,6 +89,34 @@ def misses_a_corner(result: FingertipResult) -> bool:
     """Whether a measurement left a requested corner unfound that is neither outside the picture nor hidden."""
     return any(not ok and not (r and (r.startswith("outside") or r.startswith("occluded") or r == "not requested"))
                for ok, r in zip(result.found, result.reasons))
+
+
+def _drop_off_shape(pred: PredictedFingers, res: FingertipResult) -> None:
+    """Mark not found (in ``res``) a searched corner that the fingers' shape puts more than
+    ``OFF_SHAPE_PX`` from where it was found: the pose of the other corners found (NP-I from the
+    prediction, five or more corners) projects it there (the search may take the edge of a print, a
+    board's square, running beside a finger's for its edge), the worst one first, one at a time."""
+    from selfview.estimation.online import iterative_update
+
+    p_G = pred.gripper.points_G(gap=pred.gap_mm)
+    while res.found.sum() >= 5:
+        k_all = np.flatnonzero(res.found)
+        off = np.zeros(len(k_all))
+        for i, k in enumerate(k_all):
+            rest = np.delete(k_all, i)
+            try:
+                H = iterative_update(pred.C_H_G, p_G[rest], res.uv[rest], pred.camera).C_H_G_orth
+            except CalibrationError:
+                return
+            off[i] = np.linalg.norm(pred.camera.project(transform_points(H, p_G[k:k + 1]))[0] - res.uv[k])
+        worst = int(np.argmax(off))
+        if off[worst] <= OFF_SHAPE_PX:
+            return
+        k = k_all[worst]
+        res.found[k] = False
+        res.reasons[k] = f"off the fingers' shape: {off[worst]:.1f} px from where the other corners put it"
+        res.uv[k] = np.nan
+        res.edge_rms_px[k] = np.nan
 
 
 def _pose_from_corners(pred: PredictedFingers, res: FingertipResult):

@@ -404,9 +404,13 @@ def _coarse_shift(img: np.ndarray, polys: list[np.ndarray], search_px: float, in
             q = _unique_rows(np.rint(poly + centre).astype(int)) - lo
             sums[e] = Gn[e][(q[:, 1] * gw + q[:, 0])[None, :] + flat_shifts[:, None]].sum(1)
         score = _group_score(sums, groups)
+        # the shifts within +-search_px only (a candidate cell's neighbourhood reaches beyond it)
+        score = np.where(np.all(np.abs(centre + shifts) <= search_px, axis=1), score, -np.inf)
         i = int(np.argmax(score))
-        if best is None or score[i] > best[0]:
+        if np.isfinite(score[i]) and (best is None or score[i] > best[0]):
             best = (score[i], centre + shifts[i], sums[:, i])
+    if best is None:
+        return None
     _, shift, sums = best
     # back to each polyline's own left-hand normal
     left = np.array([[-(p[-1] - p[0])[1], (p[-1] - p[0])[0]] for p in polys])

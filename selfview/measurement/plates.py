@@ -7,8 +7,9 @@ origin (x along the columns, y along the rows, z into the plate; CONVENTIONS.md)
 - ``discs``: dark discs whose centres are the points (``discs.detect_discs``); a disc's image centroid is
   not the image of its centre, ``plate_image_bias`` gives the difference for a pose;
 - ``chessboard``: NX x NY squares, the (NX-1) x (NY-1) inner corners the points (OpenCV's
-  ``findChessboardCornersSB``); square (0, 0), on W's -x -y corner, is dark; a board with NX + NY even
-  looks the same turned by a half turn, so its orientation is ambiguous and refused;
+  ``findChessboardCornersSB``; a board the fingers cut grown along its lattice and placed by its border and
+  colours, the origin ambiguous where several placements fit); square (0, 0), on W's -x -y corner, is dark;
+  a board with NX + NY even looks the same turned by a half turn, so its orientation is ambiguous and refused;
 - ``charuco``: a chessboard with ArUco markers in its light squares (``cv2.aruco.CharucoDetector``), the
   inner corners numbered by OpenCV's ids (row-major), so a partial view (fingers over it) is indexed.
 
@@ -52,9 +53,9 @@ def detect_plate(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
         return detect_discs(image, plate, camera=camera, min_discs=min_points)
     gray = as_gray(image, camera)
     u8 = np.clip(np.rint(gray), 0, 255).astype(np.uint8)
-    basis = "board"
+    basis, ambiguous = {"x": "board", "y": "board"}, {}
     if plate.pattern == "chessboard":
-        uv, ids, n_raw, basis = _chessboard(u8, plate)
+        uv, ids, n_raw, basis, ambiguous = _chessboard(u8, plate)
     elif plate.pattern == "charuco":
         uv, ids, n_raw = _charuco(u8, plate, min_points)
     else:
@@ -65,7 +66,7 @@ def detect_plate(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     ids = ids[order]
     rc = np.column_stack([ids // plate.cols, ids % plate.cols]).astype(int)
     return DiscDetections(uv=uv[order].astype(float), rc=rc, p_W=plate.disc_centres_W()[ids], area_px=np.zeros(len(ids)),
-                          n_blobs=int(n_raw), rejected={}, index_basis={"x": basis, "y": basis})
+                          n_blobs=int(n_raw), rejected={}, index_basis=basis, ambiguous=ambiguous)
 
 
 def plate_image_bias(plate: PlateSpec, camera: CameraModel, C_H_W, p_W) -> np.ndarray:
@@ -83,60 +84,279 @@ def correct_plate_bias(det: PlateDetections, camera: CameraModel, C_H_W, plate: 
 
 
 # --- chessboard -------------------------------------------------------------------------------------
-def _chessboard(u8: np.ndarray, plate: PlateSpec) -> tuple[np.ndarray, np.ndarray, int, str]:
-    """The board's inner corners: the whole board, else (fingers over it, its edge out of the picture) the
-    largest part of it OpenCV finds, placed in the middle of the plate's grid (its position on the plate
-    is not known: ``index_basis`` 'partial view'; one picture's pose is then shifted along the plate,
-    which the off-line calibration does not use)."""
+#: A lattice corner is taken when its four cells alternate: the two dark ones and the two light ones each
+#: agree within this share of the contrast between them, which must be at least ``X_MIN_CONTRAST``.
+X_AGREE = 0.3
+X_MIN_CONTRAST = 40.0
+
+
+def _chessboard(u8: np.ndarray, plate: PlateSpec) -> tuple[np.ndarray, np.ndarray, int, dict, dict]:
+    """The board's inner corners: the whole board (``findChessboardCornersSB``), else (fingers over it,
+    its edge out of the picture) the corners grown along the board's lattice from a seed of 2 x 2
+    alternating squares (``_grow_lattice``) and placed on the plate by the board's edges seen and the
+    squares' colours (``_place_lattice``). Returns (uv, ids, corners found, index basis, ambiguous)."""
     nx, ny = plate.squares
     if (nx + ny) % 2 == 0:
         raise ImageError(f"a {nx}x{ny}-square chessboard looks the same turned by a half turn: its orientation in the "
                          "picture is ambiguous; use a board with one odd and one even number of squares (or ChArUco)")
     flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_NORMALIZE_IMAGE
     ok, corners = cv2.findChessboardCornersSB(u8, (nx - 1, ny - 1), flags=flags)
-    basis = "board"
     if ok and corners is not None:
         g = corners.reshape(ny - 1, nx - 1, 2).astype(float)
-    else:
-        ok, corners, meta = cv2.findChessboardCornersSBWithMeta(u8, (3, 3), flags | cv2.CALIB_CB_LARGER)
-        if not ok or corners is None:
-            raise ImageError(f"no {nx}x{ny}-square chessboard ({nx - 1}x{ny - 1} inner corners) found in the picture")
-        g = corners.reshape(meta.shape[0], meta.shape[1], 2).astype(float)
-        if g.shape[0] > ny - 1 or g.shape[1] > nx - 1:
-            g = g.transpose(1, 0, 2)
-        if g.shape[0] > ny - 1 or g.shape[1] > nx - 1:
-            raise ImageError(f"the chessboard seen has {meta.shape[1]}x{meta.shape[0]} inner corners, more than the "
-                             f"plate's {nx - 1}x{ny - 1}: the plate file describes another board")
-        basis = "partial view"
-    if basis != "board":
-        _check_alternation(u8, g)
-    a, b = g[0, 1] - g[0, 0], g[1, 0] - g[0, 0]
-    if a[0] * b[1] - a[1] * b[0] < 0:  # W's x, y, z (into the plate) right-handed: x to y turns clockwise on screen
-        g = g[:, ::-1]
-    dark0 = _cell_level(u8, g, 0, 0) < _cell_level(u8, g, 0, 1)
-    if basis == "board" and not dark0:  # the inner cell at (0, 0) is dark, as square (0, 0)
-        g = g[::-1, ::-1]
-    r, c = np.mgrid[0 : g.shape[0], 0 : g.shape[1]]
-    if basis != "board":  # centred on the plate (W's origin among the points seen), on a dark first cell's parity
-        r0, c0 = (ny - 1 - g.shape[0]) // 2, (nx - 1 - g.shape[1]) // 2
-        if (r0 + c0) % 2 != (0 if dark0 else 1):
-            r0, c0 = (r0, c0 + 1) if c0 + g.shape[1] < nx - 1 else (r0, c0 - 1) if c0 > 0 else (r0 + 1 if r0 + g.shape[0] < ny - 1 else r0 - 1, c0)
-        r, c = r + r0, c + c0
-        if r.min() < 0 or c.min() < 0 or r.max() >= ny - 1 or c.max() >= nx - 1:
-            raise ImageError("the part of the chessboard seen cannot be placed on the plate's grid")
-    return g.reshape(-1, 2), (r * (nx - 1) + c).ravel(), g.shape[0] * g.shape[1], basis
+        a, b = g[0, 1] - g[0, 0], g[1, 0] - g[0, 0]
+        if a[0] * b[1] - a[1] * b[0] < 0:  # W's x, y, z (into the plate) right-handed: x to y turns clockwise on screen
+            g = g[:, ::-1]
+        if _cell_level(u8, g, 0, 0) >= _cell_level(u8, g, 0, 1):  # the inner cell at (0, 0) is dark, as square (0, 0)
+            g = g[::-1, ::-1]
+        r, c = np.mgrid[0 : g.shape[0], 0 : g.shape[1]]
+        keep = _alternating(u8, g)  # OpenCV places a corner under a finger where the lattice puts it
+        return (g[keep], (r * (nx - 1) + c)[keep], g.shape[0] * g.shape[1], {"x": "board", "y": "board"}, {})
+    ok, corners, meta = cv2.findChessboardCornersSBWithMeta(u8, (3, 3), flags | cv2.CALIB_CB_LARGER)
+    if not ok or corners is None:
+        raise ImageError(f"no {nx}x{ny}-square chessboard ({nx - 1}x{ny - 1} inner corners) found in the picture")
+    found = _grow_lattice(u8, corners.reshape(meta.shape[0], meta.shape[1], 2).astype(float))
+    return _place_lattice(u8, found, plate)
 
 
-def _check_alternation(u8: np.ndarray, g: np.ndarray) -> None:
-    """A partial grid's cells must alternate dark and light like the squares (OpenCV may return every
-    other corner of a board as a grid of its own): ``ImageError`` otherwise."""
-    lv = np.array([[_cell_level(u8, g, r, c) for c in range(g.shape[1] - 1)] for r in range(g.shape[0] - 1)])
-    dark = lv < np.median(lv)
-    parity = (np.add.outer(np.arange(lv.shape[0]), np.arange(lv.shape[1])) % 2) == 0
-    agree = max(np.mean(dark == parity), np.mean(dark != parity))
-    if agree < 0.9:
-        raise ImageError(f"the part of the chessboard found is not a grid of alternating squares ({agree:.0%} of its "
-                         "cells alternate): fingers or the picture's edge cut the board too much; use a ChArUco plate")
+def _alternating(u8: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """(R, C) bool: the corners of the whole board's grid g (R, C, 2) whose four cells alternate dark and
+    light with the board's parity (``_x_corner``; the grid extended by a line of corners all round)."""
+    G = np.pad(g, ((1, 1), (1, 1), (0, 0)))
+    G[1:-1, 1:-1] = g
+    G[0, 1:-1], G[-1, 1:-1] = 2 * g[0] - g[1], 2 * g[-1] - g[-2]
+    G[:, 0], G[:, -1] = 2 * G[:, 1] - G[:, 2], 2 * G[:, -2] - G[:, -3]
+    R, C = g.shape[:2]
+    return np.array([[_x_corner(u8, G[r : r + 3, c : c + 3]) == (r + c) % 2 for c in range(C)] for r in range(R)])
+
+
+def _seed_block(u8: np.ndarray, g: np.ndarray) -> dict:
+    """{(r, c): uv} 3 x 3 corners of the grid g (R, C, 2) whose four cells alternate (``_x_corner``), the
+    block nearest the grid's middle first; ``ImageError`` when none does (OpenCV's partial grid may skip
+    rows or columns of the board)."""
+    R, C = g.shape[:2]
+    blocks = sorted(((r, c) for r in range(R - 2) for c in range(C - 2)),
+                    key=lambda rc: (rc[0] + 1 - (R - 1) / 2) ** 2 + (rc[1] + 1 - (C - 1) / 2) ** 2)
+    for r, c in blocks:
+        sub = g[r : r + 3, c : c + 3]
+        if _x_corner(u8, sub) is not None:
+            return {(i, j): sub[i, j] for i in range(3) for j in range(3)}
+    # every corner OpenCV gave is a corner of the board: a block around one of them, along the lattice
+    # vectors its nearest neighbours give, refined
+    pool = g.reshape(-1, 2)
+    for p in pool[np.argsort(np.linalg.norm(pool - pool.mean(0), axis=1))]:
+        d = pool - p
+        n = np.linalg.norm(d, axis=1)
+        order = [k for k in np.argsort(n) if n[k] > 3.0]
+        if not order:
+            continue
+        a = d[order[0]]
+        b = next((d[k] for k in order[1:] if abs(a[0] * d[k][1] - a[1] * d[k][0]) > 0.7 * n[order[0]] * n[k]), None)
+        if b is None:
+            continue
+        for fa, fb in ((1, 1), (1, 2), (2, 1), (2, 2)):  # OpenCV's grid may skip every other row or column
+            sub = _refined_block(u8, p, a / fa, b / fb)
+            if sub is not None and _x_corner(u8, sub) is not None:
+                return {(i, j): sub[i, j] for i in range(3) for j in range(3)}
+    raise ImageError("no part of the chessboard found is a grid of alternating squares: fingers or the picture's "
+                     "edge cut the board too much")
+
+
+def _refined_block(u8: np.ndarray, p, a, b) -> np.ndarray | None:
+    """(3, 3, 2) the corners p + i a + j b (i, j in -1..1) refined by ``cv2.cornerSubPix``; None when the
+    block reaches beyond the picture."""
+    j, i = np.mgrid[-1:2, -1:2]
+    sub = p + i[..., None] * a + j[..., None] * b
+    win = int(np.clip(min(np.linalg.norm(a), np.linalg.norm(b)) / 4, 2, 15))
+    h, w = u8.shape
+    if not np.all((sub >= win + 2) & (sub < (w - win - 2, h - win - 2))):
+        return None
+    return cv2.cornerSubPix(u8, sub.reshape(-1, 1, 2).astype(np.float32), (win, win), (-1, -1),
+                            (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01)).reshape(3, 3, 2).astype(float)
+
+
+def _x_corner(u8: np.ndarray, sub: np.ndarray, levels=None) -> int | None:
+    """The dark cells' parity (0: the cell at the block's (0, 0) dark, 1: light) of a 3 x 3 block of corners
+    (3, 3, 2) whose four cells alternate dark and light, else None. ``levels`` (dark, light): the grey
+    levels the squares must show (within ``X_AGREE`` of their difference), as the seed's did. The cells are
+    read in their middles and again near the middle corner (a finger beside a square's outer corner may
+    darken a cell's middle only)."""
+    near = sub[1, 1] + 0.4 * (sub - sub[1, 1])
+    parities = {_x_cells(u8, sub, levels), _x_cells(u8, near, levels)}
+    return parities.pop() if len(parities) == 1 else None
+
+
+def _x_cells(u8: np.ndarray, sub: np.ndarray, levels) -> int | None:
+    """``_x_corner`` for the cells of one 3 x 3 block read in their middles."""
+    lv = np.array([[_cell_level(u8, sub, r, c) for c in range(2)] for r in range(2)])
+    d1, d2 = (lv[0, 0] + lv[1, 1]) / 2, (lv[0, 1] + lv[1, 0]) / 2
+    contrast = abs(d1 - d2)
+    if contrast < X_MIN_CONTRAST or max(abs(lv[0, 0] - lv[1, 1]), abs(lv[0, 1] - lv[1, 0])) > X_AGREE * contrast:
+        return None
+    parity = 0 if d1 < d2 else 1
+    if levels is not None:
+        dark, light = levels
+        want = np.where((np.add.outer(np.arange(2), np.arange(2)) + parity) % 2 == 0, dark, light)
+        if np.max(np.abs(lv - want)) > X_AGREE * (light - dark):
+            return None
+    return parity
+
+
+def _block_levels(u8: np.ndarray, sub: np.ndarray) -> tuple[float, float]:
+    """(dark, light) grey levels of an alternating 3 x 3 block's cells."""
+    lv = np.sort([_cell_level(u8, sub, r, c) for r in range(2) for c in range(2)])
+    return float(lv[:2].mean()), float(lv[2:].mean())
+
+
+def _lattice_H(found: dict) -> np.ndarray:
+    """The homography from lattice (c, r) to pixels of the corners found."""
+    rc = np.array(list(found), float)
+    uv = np.array(list(found.values()), float)
+    H, _ = cv2.findHomography(rc[:, ::-1], uv, 0)
+    if H is None:
+        raise ImageError("the chessboard corners found do not form a lattice")
+    return H
+
+
+def _at(H: np.ndarray, c, r) -> np.ndarray:
+    p = H @ np.vstack([np.ravel(c), np.ravel(r), np.ones(np.size(c))])
+    return (p[:2] / p[2]).T
+
+
+def _grow_lattice(u8: np.ndarray, g: np.ndarray) -> dict:
+    """{(r, c): uv} the board's corners reached from a seed block of ``g`` (``_seed_block``) through
+    neighbours: each predicted by the lattice's homography over the corners taken (the nearest ones),
+    refined (``cv2.cornerSubPix``) and taken when it stays within a quarter square of the prediction and its
+    four cells alternate with the seed's parity. A corner under a finger or beyond the board fails that."""
+    found = _seed_block(u8, g)
+    seed = np.array([[found[(i, j)] for j in range(3)] for i in range(3)])
+    parity, levels = _x_corner(u8, seed), _block_levels(u8, seed)
+    h, w = u8.shape
+    tried = set(found)
+    grew = True
+    while grew:
+        grew = False
+        H = _lattice_H(found)
+        todo = sorted({(r + dr, c + dc) for r, c in found for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0))} - tried)
+        for r, c in todo:
+            tried.add((r, c))
+            near = sorted(found, key=lambda k: (k[0] - r) ** 2 + (k[1] - c) ** 2)[:16]
+            Hn = _lattice_H({k: found[k] for k in near}) if len(near) >= 6 else H
+            quad = _at(Hn, [c - 1, c + 1, c + 1, c - 1, c], [r - 1, r - 1, r + 1, r + 1, r])
+            p = quad[4]
+            side = float(np.min(np.linalg.norm(quad[:4] - p, axis=1))) / np.sqrt(2)  # about a square [px]
+            win = int(np.clip(side / 4, 2, 15))
+            if side < 8 or not (win + 2 <= p[0] < w - win - 2 and win + 2 <= p[1] < h - win - 2):
+                continue
+            q = cv2.cornerSubPix(u8, p.reshape(1, 1, 2).astype(np.float32), (win, win), (-1, -1),
+                                 (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01)).reshape(2).astype(float)
+            if np.linalg.norm(q - p) > side / 4:
+                continue
+            block = _at(Hn, np.tile([c - 1, c, c + 1], 3), np.repeat([r - 1, r, r + 1], 3)).reshape(3, 3, 2)
+            block[1, 1] = q
+            px = _x_corner(u8, block, levels)
+            if px is None or px != (parity + r - 1 + c - 1) % 2:
+                continue
+            found[(r, c)] = q
+            grew = True
+    return found
+
+
+def _end_seen(u8: np.ndarray, H: np.ndarray, rows, cols, light: float, dark: float) -> bool:
+    """Whether the board's border shows beyond the last lattice line ``rows`` (one value) along ``cols``
+    (or ``cols`` one value along ``rows``): the cells one square beyond it are paper (light) for at least
+    80 % of the line, and all in the picture."""
+    rr, cc = np.broadcast_arrays(np.asarray(rows, float), np.asarray(cols, float))
+    h, w = u8.shape
+    lv = []
+    for r, c in zip(rr.ravel(), cc.ravel()):
+        quad = _at(H, [c - 0.5, c + 0.5, c + 0.5, c - 0.5], [r - 0.5, r - 0.5, r + 0.5, r + 0.5])
+        if not np.all((quad >= 0) & (quad < (w - 1, h - 1))):
+            return False
+        lv.append(_cell_level(u8, _quad_grid(quad), 0, 0))
+    return bool(np.mean(np.array(lv) > light - 0.3 * (light - dark)) >= 0.8)
+
+
+def _place_lattice(u8: np.ndarray, found: dict, plate: PlateSpec) -> tuple[np.ndarray, np.ndarray, int, dict, dict]:
+    """The grown lattice ``found`` {(r, c): uv} on the plate's grid: turned so that W's x, y, z are
+    right-handed, and placed by the board's border seen beyond the corners found (paper one square beyond
+    the last line) and by the colours of the squares (square (0, 0) dark; with one odd and one even number
+    of squares this also tells a half turn). Every placement these allow is tried; more than one leaves
+    the origin ambiguous (the sentence names how many), the most central one is returned.
+    Returns (uv, ids, corners found, index basis per axis, ambiguous per axis)."""
+    nx, ny = plate.squares
+    H = _lattice_H(found)
+    a, b = _at(H, [1, 0], [0, 1]) - _at(H, [0], [0])
+    mirror = a[0] * b[1] - a[1] * b[0] < 0
+    rc = np.array(list(found), int)
+    uv = np.array(list(found.values()), float)
+    # cells with four corners found, and whether each is dark
+    have = set(found)
+    cells = [(r, c) for r, c in have if {(r + 1, c), (r, c + 1), (r + 1, c + 1)} <= have]
+    lv = np.array([_cell_level(u8, np.array([[found[(r, c)], found[(r, c + 1)]], [found[(r + 1, c)], found[(r + 1, c + 1)]]]), 0, 0)
+                   for r, c in cells])
+    if len(lv) < 2:
+        raise ImageError(f"only {len(found)} chessboard corner(s) found around the seed: too little of the board in view")
+    dark_lv, light_lv = np.percentile(lv, [10, 90])
+    dark = lv < (dark_lv + light_lv) / 2
+    rmin, rmax, cmin, cmax = rc[:, 0].min(), rc[:, 0].max(), rc[:, 1].min(), rc[:, 1].max()
+    ends = {  # in the lattice's own indices: (rows low, rows high, cols low, cols high)
+        "r-": _end_seen(u8, H, rmin - 1.5, np.arange(cmin, cmax) + 0.5, light_lv, dark_lv),
+        "r+": _end_seen(u8, H, rmax + 1.5, np.arange(cmin, cmax) + 0.5, light_lv, dark_lv),
+        "c-": _end_seen(u8, H, np.arange(rmin, rmax) + 0.5, cmin - 1.5, light_lv, dark_lv),
+        "c+": _end_seen(u8, H, np.arange(rmin, rmax) + 0.5, cmax + 1.5, light_lv, dark_lv),
+    }
+    cand = []
+    m = np.array([[1, 0], [0, -1]]) if mirror else np.eye(2, dtype=int)
+    for quarter in range(4):  # the lattice turned by quarter turns on the board
+        t = np.linalg.matrix_power(np.array([[0, -1], [1, 0]]), quarter) @ m
+        RC = rc @ t.T
+        R, C = RC[:, 0], RC[:, 1]
+        # which of the lattice's ends is each end of the board's rows and columns
+        where = {tuple(t @ d): k for d, k in (((-1, 0), "r-"), ((1, 0), "r+"), ((0, -1), "c-"), ((0, 1), "c+"))}
+        e_r = (ends[where[(-1, 0)]], ends[where[(1, 0)]])
+        e_c = (ends[where[(0, -1)]], ends[where[(0, 1)]])
+        r_opts = _offsets(R.min(), R.max(), ny - 2, *e_r)
+        c_opts = _offsets(C.min(), C.max(), nx - 2, *e_c)
+        # a cell's top-left corner on the board, and the colour it must have there
+        tl = np.array([(np.array([[r, c], [r + 1, c], [r, c + 1], [r + 1, c + 1]]) @ t.T).min(0) for r, c in cells])
+        for r0 in r_opts:
+            for c0 in c_opts:
+                if np.mean(dark == ((tl[:, 0] + r0 + tl[:, 1] + c0) % 2 == 0)) >= 0.9:
+                    cand.append((R + r0, C + c0, *e_r, *e_c))
+    if not cand:
+        raise ImageError(f"the {len(found)} chessboard corners seen ({rmax - rmin + 1} x {cmax - cmin + 1}) cannot be "
+                         f"placed on the plate's {nx}x{ny}-square board: another board, or the plate file's squares are wrong")
+    mid = np.array([(ny - 2) / 2, (nx - 2) / 2])
+    best = min(cand, key=lambda k: float(np.sum((np.array([k[0].mean(), k[1].mean()]) - mid) ** 2)))
+    R, C, r_lo, r_hi, c_lo, c_hi = best
+    basis = {"x": _basis(c_lo, c_hi), "y": _basis(r_lo, r_hi)}
+    ambiguous = {}
+    for axis, k in (("x", 1), ("y", 0)):
+        if any(not np.array_equal(cc[k], best[k]) for cc in cand):
+            ambiguous[axis] = (f"the {len(found)} chessboard corners seen fit {len(cand)} places (or turns) on the "
+                               "board; neither its border nor its squares' colours tell which")
+            basis[axis] = "centred"
+    return uv, R * (nx - 1) + C, len(found), basis, ambiguous
+
+
+def _offsets(lo: int, hi: int, top: int, lo_seen: bool, hi_seen: bool) -> list[int]:
+    """The shifts k that put lattice indices lo..hi on the board's 0..top: pinned by an end seen."""
+    opts = [k for k in range(-lo, top - hi + 1)]
+    if lo_seen:
+        opts = [k for k in opts if lo + k == 0]
+    if hi_seen:
+        opts = [k for k in opts if hi + k == top]
+    return opts
+
+
+def _basis(lo_seen: bool, hi_seen: bool) -> str:
+    return {(True, True): "all seen", (True, False): "low end seen", (False, True): "high end seen"}.get(
+        (lo_seen, hi_seen), "centred")
+
+
+def _quad_grid(quad: np.ndarray) -> np.ndarray:
+    """(2, 2, 2) the grid of corners of one cell given as its corners in order (tl, tr, br, bl)."""
+    return np.array([[quad[0], quad[1]], [quad[3], quad[2]]])
 
 
 def _cell_level(u8: np.ndarray, g: np.ndarray, r: int, c: int) -> float:
@@ -144,11 +364,13 @@ def _cell_level(u8: np.ndarray, g: np.ndarray, r: int, c: int) -> float:
     quad = np.array([g[r, c], g[r, c + 1], g[r + 1, c + 1], g[r + 1, c]])
     mid = quad.mean(0)
     pts = np.rint(mid + 0.3 * (quad - mid)).astype(np.int32)  # a small quadrilateral in the cell's middle
-    mask = np.zeros(u8.shape, np.uint8)
-    cv2.fillConvexPoly(mask, pts, 1)
+    lo = np.clip(pts.min(0), 0, (u8.shape[1] - 1, u8.shape[0] - 1))
+    hi = np.clip(pts.max(0) + 1, lo + 1, (u8.shape[1], u8.shape[0]))
+    mask = np.zeros((hi[1] - lo[1], hi[0] - lo[0]), np.uint8)  # over the quadrilateral's bounding box only
+    cv2.fillConvexPoly(mask, pts - lo, 1)
     if not mask.any():
         return float(u8[int(np.clip(round(mid[1]), 0, u8.shape[0] - 1)), int(np.clip(round(mid[0]), 0, u8.shape[1] - 1))])
-    return float(u8[mask > 0].mean())
+    return float(u8[lo[1] : hi[1], lo[0] : hi[0]][mask > 0].mean())
 
 
 # --- ChArUco ----------------------------------------------------------------------------------------
