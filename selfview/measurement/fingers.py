@@ -71,6 +71,7 @@ def find_fingertips(
     if model is False or (model == "auto" and not misses_a_corner(result)):
         return result
     fitted, fit = measure_model(image, pred, points, result, appearance)
+    fitted.left_out.update(result.left_out)
     if model is True or (fit.ok and fitted.found.sum() > result.found.sum()):
         return fitted
     if model == "auto" and fit.C_H_G is not None and fit.good_fraction >= MIN_GOOD_FRACTION:
@@ -80,6 +81,7 @@ def find_fingertips(
         again = search_corners(image, PredictedFingers(pred.camera, fit.C_H_G, pred.gripper, pred.gap_mm),
                                min(float(search_px), REFINE_SEARCH_PX), points)
         _drop_off_shape(pred, again)
+        again.left_out.update(result.left_out)
         if again.found.sum() > result.found.sum():
             return again
     return result
@@ -115,6 +117,7 @@ def _drop_off_shape(pred: PredictedFingers, res: FingertipResult) -> None:
         k = k_all[worst]
         res.found[k] = False
         res.reasons[k] = f"off the fingers' shape: {off[worst]:.1f} px from where the other corners put it"
+        res.left_out[res.names[k]] = res.reasons[k]
         res.uv[k] = np.nan
         res.edge_rms_px[k] = np.nan
 

@@ -12,7 +12,7 @@ reported as not found with the reason, never extrapolated.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -55,7 +55,8 @@ class FingertipResult:
     (``fingers.find_fingertips(..., model=True)``, ``fingers.SilhouetteTracker``) also: ``quality`` the
     fit's quality (``selfview.measurement.silhouette.SilhouetteFit.quality``: share of good edge samples, residual,
     the TCP's standard deviation), ``lost`` why the frame says "not found" (None: it does not), and
-    ``C_H_G`` the fitted pose (None if none was believed).
+    ``C_H_G`` the fitted pose (None if none was believed). ``left_out``: {point name: why} of corners the
+    search found but left out as off the fingers' shape, whatever measured the points after it.
     """
 
     uv: np.ndarray
@@ -68,6 +69,7 @@ class FingertipResult:
     quality: dict | None = None
     lost: str | None = None
     C_H_G: np.ndarray | None = None
+    left_out: dict = field(default_factory=dict)
 
     @property
     def quality_ok(self) -> bool:
