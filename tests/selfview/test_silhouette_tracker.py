@@ -170,3 +170,28 @@ def test_a_new_jaw_gap_is_searched_for_and_bad_arguments_are_refused():
         SilhouetteTracker(w.camera, cell.gripper, track_rounds=(0.5,))
     with pytest.raises(ValueError, match="gap_mm"):
         tr.find(pic.image, w.C_H_G, -1.0)
+
+
+def test_rms_limit_is_the_old_gate_until_a_level_is_learnt_then_the_level_with_its_margin():
+    assert sil.rms_limit(None) == sil.MAX_RMS_PX
+    assert sil.rms_limit(0.2) == sil.MAX_RMS_PX  # a level under the old gate does not tighten it
+    assert sil.rms_limit(0.8) == pytest.approx(sil.RMS_MARGIN * 0.8)
+    with pytest.raises(ValueError, match="level_px"):
+        sil.rms_limit(sil.MAX_LEARNT_RMS_PX + 0.1)
+    with pytest.raises(ValueError, match="level_px"):
+        SilhouetteTracker(_world().camera, _cell().gripper, rms_level_px=2.0)
+
+
+def test_tracker_learns_the_residual_level_at_its_first_fit_from_the_calibrated_pose():
+    w = _world()
+    tr = SilhouetteTracker(w.camera, _cell().gripper, points=range(4))
+    assert tr.rms_level_px is None
+    first = tr.find(render(w, seed=1).image, w.C_H_G, w.jaw_gap_mm)
+    assert first.lost is None
+    assert tr.rms_level_px == pytest.approx(first.quality["rms_px"], abs=1e-4) and tr.rms_level_px < 0.3
+    tr.reset()  # the level is the gripper's: a reset keeps it
+    assert tr.rms_level_px == pytest.approx(first.quality["rms_px"], abs=1e-4)
+    # a wrong level's gate refuses what the learnt one accepts: a fit over the limit given is lost with the reason
+    fit = sil.fit_silhouette(render(w, seed=2).image, w.camera, w.C_H_G, _cell().gripper, w.jaw_gap_mm,
+                             rounds=(8.0,), max_rms_px=0.5 * tr.rms_level_px)
+    assert not fit.ok and fit.reason.startswith("lost: edge residual")
