@@ -692,7 +692,8 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
     the rounds of sampling (the first must reach as far as the prediction may be off). ``points``: the
     fingertip points reported as found when the fit holds. ``frame``: ``image`` is a tracker's frame
     (grey, of the camera's size), which the compiled kernel reads as it is when 8-bit, without the
-    picture's checks. ``max_rms_px``: the edge residual over which the fit is lost (``rms_limit``).
+    picture's checks. ``max_rms_px``: the edge residual over which the fit is lost (``rms_limit``); the TCP's
+    standard deviation limit, ``MAX_TCP_SD_MM`` at ``MAX_RMS_PX``, grows with it (that sd scales with the residual).
     Returns a ``SilhouetteFit``; never raises for a fit that fails (``ok`` False and
     the reason)."""
     a = np.asarray(image)
