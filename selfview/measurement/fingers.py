@@ -16,7 +16,8 @@ from selfview.measurement.discs import as_gray
 from selfview.errors import CalibrationError
 from selfview.measurement.fingertips import FingertipResult, PredictedFingers, search_corners
 from selfview.maths.geometry import transform_points
-from selfview.measurement.silhouette import MIN_GOOD_FRACTION, fit_silhouette, learn_appearance
+from selfview.measurement.silhouette import (MAX_LEARNT_RMS_PX, MAX_RMS_PX, MIN_GOOD_FRACTION, fit_silhouette,
+                                             learn_appearance, rms_limit)
 
 __all__ = ["find_fingertips", "misses_a_corner", "model_measurement", "measure_model", "fit_result", "SilhouetteTracker", "WIDE_ROUNDS"]
 
@@ -164,9 +165,10 @@ def model_measurement(image, camera, C_H_G_pred, gripper, gap_mm, points=range(6
 
 
 def measure_model(image, pred: PredictedFingers, points=range(6), searched=None, appearance=None, starts=None,
-                  rounds=None):
+                  rounds=None, max_rms_px: float = MAX_RMS_PX):
     """``model_measurement`` from a ``PredictedFingers``: fits from ``starts`` (default the prediction),
-    the corners' pose of ``searched`` first; returns (FingertipResult, SilhouetteFit)."""
+    the corners' pose of ``searched`` first, each lost over the edge residual ``max_rms_px``; returns
+    (FingertipResult, SilhouetteFit)."""
     cands = list(starts) if starts is not None else [pred.C_H_G]
     if searched is not None:
         H = _pose_from_corners(pred, searched)
@@ -181,7 +183,8 @@ def measure_model(image, pred: PredictedFingers, points=range(6), searched=None,
     best = None
     for H in cands:
         kw = {} if rounds is None else {"rounds": rounds}
-        fit = fit_silhouette(image, cam, H, gripper, gap, appearance=appearance, points=points, **kw)
+        fit = fit_silhouette(image, cam, H, gripper, gap, appearance=appearance, points=points, max_rms_px=max_rms_px,
+                             **kw)
         if best is None or (fit.ok, fit.good_fraction) > (best.ok, best.good_fraction):
             best = fit
         if fit.ok and fit.good_fraction > 0.8:
@@ -206,10 +209,18 @@ class SilhouetteTracker:
     pose the corner search (``selfview.measurement.fingertips``) gives. A frame where none holds reports every point
     as not found, with the reason in ``result.lost``: a missed frame, never a pose. Every result carries
     the fit's ``quality``.
+
+    The edge residual a right fit leaves depends on the gripper (a real finger is off its nominal faces),
+    so the tracker learns it: the first frame is first fitted from ``C_H_G_pred`` (the calibration's pose)
+    with the short ranges and a residual up to ``MAX_LEARNT_RMS_PX``; when that fit holds, its residual
+    is ``rms_level_px`` and every later frame is lost over ``rms_limit(rms_level_px)`` (the level times
+    ``RMS_MARGIN``, at least ``MAX_RMS_PX``). Until a level is learnt (the first frame not where the
+    calibration puts it) frames are lost over ``MAX_RMS_PX``. ``rms_level_px`` given: that level (e.g.
+    the calibration picture's), nothing learnt. ``reset()`` keeps the level (it is the gripper's).
     """
 
     def __init__(self, camera: CameraModel, gripper: GripperSpec, *, points=range(4), search_px: float = 60.0,
-                 track_rounds=(8.0,), refine_px: float = 2.0, appearance=None):
+                 track_rounds=(8.0,), refine_px: float = 2.0, appearance=None, rms_level_px: float | None = None):
         if not isinstance(camera, CameraModel):
             raise TypeError(f"camera: expected a selfview.maths.camera.CameraModel, got {type(camera).__name__}")
         want = sorted({int(k) for k in points})
@@ -230,6 +241,9 @@ class SilhouetteTracker:
         self.last_failure: str | None = None
         self.last_fit = None
         self._app0 = appearance
+        rms_limit(rms_level_px)  # a level no right fit gives is named now
+        self.rms_level_px = None if rms_level_px is None else float(rms_level_px)
+        self._learn = rms_level_px is None
         self.reset()
 
     def reset(self) -> None:
@@ -254,13 +268,26 @@ class SilhouetteTracker:
         if self._H is not None and self._gap is not None and abs(gap_mm - self._gap) > 1e-6:
             why = f"the jaw gap changed ({self._gap:.2f} -> {gap_mm:.2f} mm)"
             self.reset()
+        limit = rms_limit(self.rms_level_px)
+        if self._H is None and self._learn:
+            # the first frame, where the calibration puts the fingers: the fit known good gives the level
+            res, fit = measure_model(img, pred, self.points, appearance=self._app, rounds=self.track_rounds,
+                                     max_rms_px=MAX_LEARNT_RMS_PX)
+            if fit.ok:
+                self._learn = False
+                self.rms_level_px = float(fit.rms_px)
+                self._take(fit, gap_mm)
+                self.searches += 1
+                self.last_failure = None
+                return res
         if self._H is not None:
             fit = fit_silhouette(img, self.camera, self._H, self.gripper, gap_mm, appearance=self._app,
-                                 rounds=self.track_rounds, points=self.points, frame=True)
+                                 rounds=self.track_rounds, points=self.points, frame=True, max_rms_px=limit)
             if fit.C_H_G is not None and self._moved_px(fit.C_H_G, gap_mm) > self.refine_px:
                 # a larger step than usual: once more with a short range around the new pose
                 again = fit_silhouette(img, self.camera, fit.C_H_G, self.gripper, gap_mm, appearance=fit.appearance,
-                                       rounds=(min(self.track_rounds[-1], 3.0),), points=self.points, frame=True)
+                                       rounds=(min(self.track_rounds[-1], 3.0),), points=self.points, frame=True,
+                                       max_rms_px=limit)
                 fit = again if again.ok or not fit.ok else fit
             if fit.ok:
                 self._take(fit, gap_mm)
@@ -273,12 +300,12 @@ class SilhouetteTracker:
         self.last_failure = why
         img = img.astype(np.float32, copy=False)
         starts = ([self._H] if self._H is not None else []) + [pred.C_H_G]
-        res, fit = measure_model(img, pred, self.points, appearance=self._app, starts=starts)
+        res, fit = measure_model(img, pred, self.points, appearance=self._app, starts=starts, max_rms_px=limit)
         if not fit.ok:
             # the corner search's pose (three corners or more), and fits reaching as far as it searches
             searched = search_corners(img, pred, self.search_px, range(6))
             res2, fit2 = measure_model(img, pred, self.points, searched=searched, appearance=self._app,
-                                       starts=[], rounds=WIDE_ROUNDS)
+                                       starts=[], rounds=WIDE_ROUNDS, max_rms_px=limit)
             if fit2.ok:
                 res, fit = res2, fit2
         self.searches += 1

@@ -170,3 +170,70 @@ def test_a_new_jaw_gap_is_searched_for_and_bad_arguments_are_refused():
         SilhouetteTracker(w.camera, cell.gripper, track_rounds=(0.5,))
     with pytest.raises(ValueError, match="gap_mm"):
         tr.find(pic.image, w.C_H_G, -1.0)
+
+
+def test_rms_limit_is_the_old_gate_until_a_level_is_learnt_then_the_level_with_its_margin():
+    assert sil.rms_limit(None) == sil.MAX_RMS_PX
+    assert sil.rms_limit(0.2) == sil.MAX_RMS_PX  # a level under the old gate does not tighten it
+    assert sil.rms_limit(0.8) == pytest.approx(sil.RMS_MARGIN * 0.8)
+    with pytest.raises(ValueError, match="level_px"):
+        sil.rms_limit(sil.MAX_LEARNT_RMS_PX + 0.1)
+    with pytest.raises(ValueError, match="level_px"):
+        SilhouetteTracker(_world().camera, _cell().gripper, rms_level_px=2.0)
+
+
+def test_tracker_learns_the_residual_level_at_its_first_fit_from_the_calibrated_pose():
+    w = _world()
+    tr = SilhouetteTracker(w.camera, _cell().gripper, points=range(4))
+    assert tr.rms_level_px is None
+    first = tr.find(render(w, seed=1).image, w.C_H_G, w.jaw_gap_mm)
+    assert first.lost is None
+    assert tr.rms_level_px == pytest.approx(first.quality["rms_px"], abs=1e-4) and tr.rms_level_px < 0.3
+    tr.reset()  # the level is the gripper's: a reset keeps it
+    assert tr.rms_level_px == pytest.approx(first.quality["rms_px"], abs=1e-4)
+    # a wrong level's gate refuses what the learnt one accepts: a fit over the limit given is lost with the reason
+    fit = sil.fit_silhouette(render(w, seed=2).image, w.camera, w.C_H_G, _cell().gripper, w.jaw_gap_mm,
+                             rounds=(8.0,), max_rms_px=0.5 * tr.rms_level_px)
+    assert not fit.ok and fit.reason.startswith("lost: edge residual")
+
+
+def test_tracker_follows_real_fingers_whose_right_fit_leaves_over_the_old_gate():
+    """Issue 30: world 2's realistic fingers (off their nominal faces) leave 0.82-0.85 px at the true pose,
+    over the old 0.6 px gate; the tracker learns that level at its first fit and tracks the next frames
+    (the camera crept between them). The nominal model's pose of these fingers is off the truth by a bias
+    (about 0.1 mm); a tracked frame's pose keeps that bias within TCP_MM across the picture and within twice
+    that in depth (the biased model's weak axis; measured 0.007 and 0.060 mm): it followed the camera."""
+    cell = _cell()
+    w = SimWorld(cell, seed=2, imperfections="realistic")
+    w.set_jaw(cell.gripper.gap(cell.gripper.calibrate_in), cell.gripper.calibrate_in)
+    w.park()
+    w.unpark()
+    old = fit_silhouette(render(w, seed=1).image, w.camera, w.C_H_G, cell.gripper, w.jaw_gap_mm, rounds=(8.0,))
+    assert not old.ok and old.reason.startswith("lost: edge residual") and old.rms_px > sil.MAX_RMS_PX
+    tr = SilhouetteTracker(w.camera, cell.gripper, points=range(4))
+    pred = w.C_H_G
+    first = tr.find(render(w, seed=1).image, pred, w.jaw_gap_mm)
+    assert first.lost is None and tr.rms_level_px == pytest.approx(first.quality["rms_px"], abs=1e-4)
+    bias = tr.last_fit.C_H_G[:3, 3] - w.C_H_G[:3, 3]
+    for k in range(2):
+        w.disturb_by_angle((0.0, 1.0, 0.0), TILT_DEG)
+        res = tr.find(render(w, seed=2 + k).image, pred, w.jaw_gap_mm)
+        assert res.lost is None and res.tracked, res.lost
+        moved = np.abs(tr.last_fit.C_H_G[:3, 3] - w.C_H_G[:3, 3] - bias)
+        assert moved[:2].max() < TCP_MM and moved[2] < 2 * TCP_MM, moved
+
+
+def test_a_fit_a_few_px_off_world_2s_real_fingers_is_lost_under_the_learnt_limit():
+    """The learnt gate (world 2's level, 0.85 px) still loses a wrong fit: from a start 0.5-1.2 mm (4-10 px)
+    off with a 3 px range the fit cannot reach the fingers' edges and is lost (its few supporting samples
+    leave a small residual: the support fractions are what catch it)."""
+    cell = _cell()
+    w = SimWorld(cell, seed=2, imperfections="realistic")
+    w.set_jaw(cell.gripper.gap(cell.gripper.calibrate_in), cell.gripper.calibrate_in)
+    w.park()
+    w.unpark()
+    img = render(w, seed=1).image
+    for dx in (0.5, 1.2):
+        fit = fit_silhouette(img, w.camera, trans(dx, 0.0, 0.0) @ w.C_H_G, cell.gripper, w.jaw_gap_mm,
+                             rounds=(3.0,), max_rms_px=sil.rms_limit(0.85))
+        assert not fit.ok and fit.reason.startswith("lost:") and fit.uv[np.isfinite(fit.uv)].size == 0, dx
