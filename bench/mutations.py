@@ -361,8 +361,8 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "stall-reply-judged-at-the-deadline",
         "drivers/puma_val_serial/driver.py",
-        "if overtime_end is None or (chunk and now < overtime_end):",
-        "if False:",
+        "self._overtime_end = now + _OVERTIME_S\n            return False",
+        "self._overtime_end = now + _OVERTIME_S\n            return True",
         ("tests/drivers/test_puma_cli.py::test_a_stall_of_the_host_longer_than_the_reply_limit_is_no_device_fault",
          "tests/drivers/test_puma_host_stall.py::test_a_reply_that_arrived_while_the_host_was_stopped_after_a_silent_read_counts"),
         "a reply that arrived complete while the host was stalled is a device fault: ABORT and exit 4",
@@ -370,8 +370,8 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "abort-confirmation-judged-at-the-deadline",
         "drivers/puma_val_serial/driver.py",
-        "                        if not looked_again:",
-        "                        if False:",
+        "                if limit.passed(chunk):  # a line that keeps talking ends the wait too",
+        "                if time.monotonic() >= limit.deadline:",
         ("tests/drivers/test_puma_host_stall.py::"
          "test_an_abort_confirmed_while_the_host_was_stopped_after_a_silent_read_counts_as_confirmed",),
         "an ABORT the controller confirmed while the host was stalled is reported unconfirmed",
