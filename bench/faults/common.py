@@ -215,7 +215,8 @@ def thread_stacks(stuck: threading.Thread, depth: int = 12) -> str:
     return "\n".join(lines)
 
 
-_PROJECT_FILE = re.compile(r"[/\\]((?:selfview|drivers|mocks|procedures|bench)[/\\].+)$")
+# the last of the project's folders in the path: a clone in a folder named "selfview" is not one of them
+_PROJECT_FILE = re.compile(r"^.*[/\\]((?:selfview|drivers|mocks|procedures|bench)[/\\].+)$")
 
 
 def _short_file(path: str) -> str:
