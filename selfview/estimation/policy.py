@@ -17,6 +17,7 @@ from typing import Callable
 import numpy as np
 
 from selfview.maths.camera import CameraModel
+from selfview.maths.lm import wald_chi2
 from selfview.files.cell import POINT_NAMES, MonitorLimits
 from selfview.errors import AlarmError, CalibrationError, ConfigError
 from selfview.maths.geometry import H_from_rotvec, check_rigid, inv_H, orthonormalize, rotation_angle, rotvec_from_R
@@ -114,10 +115,8 @@ def significance(est: MotionEstimate) -> float:
     m = np.asarray(est.motion, float)
     if C.shape != (6, 6) or m.shape != (6,) or not (np.isfinite(C).all() and np.isfinite(m).all()):
         return math.nan
-    try:
-        return float(m @ np.linalg.solve(C, m))
-    except np.linalg.LinAlgError:
-        return math.nan
+    chi2 = wald_chi2(m, C)
+    return chi2 if math.isfinite(chi2) else math.nan
 
 
 class Policy:

@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
+import math
+
 import numpy as np
 
 from selfview.errors import CalibrationError
@@ -86,6 +88,15 @@ def covariance(J, sigma2: float, *, normal=False) -> np.ndarray:
     if not (np.all(np.isfinite(s)) and s[-1] > _EPS * max(m, p) * s[0]):
         return np.full((p, p), np.inf)
     return sigma2 * ((Vt.T / (s * s)) @ Vt) / np.outer(cn, cn)
+
+
+def wald_chi2(value, cov) -> float:
+    """value^T cov^-1 value: the chi-square of ``value`` against 0 (inf when ``cov`` is singular)."""
+    value = np.asarray(value, float)
+    try:
+        return float(value @ np.linalg.solve(np.asarray(cov, float), value))
+    except np.linalg.LinAlgError:
+        return math.inf
 
 
 def numeric_jacobian(fun: Residuals, x, *, r0=None, method: str = "central", scale=None,

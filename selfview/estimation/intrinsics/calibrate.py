@@ -13,7 +13,8 @@ from selfview.errors import CalibrationError
 from selfview.estimation.intrinsics.advice import STOP_ASPECT_REL, STOP_CENTRE_PX, MAX_MORE_VIEWS, stop_met, more_views_advice
 from selfview.estimation.intrinsics.checks import halves_cross_check
 from selfview.estimation.intrinsics.plate import PLATE_MODELS
-from selfview.estimation.intrinsics.evidence import chi2_3_sf, heldout_test, sign_test_p, wald_chi2
+from selfview.estimation.intrinsics.evidence import chi2_3_sf, heldout_test, sign_test_p
+from selfview.maths.lm import wald_chi2
 from selfview.estimation.intrinsics.fit import (
     MIN_VIEWS, UNDETERMINED_CENTRE_PX, VIEW_MAX_RMS_PX, JointFit, sigmas_of, detect_views, fit_views, leave_views_out,
     projection_sigma_px,

@@ -10,7 +10,7 @@ from selfview.errors import CalibrationError
 from selfview.maths.geometry import R_from_rotvec, make_H
 from selfview.estimation.intrinsics.fit import INTRINSIC_NAMES, MIN_VIEWS_HALF, JointFit, fit_views
 from selfview.estimation.intrinsics.model import POSE_STEP, STEP, JointProblem, intrinsics_vector, with_intrinsics
-from selfview.maths.lm import levenberg_marquardt
+from selfview.maths.lm import levenberg_marquardt, wald_chi2
 
 
 #: The halves of the cross-check agree when no parameter differs by more than this many combined sigmas.
@@ -134,9 +134,8 @@ def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
     if not (res.converged and np.all(np.isfinite(C3))):
         out["why"] = "one picture does not determine the centre and the aspect"
         return out
-    try:
-        chi2 = float(d @ np.linalg.solve(C3, d))
-    except np.linalg.LinAlgError:
+    chi2 = wald_chi2(d, C3)
+    if not np.isfinite(chi2):  # a singular covariance
         out["why"] = "one picture does not determine the centre and the aspect"
         return out
     sig = np.sqrt(np.diag(C3))

@@ -26,15 +26,6 @@ def chi2_3_sf(x: float) -> float:
     return math.erfc(math.sqrt(x / 2)) + math.sqrt(2 * x / math.pi) * math.exp(-x / 2)
 
 
-def wald_chi2(value, cov) -> float:
-    """value^T cov^-1 value: the chi-square of ``value`` against 0 (inf when ``cov`` is singular)."""
-    value = np.asarray(value, float)
-    try:
-        return float(value @ np.linalg.solve(np.asarray(cov, float), value))
-    except np.linalg.LinAlgError:
-        return math.inf
-
-
 def heldout_test(simple: JointFit, rich: JointFit) -> dict:
     """Does ``rich`` predict the views left out better than ``simple``? Per view common to both (by name):
     the mean square of its residuals predicted from the other views (its pose refitted to it), by each
