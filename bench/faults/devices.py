@@ -146,7 +146,7 @@ def second_process_case(device: str, fixtures: dict, rng, tally: Tally, workdir:
     code2, err2 = box.get("result", (None, "the second process never ran"))
     bad, seen = _cli_outcome(code, err)
     bad2, seen2 = _cli_outcome(code2, err2)
-    got_through = (f"SPEED {speed}" in received) if device == "robot" else code2 == 0
+    got_through = any(_is_speed(ln, speed) for ln in received) if device == "robot" else code2 == 0
     if got_through and not _park_owned_it(device, received, speed, box):
         box["during"] = False
     if not box.get("during"):
@@ -176,8 +176,16 @@ def _park_owned_it(device: str, received: list[str], speed: int, box: dict) -> b
 def _park_went_on(received: list[str], speed: int) -> bool:
     """Whether the controller received a line of park's after the second process's ``SPEED speed`` (the
     second sends only its read-back, ``STATUS``, after it; ``received`` upper-cased and stripped)."""
-    after = received[received.index(f"SPEED {speed}") + 1:]
-    return any(ln not in ("", "STATUS") for ln in after)
+    first = next(i for i, ln in enumerate(received) if _is_speed(ln, speed))
+    return any(ln not in ("", "STATUS") for ln in received[first + 1:])
+
+
+def _is_speed(line: str, speed: int) -> bool:
+    """Whether the controller read ``line`` as ``SPEED speed`` (``SPEED (45)`` as the driver writes it,
+    or ``SPEED 45``)."""
+    from selfview.drivers.puma_val_serial.dialect import ValDialect
+
+    return ValDialect().parse_command(line) == ("speed", {"pct": float(speed)})
 
 
 def run_devices(n: int, seed: int, deadline: float, tally: Tally, fixtures: dict, workers: int = 2) -> None:

@@ -23,7 +23,7 @@ from selfview.drivers.puma_val_serial.errors import ERROR_CLASSES, ControllerErr
 from selfview.errors import ConfigError, ProtocolError
 from selfview.maths.geometry import VAL_OAT, EulerConvention, H_from_xyzoat, xyzoat_from_H
 
-__all__ = ["ValDialect", "DEFAULT_COMMANDS", "DEFAULT_ERRORS", "OAT_CONVENTIONS", "load_dialect"]
+__all__ = ["ValDialect", "DEFAULT_COMMANDS", "PREFIX_SAFE_KINDS", "DEFAULT_ERRORS", "OAT_CONVENTIONS", "load_dialect"]
 
 #: O/A/T conventions by name. The default is the convention of Unimation's VAL, which VAL-II keeps
 #: (the sources, best first):
@@ -52,22 +52,60 @@ OAT_CONVENTIONS: dict[str, EulerConvention] = {
 }
 
 #: Command line templates; ``{name}`` is a location name, every other field a number.
+#:
+#: **No proper prefix of a line that moves the arm (or sets the speed, or defines a location) is itself a
+#: valid line.** Noise on the host-to-controller wire can put a line end inside a typed line, and the
+#: controller then executes the part before it: ``DO APPRO plate, 5`` of ``DO APPRO plate, 50`` is a real,
+#: different motion, and ``DO MOVE p`` of ``DO MOVE p1`` is one too when a location ``p`` exists. So the
+#: last argument of each such line is a parenthesised expression (VAL-II reads a real or location
+#: expression in parentheses as its value): any prefix that reaches into it leaves a parenthesis open,
+#: which is a syntax error, and any shorter prefix lacks a required argument. Per line (``|`` marks where
+#: a cut can fall):
+#:
+#: - ``SPEED (20)``: ``SPEED`` alone lacks its value; ``SPEED (2`` is unbalanced.
+#: - ``DO SET svtgt = (TRANS(350, 20, 100, 0, 90, 0))``: ``DO SET svtgt`` lacks ``=`` and its value,
+#:   ``DO SET svtgt = (TRANS`` is unbalanced, and no prefix reads as ``= T`` (a location named ``T``).
+#: - ``DO MOVE (above)``, ``DO MOVES (above)``: ``DO MOVE (abo`` is unbalanced (not the location ``abo``),
+#:   ``DO MOVE`` lacks its location.
+#: - ``DO APPRO plate, (50)``: ``DO APPRO plate, (5`` is unbalanced; ``DO APPRO plat`` and
+#:   ``DO APPRO plate`` lack the distance (required).
+#: - ``DO DEPART (50)``: ``DO DEPART (5`` is unbalanced, ``DO DEPART`` lacks the distance.
+#: - ``DO DRIVE 2, (-10.5), (20)``: ``DO DRIVE 2, (-10.5), (2`` is unbalanced; shorter ones lack the
+#:   speed (required).
+#: - ``DO READY`` has no argument: its prefixes are ``DO`` and parts of the word ``READY``.
+#:
+#: ``HERE name`` and ``POINT name`` move nothing: a prefix of the first records the current pose under a
+#: shorter name, one of the second shows a location and is answered "no change".
+#:
+#: **To be checked on a real VAL-II controller** before relying on this (the simulator,
+#: ``mocks/val_controller.py``, follows these assumptions): (1) a parenthesised real expression is
+#: accepted wherever a number is (``SPEED (20)``, ``DO DEPART (50)``) and a parenthesised location
+#: wherever a location is (``DO MOVE (above)``, ``DO SET a = (TRANS(...))``); (2) an unbalanced
+#: parenthesis is a syntax error and nothing runs; (3) APPRO's distance and DRIVE's speed are required,
+#: not optional (else ``DO APPRO plate`` would run as APPRO with no offset); (4) ``DO`` alone, and ``DO``
+#: with an abbreviated keyword such as ``DO READ``, runs nothing (neither repeats the last DO instruction).
+#: Where (1) fails, a YAML dialect can put back the bare forms (``commands:``), at the price of issue 32's
+#: prefix motions; ``ValDialect.valid_prefixes`` lists what a template leaves open.
 DEFAULT_COMMANDS: dict[str, str] = {
     "where": "WHERE",
     "calibrate": "CAL",
-    "speed": "SPEED {pct}",
+    "speed": "SPEED ({pct})",
     "here": "HERE {name}",
     "point": "POINT {name}",
-    "define": "DO SET {name} = TRANS({x}, {y}, {z}, {o}, {a}, {t})",
-    "move": "DO MOVE {name}",
-    "moves": "DO MOVES {name}",
-    "appro": "DO APPRO {name}, {d}",
-    "depart": "DO DEPART {d}",
-    "drive": "DO DRIVE {joint}, {deg}, {speed}",
+    "define": "DO SET {name} = (TRANS({x}, {y}, {z}, {o}, {a}, {t}))",
+    "move": "DO MOVE ({name})",
+    "moves": "DO MOVES ({name})",
+    "appro": "DO APPRO {name}, ({d})",
+    "depart": "DO DEPART ({d})",
+    "drive": "DO DRIVE {joint}, ({deg}), ({speed})",
     "ready": "DO READY",
     "abort": "ABORT",
     "status": "STATUS",
 }
+
+#: The command kinds that move the arm, set its speed or define a location: no proper prefix of their
+#: lines may be a valid line (``ValDialect.valid_prefixes``).
+PREFIX_SAFE_KINDS = ("speed", "define", "move", "moves", "appro", "depart", "drive", "ready")
 
 #: (controller text, error class) pairs. ``{joint}`` stands for a number. The simulator prints the
 #: first text listed for a class; the driver accepts every text (case-insensitive, anywhere in the line).
@@ -84,29 +122,80 @@ DEFAULT_ERRORS: tuple[tuple[str, str], ...] = (
 )
 
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+_PAREN_LEVELS = 3  # how deep a value's parentheses may nest: '50', '(50)', '((50))', '(((50)))'
+
+
+def _optional_parens(inner: str, tag: str) -> str:
+    """``inner`` inside 0 to ``_PAREN_LEVELS`` pairs of parentheses, balanced by construction (each
+    closing parenthesis is conditional on its opening one): an unbalanced text never matches."""
+    names = [f"{tag}_{k}" for k in range(_PAREN_LEVELS)]
+    return "".join(rf"(?P<{n}>\(\s*)?" for n in names) + inner + "".join(rf"(?({n})\s*\))" for n in reversed(names))
 
 
 def _template_regex(tpl: str, name_pattern: str) -> re.Pattern:
-    """A lenient regex for a command template: any case, blanks optional around punctuation and
-    required between words, fields as groups."""
-    atoms: list[tuple[str, str]] = []  # (kind, regex): kind 'w' word-like, 'p' punctuation, 's' blank
+    """A regex for a command template that reads a line as a VAL-II controller would: any case, blanks
+    optional around punctuation and required between words, fields as groups. A number is a real
+    expression: a number, or one in (nested) parentheses. Parentheses of the template that follow a
+    blank or punctuation group (``DO MOVE ({name})``, ``= (TRANS(...))``) may be given or left out,
+    as a controller's expression syntax allows; those right after a word are a function's
+    (``TRANS(``) and required. Every parenthesis given must be closed: a truncated line is rejected."""
+    atoms: list[tuple[str, str]] = []  # (kind, text): 'w' a word character, 'p' punctuation, 's' blank, 'f' field
     for lit, fld, _, _ in string.Formatter().parse(tpl):
         for m in re.finditer(r"\s+|\w|[^\w\s]", lit):
             t = m.group()
-            atoms.append(("s", "") if t.isspace() else ("w" if t.isalnum() else "p", re.escape(t)))
+            atoms.append(("s", t) if t.isspace() else ("w" if re.fullmatch(r"\w", t) else "p", t))
         if fld:
-            atoms.append(("w", f"(?P<{fld}>{name_pattern if fld == 'name' else _NUMBER})"))
-    rx = ""
-    for i, (kind, a) in enumerate(atoms):
-        if kind == "s":
-            prev = atoms[i - 1][0] if i else "p"
-            nxt = atoms[i + 1][0] if i + 1 < len(atoms) else "p"
-            rx += r"\s+" if prev == "w" and nxt == "w" else r"\s*"
-        else:
-            if i and kind == "p" or (i and atoms[i - 1][0] == "p"):
-                rx += r"\s*"
-            rx += a
-    return re.compile(r"\s*" + rx + r"\s*", re.IGNORECASE)
+            atoms.append(("f", fld))
+    groups = iter(range(10**6))
+
+    def close_of(i: int) -> int:
+        depth = 0
+        for j in range(i, len(atoms)):
+            depth += {"(": 1, ")": -1}.get(atoms[j][1], 0) if atoms[j][0] == "p" else 0
+            if depth == 0:
+                return j
+        raise ConfigError(f"command template {tpl!r}: a parenthesis is not closed")
+
+    def seq(lo: int, hi: int) -> str:
+        rx, prev, i = "", "p", lo  # prev: what came last, 'w' word-like or 'p' punctuation
+        while i < hi:
+            kind, t = atoms[i]
+            if kind == "s":
+                nk, nt = atoms[i + 1] if i + 1 < hi else ("p", "")
+                if prev == "w" and nk in ("w", "f"):
+                    rx += r"\s+"
+                elif prev == "w" and nt == "(":  # '(' optional: a blank, or the parenthesis itself
+                    rx += r"(?:\s+|(?=\())"
+                else:
+                    rx += r"\s*"
+                prev = "s"
+                i += 1
+                continue
+            if kind == "p" and t == "(":
+                j = close_of(i)
+                inner = seq(i + 1, j)
+                if prev == "w":  # a function's parentheses, TRANS(...)
+                    rx += r"\(\s*" + inner + r"\s*\)"
+                else:
+                    rx += r"\s*" + _optional_parens(inner, f"g{next(groups)}")
+                prev, i = "p", j + 1
+                continue
+            if kind == "p":
+                rx += r"\s*" + re.escape(t)
+                prev = "p"
+            else:
+                if prev == "p":
+                    rx += r"\s*"
+                if kind == "f":
+                    pat = name_pattern if t == "name" else _optional_parens(_NUMBER, f"n{next(groups)}")
+                    rx += f"(?P<{t}>{pat})"
+                else:
+                    rx += re.escape(t)
+                prev = "w"
+            i += 1
+        return rx
+
+    return re.compile(r"\s*" + seq(0, len(atoms)) + r"\s*", re.IGNORECASE)
 
 
 def _euler_from(v: Any) -> EulerConvention:
@@ -307,8 +396,16 @@ class ValDialect:
         for kind, rx in self._command_patterns.items():
             m = rx.fullmatch(line)
             if m:
-                return kind, {k: (v if k == "name" else float(v)) for k, v in m.groupdict().items()}
+                fields = {k: m.group(k).strip("() \t") for k in rx.groupindex if not re.fullmatch(r"[gn]\d+_\d+", k)}
+                return kind, {k: (v if k == "name" else float(v)) for k, v in fields.items()}
         return None
+
+    def valid_prefixes(self, kind: str, **values) -> list[str]:
+        """The proper prefixes of the line ``command(kind, **values)`` that this dialect's parser reads
+        as a valid line: what a line end put inside the line by noise would make the controller run
+        (empty for every kind of ``PREFIX_SAFE_KINDS`` with the default templates)."""
+        line = self.command(kind, **values)
+        return [line[:k] for k in range(1, len(line)) if line[:k].strip() and self.parse_command(line[:k]) is not None]
 
     # --- tables of values ----------------------------------------------------------------------
     def format_header(self, names) -> str:

@@ -402,9 +402,11 @@ class PumaVAL:
             if echo != body:  # the whole line, byte for byte: 'SPEED 02' is not 'SPEED 20'
                 self._need_resync = True
                 if b"\r" in echo or b"\n" in echo:
-                    # noise made a line end inside the typed line: the controller ran what came before it
-                    # ('DO APPRO p1, 5' of 'DO APPRO p1, 50'). Never "nothing ran": a motion gets the stop
-                    # written first, by the caller's fault path, as any motion whose end is in doubt.
+                    # noise made a line end inside the typed line: the controller executed what came before
+                    # it. The default templates make every such prefix a syntax error ('DO APPRO p1, (5'),
+                    # but a dialect's own templates may not ('DO APPRO p1, 5' of 'DO APPRO p1, 50'): never
+                    # "nothing ran": a motion gets the stop written first, by the caller's fault path, as
+                    # any motion whose end is in doubt.
                     if motion:
                         with self._write_lock:
                             self._mark_motion(text)

@@ -106,7 +106,7 @@ def test_a_second_process_counts_as_unsafe_only_if_park_drove_the_arm_after_it()
     lines follow its SPEED at the controller."""
     from selfview.bench.faults.devices import _park_went_on
 
-    assert not _park_went_on(["", "SPEED 20", "STATUS", "DO APPRO plate, 50", "", "SPEED 45", "STATUS"], 45)
-    assert not _park_went_on(["SPEED 45", "", "STATUS", ""], 45)
-    assert _park_went_on(["", "SPEED 45", "STATUS", "WHERE", "DO MOVES press"], 45)
-    assert _park_went_on(["SPEED 45", "DO DEPART 50", "STATUS"], 45)
+    assert not _park_went_on(["", "SPEED (20)", "STATUS", "DO APPRO PLATE, (50)", "", "SPEED (45)", "STATUS"], 45)
+    assert not _park_went_on(["SPEED (45)", "", "STATUS", ""], 45)
+    assert _park_went_on(["", "SPEED (45)", "STATUS", "WHERE", "DO MOVES (PRESS)"], 45)
+    assert _park_went_on(["SPEED 45", "DO DEPART (50)", "STATUS"], 45)  # the bare form is the same command

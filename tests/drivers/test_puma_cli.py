@@ -101,7 +101,7 @@ def test_robot_cli_pty_in_process(cell, capsys):
         assert main(["robot", "--url", c.url, "--max-speed", "90", "speed", "90"]) == 0
         assert "SPEED 90" in capsys.readouterr().out
         assert c.speed_pct == 90
-    assert [ln for ln in c.received if ln.startswith("SPEED")] == ["SPEED 90"]
+    assert [ln for ln in c.received if ln.startswith("SPEED")] == ["SPEED (90)"]
 
 
 def test_robot_cli_motion_goes_through_the_engine_and_ctrl_c_aborts_it(cell, capsys):
@@ -143,8 +143,8 @@ def test_robot_cli_with_the_reply_line_stalled_mid_motion_writes_abort_and_gives
         assert "ABORT sent, NOT confirmed" in err
         rx = c.received
         # the wait came from the speed read from the controller, and ABORT followed the motion directly
-        assert rx.index("STATUS") < rx.index("DO MOVE above") < rx.index("ABORT")
-        assert "" not in rx[rx.index("DO MOVE above") : rx.index("ABORT")]  # no resynchronising CR first
+        assert rx.index("STATUS") < rx.index("DO MOVE (above)") < rx.index("ABORT")
+        assert "" not in rx[rx.index("DO MOVE (above)") : rx.index("ABORT")]  # no resynchronising CR first
 
 
 def test_robot_cli_abort_while_another_client_moves_the_arm(cell, capsys):

@@ -185,7 +185,7 @@ def test_a_relocated_location_is_read_again_before_its_limit_check(sim):
     with pytest.raises(LimitError, match="outside the workspace"):
         robot.move("above")
     robot.close()
-    assert [ln for ln in sim.received if ln.startswith("DO MOVE")] == ["DO MOVE above"]
+    assert [ln for ln in sim.received if ln.startswith("DO MOVE")] == ["DO MOVE (above)"]
 
 
 def test_a_controller_with_another_oat_convention_is_named_before_any_motion(world):
@@ -324,7 +324,7 @@ def test_power_lost_mid_move(robot, sim):
     sim.inject("power_loss", at=0.5)
     with pytest.raises(ArmPowerOff) as ei:
         robot.move("above")
-    assert ei.value.command == "DO MOVE above"
+    assert ei.value.command == "DO MOVE (above)"
     mid = robot.where()  # WHERE still works without arm power
     assert pose_difference(mid.base_H_T, start.base_H_T)[1] > 1.0
     with pytest.raises(ArmPowerOff):
@@ -357,7 +357,7 @@ def test_asynchronous_error_line(robot, sim):
     with pytest.raises(ArmPowerOff) as ei:
         robot.speed(20)
     assert ei.value.command is None
-    assert "SPEED 20" not in sim.received  # raised before sending
+    assert "SPEED (20)" not in sim.received  # raised before sending
     robot.speed(20)
     assert sim.speed_pct == 20
 
@@ -409,7 +409,7 @@ def test_the_robot_never_receives_a_command_that_breaks_a_limit(sim):
             for v, (lo, hi) in zip((f["x"], f["y"], f["z"]), lim.workspace_mm):
                 assert lo <= v <= hi, line
         assert kind not in ("depart", "drive", "appro"), line
-    assert [ln for ln in sim.received if ln.startswith("DO MOVE")] == ["DO MOVE above", "DO MOVE svtgt"]
+    assert [ln for ln in sim.received if ln.startswith("DO MOVE")] == ["DO MOVE (above)", "DO MOVE (svtgt)"]
 
 
 # --- other links and clients --------------------------------------------------------------------------------

@@ -329,13 +329,13 @@ def test_error_lines_map_through_the_table():
         (b"*Unrecognized command*", CommandRejected),
         (b"*Bad karma*", ControllerError),
     ]
-    script = [x for line, _ in cases for x in typed(b"SPEED 10", CRLF + line + b"\r\n.")]
+    script = [x for line, _ in cases for x in typed(b"SPEED (10)", CRLF + line + b"\r\n.")]
     r, port = robot(script)
     for line, cls in cases:
         with pytest.raises(cls) as ei:
             r.speed(10)
         assert type(ei.value) is cls
-        assert ei.value.text == line.strip(b"*").decode() and ei.value.command == "SPEED 10"
+        assert ei.value.text == line.strip(b"*").decode() and ei.value.command == "SPEED (10)"
 
 
 def test_asynchronous_error_line_is_raised_before_the_next_command_is_sent():
@@ -374,7 +374,7 @@ def test_calibrate_and_ready_outside_the_workspace_are_refused():
 
 
 def test_unexpected_question_is_a_protocol_error_and_resync_answers_it():
-    script = [*typed(b"SPEED 20", CRLF + b"Really (Y/N)? "), (b"\r", b"\r\n."), *typed(b"SPEED 20", b"\r\n."), *status(20)]
+    script = [*typed(b"SPEED (20)", CRLF + b"Really (Y/N)? "), (b"\r", b"\r\n."), *typed(b"SPEED (20)", b"\r\n."), *status(20)]
     r, port = robot(script)
     with pytest.raises(ProtocolError, match="unexpected question"):
         r.speed(20)
@@ -382,55 +382,56 @@ def test_unexpected_question_is_a_protocol_error_and_resync_answers_it():
 
 
 def test_speed_is_read_back_and_limited():
-    script = [*typed(b"SPEED 30", b"\r\n."), *status(30), *typed(b"SPEED 12.5", b"\r\n."), *status(12.5)]
+    script = [*typed(b"SPEED (30)", b"\r\n."), *status(30), *typed(b"SPEED (12.5)", b"\r\n."), *status(12.5)]
     r, port = robot(script, limits=ValLimits(max_speed_pct=40))
     r.speed(30)
     r.speed(12.5)
     for bad in (41, 0, -5, float("nan")):
         with pytest.raises(LimitError, match="nothing was sent"):
             r.speed(bad)
-    assert [w for w in port.written if w.startswith(b"SPEED")] == [b"SPEED 30", b"SPEED 12.5"]
+    assert [w for w in port.written if w.startswith(b"SPEED")] == [b"SPEED (30)", b"SPEED (12.5)"]
 
 
 def test_a_speed_the_controller_does_not_hold_is_an_error():
-    r, port = robot([*typed(b"SPEED 20", b"\r\n."), *status(2)])
+    r, port = robot([*typed(b"SPEED (20)", b"\r\n."), *status(2)])
     with pytest.raises(ProtocolError, match="reads back SPEED 2, not 20"):
         r.speed(20)
 
 
 def test_an_echo_that_differs_after_its_first_word_is_erased_before_it_runs():
-    # 'SPEED 02' for 'SPEED 20': the first word matches, the line does not; CTRL-U, never CR
-    r, port = robot([(b"SPEED 20", b"SPEED 02"), (b"\x15", b""), SYNC, *typed(b"SPEED 20", b"\r\n."), *status(20)])
-    with pytest.raises(ProtocolError, match="echo of 'SPEED 20' came back as b'SPEED 02'.*nothing ran"):
+    # 'SPEED (02)' for 'SPEED (20)': the first word matches, the line does not; CTRL-U, never CR
+    r, port = robot([(b"SPEED (20)", b"SPEED (02)"), (b"\x15", b""), SYNC, *typed(b"SPEED (20)", b"\r\n."), *status(20)])
+    with pytest.raises(ProtocolError, match="echo of 'SPEED \\(20\\)' came back as b'SPEED \\(02\\)'.*nothing ran"):
         r.speed(20)
-    assert port.written == [b"\r", b"SPEED 20", b"\x15"]  # no CR after the corrupted line
+    assert port.written == [b"\r", b"SPEED (20)", b"\x15"]  # no CR after the corrupted line
     r.speed(20)
 
 
 def test_a_corrupted_motion_command_never_runs():
     p1 = VAL.pose_to_H(POSE)
     script = [*point(b"p1"), *where(), *status(20)]
-    script += [(b"DO APPRO p1, 50", b"DO APPRO p1, 20"), (b"\x15", b"")]
+    script += [(b"DO APPRO p1, (50)", b"DO APPRO p1, (20)"), (b"\x15", b"")]
     r, port = robot(script)
     with pytest.raises(ProtocolError, match="nothing ran"):
         r.appro("p1", 50)
-    assert port.written[-2:] == [b"DO APPRO p1, 50", b"\x15"]  # no CR, and no ABORT: nothing started
+    assert port.written[-2:] == [b"DO APPRO p1, (50)", b"\x15"]  # no CR, and no ABORT: nothing started
     assert p1 is not None
 
 
 def test_a_line_end_noise_put_inside_a_motion_line_stops_the_arm_first():
-    # noise turned a byte into CR: the controller ran 'DO APPRO p1, 5' of 'DO APPRO p1, 50'. Not "nothing ran":
-    # ABORT goes out at once, before anything else (no CTRL-U first), and the error says the line may have run
+    # noise turned a byte into CR inside the line: the controller executed 'DO APPRO p1, (5'. The default templates
+    # make that a syntax error (no prefix of a motion line is valid), but a dialect may not (bare numbers from a
+    # lab's YAML: 'DO APPRO p1, 5' of 'DO APPRO p1, 50' is a real motion). So never "nothing ran": ABORT goes out at once, before anything else (no CTRL-U first), and the error says the line may have run
     script = [*point(b"p1"), *where(), *status(20)]
-    script += [(b"DO APPRO p1, 50", b"DO APPRO p1, 5\r\n"), (b"\x15ABORT\r", b"ABORT\r\n*Motion aborted*\r\n.")]
+    script += [(b"DO APPRO p1, (50)", b"DO APPRO p1, (5\r\n"), (b"\x15ABORT\r", b"ABORT\r\n*Motion aborted*\r\n.")]
     r, port = robot(script)
     with pytest.raises(ProtocolError, match=r"a line end reached the controller.*may have run.*ABORT sent and confirmed"):
         r.appro("p1", 50)
-    assert port.written[-2:] == [b"DO APPRO p1, 50", b"\x15ABORT\r"]
+    assert port.written[-2:] == [b"DO APPRO p1, (50)", b"\x15ABORT\r"]
 
 
 def test_speed_with_unexpected_text_is_a_protocol_error():
-    r, port = robot([*typed(b"SPEED 30", b"\r\nhello\r\n."), SYNC])
+    r, port = robot([*typed(b"SPEED (30)", b"\r\nhello\r\n."), SYNC])
     with pytest.raises(ProtocolError, match="unexpected reply"):
         r.speed(30)
 
@@ -444,7 +445,7 @@ def define_line(name: str, pose) -> bytes:
 
 
 def test_define_from_pose_and_from_matrix():
-    line = b"DO SET p1 = TRANS(350, 20, 100, 30, 60, 40)"
+    line = b"DO SET p1 = (TRANS(350, 20, 100, 30, 60, 40))"
     r, port = robot([*typed(line, b"\r\n."), *typed(line, b"\r\n.")])
     r.define("p1", (350, 20, 100, 30, 60, 40))
     r.define("p1", VAL.pose_to_H((350, 20, 100, 30, 60, 40)))
@@ -501,7 +502,7 @@ def motion(cmd: bytes, arrive=JOINTS, *, start=JOINTS, speed=20) -> list:
 
 
 def test_move_reads_its_target_from_the_controller_each_time():
-    r, port = robot([*point(b"p1"), *motion(b"DO MOVE p1"), *point(b"p1"), *motion(b"DO MOVE p1")])
+    r, port = robot([*point(b"p1"), *motion(b"DO MOVE (p1)"), *point(b"p1"), *motion(b"DO MOVE (p1)")])
     r.move("p1")
     r.move("p1")
     assert port.written.count(b"POINT p1") == 4  # never a cached copy (each read twice)
@@ -509,19 +510,19 @@ def test_move_reads_its_target_from_the_controller_each_time():
 
 def test_a_relocated_target_outside_the_box_is_refused():
     far = (POSE[0] + 400.0,) + POSE[1:]
-    r, port = robot([*point(b"p1"), *motion(b"DO MOVE p1"), *point(b"p1", far)])
+    r, port = robot([*point(b"p1"), *motion(b"DO MOVE (p1)"), *point(b"p1", far)])
     r.move("p1")
     with pytest.raises(LimitError, match="outside the workspace"):
         r.move("p1")  # re-taught on the controller since: read again, refused
-    assert port.written.count(b"DO MOVE p1") == 1
+    assert port.written.count(b"DO MOVE (p1)") == 1
 
 
 def test_moves_to_a_pose_goes_through_the_scratch_location():
     target = (300.0, 0.0, 150.0, 90.0, 90.0, 0.0)
     q = joints_at(VAL.pose_to_H(target))
-    r, port = robot([*typed(define_line("svtgt", target), b"\r\n."), *motion(b"DO MOVES svtgt", arrive=q)])
+    r, port = robot([*typed(define_line("svtgt", target), b"\r\n."), *motion(b"DO MOVES (svtgt)", arrive=q)])
     r.moves(target)
-    assert b"DO MOVES svtgt" in port.written
+    assert b"DO MOVES (svtgt)" in port.written
 
 
 def test_appro_depart_drive_ready_bytes():
@@ -529,9 +530,9 @@ def test_appro_depart_drive_ready_bytes():
     q_appro = joints_at(goal)
     q_depart = joints_at(VAL.pose_to_H(pose_of(q_appro)) @ trans(0, 0, -50), q_appro)
     q_drive = tuple(round(v, 2) for v in np.add(q_depart, (0, -10.5, 0, 0, 0, 0)))
-    script = point(b"p1") + motion(b"DO APPRO p1, 30", arrive=q_appro)
-    script += [*where(q_appro), *status(20), (b"DO DEPART 50", b"DO DEPART 50"), (b"\r", [(0.0, CRLF), (0.05, b".")]), (b"\r", b"\r\n."), *where(q_depart)]
-    script += motion(b"DO DRIVE 2, -10.5, 20", arrive=q_drive, start=q_depart)
+    script = point(b"p1") + motion(b"DO APPRO p1, (30)", arrive=q_appro)
+    script += [*where(q_appro), *status(20), (b"DO DEPART (50)", b"DO DEPART (50)"), (b"\r", [(0.0, CRLF), (0.05, b".")]), (b"\r", b"\r\n."), *where(q_depart)]
+    script += motion(b"DO DRIVE 2, (-10.5), (20)", arrive=q_drive, start=q_depart)
     script += motion(b"DO READY", arrive=READY_DEG, start=q_drive)
     r, port = robot(script)
     r.appro("p1", 30)
@@ -539,9 +540,9 @@ def test_appro_depart_drive_ready_bytes():
     r.drive(2, -10.5, 20)
     r.ready()
     assert [w for w in port.written if w.startswith(b"DO ")] == [
-        b"DO APPRO p1, 30",
-        b"DO DEPART 50",
-        b"DO DRIVE 2, -10.5, 20",
+        b"DO APPRO p1, (30)",
+        b"DO DEPART (50)",
+        b"DO DRIVE 2, (-10.5), (20)",
         b"DO READY",
     ]
 
@@ -572,21 +573,21 @@ def test_motion_limits_are_checked_before_sending():
 
 def test_one_noise_prompt_does_not_end_a_motion():
     # a '.' at the start of a line 10 ms into the move; the real end comes 0.3 s later
-    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE p1", b"DO MOVE p1")]
+    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE (p1)", b"DO MOVE (p1)")]
     script += [(b"\r", [(0.0, CRLF), (0.01, b".")])]  # the noise: looks like the prompt
     script += [(b"\r", [(0.3, b"."), (0.0, CRLF + b".")])]  # our CR waits behind the motion's real end
     script += where()
     r, port = robot(script)
     t0 = time.monotonic()
     r.move("p1")
-    i = port.written.index(b"DO MOVE p1")
+    i = port.written.index(b"DO MOVE (p1)")
     assert port.written[i + 1 : i + 4] == [b"\r", b"\r", b"WHERE"]
     assert port.write_times[i + 3] - t0 >= 0.3  # WHERE only after the controller's real prompt
 
 
 def test_a_prompt_with_the_arm_short_of_its_target_is_an_error_and_aborts():
     elsewhere = tuple(round(v, 2) for v in np.add(JOINTS, (8.0, 0, 0, 0, 0, 0)))
-    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE p1", b"DO MOVE p1"), (b"\r", [(0.0, CRLF), (0.01, b".")])]
+    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE (p1)", b"DO MOVE (p1)"), (b"\r", [(0.0, CRLF), (0.01, b".")])]
     script += [(b"\r", b"\r\n."), *where(elsewhere), (b"\x15ABORT\r", b"ABORT\r\n*Motion aborted*\r\n.")]
     r, port = robot(script)
     with pytest.raises(ProtocolError, match="WHERE puts the arm .* from its target.*ABORT sent and confirmed"):
@@ -598,7 +599,7 @@ def test_a_motion_that_ends_turned_from_its_target_is_not_arrived():
     # the arm at the target's point but the hand turned 5 deg about its own axis (JT6): the tool point is
     # where it should be, the orientation is not, so the motion has not arrived
     turned = tuple(round(v, 2) for v in np.add(JOINTS, (0, 0, 0, 0, 0, 5.0)))
-    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE p1", b"DO MOVE p1"), (b"\r", [(0.0, CRLF), (0.01, b".")])]
+    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE (p1)", b"DO MOVE (p1)"), (b"\r", [(0.0, CRLF), (0.01, b".")])]
     script += [(b"\r", b"\r\n."), *where(turned), (b"\x15ABORT\r", b"ABORT\r\n*Motion aborted*\r\n.")]
     r, port = robot(script)
     with pytest.raises(ProtocolError, match="from its target.*ABORT sent and confirmed"):
@@ -608,18 +609,18 @@ def test_a_motion_that_ends_turned_from_its_target_is_not_arrived():
 
 def test_a_motion_that_outlasts_its_wait_is_aborted_first_thing():
     lim = ValLimits(timeout_factor=0.001, timeout_margin_s=0.2)  # a wait far shorter than the motion
-    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE p1", b"DO MOVE p1"), (b"\r", CRLF)]
+    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE (p1)", b"DO MOVE (p1)"), (b"\r", CRLF)]
     script += [(b"\x15ABORT\r", b"ABORT\r\n*Motion aborted*\r\n.")]
     r, port = robot(script, limits=lim)
     with pytest.raises(DeviceTimeout, match="ABORT sent and confirmed"):
         r.move("p1")
     # ABORT went out right after the motion's CR: no resynchronising CR before it
-    assert port.written[-3:] == [b"DO MOVE p1", b"\r", b"\x15ABORT\r"]
+    assert port.written[-3:] == [b"DO MOVE (p1)", b"\r", b"\x15ABORT\r"]
 
 
 def test_an_abort_that_gets_no_answer_says_so():
     lim = ValLimits(timeout_factor=0.001, timeout_margin_s=0.2)
-    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE p1", b"DO MOVE p1"), (b"\r", CRLF)]
+    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE (p1)", b"DO MOVE (p1)"), (b"\r", CRLF)]
     script += [(b"\x15ABORT\r", b"")]  # the reply path has stalled
     r, port = robot(script, limits=lim)
     with pytest.raises(DeviceTimeout, match="ABORT sent, NOT confirmed"):
@@ -643,7 +644,7 @@ def test_abort_on_a_closed_link_is_reported_not_raised():
 
 def test_abort_from_another_thread_interrupts_a_waiting_move():
     # the controller echoes the move, then stays silent until it reads ABORT
-    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE p1", b"DO MOVE p1"), (b"\r", CRLF)]
+    script = [*point(b"p1"), *where(), *status(20), (b"DO MOVE (p1)", b"DO MOVE (p1)"), (b"\r", CRLF)]
     script += [(b"\x15ABORT\r", b"ABORT\r\n*Motion aborted*\r\n.")]
     r, port = robot(script, timeout_s=1.0)
     result = {}
@@ -659,7 +660,7 @@ def test_abort_from_another_thread_interrupts_a_waiting_move():
 
     def spy(data):
         n = orig(data)
-        if data == b"\r" and port.written[-2:-1] == [b"DO MOVE p1"]:
+        if data == b"\r" and port.written[-2:-1] == [b"DO MOVE (p1)"]:
             sent.set()
         return n
 
