@@ -192,6 +192,36 @@ def test_straight_moves_stay_on_the_line(term_sim, monkeypatch):
     t.close()
 
 
+def test_a_line_cut_short_by_a_line_end_runs_nothing(term_sim):
+    """Issue 32: noise puts a line end inside a typed line and the controller executes what came before it.
+    Every proper prefix of the driver's motion, SPEED and location lines, typed and ended, is refused as a
+    syntax error and moves nothing (a location 'p' exists, so 'DO MOVE p' of 'DO MOVE p1' would run); the
+    whole lines run, and a cut bare line ('DO APPRO plate, 5' of 'DO APPRO plate, 50') is a real motion."""
+    c, t = term_sim(calibrated=True)
+    d = c.dialect
+    for name, pose in (("p", (300, -60, 120, 90, 90, 0)), ("p1", (380, 60, 60, 90, 60, 30))):
+        assert t.say(d.command("define", name=name, **dict(zip("xyzoat", pose))).encode()).endswith(b"\r\n.")
+    assert set(c.locations()) >= {"P", "P1", "ABOVE", "PLATE"}
+    lines = [d.command("appro", name="plate", d=50), d.command("move", name="p1"), d.command("moves", name="above"),
+             d.command("depart", d=60), d.command("drive", joint=1, deg=-12.5, speed=50), d.command("speed", pct=20),
+             d.command("define", name="p1", x=350, y=-20, z=100, o=0, a=90, t=-45.5), d.command("ready")]
+    before, speed, where = c.joints, c.speed_pct, c.locations()
+    for line in lines:
+        for k in range(1, len(line)):
+            out = t.say(line[:k].encode())
+            assert out.endswith(b"*Unrecognized command*\r\n."), (line[:k], out)
+            assert not c.moving.is_set()
+    np.testing.assert_array_equal(c.joints, before)
+    assert c.speed_pct == speed and {k: v.tolist() for k, v in c.locations().items()} == {k: v.tolist() for k, v in where.items()}
+    assert t.say(lines[0].encode()).endswith(b"\r\n.")  # the whole line is read and runs
+    appro = c.joints
+    assert np.max(np.abs(appro - before)) > 1.0
+    t.say(d.command("ready").encode())
+    t.say(b"DO APPRO plate, 5")  # the bare form's prefix: a real motion, 45 mm nearer the plate
+    assert np.max(np.abs(c.joints - appro)) > 1.0
+    t.close()
+
+
 def test_drive_past_a_joint_limit_is_refused_by_the_controller(term_sim):
     c, t = term_sim(calibrated=True)
     before = c.joints
