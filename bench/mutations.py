@@ -456,6 +456,23 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("tests/selfview/test_intrinsics.py::test_a_camera_file_whose_covariance_holds_nan_is_refused",),
         "a camera file whose covariance holds NaN is accepted (only its sigmas are checked)",
     ),
+    # --- issue 32: a line end put inside a typed motion line (val.h2d.error_line) --------------------------------
+    Mutation(
+        "val-appro-distance-bare",
+        "drivers/puma_val_serial/dialect.py",
+        '    "appro": "DO APPRO {name}, ({d})",\n',
+        '    "appro": "DO APPRO {name}, {d}",\n',
+        ("tests/drivers/test_puma_line_prefixes.py::test_no_proper_prefix_of_a_motion_speed_or_location_line_is_a_valid_line",),
+        "APPRO's distance written bare again: 'DO APPRO plate, 5', a cut 'DO APPRO plate, 50', is a shorter motion",
+    ),
+    Mutation(
+        "val-parser-closing-parenthesis-optional",
+        "drivers/puma_val_serial/dialect.py",
+        'inner + "".join(rf"(?({n})\s*\))" for n in reversed(names))',
+        'inner + "".join(rf"(?:\s*\))?" for n in reversed(names))',
+        ("tests/drivers/test_puma_line_prefixes.py", "tests/mocks/test_val_controller.py::test_a_line_cut_short_by_a_line_end_runs_nothing"),
+        "the controller's parser does not insist on the closing parenthesis: 'DO APPRO plate, (5' runs",
+    ),
 )
 
 _IGNORE = shutil.ignore_patterns(".git", "__pycache__", "*.egg-info", "build", ".pytest_cache", "*.pyc", ".ci-*")
