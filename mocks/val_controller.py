@@ -543,7 +543,10 @@ class ValController:
         # controller goes on. Replies are lines ending CR LF, the prompt is '.' at the start of a line
         # ('*' while program_running), errors are *text* lines from the dialect's table; CAL asks
         # "Are you sure (Y/N)?", POINT and HERE show the location and ask "Change?", STATUS prints the
-        # monitor speed.
+        # monitor speed. A line is read as VAL-II reads its syntax (``ValDialect.parse_command``): a
+        # number or a motion's location may stand in parentheses (``DO DEPART (50)``, ``DO MOVE (a)``) or
+        # not; a parenthesis left open or an argument missing (a line cut short by a line end that noise
+        # put inside it: ``DO DEPART (5``) is *Unrecognized command* and nothing runs.
         line = raw.decode("ascii", errors="replace")
         self.received.append(line)
         if self._take_fault("no_reply") is not None:

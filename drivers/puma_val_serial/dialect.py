@@ -392,7 +392,9 @@ class ValDialect:
         return {kind: _template_regex(tpl, self.name_pattern) for kind, tpl in self.commands.items()}
 
     def parse_command(self, line: str) -> tuple[str, dict] | None:
-        """(kind, fields) of a host line, or None if it matches no template (used by the simulator)."""
+        """(kind, fields) of a host line, or None if it matches no template: the simulated controller's
+        reading of its input. Values may be given in parentheses or not, as VAL-II's expression syntax
+        allows; a parenthesis left open, or a missing argument, is no line at all."""
         for kind, rx in self._command_patterns.items():
             m = rx.fullmatch(line)
             if m:
