@@ -9,6 +9,7 @@ formats its replies with its own code, so a bug in the driver's formatting canno
 
 from __future__ import annotations
 
+import logging
 import re
 import string
 from dataclasses import asdict, dataclass, field
@@ -22,6 +23,8 @@ from selfview.drivers.puma_val_serial._config import check_keys, read_yaml
 from selfview.drivers.puma_val_serial.errors import ERROR_CLASSES, ControllerError
 from selfview.errors import ConfigError, ProtocolError
 from selfview.maths.geometry import VAL_OAT, EulerConvention, H_from_xyzoat, xyzoat_from_H
+
+_log = logging.getLogger(__name__)
 
 __all__ = ["ValDialect", "DEFAULT_COMMANDS", "PREFIX_SAFE_KINDS", "DEFAULT_ERRORS", "OAT_CONVENTIONS", "load_dialect"]
 
@@ -402,6 +405,15 @@ class ValDialect:
                 return kind, {k: (v if k == "name" else float(v)) for k, v in fields.items()}
         return None
 
+    def open_prefixes(self) -> dict[str, list[str]]:
+        """For each kind of ``PREFIX_SAFE_KINDS`` whose template lets a cut line run: the valid proper
+        prefixes of a sample line (location ``p1``, numbers 50 and -10.5, speed 20)."""
+        samples = {"speed": {"pct": 20}, "move": {"name": "p1"}, "moves": {"name": "p1"}, "appro": {"name": "p1", "d": 50},
+                   "depart": {"d": 50}, "drive": {"joint": 2, "deg": -10.5, "speed": 20}, "ready": {},
+                   "define": {"name": "p1", **dict(zip("xyzoat", (350, -10.5, 100, 0, 90, 50)))}}
+        out = {kind: self.valid_prefixes(kind, **samples[kind]) for kind in PREFIX_SAFE_KINDS}
+        return {k: v for k, v in out.items() if v}
+
     def valid_prefixes(self, kind: str, **values) -> list[str]:
         """The proper prefixes of the line ``command(kind, **values)`` that this dialect's parser reads
         as a valid line: what a line end put inside the line by noise would make the controller run
@@ -517,8 +529,15 @@ class ValDialect:
 
 
 def load_dialect(path) -> ValDialect:
-    """A dialect from a YAML file of ``ValDialect`` fields; raises ``ConfigError`` naming the problem."""
+    """A dialect from a YAML file of ``ValDialect`` fields; raises ``ConfigError`` naming the problem.
+    Templates that let a cut line run (``ValDialect.open_prefixes``) are allowed (a controller may not
+    read parenthesised values) but logged as a warning that names them."""
     try:
-        return ValDialect.from_dict(read_yaml(path, "dialect"))
+        d = ValDialect.from_dict(read_yaml(path, "dialect"))
     except ConfigError as exc:
         raise ConfigError(f"{Path(path).name}: {exc}") from None
+    open_ = d.open_prefixes()
+    if open_:
+        _log.warning("%s: a line end that noise puts inside these lines would run their first part (issue 32): %s",
+                     Path(path).name, "; ".join(f"{k}: {v!r}" for k, v in open_.items()))
+    return d

@@ -85,3 +85,20 @@ def test_parenthesised_values_are_read_as_a_controller_reads_expressions(line, k
 def test_every_default_template_is_checked():
     assert set(PREFIX_SAFE_KINDS) <= set(DEFAULT_COMMANDS)
     assert set(DEFAULT_COMMANDS) - set(PREFIX_SAFE_KINDS) == {"where", "calibrate", "here", "point", "abort", "status"}
+
+
+def test_a_lab_dialect_with_bare_templates_is_loaded_with_a_warning_naming_its_open_lines(tmp_path, caplog):
+    from selfview.drivers.puma_val_serial import load_dialect
+
+    f = tmp_path / "dialect.yaml"
+    f.write_text("commands: {appro: 'DO APPRO {name}, {d}', speed: 'SP {pct}'}\n")
+    with caplog.at_level("WARNING", logger="selfview.drivers.puma_val_serial.dialect"):
+        d = load_dialect(f)
+    assert d.commands["appro"] == "DO APPRO {name}, {d}"  # allowed: a controller may not read parentheses
+    assert d.open_prefixes() == {"speed": ["SP 2"], "appro": ["DO APPRO p1, 5"]}
+    assert "dialect.yaml" in caplog.text and "'DO APPRO p1, 5'" in caplog.text and "'SP 2'" in caplog.text
+    caplog.clear()
+    f.write_text("echo: true\n")
+    with caplog.at_level("WARNING", logger="selfview.drivers.puma_val_serial.dialect"):
+        assert load_dialect(f).open_prefixes() == {}
+    assert caplog.text == ""
