@@ -903,7 +903,7 @@ class PumaVAL:
         self._expect_nothing(self._exchange_locked(cmd), cmd)
 
     def define(self, name: str, pose) -> None:
-        """``DO SET name = TRANS(...)`` from a pose (x, y, z, o, a, t) or a (4, 4) ``base_H_T``.
+        """``DO SET name = (TRANS(...))`` from a pose (x, y, z, o, a, t) or a (4, 4) ``base_H_T``.
 
         ``LimitError`` if the point lies outside the workspace box (nothing sent).
         """
