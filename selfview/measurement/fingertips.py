@@ -622,21 +622,11 @@ def _line_tls(q: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float]:
 def tukey_weights(r: np.ndarray, floor: float) -> tuple[np.ndarray, float]:
     """Tukey's biweights of residuals r (N,) and their robust scale: 1.4826 times the median |r|, at
     least ``floor``; a residual beyond 4.685 scales weighs 0."""
-    a = np.abs(r)
-    k = len(a) // 2
-    if len(a) % 2:
-        med = float(np.partition(a, k)[k])
-    elif len(a):
-        lo, hi = np.partition(a, (k - 1, k))[k - 1:k + 1]
-        med = float((lo + hi) / 2)  # as np.median: the mean of the two middle values
-    else:
-        med = math.nan
+    a, k = np.abs(r), len(r) // 2  # the median as np.median takes it (the mean of the middle two), by partition
+    med = float(np.partition(a, k)[k] if len(a) % 2 else np.mean(np.partition(a, (k - 1, k))[k - 1:k + 1]))
     s = max(1.4826 * med, floor)
     u = r / (4.685 * s)
-    w = 1 - u * u
-    w *= w
-    w[~(np.abs(u) < 1)] = 0.0
-    return w, s
+    return np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0), s
 
 
 _PAIR_DRAWS: dict[int, tuple[np.ndarray, np.ndarray]] = {}
