@@ -206,7 +206,8 @@ def _sample_py(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _
     nf = len(fe)
     # one projection: the ends, and per edge its middle and a point a step into its first face (the face's side)
     m_G = 0.5 * (es.a_G[fe] + es.b_G[fe])
-    uv_e = cam.project(np.vstack([ends[fe], ends[E + fe], transform_points(C_H_G, np.vstack([m_G, m_G + 0.05 * es.d_in[fe]]))]))
+    mid = transform_points(C_H_G, np.vstack([m_G, m_G + 0.05 * es.d_in[fe]]))
+    uv_e = cam.project(np.vstack([ends[fe], ends[E + fe], mid]))
     counts = np.clip(np.linalg.norm(uv_e[nf:2 * nf] - uv_e[:nf], axis=1) / STEP_PX, 2, 400).astype(int)
     side = uv_e[3 * nf:] - uv_e[2 * nf:3 * nf]
     k = np.repeat(np.arange(nf), counts)  # the samples' edge, among the front ones
@@ -470,54 +471,52 @@ def _solve_py(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, star
     f = float(cam.f)
     H = np.array(C_H_G, float)
     S, C = q.shape[:2]
-    w = np.zeros(S)
     r = np.full(S, np.nan)
     pick = np.zeros(S, int)
     JtWJ = np.zeros((6, 6))
-    sigma = floor
+    sigma, sel, wh = floor, np.zeros(0, int), np.zeros(0)
     rows = np.arange(S)
     bad = ~np.isfinite(q).all(axis=2)  # (S, C) no candidate
     qx, qy = np.where(bad, 0.0, q[..., 0]), np.where(bad, 0.0, q[..., 1])
     ab = np.vstack([es.a_G, es.b_G])
     E = len(es.a_G)
     V = np.empty((E, 11))  # per edge: m, Dn and the products its row of K holds (K = V @ _K_OF_V)
-    for it in range(iters):
-        P = ab @ H[:3, :3].T + H[:3, 3]
-        PA, PB = P[:E], P[E:]
-        l = _cross3(PA, PB)
-        with np.errstate(divide="ignore", invalid="ignore"):  # an edge through the centre: no sample names it
+    with np.errstate(divide="ignore", invalid="ignore"):  # an edge through the centre: no sample names it
+        for it in range(iters):
+            P = ab @ H[:3, :3].T + H[:3, 3]
+            PA, PB = P[:E], P[E:]
+            l = _cross3(PA, PB)
             N = np.hypot(l[:, 0], l[:, 1])[:, None]
             m = np.divide(l, N, out=V[:, :3])
             Dn = np.divide(PB - PA, N, out=V[:, 3:6])
-        me = m.take(e, axis=0)
-        rc = qx * me[:, 0:1]
-        rc += qy * me[:, 1:2]
-        rc += f * me[:, 2:3]
-        np.copyto(rc, np.inf, where=bad)
-        pick = np.argmin(np.abs(rc), axis=1)
-        r = rc[rows, pick]
-        has = np.isfinite(r)
-        sel = np.flatnonzero(has)
-        if len(sel) < 12:
-            return H, np.zeros(S), r, pick, JtWJ, sigma
-        rh = r[sel]
-        fl = floor if start_floor is None else max(floor, start_floor * 0.5**it)
-        wh, sigma = tukey_weights(rh, fl)
-        w = np.zeros(S)
-        w[sel] = wh
-        np.multiply(m[:, 2:3], m[:, 1::-1], out=V[:, 6:8])
-        np.multiply(Dn[:, 2:3], m[:, 1::-1], out=V[:, 8:10])
-        V[:, 10] = m[:, 0] * Dn[:, 1] - m[:, 1] * Dn[:, 0]
-        K = (V @ _K_OF_V).reshape(E, 4, 6)  # a sample's row of the Jacobian is (x, y, f, r) @ K of its edge
-        ps = pick[sel]
-        u4 = np.column_stack([qx[sel, ps], qy[sel, ps], np.full(len(sel), f), rh])
-        J = np.matmul(u4[:, None, :], K.take(e[sel], axis=0))[:, 0]
-        JtWJ, dxi = _gauss_newton_step(J, wh, rh)
-        if dxi is None:
-            break
-        H = _motion(dxi) @ H
-        if fl <= floor and np.max(np.abs(dxi[:3])) < 1e-7 and np.max(np.abs(dxi[3:])) < 1e-5:
-            break
+            me = m.take(e, axis=0)
+            rc = qx * me[:, 0:1]
+            rc += qy * me[:, 1:2]
+            rc += f * me[:, 2:3]
+            np.copyto(rc, np.inf, where=bad)
+            pick = np.argmin(np.abs(rc), axis=1)
+            r = rc[rows, pick]
+            sel = np.flatnonzero(np.isfinite(r))
+            if len(sel) < 12:
+                return H, np.zeros(S), r, pick, JtWJ, sigma
+            rh = r[sel]
+            fl = floor if start_floor is None else max(floor, start_floor * 0.5**it)
+            wh, sigma = tukey_weights(rh, fl)
+            np.multiply(m[:, 2:3], m[:, 1::-1], out=V[:, 6:8])
+            np.multiply(Dn[:, 2:3], m[:, 1::-1], out=V[:, 8:10])
+            V[:, 10] = m[:, 0] * Dn[:, 1] - m[:, 1] * Dn[:, 0]
+            K = (V @ _K_OF_V).reshape(E, 4, 6)  # a sample's row of the Jacobian is (x, y, f, r) @ K of its edge
+            ps = pick[sel]
+            u4 = np.column_stack([qx[sel, ps], qy[sel, ps], np.full(len(sel), f), rh])
+            J = np.matmul(u4[:, None, :], K.take(e[sel], axis=0))[:, 0]
+            JtWJ, dxi = _gauss_newton_step(J, wh, rh)
+            if dxi is None:
+                break
+            H = _motion(dxi) @ H
+            if fl <= floor and np.abs(dxi[:3]).max() < 1e-7 and np.abs(dxi[3:]).max() < 1e-5:
+                break
+    w = np.zeros(S)
+    w[sel] = wh
     return H, w, r, pick, JtWJ, sigma
 
 
