@@ -622,7 +622,9 @@ def _line_tls(q: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float]:
 def tukey_weights(r: np.ndarray, floor: float) -> tuple[np.ndarray, float]:
     """Tukey's biweights of residuals r (N,) and their robust scale: 1.4826 times the median |r|, at
     least ``floor``; a residual beyond 4.685 scales weighs 0."""
-    s = max(1.4826 * float(np.median(np.abs(r))), floor)
+    a, k = np.abs(r), len(r) // 2  # the median as np.median takes it (the mean of the middle two), by partition
+    med = float(np.partition(a, k)[k] if len(a) % 2 else np.mean(np.partition(a, (k - 1, k))[k - 1:k + 1]))
+    s = max(1.4826 * med, floor)
     u = r / (4.685 * s)
     return np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0), s
 

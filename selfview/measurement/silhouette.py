@@ -24,7 +24,7 @@ from selfview.maths.camera import CameraModel
 from selfview.files.cell import GripperSpec
 from selfview.measurement.discs import as_gray
 from selfview.measurement.fingertips import FingertipResult, PredictedFingers, box_edges, tukey_weights
-from selfview.maths.geometry import R_from_rotvec, inv_H, make_H, transform_points
+from selfview.maths.geometry import inv_H, make_H, transform_points
 
 __all__ = ["Appearance", "SilhouetteFit", "fit_silhouette", "learn_appearance", "rms_limit", "MIN_GOOD_FRACTION"]
 
@@ -149,13 +149,15 @@ def _visible_edges_of(boxes, cam_G) -> _EdgeSet:
 
 def _blocked(o, d, lo, hi) -> np.ndarray:
     """(M,) whether rays o + t d (G, t in (0, 1)) pass through the box (lo, hi) (each (3,), or (M, 3): one
-    box per ray) before t = 1."""
+    box per ray) before t = 1 (an axis the ray runs along and lies in, 0 / 0, bounds nothing)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         t1 = (lo - o) / d
         t2 = (hi - o) / d
-    tn = np.nanmax(np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2)), axis=1)
-    tf = np.nanmin(np.where(np.isnan(t1), np.inf, np.maximum(t1, t2)), axis=1)
-    return (tn < np.minimum(tf, 1.0) - 1e-6) & (tn > 1e-6) & (np.minimum(tf, 1.0) - tn > 1e-4)
+    tn, tf = np.minimum(t1, t2), np.maximum(t1, t2)
+    nan = np.isnan(tn)
+    tn[nan], tf[nan] = -np.inf, np.inf
+    tn, tf = tn.max(axis=1), np.minimum(tf.min(axis=1), 1.0)
+    return (tn < tf - 1e-6) & (tn > 1e-6) & (tf - tn > 1e-4)
 
 
 @dataclass
@@ -195,58 +197,45 @@ def _sample(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _Sam
 
 def _sample_py(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _Samples:
     """``_sample`` in numpy (the compiled kernel's reference)."""
-    G_H_C = inv_H(C_H_G)
-    o = G_H_C[:3, 3]
     empty = _Samples(np.zeros((0, 3)), np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2)), es.faces)
-    ends = transform_points(C_H_G, np.vstack([es.a_G, es.b_G]))
     E = len(es.a_G)
-    front = (ends[:E, 2] > 1.0) & (ends[E:, 2] > 1.0)
-    if not np.any(front):
+    ends = transform_points(C_H_G, np.vstack([es.a_G, es.b_G]))
+    fe = np.flatnonzero((ends[:E, 2] > 1.0) & (ends[E:, 2] > 1.0))  # the edges in front of the camera
+    if not len(fe):
         return empty
-    uv_a = np.full((E, 2), np.nan)
-    uv_b = np.full((E, 2), np.nan)
-    nf = int(front.sum())
-    uv_ab = cam.project(np.vstack([ends[:E][front], ends[E:][front]]))  # point by point: one call for both
-    uv_a[front] = uv_ab[:nf]
-    uv_b[front] = uv_ab[nf:]
-    length = np.where(front, np.linalg.norm(uv_b - uv_a, axis=1), 0.0)
-    counts = np.where(front, np.clip(length / STEP_PX, 2, 400).astype(int), 0)
-    edge = np.repeat(np.arange(E), counts)
+    nf = len(fe)
+    # one projection: the ends, and per edge its middle and a point a step into its first face (the face's side)
+    m_G = 0.5 * (es.a_G[fe] + es.b_G[fe])
+    mid = transform_points(C_H_G, np.vstack([m_G, m_G + 0.05 * es.d_in[fe]]))
+    uv_e = cam.project(np.vstack([ends[fe], ends[E + fe], mid]))
+    counts = np.clip(np.linalg.norm(uv_e[nf:2 * nf] - uv_e[:nf], axis=1) / STEP_PX, 2, 400).astype(int)
+    side = uv_e[3 * nf:] - uv_e[2 * nf:3 * nf]
+    k = np.repeat(np.arange(nf), counts)  # the samples' edge, among the front ones
+    edge = fe[k]
     starts = np.cumsum(counts) - counts
-    t = (np.arange(len(edge)) - starts[edge] + 0.5) / counts[edge]
-    seg = es.b_G - es.a_G
-    p = es.a_G[edge] + t[:, None] * seg[edge]
-    n = len(edge)
-    # the samples, and one point per edge a step into its first face (which side the face lies on)
-    mids = np.flatnonzero(counts > 0)
-    d_in = np.array([ins[0] for ins in es.into_G])
-    m_G = 0.5 * (es.a_G[mids] + es.b_G[mids])
-    uv_all = cam.project(transform_points(C_H_G, np.vstack([p, m_G, m_G + 0.05 * d_in[mids]])))
-    uv = uv_all[:n]
-    side = np.zeros((E, 2))
-    side[mids] = uv_all[n + len(mids) :] - uv_all[n : n + len(mids)]
-    # tangents from neighbouring samples of the same edge (forward differences, the last one backward)
-    tan = np.zeros_like(uv)
-    nxt = np.r_[edge[1:] == edge[:-1], False]
-    tan[nxt] = uv[1:][nxt[:-1]] - uv[:-1][nxt[:-1]]
-    last = ~nxt
-    prv = np.r_[False, edge[1:] == edge[:-1]]
-    tan[last & prv] = uv[last & prv] - uv[np.flatnonzero(last & prv) - 1]
-    keep = cam.in_image(uv, margin=margin)
-    fin = es.finger[edge]
-    if np.any(keep):
+    t = (np.arange(len(k)) - starts[k] + 0.5) / counts[k]
+    p = es.a_G[edge] + t[:, None] * (es.b_G - es.a_G)[edge]
+    uv = cam.project(transform_points(C_H_G, p))
+    # tangents from neighbouring samples of the same edge (forward differences, an edge's last one backward)
+    tan = np.empty_like(uv)
+    tan[:-1] = uv[1:] - uv[:-1]
+    last = starts + counts - 1
+    tan[last] = tan[last - 1]
+    keep = np.flatnonzero(cam.in_image(uv, margin=margin))
+    if len(keep):
         # each sample against the other finger's box (one call: the same arithmetic row by row)
+        o = inv_H(C_H_G)[:3, 3]
         box = np.asarray(boxes, float)  # (2, 2, 3): finger, lo/hi
-        k = np.flatnonzero(keep)
-        other = 1 - fin[k]
-        keep[k] &= ~_blocked(o, p[k] - o[None], box[other, 0], box[other, 1])
-    if not np.any(keep):
+        other = 1 - es.finger[edge[keep]]
+        keep = keep[~_blocked(o, p[keep] - o[None], box[other, 0], box[other, 1])]
+    if not len(keep):
         return empty
+    tan = tan[keep]
     tan /= np.linalg.norm(tan, axis=1, keepdims=True) + 1e-12
     nrm = np.column_stack([-tan[:, 1], tan[:, 0]])
-    sgn = np.sign(np.sum(nrm * side[edge], axis=1))
+    sgn = np.sign(np.sum(nrm * side[k[keep]], axis=1))
     nrm *= np.where(sgn == 0, 1.0, sgn)[:, None]
-    return _Samples(p[keep], edge[keep], uv[keep], nrm[keep], es.faces)
+    return _Samples(p[keep], edge[keep], uv[keep], nrm, es.faces)
 
 
 def _finger_visible(cam: CameraModel, es: _EdgeSet, C_H_G, s: _Samples) -> np.ndarray:
@@ -292,8 +281,8 @@ def _level_ok(measured, level) -> np.ndarray:
 
 def _profiles(img, s: _Samples, R: float):
     """The grey-level profile along each sample's normal, reaching R + PLATEAU_PX + 1 px either side:
-    (S, L) profile, (S, L - 2) its derivative D at positions ``pos`` (L - 2,) [px], A = |D|, and (S, L - 4)
-    the peaks of A within R of the sample."""
+    (S, L) profile, (S, L - 2) its derivative D at positions ``pos`` (L - 2,) [px], A = |D|, and the peaks
+    of A within R of the sample as (rows, m): sample and index into D[:, 1:-1], row by row, m ascending."""
     Ri = int(math.ceil(R))
     P = PLATEAU_PX
     offs = np.arange(-Ri - P - 1, Ri + P + 2, dtype=np.float32)  # profile positions
@@ -303,45 +292,55 @@ def _profiles(img, s: _Samples, R: float):
     D = 0.5 * (prof[:, 2:] - prof[:, :-2])  # derivative at offs[1:-1]
     pos = offs[1:-1]
     A = np.abs(D)
-    peak = (A[:, 1:-1] >= A[:, :-2]) & (A[:, 1:-1] > A[:, 2:])
-    peak &= (np.abs(pos[1:-1]) <= R)[None]
-    return prof, D, A, pos, peak
+    near = np.abs(pos[1:-1]) <= R
+    A1 = A[:, 1:-1]
+    peak = (A1 >= A[:, :-2]) & (A1 > A[:, 2:]) & near[None]
+    rows, m = np.nonzero(peak)
+    return prof, D, A, pos, rows, m
 
 
-def _gate_and_rank(face, other, peak, D, A, pos, lev1, lev2, n_cand: int):
-    """The candidates among the peaks (S, M) of the profile's derivative D (S, M + 2), A = |D|, at profile
-    positions ``pos`` (M + 2,): the gates (contrast, the learnt faces' levels ``lev1``/``lev2`` (S,), polarity),
-    the ranking (closeness to the face's level; without a level learnt, contrast), the best ``n_cand`` with
-    their sub-pixel offsets: (S, C) offsets, face levels, contrasts (NaN: none)."""
-    S = len(face)
+def _gate_and_rank(face, other, rows, m, S: int, D, A, pos, lev1, lev2, n_cand: int):
+    """The candidates among the peaks (``rows``, ``m`` as ``_profiles`` gives them; ``face``/``other`` the two
+    sides' levels at each) of the derivative D (S, M + 2), A = |D|, at profile positions ``pos`` (M + 2,): the
+    gates (contrast, the faces' levels ``lev1``/``lev2`` (S,), polarity), the ranking (closeness to the face's
+    level, else contrast; ties by position), the best ``n_cand`` with their sub-pixel offsets: (S, C) offsets,
+    face levels, contrasts (NaN: none)."""
     contrast = face - other
-    ok = peak & (np.abs(contrast) >= MIN_CONTRAST)
+    j = m + 1  # index into D and A
+    ok = np.abs(contrast) >= MIN_CONTRAST
     # appearance: the face's level on the face side (at a crease the second face's on the other)
-    has1 = np.isfinite(lev1)
-    ok &= ~has1[:, None] | _level_ok(face, lev1[:, None])
-    has2 = np.isfinite(lev2)
-    ok &= ~has2[:, None] | _level_ok(other, lev2[:, None])
+    l1, l2 = lev1[rows], lev2[rows]
+    has1 = np.isfinite(l1)
+    ok &= ~has1 | _level_ok(face, l1)
+    ok &= ~np.isfinite(l2) | _level_ok(other, l2)
     # polarity: the derivative's sign is the face side's minus the other side's
-    ok &= np.sign(D[:, 1:-1]) == np.sign(contrast)
-    # rank: closeness to the face's level (without a level learnt: contrast)
-    score = np.where(has1[:, None], np.abs(face - np.where(has1, lev1, 0)[:, None]), -np.abs(contrast))
-    score = np.where(ok, score, np.inf)
-    C = min(n_cand, score.shape[1])
-    order = np.argsort(score, axis=1, kind="stable")[:, :C]
-    rows = np.arange(S)[:, None]
-    good = np.isfinite(score[rows, order])
+    ok &= np.sign(D[rows, j]) == np.sign(contrast)
+    k = np.flatnonzero(ok)
+    rows, j, face, contrast = rows[k], j[k], face[k], contrast[k]
+    # rank: closeness to the face's level (without a level learnt: contrast); a stable sort keeps position order
+    score = np.where(has1[k], np.abs(face - np.where(has1[k], l1[k], 0)), -np.abs(contrast))
+    o = np.lexsort((score, rows))
+    rows, j, face, contrast = rows[o], j[o], face[o], contrast[o]
+    first = np.searchsorted(rows, rows)  # each row's first entry (rows ascending)
+    rank = np.arange(len(rows)) - first
+    C = min(n_cand, D.shape[1] - 2)
+    t = np.flatnonzero(rank < C)
+    rows, j, rank = rows[t], j[t], rank[t]
     # sub-pixel: parabola through |D| at the peak and its neighbours
-    j = order + 1  # index into A
     a0, a1, a2 = A[rows, j - 1], A[rows, j], A[rows, j + 1]
     den = a0 - 2 * a1 + a2
     big = np.abs(den) > 1e-9
     frac = np.where(big, 0.5 * (a0 - a2) / np.where(big, den, 1.0), 0.0)
-    off = np.where(good, pos[j] + np.clip(frac, -0.5, 0.5), np.nan)
-    return off, np.where(good, face[rows, order], np.nan), np.where(good, contrast[rows, order], np.nan)
+    out = np.full((3, S, C), np.nan)
+    out[0, rows, rank] = pos[j] + np.clip(frac, -0.5, 0.5)
+    out[1, rows, rank] = face[t]
+    out[2, rows, rank] = contrast[t]
+    return out[0], out[1], out[2]
 
 
 def _motion(xi) -> np.ndarray:
-    return make_H(R_from_rotvec(xi[:3]), xi[3:])
+    # geometry.R_from_rotvec's formula compiled (OpenCV's Rodrigues): a tenth of its time per call in the IRLS
+    return make_H(cv2.Rodrigues(np.asarray(xi[:3], float))[0], xi[3:])
 
 
 def _gauss_newton_step(J, w, r):
@@ -350,9 +349,9 @@ def _gauss_newton_step(J, w, r):
     Jw = J * w[:, None]
     JtWJ = Jw.T @ J
     g = Jw.T @ r
-    d = np.sqrt(np.maximum(np.diag(JtWJ), 1e-12))
+    d = np.sqrt(np.maximum(JtWJ.diagonal(), 1e-12))
     try:
-        return JtWJ, -np.linalg.solve(JtWJ / np.outer(d, d) + 1e-6 * np.eye(6), g / d) / d
+        return JtWJ, -np.linalg.solve(JtWJ / (d[:, None] * d) + 1e-6 * np.eye(6), g / d) / d
     except np.linalg.LinAlgError:
         return JtWJ, None
 
@@ -401,31 +400,26 @@ def _candidates_q(img, s: _Samples, R: float, app: Appearance, cam, n_cand: int 
 def _undistorted(cam: CameraModel, s: _Samples, off) -> np.ndarray:
     """(S, C, 2) the undistorted sensor coordinates of the candidates at offsets ``off`` (S, C) (NaN: none)."""
     uvc = s.uv[:, None, :] + off[..., None] * s.n[:, None, :]
-    flat = uvc.reshape(-1, 2)
-    okc = np.isfinite(flat).all(axis=1)
-    q = np.full(flat.shape, np.nan)
-    if okc.any():
-        q[okc] = cam.undistort_pixels(flat[okc])
-    return q.reshape(uvc.shape)
+    return cam.undistort_pixels(uvc.reshape(-1, 2)).reshape(uvc.shape)  # NaN stays NaN
 
 
 def _candidates_np(img, s: _Samples, R: float, app: Appearance, n_cand: int = CANDIDATES):
     """``_candidates`` in numpy (the compiled kernel's reference)."""
-    S = len(s.edge)
     P = PLATEAU_PX
-    prof, D, A, pos, peak = _profiles(img, s, R)
+    prof, D, A, pos, rows, m = _profiles(img, s, R)
     L = prof.shape[1]
-    # prof index of peak m is m + 2 (m = 0 .. L-5); padded by one replicated column each side
-    pad = np.concatenate([prof[:, :1], prof, prof[:, -1:]], axis=1)
-    M = L - 4
-    face = np.zeros((S, M), np.float32)
-    other = np.zeros((S, M), np.float32)
+    # the two sides of the peak at D[:, m + 1] (profile index m + 2): profile m + 2 + k and m + 2 - k, k = 2..P,
+    # the profile's ends replicated
+    flat = prof.ravel()
+    base = rows * L
+    face = np.zeros(len(rows), np.float32)
+    other = np.zeros(len(rows), np.float32)
     for k in range(2, P + 1):
-        face += pad[:, 3 + k:3 + k + M]
-        other += pad[:, 3 - k:3 - k + M]
+        face += flat[base + np.minimum(m + 2 + k, L - 1)]
+        other += flat[base + np.maximum(m + 2 - k, 0)]
     face /= P - 1
     other /= P - 1
-    return _gate_and_rank(face, other, peak, D, A, pos, *_levels(s, app), n_cand)
+    return _gate_and_rank(face, other, rows, m, len(s.edge), D, A, pos, *_levels(s, app), n_cand)
 
 
 def _cross3(a, b):
@@ -464,62 +458,65 @@ def _solve(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, start_f
     return _solve_py(cam, es, s, q, C_H_G, floor, iters, start_floor)
 
 
+#: K (4, 6) of an edge, flattened, from V (11,): m, Dn (the edge's line and direction, over |l_12|), m2 m1, m2 m0,
+#: Dn2 m1, Dn2 m0, m0 Dn1 - m1 Dn0: rows 0-2 the cross products [m x q, Dn x q], row 3 the derivative of |l_12|
+_K_OF_V = np.zeros((11, 24))
+_K_OF_V[[2, 1, 2, 0, 1, 0, 5, 4, 5, 3, 4, 3, 6, 7, 8, 9, 10], [1, 2, 6, 8, 12, 13, 4, 5, 9, 11, 15, 16, 18, 19, 21, 22, 23]] = \
+    [1, -1, -1, 1, 1, -1, 1, -1, -1, 1, 1, -1, 1, -1, 1, -1, 1]
+
+
 def _solve_py(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, start_floor: float | None = None):
     """``_solve`` in numpy (the compiled kernel's reference)."""
-    used, pos = np.unique(s.edge, return_inverse=True)
-    a_G, b_G = es.a_G[used], es.b_G[used]
+    e = s.edge
     f = float(cam.f)
-    H = C_H_G.copy()
+    H = np.array(C_H_G, float)
     S, C = q.shape[:2]
-    w = np.zeros(S)
     r = np.full(S, np.nan)
     pick = np.zeros(S, int)
     JtWJ = np.zeros((6, 6))
-    sigma = floor
+    sigma, sel, wh = floor, np.zeros(0, int), np.zeros(0)
     rows = np.arange(S)
-    q3 = np.empty((S, C, 3))
-    q3[..., :2] = q
-    q3[..., 2] = f
-    for it in range(iters):
-        Rm, tv = H[:3, :3], H[:3, 3]
-        PA = a_G @ Rm.T + tv
-        PB = b_G @ Rm.T + tv
-        l = _cross3(PA, PB)
-        N = np.hypot(l[:, 0], l[:, 1])
-        m = l / N[:, None]
-        rc = np.einsum("scj,sj->sc", q3, m[pos])
-        rc[~np.isfinite(rc)] = np.inf
-        pick = np.argmin(np.abs(rc), axis=1)
-        r = rc[rows, pick]
-        has = np.isfinite(r)
-        if has.sum() < 12:
-            return H, np.zeros(S), r, pick, JtWJ, sigma
-        rh = r[has]
-        fl = floor if start_floor is None else max(floor, start_floor * 0.5**it)
-        wh, sigma = tukey_weights(rh, fl)
-        w = np.zeros(S)
-        w[has] = wh
-        Dn = (PB - PA) / N[:, None]
-        # per edge K (4, 6): a sample's row is (x, y, f, r) @ K
-        K = np.zeros((len(used), 4, 6))
-        K[:, 0, 1], K[:, 0, 2], K[:, 1, 0], K[:, 1, 2], K[:, 2, 0], K[:, 2, 1] = m[:, 2], -m[:, 1], -m[:, 2], m[:, 0], m[:, 1], -m[:, 0]
-        K[:, 0, 4], K[:, 0, 5], K[:, 1, 3], K[:, 1, 5], K[:, 2, 3], K[:, 2, 4] = Dn[:, 2], -Dn[:, 1], -Dn[:, 2], Dn[:, 0], Dn[:, 1], -Dn[:, 0]
-        K[:, 3, 0] = m[:, 1] * m[:, 2]
-        K[:, 3, 1] = -m[:, 0] * m[:, 2]
-        K[:, 3, 3] = m[:, 1] * Dn[:, 2]
-        K[:, 3, 4] = -m[:, 0] * Dn[:, 2]
-        K[:, 3, 5] = m[:, 0] * Dn[:, 1] - m[:, 1] * Dn[:, 0]
-        sel = np.flatnonzero(has)
-        u4 = np.empty((len(sel), 4))
-        u4[:, :3] = q3[sel, pick[sel]]
-        u4[:, 3] = rh
-        J = np.einsum("si,sij->sj", u4, K[pos[sel]])
-        JtWJ, dxi = _gauss_newton_step(J, wh, rh)
-        if dxi is None:
-            break
-        H = _motion(dxi) @ H
-        if fl <= floor and np.max(np.abs(dxi[:3])) < 1e-7 and np.max(np.abs(dxi[3:])) < 1e-5:
-            break
+    bad = ~np.isfinite(q).all(axis=2)  # (S, C) no candidate
+    qx, qy = np.where(bad, 0.0, q[..., 0]), np.where(bad, 0.0, q[..., 1])
+    ab = np.vstack([es.a_G, es.b_G])
+    E = len(es.a_G)
+    V = np.empty((E, 11))  # per edge: m, Dn and the products its row of K holds (K = V @ _K_OF_V)
+    with np.errstate(divide="ignore", invalid="ignore"):  # an edge through the centre: no sample names it
+        for it in range(iters):
+            P = ab @ H[:3, :3].T + H[:3, 3]
+            PA, PB = P[:E], P[E:]
+            l = _cross3(PA, PB)
+            N = np.hypot(l[:, 0], l[:, 1])[:, None]
+            m = np.divide(l, N, out=V[:, :3])
+            Dn = np.divide(PB - PA, N, out=V[:, 3:6])
+            me = m.take(e, axis=0)
+            rc = qx * me[:, 0:1]
+            rc += qy * me[:, 1:2]
+            rc += f * me[:, 2:3]
+            np.copyto(rc, np.inf, where=bad)
+            pick = np.argmin(np.abs(rc), axis=1)
+            r = rc[rows, pick]
+            sel = np.flatnonzero(np.isfinite(r))
+            if len(sel) < 12:
+                return H, np.zeros(S), r, pick, JtWJ, sigma
+            rh = r[sel]
+            fl = floor if start_floor is None else max(floor, start_floor * 0.5**it)
+            wh, sigma = tukey_weights(rh, fl)
+            np.multiply(m[:, 2:3], m[:, 1::-1], out=V[:, 6:8])
+            np.multiply(Dn[:, 2:3], m[:, 1::-1], out=V[:, 8:10])
+            V[:, 10] = m[:, 0] * Dn[:, 1] - m[:, 1] * Dn[:, 0]
+            K = (V @ _K_OF_V).reshape(E, 4, 6)  # a sample's row of the Jacobian is (x, y, f, r) @ K of its edge
+            ps = pick[sel]
+            u4 = np.column_stack([qx[sel, ps], qy[sel, ps], np.full(len(sel), f), rh])
+            J = np.matmul(u4[:, None, :], K.take(e[sel], axis=0))[:, 0]
+            JtWJ, dxi = _gauss_newton_step(J, wh, rh)
+            if dxi is None:
+                break
+            H = _motion(dxi) @ H
+            if fl <= floor and np.abs(dxi[:3]).max() < 1e-7 and np.abs(dxi[3:]).max() < 1e-5:
+                break
+    w = np.zeros(S)
+    w[sel] = wh
     return H, w, r, pick, JtWJ, sigma
 
 

@@ -334,3 +334,31 @@ def test_kernel_sampling_refuses_bad_arguments_by_name():
         uv = np.zeros((S, 2))
         uv[4, 1] = np.nan
         k.candidates(np.zeros((5, 5), np.uint8), uv, *args[1:], *res)
+
+
+def test_the_numpy_pieces_keep_their_definitions():
+    """The numpy path's faster forms of three small pieces give what their plain definitions give: Tukey's
+    scale is 1.4826 times ``np.median`` of |r| (odd and even counts), the step's rotation is
+    ``geometry.R_from_rotvec``'s, and a ray blocked by a box is judged as the slab test's nan-aware form
+    judges it (a ray along a face's plane included)."""
+    from selfview.maths.geometry import R_from_rotvec
+    from selfview.measurement.fingertips import tukey_weights
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 7, 12, 518):
+        r = rng.normal(scale=0.7, size=n)
+        w, s = tukey_weights(r, 0.0)
+        assert s == 1.4826 * float(np.median(np.abs(r)))
+        u = r / (4.685 * s)
+        assert np.array_equal(w, np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0))
+    for v in ([1e-3, -2e-3, 5e-4], [0.0, 0.0, 0.0], [0.4, -1.1, 2.0]):
+        assert np.allclose(sil._motion(np.r_[v, 1.0, 2.0, 3.0])[:3, :3], R_from_rotvec(v), atol=1e-15)
+    lo, hi = np.zeros(3), np.ones(3)
+    o = np.array([-1.0, 0.5, 0.5])
+    d = np.array([[3.0, 0.0, 0.0],  # through the box
+                  [0.5, 0.0, 0.0],  # stops before it
+                  [3.0, 0.0, 0.5],  # through it, leaving by the top face
+                  [3.0, 0.0, 0.0]])  # as the first, from a point in the plane y = 0 of a face (below)
+    o4 = np.tile(o, (4, 1))
+    o4[3] = (-1.0, 0.0, 0.5)  # along the face y = 0: 0 / 0 on y, bounded by x and z alone
+    assert sil._blocked(o4, d, lo, hi).tolist() == [True, False, True, True]
