@@ -24,6 +24,8 @@ __all__ = ["DiscDetections", "detect_discs", "correct_disc_bias", "disc_image_bi
 
 #: A pixel belongs to a disc candidate when it is this much darker than the paper around it (relative).
 DARK_FRACTION = 0.3
+#: Round test: a blob's area over its convex hull's at least this.
+SOLIDITY = 0.9
 #: Ring test: a ring pixel deviating from the fitted paper plane by more than this (relative) is not paper.
 RING_TOLERANCE = 0.12
 #: Ring test: a ring whose paper departs from one plane by more than this rms (relative) lies across a
@@ -126,6 +128,8 @@ def _ellipse_misfit(blob: np.ndarray) -> tuple[float, float]:
         return 0.0, np.inf
     hull = cv2.contourArea(cv2.convexHull(c))
     solidity = np.count_nonzero(blob) / max(hull + len(c) / 2.0, 1.0)  # contour runs through pixel centres
+    if solidity < SOLIDITY:  # not round whatever the ellipse: no fit needed
+        return solidity, np.inf
     (ex, ey), (da, db), ang = cv2.fitEllipse(c)
     if min(da, db) <= 0:
         return solidity, np.inf
@@ -139,23 +143,20 @@ def _ellipse_misfit(blob: np.ndarray) -> tuple[float, float]:
 def _round_blobs(labels, stats, reject) -> list[int]:
     """The labels of the elliptical blobs clear of the picture's border, the others ``reject``ed by reason."""
     H, W = labels.shape
-    cand = []
-    for k in range(1, len(stats)):
-        x, y, w, h, area = (int(v) for v in stats[k])
-        if area < 20:
-            reject("speck")
-        elif x == 0 or y == 0 or x + w == W or y + h == H:
-            reject("picture edge")
-        else:
-            cand.append(k)
+    x, y, w, h, area = stats[1:].T
+    speck = area < 20
+    edge = ~speck & ((x == 0) | (y == 0) | (x + w == W) | (y + h == H))
+    for why, n in (("speck", np.count_nonzero(speck)), ("picture edge", np.count_nonzero(edge))):
+        for _ in range(n):
+            reject(why)
     round_ = []
-    for k in cand:
+    for k in np.flatnonzero(~(speck | edge)) + 1:
         x, y, w, h, area = (int(v) for v in stats[k])
         if area > 0.05 * H * W:
             reject("too large")
             continue
         solidity, misfit = _ellipse_misfit(labels[y : y + h, x : x + w] == k)
-        if solidity < 0.9 or misfit > max(1.6, 0.035 * np.sqrt(area)):
+        if solidity < SOLIDITY or misfit > max(1.6, 0.035 * np.sqrt(area)):
             reject("not elliptical")
         else:
             round_.append(k)
