@@ -329,7 +329,7 @@ def _edge_level(x, y, z, angle):
     or soft, or an even slope), fitted to the ring's pixels at (``x``, ``y``) [px from the crop's centre]
     of grey ``z``: a profile along the normal (1 px bins, linear between), the normal the direction that
     fits best (every 15 deg from ``angle``, the ring's slope, then refined to 1 deg by
-    halving steps, read from one fit of every 1 deg offset they may reach). Returns the level as
+    halving steps, each two steps read from one fit of every offset they may reach). Returns the level as
     a function of (x, y), or None when the ring is not paper under such a light (a mark, an occluder)."""
 
     def fit(angles):
@@ -365,26 +365,27 @@ def _edge_level(x, y, z, angle):
         return mse, detail
 
     coarse = angle + np.radians(np.arange(0, 180, 15))
-    mse, _ = fit(coarse)
+    mse, detail = fit(coarse)
     i = int(np.argmin(mse))  # the first of equals
     # a search halving its step about the best (8, 4, 2, 1 deg: the better of the two sides when better
-    # still), read from one fit of every 1 deg offset it may reach
-    fine, detail = fit(coarse[i] + np.radians(FINE_ANGLES_DEG))
-    k, best = FINE_REACH, float(mse[i])
-    for step in (8, 4, 2, 1):
-        j = min((k - step, k + step), key=lambda n: fine[n])
-        if fine[j] < best:
-            k, best = j, float(fine[j])
-    bad, c, s, at, prof = detail(k)
+    # still), two steps at a time: one fit of every offset [deg] the two may reach, then read
+    off, best, chosen = 0, float(mse[i]), (detail, i)
+    for steps in REFINE_STEPS_DEG:
+        reach = sorted({off + sum(p) for p in itertools.product(*[(-d, 0, d) for d in steps])} - {off})
+        fine, fine_detail = fit(coarse[i] + np.radians(reach))
+        got = dict(zip(reach, fine))
+        for d in steps:
+            j = min((off - d, off + d), key=got.get)
+            if got[j] < best:
+                off, best, chosen = j, float(got[j]), (fine_detail, reach.index(j))
+    bad, c, s, at, prof = chosen[0](chosen[1])
     if bad > 0.01:
         return None
     return lambda u, v: np.interp(u * c + v * s, at, prof)
 
 
-#: ``_edge_level``'s refinement about the best of its 15 deg steps: the offsets [deg] its search of halving
-#: steps (8 + 4 + 2 + 1) may reach, the best itself at index ``FINE_REACH``.
-FINE_REACH = 15
-FINE_ANGLES_DEG = np.arange(-FINE_REACH, FINE_REACH + 1, dtype=float)
+#: ``_edge_level``'s refinement of the best of its 15 deg steps: the halving steps [deg], two to a fit.
+REFINE_STEPS_DEG = ((8, 4), (2, 1))
 
 
 # --- lattice --------------------------------------------------------------------------------------
