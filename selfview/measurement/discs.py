@@ -227,9 +227,10 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     coef = _least_squares(A, z)
     if coef is None:  # ring pixels on one line: no paper around the disc
         return "crowded", None
-    off = np.abs(z - A @ coef) > RING_TOLERANCE * coef[0]
+    r_ring = z - A @ coef
+    off = np.abs(r_ring) > RING_TOLERANCE * coef[0]
     share_off = np.count_nonzero(off) / len(off)
-    if coef[0] > 0 and (share_off > 0.01 or _curved(A, z, coef)):
+    if coef[0] > 0 and (share_off > 0.01 or _curved(A, z, r_ring, coef[0])):
         # the ring is not one plane: a shadow's edge across the disc (sharp or soft), where the paper's
         # level changes along one direction only; a mark in the ring does not fit that
         level = _edge_level(ru - cu, rv - cv_, z, np.arctan2(coef[2], coef[1]))
@@ -305,12 +306,12 @@ def _least_squares(A: np.ndarray, z: np.ndarray) -> np.ndarray | None:
     return x[:, 0] if ok else None
 
 
-def _curved(A, z, coef) -> bool:
-    """Whether the ring's paper (``z`` at the rows (1, x, y) of ``A``) departs from the plane ``coef``:
-    by more than ``SLOPE_RMS`` rms, or a quadratic fitting it much better (the knee of a soft shadow)."""
-    r = z - A @ coef
+def _curved(A, z, r, level) -> bool:
+    """Whether the ring's paper (``z`` at the rows (1, x, y) of ``A``) departs from its plane (residuals
+    ``r``, ``level`` at the crop's centre): by more than ``SLOPE_RMS`` rms, or a quadratic fitting it much
+    better (the knee of a soft shadow)."""
     mse = float(r @ r) / len(z)
-    if mse > (SLOPE_RMS * coef[0]) ** 2:
+    if mse > (SLOPE_RMS * level) ** 2:
         return True
     Q = np.empty((len(z), 6))
     Q[:, :3] = A
