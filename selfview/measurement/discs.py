@@ -339,23 +339,27 @@ def _edge_level(x, y, z, angle):
         of the others', its positions clamped to its bins as ``np.interp`` clamps them."""
         a = np.asarray(angles, float)
         c, s = np.cos(a), np.sin(a)
-        t = np.outer(c, x) + np.outer(s, y)
-        t0 = t.min(1)
-        u = t - t0[:, None]
+        u = np.multiply.outer(c, x)  # in place from here: each temporary costs as much as the arithmetic
+        u += np.multiply.outer(s, y)
+        t0 = u.min(1)
+        u -= t0[:, None]
         b = u.astype(np.intp)  # floor: u >= 0, and every angle's first bin is filled
         nb = int(b.max()) + 1
         rows = np.arange(len(a))[:, None]
-        flat = (b + nb * rows).ravel()
+        b += nb * rows
+        flat = b.ravel()
         cnt = np.bincount(flat, minlength=nb * len(a)).reshape(len(a), nb)
-        tot = np.bincount(flat, np.broadcast_to(z, t.shape).ravel(), minlength=nb * len(a)).reshape(len(a), nb)
+        tot = np.bincount(flat, np.broadcast_to(z, u.shape).ravel(), minlength=nb * len(a)).reshape(len(a), nb)
         have = cnt > 0
         centres = np.arange(nb) + 0.5
         prof = np.divide(tot, cnt, out=np.zeros_like(tot), where=have)
         hi = centres[nb - 1 - np.argmax(have[:, ::-1], axis=1)]
         gap = nb + 2.0
         xp = (centres + gap * rows)[have]
-        uc = np.minimum(np.maximum(u, 0.5), hi[:, None]) + gap * rows
-        lev = np.interp(uc.ravel(), xp, prof[have]).reshape(t.shape)
+        np.maximum(u, 0.5, out=u)
+        np.minimum(u, hi[:, None], out=u)
+        u += gap * rows
+        lev = np.interp(u.ravel(), xp, prof[have]).reshape(u.shape)
         r = z - lev
         mse = np.einsum("ij,ij->i", r, r) / len(z)
 
