@@ -675,7 +675,8 @@ def _typical_area(area: np.ndarray) -> float:
     """The plate's disc area [px]: the centre of the factor-4 band of blob areas that holds the most dark
     area (the discs, rather than the many small marks or print around them, or a few large blobs)."""
     la = np.log(np.asarray(area, float))
-    ink = [area[(la >= c - np.log(2)) & (la <= c + np.log(2))].sum() for c in la]
+    band = (la[None, :] >= la[:, None] - np.log(2)) & (la[None, :] <= la[:, None] + np.log(2))  # row: one band
+    ink = band @ np.asarray(area)
     c = la[int(np.argmax(ink))]
     inside = (la >= c - np.log(2)) & (la <= c + np.log(2))
     return float(np.exp(np.median(la[inside])))
