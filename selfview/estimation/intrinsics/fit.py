@@ -88,6 +88,9 @@ class JointFit:
     turns: list = field(default_factory=list)
     dropped: list = field(default_factory=list)  # [(view name, why)] left out of the fit
     residuals: np.ndarray = field(default_factory=lambda: np.zeros(0))  # at the solution, rows as ``jac``'s
+    # the views' centroids bias-corrected by this fit's camera and poses (``_bias_corrected``), computed once
+    # for the fits that start from it (the richer plate models, the skew, the halves)
+    bias_memo: dict = field(default_factory=dict, repr=False, compare=False)
 
     @cached_property
     def cov_full(self) -> np.ndarray:
@@ -216,8 +219,20 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
                     float(noise_px), float(dot_sd_mm), residuals=res.residuals)
 
 
-def _bias_corrected(dets, camera, poses, plate) -> list:
-    return [d.uv - plate_image_bias(plate, camera, H, d.p_W) for d, H in zip(dets, poses)]
+def _bias_corrected(dets, camera, poses, plate, memo: dict | None = None) -> list:
+    """Each view's centroids less their perspective and lens bias for ``camera`` and its pose; ``memo`` (a
+    fit's ``bias_memo``): each view's answer kept by its exact inputs, so a fit's correction is computed once
+    for every fit started from it."""
+    if memo is None:
+        return [d.uv - plate_image_bias(plate, camera, H, d.p_W) for d, H in zip(dets, poses)]
+    out = []
+    for d, H in zip(dets, poses):
+        key = (camera, plate.disc_diameter, plate.pattern, np.asarray(H, float).tobytes(), d.uv.tobytes(),
+               d.p_W.tobytes())
+        if key not in memo:
+            memo[key] = d.uv - plate_image_bias(plate, camera, H, d.p_W)
+        out.append(memo[key])
+    return out
 
 def _dot_sd(fit: JointFit) -> float:
     """The discs' position error sd [mm] a 'bow+dots' fit's corrections say (their mean square plus their
@@ -274,7 +289,7 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
             f"from square-on), as when the gripper only looks straight down; take views with the gripper tilted "
             "20-40 deg about different axes in the plate"
         )
-    uv = _bias_corrected(dets, camera0, poses, plate) if warm and bias else [d.uv for d in dets]
+    uv = _bias_corrected(dets, camera0, poses, plate, start.bias_memo) if warm and bias else [d.uv for d in dets]
     rounds = BIAS_ROUNDS if bias and not warm else 0
     same = warm and start.plate_model == plate_model and start.prior_noise_px > 0
     noise0 = {"noise_px": start.prior_noise_px, "dot_sd_mm": start.dot_sd_mm} if same else {}
@@ -284,7 +299,7 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
         flat = warm and start.plate_model == "flat" and [v.name for v in start.views] == list(names) \
             and start.ni == (6 if fit_skew else 5)
         fit = start if flat else _solve([d.p_W for d in dets], uv, camera0, poses, names, fit_skew=fit_skew)
-        uv = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate)
+        uv = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate, fit.bias_memo)
         dets, turns = align_views(dets, uv, fit, plate)
         if plate_model == "bow+dots" and sum(t is not None for t in turns) < max(2, (len(dets) + 1) // 2):
             # the dot pattern is not seen in most views (a print better than the noise shows): per-disc
