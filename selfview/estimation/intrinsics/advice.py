@@ -94,22 +94,29 @@ def more_views_advice(fit: JointFit, plate: PlateSpec) -> dict:
     out = {}
     azimuths = [(90.0 * (n - 1) + 45.0 * ((n - 1) // 4)) % 360.0 for n in range(1, MAX_MORE_VIEWS + 1)]
     for label, tilt in VIEW_KINDS:
-        info = info0.copy()
-        need = None
         # the azimuths repeat (8 of them): each one's information computed once, all in one Jacobian
         seen = _views_information(fit.camera, plate, dist, tilt, sorted(set(azimuths)), fit.s2, ni, shape,
                                   fit.shape if shape is not None else None)
-        for n, azimuth in enumerate(azimuths, 1):
-            add = seen[azimuth]
-            if add is None:
+        adds = []
+        for azimuth in azimuths:  # the views up to the first that does not see the plate
+            if seen[azimuth] is None:
                 break
-            info += add
+            adds.append(seen[azimuth])
+        infos = info0 + np.cumsum(adds, axis=0) if adds else []
+
+        def met(k, infos=infos):  # the stop rule met with the first k + 1 further views
             try:  # the intrinsics' block of the inverse: a solve for its ni columns, not a whole inverse
-                cov = np.linalg.solve(info, np.eye(m)[:, :ni])[:ni]
+                cov = np.linalg.solve(infos[k], np.eye(m)[:, :ni])[:ni]
             except np.linalg.LinAlgError:
-                continue
-            if np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0) and stop_met(sigmas_of(cov), fit.camera.aspect):
-                need = n
-                break
-        out[label] = need
+                return False
+            return bool(np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0)
+                        and stop_met(sigmas_of(cov), fit.camera.aspect))
+
+        # each view adds information (positive semi-definite), so the sigmas only fall as views are added:
+        # the fewest views that meet the rule by bisection
+        lo, hi = 0, len(adds)
+        while lo < hi:
+            mid = (lo + hi) // 2
+            lo, hi = (lo, mid) if met(mid) else (mid + 1, hi)
+        out[label] = lo + 1 if lo < len(adds) else None
     return {"distance_mm": dist, "views_needed": out}

@@ -105,40 +105,78 @@ class JointFit:
         ns, n = len(self.shape), len(self.cov_full)
         return self.cov_full[n - ns :, n - ns :] if ns else np.zeros((0, 0))
 
+class ReducedSystem:
+    """A fit's normal equations on its shared parameters (the ``ni`` intrinsics then the plate's shape), each
+    view's 6 pose parameters eliminated from its rows (Schur complement), about its solution: per view its
+    rows with its own pose projected out (``Jh``, ``rh``) and its share of the reduced matrix and gradient
+    (``Sk``, ``gk``); the shape's prior rows (``jp``, ``rp``) in the totals (``S``, ``g``). The shared columns
+    are scaled by ``sc`` (their norms). What leaving views out of the fit does, to first order, without refits."""
+
+    def __init__(self, fit: JointFit):
+        J, r, ni = fit.jac, fit.residuals, fit.ni
+        V = len(fit.views)
+        self.fit, self.n = fit, np.array([len(u) for u in fit.uv_used])
+        off = np.r_[0, np.cumsum(2 * self.n)]
+        shared = np.r_[0:ni, ni + 6 * V : J.shape[1]]
+        sc = np.linalg.norm(J[:, shared], axis=0)
+        self.sc = np.where(sc > 0, sc, 1.0)
+        self.Jh, self.rh = [], []
+        for k in range(V):
+            rows = slice(off[k], off[k + 1])
+            q, _ = np.linalg.qr(J[rows, ni + 6 * k : ni + 6 * k + 6])
+            js, rk = J[rows][:, shared] / self.sc, r[rows]
+            self.Jh.append(js - q @ (q.T @ js))
+            self.rh.append(rk - q @ (q.T @ rk))
+        self.jp, self.rp = J[off[-1] :][:, shared] / self.sc, r[off[-1] :]
+        self.Sk = np.array([a.T @ a for a in self.Jh])
+        self.gk = np.array([a.T @ b for a, b in zip(self.Jh, self.rh)])
+        self.S, self.g = self.Sk.sum(0) + self.jp.T @ self.jp, self.gk.sum(0) + self.jp.T @ self.rp
+
+    def without(self, drop) -> tuple[np.ndarray, np.ndarray]:
+        """(scaled change of the shared parameters, the reduced matrix of the views left) with the views
+        ``drop`` (indices) left out; ``CalibrationError`` when the views left do not determine them."""
+        drop = list(drop)
+        Sd = self.S - self.Sk[drop].sum(0)
+        try:
+            return np.linalg.solve(Sd, self.gk[drop].sum(0) - self.g), Sd
+        except np.linalg.LinAlgError:
+            names = ", ".join(repr(self.fit.views[k].name) for k in drop)
+            raise CalibrationError(f"intrinsics: without view(s) {names} the other views do not determine the "
+                                   "camera") from None
+
+    def fit_without(self, drop) -> tuple[np.ndarray, np.ndarray, float]:
+        """The fit of the views left when ``drop`` (indices) are left out, to first order about this one (each
+        view's pose refitted to it): (shared parameters, their covariance, the residual variance of the
+        views left, the shape's prior rows counted as observations as in the fit)."""
+        d, Sd = self.without(drop)
+        keep = [k for k in range(len(self.n)) if k not in set(drop)]
+        e = [self.rh[k] + self.Jh[k] @ d for k in keep] + [self.rp + self.jp @ d]
+        cost = float(sum(v @ v for v in e))
+        m = int(2 * self.n[keep].sum()) + len(self.rp)
+        p = len(self.sc) + 6 * len(keep)
+        s2 = cost / max(m - p, 1)
+        x = np.r_[intrinsics_vector(self.fit.camera, self.fit.ni), self.fit.shape] + d / self.sc
+        try:
+            cov = s2 * np.linalg.inv(Sd) / np.outer(self.sc, self.sc)
+        except np.linalg.LinAlgError:
+            cov = np.full((len(d), len(d)), np.inf)
+        return x, cov, s2
+
+
 def leave_views_out(fit: JointFit) -> tuple[np.ndarray, np.ndarray]:
     """The fit's views left out one at a time, to first order about its solution (no refit): (``delta``
     (V, P) the change of the shared parameters, the ``ni`` intrinsics then the plate's shape, when view k
     is left out; ``heldout`` (V,) the mean square [px^2] of view k's residuals predicted by the other views'
     parameters, with its own pose refitted to it). Each view's 6 pose parameters are eliminated from its
-    rows (Schur complement), so the reduced system has the shared parameters only; the shape's prior rows
+    rows (``ReducedSystem``), so the reduced system has the shared parameters only; the shape's prior rows
     stay in. ``CalibrationError`` when the views left do not determine the shared parameters."""
-    J, r, ni = fit.jac, fit.residuals, fit.ni
+    rs = ReducedSystem(fit)
     V = len(fit.views)
-    n = np.array([len(u) for u in fit.uv_used])
-    off = np.r_[0, np.cumsum(2 * n)]
-    shared = np.r_[0:ni, ni + 6 * V : J.shape[1]]
-    sc = np.linalg.norm(J[:, shared], axis=0)
-    sc = np.where(sc > 0, sc, 1.0)
-    Jh, rh = [], []
+    delta, heldout = np.zeros((V, len(rs.sc))), np.zeros(V)
     for k in range(V):
-        rows = slice(off[k], off[k + 1])
-        q, _ = np.linalg.qr(J[rows, ni + 6 * k : ni + 6 * k + 6])
-        js, rk = J[rows][:, shared] / sc, r[rows]
-        Jh.append(js - q @ (q.T @ js))
-        rh.append(rk - q @ (q.T @ rk))
-    jp, rp = J[off[-1] :][:, shared] / sc, r[off[-1] :]
-    Sk = np.array([a.T @ a for a in Jh])
-    gk = np.array([a.T @ b for a, b in zip(Jh, rh)])
-    S, g = Sk.sum(0) + jp.T @ jp, gk.sum(0) + jp.T @ rp
-    delta, heldout = np.zeros((V, len(shared))), np.zeros(V)
-    for k in range(V):
-        try:
-            d = np.linalg.solve(S - Sk[k], gk[k] - g)
-        except np.linalg.LinAlgError:
-            raise CalibrationError(f"intrinsics: without view {fit.views[k].name!r} the other views do not "
-                                   "determine the camera") from None
-        e = rh[k] + Jh[k] @ d
-        delta[k], heldout[k] = d / sc, float(e @ e) / n[k]
+        d, _ = rs.without([k])
+        e = rs.rh[k] + rs.Jh[k] @ d
+        delta[k], heldout[k] = d / rs.sc, float(e @ e) / rs.n[k]
     return delta, heldout
 
 
