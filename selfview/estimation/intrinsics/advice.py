@@ -94,14 +94,16 @@ def more_views_advice(fit: JointFit, plate: PlateSpec) -> dict:
     out = {}
     azimuths = [(90.0 * (n - 1) + 45.0 * ((n - 1) // 4)) % 360.0 for n in range(1, MAX_MORE_VIEWS + 1)]
     for label, tilt in VIEW_KINDS:
-        # the azimuths repeat (8 of them): each one's information computed once, all in one Jacobian
-        seen = _views_information(fit.camera, plate, dist, tilt, sorted(set(azimuths)), fit.s2, ni, shape,
-                                  fit.shape if shape is not None else None)
+        # the azimuths repeat (8 of them): each one's information computed once, all in one Jacobian (one
+        # view square-on, where the azimuth turns nothing)
+        seen = _views_information(fit.camera, plate, dist, tilt, sorted(set(azimuths)) if tilt else [0.0], fit.s2,
+                                  ni, shape, fit.shape if shape is not None else None)
         adds = []
         for azimuth in azimuths:  # the views up to the first that does not see the plate
-            if seen[azimuth] is None:
+            add = seen[azimuth if tilt else 0.0]
+            if add is None:
                 break
-            adds.append(seen[azimuth])
+            adds.append(add)
         infos = info0 + np.cumsum(adds, axis=0) if adds else []
 
         def met(k, infos=infos):  # the stop rule met with the first k + 1 further views
