@@ -8,7 +8,7 @@ import numpy as np
 from selfview.maths.camera import CameraModel
 from selfview.errors import CalibrationError
 from selfview.maths.geometry import R_from_rotvec, make_H
-from selfview.estimation.intrinsics.fit import INTRINSIC_NAMES, MIN_VIEWS_HALF, JointFit, ReducedSystem
+from selfview.estimation.intrinsics.fit import INTRINSIC_NAMES, MIN_VIEWS_HALF, JointFit
 from selfview.estimation.intrinsics.model import POSE_STEP, STEP, JointProblem, intrinsics_vector, with_intrinsics
 from selfview.maths.lm import levenberg_marquardt, wald_chi2
 
@@ -24,7 +24,7 @@ def halves_cross_check(fit: JointFit) -> dict:
     if n < 2 * MIN_VIEWS_HALF:
         return {"done": False, "why": f"{n} views; the cross-check needs {2 * MIN_VIEWS_HALF} (two halves of "
                                       f"{MIN_VIEWS_HALF})"}
-    ni, rs, halves = len(fit.cov5), ReducedSystem(fit), []
+    ni, rs, halves = len(fit.cov5), fit.reduced, []
     for first in (1, 0):
         try:
             x, cov, _ = rs.fit_without(range(first, n, 2))  # the other half left out

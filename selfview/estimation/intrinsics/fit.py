@@ -98,6 +98,12 @@ class JointFit:
     def cov_full(self) -> np.ndarray:
         return covariance(self.jac, self.s2, normal=True)
 
+    @cached_property
+    def reduced(self) -> "ReducedSystem":
+        """Its normal equations on the shared parameters, each view's pose eliminated (``ReducedSystem``): for
+        the views left out to first order (the plate model's evidence, the skew's jackknife, the halves)."""
+        return ReducedSystem(self)
+
     @property
     def cov5(self) -> np.ndarray:
         return self.cov_full[: self.ni, : self.ni]
@@ -172,7 +178,7 @@ def leave_views_out(fit: JointFit) -> tuple[np.ndarray, np.ndarray]:
     parameters, with its own pose refitted to it). Each view's 6 pose parameters are eliminated from its
     rows (``ReducedSystem``), so the reduced system has the shared parameters only; the shape's prior rows
     stay in. ``CalibrationError`` when the views left do not determine the shared parameters."""
-    rs = ReducedSystem(fit)
+    rs = fit.reduced
     V = len(fit.views)
     delta, heldout = np.zeros((V, len(rs.sc))), np.zeros(V)
     for k in range(V):
