@@ -364,6 +364,8 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
         camera0 = fit.camera
     same = warm and start.plate_model == plate_model and start.prior_noise_px > 0
     noise0 = {"noise_px": start.prior_noise_px, "dot_sd_mm": start.dot_sd_mm} if same else {}
+    if warm and not same and start.s2 > 0:  # a simpler model's start: its residual sigma, the noise to settle
+        noise0 = {"noise_px": float(np.sqrt(start.s2))}
     P = [d.p_W for d in dets]
     rc = [d.rc for d in dets]
     kw = {"rc": rc, "plate": plate, "plate_model": plate_model, "fit_skew": fit_skew}
