@@ -361,7 +361,7 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
                        for k in unaligned]
             dets, uv, names, turns = ([a[k] for k in keep] for a in (dets, uv, names, turns))
         poses = [initial_pose(d.p_W, u, fit.camera) for d, u in zip(dets, uv)]
-        camera0 = fit.camera
+        camera0 = fit.camera if fit_skew else fit.camera.with_(skew=camera0.skew)  # a held skew stays held
     same = warm and start.plate_model == plate_model and start.prior_noise_px > 0
     noise0 = {"noise_px": start.prior_noise_px, "dot_sd_mm": start.dot_sd_mm} if same else {}
     if warm and not same and start.s2 > 0:  # a simpler model's start: its residual sigma, the noise to settle
