@@ -28,33 +28,40 @@ def stop_met(sig: dict, aspect: float) -> bool:
 VIEW_KINDS = (("tilted 35 deg", 35.0), ("tilted 20 deg", 20.0), ("square-on", 0.0))
 
 
-def _view_information(camera: CameraModel, plate: PlateSpec, distance: float, tilt_deg: float, azimuth_deg: float,
-                      s2: float, ni: int = 5, shape: "PlateShape | None" = None, y=None) -> np.ndarray | None:
-    """(ni, ni) information on the intrinsics that one view of the plate adds, its pose eliminated: the
-    plate's centre at ``distance`` on the optical axis, tilted ``tilt_deg`` about an in-plane axis at
-    ``azimuth_deg``; the discs that fall in the picture. With the plate's shape (``shape`` at parameters
-    ``y``): (ni + n_shape) square, on the intrinsics and the shape (the same printed plate in every view)."""
-    a = np.radians(azimuth_deg)
-    H = trans(0, 0, distance) @ rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt_deg))
+def _views_information(camera: CameraModel, plate: PlateSpec, distance: float, tilt_deg: float, azimuths,
+                       s2: float, ni: int = 5, shape: "PlateShape | None" = None, y=None) -> dict:
+    """{azimuth: (ni, ni) information on the intrinsics that one view of the plate adds, its pose eliminated,
+    or None when fewer than 8 discs fall in the picture}: the plate's centre at ``distance`` on the optical
+    axis, tilted ``tilt_deg`` about an in-plane axis at each of ``azimuths`` [deg]; the discs that fall in the
+    picture. With the plate's shape (``shape`` at parameters ``y``): (ni + n_shape) square, on the intrinsics
+    and the shape (the same printed plate in every view). The views' Jacobian is filled at once (one joint
+    problem of them all, without the shape's prior rows); each view's pose meets only its own rows."""
     p = plate.disc_centres_W()
     x = intrinsics_vector(camera, ni)
-    uv = project_points(x, H[:3, :3], H[:3, 3], p, camera.skew)
-    ok = np.all(np.isfinite(uv), axis=1)
-    ok[ok] = camera.in_image(uv[ok], margin=10)
-    if ok.sum() < 8:
-        return None
-    if shape is None:
-        model = JointProblem([p[ok]], [uv[ok]], [H[:3, :3]], ni=ni, skew=camera.skew)
-        J = model.jacobian(np.concatenate([x, np.zeros(3), H[:3, 3]]))
-        A = J.T @ J / s2
-        Aii, Aip, App = A[:ni, :ni], A[:ni, ni:], A[ni:, ni:]
-        return Aii - Aip @ np.linalg.solve(App, Aip.T)
-    model = JointProblem([p[ok]], [uv[ok]], [H[:3, :3]], shape, [np.flatnonzero(ok)], ni=ni, skew=camera.skew)
-    J = model.jacobian(np.concatenate([x, np.zeros(3), H[:3, 3], y]))[: model.m_data]  # no second prior
-    A = J.T @ J / s2
-    keep = np.r_[0:ni, ni + 6 : len(A)]
-    Ak, Akp, App = A[np.ix_(keep, keep)], A[keep, ni : ni + 6], A[ni : ni + 6, ni : ni + 6]
-    return Ak - Akp @ np.linalg.solve(App, Akp.T)
+    out, P, UV, R, t, idx, az_in = {}, [], [], [], [], [], []
+    for az in azimuths:
+        a = np.radians(az)
+        H = trans(0, 0, distance) @ rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt_deg))
+        uv = project_points(x, H[:3, :3], H[:3, 3], p, camera.skew)
+        ok = np.all(np.isfinite(uv), axis=1)
+        ok[ok] = camera.in_image(uv[ok], margin=10)
+        out[az] = None
+        if ok.sum() >= 8:
+            P.append(p[ok]), UV.append(uv[ok]), R.append(H[:3, :3]), t.append(H[:3, 3])
+            idx.append(np.flatnonzero(ok)), az_in.append(az)
+    if not az_in:
+        return out
+    V = len(az_in)
+    model = JointProblem(P, UV, R, shape, idx if shape is not None else None, ni=ni, skew=camera.skew)
+    poses = np.concatenate([np.r_[np.zeros(3), tk] for tk in t])
+    J = model.jacobian(np.concatenate([x, poses, y if shape is not None else []]))[: model.m_data]
+    keep = np.r_[0:ni, ni + 6 * V : J.shape[1]]
+    for k, az in enumerate(az_in):
+        rows = slice(model.off[k], model.off[k + 1])
+        Jk, Jp = J[rows][:, keep], J[rows, ni + 6 * k : ni + 6 * k + 6]
+        Ak, Akp, App = Jk.T @ Jk / s2, Jk.T @ Jp / s2, Jp.T @ Jp / s2
+        out[az] = Ak - Akp @ np.linalg.solve(App, Akp.T)
+    return out
 
 
 def more_views_advice(fit: JointFit, plate: PlateSpec) -> dict:
@@ -85,25 +92,33 @@ def more_views_advice(fit: JointFit, plate: PlateSpec) -> dict:
         info0 = np.zeros((m, m))
     dist = float(np.median([v.distance_mm for v in fit.views]))
     out = {}
+    azimuths = [(90.0 * (n - 1) + 45.0 * ((n - 1) // 4)) % 360.0 for n in range(1, MAX_MORE_VIEWS + 1)]
     for label, tilt in VIEW_KINDS:
-        info = info0.copy()
-        need = None
-        seen = {}  # the azimuths repeat every 8 views: each one's information computed once
-        for n in range(1, MAX_MORE_VIEWS + 1):
-            azimuth = (90.0 * (n - 1) + 45.0 * ((n - 1) // 4)) % 360.0
-            if azimuth not in seen:
-                seen[azimuth] = _view_information(fit.camera, plate, dist, tilt, azimuth, fit.s2, ni, shape,
-                                                  fit.shape if shape is not None else None)
-            add = seen[azimuth]
+        # the azimuths repeat (8 of them): each one's information computed once, all in one Jacobian (one
+        # view square-on, where the azimuth turns nothing)
+        seen = _views_information(fit.camera, plate, dist, tilt, sorted(set(azimuths)) if tilt else [0.0], fit.s2,
+                                  ni, shape, fit.shape if shape is not None else None)
+        adds = []
+        for azimuth in azimuths:  # the views up to the first that does not see the plate
+            add = seen[azimuth if tilt else 0.0]
             if add is None:
                 break
-            info += add
+            adds.append(add)
+        infos = info0 + np.cumsum(adds, axis=0) if adds else []
+
+        def met(k, infos=infos):  # the stop rule met with the first k + 1 further views
             try:  # the intrinsics' block of the inverse: a solve for its ni columns, not a whole inverse
-                cov = np.linalg.solve(info, np.eye(m)[:, :ni])[:ni]
+                cov = np.linalg.solve(infos[k], np.eye(m)[:, :ni])[:ni]
             except np.linalg.LinAlgError:
-                continue
-            if np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0) and stop_met(sigmas_of(cov), fit.camera.aspect):
-                need = n
-                break
-        out[label] = need
+                return False
+            return bool(np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0)
+                        and stop_met(sigmas_of(cov), fit.camera.aspect))
+
+        # each view adds information (positive semi-definite), so the sigmas only fall as views are added:
+        # the fewest views that meet the rule by bisection
+        lo, hi = 0, len(adds)
+        while lo < hi:
+            mid = (lo + hi) // 2
+            lo, hi = (lo, mid) if met(mid) else (mid + 1, hi)
+        out[label] = lo + 1 if lo < len(adds) else None
     return {"distance_mm": dist, "views_needed": out}

@@ -146,7 +146,7 @@ the views left out in turn better (``PLATE_TEST_LEVEL``); ``plate_shape`` says w
             "square-on; take views tilted 20-40 deg in different directions"
         )
     stop = _stop_rule(fit, plate, sig)
-    xc = halves_cross_check(dets, names, plate, fit) if cross_check else {"done": False, "why": "not asked for"}
+    xc = halves_cross_check(fit) if cross_check else {"done": False, "why": "not asked for"}
     return IntrinsicsResult(
         camera=fit.camera, covariance=fit.cov5, sigma=sig, rms_px=fit.rms_px, views=fit.views, skipped=skipped,
         projection_sigma_px=projection_sigma_px(fit.camera, fit.cov5), stop_rule=stop, cross_check=xc,

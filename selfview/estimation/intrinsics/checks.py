@@ -8,7 +8,7 @@ import numpy as np
 from selfview.maths.camera import CameraModel
 from selfview.errors import CalibrationError
 from selfview.maths.geometry import R_from_rotvec, make_H
-from selfview.estimation.intrinsics.fit import INTRINSIC_NAMES, MIN_VIEWS_HALF, JointFit, fit_views
+from selfview.estimation.intrinsics.fit import INTRINSIC_NAMES, MIN_VIEWS_HALF, JointFit
 from selfview.estimation.intrinsics.model import POSE_STEP, STEP, JointProblem, intrinsics_vector, with_intrinsics
 from selfview.maths.lm import levenberg_marquardt, wald_chi2
 
@@ -16,23 +16,23 @@ from selfview.maths.lm import levenberg_marquardt, wald_chi2
 #: The halves of the cross-check agree when no parameter differs by more than this many combined sigmas.
 AGREE_SIGMAS = 3.0
 
-def halves_cross_check(dets, names, plate, fit: JointFit) -> dict:
-    n = len(dets)
+def halves_cross_check(fit: JointFit) -> dict:
+    """Do two halves of the fit's views (alternate ones, in its order) give the same intrinsics within
+    ``AGREE_SIGMAS`` combined sigmas? Each half's fit is the joint fit with the other half left out, to first
+    order about ``fit``'s solution (``ReducedSystem.fit_without``: no refits), with its own residual variance."""
+    n = len(fit.views)
     if n < 2 * MIN_VIEWS_HALF:
         return {"done": False, "why": f"{n} views; the cross-check needs {2 * MIN_VIEWS_HALF} (two halves of "
                                       f"{MIN_VIEWS_HALF})"}
-    halves = []
-    for idx in (range(0, n, 2), range(1, n, 2)):
-        idx = list(idx)
+    ni, rs, halves = len(fit.cov5), fit.reduced, []
+    for first in (1, 0):
         try:
-            h = fit_views([dets[i] for i in idx], plate, fit.camera, [names[i] for i in idx], plate_model=fit.plate_model,
-                          fit_skew=len(fit.cov5) > 5, start=fit)
+            x, cov, _ = rs.fit_without(range(first, n, 2))  # the other half left out
         except CalibrationError as exc:
             return {"done": False, "why": f"a half could not be calibrated: {exc}"}
-        halves.append(h)
-    a, b = halves
-    xa, xb = intrinsics_vector(a.camera, len(a.cov5)), intrinsics_vector(b.camera, len(b.cov5))
-    comb = np.sqrt(np.diag(a.cov5) + np.diag(b.cov5))
+        halves.append((x[:ni], cov[:ni, :ni]))
+    (xa, ca), (xb, cb) = halves
+    comb = np.sqrt(np.diag(ca) + np.diag(cb))
     ratio = np.abs(xa - xb) / comb
     agree = bool(np.all(np.isfinite(ratio)) and np.all(ratio <= AGREE_SIGMAS))
     return {

@@ -32,8 +32,10 @@ OUTLIER_MIN_PX = 0.5
 #: A view whose residual RMS exceeds this [px] after the fit does not belong to the set (another
 #: plate, a moved camera, a blurred picture) and is dropped.
 VIEW_MAX_RMS_PX = 1.5
-#: Bias-correction rounds (centroid -> image of the centre) after the first fit.
-BIAS_ROUNDS = 2
+#: Bias-correction rounds (centroid -> image of the centre) after the first fit. One: the bias (0.05-0.2 px)
+#: depends on the camera only weakly, so a second round by the corrected fit's camera moved f, cx, cy by under
+#: 0.004 of their sigmas on every real set of discs (the fits started from this one correct by it again).
+BIAS_ROUNDS = 1
 #: Further refits, at most, until the noise that weighs the plate's prior settles (within 20 %).
 NOISE_ROUNDS = 4
 #: The joint LM stops when a step would lower the cost by less than this part of it: a step that moves the
@@ -88,10 +90,19 @@ class JointFit:
     turns: list = field(default_factory=list)
     dropped: list = field(default_factory=list)  # [(view name, why)] left out of the fit
     residuals: np.ndarray = field(default_factory=lambda: np.zeros(0))  # at the solution, rows as ``jac``'s
+    # the views' centroids bias-corrected by this fit's camera and poses (``_bias_corrected``), computed once
+    # for the fits that start from it (the richer plate models, the skew, the halves)
+    bias_memo: dict = field(default_factory=dict, repr=False, compare=False)
 
     @cached_property
     def cov_full(self) -> np.ndarray:
         return covariance(self.jac, self.s2, normal=True)
+
+    @cached_property
+    def reduced(self) -> "ReducedSystem":
+        """Its normal equations on the shared parameters, each view's pose eliminated (``ReducedSystem``): for
+        the views left out to first order (the plate model's evidence, the skew's jackknife, the halves)."""
+        return ReducedSystem(self)
 
     @property
     def cov5(self) -> np.ndarray:
@@ -102,40 +113,78 @@ class JointFit:
         ns, n = len(self.shape), len(self.cov_full)
         return self.cov_full[n - ns :, n - ns :] if ns else np.zeros((0, 0))
 
+class ReducedSystem:
+    """A fit's normal equations on its shared parameters (the ``ni`` intrinsics then the plate's shape), each
+    view's 6 pose parameters eliminated from its rows (Schur complement), about its solution: per view its
+    rows with its own pose projected out (``Jh``, ``rh``) and its share of the reduced matrix and gradient
+    (``Sk``, ``gk``); the shape's prior rows (``jp``, ``rp``) in the totals (``S``, ``g``). The shared columns
+    are scaled by ``sc`` (their norms). What leaving views out of the fit does, to first order, without refits."""
+
+    def __init__(self, fit: JointFit):
+        J, r, ni = fit.jac, fit.residuals, fit.ni
+        V = len(fit.views)
+        self.fit, self.n = fit, np.array([len(u) for u in fit.uv_used])
+        off = np.r_[0, np.cumsum(2 * self.n)]
+        shared = np.r_[0:ni, ni + 6 * V : J.shape[1]]
+        sc = np.linalg.norm(J[:, shared], axis=0)
+        self.sc = np.where(sc > 0, sc, 1.0)
+        self.Jh, self.rh = [], []
+        for k in range(V):
+            rows = slice(off[k], off[k + 1])
+            q, _ = np.linalg.qr(J[rows, ni + 6 * k : ni + 6 * k + 6])
+            js, rk = J[rows][:, shared] / self.sc, r[rows]
+            self.Jh.append(js - q @ (q.T @ js))
+            self.rh.append(rk - q @ (q.T @ rk))
+        self.jp, self.rp = J[off[-1] :][:, shared] / self.sc, r[off[-1] :]
+        self.Sk = np.array([a.T @ a for a in self.Jh])
+        self.gk = np.array([a.T @ b for a, b in zip(self.Jh, self.rh)])
+        self.S, self.g = self.Sk.sum(0) + self.jp.T @ self.jp, self.gk.sum(0) + self.jp.T @ self.rp
+
+    def without(self, drop) -> tuple[np.ndarray, np.ndarray]:
+        """(scaled change of the shared parameters, the reduced matrix of the views left) with the views
+        ``drop`` (indices) left out; ``CalibrationError`` when the views left do not determine them."""
+        drop = list(drop)
+        Sd = self.S - self.Sk[drop].sum(0)
+        try:
+            return np.linalg.solve(Sd, self.gk[drop].sum(0) - self.g), Sd
+        except np.linalg.LinAlgError:
+            names = ", ".join(repr(self.fit.views[k].name) for k in drop)
+            raise CalibrationError(f"intrinsics: without view(s) {names} the other views do not determine the "
+                                   "camera") from None
+
+    def fit_without(self, drop) -> tuple[np.ndarray, np.ndarray, float]:
+        """The fit of the views left when ``drop`` (indices) are left out, to first order about this one (each
+        view's pose refitted to it): (shared parameters, their covariance, the residual variance of the
+        views left, the shape's prior rows counted as observations as in the fit)."""
+        d, Sd = self.without(drop)
+        keep = [k for k in range(len(self.n)) if k not in set(drop)]
+        e = [self.rh[k] + self.Jh[k] @ d for k in keep] + [self.rp + self.jp @ d]
+        cost = float(sum(v @ v for v in e))
+        m = int(2 * self.n[keep].sum()) + len(self.rp)
+        p = len(self.sc) + 6 * len(keep)
+        s2 = cost / max(m - p, 1)
+        x = np.r_[intrinsics_vector(self.fit.camera, self.fit.ni), self.fit.shape] + d / self.sc
+        try:
+            cov = s2 * np.linalg.inv(Sd) / np.outer(self.sc, self.sc)
+        except np.linalg.LinAlgError:
+            cov = np.full((len(d), len(d)), np.inf)
+        return x, cov, s2
+
+
 def leave_views_out(fit: JointFit) -> tuple[np.ndarray, np.ndarray]:
     """The fit's views left out one at a time, to first order about its solution (no refit): (``delta``
     (V, P) the change of the shared parameters, the ``ni`` intrinsics then the plate's shape, when view k
     is left out; ``heldout`` (V,) the mean square [px^2] of view k's residuals predicted by the other views'
     parameters, with its own pose refitted to it). Each view's 6 pose parameters are eliminated from its
-    rows (Schur complement), so the reduced system has the shared parameters only; the shape's prior rows
+    rows (``ReducedSystem``), so the reduced system has the shared parameters only; the shape's prior rows
     stay in. ``CalibrationError`` when the views left do not determine the shared parameters."""
-    J, r, ni = fit.jac, fit.residuals, fit.ni
+    rs = fit.reduced
     V = len(fit.views)
-    n = np.array([len(u) for u in fit.uv_used])
-    off = np.r_[0, np.cumsum(2 * n)]
-    shared = np.r_[0:ni, ni + 6 * V : J.shape[1]]
-    sc = np.linalg.norm(J[:, shared], axis=0)
-    sc = np.where(sc > 0, sc, 1.0)
-    Jh, rh = [], []
+    delta, heldout = np.zeros((V, len(rs.sc))), np.zeros(V)
     for k in range(V):
-        rows = slice(off[k], off[k + 1])
-        q, _ = np.linalg.qr(J[rows, ni + 6 * k : ni + 6 * k + 6])
-        js, rk = J[rows][:, shared] / sc, r[rows]
-        Jh.append(js - q @ (q.T @ js))
-        rh.append(rk - q @ (q.T @ rk))
-    jp, rp = J[off[-1] :][:, shared] / sc, r[off[-1] :]
-    Sk = np.array([a.T @ a for a in Jh])
-    gk = np.array([a.T @ b for a, b in zip(Jh, rh)])
-    S, g = Sk.sum(0) + jp.T @ jp, gk.sum(0) + jp.T @ rp
-    delta, heldout = np.zeros((V, len(shared))), np.zeros(V)
-    for k in range(V):
-        try:
-            d = np.linalg.solve(S - Sk[k], gk[k] - g)
-        except np.linalg.LinAlgError:
-            raise CalibrationError(f"intrinsics: without view {fit.views[k].name!r} the other views do not "
-                                   "determine the camera") from None
-        e = rh[k] + Jh[k] @ d
-        delta[k], heldout[k] = d / sc, float(e @ e) / n[k]
+        d, _ = rs.without([k])
+        e = rs.rh[k] + rs.Jh[k] @ d
+        delta[k], heldout[k] = d / rs.sc, float(e @ e) / rs.n[k]
     return delta, heldout
 
 
@@ -216,8 +265,20 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
                     float(noise_px), float(dot_sd_mm), residuals=res.residuals)
 
 
-def _bias_corrected(dets, camera, poses, plate) -> list:
-    return [d.uv - plate_image_bias(plate, camera, H, d.p_W) for d, H in zip(dets, poses)]
+def _bias_corrected(dets, camera, poses, plate, memo: dict | None = None) -> list:
+    """Each view's centroids less their perspective and lens bias for ``camera`` and its pose; ``memo`` (a
+    fit's ``bias_memo``): each view's answer kept by its exact inputs, so a fit's correction is computed once
+    for every fit started from it."""
+    if memo is None:
+        return [d.uv - plate_image_bias(plate, camera, H, d.p_W) for d, H in zip(dets, poses)]
+    out = []
+    for d, H in zip(dets, poses):
+        key = (camera, plate.disc_diameter, plate.pattern, np.asarray(H, float).tobytes(), d.uv.tobytes(),
+               d.p_W.tobytes())
+        if key not in memo:
+            memo[key] = d.uv - plate_image_bias(plate, camera, H, d.p_W)
+        out.append(memo[key])
+    return out
 
 def _dot_sd(fit: JointFit) -> float:
     """The discs' position error sd [mm] a 'bow+dots' fit's corrections say (their mean square plus their
@@ -274,17 +335,15 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
             f"from square-on), as when the gripper only looks straight down; take views with the gripper tilted "
             "20-40 deg about different axes in the plate"
         )
-    uv = _bias_corrected(dets, camera0, poses, plate) if warm and bias else [d.uv for d in dets]
+    uv = _bias_corrected(dets, camera0, poses, plate, start.bias_memo) if warm and bias else [d.uv for d in dets]
     rounds = BIAS_ROUNDS if bias and not warm else 0
-    same = warm and start.plate_model == plate_model and start.prior_noise_px > 0
-    noise0 = {"noise_px": start.prior_noise_px, "dot_sd_mm": start.dot_sd_mm} if same else {}
     turns, dropped = [0.0] * len(dets), []
     if plate_model != "flat":
-        # a first camera on the plate as specified (a flat start is one), then the discs on one physical grid
-        flat = warm and start.plate_model == "flat" and [v.name for v in start.views] == list(names) \
-            and start.ni == (6 if fit_skew else 5)
-        fit = start if flat else _solve([d.p_W for d in dets], uv, camera0, poses, names, fit_skew=fit_skew)
-        uv = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate)
+        # a first camera (the start's when it fitted these views on their grids as found, else one on the plate
+        # as specified), then the discs on one physical grid
+        reuse = warm and [v.name for v in start.views] == list(names) and not any(start.turns)
+        fit = start if reuse else _solve([d.p_W for d in dets], uv, camera0, poses, names, fit_skew=fit_skew)
+        uv = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate, fit.bias_memo)
         dets, turns = align_views(dets, uv, fit, plate)
         if plate_model == "bow+dots" and sum(t is not None for t in turns) < max(2, (len(dets) + 1) // 2):
             # the dot pattern is not seen in most views (a print better than the noise shows): per-disc
@@ -302,7 +361,11 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
                        for k in unaligned]
             dets, uv, names, turns = ([a[k] for k in keep] for a in (dets, uv, names, turns))
         poses = [initial_pose(d.p_W, u, fit.camera) for d, u in zip(dets, uv)]
-        camera0 = fit.camera
+        camera0 = fit.camera if fit_skew else fit.camera.with_(skew=camera0.skew)  # a held skew stays held
+    same = warm and start.plate_model == plate_model and start.prior_noise_px > 0
+    noise0 = {"noise_px": start.prior_noise_px, "dot_sd_mm": start.dot_sd_mm} if same else {}
+    if warm and not same and start.s2 > 0:  # a simpler model's start: its residual sigma, the noise to settle
+        noise0 = {"noise_px": float(np.sqrt(start.s2))}
     P = [d.p_W for d in dets]
     rc = [d.rc for d in dets]
     kw = {"rc": rc, "plate": plate, "plate_model": plate_model, "fit_skew": fit_skew}
@@ -363,19 +426,21 @@ def guess_camera(dets: list[DiscDetections], width: int, height: int) -> CameraM
 
 
 # --- uncertainty figures --------------------------------------------------------------------------
-def _pixel_jacobian(camera: CameraModel, uv, ni: int = 5) -> np.ndarray:
-    """(2, ni) derivative of where the ray of pixel ``uv`` lands, w.r.t. (f, kappa, cx, cy, aspect[, skew])."""
-    xy = camera.undistort_pixels(np.atleast_2d(uv))[0] / camera.f
-    p = np.array([[xy[0], xy[1], 1.0]])
+def _pixel_jacobians(camera: CameraModel, uv, ni: int = 5) -> np.ndarray:
+    """(N, 2, ni) derivative of where the rays of pixels ``uv`` (N, 2) land, w.r.t. (f, kappa, cx, cy, aspect[,
+    skew]): central differences, every pixel's ray projected at once for each step."""
+    uv = np.atleast_2d(np.asarray(uv, float))
+    xy = camera.undistort_pixels(uv) / camera.f
+    p = np.column_stack([xy, np.ones(len(xy))])
     x = intrinsics_vector(camera, ni)
-    J = np.zeros((2, ni))
+    J = np.zeros((len(uv), 2, ni))
     for i in range(ni):
         h = STEP[i] * (abs(x[i]) if i == 0 else 1.0)
         xp, xm = x.copy(), x.copy()
         xp[i] += h
         xm[i] -= h
-        J[:, i] = (project_points(xp, np.eye(3), np.zeros(3), p, camera.skew)[0]
-                   - project_points(xm, np.eye(3), np.zeros(3), p, camera.skew)[0]) / (2 * h)
+        J[:, :, i] = (project_points(xp, np.eye(3), np.zeros(3), p, camera.skew)
+                      - project_points(xm, np.eye(3), np.zeros(3), p, camera.skew)) / (2 * h)
     return J
 
 
@@ -385,11 +450,8 @@ def projection_sigma_px(camera: CameraModel, cov5: np.ndarray) -> dict:
     W, H = camera.width, camera.height
     pts = {"centre": ((W - 1) / 2, (H - 1) / 2), "top_left": (0.0, 0.0), "top_right": (W - 1.0, 0.0),
            "bottom_left": (0.0, H - 1.0), "bottom_right": (W - 1.0, H - 1.0)}
-    out = {}
-    for nm, q in pts.items():
-        J = _pixel_jacobian(camera, q, len(cov5))
-        out[nm] = float(np.sqrt(max(np.trace(J @ cov5 @ J.T), 0.0)))
-    return out
+    Js = _pixel_jacobians(camera, list(pts.values()), len(cov5))
+    return {nm: float(np.sqrt(max(np.trace(J @ cov5 @ J.T), 0.0))) for nm, J in zip(pts, Js)}
 
 
 def sigmas_of(cov5) -> dict:

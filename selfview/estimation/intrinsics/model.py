@@ -27,16 +27,30 @@ def project_points(intr, R, t, p_W, skew: float = 0.0) -> np.ndarray:
 def pixels_from_camera(intr, pc, skew: float = 0.0) -> np.ndarray:
     """(N, 2) distorted pixels of points ``pc`` (N, 3) in the camera frame, intrinsics as ``project_points``;
     NaN throughout where any point is behind the camera or beyond the fold."""
-    f, kappa, cx, cy, aspect = intr[:5]
-    if len(intr) > 5:
-        skew = intr[5]
+    XYh = _distorted_sensor(intr, pc)
+    if XYh is None:
+        return np.full((len(pc), 2), np.nan)
+    return _sensor_pixels(intr, XYh, skew)
+
+
+def _distorted_sensor(intr, pc) -> np.ndarray | None:
+    """(N, 2) distorted sensor coordinates X^, Y^ of camera-frame points ``pc`` (N, 3) by intrinsics ``intr``;
+    None where any point is behind the camera or beyond the fold (or f, aspect not positive)."""
+    f, kappa, aspect = intr[0], intr[1], intr[4]
     z = pc[:, 2]
     if np.any(z <= 0) or f <= 0 or aspect <= 0:
-        return np.full((len(pc), 2), np.nan)
+        return None
     try:
-        XYh = distort(f * pc[:, :2] / z[:, None], kappa)
+        return distort(f * pc[:, :2] / z[:, None], kappa)
     except CalibrationError:
-        return np.full((len(pc), 2), np.nan)
+        return None
+
+
+def _sensor_pixels(intr, XYh, skew: float = 0.0) -> np.ndarray:
+    """(N, 2) pixels of distorted sensor coordinates ``XYh`` (N, 2): u = X^ / aspect + skew Y^ + cx, v = Y^ + cy."""
+    cx, cy, aspect = intr[2], intr[3], intr[4]
+    if len(intr) > 5:
+        skew = intr[5]
     return np.column_stack([XYh[:, 0] / aspect + skew * XYh[:, 1] + cx, XYh[:, 1] + cy])
 
 
@@ -80,6 +94,7 @@ class JointProblem:
         self.idx_all = np.concatenate(idx) if self.shape else None
         self.dp_dy = self.shape.dp_dy(self.idx_all) if self.shape else None  # constant: the shape is linear
         self.pose_cols = self.ni + 6 * self.vid[:, None] + np.arange(6)
+        self._last = None  # (x, _camera_points(x)) of the last parameters projected
 
     def _y(self, x):
         return x[self.ni + 6 * len(self.p_W) :]
@@ -103,14 +118,29 @@ class JointProblem:
         m = project_points(x[: self.ni], R, x[j + 3 : j + 6], self.points(x, k), self.skew)
         return (m - self.uv[k]).T.ravel()
 
+    def _camera_points(self, x):
+        """(each point's rotation, d = R p, its camera-frame position, its distorted sensor coordinates or None
+        when any point is behind the camera or beyond the fold) at ``x``; the last ones kept: the solver asks
+        for the Jacobian at the parameters whose residuals it has just evaluated and accepted."""
+        if self._last is not None and np.array_equal(self._last[0], x):
+            return self._last[1]
+        V = len(self.p_W)
+        Rv = self._rotations(x)[self.vid]
+        t = x[self.ni : self.ni + 6 * V].reshape(-1, 6)[:, 3:]
+        d = np.einsum("nij,nj->ni", Rv, self._all_points(x))
+        pc = d + t[self.vid]
+        out = (Rv, d, pc, _distorted_sensor(x[: self.ni], pc))
+        self._last = (np.array(x, float), out)
+        return out
+
     def residuals(self, x) -> np.ndarray:
         """Every view's residuals from one projection of all points (NaN throughout where any point is
         behind the camera or beyond the fold: no step the solver takes to such parameters is accepted)."""
-        R = self._rotations(x)
-        t = x[self.ni : self.ni + 6 * len(self.p_W)].reshape(-1, 6)[:, 3:]
-        P = self._all_points(x)
-        pc = np.einsum("nij,nj->ni", R[self.vid], P) + t[self.vid]
-        m = pixels_from_camera(x[: self.ni], pc, self.skew) - self.UV
+        XYh = self._camera_points(x)[3]
+        if XYh is None:
+            m = np.full((len(self.vid), 2), np.nan)
+        else:
+            m = _sensor_pixels(x[: self.ni], XYh, self.skew) - self.UV
         r = np.empty(self.m_data)
         r[self.ru], r[self.rv] = m[:, 0], m[:, 1]
         if self.shape:
@@ -126,17 +156,15 @@ class JointProblem:
         V = len(self.p_W)
         s0 = ni + 6 * V
         J = np.zeros((self.m_data + (self.shape.n if self.shape else 0), len(x)))
-        R = self._rotations(x)
         om = x[ni:s0].reshape(-1, 6)
         vid = self.vid
-        Rv = R[vid]
-        d = np.einsum("nij,nj->ni", Rv, self._all_points(x))
-        pc = d + om[vid, 3:]
+        Rv, d, pc, XYh = self._camera_points(x)
         z = pc[:, 2]
         if np.any(z <= 0):
             raise CalibrationError("intrinsics: a disc lies behind the camera near the current parameters")
         X, Y = f * pc[:, 0] / z, f * pc[:, 1] / z
-        XYh = distort(np.column_stack([X, Y]), kappa)
+        if XYh is None:  # beyond the fold: the camera model's own error
+            XYh = distort(np.column_stack([X, Y]), kappa)
         Xh, Yh = XYh[:, 0], XYh[:, 1]
         rh2 = Xh * Xh + Yh * Yh
         a = 1.0 + kappa * rh2

@@ -122,24 +122,27 @@ def _dot_field(det, uv, camera: CameraModel, H) -> np.ndarray | None:
     return d - Bm @ coef
 
 
-def _turned(det, k: int, plate: PlateSpec):
-    """``det`` with its grid turned by k * 90 deg about the grid's centre (None when it leaves the grid)."""
+def _turned(det, k: int, plate: PlateSpec, p0=None):
+    """``det`` with its grid turned by k * 90 deg about the grid's centre (None when it leaves the grid);
+    ``p0`` the plate's disc centres (``plate.disc_centres_W()``, when the caller has them)."""
     c = np.column_stack([det.rc[:, 1] - (plate.cols - 1) / 2, det.rc[:, 0] - (plate.rows - 1) / 2])
     for _ in range(k % 4):
         c = np.column_stack([-c[:, 1], c[:, 0]])
-    col, row = c[:, 0] + (plate.cols - 1) / 2, c[:, 1] + (plate.rows - 1) / 2
-    if not (np.allclose(col, np.round(col)) and np.allclose(row, np.round(row))):
+    cr = c + [(plate.cols - 1) / 2, (plate.rows - 1) / 2]  # (col, row): whole or half numbers, exact
+    whole = np.round(cr)
+    if not np.all(np.abs(cr - whole) <= 1e-8):
         return None
-    rc = np.column_stack([np.round(row), np.round(col)]).astype(det.rc.dtype)
+    rc = whole[:, ::-1].astype(det.rc.dtype)
     if rc.min() < 0 or rc[:, 0].max() >= plate.rows or rc[:, 1].max() >= plate.cols:
         return None
-    p0 = plate.disc_centres_W()
+    p0 = plate.disc_centres_W() if p0 is None else p0
     return replace(det, rc=rc, p_W=p0[rc[:, 0] * plate.cols + rc[:, 1]].copy())
 
 
 def align_views(dets, uvs, fit, plate: PlateSpec):
     """(detections re-indexed on one physical grid, [turn in deg per view or None when kept as found])."""
     n_disc = plate.rows * plate.cols
+    p0 = plate.disc_centres_W()
     fields = [_dot_field(d, u, fit.camera, v.C_H_W) for d, u, v in zip(dets, uvs, fit.views)]
     anchored = [all(b != "centred" for b in d.index_basis.values()) for d in dets]
     order = sorted(range(len(dets)), key=lambda k: (fields[k] is None, not anchored[k], -len(dets[k])))
@@ -150,7 +153,7 @@ def align_views(dets, uvs, fit, plate: PlateSpec):
             continue
         best = []
         for q in range(4):
-            dq = _turned(dets[k], q, plate)
+            dq = _turned(dets[k], q, plate, p0)
             if dq is None:
                 continue
             e = fields[k]
