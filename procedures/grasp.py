@@ -9,7 +9,8 @@ gripper frame, ``G_H_Gpre = G_H_O O_H_Gpre``: its translation and theta-u drive 
 of the tool frame by ``gain`` times the error, capped per step, through the engine's ``tool`` step (limits
 checked before anything is sent). The loop stops when |t| < ``stop_mm`` and theta < ``stop_deg``; it fails
 (``GraspFailed``, the engine then stops the robot and leaves the valve safe) after ``max_iterations``, when
-the target or the fingertips leave the picture, when the error keeps growing, or when a step would bring
+the target or the fingertips leave the picture (not measured in the monitor's ``max_missed_frames`` pictures in a
+row: one picture's noise may spoil a small, distant target's decoding, and the next is taken), when the error keeps growing, or when a step would bring
 the fingertips to the table (as this picture's fingertips and target place them, whichever C_H_G drives). Then a straight descent of ``approach_mm`` along the tool z
 and the jaws close.
 
@@ -103,7 +104,8 @@ class GraspResult:
     """The run's figures (plain types, JSON-ready). ``iterations`` records, one per frame: measured error
     ``error_mm`` [x, y, z] (the stand-off goal in the gripper frame) and ``error_deg``, in simulation the
     ``true_error_mm``/``true_error_deg``, ``processing_ms`` (picture to command, wall clock) and ``cpu_ms`` (the
-    same, this process's CPU time: what it costs without the machine's other load), what the fingertips said.
+    same, this process's CPU time: what it costs without the machine's other load), what the fingertips said,
+    ``target_missed`` why the target was not measured in the pictures taken before (none: the first was used).
     ``at_grasp`` the same records of the pictures taken after the descent (the error against G*, C_H_G the
     servo's last: the block hides the fingertips there), ``grasp_error_mm``/``grasp_error_deg`` the last
     one's measured error (None when the target was not measured there: ``grasp_note`` says why)."""
@@ -276,17 +278,8 @@ def servo_grasp(rig: GraspRig, cell: Cell, obj: ObjectSpec, C_H_G, camera: Camer
     for k in range(s.max_iterations + 1):
         if before_frame is not None:
             before_frame(k)
-        img = rig.grab()
-        t0, c0 = time.perf_counter(), time.process_time()
-        ft = tracker.find(img, mon.C_H_G, gap)
-        d = mon.step(ft.uv, ft.found, lost=ft.lost)
-        if d.action == "alarm":
-            raise AlarmError(f"iteration {k + 1}: {d.reason}")
+        img, d, pose, missed, (t0, c0) = _picture(rig, tracker, mon, target, gap, k)
         C_now = mon.C_H_G if s.online else C0
-        try:
-            pose = target.pose(img)
-        except CalibrationError as exc:
-            raise GraspFailed(f"iteration {k + 1}: the object's target: {exc}") from None
         if taught_C_H_O is not None:
             O_H_pre = inv_H(taught_C_H_O) @ C_now
         G_H_O = inv_H(C_now) @ pose.C_H_O
@@ -302,7 +295,8 @@ def servo_grasp(rig: GraspRig, cell: Cell, obj: ObjectSpec, C_H_G, camera: Camer
         true_t, true_deg = _true_errors(rig.truth(), obj, O_H_pre)
         rec = {"iteration": k + 1, "error_mm": [float(v) for v in e_t], "error_deg": e_deg,
                "true_error_mm": true_t, "true_error_deg": true_deg, "processing_ms": ms, "cpu_ms": cpu,
-               "fingertips": d.action, "target_rms_px": pose.rms_px, "target_sigma_mm": [float(v) for v in pose.sigma_mm]}
+               "fingertips": d.action, "target_rms_px": pose.rms_px, "target_sigma_mm": [float(v) for v in pose.sigma_mm],
+               "target_missed": missed}
         res.iterations.append(rec)
         if on_iteration is not None:
             on_iteration(rec, img, pose)
@@ -324,6 +318,29 @@ def servo_grasp(rig: GraspRig, cell: Cell, obj: ObjectSpec, C_H_G, camera: Camer
     res.C_H_G = np.asarray(C_now).tolist()
     res.reason = "converged" + ("" if res.held is None else ("; held" if res.held else f"; not held: {res.outcome['why']}"))
     return res
+
+
+def _picture(rig: GraspRig, tracker: SilhouetteTracker, mon: Monitor, target: _TargetWindow, gap: float, k: int):
+    """Iteration ``k``'s picture: (picture, the monitor's decision on its fingertips, the object's pose, why the
+    target was not measured in the pictures taken before it, (wall clock, CPU time) when it came). One
+    picture's noise can spoil a small, distant target's decoding: such a picture is missed (nothing moves) and
+    the next one taken, up to the monitor's ``max_missed_frames`` in a row (then ``GraspFailed``); the
+    fingertips are judged in every picture (``AlarmError`` on the monitor's alarm)."""
+    missed: list[str] = []
+    while True:
+        img = rig.grab()
+        t0, c0 = time.perf_counter(), time.process_time()
+        ft = tracker.find(img, mon.C_H_G, gap)
+        d = mon.step(ft.uv, ft.found, lost=ft.lost)
+        if d.action == "alarm":
+            raise AlarmError(f"iteration {k + 1}: {d.reason}")
+        try:
+            return img, d, target.pose(img), missed, (t0, c0)
+        except CalibrationError as exc:
+            missed.append(str(exc))
+            if len(missed) >= mon.max_missed_frames:
+                raise GraspFailed(f"iteration {k + 1}: the object's target, {len(missed)} picture(s) in a row "
+                                  f"(monitor.max_missed_frames {mon.max_missed_frames}): {exc}") from None
 
 
 def _descend(rig: GraspRig, obj: ObjectSpec, target: _TargetWindow, C_H_G, C_H_G_seen, G_H_O_seen, p_G6,

@@ -115,6 +115,31 @@ def _keep_finished(exc, args, cell, session, folder, cam_info, intrinsics):
     return Cancelled(f"{exc}; the {len(records)} finished trial(s) are kept in {folder}/", exc.signum)
 
 
+def measure_camera(session, say, view, views: int = 12):
+    """Measure the cell's camera as a lab does with a new one: the robot takes ``views`` views of the plate
+    (``CellSession.intrinsics_views``, shown on ``view`` with its live feed), ``calibrate_intrinsics``.
+    Returns (the measured ``CameraModel``, {measured, sigma, views_used, stop_rule_met}), or (None, None) in
+    a dry run. Raises as ``calibrate_intrinsics`` when the views do not measure it."""
+    from selfview.estimation.intrinsics import calibrate_intrinsics
+
+    cell = session.cell
+    t_cam = time.monotonic()
+    progress = ViewProgress(say, views, session.engine, cell, view)
+    with live_feed(view, session, progress) as feed:
+        watch(view, session, progress, feed and feed.on_step)
+        got = session.intrinsics_views(views)
+    watch(view, session)
+    if got is None:
+        return None, None
+    say(f"measuring the camera from {len(got[0])} views")
+    intr = calibrate_intrinsics(got[0], cell.plate, cell.camera.guess(), skip_unusable=True)
+    camera = intr.camera
+    say(f"camera measured from {intr.views_used} views: centre ({camera.cx:.2f}, {camera.cy:.2f}) px, "
+        f"aspect {camera.aspect:.5f}, f {camera.f:.2f} px (the camera took {time.monotonic() - t_cam:.1f} s)")
+    return camera, {"measured": camera.to_dict(), "sigma": intr.sigma, "views_used": intr.views_used,
+                    "stop_rule_met": intr.stop_rule["met"]}
+
+
 def _run(args, cell, session, folder, say, view) -> int:
     from selfview.procedures.engine import Cancelled
     from selfview.procedures.experiment import tables_markdown
@@ -144,22 +169,7 @@ def _run(args, cell, session, folder, say, view) -> int:
         watch(view, session)
         camera = None
         if intrinsics:
-            from selfview.estimation.intrinsics import calibrate_intrinsics
-
-            t_cam = time.monotonic()
-            progress = ViewProgress(say, 12, session.engine, cell, view)
-            with live_feed(view, session, progress) as feed:
-                watch(view, session, progress, feed and feed.on_step)
-                got = session.intrinsics_views(12)
-            if got is not None:
-                say(f"measuring the camera from {len(got[0])} views")
-                intr = calibrate_intrinsics(got[0], cell.plate, cell.camera.guess(), skip_unusable=True)
-                camera = intr.camera
-                cam_info = {"measured": camera.to_dict(), "sigma": intr.sigma, "views_used": intr.views_used,
-                            "stop_rule_met": intr.stop_rule["met"]}
-                say(f"camera measured from {intr.views_used} views: centre ({camera.cx:.2f}, {camera.cy:.2f}) px, "
-                    f"aspect {camera.aspect:.5f}, f {camera.f:.2f} px (the camera took {time.monotonic() - t_cam:.1f} s)")
-            watch(view, session)
+            camera, cam_info = measure_camera(session, say, view)
         t0[0] = time.monotonic()
         try:
             out = session.experiment(series=tuple(args.series), trials=args.trials, on_trial=on_trial, camera=camera)

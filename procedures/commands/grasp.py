@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 
 from selfview.procedures.commands._common import add_view_arguments, numeric, print_json
@@ -37,6 +38,10 @@ def register(sub):
     p.add_argument("--start", default="pregrasp", metavar="LOCATION",
                    help="the taught pre-grasp location (default %(default)s); in simulation drawn per --seed")
     p.add_argument("--offline", action="store_true", help="servo with the calibration's C_H_G, no on-line update")
+    p.add_argument("--intrinsics", action=argparse.BooleanOptionalAction, default=None,
+                   help="without --calibration, in simulation: measure the camera first (the robot takes the views "
+                        "of 'selfview intrinsics') and calibrate with it, as a lab does with a new camera (default: on "
+                        "with --sim-camera realistic, whose principal point and aspect are not the nominal ones)")
     p.add_argument("--max-iterations", type=numeric(integer=True, lo=1, hi=1000, name="count"), default=20,
                    help="1 to 1000 (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -88,8 +93,14 @@ def _run(args, view) -> int:
         if args.calibration:
             cal = load_calibration(args.calibration)
         else:
+            camera = None
+            if args.intrinsics if args.intrinsics is not None else args.sim_camera == "realistic":
+                from selfview.procedures.commands.experiment import measure_camera
+
+                say("no --calibration: measuring the simulated cell's camera first")
+                camera, _ = measure_camera(session, say, view)
             say("no --calibration: calibrating the simulated cell off-line first")
-            session.calibrate(out=f"{tmp}/calibration.yaml")
+            session.calibrate_camera(f"{tmp}/calibration.yaml", camera=camera)
             cal = load_calibration(f"{tmp}/calibration.yaml")
         start = args.start
         if session.sim is not None:

@@ -124,6 +124,30 @@ def test_the_picture_at_the_grasp_pose_measures_and_corrects_the_descent(near):
     assert all(np.linalg.norm(d[:3, 3]) < 1.0 for d in arm.steps[-len(res.at_grasp) + 1:])  # small corrections
 
 
+def _blot_target(world, obj, img):
+    """``img`` with the block's printed target painted over (its decoding spoilt, as noise may at 250 mm)."""
+    w, h = obj.target.size
+    C_H_O = world.truth()["C_H_O"]
+    uv = world.camera.project(transform_points(C_H_O, np.array([[-w, -h, 0], [w, -h, 0], [w, h, 0], [-w, h, 0]]) / 2))
+    out = img.copy()
+    cv2.fillConvexPoly(out, np.rint(uv).astype(np.int32), 200)
+    return out
+
+
+def test_a_picture_whose_target_is_not_decoded_is_missed_and_the_next_one_taken(near):
+    """One picture's noise can spoil a small, distant target's decoding (world seed 4's start on a realistic
+    camera: 5 corners, 6 needed, where the next picture found 9): a missed picture, not the end of the grasp."""
+    world, obj = near
+    arm = PerfectArm(world)
+    arm.hide = lambda img: _blot_target(world, obj, img) if arm.frames <= 2 else img
+    res = _servo(world, obj, arm)
+    assert res.converged and res.held, res.reason
+    first = res.iterations[0]
+    assert len(first["target_missed"]) == 2 and all("target not seen" in m for m in first["target_missed"])
+    assert all(r["target_missed"] == [] for r in res.iterations[1:])
+    assert np.linalg.norm(res.true_error_mm) < 0.15
+
+
 def test_a_grasp_pose_far_off_is_refused_without_a_correction(near):
     world, obj = near
     arm = SlippingArm(world, (4.0, 0.0, 0.0))
@@ -144,9 +168,9 @@ def test_a_target_out_of_the_picture_stops_the_servo(scene):
     world, obj = scene
     world.object.base_H_O = trans(0, 0, -5000.0) @ world.object.base_H_O  # far out of view
     arm = PerfectArm(world)
-    with pytest.raises(GraspFailed, match="target not seen"):
+    with pytest.raises(GraspFailed, match="target, 3 picture.s. in a row .* target not seen"):
         _servo(world, obj, arm)
-    assert arm.steps == []
+    assert arm.steps == [] and arm.frames == 3 and arm.result.iterations == []
 
 
 def test_fingertips_hidden_frame_after_frame_raise_the_alarm(scene):
@@ -412,3 +436,34 @@ def test_grasp_max_iterations_out_of_range_is_a_usage_error(capsys):
         with pytest.raises(SystemExit) as stop:
             main(["grasp", "--max-iterations", bad])
         assert stop.value.code == 2 and "--max-iterations" in capsys.readouterr().err
+
+
+def test_selfview_grasp_on_a_realistic_camera_calibrates_with_the_camera_measured_first(capsys, monkeypatch):
+    """Without --calibration, a simulated cell whose camera is not the nominal one (--sim-camera realistic) is
+    calibrated with its camera measured first, as a lab does. With the nominal one, over world seeds 1-16, 11
+    grasps stopped on the monitor's alarm (the fingertips up to 15 deg / 23 mm from where the calibration put
+    them) and the 5 'held' were 0.2-2.6 mm and up to 4.5 deg off (seed 4's)."""
+    import selfview.procedures.commands.experiment as experiment_cmd
+    import selfview.procedures.grasp as grasp
+    from selfview.maths.geometry import rotation_angle
+    from selfview.procedures.cli import build_parser, main as cli
+
+    got = {}
+
+    def measure(session, say, view, views=12):  # the measurement's result, without its 12 views' time
+        got["true"] = session.sim.world.camera
+        return got["true"], {}
+
+    def run_grasp(session, obj, cal, settings, **kw):  # stop before the servo: the calibration is the point
+        got["cal"], got["C_H_G"] = cal, session.sim.world.C_H_G
+        return None
+
+    monkeypatch.setattr(experiment_cmd, "measure_camera", measure)
+    monkeypatch.setattr(grasp, "run_grasp", run_grasp)
+    assert cli(["grasp", "--seed", "4", "--sim-camera", "realistic", "--time-scale", "0.01"]) == 0, capsys.readouterr().err
+    cam, true = got["cal"].camera, got["true"]
+    assert (cam.cx, cam.cy, cam.aspect) == (true.cx, true.cy, true.aspect)
+    E = inv_H(got["C_H_G"]) @ np.asarray(got["cal"].C_H_G)
+    assert np.linalg.norm(E[:3, 3]) < 0.5 and np.degrees(rotation_angle(E[:3, :3])) < 0.3
+    p = build_parser()
+    assert p.parse_args(["grasp", "--no-intrinsics"]).intrinsics is False and p.parse_args(["grasp"]).intrinsics is None
