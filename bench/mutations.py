@@ -468,8 +468,8 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "val-parser-closing-parenthesis-optional",
         "drivers/puma_val_serial/dialect.py",
-        'inner + "".join(rf"(?({n})\s*\))" for n in reversed(names))',
-        'inner + "".join(rf"(?:\s*\))?" for n in reversed(names))',
+        r'inner + "".join(rf"(?({n})\s*\))" for n in reversed(names))',
+        r'inner + "".join(rf"(?:\s*\))?" for n in reversed(names))',
         ("tests/drivers/test_puma_line_prefixes.py", "tests/mocks/test_val_controller.py::test_a_line_cut_short_by_a_line_end_runs_nothing"),
         "the controller's parser does not insist on the closing parenthesis: 'DO APPRO plate, (5' runs",
     ),

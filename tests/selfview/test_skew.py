@@ -99,7 +99,9 @@ def test_the_skew_is_measured_and_the_centre_not_biased(cell, sheared):
 
 def test_a_skew_that_changes_from_view_to_view_is_not_fitted(cell, sheared):
     """A shear that differs from view to view (what a model error looks like: each view's own) is many
-    formal sigmas from 0, but the views left out in turn move it by as much as it measures: held at 0."""
+    formal sigmas from 0, but the views left out in turn move it by as much as it measures: held at 0.
+    (+-5e-3 per view: 10 formal sigmas, 0.4 jackknife sigmas; +-3e-3 gave 3.1 formal sigmas only while a held
+    skew was carried from a skewed start, 2.3 once it is held, too near the formal test to show the jackknife.)"""
     import dataclasses
 
     from selfview.estimation.intrinsics import detect_views
@@ -107,7 +109,7 @@ def test_a_skew_that_changes_from_view_to_view_is_not_fitted(cell, sheared):
     w, truth, imgs = sheared
     dets, names, _ = detect_views(imgs, cell.plate, cell.camera.guess())
     cy = cell.camera.guess().cy
-    odd = [dataclasses.replace(d, uv=d.uv + np.column_stack([(3e-3 if k % 2 else -3e-3) * (d.uv[:, 1] - cy),
+    odd = [dataclasses.replace(d, uv=d.uv + np.column_stack([(5e-3 if k % 2 else -5e-3) * (d.uv[:, 1] - cy),
                                                               np.zeros(len(d))]))
            for k, d in enumerate(dets)]
     r = calibrate_intrinsics(None, cell.plate, cell.camera.guess(), names, detections=odd, cross_check=False)
