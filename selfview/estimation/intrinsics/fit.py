@@ -303,6 +303,22 @@ def _first_poses(dets, names, camera0: CameraModel, start: JointFit | None, fit_
     return camera0, poses, warm
 
 
+def _check_directions(poses) -> None:
+    """``CalibrationError`` when the views' plate poses ``poses`` all see the plate from one direction (its
+    normal within ``PARALLEL_DEG`` in every view): they do not determine the principal point."""
+    normals = np.array([H[:3, 2] for H in poses])
+    mean = normals.sum(0) / np.linalg.norm(normals.sum(0))
+    spread = float(np.degrees(np.arccos(np.clip(normals @ mean, -1, 1))).max())
+    if spread < PARALLEL_DEG:
+        tilts = [float(np.degrees(np.arccos(min(1.0, abs(H[2, 2]))))) for H in poses]
+        raise CalibrationError(
+            f"intrinsics: the {len(poses)} views do not determine the principal point: they all see the plate from "
+            f"one direction (its normal within {spread:.1f} deg in every view, {min(tilts):.0f}-{max(tilts):.0f} deg "
+            f"from square-on), as when the gripper only looks straight down; take views with the gripper tilted "
+            "20-40 deg about different axes in the plate"
+        )
+
+
 def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel, names: list[str] | None = None,
               *, bias: bool = True, plate_model: str = "bow+dots", fit_skew: bool = True,
               start: JointFit | None = None) -> JointFit:
@@ -324,17 +340,7 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
     if len(names) != len(dets):
         raise ValueError(f"names: expected {len(dets)} names for {len(dets)} views, got {len(names)}")
     camera0, poses, warm = _first_poses(dets, names, camera0, start, fit_skew)
-    normals = np.array([H[:3, 2] for H in poses])
-    mean = normals.sum(0) / np.linalg.norm(normals.sum(0))
-    spread = float(np.degrees(np.arccos(np.clip(normals @ mean, -1, 1))).max())
-    if spread < PARALLEL_DEG:
-        tilts = [float(np.degrees(np.arccos(min(1.0, abs(H[2, 2]))))) for H in poses]
-        raise CalibrationError(
-            f"intrinsics: the {len(dets)} views do not determine the principal point: they all see the plate from "
-            f"one direction (its normal within {spread:.1f} deg in every view, {min(tilts):.0f}-{max(tilts):.0f} deg "
-            f"from square-on), as when the gripper only looks straight down; take views with the gripper tilted "
-            "20-40 deg about different axes in the plate"
-        )
+    _check_directions(poses)
     uv = _bias_corrected(dets, camera0, poses, plate, start.bias_memo) if warm and bias else [d.uv for d in dets]
     rounds = BIAS_ROUNDS if bias and not warm else 0
     turns, dropped = [0.0] * len(dets), []
