@@ -3,6 +3,10 @@
     from selfview.files.cell import load_plate
     from selfview.procedures.intrinsics import measure_intrinsics
     res = measure_intrinsics(pictures, load_plate("plate.yaml"))
+
+and on a cell, the robot taking the views (``selfview experiment --intrinsics``, ``selfview grasp``):
+
+    camera, info = measure_camera(session)
 """
 
 from __future__ import annotations
@@ -55,3 +59,33 @@ def intrinsics_warnings(res: IntrinsicsResult) -> list[str]:
         warnings.append(f"the two halves of the views disagree: {worst} differs by {xc['ratio'][worst]:.1f} combined sigmas "
                         f"(limit {xc['limit_sigmas']:g}); a view may be blurred, or the camera moved between views")
     return warnings
+
+
+def measure_camera(session, say=None, view=None, views: int = 12):
+    """Measure the cell's camera as a lab does with a new one: the robot takes ``views`` views of the plate
+    (``CellSession.intrinsics_views``, shown on ``view``, the command line's live page, with its live feed;
+    None: no page), ``calibrate_intrinsics``; ``say`` (a callable taking a line, or None) hears the progress.
+    Returns (the measured ``CameraModel``, {measured, sigma, views_used, stop_rule_met}), or (None, None) in
+    a dry run. Raises as ``calibrate_intrinsics`` when the views do not measure it."""
+    import time
+
+    from selfview.procedures.livefeed import live_feed
+    from selfview.procedures.view import ViewProgress, watch
+
+    say = say or (lambda line: None)
+    cell = session.cell
+    t_cam = time.monotonic()
+    progress = ViewProgress(say, views, session.engine, cell, view)
+    with live_feed(view, session, progress) as feed:
+        watch(view, session, progress, feed and feed.on_step)
+        got = session.intrinsics_views(views)
+    watch(view, session)
+    if got is None:
+        return None, None
+    say(f"measuring the camera from {len(got[0])} views")
+    intr = calibrate_intrinsics(got[0], cell.plate, cell.camera.guess(), skip_unusable=True)
+    camera = intr.camera
+    say(f"camera measured from {intr.views_used} views: centre ({camera.cx:.2f}, {camera.cy:.2f}) px, "
+        f"aspect {camera.aspect:.5f}, f {camera.f:.2f} px (the camera took {time.monotonic() - t_cam:.1f} s)")
+    return camera, {"measured": camera.to_dict(), "sigma": intr.sigma, "views_used": intr.views_used,
+                    "stop_rule_met": intr.stop_rule["met"]}

@@ -97,10 +97,12 @@ def sigint_case(command: str, fixtures: dict, rng, tally: Tally, workdir: Path, 
     outputs_before = valve.valve_outputs
     try:
         code, err = _selfview_cell(argv, workdir, sigint_when)
-        if code == -signum and signum != signal.SIGINT and command in ("script-thread", "calibrate"):
-            # a lab script ends by the signal itself (the shell's 128 + N) once the session has made the cell
-            # safe and given the script back its own dispositions (Python's default for SIGTERM, SIGHUP,
-            # SIGQUIT: the end of the program), e.g. at a second signal; the cell's state is judged below
+        if code == -signum and signum != signal.SIGINT:
+            # a program ends by the signal itself (the shell's 128 + N) once it has made the cell safe and let
+            # go of the devices: a lab script is given back its own dispositions, the command line the
+            # default ones (for SIGTERM, SIGHUP, SIGQUIT: the end of the program), e.g. at a second signal
+            # that comes after the stop; the cell's state is judged below, and any other signal (SIGSEGV,
+            # SIGABRT) is still a crash
             code = 128 + signum
         if command == "script-thread":
             if "work done" in err and code == -signal.SIGINT and err.rstrip().endswith("\nKeyboardInterrupt"):

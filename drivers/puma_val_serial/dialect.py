@@ -9,6 +9,7 @@ formats its replies with its own code, so a bug in the driver's formatting canno
 
 from __future__ import annotations
 
+import itertools
 import logging
 import re
 import string
@@ -149,7 +150,7 @@ def _template_regex(tpl: str, name_pattern: str) -> re.Pattern:
             atoms.append(("s", t) if t.isspace() else ("w" if re.fullmatch(r"\w", t) else "p", t))
         if fld:
             atoms.append(("f", fld))
-    groups = iter(range(10**6))
+    groups = itertools.count()
 
     def close_of(i: int) -> int:
         depth = 0

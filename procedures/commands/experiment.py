@@ -10,8 +10,7 @@ from pathlib import Path
 
 from selfview.procedures.commands._common import add_view_arguments, numeric, print_json
 from selfview.procedures.commands._session import add_session_arguments, open_session, progress_printer
-from selfview.procedures.livefeed import live_feed
-from selfview.procedures.view import ViewProgress, viewing, watch, with_progress
+from selfview.procedures.view import viewing, watch, with_progress
 
 
 def register(sub):
@@ -115,34 +114,10 @@ def _keep_finished(exc, args, cell, session, folder, cam_info, intrinsics):
     return Cancelled(f"{exc}; the {len(records)} finished trial(s) are kept in {folder}/", exc.signum)
 
 
-def measure_camera(session, say, view, views: int = 12):
-    """Measure the cell's camera as a lab does with a new one: the robot takes ``views`` views of the plate
-    (``CellSession.intrinsics_views``, shown on ``view`` with its live feed), ``calibrate_intrinsics``.
-    Returns (the measured ``CameraModel``, {measured, sigma, views_used, stop_rule_met}), or (None, None) in
-    a dry run. Raises as ``calibrate_intrinsics`` when the views do not measure it."""
-    from selfview.estimation.intrinsics import calibrate_intrinsics
-
-    cell = session.cell
-    t_cam = time.monotonic()
-    progress = ViewProgress(say, views, session.engine, cell, view)
-    with live_feed(view, session, progress) as feed:
-        watch(view, session, progress, feed and feed.on_step)
-        got = session.intrinsics_views(views)
-    watch(view, session)
-    if got is None:
-        return None, None
-    say(f"measuring the camera from {len(got[0])} views")
-    intr = calibrate_intrinsics(got[0], cell.plate, cell.camera.guess(), skip_unusable=True)
-    camera = intr.camera
-    say(f"camera measured from {intr.views_used} views: centre ({camera.cx:.2f}, {camera.cy:.2f}) px, "
-        f"aspect {camera.aspect:.5f}, f {camera.f:.2f} px (the camera took {time.monotonic() - t_cam:.1f} s)")
-    return camera, {"measured": camera.to_dict(), "sigma": intr.sigma, "views_used": intr.views_used,
-                    "stop_rule_met": intr.stop_rule["met"]}
-
-
 def _run(args, cell, session, folder, say, view) -> int:
     from selfview.procedures.engine import Cancelled
     from selfview.procedures.experiment import tables_markdown
+    from selfview.procedures.intrinsics import measure_camera
     from selfview.procedures.runs import write_experiment_folder
 
     total = args.trials * len(args.series)

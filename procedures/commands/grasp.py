@@ -67,6 +67,11 @@ def _run(args, view) -> int:
 
     if (args.real or args.dry_run) and not args.calibration:
         raise ConfigError(f"{'--real' if args.real else '--dry-run'} needs --calibration CAL.yaml (the cell's calibration file)")
+    if args.calibration and args.intrinsics is not None:  # the calibration file's camera is the one used
+        flag = "--intrinsics" if args.intrinsics else "--no-intrinsics"
+        raise argparse.ArgumentTypeError(f"{flag} is for a run without --calibration (the simulated cell's camera "
+                                         "measured, or not, before calibrating); with --calibration the file's "
+                                         "camera is used: give one of them")
     obj = load_object(args.object)
     settings = ServoSettings(online=not args.offline, max_iterations=int(args.max_iterations)).check()
     say = with_progress(view, progress_printer(quiet=args.json))
@@ -95,7 +100,7 @@ def _run(args, view) -> int:
         else:
             camera = None
             if args.intrinsics if args.intrinsics is not None else args.sim_camera == "realistic":
-                from selfview.procedures.commands.experiment import measure_camera
+                from selfview.procedures.intrinsics import measure_camera
 
                 say("no --calibration: measuring the simulated cell's camera first")
                 camera, _ = measure_camera(session, say, view)

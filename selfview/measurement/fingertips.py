@@ -622,7 +622,9 @@ def _line_tls(q: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float]:
 def tukey_weights(r: np.ndarray, floor: float) -> tuple[np.ndarray, float]:
     """Tukey's biweights of residuals r (N,) and their robust scale: 1.4826 times the median |r|, at
     least ``floor``; a residual beyond 4.685 scales weighs 0."""
-    a, k = np.abs(r), len(r) // 2  # the median as np.median takes it (the mean of the middle two), by partition
+    # the median as np.median takes it (the mean of the middle two), by partition: 7-9 us against np.median's
+    # 17 us on 20-200 residuals, for a function called per edge and per reweighting step of every frame
+    a, k = np.abs(r), len(r) // 2
     med = float(np.partition(a, k)[k] if len(a) % 2 else np.mean(np.partition(a, (k - 1, k))[k - 1:k + 1]))
     s = max(1.4826 * med, floor)
     u = r / (4.685 * s)

@@ -185,7 +185,8 @@ def test_close_jaws_breaks_before_make_and_confirms(device):
             (mbap(9, "01 0000 0002"), mbap(9, "01 01 02")),  # ... read until two readings agree
         ]
     )
-    g = PneumaticGripper(d.url, poll_s=None, confirm_poll_s=0.001)
+    # a stroke time far beyond what the transcript needs: a stalled machine cannot turn 'travelling' into a timeout
+    g = PneumaticGripper(d.url, poll_s=None, confirm_poll_s=0.001, timeout_s=30.0)
     with g:
         assert g.close_jaws() == "closed"
         assert g.valve_outputs == {"open": False, "close": True}
@@ -478,7 +479,9 @@ def test_poller_losing_the_link_during_a_stroke_fails_the_stroke(device, monkeyp
     )
     from selfview.drivers.pneumatic_gripper import gripper as mod
 
-    g = PneumaticGripper(d.url, poll_s=None, confirm_poll_s=0.001)
+    # the stroke's deadline far away: the order (a 'travelling' reading, the wait, the poll) cannot depend on
+    # the machine's speed (with 0.5 s, a stalled machine reached the deadline before the wait and its poll)
+    g = PneumaticGripper(d.url, poll_s=None, confirm_poll_s=0.001, timeout_s=30.0)
     polled = []
 
     def sleep_with_a_poll(seconds):  # the poller's turn comes while the stroke waits

@@ -443,7 +443,7 @@ def test_selfview_grasp_on_a_realistic_camera_calibrates_with_the_camera_measure
     calibrated with its camera measured first, as a lab does. With the nominal one, over world seeds 1-16, 11
     grasps stopped on the monitor's alarm (the fingertips up to 15 deg / 23 mm from where the calibration put
     them) and the 5 'held' were 0.2-2.6 mm and up to 4.5 deg off (seed 4's)."""
-    import selfview.procedures.commands.experiment as experiment_cmd
+    import selfview.procedures.intrinsics as intrinsics_procedure
     import selfview.procedures.grasp as grasp
     from selfview.maths.geometry import rotation_angle
     from selfview.procedures.cli import build_parser, main as cli
@@ -458,7 +458,7 @@ def test_selfview_grasp_on_a_realistic_camera_calibrates_with_the_camera_measure
         got["cal"], got["C_H_G"] = cal, session.sim.world.C_H_G
         return None
 
-    monkeypatch.setattr(experiment_cmd, "measure_camera", measure)
+    monkeypatch.setattr(intrinsics_procedure, "measure_camera", measure)
     monkeypatch.setattr(grasp, "run_grasp", run_grasp)
     assert cli(["grasp", "--seed", "4", "--sim-camera", "realistic", "--time-scale", "0.01"]) == 0, capsys.readouterr().err
     cam, true = got["cal"].camera, got["true"]
@@ -467,3 +467,14 @@ def test_selfview_grasp_on_a_realistic_camera_calibrates_with_the_camera_measure
     assert np.linalg.norm(E[:3, 3]) < 0.5 and np.degrees(rotation_angle(E[:3, :3])) < 0.3
     p = build_parser()
     assert p.parse_args(["grasp", "--no-intrinsics"]).intrinsics is False and p.parse_args(["grasp"]).intrinsics is None
+
+
+@pytest.mark.parametrize("flag", ["--intrinsics", "--no-intrinsics"])
+def test_selfview_grasp_refuses_intrinsics_with_a_calibration_file(flag, tmp_path, capsys):
+    """--intrinsics says how to calibrate when no file is given: beside --calibration it would be ignored
+    unsaid, so it is a usage error (exit 2) naming both, before any device is opened."""
+    from selfview.procedures.cli import main as cli
+
+    assert cli(["grasp", "--calibration", str(tmp_path / "missing.yaml"), flag]) == 2
+    err = capsys.readouterr().err
+    assert flag in err and "--calibration" in err
