@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import socket
 import threading
+import time
 
 import pytest
 
@@ -484,13 +485,25 @@ def test_poller_losing_the_link_during_a_stroke_fails_the_stroke(device, monkeyp
     g = PneumaticGripper(d.url, poll_s=None, confirm_poll_s=0.001, timeout_s=30.0)
     polled = []
 
-    def sleep_with_a_poll(seconds):  # the poller's turn comes while the stroke waits
-        if not polled:
-            polled.append(True)
-            g._poll_step()
+    stroke_thread = threading.current_thread()
+
+    class StrokeTime:  # the gripper module's clock, whose sleep is the stroke's wait between its readings
+        def __getattr__(self, name):
+            return getattr(time, name)
+
+        @staticmethod
+        def sleep(seconds):  # the poller's turn comes while the stroke waits
+            if threading.current_thread() is not stroke_thread:  # another test's leftover thread, if any
+                time.sleep(seconds)
+            elif not polled:
+                polled.append(True)
+                g._poll_step()
 
     with g:
-        monkeypatch.setattr(mod.time, "sleep", sleep_with_a_poll)
+        # only the gripper module's sleep, in this thread: with time.sleep itself patched, any thread's sleep
+        # (another test's leftover) could run the poll at a moment of its own; on a loaded machine the poll
+        # then came before the stroke's wait and the stroke's own read met the dropped link
+        monkeypatch.setattr(mod, "time", StrokeTime())
         with pytest.raises(ConnectionLost, match="gave up during the stroke"):
             g.close_jaws()
         assert g.halted is not None and g.safe_report.confirmed and not g.connected
