@@ -53,7 +53,7 @@ if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").
 from selfview.bench.handeye import plate_pose, relative_motions  # noqa: E402
 from selfview.bench.kinematics_vs_selfview import F_H_G, errors, opencv_handeye, resolve_grid, stations  # noqa: E402
 from selfview.files.cell import default_cell_path, load_cell  # noqa: E402
-from selfview.errors import CellError, ConfigError  # noqa: E402
+from selfview.errors import CellError, ConfigError, LimitError  # noqa: E402
 from selfview.maths.geometry import inv_H, make_H, rot_z, rotation_angle, rotvec_from_R, trans  # noqa: E402
 from selfview.files.io_safe import atomic_write  # noqa: E402
 from selfview.mocks.imperfections import PROFILES as WORLDS  # noqa: E402
@@ -102,8 +102,16 @@ class DirectRig:
         return render(self.world, seed=self.seed * 100_000 + self.frames).image
 
     def tool_step(self, delta, max_mm, max_deg) -> None:
+        """The step, or ``LimitError`` (a ``CellError``, as the engine's limits refuse it; nothing moved) for a
+        pose the arm cannot reach: ``Unreachable`` is a ``ValueError`` the study's runs did not catch, so one
+        servo step out of reach ended the whole study and lost every run before it."""
         tool_step_size({"delta": delta, "max_mm": max_mm, "max_deg": max_deg}, "TOOL")
-        self.place(self.where() @ delta)
+        target = self.where() @ delta
+        try:
+            self.place(target)
+        except Unreachable as exc:
+            raise LimitError(f"tool step to TCP ({', '.join(f'{v:.1f}' for v in target[:3, 3])}) mm out of the "
+                             f"arm's reach: {exc}; nothing moved") from None
 
     def jaws(self, state: str) -> None:
         self.world.set_jaw(self.world.cell.gripper.gap(state), state)
