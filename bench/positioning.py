@@ -437,7 +437,9 @@ def main(argv=None) -> int:
             r = rows[-1]
             print(f"[{time.perf_counter() - t0:6.0f} s] {c['calibration']} {c['profile']}"
                   f"{' moved' if c['camera_moved'] else ''}{' taught' if c['taught_goal'] else ''}: median "
-                  f"{r['median_mm']:.3f} mm, converged {r['converged']}/{r['starts']}, held {r['held']}",
+                  f"{r['median_mm']:.3f} / p95 {r['p95_mm']:.3f} / max {r['max_mm']:.3f} mm, median "
+                  f"{r['median_deg']:.3f} deg, converged {r['converged']}/{r['starts']}, held {r['held']}, iterations "
+                  f"{r['iterations_median']}",
                   file=sys.stderr, flush=True)
     out = {
         "benchmark": "visually guided grasping: final TCP-to-goal error by calibration, kinematic profile, camera move",
