@@ -38,7 +38,9 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUME
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
+import faulthandler  # noqa: E402
 import json  # noqa: E402
+import signal  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
@@ -121,6 +123,13 @@ class DirectRig:
 
     def outcome(self) -> dict:
         return grasp_outcome(self.world, self.world.cell.gripper.gap("open"))
+
+
+def stacks_on_sigusr1() -> None:
+    """``kill -USR1 PID`` writes every thread's Python stack to stderr (the study's main process and each
+    worker): the full run of 2026-12 waited 50 min with no condition reported while its workers went on."""
+    if hasattr(signal, "SIGUSR1"):
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
 
 
 def _calibrations(cell, seed: int, profile: str, n_poses: int, imperfections: str) -> tuple[dict, dict]:
@@ -408,7 +417,8 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     cell = load_cell(default_cell_path())
     settings = ServoSettings()
-    with ProcessPoolExecutor(args.jobs) as ex:
+    stacks_on_sigusr1()
+    with ProcessPoolExecutor(args.jobs, initializer=stacks_on_sigusr1) as ex:
         n = len(profiles)
         made = dict(zip(profiles, ex.map(_calibrations, [cell] * n, [args.seed] * n, profiles, [args.poses] * n,
                                          [args.world] * n)))
