@@ -38,7 +38,9 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUME
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
+import faulthandler  # noqa: E402
 import json  # noqa: E402
+import signal  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
@@ -53,7 +55,7 @@ if not __package__ and (Path(__file__).resolve().parents[1] / "pyproject.toml").
 from selfview.bench.handeye import plate_pose, relative_motions  # noqa: E402
 from selfview.bench.kinematics_vs_selfview import F_H_G, errors, opencv_handeye, resolve_grid, stations  # noqa: E402
 from selfview.files.cell import default_cell_path, load_cell  # noqa: E402
-from selfview.errors import CellError, ConfigError  # noqa: E402
+from selfview.errors import CellError, ConfigError, LimitError  # noqa: E402
 from selfview.maths.geometry import inv_H, make_H, rot_z, rotation_angle, rotvec_from_R, trans  # noqa: E402
 from selfview.files.io_safe import atomic_write  # noqa: E402
 from selfview.mocks.imperfections import PROFILES as WORLDS  # noqa: E402
@@ -102,8 +104,16 @@ class DirectRig:
         return render(self.world, seed=self.seed * 100_000 + self.frames).image
 
     def tool_step(self, delta, max_mm, max_deg) -> None:
+        """The step, or ``LimitError`` (a ``CellError``, as the engine's limits refuse it; nothing moved) for a
+        pose the arm cannot reach: ``Unreachable`` is a ``ValueError`` the study's runs did not catch, so one
+        servo step out of reach ended the whole study and lost every run before it."""
         tool_step_size({"delta": delta, "max_mm": max_mm, "max_deg": max_deg}, "TOOL")
-        self.place(self.where() @ delta)
+        target = self.where() @ delta
+        try:
+            self.place(target)
+        except Unreachable as exc:
+            raise LimitError(f"tool step to TCP ({', '.join(f'{v:.1f}' for v in target[:3, 3])}) mm out of the "
+                             f"arm's reach: {exc}; nothing moved") from None
 
     def jaws(self, state: str) -> None:
         self.world.set_jaw(self.world.cell.gripper.gap(state), state)
@@ -113,6 +123,13 @@ class DirectRig:
 
     def outcome(self) -> dict:
         return grasp_outcome(self.world, self.world.cell.gripper.gap("open"))
+
+
+def stacks_on_sigusr1() -> None:
+    """``kill -USR1 PID`` writes every thread's Python stack to stderr (the study's main process and each
+    worker): the full run of 2026-12 waited 50 min with no condition reported while its workers went on."""
+    if hasattr(signal, "SIGUSR1"):
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
 
 
 def _calibrations(cell, seed: int, profile: str, n_poses: int, imperfections: str) -> tuple[dict, dict]:
@@ -400,7 +417,8 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     cell = load_cell(default_cell_path())
     settings = ServoSettings()
-    with ProcessPoolExecutor(args.jobs) as ex:
+    stacks_on_sigusr1()
+    with ProcessPoolExecutor(args.jobs, initializer=stacks_on_sigusr1) as ex:
         n = len(profiles)
         made = dict(zip(profiles, ex.map(_calibrations, [cell] * n, [args.seed] * n, profiles, [args.poses] * n,
                                          [args.world] * n)))
@@ -429,7 +447,9 @@ def main(argv=None) -> int:
             r = rows[-1]
             print(f"[{time.perf_counter() - t0:6.0f} s] {c['calibration']} {c['profile']}"
                   f"{' moved' if c['camera_moved'] else ''}{' taught' if c['taught_goal'] else ''}: median "
-                  f"{r['median_mm']:.3f} mm, converged {r['converged']}/{r['starts']}, held {r['held']}",
+                  f"{r['median_mm']:.3f} / p95 {r['p95_mm']:.3f} / max {r['max_mm']:.3f} mm, median "
+                  f"{r['median_deg']:.3f} deg, converged {r['converged']}/{r['starts']}, held {r['held']}, iterations "
+                  f"{r['iterations_median']}",
                   file=sys.stderr, flush=True)
     out = {
         "benchmark": "visually guided grasping: final TCP-to-goal error by calibration, kinematic profile, camera move",

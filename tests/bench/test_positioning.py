@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from selfview.bench.kinematics_vs_selfview import F_H_G
-from selfview.bench.positioning import (CALIBRATIONS, ServoSettings, _summary, arm_repeatability, conditions,
+from selfview.errors import LimitError
+from selfview.bench.positioning import (CALIBRATIONS, DirectRig, ServoSettings, _summary, arm_repeatability, conditions,
                                         headline_profile, main, run_start, start_arm, station_spread)
 from selfview.maths.geometry import inv_H, make_H, rot_x, rot_y, rot_z, trans
 from selfview.mocks.kinematic_errors import PROFILES as ARMS
@@ -93,6 +94,20 @@ def test_one_start_with_the_true_calibration_converges_and_the_summary_has_the_k
                 "converged", "held"):
         assert key in s
     assert s["starts"] == 1 and s["converged"] == 1 and s["held"] == 1 and s["median_mm"] == s["max_mm"]
+
+
+def test_a_servo_step_out_of_the_arms_reach_is_a_limit_error_the_run_catches_and_nothing_moves(cell):
+    # Unreachable (a ValueError) escaped run_start's ``except CellError``: one step out of reach in one run ended
+    # the whole study, every run before it lost
+    world = SimWorld(cell, seed=1, imperfections="ideal")
+    rig = DirectRig(world, start_arm(1, 0, "none"), 1)
+    rig.place(make_H(np.diag([1.0, -1.0, -1.0]), (350.0, 170.0, 60.0)))
+    before, tcp = rig.where(), world.base_H_G.copy()
+    with pytest.raises(LimitError, match="out of the arm's reach"):
+        rig.tool_step(trans(0.0, 0.0, -900.0), 1000.0, 1.0)
+    assert np.array_equal(rig.where(), before) and np.array_equal(world.base_H_G, tcp)
+    rig.tool_step(trans(0.0, 0.0, -5.0), 10.0, 1.0)  # a step within reach still moves
+    assert np.linalg.norm(rig.where()[:3, 3] - before[:3, 3]) == pytest.approx(5.0, abs=1e-6)
 
 
 def test_the_stations_spread_says_how_far_and_about_which_axes_the_flange_turns():
