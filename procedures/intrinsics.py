@@ -11,6 +11,8 @@ and on a cell, the robot taking the views (``selfview experiment --intrinsics``,
 
 from __future__ import annotations
 
+import time
+
 from selfview.maths.camera import CameraModel
 from selfview.files.cell import PlateSpec
 from selfview.errors import ImageError
@@ -67,8 +69,6 @@ def measure_camera(session, say=None, view=None, views: int = 12):
     None: no page), ``calibrate_intrinsics``; ``say`` (a callable taking a line, or None) hears the progress.
     Returns (the measured ``CameraModel``, {measured, sigma, views_used, stop_rule_met}), or (None, None) in
     a dry run. Raises as ``calibrate_intrinsics`` when the views do not measure it."""
-    import time
-
     from selfview.procedures.livefeed import live_feed
     from selfview.procedures.view import ViewProgress, watch
 

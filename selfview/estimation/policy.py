@@ -107,6 +107,13 @@ class Decision:
         }
 
 
+def _pose_about(est: MotionEstimate, C_H_G) -> np.ndarray:
+    """The estimate's pose about ``C_H_G`` as (rotation vector, translation) (6,): what the monitor's fusion
+    averages and its outlier test weighs against the estimate's covariance."""
+    M = orthonormalize(np.asarray(est.C_H_G_orth, float)) @ inv_H(np.asarray(C_H_G, float))
+    return np.concatenate([rotvec_from_R(M[:3, :3]), M[:3, 3]])
+
+
 def significance(est: MotionEstimate) -> float:
     """The chi-square ``m^T C^-1 m`` of an estimate's motion ``m`` (6,) against its covariance ``C`` (6, 6):
     how many sigmas (squared, summed over the six) the measured camera motion is from none. NaN when the
@@ -612,8 +619,7 @@ class Monitor:
             return decision
         if self._anchor is None:
             return decision  # still since the calibration: kept
-        M = orthonormalize(np.asarray(est.C_H_G_orth, float)) @ inv_H(self._anchor)
-        self._fused.append(np.concatenate([rotvec_from_R(M[:3, :3]), M[:3, 3]]))
+        self._fused.append(_pose_about(est, self._anchor))
         v = np.mean(self._fused, axis=0)
         C = H_from_rotvec(v[:3], v[3:]) @ self._anchor
         return replace(decision, C_H_G=C, reason=f"{decision.reason}{back}; fused: the mean of the {len(self._fused)} "
@@ -621,9 +627,7 @@ class Monitor:
 
     def _within_noise(self, est: MotionEstimate, C_H_G) -> bool:
         """Is the estimate's pose within its noise (``CHI2_SIGNIFICANT``, the policy's chi-square) of ``C_H_G``?"""
-        M = orthonormalize(np.asarray(est.C_H_G_orth, float)) @ inv_H(np.asarray(C_H_G, float))
-        chi2 = wald_chi2(np.concatenate([rotvec_from_R(M[:3, :3]), M[:3, 3]]), np.asarray(est.covariance, float))
-        return bool(chi2 < self.policy.chi2_limit)
+        return bool(wald_chi2(_pose_about(est, C_H_G), np.asarray(est.covariance, float)) < self.policy.chi2_limit)
 
     def _prior(self, method: str, found: np.ndarray) -> dict:
         """The estimator's keyword for the prior pixel noise (``_noise``), none when there is none."""
