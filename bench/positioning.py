@@ -418,7 +418,8 @@ def main(argv=None) -> int:
     cell = load_cell(default_cell_path())
     settings = ServoSettings()
     stacks_on_sigusr1()
-    with ProcessPoolExecutor(args.jobs, initializer=stacks_on_sigusr1) as ex:
+    ex = ProcessPoolExecutor(args.jobs, initializer=stacks_on_sigusr1)
+    try:
         n = len(profiles)
         made = dict(zip(profiles, ex.map(_calibrations, [cell] * n, [args.seed] * n, profiles, [args.poses] * n,
                                          [args.world] * n)))
@@ -451,6 +452,11 @@ def main(argv=None) -> int:
                   f"{r['median_deg']:.3f} deg, converged {r['converged']}/{r['starts']}, held {r['held']}, iterations "
                   f"{r['iterations_median']}",
                   file=sys.stderr, flush=True)
+    except BaseException:
+        # a run's error or Ctrl-C: the runs not yet started are dropped, not waited for
+        ex.shutdown(wait=False, cancel_futures=True)
+        raise
+    ex.shutdown()
     out = {
         "benchmark": "visually guided grasping: final TCP-to-goal error by calibration, kinematic profile, camera move",
         "seed": args.seed, "starts": args.starts, "quick": args.quick, "world": args.world,

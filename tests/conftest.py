@@ -22,6 +22,15 @@ import pytest  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 
 
+def travel_bound_deg(stopped_after_s: float) -> float:
+    """How far [deg] an arm sent to READY may turn in ``stopped_after_s`` seconds before it stops: READY at SPEED 5
+    from the simulated world's start turns JT4 fastest, 25.6 deg/s at its peak (the simulated controller's joint
+    motion: 180 deg in 7.0 s), plus 0.5 deg for a test's 5 ms polling and the controller's step. A fixed bound
+    (3 deg, about 0.1 s) failed on a loaded machine: 3.99 deg (0.16 s at that speed) from a test's reading of
+    the pose to the stop, which still came within 0.5 s of the signal."""
+    return 25.6 * stopped_after_s + 0.5
+
+
 DATA = REPO / "tests" / "data"  # reference material copied into the repository: see its README
 
 

@@ -737,6 +737,9 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
         last = i == len(rounds) - 1
         H, w, r, pick, JtWJ, sigma = _solve(camera, es, s, q, H, floor, iters=6 if last else 3,
                                             start_floor=max(floor, R / 6.0))
+    if not np.all(transform_points(H, p_G6)[:, 2] > 0.0):
+        # a diverged solve (a picture unlike the prediction): no pose to start the next search from
+        return fail("lost: the fit diverged (a fingertip point behind the camera)", len(s.edge))
     good = w > 0.5
     n_s = len(s.edge)
     visible = _finger_visible(camera, es, H, s)

@@ -16,7 +16,7 @@ import pytest
 from selfview.mocks.val_controller import ValController
 from selfview.mocks.valve_terminal import ValveTerminal
 from selfview.mocks.world import SimWorld
-from tests.conftest import REPO
+from tests.conftest import REPO, travel_bound_deg
 
 MAIN = """
 import sys
@@ -96,10 +96,8 @@ def test_a_termination_signal_stops_the_arm_and_makes_the_valve_safe_in_any_thre
                                                                   locks=tmp_path)
     assert "ABORT" in received, (received[-5:], err)
     assert stopped_after < 1.0, f"the arm stopped {stopped_after:.2f} s after the signal"
-    # READY at SPEED 5 from this world's start turns JT4 fastest, 25.6 deg/s at its peak (the simulated controller's
-    # joint motion: 180 deg in 7.0 s): no farther than that speed for the time the arm took to stop (0.5 deg for
-    # the 5 ms polling and the controller's step); a fixed bound depended on this thread being run at once
-    assert np.abs(q1 - q0).max() < 25.6 * stopped_after + 0.5, stopped_after
+    # no farther than the arm's peak speed for the time it took to stop (travel_bound_deg)
+    assert np.abs(q1 - q0).max() < travel_bound_deg(stopped_after), stopped_after
     assert valve == {"open": False, "close": False}, err
     assert code == -sig, err  # it ends by the signal, as an unhandled one would (128 + N in a shell)
     assert "finished" not in out

@@ -13,7 +13,7 @@ import pytest
 
 from selfview.errors import DeviceError, ProtocolError
 from selfview.procedures.cli import main
-from tests.conftest import REPO
+from tests.conftest import REPO, travel_bound_deg
 
 
 @pytest.fixture
@@ -189,13 +189,9 @@ def test_a_termination_signal_during_robot_ready_aborts_the_motion_and_exits_128
         assert proc.returncode == 128 + sig, err
         assert "ABORT" in c.received, c.received
         assert stopped_after < 0.5, f"the arm stopped {stopped_after:.3f} s after the signal"
-        # READY at SPEED 5 from this world's start turns JT4 fastest, 25.6 deg/s at its peak (the simulated
-        # controller's joint motion: 180 deg in 7.0 s): the arm travels no farther than that speed for the time
-        # it took to stop (0.5 deg for this thread's 5 ms polling and the controller's step). A fixed bound
-        # (3 deg, about 0.1 s) failed on a loaded machine: 3.99 deg (0.16 s at that speed) from this thread's
-        # reading of the pose to the stop, which still came within 0.5 s of the signal
+        # no farther than the arm's peak speed for the time it took to stop (travel_bound_deg)
         travel = np.abs(c.joints - q_at_signal).max()
-        assert travel < 25.6 * stopped_after + 0.5, (travel, stopped_after)
+        assert travel < travel_bound_deg(stopped_after), (travel, stopped_after)
         assert f"terminated by {signal.Signals(sig).name}" in err and "ABORT sent and confirmed" in err
         assert "this is a bug" not in err and "Traceback" not in err
 
@@ -340,8 +336,8 @@ def test_ctrl_z_stops_the_arm_before_the_program_and_resume_says_so(cell):
                     state = f.read().rsplit(")", 1)[1].split()[0]
                 time.sleep(0.01)
             assert state == "T", "the program was not suspended"
-            # no farther than JT4's peak speed (25.6 deg/s) for the time the arm took to stop, as above
-            assert np.abs(c.joints - q0).max() < 25.6 * stopped_after + 0.5, stopped_after
+            # no farther than the arm's peak speed for the time it took to stop, as above
+            assert np.abs(c.joints - q0).max() < travel_bound_deg(stopped_after), stopped_after
             proc.send_signal(signal.SIGCONT)
             out, err = proc.communicate(timeout=60)
         finally:

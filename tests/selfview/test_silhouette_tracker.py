@@ -237,3 +237,26 @@ def test_a_fit_a_few_px_off_world_2s_real_fingers_is_lost_under_the_learnt_limit
         fit = fit_silhouette(img, w.camera, trans(dx, 0.0, 0.0) @ w.C_H_G, cell.gripper, w.jaw_gap_mm,
                              rounds=(3.0,), max_rms_px=sil.rms_limit(0.85))
         assert not fit.ok and fit.reason.startswith("lost:") and fit.uv[np.isfinite(fit.uv)].size == 0, dx
+
+
+def test_a_fit_that_diverges_behind_the_camera_is_lost_not_raised(monkeypatch):
+    """A solve that ends with the fingertips behind the camera (seen in a servo run right after the camera
+    moved on its mount) is a lost fit with no pose: the tracker searches again instead of raising while it
+    compares that pose with the last one, which ended the servo run."""
+    w = _world()
+    tr = SilhouetteTracker(w.camera, _cell().gripper, points=range(4))
+    assert tr.find(render(w, seed=1).image, w.C_H_G, w.jaw_gap_mm).lost is None
+    solve = sil._solve
+
+    def diverged(*a, **k):
+        H, *rest = solve(*a, **k)
+        H = H.copy()
+        H[2, 3] = -H[2, 3]  # the fingers mirrored behind the camera's plane
+        return (H, *rest)
+
+    monkeypatch.setattr(sil, "_solve", diverged)
+    res = tr.find(render(w, seed=2).image, w.C_H_G, w.jaw_gap_mm)
+    assert not res.found.any() and res.lost
+    assert "behind the camera" in tr.last_failure
+    fit = fit_silhouette(render(w, seed=3).image, w.camera, w.C_H_G, _cell().gripper, w.jaw_gap_mm, rounds=(3.0,))
+    assert not fit.ok and fit.C_H_G is None and "diverged" in fit.reason
