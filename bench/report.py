@@ -34,7 +34,7 @@ __all__ = ["Bench", "BenchRun", "BENCHES", "find_bench_dir", "find_reference_dir
            "run_experiment", "willson_check", "render_markdown", "make_report"]
 
 _OUT = "{out}"  # replaced by the results folder in a bench's arguments
-KEPT = "figures kept from the previous run"  # a benchmark not rerun by ``--keep``
+KEPT = "kept: figures of an earlier run"  # a benchmark not rerun by ``--keep``
 
 
 @dataclass(frozen=True)
@@ -670,13 +670,15 @@ def render_markdown(runs: dict[str, BenchRun], mach: dict, exp: dict | None, wil
              + _quick_note(quick, runs)
              + f" on {when or time.strftime('%Y-%m-%d %H:%M %Z')}, on {mach['cpu']} ({mach['cores']} cores, "
              f"{mach['usable_cores']} usable), {mach['platform']}: Python {mach['python']}, numpy {mach['numpy']}, "
-             f"OpenCV {mach['opencv']}, selfview {mach['selfview']} ({_link('machine.json')}).", "",
+             f"OpenCV {mach['opencv']}, selfview {mach['selfview']} ({_link('machine.json')})."
+             + (" The parts marked kept were not rerun by it: their figures are those of earlier runs."
+                if any(r.detail == KEPT for r in runs.values()) else ""), "",
              "Every figure below is read from the JSON file its section links (`results/`). `selfview report "
              "--render-only` writes this page again from those files; `selfview report --only NAME --keep` reruns "
              "one benchmark and keeps the others' figures.", "",
              "| benchmark | what it measures | status | seconds | JSON |", "|---|---|---|---|---|"]
     for r in runs.values():
-        status = r.status + (f" ({r.detail})" if r.status != "ok" and r.detail else "")
+        status = r.status + (f" ({r.detail})" if r.detail and (r.status != "ok" or r.detail == KEPT) else "")
         lines.append(f"| `bench/{r.name}` | {r.title} | {status} | {'-' if r.detail == KEPT or r.seconds <= 0 else f'{r.seconds:.0f}'} | "
                      + (_link(f"{r.name}.json") if r.status == "ok" else "-") + " |")
     lines += ["", "## Accuracy against the truth and the peers", ""]

@@ -265,7 +265,9 @@ def test_keep_refreshes_one_benchmark_and_keeps_the_others_figures(fake_benches,
     text = out.read_text()
     # the header names the one part refreshed at small sizes; the kept full-size part is not called quick
     assert "(run with --quick, small sizes: good; every other part at full size)" in text and "QUICK run" not in text
-    assert "| `bench/online` | on-line solves vs cv2.solvePnP, per-frame step | ok | - | [online.json]" in text
+    assert ("| `bench/online` | on-line solves vs cv2.solvePnP, per-frame step | ok (kept: figures of an earlier run) | - "
+            "| [online.json]") in text
+    assert "The parts marked kept were not rerun by it: their figures are those of earlier runs." in text
     assert json.loads((tmp_path / "docs" / "results" / "online.json").read_text()) == stored
 
 
