@@ -473,6 +473,48 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("tests/drivers/test_puma_line_prefixes.py", "tests/mocks/test_val_controller.py::test_a_line_cut_short_by_a_line_end_runs_nothing"),
         "the controller's parser does not insist on the closing parenthesis: 'DO APPRO plate, (5' runs",
     ),
+    # --- issue 32's planted bugs that no test saw: the grab's moment, NaN residuals, a lying size, an escape -------
+    Mutation(
+        "engine-grab-without-after",
+        "procedures/engine.py",
+        'frame = d.camera.grab(after=time.monotonic(), average=int(p.get("average", 1)))',
+        'frame = d.camera.grab(average=int(p.get("average", 1)))',
+        ("tests/procedures/test_engine.py::test_the_grab_step_asks_for_a_frame_exposed_after_the_step_began",),
+        "the engine's grab loses its after=: a frame exposed before the robot settled is used",
+    ),
+    Mutation(
+        "policy-nan-residual-updates",
+        "selfview/estimation/policy.py",
+        "        if not est.rms_px <= lim.max_rms_px:\n",
+        "        if est.rms_px > lim.max_rms_px:\n",
+        ("tests/selfview/test_policy.py::test_an_estimate_or_a_recalibration_whose_residual_is_nan_is_an_alarm_not_a_new_C_H_G",),
+        "an update whose residual is NaN passes the residual check and becomes C_H_G",
+    ),
+    Mutation(
+        "policy-nan-residual-recalibrates",
+        "selfview/estimation/policy.py",
+        "        if not est_R.rms_px <= lim.max_rms_px:\n",
+        "        if est_R.rms_px > lim.max_rms_px:\n",
+        ("tests/selfview/test_policy.py::test_an_estimate_or_a_recalibration_whose_residual_is_nan_is_an_alarm_not_a_new_C_H_G",),
+        "a recalibration whose residual is NaN passes the residual check and becomes C_H_G",
+    ),
+    Mutation(
+        "bounded-read-without-its-bound",
+        "selfview/files/io_safe.py",
+        "        while len(data) <= limit and (chunk := os.read(fd, limit + 1 - len(data))):\n",
+        "        while chunk := os.read(fd, 65536):\n",
+        ("tests/selfview/test_io_safe.py::test_a_bounded_read_stops_at_its_bound_on_a_file_whose_size_lies",),
+        "the bounded reader reads to the end of a file whose size lies (a /proc file, a FUSE mount): without end",
+    ),
+    Mutation(
+        "engine-signal-flag-takes-no-signal",
+        "procedures/engine.py",
+        "                    self._old[sig] = signal.signal(sig, self._note)\n",
+        "                    pass\n",
+        ("tests/procedures/test_engine.py",),
+        "the engine's run takes no termination signal: it reaches the test process, where it must fail a test, "
+        "not end the run (tests/conftest.py's SignalEscaped)",
+    ),
 )
 
 _IGNORE = shutil.ignore_patterns(".git", "__pycache__", "*.egg-info", "build", ".pytest_cache", "*.pyc", ".ci-*")

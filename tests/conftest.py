@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import atexit
 import os
+import resource
 import shutil
 import signal
 import tempfile
@@ -54,6 +55,34 @@ def _ignore(signum, frame):
 for _sig in (signal.SIGINT, signal.SIGQUIT, signal.SIGHUP, signal.SIGTERM, signal.SIGTSTP):
     if signal.getsignal(_sig) == signal.SIG_IGN:
         signal.signal(_sig, _ignore)
+
+# No core files: a test program killed by SIGQUIT (a test of a stop that failed) is the test's failure, not a
+# core image left in the folder the suite runs in. Inherited by every program the tests start.
+resource.setrlimit(resource.RLIMIT_CORE, (0, resource.getrlimit(resource.RLIMIT_CORE)[1]))
+
+
+class SignalEscaped(Exception):
+    """A termination signal reached the test process outside any handler of the code under test."""
+
+
+def _escaped(signum, frame):
+    raise SignalEscaped(f"{signal.Signals(signum).name} reached the test process: the code under test did not take it")
+
+
+@pytest.fixture(autouse=True)
+def _signals_that_escape_fail_the_test():
+    """The in-process signal tests send SIGTERM, SIGHUP or SIGQUIT to this process for the code under test
+    (the engine, the command line) to take. Where that code fails to take one, the signal's default action
+    would end the whole run (or selfview's own handler would stop it as a Ctrl-C): here it fails that one test
+    instead (``SignalEscaped``). The handler is this process's own, so ``selfview.signals.install`` leaves it
+    alone, as it leaves a lab script's own handler; SIGINT stays pytest's (Ctrl-C ends a test run)."""
+    sigs = [s for s in (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT) if signal.getsignal(s) is not _ignore]
+    old = {s: signal.signal(s, _escaped) for s in sigs}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h if h is not None else signal.SIG_DFL)
 
 
 @pytest.fixture(scope="session")

@@ -148,6 +148,28 @@ def test_a_lock_folder_others_may_use_is_refused_by_name(tmp_path, monkeypatch):
         DeviceLock("valve terminal", "10.0.0.5:502").acquire()
 
 
+def test_a_full_lock_folder_is_named_with_the_lock_file_and_its_cause(lock_dir, monkeypatch):
+    """A lock folder on a full disk: the error names the lock file and says why, not a bare "No space left on
+    device"; nothing is held after it."""
+    import errno
+
+    from selfview.files import lockdir
+
+    real_open = lockdir.os.open
+
+    def full(path, flags, mode=0o777, **kw):
+        if str(path).startswith(str(lock_dir)) and flags & os.O_CREAT:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_open(path, flags, mode, **kw)
+
+    monkeypatch.setattr(lockdir.os, "open", full)
+    lock = DeviceLock("valve terminal", "10.0.0.5:502")
+    with pytest.raises(DeviceError, match=rf"valve terminal 10\.0\.0\.5:502: cannot open its lock file {lock_dir}/\S+\.lock: "
+                       "no space left on the device; set SELFVIEW_LOCK_DIR"):
+        lock.acquire()
+    assert not lock.held
+
+
 def test_the_robots_record_is_keyed_on_its_port_or_socket_address():
     """The PUMA driver's record lock: a device path by its identity, socket://HOST:PORT by the address it
     resolves to, nothing for a URL that names no device of its own (loop://) or no usable port."""

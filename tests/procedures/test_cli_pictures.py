@@ -69,10 +69,12 @@ def test_a_name_with_a_byte_that_is_not_utf8_is_written_as_given_and_no_native_c
     assert b"cal\xff.yaml" in names and sum(n.startswith(b"cal\xff.") and n.endswith(b".png") for n in names) == 2
     kept = load_calibration(tmp_path / os.fsdecode(b"cal\xff.yaml")).pictures
     assert np.array_equal(cv2.imdecode(np.fromfile(tmp_path / kept["picture"], np.uint8), cv2.IMREAD_UNCHANGED), parked)
-    r = _selfview(b"render", b"--out", b"r\xff.png", cwd=tmp_path)
-    assert r.returncode == 0 and (tmp_path / os.fsdecode(b"r\xff.png")).stat().st_size > 1000, r.stderr
+    for argv, name in (([b"render", b"--out"], b"r\xff.png"), ([b"grab", b"--camera", b"sim://", b"--out"], b"g\xff.png")):
+        r = _selfview(*argv, name, cwd=tmp_path)
+        assert r.returncode == 0 and (tmp_path / os.fsdecode(name)).stat().st_size > 1000, r.stderr
     for argv in ([b"render", b"--out", b"r.pn\xff"], [b"calibrate", b"--image", b"parked.png", b"--out", b""],
-                 [b"park", b"--out", b""], [b"park", b"--out", b"no-folder/p.png"]):
+                 [b"park", b"--out", b""], [b"park", b"--out", b"no-folder/p.png"],
+                 [b"grab", b"--camera", b"sim://", b"--out", b""], [b"grab", b"--camera", b"sim://", b"--out", b"g.pn\xff"]):
         r = _selfview(*argv, cwd=tmp_path)
         err = r.stderr.decode(errors="replace")
         assert r.returncode == 3 and "--out" in err and "Traceback" not in err, (argv, err)

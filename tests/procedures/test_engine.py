@@ -428,3 +428,28 @@ def test_a_signal_between_the_engines_runs_still_gets_the_cleanup(cell):
     assert "ABORT" in [ln.upper() for ln in robot.received[n:]]
     assert not any(valve.valve_outputs.values())  # all-off: the default io map's safe state
     assert s.engine.cleanup_report["robot"].startswith("ABORT sent and confirmed")
+
+
+class _Camera(_Device):
+    """A stand-in camera that records the ``after`` each grab asks for."""
+
+    def grab(self, after=None, average=1):
+        self.calls.append(after)
+
+        class Frame:
+            image = np.zeros((4, 4), np.uint8)
+
+        return Frame()
+
+
+def test_the_grab_step_asks_for_a_frame_exposed_after_the_step_began():
+    """A frame exposed before the robot settled is not used: the engine's grab step asks the camera for a frame
+    whose exposure began once the step started (``after=``); without it a grabber's queue hands out a frame
+    taken while the arm still moved."""
+    calls: list = []
+    e = Engine(CellDevices(camera=_Camera("camera", calls)))
+    e.devices.robot = None
+    t0 = time.monotonic()
+    e.run(lambda eng: eng.execute(Step("grab", {})))
+    after = [c for c in calls if not isinstance(c, str)]
+    assert len(after) == 1 and after[0] is not None and t0 <= after[0] <= time.monotonic()

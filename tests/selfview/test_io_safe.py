@@ -158,6 +158,29 @@ def test_bounded_reads_refuse_what_is_not_a_regular_file(tmp_path):
         read_bounded(tmp_path / "none.yaml", 10, missing="no such thing")
 
 
+def test_a_bounded_read_stops_at_its_bound_on_a_file_whose_size_lies(tmp_path, monkeypatch):
+    """A regular file whose size says 0 but whose reads never end (a /proc or /sys file, a FUSE mount): the
+    read stops after ``limit + 1`` bytes and refuses the file, instead of reading until memory runs out."""
+    from selfview.files import io_safe
+
+    liar = tmp_path / "liar.yaml"
+    liar.write_bytes(b"")
+    ino, real_read, served = liar.stat().st_ino, os.read, []
+
+    def endless(fd, n):
+        if os.fstat(fd).st_ino != ino:
+            return real_read(fd, n)
+        served.append(n)
+        if len(served) > 1000:
+            raise AssertionError("the read went on past its bound")
+        return b"a" * min(n, 4096)
+
+    monkeypatch.setattr(io_safe.os, "read", endless)
+    with pytest.raises(ConfigError, match="liar.yaml: cannot read the cell file: it grew beyond the 10000 bytes"):
+        io_safe.read_bounded(liar, 10_000, what="cell file")
+    assert sum(min(n, 4096) for n in served) == 10_001
+
+
 #: Run in the child: the command line, then the peak resident memory of this program alone (VmHWM of its
 #: own address space; the rusage of a forked child also counts the parent's pages from before its exec).
 _CHILD = ("import atexit, runpy, sys\n"

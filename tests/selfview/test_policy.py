@@ -414,3 +414,24 @@ def test_one_outlier_picture_does_not_replace_the_pictures_before_it(cell, ref, 
     else:
         assert np.array_equal(m.C_H_G, H0)
     assert "outlier" in d.reason and m.records[-1]["C_H_G"] == m.C_H_G.tolist()
+
+
+def test_an_estimate_or_a_recalibration_whose_residual_is_nan_is_an_alarm_not_a_new_C_H_G(cell, ref):
+    """A NaN residual (a solve that produced no number) passes a plain ``rms > limit`` test: the policy asks
+    ``not rms <= limit`` so that it is the alarm, C_H_G kept, both for the update and for the recalibration."""
+    import dataclasses
+
+    H0, P, cam = ref
+    pol = Policy(cell.monitor)
+    for angle, R in ((0.2, None), (2.0, "nan")):  # within the update limit; between the limits
+        H1 = turned(H0, angle)
+        uv = cam.project(transform_points(H1, P))
+        est = differential_update(H0, P[:4], uv[:4], cam)
+        if R is None:
+            est = dataclasses.replace(est, rms_px=float("nan"))
+            recal = None
+        else:
+            recal = dataclasses.replace(recalibrate(H0, P[:4], uv[:4], cam), rms_px=float("nan"))
+        d = pol.decide(est, 6, C_H_G=H0, recalibration=recal)
+        assert d.action == "alarm" and "residual nan px exceeds max_rms_px" in d.reason, d.reason
+        assert np.array_equal(d.C_H_G, H0)
