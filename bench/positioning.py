@@ -24,7 +24,7 @@ Conditions also with the camera moved on its mount (1 deg about a random axis th
 gripper truly at the stand-off pose (every calibration should then agree). Prints one JSON object; ``--out DIR``
 also writes the JSON, a markdown table and a PNG plot. ``--quick`` (5 starts, 18 conditions, 90 servo runs) took
 499 s of CPU (user + sys, about 4 min on 2 idle cores; 33 min on a machine shared 8 ways); the full study
-(20 starts) runs four times the servo runs.
+(20 starts) runs four times the servo runs: 830 s on 2 idle cores.
 
     python bench/positioning.py [--quick] [--seed N] [--starts 20] [--jobs 2] [--out DIR]
 """

@@ -71,7 +71,7 @@ BENCHES: tuple[Bench, ...] = (
     Bench("faults", "fault campaign: corrupted links, hostile files and pictures, Ctrl-C", ("--faults", "10000"),
           ("--quick",), 900.0),
     # the --quick run (5 starts per condition) took 223 s on 2 idle cores, 1970 s at load 25; the full
-    # run's 20 starts take about four times that, beyond the hour this limit was
+    # run (20 starts) 830 s on 2 idle cores, 3796 s at nice 19 beside three CI runs, beyond the hour this limit was
     Bench("positioning", "visually guided grasping: the gripper servoed to an object, by calibration", ("--out", _OUT),
           ("--quick", "--out", _OUT), 9000.0),
 )

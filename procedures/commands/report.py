@@ -20,7 +20,7 @@ def register(sub):
             "beside it results/ with every JSON object, table and plot, which the page links. A missing or failing "
             "benchmark is reported as such. "
             "The grasping study alone took 223 s with --quick on 2 idle cores, 1970 s at load 25 (its full run, "
-            "20 starts per condition, about four times that); --quick runs every part at small sizes."
+            "20 starts per condition, 830 s on 2 idle cores); --quick runs every part at small sizes."
         ),
     )
     p.add_argument("--out", default="docs/RESULTS.md", metavar="RESULTS.md", help="the report (default %(default)s)")
