@@ -19,7 +19,8 @@ from selfview.maths.geometry import transform_points
 from selfview.measurement.silhouette import (MAX_LEARNT_RMS_PX, MAX_RMS_PX, MIN_GOOD_FRACTION, fit_silhouette,
                                              learn_appearance, rms_limit)
 
-__all__ = ["find_fingertips", "misses_a_corner", "model_measurement", "measure_model", "fit_result", "SilhouetteTracker", "WIDE_ROUNDS"]
+__all__ = ["find_fingertips", "misses_a_corner", "model_measurement", "measure_model", "fit_result",
+           "SilhouetteTracker", "WIDE_ROUNDS"]
 
 #: The corner search's range [px] around a silhouette fit's pose (``find_fingertips``, model 'auto').
 REFINE_SEARCH_PX = 4.0
@@ -28,40 +29,30 @@ REFINE_SEARCH_PX = 4.0
 OFF_SHAPE_PX = 3.0
 
 
-def find_fingertips(
-    image,
-    camera: CameraModel,
-    C_H_G_pred,
-    gripper: GripperSpec,
-    gap_mm: float,
-    *,
-    search_px: float = 60.0,
-    points=range(6),
-    model: bool | str = False,
-    appearance=None,
-) -> FingertipResult:
-    """Locate the fingertip corners ``points`` (indices into POINT_NAMES) near their prediction from
-    ``C_H_G_pred`` (4, 4) with jaw gap ``gap_mm`` [mm], within ``search_px`` [px] of it. ``camera``
-    projects the prediction and undistorts the edge points (off-line the one Tsai's method just
-    calibrated, on-line the last calibration's); corners come back in distorted pixels.
+def find_fingertips(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec, gap_mm: float, *,
+                    search_px: float = 60.0, points=range(6), model: bool | str = False,
+                    appearance=None) -> FingertipResult:
+    """Locate the fingertip corners ``points`` (indices into POINT_NAMES) within ``search_px`` [px] of their
+    prediction from ``C_H_G_pred`` (4, 4) with jaw gap ``gap_mm`` [mm]. ``camera`` projects the prediction
+    and undistorts the edge points (off-line the one Tsai's method just calibrated, on-line the last
+    calibration's); corners come back in distorted pixels.
 
-    ``model=True``: the model-based measurement (``selfview.measurement.silhouette``): the whole silhouette of both
-    fingers fitted from the best start (the prediction, or the pose the corners found here give), the
-    corners the model's points at the fitted pose; the result's ``quality``, ``lost`` and ``C_H_G`` say
-    how well it fits, and a fit below the thresholds reports every point as not found with the reason.
-    ``appearance`` (``selfview.measurement.silhouette.Appearance``) the faces' grey levels, if known (else read at the start).
-    ``model='auto'``: the corner search, and the model-based measurement where the search misses a corner
-    in the picture (``misses_a_corner``: a fingertip beside a disc, a weak tip edge, or a busy plate such as
-    a chessboard or ChArUco board, whose square edges outscore the fingers' own in the search's coarse
-    alignment) and the model's fit holds and finds more corners: then the model's corners (the searched
-    ones are not mixed with them; the result's ``quality`` is set); where the fit found the fingers (half
-    its samples or more support it) but is not believed, the corner search again from the fit's pose
-    within ``REFINE_SEARCH_PX``, if it finds more corners. ``model=False`` the corner search only.
+    ``model=False``: the corner search only. ``model=True``: the model-based measurement
+    (``selfview.measurement.silhouette``): the silhouette of both fingers fitted from the best start (the
+    prediction, or the pose of the corners found here), the corners the model's points at the fitted pose;
+    the result's ``quality``, ``lost`` and ``C_H_G`` say how well it fits, and a fit below the thresholds
+    reports every point as not found with the reason. ``appearance`` (``silhouette.Appearance``): the faces'
+    grey levels, if known (else read at the start). ``model='auto'``: the corner search, and where it misses
+    a corner in the picture (``misses_a_corner``: a fingertip beside a disc, a weak tip edge, a busy plate
+    such as a chessboard or ChArUco board whose square edges outscore the fingers' own in the coarse
+    alignment) the model's corners if its fit holds and finds more (never mixed with the searched ones);
+    if the fit found the fingers (half its samples or more support it) but is not believed, the corner
+    search again from the fit's pose within ``REFINE_SEARCH_PX``, if it finds more corners.
 
-    Returns a ``FingertipResult``; points not found carry a reason and are NaN. Raises ``ImageError``
-    for a blank picture or one of the wrong size, ``CalibrationError`` if the prediction puts the
-    fingertips behind the camera or is not finite, ``ValueError`` for a transform that is not (4, 4) or a
-    jaw gap that is not a positive number.
+    Returns a ``FingertipResult``; points not found carry a reason and are NaN. Raises ``ImageError`` for a
+    blank picture or one of the wrong size, ``CalibrationError`` if the prediction puts the fingertips
+    behind the camera or is not finite, ``ValueError`` for a transform that is not (4, 4), a jaw gap that is
+    not a positive number or another ``model``.
     """
     if not (model is False or model is True or model == "auto"):  # 0 and 1 compare equal to False and True
         raise ValueError(f"model: expected False (the corner search), True (the model) or 'auto', got {model!r}")
@@ -76,9 +67,8 @@ def find_fingertips(
     if model is True or (fit.ok and fitted.found.sum() > result.found.sum()):
         return fitted
     if model == "auto" and fit.C_H_G is not None and fit.good_fraction >= MIN_GOOD_FRACTION:
-        # the silhouette found the fingers but is not believed to the corners (its nominal boxes miss the
-        # real fingers' by their tolerances): search the corners again from its pose, a few px around it
-        # (a busy print, a board's squares, outscores the fingers' edges over the prediction's wider range)
+        # its nominal boxes miss the real fingers' corners by their tolerances: search a few px around its pose
+        # (a busy print outscores the fingers' edges over the prediction's wider range)
         again = search_corners(image, PredictedFingers(pred.camera, fit.C_H_G, pred.gripper, pred.gap_mm),
                                min(float(search_px), REFINE_SEARCH_PX), points)
         _drop_off_shape(pred, again)
@@ -90,26 +80,21 @@ def find_fingertips(
 
 def misses_a_corner(result: FingertipResult) -> bool:
     """Whether a measurement left a requested corner unfound that is neither outside the picture nor hidden."""
-    return any(not ok and not (r and (r.startswith("outside") or r.startswith("occluded") or r == "not requested"))
+    return any(not ok and not (r and (r.startswith(("outside", "occluded")) or r == "not requested"))
                for ok, r in zip(result.found, result.reasons))
 
 
 def _drop_off_shape(pred: PredictedFingers, res: FingertipResult) -> None:
-    """Mark not found (in ``res``) a searched corner that the fingers' shape puts more than
-    ``OFF_SHAPE_PX`` from where it was found: the pose of the other corners found (NP-I from the
-    prediction, five or more corners) projects it there (the search may take the edge of a print, a
-    board's square, running beside a finger's for its edge), the worst one first, one at a time."""
-    from selfview.estimation.online import iterative_update
-
+    """Mark not found (in ``res``), the worst first and one at a time, a searched corner more than
+    ``OFF_SHAPE_PX`` from where the pose of the other found corners (five or more) projects it: the
+    search may take the edge of a print or a board's square running beside a finger's for its edge."""
     p_G = pred.gripper.points_G(gap=pred.gap_mm)
     while res.found.sum() >= 5:
         k_all = np.flatnonzero(res.found)
         off = np.zeros(len(k_all))
         for i, k in enumerate(k_all):
-            rest = np.delete(k_all, i)
-            try:
-                H = iterative_update(pred.C_H_G, p_G[rest], res.uv[rest], pred.camera).C_H_G_orth
-            except CalibrationError:
+            H = _pose_from_corners(pred, res, np.delete(k_all, i))
+            if H is None:
                 return
             off[i] = np.linalg.norm(pred.camera.project(transform_points(H, p_G[k:k + 1]))[0] - res.uv[k])
         worst = int(np.argmax(off))
@@ -123,22 +108,24 @@ def _drop_off_shape(pred: PredictedFingers, res: FingertipResult) -> None:
         res.edge_rms_px[k] = np.nan
 
 
-def _pose_from_corners(pred: PredictedFingers, res: FingertipResult):
-    """The pose the found corners give (NP-I from the prediction on them), or None (fewer than 3)."""
+def _pose_from_corners(pred: PredictedFingers, res: FingertipResult, k=None):
+    """C_H_G (4, 4) that the corners ``k`` of ``res`` (default: the found ones) give, by NP-I from the
+    prediction, or None (fewer than 3, or NP-I fails)."""
     from selfview.estimation.online import iterative_update
 
-    k = np.flatnonzero(res.found)
+    k = np.flatnonzero(res.found) if k is None else k
     if len(k) < 3:
         return None
+    p_G = pred.gripper.points_G(gap=pred.gap_mm)[k]
     try:
-        return iterative_update(pred.C_H_G, pred.gripper.points_G(gap=pred.gap_mm)[k], res.uv[k], pred.camera).C_H_G_orth
+        return iterative_update(pred.C_H_G, p_G, res.uv[k], pred.camera).C_H_G_orth
     except CalibrationError:
         return None
 
 
 def fit_result(fit, points) -> FingertipResult:
-    """The ``FingertipResult`` of a silhouette fit for the requested ``points``: the model's corners where
-    the fit holds, else every point not found with the fit's reason (``lost``)."""
+    """The ``FingertipResult`` of a silhouette fit for the requested ``points``: the model's corners if the
+    fit holds, else every point not found with the fit's reason (``lost``)."""
     want = {int(k) for k in points}
     if fit.ok:
         reasons = [None if fit.found[k] else (fit.reasons[k] or "not found") for k in range(6)]
@@ -157,18 +144,17 @@ def fit_result(fit, points) -> FingertipResult:
 
 def model_measurement(image, camera, C_H_G_pred, gripper, gap_mm, points=range(6), searched=None, appearance=None,
                       starts=None, rounds=None):
-    """The model-based measurement from the prediction and, if the corner search ``searched`` found three
-    or more corners, from the pose they give; the believed fit with the larger share of good samples
-    wins. Returns (FingertipResult, SilhouetteFit)."""
+    """``measure_model`` from the prediction's parts. Returns (FingertipResult, SilhouetteFit)."""
     return measure_model(image, PredictedFingers(camera, C_H_G_pred, gripper, gap_mm), points, searched,
                          appearance, starts, rounds)
 
 
 def measure_model(image, pred: PredictedFingers, points=range(6), searched=None, appearance=None, starts=None,
                   rounds=None, max_rms_px: float = MAX_RMS_PX):
-    """``model_measurement`` from a ``PredictedFingers``: fits from ``starts`` (default the prediction),
-    the corners' pose of ``searched`` first, each lost over the edge residual ``max_rms_px``; returns
-    (FingertipResult, SilhouetteFit)."""
+    """The model-based measurement: silhouette fits from ``starts`` (default the prediction), first from the
+    pose of the corners the search ``searched`` found (three or more), each lost over the edge residual
+    ``max_rms_px``; the believed fit with the larger share of good samples wins (the first over 0.8 stops).
+    Returns (FingertipResult, SilhouetteFit)."""
     cands = list(starts) if starts is not None else [pred.C_H_G]
     if searched is not None:
         H = _pose_from_corners(pred, searched)
@@ -181,8 +167,8 @@ def measure_model(image, pred: PredictedFingers, points=range(6), searched=None,
         # the faces' levels where the fingers most likely are: at the found corners' pose, else the first start
         appearance = learn_appearance(image, cam, cands[0], gripper, gap)
     best = None
+    kw = {} if rounds is None else {"rounds": rounds}
     for H in cands:
-        kw = {} if rounds is None else {"rounds": rounds}
         fit = fit_silhouette(image, cam, H, gripper, gap, appearance=appearance, points=points, max_rms_px=max_rms_px,
                              **kw)
         if best is None or (fit.ok, fit.good_fraction) > (best.ok, best.good_fraction):
@@ -198,25 +184,21 @@ WIDE_ROUNDS = (60.0, 24.0, 10.0, 5.0, 3.0)  # a search's fit from a start that m
 class SilhouetteTracker:
     """The fingertips of a sequence of pictures by the model-based measurement (``selfview.measurement.silhouette``).
 
-    ``find(image, C_H_G_pred, gap_mm)`` returns a ``FingertipResult`` (``tracked`` when it followed the
-    last frame); ``searches``, ``tracked_frames``, ``lost_frames`` count the kinds of frame,
-    ``last_failure`` says why the last frame was searched (None: tracked), ``reset()`` forgets the last
-    pose. Every frame fits the whole silhouette of both fingers: from the last fitted pose with the short ranges ``track_rounds``
-    [px] (the camera moves little between frames), with the faces' grey levels of the last fit; once more
-    within 3 px of the new pose when the fingertips moved more than ``refine_px`` [px]. When
-    that fit is not believed (its quality under the thresholds: the reason is ``last_failure``), the frame
-    is searched: fits with the full ranges from the last pose and from ``C_H_G_pred``, then from the
-    pose the corner search (``selfview.measurement.fingertips``) gives. A frame where none holds reports every point
-    as not found, with the reason in ``result.lost``: a missed frame, never a pose. Every result carries
-    the fit's ``quality``.
+    ``find(image, C_H_G_pred, gap_mm)`` returns a ``FingertipResult`` (``tracked`` when it followed the last
+    frame) carrying the fit's ``quality``; ``searches``, ``tracked_frames``, ``lost_frames`` count the kinds
+    of frame; ``last_failure`` says why the last frame was searched (None: tracked); ``reset()`` forgets the
+    last pose. Each frame fits the silhouette of both fingers from the last fitted pose with the short
+    ranges ``track_rounds`` [px] and the last fit's grey levels, once more within 3 px of the new pose when
+    the fingertips moved more than ``refine_px`` [px]. A fit not believed (the reason is ``last_failure``)
+    makes the frame searched: full-range fits from the last pose and from ``C_H_G_pred``, then from the
+    corner search's pose. A frame where none holds reports every point as not found, the reason in
+    ``result.lost``: a missed frame, never a pose.
 
-    The edge residual a right fit leaves depends on the gripper (a real finger is off its nominal faces),
-    so the tracker learns it: the first frame is first fitted from ``C_H_G_pred`` (the calibration's pose)
-    with the short ranges and a residual up to ``MAX_LEARNT_RMS_PX``; when that fit holds, its residual
-    is ``rms_level_px`` and every later frame is lost over ``rms_limit(rms_level_px)`` (the level times
-    ``RMS_MARGIN``, at least ``MAX_RMS_PX``). Until a level is learnt (the first frame not where the
-    calibration puts it) frames are lost over ``MAX_RMS_PX``. ``rms_level_px`` given: that level (e.g.
-    the calibration picture's), nothing learnt. ``reset()`` keeps the level (it is the gripper's).
+    A right fit's edge residual depends on the gripper (a real finger is off its nominal faces), so it is
+    learnt: the first frame is fitted from ``C_H_G_pred`` (the calibration's pose) with the short ranges and
+    a residual up to ``MAX_LEARNT_RMS_PX``; if that fit holds, its residual is ``rms_level_px`` and later
+    frames are lost over ``rms_limit(rms_level_px)``; until then over ``MAX_RMS_PX``. ``rms_level_px``
+    given: that level, nothing learnt. ``reset()`` keeps the level (it is the gripper's).
     """
 
     def __init__(self, camera: CameraModel, gripper: GripperSpec, *, points=range(4), search_px: float = 60.0,
@@ -235,9 +217,7 @@ class SilhouetteTracker:
         self.search_px = float(search_px)
         self.track_rounds = rounds
         self.refine_px = float(refine_px)
-        self.searches = 0
-        self.tracked_frames = 0
-        self.lost_frames = 0
+        self.searches = self.tracked_frames = self.lost_frames = 0
         self.last_failure: str | None = None
         self.last_fit = None
         self._app0 = appearance

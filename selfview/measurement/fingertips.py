@@ -1,18 +1,17 @@
 """The six fingertip corners of CONVENTIONS.md in a picture, searched from a predicted mount (off-line
 calibration, and the silhouette tracker's recovery).
 
-The finger boxes are projected at the prediction and the visible box edges at each corner chosen; a
-template of them is slid over the smoothed gradient (quarter, then full resolution); each edge is crossed
-by profiles whose step is located by the area method (the peak of the rise over a textured background),
-twice; a robust line is fitted to each edge's undistorted crossings, and the corner is the weighted
-intersection of its lines. A corner outside the picture, hidden, or whose edges yield too few points is
-reported as not found with the reason, never extrapolated.
+A template of the finger boxes' visible edges at the prediction is slid over the smoothed gradient (quarter,
+then full resolution); profiles across each edge locate its step by the area method (the peak of the rise
+over a textured background), twice; a robust line fits each edge's undistorted crossings, and the corner is
+the weighted intersection of its lines. A corner outside the picture, hidden, or whose edges yield too few
+points is reported as not found with the reason, never extrapolated.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -45,18 +44,16 @@ _BLUR_F = np.array([math.erf(1.5 / (s_ * math.sqrt(2))) for s_ in _BLUR_SIGMA])
 
 @dataclass
 class FingertipResult:
-    """Fingertip corners found in a picture, in ``POINT_NAMES`` order.
+    """Fingertip corners found in a picture, in ``POINT_NAMES`` order (``names``).
 
-    ``uv`` (6, 2) distorted pixels, NaN where not found; ``found`` (6,); ``reasons`` why a point was
-    not found (None where found); ``edge_rms_px`` (6,) RMS distance of the edge points from their fitted
-    lines (undistorted pixels), NaN if not found; ``names`` the point names; ``n_edge_points`` (6,)
-    edge points that the corner's lines rest on; ``tracked`` True when a tracker followed
-    the corners from the previous frame instead of searching for them. From the model-based measurement
-    (``fingers.find_fingertips(..., model=True)``, ``fingers.SilhouetteTracker``) also: ``quality`` the
-    fit's quality (``selfview.measurement.silhouette.SilhouetteFit.quality``: share of good edge samples, residual,
-    the TCP's standard deviation), ``lost`` why the frame says "not found" (None: it does not), and
-    ``C_H_G`` the fitted pose (None if none was believed). ``left_out``: {point name: why} of corners the
-    search found but left out as off the fingers' shape, whatever measured the points after it.
+    ``uv`` (6, 2) distorted pixels, NaN where not found; ``found`` (6,); ``reasons`` why a point was not
+    found (None where found); ``edge_rms_px`` (6,) RMS distance of the edge points from their lines
+    (undistorted pixels), NaN if not found; ``n_edge_points`` (6,) edge points the corner's lines rest on;
+    ``tracked`` True when a tracker followed the corners from the previous frame. The model-based
+    measurement (``fingers``) also sets ``quality`` (``silhouette.SilhouetteFit.quality``: share of good
+    edge samples, residual, the TCP's standard deviation), ``lost`` why the frame says "not found" (None:
+    it does not) and ``C_H_G`` the fitted pose (None if none was believed). ``left_out``: {point name:
+    why} of corners the search found but left out as off the fingers' shape, whatever measured after it.
     """
 
     uv: np.ndarray
@@ -128,8 +125,7 @@ def _corner_edges(p_G, lo, hi, finger, edges) -> list[tuple[_Edge, np.ndarray]]:
         b, c = [k for k in range(3) if k != axis]
         e = edges.get((finger, axis, side[b], side[c]))
         if e is not None:
-            far = e.b_G if side[axis] < 0 else e.a_G
-            out.append((e, far))
+            out.append((e, e.b_G if side[axis] < 0 else e.a_G))
     return out
 
 
@@ -187,7 +183,6 @@ class _Model:
         self.C_H_G = pred.C_H_G
         self.boxes = pred.gripper.finger_boxes_G(pred.gap_mm)
         self.points_G = pred.gripper.points_G(gap=pred.gap_mm)
-        camera = pred.camera
         cam_G = inv_H(self.C_H_G)[:3, 3]
         self.edges: dict[tuple, _Edge] = {}
         for f, (lo, hi) in enumerate(self.boxes):
@@ -195,10 +190,9 @@ class _Model:
         pts_C = transform_points(self.C_H_G, self.points_G)
         if np.any(pts_C[:, 2] <= 0):
             raise CalibrationError("C_H_G puts fingertip points behind the camera")
-        self.uv = camera.project(pts_C)
-        self.corner_edges = [
-            _corner_edges(self.points_G[k], *self.boxes[POINT_FINGER[k]], POINT_FINGER[k], self.edges) for k in range(6)
-        ]
+        self.uv = self.cam.project(pts_C)
+        self.corner_edges = [_corner_edges(p, *self.boxes[f], f, self.edges)
+                             for p, f in zip(self.points_G, POINT_FINGER)]
         self.hidden = [_hidden_by(pts_C[k], self.boxes, self.C_H_G, POINT_FINGER[k]) for k in range(6)]
 
     def profile_dir(self, edge: _Edge, at_G) -> np.ndarray:
@@ -224,52 +218,44 @@ class _Model:
             ends_C[1] = ends_C[0] + s * (ends_C[1] - ends_C[0])
         # how much of the segment spans max_px (perspective only, 10 % spare for the lens)
         t = np.linspace(0, 1, 33)[:, None]
-        coarse = self.cam.f * (ends_C[0, :2] + t * (ends_C[1, :2] - ends_C[0, :2])) / (
-            ends_C[0, 2] + t * (ends_C[1, 2] - ends_C[0, 2])
-        )
-        run = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(coarse, axis=0), axis=1))])
-        t_end = float(np.interp(1.1 * max_px + 2, run, t[:, 0])) if run[-1] > 1.1 * max_px + 2 else 1.0
-        n = int(np.clip(min(run[-1], 1.1 * max_px + 2) * 1.2, 4, 2000))
-        t = np.linspace(0, t_end, n)[:, None]
+        seg = ends_C[0] + t * (ends_C[1] - ends_C[0])
+        run = _arc_length(self.cam.f * seg[:, :2] / seg[:, 2:])
+        span = 1.1 * max_px + 2
+        t_end = float(np.interp(span, run, t[:, 0])) if run[-1] > span else 1.0
+        t = np.linspace(0, t_end, int(np.clip(min(run[-1], span) * 1.2, 4, 2000)))[:, None]
         uv = self.cam.project(ends_C[0] + t * (ends_C[1] - ends_C[0]))
-        run = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(uv, axis=0), axis=1))])
-        return uv[run <= max_px]
+        return uv[_arc_length(uv) <= max_px]
+
+
+def _arc_length(p: np.ndarray) -> np.ndarray:
+    """(M,) length along the polyline p (M, 2) from its first point."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
 
 
 def visible_edges(camera: CameraModel, C_H_G, gripper: GripperSpec, gap_mm: float) -> dict[str, list[str]]:
     """Which box edges show at each fingertip point (for reports): name -> ['x edge (silhouette)', ...]."""
     m = _Model(PredictedFingers(camera, C_H_G, gripper, gap_mm))
-    return {
-        POINT_NAMES[k]: [
-            f"{'xyz'[e.key[1]]} edge ({'crease' if e.crease else 'silhouette'})" for e, _ in m.corner_edges[k]
-        ]
-        for k in range(6)
-    }
+    return {name: [f"{'xyz'[e.key[1]]} edge ({'crease' if e.crease else 'silhouette'})" for e, _ in edges]
+            for name, edges in zip(POINT_NAMES, m.corner_edges)}
 
 
-def predict_fingertips(
-    camera: CameraModel, C_H_G, gripper: GripperSpec, gap_mm: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Predicted fingertip points: (uv (6, 2) distorted pixels, in_view (6,) bool), POINT_NAMES order.
-
-    ``C_H_G`` (4, 4) the gripper in the camera frame, ``gap_mm`` the jaw gap. A point is in view when it
-    lies in the picture, the other finger does not hide it and at least two of its edges show.
-    Raises ``CalibrationError`` if a point lies behind the camera.
-    """
+def predict_fingertips(camera: CameraModel, C_H_G, gripper: GripperSpec,
+                       gap_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted fingertip points: (uv (6, 2) distorted pixels, in_view (6,) bool), POINT_NAMES order, from
+    ``C_H_G`` (4, 4) the gripper in the camera frame and the jaw gap ``gap_mm``. A point is in view when it
+    lies in the picture, the other finger does not hide it and at least two of its edges show. Raises
+    ``CalibrationError`` if a point lies behind the camera."""
     m = _Model(PredictedFingers(camera, C_H_G, gripper, gap_mm))
-    in_view = camera.in_image(m.uv) & np.array(
-        [m.hidden[k] is None and len(m.corner_edges[k]) >= 2 for k in range(6)]
-    )
-    return m.uv, in_view
+    shown = [m.hidden[k] is None and len(m.corner_edges[k]) >= 2 for k in range(6)]
+    return m.uv, camera.in_image(m.uv) & np.array(shown)
 
 
 # --- coarse alignment -----------------------------------------------------------------------------
 def _template_score(G: np.ndarray, pts: list[np.ndarray], normals: np.ndarray, groups: list, span: int):
-    """Score of the shifts (dx, dy) in [0, 2 span]^2 of integer template points over a gradient image
-    G (2, H, W): per edge the sum of its normal gradient along it; edges of one group (the silhouette
-    of one face, normals turned into the face) add up with their signs, and the groups' magnitudes add.
-    The template's points already carry the offset that puts shift 0 at index ``span``.
-    Returns (score (2 span + 1, 2 span + 1), per-edge sums (E, 2 span + 1, 2 span + 1))."""
+    """Score (2 span + 1, 2 span + 1) of the shifts (dx, dy) in [0, 2 span]^2 of integer template points
+    ``pts`` over a gradient image G (2, H, W): per edge the sum of its normal gradient along it; edges of
+    one group (the silhouette of one face, normals turned into the face) add up with their signs, and the
+    groups' magnitudes add. The points already carry the offset that puts shift 0 at index ``span``."""
     n = 2 * span + 1
     sums = np.zeros((len(pts), n, n), np.float32)
     for e, q in enumerate(pts):
@@ -277,7 +263,7 @@ def _template_score(G: np.ndarray, pts: list[np.ndarray], normals: np.ndarray, g
         acc = sums[e]
         for qx, qy in q:
             acc += Gn[qy : qy + n, qx : qx + n]
-    return _group_score(sums, groups), sums
+    return _group_score(sums, groups)
 
 
 def _group_score(sums: np.ndarray, groups: list) -> np.ndarray:
@@ -307,8 +293,7 @@ def _padded_gradient(img: np.ndarray, lo: np.ndarray, hi: np.ndarray, s: int, sm
 
 
 def _unique_rows(a: np.ndarray) -> np.ndarray:
-    """``np.unique(a, axis=0)`` of integer points a (M, 2), faster: the same rows in the same
-    (lexicographic) order, through one integer key per row."""
+    """``np.unique(a, axis=0)`` of integer points a (M, 2), faster (one integer key per row)."""
     if len(a) == 0:
         return np.unique(a, axis=0)
     mn = a.min(0)
@@ -318,55 +303,41 @@ def _unique_rows(a: np.ndarray) -> np.ndarray:
 
 
 def _ridge_cells(score: np.ndarray, taken: np.ndarray) -> np.ndarray:
-    """The cells (row, col) of the quarter-resolution score map to refine: ``taken`` (K, 2), its best
-    local maxima, then, best first, cells scoring at least ``RIDGE_FRACTION`` of the best that are not
-    next to a cell already chosen (their +-6 px refinement reaches the neighbours'), at most
-    ``RIDGE_CANDIDATES`` more.
-
-    A template slid along its own long edges (a finger's sides) keeps their score: the map has a ridge
-    there, on which only the short edges at the tip (the ones that fix the corners) tell the shifts
-    apart, and at a quarter of the resolution they count for little, less than the rim of a disc of
-    ink beside them. The local maxima keep one point of such a ridge, not necessarily the right one
-    (the full resolution tells them apart): the ridge is sampled along its length instead."""
+    """The cells (row, col) of the quarter-resolution score map to refine: ``taken`` (K, 2), its best local
+    maxima, then, best first, at most ``RIDGE_CANDIDATES`` cells scoring ``RIDGE_FRACTION`` of the best or
+    more, none next to a cell already chosen (their +-6 px refinement reaches the neighbours'). A template
+    slid along a finger's long sides keeps their score: a ridge of the map, on which only the short tip
+    edges (which fix the corners) tell the shifts apart, at a quarter resolution less than a rim of ink
+    beside them; its local maximum need not be the right point, so the ridge is sampled along its length."""
     flat = score.ravel()
     best = float(flat.max())
     idx = np.nonzero(flat >= RIDGE_FRACTION * best)[0]
     idx = idx[np.argsort(flat[idx], kind="stable")[::-1]]
     rows, cols = np.divmod(idx, score.shape[1])
     out = [tuple(t) for t in np.asarray(taken, int)]
-    extra = 0
+    n_taken = len(out)
     for y, x in zip(rows.tolist(), cols.tolist()):
-        if extra >= RIDGE_CANDIDATES:
+        if len(out) - n_taken >= RIDGE_CANDIDATES:
             break
         if all(max(abs(y - ty), abs(x - tx)) >= 2 for ty, tx in out):
             out.append((y, x))
-            extra += 1
     return np.array(out, int).reshape(-1, 2)
 
 
-def _coarse_shift(img: np.ndarray, polys: list[np.ndarray], search_px: float, into=None, groups=None):
+def _coarse_shift(img: np.ndarray, polys: list[np.ndarray], search_px: float, into: np.ndarray, groups: list):
     """Best common 2-D shift (px) of the polylines over the picture's gradient within +-search_px, and
-    the sign of each polyline's normal gradient there (+1: brighter towards its left-hand normal).
+    the sign of each polyline's normal gradient there (+1: brighter towards its left-hand normal), or None
+    if the template does not meet the picture.
 
-    Polarity is not known, but the silhouette of one face has one polarity all round it (against a
-    background that is about uniform): ``into`` (E, 2) the image direction into each edge's face,
-    ``groups`` (E,) which face's silhouette each edge belongs to (a crease: a group of its own). The
-    normal gradient summed along each edge, the sums of a group signed into its face and added, and
-    the groups' magnitudes summed make the score: first at a quarter of the resolution over the whole
-    range, then at full resolution within +-6 px of its best few maxima. Returns (shift (2,),
-    signs (E,)) or None if the template does not meet the picture."""
+    Polarity is not known, but the silhouette of one face has one polarity all round it (against a fairly
+    uniform background): ``into`` (E, 2) the image direction into each edge's face, ``groups`` (E,) which
+    face's silhouette each edge belongs to (a crease: a group of its own). ``_template_score`` at a quarter
+    of the resolution over the whole range, then at full resolution within +-6 px of its best maxima."""
     H, W = img.shape
     pts = np.vstack(polys)
-    groups = list(range(len(polys))) if groups is None else list(groups)
-    normals = []
-    for e, poly in enumerate(polys):
-        t = poly[-1] - poly[0]
-        nrm = np.array([-t[1], t[0]]) / (np.linalg.norm(t) + 1e-12)
-        if into is not None and nrm @ into[e] < 0:
-            nrm = -nrm  # every normal into its face
-        normals.append(nrm)
-    normals = np.array(normals, np.float32)
-
+    left = np.array([_left_normal(p) for p in polys])
+    flip = np.array([-1.0 if nrm @ d < 0 else 1.0 for nrm, d in zip(left, into)])  # every normal into its face
+    normals = (left * flip[:, None]).astype(np.float32)
     # a quarter of the resolution over the whole range: the score map over shifts 4 (i - span)
     s = 4
     span = int(np.ceil(search_px / s)) + 1
@@ -376,17 +347,15 @@ def _coarse_shift(img: np.ndarray, polys: list[np.ndarray], search_px: float, in
         return None
     G = _padded_gradient(img, lo, hi, s, 1.0)
     tpl = [_unique_rows(np.rint(p / s).astype(int)) - lo - span for p in polys]
-    score, _ = _template_score(G, tpl, normals, groups, span)
-    # it blurs the fingers' finer edges more than the rims of discs: refine its best few local maxima,
-    # and the cells along a ridge of the map (see _ridge_cells)
+    score = _template_score(G, tpl, normals, groups, span)
+    # it blurs the fingers' finer edges more than the rims of discs: refine its best few maxima and ridge
     peaks = (score == cv2.dilate(score, np.ones((5, 5), np.uint8))) & (score > 0)
     iy, ix = np.nonzero(peaks)
     order = np.argsort(-score[iy, ix], kind="stable")[:COARSE_CANDIDATES]
     if len(order) == 0:
         return None
     cells = _ridge_cells(score, np.column_stack([iy[order], ix[order]]))
-    # full resolution: one gradient image over every candidate's reach, the template's points gathered
-    # at each shift within +-6 px of each candidate
+    # full resolution: one gradient image over every candidate's reach
     centres = 4.0 * np.column_stack([cells[:, 1] - span, cells[:, 0] - span])
     r = 6
     lo = np.floor(pts.min(0) + centres.min(0)).astype(int) - r - 2
@@ -394,8 +363,7 @@ def _coarse_shift(img: np.ndarray, polys: list[np.ndarray], search_px: float, in
     G = _padded_gradient(img, lo, hi, 1, 1.5)
     dv, du = np.mgrid[-r : r + 1, -r : r + 1]
     shifts = np.column_stack([du.ravel(), dv.ravel()])
-    # each edge's normal gradient over the window (the same float32 operations per pixel as on the
-    # gathered points), gathered at the template's points at every shift
+    # each edge's normal gradient over the window (the same float32 values as at the gathered points alone)
     Gn = [(normals[e, 0] * G[0] + normals[e, 1] * G[1]).ravel() for e in range(len(polys))]
     gw = G.shape[2]
     flat_shifts = shifts[:, 1] * gw + shifts[:, 0]
@@ -414,10 +382,14 @@ def _coarse_shift(img: np.ndarray, polys: list[np.ndarray], search_px: float, in
     if best is None:
         return None
     _, shift, sums = best
-    # back to each polyline's own left-hand normal
-    left = np.array([[-(p[-1] - p[0])[1], (p[-1] - p[0])[0]] for p in polys])
-    signs = np.sign(sums) * np.sign(np.sum(left * normals, axis=1))
+    signs = np.sign(sums) * flip  # back to each polyline's own left-hand normal
     return shift, np.where(signs == 0, 1.0, signs)
+
+
+def _left_normal(poly: np.ndarray) -> np.ndarray:
+    """Unit normal (2,) to the left of the chord of the polyline poly (M, 2)."""
+    t = poly[-1] - poly[0]
+    return np.array([-t[1], t[0]]) / (np.linalg.norm(t) + 1e-12)
 
 
 # --- fine edge points -----------------------------------------------------------------------------
@@ -449,10 +421,8 @@ class _Steps:
         return len(self.stations)
 
     def subset(self, keep: np.ndarray) -> "_Steps":
-        return _Steps(
-            self.pts[keep], self.levels[keep], self.win_val[keep], self.win_x[keep],
-            self.plateau, self.stations, self.pdir, self.peaks[keep],
-        )
+        return _Steps(self.pts[keep], self.levels[keep], self.win_val[keep], self.win_x[keep], self.plateau,
+                      self.stations, self.pdir, self.peaks[keep])
 
     def blur(self) -> float:
         """The edge's blur sigma along the profile (samples), from the fraction of the step that the
@@ -488,18 +458,11 @@ def _edge_steps(img, poly, pdir, sign, others, search, shading: _Shading, both_s
     its length (bilinear samples 1 px apart).
 
     ``sign`` +1/-1: the grey level grows towards the polyline's left-hand normal (``both_signs``: either
-    way, as where ink lies behind a finger); ``others`` (K, 2) points of every other edge: profiles
-    that come within ``BLUR_MARGIN`` of them are skipped; ``search`` px either side of the polyline to
-    look for the step (where ``shading.expect`` names a face's grey level for a side, only steps that
-    show it there). Each crossing is the area (zeroth-moment) estimate: over the transition,
-    +-(3 sigma + 1) px around the strongest step, the ideal step between the two plateau levels
-    (measured on ``P`` samples beyond it, with the slopes of ``shading``) must hold the same grey-level
-    sum as the picture; ``_Steps.peaks`` holds the peak-of-the-rise estimate of the same crossings."""
-    H, W = img.shape
-    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-    run = np.concatenate([[0.0], np.cumsum(seg)])
-    t = poly[-1] - poly[0]
-    n = np.array([-t[1], t[0]]) / (np.linalg.norm(t) + 1e-12)
+    way, as where ink lies behind a finger); ``others`` (K, 2) points of every other edge, whose profiles
+    are skipped (``_stations``); the step is looked for ``search`` px either side of the polyline (where
+    ``shading.expect`` names a face's grey level for a side, only steps that show it there) and located by
+    ``_step_estimates`` over +-(3 sigma + 1) px around the strongest one, with ``P`` plateau samples."""
+    n = _left_normal(poly)
     cos = float(n @ pdir)
     if abs(cos) < 0.5:  # a face seen too obliquely: sample straight across instead, towards the same side
         pdir = n if cos >= 0 else -n
@@ -508,26 +471,12 @@ def _edge_steps(img, poly, pdir, sign, others, search, shading: _Shading, both_s
     cos = abs(cos)
     sigma = shading.sigma if shading.sigma is not None else 1.6 / cos  # along the profile
     h = int(np.clip(np.ceil(3 * sigma + 1), 2, 12))  # transition half-width (samples)
-    L = 2 * (h + P)
-    none = np.zeros((0, 2))
-    empty = _Steps(none, none, np.zeros((0, L)), np.zeros((0, L)), P, none, pdir, none)
-    if run[-1] < 2:
-        return empty
-    s = np.arange(0.5, run[-1], 1.0)
-    st = np.column_stack([np.interp(s, run, poly[:, 0]), np.interp(s, run, poly[:, 1])])
     sr = int(np.ceil(search / cos))
     R = sr + h + P + 1
-    # the whole profile in the picture (only along its direction: an edge may run close to the border)
-    reach = (R + 1) * np.abs(pdir)  # the dither adds up to 0.5 sample
-    ok = np.all((st - reach >= 0) & (st + reach < (W - 1, H - 1)), axis=1)
-    if len(others):
-        lo, hi = st.min(0) - R - BLUR_MARGIN, st.max(0) + R + BLUR_MARGIN
-        o = others[np.all((others > lo) & (others < hi), axis=1)]
-        if len(o):
-            ok &= _clear_of(st, o, pdir, R)
-    st = st[ok]
+    st = _stations(img.shape, poly, pdir, R, others)
     if len(st) == 0:
-        return empty
+        none, no_win = np.zeros((0, 2)), np.zeros((0, 2 * (h + P)))
+        return _Steps(none, none, no_win, no_win, P, none, pdir, none)
     j = np.arange(-R, R + 1)
     # dither the profiles' sample phase along the edge (golden-ratio sequence), so that whatever bias a
     # phase has averages out over the crossings instead of repeating on an edge the prediction fits
@@ -550,50 +499,50 @@ def _edge_steps(img, poly, pdir, sign, others, search, shading: _Shading, both_s
     at = k - sr  # the step lies between samples at and at + 1 (profile coordinates)
     wi = (at + R)[:, None] + np.arange(-h - P + 1, h + P + 1)[None, :]
     win = prof[rows[:, None], wi].astype(np.float64)
-    Am = win[:, :P].mean(1)
-    Bm = win[:, -P:].mean(1)
-    x_lo, x_hi = at - h + 0.5, at + h + 0.5  # the transition
-    x_A, x_B = x_lo - P / 2, x_hi + P / 2  # where the plateau means lie
-    S = win[:, P:-P].sum(1)
-    e, e_peak = _step_estimates(at, x_lo, x_hi, x_A, x_B, Am, Bm, S, shading.g_lo, shading.g_hi, diff, k, sgn)
-    contrast = np.abs(Bm - Am)
-    rough = np.maximum(np.ptp(win[:, :P], axis=1), np.ptp(win[:, -P:], axis=1))
-    slope_allow = (abs(shading.g_lo) + abs(shading.g_hi)) * P
-    good = (
-        ((Bm - Am) * sgn >= max(MIN_CONTRAST, 0.35 * shading.contrast))
-        & (np.abs(Am - (shading.expect[0] if shading.expect[0] is not None else Am)) <= shading.tol)
-        & (np.abs(Bm - (shading.expect[1] if shading.expect[1] is not None else Bm)) <= shading.tol)
-        & (rough <= 0.08 * contrast + 8 + slope_allow)
-        & (np.ptp(win, axis=1) <= 1.15 * contrast + 10 + slope_allow)  # one step only: no ink or other edge
-        & (np.abs(e - (at + 0.5)) < 1.5)
-        & (np.abs(e_peak - (at + 0.5)) < 1.0)
-        & (peak * sgn > 0)
-    )
+    Am, Bm, e, e_peak = _step_estimates(win, at, h, P, shading, diff, k, sgn)
+    good = _plausible(win, Am, Bm, at, e, e_peak, peak, sgn, shading, P)
     return _Steps(
         st[good] + (e + ph)[good, None] * pdir[None, :], np.column_stack([Am, Bm])[good], win[good],
         (wi - R)[good].astype(float), P, st, pdir, st[good] + (e_peak + ph)[good, None] * pdir[None, :],
     )
 
 
-def _clear_of(st: np.ndarray, o: np.ndarray, pdir: np.ndarray, R: int) -> np.ndarray:
-    """(S,) whether no point of o (K, 2) lies within ``BLUR_MARGIN`` of the profiles of +-R px along
-    ``pdir`` at the stations st (S, 2)."""
-    rel = o[None, :, :] - st[:, None, :]
-    tt = np.clip(rel @ pdir, -R, R)
-    dist2 = np.sum((rel - tt[..., None] * pdir) ** 2, axis=2)
-    return np.min(dist2, axis=1) >= BLUR_MARGIN**2
+def _stations(shape: tuple, poly: np.ndarray, pdir: np.ndarray, R: int, others: np.ndarray) -> np.ndarray:
+    """(S, 2) points 1 px apart along ``poly`` (M, 2) whose profiles of +-R samples along ``pdir`` (2,) lie
+    in a picture of ``shape`` (H, W) and pass no point of ``others`` (K, 2) within ``BLUR_MARGIN``."""
+    H, W = shape
+    run = _arc_length(poly)
+    if run[-1] < 2:
+        return np.zeros((0, 2))
+    s = np.arange(0.5, run[-1], 1.0)
+    st = np.column_stack([np.interp(s, run, poly[:, 0]), np.interp(s, run, poly[:, 1])])
+    # the whole profile in the picture (only along its direction: an edge may run close to the border)
+    reach = (R + 1) * np.abs(pdir)  # the dither adds up to 0.5 sample
+    ok = np.all((st - reach >= 0) & (st + reach < (W - 1, H - 1)), axis=1)
+    if len(others):
+        lo, hi = st.min(0) - R - BLUR_MARGIN, st.max(0) + R + BLUR_MARGIN
+        o = others[np.all((others > lo) & (others < hi), axis=1)]
+        if len(o):
+            rel = o[None, :, :] - st[:, None, :]
+            tt = np.clip(rel @ pdir, -R, R)
+            ok &= np.min(np.sum((rel - tt[..., None] * pdir) ** 2, axis=2), axis=1) >= BLUR_MARGIN**2
+    return st[ok]
 
 
-def _step_estimates(at, x_lo, x_hi, x_A, x_B, Am, Bm, S, g_lo, g_hi, diff, k, sgn):
-    """Two estimates (e, e_peak) per profile of where the step chosen between samples ``at`` and
-    ``at + 1`` crosses, in profile coordinates.
-
-    e, the area (zeroth-moment) estimate: where an ideal step between the plateau levels, sloped by
-    ``g_lo``, ``g_hi`` (grey levels per sample; ``Am``, ``Bm`` their means, centred at ``x_A``, ``x_B``),
-    holds the grey-level sum ``S`` of the transition [x_lo, x_hi] (Newton, three steps). e_peak, the
-    peak of the rise: a Gaussian through the three largest of the sample differences ``diff`` (M, D)
-    around the chosen one ``k`` (M,) of sign ``sgn`` (indifferent to a textured background's level
-    beside the edge); NaN where they make no peak."""
+def _step_estimates(win, at, h: int, P: int, shading: _Shading, diff, k, sgn):
+    """The plateau levels (Am, Bm) and two estimates (e, e_peak) of where the step chosen between samples
+    ``at`` and ``at + 1`` crosses, in profile coordinates, for windows ``win`` (M, 2 (h + P)) of samples
+    around it (``P`` at each end on the plateaus). e, the area (zeroth-moment) estimate: where an ideal
+    step between the plateau levels, sloped by ``shading.g_lo``, ``g_hi`` (grey levels per sample), holds
+    the grey-level sum of the transition (Newton, three steps). e_peak, the peak of the rise: a Gaussian
+    through the three largest sample differences ``diff`` (M, D) around the chosen one ``k`` (M,) of sign
+    ``sgn`` (indifferent to a textured background's level beside the edge); NaN where they make no peak."""
+    g_lo, g_hi = shading.g_lo, shading.g_hi
+    Am = win[:, :P].mean(1)
+    Bm = win[:, -P:].mean(1)
+    x_lo, x_hi = at - h + 0.5, at + h + 0.5  # the transition
+    x_A, x_B = x_lo - P / 2, x_hi + P / 2  # where the plateau means lie
+    S = win[:, P:-P].sum(1)
     e = at + 0.5
     rows = np.arange(len(k))
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -606,7 +555,25 @@ def _step_estimates(at, x_lo, x_hi, x_A, x_B, Am, Bm, S, g_lo, g_hi, diff, k, sg
         lm, l0, lp = (np.log(np.maximum(diff[rows, kk + i] * sgn, 1e-3)) for i in (-1, 0, 1))
         den = lm - 2 * l0 + lp
         e_peak = at + (kk - k) + 0.5 + np.where(den < 0, 0.5 * (lm - lp) / den, np.nan)
-    return e, e_peak
+    return Am, Bm, e, e_peak
+
+
+def _plausible(win, Am, Bm, at, e, e_peak, peak, sgn, shading: _Shading, P: int) -> np.ndarray:
+    """(M,) whether each window holds one clean step (no ink or other edge) of polarity ``sgn``, enough
+    contrast and the sides' levels ``shading`` expects, whose estimates lie near the chosen step."""
+    contrast = np.abs(Bm - Am)
+    rough = np.maximum(np.ptp(win[:, :P], axis=1), np.ptp(win[:, -P:], axis=1))
+    slope_allow = (abs(shading.g_lo) + abs(shading.g_hi)) * P
+    return (
+        ((Bm - Am) * sgn >= max(MIN_CONTRAST, 0.35 * shading.contrast))
+        & (np.abs(Am - (shading.expect[0] if shading.expect[0] is not None else Am)) <= shading.tol)
+        & (np.abs(Bm - (shading.expect[1] if shading.expect[1] is not None else Bm)) <= shading.tol)
+        & (rough <= 0.08 * contrast + 8 + slope_allow)
+        & (np.ptp(win, axis=1) <= 1.15 * contrast + 10 + slope_allow)  # one step only: no ink or other edge
+        & (np.abs(e - (at + 0.5)) < 1.5)
+        & (np.abs(e_peak - (at + 0.5)) < 1.0)
+        & (peak * sgn > 0)
+    )
 
 
 def _line_tls(q: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float]:
@@ -683,29 +650,22 @@ class _Fit:
     pdir: np.ndarray  # (2,) the profiles' direction
     levels: np.ndarray  # (2,) median grey levels on the profiles' low and high side
     reach: float  # how far from the edge (px along pdir) the plateaus were measured
-    textured: bool = False  # located by the peaks of the rise (a textured background), not the areas
-
-    @property
-    def scanned(self) -> int:
-        return len(self.scanned_q)
 
 
-def _fit_edge(img, cam, poly, pdir, sign, others, search, shading: _Shading, first: bool, both: bool, crease: bool):
-    """Crossings of one edge and a robust line through them (undistorted pixels): (_Fit, None) or
-    (None, the reason).
-
-    First pass: wide windows; the blur and the plateau slopes found on its inliers become the fit's
-    shading. Second pass: with that shading. ``both``: steps of either polarity (ink behind the edge
-    reverses it), else only of the polarity ``sign``."""
-    st = _edge_steps(img, poly, pdir, sign, others, search, shading, both, 5 if first else PLATEAU_PX)
+def _fit_edge(img, cam, poly, pdir, sign, others, shading: _Shading, first: bool, both: bool, crease: bool):
+    """Crossings of one edge and a robust line through them (undistorted pixels): (_Fit, None) or (None, the
+    reason). First pass: wide windows and search; the blur and the plateau slopes found on its inliers become
+    the fit's shading. Second pass: with that shading. ``both``: steps of either polarity (ink behind the
+    edge reverses it), else only of the polarity ``sign``."""
+    search, plateau = (8.0, 5) if first else (3.0, PLATEAU_PX)
+    st = _edge_steps(img, poly, pdir, sign, others, search, shading, both, plateau)
     need = max(6, int((0.15 if first else 0.3) * st.scanned))  # the first pass sees one polarity only
     if len(st.pts) < need:
         return None, f"too few edge points ({len(st.pts)} of {st.scanned} crossings)"
     pred_q = cam.undistorted_pixels(poly[[0, -1]])
     t = pred_q[1] - pred_q[0]
-    # the area estimates are exact for flat plateaus, the peaks hold up on a textured background: how
-    # much the background's level (the profiles' low side, off the face) wanders along the edge, beyond
-    # what the face's own level does (noise)
+    # the area estimates are exact for flat plateaus, the peaks hold up on a textured background: how much
+    # the background's level (the profiles' low side) wanders along the edge, beyond the face's own (noise)
     textured = first
     if not first and not crease and len(st.levels) >= 12:
         wander = np.median(np.abs(st.levels[6:] - st.levels[:-6]), axis=0) * 1.4826 / np.sqrt(2)
@@ -721,13 +681,8 @@ def _fit_edge(img, cam, poly, pdir, sign, others, search, shading: _Shading, fir
         contrast = float(np.median(np.abs(good.levels[:, 1] - good.levels[:, 0])))
         shading = _Shading(good.blur(), *good.slopes(), contrast, shading.expect, shading.tol)
     h_reach = st.win_x.shape[1] / 2 - st.plateau / 2 if len(st.win_x) else 0.0
-    return (
-        _Fit(
-            n, c, q[inl], shading, cam.undistorted_pixels(st.stations), st.pdir,
-            np.median(st.levels[inl], axis=0), h_reach, textured,
-        ),
-        None,
-    )
+    levels = np.median(st.levels[inl], axis=0)
+    return _Fit(n, c, q[inl], shading, cam.undistorted_pixels(st.stations), st.pdir, levels, h_reach), None
 
 
 def _move_poly(cam, poly, fit: _Fit) -> np.ndarray:
@@ -749,51 +704,43 @@ def search_corners(image, pred: PredictedFingers, search_px, points):
     want = sorted({int(k) for k in points})
     if any(k < 0 or k > 5 for k in want):
         raise ValueError(f"points: expected indices 0..5 into POINT_NAMES, got {list(points)}")
-    uv = np.full((6, 2), np.nan)
-    found = np.zeros(6, bool)
-    reasons: list = [None] * 6
-    rms = np.full(6, np.nan)
-    npts = np.zeros(6, int)
+    res = FingertipResult(uv=np.full((6, 2), np.nan), found=np.zeros(6, bool),
+                          reasons=[None if k in want else "not requested" for k in range(6)],
+                          edge_rms_px=np.full(6, np.nan), names=POINT_NAMES, n_edge_points=np.zeros(6, int))
     H, W = img.shape
-    for k in range(6):
-        if k not in want:
-            reasons[k] = "not requested"
     for f in (0, 1):
-        ks = [k for k in want if POINT_FINGER[k] == f]
         todo = []
-        for k in ks:
+        for k in (k for k in want if POINT_FINGER[k] == f):
             pu, pv = model.uv[k]
             if pu < -search_px or pv < -search_px or pu > W - 1 + search_px or pv > H - 1 + search_px:
-                reasons[k] = f"outside the picture (predicted at {pu:.0f}, {pv:.0f})"
+                res.reasons[k] = f"outside the picture (predicted at {pu:.0f}, {pv:.0f})"
             elif model.hidden[k] is not None:
-                reasons[k] = f"occluded by finger {FINGERS[model.hidden[k]]}"
+                res.reasons[k] = f"occluded by finger {FINGERS[model.hidden[k]]}"
             elif len(model.corner_edges[k]) < 2:
-                reasons[k] = "fewer than two of its edges face the camera"
+                res.reasons[k] = "fewer than two of its edges face the camera"
             else:
                 todo.append(k)
-        if not todo:
-            continue
         located = _locate_edges(img, camera, model, f, todo, search_px)
         if located is None:
             for k in todo:
-                reasons[k] = "outside the picture"
+                res.reasons[k] = "outside the picture"
             continue
         fits, fails, shift = located
         for k in todo:
-            res = _corner(img, camera, model, k, fits, fails, search_px, model.uv[k] + shift)
-            if isinstance(res, str):
-                reasons[k] = res
+            corner = _corner(img, camera, model, k, fits, fails, search_px, model.uv[k] + shift)
+            if isinstance(corner, str):
+                res.reasons[k] = corner
             else:
-                uv[k], rms[k], npts[k] = res
-                found[k] = True
-    return FingertipResult(uv=uv, found=found, reasons=reasons, edge_rms_px=rms, names=POINT_NAMES, n_edge_points=npts)
+                res.uv[k], res.edge_rms_px[k], res.n_edge_points[k] = corner
+                res.found[k] = True
+    return res
 
 
 def _locate_edges(img, camera, model: _Model, f: int, todo: list[int], search_px: float):
     """Fit the visible edges of finger ``f`` at the corners ``todo``: coarse alignment, then two passes
     of crossings (the second around the first's lines, with their shading, either polarity).
-    Returns ({edge key: _Fit}, {edge key: reason}, the coarse shift (2,)) or None if the finger is not
-    in the picture."""
+    Returns ({edge key: _Fit}, {edge key: reason it failed}, the coarse shift (2,)) or None if no corner
+    is to be searched or the finger is not in the picture."""
     # the finger's edges at the wanted corners, each as a polyline from a corner outwards
     polys: dict[tuple, np.ndarray] = {}
     pdirs: dict[tuple, np.ndarray] = {}
@@ -806,10 +753,9 @@ def _locate_edges(img, camera, model: _Model, f: int, todo: list[int], search_px
                     pdirs[e.key] = model.profile_dir(e, model.points_G[k])
     keys = list(polys)
     groups = [("crease", k) if model.edges[k].crease else model.edges[k].faces[0] for k in keys]
-    coarse = (
-        _coarse_shift(img, [polys[e] for e in keys], search_px, np.array([pdirs[e] for e in keys]), groups)
-        if keys else None
-    )
+    if not keys:
+        return None
+    coarse = _coarse_shift(img, [polys[e] for e in keys], search_px, np.array([pdirs[e] for e in keys]), groups)
     if coarse is None:
         return None
     shift, signs = coarse
@@ -823,27 +769,22 @@ def _locate_edges(img, camera, model: _Model, f: int, todo: list[int], search_px
         if e.finger == f and max(e.a_G[2], e.b_G[2]) > -1e-9
     }
     fits: dict[tuple, _Fit] = {}
-    fails: dict[tuple, str] = {}
+    fails: dict[tuple, str | None] = {}  # read only for edges not in fits
 
     def run(key, first: bool, shading: _Shading, both: bool):
         poly = cur[key][: max(4, int(len(cur[key]) * FIT_PX / TEMPLATE_PX))]
         others = np.vstack([p for kk, p in all_other.items() if kk != key] or [np.zeros((0, 2))])
-        search = 8.0 if first else 3.0
-        fit, why = _fit_edge(
-            img, camera, poly, pdirs[key], sign[key], others, search, shading, first, both, model.edges[key].crease
-        )
+        crease = model.edges[key].crease
+        fit, fails[key] = _fit_edge(img, camera, poly, pdirs[key], sign[key], others, shading, first, both, crease)
         if fit is None:
-            fails[key] = why
             fits.pop(key, None)
         else:
             fits[key] = fit
-            fails.pop(key, None)
 
     for key in keys:
         run(key, True, _Shading(), False)
     # each face shows near the tip on about three edges: an edge whose face side disagrees with the others
-    # found something else (the rim of a disc of ink), and one not found may lie over ink: look again
-    # among crossings of either polarity that show the face
+    # found something else (a rim of ink), one not found may lie over ink: look again, either polarity
     expect = _face_levels(model, fits)
     for key in keys:
         exp, tol = _expected_sides(model.edges[key], expect, fits.get(key))
@@ -858,8 +799,7 @@ def _locate_edges(img, camera, model: _Model, f: int, todo: list[int], search_px
     for key in keys:
         if key in fits:
             exp, tol = _expected_sides(model.edges[key], expect, fits[key])
-            sh = fits[key].shading
-            run(key, False, _Shading(sh.sigma, sh.g_lo, sh.g_hi, sh.contrast, exp, tol), True)
+            run(key, False, replace(fits[key].shading, expect=exp, tol=tol), True)
     return fits, fails, shift
 
 
@@ -924,9 +864,9 @@ def _corner(img, camera, model, k, fits, fails, search_px, aligned):
     ``aligned`` (2,) where the coarse alignment put the corner."""
     H, W = img.shape
     lines = [(fits[e.key], e) for e, _ in model.corner_edges[k] if e.key in fits]
-    if len(lines) < 2 and not (2.0 <= aligned[0] <= W - 3.0 and 2.0 <= aligned[1] <= H - 3.0):
-        return f"outside the picture (at about {aligned[0]:.0f}, {aligned[1]:.0f})"
     if len(lines) < 2:
+        if not (2.0 <= aligned[0] <= W - 3.0 and 2.0 <= aligned[1] <= H - 3.0):
+            return f"outside the picture (at about {aligned[0]:.0f}, {aligned[1]:.0f})"
         bad = [fails.get(e.key, "not scanned") for e, _ in model.corner_edges[k] if e.key not in fits]
         return "edges not found: " + "; ".join(bad)
     N = np.array([ln.n for ln, _ in lines])
