@@ -223,11 +223,12 @@ static int solve6(double Ab[42], double x[6])
                 p = i;
         if (Ab[7 * p + k] == 0.0 || !isfinite(Ab[7 * p + k]))
             return 0;
-        for (int j = 0; j < 7 && p != k; j++) {
-            const double t = Ab[7 * k + j];
-            Ab[7 * k + j] = Ab[7 * p + j];
-            Ab[7 * p + j] = t;
-        }
+        if (p != k)
+            for (int j = 0; j < 7; j++) {
+                const double t = Ab[7 * k + j];
+                Ab[7 * k + j] = Ab[7 * p + j];
+                Ab[7 * p + j] = t;
+            }
         for (int i = k + 1; i < 6; i++) {
             const double m = Ab[7 * i + k] / Ab[7 * k + k];
             for (int j = k; j < 7; j++)
@@ -257,7 +258,6 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
     BufSet bs = {.n = 0};
     PyObject *ret = NULL;
     Py_buffer *b_q, *b_pos, *b_a, *b_b, *b_H, *b_Ho, *b_w, *b_r, *b_pick, *b_J;
-    double *work;
     if (!PyArg_ParseTuple(args, "OOOOOddndOOOOO:solve", &o_q, &o_pos, &o_a, &o_b, &o_H, &f, &floor_, &iters,
                           &start_floor, &o_Ho, &o_w, &o_r, &o_pick, &o_J))
         return NULL;
@@ -282,6 +282,7 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
         goto out;
     double *Ho = b_Ho->buf, *w = b_w->buf, *r = b_r->buf, *JtWJ = b_J->buf;
     int64_t *pick = b_pick->buf;
+    double *work;
     ALLOC(work, sizeof(double) * (size_t)(S + 13 * E + 1));
     double *absr = work, *M = work + S, *Dn = M + 3 * E, *K = Dn + 3 * E;  /* V (E, 7): the r term of each edge's row */
     double H[16];
@@ -417,7 +418,6 @@ static PyObject *py_vote(PyObject *self, PyObject *args)
     BufSet bs = {.n = 0};
     PyObject *ret = NULL;
     Py_buffer *b_off, *b_n, *b_g, *b_v;
-    double *cand;
     if (!PyArg_ParseTuple(args, "OOOdO:vote", &o_off, &o_n, &o_g, &tol, &o_v))
         return NULL;
     GET(b_off, o_off, "off", T_F64, 0, 2, -1, -1);
@@ -429,6 +429,7 @@ static PyObject *py_vote(PyObject *self, PyObject *args)
     REQUIRE(tol >= 0.0 && G >= 1 && G <= 4096, PyExc_ValueError, "tol, g: expected tol >= 0 and 1..4096 grid values");
     const double *off = b_off->buf, *nrm = b_n->buf, *g = b_g->buf;
     int64_t *votes = b_v->buf;
+    double *cand;
     ALLOC(cand, sizeof(double) * (size_t)(C > 0 ? C : 1));
     memset(votes, 0, (size_t)(G * G) * sizeof(int64_t));
     for (Py_ssize_t s = 0; s < S; s++) {
@@ -684,7 +685,6 @@ static PyObject *py_candidates(PyObject *self, PyObject *args)
     BufSet bs = {.n = 0};
     PyObject *ret = NULL;
     Py_buffer *b_img, *b_uv, *b_n, *b_l1, *b_l2, *b_g, *b_cam, *b_off, *b_face, *b_con, *b_q;
-    float *work;
     if (!PyArg_ParseTuple(args, "OOOOOdOOOOOO:candidates", &o_img, &o_uv, &o_n, &o_l1, &o_l2, &R, &o_g, &o_cam,
                           &o_off, &o_face, &o_con, &o_q))
         return NULL;
@@ -717,6 +717,7 @@ static PyObject *py_candidates(PyObject *self, PyObject *args)
     const float min_con = (float)gates[1];
     const double ltol = gates[2], ltol_grey = gates[3];
     const int Ri = (int)ceil(R), L = 2 * Ri + 2 * P + 3, M = L - 4;
+    float *work;
     ALLOC(work, sizeof(float) * (size_t)(4 * L) + sizeof(double) * (size_t)M);
     /* per sample: the profile at offsets -Ri-P-1 .. Ri+P+1, its derivative D (at offsets -Ri-P .. Ri+P), and per
      * step m (at offset m - Ri - P + 1, D's m + 1) the mean levels 2..P px on its face side and on the other */
