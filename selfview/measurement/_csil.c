@@ -1,16 +1,13 @@
-/* selfview.measurement._csil: the compiled per-round steps of the model-based fingertip measurement. Each
- * function computes what its Python reference in selfview/measurement/silhouette.py computes (the comment
- * above each gives its buffers; the tests compare the two at tolerances with a physical meaning): sample
- * (_sample_py), points (_points_seen_py), candidates (_candidates_np, and camera.undistort_pixels of each
- * candidate), vote (_votes_py), solve (_solve_py).
+/* selfview.measurement._csil: the compiled per-round steps of the model-based fingertip measurement, each
+ * computing what its Python reference in selfview/measurement/silhouette.py computes (the tests compare the two
+ * at tolerances with a physical meaning): sample (_sample_py), points (_points_seen_py), candidates
+ * (_candidates_np, then camera.undistort_pixels), vote (_votes_py), solve (_solve_py).
  *
- * Where the results differ from numpy's, and why: candidates reads the profile as cv2.remap does (bilinear
- * below) and computes in single precision as numpy does, so the levels agree to float rounding, and equal
- * scores rank by position (numpy's sort leaves their order open); solve sums in another order than numpy, so
- * it agrees to rounding, not bit for bit. A point the Python code refuses (behind the camera, beyond the
- * lens's fold) makes sample return -1 and points 0, and a singular system makes solve return code 2: the
- * caller then runs the reference, which raises or decides. Every buffer (type, dimensions, shape) and index
- * is checked before it is used: bad arguments raise TypeError or ValueError naming the argument.
+ * candidates reads the profile as cv2.remap does (bilinear below) in single precision as numpy does, and ranks
+ * equal scores by position (numpy's sort leaves their order open); solve sums in another order than numpy: both
+ * agree to rounding. A point the Python code refuses (behind the camera, beyond the lens's fold) makes sample
+ * return -1 and points 0, a singular system makes solve return code 2: the caller then runs the reference.
+ * Bad arguments (a buffer's type, dimensions or shape, an index) raise TypeError or ValueError naming them.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -28,6 +25,7 @@ enum { T_F64 = 1, T_I64 = 2, T_F32 = 3, T_U8 = 4 };
 typedef struct {
     Py_buffer v[MAXBUF];
     int n;
+    void *work; /* the call's scratch memory */
 } BufSet;
 
 static void bufs_release(BufSet *s)
@@ -35,6 +33,7 @@ static void bufs_release(BufSet *s)
     for (int i = 0; i < s->n; i++)
         PyBuffer_Release(&s->v[i]);
     s->n = 0;
+    PyMem_Free(s->work);
 }
 
 static int buf_kind(const Py_buffer *b)
@@ -99,6 +98,49 @@ static Py_buffer *get_buf(BufSet *s, PyObject *o, const char *name, int kind, in
         if (!var)                                                                                        \
             goto out;                                                                                   \
     } while (0)
+
+/* the call's scratch memory (freed with its buffers) */
+#define ALLOC(var, bytes)                                                                                \
+    do {                                                                                                 \
+        var = bs.work = PyMem_Malloc(bytes);                                                             \
+        if (!var) {                                                                                      \
+            PyErr_NoMemory();                                                                            \
+            goto out;                                                                                    \
+        }                                                                                                \
+    } while (0)
+
+#define REQUIRE(ok, exc, ...)                                                                            \
+    do {                                                                                                 \
+        if (!(ok)) {                                                                                     \
+            PyErr_Format(exc, __VA_ARGS__);                                                              \
+            goto out;                                                                                    \
+        }                                                                                                \
+    } while (0)
+
+/* whether every index v[0..n) is in 0..hi-1; else ValueError "name: <item> i names <what> v, expected ..." */
+static int indices_ok(const int64_t *v, Py_ssize_t n, Py_ssize_t hi, const char *name, const char *item,
+                      const char *what)
+{
+    for (Py_ssize_t i = 0; i < n; i++)
+        if (v[i] < 0 || v[i] >= hi) {
+            if (hi == 2)
+                PyErr_Format(PyExc_ValueError, "%s: %s %zd names %s %lld, expected 0 or 1", name, item, i, what,
+                             (long long)v[i]);
+            else
+                PyErr_Format(PyExc_ValueError, "%s: %s %zd names %s %lld, expected 0..%zd", name, item, i, what,
+                             (long long)v[i], hi - 1);
+            return 0;
+        }
+    return 1;
+}
+
+/* a x b */
+static void cross3(const double a[3], const double b[3], double out[3])
+{
+    out[0] = a[1] * b[2] - a[2] * b[1];
+    out[1] = a[2] * b[0] - a[0] * b[2];
+    out[2] = a[0] * b[1] - a[1] * b[0];
+}
 
 /* the k-th smallest of v[0..n) (Hoare's selection; v is reordered: v[k] holds it, v[0..k) the ones not above it) */
 static double select_kth(double *v, Py_ssize_t n, Py_ssize_t k)
@@ -171,42 +213,36 @@ static void cam_origin(const double *H, double o[3])
         o[i] = -(H[i] * H[3] + H[4 + i] * H[7] + H[8 + i] * H[11]);
 }
 
-/* A x = b (6 x 6) by Gaussian elimination with partial pivoting; 0 if singular */
-static int solve6(double A[36], double b[6], double x[6])
+/* A x = b (6 x 6) by Gaussian elimination with partial pivoting on Ab = [A | b] (6, 7); 0 if singular */
+static int solve6(double Ab[42], double x[6])
 {
     for (int k = 0; k < 6; k++) {
         int p = k;
         for (int i = k + 1; i < 6; i++)
-            if (fabs(A[6 * i + k]) > fabs(A[6 * p + k]))
+            if (fabs(Ab[7 * i + k]) > fabs(Ab[7 * p + k]))
                 p = i;
-        if (A[6 * p + k] == 0.0 || !isfinite(A[6 * p + k]))
+        if (Ab[7 * p + k] == 0.0 || !isfinite(Ab[7 * p + k]))
             return 0;
-        if (p != k) {
-            for (int j = 0; j < 6; j++) {
-                double t = A[6 * k + j];
-                A[6 * k + j] = A[6 * p + j];
-                A[6 * p + j] = t;
+        if (p != k)
+            for (int j = 0; j < 7; j++) {
+                const double t = Ab[7 * k + j];
+                Ab[7 * k + j] = Ab[7 * p + j];
+                Ab[7 * p + j] = t;
             }
-            double t = b[k];
-            b[k] = b[p];
-            b[p] = t;
-        }
         for (int i = k + 1; i < 6; i++) {
-            double m = A[6 * i + k] / A[6 * k + k];
-            for (int j = k; j < 6; j++)
-                A[6 * i + j] -= m * A[6 * k + j];
-            b[i] -= m * b[k];
+            const double m = Ab[7 * i + k] / Ab[7 * k + k];
+            for (int j = k; j < 7; j++)
+                Ab[7 * i + j] -= m * Ab[7 * k + j];
         }
     }
     for (int i = 5; i >= 0; i--) {
-        double s = b[i];
+        double s = Ab[7 * i + 6];
         for (int j = i + 1; j < 6; j++)
-            s -= A[6 * i + j] * x[j];
-        x[i] = s / A[6 * i + i];
-    }
-    for (int i = 0; i < 6; i++)
+            s -= Ab[7 * i + j] * x[j];
+        x[i] = s / Ab[7 * i + i];
         if (!isfinite(x[i]))
             return 0;
+    }
     return 1;
 }
 
@@ -222,7 +258,6 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
     BufSet bs = {.n = 0};
     PyObject *ret = NULL;
     Py_buffer *b_q, *b_pos, *b_a, *b_b, *b_H, *b_Ho, *b_w, *b_r, *b_pick, *b_J;
-    double *work = NULL;
     if (!PyArg_ParseTuple(args, "OOOOOddndOOOOO:solve", &o_q, &o_pos, &o_a, &o_b, &o_H, &f, &floor_, &iters,
                           &start_floor, &o_Ho, &o_w, &o_r, &o_pick, &o_J))
         return NULL;
@@ -238,34 +273,21 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
     GET(b_r, o_r, "r", T_F64, 1, 1, S);
     GET(b_pick, o_pick, "pick", T_I64, 1, 1, S);
     GET(b_J, o_J, "JtWJ", T_F64, 1, 2, 6, 6);
-    if (C < 1 || E < 1) {
-        PyErr_SetString(PyExc_ValueError, "q, a_G: expected at least one candidate column and one edge");
-        goto out;
-    }
-    if (!(f > 0.0) || !isfinite(f) || !(floor_ > 0.0) || iters < 0 || iters > 1000) {
-        PyErr_SetString(PyExc_ValueError, "f, floor, iters: expected f > 0, floor > 0, 0 <= iters <= 1000");
-        goto out;
-    }
+    REQUIRE(C >= 1 && E >= 1, PyExc_ValueError, "q, a_G: expected at least one candidate column and one edge");
+    REQUIRE(f > 0.0 && isfinite(f) && floor_ > 0.0 && iters >= 0 && iters <= 1000, PyExc_ValueError,
+            "f, floor, iters: expected f > 0, floor > 0, 0 <= iters <= 1000");
     const double *q = b_q->buf, *aG = b_a->buf, *bG = b_b->buf;
     const int64_t *pos = b_pos->buf;
-    for (Py_ssize_t s = 0; s < S; s++)
-        if (pos[s] < 0 || pos[s] >= E) {
-            PyErr_Format(PyExc_ValueError, "pos: sample %zd names edge %lld, expected 0..%zd", s, (long long)pos[s],
-                         E - 1);
-            goto out;
-        }
+    if (!indices_ok(pos, S, E, "pos", "sample", "edge"))
+        goto out;
     double *Ho = b_Ho->buf, *w = b_w->buf, *r = b_r->buf, *JtWJ = b_J->buf;
     int64_t *pick = b_pick->buf;
-    work = PyMem_Malloc(sizeof(double) * (size_t)(S + 13 * E + 1));
-    if (!work) {
-        PyErr_NoMemory();
-        goto out;
-    }
+    double *work;
+    ALLOC(work, sizeof(double) * (size_t)(S + 13 * E + 1));
     double *absr = work, *M = work + S, *Dn = M + 3 * E, *K = Dn + 3 * E;  /* V (E, 7): the r term of each edge's row */
     double H[16];
     memcpy(H, b_H->buf, sizeof H);
-    for (int i = 0; i < 36; i++)
-        JtWJ[i] = 0.0;
+    memset(JtWJ, 0, 36 * sizeof(double));
     for (Py_ssize_t s = 0; s < S; s++) {
         w[s] = 0.0;
         r[s] = NAN;
@@ -279,14 +301,14 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
             double A[3], B[3];
             apply_H(H, aG + 3 * e, A);
             apply_H(H, bG + 3 * e, B);
-            double l0 = A[1] * B[2] - A[2] * B[1], l1 = A[2] * B[0] - A[0] * B[2], l2 = A[0] * B[1] - A[1] * B[0];
-            double N = hypot(l0, l1);
+            double l[3];
+            cross3(A, B, l);
+            const double N = hypot(l[0], l[1]);
             double *m = M + 3 * e, *d = Dn + 3 * e, *V = K + 7 * e;
-            m[0] = l0 / N;
-            m[1] = l1 / N;
-            m[2] = l2 / N;
-            for (int i = 0; i < 3; i++)
+            for (int i = 0; i < 3; i++) {
+                m[i] = l[i] / N;
                 d[i] = (B[i] - A[i]) / N;
+            }
             V[0] = m[1] * m[2];
             V[1] = -m[0] * m[2];
             V[2] = 0.0;
@@ -316,8 +338,7 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
                 absr[nh++] = fabs(best);
         }
         if (nh < 12) {
-            for (Py_ssize_t s = 0; s < S; s++)
-                w[s] = 0.0;
+            memset(w, 0, (size_t)S * sizeof(double));
             code = 1;
             break;
         }
@@ -335,17 +356,12 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
             w[s] = fabs(u) < 1 ? (1 - u * u) * (1 - u * u) : 0.0;
             if (w[s] == 0.0)
                 continue;
-            const double *qq = q + 2 * (s * C + pick[s]);
-            const double x = qq[0], y = qq[1];
+            const double *qq = q + 2 * (s * C + pick[s]), qv[3] = {qq[0], qq[1], f};
             const double *m = M + 3 * pos[s], *d = Dn + 3 * pos[s], *V = K + 7 * pos[s];
             /* (l x q, (B - A) x q) / |l_12| + r V, q = (x, y, f) */
             double J[6];
-            J[0] = m[1] * f - m[2] * y;
-            J[1] = m[2] * x - m[0] * f;
-            J[2] = m[0] * y - m[1] * x;
-            J[3] = d[1] * f - d[2] * y;
-            J[4] = d[2] * x - d[0] * f;
-            J[5] = d[0] * y - d[1] * x;
+            cross3(m, qv, J);
+            cross3(d, qv, J + 3);
             for (int i = 0; i < 6; i++)
                 J[i] += r[s] * V[i];
             for (int i = 0; i < 6; i++) {
@@ -359,29 +375,27 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
             for (int j = 0; j < i; j++)
                 A[6 * i + j] = A[6 * j + i];
         memcpy(JtWJ, A, sizeof A);
-        double dd[6], As[36], gs[6], x[6];
+        /* the normal equations scaled to a unit diagonal, a 1e-6 ridge */
+        double dd[6], Ab[42], x[6];
         for (int i = 0; i < 6; i++)
             dd[i] = sqrt(fmax(A[7 * i], 1e-12));
         for (int i = 0; i < 6; i++) {
             for (int j = 0; j < 6; j++)
-                As[6 * i + j] = A[6 * i + j] / (dd[i] * dd[j]) + (i == j ? 1e-6 : 0.0);
-            gs[i] = g[i] / dd[i];
+                Ab[7 * i + j] = A[6 * i + j] / (dd[i] * dd[j]) + (i == j ? 1e-6 : 0.0);
+            Ab[7 * i + 6] = g[i] / dd[i];
         }
-        if (!solve6(As, gs, x)) {
+        if (!solve6(Ab, x)) {
             code = 2;
             break;
         }
-        double dxi[6], Rm[9], Hn[16];
+        double dxi[6], Rm[9], Hn[16] = {[15] = 1.0};
         for (int i = 0; i < 6; i++)
             dxi[i] = -x[i] / dd[i];
         rotvec_R(dxi, Rm);
-        for (int i = 0; i < 3; i++) {
+        for (int i = 0; i < 3; i++)
             for (int j = 0; j < 4; j++)
                 Hn[4 * i + j] = Rm[3 * i] * H[j] + Rm[3 * i + 1] * H[4 + j] + Rm[3 * i + 2] * H[8 + j] +
                                 (j == 3 ? dxi[3 + i] : 0.0);
-        }
-        Hn[12] = Hn[13] = Hn[14] = 0.0;
-        Hn[15] = 1.0;
         memcpy(H, Hn, sizeof H);
         double mr = fmax(fabs(dxi[0]), fmax(fabs(dxi[1]), fabs(dxi[2])));
         double mt = fmax(fabs(dxi[3]), fmax(fabs(dxi[4]), fabs(dxi[5])));
@@ -391,7 +405,6 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
     memcpy(Ho, H, sizeof H);
     ret = Py_BuildValue("(id)", code, sigma);
 out:
-    PyMem_Free(work);
     bufs_release(&bs);
     return ret;
 }
@@ -405,7 +418,6 @@ static PyObject *py_vote(PyObject *self, PyObject *args)
     BufSet bs = {.n = 0};
     PyObject *ret = NULL;
     Py_buffer *b_off, *b_n, *b_g, *b_v;
-    double *cand = NULL;
     if (!PyArg_ParseTuple(args, "OOOdO:vote", &o_off, &o_n, &o_g, &tol, &o_v))
         return NULL;
     GET(b_off, o_off, "off", T_F64, 0, 2, -1, -1);
@@ -414,19 +426,12 @@ static PyObject *py_vote(PyObject *self, PyObject *args)
     GET(b_g, o_g, "g", T_F64, 0, 1, -1);
     const Py_ssize_t G = b_g->shape[0];
     GET(b_v, o_v, "votes", T_I64, 1, 1, G * G);
-    if (!(tol >= 0.0) || G < 1 || G > 4096) {
-        PyErr_SetString(PyExc_ValueError, "tol, g: expected tol >= 0 and 1..4096 grid values");
-        goto out;
-    }
+    REQUIRE(tol >= 0.0 && G >= 1 && G <= 4096, PyExc_ValueError, "tol, g: expected tol >= 0 and 1..4096 grid values");
     const double *off = b_off->buf, *nrm = b_n->buf, *g = b_g->buf;
     int64_t *votes = b_v->buf;
-    cand = PyMem_Malloc(sizeof(double) * (size_t)(C > 0 ? C : 1));
-    if (!cand) {
-        PyErr_NoMemory();
-        goto out;
-    }
-    for (Py_ssize_t i = 0; i < G * G; i++)
-        votes[i] = 0;
+    double *cand;
+    ALLOC(cand, sizeof(double) * (size_t)(C > 0 ? C : 1));
+    memset(votes, 0, (size_t)(G * G) * sizeof(int64_t));
     for (Py_ssize_t s = 0; s < S; s++) {
         Py_ssize_t k = 0;
         for (Py_ssize_t c = 0; c < C; c++)
@@ -449,7 +454,6 @@ static PyObject *py_vote(PyObject *self, PyObject *args)
     }
     ret = Py_NewRef(Py_None);
 out:
-    PyMem_Free(cand);
     bufs_release(&bs);
     return ret;
 }
@@ -514,30 +518,26 @@ static int project(const Cam *c, const double p[3], double uv[2])
     return isfinite(uv[0]) && isfinite(uv[1]);
 }
 
+/* camera.CameraModel.in_image of one pixel: margin px or more inside the picture's border */
+static int in_image(const Cam *c, const double u[2], double margin)
+{
+    return u[0] >= -0.5 + margin && u[0] <= c->width - 0.5 - margin && u[1] >= -0.5 + margin &&
+           u[1] <= c->height - 0.5 - margin;
+}
+
 /* silhouette._blocked for one ray o + t d: whether it passes through the box (lo, hi) before t = 1 (an axis
- * where the ray runs in a face's plane is left out, as the reference's NaN-skipping reductions do) */
+ * where the ray runs in a face's plane, 0 / 0, bounds nothing, as in the reference) */
 static int blocked(const double o[3], const double d[3], const double *lo, const double *hi)
 {
-    double tn = NAN, tf = NAN;
+    double tn = -INFINITY, tf = 1.0;
     for (int i = 0; i < 3; i++) {
         const double t1 = (lo[i] - o[i]) / d[i], t2 = (hi[i] - o[i]) / d[i];
-        double mn, mx;
-        if (isnan(t1)) {
-            mn = -INFINITY;
-            mx = INFINITY;
-        } else if (isnan(t2)) {
+        if (isnan(t1) || isnan(t2))
             continue;
-        } else {
-            mn = t1 < t2 ? t1 : t2;
-            mx = t1 > t2 ? t1 : t2;
-        }
-        if (isnan(tn) || mn > tn)
-            tn = mn;
-        if (isnan(tf) || mx < tf)
-            tf = mx;
+        tn = fmax(tn, fmin(t1, t2));
+        tf = fmin(tf, fmax(t1, t2));
     }
-    const double tf1 = isnan(tf) ? NAN : (tf < 1.0 ? tf : 1.0);
-    return (tn < tf1 - 1e-6) && (tn > 1e-6) && (tf1 - tn > 1e-4);
+    return (tn < tf - 1e-6) && (tn > 1e-6) && (tf - tn > 1e-4);
 }
 
 #define MAX_PER_EDGE 400
@@ -554,7 +554,6 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
     BufSet bs = {.n = 0};
     PyObject *ret = NULL;
     Py_buffer *b_a, *b_b, *b_d, *b_fin, *b_box, *b_H, *b_cam, *b_p, *b_e, *b_uv, *b_n;
-    double *work = NULL;
     Py_ssize_t S = 0;
     if (!PyArg_ParseTuple(args, "OOOOOOOddOOOO:sample", &o_a, &o_b, &o_d, &o_fin, &o_box, &o_H, &o_cam, &margin, &step,
                           &o_p, &o_e, &o_uv, &o_n))
@@ -572,58 +571,32 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
     GET(b_e, o_e, "edge", T_I64, 1, 1, Smax);
     GET(b_uv, o_uv, "uv", T_F64, 1, 2, Smax, 2);
     GET(b_n, o_n, "nrm", T_F64, 1, 2, Smax, 2);
-    if (Smax < E * MAX_PER_EDGE) {
-        PyErr_Format(PyExc_ValueError, "p: room for %zd samples, expected %d per edge (%zd)", Smax, MAX_PER_EDGE,
-                     E * MAX_PER_EDGE);
-        goto out;
-    }
-    if (!(step > 0) || !isfinite(step) || !isfinite(margin)) {
-        PyErr_SetString(PyExc_ValueError, "step, margin: expected step > 0 and a finite margin");
-        goto out;
-    }
+    REQUIRE(Smax >= E * MAX_PER_EDGE, PyExc_ValueError, "p: room for %zd samples, expected %d per edge (%zd)", Smax,
+            MAX_PER_EDGE, E * MAX_PER_EDGE);
+    REQUIRE(step > 0 && isfinite(step) && isfinite(margin), PyExc_ValueError,
+            "step, margin: expected step > 0 and a finite margin");
     const int64_t *fin = b_fin->buf;
-    for (Py_ssize_t e = 0; e < E; e++)
-        if (fin[e] != 0 && fin[e] != 1) {
-            PyErr_Format(PyExc_ValueError, "finger: edge %zd names finger %lld, expected 0 or 1", e, (long long)fin[e]);
-            goto out;
-        }
     Cam c;
-    if (!get_cam(b_cam->buf, &c))
+    if (!indices_ok(fin, E, 2, "finger", "edge", "finger") || !get_cam(b_cam->buf, &c))
         goto out;
     const double *aG = b_a->buf, *bG = b_b->buf, *dG = b_d->buf, *box = b_box->buf, *H = b_H->buf;
     double *P = b_p->buf, *UV = b_uv->buf, *NR = b_n->buf;
     int64_t *EO = b_e->buf;
-    /* per edge: count, side (2); per sample of all edges: uv (2) */
-    work = PyMem_Malloc(sizeof(double) * (size_t)(3 * E + 2 * E * MAX_PER_EDGE + 1));
-    if (!work) {
-        PyErr_NoMemory();
-        goto out;
-    }
-    double *cnt = work, *side = work + E, *all = work + 3 * E;
     double o[3]; /* the camera's position in G */
     cam_origin(H, o);
-    Py_ssize_t N = 0;
+    double all[2 * MAX_PER_EDGE]; /* the pixels of an edge's samples */
     for (Py_ssize_t e = 0; e < E; e++) {
-        double A[3], B[3], ua[2], ub[2];
-        cnt[e] = 0;
-        apply_H(H, aG + 3 * e, A);
-        apply_H(H, bG + 3 * e, B);
+        const double *a = aG + 3 * e, *b = bG + 3 * e, *d = dG + 3 * e, *lo = box + 6 * (1 - fin[e]), *hi = lo + 3;
+        double A[3], B[3], ua[2], ub[2], m[3], m2[3], C1[3], C2[3], u1[2], u2[2];
+        apply_H(H, a, A);
+        apply_H(H, b, B);
         if (!(A[2] > 1.0 && B[2] > 1.0))
             continue;
         if (!project(&c, A, ua) || !project(&c, B, ub))
             goto refuse;
-        const double dx = ub[0] - ua[0], dy = ub[1] - ua[1];
-        double k = sqrt(dx * dx + dy * dy) / step;
-        k = k < 2 ? 2 : k > MAX_PER_EDGE ? MAX_PER_EDGE : k;
-        cnt[e] = (double)(int)k;
-    }
-    /* every sample's pixel, and each edge's side: its first face's direction in the picture */
-    for (Py_ssize_t e = 0; e < E; e++) {
-        const int n = (int)cnt[e];
-        if (!n)
-            continue;
-        const double *a = aG + 3 * e, *b = bG + 3 * e, *d = dG + 3 * e;
-        double m[3], m2[3], C1[3], C2[3], u1[2], u2[2];
+        const double kf = sqrt((ub[0] - ua[0]) * (ub[0] - ua[0]) + (ub[1] - ua[1]) * (ub[1] - ua[1])) / step;
+        const int n = (int)(kf < 2 ? 2 : kf > MAX_PER_EDGE ? MAX_PER_EDGE : kf);
+        /* the edge's side: its first face's direction in the picture */
         for (int i = 0; i < 3; i++) {
             m[i] = 0.5 * (a[i] + b[i]);
             m2[i] = m[i] + 0.05 * d[i];
@@ -632,44 +605,35 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
         apply_H(H, m2, C2);
         if (!project(&c, C1, u1) || !project(&c, C2, u2))
             goto refuse;
-        side[2 * e] = u2[0] - u1[0];
-        side[2 * e + 1] = u2[1] - u1[1];
+        const double side[2] = {u2[0] - u1[0], u2[1] - u1[1]};
         for (int k = 0; k < n; k++) {
             const double t = ((double)k + 0.5) / n;
             double p[3], pc[3];
             for (int i = 0; i < 3; i++)
                 p[i] = a[i] + t * (b[i] - a[i]);
             apply_H(H, p, pc);
-            if (!project(&c, pc, all + 2 * (N + k)))
+            if (!project(&c, pc, all + 2 * k))
                 goto refuse;
         }
-        N += n;
-    }
-    /* tangents from the neighbours on the same edge, the samples kept: in the picture, not behind the other finger */
-    Py_ssize_t i0 = 0;
-    const double lo_u = -0.5 + margin, hi_u = c.width - 0.5 - margin, hi_v = c.height - 0.5 - margin;
-    for (Py_ssize_t e = 0; e < E; e++) {
-        const int n = (int)cnt[e];
-        const double *a = aG + 3 * e, *b = bG + 3 * e;
-        const double *lo = box + 6 * (1 - fin[e]), *hi = lo + 3;
+        /* tangents from the neighbours on the edge; kept: in the picture, not behind the other finger */
         for (int k = 0; k < n; k++) {
-            const double *u = all + 2 * (i0 + k);
-            if (!(u[0] >= lo_u && u[0] <= hi_u && u[1] >= lo_u && u[1] <= hi_v))
+            const double *u = all + 2 * k;
+            if (!in_image(&c, u, margin))
                 continue;
             const double t = ((double)k + 0.5) / n;
-            double p[3], d[3];
+            double p[3], dp[3];
             for (int i = 0; i < 3; i++) {
                 p[i] = a[i] + t * (b[i] - a[i]);
-                d[i] = p[i] - o[i];
+                dp[i] = p[i] - o[i];
             }
-            if (blocked(o, d, lo, hi))
+            if (blocked(o, dp, lo, hi))
                 continue;
             const double *v = k + 1 < n ? u : u - 2; /* the sample and the next one, or the last two */
             double tx = v[2] - v[0], ty = v[3] - v[1];
             const double L = sqrt(tx * tx + ty * ty) + 1e-12;
             tx /= L;
             ty /= L;
-            const double nx = -ty, ny = tx, sg = nx * side[2 * e] + ny * side[2 * e + 1] < 0 ? -1.0 : 1.0;
+            const double nx = -ty, ny = tx, sg = nx * side[0] + ny * side[1] < 0 ? -1.0 : 1.0;
             memcpy(P + 3 * S, p, sizeof p);
             EO[S] = e;
             UV[2 * S] = u[0];
@@ -678,14 +642,12 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
             NR[2 * S + 1] = sg * ny;
             S++;
         }
-        i0 += n;
     }
     ret = PyLong_FromSsize_t(S);
     goto out;
 refuse:
     ret = PyLong_FromLong(-1);
 out:
-    PyMem_Free(work);
     bufs_release(&bs);
     return ret;
 }
@@ -723,7 +685,6 @@ static PyObject *py_candidates(PyObject *self, PyObject *args)
     BufSet bs = {.n = 0};
     PyObject *ret = NULL;
     Py_buffer *b_img, *b_uv, *b_n, *b_l1, *b_l2, *b_g, *b_cam, *b_off, *b_face, *b_con, *b_q;
-    float *work = NULL;
     if (!PyArg_ParseTuple(args, "OOOOOdOOOOOO:candidates", &o_img, &o_uv, &o_n, &o_l1, &o_l2, &R, &o_g, &o_cam,
                           &o_off, &o_face, &o_con, &o_q))
         return NULL;
@@ -743,31 +704,21 @@ static PyObject *py_candidates(PyObject *self, PyObject *args)
     const int Hh = (int)b_img->shape[0], Ww = (int)b_img->shape[1];
     const double *gates = b_g->buf;
     const int P = (int)gates[0];
-    if (b_img->shape[0] < 1 || b_img->shape[1] < 1 || b_img->shape[0] > 1 << 20 || b_img->shape[1] > 1 << 20) {
-        PyErr_SetString(PyExc_ValueError, "img: expected a picture of 1..2^20 rows and columns");
-        goto out;
-    }
-    if (!(R >= 1.0 && R <= 1000.0) || C < 1 || (double)P != gates[0] || P < 2 || P > 50) {
-        PyErr_SetString(PyExc_ValueError, "R, off, gates: expected 1 <= R <= 1000, a candidate column, a plateau of 2..50 px");
-        goto out;
-    }
+    REQUIRE(b_img->shape[0] >= 1 && b_img->shape[1] >= 1 && b_img->shape[0] <= 1 << 20 && b_img->shape[1] <= 1 << 20,
+            PyExc_ValueError, "img: expected a picture of 1..2^20 rows and columns");
+    REQUIRE(R >= 1.0 && R <= 1000.0 && C >= 1 && (double)P == gates[0] && P >= 2 && P <= 50, PyExc_ValueError,
+            "R, off, gates: expected 1 <= R <= 1000, a candidate column, a plateau of 2..50 px");
     Cam c;
     if (!get_cam(b_cam->buf, &c))
         goto out;
     const double *uv = b_uv->buf, *nr = b_n->buf, *l1 = b_l1->buf, *l2 = b_l2->buf;
     for (Py_ssize_t s = 0; s < 2 * S; s++)
-        if (!isfinite(uv[s]) || !isfinite(nr[s])) {
-            PyErr_Format(PyExc_ValueError, "uv, nrm: sample %zd is not finite", s / 2);
-            goto out;
-        }
+        REQUIRE(isfinite(uv[s]) && isfinite(nr[s]), PyExc_ValueError, "uv, nrm: sample %zd is not finite", s / 2);
     const float min_con = (float)gates[1];
     const double ltol = gates[2], ltol_grey = gates[3];
     const int Ri = (int)ceil(R), L = 2 * Ri + 2 * P + 3, M = L - 4;
-    work = PyMem_Malloc(sizeof(float) * (size_t)(4 * L) + sizeof(double) * (size_t)M);
-    if (!work) {
-        PyErr_NoMemory();
-        goto out;
-    }
+    float *work;
+    ALLOC(work, sizeof(float) * (size_t)(4 * L) + sizeof(double) * (size_t)M);
     /* per sample: the profile at offsets -Ri-P-1 .. Ri+P+1, its derivative D (at offsets -Ri-P .. Ri+P), and per
      * step m (at offset m - Ri - P + 1, D's m + 1) the mean levels 2..P px on its face side and on the other */
     float *prof = work, *D = work + L, *face = D + L, *other = face + L;
@@ -796,19 +747,17 @@ static PyObject *py_candidates(PyObject *self, PyObject *args)
                 fc += prof[i1 > L - 1 ? L - 1 : i1];
                 ot += prof[i2 < 0 ? 0 : i2];
             }
-            fc /= (float)(P - 1);
-            ot /= (float)(P - 1);
-            face[m] = fc;
-            other[m] = ot;
-            const float con = fc - ot;
+            face[m] = fc / (float)(P - 1);
+            other[m] = ot / (float)(P - 1);
+            const float con = face[m] - other[m];
             /* contrast, polarity (the derivative's sign is the face side's minus the other's), the faces' levels */
             if (!(fabsf(con) >= min_con) || sgnf(D[m + 1]) != sgnf(con))
                 continue;
-            if (has1 && !(fabs((double)fc - l1[s]) <= fmax(ltol * l1[s], ltol_grey)))
+            if (has1 && !(fabs((double)face[m] - l1[s]) <= fmax(ltol * l1[s], ltol_grey)))
                 continue;
-            if (has2 && !(fabs((double)ot - l2[s]) <= fmax(ltol * l2[s], ltol_grey)))
+            if (has2 && !(fabs((double)other[m] - l2[s]) <= fmax(ltol * l2[s], ltol_grey)))
                 continue;
-            score[m] = has1 ? fabs((double)fc - l1[s]) : -(double)fabsf(con);
+            score[m] = has1 ? fabs((double)face[m] - l1[s]) : -(double)fabsf(con);
         }
         /* the C best scores (ties: the nearer the profile's start), each located by a parabola through |D| */
         for (Py_ssize_t cc = 0; cc < C; cc++) {
@@ -839,7 +788,6 @@ static PyObject *py_candidates(PyObject *self, PyObject *args)
     }
     ret = Py_NewRef(Py_None);
 out:
-    PyMem_Free(work);
     bufs_release(&bs);
     return ret;
 }
@@ -866,15 +814,9 @@ static PyObject *py_points(PyObject *self, PyObject *args)
     GET(b_in, o_in, "inside", T_I64, 1, 1, N);
     GET(b_hid, o_hid, "hidden", T_I64, 1, 1, N);
     const int64_t *oth = b_oth->buf;
-    for (Py_ssize_t i = 0; i < N; i++)
-        if (oth[i] != 0 && oth[i] != 1) {
-            PyErr_Format(PyExc_ValueError, "other: point %zd names finger %lld, expected 0 or 1", i, (long long)oth[i]);
-            goto out;
-        }
-    if (!isfinite(margin)) {
-        PyErr_SetString(PyExc_ValueError, "margin: expected a finite number");
+    if (!indices_ok(oth, N, 2, "other", "point", "finger"))
         goto out;
-    }
+    REQUIRE(isfinite(margin), PyExc_ValueError, "margin: expected a finite number");
     Cam c;
     if (!get_cam(b_cam->buf, &c))
         goto out;
@@ -884,18 +826,14 @@ static PyObject *py_points(PyObject *self, PyObject *args)
     double o[3];
     cam_origin(H, o);
     for (Py_ssize_t i = 0; i < N; i++) {
+        const double *p = pG + 3 * i, *lo = box + 6 * oth[i], d[3] = {p[0] - o[0], p[1] - o[1], p[2] - o[2]};
         double pc[3];
-        apply_H(H, pG + 3 * i, pc);
+        apply_H(H, p, pc);
         if (!project(&c, pc, uv + 2 * i)) {
             ret = PyLong_FromLong(0);
             goto out;
         }
-    }
-    for (Py_ssize_t i = 0; i < N; i++) {
-        const double *u = uv + 2 * i, *p = pG + 3 * i, *lo = box + 6 * oth[i];
-        ins[i] = u[0] >= -0.5 + margin && u[0] <= c.width - 0.5 - margin && u[1] >= -0.5 + margin &&
-                 u[1] <= c.height - 0.5 - margin;
-        const double d[3] = {p[0] - o[0], p[1] - o[1], p[2] - o[2]};
+        ins[i] = in_image(&c, uv + 2 * i, margin);
         hid[i] = blocked(o, d, lo, lo + 3);
     }
     ret = PyLong_FromLong(1);
@@ -922,11 +860,7 @@ static struct PyModuleDef moddef = {
 PyMODINIT_FUNC PyInit__csil(void)
 {
     PyObject *m = PyModule_Create(&moddef);
-    if (!m)
-        return NULL;
-    if (PyModule_AddIntConstant(m, "API", API_VERSION) < 0) {
-        Py_DECREF(m);
-        return NULL;
-    }
+    if (m && PyModule_AddIntConstant(m, "API", API_VERSION) < 0)
+        Py_CLEAR(m);
     return m;
 }

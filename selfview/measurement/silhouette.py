@@ -1,13 +1,13 @@
 """Model-based fingertip measurement: the visible silhouette of both finger prisms fitted at once.
 
-Every visible box edge is sampled every ``STEP_PX``; each sample looks along its image normal for steps
-with the finger's polarity and face levels (``Appearance``); the camera motion that brings the model
-lines onto the nearest candidates is found by IRLS with Tukey weights in undistorted sensor coordinates,
-over rounds of shrinking search ranges (a vote for the image shift first when the start may be far off).
-The corners are the model's points at the fitted pose; a fit below the quality thresholds is reported
-as lost with the reason, never as a pose. ``SilhouetteTracker`` follows the fit from frame to frame.
-The sampling, candidates, IRLS and vote run in the compiled kernel ``selfview.measurement._csil`` when it is built,
-else in the numpy code here (the tests hold the two to stated tolerances).
+Every visible box edge is sampled every ``STEP_PX``; each sample looks along its image normal for steps with the
+finger's polarity and face levels (``Appearance``); the camera motion that brings the model lines onto the nearest
+candidates is found by IRLS with Tukey weights in undistorted sensor coordinates, over rounds of shrinking search
+ranges (a vote for the image shift first when the start may be far off). The corners are the model's points at the
+fitted pose; a fit below the quality thresholds is reported as lost with the reason, never as a pose
+(``fingers.SilhouetteTracker`` follows the fit from frame to frame). The sampling, candidates, IRLS and vote run in
+the compiled kernel ``selfview.measurement._csil`` when built, else in the numpy code here (the tests hold the two
+to stated tolerances).
 """
 
 from __future__ import annotations
@@ -38,15 +38,14 @@ ROUNDS = (24.0, 10.0, 5.0, 3.0)  # the search range R of each round of sampling 
 SCALE_FLOOR_PX = 0.35  # robust scale's floor in the last round
 MIN_GOOD_FRACTION = 0.5  # of the samples (and of each finger's), that support the fit
 MAX_RMS_PX = 0.6  # of the supporting samples' distances, until this gripper's level is learnt (``rms_limit``)
-#: A real finger is off its nominal faces (0.1 mm a face, an edge break of 0.2 mm): a right fit of the nominal
-#: model to it leaves 0.36-0.83 px on the grasping study's world 2 (under 0.1 px on the ideal cell). The
-#: residual level of a fit known good (``SilhouetteTracker``'s first fit from the calibrated pose) is learnt
-#: up to this bound ...
+#: A real finger is off its nominal faces (0.1 mm a face, an edge break of 0.2 mm): a right fit of the nominal model
+#: to it leaves 0.36-0.83 px on the grasping study's world 2 (under 0.1 px on the ideal cell). The residual level of
+#: a fit known good (``SilhouetteTracker``'s first fit from the calibrated pose) is learnt up to this bound ...
 MAX_LEARNT_RMS_PX = 1.0
-#: ... and a later frame is lost when its residual is over the learnt level by more than this factor: on world
-#: 2's grasps the residual of right fits moves with what lies behind the fingers (more of their edges
-#: contrasted), up to 1.38 times the first frame's level (0.58 -> 0.81 px); a fit that leaves more is not
-#: these fingers. The TCP's standard deviation scales with the residual, so its limit grows alike.
+#: ... and a later frame is lost when its residual is over the learnt level by more than this factor: on world 2's
+#: grasps the residual of right fits moves with what lies behind the fingers (more of their edges contrasted), up
+#: to 1.38 times the first frame's level (0.58 -> 0.81 px); a fit that leaves more is not these fingers. The TCP's
+#: standard deviation scales with the residual, so its limit grows alike.
 RMS_MARGIN = 1.5
 MAX_TCP_SD_MM = 0.02  # the fitted pose's TCP standard deviation (any camera axis)
 BORDER_PX = 3.0
@@ -68,14 +67,13 @@ class Appearance:
 
 @dataclass
 class SilhouetteFit:
-    """The fitted silhouette: ``C_H_G`` (4, 4) the pose that fits (None if it could not be fitted),
-    ``uv`` (6, 2) the model's points there (distorted pixels), ``found`` (6,) in the picture and not
-    hidden, when ``ok``; ``ok`` whether the fit is believed; ``reason`` why not; ``good_fraction`` of the
-    samples that support it, ``finger_fraction`` (2,) per finger (of its samples in the picture; NaN for
-    a finger with too few there to judge); ``finger_visible`` (2,) the share of each finger's edge samples
-    that lie in the picture and are not hidden by the other finger; ``rms_px``; ``tcp_sd_mm`` (3,) the
-    TCP's standard deviation (camera axes); ``n_samples``; ``appearance`` the faces' levels measured at
-    the fit (for the next frame); ``reasons`` per point."""
+    """The fitted silhouette: ``C_H_G`` (4, 4) the pose that fits (None if it could not be fitted), ``uv`` (6, 2)
+    the model's points there (distorted pixels), ``found`` (6,) in the picture and not hidden, when ``ok``; ``ok``
+    whether the fit is believed; ``reason`` why not; ``good_fraction`` of the samples that support it,
+    ``finger_fraction`` (2,) per finger (of its samples in the picture; NaN for a finger with too few there to
+    judge); ``finger_visible`` (2,) the share of each finger's edge samples that lie in the picture and are not
+    hidden by the other finger; ``rms_px``; ``tcp_sd_mm`` (3,) the TCP's standard deviation (camera axes);
+    ``n_samples``; ``appearance`` the faces' levels measured at the fit (for the next frame); ``reasons`` per point."""
 
     C_H_G: np.ndarray | None
     uv: np.ndarray
@@ -115,17 +113,16 @@ class _EdgeSet:
     b_G: np.ndarray  # (E, 3) the other
     finger: np.ndarray  # (E,)
     faces: list  # per edge: [(finger, axis, side), ...] seen (1: silhouette, 2: crease)
-    into_G: list  # per edge: unit directions into those faces (G)
-    d_in: np.ndarray | None = None  # (E, 3) the direction into each edge's first face (G)
-    box: np.ndarray | None = None  # (2, 2, 3) the boxes: finger, lo/hi
+    d_in: np.ndarray  # (E, 3) the direction into each edge's first face (G)
+    box: np.ndarray  # (2, 2, 3) the boxes: finger, lo/hi
 
 
 _EDGE_CACHE: dict = {}
 
 
 def _visible_edges(boxes, C_H_G) -> _EdgeSet:
-    """The edges of the boxes that show from the camera at ``C_H_G`` (cached: they change only when the
-    camera crosses the plane of a face)."""
+    """The edges of the boxes that show from the camera at ``C_H_G`` (cached: they change only when the camera
+    crosses the plane of a face)."""
     cam_G = inv_H(C_H_G)[:3, 3]
     b = np.asarray(boxes, float).reshape(-1, 3)
     key = (b.tobytes(), tuple(np.sign(cam_G[None, :] - b).ravel().astype(int)))
@@ -133,18 +130,13 @@ def _visible_edges(boxes, C_H_G) -> _EdgeSet:
     if hit is None:
         if len(_EDGE_CACHE) > 64:
             _EDGE_CACHE.clear()
-        hit = _EDGE_CACHE[key] = _visible_edges_of(boxes, cam_G)
-        hit.d_in = np.array([ins[0] for ins in hit.into_G], float).reshape(-1, 3)
-        hit.box = np.ascontiguousarray(b.reshape(-1, 2, 3))
-        hit.finger = hit.finger.astype(np.int64)
+        edges = [e for f, (lo, hi) in enumerate(boxes)
+                 for e in box_edges(np.asarray(lo, float), np.asarray(hi, float), cam_G, f).values()]
+        hit = _EDGE_CACHE[key] = _EdgeSet(
+            np.array([e.a_G for e in edges]), np.array([e.b_G for e in edges]),
+            np.array([e.finger for e in edges], np.int64), [e.faces for e in edges],
+            np.array([e.into[0] for e in edges], float).reshape(-1, 3), np.ascontiguousarray(b.reshape(-1, 2, 3)))
     return hit
-
-
-def _visible_edges_of(boxes, cam_G) -> _EdgeSet:
-    edges = [e for f, (lo, hi) in enumerate(boxes)
-             for e in box_edges(np.asarray(lo, float), np.asarray(hi, float), cam_G, f).values()]
-    return _EdgeSet(np.array([e.a_G for e in edges]), np.array([e.b_G for e in edges]),
-                    np.array([e.finger for e in edges]), [e.faces for e in edges], [e.into for e in edges])
 
 
 def _blocked(o, d, lo, hi) -> np.ndarray:
@@ -184,7 +176,7 @@ def _sample(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _Sam
     """Points every STEP_PX along the visible edges, in the picture and not hidden by the other finger
     (``_sample_py``, in the compiled kernel when built: the same edges sampled, positions within 1e-6 px)."""
     kernel = _native.sil
-    cp = None if kernel is None or es.d_in is None else _cam_params(cam)
+    cp = None if kernel is None else _cam_params(cam)
     if cp is not None and len(es.a_G):
         n = len(es.a_G) * 400
         p, edge, uv, nrm = np.empty((n, 3)), np.empty(n, np.int64), np.empty((n, 2)), np.empty((n, 2))
@@ -256,15 +248,11 @@ def _finger_visible(cam: CameraModel, es: _EdgeSet, C_H_G, s: _Samples) -> np.nd
 def _remap(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Bilinear samples of ``img`` (float32) at (x, y) of any shape (border replicated), the positions on a
     1/32 px grid: OpenCV 4's INTER_LINEAR rounds them so, OpenCV 5's does not; rounding here gives the same
-    samples on both, and the ones the C kernel takes (``bilinear`` in ``_csil.c``)."""
+    samples on both, and the ones the C kernel takes (``bilinear`` in ``_csil.c``). The maps go to cv2 as rows of
+    4096 (its maps are at most 32767 a side; each output pixel depends on its own map entries only)."""
     shape = x.shape
     x = np.rint(np.asarray(x, np.float32) * np.float32(32)) / np.float32(32)
     y = np.rint(np.asarray(y, np.float32) * np.float32(32)) / np.float32(32)
-    if x.ndim == 2 and 0 < x.shape[0] < 32768 and 0 < x.shape[1] < 32768 and x.dtype == np.float32 \
-            and y.dtype == np.float32:
-        # (S, L) maps as they are (each output pixel depends on its own map entries only: the same values)
-        return cv2.remap(img, np.ascontiguousarray(x), np.ascontiguousarray(y), cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_REPLICATE)
     n, cols = x.size, 4096
     rows = max(1, -(-n // cols))
     mx = np.zeros(rows * cols, np.float32)
@@ -300,11 +288,11 @@ def _profiles(img, s: _Samples, R: float):
 
 
 def _gate_and_rank(face, other, rows, m, S: int, D, A, pos, lev1, lev2, n_cand: int):
-    """The candidates among the peaks (``rows``, ``m`` as ``_profiles`` gives them; ``face``/``other`` the two
-    sides' levels at each) of the derivative D (S, M + 2), A = |D|, at profile positions ``pos`` (M + 2,): the
-    gates (contrast, the faces' levels ``lev1``/``lev2`` (S,), polarity), the ranking (closeness to the face's
-    level, else contrast; ties by position), the best ``n_cand`` with their sub-pixel offsets: (S, C) offsets,
-    face levels, contrasts (NaN: none)."""
+    """The candidates among the peaks (``rows``, ``m`` as ``_profiles`` gives them; ``face``/``other`` the two sides'
+    levels at each) of the derivative D (S, M + 2), A = |D|, at profile positions ``pos`` (M + 2,): the gates
+    (contrast, the faces' levels ``lev1``/``lev2`` (S,), polarity), the ranking (closeness to the face's level, else
+    contrast; ties by position), the best ``n_cand`` with their sub-pixel offsets: (S, C) offsets, face levels,
+    contrasts (NaN: none)."""
     contrast = face - other
     j = m + 1  # index into D and A
     ok = np.abs(contrast) >= MIN_CONTRAST
@@ -364,14 +352,8 @@ def _candidates(img, s: _Samples, R: float, app: Appearance, n_cand: int = CANDI
 
 def _levels(s: _Samples, app: Appearance):
     """(S,) the level of each sample's first face and (S,) of its second (a crease), NaN: none learnt."""
-    E = len(s.faces)
-    e1 = np.full(E, np.nan)
-    e2 = np.full(E, np.nan)
-    for e in range(E):
-        fs = s.faces[e]
-        e1[e] = app.levels.get(fs[0], np.nan)
-        if len(fs) == 2:
-            e2[e] = app.levels.get(fs[1], np.nan)
+    e1 = np.array([app.levels.get(fs[0], np.nan) for fs in s.faces], float)
+    e2 = np.array([app.levels.get(fs[1], np.nan) if len(fs) == 2 else np.nan for fs in s.faces], float)
     return e1[s.edge], e2[s.edge]
 
 
@@ -432,16 +414,16 @@ def _cross3(a, b):
 
 
 def _solve(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, start_floor: float | None = None):
-    """IRLS of the camera motion on the candidates q (S, C, 2) (undistorted sensor coordinates, NaN:
-    none). The scale's floor falls from ``start_floor`` (default ``floor``) by half each iteration down
-    to ``floor``, so that far candidates are weighed before the fit settles on the nearest ones.
-    Returns (C_H_G, weights (S,), residuals (S,), picked candidate (S,), J^T W J (6, 6), scale).
+    """IRLS of the camera motion on the candidates q (S, C, 2) (undistorted sensor coordinates, NaN: none). The
+    scale's floor falls from ``start_floor`` (default ``floor``) by half each iteration down to ``floor``, so that
+    far candidates are weighed before the fit settles on the nearest ones. Returns (C_H_G, weights (S,), residuals
+    (S,), picked candidate (S,), J^T W J (6, 6), scale).
 
-    In homogeneous form: the model line of an edge with camera-frame ends A, B is
-    l = A x B (undistorted sensor coordinates (x, y, f) lie on it when l . (x, y, f) = 0), a sample's
-    distance r = l . (x, y, f) / |l_12|, and under the camera motion (w, t) on the left
-    dl = w x l + t x (B - A), so a sample's row of the Jacobian is [l x q, (B - A) x q] / |l_12| - r V,
-    V the derivative of |l_12| over |l_12|. In the compiled kernel when built, else ``_solve_py``."""
+    In homogeneous form: the model line of an edge with camera-frame ends A, B is l = A x B (undistorted sensor
+    coordinates (x, y, f) lie on it when l . (x, y, f) = 0), a sample's distance r = l . (x, y, f) / |l_12|, and
+    under the camera motion (w, t) on the left dl = w x l + t x (B - A), so a sample's row of the Jacobian is
+    [l x q, (B - A) x q] / |l_12| - r V, V the derivative of |l_12| over |l_12|. In the compiled kernel when
+    built, else ``_solve_py``."""
     kernel = _native.sil
     if kernel is not None:
         # every edge's line (an edge no sample names is left alone): the samples name their edges directly
@@ -461,7 +443,8 @@ def _solve(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, start_f
 #: K (4, 6) of an edge, flattened, from V (11,): m, Dn (the edge's line and direction, over |l_12|), m2 m1, m2 m0,
 #: Dn2 m1, Dn2 m0, m0 Dn1 - m1 Dn0: rows 0-2 the cross products [m x q, Dn x q], row 3 the derivative of |l_12|
 _K_OF_V = np.zeros((11, 24))
-_K_OF_V[[2, 1, 2, 0, 1, 0, 5, 4, 5, 3, 4, 3, 6, 7, 8, 9, 10], [1, 2, 6, 8, 12, 13, 4, 5, 9, 11, 15, 16, 18, 19, 21, 22, 23]] = \
+_K_OF_V[[2, 1, 2, 0, 1, 0, 5, 4, 5, 3, 4, 3, 6, 7, 8, 9, 10],
+        [1, 2, 6, 8, 12, 13, 4, 5, 9, 11, 15, 16, 18, 19, 21, 22, 23]] = \
     [1, -1, -1, 1, 1, -1, 1, -1, -1, 1, 1, -1, 1, -1, 1, -1, 1]
 
 
@@ -576,10 +559,10 @@ _OTHER6 = np.array([1, 1, 0, 0, 1, 0], np.int64)  # the other finger of each fin
 
 
 def _points_seen(camera: CameraModel, H, p_G6, box):
-    """The fingertip points p_G6 (6, 3) at ``H``: their pixels (6, 2) (NaN when one lies behind the camera),
-    whether each is in the picture (half a pixel inside its border) and whether the other finger hides it
-    (``box`` (2, 2, 3): the fingers' boxes, lo/hi); in the compiled kernel when built (``_points_seen_py``
-    the reference)."""
+    """The fingertip points p_G6 (6, 3) at ``H``: their pixels (6, 2) (NaN when one lies behind the camera), whether
+    each is in the picture (half a pixel inside its border) and whether the other finger hides it
+    (``box`` (2, 2, 3): the fingers' boxes, lo/hi); in the compiled kernel when built (``_points_seen_py`` the
+    reference)."""
     kernel = _native.sil
     cp = None if kernel is None else _cam_params(camera)
     if cp is not None:
@@ -635,48 +618,110 @@ def rms_limit(level_px: float | None) -> float:
 
 
 def learn_appearance(image, camera: CameraModel, C_H_G, gripper: GripperSpec, gap_mm: float) -> Appearance:
-    """The grey level of every visible finger face at ``C_H_G``: the median over its part within the
-    picture, 2 px inside its edges (use a pose that fits, e.g. where the fingertips were found). A face
-    whose samples there spread over more than ``FACE_SPREAD`` of their level (interquartile) is not one
-    face there (the pose is off by more than the face is wide, as for a finger cut by the picture's
-    border to a sliver): it is left unlearnt, and the fit matches its edges by contrast alone."""
-    img = as_gray(image, camera)
-    boxes = gripper.finger_boxes_G(gap_mm)
+    """The grey level of every visible finger face at ``C_H_G``: the median over its part within the picture, 2 px
+    inside its edges (use a pose that fits, e.g. where the fingertips were found). A face whose samples there spread
+    over more than ``FACE_SPREAD`` of their level (interquartile) is not one face there (the pose is off by more
+    than the face is wide, as for a finger cut by the picture's border to a sliver): it is left unlearnt, and the
+    fit matches its edges by contrast alone."""
+    img = as_gray(image, camera).astype(np.float32)
+    boxes = np.asarray(gripper.finger_boxes_G(gap_mm), float)  # (2, 2, 3): finger, lo/hi
     cam_G = inv_H(np.asarray(C_H_G, float))[:3, 3]
+    u, v = np.meshgrid(np.linspace(0.12, 0.88, 9), np.linspace(0.02, 0.98, 60))  # over a face, 12 % in from its sides
+    u, v = u.ravel(), v.ravel()
     app = Appearance()
-    H, W = img.shape
     for f, (lo, hi) in enumerate(boxes):
-        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
         for ax in range(3):
+            j, k = [m for m in range(3) if m != ax]
             for side in (-1, 1):
                 plane = hi[ax] if side > 0 else lo[ax]
                 if side * (cam_G[ax] - plane) <= 1e-9:
                     continue
-                j, k = [m for m in range(3) if m != ax]
-                # a grid over the face, 12 % in from its sides
-                u, v = np.meshgrid(np.linspace(0.12, 0.88, 9), np.linspace(0.02, 0.98, 60))
                 p = np.zeros((u.size, 3))
                 p[:, ax] = plane
-                p[:, j] = lo[j] + u.ravel() * (hi[j] - lo[j])
-                p[:, k] = lo[k] + v.ravel() * (hi[k] - lo[k])
+                p[:, j] = lo[j] + u * (hi[j] - lo[j])
+                p[:, k] = lo[k] + v * (hi[k] - lo[k])
                 pc = transform_points(C_H_G, p)
                 if np.any(pc[:, 2] <= 0):
                     continue
                 uv = camera.project(pc)
-                inside = camera.in_image(uv, margin=2)
-                G_H_C = inv_H(np.asarray(C_H_G, float))
-                o = G_H_C[:3, 3]
-                olo, ohi = boxes[1 - f]
-                inside &= ~_blocked(o, p - o[None], np.asarray(olo, float), np.asarray(ohi, float))
+                inside = camera.in_image(uv, margin=2) & ~_blocked(cam_G, p - cam_G[None], *boxes[1 - f])
                 if inside.sum() < 10:
                     continue
-                # the face's width in the picture must allow 2 px inside its edges
-                vals = _remap(img.astype(np.float32), uv[inside, 0].astype(np.float32), uv[inside, 1].astype(np.float32))
-                q1, med, q3 = np.percentile(vals, [25, 50, 75])
-                if q3 - q1 > max(FACE_SPREAD_GREY, FACE_SPREAD * med):
-                    continue  # not one face there (a pose off by more than the face is wide): left unlearnt
-                app.levels[(f, ax, side)] = float(med)
+                q1, med, q3 = np.percentile(_remap(img, uv[inside, 0], uv[inside, 1]), [25, 50, 75])
+                if q3 - q1 <= max(FACE_SPREAD_GREY, FACE_SPREAD * med):  # else not one face there: left unlearnt
+                    app.levels[(f, ax, side)] = float(med)
     return app
+
+
+def _fit_image(image, camera: CameraModel, frame: bool) -> np.ndarray:
+    """``image`` as ``fit_silhouette`` reads it: a float32 picture of the camera's size as it is (a tracker's frame,
+    checked by the caller); with ``frame`` an 8-bit one of that size unchecked, as it is for the compiled kernel (the
+    same levels as float32); else ``as_gray``'s."""
+    a = np.asarray(image)
+    size = (int(camera.height), int(camera.width))
+    if a.dtype == np.float32 and a.shape == size:
+        return a
+    if frame and a.dtype == np.uint8 and a.shape == size:
+        return a if _native.sil is not None and a.flags.c_contiguous else a.astype(np.float32)
+    return as_gray(image, camera)
+
+
+def _fit_rounds(img, camera: CameraModel, boxes, H, app: Appearance, rounds):
+    """``fit_silhouette``'s rounds of sampling and IRLS from ``H``: (H, edges, samples, (levels seen, weights,
+    residuals, picks, J^T W J)) of the last round, or (H, edges, samples, None) when a round finds fewer than 20
+    edge samples in the picture."""
+    es = _visible_edges(boxes, H)
+    rounds = tuple(rounds)
+    if rounds[0] >= 16.0:
+        # far from the start: first the image shift most samples agree with (a vote), as a small turn
+        s = _sample(camera, es, boxes, H, margin=BORDER_PX)
+        if len(s.edge) < 20:
+            return H, es, s, None
+        off, _, _ = _candidates(img, s, rounds[0], app, n_cand=8)
+        du, dv = _coarse_shift(off, s.n, rounds[0])
+        H = _motion(np.array([-dv / camera.f, du / camera.f, 0.0, 0.0, 0.0, 0.0])) @ H
+        rounds = rounds[1:] or (3.0,)
+        es = _visible_edges(boxes, H)
+    for i, R in enumerate(rounds):
+        s = _sample(camera, es, boxes, H, margin=BORDER_PX)
+        if len(s.edge) < 20:
+            return H, es, s, None
+        off, lev, _, q = _candidates_q(img, s, R, app, camera)
+        last = i == len(rounds) - 1
+        floor = SCALE_FLOOR_PX if last else max(SCALE_FLOOR_PX, R / 6.0)
+        H, w, r, pick, JtWJ, _ = _solve(camera, es, s, q, H, floor, iters=6 if last else 3,
+                                        start_floor=max(floor, R / 6.0))
+    return H, es, s, (lev, w, r, pick, JtWJ)
+
+
+def _tcp_sd(H, JtWJ, w, r):
+    """The motion's covariance (6, 6) from the supporting samples' weights ``w`` and residuals ``r`` [px], and the
+    TCP's standard deviation (3,) [mm, camera axes]; None and NaN from 6 samples or fewer or a singular J^T W J."""
+    if len(r) <= 6:
+        return None, np.full(3, np.nan)
+    try:
+        cov = float(np.sum(w * r**2) / (len(r) - 6)) * np.linalg.inv(JtWJ)
+    except np.linalg.LinAlgError:
+        return None, np.full(3, np.nan)
+    t = H[:3, 3]  # the TCP (G's origin) in C moves by [-t]x dθ + dt under the motion
+    Jt = np.array([[0.0, t[2], -t[1], 1.0, 0.0, 0.0], [-t[2], 0.0, t[0], 0.0, 1.0, 0.0],
+                   [t[1], -t[0], 0.0, 0.0, 0.0, 1.0]])  # [-[t]x, I]
+    return cov, np.sqrt(np.maximum(np.diag(Jt @ cov @ Jt.T), 0.0))
+
+
+def _lost_reason(gf: float, ff, rms: float, tcp_sd, n_s: int, max_rms_px: float) -> str | None:
+    """Why a fit with these quality figures (as ``SilhouetteFit`` names them) is lost, or None."""
+    if gf < MIN_GOOD_FRACTION:
+        return f"lost: {100 * gf:.0f} % of {n_s} edge samples support the fit (needs {100 * MIN_GOOD_FRACTION:.0f} %)"
+    if np.nanmin(ff, initial=1.0) < MIN_GOOD_FRACTION:
+        f = int(np.nanargmin(ff))
+        return f"lost: {100 * ff[f]:.0f} % of finger {'AB'[f]}'s edge samples support the fit"
+    if not (rms <= max_rms_px):
+        return f"lost: edge residual {rms:.2f} px over {max_rms_px:.2f} px"
+    # the TCP's sd scales with the residual: its limit holds at MAX_RMS_PX, and grows with the residual allowed
+    if not (np.nanmax(tcp_sd) <= (tcp_lim := MAX_TCP_SD_MM * max(1.0, max_rms_px / MAX_RMS_PX))):
+        return f"lost: TCP uncertain by {np.nanmax(tcp_sd):.3f} mm (over {tcp_lim:.3f} mm)"
+    return None
 
 
 def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec, gap_mm: float, *,
@@ -684,113 +729,56 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
                    frame: bool = False, max_rms_px: float = MAX_RMS_PX) -> SilhouetteFit:
     """Fit the fingers' silhouette to ``image`` from the pose ``C_H_G_pred`` (4, 4), jaw gap ``gap_mm``.
 
-    ``appearance`` the faces' grey levels (``learn_appearance``, or the last fit's); without one they are
-    read at the prediction (good enough when it is within a few px). ``rounds`` the search ranges [px] of
-    the rounds of sampling (the first must reach as far as the prediction may be off). ``points``: the
-    fingertip points reported as found when the fit holds. ``frame``: ``image`` is a tracker's frame
-    (grey, of the camera's size), which the compiled kernel reads as it is when 8-bit, without the
-    picture's checks. ``max_rms_px``: the edge residual over which the fit is lost (``rms_limit``); the TCP's
-    standard deviation limit, ``MAX_TCP_SD_MM`` at ``MAX_RMS_PX``, grows with it (that sd scales with the residual).
-    Returns a ``SilhouetteFit``; never raises for a fit that fails (``ok`` False and
-    the reason)."""
-    a = np.asarray(image)
-    if a.dtype == np.float32 and a.shape == (int(camera.height), int(camera.width)):
-        img = a  # already checked by the caller (a tracker's frame)
-    elif frame and a.dtype == np.uint8 and a.shape == (int(camera.height), int(camera.width)):
-        # a grabber's frame: no picture checks; the kernel reads it as it is (the same levels as float32)
-        img = a if _native.sil is not None and a.flags.c_contiguous else a.astype(np.float32)
-    else:
-        img = as_gray(image, camera)
+    ``appearance`` the faces' grey levels (``learn_appearance``, or the last fit's); without one they are read at
+    the prediction (good enough when it is within a few px). ``rounds`` the search ranges [px] of the rounds of
+    sampling (the first must reach as far as the prediction may be off). ``points``: the fingertip points reported
+    as found when the fit holds. ``frame``: ``image`` is a tracker's frame (grey, of the camera's size), which the
+    compiled kernel reads as it is when 8-bit, without the picture's checks. ``max_rms_px``: the edge residual over
+    which the fit is lost (``rms_limit``); the TCP's standard deviation limit, ``MAX_TCP_SD_MM`` at ``MAX_RMS_PX``,
+    grows with it (that sd scales with the residual). Returns a ``SilhouetteFit``; never raises for a fit that
+    fails (``ok`` False and the reason)."""
+    img = _fit_image(image, camera, frame)
     H0 = np.asarray(C_H_G_pred, float)
     boxes = gripper.finger_boxes_G(gap_mm)
     p_G6 = gripper.points_G(gap=gap_mm)
     app = appearance.copy() if appearance is not None and appearance.levels else learn_appearance(
         img, camera, H0, gripper, gap_mm)
-    H = H0.copy()
-    nan6 = np.full((6, 2), np.nan)
 
-    def fail(reason, n_s=0, gf=0.0, ff=(0.0, 0.0), rms=math.nan, H_=None):
-        return SilhouetteFit(H_, nan6.copy(), np.zeros(6, bool), False, reason, gf, np.asarray(ff, float), rms,
-                             np.full(3, np.nan), n_s, app, [reason] * 6)
+    def fail(reason, n_s, gf=0.0, ff=(0.0, 0.0), rms=math.nan, H_=None):
+        return SilhouetteFit(H_, np.full((6, 2), np.nan), np.zeros(6, bool), False, reason, gf, np.asarray(ff, float),
+                             rms, np.full(3, np.nan), n_s, app, [reason] * 6)
 
-    w = r = s = None
-    JtWJ = np.zeros((6, 6))
-    sigma = SCALE_FLOOR_PX
-    es = _visible_edges(boxes, H)
-    rounds = tuple(rounds)
-    if rounds[0] >= 16.0:
-        # far from the start: first the image shift most samples agree with (a vote), as a small turn
-        s = _sample(camera, es, boxes, H, margin=BORDER_PX)
-        if len(s.edge) < 20:
-            return fail(f"too few edge samples in the picture ({len(s.edge)})", len(s.edge))
-        off, _, _ = _candidates(img, s, rounds[0], app, n_cand=8)
-        du, dv = _coarse_shift(off, s.n, rounds[0])
-        H = _motion(np.array([-dv / camera.f, du / camera.f, 0.0, 0.0, 0.0, 0.0])) @ H
-        rounds = tuple(r for r in rounds[1:]) or (3.0,)
-        es = _visible_edges(boxes, H)
-    for i, R in enumerate(rounds):
-        s = _sample(camera, es, boxes, H, margin=BORDER_PX)
-        if len(s.edge) < 20:
-            return fail(f"too few edge samples in the picture ({len(s.edge)})", len(s.edge))
-        off, lev, _, q = _candidates_q(img, s, R, app, camera)
-        floor = max(SCALE_FLOOR_PX, R / 6.0) if i < len(rounds) - 1 else SCALE_FLOOR_PX
-        last = i == len(rounds) - 1
-        H, w, r, pick, JtWJ, sigma = _solve(camera, es, s, q, H, floor, iters=6 if last else 3,
-                                            start_floor=max(floor, R / 6.0))
+    H, es, s, last = _fit_rounds(img, camera, boxes, H0, app, rounds)
+    n_s = len(s.edge)
+    if last is None:
+        return fail(f"too few edge samples in the picture ({n_s})", n_s)
     if not np.all(transform_points(H, p_G6)[:, 2] > 0.0):
         # a diverged solve (a picture unlike the prediction): no pose to start the next search from
-        return fail("lost: the fit diverged (a fingertip point behind the camera)", len(s.edge))
+        return fail("lost: the fit diverged (a fingertip point behind the camera)", n_s)
+    lev, w, r, pick, JtWJ = last
     good = w > 0.5
-    n_s = len(s.edge)
     visible = _finger_visible(camera, es, H, s)
     fing = es.finger[s.edge]
     n_good = int(np.count_nonzero(good))
-    gf = n_good / n_s if n_s else 0.0
+    gf = n_good / n_s
     # per finger, of those with enough samples in the picture (a finger may leave it)
     n_f = np.bincount(fing, minlength=2)
     ff = np.where(n_f >= MIN_FINGER_SAMPLES, np.bincount(fing[good], minlength=2) / np.maximum(n_f, 1), math.nan)
     rms = float(np.sqrt(np.mean(r[good] ** 2))) if n_good else math.nan
-    # covariance of the motion and the TCP's standard deviation
-    cov = None
-    tcp_sd = np.full(3, np.nan)
-    if n_good > 6:
-        s2 = float(np.sum(w[good] * r[good] ** 2) / max(n_good - 6, 1))
-        try:
-            cov = s2 * np.linalg.inv(JtWJ)
-            # the TCP (G's origin) in C moves by [-t_x] dθ + dt under the motion
-            t = H[:3, 3]
-            Jt = np.zeros((3, 6))  # [-[t]x, I]
-            Jt[0, 1], Jt[0, 2], Jt[1, 0], Jt[1, 2], Jt[2, 0], Jt[2, 1] = t[2], -t[1], -t[2], t[0], t[1], -t[0]
-            Jt[0, 3] = Jt[1, 4] = Jt[2, 5] = 1.0
-            tcp_sd = np.sqrt(np.maximum(np.diag(Jt @ cov @ Jt.T), 0.0))
-        except np.linalg.LinAlgError:
-            cov = None
+    cov, tcp_sd = _tcp_sd(H, JtWJ, w[good], r[good])
     uv6, found, reasons = _points_found(camera, H, p_G6, np.asarray(boxes, float).reshape(2, 2, 3), points)
-    why = None
-    if gf < MIN_GOOD_FRACTION:
-        why = f"lost: {100 * gf:.0f} % of {n_s} edge samples support the fit (needs {100 * MIN_GOOD_FRACTION:.0f} %)"
-    elif np.nanmin(ff, initial=1.0) < MIN_GOOD_FRACTION:
-        f = int(np.nanargmin(ff))
-        why = f"lost: {100 * ff[f]:.0f} % of finger {'AB'[f]}'s edge samples support the fit"
-    elif not (rms <= max_rms_px):
-        why = f"lost: edge residual {rms:.2f} px over {max_rms_px:.2f} px"
-    elif not (np.nanmax(tcp_sd) <= (tcp_lim := MAX_TCP_SD_MM * max(1.0, max_rms_px / MAX_RMS_PX))):
-        # the TCP's sd scales with the residual: its limit holds at MAX_RMS_PX, and grows with the residual allowed
-        why = f"lost: TCP uncertain by {np.nanmax(tcp_sd):.3f} mm (over {tcp_lim:.3f} mm)"
+    why = _lost_reason(gf, ff, rms, tcp_sd, n_s, max_rms_px)
     if why is not None:
         res = fail(why, n_s, gf, ff, rms, H)
-        res.tcp_sd_mm = tcp_sd
-        res.covariance = cov
-        res.finger_visible = visible
+        res.tcp_sd_mm, res.covariance, res.finger_visible = tcp_sd, cov, visible
         return res
-    # the faces' levels at the fit, for the next frame
+    # the faces' levels at the fit, for the next frame: the mean beside each edge's supporting samples
     new_app = app.copy()
     seen = lev[np.arange(n_s), pick]
     m = good & np.isfinite(seen)
-    E = len(es.faces)
-    cnt = np.bincount(s.edge[m], minlength=E)
-    tot = np.bincount(s.edge[m], weights=seen[m], minlength=E)
-    for e in np.flatnonzero(cnt >= 5):  # the mean beside each edge's supporting samples
+    cnt = np.bincount(s.edge[m], minlength=len(es.faces))
+    tot = np.bincount(s.edge[m], weights=seen[m], minlength=len(es.faces))
+    for e in np.flatnonzero(cnt >= 5):
         new_app.levels[es.faces[e][0]] = float(tot[e] / cnt[e])
     return SilhouetteFit(H, np.where(found[:, None], uv6, np.nan), found, True, None, gf, ff, rms, tcp_sd, n_s,
                          new_app, reasons, cov, visible)
