@@ -29,8 +29,7 @@ __all__ = ["OfflineResult", "check_picture", "calibrate_offline", "predict_parke
 
 #: A picture whose grey levels spread less than this is blank (lens cap, no light, no signal).
 MIN_CONTRAST_GRAY = 20.0
-#: How far (deg) the plate's normal may be from the mount guess's approach axis before the picture
-#: cannot show the gripper parked on the plate.
+#: Largest angle [deg] between the plate's normal and the mount guess's approach axis with the gripper parked on it.
 MAX_PLANE_DISAGREEMENT_DEG = 25.0
 #: A PCC residual more than this many times what the picture's own noise gives (the fingertip edges'
 #: scatter about their fitted lines, in mm at the TCP's depth) is a warning: a corner measured off its
@@ -64,23 +63,14 @@ class OfflineResult:
         """The figures a person or a script reads (plain types; units in the key names)."""
         cal = self.calibration
         return {
-            "f": cal.camera.f,
-            "kappa": cal.camera.kappa,
-            "principal_point": [cal.camera.cx, cal.camera.cy],
-            "C_H_W": cal.C_H_W.tolist(),
-            "C_H_W_known": self.discs.origin_pinned,
-            "C_H_G": cal.C_H_G.tolist(),
-            "points_G": {
-                nm: [float(v) for v in p] for nm, p in zip(POINT_NAMES, cal.points_G[cal.state])
-            },
-            "rms_px": float(self.tsai.rms_px),
-            "max_px": float(self.tsai.max_px),
+            "f": cal.camera.f, "kappa": cal.camera.kappa, "principal_point": [cal.camera.cx, cal.camera.cy],
+            "C_H_W": cal.C_H_W.tolist(), "C_H_W_known": self.discs.origin_pinned, "C_H_G": cal.C_H_G.tolist(),
+            "points_G": {nm: [float(v) for v in p] for nm, p in zip(POINT_NAMES, cal.points_G[cal.state])},
+            "rms_px": float(self.tsai.rms_px), "max_px": float(self.tsai.max_px),
             "discs_used": int(len(self.discs.uv)),
             "corners_found": [nm for nm, ok in zip(POINT_NAMES, self.fingertips.found) if ok],
-            "pcc_rms_mm": float(self.pcc.rms_mm),
-            "state": cal.state,
-            "timings_ms": {k: round(v, 2) for k, v in self.timings_ms.items()},
-            "warnings": list(self.warnings),
+            "pcc_rms_mm": float(self.pcc.rms_mm), "state": cal.state,
+            "timings_ms": {k: round(v, 2) for k, v in self.timings_ms.items()}, "warnings": list(self.warnings),
         }
 
 
@@ -94,16 +84,13 @@ def check_picture(image, width: int, height: int) -> np.ndarray:
     if img.ndim != 2:
         raise ImageError(f"picture has shape {img.shape}; expected a 2-D grey picture")
     if img.shape != (height, width):
-        raise ImageError(
-            f"picture is {img.shape[1]}x{img.shape[0]} pixels; the cell's camera gives {width}x{height}"
-        )
+        raise ImageError(f"picture is {img.shape[1]}x{img.shape[0]} pixels; the cell's camera gives {width}x{height}")
     if img.dtype != np.uint8:
         raise ImageError(f"picture has {img.dtype} pixels; expected 8-bit grey")
     lo, hi = np.percentile(img[::4, ::4], [1, 99])
     if hi - lo < MIN_CONTRAST_GRAY:
-        raise ImageError(
-            f"picture is blank (grey levels {lo:.0f}..{hi:.0f}): check the light, the lens cap and the video signal"
-        )
+        raise ImageError(f"picture is blank (grey levels {lo:.0f}..{hi:.0f}): check the light, the lens cap and the "
+                         "video signal")
     return img
 
 
@@ -112,17 +99,13 @@ def predict_parked_C_H_G(C_H_W: np.ndarray, C_H_G_guess: np.ndarray) -> np.ndarr
 
     Parked, G's x-y plane is W's (eq. 5-7), so the guess is projected onto that constraint: keep its turn
     about z and its in-plane position, drop its tilt and height. Raises ``CalibrationError`` when the
-    plate plane and the guessed gripper plane disagree by more than ``MAX_PLANE_DISAGREEMENT_DEG``.
-    """
+    plate plane and the guessed gripper plane disagree by more than ``MAX_PLANE_DISAGREEMENT_DEG``."""
     W_H_Gg = inv_H(C_H_W) @ np.asarray(C_H_G_guess, float)
     tilt = np.degrees(np.arccos(np.clip(W_H_Gg[2, 2], -1.0, 1.0)))
     if tilt > MAX_PLANE_DISAGREEMENT_DEG:
-        raise CalibrationError(
-            f"the plate's plane is {tilt:.0f} deg from the gripper's contact plane of the mount guess: "
-            "the gripper is not parked on the plate, or the mount guess is wrong"
-        )
-    q = np.arctan2(W_H_Gg[1, 0], W_H_Gg[0, 0])
-    W_H_G = rot_z(q)
+        raise CalibrationError(f"the plate's plane is {tilt:.0f} deg from the gripper's contact plane of the mount "
+                               "guess: the gripper is not parked on the plate, or the mount guess is wrong")
+    W_H_G = rot_z(np.arctan2(W_H_Gg[1, 0], W_H_Gg[0, 0]))
     W_H_G[:2, 3] = W_H_Gg[:2, 3]
     return C_H_W @ W_H_G
 
@@ -137,9 +120,7 @@ def _parked_fingertips(img, camera: CameraModel, C_H_G_pred, cell: Cell, gap: fl
     found = np.asarray(ft.found, bool)
     if found.sum() < 2:
         why = "; ".join(f"{nm}: {r}" for nm, r, ok in zip(POINT_NAMES, ft.reasons, found) if not ok)
-        raise CalibrationError(
-            f"only {int(found.sum())} fingertip corner(s) found, the PCC needs at least 2 ({why})"
-        )
+        raise CalibrationError(f"only {int(found.sum())} fingertip corner(s) found, the PCC needs at least 2 ({why})")
     return ft, measured_by
 
 
@@ -159,7 +140,8 @@ def _gripper_points(ft: FingertipResult, camera: CameraModel, C_H_W, cell: Cell,
 def _tsai_bias_corrected(det, nominal: CameraModel, cell: Cell, mode: str):
     """Tsai's fit of the plate points, their bias corrected at its pose and fitted again: (the second
     ``TsaiResult``, the corrected pixels)."""
-    kw = dict(cx=nominal.cx, cy=nominal.cy, aspect=nominal.aspect, mode=mode, width=cell.camera.width, height=cell.camera.height)
+    kw = dict(cx=nominal.cx, cy=nominal.cy, aspect=nominal.aspect, mode=mode, width=cell.camera.width,
+              height=cell.camera.height)
     # Tsai's method takes (cx, cy, aspect): a measured camera's skew is taken off the pixels first
     # (CameraModel.deskew_pixels: the same rays in the camera without skew) and given back to its result
     ts = calibrate_coplanar(det.p_W, nominal.deskew_pixels(det.uv), **kw)
@@ -174,17 +156,11 @@ def _residuals(mode: str, ts, det, ft: FingertipResult, pcc, dims, measured_by: 
     picture's own noise at the TCP), whether the plate's origin is pinned, the warnings."""
     found = np.asarray(ft.found, bool)
     return {
-        "tsai_mode": mode,
-        "rms_px": float(ts.rms_px),
-        "max_px": float(ts.max_px),
-        "discs_used": int(len(det.uv)),
+        "tsai_mode": mode, "rms_px": float(ts.rms_px), "max_px": float(ts.max_px), "discs_used": int(len(det.uv)),
         "corners_found": [nm for nm, ok in zip(POINT_NAMES, found) if ok],
         "corner_edge_rms_px": {nm: float(ft.edge_rms_px[i]) for i, nm in enumerate(POINT_NAMES) if found[i]},
-        "pcc_rms_mm": float(pcc.rms_mm),
-        "pcc_q_norm": float(pcc.q_norm),
-        "pcc_noise_mm": float(noise_mm),
-        "points_from": "picture" if dims is not None else "cell",
-        "corners_measured_by": measured_by,
+        "pcc_rms_mm": float(pcc.rms_mm), "pcc_q_norm": float(pcc.q_norm), "pcc_noise_mm": float(noise_mm),
+        "points_from": "picture" if dims is not None else "cell", "corners_measured_by": measured_by,
         "plate_origin": "pinned" if det.origin_pinned else "ambiguous",
         **({"warnings": warnings} if warnings else {}),
         **({"camera_file": dict(camera_file)} if camera_file else {}),
@@ -212,39 +188,25 @@ def _mount_guess(cell: Cell, C_H_G_guess) -> np.ndarray:
     return guess
 
 
-def calibrate_offline(
-    image,
-    cell: Cell,
-    *,
-    state: str | None = None,
-    mode: str = "full",
-    C_H_G_guess: np.ndarray | None = None,
-    points: str = "measured",
-    search_px: float = 60.0,
-    image_sha256: str | None = None,
-    camera: CameraModel | None = None,
-    camera_file: dict | None = None,
-    measurement: str = "auto",
-) -> OfflineResult:
+def calibrate_offline(image, cell: Cell, *, state: str | None = None, mode: str = "full",
+                      C_H_G_guess: np.ndarray | None = None, points: str = "measured", search_px: float = 60.0,
+                      image_sha256: str | None = None, camera: CameraModel | None = None,
+                      camera_file: dict | None = None, measurement: str = "auto") -> OfflineResult:
     """Off-line calibration of one picture of the gripper parked on the plate.
 
-    ``image`` (H, W) uint8; ``state`` the gripper state of the picture (default ``calibrate_in``);
-    ``mode`` Tsai's refinement ('tsai', 'full', 'full+centre'); ``C_H_G_guess`` where to look for the
-    fingertips (default the cell's mount guess); ``points``: 'measured' takes the gripper points' G
-    coordinates from the picture (the paper's way: the inner four form a rectangle centred on the TCP),
-    'cell' takes them from the cell description.
-    ``camera`` a measured camera (``selfview intrinsics``): its principal point, aspect and skew replace the
-    cell's nominal ones (f and kappa are still measured from the picture, it only starts them);
-    ``camera_file`` {path, sha256} of the file it came from, recorded in the calibration's residuals
-    under ``camera_file`` (absent: the cell's nominal camera).
-    ``measurement``: how the fingertip corners are measured: 'corners' the corner search
-    (``find_fingertips``), 'model' the model-based measurement (the whole silhouette of both fingers
-    fitted, ``find_fingertips(..., model=True)``), 'auto' (default) the corner search, and the model
-    where the corner search misses a corner in the picture (a fingertip beside a disc, a weak tip edge)
-    and the model's fit holds: then the model's corners (the found ones are not mixed with them).
-    Raises ``ImageError`` (unusable picture), ``ConfigError`` (a camera for another picture size),
-    ``CalibrationError`` (too few discs or corners, degenerate) or ``ValueError`` (a bad ``C_H_G_guess``).
-    """
+    ``image`` (H, W) uint8; ``state`` the gripper state of the picture (default ``calibrate_in``); ``mode`` Tsai's
+    refinement ('tsai', 'full', 'full+centre'); ``C_H_G_guess`` where to look for the fingertips (default the cell's
+    mount guess); ``points``: 'measured' takes the gripper points' G coordinates from the picture (the paper's way: the
+    inner four form a rectangle centred on the TCP), 'cell' takes them from the cell description. ``camera`` a measured
+    camera (``selfview intrinsics``): its principal point, aspect and skew replace the cell's nominal ones (f and kappa
+    are still measured from the picture, it only starts them); ``camera_file`` {path, sha256} of the file it came from,
+    recorded in the calibration's residuals under ``camera_file`` (absent: the cell's nominal camera). ``measurement``:
+    how the fingertip corners are measured: 'corners' the corner search (``find_fingertips``), 'model' the model-based
+    measurement (the whole silhouette of both fingers fitted, ``find_fingertips(..., model=True)``), 'auto' (default)
+    the corner search, and the model where the corner search misses a corner in the picture (a fingertip beside a disc,
+    a weak tip edge) and the model's fit holds: then the model's corners (the found ones are not mixed with them).
+    Raises ``ImageError`` (unusable picture), ``ConfigError`` (a camera for another picture size), ``CalibrationError``
+    (too few discs or corners, degenerate) or ``ValueError`` (a bad ``C_H_G_guess``)."""
     t0 = time.perf_counter()
     timings = {}
     nominal = _check_offline_args(cell, camera, points, measurement)
@@ -281,17 +243,8 @@ def calibrate_offline(
     residuals = _residuals(mode, ts, det, ft, pcc, dims, measured_by, camera_file, noise_mm, warnings)
     cal = Calibration(camera=camera, C_H_W=ts.C_H_W, C_H_G=make_H(pcc.C_H_G[:3, :3], pcc.C_H_G[:3, 3]),
                       points_G=per_state, state=state, residuals=residuals, image_sha256=sha, cell_sha256=cell.sha256)
-    return OfflineResult(
-        calibration=cal,
-        tsai=ts,
-        discs=det,
-        disc_uv_corrected=uv_c,
-        fingertips=ft,
-        pcc=pcc,
-        dims=dims,
-        timings_ms=timings,
-        warnings=warnings,
-    )
+    return OfflineResult(calibration=cal, tsai=ts, discs=det, disc_uv_corrected=uv_c, fingertips=ft, pcc=pcc, dims=dims,
+                         timings_ms=timings, warnings=warnings)
 
 
 def _picture_noise_mm(ft: FingertipResult, found: np.ndarray, camera: CameraModel, C_H_G: np.ndarray) -> float:
@@ -311,11 +264,10 @@ def _warnings(det: DiscDetections, pcc: PCCResult, noise_mm: float, ft: Fingerti
         out.append("the plate's origin is not pinned by the picture, so C_H_W is not known (it may be off by whole "
                     "pitches; C_H_G does not depend on it): " + "; ".join(det.ambiguous.values()))
     if pcc.rms_mm > PCC_NOISE_FACTOR * noise_mm:
-        out.append(
-            f"the PCC residual {pcc.rms_mm:.3f} mm is {pcc.rms_mm / noise_mm:.0f} times what the picture's noise "
-            f"gives ({noise_mm:.4f} mm): a fingertip corner is measured off its place (on a printed disc, a mark "
-            "or a shadow's edge?), or the gripper points used are not this gripper's; park the gripper elsewhere "
-            "on the plate and calibrate again")
+        out.append(f"the PCC residual {pcc.rms_mm:.3f} mm is {pcc.rms_mm / noise_mm:.0f} times what the picture's "
+                   f"noise gives ({noise_mm:.4f} mm): a fingertip corner is measured off its place (on a printed disc, "
+                   "a mark or a shadow's edge?), or the gripper points used are not this gripper's; park the gripper "
+                   "elsewhere on the plate and calibrate again")
     # a corner the search left out, whether or not the fingers' model measured the points after it (the
     # model's nominal boxes miss a real finger's faces by their tolerances: tenths of a pixel)
     out += [f"the fingertip corner {nm} was left out of the corner search: {r}"

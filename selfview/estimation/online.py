@@ -1,12 +1,11 @@
 """On-line calibration (paper, section 4): how far the camera moved on its mount, from the fingertips.
 
-From N fingertip points ``p_G`` (N, 3) [mm] and their observed, distorted pixels ``uv`` (N, 2), starting
-from the current ``C_H_G``: ``differential_update`` (NP-U, the paper's linear update, eq. 11-17),
-``iterative_update`` (NP-I, Gauss-Newton on SE(3) over the same residuals) and ``recalibrate`` (NP-R,
-exterior orientation by OpenCV's IPPE refined by the same Gauss-Newton). The motion (eq. 11-12, 16):
-``C'p = Delta* Cp``, (delta_x, delta_y, delta_z) [rad] the small rotation and (d_x, d_y, d_z) [mm] the
-translation of that map in the old camera frame. Every estimator works in undistorted sensor
-coordinates (eq. 3-4) and reports its reprojection residuals in distorted pixels. Degenerate input
+From N fingertip points ``p_G`` (N, 3) [mm] and their observed, distorted pixels ``uv`` (N, 2), starting from the
+current ``C_H_G``: ``differential_update`` (NP-U, the paper's linear update, eq. 11-17), ``iterative_update`` (NP-I,
+Gauss-Newton on SE(3) over the same residuals) and ``recalibrate`` (NP-R, exterior orientation by OpenCV's IPPE refined
+by the same Gauss-Newton). The motion (eq. 11-12, 16): ``C'p = Delta* Cp``, (delta_x, delta_y, delta_z) [rad] the small
+rotation and (d_x, d_y, d_z) [mm] the translation of that map in the old camera frame. Every estimator works in
+undistorted sensor coordinates (eq. 3-4) and reports its reprojection residuals in distorted pixels. Degenerate input
 raises ``CalibrationError`` naming the cause.
 """
 
@@ -23,17 +22,8 @@ from selfview.errors import CalibrationError, ConfigError
 from selfview.maths.geometry import H_from_rotvec, cross_rows, delta_star, make_H, orthonormalize, rotvec_from_R
 
 __all__ = [
-    "METHODS",
-    "MODEL_METHOD",
-    "MAX_CONDITION",
-    "MotionEstimate",
-    "differential_update",
-    "iterative_update",
-    "recalibrate",
-    "select_points",
-    "estimate",
-    "model_estimate",
-    "parse_method",
+    "METHODS", "MODEL_METHOD", "MAX_CONDITION", "MotionEstimate", "differential_update", "iterative_update",
+    "recalibrate", "select_points", "estimate", "model_estimate", "parse_method",
 ]
 
 METHODS: tuple[str, ...] = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R")
@@ -53,16 +43,14 @@ _KIND_NAME = {"U": "differential update", "I": "iterative update", "R": "recalib
 class MotionEstimate:
     """One on-line estimate of the gripper-to-camera transform (immutable).
 
-    ``C_H_G`` (4, 4) the updated transform (NP-U: ``Delta* C_H_G`` of eq. 13, not orthogonal);
-    ``C_H_G_orth`` the same with its rotation re-orthonormalised (identical for NP-I and NP-R);
-    ``motion`` (6,) (delta_x, delta_y, delta_z [rad], d_x, d_y, d_z [mm]) of ``C'p = Delta* Cp`` (NP-I
-    and NP-R: the rotation vector and translation of ``C'_H_G C_H_G^-1``); ``delta_deg``, ``d_mm`` the
-    measures of eq. 14; ``residuals_px`` (N, 2) observed minus reprojected distorted pixels; ``rms_px``
-    the root mean square of their lengths; ``covariance`` (6, 6) of ``motion`` as ``sigma^2 (J^T J)^-1``
-    with sigma^2 from the residuals (NaN when N = 3 leaves no redundancy, unless a prior pixel noise was
-    given); ``condition`` of the column-scaled normal matrix; ``points_used`` the point names;
-    ``iterations`` Gauss-Newton steps (1 for NP-U); ``C_H_G_prior`` (4, 4) where the estimate started.
-    """
+    ``C_H_G`` (4, 4) the updated transform (NP-U: ``Delta* C_H_G`` of eq. 13, not orthogonal); ``C_H_G_orth`` the same
+    with its rotation re-orthonormalised (identical for NP-I and NP-R); ``motion`` (6,) (delta_x, delta_y, delta_z
+    [rad], d_x, d_y, d_z [mm]) of ``C'p = Delta* Cp`` (NP-I and NP-R: the rotation vector and translation of
+    ``C'_H_G C_H_G^-1``); ``delta_deg``, ``d_mm`` the measures of eq. 14; ``residuals_px`` (N, 2) observed minus
+    reprojected distorted pixels; ``rms_px`` the root mean square of their lengths; ``covariance`` (6, 6) of ``motion``
+    as ``sigma^2 (J^T J)^-1`` with sigma^2 from the residuals (NaN when N = 3 leaves no redundancy, unless a prior pixel
+    noise was given); ``condition`` of the column-scaled normal matrix; ``points_used`` the point names; ``iterations``
+    Gauss-Newton steps (1 for NP-U); ``C_H_G_prior`` (4, 4) where the estimate started."""
 
     method: str
     C_H_G: np.ndarray
@@ -85,18 +73,11 @@ class MotionEstimate:
             return [None if not np.isfinite(v) else float(v) for v in np.ravel(a)]
 
         return {
-            "method": self.method,
-            "C_H_G": self.C_H_G.tolist(),
-            "C_H_G_orth": self.C_H_G_orth.tolist(),
-            "delta_deg": float(self.delta_deg),
-            "d_mm": float(self.d_mm),
-            "motion": clean(self.motion),
-            "points_used": list(self.points_used),
-            "rms_px": float(self.rms_px),
-            "residuals_px": self.residuals_px.tolist(),
-            "motion_sd": clean(np.sqrt(np.abs(np.diag(self.covariance)))),
-            "condition": float(self.condition),
-            "iterations": int(self.iterations),
+            "method": self.method, "C_H_G": self.C_H_G.tolist(), "C_H_G_orth": self.C_H_G_orth.tolist(),
+            "delta_deg": float(self.delta_deg), "d_mm": float(self.d_mm), "motion": clean(self.motion),
+            "points_used": list(self.points_used), "rms_px": float(self.rms_px),
+            "residuals_px": self.residuals_px.tolist(), "motion_sd": clean(np.sqrt(np.abs(np.diag(self.covariance)))),
+            "condition": float(self.condition), "iterations": int(self.iterations),
         }
 
 
@@ -117,13 +98,12 @@ def _estimate(label, H, H_orth, motion, res_px, N, cond, rss, names, iters, H0, 
 
 # --- input checks and shared pieces ------------------------------------------------------------------
 def _prepare(C_H_G, p_G, uv, camera, names, kind: str, prior_sigma_px=None):
-    """Validated input: H (4, 4), P (N, 3), uv (N, 2) float arrays (``_deskewed``), the camera the
-    estimators take, the point names and the method label."""
+    """Validated input: H (4, 4), P (N, 3), uv (N, 2) float arrays, the camera the estimators take (which
+    use its (cx, cy, aspect) alone: a camera with skew becomes the same camera without it, seeing
+    ``deskew_pixels(uv)``, the same rays and so the same motion), the point names and the method label."""
     if not isinstance(camera, CameraModel):
         raise TypeError(f"camera: expected a selfview.maths.camera.CameraModel, got {type(camera).__name__}")
-    H = np.asarray(C_H_G, dtype=float)
-    P = np.asarray(p_G, dtype=float)
-    uv = np.asarray(uv, dtype=float)
+    H, P, uv = (np.asarray(a, dtype=float) for a in (C_H_G, p_G, uv))
     if H.shape != (4, 4):
         raise ValueError(f"C_H_G: expected a (4, 4) transform, got shape {H.shape}")
     if P.ndim != 2 or P.shape[1] != 3:
@@ -133,9 +113,8 @@ def _prepare(C_H_G, p_G, uv, camera, names, kind: str, prior_sigma_px=None):
     n = len(P)
     names = _point_names(names, n)
     label = f"{n}P-{kind}"
-    need = _MIN_POINTS[kind]
-    if n < need:
-        raise CalibrationError(f"{label} ({_KIND_NAME[kind]}): needs at least {need} points, got {n}")
+    if n < _MIN_POINTS[kind]:
+        raise CalibrationError(f"{label} ({_KIND_NAME[kind]}): needs at least {_MIN_POINTS[kind]} points, got {n}")
     if kind != "U":  # NP-I and NP-R start from, or choose by, the nearest rotation: it must not mirror
         det = float(np.linalg.det(H[:3, :3]))
         if not det > 0.0 and math.isfinite(det):
@@ -149,17 +128,9 @@ def _prepare(C_H_G, p_G, uv, camera, names, kind: str, prior_sigma_px=None):
             raise CalibrationError(f"{label}: {what} of {which} is not finite (NaN: not found?)")
     if prior_sigma_px is not None and not (math.isfinite(prior_sigma_px) and prior_sigma_px > 0.0):
         raise ValueError(f"prior_sigma_px: expected a positive pixel noise, got {prior_sigma_px!r}")
-    uv, camera = _deskewed(uv, camera)
+    if camera.skew:
+        uv, camera = camera.deskew_pixels(uv), camera.without_skew()
     return H, P, uv, camera, names, label
-
-
-def _deskewed(uv, camera):
-    """(pixels, camera) for the estimators, which take the camera's (cx, cy, aspect) alone: a camera with a
-    grabber's skew becomes the same camera without it, seeing ``deskew_pixels(uv)`` (the same rays, so
-    the same motion); a camera without skew passes as it is. ``uv`` (N, 2), checked by ``_prepare``."""
-    if not camera.skew:
-        return uv, camera
-    return camera.deskew_pixels(uv), camera.without_skew()
 
 
 def _point_names(names, n: int) -> tuple[str, ...]:
@@ -174,9 +145,7 @@ def _point_names(names, n: int) -> tuple[str, ...]:
 
 def _pixel_residuals(camera: CameraModel, uv: np.ndarray, XY_pred: np.ndarray) -> np.ndarray:
     """(N, 2) observed pixels minus the distorted pixels of the predicted undistorted sensor points."""
-    Xh_pred = distort(XY_pred, camera.kappa)
-    Xh_obs = camera.pixel_to_sensor(uv)
-    d = Xh_obs - Xh_pred
+    d = camera.pixel_to_sensor(uv) - distort(XY_pred, camera.kappa)
     return np.column_stack([d[:, 0] / camera.aspect, d[:, 1]])
 
 
@@ -184,14 +153,12 @@ def _camera_points(H: np.ndarray, P: np.ndarray, label: str) -> np.ndarray:
     """Eq. 15: the gripper points P (N, 3) in the camera, C p = C_H_G G p; raises for one behind it."""
     p_C = P @ H[:3, :3].T + H[:3, 3]
     if not np.all(p_C[:, 2] > 0.0):
-        z = float(np.min(p_C[:, 2]))
-        raise CalibrationError(f"{label}: a point lies behind the camera (z = {z:.3g} mm <= 0)")
+        raise CalibrationError(f"{label}: a point lies behind the camera (z = {float(np.min(p_C[:, 2])):.3g} mm <= 0)")
     return p_C
 
 
 def _collinear_reason(P: np.ndarray) -> str | None:
-    """Why points (N, 3) cannot fix a pose, or None: they coincide, or lie within 1 % of their extent
-    of one line."""
+    """Why points (N, 3) cannot fix a pose, or None: they coincide, or lie within 1 % of their extent of one line."""
     s = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
     if s[0] == 0.0:
         return "all points coincide"
@@ -206,32 +173,24 @@ def _scaled(N: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return N / np.outer(d, d), d
 
 
-def _condition(N: np.ndarray) -> float:
-    """Condition number of the column-scaled normal matrix N (6, 6), inf if singular."""
-    s = np.linalg.svd(_scaled(N)[0], compute_uv=False)
-    return float(s[0] / s[-1]) if s[-1] > 0.0 else math.inf
-
-
 def _check_conditioning(N: np.ndarray, P: np.ndarray, label: str) -> float:
-    """The condition of a normal matrix (``_condition``); ``CalibrationError`` when it exceeds
-    ``MAX_CONDITION``, naming collinear points when that is the cause."""
+    """The condition number of the column-scaled normal matrix N (6, 6), inf if singular;
+    ``CalibrationError`` when it exceeds ``MAX_CONDITION``, naming collinear points when that is the cause."""
     if not np.min(N.diagonal()) > 0.0:
         raise CalibrationError(f"{label}: a motion parameter does not affect any observation")
-    cond = _condition(N)
+    s = np.linalg.svd(_scaled(N)[0], compute_uv=False)
+    cond = float(s[0] / s[-1]) if s[-1] > 0.0 else math.inf
     if not cond <= MAX_CONDITION:
-        why = _collinear_reason(P)
-        raise CalibrationError(
-            f"{label}: {why or 'ill-conditioned point configuration'}; condition number {cond:.3g} of "
-            f"the scaled normal system exceeds {MAX_CONDITION:.0e}, the motion would be meaningless"
-        )
+        why = _collinear_reason(P) or "ill-conditioned point configuration"
+        raise CalibrationError(f"{label}: {why}; condition number {cond:.3g} of the scaled normal system exceeds "
+                               f"{MAX_CONDITION:.0e}, the motion would be meaningless")
     return cond
 
 
 # --- NP-U -------------------------------------------------------------------------------------------
 def _eq17(p_C: np.ndarray, XY: np.ndarray, f: float) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 17: (A (2N, 6), b (2N,)), rows X_i then Y_i per point, each divided by the point's depth z_i
-    so that its residual is a pixel (to first order) and the least squares weighs the points as the
-    reprojection error does."""
+    """Eq. 17: (A (2N, 6), b (2N,)), rows X_i then Y_i per point, each divided by the point's depth z_i so that its
+    residual is a pixel (to first order) and the least squares weighs the points as the reprojection error does."""
     x, y, z = p_C.T
     X, Y = XY.T
     zero = np.zeros_like(x)
@@ -242,20 +201,17 @@ def _eq17(p_C: np.ndarray, XY: np.ndarray, f: float) -> tuple[np.ndarray, np.nda
     return Ab[:, :6], Ab[:, 6]
 
 
-def differential_update(
-    C_H_G, p_G, uv, camera: CameraModel, names=None, *, prior_sigma_px: float | None = None
-) -> MotionEstimate:
+def differential_update(C_H_G, p_G, uv, camera: CameraModel, names=None, *,
+                        prior_sigma_px: float | None = None) -> MotionEstimate:
     """``NP-U``: the paper's differential update from N >= 3 points (eq. 13-17).
 
-    ``C p_i = C_H_G G p_i`` (eq. 15); two rows of eq. 17 per point with the undistorted sensor
-    coordinates (X_i, Y_i) of ``uv``; least squares for (delta, d) (eq. 11-12); delta and d of eq. 14;
-    ``C'_H_G = Delta* C_H_G`` (eq. 13, left non-orthogonal as the paper leaves it). The residuals are
-    those of eq. 16, ``Delta* C p_i``, reprojected. ``prior_sigma_px`` replaces the residuals' estimate
-    of the pixel noise in the covariance.
+    ``C p_i = C_H_G G p_i`` (eq. 15); two rows of eq. 17 per point with the undistorted sensor coordinates (X_i, Y_i) of
+    ``uv``; least squares for (delta, d) (eq. 11-12); delta and d of eq. 14; ``C'_H_G = Delta* C_H_G`` (eq. 13, left
+    non-orthogonal as the paper leaves it). The residuals are those of eq. 16, ``Delta* C p_i``, reprojected.
+    ``prior_sigma_px`` replaces the residuals' estimate of the pixel noise in the covariance.
 
-    Raises ``CalibrationError`` for fewer than 3 points, non-finite input, points behind the camera,
-    collinear points or an ill-conditioned system; ``ValueError`` for arrays of the wrong shape.
-    """
+    Raises ``CalibrationError`` for fewer than 3 points, non-finite input, points behind the camera, collinear points or
+    an ill-conditioned system; ``ValueError`` for arrays of the wrong shape."""
     H0, P, uv, camera, names, label = _prepare(C_H_G, p_G, uv, camera, names, "U", prior_sigma_px)
     f = camera.f
     XY = camera.undistort_pixels(uv)
@@ -285,9 +241,7 @@ def _linearise(H: np.ndarray, P: np.ndarray, XY: np.ndarray, f: float, label: st
     JX, JY = J[0::2], J[1::2]
     JX[:, 0], JX[:, 1], JX[:, 2], JX[:, 3], JX[:, 5] = -u * y / z, f + u * x / z, -v, f / z, -u / z
     JY[:, 0], JY[:, 1], JY[:, 2], JY[:, 4], JY[:, 5] = -f - v * y / z, v * x / z, u, f / z, -v / z
-    r = np.empty(2 * len(p))
-    r[0::2], r[1::2] = XY[:, 0] - u, XY[:, 1] - v
-    return p, J, r
+    return p, J, (XY - np.column_stack([u, v])).ravel()
 
 
 def _gauss_newton(H0, H_start, P, uv, camera, names, label, tol, max_iter, prior_sigma_px) -> MotionEstimate:
@@ -326,9 +280,8 @@ def _gauss_newton(H0, H_start, P, uv, camera, names, label, tol, max_iter, prior
         if moved < tol:
             break
     else:
-        raise CalibrationError(
-            f"{label}: no convergence in {max_iter} iterations (the last step moved the points {moved:.3g} mm)"
-        )
+        raise CalibrationError(f"{label}: no convergence in {max_iter} iterations (the last step moved the points "
+                               f"{moved:.3g} mm)")
     N = J.T @ J
     cond = _check_conditioning(N, P, label)  # the final configuration must be well conditioned too
     r_after = r - J @ step  # the residual after the last, sub-tolerance step
@@ -338,43 +291,23 @@ def _gauss_newton(H0, H_start, P, uv, camera, names, label, tol, max_iter, prior
     return _estimate(label, H, H, motion, res, N, cond, float(r_after @ r_after), names, it, H0, prior_sigma_px)
 
 
-def iterative_update(
-    C_H_G,
-    p_G,
-    uv,
-    camera: CameraModel,
-    names=None,
-    tol: float = 1e-9,
-    max_iter: int = 50,
-    *,
-    prior_sigma_px: float | None = None,
-) -> MotionEstimate:
+def iterative_update(C_H_G, p_G, uv, camera: CameraModel, names=None, tol: float = 1e-9, max_iter: int = 50, *,
+                     prior_sigma_px: float | None = None) -> MotionEstimate:
     """``NP-I``: the exact update, Gauss-Newton on SE(3) from the current ``C_H_G`` (4, 4).
 
-    Minimises the residuals NP-U linearises, in undistorted sensor coordinates (eq. 3-4), so NP-I is
-    the exact solution of the same problem. Iterates until no point moves more than ``tol`` mm in a
-    step; orthogonal by construction. ``motion`` is the rotation vector and translation of
-    ``C'_H_G C_H_G^-1``.
+    Minimises the residuals NP-U linearises, in undistorted sensor coordinates (eq. 3-4), so NP-I is the exact solution
+    of the same problem. Iterates until no point moves more than ``tol`` mm in a step; orthogonal by construction.
+    ``motion`` is the rotation vector and translation of ``C'_H_G C_H_G^-1``.
 
-    Raises ``CalibrationError`` for fewer than 3 points, non-finite input, a mirroring ``C_H_G``, points
-    behind the camera, collinear points, an ill-conditioned system or no convergence in ``max_iter`` steps.
-    """
+    Raises ``CalibrationError`` for fewer than 3 points, non-finite input, a mirroring ``C_H_G``, points behind the
+    camera, collinear points, an ill-conditioned system or no convergence in ``max_iter`` steps."""
     H0, P, uv, camera, names, label = _prepare(C_H_G, p_G, uv, camera, names, "I", prior_sigma_px)
     return _gauss_newton(H0, orthonormalize(H0), P, uv, camera, names, label, tol, max_iter, prior_sigma_px)
 
 
 # --- NP-R -------------------------------------------------------------------------------------------
-def recalibrate(
-    C_H_G,
-    p_G,
-    uv,
-    camera: CameraModel,
-    names=None,
-    *,
-    tol: float = 1e-9,
-    max_iter: int = 50,
-    prior_sigma_px: float | None = None,
-) -> MotionEstimate:
+def recalibrate(C_H_G, p_G, uv, camera: CameraModel, names=None, *, tol: float = 1e-9, max_iter: int = 50,
+                prior_sigma_px: float | None = None) -> MotionEstimate:
     """``NP-R``: exterior orientation of the camera with respect to the gripper from N >= 4 points.
 
     Coplanar points (the fingertips all lie in z = 0 of G) go to OpenCV's IPPE (``solvePnPGeneric``)
@@ -383,8 +316,7 @@ def recalibrate(
     the Gauss-Newton of NP-I over all the points. Points that are not coplanar start from SQPnP instead.
 
     Raises ``CalibrationError`` for fewer than 4 points, non-finite input, a mirroring ``C_H_G``,
-    collinear points, no solution, an ill-conditioned system or no convergence.
-    """
+    collinear points, no solution, an ill-conditioned system or no convergence."""
     import cv2  # see _gauss_newton
 
     H0, P, uv, camera, names, label = _prepare(C_H_G, p_G, uv, camera, names, "R", prior_sigma_px)
@@ -404,19 +336,15 @@ def recalibrate(
         n_sol, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, np.eye(3), None, flags=flag)
     except cv2.error as exc:
         raise CalibrationError(f"{label}: OpenCV's solvePnPGeneric failed ({exc.err})") from exc
-    cands = []
-    for rv, tv in zip(rvecs[:n_sol], tvecs[:n_sol]):
-        if not (np.isfinite(rv).all() and np.isfinite(tv).all()):
-            continue
-        cands.append(make_H(cv2.Rodrigues(rv)[0] @ R0, tv.ravel()))  # C_H_G = C_H_F F_H_G
+    cands = [make_H(cv2.Rodrigues(rv)[0] @ R0, tv.ravel()) for rv, tv in zip(rvecs[:n_sol], tvecs[:n_sol])
+             if np.isfinite(rv).all() and np.isfinite(tv).all()]  # C_H_G = C_H_F F_H_G
     if not cands:
         raise CalibrationError(f"{label}: the exterior orientation has no solution for these points")
 
     def distance(Hc):  # mean distance [mm] of the points under Hc and under the current estimate
         return float(np.mean(np.linalg.norm(P @ (Hc[:3, :3] - R0).T + (Hc[:3, 3] - H_ref[:3, 3]), axis=1)))
 
-    start = min(cands, key=distance)
-    return _gauss_newton(H0, start, P, uv, camera, names, label, tol, max_iter, prior_sigma_px)
+    return _gauss_newton(H0, min(cands, key=distance), P, uv, camera, names, label, tol, max_iter, prior_sigma_px)
 
 
 # --- methods by name ---------------------------------------------------------------------------------
@@ -443,11 +371,10 @@ def select_points(method: str, found) -> list[int]:
     base = list(range(min(n, 4)))
     missing = [POINT_NAMES[i] for i in base if not found[i]]
     if n == 5:
-        extra = 4 if found[4] else 5 if found[5] else None
-        if extra is None:
-            missing.append(f"{POINT_NAMES[4]} or {POINT_NAMES[5]}")
+        if found[4] or found[5]:
+            base.append(4 if found[4] else 5)
         else:
-            base.append(extra)
+            missing.append(f"{POINT_NAMES[4]} or {POINT_NAMES[5]}")
     if missing:
         raise CalibrationError(f"{method}: needs {', '.join(missing)}, not found")
     return base
@@ -462,8 +389,7 @@ def model_estimate(C_H_G, C_H_G_model, rms_px: float = float("nan")) -> MotionEs
     """The estimate 'E': the model-based measurement's fitted pose ``C_H_G_model`` (4, 4) as the new
     ``C_H_G``; the camera's motion ``C'_H_C = C_H_G_model C_H_G^-1`` gives ``motion``, ``delta_deg`` and
     ``d_mm`` (eq. 14); ``rms_px`` the fit's residual. No points, no covariance (NaN)."""
-    H0 = np.asarray(C_H_G, dtype=float)
-    H = np.asarray(C_H_G_model, dtype=float)
+    H0, H = np.asarray(C_H_G, dtype=float), np.asarray(C_H_G_model, dtype=float)
     if H0.shape != (4, 4) or not np.all(np.isfinite(H0)):
         raise ValueError(f"C_H_G: expected a finite (4, 4) transform, got shape {H0.shape}")
     if H.shape != (4, 4) or not np.all(np.isfinite(H)):
@@ -477,20 +403,19 @@ def model_estimate(C_H_G, C_H_G_model, rms_px: float = float("nan")) -> MotionEs
 
 def estimate(method: str, C_H_G, p_G6, uv6, found6, camera: CameraModel, *, model_C_H_G=None,
              model_rms_px: float = float("nan"), **kwargs) -> MotionEstimate:
-    """Run the on-line method named ``method`` (one of ``METHODS``, or ``MODEL_METHOD`` 'E' with the
-    model-based measurement's pose ``model_C_H_G`` and residual ``model_rms_px``) on the six points.
+    """Run the on-line method named ``method`` (one of ``METHODS``, or ``MODEL_METHOD`` 'E' with the model-based
+    measurement's pose ``model_C_H_G`` and residual ``model_rms_px``) on the six points.
 
-    ``p_G6`` (6, 3) gripper points [mm], ``uv6`` (6, 2) observed distorted pixels (NaN where not found),
-    ``found6`` (6,) bool; the method picks its points by ``select_points``. ``kwargs`` go to the solver
-    (``prior_sigma_px``; ``tol``, ``max_iter`` for I and R). Raises ``ConfigError`` for an unknown
-    method, ``CalibrationError`` as the solvers do."""
+    ``p_G6`` (6, 3) gripper points [mm], ``uv6`` (6, 2) observed distorted pixels (NaN where not found), ``found6`` (6,)
+    bool; the method picks its points by ``select_points``. ``kwargs`` go to the solver (``prior_sigma_px``; ``tol``,
+    ``max_iter`` for I and R). Raises ``ConfigError`` for an unknown method, ``CalibrationError`` as the solvers do."""
     if method == MODEL_METHOD:
         if model_C_H_G is None:
-            raise ConfigError("on-line method 'E' is the model's own estimate: it needs the model-based measurement's pose")
+            raise ConfigError("on-line method 'E' is the model's own estimate: it needs the model-based "
+                              "measurement's pose")
         return model_estimate(C_H_G, model_C_H_G, model_rms_px)
     _, kind = parse_method(method)
-    p_G6 = np.asarray(p_G6, dtype=float)
-    uv6 = np.asarray(uv6, dtype=float)
+    p_G6, uv6 = np.asarray(p_G6, dtype=float), np.asarray(uv6, dtype=float)
     if p_G6.shape != (6, 3) or uv6.shape != (6, 2):
         raise ValueError(f"estimate: expected p_G6 (6, 3) and uv6 (6, 2), got {p_G6.shape} and {uv6.shape}")
     idx = select_points(method, found6)

@@ -1,10 +1,9 @@
 """The Plane Coincidence Constraint (paper, section 3, eq. 5-10).
 
-With the gripper parked on the plate, the fingertip contact plane (G's x-y plane) coincides with the
-plate's (W's x-y plane) and both z axes point the same way, so ``W_H_G`` is a rotation about z plus a
-translation in x-y (eq. 7). The fingertip points' pixels are back-projected onto the plate plane (eq. 8),
-eq. 10 is solved for (q1, q2, s_x, s_y) by least squares, (q1, q2) normalised, and
-``C_H_G = C_H_W W_H_G`` (eq. 6). No robot kinematics is involved.
+With the gripper parked on the plate, the fingertip contact plane (G's x-y plane) coincides with the plate's (W's x-y
+plane) and both z axes point the same way, so ``W_H_G`` is a rotation about z plus a translation in x-y (eq. 7). The
+fingertip points' pixels are back-projected onto the plate plane (eq. 8), eq. 10 is solved for (q1, q2, s_x, s_y) by
+least squares, (q1, q2) normalised, and ``C_H_G = C_H_W W_H_G`` (eq. 6). No robot kinematics is involved.
 """
 
 from __future__ import annotations
@@ -22,13 +21,10 @@ __all__ = ["PCCResult", "solve_pcc", "measure_points_G", "points_G_for_state", "
 
 @dataclass(frozen=True)
 class PCCResult:
-    """Result of the PCC solve.
-
-    ``W_H_G``, ``C_H_G`` (4, 4); ``p_W`` (N, 3) back-projected fingertip points in W [mm]; ``z_C`` (N,)
-    their depths; ``residuals_mm`` (N, 2) of eq. 10 (back-projected minus modelled, in the plate plane);
-    ``rms_mm``; ``q_norm`` the length of (q1, q2) before normalisation (1 for a consistent gripper model);
-    ``names`` the points used; ``points_G`` (N, 3) the G coordinates used.
-    """
+    """Result of the PCC solve: ``W_H_G``, ``C_H_G`` (4, 4); ``p_W`` (N, 3) back-projected fingertip points in W
+    [mm]; ``z_C`` (N,) their depths; ``residuals_mm`` (N, 2) of eq. 10 (back-projected minus modelled, in the
+    plate plane); ``rms_mm``; ``q_norm`` the length of (q1, q2) before normalisation (1 for a consistent gripper
+    model); ``names`` the points used; ``points_G`` (N, 3) the G coordinates used."""
 
     W_H_G: np.ndarray
     C_H_G: np.ndarray
@@ -55,11 +51,8 @@ def solve_pcc(uv, points_G, C_H_W, camera: CameraModel, names=None) -> PCCResult
     (z is their distance from the contact plane, normally 0), ``C_H_W`` (4, 4) the plate pose from camera
     calibration, ``camera`` with the calibrated f and kappa.
     Raises ``CalibrationError`` with fewer than two points, coincident points or non-finite input;
-    ``ValueError`` for arrays of the wrong shape.
-    """
-    uv = np.asarray(uv, dtype=float)
-    pG = np.asarray(points_G, dtype=float)
-    H = np.asarray(C_H_W, dtype=float)
+    ``ValueError`` for arrays of the wrong shape."""
+    uv, pG, H = (np.asarray(a, dtype=float) for a in (uv, points_G, C_H_W))
     if uv.ndim != 2 or uv.shape[1] != 2:
         raise ValueError(f"PCC: uv: expected shape (N, 2), got {uv.shape}")
     if pG.ndim != 2 or pG.shape[1] != 3:
@@ -75,8 +68,7 @@ def solve_pcc(uv, points_G, C_H_W, camera: CameraModel, names=None) -> PCCResult
         raise CalibrationError("PCC: fingertip pixels or gripper points contain NaN or infinity")
     if not np.all(np.isfinite(H)):
         raise CalibrationError("PCC: the plate pose C_H_W contains NaN or infinity")
-    spread = np.ptp(pG[:, :2], axis=0).max()
-    if spread < 1e-6:
+    if np.ptp(pG[:, :2], axis=0).max() < 1e-6:
         raise CalibrationError("PCC: the gripper points coincide in the contact plane; their layout fixes no rotation")
     # eq. 8: back-projection onto the plane z_W = z_G (the planes coincide)
     p_W, z_C = camera.backproject_to_plane(uv, H, pG[:, 2])
@@ -85,25 +77,14 @@ def solve_pcc(uv, points_G, C_H_W, camera: CameraModel, names=None) -> PCCResult
     A = np.zeros((2 * n, 4))
     A[0::2] = np.column_stack([pG[:, 0], -pG[:, 1], np.ones(n), np.zeros(n)])
     A[1::2] = np.column_stack([pG[:, 1], pG[:, 0], np.zeros(n), np.ones(n)])
-    b = p_W[:, :2].reshape(-1)
-    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+    sol, *_ = np.linalg.lstsq(A, p_W[:, :2].reshape(-1), rcond=None)
     q_norm = float(np.hypot(sol[0], sol[1]))
     if q_norm < 1e-9:
         raise CalibrationError("PCC: the solve gave (q1, q2) = 0; the fingertip points do not fix a rotation")
     W_H_G = w_h_g_from_params(*sol)
-    model = pG[:, :2] @ W_H_G[:2, :2].T + W_H_G[:2, 3]
-    res = p_W[:, :2] - model
-    return PCCResult(
-        W_H_G=W_H_G,
-        C_H_G=H @ W_H_G,
-        p_W=p_W,
-        z_C=z_C,
-        residuals_mm=res,
-        rms_mm=float(np.sqrt(np.mean(np.sum(res**2, axis=1)))),
-        q_norm=q_norm,
-        names=names,
-        points_G=pG,
-    )
+    res = p_W[:, :2] - (pG[:, :2] @ W_H_G[:2, :2].T + W_H_G[:2, 3])
+    return PCCResult(W_H_G=W_H_G, C_H_G=H @ W_H_G, p_W=p_W, z_C=z_C, residuals_mm=res,
+                     rms_mm=float(np.sqrt(np.mean(np.sum(res**2, axis=1)))), q_norm=q_norm, names=names, points_G=pG)
 
 
 def measure_points_G(p_W: np.ndarray, found: np.ndarray) -> dict[str, float]:
@@ -113,8 +94,7 @@ def measure_points_G(p_W: np.ndarray, found: np.ndarray) -> dict[str, float]:
     along G's axes, so their mutual distances give the jaw gap g and the finger width w; the outer points
     give the finger thickness t. ``p_W`` (6, 3) in POINT_NAMES order, ``found`` (6,) bool.
     Returns {'gap', 'width', 'thickness_A', 'thickness_B'} [mm] (thickness NaN where its point is missing).
-    Raises ``CalibrationError`` unless all four inner points were found.
-    """
+    Raises ``CalibrationError`` unless all four inner points were found."""
     p = np.asarray(p_W, float)
     found = np.asarray(found, bool)
     if p.ndim != 2 or p.shape[0] != len(POINT_NAMES) or p.shape[1] not in (2, 3) or found.shape != (len(POINT_NAMES),):
@@ -132,16 +112,14 @@ def measure_points_G(p_W: np.ndarray, found: np.ndarray) -> dict[str, float]:
 
 def jaw_gap_of(points_G) -> float:
     """The jaw gap g [mm] of (6, 3) gripper points in POINT_NAMES order: the inner four lie at x = +-g/2."""
-    p = np.asarray(points_G, float)
-    return float(np.mean(np.abs(p[:4, 0])) * 2)
+    return float(np.mean(np.abs(np.asarray(points_G, float)[:4, 0])) * 2)
 
 
 def points_G_for_state(dims: dict[str, float], measured_state: str, gripper: GripperSpec) -> dict[str, np.ndarray]:
     """(6, 3) G coordinates per gripper state from dimensions measured in ``measured_state``.
 
     The other states' gaps are derived by the nominal difference of jaw gaps (the valve's end stops),
-    width and thickness are the same in every state. A thickness not measured falls back to the cell's.
-    """
+    width and thickness are the same in every state. A thickness not measured falls back to the cell's."""
     t_nom = gripper.finger_thickness
     tA = dims["thickness_A"] if np.isfinite(dims.get("thickness_A", np.nan)) else t_nom
     tB = dims["thickness_B"] if np.isfinite(dims.get("thickness_B", np.nan)) else t_nom

@@ -10,7 +10,6 @@ The stages follow Willson's v3.0b3 (``cal_main.c``): linear stages 1-4, then a r
 from __future__ import annotations
 
 import re
-
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,42 +22,33 @@ from selfview.maths.geometry import R_from_rotvec, R_from_rpy, cross_rows, make_
 from selfview.files.io_safe import parse_number, read_bounded
 from selfview.maths.lm import covariance, levenberg_marquardt
 
-__all__ = [
-    "FREE_CENTRE_MODES", "MODES", "TsaiResult", "calibrate_coplanar", "load_willson_points", "parse_willson_log",
-    "residual_stats",
-]
+__all__ = ["FREE_CENTRE_MODES", "MODES", "TsaiResult", "calibrate_coplanar", "load_willson_points", "parse_willson_log",
+           "residual_stats"]
 
 MODES = ("tsai", "full", "full+centre", "willson")
 #: The modes that calibrate the principal point (the given one only starts them).
 FREE_CENTRE_MODES = ("full+centre", "willson")
 
-#: A plate tilted further than this from square-on (angle between its normal and the optical axis)
-#: is refused as seen edge-on.
+#: A plate tilted further than this from square-on (its normal against the optical axis) is refused as edge-on.
 EDGE_ON_LIMIT_DEG = 85.0
-#: Largest condition number of the column-equilibrated linear f/Tz system: above it the system is
-#: numerically singular (all points at one depth: plate square-on).
+#: Largest condition number of the column-equilibrated linear f/Tz system (above: all points at one depth, square-on).
 F_TZ_COND_LIMIT = 1.0e6
-#: Largest standard error of f, relative to f, that the f/Tz/kappa stage may imply: above it the
-#: depths of the points differ too little (plate nearly square-on, or far for its size) for f to be
-#: separated from Tz. Willson's own far-away data (6.6 m) give 2.8 %.
+#: Largest relative standard error of f the f/Tz/kappa stage may imply: above it the points' depths differ too little
+#: (plate nearly square-on, or far for its size) to separate f from Tz. Willson's far-away data (6.6 m) give 2.8 %.
 F_REL_SD_LIMIT = 0.05
-#: The same limit on the final refinement (pose, f, kappa and perhaps the principal point): one view
-#: of a plane hardly separates the principal point from f and the tilt unless the lens distorts.
+#: The same limit on the final refinement (pose, f, kappa and perhaps the principal point): one view of a plane
+#: hardly separates the principal point from f and the tilt unless the lens distorts.
 FULL_REL_SD_LIMIT = 0.10
-#: The smallest image noise [px] assumed when judging that separation, so that exact synthetic data
-#: of a square-on plate do not pass.
+#: Smallest image noise [px] assumed in judging that separation, so that exact data of a square-on plate do not pass.
 SEPARABILITY_NOISE_PX = 0.02
 #: Willson's lmdif tolerances (cal_main.h): relative cost reduction and relative step.
-WILLSON_FTOL = 1.0e-5
-WILLSON_XTOL = 1.0e-7
+WILLSON_FTOL, WILLSON_XTOL = 1.0e-5, 1.0e-7
 #: Willson's lmdif budget of residual evaluations per parameter (cal_main.h: MAXFEV = 1000 n).
 WILLSON_MAXFEV_PER_PARAM = 1000
 #: Tolerances of the f, Tz, kappa stage when it only starts a full refinement.
-INIT_FTOL = 1.0e-8
-INIT_XTOL = 1.0e-8
+INIT_FTOL, INIT_XTOL = 1.0e-8, 1.0e-8
 #: Tolerances of the full refinements, tight enough to reach the minimum to machine precision.
-FULL_FTOL = 1.0e-12
-FULL_XTOL = 1.0e-10
+FULL_FTOL, FULL_XTOL = 1.0e-12, 1.0e-10
 #: Residual evaluations the full refinement may spend (it needs 10 to 30 when the data determine it).
 FULL_MAX_NFEV = 400
 #: Smallest ratio of the second to the first singular value of the centred points (collinearity).
@@ -67,13 +57,10 @@ COLLINEAR_LIMIT = 1.0e-3
 
 @dataclass(frozen=True)
 class TsaiResult:
-    """Result of ``calibrate_coplanar``.
-
-    ``camera`` the calibrated model (f [px], kappa [px^-2], principal point, aspect, size);
-    ``C_H_W`` (4, 4) plate -> camera, mm; ``residuals_px`` (N, 2) observed minus model in distorted
-    pixels; ``rms_px``, ``mean_px``, ``max_px``, ``sse_px2`` statistics of the per-point distances;
-    ``mode`` the refinement used; ``iterations`` Levenberg-Marquardt iterations over all stages.
-    """
+    """Result of ``calibrate_coplanar``: ``camera`` the calibrated model (f [px], kappa [px^-2], principal point,
+    aspect, size); ``C_H_W`` (4, 4) plate -> camera, mm; ``residuals_px`` (N, 2) observed minus model in
+    distorted pixels; ``rms_px``, ``mean_px``, ``max_px``, ``sse_px2`` statistics of the per-point distances;
+    ``mode`` the refinement used; ``iterations`` Levenberg-Marquardt iterations over all stages."""
 
     camera: CameraModel
     C_H_W: np.ndarray
@@ -91,17 +78,11 @@ class TsaiResult:
         return np.hypot(self.residuals_px[:, 0], self.residuals_px[:, 1])
 
     def to_dict(self) -> dict:
-        """Plain numbers and lists (for JSON and YAML): f, kappa, principal point, aspect, size,
-        ``C_H_W`` (4x4 nested list) and the error statistics."""
+        """Plain numbers and lists for JSON and YAML: the camera, ``C_H_W`` (4x4 nested list), the error statistics."""
         return {
-            **self.camera.to_dict(),
-            "C_H_W": np.asarray(self.C_H_W, dtype=float).tolist(),
-            "rms_px": float(self.rms_px),
-            "mean_px": float(self.mean_px),
-            "max_px": float(self.max_px),
-            "sse_px2": float(self.sse_px2),
-            "mode": self.mode,
-            "n_points": int(len(self.residuals_px)),
+            **self.camera.to_dict(), "C_H_W": np.asarray(self.C_H_W, dtype=float).tolist(),
+            "rms_px": float(self.rms_px), "mean_px": float(self.mean_px), "max_px": float(self.max_px),
+            "sse_px2": float(self.sse_px2), "mode": self.mode, "n_points": int(len(self.residuals_px)),
             "iterations": int(self.iterations),
         }
 
@@ -116,23 +97,19 @@ def residual_stats(residuals) -> tuple[float, float, float, float]:
 # --- input checks ------------------------------------------------------------------------------------
 def _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height, f_guess=None):
     try:
-        p = np.asarray(p_W, dtype=float)
-        q = np.asarray(uv, dtype=float)
+        p, q = np.asarray(p_W, dtype=float), np.asarray(uv, dtype=float)
     except (TypeError, ValueError) as exc:
         raise CalibrationError(f"coplanar calibration: points are not numbers ({exc})") from exc
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise CalibrationError(f"coplanar calibration: p_W must have shape (N, 3), got {p.shape}")
-    if q.ndim != 2 or q.shape[1] != 2:
-        raise CalibrationError(f"coplanar calibration: uv must have shape (N, 2), got {q.shape}")
+    for name, a, k in (("p_W", p, 3), ("uv", q, 2)):
+        if a.ndim != 2 or a.shape[1] != k:
+            raise CalibrationError(f"coplanar calibration: {name} must have shape (N, {k}), got {a.shape}")
     if len(p) != len(q):
         raise CalibrationError(f"coplanar calibration: {len(p)} plate points but {len(q)} image points")
     for name, a in (("p_W", p), ("uv", q)):
         bad = ~np.all(np.isfinite(a), axis=1)
         if bad.any():
-            raise CalibrationError(
-                f"coplanar calibration: {name} has non-finite values (NaN or inf) at row(s) "
-                f"{np.flatnonzero(bad)[:10].tolist()}"
-            )
+            raise CalibrationError(f"coplanar calibration: {name} has non-finite values (NaN or inf) at row(s) "
+                                   f"{np.flatnonzero(bad)[:10].tolist()}")
     if len(p) < 5:
         raise CalibrationError(f"coplanar calibration needs at least 5 points, got {len(p)}")
     for name, v in (("cx", cx), ("cy", cy), ("aspect", aspect)):
@@ -146,23 +123,27 @@ def _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height, f_guess=None):
         raise ConfigError(f"coplanar calibration: picture size must be positive, got {width}x{height}")
     if f_guess is not None and not (np.isfinite(f_guess) and f_guess > 0):
         raise ConfigError(f"coplanar calibration: f_guess must be a positive focal length in px, got {f_guess!r}")
-    extent = float(np.ptp(p[:, :2], axis=0).max())
-    zmax = float(np.abs(p[:, 2]).max())
-    if zmax > 1e-6 * max(extent, 1.0):
-        i = int(np.argmax(np.abs(p[:, 2])))
-        raise CalibrationError(
-            f"non-coplanar points in a coplanar call: z must be 0 on the plate, point {i} has z = {p[i, 2]:.6g} mm"
-        )
+    i = int(np.argmax(np.abs(p[:, 2])))
+    if abs(p[i, 2]) > 1e-6 * max(float(np.ptp(p[:, :2], axis=0).max()), 1.0):
+        raise CalibrationError(f"non-coplanar points in a coplanar call: z must be 0 on the plate, point {i} has "
+                               f"z = {p[i, 2]:.6g} mm")
     _check_spread(p[:, :2], "plate points", "collinear plate points: they do not span the plate's plane")
     return p, q
 
 
 def _check_spread(xy: np.ndarray, what: str, cause: str) -> None:
-    c = xy - xy.mean(axis=0)
-    s = np.linalg.svd(c, compute_uv=False)
+    s = np.linalg.svd(xy - xy.mean(axis=0), compute_uv=False)
     if s[0] == 0 or s[1] < COLLINEAR_LIMIT * s[0]:
         ratio = 0.0 if s[0] == 0 else s[1] / s[0]
         raise CalibrationError(f"{cause} (spread ratio of the {what} {ratio:.2e} < {COLLINEAR_LIMIT:.0e})")
+
+
+def _sensor(uv, cx, cy, aspect, kappa):
+    """Distorted (X^, Y^) and undistorted (X, Y) sensor coordinates [px] of pixels ``uv`` (N, 2) (eq. 4)."""
+    Xh = aspect * (uv[:, 0] - cx)
+    Yh = uv[:, 1] - cy
+    a = 1.0 + kappa * (Xh * Xh + Yh * Yh)
+    return Xh, Yh, Xh * a, Yh * a
 
 
 # --- linear stages (Willson's cc_compute_U ... cc_compute_approximate_f_and_Tz) ------------------------
@@ -183,22 +164,17 @@ def _radial_alignment(xw, yw, Xd, Yd):
     1. radial alignment: five unknowns ``U = (r1, r2, Tx, r4, r5) / Ty`` by linear least squares from
        ``Y^ (r1 x + r2 y + Tx) = X^ (r4 x + r5 y + Ty)``;
     2. ``|Ty|`` from U, its sign from the point farthest from the image centre;
-    3. R: r3, r6 from unit rows, the sign of r6 from ``r1 r4 + r2 r5``, the third row as the cross
-       product."""
+    3. R: r3, r6 from unit rows, the sign of r6 from ``r1 r4 + r2 r5``, the third row as the cross product."""
     A = np.column_stack([Yd * xw, Yd * yw, Yd, -Xd * xw, -Xd * yw])
     U, *_ = np.linalg.lstsq(A, Xd, rcond=None)
     r1p, r2p, _, r4p, r5p = U
     tiny = 1e-12 * max(np.abs(U[[0, 1, 3, 4]]).max(), 1e-300)
     det = r1p * r5p - r4p * r2p
     # A vanishing row or column of the 2x2 block makes the general formula 0/0 (Tsai 1987, eq. 10).
-    if abs(r1p) < tiny and abs(r2p) < tiny:
-        ty2 = 1.0 / (r4p**2 + r5p**2)
-    elif abs(r4p) < tiny and abs(r5p) < tiny:
-        ty2 = 1.0 / (r1p**2 + r2p**2)
-    elif abs(r1p) < tiny and abs(r4p) < tiny:
-        ty2 = 1.0 / (r2p**2 + r5p**2)
-    elif abs(r2p) < tiny and abs(r5p) < tiny:
-        ty2 = 1.0 / (r1p**2 + r4p**2)
+    for a, b, c, d in ((r1p, r2p, r4p, r5p), (r4p, r5p, r1p, r2p), (r1p, r4p, r2p, r5p), (r2p, r5p, r1p, r4p)):
+        if abs(a) < tiny and abs(b) < tiny:
+            ty2 = 1.0 / (c**2 + d**2)
+            break
     else:
         sr = r1p**2 + r2p**2 + r4p**2 + r5p**2
         ty2 = (sr - np.sqrt(max(sr * sr - 4.0 * det * det, 0.0))) / (2.0 * det * det)
@@ -222,9 +198,8 @@ def _radial_alignment(xw, yw, Xd, Yd):
 
 
 def _approximate_f_Tz(xw, yw, Yd, r, ty, with_cond=True):
-    """Stage 4, f and Tz by linear least squares from ``f y - Y^ Tz = Y^ w``, kappa taken as 0: (f, Tz,
-    condition number of the column-equilibrated system (NaN unless ``with_cond``)). If f < 0, the caller
-    takes the other solution for R (``_flip_R``)."""
+    """Stage 4, f and Tz by linear least squares from ``f y - Y^ Tz = Y^ w``, kappa taken as 0: (f, Tz, condition
+    number of the column-equilibrated system (NaN unless ``with_cond``)); f < 0 asks for the other solution for R."""
     yc = r[1, 0] * xw + r[1, 1] * yw + ty
     w = r[2, 0] * xw + r[2, 1] * yw
     A = np.column_stack([yc, -Yd])
@@ -239,32 +214,22 @@ def _approximate_f_Tz(xw, yw, Yd, r, ty, with_cond=True):
     return float(sol[0]), float(sol[1]), cond
 
 
-def _flip_R(r: np.ndarray) -> np.ndarray:
-    """The other solution for R (Willson): r3, r6, r7, r8 negated."""
-    r = r.copy()
-    r[0, 2], r[1, 2], r[2, 0], r[2, 1] = -r[0, 2], -r[1, 2], -r[2, 0], -r[2, 1]
-    return r
-
-
 def _linear_pose(xw, yw, Xd, Yd, with_cond=True):
     """Stages 1-4 in the given plate frame: (Tx, Ty, r, f, Tz, cond (NaN unless ``with_cond``))."""
     tx, ty, r = _radial_alignment(xw, yw, Xd, Yd)
     f, tz, cond = _approximate_f_Tz(xw, yw, Yd, r, ty, with_cond)
-    if not f >= 0:  # also NaN
-        r = _flip_R(r)
+    if not f >= 0:  # also NaN: the other solution for R (Willson), r3, r6, r7, r8 negated
+        r = r * np.array([[1.0, 1.0, -1.0], [1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]])
         f, tz, cond = _approximate_f_Tz(xw, yw, Yd, r, ty, with_cond)
         if not f >= 0:
-            raise CalibrationError(
-                "no pose with a positive focal length fits: the plate coordinates may be left-handed or "
-                "the correspondences mislabelled"
-            )
+            raise CalibrationError("no pose with a positive focal length fits: the plate coordinates may be "
+                                   "left-handed or the correspondences mislabelled")
     return tx, ty, r, f, tz, cond
 
 
 def _linear_stages(xy, Xd, Yd):
-    """Stages 1-4, in the given plate frame unless its origin lies too near the camera's y-z plane:
-    (origin (2,) of the stages' frame in W, xy in it, Tx, Ty, r, f, Tz, R_lin, tilt [deg]); refuses a
-    plate seen edge-on or a singular f/Tz system."""
+    """Stages 1-4, in the given plate frame unless its origin lies too near the camera's y-z plane: (origin (2,) of the
+    stages' frame in W, xy in it, Tx, Ty, r, f, Tz, R_lin, tilt [deg]); refuses a plate edge-on or a singular f/Tz."""
     origin = np.zeros(2)
     try:
         tx, ty, r, f_lin, tz, cond = _linear_pose(xy[:, 0], xy[:, 1], Xd, Yd)
@@ -278,9 +243,8 @@ def _linear_stages(xy, Xd, Yd):
     R_lin = R_from_rpy(*_rpy_paul(r))
     tilt = float(np.degrees(np.arccos(min(abs(R_lin[2, 2]), 1.0))))
     if tilt > EDGE_ON_LIMIT_DEG:
-        raise CalibrationError(
-            f"plate seen nearly edge-on: tilted {tilt:.1f} deg from square-on (limit {EDGE_ON_LIMIT_DEG:g} deg)"
-        )
+        raise CalibrationError(f"plate seen nearly edge-on: tilted {tilt:.1f} deg from square-on "
+                               f"(limit {EDGE_ON_LIMIT_DEG:g} deg)")
     if not cond <= F_TZ_COND_LIMIT:
         raise _inseparable(tilt, f"the linear f/Tz system is singular, condition number {cond:.3g}")
     return origin, xy, tx, ty, r, f_lin, tz, R_lin, tilt
@@ -288,9 +252,8 @@ def _linear_stages(xy, Xd, Yd):
 
 # --- non-linear stages ---------------------------------------------------------------------------------
 class _FTzKappa:
-    """Stage 5a's model: pose from stages 1-3 (camera x, y of each point ``xc``, ``yc`` and its
-    depth less Tz, ``w``), residuals in undistorted sensor coordinates of the distorted points
-    (``Xd``, ``Yd``) as functions of (f, Tz, kappa)."""
+    """Stage 5a's model: residuals in undistorted sensor coordinates of the distorted points (``Xd``, ``Yd``) as
+    functions of (f, Tz, kappa), pose from stages 1-3 (camera x, y of each point ``xc``, ``yc``, depth - Tz ``w``)."""
 
     def __init__(self, xc, yc, w, Xd, Yd):
         self.xy = np.concatenate([xc, yc])
@@ -331,17 +294,14 @@ def _refine_tsai(model: _FTzKappa, f, tz, kappa, willson: bool):
     ``willson``: his path (``cc_compute_exact_f_and_Tz``: per-point distances, forward differences, his
     tolerances; kappa's step relative to 1 / r_max^2); otherwise x and y residuals, analytic Jacobian."""
     if willson:
-        return levenberg_marquardt(
-            model.distances, [f, tz, kappa], "forward", ftol=WILLSON_FTOL, xtol=WILLSON_XTOL,
-            scale=[1.0, 1.0, 1.0 / model.r2.max()],
-        )
+        return levenberg_marquardt(model.distances, [f, tz, kappa], "forward", ftol=WILLSON_FTOL, xtol=WILLSON_XTOL,
+                                   scale=[1.0, 1.0, 1.0 / model.r2.max()])
     return levenberg_marquardt(model.residuals, [f, tz, kappa], model.jacobian, ftol=INIT_FTOL, xtol=INIT_XTOL)
 
 
 class _FullModel:
-    """Stage 5b's model: parameters x = (omega (3), t (3) [mm], f [px], kappa [px^-2] [, cx, cy]) with
-    R = exp(omega) R0; residuals in distorted pixels, model minus observation (u of all points, then
-    v), and their analytic Jacobian."""
+    """Stage 5b's model: parameters x = (omega (3), t (3) [mm], f [px], kappa [px^-2] [, cx, cy]), R = exp(omega) R0;
+    residuals in distorted pixels, model minus observation (u of all points, then v), and their analytic Jacobian."""
 
     def __init__(self, p_W, uv, R0, cx, cy, aspect, free_centre):
         self.q = np.asarray(p_W, dtype=float) @ R0.T  # plate points rotated by R0, (N, 3)
@@ -371,25 +331,18 @@ class _FullModel:
         a = 1.0 + k_ * rh2
         # d(distorted)/d(undistorted) = (a I + 2 k Xh Xh^T)^-1 = (I - c Xh Xh^T) / a  (eq. 4 inverted)
         c = 2.0 * k_ / (a + 2.0 * k_ * rh2)
-        m01 = -c * Xh * Yh / a
+        m00, m01, m11 = (1.0 - c * Xh * Xh) / a, -c * Xh * Yh / a, (1.0 - c * Yh * Yh) / a
         Jl = so3_left_jacobian(x[:3])
         rows = []
-        m00, m11 = (1.0 - c * Xh * Xh) / a, (1.0 - c * Yh * Yh) / a
         for mu0, mu1 in ((m00 / self.aspect, m01 / self.aspect), (m01, m11)):
             # d(pixel)/d(p_C) through eq. 3, X = f x / z, Y = f y / z
             g = np.column_stack([mu0, mu1, -(mu0 * X + mu1 * Y) / f_]) * (f_ / z)[:, None]
-            rows.append(np.hstack([
-                cross_rows(d, g) @ Jl,  # g d p_C / d omega = g (-[R q]x) J_l(omega) = (R q x g) J_l
-                g,
-                ((mu0 * X + mu1 * Y) / f_)[:, None],
-                (-(mu0 * Xh + mu1 * Yh) * rh2)[:, None],
-            ]))
+            # omega's columns: g d p_C / d omega = g (-[R q]x) J_l(omega) = (R q x g) J_l
+            rows.append(np.hstack([cross_rows(d, g) @ Jl, g, ((mu0 * X + mu1 * Y) / f_)[:, None],
+                                   (-(mu0 * Xh + mu1 * Yh) * rh2)[:, None]]))
         J = np.vstack(rows)
-        if self.free_centre:
-            n = len(self.q)
-            J = np.hstack([J, np.zeros((2 * n, 2))])
-            J[:n, -2] = 1.0
-            J[n:, -1] = 1.0
+        if self.free_centre:  # du/dcx = dv/dcy = 1
+            J = np.hstack([J, np.kron(np.eye(2), np.ones((len(self.q), 1)))])
         return J
 
 
@@ -426,10 +379,8 @@ def _project_full(q, x, cx, cy, aspect, free_centre):
     except CalibrationError:
         return None
     ccx, ccy = (x[8], x[9]) if free_centre else (cx, cy)
-    return {
-        "d": d, "z": z, "X": XY[:, 0], "Y": XY[:, 1], "Xh": XYh[:, 0], "Yh": XYh[:, 1],
-        "u": XYh[:, 0] / aspect + ccx, "v": XYh[:, 1] + ccy,
-    }
+    return {"d": d, "z": z, "X": XY[:, 0], "Y": XY[:, 1], "Xh": XYh[:, 0], "Yh": XYh[:, 1],
+            "u": XYh[:, 0] / aspect + ccx, "v": XYh[:, 1] + ccy}
 
 
 # --- Willson's full optimisation (mode "willson") --------------------------------------------------------
@@ -464,19 +415,12 @@ class _WillsonStages:
     def __init__(self, xy, uv, aspect):
         self.xy, self.uv, self.aspect = xy, uv, aspect
 
-    def _sensor(self, cx, cy, kappa):
-        """Distorted (X^, Y^) and undistorted (X, Y) sensor coordinates [px] of the observations."""
-        Xh = self.aspect * (self.uv[:, 0] - cx)
-        Yh = self.uv[:, 1] - cy
-        a = 1.0 + kappa * (Xh * Xh + Yh * Yh)  # eq. 4
-        return Xh, Yh, Xh * a, Yh * a
-
     def five(self, p, early: bool):
         """``p`` = (f [px], Tz [mm], kappa [px^-2], cx, cy [px]); Tx, Ty and R re-solved by stages 1-4
         for this centre from the distorted (``early`` False) or undistorted observations. State: the
         (Tx, Ty, r) it solved, None (and NaN residuals) where the linear stages fail."""
         f, tz, kappa, cx, cy = p
-        Xh, Yh, X, Y = self._sensor(cx, cy, kappa)
+        Xh, Yh, X, Y = _sensor(self.uv, cx, cy, self.aspect, kappa)
         try:
             tx, ty, r, *_ = _linear_pose(self.xy[:, 0], self.xy[:, 1], *((X, Y) if early else (Xh, Yh)), False)
         except CalibrationError:
@@ -492,7 +436,7 @@ class _WillsonStages:
             cx, cy = p[8], p[9]
         R = R_from_rpy(p[0], p[1], p[2])
         pc = self.xy @ R[:, :2].T + p[3:6]
-        _, _, X, Y = self._sensor(cx, cy, p[6])
+        _, _, X, Y = _sensor(self.uv, cx, cy, self.aspect, p[6])
         return np.hypot(p[7] * pc[:, 0] / pc[:, 2] - X, p[7] * pc[:, 1] / pc[:, 2] - Y), None
 
 
@@ -500,10 +444,8 @@ def _willson_stage(fun, x0):
     """One lmdif call as Willson makes it (forward differences, his tolerances and budget, scaling by the
     Jacobian's column norms); like him it takes the point where lmdif stopped, also out of budget."""
     n = len(x0)
-    return levenberg_marquardt(
-        fun, x0, "forward", ftol=WILLSON_FTOL, xtol=WILLSON_XTOL, max_nfev=WILLSON_MAXFEV_PER_PARAM * n,
-        scale=np.ones(n),
-    )
+    return levenberg_marquardt(fun, x0, "forward", ftol=WILLSON_FTOL, xtol=WILLSON_XTOL,
+                               max_nfev=WILLSON_MAXFEV_PER_PARAM * n, scale=np.ones(n))
 
 
 def _willson_full(p, uv, xy, origin, aspect, f, tz, kappa, cx, cy):
@@ -532,9 +474,8 @@ def _willson_full(p, uv, xy, origin, aspect, f, tz, kappa, cx, cy):
     kappa, f, cx, cy = (float(v) for v in lm.x[6:])
     depth = transform_points(C_H_W, p)[:, 2]
     if not (f > 0 and np.all(depth > 0)):
-        raise CalibrationError(
-            f"Willson's full optimisation failed: f = {f:.4g} px, nearest point at depth {depth.min():.4g} mm"
-        )
+        raise CalibrationError(f"Willson's full optimisation failed: f = {f:.4g} px, nearest point at depth "
+                               f"{depth.min():.4g} mm")
     # whether one view determines the centre: judged on the distorted pixel error, as for full+centre
     model = _FullModel(p, uv, R, cx, cy, aspect, True)
     xf = np.concatenate([np.zeros(3), C_H_W[:3, 3], [f, kappa, cx, cy]])
@@ -545,62 +486,48 @@ def _willson_full(p, uv, xy, origin, aspect, f, tz, kappa, cx, cy):
 
 
 # --- the calibration -----------------------------------------------------------------------------------
-def calibrate_coplanar(
-    p_W,
-    uv,
-    *,
-    cx: float,
-    cy: float,
-    aspect: float = 1.0,
-    mode: str = "full",
-    width: int = 768,
-    height: int = 576,
-    f_guess: float | None = None,
-    kappa_guess: float = 0.0,
-) -> TsaiResult:
-    """Tsai's coplanar calibration from plate points ``p_W`` (N, 3) [mm, z = 0] and their pixels
-    ``uv`` (N, 2), principal point (``cx``, ``cy``) [px] and ``aspect`` known.
+def calibrate_coplanar(p_W, uv, *, cx: float, cy: float, aspect: float = 1.0, mode: str = "full", width: int = 768,
+                       height: int = 576, f_guess: float | None = None, kappa_guess: float = 0.0) -> TsaiResult:
+    """Tsai's coplanar calibration from plate points ``p_W`` (N, 3) [mm, z = 0] and their pixels ``uv`` (N, 2), with
+    the principal point (``cx``, ``cy``) [px] and ``aspect`` known.
 
-    ``mode``: ``tsai`` refines f, Tz, kappa as Tsai published it; ``full`` (default) pose, f and kappa;
-    ``full+centre`` also the principal point; ``willson`` reproduces where Willson's full optimisation
-    (centre free, his v3.0b3) stops, not a minimum (``docs/tsai-willson.md``). ``width``, ``height`` [px]
-    pass through to the camera. When the plate's origin lies near the camera's y-z plane (his FAQ 3.3)
-    the linear stages run in a plate frame moved to the point farthest from the centre row.
+    ``mode``: ``tsai`` refines f, Tz, kappa as Tsai published it; ``full`` (default) pose, f and kappa; ``full+centre``
+    also the principal point; ``willson`` reproduces where Willson's full optimisation (centre free, his v3.0b3)
+    stops, not a minimum (``docs/tsai-willson.md``). ``width``, ``height`` [px] pass through to the camera. With the
+    plate's origin near the camera's y-z plane (his FAQ 3.3) the linear stages run in a plate frame moved to the point
+    farthest from the centre row. ``kappa_guess`` [px^-2] is removed from the observations before the linear stages
+    and starts the refinement (0 reproduces Willson); ``f_guess`` [px] starts it in place of the linear f (Tz
+    re-solved for it).
 
-    ``kappa_guess`` [px^-2] is removed from the observations before the linear stages and starts the
-    refinement (0 reproduces Willson); ``f_guess`` [px], if given, starts the refinement in place of
-    the linear f (Tz re-solved for it).
-
-    Raises ``CalibrationError`` naming the cause (bad points, the plate edge-on, f not separable from Tz,
-    plate coordinates mirrored against ``CONVENTIONS.md``, no pose with f > 0, no convergence);
-    ``ConfigError`` for a bad mode, principal point, aspect or ``f_guess``.
-    """
+    Raises ``CalibrationError`` naming the cause (bad points, the plate edge-on, f not separable from Tz, plate
+    coordinates mirrored against ``CONVENTIONS.md``, no pose with f > 0, no convergence); ``ConfigError`` for a bad
+    mode, principal point, aspect or ``f_guess``."""
     p, q = _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height, f_guess)
-    xy = p[:, :2]
-    XYh = np.column_stack([aspect * (q[:, 0] - cx), q[:, 1] - cy])
-    _check_spread(XYh, "image points", "image points collinear: the plate is seen edge-on")
-    XYu = XYh * (1.0 + kappa_guess * np.sum(XYh * XYh, axis=1, keepdims=True))
-    Xd, Yd = XYu[:, 0], XYu[:, 1]
+    Xh, Yh, Xd, Yd = _sensor(q, cx, cy, aspect, kappa_guess)
+    _check_spread(np.column_stack([Xh, Yh]), "image points", "image points collinear: the plate is seen edge-on")
 
-    origin, xy, tx, ty, r, f_lin, tz, R_lin, tilt = _linear_stages(xy, Xd, Yd)
+    origin, xy, tx, ty, r, f_lin, tz, R_lin, tilt = _linear_stages(p[:, :2], Xd, Yd)
     xc, yc, w = (r @ np.column_stack([xy, np.zeros(len(xy))]).T + np.array([[tx], [ty], [0.0]]))
     if f_guess is not None:
         f_lin = float(f_guess)
         tz = float(Yd @ (f_lin * yc - w * Yd) / (Yd @ Yd))
 
     # Stage 5a: Willson's three-parameter refinement, with the linear R as he keeps it.
-    stage = _FTzKappa(xc, yc, w, XYh[:, 0], XYh[:, 1])
+    stage = _FTzKappa(xc, yc, w, Xh, Yh)
     lm = _refine_tsai(stage, f_lin, tz, kappa_guess, willson=mode in ("tsai", "willson"))
     f, tz, kappa = (float(v) for v in lm.x)
     rel_sd = stage.f_relative_sd(lm.x)
     if not rel_sd <= F_REL_SD_LIMIT:
         raise _inseparable(tilt, f"standard error of f {100 * rel_sd:.3g} % > {100 * F_REL_SD_LIMIT:g} %")
     if not (lm.converged and f > 0 and np.all(w + tz > 0)):
-        raise CalibrationError(
-            f"Tsai refinement of f, Tz, kappa failed ({lm.message}; f = {f:.4g} px, Tz = {tz:.4g} mm)"
-        )
+        raise CalibrationError(f"Tsai refinement of f, Tz, kappa failed ({lm.message}; f = {f:.4g} px, "
+                               f"Tz = {tz:.4g} mm)")
     iterations = lm.iterations
-    C_H_W = _unmirrored(make_H(R_lin, np.array([tx, ty, tz]) - R_lin @ np.array([origin[0], origin[1], 0.0])))
+    C_H_W = make_H(R_lin, np.array([tx, ty, tz]) - R_lin @ np.array([origin[0], origin[1], 0.0]))
+    if float(C_H_W[:3, 2] @ C_H_W[:3, 3]) <= 0:  # mirrored: the camera's position in W, -R^T t, has z >= 0
+        raise CalibrationError("plate coordinates mirrored: the camera comes out on the +z side of the plate, but W "
+                               "must be right-handed with z pointing into the plate, away from the camera (index the "
+                               "grid so that x cross y points away from the camera)")
     ccx, ccy = cx, cy
     if mode == "willson":
         C_H_W, f, kappa, ccx, ccy, its = _willson_full(p, q, xy, origin, aspect, f, tz, kappa, cx, cy)
@@ -615,22 +542,8 @@ def calibrate_coplanar(
                                                                  mode == "full+centre")
         iterations += its
     rms, mean, mx, sse = residual_stats(residuals)
-    return TsaiResult(
-        camera=_camera(f, kappa, ccx, ccy, aspect, width, height), C_H_W=C_H_W, residuals_px=residuals,
-        rms_px=rms, mean_px=mean, max_px=mx, sse_px2=sse,
-        mode=mode, iterations=int(iterations),
-    )
-
-
-def _unmirrored(C_H_W: np.ndarray) -> np.ndarray:
-    """``C_H_W``, unless the camera's position in W, -R^T t, has z >= 0 (the side z points to)."""
-    if float(C_H_W[:3, 2] @ C_H_W[:3, 3]) <= 0:
-        raise CalibrationError(
-            "plate coordinates mirrored: the camera comes out on the +z side of the plate, but W must be "
-            "right-handed with z pointing into the plate, away from the camera (index the grid so that "
-            "x cross y points away from the camera)"
-        )
-    return C_H_W
+    return TsaiResult(camera=_camera(f, kappa, ccx, ccy, aspect, width, height), C_H_W=C_H_W, residuals_px=residuals,
+                      rms_px=rms, mean_px=mean, max_px=mx, sse_px2=sse, mode=mode, iterations=int(iterations))
 
 
 def _camera(f, kappa, cx, cy, aspect, width, height) -> CameraModel:
@@ -645,17 +558,15 @@ def _check_full_separable(J, cost: float, x, free: bool) -> None:
     rel_sd = _relative_sd(covariance(J, max(cost / (m - n), SEPARABILITY_NOISE_PX**2)), x, 6)
     if not rel_sd <= FULL_REL_SD_LIMIT:
         what = "the principal point, f and the tilt" if free else "f and the pose"
-        raise CalibrationError(
-            f"one view of the plate cannot separate {what}: standard error of f {100 * rel_sd:.3g} % > "
-            f"{100 * FULL_REL_SD_LIMIT:g} %" + ("; fix the principal point (mode full)" if free else "")
-        )
+        fix = "; fix the principal point (mode full)" if free else ""
+        raise CalibrationError(f"one view of the plate cannot separate {what}: standard error of f "
+                               f"{100 * rel_sd:.3g} % > {100 * FULL_REL_SD_LIMIT:g} %{fix}")
 
 
 def _inseparable(tilt: float, detail: str) -> CalibrationError:
-    return CalibrationError(
-        f"f cannot be separated from Tz: the plate is seen nearly square-on (tilt {tilt:.1f} deg) or from too "
-        f"far for its size ({detail}); tilt the plate 30 deg or more, or bring it closer"
-    )
+    return CalibrationError(f"f cannot be separated from Tz: the plate is seen nearly square-on "
+                            f"(tilt {tilt:.1f} deg) or from too far for its size ({detail}); tilt the plate "
+                            "30 deg or more, or bring it closer")
 
 
 def load_willson_points(path) -> tuple[np.ndarray, np.ndarray]:
@@ -663,8 +574,7 @@ def load_willson_points(path) -> tuple[np.ndarray, np.ndarray]:
     blank lines and ``#`` comments are skipped. Returns (p_W (N, 3), uv (N, 2)).
 
     Raises ``CalibrationFileError`` for a missing or unreadable file, a malformed line (naming its
-    number) or a file without points.
-    """
+    number) or a file without points."""
     path = Path(path)
     blob = read_bounded(path, 16 << 20, error=CalibrationFileError, what="points file", missing="no such points file")
     try:
@@ -673,20 +583,16 @@ def load_willson_points(path) -> tuple[np.ndarray, np.ndarray]:
         raise CalibrationFileError(f"{path}: cannot read the points file ({exc})") from None
     rows = []
     for no, line in enumerate(text.splitlines(), start=1):
-        body = line.split("#", 1)[0].strip()
-        if not body:
+        parts = line.split("#", 1)[0].split()
+        if not parts:
             continue
-        parts = body.split()
         if len(parts) != 5:
-            raise CalibrationFileError(
-                f"{path}, line {no}: expected 5 numbers 'xw yw zw u v', got {len(parts)} field(s): "
-                f"{line.strip()!r}"
-            )
+            raise CalibrationFileError(f"{path}, line {no}: expected 5 numbers 'xw yw zw u v', got {len(parts)} "
+                                       f"field(s): {line.strip()!r}")
         try:
-            vals = [parse_number(s) for s in parts]
+            rows.append([parse_number(s) for s in parts])
         except ValueError as exc:
             raise CalibrationFileError(f"{path}, line {no}: {exc} in {line.strip()!r}") from None
-        rows.append(vals)
     if not rows:
         raise CalibrationFileError(f"{path}: no points (expected lines 'xw yw zw u v')")
     a = np.array(rows)
@@ -710,11 +616,8 @@ def parse_willson_log(log_text: str) -> dict[str, dict[str, float]]:
             if hit:
                 vals[name] = float(hit.group(1))
         for kind in ("distorted", "undistorted"):
-            hit = re.search(
-                rf"\n\s*{kind} image plane error:\s*\n\s*mean = {_WILLSON_NUM},\s*stddev = {_WILLSON_NUM},\s*max = {_WILLSON_NUM}"
-                rf"\s*\[pix\],\s*sse = {_WILLSON_NUM}",
-                block,
-            )
+            hit = re.search(rf"\n\s*{kind} image plane error:\s*\n\s*mean = {_WILLSON_NUM},\s*stddev = {_WILLSON_NUM},"
+                            rf"\s*max = {_WILLSON_NUM}\s*\[pix\],\s*sse = {_WILLSON_NUM}", block)
             if hit:
                 for stat, v in zip(("mean", "stddev", "max", "sse"), hit.groups()):
                     vals[f"{kind}_{stat}"] = float(v)
