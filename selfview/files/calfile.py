@@ -1,9 +1,8 @@
 """Calibration files: what an off-line calibration found, kept safe.
 
-A calibration file is a YAML document (``format: selfview-calibration``, ``version: 1``) holding a
-``Calibration`` and a checksum over all of it. Nothing is lost: writes are atomic and keep the previous
-file (``save_calibration``); a file that is not what a calibration writes is refused and never overwritten
-(``load_calibration``).
+A calibration file is a YAML document (``format: selfview-calibration``, ``version: 1``) holding a ``Calibration`` and a
+checksum over all of it. Nothing is lost: writes are atomic and keep the previous file (``save_calibration``); a file
+that is not what a calibration writes is refused and never overwritten (``load_calibration``).
 """
 
 from __future__ import annotations
@@ -26,7 +25,8 @@ from selfview.maths.camera import CameraModel
 from selfview.files.cell import POINT_NAMES
 from selfview.errors import CalibrationFileError, ConfigError
 from selfview.maths.geometry import check_rigid
-from selfview.files.io_safe import MAX_YAML_BYTES, atomic_write, check_folder, file_lock, load_yaml, read_bounded, remove_leftovers, short_repr
+from selfview.files.io_safe import (MAX_YAML_BYTES, atomic_write, check_folder, file_lock, load_yaml, read_bounded,
+                                    remove_leftovers, short_repr)
 from selfview.estimation.tsai import MODES as TSAI_MODES
 
 __all__ = ["Calibration", "save_calibration", "load_calibration", "history_dir", "FORMAT", "VERSION"]
@@ -37,14 +37,11 @@ VERSION = 1
 
 @dataclass
 class Calibration:
-    """An off-line calibration and its later on-line updates.
-
-    ``camera`` the interior orientation; ``C_H_W``, ``C_H_G`` (4, 4) [mm]; ``points_G`` state ->
-    (6, 3) gripper points in G [mm] (POINT_NAMES order); ``state`` the gripper state of the picture;
-    ``residuals`` a mapping of figures (rms_px, max_px, discs_used, ...); ``image_sha256`` of the picture;
-    ``cell_sha256`` of the cell file; ``created`` ISO time; ``software`` version; ``updates`` the on-line
-    changes applied since (method, time, delta_deg, d_mm).
-    """
+    """An off-line calibration and its later on-line updates: ``camera`` the interior orientation; ``C_H_W``,
+    ``C_H_G`` (4, 4) [mm]; ``points_G`` state -> (6, 3) gripper points in G [mm] (POINT_NAMES order); ``state``
+    the gripper state of the picture; ``residuals`` a mapping of figures (rms_px, max_px, discs_used, ...);
+    ``image_sha256`` of the picture; ``cell_sha256`` of the cell file; ``created`` ISO time; ``software``
+    version; ``updates`` the on-line changes applied since (method, time, delta_deg, d_mm)."""
 
     camera: CameraModel
     C_H_W: np.ndarray
@@ -63,26 +60,13 @@ class Calibration:
     file_sha256: ClassVar[str] = ""
 
     def to_document(self) -> dict:
-        doc = {
-            "format": FORMAT,
-            "version": VERSION,
-            "created": self.created or _now(),
-            "software": f"selfview {self.software}",
-            "cell_sha256": self.cell_sha256,
-            "image_sha256": self.image_sha256,
-            "camera": self.camera.to_dict(),
-            "C_H_W": _mat(self.C_H_W),
-            "C_H_G": _mat(self.C_H_G),
-            "gripper": {
-                "state": self.state,
-                "points_G": {
-                    st: {nm: [float(v) for v in p] for nm, p in zip(POINT_NAMES, np.asarray(P, float))}
-                    for st, P in self.points_G.items()
-                },
-            },
-            "residuals": plain_data(self.residuals),
-            "updates": plain_data(self.updates),
-        }
+        points_G = {st: {nm: [float(v) for v in p] for nm, p in zip(POINT_NAMES, np.asarray(P, float))}
+                    for st, P in self.points_G.items()}
+        doc = {"format": FORMAT, "version": VERSION, "created": self.created or _now(),
+               "software": f"selfview {self.software}", "cell_sha256": self.cell_sha256,
+               "image_sha256": self.image_sha256, "camera": self.camera.to_dict(), "C_H_W": _mat(self.C_H_W),
+               "C_H_G": _mat(self.C_H_G), "gripper": {"state": self.state, "points_G": points_G},
+               "residuals": plain_data(self.residuals), "updates": plain_data(self.updates)}
         if self.pictures:
             doc["pictures"] = {str(k): str(v) for k, v in self.pictures.items()}
         doc["checksum"] = doc_checksum(doc)
@@ -109,23 +93,16 @@ class Calibration:
                 if np.linalg.norm(H[:3, 3]) > MAX_LENGTH_MM:
                     raise ValueError(f"{name} puts its origin over {MAX_LENGTH_MM:g} mm from the camera")
             _plausible_figures(doc.get("residuals") or {}, "residuals")  # types: _check_types
-            return cls(
-                camera=camera,
-                C_H_W=C_H_W,
-                C_H_G=C_H_G,
-                points_G=pts,
-                state=str(doc["gripper"]["state"]),
-                residuals=dict(doc.get("residuals") or {}),
-                image_sha256=str(doc.get("image_sha256", "")),
-                cell_sha256=str(doc.get("cell_sha256", "")),
-                created=str(doc.get("created", "")),
-                software=str(doc.get("software", "")).removeprefix("selfview "),
-                updates=list(doc.get("updates") or []),
-                pictures={str(k): str(v) for k, v in (doc.get("pictures") or {}).items()},
-            )
+            return cls(camera=camera, C_H_W=C_H_W, C_H_G=C_H_G, points_G=pts, state=str(doc["gripper"]["state"]),
+                       residuals=dict(doc.get("residuals") or {}), image_sha256=str(doc.get("image_sha256", "")),
+                       cell_sha256=str(doc.get("cell_sha256", "")), created=str(doc.get("created", "")),
+                       software=str(doc.get("software", "")).removeprefix("selfview "),
+                       updates=list(doc.get("updates") or []),
+                       pictures={str(k): str(v) for k, v in (doc.get("pictures") or {}).items()})
         except (KeyError, TypeError, ValueError, IndexError, AttributeError, OverflowError, ConfigError) as exc:
             what = f"missing key {exc}" if isinstance(exc, KeyError) else f"{type(exc).__name__}: {exc}"
-            raise CalibrationFileError(f"{source}: malformed calibration file ({short_repr(what, 200)[1:-1]})") from None
+            raise CalibrationFileError(f"{source}: malformed calibration file "
+                                       f"({short_repr(what, 200)[1:-1]})") from None
 
 
 #: Far beyond any self-viewing cell (a wrist camera sees its fingertips from a few hundred mm): a length
@@ -140,9 +117,11 @@ def _plausible_camera(cam: CameraModel) -> None:
     if not 1.0 <= cam.f <= 1e5:
         raise ValueError(f"camera f = {cam.f} px is not a focal length (1 to 100000 px)")
     if abs(cam.kappa) * (cam.width ** 2 + cam.height ** 2) / 4 > 1.0:
-        raise ValueError(f"camera kappa = {cam.kappa} px^-2 is not a lens distortion (it more than doubles the corners' radius)")
+        raise ValueError(f"camera kappa = {cam.kappa} px^-2 is not a lens distortion (it more than doubles the "
+                         "corners' radius)")
     if not (-0.5 <= cam.cx <= cam.width - 0.5 and -0.5 <= cam.cy <= cam.height - 0.5):
-        raise ValueError(f"camera principal point ({cam.cx}, {cam.cy}) lies outside the {cam.width} x {cam.height} picture")
+        raise ValueError(f"camera principal point ({cam.cx}, {cam.cy}) lies outside the {cam.width} x {cam.height} "
+                         "picture")
     if not 0.5 <= cam.aspect <= 2.0:
         raise ValueError(f"camera aspect = {cam.aspect} is not a pixel aspect (0.5 to 2)")
 
@@ -179,37 +158,8 @@ def _check_types(doc: dict) -> None:
             raise ValueError(f"gripper points_G {short_repr(st, 30)} is not the six named points of three numbers")
     if not isinstance(grip["state"], str) or grip["state"] not in pts:
         raise ValueError(f"gripper state {short_repr(grip['state'], 40)} is not one of the jaw states {sorted(pts)}")
-    _check_provenance_types(doc)
-    _figure_types(doc.get("residuals", {}), "residuals")
-
-
-#: How far the fingertip points may be from the shape CONVENTIONS gives them (two mirrored blocks, the
-#: six corners in the tip plane z = 0, points 1-4 a rectangle centred on the TCP) [mm]: measured fingers
-#: differ from it by tenths of a millimetre; a point replaced by another number moves by millimetres.
-SHAPE_TOLERANCE_MM = 2.0
-
-
-def _check_fingertip_shape(table: np.ndarray, where: str) -> None:
-    """The six points (6x3, in CONVENTIONS' order) of one jaw state of the shape CONVENTIONS defines, within ``SHAPE_TOLERANCE_MM``:
-    ``ValueError`` naming what is off."""
-    aif, aib, bif, bib, aof, bof = P = np.asarray(table, dtype=float).reshape(6, 3)
-    checks = (
-        ("the points out of the tip plane z = 0", float(np.max(np.abs(P[:, 2])))),
-        ("the rectangle of points 1-4 off the TCP", float(np.linalg.norm((aif + aib + bif + bib)[:2] / 4))),
-        ("the fingers' widths unequal", abs(np.linalg.norm(aib - aif) - np.linalg.norm(bib - bif))),
-        ("the gap unequal at front and back", abs(np.linalg.norm(bif - aif) - np.linalg.norm(bib - aib))),
-        ("the fingers' thicknesses unequal", abs(np.linalg.norm(aof - aif) - np.linalg.norm(bof - bif))),
-        ("finger A not on the +x side", max(0.0, -min(aif[0], aib[0], aof[0] - aif[0]))),
-    )
-    for what, off in checks:
-        if not off <= SHAPE_TOLERANCE_MM:
-            raise ValueError(f"{where}: {what} by {off:.2f} mm (more than {SHAPE_TOLERANCE_MM:g} mm: not a fingertip "
-                             "shape; see CONVENTIONS' fingertip points)")
-
-
-def _check_provenance_types(doc: dict) -> None:
-    """The fields that say where a calibration came from: recorded, never computed with, but a file whose
-    hash became another string or whose version became a flag is not the file it was."""
+    # where the calibration came from: recorded, never computed with, but a file whose hash became another
+    # string or whose version became a flag is not the file it was
     if type(doc.get("version")) is not int:  # True == 1 in Python
         raise ValueError(f"version is {short_repr(doc.get('version'), 40)}, not a whole number")
     for k in ("image_sha256", "cell_sha256"):
@@ -222,6 +172,29 @@ def _check_provenance_types(doc: dict) -> None:
     ups = doc.get("updates", [])
     if not (isinstance(ups, list) and all(isinstance(u, dict) for u in ups)):
         raise ValueError(f"updates is {short_repr(ups, 60)}, not a list of records")
+    _figure_types(doc.get("residuals", {}), "residuals")
+
+
+#: How far the fingertip points may be from the shape CONVENTIONS gives them (two mirrored blocks, the
+#: six corners in the tip plane z = 0, points 1-4 a rectangle centred on the TCP) [mm]: measured fingers
+#: differ from it by tenths of a millimetre; a point replaced by another number moves by millimetres.
+SHAPE_TOLERANCE_MM = 2.0
+
+
+def _check_fingertip_shape(table: np.ndarray, where: str) -> None:
+    """``ValueError`` naming what is off unless the six points (6x3, in CONVENTIONS' order) of one jaw state
+    have the shape CONVENTIONS defines, within ``SHAPE_TOLERANCE_MM``."""
+    aif, aib, bif, bib, aof, bof = P = np.asarray(table, dtype=float).reshape(6, 3)
+    checks = (("the points out of the tip plane z = 0", float(np.max(np.abs(P[:, 2])))),
+              ("the rectangle of points 1-4 off the TCP", float(np.linalg.norm((aif + aib + bif + bib)[:2] / 4))),
+              ("the fingers' widths unequal", abs(np.linalg.norm(aib - aif) - np.linalg.norm(bib - bif))),
+              ("the gap unequal at front and back", abs(np.linalg.norm(bif - aif) - np.linalg.norm(bib - aib))),
+              ("the fingers' thicknesses unequal", abs(np.linalg.norm(aof - aif) - np.linalg.norm(bof - bif))),
+              ("finger A not on the +x side", max(0.0, -min(aif[0], aib[0], aof[0] - aif[0]))))
+    for what, off in checks:
+        if not off <= SHAPE_TOLERANCE_MM:
+            raise ValueError(f"{where}: {what} by {off:.2f} mm (more than {SHAPE_TOLERANCE_MM:g} mm: not a fingertip "
+                             "shape; see CONVENTIONS' fingertip points)")
 
 
 def _figure_types(res: dict, where: str) -> None:
@@ -232,14 +205,11 @@ def _figure_types(res: dict, where: str) -> None:
     names = set(POINT_NAMES)
     checks = {
         "rms_px": _is_number, "max_px": _is_number, "pcc_rms_mm": _is_number, "pcc_q_norm": _is_number,
-        "discs_used": lambda v: isinstance(v, int) and not isinstance(v, bool),
-        "tsai_mode": lambda v: v in TSAI_MODES,
-        "points_from": lambda v: v in ("picture", "cell"),
-        "corners_measured_by": lambda v: v in ("corners", "model"),
+        "discs_used": lambda v: isinstance(v, int) and not isinstance(v, bool), "tsai_mode": lambda v: v in TSAI_MODES,
+        "points_from": lambda v: v in ("picture", "cell"), "corners_measured_by": lambda v: v in ("corners", "model"),
         "corners_found": lambda v: isinstance(v, list) and all(isinstance(x, str) and x in names for x in v),
         "corner_edge_rms_px": lambda v: isinstance(v, dict) and all(k in names and _is_number(x) for k, x in v.items()),
-        "camera_file": lambda v: isinstance(v, dict) and all(isinstance(v.get(k), str) for k in ("path", "sha256")),
-    }
+        "camera_file": lambda v: isinstance(v, dict) and all(isinstance(v.get(k), str) for k in ("path", "sha256"))}
     for key, ok in checks.items():
         if key in res and not ok(res[key]):
             raise ValueError(f"{where}.{key} is {short_repr(res[key], 60)}, not what the calibration writes there")
@@ -253,7 +223,7 @@ def _plausible_figures(x, where: str) -> None:
     elif isinstance(x, (list, tuple)):
         for i, v in enumerate(x):
             _plausible_figures(v, f"{where}[{i}]")
-    elif isinstance(x, (int, float)) and not isinstance(x, bool) and not (math.isfinite(x) and abs(x) < 1e6):
+    elif _is_number(x) and not (math.isfinite(x) and abs(x) < 1e6):
         raise ValueError(f"{short_repr(where, 80)} is {short_repr(x, 40)}, not a plausible figure")
 
 
@@ -304,9 +274,8 @@ def history_dir(path) -> Path:
 
 
 def load_calibration(path) -> Calibration:
-    """Read and verify a calibration file; raises ``CalibrationFileError`` naming the fault: corrupt,
-    altered, foreign, of an unknown version, hostile (YAML aliases, deep nesting, huge numbers) or
-    holding non-finite numbers."""
+    """Read and verify a calibration file; raises ``CalibrationFileError`` naming the fault: corrupt, altered, foreign,
+    of an unknown version, hostile (YAML aliases, deep nesting, huge numbers) or holding non-finite numbers."""
     p = Path(path)
     blob = read_bounded(p, MAX_YAML_BYTES, error=CalibrationFileError, what="calibration file",
                         missing="no such calibration file (run 'selfview calibrate' first)")
@@ -318,12 +287,10 @@ def load_calibration(path) -> Calibration:
 
 def save_calibration(cal: Calibration, path, *, keep_history: bool = True,
                      expected: "Calibration | str | None" = None) -> Path:
-    """Write ``cal`` to ``path`` by ``replace_keeping_history``, once the new document reads back.
-
-    ``expected``: the version ``cal`` was derived from (the Calibration as loaded, or its file's SHA-256);
-    the file is replaced only if it still is that version, so a recalibration saved meanwhile is never
-    overwritten (the refusal names both). Returns the path of the history copy, or None.
-    """
+    """Write ``cal`` to ``path`` by ``replace_keeping_history``, once the new document reads back. ``expected``:
+    the version ``cal`` was derived from (the Calibration as loaded, or its file's SHA-256); the file is replaced
+    only if it still is that version, so a recalibration saved meanwhile is never overwritten (the refusal names
+    both). Returns the path of the history copy, or None."""
     p = Path(path)
     text = yaml.safe_dump(cal.to_document(), sort_keys=False, default_flow_style=None, width=120)
     # check what we are about to write reads back, before it replaces anything
@@ -341,43 +308,45 @@ def replace_keeping_history(p: Path, text: str, load_existing, *, what: str, kee
     raises for a corrupt or foreign file: it may be somebody else's) and kept in ``<name>.history/``.
     Writers of one file take turns (``file_lock``); with ``expected_sha256`` the file must still hash to it
     when its turn comes. A symlink's target is replaced (the link stays). Every failure is
-    ``CalibrationFileError`` naming the path and the cause, with ``p`` unchanged. Returns the history copy, or None."""
+    ``CalibrationFileError`` naming the path and the cause, ``p`` unchanged. Returns the history copy, or None."""
     p = Path(os.path.realpath(p)) if Path(p).is_symlink() else Path(p)
     check_folder(p, error=CalibrationFileError, what=what)
     with file_lock(p, error=CalibrationFileError, what=what):
-        kept = None
         if expected_sha256 is not None:
             _check_version(p, expected_sha256, what)
+        kept = None
         if p.exists():
             load_existing(p)  # refuse to replace a corrupt or foreign file
-            if keep_history:
-                hd = history_dir(p)
-                try:
-                    hd.mkdir(exist_ok=True)
-                except FileExistsError:
-                    raise CalibrationFileError(
-                        f"{hd}: cannot keep the previous {what}: a file of that name exists where its history "
-                        f"folder belongs; {p} is unchanged"
-                    ) from None
-                except OSError as exc:
-                    raise CalibrationFileError(
-                        f"{hd}: cannot create the history folder ({exc.strerror or exc}); {p} is unchanged"
-                    ) from None
-                remove_leftovers(hd)  # history copies of saves killed half-way
-                blob = read_bounded(p, MAX_YAML_BYTES, error=CalibrationFileError, what=f"previous {what}")
-                stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
-                kept = hd / f"{stamp}-{hashlib.sha256(blob).hexdigest()[:8]}{p.suffix or '.yaml'}"
-                atomic_write(kept, blob, error=CalibrationFileError, what=f"history copy of the {what}",
-                             mode=stat.S_IMODE(p.stat().st_mode))
+            kept = _keep_previous(p, what) if keep_history else None
         atomic_write(p, text.encode("utf-8"), error=CalibrationFileError, what=what)
         return kept
+
+
+def _keep_previous(p: Path, what: str) -> Path:
+    """A copy of ``p`` in ``history_dir(p)``, named by its time (UTC) and hash; ``CalibrationFileError``."""
+    hd = history_dir(p)
+    try:
+        hd.mkdir(exist_ok=True)
+    except FileExistsError:
+        raise CalibrationFileError(f"{hd}: cannot keep the previous {what}: a file of that name exists where its "
+                                   f"history folder belongs; {p} is unchanged") from None
+    except OSError as exc:
+        raise CalibrationFileError(f"{hd}: cannot create the history folder ({exc.strerror or exc}); {p} is "
+                                   "unchanged") from None
+    remove_leftovers(hd)  # history copies of saves killed half-way
+    blob = read_bounded(p, MAX_YAML_BYTES, error=CalibrationFileError, what=f"previous {what}")
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
+    kept = hd / f"{stamp}-{hashlib.sha256(blob).hexdigest()[:8]}{p.suffix or '.yaml'}"
+    atomic_write(kept, blob, error=CalibrationFileError, what=f"history copy of the {what}",
+                 mode=stat.S_IMODE(p.stat().st_mode))
+    return kept
 
 
 def _check_version(p: Path, expected_sha256: str, what: str) -> None:
     """``CalibrationFileError`` naming both versions unless ``p`` still hashes to ``expected_sha256``."""
     now = hashlib.sha256(read_bounded(p, MAX_YAML_BYTES, error=CalibrationFileError, what=what)).hexdigest()
     if now != expected_sha256:
-        raise CalibrationFileError(
-            f"{p}: changed since it was read: this update derives from version sha256 {expected_sha256[:12]}, but "
-            f"the file now holds version sha256 {now[:12]} (a recalibration saved meanwhile?); nothing written: "
-            "run again from the new calibration")
+        raise CalibrationFileError(f"{p}: changed since it was read: this update derives from version sha256 "
+                                   f"{expected_sha256[:12]}, but the file now holds version sha256 {now[:12]} "
+                                   "(a recalibration saved meanwhile?); nothing written: run again from the new "
+                                   "calibration")

@@ -1,10 +1,9 @@
 """Camera files: a camera's measured interior orientation, its uncertainty and where it came from.
 
-A camera file is a YAML document (``format: selfview-camera``, ``version: 1``) written by ``selfview
-intrinsics`` (its contents: ``CameraFile``; a file without ``skew``, as written before it was measured,
-reads as skew 0 with the 5 x 5 covariance of the others) and a checksum over all of it. It is written like
-a calibration file (``selfview.files.calfile``): atomically, the previous file kept in ``<name>.history/``,
-and a foreign or altered file is refused (``CalibrationFileError``) and never overwritten.
+A YAML document (``format: selfview-camera``, ``version: 1``) written by ``selfview intrinsics`` (its contents:
+``CameraFile``; a file without ``skew``, as written before it was measured, reads as skew 0 with the 5 x 5 covariance of
+the others) and a checksum over all of it. Written like a calibration file (``calfile``): atomically, the previous file
+kept in ``<name>.history/``; a foreign or altered file is refused (``CalibrationFileError``) and never overwritten.
 """
 
 from __future__ import annotations
@@ -55,15 +54,10 @@ class CameraFile:
         camera = self.camera.to_dict()
         if n == 6:
             camera["skew"] = float(self.camera.skew)
-        doc = {
-            "format": FORMAT,
-            "version": VERSION,
-            "camera": camera,
-            "sigma": {k: float(self.sigma[k]) for k in INTRINSIC_NAMES[:n]},
-            "covariance": [[float(v) for v in row] for row in cov],
-            "figures": plain_data(self.figures),
-            "provenance": plain_data(prov),
-        }
+        doc = {"format": FORMAT, "version": VERSION, "camera": camera,
+               "sigma": {k: float(self.sigma[k]) for k in INTRINSIC_NAMES[:n]},
+               "covariance": [[float(v) for v in row] for row in cov], "figures": plain_data(self.figures),
+               "provenance": plain_data(prov)}
         doc["checksum"] = doc_checksum(doc)
         return doc
 
@@ -105,14 +99,9 @@ class CameraFile:
 
 
 def _versions() -> dict:
-    out = {"python": platform.python_version(), "numpy": np.__version__}
-    try:
-        import cv2
+    import cv2
 
-        out["opencv"] = cv2.__version__
-    except ImportError:  # pragma: no cover - OpenCV is a dependency
-        pass
-    return out
+    return {"python": platform.python_version(), "numpy": np.__version__, "opencv": cv2.__version__}
 
 
 def load_camera_file(path) -> CameraFile:

@@ -1,9 +1,8 @@
 """The cell description (``cell.yaml``) as typed, validated objects.
 
-The file is read as it is (safe YAML only, through ``selfview.files.io_safe.load_yaml``: no aliases, bounded size and
-depth). Unknown keys, missing keys, wrong types and
-impossible values raise ``ConfigError`` with a message that names the key path, the value and what was
-expected. Keys this project adds beyond the shared reference file have defaults.
+The file is read through ``selfview.files.io_safe.load_yaml`` (safe YAML, no aliases, bounded size and depth).
+Unknown keys, missing keys, wrong types and impossible values raise ``ConfigError`` naming the key path, the
+value and what was expected. Keys this project adds beyond the shared reference file have defaults.
 """
 
 from __future__ import annotations
@@ -20,36 +19,15 @@ from selfview.errors import ConfigError
 from selfview.maths.geometry import check_rigid
 from selfview.files.io_safe import MAX_YAML_BYTES, load_yaml, load_yaml_file, read_bounded, short_repr
 
-__all__ = [
-    "POINT_NAMES",
-    "CameraSpec",
-    "PlateSpec",
-    "GripperSpec",
-    "MonitorLimits",
-    "Limit",
-    "ImageSpec",
-    "DisturbanceSpec",
-    "SimulationSpec",
-    "Cell",
-    "load_cell",
-    "parse_cell",
-    "default_cell_path",
-    "aruco_dictionary",
-    "fingertip_points_G",
-    "Section",
-]
+__all__ = ["POINT_NAMES", "CameraSpec", "PlateSpec", "GripperSpec", "MonitorLimits", "Limit", "ImageSpec",
+           "DisturbanceSpec", "SimulationSpec", "Cell", "load_cell", "parse_cell", "default_cell_path",
+           "aruco_dictionary", "fingertip_points_G", "Section"]
 
 #: The plate patterns ``selfview.measurement.plates.detect_plate`` measures.
 PLATE_PATTERNS = ("discs", "chessboard", "charuco")
 #: The six fingertip calibration points of CONVENTIONS.md, in their order.
-POINT_NAMES: tuple[str, ...] = (
-    "A-inner-front",
-    "A-inner-back",
-    "B-inner-front",
-    "B-inner-back",
-    "A-outer-front",
-    "B-outer-front",
-)
+POINT_NAMES: tuple[str, ...] = ("A-inner-front", "A-inner-back", "B-inner-front", "B-inner-back", "A-outer-front",
+                                "B-outer-front")
 
 
 # --- validation helpers ---------------------------------------------------------------------------
@@ -74,7 +52,7 @@ class Section:
     def has(self, key: str) -> bool:
         return key in self.data
 
-    def raw(self, key: str, default: Any = ..., ) -> Any:
+    def raw(self, key: str, default: Any = ...) -> Any:
         self.used.add(key)
         if key not in self.data:
             if default is ...:
@@ -106,7 +84,8 @@ class Section:
         if positive and v <= 0:
             raise ConfigError(f"{self._key(key)}: expected a positive whole number, got {v!r}")
         if abs(v) > MAX_NUMBER:
-            raise ConfigError(f"{self._key(key)}: the number {short_repr(v)} is not a plausible value (over {MAX_NUMBER:g})")
+            raise ConfigError(f"{self._key(key)}: the number {short_repr(v)} is not a plausible value "
+                              f"(over {MAX_NUMBER:g})")
         return int(v)
 
     def string(self, key: str, default: Any = ..., choices=None) -> str:
@@ -119,11 +98,8 @@ class Section:
 
     def vector(self, key: str, n: int, default: Any = ...) -> tuple[float, ...]:
         v = self.raw(key, default)
-        if (
-            not isinstance(v, (list, tuple))
-            or len(v) != n
-            or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)
-        ):
+        if not isinstance(v, (list, tuple)) or len(v) != n or any(isinstance(x, bool) or not isinstance(x, (int, float))
+                                                                  for x in v):
             raise ConfigError(f"{self._key(key)}: expected a list of {n} numbers, got {short_repr(v)}")
         return tuple(self._plausible(key, x) for x in v)
 
@@ -147,17 +123,14 @@ class Section:
         except OverflowError:
             raise ConfigError(f"{self._key(key)}: a number is too large for a transform") from None
         if np.max(np.abs(H[:3, 3])) > MAX_NUMBER:  # a rotation is bounded by being one; a translation is not
-            raise ConfigError(f"{self._key(key)}: the translation {short_repr(H[:3, 3].tolist())} mm is not a plausible "
-                              f"value (over {MAX_NUMBER:g})")
+            raise ConfigError(f"{self._key(key)}: the translation {short_repr(H[:3, 3].tolist())} mm is not a "
+                              f"plausible value (over {MAX_NUMBER:g})")
         return H
 
     def done(self) -> None:
-        unknown = sorted(set(self.data) - self.used)
-        if unknown:
-            raise ConfigError(
-                f"{self.path or 'cell'}: unknown key(s) {', '.join(map(str, unknown))}; "
-                f"expected only {', '.join(sorted(self.used))}"
-            )
+        if unknown := sorted(set(self.data) - self.used):
+            raise ConfigError(f"{self.path or 'cell'}: unknown key(s) {', '.join(map(str, unknown))}; "
+                              f"expected only {', '.join(sorted(self.used))}")
 
 
 # --- the typed description ------------------------------------------------------------------------
@@ -173,23 +146,16 @@ class CameraSpec:
 
     def guess(self) -> CameraModel:
         """Camera model from the guesses (a starting value; calibration measures f and kappa)."""
-        return CameraModel(
-            f=self.focal_guess,
-            kappa=self.kappa_guess,
-            cx=self.principal_point[0],
-            cy=self.principal_point[1],
-            aspect=self.aspect,
-            width=self.width,
-            height=self.height,
-        )
+        return CameraModel(f=self.focal_guess, kappa=self.kappa_guess, cx=self.principal_point[0],
+                           cy=self.principal_point[1], aspect=self.aspect, width=self.width, height=self.height)
 
 
 @dataclass(frozen=True)
 class PlateSpec:
     """The calibration plate. ``rows`` x ``cols`` plate points (disc centres; a board's inner corners) at
-    ``pitch`` mm, centred on W's origin; ``pattern`` ('discs', 'chessboard', 'charuco'; ``selfview.measurement.plates``);
-    a board's ``squares`` (NX, NY) of ``pitch`` mm, its ArUco ``marker`` side [mm], ``dictionary`` and
-    ``legacy_pattern``; ``disc_diameter`` 0 for a board."""
+    ``pitch`` mm, centred on W's origin; ``pattern`` ('discs', 'chessboard', 'charuco';
+    ``selfview.measurement.plates``); a board's ``squares`` (NX, NY) of ``pitch`` mm, its ArUco ``marker`` side
+    [mm], ``dictionary`` and ``legacy_pattern``; ``disc_diameter`` 0 for a board."""
 
     rows: int
     cols: int
@@ -215,16 +181,8 @@ def fingertip_points_G(gap: float, width: float, thickness_A: float, thickness_B
     """(6, 3) the fingertip points in G [mm], in the order of ``POINT_NAMES`` (CONVENTIONS.md), for a jaw
     ``gap``, finger ``width`` and the fingers' thicknesses [mm]."""
     g, w = gap, width
-    return np.array(
-        [
-            [g / 2, -w / 2, 0.0],
-            [g / 2, w / 2, 0.0],
-            [-g / 2, -w / 2, 0.0],
-            [-g / 2, w / 2, 0.0],
-            [g / 2 + thickness_A, -w / 2, 0.0],
-            [-g / 2 - thickness_B, -w / 2, 0.0],
-        ]
-    )
+    return np.array([[g / 2, -w / 2, 0.0], [g / 2, w / 2, 0.0], [-g / 2, -w / 2, 0.0], [-g / 2, w / 2, 0.0],
+                     [g / 2 + thickness_A, -w / 2, 0.0], [-g / 2 - thickness_B, -w / 2, 0.0]])
 
 
 @dataclass(frozen=True)
@@ -348,24 +306,18 @@ class Cell:
 
 
 def _parse_camera(s: Section) -> CameraSpec:
-    spec = CameraSpec(
-        model=str(s.raw("model", "")),
-        width=s.integer("width", positive=True),
-        height=s.integer("height", positive=True),
-        principal_point=s.vector("principal_point", 2),
-        aspect=s.number("aspect", 1.0, lo=0.5, hi=2.0),
-        focal_guess=s.number("focal_guess", lo=1.0, hi=1e5),
-        kappa_guess=s.number("kappa_guess", 0.0, lo=-1e-4, hi=1e-4),
-    )
+    spec = CameraSpec(model=str(s.raw("model", "")), width=s.integer("width", positive=True),
+                      height=s.integer("height", positive=True), principal_point=s.vector("principal_point", 2),
+                      aspect=s.number("aspect", 1.0, lo=0.5, hi=2.0),
+                      focal_guess=s.number("focal_guess", lo=1.0, hi=1e5),
+                      kappa_guess=s.number("kappa_guess", 0.0, lo=-1e-4, hi=1e-4))
     s.done()
     if spec.width > 16384 or spec.height > 16384:
         raise ConfigError(f"camera: {spec.width} x {spec.height} px is not a picture size (at most 16384 a side)")
     cx, cy = spec.principal_point
     if not (0 <= cx <= spec.width - 1 and 0 <= cy <= spec.height - 1):
-        raise ConfigError(
-            f"camera.principal_point: {list(spec.principal_point)} lies outside the "
-            f"{spec.width}x{spec.height} picture"
-        )
+        raise ConfigError(f"camera.principal_point: {list(spec.principal_point)} lies outside the "
+                          f"{spec.width}x{spec.height} picture")
     return spec
 
 
@@ -373,21 +325,16 @@ def _parse_plate(s: Section) -> PlateSpec:
     pattern = s.string("pattern", "discs", choices=PLATE_PATTERNS)
     if pattern != "discs":
         return _parse_board(s, pattern)
-    spec = PlateSpec(
-        rows=s.integer("rows", positive=True),
-        cols=s.integer("cols", positive=True),
-        pitch=s.number("pitch", positive=True),
-        disc_diameter=s.number("disc_diameter", positive=True),
-        size=s.vector("size", 2),
-        polarity=s.string("polarity", "dark_on_light", choices=("dark_on_light", "light_on_dark")),
-    )
+    spec = PlateSpec(rows=s.integer("rows", positive=True), cols=s.integer("cols", positive=True),
+                     pitch=s.number("pitch", positive=True), disc_diameter=s.number("disc_diameter", positive=True),
+                     size=s.vector("size", 2),
+                     polarity=s.string("polarity", "dark_on_light", choices=("dark_on_light", "light_on_dark")))
     s.done()
     if spec.rows * spec.cols < 5:
         raise ConfigError(f"plate: {spec.rows}x{spec.cols} discs; Tsai's coplanar method needs at least 5")
     if spec.disc_diameter >= spec.pitch:
-        raise ConfigError(
-            f"plate.disc_diameter: {spec.disc_diameter} mm; expected less than the pitch {spec.pitch} mm"
-        )
+        raise ConfigError(f"plate.disc_diameter: {spec.disc_diameter} mm; expected less than the pitch "
+                          f"{spec.pitch} mm")
     need = ((spec.cols - 1) * spec.pitch + spec.disc_diameter, (spec.rows - 1) * spec.pitch + spec.disc_diameter)
     if spec.size[0] < need[0] or spec.size[1] < need[1]:
         raise ConfigError(f"plate.size: {list(spec.size)} mm is smaller than the disc grid {list(need)} mm")
@@ -399,7 +346,8 @@ def _parse_board(s: Section, pattern: str) -> PlateSpec:
     ``dictionary`` (an OpenCV predefined one) and ``legacy_pattern``; ``size`` [mm] the sheet (default:
     the board and a square's margin round it)."""
     sq = s.raw("squares")
-    if not (isinstance(sq, (list, tuple)) and len(sq) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in sq)):
+    if not (isinstance(sq, (list, tuple)) and len(sq) == 2
+            and all(isinstance(v, int) and not isinstance(v, bool) for v in sq)):
         raise ConfigError(f"plate.squares: expected [NX, NY], two whole numbers of squares, got {short_repr(sq)}")
     nx, ny = int(sq[0]), int(sq[1])
     if nx < 3 or ny < 3 or nx > 100 or ny > 100:
@@ -497,9 +445,7 @@ def _parse_monitor(s: Section) -> MonitorLimits:
     missed = s.integer("max_missed_frames", 3, positive=True)
     s.done()
     if al.angle_deg < up.angle_deg or al.shift_mm < up.shift_mm:
-        raise ConfigError(
-            f"monitor.alarm_limit: {al} must not be below monitor.update_limit {up}"
-        )
+        raise ConfigError(f"monitor.alarm_limit: {al} must not be below monitor.update_limit {up}")
     return MonitorLimits(update_limit=up, alarm_limit=al, max_rms_px=rms, max_missed_frames=missed)
 
 
@@ -513,14 +459,9 @@ def _parse_simulation(s: Section) -> SimulationSpec:
     me_s = me.number("shift_mm", lo=0)
     me.done()
     im = s.section("image")
-    image = ImageSpec(
-        noise_gray=im.number("noise_gray", lo=0),
-        blur_px=im.number("blur_px", lo=0),
-        paper=im.number("paper", lo=0, hi=255),
-        ink=im.number("ink", lo=0, hi=255),
-        foam=im.number("foam", lo=0, hi=255),
-        finger=im.vector("finger", 3),
-    )
+    image = ImageSpec(noise_gray=im.number("noise_gray", lo=0), blur_px=im.number("blur_px", lo=0),
+                      paper=im.number("paper", lo=0, hi=255), ink=im.number("ink", lo=0, hi=255),
+                      foam=im.number("foam", lo=0, hi=255), finger=im.vector("finger", 3))
     im.done()
     for i, v in enumerate(image.finger):
         if not 0 <= v <= 255:
@@ -529,28 +470,19 @@ def _parse_simulation(s: Section) -> SimulationSpec:
     dists = {}
     for name in list(ds.data):
         d = ds.section(name)
-        spec = DisturbanceSpec(
-            name=str(name),
-            pivot_C=d.vector("pivot_C", 3),
-            axis_C=d.vector("axis_C", 3),
-            axis_jitter_deg=d.number("axis_jitter_deg", lo=0),
-            tcp_shift_mm=d.number("tcp_shift_mm", lo=0),
-            tcp_shift_sd_mm=d.number("tcp_shift_sd_mm", lo=0),
-        )
+        spec = DisturbanceSpec(name=str(name), pivot_C=d.vector("pivot_C", 3), axis_C=d.vector("axis_C", 3),
+                               axis_jitter_deg=d.number("axis_jitter_deg", lo=0),
+                               tcp_shift_mm=d.number("tcp_shift_mm", lo=0),
+                               tcp_shift_sd_mm=d.number("tcp_shift_sd_mm", lo=0))
         d.done()
         if np.linalg.norm(spec.axis_C) == 0:
-            raise ConfigError(f"simulation.disturbances.{name}.axis_C: expected a non-zero axis, got {list(spec.axis_C)}")
+            raise ConfigError(f"simulation.disturbances.{name}.axis_C: expected a non-zero axis, "
+                              f"got {list(spec.axis_C)}")
         dists[str(name)] = spec
     ds.done()
     s.done()
-    return SimulationSpec(
-        true_f=f,
-        true_kappa=kappa,
-        mount_error_angle_deg=me_a,
-        mount_error_shift_mm=me_s,
-        image=image,
-        disturbances=dists,
-    )
+    return SimulationSpec(true_f=f, true_kappa=kappa, mount_error_angle_deg=me_a, mount_error_shift_mm=me_s,
+                          image=image, disturbances=dists)
 
 
 def parse_cell(data: Any, source: str = "<memory>", sha256: str = "") -> Cell:
@@ -568,27 +500,18 @@ def parse_cell(data: Any, source: str = "<memory>", sha256: str = "") -> Cell:
     sim = _parse_simulation(top.section("simulation")) if top.has("simulation") else None
     robot = _parse_robot(top.section("robot"), source) if top.has("robot") else None
     top.done()
-    return Cell(
-        camera=camera,
-        plate=plate,
-        gripper=gripper,
-        mount_guess_C_H_G=C_H_G,
-        monitor=monitor,
-        simulation=sim,
-        robot=robot,
-        source=source,
-        sha256=sha256,
-        raw=data,
-    )
+    return Cell(camera=camera, plate=plate, gripper=gripper, mount_guess_C_H_G=C_H_G, monitor=monitor,
+                simulation=sim, robot=robot, source=source, sha256=sha256, raw=data)
 
 
 def load_cell(path) -> Cell:
     """Read and validate a cell description file; raises ``ConfigError`` naming what is wrong."""
     p = Path(path)
-    blob = read_bounded(p, MAX_YAML_BYTES, error=ConfigError, what="cell description", source=f"cell description {str(p)!r}")
-    data = load_yaml(blob, f"cell description {str(p)!r}", error=ConfigError, what="file")
+    src = f"cell description {str(p)!r}"
+    blob = read_bounded(p, MAX_YAML_BYTES, error=ConfigError, what="cell description", source=src)
+    data = load_yaml(blob, src, error=ConfigError, what="file")
     if data is None:
-        raise ConfigError(f"cell description {str(p)!r}: the file is empty")
+        raise ConfigError(f"{src}: the file is empty")
     try:
         return parse_cell(data, source=str(p), sha256=hashlib.sha256(blob).hexdigest())
     except ConfigError as exc:

@@ -1,8 +1,7 @@
 """Reading and writing files that may be hostile or may fail half-way: YAML documents, pictures, atomic writes.
 
-Every refusal names the file and the cause, as the caller's error class (``ConfigError``,
-``CalibrationFileError``, ``ImageError``); nothing is read past a bound, and a write leaves either the old
-file or the new one, never half a file.
+Every refusal names the file and the cause, as the caller's error class (``ConfigError``, ``CalibrationFileError``,
+``ImageError``); nothing is read past a bound, and a write leaves either the old file or the new one, never half a file.
 """
 
 from __future__ import annotations
@@ -25,8 +24,9 @@ import yaml
 from selfview.errors import CellError, ConfigError, ImageError, PictureFileError
 from selfview.files.lockdir import lock_slug, open_lock_file, os_cause
 
-__all__ = ["load_yaml", "load_yaml_file", "read_bounded", "parse_number", "read_picture", "picture_size", "atomic_write", "write_picture", "MAX_YAML_BYTES", "MAX_YAML_DEPTH",
-           "MAX_PICTURE_SIDE", "MAX_PICTURE_PIXELS"]
+__all__ = ["load_yaml", "load_yaml_file", "read_bounded", "parse_number", "read_picture", "picture_size",
+           "atomic_write", "write_picture", "MAX_YAML_BYTES", "MAX_YAML_DEPTH", "MAX_PICTURE_SIDE",
+           "MAX_PICTURE_PIXELS"]
 
 #: Largest YAML document read (cell and calibration files are a few kB).
 MAX_YAML_BYTES = 1 << 20
@@ -50,10 +50,9 @@ def _not_regular(mode: int) -> str:
 
 def read_bounded(path, limit: int, *, error: type[CellError] = ConfigError, what: str = "file",
                  source: str | None = None, missing: str | None = None) -> bytes:
-    """The bytes of the regular file ``path`` of at most ``limit`` bytes: a FIFO, device or folder is refused
-    naming its kind before it is read (and opened without blocking), a larger file from its size; at most
-    ``limit + 1`` bytes are read. ``error`` names ``source`` (default: the path); ``missing``: the message
-    for a file that does not exist."""
+    """The bytes of the regular file ``path`` of at most ``limit`` bytes: a FIFO, device or folder is refused naming its
+    kind before it is read (and opened without blocking), a larger file from its size; at most ``limit + 1`` bytes are
+    read. ``error`` names ``source`` (default: the path); ``missing``: the message for a file that does not exist."""
     src = str(path) if source is None else source
     refuse = lambda why: error(f"{src}: cannot read the {what}: {why}")  # noqa: E731
     try:
@@ -93,10 +92,8 @@ def _strict(base: type) -> type:
         def compose_node(self, parent, index):
             if self.check_event(yaml.AliasEvent):
                 ev = self.peek_event()
-                raise _Refused(
-                    f"line {ev.start_mark.line + 1}: YAML alias '*{ev.anchor}' refused (aliases are not used by "
-                    "selfview's files, and can expand a small file into gigabytes)"
-                )
+                raise _Refused(f"line {ev.start_mark.line + 1}: YAML alias '*{ev.anchor}' refused (aliases are not "
+                               "used by selfview's files, and can expand a small file into gigabytes)")
             self._depth += 1
             try:
                 if self._depth > MAX_YAML_DEPTH:
@@ -109,7 +106,8 @@ def _strict(base: type) -> type:
     Strict.__name__ = f"Strict{base.__name__}"
     if issubclass(base, yaml.SafeLoader):
         for tag in ("int", "float"):
-            Strict.add_constructor(f"tag:yaml.org,2002:{tag}", _digits_only(base.yaml_constructors[f"tag:yaml.org,2002:{tag}"]))
+            name = f"tag:yaml.org,2002:{tag}"
+            Strict.add_constructor(name, _digits_only(base.yaml_constructors[name]))
     return Strict
 
 
@@ -151,13 +149,10 @@ _LOADERS = {"safe": _strict(yaml.SafeLoader), "base": _strict(yaml.BaseLoader)}
 
 def load_yaml(data: bytes | str, source: str, *, error: type[CellError] = ConfigError, text_only: bool = False,
               what: str = "file"):
-    """Parse one YAML document with no aliases, at most ``MAX_YAML_BYTES`` and ``MAX_YAML_DEPTH`` deep.
-
-    No aliases: a 491-byte alias bomb expands to gigabytes in anything that walks it (a checksum's
-    ``json.dumps``, an error message's ``repr``); the depth bound keeps deep nesting from ending in
-    RecursionError. Refusals name the line and the cause.
-
-    ``text_only`` keeps every scalar as text (``yaml.BaseLoader``). Raises ``error`` naming ``source``."""
+    """Parse one YAML document with no aliases, at most ``MAX_YAML_BYTES`` and ``MAX_YAML_DEPTH`` deep: a
+    491-byte alias bomb expands to gigabytes in anything that walks it (a checksum's ``json.dumps``, an error
+    message's ``repr``); deep nesting would end in RecursionError. ``text_only`` keeps every scalar as text
+    (``yaml.BaseLoader``). Raises ``error`` naming ``source``, the line and the cause."""
     size = len(data)
     if size > MAX_YAML_BYTES:
         raise error(f"{source}: {what} of {size} bytes, more than the {MAX_YAML_BYTES} accepted")
@@ -237,11 +232,8 @@ def picture_size(head: bytes) -> tuple[str, int, int]:
     if head[:2] == b"BM":
         if len(head) < 26:
             raise ValueError("BMP header truncated")
-        (hsize,) = struct.unpack("<I", head[14:18])
-        if hsize == 12:
-            w, h = struct.unpack("<HH", head[18:22])
-        else:
-            w, h = struct.unpack("<ii", head[18:26])
+        (hsize,) = struct.unpack("<I", head[14:18])  # 12: the old OS/2 header of 16-bit sizes
+        w, h = struct.unpack("<HH", head[18:22]) if hsize == 12 else struct.unpack("<ii", head[18:26])
         return "BMP", abs(w), abs(h)
     if head[:1] == b"P" and head[1:2] in (b"2", b"3", b"5", b"6"):
         fields: list[bytes] = []
@@ -273,14 +265,13 @@ def read_picture(path, *, max_side: int = MAX_PICTURE_SIDE, max_pixels: int = MA
     if w <= 0 or h <= 0:
         raise PictureFileError(f"{p}: {fmt} header says {w} x {h} pixels")
     if w > max_side or h > max_side or w * h > max_pixels:
-        raise PictureFileError(
-            f"{p}: {fmt} header says {w} x {h} pixels, beyond the {max_side} px side / {max_pixels} pixel bound; "
-            "refused before decoding"
-        )
+        raise PictureFileError(f"{p}: {fmt} header says {w} x {h} pixels, beyond the {max_side} px side / "
+                               f"{max_pixels} pixel bound; refused before decoding")
     try:
         img = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error as exc:
-        raise PictureFileError(f"{p}: OpenCV cannot decode the {fmt} {what} ({_short(str(exc).strip(), 200)})") from None
+        raise PictureFileError(f"{p}: OpenCV cannot decode the {fmt} {what} "
+                               f"({_short(str(exc).strip(), 200)})") from None
     if img is None:
         raise PictureFileError(f"{p}: OpenCV cannot decode the {fmt} {what} (truncated or corrupt?)")
     if img.ndim == 3:
@@ -306,7 +297,7 @@ def remove_leftovers(folder, name: str | None = None) -> None:
     """Remove the temporary files (``.NAME.PID.TOKEN.tmp``) that writers of ``name`` (or of any file) left
     in ``folder`` when they were killed: only those whose pid no longer runs."""
     pattern = re.compile(rf"\.{re.escape(name) if name else '.+'}\.([0-9]+)\.[0-9a-f]{{12}}\.tmp")
-    try:
+    with contextlib.suppress(OSError):
         for entry in os.scandir(folder):
             if (m := pattern.fullmatch(entry.name)) and entry.is_file(follow_symlinks=False):
                 try:
@@ -315,8 +306,6 @@ def remove_leftovers(folder, name: str | None = None) -> None:
                     os.unlink(entry.path)
                 except (PermissionError, OverflowError):
                     pass
-    except OSError:
-        pass
 
 
 @contextlib.contextmanager
@@ -334,22 +323,18 @@ def file_lock(path, *, error: type[CellError] = ConfigError, what: str = "file",
                               what=f"{path}: cannot write the {what}")
     try:
         end = time.monotonic() + timeout_s
-        while not _try_flock(fd):
-            if time.monotonic() > end:
-                raise error(f"{path}: another process has been writing the {what} for {timeout_s:g} s "
-                            f"(it holds {lock}); nothing written")
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > end:
+                    raise error(f"{path}: another process has been writing the {what} for {timeout_s:g} s "
+                                f"(it holds {lock}); nothing written") from None
             time.sleep(0.02)
         yield
     finally:
         os.close(fd)  # releases the lock
-
-
-def _try_flock(fd: int) -> bool:
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        return True
-    except BlockingIOError:
-        return False
 
 
 def check_folder(path, *, error: type[CellError] = ConfigError, what: str = "file") -> None:
@@ -369,23 +354,23 @@ def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, wha
     naming the path and the cause, the old file untouched and no temporary file left."""
     path = Path(os.path.realpath(path)) if Path(path).is_symlink() else Path(path)
     folder = path.parent
+    fail = lambda why: error(f"{path}: cannot write the {what}: {why}")  # noqa: E731
     check_folder(path, error=error, what=what)
     try:
         st_mode = os.stat(path).st_mode
     except FileNotFoundError:
         st_mode = None
     except OSError as exc:
-        raise error(f"{path}: cannot write the {what}: {os_cause(exc)}") from None
+        raise fail(os_cause(exc)) from None
     if st_mode is not None and (kind := _not_regular(st_mode)):
-        why = "a folder of that name exists" if stat.S_ISDIR(st_mode) else f"it is {kind}, not a regular file"
-        raise error(f"{path}: cannot write the {what}: {why}")
+        raise fail("a folder of that name exists" if stat.S_ISDIR(st_mode) else f"it is {kind}, not a regular file")
     old_mode = mode if st_mode is None else stat.S_IMODE(st_mode)
     remove_leftovers(folder, path.name)
     tmp = folder / f".{path.name}.{os.getpid()}.{secrets.token_hex(6)}.tmp"  # see remove_leftovers
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666 if old_mode is None else old_mode)
     except OSError as exc:
-        raise error(f"{path}: cannot write the {what}: {os_cause(exc)}") from None
+        raise fail(os_cause(exc)) from None
     try:
         try:
             _write_all(fd, data)
@@ -396,21 +381,17 @@ def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, wha
             os.close(fd)
         os.replace(tmp, path)
     except BaseException as exc:
-        try:
+        with contextlib.suppress(OSError):
             os.unlink(tmp)
-        except OSError:
-            pass
         if isinstance(exc, OSError):
-            raise error(f"{path}: cannot write the {what}: {os_cause(exc)}; the previous file is unchanged") from None
+            raise fail(f"{os_cause(exc)}; the previous file is unchanged") from None
         raise
-    try:  # make the rename itself durable
+    with contextlib.suppress(OSError):  # make the rename itself durable
         dfd = os.open(folder, os.O_RDONLY)
         try:
             os.fsync(dfd)
         finally:
             os.close(dfd)
-    except OSError:
-        pass
 
 
 #: The picture formats ``write_picture`` writes (by the name's extension).

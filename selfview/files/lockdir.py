@@ -1,11 +1,10 @@
 """The folder of this user's lock files, and the lock files in it.
 
-Every lock of selfview (a device's, a file writer's) is an ``flock`` on a file in one folder:
-``$SELFVIEW_LOCK_DIR``, else ``$XDG_RUNTIME_DIR/selfview``, else ``selfview-UID`` in the temporary
-directory. The folder must be the user's own with mode 0700 (a folder another user can write lets them
-plant a link or hold a lock; it is refused, named, not repaired), and a lock file is opened without
-following links, so a planted link cannot make a lock truncate the file it points to. No lock file is
-ever made beside the user's own files.
+Every lock of selfview (a device's, a file writer's) is an ``flock`` on a file in one folder: ``$SELFVIEW_LOCK_DIR``,
+else ``$XDG_RUNTIME_DIR/selfview``, else ``selfview-UID`` in the temporary directory. The folder must be the user's
+own with mode 0700 (a folder another user can write lets them plant a link or hold a lock; it is refused, named,
+not repaired), and a lock file is opened without following links, so a planted link cannot make a lock truncate
+the file it points to. No lock file is ever made beside the user's own files.
 """
 
 from __future__ import annotations
@@ -22,15 +21,9 @@ from selfview.errors import CellError
 __all__ = ["lock_dir", "open_lock_file", "lock_slug", "os_cause"]
 
 _FIX = "set SELFVIEW_LOCK_DIR to a folder of yours with mode 0700"
-
-
-_CAUSES = {
-    errno.ENOSPC: "no space left on the device",
-    errno.EFBIG: "file too large (a file-size limit)",
-    errno.EDQUOT: "disk quota exceeded",
-    errno.EROFS: "a read-only file system",
-    errno.ELOOP: "it is a symbolic link (not followed)",
-}
+_CAUSES = {errno.ENOSPC: "no space left on the device", errno.EFBIG: "file too large (a file-size limit)",
+           errno.EDQUOT: "disk quota exceeded", errno.EROFS: "a read-only file system",
+           errno.ELOOP: "it is a symbolic link (not followed)"}
 
 
 def os_cause(exc: OSError) -> str:
