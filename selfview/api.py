@@ -1,12 +1,7 @@
-"""One call per task for lab scripts: calibrate a picture, track one.
-
-``calibrate_picture(image, cell=..., camera=...)`` is the off-line calibration of one picture of the gripper
-parked on the plate (``selfview.estimation.offline.calibrate_offline``) with its honest uncertainty and a verdict;
-``track(image, calibration, method="auto")`` the on-line estimate from one picture of the fingertips
-(``selfview.estimation.online.estimate`` or the monitor's policy, ``selfview.estimation.policy.Monitor``). Pictures, cells,
-cameras and calibrations are given as files or as the loaded objects. The ``selfview calibrate`` and
-``selfview track`` commands print what these return.
-"""
+"""One call per task for lab scripts: ``calibrate_picture`` (the off-line calibration of one picture of the gripper
+parked on the plate, with its uncertainty and a verdict) and ``track`` (the on-line estimate from one picture of the
+fingertips). Pictures, cells, cameras and calibrations are given as files or as the loaded objects; the
+``selfview calibrate`` and ``selfview track`` commands print what these return."""
 
 from __future__ import annotations
 
@@ -22,8 +17,7 @@ from selfview.maths.camera import CameraModel
 from selfview.files.cell import POINT_NAMES, Cell, default_cell_path, load_cell
 from selfview.errors import CalibrationError, ConfigError
 from selfview.maths.geometry import hat, pose_difference
-from selfview.estimation.online import METHODS as ONLINE_METHODS
-from selfview.estimation.online import MODEL_METHOD
+from selfview.estimation.online import METHODS as ONLINE_METHODS, MODEL_METHOD
 
 if TYPE_CHECKING:  # the command line reads METHODS without loading the measurement
     from selfview.measurement.fingertips import FingertipResult
@@ -39,9 +33,7 @@ METHODS = (*ONLINE_METHODS, MODEL_METHOD, "auto")
 
 
 def _cell(cell) -> Cell:
-    if isinstance(cell, Cell):
-        return cell
-    return load_cell(default_cell_path() if cell is None else cell)
+    return cell if isinstance(cell, Cell) else load_cell(default_cell_path() if cell is None else cell)
 
 
 def _picture(image) -> tuple[np.ndarray, str | None]:
@@ -58,12 +50,10 @@ class PictureCalibration:
     """An off-line calibration with its uncertainty and verdict.
 
     ``calibration`` what ``save`` writes; ``offline`` every intermediate (discs, Tsai, fingertips, PCC);
-    ``C_H_G`` (4, 4) gripper -> camera [mm]; ``tcp_sigma_mm`` the TCP's 1-sigma along the camera's x, y, z
-    [mm], every part included (``sigma_parts_mm``: the picture's noise, the camera file's uncertainty, the
-    corners', and ``camera_model`` when the picture shows the assumed camera wrong); ``verdict`` 'go' or
-    'no-go' and ``reason``; ``warnings`` sentences for the operator; ``camera_check`` and
-    ``camera_file_fit`` the checks behind them (``selfview.estimation.intrinsics``).
-    """
+    ``C_H_G`` (4, 4) gripper -> camera [mm]; ``tcp_sigma_mm`` the TCP's 1-sigma along the camera's x, y, z [mm],
+    every part included (``sigma_parts_mm``: the picture's noise, the camera file's uncertainty, the corners', and
+    ``camera_model`` when the picture shows the assumed camera wrong); ``verdict`` 'go' or 'no-go' and ``reason``;
+    ``warnings`` for the operator; ``camera_check`` and ``camera_file_fit`` the checks behind them."""
 
     calibration: Calibration
     offline: OfflineResult
@@ -84,8 +74,8 @@ class PictureCalibration:
         return self.verdict == "go"
 
     def save(self, path, *, force: bool = False) -> Path | None:
-        """Write the calibration to ``path`` atomically (previous file kept in its history; returns that
-        copy). Raises ``CalibrationError`` when the camera file does not fit the picture, unless ``force``."""
+        """Write the calibration to ``path`` atomically (previous file kept in its history; returns that copy).
+        Raises ``CalibrationError`` when the camera file does not fit the picture, unless ``force``."""
         fit = self.camera_file_fit
         if fit and not fit["fits"] and not force:
             raise CalibrationError(f"{fit['refusal']}; nothing written")
@@ -101,10 +91,9 @@ class PictureCalibration:
 
 
 def calibration_change(previous: Calibration, new: Calibration) -> dict:
-    """What moved from ``previous`` to ``new``: the TCP in camera axes [mm] (``tcp_moved_mm`` x y z and its
-    length), the rotation of ``C_H_G`` [deg], f [px] and kappa [px^-2], and whether both saw the same
-    picture and gripper state. Two calibrations of one mount differ by their sigmas; more means the
-    camera moved on its mount or one of them is wrong."""
+    """What moved from ``previous`` to ``new``: the TCP in camera axes [mm] (``tcp_moved_mm`` x y z and its length),
+    the rotation of ``C_H_G`` [deg], f [px] and kappa [px^-2], and whether both saw the same picture and gripper
+    state. Two calibrations of one mount differ by their sigmas; more means the camera moved or one is wrong."""
     d = np.asarray(new.C_H_G, float)[:3, 3] - np.asarray(previous.C_H_G, float)[:3, 3]
     deg, mm = pose_difference(new.C_H_G, previous.C_H_G)
     return {"previous_created": previous.created, "tcp_moved_mm": [float(v) for v in d], "tcp_moved_norm_mm": mm,
@@ -118,16 +107,15 @@ def assess_offline(res: OfflineResult, cell: Cell, camera: CameraModel | None = 
                    camera_name: str | None = None, fit: dict | None = None) -> PictureCalibration:
     """The uncertainty and the verdict of an off-line calibration ``res``.
 
-    ``camera`` the measured camera it used (None: the cell's nominal one), ``camera_cov3`` the covariance
-    of its centre and aspect (skew) from its file, ``camera_name`` how to name it in a warning, ``fit`` its
-    ``camera_file_fit`` (computed when None and ``camera`` is given). The TCP's sigma includes the camera
-    model's error when the picture shows the assumed centre or aspect wrong (``camera_check``). Verdict
-    no-go: the camera file does not fit, a fingertip corner is missing, the disc residual is above
-    ``RMS_LIMIT_PX``, or the TCP's sigma is over the accuracy targets (``TARGET_ACROSS_MM`` across,
-    ``TARGET_ALONG_MM`` along the optical axis). The calibration's residuals record the sigma
-    (``tcp_sigma_mm``), which ``track`` adds to its own.
-    """
-    from selfview.estimation.intrinsics import TARGET_ACROSS_MM, TARGET_ALONG_MM, camera_check, camera_file_fit, tcp_sigma
+    ``camera`` the measured camera it used (None: the cell's nominal one), ``camera_cov3`` the covariance of its
+    centre and aspect (skew) from its file, ``camera_name`` how to name it in a warning, ``fit`` its
+    ``camera_file_fit`` (computed when None and ``camera`` is given). The TCP's sigma includes the camera model's
+    error when the picture shows the assumed centre or aspect wrong (``camera_check``). Verdict no-go: the camera
+    file does not fit, a fingertip corner is missing, the disc residual is above ``RMS_LIMIT_PX``, or the TCP's
+    sigma is over ``TARGET_ACROSS_MM`` across or ``TARGET_ALONG_MM`` along the optical axis. The calibration's
+    residuals record the sigma (``tcp_sigma_mm``), which ``track`` adds to its own."""
+    from selfview.estimation.intrinsics import (TARGET_ACROSS_MM, TARGET_ALONG_MM, camera_check, camera_file_fit,
+                                                tcp_sigma)
 
     if camera is not None and fit is None:
         fit = camera_file_fit(res, camera, f"the camera file {camera_name}" if camera_name else "the camera")
@@ -171,12 +159,11 @@ def calibrate_picture(image, cell=None, camera=None, *, state: str | None = None
                       points: str = "measured") -> PictureCalibration:
     """Off-line calibration of one picture of the gripper parked on the plate, with its sigma and verdict.
 
-    ``image`` a picture file or a (H, W) uint8 array; ``cell`` a cell file or ``Cell`` (None: the reference
-    cell); ``camera`` a camera file from ``selfview intrinsics`` or a ``CameraModel`` (None: the cell's
-    nominal camera); ``state``, ``mode``, ``points`` as ``calibrate_offline``. Nothing is written: call
-    ``save(path)`` on the result. Raises ``ImageError`` (unusable picture), ``ConfigError`` /
-    ``CalibrationFileError`` (cell or camera file), ``CalibrationError`` (too few discs or corners).
-    """
+    ``image`` a picture file or a (H, W) uint8 array; ``cell`` a cell file or ``Cell`` (None: the reference cell);
+    ``camera`` a camera file from ``selfview intrinsics`` or a ``CameraModel`` (None: the cell's nominal camera);
+    ``state``, ``mode``, ``points`` as ``calibrate_offline``. Nothing is written: call ``save(path)`` on the
+    result. Raises ``ImageError`` (unusable picture), ``ConfigError`` / ``CalibrationFileError`` (cell or camera
+    file), ``CalibrationError`` (too few discs or corners)."""
     from selfview.estimation.offline import calibrate_offline
 
     c = _cell(cell)
@@ -200,15 +187,13 @@ def calibrate_picture(image, cell=None, camera=None, *, state: str | None = None
 class TrackResult:
     """One on-line estimate from one picture.
 
-    ``C_H_G`` (4, 4) the estimate [mm] (NP-U: eq. 13's own, not orthonormal; the calibration's own after an
-    alarm); ``C_H_G_orthonormal`` the transform to use from now on (its rotation re-orthonormalised);
-    ``decision`` update, recalibrate or alarm and ``reason``; ``verdict`` 'go' unless alarm;
-    ``delta_deg``, ``d_mm`` how far the camera moved on its mount; ``rms_px`` the estimate's residual;
-    ``tcp_sigma_mm`` the new TCP's 1-sigma in camera axes [mm]: the estimate's own (from its covariance)
-    and the calibration's (recorded by ``calibrate_picture``) together, None where the estimate has no
-    redundancy (3 points) or no covariance (method E); ``points_used``, ``points_found`` names;
-    ``quality`` the measurement's; ``fingertips`` what was found.
-    """
+    ``C_H_G`` (4, 4) the estimate [mm] (NP-U: eq. 13's own, not orthonormal; the calibration's own after an alarm);
+    ``C_H_G_orthonormal`` the transform to use from now on (its rotation re-orthonormalised); ``decision`` update,
+    recalibrate or alarm and ``reason``; ``verdict`` 'go' unless alarm; ``delta_deg``, ``d_mm`` how far the camera
+    moved on its mount; ``rms_px`` the estimate's residual; ``tcp_sigma_mm`` the new TCP's 1-sigma in camera axes
+    [mm], the estimate's own (from its covariance) and the calibration's (recorded by ``calibrate_picture``)
+    together, None where the estimate has no redundancy (3 points) or no covariance (method E); ``points_used``,
+    ``points_found`` names; ``quality`` the measurement's; ``fingertips`` what was found."""
 
     C_H_G: np.ndarray
     method: str
@@ -241,8 +226,8 @@ class TrackResult:
 
 
 def tcp_sigma_after(est, H, cal: Calibration) -> list | None:
-    """1-sigma [mm] of the TCP at ``H`` (4, 4) after the motion ``est`` (its covariance over rotation [rad]
-    and shift [mm]; ``dp = -[p]x d_rot + d_shift``), with the calibration's recorded sigma added."""
+    """1-sigma [mm] of the TCP at ``H`` (4, 4) after the motion ``est`` (its covariance over rotation [rad] and
+    shift [mm]; ``dp = -[p]x d_rot + d_shift``), with the calibration's recorded sigma added."""
     if est is None or not np.all(np.isfinite(est.covariance)):
         return None
     p = np.asarray(H, float)[:3, 3]
@@ -260,12 +245,11 @@ def track(image, calibration, method: str = "auto", *, cell=None, state: str | N
 
     ``image`` a picture file or a (H, W) uint8 array; ``calibration`` a calibration file or ``Calibration``;
     ``method`` one of NP-U / NP-I / NP-R (``selfview.estimation.online``), E (the fingers' model fitted directly,
-    ``measure='model'``) or 'auto' (the cell's monitor policy: update, recalibrate or alarm); ``cell`` a
-    cell file or ``Cell`` (None: the reference cell); ``state`` the gripper state (default the
-    calibration's); ``measure`` 'model' (the fingers' silhouette) or 'corners'. Nothing is written.
-    An alarm is a result (``decision`` 'alarm', verdict no-go), not an exception. Raises ``ImageError``,
-    ``ConfigError`` (a method, state or measure unknown), ``CalibrationError`` (the fingertips not found).
-    """
+    ``measure='model'``) or 'auto' (the cell's monitor policy: update, recalibrate or alarm); ``cell`` a cell file
+    or ``Cell`` (None: the reference cell); ``state`` the gripper state (default the calibration's); ``measure``
+    'model' (the fingers' silhouette) or 'corners'. Nothing is written. An alarm is a result (``decision``
+    'alarm', verdict no-go), not an exception. Raises ``ImageError``, ``ConfigError`` (a method, state or measure
+    unknown), ``CalibrationError`` (the fingertips not found)."""
     from selfview.measurement.fingers import find_fingertips
     from selfview.estimation.offline import check_picture
     from selfview.estimation.online import estimate

@@ -1,10 +1,6 @@
-"""The project's exception tree.
-
-One small tree, mixed with builtins so callers can catch either: a device that does not answer raises
-``DeviceTimeout``, which is also a ``TimeoutError``; a move out of limits raises ``LimitError``, which is
-also a ``ValueError``. Vendor errors (pyserial, pymodbus, OpenCV) are translated at the driver boundary
-with ``raise ... from``.
-"""
+"""The project's exception tree, mixed with builtins so callers can catch either: a device that does not answer
+raises ``DeviceTimeout``, also a ``TimeoutError``; a move out of limits raises ``LimitError``, also a ``ValueError``.
+Vendor errors (pyserial, pymodbus, OpenCV) are translated at the driver boundary with ``raise ... from``."""
 
 from __future__ import annotations
 

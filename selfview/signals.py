@@ -1,23 +1,21 @@
 """Termination signals, and the connected devices a signal must stop whatever the entry point.
 
-The command line and the engine take the signals themselves while they run (``selfview.procedures.engine``).
-Every other entry point, a lab script driving ``PumaVAL`` or ``PneumaticGripper`` directly, or a
-``CellSession`` in a worker thread, gets the same first response from here: while a driver is connected
-(``watch``), a termination signal whose action is still the default one (SIGINT's ``KeyboardInterrupt``,
-SIGTERM's, SIGHUP's, SIGQUIT's death) is taken by the main thread's handler, which
+The command line and the engine take the signals themselves while they run (``selfview.procedures.engine``). Every
+other entry point (a lab script driving ``PumaVAL`` or ``PneumaticGripper`` directly, a ``CellSession`` in a worker
+thread) gets the same first response from here: while a driver is connected (``watch``), a termination signal whose
+action is still the default one (SIGINT's ``KeyboardInterrupt``, SIGTERM's, SIGHUP's, SIGQUIT's death) is taken by
+the main thread's handler, which
 
-1. writes ABORT to every connected robot and ends every jaw wait at once, then, in a helper thread, waits
-   for the robots' motions to end and puts every valve in its safe state;
-2. raises ``Interrupted`` (a ``KeyboardInterrupt`` carrying the signal's number) where the main thread is,
-   so the script's ``finally`` and ``with`` blocks run; a program left by that exception says so in one
-   line and ends, once the helper is done, by the signal itself (the status a shell reports as 128 + N).
+1. writes ABORT to every connected robot and ends every jaw wait at once, then, in a helper thread, waits for the
+   robots' motions to end and puts every valve in its safe state;
+2. raises ``Interrupted`` (a ``KeyboardInterrupt`` carrying the signal's number) where the main thread is, so the
+   script's ``finally`` and ``with`` blocks run; a program left by that exception says so in one line and ends,
+   once the helper is done, by the signal itself (the status a shell reports as 128 + N).
 
-Ctrl-Z (SIGTSTP) holds the arm: ABORT first, then the program stops; when it is resumed it says so on
-stderr, and the motion that was stopped is not taken up again (its driver reports the ABORT).
-
-A signal ignored when the program started (``nohup``, a background job) stays ignored, and a handler the
-script installed itself is left alone. Python runs handlers in the main thread only, so the handlers are
-installed when a driver connects in the main thread or when this module is first imported there (a
+Ctrl-Z (SIGTSTP) holds the arm: ABORT first, then the program stops; resumed, it says so on stderr, and the stopped
+motion is not taken up again (its driver reports the ABORT). A signal ignored when the program started (``nohup``, a
+background job) stays ignored, and a handler the script installed itself is left alone. Python runs handlers in the
+main thread only: they are installed when a driver connects there or when this module is first imported there (a
 driver connecting in a worker thread was imported by the main thread first).
 """
 

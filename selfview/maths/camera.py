@@ -7,8 +7,8 @@ relative to the principal point (cx, cy), in pixel units:
     X = X^ (1 + kappa r^2),  Y = Y^ (1 + kappa r^2)          (eq. 4, r^2 = X^^2 + Y^^2)
     X = f x / z,             Y = f y / z                     (eq. 3, camera coordinates in mm)
 
-The correction is explicit from distorted to undistorted; ``distort`` inverts it exactly by solving
-the cubic ``kappa r^3 + r - R = 0`` for the distorted radius r of an undistorted radius R.
+The correction is explicit from distorted to undistorted; ``distort`` inverts it exactly by solving the cubic
+``kappa r^3 + r - R = 0`` for the distorted radius r of an undistorted radius R.
 """
 
 from __future__ import annotations
@@ -21,9 +21,8 @@ from selfview.errors import CalibrationError, ConfigError
 
 __all__ = ["CameraModel", "undistort", "distort", "max_undistorted_radius", "MAX_SKEW"]
 
-#: Largest |skew| a camera may have: 0.01 shifts the bottom line of a CCIR picture 5.8 px against the top
-#: one, ten times the worst PLL shear reported for analogue grabbers (a few tenths of a pixel); more is
-#: not a grabber's shear but a wrong file or a wrong fit.
+#: Largest |skew| a camera may have: 0.01 shifts the bottom line of a CCIR picture 5.8 px against the top one,
+#: ten times the worst PLL shear reported for analogue grabbers; more is a wrong file or a wrong fit.
 MAX_SKEW = 0.01
 
 
@@ -44,10 +43,8 @@ def undistort(XY_hat, kappa: float) -> np.ndarray:
 
 
 def max_undistorted_radius(kappa: float) -> float:
-    """Largest undistorted radius a real distorted radius maps to (inf for kappa >= 0).
-
-    For kappa < 0, R(r) = r + kappa r^3 peaks at r = sqrt(-1 / (3 kappa)); beyond it no pixel sees the ray.
-    """
+    """Largest undistorted radius a real distorted radius maps to (inf for kappa >= 0). For kappa < 0,
+    R(r) = r + kappa r^3 peaks at r = sqrt(-1 / (3 kappa)); beyond it no pixel sees the ray."""
     if kappa >= 0:
         return np.inf
     r = np.sqrt(-1.0 / (3.0 * kappa))
@@ -61,18 +58,15 @@ def _distorted_radius(R: np.ndarray, kappa: float) -> np.ndarray:
         return R.copy()
     if kappa > 0:
         # One real root (the cubic is monotonic): Cardano, depressed cubic r^3 + p r + q = 0.
-        p = 1.0 / kappa
-        q = -R / kappa
+        p, q = 1.0 / kappa, -R / kappa
         disc = np.sqrt((q / 2) ** 2 + (p / 3) ** 3)
         r = np.cbrt(-q / 2 + disc) + np.cbrt(-q / 2 - disc)
     else:
         # Three real roots when R < R_max: take the one on the rising branch, trigonometric form.
         Rmax = max_undistorted_radius(kappa)
         if np.any(R > Rmax * (1 + 1e-12)):
-            raise CalibrationError(
-                f"point beyond the lens's field of view: undistorted radius {float(np.max(R)):.1f} px "
-                f"exceeds {Rmax:.1f} px reachable with kappa={kappa:.3e}"
-            )
+            raise CalibrationError(f"point beyond the lens's field of view: undistorted radius {float(np.max(R)):.1f} "
+                                   f"px exceeds {Rmax:.1f} px reachable with kappa={kappa:.3e}")
         p = 1.0 / kappa  # negative
         m = 2.0 * np.sqrt(-p / 3.0)
         arg = np.clip(3.0 * (-R / kappa) / (p * m), -1.0, 1.0)
@@ -86,9 +80,7 @@ def _distorted_radius(R: np.ndarray, kappa: float) -> np.ndarray:
 
 def distort(XY, kappa: float) -> np.ndarray:
     """Inverse of eq. 4: undistorted sensor coordinates (N, 2) -> distorted (N, 2), pixel units.
-
-    Raises ``CalibrationError`` for a point the lens cannot image (kappa < 0, beyond the fold).
-    """
+    ``CalibrationError`` for a point the lens cannot image (kappa < 0, beyond the fold)."""
     XY = np.asarray(XY, dtype=float)
     R = np.sqrt(np.sum(XY * XY, axis=-1, keepdims=True))
     r = _distorted_radius(R, kappa)
@@ -101,14 +93,12 @@ def distort(XY, kappa: float) -> np.ndarray:
 class CameraModel:
     """Interior orientation of the camera (eq. 3-4).
 
-    Attributes: ``f`` effective focal length [px]; ``kappa`` radial coefficient [px^-2];
-    ``cx, cy`` principal point [px]; ``aspect`` horizontal sampling factor (X^ = aspect (u - cx));
-    ``width, height`` picture size [px]; ``skew`` the grabber's shear (px of u per px of v below cy,
-    |skew| <= ``MAX_SKEW``; 0, the default, is the spec's model). The shear is a PLL whose line-sync
-    phase drifts linearly down the picture (Beyer 1992 measured tenths of a pixel over the frame): the
-    skew term of OpenCV's and Heikkilae's pinhole models (``K[0, 1] = skew * fy``, ``fy = f``,
-    ``fx = f / aspect``), which Tsai's lacks; ``selfview intrinsics`` measures it.
-    """
+    ``f`` effective focal length [px]; ``kappa`` radial coefficient [px^-2]; ``cx, cy`` principal point [px];
+    ``aspect`` horizontal sampling factor (X^ = aspect (u - cx)); ``width, height`` picture size [px]; ``skew``
+    the grabber's shear (px of u per px of v below cy, |skew| <= ``MAX_SKEW``; 0, the default, is the spec's
+    model): a PLL whose line-sync phase drifts linearly down the picture (Beyer 1992: tenths of a pixel over the
+    frame), the skew term of OpenCV's and Heikkilae's pinhole models (``K[0, 1] = skew * fy``, ``fy = f``,
+    ``fx = f / aspect``), which Tsai's lacks; ``selfview intrinsics`` measures it."""
 
     f: float
     kappa: float = 0.0
@@ -129,10 +119,9 @@ class CameraModel:
         if self.aspect <= 0:
             raise ConfigError(f"camera aspect: expected a positive ratio, got {self.aspect!r}")
         if abs(self.skew) > MAX_SKEW:
-            raise ConfigError(
-                f"camera skew: {self.skew!r} shears the picture by {abs(self.skew) * self.height:.1f} px from its top "
-                f"line to its bottom one; a grabber's shear is a few tenths of a pixel (|skew| <= {MAX_SKEW})"
-            )
+            raise ConfigError(f"camera skew: {self.skew!r} shears the picture by {abs(self.skew) * self.height:.1f} px "
+                              f"from its top line to its bottom one; a grabber's shear is a few tenths of a pixel "
+                              f"(|skew| <= {MAX_SKEW})")
         if int(self.width) <= 0 or int(self.height) <= 0:
             raise ConfigError(f"camera size: expected positive width and height, got {self.width}x{self.height}")
 
@@ -150,7 +139,6 @@ class CameraModel:
     def principal_point(self) -> tuple[float, float]:
         return (self.cx, self.cy)
 
-    # --- pixels <-> sensor coordinates ---------------------------------------------------------
     def pixel_to_sensor(self, uv) -> np.ndarray:
         """Pixels (N, 2) -> distorted sensor coordinates X^, Y^ (N, 2)."""
         uv, single = _as_points(uv, 2, "uv")
@@ -194,11 +182,9 @@ class CameraModel:
         """Pixels (N, 2) -> where they would lie in a distortion-free picture, in pixels (N, 2)."""
         return self.sensor_to_pixel(self.undistort_pixels(uv))
 
-    # --- 3-D ----------------------------------------------------------------------------------
     def project_undistorted(self, p_C) -> np.ndarray:
-        """Camera-frame points (N, 3) [mm] -> undistorted sensor coordinates (N, 2) by eq. 3.
-
-        Raises ``CalibrationError`` for a point not in front of the camera (z <= 0)."""
+        """Camera-frame points (N, 3) [mm] -> undistorted sensor coordinates (N, 2) by eq. 3;
+        ``CalibrationError`` for a point not in front of the camera (z <= 0)."""
         p, single = _as_points(p_C, 3, "p_C")
         z = p[:, 2]
         if np.any(z <= 0):
@@ -215,12 +201,8 @@ class CameraModel:
     def in_image(self, uv, margin: float = 0.0) -> np.ndarray:
         """Boolean mask (N,): pixel centres inside the picture, at least ``margin`` px from its border."""
         uv, _ = _as_points(uv, 2, "uv")
-        return (
-            (uv[:, 0] >= -0.5 + margin)
-            & (uv[:, 0] <= self.width - 0.5 - margin)
-            & (uv[:, 1] >= -0.5 + margin)
-            & (uv[:, 1] <= self.height - 0.5 - margin)
-        )
+        lo, hi = -0.5 + margin, np.array([self.width, self.height]) - 0.5 - margin
+        return np.all((uv >= lo) & (uv <= hi), axis=1)
 
     def rays(self, uv) -> np.ndarray:
         """Pixels (N, 2) -> unit viewing directions (N, 3) in the camera frame."""
@@ -233,28 +215,24 @@ class CameraModel:
     def backproject_to_plane(self, uv, C_H_P, z_P=0.0, min_cos: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
         """Eq. 8: intersect the rays of pixels (N, 2) with the plane z = ``z_P`` of frame P.
 
-        ``C_H_P`` (4, 4) maps P to the camera; ``z_P`` is a scalar or (N,) per point [mm].
-        Returns (p_P (N, 3) in frame P with the given z, z_C (N,) depth of each point in the camera frame).
-        Raises ``CalibrationError`` when a ray runs parallel to the plane (seen edge-on) or meets it
-        behind the camera.
-        """
+        ``C_H_P`` (4, 4) maps P to the camera; ``z_P`` is a scalar or (N,) per point [mm]. Returns (p_P (N, 3) in
+        frame P with the given z, z_C (N,) depth of each point in the camera frame). ``CalibrationError`` when a
+        ray runs parallel to the plane (seen edge-on) or meets it behind the camera."""
         uv, single = _as_points(uv, 2, "uv")
         H = np.asarray(C_H_P, dtype=float)
         R, t = H[:3, :3], H[:3, 3]
         XY = self.undistort_pixels(uv)
         zP = np.broadcast_to(np.asarray(z_P, dtype=float), (len(uv),))
-        n = len(uv)
         # Eq. 8, one 3x3 system per point: [r1 r2 -X/f; r4 r5 -Y/f; r7 r8 -1] [x y zc]^T = -r3 z - t
-        A = np.empty((n, 3, 3))
+        A = np.empty((len(uv), 3, 3))
         A[:, :, :2] = R[:, :2]
         A[:, :2, 2] = -XY / self.f
         A[:, 2, 2] = -1.0
         b = -(R[:, 2][None, :] * zP[:, None]) - t[None, :]
         cosang = np.abs(self.rays(uv) @ R[:, 2])  # edge-on test: angle between ray and plane normal
         if np.any(cosang < min_cos):
-            raise CalibrationError(
-                f"plane seen nearly edge-on: a viewing ray meets it at {np.degrees(np.arcsin(cosang.min())):.1f} deg"
-            )
+            raise CalibrationError(f"plane seen nearly edge-on: a viewing ray meets it at "
+                                   f"{np.degrees(np.arcsin(cosang.min())):.1f} deg")
         sol = np.linalg.solve(A, b[..., None])[..., 0]
         zc = sol[:, 2]
         if np.any(zc <= 0):
@@ -272,12 +250,6 @@ class CameraModel:
                    skew=float(d.get("skew", 0.0)))
 
     def to_dict(self) -> dict:
-        return {
-            "f": float(self.f),
-            "kappa": float(self.kappa),
-            "principal_point": [float(self.cx), float(self.cy)],
-            "aspect": float(self.aspect),
-            "width": int(self.width),
-            "height": int(self.height),
-            **({"skew": float(self.skew)} if self.skew else {}),
-        }
+        return {"f": float(self.f), "kappa": float(self.kappa), "principal_point": [float(self.cx), float(self.cy)],
+                "aspect": float(self.aspect), "width": int(self.width), "height": int(self.height),
+                **({"skew": float(self.skew)} if self.skew else {})}

@@ -1,8 +1,8 @@
 """Homogeneous transforms and rotation parametrisations.
 
 Conventions (``CONVENTIONS.md``): ``A_H_B`` is a (4, 4) matrix mapping coordinates in frame B to frame A,
-``p_A = A_H_B p_B``; translations in mm. Functions here take and return radians; degrees belong to the
-interfaces a person sees, and the ``*_deg`` helpers convert at those interfaces.
+``p_A = A_H_B p_B``; translations in mm. Functions here take and return radians; degrees belong to the interfaces a
+person sees, and the ``*_deg`` helpers convert at those interfaces.
 """
 
 from __future__ import annotations
@@ -13,34 +13,10 @@ import numpy as np
 
 from selfview.errors import ConfigError
 
-__all__ = [
-    "make_H",
-    "inv_H",
-    "trans",
-    "rot_x",
-    "rot_y",
-    "rot_z",
-    "rot_axis",
-    "delta_star",
-    "orthonormalize",
-    "is_rigid",
-    "check_rigid",
-    "R_from_rotvec",
-    "rotvec_from_R",
-    "H_from_rotvec",
-    "R_from_rpy",
-    "rpy_from_R",
-    "EulerConvention",
-    "VAL_OAT",
-    "H_from_xyzoat",
-    "xyzoat_from_H",
-    "transform_points",
-    "rotation_angle",
-    "pose_difference",
-    "so3_left_jacobian",
-    "cross_rows",
-    "hat",
-]
+__all__ = ["make_H", "inv_H", "trans", "rot_x", "rot_y", "rot_z", "rot_axis", "delta_star", "orthonormalize",
+           "is_rigid", "check_rigid", "R_from_rotvec", "rotvec_from_R", "H_from_rotvec", "R_from_rpy", "rpy_from_R",
+           "EulerConvention", "VAL_OAT", "H_from_xyzoat", "xyzoat_from_H", "transform_points", "rotation_angle",
+           "pose_difference", "so3_left_jacobian", "cross_rows", "hat"]
 
 
 def make_H(R: np.ndarray, t=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -98,11 +74,10 @@ def rot_axis(axis, angle: float, point=(0.0, 0.0, 0.0)) -> np.ndarray:
 
 
 def delta_star(delta, d) -> np.ndarray:
-    """Differential transform Delta* of eq. 12 from rotations ``delta`` = (dx, dy, dz) (rad) and
-    translations ``d`` = (dx, dy, dz) (mm). Not orthogonal: first order in the rotations."""
+    """Differential transform Delta* of eq. 12 from rotations ``delta`` = (dx, dy, dz) (rad) and translations
+    ``d`` = (dx, dy, dz) (mm). Not orthogonal: first order in the rotations."""
     dx, dy, dz = map(float, delta)
-    # np.fromiter on a flat tuple: a third cheaper than np.array on nested lists (NP-U builds one per
-    # picture, on a budget of 50 us)
+    # np.fromiter on a flat tuple: a third cheaper than np.array on nested lists (NP-U: one per picture, 50 us budget)
     rows = (
         1.0, -dz, dy, float(d[0]),
         dz, 1.0, -dx, float(d[1]),
@@ -113,8 +88,8 @@ def delta_star(delta, d) -> np.ndarray:
 
 
 def orthonormalize(M: np.ndarray) -> np.ndarray:
-    """Nearest rotation (Frobenius norm, polar decomposition by SVD) to a (3, 3) matrix, or the same
-    for the rotation block of a (4, 4) transform (translation kept)."""
+    """Nearest rotation (Frobenius norm, polar decomposition by SVD) to a (3, 3) matrix, or the same for the
+    rotation block of a (4, 4) transform (translation kept)."""
     M = np.asarray(M, dtype=float)
     if M.shape == (4, 4):
         return make_H(orthonormalize(M[:3, :3]), M[:3, 3])
@@ -133,8 +108,8 @@ def is_rigid(H, tol: float = 1e-6) -> bool:
 
 
 def check_rigid(H, name: str = "transform", tol: float = 1e-3) -> np.ndarray:
-    """Return ``H`` as a float (4, 4) array, its rotation re-orthonormalised, or raise ``ConfigError``
-    naming ``name`` and the fault. ``tol`` admits matrices printed to 4 digits."""
+    """``H`` as a float (4, 4) array, its rotation re-orthonormalised; ``ConfigError`` naming ``name`` and the
+    fault. ``tol`` admits matrices printed to 4 digits."""
     try:
         A = np.asarray(H, dtype=float)
     except (TypeError, ValueError) as exc:
@@ -148,10 +123,8 @@ def check_rigid(H, name: str = "transform", tol: float = 1e-3) -> np.ndarray:
     R = A[:3, :3]
     err = np.abs(R.T @ R - np.eye(3)).max()
     if err > tol or np.linalg.det(R) < 0:
-        raise ConfigError(
-            f"{name}: not a rigid transform (rotation block off orthonormal by {err:.2e}, "
-            f"det {np.linalg.det(R):+.4f}); expected a rotation with det +1"
-        )
+        raise ConfigError(f"{name}: not a rigid transform (rotation block off orthonormal by {err:.2e}, "
+                          f"det {np.linalg.det(R):+.4f}); expected a rotation with det +1")
     return orthonormalize(A)
 
 
@@ -188,8 +161,7 @@ def R_from_rotvecs(V) -> np.ndarray:
 def rotvec_from_R(R) -> np.ndarray:
     """Rotation vector (rad) of a (3, 3) rotation, exact near 0 and pi."""
     R = np.asarray(R, dtype=float)[:3, :3]
-    c = np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)
-    th = np.arccos(c)
+    th = rotation_angle(R)
     w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     if th < 1e-6:
         return w / 2
@@ -225,13 +197,10 @@ def rpy_from_R(R) -> tuple[float, float, float]:
 
 @dataclass(frozen=True)
 class EulerConvention:
-    """How a controller's three orientation angles (VAL's O, A, T) map to a rotation.
-
+    """How a controller's three orientation angles (VAL's O, A, T) map to a rotation:
     ``R = base @ E(sequence[0], s0*(a0+o0)) @ E(sequence[1], s1*(a1+o1)) @ E(sequence[2], s2*(a2+o2)) @ tool``
-    with intrinsic (moving-axes) rotations, signs ``s`` and offsets ``o`` in degrees. The default is
-    the ZYZ set that VAL documents for O (about z), A (about the new y) and T (about the new z); a
-    controller that differs is described in its dialect file, not in code.
-    """
+    with intrinsic (moving-axes) rotations, signs ``s`` and offsets ``o`` in degrees. The default is VAL's ZYZ
+    set: O about z, A about the new y, T about the new z; another controller's is in its dialect file."""
 
     sequence: str = "zyz"
     signs: tuple[float, float, float] = (1.0, 1.0, 1.0)
@@ -260,20 +229,14 @@ class EulerConvention:
         R = np.asarray(self.base, dtype=float).T @ np.asarray(R, dtype=float)[:3, :3] @ np.asarray(self.tool).T
         i, j, k = ("xyz".index(c) for c in self.sequence.lower())
         angs = _proper_euler(R, i, j) if i == k else _tait_bryan(R, i, j, k)  # zyz-like, or zyx-like
-        out = []
-        for a, s, o in zip(angs, self.signs, self.offsets_deg):
-            v = np.degrees(a) / s - o
-            out.append(float((v + 180.0) % 360.0 - 180.0) if abs(v) != 180.0 else float(v))
-        return tuple(out)
+        degs = (np.degrees(a) / s - o for a, s, o in zip(angs, self.signs, self.offsets_deg))
+        return tuple(float(v) if abs(v) == 180.0 else float((v + 180.0) % 360.0 - 180.0) for v in degs)
 
 
 def _third_angle(R, a, b, i, j, k):
-    """The last angle c of R = E_i(a) E_j(b) E_k(c), from what is left of R after a and b.
-
-    Taking c from the residue keeps the three angles consistent with R wherever a is ill-conditioned:
-    near the middle angle's singularity (Tait-Bryan b = +-90, proper b = 0 or 180) a and c separately
-    rest on entries of R that are only rounding noise, and computing both from them (as this code once
-    did) gave O/A/T up to 18 degrees away from R with the tool pointing straight down."""
+    """The last angle c of R = E_i(a) E_j(b) E_k(c), from what is left of R after a and b: near the middle
+    angle's singularity (Tait-Bryan b = +-90, proper b = 0 or 180) a and c separately rest on rounding noise,
+    and taking both from R gave O/A/T up to 18 degrees away from R with the tool pointing straight down."""
     M = (_rot3(i, a) @ _rot3(j, b)).T @ R
     u, v = (k + 1) % 3, (k + 2) % 3
     return np.arctan2(M[v, u], M[u, u])
@@ -295,8 +258,7 @@ def _tait_bryan(R, i, j, k):
     # 1 - 1e-16 puts b 1e-8 rad short of 90 degrees, so a gimbal lock was never recognised
     cb = np.hypot(R[i, i], R[i, j])
     b = np.arctan2(par * R[i, k], cb)
-    # gimbal lock: a takes all of the first and last rotation (c = 0)
-    a = np.arctan2(par * R[k, j], R[j, j]) if cb < 1e-9 else np.arctan2(-par * R[j, k], R[k, k])
+    a = np.arctan2(par * R[k, j], R[j, j]) if cb < 1e-9 else np.arctan2(-par * R[j, k], R[k, k])  # gimbal lock: c = 0
     return a, b, _third_angle(R, a, b, i, j, k)
 
 
@@ -319,8 +281,7 @@ def xyzoat_from_H(H, convention: EulerConvention = VAL_OAT) -> tuple[float, ...]
 def transform_points(H, p) -> np.ndarray:
     """Apply a (4, 4) transform to points ``p`` of shape (N, 3) or (3,)."""
     H = np.asarray(H, dtype=float)
-    p = np.asarray(p, dtype=float)
-    return p @ H[:3, :3].T + H[:3, 3]
+    return np.asarray(p, dtype=float) @ H[:3, :3].T + H[:3, 3]
 
 
 def rotation_angle(R) -> float:

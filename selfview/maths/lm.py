@@ -1,16 +1,15 @@
 """A small Levenberg-Marquardt least-squares solver on numpy.
 
-Minimises ``sum(fun(x)**2)`` over ``x`` (P,) for a residual function returning (M,) with M >= P, in the
-trust-region form that Moré described (1978) and MINPACK's ``lmder``/``lmdif`` implement, which Willson's
-Tsai calibration uses: with the same residuals and tolerances, it stops where ``lmdif`` stops.
+Minimises ``sum(fun(x)**2)`` over ``x`` (P,) for a residual function returning (M,) with M >= P, in the trust-region
+form that Moré described (1978) and MINPACK's ``lmder``/``lmdif`` implement, which Willson's Tsai calibration uses: with
+the same residuals and tolerances, it stops where ``lmdif`` stops.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable
-
-import math
 
 import numpy as np
 
@@ -29,13 +28,9 @@ _NORMAL_FLOOR = 1e-7
 
 @dataclass(frozen=True)
 class LMResult:
-    """Outcome of ``levenberg_marquardt``.
-
-    ``x`` (P,) solution; ``residuals`` (M,) and ``jacobian`` (M, P) at ``x``; ``cost`` the sum of
-    squared residuals; ``iterations`` Jacobian evaluations; ``nfev`` residual evaluations;
-    ``converged`` whether a tolerance was met (False: the evaluation budget ran out); ``message``
-    which test stopped it.
-    """
+    """Outcome of ``levenberg_marquardt``: ``x`` (P,) solution; ``residuals`` (M,) and ``jacobian`` (M, P) at ``x``;
+    ``cost`` the sum of squared residuals; ``iterations`` Jacobian evaluations; ``nfev`` residual evaluations;
+    ``converged`` whether a tolerance was met (False: the budget ran out); ``message`` which test stopped it."""
 
     x: np.ndarray
     residuals: np.ndarray
@@ -47,21 +42,20 @@ class LMResult:
     message: str
 
     def covariance(self, sigma2: float | None = None, *, normal: bool = False) -> np.ndarray:
-        """(P, P) covariance of ``x`` (see ``covariance``), by default with the residual variance
-        ``cost / (M - P)``."""
+        """(P, P) covariance of ``x`` (see ``covariance``), by default with the residual variance ``cost / (M - P)``."""
         m, p = self.jacobian.shape
         return covariance(self.jacobian, self.cost / max(m - p, 1) if sigma2 is None else sigma2, normal=normal)
 
 
 def _r_factor(A) -> np.ndarray:
-    """The triangular factor R of A = Q R (M >= P rows: (P, P); fewer: (M, P)). The SVD of a tall matrix is
-    that of its R, whose factorisation costs far less than an SVD of all M rows (thousands of residuals)."""
+    """The triangular factor R of A = Q R ((P, P), or (M, P) for M < P rows): a tall matrix's SVD is its R's,
+    whose factorisation costs far less than an SVD of all M rows (thousands of residuals)."""
     return np.linalg.qr(A, mode="r")
 
 
 def _normal_matrix(J, d, normal) -> np.ndarray:
-    """``D^-1 J^T J D^-1`` of the column scales ``d``: the dense product, or ``normal(J)`` (a callable: the
-    problem's own J^T J, which skips the blocks it knows are zero) scaled."""
+    """``D^-1 J^T J D^-1`` of the column scales ``d``: the dense product, or ``normal(J)`` scaled (a callable: the
+    problem's own J^T J, which skips the blocks it knows are zero)."""
     if callable(normal):
         return np.asarray(normal(J), dtype=float) / np.outer(d, d)
     Js = J / d
@@ -69,11 +63,10 @@ def _normal_matrix(J, d, normal) -> np.ndarray:
 
 
 def covariance(J, sigma2: float, *, normal=False) -> np.ndarray:
-    """(P, P) covariance ``sigma2 (J^T J)^-1`` of a least-squares estimate with Jacobian ``J`` (M, P)
-    and residual variance ``sigma2``. Computed from the SVD of the column-scaled Jacobian (inverting
-    J^T J would square its condition); if the data do not determine some direction at all, every
-    entry is infinite. ``normal``: from the normal equations (see ``levenberg_marquardt``; a function of J:
-    the problem's own J^T J)."""
+    """(P, P) covariance ``sigma2 (J^T J)^-1`` of a least-squares estimate with Jacobian ``J`` (M, P) and
+    residual variance ``sigma2``, from the SVD of the column-scaled Jacobian (inverting J^T J would square its
+    condition); every entry infinite if the data leave some direction undetermined. ``normal``: from the normal
+    equations (see ``levenberg_marquardt``; a function of J: the problem's own J^T J)."""
     J = np.asarray(J, dtype=float)
     m, p = J.shape
     cn = np.linalg.norm(J, axis=0)
@@ -104,11 +97,9 @@ def numeric_jacobian(fun: Residuals, x, *, r0=None, method: str = "central", sca
     """(M, P) Jacobian of ``fun`` at ``x`` (P,) by finite differences.
 
     ``method``: ``central`` (step eps^(1/3) relative) or ``forward`` (step sqrt(eps) relative, MINPACK's
-    ``fdjac2``; ``r0`` = ``fun(x)`` saves one evaluation). The step of parameter j is
-    ``rel_step * |x_j|``, or ``rel_step * scale_j`` where x_j is 0 (``scale`` (P,): each parameter's
-    typical size, default 1). Raises ``ValueError`` for an unknown method, ``CalibrationError`` if a
-    residual near ``x`` is not finite.
-    """
+    ``fdjac2``; ``r0`` = ``fun(x)`` saves one evaluation). The step of parameter j is ``rel_step * |x_j|``, or
+    ``rel_step * scale_j`` where x_j is 0 (``scale`` (P,): each parameter's typical size, default 1). Raises
+    ``ValueError`` for an unknown method, ``CalibrationError`` if a residual near ``x`` is not finite."""
     x = np.asarray(x, dtype=float).ravel()
     p = x.size
     if method not in ("central", "forward"):
@@ -117,29 +108,28 @@ def numeric_jacobian(fun: Residuals, x, *, r0=None, method: str = "central", sca
     if rel_step is None:
         rel_step = _EPS ** (1.0 / 3.0) if method == "central" else np.sqrt(_EPS)
     h = rel_step * np.where(x != 0, np.abs(x), sc)
+
+    def moved(j: int, step: float) -> np.ndarray:
+        xj = x.copy()
+        xj[j] += step
+        return np.asarray(fun(xj), dtype=float).ravel()
+
     if method == "forward":
         f0 = np.asarray(fun(x) if r0 is None else r0, dtype=float).ravel()
-    cols = []
-    for j in range(p):
-        xp = x.copy()
-        xp[j] += h[j]
-        fp = np.asarray(fun(xp), dtype=float).ravel()
-        if method == "forward":
-            cols.append((fp - f0) / h[j])
-        else:
-            xm = x.copy()
-            xm[j] -= h[j]
-            cols.append((fp - np.asarray(fun(xm), dtype=float).ravel()) / (2.0 * h[j]))
-    J = np.column_stack(cols)
+        J = np.column_stack([(moved(j, h[j]) - f0) / h[j] for j in range(p)])
+    else:
+        J = np.column_stack([(moved(j, h[j]) - moved(j, -h[j])) / (2.0 * h[j]) for j in range(p)])
     if not np.all(np.isfinite(J)):
         raise CalibrationError("numeric Jacobian: the residual function is not finite near the current parameters")
     return J
 
 
 class _ScaledSVD:
-    """The SVD of the column-scaled Jacobian ``J D^-1 = U S V^T`` and ``c = U^T r``: every damped
-    step ``x(par)`` solving ``min ||J x - r||^2 + par ||D x||^2`` and every quantity of Moré's
-    iteration then costs O(P), so the many damping trials of an iteration need no factorisation."""
+    """The SVD of the column-scaled Jacobian ``J D^-1 = U S V^T`` and ``c = U^T r``: every damped step ``x(par)``
+    solving ``min ||J x - r||^2 + par ||D x||^2`` and every quantity of Moré's iteration then costs O(P), so the
+    many damping trials of an iteration need no factorisation. ``z(par)`` the scaled step D x in the basis V for
+    damping ``par``; ``step(zv)`` the parameter step x (P,) of it; ``gradient_norm()`` ||(J D^-1)^T r||; ``jnorm(zv)``
+    ||J x||; ``newton_norm2(zv, par)`` ||y||^2 of Moré's Newton correction, y = S_par^-T D^2 x / ||D x||."""
 
     def __init__(self, J, r, d):
         p = J.shape[1]
@@ -152,35 +142,30 @@ class _ScaledSVD:
         self.full_rank = bool(np.all(self.rank_ok))
 
     def gradient_norm(self):
-        """||(J D^-1)^T r||."""
         return float(np.linalg.norm(self.s * self.c))
 
     def jnorm(self, zv):
-        """||J x|| of the step."""
         return float(np.linalg.norm(self.s * zv))
 
     def z(self, par):
-        """Scaled step D x (in the basis V) for damping ``par``."""
         s = self.s
         if par == 0:
             return np.where(self.rank_ok, self.c / np.where(self.rank_ok, s, 1.0), 0.0)
         return s * self.c / (s * s + par)
 
     def newton_norm2(self, zv, par):
-        """||y||^2 of Moré's Newton correction, y = S_par^-T D^2 x / ||D x||, in closed form."""
         s2 = self.s * self.s + par
         return float(np.sum(zv * zv / np.where(s2 > 0, s2, np.inf))) / float(zv @ zv)
 
     def step(self, zv):
-        """Parameter step x (P,) from the scaled step in the V basis."""
         return (self.Vt.T @ zv) / self.d
 
 
 class _ScaledNormal:
-    """``_ScaledSVD``'s quantities from the normal equations ``A = D^-1 J^T J D^-1`` (P-square), each damped
-    step a solve with ``A + par I`` (the basis V is the identity): for thousands of residuals on
-    well-scaled parameters, where factoring J itself costs far more. ``LinAlgError`` when A is not
-    positive definite to ``_NORMAL_FLOOR`` (the caller then takes the SVD)."""
+    """``_ScaledSVD``'s quantities from the normal equations ``A = D^-1 J^T J D^-1`` (P-square), each damped step a
+    solve with ``A + par I`` (the basis V is the identity): for thousands of residuals on well-scaled parameters,
+    where factoring J itself costs far more. ``LinAlgError`` when A is not positive definite to ``_NORMAL_FLOOR``
+    (the caller then takes the SVD)."""
 
     def __init__(self, J, r, d, normal=True):
         self.A, self.g, self.d = _normal_matrix(J, d, normal), (J.T @ r) / d, d
@@ -218,8 +203,8 @@ def _factor(J, r, d, normal):
 
 
 def _lm_parameter(svd, delta, par):
-    """Moré's safeguarded Newton iteration for the damping ``par`` whose step has ||D x|| within 10 %
-    of ``delta`` (MINPACK's ``lmpar``, on the SVD); returns (par, scaled step in the V basis)."""
+    """Moré's safeguarded Newton iteration for the damping ``par`` whose step has ||D x|| within 10 % of ``delta``
+    (MINPACK's ``lmpar``, on the SVD); returns (par, scaled step in the V basis)."""
     zv = svd.z(0.0)
     dxnorm = float(np.linalg.norm(zv))
     fp = dxnorm - delta
@@ -264,8 +249,8 @@ def _start(fun: Residuals, x0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _jacobian_function(fun: Residuals, jac, m: int, n: int, scale):
-    """(jacobian(x, r) -> (M, P) checked, residual evaluations each call costs) for ``jac``: a callable,
-    'central' or 'forward' differences (``r`` the residuals at x, which forward differences reuse)."""
+    """(jacobian(x, r) -> (M, P) checked, residual evaluations each call costs) for ``jac``: a callable, 'central'
+    or 'forward' differences (``r`` the residuals at x, which forward differences reuse)."""
     numeric = isinstance(jac, str)
     if numeric and jac not in ("central", "forward"):
         raise ValueError(f"levenberg_marquardt: jac must be a callable, 'central' or 'forward', got {jac!r}")
@@ -280,21 +265,6 @@ def _jacobian_function(fun: Residuals, jac, m: int, n: int, scale):
         return J
 
     return jacobian, ({"central": 2 * n, "forward": n}[jac] if numeric else 0)
-
-
-def _gradient_cosine(J, r, fnorm: float, acnorm) -> float:
-    """MINPACK's gtol measure: the largest cosine between the residuals and a Jacobian column."""
-    if fnorm <= 0:
-        return 0.0
-    nz = acnorm > 0
-    return float(np.max(np.abs((J.T @ r)[nz] / (fnorm * acnorm[nz])), initial=0.0))
-
-
-def _predicted_reduction(svd, zv, par, pnorm: float, fnorm: float) -> tuple[float, float]:
-    """(predicted relative reduction of the cost, directional derivative) of the scaled step ``zv``."""
-    t1 = svd.jnorm(zv) / fnorm  # ||J p|| / ||r||
-    t2 = np.sqrt(par) * pnorm / fnorm
-    return t1 * t1 + 2.0 * t2 * t2, -(t1 * t1 + t2 * t2)
 
 
 def _stop_test(actred, prered, ratio, delta, xnorm, gnorm, ftol, xtol, out_of_budget: bool):
@@ -325,38 +295,24 @@ def _new_bound(ratio, actred, dirder, fnorm, fnorm1, delta, pnorm, par):
     return delta, par
 
 
-def levenberg_marquardt(
-    fun: Residuals,
-    x0,
-    jac: Jacobian | str | None = None,
-    *,
-    ftol: float = 1e-12,
-    xtol: float = 1e-12,
-    gtol: float = 0.0,
-    max_nfev: int | None = None,
-    factor: float = 100.0,
-    scale=None,
-    normal=False,
-) -> LMResult:
+def levenberg_marquardt(fun: Residuals, x0, jac: Jacobian | str | None = None, *, ftol: float = 1e-12,
+                        xtol: float = 1e-12, gtol: float = 0.0, max_nfev: int | None = None, factor: float = 100.0,
+                        scale=None, normal=False) -> LMResult:
     """Minimise ``sum(fun(x)**2)`` from ``x0`` (P,).
 
     ``jac(x)`` returns the (M, P) Jacobian, or ``None``/``"central"``/``"forward"`` differences as in
-    ``numeric_jacobian`` (forward: ``lmdif``'s). MINPACK's tests and constants (``_stop_test``), ``factor
-    * ||D x0||`` the first step bound, ``converged`` False after ``max_nfev`` evaluations (default
-    200 (P + 1)); ``normal``: factor the P-square normal equations instead of J (``_factor``); a function of J instead of
-    True gives their J^T J (a problem's own product, which skips the blocks it knows are zero). A trial
-    step whose residuals are not finite (a point behind the camera) is rejected and the bound shrinks.
-    Raises ``ValueError`` for M < P or a Jacobian of the wrong shape, ``CalibrationError`` when the
-    residuals are not finite at ``x0``.
+    ``numeric_jacobian`` (forward: ``lmdif``'s). MINPACK's tests and constants (``_stop_test``), ``factor * ||D x0||``
+    the first step bound, ``converged`` False after ``max_nfev`` evaluations (default 200 (P + 1)); ``normal``: factor
+    the P-square normal equations instead of J (``_factor``); a function of J instead of True gives their J^T J (a
+    problem's own product, which skips the blocks it knows are zero). A trial step whose residuals are not finite (a
+    point behind the camera) is rejected and the bound shrinks. Raises ``ValueError`` for M < P or a Jacobian of the
+    wrong shape, ``CalibrationError`` when the residuals are not finite at ``x0``.
     """
     x, r = _start(fun, x0)
     m, n = r.size, x.size
     max_nfev = 200 * (n + 1) if max_nfev is None else int(max_nfev)
     jacobian, extra = _jacobian_function(fun, "central" if jac is None else jac, m, n, scale)
-    nfev = 1
-    fnorm = float(np.linalg.norm(r))
-    par = 0.0
-    iterations = 0
+    nfev, iterations, par, fnorm = 1, 0, 0.0, float(np.linalg.norm(r))
     converged, message = False, f"gave up after {max_nfev} residual evaluations"
     done = False
     while not done:
@@ -369,7 +325,8 @@ def levenberg_marquardt(
             d = np.where(acnorm > 0, acnorm, 1.0)
             xnorm = float(np.linalg.norm(d * x))
             delta = factor * xnorm if xnorm > 0 else factor
-        gnorm = _gradient_cosine(J, r, fnorm, acnorm)
+        nz = acnorm > 0  # MINPACK's gtol measure: the largest cosine between the residuals and a Jacobian column
+        gnorm = 0.0 if fnorm <= 0 else float(np.max(np.abs((J.T @ r)[nz] / (fnorm * acnorm[nz])), initial=0.0))
         if gnorm <= gtol:
             converged, message = True, "residuals orthogonal to the Jacobian (gtol)"
             break
@@ -385,7 +342,9 @@ def levenberg_marquardt(
             nfev += 1
             fnorm1 = float(np.linalg.norm(r_new)) if np.all(np.isfinite(r_new)) else np.inf
             actred = 1.0 - (fnorm1 / fnorm) ** 2 if 0.1 * fnorm1 < fnorm else -1.0
-            prered, dirder = _predicted_reduction(svd, zv, par, pnorm, fnorm)
+            # the predicted relative reduction of the cost and the directional derivative (t1 = ||J p|| / ||r||)
+            t1, t2 = svd.jnorm(zv) / fnorm, np.sqrt(par) * pnorm / fnorm
+            prered, dirder = t1 * t1 + 2.0 * t2 * t2, -(t1 * t1 + t2 * t2)
             ratio = actred / prered if prered != 0 else 0.0
             delta, par = _new_bound(ratio, actred, dirder, fnorm, fnorm1, delta, pnorm, par)
             if ratio >= 1e-4:
@@ -401,7 +360,5 @@ def levenberg_marquardt(
     if not J_at_x:
         J = jacobian(x, r)
         nfev += extra
-    return LMResult(
-        x=x, residuals=r, jacobian=J, cost=fnorm * fnorm, iterations=iterations, nfev=nfev,
-        converged=converged, message=message,
-    )
+    return LMResult(x=x, residuals=r, jacobian=J, cost=fnorm * fnorm, iterations=iterations, nfev=nfev,
+                    converged=converged, message=message)
