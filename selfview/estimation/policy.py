@@ -1,8 +1,8 @@
 """The on-line policy (paper, section 4): update, recalibrate or raise the alarm.
 
-While the robot works each picture of the fingertips gives a differential estimate of how far the
-camera moved on its mount; the limits of ``monitor`` in the cell description decide what to do
-(``Policy``), and a ``Monitor`` applies that rule frame by frame, telling a missed frame from an alarm.
+While the robot works each picture of the fingertips gives a differential estimate of how far the camera moved on
+its mount; the limits of ``monitor`` in the cell description decide what to do (``Policy``), and a ``Monitor``
+applies that rule frame by frame, telling a missed frame from an alarm.
 """
 
 from __future__ import annotations
@@ -30,22 +30,21 @@ ACTIONS: tuple[str, ...] = ("update", "recalibrate", "alarm", "missed")
 
 #: A picture whose grey levels span less than this (1st to 99th percentile) shows nothing: a blank frame.
 BLANK_CONTRAST_GREY = 8.0
-#: Measured poses this many frames in a row, each beyond the update limit from the one before and within it
-#: of the one before that, alternate between two values: the alarm.
+#: Poses measured this many frames in a row, each beyond the update limit from the one before and within it of
+#: the one before that, alternate between two values: the alarm.
 ALTERNATION_WINDOW = 6
-#: Upper 0.1 % point of the chi-square distribution with 6 degrees of freedom: a differential update whose
-#: motion (delta, d) scores under it against its covariance is within the measurement's noise (a still
-#: camera exceeds it once in a thousand frames) and is not applied.
+#: Upper 0.1 % point of chi-square with 6 degrees of freedom: an update whose motion (delta, d) scores under it
+#: against its covariance is within the measurement's noise (a still camera exceeds it once in a thousand
+#: frames) and is not applied.
 CHI2_SIGNIFICANT = 22.458
-#: The pixel noise of the silhouette tracker's fingertip corners from frame to frame, the background
-#: changing behind the fingers: the grasping servo on the realistic simulated cell (bench/positioning.py,
-#: two approaches of 9 and 10 frames, the camera still) scatters them by 0.13-0.15 px pooled, 0.29 px on
-#: the worst coordinate; the worst is taken.
+#: Frame-to-frame pixel noise of the silhouette tracker's fingertip corners, the background changing behind the
+#: fingers: the grasping servo on the realistic simulated cell (bench/positioning.py, two approaches of 9 and 10
+#: frames, the camera still) scatters them by 0.13-0.15 px pooled, 0.29 px on the worst coordinate, taken here.
 TRACKER_NOISE_PX = 0.3
-#: The fingertips as a measurement sees them against the nominal ``p_G6``: real fingers are made to
-#: ISO 2768-1 m (+-0.2 mm a face, 0.1 mm one sd) and carry an edge break, 0.1 mm at the fingertips'
-#: 110 mm is 0.9 px; a measurement other than the calibration's (the silhouette fit, not the corner search)
-#: sees them up to about a pixel apart. The first picture after a calibration is compared at this noise.
+#: The fingertips as a measurement sees them against the nominal ``p_G6``: real fingers are made to ISO 2768-1 m
+#: (+-0.2 mm a face, 0.1 mm one sd) with an edge break, 0.1 mm at the fingertips' 110 mm is 0.9 px; a measurement
+#: other than the calibration's (the silhouette fit, not the corner search) sees them up to about a pixel apart.
+#: The first picture after a calibration is compared at this noise.
 MODEL_TOLERANCE_PX = 1.0
 
 _LOG = logging.getLogger("selfview.estimation.policy")
@@ -57,14 +56,13 @@ _LEVEL = {"update": logging.INFO, "recalibrate": logging.WARNING, "alarm": loggi
 class Decision:
     """What the policy decided for one picture, and the measures that led to it.
 
-    ``action`` one of ``ACTIONS``; ``reason`` a sentence naming the measure and the limit;
-    ``delta_deg``, ``d_mm`` the change since the last calibration that was compared with the limits
-    (NaN when there was no estimate); ``rms_px`` the residual of the estimate judged last (NaN if none);
-    ``C_H_G`` (4, 4) the transform to use from now on: new for update (NP-U's result re-orthonormalised,
-    so that no error accumulates in a non-rigid matrix; eq. 13's own is ``estimate.C_H_G``) and for
-    recalibrate, unchanged for an alarm (None if the policy was not told the current one); ``method``
-    and ``points_used`` of the estimate ``C_H_G`` comes from (or that was judged); ``n_found``
-    fingertips found in the picture; ``estimate`` that estimate.
+    ``action`` one of ``ACTIONS``; ``reason`` a sentence naming the measure and the limit; ``delta_deg``, ``d_mm``
+    the change since the last calibration compared with the limits (NaN without an estimate); ``rms_px`` the
+    residual of the estimate judged last (NaN if none); ``C_H_G`` (4, 4) the transform to use from now on: new
+    for update (NP-U's result re-orthonormalised, so that no error accumulates in a non-rigid matrix; eq. 13's
+    own is ``estimate.C_H_G``) and recalibrate, unchanged for an alarm (None if the policy was not told the
+    current one); ``method``, ``points_used`` and ``estimate``: the estimate ``C_H_G`` comes from (or that was
+    judged); ``n_found`` fingertips found in the picture.
     """
 
     action: str
@@ -92,17 +90,13 @@ class Decision:
         def num(v):
             return None if v is None or not math.isfinite(v) else float(v)
 
+        est = self.estimate
         return {
-            "action": self.action,
-            "reason": self.reason,
-            "delta_deg": num(self.delta_deg),
-            "d_mm": num(self.d_mm),
-            "rms_px": num(self.rms_px),
-            "method": self.method,
-            "n_found": int(self.n_found),
+            "action": self.action, "reason": self.reason, "delta_deg": num(self.delta_deg), "d_mm": num(self.d_mm),
+            "rms_px": num(self.rms_px), "method": self.method, "n_found": int(self.n_found),
             "points_used": list(self.points_used),
-            "condition": num(self.estimate.condition) if self.estimate is not None else None,
-            "chi2": num(significance(self.estimate)) if self.estimate is not None else None,
+            "condition": num(est.condition) if est is not None else None,
+            "chi2": num(significance(est)) if est is not None else None,
             "C_H_G": None if self.C_H_G is None else np.asarray(self.C_H_G).tolist(),
         }
 
@@ -115,9 +109,9 @@ def _pose_about(est: MotionEstimate, C_H_G) -> np.ndarray:
 
 
 def significance(est: MotionEstimate) -> float:
-    """The chi-square ``m^T C^-1 m`` of an estimate's motion ``m`` (6,) against its covariance ``C`` (6, 6):
-    how many sigmas (squared, summed over the six) the measured camera motion is from none. NaN when the
-    covariance is unknown (the model's 'E', or NP-U from 3 points without a prior pixel noise)."""
+    """The chi-square ``m^T C^-1 m`` of an estimate's motion ``m`` (6,) against its covariance ``C`` (6, 6): how
+    many sigmas (squared, summed over the six) the measured camera motion is from none. NaN when the covariance
+    is unknown (the model's 'E', or NP-U from 3 points without a prior pixel noise)."""
     C = np.asarray(est.covariance, float)
     m = np.asarray(est.motion, float)
     if C.shape != (6, 6) or m.shape != (6,) or not (np.isfinite(C).all() and np.isfinite(m).all()):
@@ -126,28 +120,33 @@ def significance(est: MotionEstimate) -> float:
     return chi2 if math.isfinite(chi2) else math.nan
 
 
+def _selectable(points: str, found: np.ndarray) -> bool:
+    """Can the ``found`` (6,) fingertips serve an estimate from ``points`` ('3P' to '6P')?"""
+    try:
+        select_points(points, found)
+        return True
+    except CalibrationError:
+        return False
+
+
 class Policy:
     """The update / recalibrate / alarm rule of section 4 for the limits of one cell.
 
-    ``limits``: ``Cell.monitor`` (update_limit, alarm_limit: angle [deg] and shift [mm]; max_rms_px).
-    A limit is exceeded when either its angle or its shift is:
+    ``limits``: ``Cell.monitor`` (update_limit, alarm_limit: angle [deg] and shift [mm]; max_rms_px). A limit is
+    exceeded when its angle or its shift is. Within ``update_limit``: update; beyond it but within
+    ``alarm_limit``: recalibrate (NP-R); beyond ``alarm_limit``, fewer than 3 fingertips found, or a residual over
+    ``max_rms_px`` (the model no longer fits): the alarm, ``C_H_G`` unchanged.
 
-    - the change stays within ``update_limit`` (angle AND shift): apply the update;
-    - it exceeds ``update_limit`` but stays within ``alarm_limit``: recalibrate (NP-R);
-    - it exceeds ``alarm_limit``, fewer than 3 fingertips are found, or the residual exceeds
-      ``max_rms_px`` (the model no longer fits): raise the alarm and leave ``C_H_G`` unchanged.
+    The change is delta and d of eq. 14 (the rotation angle and translation of ``C'_H_G C_H_G^-1``, the camera's
+    motion, not the TCP's shift) since the LAST CALIBRATION (off-line, or the last recalibration), not since the
+    previous frame: a camera that creeps 0.3 degrees per frame is recalibrated once the sum passes the limit.
 
-    The change is delta and d of eq. 14 (the rotation angle and the translation of ``C'_H_G C_H_G^-1``,
-    the camera's motion; d is not the TCP's shift) since the LAST CALIBRATION (off-line, or the last
-    recalibration), not since the previous frame: a camera that creeps 0.3 degrees per frame is
-    recalibrated once the sum passes the update limit.
-
-    ``chi2_limit`` (e.g. ``CHI2_SIGNIFICANT``): a calibration must not follow noise. An estimate whose motion
-    since the current ``C_H_G`` scores under this chi-square against its own covariance (``significance``;
-    the estimate computed with the measurement's pixel noise as its prior) is within the noise, however large
-    its poorly determined part (a turn and a shift that move the fingertips' pixels alike): the decision is
-    'update' and ``C_H_G`` is kept, before the limits are looked at. A camera that creeps is followed once the motion summed since
-    the kept ``C_H_G`` becomes significant. None (default): every update within the limit is applied.
+    ``chi2_limit`` (e.g. ``CHI2_SIGNIFICANT``): a calibration must not follow noise. An estimate whose motion since
+    the current ``C_H_G`` scores under this chi-square against its own covariance (``significance``, computed with
+    the measurement's pixel noise as its prior) is within the noise, however large its poorly determined part (a
+    turn and a shift that move the fingertips' pixels alike): 'update' with ``C_H_G`` kept, before the limits are
+    looked at; a creeping camera is followed once the motion since the kept ``C_H_G`` becomes significant. None
+    (default): every update within the limit is applied.
     """
 
     def __init__(self, limits: MonitorLimits, *, chi2_limit: float | None = None):
@@ -161,8 +160,8 @@ class Policy:
 
     @staticmethod
     def change(C_H_G_new, C_H_G_ref) -> tuple[float, float]:
-        """(delta [deg], d [mm]) of eq. 14 for the motion ``C'_H_C = C_H_G_new C_H_G_ref^-1`` between two
-        (4, 4) transforms: its rotation angle and the length of its translation."""
+        """(delta [deg], d [mm]) of eq. 14 for the motion ``C'_H_C = C_H_G_new C_H_G_ref^-1`` between two (4, 4)
+        transforms: its rotation angle and the length of its translation."""
         new = orthonormalize(np.asarray(C_H_G_new, dtype=float))
         M = new @ inv_H(orthonormalize(np.asarray(C_H_G_ref, dtype=float)))
         return math.degrees(rotation_angle(M)), float(np.linalg.norm(M[:3, 3]))
@@ -178,25 +177,17 @@ class Policy:
             return "recalibrate"
         return "update"
 
-    def decide(
-        self,
-        estimate_U: MotionEstimate | None,
-        n_found: int,
-        *,
-        C_H_G=None,
-        C_H_G_calibrated=None,
-        recalibration: MotionEstimate | Callable[[], MotionEstimate] | None = None,
-        error: str | None = None,
-    ) -> Decision:
+    def decide(self, estimate_U: MotionEstimate | None, n_found: int, *, C_H_G=None, C_H_G_calibrated=None,
+               recalibration: MotionEstimate | Callable[[], MotionEstimate] | None = None,
+               error: str | None = None) -> Decision:
         """Decide for one picture.
 
-        ``estimate_U`` the differential (NP-U, or NP-I) estimate from the current ``C_H_G`` (None when it
-        could not be computed: ``error`` says why); ``n_found`` fingertips found; ``C_H_G`` (4, 4) the
-        current transform (default: the estimate's starting one), returned unchanged on an alarm;
-        ``C_H_G_calibrated`` (4, 4) the last calibrated transform the limits refer to (default: the
-        current one, i.e. the estimate's own delta and d); ``recalibration`` an NP-R estimate, or a
-        callable computing it (called only when needed; a ``CalibrationError`` it raises becomes an
-        alarm). Without one a 'recalibrate' decision leaves ``C_H_G`` unchanged.
+        ``estimate_U`` the differential (NP-U, or NP-I) estimate from the current ``C_H_G`` (None when it could not
+        be computed: ``error`` says why); ``n_found`` fingertips found; ``C_H_G`` (4, 4) the current transform
+        (default: the estimate's starting one), returned unchanged on an alarm; ``C_H_G_calibrated`` (4, 4) the
+        last calibrated transform the limits refer to (default: the current one); ``recalibration`` an NP-R
+        estimate, or a callable computing it (called only when needed; a ``CalibrationError`` it raises becomes
+        an alarm). Without one a 'recalibrate' decision leaves ``C_H_G`` unchanged.
         """
         lim = self.limits
         if C_H_G is None and estimate_U is not None:
@@ -212,17 +203,15 @@ class Policy:
             return alarm(f"no update estimate: {error or 'none was computed'}")
         est = estimate_U
         if not est.rms_px <= lim.max_rms_px:
-            return alarm(
-                f"{est.method} residual {est.rms_px:.3f} px exceeds max_rms_px {lim.max_rms_px} px: "
-                "the model no longer fits the fingertips",
-                est=est,
-            )
+            return alarm(f"{est.method} residual {est.rms_px:.3f} px exceeds max_rms_px {lim.max_rms_px} px: "
+                         "the model no longer fits the fingertips", est=est)
         chi2 = significance(est) if self.chi2_limit is not None else math.nan
-        if chi2 < self.chi2_limit if math.isfinite(chi2) else False:  # first: a large but weak motion is no move
-            kept = (0.0, 0.0) if C_H_G_calibrated is None or unchanged is None else self.change(unchanged, C_H_G_calibrated)
-            return Decision.of("update", f"the motion since the current C_H_G ({est.delta_deg:.3f} deg / {est.d_mm:.3f} mm, "
-                               f"{est.method}) is within the measurement's noise (chi-square {chi2:.1f} under "
-                               f"{self.chi2_limit:g}): C_H_G kept", unchanged, est, n_found, *kept)
+        if math.isfinite(chi2) and chi2 < self.chi2_limit:  # first: a large but weak motion is no move
+            known = C_H_G_calibrated is not None and unchanged is not None
+            kept = self.change(unchanged, C_H_G_calibrated) if known else (0.0, 0.0)
+            return Decision.of("update", f"the motion since the current C_H_G ({est.delta_deg:.3f} deg / "
+                               f"{est.d_mm:.3f} mm, {est.method}) is within the measurement's noise (chi-square "
+                               f"{chi2:.1f} under {self.chi2_limit:g}): C_H_G kept", unchanged, est, n_found, *kept)
         if C_H_G_calibrated is None:
             delta, d = est.delta_deg, est.d_mm
         else:
@@ -237,11 +226,6 @@ class Policy:
             return Decision.of("update", f"{where} within the update limit {u.angle_deg} deg / {u.shift_mm} mm",
                                est.C_H_G_orth.copy(), est, n_found, delta, d)
         why = f"{where} exceeds the update limit {u.angle_deg} deg / {u.shift_mm} mm"
-        return self._recalibrated(why, delta, d, est, int(n_found), unchanged, recalibration, C_H_G_calibrated, alarm)
-
-    def _recalibrated(self, why, delta, d, est, n_found, unchanged, recalibration, C_H_G_calibrated, alarm) -> Decision:
-        """``decide`` beyond the update limit: the recalibration's decision (``alarm`` the alarm maker)."""
-        lim = self.limits
         if recalibration is None:
             return Decision.of("recalibrate", f"{why}; no recalibration supplied, C_H_G unchanged", unchanged, est,
                                n_found, delta, d)
@@ -250,24 +234,14 @@ class Policy:
         except CalibrationError as exc:
             return alarm(f"{why}, and the recalibration failed: {exc}", delta, d, est)
         if not est_R.rms_px <= lim.max_rms_px:
-            return alarm(
-                f"{why}; the recalibration's residual {est_R.rms_px:.3f} px exceeds max_rms_px "
-                f"{lim.max_rms_px} px: the model no longer fits the fingertips",
-                delta,
-                d,
-                est_R,
-            )
+            return alarm(f"{why}; the recalibration's residual {est_R.rms_px:.3f} px exceeds max_rms_px "
+                         f"{lim.max_rms_px} px: the model no longer fits the fingertips", delta, d, est_R)
         ref = est_R.C_H_G_prior if C_H_G_calibrated is None else C_H_G_calibrated
         delta_R, d_R = self.change(est_R.C_H_G, ref) if ref is not None else (est_R.delta_deg, est_R.d_mm)
         if self.classify(delta_R, d_R) == "alarm":
             a = lim.alarm_limit
-            return alarm(
-                f"{why}; the recalibration ({est_R.method}) measures {delta_R:.3f} deg / {d_R:.3f} mm, beyond "
-                f"the alarm limit {a.angle_deg} deg / {a.shift_mm} mm",
-                delta_R,
-                d_R,
-                est_R,
-            )
+            return alarm(f"{why}; the recalibration ({est_R.method}) measures {delta_R:.3f} deg / {d_R:.3f} mm, beyond "
+                         f"the alarm limit {a.angle_deg} deg / {a.shift_mm} mm", delta_R, d_R, est_R)
         return Decision.of("recalibrate", f"{why}; recalibrated by {est_R.method} ({delta_R:.3f} deg / {d_R:.3f} mm, "
                            f"residual {est_R.rms_px:.3f} px)", est_R.C_H_G.copy(), est_R, n_found, delta, d)
 
@@ -275,62 +249,40 @@ class Policy:
 class Monitor:
     """Keeps ``C_H_G`` true while the robot works: one policy decision per picture.
 
-    ``C_H_G`` (4, 4) the calibrated transform to start from (off-line calibration); ``camera`` its
-    interior orientation; ``p_G6`` (6, 3) the fingertip points [mm] for the gripper state in use
-    (``GripperSpec.points_G``); ``limits`` the cell's ``MonitorLimits`` or a ``Policy``.
-    ``update_method`` an NP-U or NP-I method (default '4P-U' as the paper; when its points are not all
-    found the same kind with fewer points is used, down to 3P), or 'E': the model-based measurement's own
-    pose (``step``'s ``model_C_H_G``). ``recalibration_method`` '4P-R', '5P-R'
-    or 'auto' (5P-R when a fifth point is found, else 4P-R). ``raise_on_alarm``: raise ``AlarmError``
-    after logging an alarm instead of returning the decision. Every decision is logged (``logger``,
-    default 'selfview.estimation.policy') and kept in ``records`` (plain dicts with the frame number).
-    ``max_missed_frames`` (default: the limits' ``max_missed_frames``, the cell's
-    ``monitor.max_missed_frames``) consecutive missed frames raise the alarm; ``missed_in_a_row`` counts
-    them.
+    ``C_H_G`` (4, 4) the calibrated transform to start from; ``camera`` its interior orientation; ``p_G6`` (6, 3)
+    the fingertip points [mm] for the gripper state in use (``GripperSpec.points_G``); ``limits`` the cell's
+    ``MonitorLimits`` or a ``Policy``. ``update_method`` an NP-U or NP-I method (default '4P-U' as the paper; the
+    same kind with fewer points, down to 3P, when its points are not all found), or 'E': the model-based
+    measurement's own pose (``step``'s ``model_C_H_G``). ``recalibration_method`` '4P-R', '5P-R' or 'auto' (5P-R
+    when a fifth point is found). ``raise_on_alarm``: raise ``AlarmError`` after logging an alarm instead of
+    returning the decision. Every decision is logged (``logger``, default 'selfview.estimation.policy') and kept
+    in ``records`` (plain dicts with the frame number).
 
-    A missed frame is one whose measurement says it has lost the fingertips (its quality under the
-    thresholds, ``lost``), in which fewer than 3 are found, or for which no picture came
-    (``Monitor.missed``): never an update, ``C_H_G`` unchanged, the fingertips searched for again in the
-    next one. A source can lie: a picture bit-identical to the previous one (a real camera's noise never
-    repeats: the grabber is stuck) or blank (``Monitor.frame_problem``) is a missed frame too; poses that
-    alternate between two values over ``ALTERNATION_WINDOW`` frames (a loose mount, or two cameras on one
-    input) raise the alarm.
+    A missed frame is never an update (``C_H_G`` unchanged): the measurement lost the fingertips (``lost``), fewer
+    than 3 were found, no picture came (``missed``), or the source lies (a picture bit-identical to the previous
+    one, or blank: ``frame_problem``). ``max_missed_frames`` in a row (default the limits'; ``missed_in_a_row``
+    counts them) raise the alarm, as do poses alternating between two values over ``ALTERNATION_WINDOW`` frames
+    (a loose mount, or two cameras on one input).
 
     ``noise_px`` (e.g. ``TRACKER_NOISE_PX``): the measurement's pixel noise between frames; given, every
-    estimate's covariance is computed with it and an update whose motion is not significant
-    (``CHI2_SIGNIFICANT``) keeps ``C_H_G`` (``Policy``'s ``chi2_limit``, when ``limits`` are not already a
-    ``Policy``). ``learn_view``: compare like with like. The first picture measured after each calibration
-    is its reference: each found point back-projected onto the fingertips' plane through the calibrated
-    ``C_H_G`` replaces its nominal ``p_G6`` row in every estimate that follows (and a point first found later,
-    through the ``C_H_G`` of that frame), so that what a measurement other than the calibration's sees
-    differently of the real fingers (the silhouette fit against the corner search, fingers made within
-    their tolerance) cancels in the differential instead of moving ``C_H_G``. That first picture is judged
-    at ``MODEL_TOLERANCE_PX``, as is every estimate using a point not yet learned: a change beyond it (the
-    camera moved since the calibration) is applied as usual and the points learned after.
-    With ``noise_px``, the pictures after a move that was followed (an applied update or recalibration)
-    whose motion is within the noise are fused with it: ``C_H_G`` is the mean pose (rotation vector and
-    translation about the move's) of that picture and those since, so that a move is followed at once and
-    its single-picture noise then averages out. After a calibration ``C_H_G`` stays the calibration's. A jump
-    that the next picture does not confirm (it is back within the noise of the pose before) was one picture's
-    outlier: it is taken out and the pictures before it stand.
+    estimate's covariance is computed with it, an update whose motion is not significant (``CHI2_SIGNIFICANT``,
+    unless ``limits`` is a ``Policy``) keeps ``C_H_G``, and the pictures within the noise after a followed move
+    (an applied update or recalibration) are fused with it (``_fuse``): a move is followed at once and its
+    single-picture noise then averages out. ``learn_view``: compare like with like. The first picture after each
+    calibration is its reference: each found point back-projected onto the fingertips' plane through ``C_H_G``
+    replaces its nominal ``p_G6`` row (a point first found later, through that frame's ``C_H_G``), so that what a
+    measurement other than the calibration's sees differently of the real fingers (the silhouette fit against
+    the corner search, fingers made within their tolerance) cancels in the differential instead of moving
+    ``C_H_G``. An estimate using a point not yet learned is judged at ``MODEL_TOLERANCE_PX``: a change beyond it
+    (the camera moved since the calibration) is applied as usual and the points learned after.
     """
 
-    def __init__(
-        self,
-        C_H_G,
-        camera: CameraModel,
-        p_G6,
-        limits: MonitorLimits | Policy,
-        *,
-        update_method: str = "4P-U",
-        recalibration_method: str = "auto",
-        raise_on_alarm: bool = False,
-        logger: logging.Logger | None = None,
-        max_missed_frames: int | None = None,
-        noise_px: float | None = None,
-        learn_view: bool = False,
-    ):
-        if noise_px is not None and not (isinstance(noise_px, (int, float)) and math.isfinite(noise_px) and noise_px > 0):
+    def __init__(self, C_H_G, camera: CameraModel, p_G6, limits: MonitorLimits | Policy, *,
+                 update_method: str = "4P-U", recalibration_method: str = "auto", raise_on_alarm: bool = False,
+                 logger: logging.Logger | None = None, max_missed_frames: int | None = None,
+                 noise_px: float | None = None, learn_view: bool = False):
+        if noise_px is not None and not (isinstance(noise_px, (int, float)) and math.isfinite(noise_px)
+                                         and noise_px > 0):
             raise ConfigError(f"noise_px: expected a positive pixel noise or None, got {noise_px!r}")
         self.noise_px = None if noise_px is None else float(noise_px)
         self.learn_view = bool(learn_view)
@@ -347,9 +299,7 @@ class Monitor:
             raise ConfigError(f"update_method {update_method!r}: expected an NP-U or NP-I method, e.g. 4P-U or 4P-I, "
                               "or E (the model's own estimate)")
         if recalibration_method != "auto" and parse_method(recalibration_method)[1] != "R":
-            raise ConfigError(
-                f"recalibration_method {recalibration_method!r}: expected 'auto', '4P-R' or '5P-R'"
-            )
+            raise ConfigError(f"recalibration_method {recalibration_method!r}: expected 'auto', '4P-R' or '5P-R'")
         if not isinstance(camera, CameraModel):
             raise ConfigError(f"camera: expected a selfview.maths.camera.CameraModel, got {type(camera).__name__}")
         self.camera = camera
@@ -371,35 +321,38 @@ class Monitor:
         self._anchor: np.ndarray | None = None  # C_H_G applied at the last followed move (fusion), None: calibrated
         self._fused: list[np.ndarray] = []
         self._before_jump: tuple | None = None  # (C_H_G, anchor, fused) before the last picture's significant jump
-        self._record("calibrated", "initial calibration", self.C_H_G)
+        self._record(None, "initial calibration")
 
     @staticmethod
     def _points(p_G6) -> np.ndarray:
         p = np.asarray(p_G6, dtype=float)
         if p.shape != (len(POINT_NAMES), 3) or not np.isfinite(p).all():
-            raise ConfigError(
-                f"p_G6: expected ({len(POINT_NAMES)}, 3) finite fingertip points in G [mm], got {p.shape}"
-            )
+            raise ConfigError(f"p_G6: expected ({len(POINT_NAMES)}, 3) finite fingertip points in G [mm], "
+                              f"got {p.shape}")
         return p
 
-    def _record(self, action: str, reason: str, C_H_G, decision: Decision | None = None) -> dict:
-        rec = {"frame": self.frame}
-        if decision is not None:
-            rec.update(decision.to_dict())
+    def _record(self, d: Decision | None, reason: str = "") -> None:
+        """Keep and log the decision ``d``, or (None) a calibration to the current ``C_H_G`` for ``reason``."""
+        if d is None:
+            self.records.append({"frame": self.frame, "action": "calibrated", "reason": reason,
+                                 "C_H_G": self.C_H_G.tolist()})
+            self.log.log(_LEVEL["calibrated"], "frame %d: %s (%s)", self.frame, "calibrated", reason)
+            return
+        self.records.append({"frame": self.frame, **d.to_dict()})
+        if d.method is None:
+            self.log.log(_LEVEL[d.action], "frame %d: %s (%s)", self.frame, d.action, d.reason)
         else:
-            rec.update({"action": action, "reason": reason, "C_H_G": np.asarray(C_H_G).tolist()})
-        self.records.append(rec)
-        d = decision
-        if d is None or d.method is None:
-            self.log.log(_LEVEL[action], "frame %d: %s (%s)", self.frame, action, reason)
-        else:
-            self.log.log(
-                _LEVEL[d.action],
-                "frame %d: %s by %s: %s [delta %s deg, d %s mm, rms %s px, %d points found]",
-                self.frame, d.action, d.method, d.reason, *(f"{v:.4f}" if math.isfinite(v) else "-"
-                                                            for v in (d.delta_deg, d.d_mm, d.rms_px)), d.n_found,
-            )
-        return rec
+            values = (f"{v:.4f}" if math.isfinite(v) else "-" for v in (d.delta_deg, d.d_mm, d.rms_px))
+            self.log.log(_LEVEL[d.action], "frame %d: %s by %s: %s [delta %s deg, d %s mm, rms %s px, %d points found]",
+                         self.frame, d.action, d.method, d.reason, *values, d.n_found)
+
+    def _conclude(self, d: Decision) -> Decision:
+        """The frame's decision ``d`` kept, logged and returned; ``AlarmError`` on an alarm if ``raise_on_alarm``."""
+        self.alarmed = d.action == "alarm"
+        self._record(d)
+        if self.alarmed and self.raise_on_alarm:
+            raise AlarmError(f"frame {self.frame}: {d.reason}")
+        return d
 
     def calibrated(self, C_H_G, reason: str = "off-line calibration") -> None:
         """Start again from a new calibration (off-line): the limits refer to it from now on."""
@@ -408,14 +361,15 @@ class Monitor:
         self.alarmed = False
         self._learned[:] = False  # a new reference: the next picture
         self._anchor, self._before_jump = None, None
-        self._record("calibrated", reason, self.C_H_G)
+        self._record(None, reason)
 
     def _view_points(self, p_nominal: np.ndarray) -> np.ndarray:
         """The points the estimates use: ``p_nominal`` (6, 3), or with ``learn_view`` its learned rows."""
         if not self.learn_view:
             return p_nominal
         if self._seen_for is None or not np.array_equal(self._seen_for, p_nominal):  # new points (jaw state)
-            self._seen_for, self._seen, self._learned = p_nominal.copy(), p_nominal.copy(), np.zeros(len(p_nominal), bool)
+            self._seen_for, self._seen = p_nominal.copy(), p_nominal.copy()
+            self._learned = np.zeros(len(p_nominal), bool)
         return self._seen
 
     def _learn(self, uv: np.ndarray, found: np.ndarray) -> None:
@@ -430,39 +384,32 @@ class Monitor:
             return
         self._seen[new], self._learned[new] = p, True
 
-    def _noise(self, method: str, found: np.ndarray) -> float | None:
-        """The prior pixel noise of an estimate by ``method`` on the ``found`` points: ``noise_px``, or at
-        least ``MODEL_TOLERANCE_PX`` while one of its points is nominal, not yet learned (``learn_view``)."""
-        if not self.learn_view or method == MODEL_METHOD:
-            return self.noise_px
-        try:
-            idx = select_points(method, found)
-        except CalibrationError:
-            return self.noise_px
-        if self._learned[idx].all():
-            return self.noise_px
-        return max(MODEL_TOLERANCE_PX, self.noise_px or 0.0)
+    def _prior(self, method: str, found: np.ndarray) -> dict:
+        """The estimator's keyword for the prior pixel noise of an estimate by ``method`` on the ``found`` points
+        (none for 'E' or without ``noise_px``): ``noise_px``, or at least ``MODEL_TOLERANCE_PX`` while one of its
+        points is nominal, not yet learned (``learn_view``)."""
+        if method == MODEL_METHOD:
+            return {}
+        sigma = self.noise_px
+        if self.learn_view:
+            try:
+                if not self._learned[select_points(method, found)].all():
+                    sigma = max(MODEL_TOLERANCE_PX, self.noise_px or 0.0)
+            except CalibrationError:
+                pass
+        return {} if sigma is None else {"prior_sigma_px": sigma}
 
     def _update_method(self, found: np.ndarray) -> str:
         if self.update_method == MODEL_METHOD:
             return MODEL_METHOD
         n, kind = parse_method(self.update_method)
-        for k in range(n, 2, -1):
-            try:
-                select_points(f"{k}P", found)
-                return f"{k}P-{kind}"
-            except CalibrationError:
-                continue
-        return self.update_method  # its own error names the missing points
+        k = next((k for k in range(n, 2, -1) if _selectable(f"{k}P", found)), None)
+        return self.update_method if k is None else f"{k}P-{kind}"  # its own error names the missing points
 
     def _recalibration_method(self, found: np.ndarray) -> str:
         if self.recalibration_method != "auto":
             return self.recalibration_method
-        try:
-            select_points("5P", found)
-            return "5P-R"
-        except CalibrationError:
-            return "4P-R"
+        return "5P-R" if _selectable("5P", found) else "4P-R"
 
     def frame_problem(self, image) -> str | None:
         """Why the picture ``image`` (H, W) cannot be measured, or None: blank (its grey levels span less than
@@ -490,9 +437,9 @@ class Monitor:
                 and not any(ex(lim, *self.policy.change(a, b)) for a, b in zip(P, P[2:])))
 
     def missed(self, reason: str) -> Decision:
-        """A frame without the fingertips (no picture, or the measurement lost them: ``reason``): never an
-        update; the alarm once ``max_missed_frames`` such frames came in a row. Logs and keeps the
-        decision and returns it (raises ``AlarmError`` on the alarm if ``raise_on_alarm``)."""
+        """A frame without the fingertips (no picture, or the measurement lost them: ``reason``): never an update;
+        the alarm once ``max_missed_frames`` such frames came in a row. Logs and keeps the decision and returns
+        it (raises ``AlarmError`` on the alarm if ``raise_on_alarm``)."""
         self.frame += 1
         return self._missed(str(reason), 0)
 
@@ -500,27 +447,20 @@ class Monitor:
         self.missed_in_a_row += 1
         k, n = self.missed_in_a_row, self.max_missed_frames
         if k >= n:
-            d = Decision.of("alarm", f"{k} frames in a row without the fingertips (monitor.max_missed_frames {n}); "
-                            f"the last: {why}", self.C_H_G.copy(), None, n_found)
+            reason = f"{k} frames in a row without the fingertips (monitor.max_missed_frames {n}); the last: {why}"
         else:
-            d = Decision.of("missed", f"fingertips not found ({k} of {n} missed frames before the alarm): {why}",
-                            self.C_H_G.copy(), None, n_found)
-        self.alarmed = d.action == "alarm"
-        self._record(d.action, d.reason, d.C_H_G, d)
-        if self.alarmed and self.raise_on_alarm:
-            raise AlarmError(f"frame {self.frame}: {d.reason}")
-        return d
+            reason = f"fingertips not found ({k} of {n} missed frames before the alarm): {why}"
+        return self._conclude(Decision.of("alarm" if k >= n else "missed", reason, self.C_H_G.copy(), None, n_found))
 
     def step(self, uv6, found6, p_G6=None, *, lost: str | None = None, model_C_H_G=None,
              model_rms_px: float = float("nan")) -> Decision:
-        """Judge one picture: ``uv6`` (6, 2) observed distorted pixels of the fingertips (NaN where not
-        found), ``found6`` (6,) bool, ``p_G6`` the points if the gripper state changed, ``lost`` why the
-        measurement says it lost the fingertips (its quality under its thresholds; None: it did not).
-        A lost frame, or one with fewer than 3 points found, is a missed frame (``missed``). Otherwise
-        applies the decision (update: new ``C_H_G``; recalibrate: new ``C_H_G`` and new reference),
-        logs and keeps it, and returns it. Raises ``AlarmError`` on an alarm if ``raise_on_alarm``.
-        ``model_C_H_G`` (4, 4) and ``model_rms_px``: the model-based measurement's pose and residual
-        (``FingertipResult.C_H_G``, ``quality['rms_px']``), the update when ``update_method`` is 'E'."""
+        """Judge one picture: ``uv6`` (6, 2) observed distorted pixels of the fingertips (NaN where not found),
+        ``found6`` (6,) bool, ``p_G6`` the points if the gripper state changed, ``lost`` why the measurement says it
+        lost the fingertips (its quality under its thresholds; None: it did not). A lost frame, or one with fewer than 3
+        points found, is a missed frame (``missed``). Otherwise applies the decision (update: new ``C_H_G``;
+        recalibrate: new ``C_H_G`` and new reference), logs and keeps it, and returns it. Raises ``AlarmError`` on an
+        alarm if ``raise_on_alarm``. ``model_C_H_G`` (4, 4) and ``model_rms_px``: the model-based measurement's pose and
+        residual (``FingertipResult.C_H_G``, ``quality['rms_px']``), the update when ``update_method`` is 'E'."""
         self.frame += 1
         p = self._view_points(self.p_G6 if p_G6 is None else self._points(p_G6))
         uv = np.asarray(uv6, dtype=float)
@@ -539,37 +479,28 @@ class Monitor:
         self.missed_in_a_row = 0
         est_U, err = None, None
         method = self._update_method(found)
-        if n_found >= 3:
-            try:
-                est_U = estimate(method, self.C_H_G, p, uv, found, self.camera, model_C_H_G=model_C_H_G,
-                                 model_rms_px=model_rms_px, **self._prior(method, found))
-            except (CalibrationError, ConfigError) as exc:  # E without the model's pose: no estimate
-                err = str(exc)
-        C_H_G = self.C_H_G
+        try:
+            est_U = estimate(method, self.C_H_G, p, uv, found, self.camera, model_C_H_G=model_C_H_G,
+                             model_rms_px=model_rms_px, **self._prior(method, found))
+        except (CalibrationError, ConfigError) as exc:  # E without the model's pose: no estimate
+            err = str(exc)
 
         def recalibration():
             m = self._recalibration_method(found)
-            return estimate(m, C_H_G, p, uv, found, self.camera, **self._prior(m, found))
+            return estimate(m, self.C_H_G, p, uv, found, self.camera, **self._prior(m, found))
 
-        decision = self.policy.decide(
-            est_U,
-            n_found,
-            C_H_G=self.C_H_G,
-            C_H_G_calibrated=self.C_H_G_calibrated,
-            recalibration=recalibration,
-            error=err,
-        )
+        decision = self.policy.decide(est_U, n_found, C_H_G=self.C_H_G, C_H_G_calibrated=self.C_H_G_calibrated,
+                                      recalibration=recalibration, error=err)
         if decision.action != "alarm" and decision.estimate is not None:
             self._poses.append(np.asarray(decision.estimate.C_H_G, float))
             if self._alternating():
-                n = ALTERNATION_WINDOW
                 decision = Decision.of(
                     "alarm", f"camera mount loose or source switching: the measured pose alternated between two "
-                    f"values over the last {n} frames (each beyond the update limit from the one before, within it "
-                    "of the one before that)", self.C_H_G.copy(), decision.estimate, n_found, decision.delta_deg,
-                    decision.d_mm)
+                    f"values over the last {ALTERNATION_WINDOW} frames (each beyond the update limit from the one "
+                    "before, within it of the one before that)", self.C_H_G.copy(), decision.estimate, n_found,
+                    decision.delta_deg, decision.d_mm)
         current = decision.action == "update"  # C_H_G is where the camera is (as far as this frame tells)
-        if decision.action == "update":
+        if current:
             decision = self._fuse(decision)
             self.C_H_G = decision.C_H_G.copy()
         elif decision.action == "recalibrate" and decision.estimate is not None and decision.method.endswith("R"):
@@ -577,13 +508,9 @@ class Monitor:
             self.C_H_G_calibrated = self.C_H_G.copy()
             self._moved_to(self.C_H_G)
             current = True
-        self.alarmed = decision.action == "alarm"
         if current:
             self._learn(uv, found)
-        self._record(decision.action, decision.reason, decision.C_H_G, decision)
-        if self.alarmed and self.raise_on_alarm:
-            raise AlarmError(f"frame {self.frame}: {decision.reason}")
-        return decision
+        return self._conclude(decision)
 
     def _moved_to(self, C_H_G) -> None:
         """A move was followed to ``C_H_G``: the pictures within the noise after it are fused with it."""
@@ -592,24 +519,22 @@ class Monitor:
         self._before_jump = None
 
     def _fuse(self, decision: Decision) -> Decision:
-        """An 'update' decision as applied: a followed move starts a fusion (``_moved_to``); a picture within
-        the noise after one gives the mean pose of the pictures since the move (the decision's ``C_H_G`` and
-        reason say so); otherwise the decision as it is. A picture whose jump was significant is followed at
-        once, but when the next picture is back within the noise of the pose before the jump, the jump was
-        that one picture's outlier: the fusion before it (or the calibration's C_H_G, kept) goes on with the
-        new picture. (The grasping servo's camera moved mid-approach: one such picture replaced the mean of
-        the pictures since the move by one picture's pose, 0.01 mm at the TCP became 0.02-0.09 mm.)"""
+        """An 'update' decision as applied. A followed (significant) move starts a fusion (``_moved_to``); a picture
+        within the noise after it gives the mean pose (rotation vector and translation about the move's) of the pictures
+        since (the decision's ``C_H_G`` and reason say so); after a calibration ``C_H_G`` stays. When the picture after
+        a jump is back within the noise of the pose before it, the jump was that one picture's outlier: the fusion
+        before it (or the kept C_H_G) goes on. (With the grasping servo's camera moved mid-approach, one such picture
+        put its own pose in place of the mean: the TCP's 0.01 mm became 0.02-0.09 mm.)"""
         est = decision.estimate
         lim = self.policy.chi2_limit
         if est is None or lim is None or not np.isfinite(est.covariance).all():
             return decision
         before, self._before_jump = self._before_jump, None
         back = ""
-        if before is not None and self._within_noise(est, before[0]):
-            # the picture before jumped and this one is back within the noise of the pose before it: that picture
-            # was one picture's outlier (a move stays), the pictures before it the better measure
-            (C_before, self._anchor, self._fused), back = before, "; the picture before was an outlier (this one is back "
-            "within the noise of the pose before it): taken out"
+        if before is not None and self._within_noise(est, before[0]):  # a move stays; one picture's outlier goes
+            C_before, self._anchor, self._fused = before
+            back = ("; the picture before was an outlier (this one is back within the noise of the pose before it): "
+                    "taken out")
             if self._anchor is None:
                 return replace(decision, C_H_G=C_before.copy(), reason=f"{decision.reason}{back}; C_H_G kept")
         elif not significance(est) < lim:
@@ -628,8 +553,3 @@ class Monitor:
     def _within_noise(self, est: MotionEstimate, C_H_G) -> bool:
         """Is the estimate's pose within its noise (``CHI2_SIGNIFICANT``, the policy's chi-square) of ``C_H_G``?"""
         return bool(wald_chi2(_pose_about(est, C_H_G), np.asarray(est.covariance, float)) < self.policy.chi2_limit)
-
-    def _prior(self, method: str, found: np.ndarray) -> dict:
-        """The estimator's keyword for the prior pixel noise (``_noise``), none when there is none."""
-        sigma = self._noise(method, found)
-        return {} if sigma is None or method == MODEL_METHOD else {"prior_sigma_px": sigma}

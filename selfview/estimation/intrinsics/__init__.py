@@ -1,14 +1,15 @@
 """Multi-view calibration of the interior orientation: f, kappa, principal point, aspect and skew.
 
-Several pictures of the plate from different poses separate the principal point and the aspect from f and
-the plate's tilt, which one picture (Tsai's method, as the paper uses it) cannot. The modules, one concept
-each: ``model`` (the projection and the joint least-squares problem), ``plate`` (the printed plate's shape),
-``fit`` (the joint fit of the views), ``advice`` (the stop rule and how many more views of which kind),
-``checks`` (two halves against each other; one picture against the assumed camera; the TCP's sigma) and
-``calibrate`` (``calibrate_intrinsics``, all of it as one result).
+Several pictures of the plate from different poses separate the principal point and the aspect from f and the
+plate's tilt, which one picture (Tsai's method, as the paper uses it) cannot. The modules, one concept each:
+``model`` (the projection and the joint least-squares problem), ``plate`` (the printed plate's shape), ``fit``
+(the joint fit of the views), ``advice`` (the stop rule and how many more views of which kind), ``checks`` (two
+halves against each other; one picture against the assumed camera; the TCP's sigma) and ``calibrate``
+(``calibrate_intrinsics``, all of it as one result).
 """
 
-from selfview.estimation.intrinsics.advice import MAX_MORE_VIEWS, STOP_ASPECT_REL, STOP_CENTRE_PX, VIEW_KINDS, more_views_advice
+from selfview.estimation.intrinsics.advice import (MAX_MORE_VIEWS, STOP_ASPECT_REL, STOP_CENTRE_PX, VIEW_KINDS,
+                                                   more_views_advice)
 from selfview.estimation.intrinsics.calibrate import IntrinsicsResult, calibrate_intrinsics
 from selfview.estimation.intrinsics.checks import (
     AGREE_SIGMAS, CAMERA_CHI2_LIMIT, CAMERA_FILE_MAX_EXCESS_PX, TARGET_ACROSS_MM, TARGET_ALONG_MM, camera_check,
@@ -24,5 +25,6 @@ __all__ = [
     "AGREE_SIGMAS", "CAMERA_CHI2_LIMIT", "CAMERA_FILE_MAX_EXCESS_PX", "INTRINSIC_NAMES", "IntrinsicsResult",
     "MAX_MORE_VIEWS", "MIN_VIEWS", "PLATE_MODELS", "STOP_ASPECT_REL", "STOP_CENTRE_PX", "TARGET_ACROSS_MM",
     "TARGET_ALONG_MM", "VIEW_KINDS", "ViewFit", "calibrate_intrinsics", "camera_check", "camera_file_fit",
-    "detect_views", "fit_views", "guess_camera", "initial_pose", "more_views_advice", "projection_sigma_px", "tcp_sigma", "view_tilt_distance",
+    "detect_views", "fit_views", "guess_camera", "initial_pose", "more_views_advice", "projection_sigma_px",
+    "tcp_sigma", "view_tilt_distance",
 ]

@@ -19,26 +19,25 @@ STOP_ASPECT_REL = 0.0005
 
 #: Most further views the advice considers per kind.
 MAX_MORE_VIEWS = 60
+#: Kinds of further views the advice weighs: (label, tilt of the plate from square-on [deg]).
+VIEW_KINDS = (("tilted 35 deg", 35.0), ("tilted 20 deg", 20.0), ("square-on", 0.0))
+
 
 def stop_met(sig: dict, aspect: float) -> bool:
     return bool(max(sig["cx"], sig["cy"]) < STOP_CENTRE_PX and sig["aspect"] / aspect < STOP_ASPECT_REL)
 
 
-#: Kinds of further views the advice weighs: (label, tilt of the plate from square-on [deg]).
-VIEW_KINDS = (("tilted 35 deg", 35.0), ("tilted 20 deg", 20.0), ("square-on", 0.0))
-
-
 def _views_information(camera: CameraModel, plate: PlateSpec, distance: float, tilt_deg: float, azimuths,
                        s2: float, ni: int = 5, shape: "PlateShape | None" = None, y=None) -> dict:
-    """{azimuth: (ni, ni) information on the intrinsics that one view of the plate adds, its pose eliminated,
-    or None when fewer than 8 discs fall in the picture}: the plate's centre at ``distance`` on the optical
-    axis, tilted ``tilt_deg`` about an in-plane axis at each of ``azimuths`` [deg]; the discs that fall in the
-    picture. With the plate's shape (``shape`` at parameters ``y``): (ni + n_shape) square, on the intrinsics
-    and the shape (the same printed plate in every view). The views' Jacobian is filled at once (one joint
-    problem of them all, without the shape's prior rows); each view's pose meets only its own rows."""
+    """{azimuth: (ni, ni) information on the intrinsics that one view of the plate adds, its pose eliminated, or
+    None when fewer than 8 discs fall in the picture}: the plate's centre at ``distance`` on the optical axis,
+    tilted ``tilt_deg`` about an in-plane axis at each of ``azimuths`` [deg]; the discs that fall in the picture.
+    With the plate's shape (``shape`` at parameters ``y``): (ni + n_shape) square, on the intrinsics and the
+    shape (the same printed plate in every view). One joint problem of all the views, without the shape's prior
+    rows, gives their Jacobian at once."""
     p = plate.disc_centres_W()
     x = intrinsics_vector(camera, ni)
-    out, P, UV, R, t, idx, az_in = {}, [], [], [], [], [], []
+    out, P, UV, H_in, idx, az_in = {}, [], [], [], [], []
     for az in azimuths:
         a = np.radians(az)
         H = trans(0, 0, distance) @ rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt_deg))
@@ -47,14 +46,14 @@ def _views_information(camera: CameraModel, plate: PlateSpec, distance: float, t
         ok[ok] = camera.in_image(uv[ok], margin=10)
         out[az] = None
         if ok.sum() >= 8:
-            P.append(p[ok]), UV.append(uv[ok]), R.append(H[:3, :3]), t.append(H[:3, 3])
-            idx.append(np.flatnonzero(ok)), az_in.append(az)
+            P.append(p[ok]), UV.append(uv[ok]), H_in.append(H), idx.append(np.flatnonzero(ok)), az_in.append(az)
     if not az_in:
         return out
     V = len(az_in)
-    model = JointProblem(P, UV, R, shape, idx if shape is not None else None, ni=ni, skew=camera.skew)
-    poses = np.concatenate([np.r_[np.zeros(3), tk] for tk in t])
-    J = model.jacobian(np.concatenate([x, poses, y if shape is not None else []]))[: model.m_data]
+    model = JointProblem(P, UV, [H[:3, :3] for H in H_in], shape, idx if shape is not None else None, ni=ni,
+                         skew=camera.skew)
+    poses = [np.r_[np.zeros(3), H[:3, 3]] for H in H_in]
+    J = model.jacobian(np.concatenate([x, *poses, y if shape is not None else []]))[: model.m_data]
     keep = np.r_[0:ni, ni + 6 * V : J.shape[1]]
     for k, az in enumerate(az_in):
         rows = slice(model.off[k], model.off[k + 1])
@@ -65,24 +64,21 @@ def _views_information(camera: CameraModel, plate: PlateSpec, distance: float, t
 
 
 def more_views_advice(fit: JointFit, plate: PlateSpec) -> dict:
-    """How many more views of each kind (``VIEW_KINDS``) would meet the stop rule, from the covariance.
+    """How many more views of each kind (``VIEW_KINDS``) would meet the stop rule, from the covariance: {distance_mm,
+    views_needed {label: number or None}}.
 
-    With the plate's shape fitted, on the joint information of the intrinsics and the shape: a further
-    view sees the same printed plate, whose uncertain shape it shares with the views taken (counting only
-    the intrinsics' marginal information, as if the new view's plate were known, promised the stop rule
-    after one more view where six did not reach it)."""
-    ni = len(fit.cov5)
-    ns = len(fit.shape) if fit.plate_model != "flat" else 0
-    shape = None
-    if ns:
+    With the plate's shape fitted, on the joint information of the intrinsics and the shape: a further view sees
+    the same printed plate, whose uncertain shape it shares with the views taken (counting only the intrinsics'
+    marginal information, as if the new view's plate were known, promised the stop rule after one more view
+    where six did not reach it)."""
+    ni, ns = len(fit.cov5), len(fit.shape) if fit.plate_model != "flat" else 0
+    shape = PlateShape(plate, fit.plate_model, fit.prior_noise_px, fit.dot_sd_mm) if ns else None
+    if shape is not None and shape.n == ns:
         n = len(fit.cov_full)
         idx = np.r_[0:ni, n - ns : n]
         cov0 = fit.cov_full[np.ix_(idx, idx)]
-        shape = PlateShape(plate, fit.plate_model, fit.prior_noise_px, fit.dot_sd_mm)
-        if shape.n != ns:
-            shape, cov0 = None, fit.cov5
     else:
-        cov0 = fit.cov5
+        shape, cov0 = None, fit.cov5
     m = len(cov0)
     try:
         info0 = np.linalg.inv(cov0)

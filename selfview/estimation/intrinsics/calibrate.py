@@ -10,7 +10,8 @@ import numpy as np
 from selfview.maths.camera import CameraModel
 from selfview.files.cell import PlateSpec
 from selfview.errors import CalibrationError
-from selfview.estimation.intrinsics.advice import STOP_ASPECT_REL, STOP_CENTRE_PX, MAX_MORE_VIEWS, stop_met, more_views_advice
+from selfview.estimation.intrinsics.advice import (MAX_MORE_VIEWS, STOP_ASPECT_REL, STOP_CENTRE_PX, more_views_advice,
+                                                   stop_met)
 from selfview.estimation.intrinsics.checks import halves_cross_check
 from selfview.estimation.intrinsics.plate import PLATE_MODELS
 from selfview.estimation.intrinsics.evidence import chi2_3_sf, heldout_test, sign_test_p
@@ -20,24 +21,21 @@ from selfview.estimation.intrinsics.fit import (
     projection_sigma_px,
 )
 
-#: The skew is kept only when the views pin it: its estimate at least this many sigmas from 0 (a grabber
-#: without shear shows one as large in 0.3 % of calibrations) by its formal sigma *and* by the spread of
-#: its estimates with each view left out in turn (a jackknife, to first order: ``fit.leave_views_out``),
-#: which sees what the formal sigma cannot: a skew that stands for something the model lacks (distortion
-#: beyond kappa, a plate not as modelled) changes from view to view. Otherwise it is held at 0, the spec's
-#: model.
+#: The skew is kept only when the views pin it: its estimate at least this many sigmas from 0 (a grabber without
+#: shear shows one as large in 0.3 % of calibrations) by its formal sigma *and* by the spread of its estimates
+#: with each view left out in turn (a jackknife, to first order: ``fit.leave_views_out``), which sees what the
+#: formal sigma cannot: a skew that stands for something the model lacks (distortion beyond kappa, a plate not
+#: as modelled) changes from view to view. Otherwise it is held at 0, the spec's model.
 SKEW_SIGNIFICANCE = 3.0
-#: The plate model (``plate_model='auto'``) by evidence, one step at a time (flat, then 'bow', then
-#: 'bow+dots'): a step is taken only when the richer model predicts the views left out in turn better than
-#: the simpler one (``evidence.heldout_test``: a one-sided sign test over the views) at this level;
-#: otherwise the simpler model stays. The bow's chi-square against 0 at the same level says whether the
+#: The plate model (``plate_model='auto'``) by evidence, one step at a time (``PLATE_STEPS``): a step is taken only when
+#: the richer model predicts the views left out in turn better than the simpler one (``evidence.heldout_test``: a
+#: one-sided sign test over the views) at this level. The bow's chi-square against 0 at the same level says whether the
 #: views measure a bow at all (one they measure but are too few to confirm is what a skew would take up).
 PLATE_TEST_LEVEL = 0.01
 #: the plate models in the order the evidence must take them
 PLATE_STEPS = ("flat", "bow", "bow+dots")
 
 
-# --- the result -----------------------------------------------------------------------------------
 @dataclass
 class IntrinsicsResult:
     """A joint calibration of the interior orientation from several views (see the module)."""
@@ -64,18 +62,11 @@ class IntrinsicsResult:
         c = self.camera
         return {
             "f": c.f, "kappa": c.kappa, "principal_point": [c.cx, c.cy], "aspect": c.aspect, "skew": c.skew,
-            "width": c.width, "height": c.height,
-            "sigma": dict(self.sigma),
-            "covariance": np.asarray(self.covariance).tolist(),
-            "rms_px": self.rms_px,
-            "views_used": self.views_used,
-            "views": [v.to_dict() for v in self.views],
-            "views_skipped": list(self.skipped),
-            "projection_sigma_px": dict(self.projection_sigma_px),
-            "stop_rule": self.stop_rule,
-            "cross_check": self.cross_check,
-            "plate_shape": self.plate_shape,
-            "skew_fit": dict(self.skew_fit),
+            "width": c.width, "height": c.height, "sigma": dict(self.sigma),
+            "covariance": np.asarray(self.covariance).tolist(), "rms_px": self.rms_px, "views_used": self.views_used,
+            "views": [v.to_dict() for v in self.views], "views_skipped": list(self.skipped),
+            "projection_sigma_px": dict(self.projection_sigma_px), "stop_rule": self.stop_rule,
+            "cross_check": self.cross_check, "plate_shape": self.plate_shape, "skew_fit": dict(self.skew_fit),
         }
 
 
@@ -86,31 +77,30 @@ def _plate_summary(fit: JointFit) -> dict:
     out = {"model": fit.plate_model, "turns_deg": list(fit.turns)}
     if fit.plate_model == "flat":
         return out
-    nb = 3
-    out["bow_mm"] = [float(v) for v in fit.shape[:nb]]
-    out["bow_sigma_mm"] = [float(v) for v in np.sqrt(np.clip(np.diag(fit.shape_cov)[:nb], 0, None))]
+    out["bow_mm"] = [float(v) for v in fit.shape[:3]]
+    out["bow_sigma_mm"] = [float(v) for v in np.sqrt(np.clip(np.diag(fit.shape_cov)[:3], 0, None))]
     if fit.plate_model == "bow+dots":
-        u = fit.shape[nb:]
+        u = fit.shape[3:]
         out["dot_sd_mm"] = float(fit.dot_sd_mm)
         out["dot_rms_mm"] = float(np.sqrt(u @ u / (len(u) + 4)))
     return out
 
+
 def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, names=None, *,
                          skip_unusable: bool = False, cross_check: bool = True, detections=None,
                          plate_model: str = "auto", skew: bool | str = "auto") -> IntrinsicsResult:
-    """Joint calibration of f, kappa, cx, cy, aspect, the grabber's skew and each view's ``C_H_W`` from
-    pictures of the plate. ``skew``: 'auto' fits the skew and keeps it only when the views pin it
-(``SKEW_SIGNIFICANCE``), else refits with it held at 0 (``skew_fit`` says which and why); True always
-fits it; False holds it at ``camera_guess``'s, the spec's model. ``plate_model`` ('auto' or one of
-``PLATE_MODELS``): 'auto' takes each richer plate model (flat, 'bow', 'bow+dots') only when it predicts
-the views left out in turn better (``PLATE_TEST_LEVEL``); ``plate_shape`` says which and why.
+    """Joint calibration of f, kappa, cx, cy, aspect, the grabber's skew and each view's ``C_H_W`` from the plate's
+    pictures.
 
-    ``images`` (H, W) pictures (or ``detections``, a list of ``DiscDetections``, instead); ``plate`` the
-    plate; ``camera_guess`` the starting camera (the cell's nominal one: its size checks the pictures);
-    ``names`` per picture, for messages; ``skip_unusable``: a picture without the plate is skipped (and
-    listed) instead of refused. Raises ``ImageError`` (a picture without the plate, of the wrong size) or
-    ``CalibrationError`` (fewer than ``MIN_VIEWS`` usable views; views that do not determine the centre,
-    all seen square-on; no convergence).
+    ``images`` (H, W) pictures (or ``detections``, a list of ``DiscDetections``, instead); ``plate`` the plate;
+    ``camera_guess`` the starting camera (the cell's nominal one: its size checks the pictures); ``names`` per picture,
+    for messages; ``skip_unusable``: a picture without the plate is skipped (and listed) instead of refused. ``skew``:
+    'auto' fits the skew and keeps it only when the views pin it (``SKEW_SIGNIFICANCE``), else refits with it held at 0
+    (``skew_fit`` says which and why); True always fits it; False holds it at ``camera_guess``'s, the spec's model.
+    ``plate_model`` ('auto' or one of ``PLATE_MODELS``): 'auto' takes each richer plate model only when it predicts the
+    views left out in turn better (``PLATE_TEST_LEVEL``); ``plate_shape`` says which and why. Raises ``ImageError`` (a
+    picture without the plate, of the wrong size) or ``CalibrationError`` (fewer than ``MIN_VIEWS`` usable views; views
+    that do not determine the centre, all seen square-on; no convergence).
     """
     if detections is None:
         dets, names, skipped = detect_views(images, plate, camera_guess, names, skip_unusable=skip_unusable)
@@ -134,9 +124,8 @@ the views left out in turn better (``PLATE_TEST_LEVEL``); ``plate_shape`` says w
     fit, dets, names = _drop_misfits(fit, dets, names, plate, plate_model, skew is not False, skipped)
     fit, skew_fit = _decide_skew(fit, skew, bow_unconfirmed, dets, names, plate, plate_model,
                                  held[1] if held and held[0] == names else None)
-    for nm, why in fit.dropped:
-        skipped.append({"name": nm, "reason": why})
-    dets, names = _used(fit, dets, names)
+    skipped += [{"name": nm, "reason": why} for nm, why in fit.dropped]
+    dets, names = _only(dets, names, {v.name for v in fit.views})
     sig = sigmas_of(fit.cov5)
     tilts = [v.tilt_deg for v in fit.views]
     if not (np.all(np.isfinite(fit.cov5)) and max(sig["cx"], sig["cy"]) < UNDETERMINED_CENTRE_PX):
@@ -145,11 +134,10 @@ the views left out in turn better (``PLATE_TEST_LEVEL``); ``plate_shape`` says w
             f"{max(sig['cx'], sig['cy']):.3g} px): they see the plate {min(tilts):.0f}-{max(tilts):.0f} deg from "
             "square-on; take views tilted 20-40 deg in different directions"
         )
-    stop = _stop_rule(fit, plate, sig)
-    xc = halves_cross_check(fit) if cross_check else {"done": False, "why": "not asked for"}
     return IntrinsicsResult(
         camera=fit.camera, covariance=fit.cov5, sigma=sig, rms_px=fit.rms_px, views=fit.views, skipped=skipped,
-        projection_sigma_px=projection_sigma_px(fit.camera, fit.cov5), stop_rule=stop, cross_check=xc,
+        projection_sigma_px=projection_sigma_px(fit.camera, fit.cov5), stop_rule=_stop_rule(fit, plate, sig),
+        cross_check=halves_cross_check(fit) if cross_check else {"done": False, "why": "not asked for"},
         residual_sigma_px=float(np.sqrt(fit.s2)), plate_shape={**_plate_summary(fit), "why": plate_why},
         skew_fit=skew_fit,
     )
@@ -157,10 +145,10 @@ the views left out in turn better (``PLATE_TEST_LEVEL``); ``plate_shape`` says w
 
 def _decide_skew(fit: JointFit, skew, bow_unconfirmed: bool, dets, names, plate, plate_model: str,
                  held: JointFit | None = None):
-    """(fit, skew_fit): with ``skew`` 'auto', the skew kept only when the views pin it (``SKEW_SIGNIFICANCE``
-    by its formal sigma and by the jackknife's, each view left out in turn), else the fit redone with it held at 0 (``held``, when given:
-    that fit, already made on the same views and plate model from another start, which converges to the
-    same solution); ``skew_fit`` says which and why."""
+    """(fit, skew_fit): with ``skew`` 'auto', the skew kept only when the views pin it (``SKEW_SIGNIFICANCE`` by
+    its formal sigma and by the jackknife's, each view left out in turn), else the fit redone with it held at 0
+    (``held``, when given: that fit, already made on the same views and plate model from another start, which
+    converges to the same solution); ``skew_fit`` says which and why."""
     skew_fit = {"fitted": skew is not False, "note": "skew fitted" if skew is True else "skew held at the guess's"}
     if skew is False:
         return fit, skew_fit
@@ -194,10 +182,9 @@ def _decide_skew(fit: JointFit, skew, bow_unconfirmed: bool, dets, names, plate,
     return fit, skew_fit
 
 
-def _used(fit: JointFit, dets, names):
-    """(detections, names) of the views ``fit`` used."""
-    used = {v.name for v in fit.views}
-    keep = [k for k in range(len(dets)) if names[k] in used]
+def _only(dets, names, kept: set):
+    """(detections, names) of the views named in ``kept``, in their order."""
+    keep = [k for k in range(len(dets)) if names[k] in kept]
     return [dets[k] for k in keep], [names[k] for k in keep]
 
 
@@ -219,40 +206,36 @@ def _drop_misfits(fit: JointFit, dets, names, plate: PlateSpec, plate_model: str
     for nm, rms in bad.items():
         skipped.append({"name": nm, "reason": f"does not fit the other views (residual rms "
                                               f"{rms:.2f} px > {VIEW_MAX_RMS_PX} px)"})
-    keep = [k for k in range(len(dets)) if names[k] not in bad]
-    dets, names = [dets[k] for k in keep], [names[k] for k in keep]
+    dets, names = _only(dets, names, set(names) - set(bad))
     return fit_views(dets, plate, fit.camera, names, plate_model=plate_model, fit_skew=fit_skew, start=fit), dets, names
 
 
 def _stop_rule(fit: JointFit, plate: PlateSpec, sig: dict) -> dict:
-    """Whether the views pin the centre and the aspect (``stop_met``), the sigmas against the limits and,
-    if not, how many more views of which kind would (``more_views_advice``)."""
+    """Whether the views pin the centre and the aspect (``stop_met``), the sigmas against the limits and, if
+    not, how many more views of which kind would (``more_views_advice``)."""
     met = stop_met(sig, fit.camera.aspect)
-    stop = {
-        "met": met,
-        "sigma_centre_px": max(sig["cx"], sig["cy"]),
-        "sigma_aspect_pct": 100 * sig["aspect"] / fit.camera.aspect,
-        "limit_centre_px": STOP_CENTRE_PX,
-        "limit_aspect_pct": 100 * STOP_ASPECT_REL,
-    }
-    if not met:
-        adv = more_views_advice(fit, plate)
-        stop["more_views"] = adv
-        best = [(n, k) for k, n in adv["views_needed"].items() if n is not None]
-        if best:
-            n, k = min(best)
-            stop["advice"] = (f"{n} more view(s) {k} (plate about {adv['distance_mm']:.0f} mm away, tilt axes turning "
-                              f"by 90 deg from view to view) would pin the centre to < {STOP_CENTRE_PX} px and the "
-                              f"aspect to < {100 * STOP_ASPECT_REL:g} %")
-        else:
-            stop["advice"] = f"more than {MAX_MORE_VIEWS} further views of any kind would be needed"
+    stop = {"met": met, "sigma_centre_px": max(sig["cx"], sig["cy"]),
+            "sigma_aspect_pct": 100 * sig["aspect"] / fit.camera.aspect, "limit_centre_px": STOP_CENTRE_PX,
+            "limit_aspect_pct": 100 * STOP_ASPECT_REL}
+    if met:
+        return stop
+    adv = more_views_advice(fit, plate)
+    stop["more_views"] = adv
+    best = [(n, k) for k, n in adv["views_needed"].items() if n is not None]
+    if best:
+        n, k = min(best)
+        stop["advice"] = (f"{n} more view(s) {k} (plate about {adv['distance_mm']:.0f} mm away, tilt axes turning "
+                          f"by 90 deg from view to view) would pin the centre to < {STOP_CENTRE_PX} px and the "
+                          f"aspect to < {100 * STOP_ASPECT_REL:g} %")
+    else:
+        stop["advice"] = f"more than {MAX_MORE_VIEWS} further views of any kind would be needed"
     return stop
 
 
 def _jackknife_sigma(fit: JointFit, i: int) -> float | None:
-    """The jackknife sigma of the fit's shared parameter ``i`` (an intrinsic, then the plate's shape) over
-    its views, each left out in turn to first order (``leave_views_out``); None when the views are too few
-    (each set left needs ``MIN_VIEWS``) or the others do not determine the camera without one of them."""
+    """The jackknife sigma of the fit's shared parameter ``i`` (an intrinsic, then the plate's shape) over its
+    views, each left out in turn to first order (``leave_views_out``); None when the views are too few (each
+    set left needs ``MIN_VIEWS``) or the others do not determine the camera without one of them."""
     V = len(fit.views)
     if V - 1 < MIN_VIEWS:
         return None
@@ -264,13 +247,12 @@ def _jackknife_sigma(fit: JointFit, i: int) -> float | None:
 
 
 def _choose_plate_model(dets, names, plate, camera_guess: CameraModel):
-    """(model, why, its fit with the skew held at the guess's or None, bow_unconfirmed): the plate's model by
-    evidence (``PLATE_TEST_LEVEL``, ``PLATE_STEPS``): from the flat plate, each richer model only when it
-    predicts the views left out in turn better (``heldout_test``); ``bow_unconfirmed`` when the plate stays
-    flat though the views measure a bow (its chi-square against 0 significant) and are too few for the
-    held-out check to confirm it at all (a bow they could confirm and do not is no shape of the plate, and
-    no reason to hold the skew). A view the bent plate cannot
-    tie to the printed grid is left out of it (listed in the fit's ``dropped``)."""
+    """(model, why, its fit with the skew held at the guess's or None, bow_unconfirmed): the plate's model by evidence
+    (``PLATE_TEST_LEVEL``, ``PLATE_STEPS``): from the flat plate, each richer model only when it predicts the views left
+    out in turn better (``heldout_test``); ``bow_unconfirmed`` when the plate stays flat though the views measure a bow
+    (its chi-square against 0 significant) and are too few for the held-out check to confirm it at all (a bow they could
+    confirm and do not is no shape of the plate, and no reason to hold the skew). A view the bent plate cannot tie to
+    the printed grid is left out of it (the fit's ``dropped``)."""
     try:
         fits = {"flat": fit_views(dets, plate, camera_guess, names, plate_model="flat", fit_skew=False)}
     except CalibrationError as e:

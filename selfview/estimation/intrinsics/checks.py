@@ -8,13 +8,17 @@ import numpy as np
 from selfview.maths.camera import CameraModel
 from selfview.errors import CalibrationError
 from selfview.maths.geometry import R_from_rotvec, make_H
-from selfview.estimation.intrinsics.fit import INTRINSIC_NAMES, MIN_VIEWS_HALF, JointFit
-from selfview.estimation.intrinsics.model import POSE_STEP, STEP, JointProblem, intrinsics_vector, with_intrinsics
+from selfview.estimation.intrinsics.fit import MIN_VIEWS_HALF, JointFit, named
+from selfview.estimation.intrinsics.model import (POSE_STEP, STEP, JointProblem, central_differences, intrinsics_vector,
+                                                  with_intrinsics)
+from selfview.estimation.pcc import solve_pcc
+from selfview.estimation.tsai import calibrate_coplanar
 from selfview.maths.lm import levenberg_marquardt, wald_chi2
 
 
 #: The halves of the cross-check agree when no parameter differs by more than this many combined sigmas.
 AGREE_SIGMAS = 3.0
+
 
 def halves_cross_check(fit: JointFit) -> dict:
     """Do two halves of the fit's views (alternate ones, in its order) give the same intrinsics within
@@ -24,26 +28,20 @@ def halves_cross_check(fit: JointFit) -> dict:
     if n < 2 * MIN_VIEWS_HALF:
         return {"done": False, "why": f"{n} views; the cross-check needs {2 * MIN_VIEWS_HALF} (two halves of "
                                       f"{MIN_VIEWS_HALF})"}
-    ni, rs, halves = len(fit.cov5), fit.reduced, []
+    ni, halves = len(fit.cov5), []
     for first in (1, 0):
         try:
-            x, cov, _ = rs.fit_without(range(first, n, 2))  # the other half left out
+            x, cov, _ = fit.reduced.fit_without(range(first, n, 2))  # the other half left out
         except CalibrationError as exc:
             return {"done": False, "why": f"a half could not be calibrated: {exc}"}
         halves.append((x[:ni], cov[:ni, :ni]))
     (xa, ca), (xb, cb) = halves
     comb = np.sqrt(np.diag(ca) + np.diag(cb))
     ratio = np.abs(xa - xb) / comb
-    agree = bool(np.all(np.isfinite(ratio)) and np.all(ratio <= AGREE_SIGMAS))
-    return {
-        "done": True,
-        "agree": agree,
-        "halves": [{nm: float(v) for nm, v in zip(INTRINSIC_NAMES, x)} for x in (xa, xb)],
-        "difference": {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, xa - xb)},
-        "combined_sigma": {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, comb)},
-        "ratio": {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, ratio)},
-        "limit_sigmas": AGREE_SIGMAS,
-    }
+    return {"done": True, "agree": bool(np.all(np.isfinite(ratio)) and np.all(ratio <= AGREE_SIGMAS)),
+            "halves": [named(xa), named(xb)], "difference": named(xa - xb), "combined_sigma": named(comb),
+            "ratio": named(ratio), "limit_sigmas": AGREE_SIGMAS}
+
 
 # --- one picture: is the nominal camera wrong? how sure is the TCP? --------------------------------
 #: Accuracy targets of the off-line calibration [mm]: TCP across and along the optical axis.
@@ -52,6 +50,17 @@ TARGET_ALONG_MM = 0.08
 #: The picture shows the camera's centre and aspect differ from the assumed ones when the chi-square of
 #: the difference (3 degrees of freedom) exceeds this (p = 1e-4 for a right camera).
 CAMERA_CHI2_LIMIT = 21.1
+#: A camera file fits a picture when the plate's disc residual with all of its intrinsics held (the plate's
+#: pose alone fitted) stays within this of the residual with f and kappa the picture's own [px]: with the
+#: right camera both are the discs' own scatter (centroid noise 0.02 px, a laser print's dot errors 0.05-0.2
+#: px) and differ by under 0.02 px; another camera's f or centre leaves a pattern over the plate that the
+#: pose cannot take up (another camera of the same size: 0.3 px and more).
+CAMERA_FILE_MAX_EXCESS_PX = 0.1
+#: The least error [px] (u, v) of a fingertip corner from the corner search, whatever its edges' noise says:
+#: the corner search's RMS error against the known corners of rendered parked pictures (8 seeds, 48 corners:
+#: 0.036 px in u, 0.062 px in v, where the edge points' own scatter over sqrt(n/2) says 0.009 px). Left out,
+#: the TCP's sigma across the picture came out 2.6 to 5.7 times below its error.
+CORNER_FLOOR_PX = (0.036, 0.062)
 
 
 def _one_view(result, camera: CameraModel, ni: int = 5):
@@ -60,33 +69,29 @@ def _one_view(result, camera: CameraModel, ni: int = 5):
     ts = result.tsai
     H = ts.C_H_W
     model = JointProblem([result.discs.p_W], [result.disc_uv_corrected], [H[:3, :3]], ni=ni, skew=camera.skew)
-    x = np.concatenate([intrinsics_vector(camera.with_(f=ts.camera.f, kappa=ts.camera.kappa), ni), np.zeros(3), H[:3, 3]])
+    x = np.concatenate([intrinsics_vector(camera.with_(f=ts.camera.f, kappa=ts.camera.kappa), ni), np.zeros(3),
+                        H[:3, 3]])
     return model, x
 
 
-def _tcp_of(result, cell, cam: CameraModel, C_H_W) -> np.ndarray:
-    from selfview.estimation.pcc import solve_pcc
-
-    ft = result.fingertips
+def _tcp_of(result):
+    """``tcp(camera, C_H_W, uv=None)``: the TCP [mm, camera axes] by ``solve_pcc`` from the picture's found
+    fingertips (their pixels ``uv`` (n, 2) when given) with the plate's pose ``C_H_W``."""
+    ft, cal = result.fingertips, result.calibration
     found = np.asarray(ft.found, bool)
-    cal = result.calibration
     pG = cal.points_G[cal.state][found]
-    return solve_pcc(ft.uv[found], pG, C_H_W, cam).C_H_G[:3, 3]
 
+    def tcp(camera: CameraModel, C_H_W, uv=None) -> np.ndarray:
+        return solve_pcc(ft.uv[found] if uv is None else uv, pG, C_H_W, camera).C_H_G[:3, 3]
 
-#: A camera file fits a picture when the plate's disc residual with all of its intrinsics held (the plate's
-#: pose alone fitted) stays within this of the residual with f and kappa the picture's own [px]: with the
-#: right camera both are the discs' own scatter (centroid noise 0.02 px, a laser print's dot errors 0.05-0.2
-#: px) and differ by under 0.02 px; another camera's f or centre leaves a pattern over the plate that the
-#: pose cannot take up (another camera of the same size: 0.3 px and more).
-CAMERA_FILE_MAX_EXCESS_PX = 0.1
+    return tcp
 
 
 def camera_file_fit(result, camera: CameraModel, source: str = "the camera file") -> dict:
     """Does ``camera`` (from a camera file: f, kappa, centre, aspect, skew) fit the picture of an off-line
-    calibration (``selfview.estimation.offline.OfflineResult``)? The plate's pose alone is fitted to the disc centres with
-    every intrinsic held at ``camera``'s. Returns {rms_px, own_rms_px (f and kappa the picture's), excess_px,
-    limit_px, fits, refusal (why it does not fit, naming ``source``; None when it fits)}."""
+    calibration (``selfview.estimation.offline.OfflineResult``)? The plate's pose alone is fitted to the disc
+    centres with every intrinsic held at ``camera``'s. Returns {rms_px, own_rms_px (f and kappa the picture's),
+    excess_px, limit_px, fits, refusal (why it does not fit, naming ``source``; None when it fits)}."""
     model, x = _one_view(result, camera, ni=6)
     x[:6] = intrinsics_vector(camera, 6)
     own = float(result.tsai.rms_px)
@@ -108,18 +113,15 @@ def camera_file_fit(result, camera: CameraModel, source: str = "the camera file"
 
 def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
     """Does the picture of an off-line calibration (``selfview.estimation.offline.OfflineResult``) show that the
-    assumed camera's principal point or aspect (``camera``, default the cell's nominal one) is wrong by
-    enough to cost more than the accuracy targets?
+    assumed camera's principal point or aspect (``camera``, default the cell's nominal one) is wrong by enough to
+    cost more than the accuracy targets?
 
-    One view with f, kappa, cx, cy, aspect and the pose all free (the skew held at the assumed camera's:
-    one view does not pin it); the difference of (cx, cy, aspect) from
-    the assumed ones is significant when its chi-square exceeds ``CAMERA_CHI2_LIMIT``; its cost is how far
-    the TCP moves when the picture is calibrated again with the picture's own centre and aspect.
-    Returns {significant, chi2, centre_offset_px [dx, dy], aspect, aspect_sigma, centre_sigma_px,
-    tcp_shift_mm [3], costly, warning (str or None)}.
+    One view with f, kappa, cx, cy, aspect and the pose free (the skew held at the assumed camera's: one view does
+    not pin it); the difference of (cx, cy, aspect) from the assumed ones is significant when its chi-square
+    exceeds ``CAMERA_CHI2_LIMIT``; its cost is how far the TCP moves when the picture is calibrated again with
+    its own centre and aspect. Returns {significant, chi2, centre_offset_px [dx, dy], aspect, aspect_sigma,
+    centre_sigma_px, tcp_shift_mm [3], costly, warning (str or None)}.
     """
-    from selfview.estimation.tsai import calibrate_coplanar
-
     cam0 = camera or cell.camera.guess()
     model, x0 = _one_view(result, cam0)
     out = {"significant": False, "costly": False, "warning": None}
@@ -128,14 +130,10 @@ def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
     except (CalibrationError, np.linalg.LinAlgError) as exc:
         out["why"] = f"the one-view fit failed: {exc}"
         return out
-    cov = res.covariance(normal=True)
     d = res.x[2:5] - np.array([cam0.cx, cam0.cy, cam0.aspect])
-    C3 = cov[2:5, 2:5]
-    if not (res.converged and np.all(np.isfinite(C3))):
-        out["why"] = "one picture does not determine the centre and the aspect"
-        return out
-    chi2 = wald_chi2(d, C3)
-    if not np.isfinite(chi2):  # a singular covariance
+    C3 = res.covariance(normal=True)[2:5, 2:5]
+    chi2 = wald_chi2(d, C3) if res.converged and np.all(np.isfinite(C3)) else np.nan
+    if not np.isfinite(chi2):  # not converged, or a singular covariance
         out["why"] = "one picture does not determine the centre and the aspect"
         return out
     sig = np.sqrt(np.diag(C3))
@@ -148,18 +146,18 @@ def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
         own = cam0.with_(cx=float(res.x[2]), cy=float(res.x[3]), aspect=float(res.x[4]))
         ts = calibrate_coplanar(result.discs.p_W, own.deskew_pixels(result.disc_uv_corrected), cx=own.cx, cy=own.cy,
                                 aspect=own.aspect, mode="full", width=cam0.width, height=cam0.height)
-        shift = (_tcp_of(result, cell, ts.camera.with_(skew=cam0.skew), ts.C_H_W)
-                 - result.calibration.C_H_G[:3, 3])
+        shift = _tcp_of(result)(ts.camera.with_(skew=cam0.skew), ts.C_H_W) - result.calibration.C_H_G[:3, 3]
     except CalibrationError as exc:
         out["why"] = f"recalibrating with the picture's own centre failed: {exc}"
         return out
     across, along = float(np.hypot(shift[0], shift[1])), float(abs(shift[2]))
-    out.update(tcp_shift_mm=[float(v) for v in shift], costly=bool(across > TARGET_ACROSS_MM or along > TARGET_ALONG_MM))
+    out.update(tcp_shift_mm=[float(v) for v in shift],
+               costly=bool(across > TARGET_ACROSS_MM or along > TARGET_ALONG_MM))
     if out["costly"]:
         out["warning"] = (
             f"the picture shows the camera's principal point {np.hypot(d[0], d[1]):.1f} px from the assumed "
-            f"({cam0.cx:.1f}, {cam0.cy:.1f}) (offset {d[0]:+.1f}, {d[1]:+.1f} px, +- {sig[0]:.1f}, {sig[1]:.1f}) and its "
-            f"aspect {res.x[4]:.4f} +- {sig[2]:.4f} instead of {cam0.aspect:.4f}; that moves the TCP by "
+            f"({cam0.cx:.1f}, {cam0.cy:.1f}) (offset {d[0]:+.1f}, {d[1]:+.1f} px, +- {sig[0]:.1f}, {sig[1]:.1f}) "
+            f"and its aspect {res.x[4]:.4f} +- {sig[2]:.4f} instead of {cam0.aspect:.4f}; that moves the TCP by "
             f"{across:.3f} mm across and {along:.3f} mm along the optical axis (targets {TARGET_ACROSS_MM} and "
             f"{TARGET_ALONG_MM} mm): measure the camera with 'selfview intrinsics' and calibrate with "
             "--camera CAMERA.yaml"
@@ -167,61 +165,39 @@ def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
     return out
 
 
-#: The least error [px] (u, v) of a fingertip corner from the corner search, whatever its edges' noise says:
-#: the corner search's RMS error against the known corners of rendered parked pictures (8 seeds, 48 corners:
-#: 0.036 px in u, 0.062 px in v, where the edge points' own scatter over sqrt(n/2) says 0.009 px). Left out,
-#: the TCP's sigma across the picture came out 2.6 to 5.7 times below its error.
-CORNER_FLOOR_PX = (0.036, 0.062)
-
-
 def tcp_sigma(result, cell, camera_cov3: np.ndarray | None = None, camera_error: dict | None = None) -> dict:
-    """1-sigma of the TCP in camera axes [mm] of an off-line calibration, from the covariance of the camera
-    calibration and the PCC together.
-
-    Three parts, propagated to ``C_H_G``'s translation by its derivatives (central differences through
-    Tsai's pose and ``selfview.estimation.pcc.solve_pcc``): the picture's own noise in the disc centres (the
-    covariance of f, kappa and the plate pose, scaled by the residual); the uncertainty of the principal
-    point and aspect (``camera_cov3`` (3, 3) of cx, cy, aspect, or (4, 4) with the skew, from a camera file;
-    None: taken as exact),
-    through the pose and f they shift and directly; the fingertip corners' (each from two line fits: the
-    edge points' RMS over sqrt(n/2) per axis, at least ``CORNER_FLOOR_PX``). ``camera_error``: ``camera_check``'s answer for this
-    picture; when the picture shows the assumed centre and aspect wrong (its ``tcp_shift_mm``), that shift
-    is a fourth part, ``camera_model`` (the error of the camera model the sigma would otherwise leave out).
-    Returns {tcp_sigma_mm [3], parts {...}}.
+    """1-sigma of the TCP in camera axes [mm] of an off-line calibration, from the covariance of the camera calibration
+    and the PCC together, propagated to ``C_H_G``'s translation by its derivatives (central differences through Tsai's
+    pose and ``selfview.estimation.pcc.solve_pcc``). The parts: ``picture``, the noise of its disc centres (the
+    covariance of f, kappa and the plate pose, scaled by the residual); ``camera_file``, the uncertainty of the
+    principal point and aspect (``camera_cov3`` (3, 3) of cx, cy, aspect, or (4, 4) with the skew, from a camera file;
+    None: taken as exact), through the pose and f they shift and directly; ``corners``, the fingertip corners' (each
+    from two line fits: the edge points' RMS over sqrt(n/2) per axis, at least ``CORNER_FLOOR_PX``); ``camera_model``,
+    when ``camera_error`` (``camera_check``'s answer for this picture) shows the assumed centre and aspect wrong, its
+    ``tcp_shift_mm`` (the error of the camera model the sigma would otherwise leave out). Returns {tcp_sigma_mm [3],
+    parts {...}}; ``ValueError`` for a ``camera_cov3`` of another shape.
     """
     cal = result.calibration
     cam = cal.camera
     model, x = _one_view(result, cam, ni=6)
     r = model.residuals(x)
     J = model.jacobian(x)
-    m = len(r)
     p_idx = np.r_[0:2, 6:12]
     Jp, Jt = J[:, p_idx], J[:, 2:6]
-    s2 = float(r @ r) / max(m - len(p_idx), 1)
-    N = Jp.T @ Jp
-    Ninv = np.linalg.inv(N)
-    cov_p = s2 * Ninv
+    s2 = float(r @ r) / max(len(r) - len(p_idx), 1)
+    Ninv = np.linalg.inv(Jp.T @ Jp)
     dp_dt = -Ninv @ Jp.T @ Jt
     R0 = result.tsai.C_H_W[:3, :3]
     ft = result.fingertips
     found = np.asarray(ft.found, bool)
-    pG = cal.points_G[cal.state][found]
-    from selfview.estimation.pcc import solve_pcc
+    pcc = _tcp_of(result)
 
     def tcp(xv, uv=None):
-        c = with_intrinsics(cam, xv[:6])
-        H = make_H(R_from_rotvec(xv[6:9]) @ R0, xv[9:12])
-        return solve_pcc(ft.uv[found] if uv is None else uv, pG, H, c).C_H_G[:3, 3]
+        return pcc(with_intrinsics(cam, xv[:6]), make_H(R_from_rotvec(xv[6:9]) @ R0, xv[9:12]), uv)
 
-    steps = np.r_[STEP[0] * x[0], STEP[1:], POSE_STEP]
-    G = np.zeros((3, 12))
-    for i in range(12):
-        xp, xm = x.copy(), x.copy()
-        xp[i] += steps[i]
-        xm[i] -= steps[i]
-        G[:, i] = (tcp(xp) - tcp(xm)) / (2 * steps[i])
+    G = central_differences(tcp, x, np.r_[STEP[0] * x[0], STEP[1:], POSE_STEP])  # (3, 12)
     Gp = G[:, p_idx]
-    parts = {"picture": Gp @ cov_p @ Gp.T}
+    parts = {"picture": Gp @ (s2 * Ninv) @ Gp.T}
     if camera_cov3 is not None:
         C = np.asarray(camera_cov3, float)
         if C.shape not in ((3, 3), (4, 4)):
@@ -231,18 +207,15 @@ def tcp_sigma(result, cell, camera_cov3: np.ndarray | None = None, camera_error:
     uv = ft.uv[found]
     n_edge = ft.n_edge_points[found] if ft.n_edge_points is not None else np.full(len(uv), 20)
     sc = np.nan_to_num(ft.edge_rms_px[found], nan=0.1) / np.sqrt(np.maximum(np.asarray(n_edge, float), 2) / 2)
-    Cc = np.zeros((3, 3))
-    for k in range(len(uv)):
-        for a in range(2):
-            up, um = uv.copy(), uv.copy()
-            up[k, a] += 1e-3
-            um[k, a] -= 1e-3
-            g = (tcp(x, up) - tcp(x, um)) / 2e-3
-            Cc += np.outer(g, g) * max(sc[k], CORNER_FLOOR_PX[a]) ** 2
-    parts["corners"] = Cc
-    shift = (camera_error or {}).get("tcp_shift_mm") if (camera_error or {}).get("significant") else None
-    if shift is not None:
+    Gc = central_differences(lambda u: tcp(x, u.reshape(-1, 2)), uv.ravel(), np.full(uv.size, 1e-3))  # (3, 2n)
+    parts["corners"] = np.zeros((3, 3))
+    for j, g in enumerate(Gc.T):  # u, v of each corner in turn
+        parts["corners"] += np.outer(g, g) * max(sc[j // 2], CORNER_FLOOR_PX[j % 2]) ** 2
+    if (camera_error or {}).get("significant") and camera_error.get("tcp_shift_mm") is not None:
+        shift = camera_error["tcp_shift_mm"]
         parts["camera_model"] = np.outer(shift, shift)
-    total = sum(parts.values())
-    return {"tcp_sigma_mm": [float(v) for v in np.sqrt(np.clip(np.diag(total), 0, None))],
-            "parts": {k: [float(v) for v in np.sqrt(np.clip(np.diag(c), 0, None))] for k, c in parts.items()}}
+
+    def sd(c):
+        return [float(v) for v in np.sqrt(np.clip(np.diag(c), 0, None))]
+
+    return {"tcp_sigma_mm": sd(sum(parts.values())), "parts": {k: sd(c) for k, c in parts.items()}}

@@ -14,8 +14,10 @@ from selfview.files.cell import PlateSpec
 from selfview.measurement.discs import DiscDetections
 from selfview.errors import CalibrationError, ConfigError, ImageError
 from selfview.maths.geometry import make_H
-from selfview.estimation.intrinsics.model import STEP, JointProblem, intrinsics_vector, project_points, with_intrinsics
-from selfview.estimation.intrinsics.plate import PLATE_DOT_PRIOR_MM, PLATE_DOT_SD_RANGE_MM, PLATE_MODELS, align_views, PlateShape
+from selfview.estimation.intrinsics.model import (STEP, JointProblem, central_differences, intrinsics_vector,
+                                                  project_points, with_intrinsics)
+from selfview.estimation.intrinsics.plate import (PLATE_DOT_PRIOR_MM, PLATE_DOT_SD_RANGE_MM, PLATE_MODELS, PlateShape,
+                                                  align_views)
 from selfview.maths.lm import covariance, levenberg_marquardt
 from selfview.measurement.plates import detect_plate, plate_image_bias
 
@@ -48,6 +50,7 @@ FTOL = 1e-10
 PARALLEL_DEG = 5.0
 #: Above this sigma of the centre [px] the views do not determine it at all.
 UNDETERMINED_CENTRE_PX = 5.0
+
 
 @dataclass
 class ViewFit:
@@ -113,16 +116,16 @@ class JointFit:
         ns, n = len(self.shape), len(self.cov_full)
         return self.cov_full[n - ns :, n - ns :] if ns else np.zeros((0, 0))
 
+
 class ReducedSystem:
-    """A fit's normal equations on its shared parameters (the ``ni`` intrinsics then the plate's shape), each
-    view's 6 pose parameters eliminated from its rows (Schur complement), about its solution: per view its
-    rows with its own pose projected out (``Jh``, ``rh``) and its share of the reduced matrix and gradient
-    (``Sk``, ``gk``); the shape's prior rows (``jp``, ``rp``) in the totals (``S``, ``g``). The shared columns
-    are scaled by ``sc`` (their norms). What leaving views out of the fit does, to first order, without refits."""
+    """A fit's normal equations on its shared parameters (the ``ni`` intrinsics then the plate's shape), each view's
+    6 pose parameters eliminated from its rows (Schur complement), about its solution: per view its rows with its
+    own pose projected out (``Jh``, ``rh``) and its share of the reduced matrix and gradient (``Sk``, ``gk``); the
+    shape's prior rows (``jp``, ``rp``) in the totals (``S``, ``g``); the shared columns scaled by ``sc`` (their
+    norms). What leaving views out of the fit does, to first order, without refits."""
 
     def __init__(self, fit: JointFit):
-        J, r, ni = fit.jac, fit.residuals, fit.ni
-        V = len(fit.views)
+        J, r, ni, V = fit.jac, fit.residuals, fit.ni, len(fit.views)
         self.fit, self.n = fit, np.array([len(u) for u in fit.uv_used])
         off = np.r_[0, np.cumsum(2 * self.n)]
         shared = np.r_[0:ni, ni + 6 * V : J.shape[1]]
@@ -159,10 +162,8 @@ class ReducedSystem:
         d, Sd = self.without(drop)
         keep = [k for k in range(len(self.n)) if k not in set(drop)]
         e = [self.rh[k] + self.Jh[k] @ d for k in keep] + [self.rp + self.jp @ d]
-        cost = float(sum(v @ v for v in e))
         m = int(2 * self.n[keep].sum()) + len(self.rp)
-        p = len(self.sc) + 6 * len(keep)
-        s2 = cost / max(m - p, 1)
+        s2 = float(sum(v @ v for v in e)) / max(m - len(self.sc) - 6 * len(keep), 1)
         x = np.r_[intrinsics_vector(self.fit.camera, self.fit.ni), self.fit.shape] + d / self.sc
         try:
             cov = s2 * np.linalg.inv(Sd) / np.outer(self.sc, self.sc)
@@ -172,14 +173,12 @@ class ReducedSystem:
 
 
 def leave_views_out(fit: JointFit) -> tuple[np.ndarray, np.ndarray]:
-    """The fit's views left out one at a time, to first order about its solution (no refit): (``delta``
-    (V, P) the change of the shared parameters, the ``ni`` intrinsics then the plate's shape, when view k
-    is left out; ``heldout`` (V,) the mean square [px^2] of view k's residuals predicted by the other views'
-    parameters, with its own pose refitted to it). Each view's 6 pose parameters are eliminated from its
-    rows (``ReducedSystem``), so the reduced system has the shared parameters only; the shape's prior rows
-    stay in. ``CalibrationError`` when the views left do not determine the shared parameters."""
-    rs = fit.reduced
-    V = len(fit.views)
+    """The fit's views left out one at a time, to first order about its solution (``ReducedSystem``, no refit):
+    (``delta`` (V, P) the change of the shared parameters, the ``ni`` intrinsics then the plate's shape, when
+    view k is left out; ``heldout`` (V,) the mean square [px^2] of view k's residuals predicted by the other
+    views' parameters, with its own pose refitted to it). ``CalibrationError`` when the views left do not
+    determine the shared parameters."""
+    rs, V = fit.reduced, len(fit.views)
     delta, heldout = np.zeros((V, len(rs.sc))), np.zeros(V)
     for k in range(V):
         d, _ = rs.without([k])
@@ -211,10 +210,10 @@ def initial_pose(p_W, uv, camera: CameraModel) -> np.ndarray:
 def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list, *, rc: list | None = None,
            plate: PlateSpec | None = None, plate_model: str = "flat", shape0=None, noise_px: float = 0.05,
            dot_sd_mm: float = PLATE_DOT_PRIOR_MM, fit_skew: bool = True) -> JointFit:
-    """Joint LM from ``camera0``, ``poses0`` (and the plate's shape ``shape0``); drops outlying discs once
-    and refits. ``plate_model`` (``PLATE_MODELS``; needs ``rc`` and ``plate``): what of the plate's shape is
-    fitted; ``noise_px`` the disc centres' noise that weighs the shape's prior against the pixels;
-    ``fit_skew``: the skew is fitted (else held at ``camera0``'s)."""
+    """Joint LM from ``camera0``, ``poses0`` (and the plate's shape ``shape0``); drops outlying discs once and
+    refits. ``plate_model`` (``PLATE_MODELS``; needs ``rc`` and ``plate``): what of the plate's shape is fitted;
+    ``noise_px`` the disc centres' noise that weighs the shape's prior against the pixels; ``fit_skew``: the skew
+    is fitted (else held at ``camera0``'s)."""
     ni = 6 if fit_skew else 5
     shape = None
     if plate_model != "flat":
@@ -229,7 +228,7 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
         U = [u[k] for u, k in zip(uv, keep)]
         idx = [shape.index(r[k]) for r, k in zip(rc, keep)] if shape else None
         model = JointProblem(P, U, [H[:3, :3] for H in poses0], shape, idx, ni=ni, skew=camera0.skew)
-        x0 = np.concatenate([intrinsics_vector(camera0, ni), *[np.concatenate([np.zeros(3), H[:3, 3]]) for H in poses0], y0])
+        x0 = np.concatenate([intrinsics_vector(camera0, ni), *[np.r_[np.zeros(3), H[:3, 3]] for H in poses0], y0])
         res = levenberg_marquardt(model.residuals, x0, model.jacobian, normal=model.normal_matrix, ftol=FTOL)
         poses0 = [model.pose(res.x, k) for k in range(len(P))]
         y0 = res.x[len(res.x) - ns :] if ns else y0
@@ -239,36 +238,25 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
             raise CalibrationError(f"intrinsics: the joint fit left the camera model ({exc})") from None
         dist = [np.hypot(*res.residuals[model.off[k] : model.off[k + 1]].reshape(2, -1)) for k in range(len(P))]
         rms = float(np.sqrt(np.mean(np.concatenate(dist) ** 2)))
-        if attempt == 1:
+        bad = [d > max(OUTLIER_RMS * rms, OUTLIER_MIN_PX) for d in dist]
+        if attempt == 1 or not any(b.any() for b in bad):
             break
-        lim = max(OUTLIER_RMS * rms, OUTLIER_MIN_PX)
-        changed = False
-        for k, d in enumerate(dist):
-            idx_k = np.flatnonzero(keep[k])
-            bad = idx_k[d > lim]
-            if len(bad):
-                keep[k][bad] = False
-                changed = True
-        if not changed:
-            break
+        for k, b in enumerate(bad):
+            keep[k][np.flatnonzero(keep[k])[b]] = False
     if not (res.converged and res.x[0] > 0 and res.x[4] > 0):
         raise CalibrationError(f"intrinsics: the joint fit did not converge ({res.message})")
     m, n = res.jacobian.shape
     s2 = res.cost / max(m - n, 1)  # the prior rows count as observations of the shape's parameters
-    views = []
-    for k in range(len(P)):
-        H = poses0[k]
-        tilt, distance = view_tilt_distance(H)
-        views.append(ViewFit(names[k], H, int(keep[k].sum()), float(np.sqrt(np.mean(dist[k] ** 2))), tilt,
-                             distance, int((~keep[k]).sum())))
+    views = [ViewFit(names[k], H, int(keep[k].sum()), float(np.sqrt(np.mean(dist[k] ** 2))),
+                     *view_tilt_distance(H), int((~keep[k]).sum())) for k, H in enumerate(poses0)]
     return JointFit(camera0, ni, res.jacobian, float(s2), rms, views, U, P, plate_model, np.asarray(y0, float),
                     float(noise_px), float(dot_sd_mm), residuals=res.residuals)
 
 
 def _bias_corrected(dets, camera, poses, plate, memo: dict | None = None) -> list:
-    """Each view's centroids less their perspective and lens bias for ``camera`` and its pose; ``memo`` (a
-    fit's ``bias_memo``): each view's answer kept by its exact inputs, so a fit's correction is computed once
-    for every fit started from it."""
+    """Each view's centroids less their perspective and lens bias for ``camera`` and its pose; ``memo`` (a fit's
+    ``bias_memo``): each view's answer kept by its exact inputs, so a fit's correction is computed once for every
+    fit started from it."""
     if memo is None:
         return [d.uv - plate_image_bias(plate, camera, H, d.p_W) for d, H in zip(dets, poses)]
     out = []
@@ -279,6 +267,7 @@ def _bias_corrected(dets, camera, poses, plate, memo: dict | None = None) -> lis
             memo[key] = d.uv - plate_image_bias(plate, camera, H, d.p_W)
         out.append(memo[key])
     return out
+
 
 def _dot_sd(fit: JointFit) -> float:
     """The discs' position error sd [mm] a 'bow+dots' fit's corrections say (their mean square plus their
@@ -310,7 +299,7 @@ def _check_directions(poses) -> None:
     mean = normals.sum(0) / np.linalg.norm(normals.sum(0))
     spread = float(np.degrees(np.arccos(np.clip(normals @ mean, -1, 1))).max())
     if spread < PARALLEL_DEG:
-        tilts = [float(np.degrees(np.arccos(min(1.0, abs(H[2, 2]))))) for H in poses]
+        tilts = [view_tilt_distance(H)[0] for H in poses]
         raise CalibrationError(
             f"intrinsics: the {len(poses)} views do not determine the principal point: they all see the plate from "
             f"one direction (its normal within {spread:.1f} deg in every view, {min(tilts):.0f}-{max(tilts):.0f} deg "
@@ -322,20 +311,19 @@ def _check_directions(poses) -> None:
 def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel, names: list[str] | None = None,
               *, bias: bool = True, plate_model: str = "bow+dots", fit_skew: bool = True,
               start: JointFit | None = None) -> JointFit:
-    """The joint fit of views' disc detections from ``camera0`` (a starting camera): first poses by
-    planar PnP, a fit on the centroids, then ``BIAS_ROUNDS`` rounds of bias correction and refit
-    (``bias=False``: the centroids as measured). ``plate_model`` (``PLATE_MODELS``): what of the printed
-    plate's shape is fitted with the camera; ``fit_skew``: the grabber's skew too. The shape's prior is
-    weighed with the previous fit's noise (its residual sigma); the fit is repeated (at most ``NOISE_ROUNDS``
-    times) until that noise settles.
-    ``start``: a fit of these views (or more, named alike) to start warm from (``_first_poses``), the
-    centroids bias-corrected by it at once instead of ``BIAS_ROUNDS`` rounds (its correction has settled),
-    its noise figures when of the same plate model. ``CalibrationError`` for fewer than ``MIN_VIEWS_HALF``
-    views, ``ValueError`` for names not one per view."""
+    """The joint fit of views' disc detections from ``camera0`` (a starting camera): first poses by planar PnP, a fit on
+    the centroids, then ``BIAS_ROUNDS`` rounds of bias correction and refit (``bias=False``: the centroids as measured).
+    ``plate_model`` (``PLATE_MODELS``): what of the printed plate's shape is fitted with the camera; ``fit_skew``: the
+    grabber's skew too. The shape's prior is weighed with the previous fit's noise (its residual sigma); the fit is
+    repeated (at most ``NOISE_ROUNDS`` times) until that noise settles. ``start``: a fit of these views (or more, named
+    alike) to start warm from (``_first_poses``), the centroids bias-corrected by it at once instead of ``BIAS_ROUNDS``
+    rounds (its correction has settled), its noise figures when of the same plate model. ``CalibrationError`` for fewer
+    than ``MIN_VIEWS_HALF`` views, ``ValueError`` for names not one per view."""
     if plate_model not in PLATE_MODELS:
         raise CalibrationError(f"intrinsics: plate model {plate_model!r}: expected one of {', '.join(PLATE_MODELS)}")
     if len(dets) < MIN_VIEWS_HALF:  # the fewest a half of the cross-check fits
-        raise CalibrationError(f"intrinsics: {len(dets)} view(s) of the plate; a joint fit needs at least {MIN_VIEWS_HALF}")
+        raise CalibrationError(f"intrinsics: {len(dets)} view(s) of the plate; a joint fit needs at least "
+                               f"{MIN_VIEWS_HALF}")
     names = names or [f"view {i + 1}" for i in range(len(dets))]
     if len(names) != len(dets):
         raise ValueError(f"names: expected {len(dets)} names for {len(dets)} views, got {len(names)}")
@@ -373,8 +361,7 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
     if warm and not same and start.s2 > 0:  # a simpler model's start: its residual sigma, the noise to settle
         noise0 = {"noise_px": float(np.sqrt(start.s2))}
     P = [d.p_W for d in dets]
-    rc = [d.rc for d in dets]
-    kw = {"rc": rc, "plate": plate, "plate_model": plate_model, "fit_skew": fit_skew}
+    kw = {"rc": [d.rc for d in dets], "plate": plate, "plate_model": plate_model, "fit_skew": fit_skew}
     fit = _solve(P, uv, camera0, poses, names, **kw, **noise0)
     for rnd in range(rounds + NOISE_ROUNDS):
         noise, sd = float(np.sqrt(fit.s2)), _dot_sd(fit)
@@ -383,13 +370,12 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
             if all(np.array_equal(a, b) for a, b in zip(new, uv)):
                 rounds = rnd  # no bias to correct (a board's corners): only the noise's rounds are left
             uv = new
-        if rnd >= rounds:
-            if plate_model == "flat" or (abs(noise / fit.prior_noise_px - 1.0) < 0.2 and abs(sd / fit.dot_sd_mm - 1.0) < 0.2):
-                break
+        if rnd >= rounds and (plate_model == "flat" or (abs(noise / fit.prior_noise_px - 1.0) < 0.2
+                                                        and abs(sd / fit.dot_sd_mm - 1.0) < 0.2)):
+            break
         fit = _solve(P, uv, fit.camera, [v.C_H_W for v in fit.views], names, shape0=fit.shape, noise_px=noise,
                      dot_sd_mm=sd, **kw)
-    fit.turns = turns
-    fit.dropped = dropped
+    fit.turns, fit.dropped = turns, dropped
     return fit
 
 
@@ -408,6 +394,7 @@ def detect_views(images, plate: PlateSpec, camera: CameraModel, names=None, *, s
                 raise ImageError(f"{nm}: {exc}") from None
             skipped.append({"name": nm, "reason": str(exc)})
     return dets, kept, skipped
+
 
 def guess_camera(dets: list[DiscDetections], width: int, height: int) -> CameraModel:
     """A starting camera for pictures of ``width`` x ``height`` px without a cell file: the principal point
@@ -439,15 +426,8 @@ def _pixel_jacobians(camera: CameraModel, uv, ni: int = 5) -> np.ndarray:
     xy = camera.undistort_pixels(uv) / camera.f
     p = np.column_stack([xy, np.ones(len(xy))])
     x = intrinsics_vector(camera, ni)
-    J = np.zeros((len(uv), 2, ni))
-    for i in range(ni):
-        h = STEP[i] * (abs(x[i]) if i == 0 else 1.0)
-        xp, xm = x.copy(), x.copy()
-        xp[i] += h
-        xm[i] -= h
-        J[:, :, i] = (project_points(xp, np.eye(3), np.zeros(3), p, camera.skew)
-                      - project_points(xm, np.eye(3), np.zeros(3), p, camera.skew)) / (2 * h)
-    return J
+    steps = STEP[:ni] * np.r_[abs(x[0]), np.ones(ni - 1)]
+    return central_differences(lambda xv: project_points(xv, np.eye(3), np.zeros(3), p, camera.skew), x, steps)
 
 
 def projection_sigma_px(camera: CameraModel, cov5: np.ndarray) -> dict:
@@ -460,6 +440,10 @@ def projection_sigma_px(camera: CameraModel, cov5: np.ndarray) -> dict:
     return {nm: float(np.sqrt(max(np.trace(J @ cov5 @ J.T), 0.0))) for nm, J in zip(pts, Js)}
 
 
+def named(values) -> dict:
+    """{name in ``INTRINSIC_NAMES``: float} of intrinsics ``values`` (5 or 6)."""
+    return {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, values)}
+
+
 def sigmas_of(cov5) -> dict:
-    d = np.sqrt(np.clip(np.diag(cov5), 0, None))
-    return {nm: float(v) for nm, v in zip(INTRINSIC_NAMES, d)}
+    return named(np.sqrt(np.clip(np.diag(cov5), 0, None)))

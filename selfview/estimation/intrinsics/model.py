@@ -10,26 +10,30 @@ from selfview.errors import CalibrationError
 from selfview.maths.geometry import R_from_rotvec, R_from_rotvecs, cross_rows, make_H, so3_left_jacobians
 
 
-#: Finite-difference steps of the numeric Jacobian: f (relative), kappa [px^-2], cx, cy [px], aspect,
-#: rotation [rad], translation [mm].
+#: Central-difference steps: f (relative), kappa [px^-2], cx, cy [px], aspect, skew; of a pose: rotation [rad],
+#: translation [mm].
 STEP = np.array([1e-6, 1e-12, 1e-4, 1e-4, 1e-7, 1e-7])
 POSE_STEP = np.array([1e-7, 1e-7, 1e-7, 1e-5, 1e-5, 1e-5])
 
 
-# --- the model ------------------------------------------------------------------------------------
+def central_differences(fun, x, steps) -> np.ndarray:
+    """(..., P) derivatives of ``fun`` (an array) at ``x`` (P,) by central differences of ``steps`` (P,)."""
+    cols = []
+    for i, h in enumerate(steps):
+        xp, xm = x.copy(), x.copy()
+        xp[i] += h
+        xm[i] -= h
+        cols.append((fun(xp) - fun(xm)) / (2 * h))
+    return np.stack(cols, axis=-1)
+
+
 def project_points(intr, R, t, p_W, skew: float = 0.0) -> np.ndarray:
-    """(N, 2) distorted pixels of plate points ``p_W`` (N, 3) seen at pose (R, t) by intrinsics
-    ``intr`` = (f, kappa, cx, cy, aspect[, skew]) (``skew`` when ``intr`` has five); NaN where a point is
-    behind the camera or beyond the fold."""
-    return pixels_from_camera(intr, p_W @ R.T + t, skew)
-
-
-def pixels_from_camera(intr, pc, skew: float = 0.0) -> np.ndarray:
-    """(N, 2) distorted pixels of points ``pc`` (N, 3) in the camera frame, intrinsics as ``project_points``;
-    NaN throughout where any point is behind the camera or beyond the fold."""
-    XYh = _distorted_sensor(intr, pc)
+    """(N, 2) distorted pixels of plate points ``p_W`` (N, 3) seen at pose (R, t) by intrinsics ``intr`` =
+    (f, kappa, cx, cy, aspect[, skew]) (``skew`` when ``intr`` has five); NaN throughout where any point is behind
+    the camera or beyond the fold."""
+    XYh = _distorted_sensor(intr, p_W @ R.T + t)
     if XYh is None:
-        return np.full((len(pc), 2), np.nan)
+        return np.full((len(p_W), 2), np.nan)
     return _sensor_pixels(intr, XYh, skew)
 
 
@@ -66,12 +70,11 @@ def with_intrinsics(camera: CameraModel, x) -> CameraModel:
 
 
 class JointProblem:
-    """Parameters x = (f, kappa, cx, cy, aspect, [skew,] then per view omega (3), t (3), then the plate's
-    shape (``PlateShape``: bow, disc corrections) if ``shape``) with view k's rotation exp(omega_k) R0_k;
-    ``ni`` intrinsics: 6 with the skew free, 5 with it held at ``skew``. Residuals model minus observation,
-    per view (u then v of its points), then the shape's prior rows. Every view's points are projected at
-    once (the views' points stacked, each with its view's pose); a view's pose parameters touch only its
-    own rows of the Jacobian."""
+    """Parameters x = (f, kappa, cx, cy, aspect, [skew,] then per view omega (3), t (3), then the plate's shape
+    (``PlateShape``: bow, disc corrections) if ``shape``) with view k's rotation exp(omega_k) R0_k; ``ni``
+    intrinsics: 6 with the skew free, 5 with it held at ``skew``. Residuals model minus observation, per view (u
+    then v of its points), then the shape's prior rows. Every view's points are projected at once (stacked, each
+    with its view's pose); a view's pose parameters touch only its own rows of the Jacobian."""
 
     def __init__(self, p_W: list, uv: list, R0: list, shape=None, idx: list | None = None,
                  *, ni: int = 5, skew: float = 0.0):
@@ -104,14 +107,6 @@ class JointProblem:
             return self.p_W[k]
         return self.p_W[k] + self.shape.offsets(self._y(x), self.idx[k])
 
-    def _all_points(self, x) -> np.ndarray:
-        return self.P + self.shape.offsets(self._y(x), self.idx_all) if self.shape else self.P
-
-    def _rotations(self, x) -> np.ndarray:
-        """(V, 3, 3) each view's rotation exp(omega_k) R0_k."""
-        om = x[self.ni : self.ni + 6 * len(self.p_W)].reshape(-1, 6)[:, :3]
-        return R_from_rotvecs(om) @ self.R0
-
     def view(self, x, k) -> np.ndarray:
         j = self.ni + 6 * k
         R = R_from_rotvec(x[j : j + 3]) @ self.R0[k]
@@ -124,18 +119,18 @@ class JointProblem:
         for the Jacobian at the parameters whose residuals it has just evaluated and accepted."""
         if self._last is not None and np.array_equal(self._last[0], x):
             return self._last[1]
-        V = len(self.p_W)
-        Rv = self._rotations(x)[self.vid]
-        t = x[self.ni : self.ni + 6 * V].reshape(-1, 6)[:, 3:]
-        d = np.einsum("nij,nj->ni", Rv, self._all_points(x))
-        pc = d + t[self.vid]
+        poses = x[self.ni : self.ni + 6 * len(self.p_W)].reshape(-1, 6)
+        Rv = (R_from_rotvecs(poses[:, :3]) @ self.R0)[self.vid]
+        P = self.P + self.shape.offsets(self._y(x), self.idx_all) if self.shape else self.P
+        d = np.einsum("nij,nj->ni", Rv, P)
+        pc = d + poses[self.vid, 3:]
         out = (Rv, d, pc, _distorted_sensor(x[: self.ni], pc))
         self._last = (np.array(x, float), out)
         return out
 
     def residuals(self, x) -> np.ndarray:
-        """Every view's residuals from one projection of all points (NaN throughout where any point is
-        behind the camera or beyond the fold: no step the solver takes to such parameters is accepted)."""
+        """Every view's residuals from one projection of all points (NaN throughout where any point is behind
+        the camera or beyond the fold: no step the solver takes to such parameters is accepted)."""
         XYh = self._camera_points(x)[3]
         if XYh is None:
             m = np.full((len(self.vid), 2), np.nan)
@@ -143,21 +138,16 @@ class JointProblem:
             m = _sensor_pixels(x[: self.ni], XYh, self.skew) - self.UV
         r = np.empty(self.m_data)
         r[self.ru], r[self.rv] = m[:, 0], m[:, 1]
-        if self.shape:
-            r = np.concatenate([r, self.shape.w * self._y(x)])
-        return r
+        return np.concatenate([r, self.shape.w * self._y(x)]) if self.shape else r
 
     def jacobian(self, x) -> np.ndarray:
-        """Analytic (as ``selfview.estimation.tsai``'s full model, with cx, cy, the aspect, the skew and the plate's shape
-        added: u = X^ / aspect + skew Y^ + cx)."""
+        """Analytic (as ``selfview.estimation.tsai``'s full model, with cx, cy, the aspect, the skew and the
+        plate's shape added: u = X^ / aspect + skew Y^ + cx)."""
         f, kappa, cx, cy, aspect = x[:5]
         ni = self.ni
         skew = x[5] if ni > 5 else self.skew
-        V = len(self.p_W)
-        s0 = ni + 6 * V
+        s0 = ni + 6 * len(self.p_W)
         J = np.zeros((self.m_data + (self.shape.n if self.shape else 0), len(x)))
-        om = x[ni:s0].reshape(-1, 6)
-        vid = self.vid
         Rv, d, pc, XYh = self._camera_points(x)
         z = pc[:, 2]
         if np.any(z <= 0):
@@ -170,7 +160,7 @@ class JointProblem:
         a = 1.0 + kappa * rh2
         c = 2.0 * kappa / (a + 2.0 * kappa * rh2)
         m00, m11, m01 = (1.0 - c * Xh * Xh) / a, (1.0 - c * Yh * Yh) / a, -c * Xh * Yh / a
-        Jl = so3_left_jacobians(om[:, :3])[vid]
+        Jl = so3_left_jacobians(x[ni:s0].reshape(-1, 6)[:, :3])[self.vid]
         D = self.dp_dy
         for rows, (mu0, mu1) in ((self.ru, (m00 / aspect + skew * m01, m01 / aspect + skew * m11)),
                                  (self.rv, (m01, m11))):
@@ -194,13 +184,11 @@ class JointProblem:
     def normal_matrix(self, J) -> np.ndarray:
         """J^T J of this problem's Jacobian ``J`` without its zero blocks: view k's pose columns meet only its
         own rows, so the poses' block is block-diagonal; the intrinsics and the shape meet every row."""
-        V = len(self.p_W)
-        s0 = self.ni + 6 * V
-        shared = np.r_[0 : self.ni, s0 : J.shape[1]]
+        shared = np.r_[0 : self.ni, self.ni + 6 * len(self.p_W) : J.shape[1]]
         Js = J[:, shared]
         A = np.zeros((J.shape[1], J.shape[1]))
         A[np.ix_(shared, shared)] = Js.T @ Js
-        for k in range(V):
+        for k in range(len(self.p_W)):
             rows, c = slice(self.off[k], self.off[k + 1]), self.ni + 6 * k
             Jp = J[rows, c : c + 6]
             A[c : c + 6, c : c + 6] = Jp.T @ Jp

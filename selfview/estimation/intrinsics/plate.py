@@ -13,16 +13,14 @@ from selfview.errors import CalibrationError
 from selfview.estimation.intrinsics.model import intrinsics_vector, project_points
 
 
-#: Plate models of the joint fit (``plate_model``): 'flat' (the plate as specified, every disc exactly
-#: where the spec puts it), 'bow' (plus a smooth out-of-plane deformation), 'bow+dots' (plus each disc's
-#: in-plane position; the default).
+#: Plate models of the joint fit (``plate_model``): 'flat' (every disc exactly where the spec puts it), 'bow'
+#: (plus a smooth out-of-plane deformation), 'bow+dots' (plus each disc's in-plane position; the default).
 PLATE_MODELS = ("flat", "bow", "bow+dots")
-#: Prior 1-sigma of each disc's in-plane position error per axis [mm], to start with: a laser print places
-#: a disc's edge to about half a 600-dpi dot (10-20 um). The fit then estimates it from the discs'
-#: corrections themselves (a variance component, by expectation-maximisation: the mean square of the
-#: corrections plus their posterior variance), within ``PLATE_DOT_SD_RANGE_MM``: a well-printed plate is
-#: then not given freedom it does not need (which would cost the centre's precision), a poorly printed one
-#: gets what it needs.
+#: Prior 1-sigma of each disc's in-plane position error per axis [mm], to start with: a laser print places a
+#: disc's edge to about half a 600-dpi dot (10-20 um). The fit then estimates it from the discs' corrections (a
+#: variance component by expectation-maximisation: their mean square plus their posterior variance), within
+#: ``PLATE_DOT_SD_RANGE_MM``: a well-printed plate is not given freedom it does not need (which would cost the
+#: centre's precision), a poorly printed one gets what it needs.
 PLATE_DOT_PRIOR_MM = 0.02
 PLATE_DOT_SD_RANGE_MM = (0.0005, 0.05)
 #: Prior 1-sigma of each bow coefficient [mm] (the height the bow reaches at the grid's half-width):
@@ -43,6 +41,13 @@ def _similarity_complement(p0: np.ndarray) -> np.ndarray:
     q, _ = np.linalg.qr(modes)
     u, _, _ = np.linalg.svd(np.eye(2 * n) - q @ q.T)
     return u[:, : 2 * n - 4]
+
+
+def _turn90(a: np.ndarray, k: int) -> np.ndarray:
+    """(N, 2) vectors ``a`` turned by k * 90 deg."""
+    for _ in range(k % 4):
+        a = np.column_stack([-a[:, 1], a[:, 0]])
+    return a
 
 
 class PlateShape:
@@ -85,6 +90,7 @@ class PlateShape:
         D[:, 1, self.nb :] = self.B[2 * idx + 1]
         return D
 
+
 #: Alignment of the views' disc indices: the disc detector orients each picture's grid by the picture (x
 #: towards growing u), so on a square grid without a marker one view's disc (r, c) may be another's turned
 #: by 90, 180 or 270 deg. A printed plate's dot errors are the same in every view: a view's turn is the one
@@ -98,9 +104,8 @@ ALIGN_MIN_COMMON = 10
 
 
 def _dot_field(det, uv, camera: CameraModel, H) -> np.ndarray | None:
-    """(N, 2) a view's residuals carried back onto the plate [mm] (each disc's apparent in-plane position
-    error), less their fit by a quadratic field (pose, camera and bow errors are smooth over the plate);
-    None with too few discs."""
+    """(N, 2) a view's residuals carried back onto the plate [mm] (each disc's apparent in-plane position error), less
+    their fit by a quadratic field (pose, camera and bow errors are smooth over the plate); None with too few discs."""
     if len(uv) < 15:
         return None
     x = intrinsics_vector(camera)
@@ -125,10 +130,8 @@ def _dot_field(det, uv, camera: CameraModel, H) -> np.ndarray | None:
 def _turned(det, k: int, plate: PlateSpec, p0=None):
     """``det`` with its grid turned by k * 90 deg about the grid's centre (None when it leaves the grid);
     ``p0`` the plate's disc centres (``plate.disc_centres_W()``, when the caller has them)."""
-    c = np.column_stack([det.rc[:, 1] - (plate.cols - 1) / 2, det.rc[:, 0] - (plate.rows - 1) / 2])
-    for _ in range(k % 4):
-        c = np.column_stack([-c[:, 1], c[:, 0]])
-    cr = c + [(plate.cols - 1) / 2, (plate.rows - 1) / 2]  # (col, row): whole or half numbers, exact
+    mid = np.array([(plate.cols - 1) / 2, (plate.rows - 1) / 2])
+    cr = _turn90(det.rc[:, ::-1] - mid, k) + mid  # (col, row): whole or half numbers, exact
     whole = np.round(cr)
     if not np.all(np.abs(cr - whole) <= 1e-8):
         return None
@@ -156,9 +159,7 @@ def align_views(dets, uvs, fit, plate: PlateSpec):
             dq = _turned(dets[k], q, plate, p0)
             if dq is None:
                 continue
-            e = fields[k]
-            for _ in range(q):
-                e = np.column_stack([-e[:, 1], e[:, 0]])
+            e = _turn90(fields[k], q)
             idx = dq.rc[:, 0] * plate.cols + dq.rc[:, 1]
             com = cnt[idx] > 0
             if com.sum() >= ALIGN_MIN_COMMON:
@@ -170,17 +171,13 @@ def align_views(dets, uvs, fit, plate: PlateSpec):
         if not cnt.any():  # the first usable view sets the grid
             if not best:
                 continue
-            choice = best[0]
-            turns[k] = 0.0
+            choice, turns[k] = best[0], 0.0
         else:
             scored = sorted([b for b in best if np.isfinite(b[0])], key=lambda b: -b[0])
-            if not scored:
-                continue
             second = scored[1][0] if len(scored) > 1 else -1.0
-            if scored[0][0] < ALIGN_MIN_CORR or scored[0][0] - second < ALIGN_MIN_MARGIN:
+            if not scored or scored[0][0] < ALIGN_MIN_CORR or scored[0][0] - second < ALIGN_MIN_MARGIN:
                 continue
-            choice = scored[0]
-            turns[k] = 90.0 * choice[1]
+            choice, turns[k] = scored[0], 90.0 * scored[0][1]
         _, q, dq, idx, e = choice
         out[k] = dq
         acc[idx] += e
