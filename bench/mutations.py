@@ -312,7 +312,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     # --- safety on every entry point: signals, ownership, stalls, paths, stale state --------------------------
     Mutation(
         "signal-inherited-ignored-taken",
-        "selfview/signals.py",
+        "drivers/signals.py",
         "            if signal.getsignal(sig) is _default(sig):\n",
         "            if signal.getsignal(sig) in (_default(sig), signal.SIG_IGN):\n",
         ("tests/drivers/test_lab_script_signals.py::test_a_signal_inherited_as_ignored_stays_ignored",),

@@ -3,7 +3,7 @@
 A robot is chosen by its URL: ``manual://`` is the operator's arm (``drivers/manual_robot.py``); any other
 URL (a device path, ``serial://``, ``socket://``, ``rfc2217://``, ``loop://``) is a PUMA on a VAL-II
 controller (``drivers/puma_val_serial``), the first implementation. A new robot: its driver module
-implementing ``Robot`` (one that moves under software control also calls ``selfview.signals.watch`` at
+implementing ``Robot`` (one that moves under software control also calls ``selfview.drivers.signals.watch`` at
 connect, so that a termination signal ABORTs it: ``abort_now`` and ``wait_motion_end``), one entry in
 ``ROBOT_SCHEMES``, and ``tests/drivers/robot_contract.py`` run against it.
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from selfview.errors import CellError, ConfigError, LimitError
 from selfview.maths.geometry import check_rigid, rotation_angle, trans
-from selfview.signals import TERMINATION_SIGNALS, Interrupted, signal_name
+from selfview.drivers.signals import TERMINATION_SIGNALS, Interrupted, signal_name
 
 __all__ = ["Step", "Engine", "Cancelled", "Interrupted", "CellDevices", "StepRecord", "TERMINATION_SIGNALS",
            "signal_name"]

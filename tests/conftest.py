@@ -74,7 +74,7 @@ def _signals_that_escape_fail_the_test():
     """The in-process signal tests send SIGTERM, SIGHUP or SIGQUIT to this process for the code under test
     (the engine, the command line) to take. Where that code fails to take one, the signal's default action
     would end the whole run (or selfview's own handler would stop it as a Ctrl-C): here it fails that one test
-    instead (``SignalEscaped``). The handler is this process's own, so ``selfview.signals.install`` leaves it
+    instead (``SignalEscaped``). The handler is this process's own, so ``selfview.drivers.signals.install`` leaves it
     alone, as it leaves a lab script's own handler; SIGINT stays pytest's (Ctrl-C ends a test run)."""
     sigs = [s for s in (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT) if signal.getsignal(s) is not _ignore]
     old = {s: signal.signal(s, _escaped) for s in sigs}

@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from selfview import signals
+from selfview.drivers import signals
 from selfview.drivers._ownership import DeviceLock
 from selfview.drivers.pneumatic_gripper.iomap import IoMap, Point
 from selfview.drivers.pneumatic_gripper.modbus import (DEFAULT_READ_RETRIES, DEFAULT_TIMEOUT_S, ConnectionLost, ModbusExceptionReply,

@@ -32,7 +32,7 @@ from selfview.drivers.puma_val_serial.limits import ValLimits
 from selfview.drivers.robot_protocol import AbortResult, Where
 from selfview.errors import CellError, ConfigError, DeviceError, DeviceTimeout, ProtocolError
 from selfview.files.io_safe import parse_number
-from selfview import signals
+from selfview.drivers import signals
 from selfview.drivers._ownership import DeviceLock
 from selfview.maths.geometry import check_rigid, rotation_angle, trans
 

@@ -113,7 +113,7 @@ def test_a_signal_inherited_as_ignored_stays_ignored(cell, tmp_path):
 def test_a_device_a_signal_could_not_stop_is_refused_when_watched():
     """``signals.watch`` takes a robot (abort_now, wait_motion_end) or a gripper (interrupt, safe): half of
     one, or neither, is a TypeError naming what is missing, not a failure in the stop's helper thread."""
-    from selfview import signals
+    from selfview.drivers import signals
 
     class HalfRobot:
         def abort_now(self):

@@ -31,7 +31,7 @@ import weakref
 
 __all__ = ["TERMINATION_SIGNALS", "Interrupted", "signal_name", "watch", "unwatch", "install"]
 
-log = logging.getLogger("selfview.signals")
+log = logging.getLogger("selfview.drivers.signals")
 
 #: The catchable signals that end a run as Ctrl-C does (the platform's subset).
 TERMINATION_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, n))
