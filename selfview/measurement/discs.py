@@ -1,9 +1,8 @@
 """Disc detection on the calibration plate (the off-line calibration's first step, paper section 3).
 
 The plate is a ``rows x cols`` array of dark discs at ``pitch`` mm on a light sheet (CONVENTIONS.md).
-``detect_discs`` finds the whole discs in a picture, gives each a sub-pixel centre and indexes it on the
-grid; ``correct_disc_bias`` then removes the perspective (and lens) bias of those centres once a first
-pose of the plate is known.
+``detect_discs`` finds the whole discs in a picture, gives each a sub-pixel centre and indexes it on the grid;
+``correct_disc_bias`` removes the perspective (and lens) bias of those centres once a pose of the plate is known.
 """
 
 from __future__ import annotations
@@ -46,15 +45,12 @@ LATTICE_TOLERANCE = 0.15
 class DiscDetections:
     """Discs found in one picture, sorted by (row, col).
 
-    ``uv`` (N, 2) sub-pixel centres as measured (distorted pixels, centroid of each disc's image);
-    ``rc`` (N, 2) int grid indices (row, col), 0-based; ``p_W`` (N, 3) disc centres in W [mm], z = 0,
-    origin at the grid centre; ``area_px`` (N,) pixels above the darkness threshold; ``n_blobs`` how many
-    candidate blobs the picture held; ``rejected`` how many of them were dropped, by reason;
-    ``index_basis`` how the grid index was anchored per axis ('all seen', 'low end seen',
-    'high end seen', 'low end assumed', 'high end assumed', 'centred': see ``_anchor``); ``ambiguous`` per
-    axis whose seen lines nothing pins on the plate (the 'assumed' and 'centred' ones) the sentence naming
-    the indices they may take. While it is not empty the grid's origin, and so ``p_W`` and any plate pose
-    ``C_H_W`` from them, are a guess.
+    ``uv`` (N, 2) sub-pixel centres as measured (distorted pixels, centroid of each disc's image); ``rc`` (N, 2)
+    int grid indices (row, col), 0-based; ``p_W`` (N, 3) disc centres in W [mm], z = 0, origin at the grid
+    centre; ``area_px`` (N,) pixels above the darkness threshold; ``n_blobs`` the candidate blobs in the picture;
+    ``rejected`` how many of them were dropped, by reason; ``index_basis`` how the grid index was anchored per
+    axis (see ``_anchor``); ``ambiguous`` per axis that nothing seen pins on the plate, the sentence naming the
+    indices it may take. While that is not empty the grid's origin, so ``p_W`` and any ``C_H_W``, is a guess.
     """
 
     uv: np.ndarray
@@ -77,12 +73,9 @@ class DiscDetections:
 
 # --- picture checks -------------------------------------------------------------------------------
 def as_gray(image, camera: CameraModel | None = None, what: str = "picture") -> np.ndarray:
-    """The picture as a (H, W) float32 grey image (0..255 scale), checked.
-
-    Accepts (H, W), (H, W, 1), BGR (H, W, 3) or BGRA arrays of uint8, uint16 (scaled to 0..255) or
-    float. Raises ``ImageError`` for a picture that is not an image, of the wrong size for ``camera``,
-    or blank (its grey levels span less than 12 levels).
-    """
+    """The picture as a (H, W) float32 grey image (0..255 scale), checked: (H, W), (H, W, 1), BGR or BGRA arrays
+    of uint8, uint16 (scaled to 0..255) or float. Raises ``ImageError`` for a picture that is not an image, of
+    the wrong size for ``camera``, or blank (its grey levels span less than 12 levels)."""
     a = np.asarray(image)
     if a.ndim == 3 and a.shape[2] == 1:
         a = a[..., 0]
@@ -90,13 +83,11 @@ def as_gray(image, camera: CameraModel | None = None, what: str = "picture") -> 
         a = a[..., :3].astype(np.float32) @ np.array([0.114, 0.587, 0.299], np.float32)  # BGR weights
     if a.ndim != 2 or a.size == 0:
         raise ImageError(f"{what}: expected a grey or BGR image, got an array of shape {np.shape(image)}")
-    if a.dtype == np.bool_ or not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)):
+    if a.dtype.kind not in "iuf":  # not bool, complex or object
         raise ImageError(f"{what}: expected integer or float pixels, got dtype {a.dtype}")
     h, w = a.shape
     if camera is not None and (h, w) != (int(camera.height), int(camera.width)):
-        raise ImageError(
-            f"{what} is {w}x{h} px but the camera model expects {int(camera.width)}x{int(camera.height)}"
-        )
+        raise ImageError(f"{what} is {w}x{h} px but the camera model expects {int(camera.width)}x{int(camera.height)}")
     g = a.astype(np.float32)
     if a.dtype == np.uint16:
         g /= 257.0
@@ -109,8 +100,8 @@ def as_gray(image, camera: CameraModel | None = None, what: str = "picture") -> 
 
 
 def _paper_level(work: np.ndarray) -> np.ndarray:
-    """Local level of the light background (H, W): a grey closing wider than a disc or a finger, taken at
-    a quarter of the resolution and smoothed."""
+    """Local level (H, W) of the light background: a grey closing wider than a disc or a finger, at a quarter of
+    the resolution, smoothed."""
     h, w = work.shape
     small = cv2.resize(work, (max(8, w // 4), max(8, h // 4)), interpolation=cv2.INTER_AREA)
     k = max(5, (max(small.shape) // 6) | 1)
@@ -121,7 +112,7 @@ def _paper_level(work: np.ndarray) -> np.ndarray:
 
 # --- one blob -------------------------------------------------------------------------------------
 def _ellipse_misfit(blob: np.ndarray) -> tuple[float, float]:
-    """(solidity, max distance in px of the outline from its fitted ellipse) of a blob mask."""
+    """(solidity, max distance [px] of the outline from its fitted ellipse) of a blob mask."""
     contours, _ = cv2.findContours(blob.view(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     c = max(contours, key=len)
     if len(c) < 6:
@@ -134,8 +125,7 @@ def _ellipse_misfit(blob: np.ndarray) -> tuple[float, float]:
     if min(da, db) <= 0:
         return solidity, np.inf
     ct, st = math.cos(math.radians(ang)), math.sin(math.radians(ang))
-    # the outline in the ellipse's axes, each axis over its semi-axis (by hand: a (n, 2) @ (2, 2) product
-    # costs more in numpy's calls than in arithmetic)
+    # the outline in the ellipse's axes over its semi-axes (by hand: a (n, 2) @ (2, 2) costs more in numpy's calls)
     dx, dy = c[:, 0, 0] - ex, c[:, 0, 1] - ey
     rho = np.hypot((dx * ct + dy * st) / (da / 2), (dy * ct - dx * st) / (db / 2))
     return solidity, float(np.abs(rho - 1).max()) * (da + db) / 4
@@ -147,9 +137,8 @@ def _round_blobs(labels, stats, reject) -> list[int]:
     x, y, w, h, area = stats[1:].T
     speck = area < 20
     edge = ~speck & ((x == 0) | (y == 0) | (x + w == W) | (y + h == H))
-    for why, n in (("speck", np.count_nonzero(speck)), ("picture edge", np.count_nonzero(edge))):
-        for _ in range(n):
-            reject(why)
+    reject("speck", np.count_nonzero(speck))
+    reject("picture edge", np.count_nonzero(edge))
     round_ = []
     for k in np.flatnonzero(~(speck | edge)) + 1:
         x, y, w, h, area = (int(v) for v in stats[k])
@@ -172,11 +161,8 @@ def _measure_discs(work, labels, stats, round_: list[int], reject) -> tuple[list
     uv, areas = [], []
     for k in round_:
         x, y, w, h, area = (int(v) for v in stats[k])
-        if area < 0.25 * typical:
-            reject("speck")
-            continue
-        if area > 4 * typical:
-            reject("too large")
+        if area < 0.25 * typical or area > 4 * typical:
+            reject("speck" if area < 0.25 * typical else "too large")
             continue
         why, c = _centroid(work, labels, k, (x, y, w, h), area, small)
         if why:
@@ -188,22 +174,15 @@ def _measure_discs(work, labels, stats, round_: list[int], reject) -> tuple[list
 
 
 def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarray | None]:
-    """Sub-pixel centre of blob ``k`` (contrast-weighted centroid over a support around it, paper level a
-    plane fitted to the ring around the support), or the reason it is not a whole, clean disc.
+    """(None, sub-pixel centre (2,) [px]) of blob ``k``, or (the reason it is not a whole, clean disc, None).
 
-    A symmetric blur (focus, the pixel's own area) moves ink but keeps its first moment, so the centroid
-    of the contrast ``w = 1 - I / I_paper`` is unbiased under blur, where edge-based ellipse fits shift
-    with the blur and the edge detector; dividing by the local paper level makes the weight independent
-    of a multiplicative light gradient across the disc. It measures the centroid of the disc's distorted
-    image, not the image of the disc's centre: ``correct_disc_bias`` supplies that difference.
-
-    Pixels nearer another dark blob (a neighbouring disc, a label, a mark) than to this one, and pixels
-    beside another blob, belong neither to the support nor to the ring: near neighbours shrink the
-    support instead of refusing the disc, so large discs and labelled ones are still measured; a blob
-    larger than a mark (``small[label]`` False: a disc, a finger) within 2 px of it is "crowded". The
-    support and ring are cut at the picture's border; the blob itself must keep clear of it. Where the
-    ring's paper is no plane (a shadow's edge, sharp or soft, across or beside the disc), the paper's
-    level is a profile along one direction fitted to the ring (``_edge_level``) instead."""
+    The centroid of the contrast ``1 - I / I_paper`` over a support around the blob, the paper level a plane
+    fitted to the ring around the support: a symmetric blur keeps ink's first moment (edge-based ellipse fits
+    shift with it), and the division cancels a multiplicative light gradient. It is the centroid of the disc's
+    distorted image: ``correct_disc_bias`` supplies its difference from the image of the centre.
+    Pixels nearer another dark blob, or beside one, are in neither support nor ring, so a label shrinks the
+    support instead of refusing the disc; a blob larger than a mark (``small[label]`` False) within 2 px makes
+    it "crowded". Where the ring's paper is no plane (a shadow's edge), the paper level is ``_edge_level``'s."""
     x, y, w, h = bbox
     H, W = work.shape
     d = 2 * np.sqrt(area / np.pi)
@@ -220,10 +199,7 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     crop = work[y0:y1, x0:x1]
     rv, ru = np.nonzero(ring)
     cu, cv_ = (x1 - x0 - 1) / 2, (y1 - y0 - 1) / 2
-    A = np.empty((len(ru), 3))
-    A[:, 0] = 1.0
-    A[:, 1] = ru - cu
-    A[:, 2] = rv - cv_
+    A = np.column_stack([np.ones(len(ru)), ru - cu, rv - cv_])
     z = crop[rv, ru].astype(np.float64)
     coef = _least_squares(A, z)
     if coef is None:  # ring pixels on one line: no paper around the disc
@@ -232,22 +208,19 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     off = np.abs(r_ring) > RING_TOLERANCE * coef[0]
     share_off = np.count_nonzero(off) / len(off)
     if coef[0] > 0 and (share_off > 0.01 or _curved(A, z, r_ring, coef[0])):
-        # the ring is not one plane: a shadow's edge across the disc (sharp or soft), where the paper's
-        # level changes along one direction only; a mark in the ring does not fit that
+        # a shadow's edge across the disc changes the paper's level along one direction only; a mark does not
         level = _edge_level(ru - cu, rv - cv_, z, np.arctan2(coef[2], coef[1]))
         if level is not None:
-            sv, su = np.nonzero(support)
-            return _weighted_centre(crop[sv, su].astype(np.float64), level(su - cu, sv - cv_), su, sv, x0, y0, area)
+            return _weighted_centre(crop, support, level, (cu, cv_), (x0, y0), area)
     if coef[0] > 0 and 0.01 < share_off < 0.3:
-        # something not paper in the ring (a mark, the sheet's edge): refit on the paper, and keep the
-        # disc only if that thing stays clear of the disc's edge, leaving it out of the support
+        # a mark or the sheet's edge in the ring: refit on the paper; the disc is kept if the thing is clear of it
         coef = np.linalg.lstsq(A[~off], z[~off], rcond=None)[0]
         gu, gv = np.meshgrid(np.arange(x1 - x0) - cu, np.arange(y1 - y0) - cv_)
-        resid = cv2.blur((crop.astype(np.float64) - (coef[0] + coef[1] * gu + coef[2] * gv)).astype(np.float32), (3, 3))  # noise-proof
+        paper = coef[0] + coef[1] * gu + coef[2] * gv
+        resid = cv2.blur((crop.astype(np.float64) - paper).astype(np.float32), (3, 3))  # noise-proof
         foreign = (np.abs(resid) > RING_TOLERANCE * coef[0]) & (dist > 2)
-        nf, flab, fst, _ = cv2.connectedComponentsWithStats(foreign.astype(np.uint8), connectivity=8)
-        # a thing touching the disc hides part of it, unless it is the halo of another dark blob or a
-        # pixel or two of noise
+        _, flab, fst, _ = cv2.connectedComponentsWithStats(foreign.astype(np.uint8), connectivity=8)
+        # a thing touching the disc hides part of it, unless it is another dark blob's halo or a pixel or two of noise
         near = set(np.unique(flab[foreign & (dist <= 3)])) - set(np.unique(flab[foreign & halo])) - {0}
         near = {j for j in near if fst[j, cv2.CC_STAT_AREA] > 3}
         if near:
@@ -256,16 +229,13 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
         support &= ~foreign
     if coef[0] <= 0 or share_off >= 0.3:
         return "occluded", None
-    sv, su = np.nonzero(support)
-    plane = coef[0] + coef[1] * (su - cu) + coef[2] * (sv - cv_)
-    return _weighted_centre(crop[sv, su].astype(np.float64), plane, su, sv, x0, y0, area)
+    return _weighted_centre(crop, support, lambda u, v: coef[0] + coef[1] * u + coef[2] * v, (cu, cv_), (x0, y0), area)
 
 
 def _support_and_ring(lab, k, area, small, m_in, m):
-    """(distance from blob ``k`` [px], support, ring, halo of the other blobs) as masks of the crop ``lab`` of
-    the labels, for ``_centroid``; None when the disc is crowded (a blob larger than a mark beside it, or too
-    little of its support or ring its own)."""
-    # distance (px) from the blob: the support holds the blurred edge, the ring beyond it is paper
+    """(distance from blob ``k`` [px], support, ring, halo of the other blobs) in the crop ``lab`` of the labels,
+    for ``_centroid``: the support holds the blurred edge, the ring beyond it is paper. None when the disc is
+    crowded (a blob larger than a mark beside it, or too little of its support or ring its own)."""
     not_k = lab != k
     dist = cv2.distanceTransform(not_k.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
     other = not_k & (lab > 0)
@@ -290,14 +260,15 @@ def _support_and_ring(lab, k, area, small, m_in, m):
     return dist, support, ring, halo
 
 
-def _weighted_centre(grey, level, su, sv, x0, y0, area) -> tuple[str | None, np.ndarray | None]:
-    """The contrast-weighted centroid (weights ``1 - grey / level`` of the support's pixels at crop
-    coordinates ``su``, ``sv``; the crop's corner ``x0``, ``y0``), or "occluded" when too little ink is left."""
-    wgt = 1.0 - grey / level
+def _weighted_centre(crop, support, level, centre, corner, area) -> tuple[str | None, np.ndarray | None]:
+    """``_centroid``'s answer: the centroid [px] of ``crop``'s ``support`` weighted by ``1 - grey / level(u, v)``
+    (u, v from the crop's ``centre``, its ``corner`` in the picture), or "occluded" when too little ink is left."""
+    sv, su = np.nonzero(support)
+    wgt = 1.0 - crop[sv, su].astype(np.float64) / level(su - centre[0], sv - centre[1])
     s = wgt.sum()
     if s <= 0.25 * area * DARK_FRACTION:
         return "occluded", None
-    return None, np.array([float(wgt @ su) / s + x0, float(wgt @ sv) / s + y0])
+    return None, np.array([float(wgt @ su) / s + corner[0], float(wgt @ sv) / s + corner[1]])
 
 
 def _least_squares(A: np.ndarray, z: np.ndarray) -> np.ndarray | None:
@@ -308,17 +279,13 @@ def _least_squares(A: np.ndarray, z: np.ndarray) -> np.ndarray | None:
 
 
 def _curved(A, z, r, level) -> bool:
-    """Whether the ring's paper (``z`` at the rows (1, x, y) of ``A``) departs from its plane (residuals
-    ``r``, ``level`` at the crop's centre): by more than ``SLOPE_RMS`` rms, or a quadratic fitting it much
-    better (the knee of a soft shadow)."""
+    """Whether the ring's paper (``z`` at the rows (1, x, y) of ``A``) departs from its plane (residuals ``r``,
+    ``level`` at the crop's centre) by more than ``SLOPE_RMS`` rms, or a quadratic fits it much better (a soft
+    shadow's knee)."""
     mse = float(r @ r) / len(z)
     if mse > (SLOPE_RMS * level) ** 2:
         return True
-    Q = np.empty((len(z), 6))
-    Q[:, :3] = A
-    np.multiply(A[:, 1], A[:, 1], out=Q[:, 3])
-    np.multiply(A[:, 1], A[:, 2], out=Q[:, 4])
-    np.multiply(A[:, 2], A[:, 2], out=Q[:, 5])
+    Q = np.column_stack([A, A[:, 1] * A[:, 1], A[:, 1] * A[:, 2], A[:, 2] * A[:, 2]])
     q = _least_squares(Q, z)
     if q is None:  # a ring too small to tell
         return False
@@ -327,17 +294,16 @@ def _curved(A, z, r, level) -> bool:
 
 
 def _edge_level(x, y, z, angle):
-    """The paper's level across a disc as a function of one direction only (a straight shadow edge, sharp
-    or soft, or an even slope), fitted to the ring's pixels at (``x``, ``y``) [px from the crop's centre]
-    of grey ``z``: a profile along the normal (1 px bins, linear between), the normal the direction that
-    fits best (every 15 deg from ``angle``, the ring's slope, then refined to 1 deg by
-    halving steps, each two steps read from one fit of every offset they may reach). Returns the level as
-    a function of (x, y), or None when the ring is not paper under such a light (a mark, an occluder)."""
+    """The paper's level across a disc as a function of one direction only (a straight shadow edge, sharp or
+    soft, or an even slope), fitted to the ring's pixels at (``x``, ``y``) [px from the crop's centre] of grey
+    ``z``: a profile along the normal (1 px bins, linear between), the normal the direction that fits best
+    (every 15 deg from ``angle``, the ring's slope, then refined to 1 deg by halving steps). Returns the level
+    as a function of (x, y), or None when the ring is not paper under such a light (a mark, an occluder)."""
 
     def fit(angles):
         """(mse per angle, the function giving (share of bad pixels, cos, sin, bin centres, profile) of the
-        ``i``-th) for the fits of all ``angles`` at once: one interpolation, each angle's bins shifted clear
-        of the others', its positions clamped to its bins as ``np.interp`` clamps them."""
+        ``i``-th) for all ``angles`` in one interpolation, each angle's bins shifted clear of the others' and its
+        positions clamped to its bins as ``np.interp`` clamps them."""
         a = np.asarray(angles, float)
         c, s = np.cos(a), np.sin(a)
         u = np.multiply.outer(c, x)  # in place from here: each temporary costs as much as the arithmetic
@@ -423,10 +389,8 @@ def _propagate(P: np.ndarray) -> dict[int, tuple[int, int]]:
     if seed is None:
         return {}
     s, a, b = seed
-    index = {s: (0, 0)}
-    at = {(0, 0): s}
-    steps = {s: (a, b)}
-    queue = [s]
+    index, at = {s: (0, 0)}, {(0, 0): s}
+    steps, queue = {s: (a, b)}, [s]
     while queue:
         p = queue.pop(0)
         i, j = index[p]
@@ -436,19 +400,15 @@ def _propagate(P: np.ndarray) -> dict[int, tuple[int, int]]:
                 if key in at:
                     break
                 back = at.get((i - di, j - dj))
-                if back is not None:
-                    step = P[p] - P[back]
-                else:
-                    step = _parallel_step(P, at, (i, j), (di, dj))
-                    if step is None:
-                        step = steps[p][0] * di + steps[p][1] * dj
+                step = P[p] - P[back] if back is not None else _parallel_step(P, at, (i, j), (di, dj))
+                if step is None:
+                    step = steps[p][0] * di + steps[p][1] * dj
                 off = P - (P[p] + jump * step)
                 dd = np.einsum("ij,ij->i", off, off)  # squared distances to the prediction
                 q = int(np.argmin(dd))
                 if dd[q] >= 0.09 * float(step @ step) or q in index:  # 0.3 steps
                     continue
-                index[q] = key
-                at[key] = q
+                index[q], at[key] = key, q
                 sa, sb = steps[p]
                 meas = (P[q] - P[p]) / jump
                 steps[q] = (meas * di if di else sa, meas * dj if dj else sb)
@@ -458,10 +418,9 @@ def _propagate(P: np.ndarray) -> dict[int, tuple[int, int]]:
 
 
 def _parallel_step(P, at, ij, d) -> np.ndarray | None:
-    """The lattice step ``d`` (di, dj) at place ``ij`` as the lines beside it measure it: the mean of the
-    steps on the two neighbouring lines, or the one neighbouring line's extrapolated by the next line's
-    (perspective shrinks a step across the lines, so a step carried over from the walk's start would not
-    do); None when no neighbouring line has it."""
+    """The lattice step ``d`` (di, dj) at place ``ij`` as the lines beside it measure it (perspective shrinks a
+    step across the lines): the mean of the two neighbouring lines' steps, or the one neighbouring line's
+    extrapolated by the next line's; None when no neighbouring line has it."""
     (i, j), (di, dj) = ij, d
     side = []
     for s in (1, -1):
@@ -496,8 +455,8 @@ def _lattice_outliers(P, index) -> set[int]:
 
 
 def _cell_share(P, index, areas) -> dict[int, float]:
-    """Per lattice point with a neighbour along each axis: its blob's area over its lattice cell's area
-    (|a x b| of the local steps), which a perspective view keeps, locally, at pi/4 (d/pitch)^2."""
+    """Per lattice point with a neighbour along each axis: its blob's area over its cell's (|a x b| of the local
+    steps), which a perspective view keeps, locally, at pi/4 (d/pitch)^2."""
     at = {v: k for k, v in index.items()}
     share = {}
     for k, (i, j) in index.items():
@@ -520,25 +479,23 @@ def _off_size(P, index, areas, plate: PlateSpec) -> set[int]:
     expect = np.pi / 4 * (plate.disc_diameter / plate.pitch) ** 2
     bad = {k for k, v in share.items() if not DISC_SHARE[0] < v / expect < DISC_SHARE[1]}
     if len(bad) > len(share) / 2:
-        raise ImageError(
-            f"the discs cover {np.median(list(share.values())):.2f} of their lattice cell where the plate's "
-            f"{plate.disc_diameter:g} mm discs at {plate.pitch:g} mm pitch would cover {expect:.2f}: "
-            "check plate.disc_diameter and plate.pitch in the cell file"
-        )
+        raise ImageError(f"the discs cover {np.median(list(share.values())):.2f} of their lattice cell where the "
+                         f"plate's {plate.disc_diameter:g} mm discs at {plate.pitch:g} mm pitch would cover "
+                         f"{expect:.2f}: check plate.disc_diameter and plate.pitch in the cell file")
     return bad
 
 
 #: The changes of lattice basis tried for the plate's axes: the integer 2 x 2 matrices with entries of at
 #: most 2 and determinant +-1, which turn a reduced basis of a lattice into any other of it.
-_BASES = np.array([m for m in itertools.product(range(-2, 3), repeat=4) if abs(m[0] * m[3] - m[1] * m[2]) == 1]).reshape(-1, 2, 2)
+_BASES = np.array([m for m in itertools.product(range(-2, 3), repeat=4)
+                   if abs(m[0] * m[3] - m[1] * m[2]) == 1]).reshape(-1, 2, 2)
 
 
 def _plate_axes(P, index) -> dict[int, tuple[int, int]]:
-    """``index`` re-expressed in the lattice's own axes: the basis in which the indexed discs take the
-    smallest box (the plate's rows and columns are the lattice's lines that hold the most discs each),
-    whatever two steps the seed took. A plate turned and foreshortened in the picture can make a diagonal
-    as short as a step, and a seed on it indexes a sheared lattice (a 10 x 8 grid as 17 x 10). Of bases
-    whose boxes tie, the one whose mean image steps are nearest a right angle (the seed's first)."""
+    """``index`` re-expressed in the lattice's own axes: the basis in which the indexed discs take the smallest
+    box, whatever two steps the seed took (a plate turned and foreshortened can make a diagonal as short as a
+    step, and a seed on it indexes a sheared lattice: a 10 x 8 grid as 17 x 10). Of bases whose boxes tie,
+    the one whose mean image steps are nearest a right angle (the seed's first)."""
     ids = list(index)
     keys = np.array([index[k] for k in ids])
     K = np.einsum("mij,nj->mni", _BASES, keys)  # (bases, N, 2)
@@ -558,9 +515,8 @@ def _plate_axes(P, index) -> dict[int, tuple[int, int]]:
 
 
 def _plate_window(index, plate: PlateSpec) -> dict[int, tuple[int, int]]:
-    """``index`` cut to the plate's ``rows x cols`` window that holds the most lattice points, when the
-    lattice is larger than the plate (blobs beyond the sheet at lattice places) and one window holds more
-    than any other; ``index`` unchanged otherwise."""
+    """``index`` cut to the plate's ``rows x cols`` window holding the most lattice points when the lattice is
+    larger than the plate (blobs beyond the sheet) and one window holds more than any other; else ``index``."""
     keys = np.array(list(index.values()))
     lo, ext = keys.min(0), keys.max(0) - keys.min(0) + 1
     shapes = {(plate.cols, plate.rows), (plate.rows, plate.cols)}
@@ -580,45 +536,37 @@ def _plate_window(index, plate: PlateSpec) -> dict[int, tuple[int, int]]:
 
 
 def _mean_step(P, index, axis: int) -> np.ndarray:
+    """The mean image step (2,) from a lattice point to the next along index ``axis``; zero when none has one."""
     at = {v: k for k, v in index.items()}
-    steps = []
-    for k, ij in index.items():
-        nxt = list(ij)
-        nxt[axis] += 1
-        q = at.get(tuple(nxt))
-        if q is not None:
-            steps.append(P[q] - P[k])
+    di, dj = (1, 0) if axis == 0 else (0, 1)
+    steps = [P[at[(i + di, j + dj)]] - P[k] for k, (i, j) in index.items() if (i + di, j + dj) in at]
     return np.mean(steps, axis=0) if steps else np.zeros(2)
 
 
 def _orient(P, index, plate: PlateSpec) -> np.ndarray:
-    """(N, 2) (col, row) lattice coordinates oriented as W: x to growing u, (x, y, z) right-handed with z
-    away from the camera, the column axis chosen so the extents fit the plate."""
+    """(N, 2) (col, row) lattice coordinates oriented as W: x to growing u, (x, y, z) right-handed with z away
+    from the camera, the column axis chosen so the extents fit the plate."""
     keys = np.array([index[k] for k in sorted(index)])
     A, B = _mean_step(P, index, 0), _mean_step(P, index, 1)
     choices = [(0, A, 1, B), (1, B, 0, A)]
     if abs(B[0]) / (np.linalg.norm(B) + 1e-9) > abs(A[0]) / (np.linalg.norm(A) + 1e-9):
         choices.reverse()
     for ci, cvec, ri, rvec in choices:
-        col = keys[:, ci] * (1 if cvec[0] >= 0 else -1)
         csign = 1 if cvec[0] >= 0 else -1
-        cross = csign * (cvec[0] * rvec[1] - cvec[1] * rvec[0])
-        row = keys[:, ri] * (1 if cross > 0 else -1)
-        cr = np.column_stack([col, row])
+        rsign = 1 if csign * (cvec[0] * rvec[1] - cvec[1] * rvec[0]) > 0 else -1
+        cr = np.column_stack([keys[:, ci] * csign, keys[:, ri] * rsign])
         ext = cr.max(0) - cr.min(0) + 1
         if ext[0] <= plate.cols and ext[1] <= plate.rows:
             return cr - cr.min(0)
-    raise ImageError(
-        f"the discs form a lattice of {ext[0]} x {ext[1]}, larger than the plate's {plate.cols} x {plate.rows}"
-    )
+    raise ImageError(f"the discs form a lattice of {ext[0]} x {ext[1]}, larger than the plate's {plate.cols} x "
+                     f"{plate.rows}")
 
 
 def _check_square(xy: np.ndarray, cr: np.ndarray) -> None:
     """``ImageError`` unless the lattice indices ``cr`` (N, 2) (col, row) and the discs' rays ``xy`` (N, 2)
-    (undistorted, over f) are a square grid seen by the camera: the homography from the indices to the rays
-    has the plate's two axes as its first columns, which must be at right angles and of one length (to
-    ``SQUARE_TOLERANCE``: the camera guess's error); a lattice indexed along a diagonal under strong
-    perspective has them 45 deg apart."""
+    (undistorted, over f) are a square grid seen by the camera: the homography's first two columns (the plate's
+    axes) at right angles and of one length to ``SQUARE_TOLERANCE``; a lattice indexed along a diagonal under
+    strong perspective has them 45 deg apart."""
     Hm, _ = cv2.findHomography(cr.astype(np.float64), xy.astype(np.float64))
     if Hm is None:
         return
@@ -626,23 +574,19 @@ def _check_square(xy: np.ndarray, cr: np.ndarray) -> None:
     cos = abs(a @ b) / (np.linalg.norm(a) * np.linalg.norm(b))
     ratio = np.linalg.norm(a) / np.linalg.norm(b)
     if cos > SQUARE_TOLERANCE or not 1 - SQUARE_TOLERANCE < ratio < 1 / (1 - SQUARE_TOLERANCE):
-        raise ImageError(
-            f"the discs' lattice is no square grid as the camera sees it (its axes {np.degrees(np.arccos(cos)):.0f} "
-            f"deg apart, their lengths {ratio:.2f} to 1): the plate is seen too obliquely to index it (or the "
-            "camera guess is far off)"
-        )
+        raise ImageError(f"the discs' lattice is no square grid as the camera sees it (its axes "
+                         f"{np.degrees(np.arccos(cos)):.0f} deg apart, their lengths {ratio:.2f} to 1): the plate is "
+                         "seen too obliquely to index it (or the camera guess is far off)")
 
 
-def _grid_end(P_img, cr, axis, side, dark, r_px, shape) -> str | None:
-    """What the picture shows one lattice step beyond the last column/row (``axis`` 0/1, ``side`` -1 low,
-    +1 high): 'disc' when a dark spot ringed by paper lies at one of those places (the grid goes on: a disc
-    cut by the border or not found), 'blank' when blank paper lies at two or more and nothing dark at any,
-    None otherwise (the places outside the picture, or under something dark: a finger, a shadow). A place
-    the picture's border cuts counts by its part inside the picture when that holds a third of a disc or
-    more (a disc there would show), and is not looked at otherwise."""
+def _grid_end(P_img, cr, axis, side, dark, r_px) -> str | None:
+    """What the picture shows one lattice step beyond the last column/row (``axis`` 0/1, ``side`` -1 low, +1
+    high): 'disc' when a dark spot ringed by paper lies at one of those places (the grid goes on), 'blank' when
+    blank paper lies at two or more and nothing dark at any, None otherwise (outside the picture, or under a
+    finger or shadow). A place the border cuts counts when a third of a disc or more of it is in the picture."""
     at = {tuple(k): n for n, k in enumerate(cr)}
     edge = cr[:, axis].min() if side < 0 else cr[:, axis].max()
-    H, W = shape
+    H, W = dark.shape
     rr = int(np.ceil(1.5 * r_px))
     empty, covered = 0, False
     for n in np.nonzero(cr[:, axis] == edge)[0]:
@@ -672,8 +616,8 @@ def _grid_end(P_img, cr, axis, side, dark, r_px, shape) -> str | None:
 
 
 def _typical_area(area: np.ndarray) -> float:
-    """The plate's disc area [px]: the centre of the factor-4 band of blob areas that holds the most dark
-    area (the discs, rather than the many small marks or print around them, or a few large blobs)."""
+    """The plate's disc area [px]: the centre of the factor-4 band of blob areas holding the most dark area (the
+    discs, rather than many small marks or a few large blobs)."""
     la = np.log(np.asarray(area, float))
     band = (la[None, :] >= la[:, None] - np.log(2)) & (la[None, :] <= la[:, None] + np.log(2))  # row: one band
     ink = band @ np.asarray(area)
@@ -686,24 +630,17 @@ def _typical_area(area: np.ndarray) -> float:
 def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, min_discs: int = 12) -> DiscDetections:
     """Find, measure and index the whole discs of the calibration plate in a picture.
 
-    ``image`` (H, W) grey or BGR; ``plate`` the plate's description; ``camera`` (optional) checks the
-    picture's size and straightens the lattice (its kappa) before indexing. Returns ``DiscDetections``
-    (centres in distorted pixels, not yet bias-corrected: see ``correct_disc_bias``).
-    Raises ``ImageError`` for a blank picture, one of the wrong size, one without a plate (fewer than
-    ``min_discs`` whole discs) or one whose discs form no lattice.
+    ``image`` (H, W) grey or BGR; ``camera`` (optional) checks the picture's size and straightens the lattice
+    (its kappa) before indexing. Returns ``DiscDetections`` (centres in distorted pixels, not yet
+    bias-corrected: see ``correct_disc_bias``). Raises ``ImageError`` for a blank picture, one of the wrong
+    size, one with fewer than ``min_discs`` whole discs or one whose discs form no lattice.
 
-    Discs are the round blobs of the plate's size (the band of areas holding the most ink, then each
-    disc's share of its lattice cell against pi/4 (d/pitch)^2), on the lattice, inside one plate-sized
-    window of it; printed labels and marks beside a disc shrink its support instead of refusing it.
-    Indices are propagated from a seed disc along the lattice's neighbour steps (tolerating missing
-    discs, a step missing behind the walk taken from the lines beside it), then expressed in the lattice's
-    own axes (the basis in which the discs take the smallest box), whatever the plate's turn in the picture.
-    When all columns (rows) are seen, W's origin is the grid centre exactly; otherwise the side where the
-    grid ends is pinned by blank paper one pitch beyond the last column (row) with the grid seen to go on
-    beyond the other side, and otherwise (``_anchor``: ``DiscDetections.index_basis`` says which)
-    ``DiscDetections.ambiguous`` names the indices the seen lines may take: the plate's origin, and
-    ``C_H_W``, are then not known. The hand/eye result does not depend on that choice (it cancels in
-    ``C_H_G = C_H_W W_H_G``).
+    Discs are the round blobs of the plate's size (the band of areas holding the most ink, then each disc's
+    share of its lattice cell against pi/4 (d/pitch)^2) on the lattice, inside one plate-sized window of it.
+    Indices are propagated from a seed disc along the lattice's neighbour steps, then expressed in the
+    lattice's own axes (the basis giving the smallest box). An axis whose lines are not all seen is placed on
+    the plate by ``_anchor``; when nothing pins it, ``DiscDetections.ambiguous`` says so and the plate's origin
+    is a guess, which the hand/eye result does not depend on (it cancels in ``C_H_G = C_H_W W_H_G``).
     """
     img = as_gray(image, camera)
     work = img if plate.polarity == "dark_on_light" else (float(img.max()) - img)
@@ -714,19 +651,17 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     rejected: dict[str, int] = {}
 
-    def reject(reason):
-        rejected[reason] = rejected.get(reason, 0) + 1
+    def reject(reason: str, count: int = 1) -> None:
+        if count:
+            rejected[reason] = rejected.get(reason, 0) + count
 
     uv, areas = _measure_discs(work, labels, stats, _round_blobs(labels, stats, reject), reject)
     n_blobs = n - 1
     if len(uv) < min_discs:
         why = ", ".join(f"{v} {k}" for k, v in sorted(rejected.items())) or "none"
-        raise ImageError(
-            f"no calibration plate in the picture: {len(uv)} whole disc(s) found, at least {min_discs} "
-            f"needed ({n_blobs} dark blobs; rejected: {why})"
-        )
-    uv = np.array(uv)
-    areas = np.array(areas)
+        raise ImageError(f"no calibration plate in the picture: {len(uv)} whole disc(s) found, at least {min_discs} "
+                         f"needed ({n_blobs} dark blobs; rejected: {why})")
+    uv, areas = np.array(uv), np.array(areas)
     P = camera.undistorted_pixels(uv) if camera is not None else uv
     index = _propagate(P)
     for k in _lattice_outliers(P, index):
@@ -738,58 +673,47 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
             del index[k]
         index = _plate_window(index, plate)
     if len(index) < min_discs:
-        raise ImageError(
-            f"the discs do not form a lattice: {len(index)} of {len(uv)} whole discs fit one "
-            f"(at least {min_discs} needed)"
-        )
-    off = len(uv) - len(index)
-    if off:
-        rejected["off lattice"] = rejected.get("off lattice", 0) + off
+        raise ImageError(f"the discs do not form a lattice: {len(index)} of {len(uv)} whole discs fit one "
+                         f"(at least {min_discs} needed)")
+    reject("off lattice", len(uv) - len(index))
     ids = np.array(sorted(index))
     cr = _orient(P[ids], {n_: index[k] for n_, k in enumerate(ids)}, plate)
     if camera is not None:
         _check_square(camera.undistort_pixels(uv[ids]) / camera.f, cr)
     basis, ambiguous = _anchor(cr, uv[ids], plate, dark, float(np.sqrt(np.median(areas) / np.pi)))
     order = np.lexsort((cr[:, 0], cr[:, 1]))
-    cr = cr[order]
-    ids = ids[order]
+    cr, ids = cr[order], ids[order]
     rc = cr[:, ::-1].astype(int)
     p_W = plate.disc_centres_W()[rc[:, 0] * plate.cols + rc[:, 1]]
-    return DiscDetections(
-        uv=uv[ids], rc=rc, p_W=p_W, area_px=areas[ids].astype(float), n_blobs=n_blobs,
-        rejected=rejected, index_basis=basis, ambiguous=ambiguous,
-    )
+    return DiscDetections(uv=uv[ids], rc=rc, p_W=p_W, area_px=areas[ids].astype(float), n_blobs=n_blobs,
+                          rejected=rejected, index_basis=basis, ambiguous=ambiguous)
 
 
 def _anchor(cr, uv, plate: PlateSpec, dark, r_px: float) -> tuple[dict, dict]:
-    """Shift the seen (col, row) indices ``cr`` (in place) onto the plate's grid, per axis: (how each axis
-    was anchored, the sentence naming the indices an unpinned axis may take).
+    """Shift the seen (col, row) indices ``cr`` (in place) onto the plate's grid; returns (how each axis was
+    anchored, per unpinned axis the sentence naming the indices it may take).
 
-    An axis is pinned when all its lines are seen, or when blank paper lies one pitch beyond its outer line
-    on one side and the grid is seen to go on beyond the other (a disc there, cut by the border, hidden or
-    not found): 'low end seen', 'high end seen'. Blank paper on one side while the other side's next line
-    lies beyond the picture is the most likely end ('low end assumed', 'high end assumed') but does not pin
-    it: the picture is the same when the grid runs out of it there and when the blank line's discs are
-    missing (erased by glare, not printed). Blank paper on both sides (a line missing) or on neither leaves
-    the seen lines centred ('centred')."""
+    An axis is pinned when all its lines are seen ('all seen'), or by blank paper one pitch beyond its outer
+    line on one side with the grid seen to go on beyond the other ('low end seen', 'high end seen'). Blank
+    paper on one side with the other side's next line beyond the picture is the likely end ('low end
+    assumed', ...) but does not pin it: the grid may run out of the picture with the blank line's discs
+    missing. Blank paper on both sides (a line missing) or on neither leaves the lines 'centred'."""
     basis, ambiguous = {}, {}
     for axis, name, count in ((0, "cols", plate.cols), (1, "rows", plate.rows)):
         ext = cr[:, axis].max() + 1
         if ext == count:
             basis[name] = "all seen"
             continue
-        low, high = (_grid_end(uv, cr, axis, side, dark, r_px, dark.shape) for side in (-1, +1))
+        low, high = (_grid_end(uv, cr, axis, side, dark, r_px) for side in (-1, +1))
         word = "columns" if name == "cols" else "rows"
-        if {low, high} == {"blank", "disc"}:
-            basis[name] = "low end seen" if low == "blank" else "high end seen"
-            shift, why = (0 if low == "blank" else count - ext), None
-        elif {low, high} == {"blank", None}:
-            end = "low" if low == "blank" else "high"
-            basis[name] = f"{end} end assumed"
+        if (low == "blank") != (high == "blank"):  # the grid ends at the blank side
+            end, seen = ("low" if low == "blank" else "high"), "disc" in (low, high)
+            basis[name] = f"{end} end {'seen' if seen else 'assumed'}"
             shift = 0 if low == "blank" else count - ext
-            why = (f"blank paper one pitch beyond the outer {word} on the {end} side only, while the next line "
-                   "on the other side lies beyond the picture: the grid may end at the blank paper or run out of "
-                   "the picture with that line's discs missing (erased by glare, hidden)")
+            why = None if seen else (f"blank paper one pitch beyond the outer {word} on the {end} side only, while "
+                                     "the next line on the other side lies beyond the picture: the grid may end at the "
+                                     "blank paper or run out of the picture with that line's discs missing (erased by "
+                                     "glare, hidden)")
         else:
             basis[name] = "centred"
             shift = (count - ext) // 2
@@ -799,10 +723,8 @@ def _anchor(cr, uv, plate: PlateSpec, dark, r_px: float) -> tuple[dict, dict]:
                    "or is not blank paper)")
         cr[:, axis] += shift
         if why:
-            ambiguous[name] = (
-                f"{ext} of the plate's {count} {word} seen and {why}: they may be {word} "
-                f"{_span(0, ext)} up to {_span(count - ext, ext)}, taken as {_span(shift, ext)}"
-            )
+            ambiguous[name] = (f"{ext} of the plate's {count} {word} seen and {why}: they may be {word} "
+                               f"{_span(0, ext)} up to {_span(count - ext, ext)}, taken as {_span(shift, ext)}")
     return basis, ambiguous
 
 
@@ -812,11 +734,9 @@ def _span(first: int, n: int) -> str:
 
 # --- perspective bias -----------------------------------------------------------------------------
 def disc_image_bias(camera: CameraModel, C_H_W, p_W, radius_mm: float, n_boundary: int = 256) -> np.ndarray:
-    """(N, 2) [px] centroid of each disc's distorted image minus the image of its centre.
-
-    ``p_W`` (N, 3) disc centres in W [mm], ``radius_mm`` the disc radius, ``C_H_W`` (4, 4). The image
-    region is the polygon through ``n_boundary`` projected boundary points; its area centroid comes from
-    the shoelace formula. Raises ``CalibrationError`` (from the camera model) for discs behind the camera.
+    """(N, 2) [px] centroid of each disc's distorted image minus the image of its centre, for disc centres ``p_W``
+    (N, 3) [mm] of radius ``radius_mm`` seen at ``C_H_W`` (4, 4): the shoelace centroid of the polygon through
+    ``n_boundary`` projected boundary points. ``CalibrationError`` (the camera model's) for discs behind the camera.
     """
     p_W = np.atleast_2d(np.asarray(p_W, float))
     t = np.arange(n_boundary) * (2 * np.pi / n_boundary)
@@ -827,15 +747,12 @@ def disc_image_bias(camera: CameraModel, C_H_W, p_W, radius_mm: float, n_boundar
     x1, y1 = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
     cross = x * y1 - x1 * y
     a = cross.sum(1) / 2
-    cx = ((x + x1) * cross).sum(1) / (6 * a)
-    cy = ((y + y1) * cross).sum(1) / (6 * a)
-    centre = camera.project(transform_points(C_H_W, p_W))
-    return np.column_stack([cx, cy]) - centre
+    cx, cy = ((x + x1) * cross).sum(1) / (6 * a), ((y + y1) * cross).sum(1) / (6 * a)
+    return np.column_stack([cx, cy]) - camera.project(transform_points(C_H_W, p_W))
 
 
 def correct_disc_bias(det: DiscDetections, camera: CameraModel, C_H_W, plate: PlateSpec) -> np.ndarray:
-    """(N, 2) measured disc centres with the perspective/lens bias removed: ``det.uv`` minus
-    ``disc_image_bias`` for a first pose ``C_H_W`` (4, 4) and ``camera``. Pixels, distorted."""
+    """(N, 2) [px, distorted] ``det.uv`` minus ``disc_image_bias`` for a pose ``C_H_W`` (4, 4) and ``camera``."""
     if len(det.uv) == 0:
         return det.uv.copy()
     return det.uv - disc_image_bias(camera, C_H_W, det.p_W, plate.disc_diameter / 2)

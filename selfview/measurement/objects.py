@@ -20,6 +20,7 @@ from selfview.errors import CalibrationError, ConfigError, ImageError
 from selfview.maths.geometry import H_from_rotvec, R_from_rpy, inv_H, make_H
 from selfview.files.cell import Section
 from selfview.files.io_safe import load_yaml_file
+from selfview.measurement.plates import make_charuco_board, warn_if_charuco_biased
 
 __all__ = ["TargetSpec", "ObjectSpec", "TargetDetection", "ObjectPose", "load_object", "parse_object",
            "default_object_path", "detect_target", "object_pose", "target_board", "AMBIGUITY_RATIO", "MIN_CORNERS"]
@@ -91,8 +92,8 @@ def _parse_target(s: Section) -> TargetSpec:
     if s.string("pattern", "charuco") != "charuco":
         raise ConfigError(f"object.target.pattern {s.data['pattern']!r}: only 'charuco' targets are measured")
     sq = s.raw("squares")
-    if (not isinstance(sq, list) or len(sq) != 2 or any(isinstance(n, bool) or not isinstance(n, int) or not 3 <= n <= 20
-                                                         for n in sq)):
+    whole = isinstance(sq, list) and all(isinstance(n, int) and not isinstance(n, bool) and 3 <= n <= 20 for n in sq)
+    if not whole or len(sq) != 2:
         raise ConfigError(f"object.target.squares: expected [NX, NY], whole numbers 3..20, got {sq!r}")
     square = s.number("square", lo=1.0, hi=200.0)
     marker = s.number("marker", lo=0.5, hi=200.0)
@@ -149,10 +150,7 @@ def load_object(path=None) -> ObjectSpec:
 
 # --- the target in a picture -------------------------------------------------------------------------
 def target_board(target: TargetSpec):
-    """The ``cv2.aruco.CharucoBoard`` of ``target`` (board frame: origin at a corner, units mm; shared, do
-    not modify it)."""
-    from selfview.measurement.plates import make_charuco_board
-
+    """The ``cv2.aruco.CharucoBoard`` of ``target`` (board frame: origin at a corner, mm; shared, do not modify it)."""
     return make_charuco_board(tuple(target.squares), target.square, target.marker, target.dictionary,
                               what="target.dictionary")
 
@@ -172,10 +170,11 @@ def _grey_u8(image) -> np.ndarray:
     """The (H, W) uint8 grey picture of a grey, BGR or BGRA uint8 array; ``ImageError`` for anything else."""
     a = np.asarray(image)
     if a.ndim == 3 and a.shape[2] in (1, 3, 4) and a.size:
-        a = a[..., 0] if a.shape[2] == 1 else cv2.cvtColor(a, cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+        code = cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        a = a[..., 0] if a.shape[2] == 1 else cv2.cvtColor(a, code)
     if a.ndim != 2 or a.size == 0 or a.dtype != np.uint8:
-        raise ImageError(f"target picture: expected an 8-bit grey or BGR image, got an array of shape {np.shape(image)} "
-                         f"and dtype {a.dtype}")
+        raise ImageError(f"target picture: expected an 8-bit grey or BGR image, got an array of shape "
+                         f"{np.shape(image)} and dtype {a.dtype}")
     return np.ascontiguousarray(a)
 
 
@@ -185,12 +184,8 @@ def detect_target(image: np.ndarray, target: TargetSpec) -> TargetDetection:
     Raises ``CalibrationError`` when the target is not seen (too few corners) or seen twice (a marker id
     decoded more than once: two targets in view), ``ImageError`` for an array that is no 8-bit picture."""
     board = target_board(target)
-    from selfview.measurement.plates import warn_if_charuco_biased
-
     warn_if_charuco_biased()
-    detector = cv2.aruco.CharucoDetector(board)
-    img = _grey_u8(image)
-    corners, ids, marker_corners, marker_ids = detector.detectBoard(img)
+    corners, ids, _, marker_ids = cv2.aruco.CharucoDetector(board).detectBoard(_grey_u8(image))
     n_markers = 0 if marker_ids is None else len(marker_ids)
     if marker_ids is not None and len(np.unique(marker_ids)) < n_markers:
         raise CalibrationError(f"target seen twice: {n_markers - len(np.unique(marker_ids))} marker id(s) decoded "
@@ -208,9 +203,9 @@ def detect_target(image: np.ndarray, target: TargetSpec) -> TargetDetection:
 # --- the object's pose ------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ObjectPose:
-    """``C_H_O`` (4, 4) the object in the camera frame; ``sigma_mm`` (3,) and ``sigma_deg`` (3,) standard
-    deviations of its translation and rotation (camera axes) from the residual; ``rms_px`` residual of the
-    chosen solution, ``rms_px_other`` of IPPE's flipped one; ``corners`` how many were used."""
+    """``C_H_O`` (4, 4) the object in the camera frame; ``sigma_mm`` (3,) and ``sigma_deg`` (3,) standard deviations of
+    its translation and rotation (camera axes) from the residual; ``rms_px`` residual of the chosen solution,
+    ``rms_px_other`` of IPPE's flipped one; ``corners`` how many were used; ``detection`` the corners used."""
 
     C_H_O: np.ndarray
     sigma_mm: np.ndarray
@@ -227,8 +222,7 @@ def _residual_px(rv, tv, p_O, xy, f: float) -> float:
 
 
 def _check_detection(det: TargetDetection) -> None:
-    """A detection the pose can rest on: (N, 2) pixels and (N, 3) points, finite, at least ``MIN_CORNERS``,
-    not on one line."""
+    """A detection the pose can rest on: (N, 2) pixels, (N, 3) points, finite, ``MIN_CORNERS`` or more, no line."""
     uv, p = np.asarray(det.uv, float), np.asarray(det.p_O, float)
     if uv.ndim != 2 or uv.shape[1] != 2 or p.shape != (len(uv), 3):
         raise ValueError(f"target detection: expected uv (N, 2) and p_O (N, 3), got {uv.shape} and {p.shape}")
@@ -243,20 +237,19 @@ def _check_detection(det: TargetDetection) -> None:
 
 def object_pose(image: np.ndarray, camera: CameraModel, obj: ObjectSpec | TargetSpec,
                 detection: TargetDetection | None = None) -> ObjectPose:
-    """``C_H_O`` of the object's target in ``image`` through ``camera`` (eq. 3-4: the corners undistorted
-    by the camera model, then IPPE on the normalised rays and a Levenberg-Marquardt refinement).
+    """``C_H_O`` of the object's target in ``image`` through ``camera`` (eq. 3-4: the corners undistorted by the
+    camera model, then IPPE on the normalised rays and a Levenberg-Marquardt refinement).
 
-    Raises ``CalibrationError``: target not seen or seen twice (``detect_target``), a given ``detection``
-    with fewer than ``MIN_CORNERS`` corners, non-finite ones or corners on one line, or ambiguous (IPPE's
-    flipped solution fits within ``AMBIGUITY_RATIO`` times the chosen one's residual); ``ValueError`` for a
-    ``detection`` whose arrays do not match ((N, 2) pixels, (N, 3) points)."""
+    Raises ``CalibrationError``: target not seen or seen twice (``detect_target``), a given ``detection`` with
+    fewer than ``MIN_CORNERS`` corners, non-finite ones or corners on one line, or ambiguous (IPPE's flipped
+    solution fits within ``AMBIGUITY_RATIO`` times the chosen one's residual); ``ValueError`` for a ``detection``
+    whose arrays do not match ((N, 2) pixels, (N, 3) points)."""
     target = obj.target if isinstance(obj, ObjectSpec) else obj
     det = detection if detection is not None else detect_target(image, target)
     _check_detection(det)
     f = float(camera.f)
-    xy = camera.undistort_pixels(det.uv) / f  # normalised, distortion-free (X / f, Y / f)
     p = np.ascontiguousarray(det.p_O, np.float64)
-    q = np.ascontiguousarray(xy, np.float64)
+    q = np.ascontiguousarray(camera.undistort_pixels(det.uv) / f, np.float64)  # distortion-free rays (X / f, Y / f)
     n, rvecs, tvecs, _ = cv2.solvePnPGeneric(p, q, np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
     if n < 1:
         raise CalibrationError("target seen but no pose fits its corners")
@@ -276,8 +269,7 @@ def object_pose(image: np.ndarray, camera: CameraModel, obj: ObjectSpec | Target
     # standard deviations from the residual and the Jacobian of the normalised projections
     _, J = cv2.projectPoints(p, rv, tv, np.eye(3), None)
     J = J[:, :6] * f
-    dof = max(2 * len(p) - 6, 1)
-    s2 = (rms ** 2) * 2 * len(p) / dof
+    s2 = (rms ** 2) * 2 * len(p) / max(2 * len(p) - 6, 1)  # per degree of freedom
     try:
         cov = np.linalg.inv(J.T @ J) * s2
     except np.linalg.LinAlgError:

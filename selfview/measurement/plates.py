@@ -1,21 +1,18 @@
 """The plate seam: one ``detect_plate`` for every printed pattern, and what its points need afterwards.
 
-A plate (``cell.PlateSpec``) is a ``rows x cols`` lattice of plate points at ``pitch`` mm centred on W's
-origin (x along the columns, y along the rows, z into the plate; CONVENTIONS.md), printed as one of
-``PLATE_PATTERNS``:
+A plate (``cell.PlateSpec``) is a ``rows x cols`` lattice of plate points at ``pitch`` mm centred on W's origin
+(x along the columns, y along the rows, z into the plate; CONVENTIONS.md), printed as one of ``PLATE_PATTERNS``:
 
-- ``discs``: dark discs whose centres are the points (``discs.detect_discs``); a disc's image centroid is
-  not the image of its centre, ``plate_image_bias`` gives the difference for a pose;
+- ``discs``: dark discs whose centres are the points (``discs.detect_discs``); a disc's image centroid is not
+  the image of its centre, ``plate_image_bias`` gives the difference for a pose;
 - ``chessboard``: NX x NY squares, the (NX-1) x (NY-1) inner corners the points (OpenCV's
   ``findChessboardCornersSB``; a board the fingers cut grown along its lattice and placed by its border and
-  colours, the origin ambiguous where several placements fit); square (0, 0), on W's -x -y corner, is dark;
-  a board with NX + NY even looks the same turned by a half turn, so its orientation is ambiguous and refused;
-- ``charuco``: a chessboard with ArUco markers in its light squares (``cv2.aruco.CharucoDetector``), the
-  inner corners numbered by OpenCV's ids (row-major), so a partial view (fingers over it) is indexed.
+  colours); square (0, 0), on W's -x -y corner, is dark; NX + NY even is refused (a half turn looks the same);
+- ``charuco``: a chessboard with ArUco markers in its light squares (``cv2.aruco.CharucoDetector``), the inner
+  corners numbered by OpenCV's ids (row-major), so a partial view is indexed.
 
-A corner has no perspective bias (zero). ``board_ink`` and ``board_edges_W`` draw a board for the
-simulated camera (``mocks/render.py``). A new pattern: its detector and drawing here, its keys in
-``cell._parse_board``.
+A corner has no perspective bias. ``board_ink`` and ``board_edges_W`` draw a board for the simulated camera
+(``mocks/render.py``). A new pattern: its detector and drawing here, its keys in ``cell._parse_board``.
 """
 
 from __future__ import annotations
@@ -40,19 +37,19 @@ __all__ = ["PLATE_PATTERNS", "PlateDetections", "detect_plate", "plate_image_bia
 PlateDetections = DiscDetections
 
 
-def detect_plate(image, plate: PlateSpec, *, camera: CameraModel | None = None, min_points: int = 12) -> PlateDetections:
-    """The plate points seen in ``image`` (any picture ``discs.as_gray`` takes), indexed on the plate's
-    lattice and sorted by (row, col): pixels (distorted, as measured), grid indices and W points [mm].
+def detect_plate(image, plate: PlateSpec, *, camera: CameraModel | None = None,
+                 min_points: int = 12) -> PlateDetections:
+    """The plate points seen in ``image`` (any picture ``discs.as_gray`` takes), indexed on the plate's lattice and
+    sorted by (row, col): pixels (distorted, as measured), grid indices and W points [mm].
 
-    Raises ``ImageError`` (no plate, fewer than ``min_points`` points, a chessboard of ambiguous
-    orientation, markers of another board), ``ConfigError`` (an unknown pattern or dictionary) or
-    ``ValueError`` (``min_points`` not a whole number >= 1)."""
+    Raises ``ImageError`` (no plate, fewer than ``min_points`` points, a chessboard of ambiguous orientation,
+    markers of another board), ``ConfigError`` (an unknown pattern or dictionary) or ``ValueError``
+    (``min_points`` not a whole number >= 1)."""
     if isinstance(min_points, bool) or not isinstance(min_points, (int, np.integer)) or min_points < 1:
         raise ValueError(f"min_points: expected a whole number of plate points >= 1, got {min_points!r}")
     if plate.pattern == "discs":
         return detect_discs(image, plate, camera=camera, min_discs=min_points)
-    gray = as_gray(image, camera)
-    u8 = np.clip(np.rint(gray), 0, 255).astype(np.uint8)
+    u8 = np.clip(np.rint(as_gray(image, camera)), 0, 255).astype(np.uint8)
     basis, ambiguous = {"x": "board", "y": "board"}, {}
     if plate.pattern == "chessboard":
         uv, ids, n_raw, basis, ambiguous = _chessboard(u8, plate)
@@ -65,8 +62,9 @@ def detect_plate(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     order = np.argsort(ids)
     ids = ids[order]
     rc = np.column_stack([ids // plate.cols, ids % plate.cols]).astype(int)
-    return DiscDetections(uv=uv[order].astype(float), rc=rc, p_W=plate.disc_centres_W()[ids], area_px=np.zeros(len(ids)),
-                          n_blobs=int(n_raw), rejected={}, index_basis=basis, ambiguous=ambiguous)
+    return DiscDetections(uv=uv[order].astype(float), rc=rc, p_W=plate.disc_centres_W()[ids],
+                          area_px=np.zeros(len(ids)), n_blobs=int(n_raw), rejected={}, index_basis=basis,
+                          ambiguous=ambiguous)
 
 
 def plate_image_bias(plate: PlateSpec, camera: CameraModel, C_H_W, p_W) -> np.ndarray:
@@ -91,10 +89,9 @@ X_MIN_CONTRAST = 40.0
 
 
 def _chessboard(u8: np.ndarray, plate: PlateSpec) -> tuple[np.ndarray, np.ndarray, int, dict, dict]:
-    """The board's inner corners: the whole board (``findChessboardCornersSB``), else (fingers over it,
-    its edge out of the picture) the corners grown along the board's lattice from a seed of 2 x 2
-    alternating squares (``_grow_lattice``) and placed on the plate by the board's edges seen and the
-    squares' colours (``_place_lattice``). Returns (uv, ids, corners found, index basis, ambiguous)."""
+    """The board's inner corners: the whole board (``findChessboardCornersSB``), else (fingers over it, its edge
+    out of the picture) the corners grown from 2 x 2 alternating squares (``_grow_lattice``) and placed on the
+    plate (``_place_lattice``). Returns (uv, ids, corners found, index basis, ambiguous)."""
     nx, ny = plate.squares
     if (nx + ny) % 2 == 0:
         raise ImageError(f"a {nx}x{ny}-square chessboard looks the same turned by a half turn: its orientation in the "
@@ -122,24 +119,21 @@ def _alternating(u8: np.ndarray, g: np.ndarray) -> np.ndarray:
     """(R, C) bool: the corners of the whole board's grid g (R, C, 2) whose four cells alternate dark and
     light with the board's parity (``_x_corner``; the grid extended by a line of corners all round)."""
     G = np.pad(g, ((1, 1), (1, 1), (0, 0)))
-    G[1:-1, 1:-1] = g
     G[0, 1:-1], G[-1, 1:-1] = 2 * g[0] - g[1], 2 * g[-1] - g[-2]
     G[:, 0], G[:, -1] = 2 * G[:, 1] - G[:, 2], 2 * G[:, -2] - G[:, -3]
     R, C = g.shape[:2]
     return np.array([[_x_corner(u8, G[r : r + 3, c : c + 3]) == (r + c) % 2 for c in range(C)] for r in range(R)])
 
 
-def _seed_block(u8: np.ndarray, g: np.ndarray) -> dict:
-    """{(r, c): uv} 3 x 3 corners of the grid g (R, C, 2) whose four cells alternate (``_x_corner``), the
-    block nearest the grid's middle first; ``ImageError`` when none does (OpenCV's partial grid may skip
-    rows or columns of the board)."""
+def _seed_block(u8: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """(3, 3, 2) corners of the grid g (R, C, 2) whose four cells alternate (``_x_corner``), the block nearest
+    the grid's middle first; ``ImageError`` when none does (OpenCV's partial grid may skip rows or columns)."""
     R, C = g.shape[:2]
     blocks = sorted(((r, c) for r in range(R - 2) for c in range(C - 2)),
                     key=lambda rc: (rc[0] + 1 - (R - 1) / 2) ** 2 + (rc[1] + 1 - (C - 1) / 2) ** 2)
     for r, c in blocks:
-        sub = g[r : r + 3, c : c + 3]
-        if _x_corner(u8, sub) is not None:
-            return {(i, j): sub[i, j] for i in range(3) for j in range(3)}
+        if _x_corner(u8, g[r : r + 3, c : c + 3]) is not None:
+            return g[r : r + 3, c : c + 3]
     # every corner OpenCV gave is a corner of the board: a block around one of them, along the lattice
     # vectors its nearest neighbours give, refined
     pool = g.reshape(-1, 2)
@@ -156,7 +150,7 @@ def _seed_block(u8: np.ndarray, g: np.ndarray) -> dict:
         for fa, fb in ((1, 1), (1, 2), (2, 1), (2, 2)):  # OpenCV's grid may skip every other row or column
             sub = _refined_block(u8, p, a / fa, b / fb)
             if sub is not None and _x_corner(u8, sub) is not None:
-                return {(i, j): sub[i, j] for i in range(3) for j in range(3)}
+                return sub
     raise ImageError("no part of the chessboard found is a grid of alternating squares: fingers or the picture's "
                      "edge cut the board too much")
 
@@ -166,20 +160,25 @@ def _refined_block(u8: np.ndarray, p, a, b) -> np.ndarray | None:
     block reaches beyond the picture."""
     j, i = np.mgrid[-1:2, -1:2]
     sub = p + i[..., None] * a + j[..., None] * b
-    win = int(np.clip(min(np.linalg.norm(a), np.linalg.norm(b)) / 4, 2, 15))
+    return _subpix(u8, sub, int(np.clip(min(np.linalg.norm(a), np.linalg.norm(b)) / 4, 2, 15)))
+
+
+def _subpix(u8: np.ndarray, pts: np.ndarray, win: int) -> np.ndarray | None:
+    """Corners ``pts`` (..., 2) [px] refined by ``cv2.cornerSubPix`` in a (2 win + 1) px window, same shape; None
+    when a window comes within 2 px of the picture's border."""
     h, w = u8.shape
-    if not np.all((sub >= win + 2) & (sub < (w - win - 2, h - win - 2))):
+    if not np.all((pts >= win + 2) & (pts < (w - win - 2, h - win - 2))):
         return None
-    return cv2.cornerSubPix(u8, sub.reshape(-1, 1, 2).astype(np.float32), (win, win), (-1, -1),
-                            (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01)).reshape(3, 3, 2).astype(float)
+    q = cv2.cornerSubPix(u8, pts.reshape(-1, 1, 2).astype(np.float32), (win, win), (-1, -1),
+                         (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+    return q.reshape(pts.shape).astype(float)
 
 
 def _x_corner(u8: np.ndarray, sub: np.ndarray, levels=None) -> int | None:
-    """The dark cells' parity (0: the cell at the block's (0, 0) dark, 1: light) of a 3 x 3 block of corners
-    (3, 3, 2) whose four cells alternate dark and light, else None. ``levels`` (dark, light): the grey
-    levels the squares must show (within ``X_AGREE`` of their difference), as the seed's did. The cells are
-    read in their middles and again near the middle corner (a finger beside a square's outer corner may
-    darken a cell's middle only)."""
+    """The dark cells' parity (0: the cell at the block's (0, 0) dark, 1: light) of a 3 x 3 block of corners (3, 3, 2)
+    whose four cells alternate dark and light, else None. ``levels`` (dark, light): the grey levels the squares
+    must show (within ``X_AGREE`` of their difference). The cells are read in their middles and again near the
+    middle corner (a finger beside a square's outer corner may darken a cell's middle only)."""
     near = sub[1, 1] + 0.4 * (sub - sub[1, 1])
     parities = {_x_cells(u8, sub, levels), _x_cells(u8, near, levels)}
     return parities.pop() if len(parities) == 1 else None
@@ -223,14 +222,13 @@ def _at(H: np.ndarray, c, r) -> np.ndarray:
 
 
 def _grow_lattice(u8: np.ndarray, g: np.ndarray) -> dict:
-    """{(r, c): uv} the board's corners reached from a seed block of ``g`` (``_seed_block``) through
-    neighbours: each predicted by the lattice's homography over the corners taken (the nearest ones),
-    refined (``cv2.cornerSubPix``) and taken when it stays within a quarter square of the prediction and its
-    four cells alternate with the seed's parity. A corner under a finger or beyond the board fails that."""
-    found = _seed_block(u8, g)
-    seed = np.array([[found[(i, j)] for j in range(3)] for i in range(3)])
+    """{(r, c): uv} the board's corners reached from a seed block of ``g`` (``_seed_block``) through neighbours:
+    each predicted by the homography of the nearest corners taken, refined, and taken when it stays within a
+    quarter square of the prediction and its four cells alternate with the seed's parity (a corner under a
+    finger or beyond the board does not)."""
+    seed = _seed_block(u8, g)
+    found = {(i, j): seed[i, j] for i in range(3) for j in range(3)}
     parity, levels = _x_corner(u8, seed), _block_levels(u8, seed)
-    h, w = u8.shape
     tried = set(found)
     grew = True
     while grew:
@@ -245,11 +243,8 @@ def _grow_lattice(u8: np.ndarray, g: np.ndarray) -> dict:
             p = quad[4]
             side = float(np.min(np.linalg.norm(quad[:4] - p, axis=1))) / np.sqrt(2)  # about a square [px]
             win = int(np.clip(side / 4, 2, 15))
-            if side < 8 or not (win + 2 <= p[0] < w - win - 2 and win + 2 <= p[1] < h - win - 2):
-                continue
-            q = cv2.cornerSubPix(u8, p.reshape(1, 1, 2).astype(np.float32), (win, win), (-1, -1),
-                                 (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01)).reshape(2).astype(float)
-            if np.linalg.norm(q - p) > side / 4:
+            q = _subpix(u8, p, win) if side >= 8 else None
+            if q is None or np.linalg.norm(q - p) > side / 4:
                 continue
             block = _at(Hn, np.tile([c - 1, c, c + 1], 3), np.repeat([r - 1, r, r + 1], 3)).reshape(3, 3, 2)
             block[1, 1] = q
@@ -262,9 +257,8 @@ def _grow_lattice(u8: np.ndarray, g: np.ndarray) -> dict:
 
 
 def _end_seen(u8: np.ndarray, H: np.ndarray, rows, cols, light: float, dark: float) -> bool:
-    """Whether the board's border shows beyond the last lattice line ``rows`` (one value) along ``cols``
-    (or ``cols`` one value along ``rows``): the cells one square beyond it are paper (light) for at least
-    80 % of the line, and all in the picture."""
+    """Whether the board's border shows beyond the last lattice line ``rows`` (one value) along ``cols`` (or
+    ``cols`` one value along ``rows``): the cells one square beyond it all in the picture, 80 % of them light."""
     rr, cc = np.broadcast_arrays(np.asarray(rows, float), np.asarray(cols, float))
     h, w = u8.shape
     lv = []
@@ -272,16 +266,14 @@ def _end_seen(u8: np.ndarray, H: np.ndarray, rows, cols, light: float, dark: flo
         quad = _at(H, [c - 0.5, c + 0.5, c + 0.5, c - 0.5], [r - 0.5, r - 0.5, r + 0.5, r + 0.5])
         if not np.all((quad >= 0) & (quad < (w - 1, h - 1))):
             return False
-        lv.append(_cell_level(u8, _quad_grid(quad), 0, 0))
+        lv.append(_quad_level(u8, quad))
     return bool(np.mean(np.array(lv) > light - 0.3 * (light - dark)) >= 0.8)
 
 
 def _place_lattice(u8: np.ndarray, found: dict, plate: PlateSpec) -> tuple[np.ndarray, np.ndarray, int, dict, dict]:
-    """The grown lattice ``found`` {(r, c): uv} on the plate's grid: turned so that W's x, y, z are
-    right-handed, and placed by the board's border seen beyond the corners found (paper one square beyond
-    the last line) and by the colours of the squares (square (0, 0) dark; with one odd and one even number
-    of squares this also tells a half turn). Every placement these allow is tried; more than one leaves
-    the origin ambiguous (the sentence names how many), the most central one is returned.
+    """The grown lattice ``found`` {(r, c): uv} on the plate's grid: turned so that W's x, y, z are right-handed,
+    placed by the board's border seen beyond the corners found and by the squares' colours (square (0, 0) dark).
+    Of several placements these allow, the most central is returned, the origin said ambiguous.
     Returns (uv, ids, corners found, index basis per axis, ambiguous per axis)."""
     nx, ny = plate.squares
     H = _lattice_H(found)
@@ -290,31 +282,27 @@ def _place_lattice(u8: np.ndarray, found: dict, plate: PlateSpec) -> tuple[np.nd
     rc = np.array(list(found), int)
     uv = np.array(list(found.values()), float)
     # cells with four corners found, and whether each is dark
-    have = set(found)
-    cells = [(r, c) for r, c in have if {(r + 1, c), (r, c + 1), (r + 1, c + 1)} <= have]
-    lv = np.array([_cell_level(u8, np.array([[found[(r, c)], found[(r, c + 1)]], [found[(r + 1, c)], found[(r + 1, c + 1)]]]), 0, 0)
-                   for r, c in cells])
+    cells = [(r, c) for r, c in found if {(r + 1, c), (r, c + 1), (r + 1, c + 1)} <= found.keys()]
+    lv = np.array([_cell_level(u8, found, r, c) for r, c in cells])
     if len(lv) < 2:
-        raise ImageError(f"only {len(found)} chessboard corner(s) found around the seed: too little of the board in view")
+        raise ImageError(f"only {len(found)} chessboard corner(s) found around the seed: too little of the board in "
+                         "view")
     dark_lv, light_lv = np.percentile(lv, [10, 90])
     dark = lv < (dark_lv + light_lv) / 2
     rmin, rmax, cmin, cmax = rc[:, 0].min(), rc[:, 0].max(), rc[:, 1].min(), rc[:, 1].max()
-    ends = {  # in the lattice's own indices: (rows low, rows high, cols low, cols high)
-        "r-": _end_seen(u8, H, rmin - 1.5, np.arange(cmin, cmax) + 0.5, light_lv, dark_lv),
-        "r+": _end_seen(u8, H, rmax + 1.5, np.arange(cmin, cmax) + 0.5, light_lv, dark_lv),
-        "c-": _end_seen(u8, H, np.arange(rmin, rmax) + 0.5, cmin - 1.5, light_lv, dark_lv),
-        "c+": _end_seen(u8, H, np.arange(rmin, rmax) + 0.5, cmax + 1.5, light_lv, dark_lv),
+    ends = {  # the border seen beyond the lattice's last line, per direction (dr, dc) in its own indices
+        (-1, 0): _end_seen(u8, H, rmin - 1.5, np.arange(cmin, cmax) + 0.5, light_lv, dark_lv),
+        (1, 0): _end_seen(u8, H, rmax + 1.5, np.arange(cmin, cmax) + 0.5, light_lv, dark_lv),
+        (0, -1): _end_seen(u8, H, np.arange(rmin, rmax) + 0.5, cmin - 1.5, light_lv, dark_lv),
+        (0, 1): _end_seen(u8, H, np.arange(rmin, rmax) + 0.5, cmax + 1.5, light_lv, dark_lv),
     }
     cand = []
     m = np.array([[1, 0], [0, -1]]) if mirror else np.eye(2, dtype=int)
     for quarter in range(4):  # the lattice turned by quarter turns on the board
         t = np.linalg.matrix_power(np.array([[0, -1], [1, 0]]), quarter) @ m
-        RC = rc @ t.T
-        R, C = RC[:, 0], RC[:, 1]
-        # which of the lattice's ends is each end of the board's rows and columns
-        where = {tuple(t @ d): k for d, k in (((-1, 0), "r-"), ((1, 0), "r+"), ((0, -1), "c-"), ((0, 1), "c+"))}
-        e_r = (ends[where[(-1, 0)]], ends[where[(1, 0)]])
-        e_c = (ends[where[(0, -1)]], ends[where[(0, 1)]])
+        R, C = (rc @ t.T).T
+        seen = {tuple(t @ d): v for d, v in ends.items()}  # the ends in the board's directions
+        e_r, e_c = (seen[(-1, 0)], seen[(1, 0)]), (seen[(0, -1)], seen[(0, 1)])
         r_opts = _offsets(R.min(), R.max(), ny - 2, *e_r)
         c_opts = _offsets(C.min(), C.max(), nx - 2, *e_c)
         # a cell's top-left corner on the board, and the colour it must have there
@@ -325,7 +313,8 @@ def _place_lattice(u8: np.ndarray, found: dict, plate: PlateSpec) -> tuple[np.nd
                     cand.append((R + r0, C + c0, *e_r, *e_c))
     if not cand:
         raise ImageError(f"the {len(found)} chessboard corners seen ({rmax - rmin + 1} x {cmax - cmin + 1}) cannot be "
-                         f"placed on the plate's {nx}x{ny}-square board: another board, or the plate file's squares are wrong")
+                         f"placed on the plate's {nx}x{ny}-square board: another board, or the plate file's squares "
+                         "are wrong")
     mid = np.array([(ny - 2) / 2, (nx - 2) / 2])
     best = min(cand, key=lambda k: float(np.sum((np.array([k[0].mean(), k[1].mean()]) - mid) ** 2)))
     R, C, r_lo, r_hi, c_lo, c_hi = best
@@ -341,12 +330,7 @@ def _place_lattice(u8: np.ndarray, found: dict, plate: PlateSpec) -> tuple[np.nd
 
 def _offsets(lo: int, hi: int, top: int, lo_seen: bool, hi_seen: bool) -> list[int]:
     """The shifts k that put lattice indices lo..hi on the board's 0..top: pinned by an end seen."""
-    opts = [k for k in range(-lo, top - hi + 1)]
-    if lo_seen:
-        opts = [k for k in opts if lo + k == 0]
-    if hi_seen:
-        opts = [k for k in opts if hi + k == top]
-    return opts
+    return [k for k in range(-lo, top - hi + 1) if (not lo_seen or lo + k == 0) and (not hi_seen or hi + k == top)]
 
 
 def _basis(lo_seen: bool, hi_seen: bool) -> str:
@@ -354,22 +338,23 @@ def _basis(lo_seen: bool, hi_seen: bool) -> str:
         (lo_seen, hi_seen), "centred")
 
 
-def _quad_grid(quad: np.ndarray) -> np.ndarray:
-    """(2, 2, 2) the grid of corners of one cell given as its corners in order (tl, tr, br, bl)."""
-    return np.array([[quad[0], quad[1]], [quad[3], quad[2]]])
+def _cell_level(u8: np.ndarray, g: np.ndarray | dict, r: int, c: int) -> float:
+    """Mean grey level in the middle of the cell between corners (r, c) and (r + 1, c + 1) of the grid g (an
+    (R, C, 2) array or a {(r, c): uv} dict)."""
+    return _quad_level(u8, np.array([g[r, c], g[r, c + 1], g[r + 1, c + 1], g[r + 1, c]]))
 
 
-def _cell_level(u8: np.ndarray, g: np.ndarray, r: int, c: int) -> float:
-    """Mean grey level in the middle of the cell between corners (r, c) and (r + 1, c + 1) of the grid g."""
-    quad = np.array([g[r, c], g[r, c + 1], g[r + 1, c + 1], g[r + 1, c]])
+def _quad_level(u8: np.ndarray, quad: np.ndarray) -> float:
+    """Mean grey level in the middle of the cell whose corners are ``quad`` (4, 2) [px] in order around it."""
+    h, w = u8.shape
     mid = quad.mean(0)
     pts = np.rint(mid + 0.3 * (quad - mid)).astype(np.int32)  # a small quadrilateral in the cell's middle
-    lo = np.clip(pts.min(0), 0, (u8.shape[1] - 1, u8.shape[0] - 1))
-    hi = np.clip(pts.max(0) + 1, lo + 1, (u8.shape[1], u8.shape[0]))
+    lo = np.clip(pts.min(0), 0, (w - 1, h - 1))
+    hi = np.clip(pts.max(0) + 1, lo + 1, (w, h))
     mask = np.zeros((hi[1] - lo[1], hi[0] - lo[0]), np.uint8)  # over the quadrilateral's bounding box only
     cv2.fillConvexPoly(mask, pts - lo, 1)
     if not mask.any():
-        return float(u8[int(np.clip(round(mid[1]), 0, u8.shape[0] - 1)), int(np.clip(round(mid[0]), 0, u8.shape[1] - 1))])
+        return float(u8[int(np.clip(round(mid[1]), 0, h - 1)), int(np.clip(round(mid[0]), 0, w - 1))])
     return float(u8[lo[1] : hi[1], lo[0] : hi[0]][mask > 0].mean())
 
 
@@ -394,9 +379,9 @@ def warn_if_charuco_biased() -> None:
 @functools.lru_cache(maxsize=8)
 def make_charuco_board(squares: tuple[int, int], square: float, marker: float, dictionary: str,
                        legacy: bool = False, what: str = "plate.dictionary"):
-    """A ``cv2.aruco.CharucoBoard`` of ``squares`` (NX, NY) of ``square`` mm with ``marker`` mm markers of
-    the predefined ``dictionary`` (shared, cached: do not modify it). ``ConfigError`` naming ``what`` for
-    an unknown dictionary."""
+    """A ``cv2.aruco.CharucoBoard`` of ``squares`` (NX, NY) of ``square`` mm with ``marker`` mm markers of the
+    predefined ``dictionary`` (shared, cached: do not modify it). ``ConfigError`` naming ``what`` for an unknown
+    dictionary."""
     board = cv2.aruco.CharucoBoard(tuple(int(v) for v in squares), float(square), float(marker),
                                    cv2.aruco.getPredefinedDictionary(aruco_dictionary(dictionary, what)))
     board.setLegacyPattern(bool(legacy))
@@ -453,8 +438,7 @@ def _charuco_print(squares, square, marker, dictionary, legacy) -> tuple[np.ndar
 
 
 def board_ink(plate: PlateSpec, xw: np.ndarray, yw: np.ndarray) -> np.ndarray:
-    """Whether plate points (x_W, y_W) [mm] (any shape) lie on the board's dark print. ``ConfigError`` for
-    a plate that is no board."""
+    """Whether plate points (x_W, y_W) [mm] (any shape) lie on the board's dark print; ``ConfigError`` for no board."""
     _require_board(plate)
     nx, ny = plate.squares
     sq = plate.pitch
