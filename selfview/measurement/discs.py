@@ -161,7 +161,7 @@ def _measure_discs(work, labels, stats, round_: list[int], reject) -> tuple[list
     uv, areas = [], []
     for k in round_:
         x, y, w, h, area = (int(v) for v in stats[k])
-        if not 0.25 * typical <= area <= 4 * typical:
+        if area < 0.25 * typical or area > 4 * typical:
             reject("speck" if area < 0.25 * typical else "too large")
             continue
         why, c = _centroid(work, labels, k, (x, y, w, h), area, small)
@@ -302,7 +302,8 @@ def _edge_level(x, y, z, angle):
 
     def fit(angles):
         """(mse per angle, the function giving (share of bad pixels, cos, sin, bin centres, profile) of the
-        ``i``-th) for all ``angles`` in one interpolation, each angle's bins shifted clear of the others'."""
+        ``i``-th) for all ``angles`` in one interpolation, each angle's bins shifted clear of the others' and its
+        positions clamped to its bins as ``np.interp`` clamps them."""
         a = np.asarray(angles, float)
         c, s = np.cos(a), np.sin(a)
         u = np.multiply.outer(c, x)  # in place from here: each temporary costs as much as the arithmetic
@@ -650,9 +651,9 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     rejected: dict[str, int] = {}
 
-    def reject(reason: str, n: int = 1) -> None:
-        if n:
-            rejected[reason] = rejected.get(reason, 0) + n
+    def reject(reason: str, count: int = 1) -> None:
+        if count:
+            rejected[reason] = rejected.get(reason, 0) + count
 
     uv, areas = _measure_discs(work, labels, stats, _round_blobs(labels, stats, reject), reject)
     n_blobs = n - 1

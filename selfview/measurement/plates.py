@@ -39,12 +39,12 @@ PlateDetections = DiscDetections
 
 def detect_plate(image, plate: PlateSpec, *, camera: CameraModel | None = None,
                  min_points: int = 12) -> PlateDetections:
-    """The plate points seen in ``image`` (any picture ``discs.as_gray`` takes), indexed on the plate's
-    lattice and sorted by (row, col): pixels (distorted, as measured), grid indices and W points [mm].
+    """The plate points seen in ``image`` (any picture ``discs.as_gray`` takes), indexed on the plate's lattice and
+    sorted by (row, col): pixels (distorted, as measured), grid indices and W points [mm].
 
-    Raises ``ImageError`` (no plate, fewer than ``min_points`` points, a chessboard of ambiguous
-    orientation, markers of another board), ``ConfigError`` (an unknown pattern or dictionary) or
-    ``ValueError`` (``min_points`` not a whole number >= 1)."""
+    Raises ``ImageError`` (no plate, fewer than ``min_points`` points, a chessboard of ambiguous orientation,
+    markers of another board), ``ConfigError`` (an unknown pattern or dictionary) or ``ValueError``
+    (``min_points`` not a whole number >= 1)."""
     if isinstance(min_points, bool) or not isinstance(min_points, (int, np.integer)) or min_points < 1:
         raise ValueError(f"min_points: expected a whole number of plate points >= 1, got {min_points!r}")
     if plate.pattern == "discs":
@@ -89,10 +89,9 @@ X_MIN_CONTRAST = 40.0
 
 
 def _chessboard(u8: np.ndarray, plate: PlateSpec) -> tuple[np.ndarray, np.ndarray, int, dict, dict]:
-    """The board's inner corners: the whole board (``findChessboardCornersSB``), else (fingers over it,
-    its edge out of the picture) the corners grown along the board's lattice from a seed of 2 x 2
-    alternating squares (``_grow_lattice``) and placed on the plate by the board's edges seen and the
-    squares' colours (``_place_lattice``). Returns (uv, ids, corners found, index basis, ambiguous)."""
+    """The board's inner corners: the whole board (``findChessboardCornersSB``), else (fingers over it, its edge
+    out of the picture) the corners grown from 2 x 2 alternating squares (``_grow_lattice``) and placed on the
+    plate (``_place_lattice``). Returns (uv, ids, corners found, index basis, ambiguous)."""
     nx, ny = plate.squares
     if (nx + ny) % 2 == 0:
         raise ImageError(f"a {nx}x{ny}-square chessboard looks the same turned by a half turn: its orientation in the "
@@ -120,7 +119,6 @@ def _alternating(u8: np.ndarray, g: np.ndarray) -> np.ndarray:
     """(R, C) bool: the corners of the whole board's grid g (R, C, 2) whose four cells alternate dark and
     light with the board's parity (``_x_corner``; the grid extended by a line of corners all round)."""
     G = np.pad(g, ((1, 1), (1, 1), (0, 0)))
-    G[1:-1, 1:-1] = g
     G[0, 1:-1], G[-1, 1:-1] = 2 * g[0] - g[1], 2 * g[-1] - g[-2]
     G[:, 0], G[:, -1] = 2 * G[:, 1] - G[:, 2], 2 * G[:, -2] - G[:, -3]
     R, C = g.shape[:2]
@@ -162,15 +160,15 @@ def _refined_block(u8: np.ndarray, p, a, b) -> np.ndarray | None:
     block reaches beyond the picture."""
     j, i = np.mgrid[-1:2, -1:2]
     sub = p + i[..., None] * a + j[..., None] * b
-    win = int(np.clip(min(np.linalg.norm(a), np.linalg.norm(b)) / 4, 2, 15))
+    return _subpix(u8, sub, int(np.clip(min(np.linalg.norm(a), np.linalg.norm(b)) / 4, 2, 15)))
+
+
+def _subpix(u8: np.ndarray, pts: np.ndarray, win: int) -> np.ndarray | None:
+    """Corners ``pts`` (..., 2) [px] refined by ``cv2.cornerSubPix`` in a (2 win + 1) px window, same shape; None
+    when a window comes within 2 px of the picture's border."""
     h, w = u8.shape
-    if not np.all((sub >= win + 2) & (sub < (w - win - 2, h - win - 2))):
+    if not np.all((pts >= win + 2) & (pts < (w - win - 2, h - win - 2))):
         return None
-    return _subpix(u8, sub, win)
-
-
-def _subpix(u8: np.ndarray, pts: np.ndarray, win: int) -> np.ndarray:
-    """Corners ``pts`` (..., 2) [px] refined by ``cv2.cornerSubPix`` in a (2 win + 1) px window, same shape."""
     q = cv2.cornerSubPix(u8, pts.reshape(-1, 1, 2).astype(np.float32), (win, win), (-1, -1),
                          (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01))
     return q.reshape(pts.shape).astype(float)
@@ -231,7 +229,6 @@ def _grow_lattice(u8: np.ndarray, g: np.ndarray) -> dict:
     seed = _seed_block(u8, g)
     found = {(i, j): seed[i, j] for i in range(3) for j in range(3)}
     parity, levels = _x_corner(u8, seed), _block_levels(u8, seed)
-    h, w = u8.shape
     tried = set(found)
     grew = True
     while grew:
@@ -246,10 +243,8 @@ def _grow_lattice(u8: np.ndarray, g: np.ndarray) -> dict:
             p = quad[4]
             side = float(np.min(np.linalg.norm(quad[:4] - p, axis=1))) / np.sqrt(2)  # about a square [px]
             win = int(np.clip(side / 4, 2, 15))
-            if side < 8 or not (win + 2 <= p[0] < w - win - 2 and win + 2 <= p[1] < h - win - 2):
-                continue
-            q = _subpix(u8, p, win)
-            if np.linalg.norm(q - p) > side / 4:
+            q = _subpix(u8, p, win) if side >= 8 else None
+            if q is None or np.linalg.norm(q - p) > side / 4:
                 continue
             block = _at(Hn, np.tile([c - 1, c, c + 1], 3), np.repeat([r - 1, r, r + 1], 3)).reshape(3, 3, 2)
             block[1, 1] = q
@@ -343,7 +338,7 @@ def _basis(lo_seen: bool, hi_seen: bool) -> str:
         (lo_seen, hi_seen), "centred")
 
 
-def _cell_level(u8: np.ndarray, g: np.ndarray, r: int, c: int) -> float:
+def _cell_level(u8: np.ndarray, g: np.ndarray | dict, r: int, c: int) -> float:
     """Mean grey level in the middle of the cell between corners (r, c) and (r + 1, c + 1) of the grid g (an
     (R, C, 2) array or a {(r, c): uv} dict)."""
     return _quad_level(u8, np.array([g[r, c], g[r, c + 1], g[r + 1, c + 1], g[r + 1, c]]))
@@ -384,9 +379,9 @@ def warn_if_charuco_biased() -> None:
 @functools.lru_cache(maxsize=8)
 def make_charuco_board(squares: tuple[int, int], square: float, marker: float, dictionary: str,
                        legacy: bool = False, what: str = "plate.dictionary"):
-    """A ``cv2.aruco.CharucoBoard`` of ``squares`` (NX, NY) of ``square`` mm with ``marker`` mm markers of
-    the predefined ``dictionary`` (shared, cached: do not modify it). ``ConfigError`` naming ``what`` for
-    an unknown dictionary."""
+    """A ``cv2.aruco.CharucoBoard`` of ``squares`` (NX, NY) of ``square`` mm with ``marker`` mm markers of the
+    predefined ``dictionary`` (shared, cached: do not modify it). ``ConfigError`` naming ``what`` for an unknown
+    dictionary."""
     board = cv2.aruco.CharucoBoard(tuple(int(v) for v in squares), float(square), float(marker),
                                    cv2.aruco.getPredefinedDictionary(aruco_dictionary(dictionary, what)))
     board.setLegacyPattern(bool(legacy))
@@ -443,8 +438,7 @@ def _charuco_print(squares, square, marker, dictionary, legacy) -> tuple[np.ndar
 
 
 def board_ink(plate: PlateSpec, xw: np.ndarray, yw: np.ndarray) -> np.ndarray:
-    """Whether plate points (x_W, y_W) [mm] (any shape) lie on the board's dark print. ``ConfigError`` for
-    a plate that is no board."""
+    """Whether plate points (x_W, y_W) [mm] (any shape) lie on the board's dark print; ``ConfigError`` for no board."""
     _require_board(plate)
     nx, ny = plate.squares
     sq = plate.pitch
