@@ -1,14 +1,8 @@
-/* selfview.measurement._csil: the compiled per-round steps of the model-based fingertip measurement, each
- * computing what its Python reference in selfview/measurement/silhouette.py computes (the tests compare the two
- * at tolerances with a physical meaning): sample (_sample_py), points (_points_seen_py), candidates
- * (_candidates_np, then camera.undistort_pixels), vote (_votes_py), solve (_solve_py).
- *
- * candidates reads the profile as cv2.remap does (bilinear below) in single precision as numpy does, and ranks
- * equal scores by position (numpy's sort leaves their order open); solve sums in another order than numpy: both
- * agree to rounding. A point the Python code refuses (behind the camera, beyond the lens's fold) makes sample
- * return -1 and points 0, a singular system makes solve return code 2: the caller then runs the reference.
- * Bad arguments (a buffer's type, dimensions or shape, an index) raise TypeError or ValueError naming them.
- */
+/* selfview.measurement._csil: the compiled steps of the silhouette fit, each computing what its numpy reference in
+ * silhouette.py computes, to the tests' tolerances: sample (_sample_py), candidates (_candidates_np, then
+ * camera.undistort_pixels), vote (_votes_py), solve (_solve_py). Pixels are read as cv2.remap reads them; equal scores
+ * rank by position. A point the Python code refuses makes sample return -1, a singular system solve return code 2: the
+ * caller then runs the reference. Bad arguments raise TypeError or ValueError naming them. */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
@@ -54,8 +48,7 @@ static int buf_kind(const Py_buffer *b)
     return 0;
 }
 
-/* The buffer of argument ``name``: C-contiguous, of type ``kind``, ``ndim`` dimensions of the given
- * shape (-1: any). NULL with an exception set. */
+/* argument name's buffer: C-contiguous, of type kind, ndim dimensions of the given shape (-1: any); NULL: raised */
 static Py_buffer *get_buf(BufSet *s, PyObject *o, const char *name, int kind, int writable, int ndim,
                           const Py_ssize_t *shape)
 {
@@ -134,7 +127,6 @@ static int indices_ok(const int64_t *v, Py_ssize_t n, Py_ssize_t hi, const char 
     return 1;
 }
 
-/* a x b */
 static void cross3(const double a[3], const double b[3], double out[3])
 {
     out[0] = a[1] * b[2] - a[2] * b[1];
@@ -247,10 +239,9 @@ static int solve6(double Ab[42], double x[6])
 }
 
 /* solve(q, pos, a_G, b_G, H, f, floor, iters, start_floor, H_out, w, r, pick, JtWJ) -> (code, sigma): q (S, C, 2)
- * the candidates (undistorted sensor coordinates, NaN: none), pos (S,) the row of each sample's edge in its ends
- * a_G, b_G (E, 3) [mm, G], H the start C_H_G, f [px], start_floor < 0: none. code 0 done; 1 fewer than 12 samples
- * with a candidate (w zero, as the reference returns); 2 a singular system. */
-static PyObject *py_solve(PyObject *self, PyObject *args)
+ * candidates (undistorted sensor coordinates, NaN: none), pos (S,) each sample's edge in a_G, b_G (E, 3) [mm, G], H
+ * the start C_H_G, f [px], start_floor < 0: none. code 0 done, 1 under 12 samples with a candidate (w 0), 2 singular */
+static PyObject *py_solve(PyObject *Py_UNUSED(self), PyObject *args)
 {
     PyObject *o_q, *o_pos, *o_a, *o_b, *o_H, *o_Ho, *o_w, *o_r, *o_pick, *o_J;
     double f, floor_, start_floor;
@@ -296,7 +287,6 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
     double sigma = floor_;
     int code = 0;
     for (Py_ssize_t it = 0; it < iters; it++) {
-        /* the model lines */
         for (Py_ssize_t e = 0; e < E; e++) {
             double A[3], B[3];
             apply_H(H, aG + 3 * e, A);
@@ -316,7 +306,6 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
             V[4] = -m[0] * d[2];
             V[5] = m[0] * d[1] - m[1] * d[0];
         }
-        /* each sample's candidate nearest its line */
         Py_ssize_t nh = 0;
         for (Py_ssize_t s = 0; s < S; s++) {
             const double *m = M + 3 * pos[s];
@@ -409,9 +398,9 @@ out:
     return ret;
 }
 
-/* vote(off, nrm, g, tol, votes): votes[iy * G + ix] how many samples (off (S, C) candidates, NaN: none; nrm
- * (S, 2)) have a candidate within tol of nrm . (g[ix], g[iy]); n . d summed without a matrix product's rounding */
-static PyObject *py_vote(PyObject *self, PyObject *args)
+/* vote(off, nrm, g, tol, votes): votes[iy * G + ix] the samples (off (S, C), NaN: none; nrm (S, 2)) with a candidate
+ * within tol of nrm . (g[ix], g[iy]) */
+static PyObject *py_vote(PyObject *Py_UNUSED(self), PyObject *args)
 {
     PyObject *o_off, *o_n, *o_g, *o_v;
     double tol;
@@ -458,8 +447,6 @@ out:
     return ret;
 }
 
-/* ---- the sampling of the silhouette and the candidates along each sample's normal ---------------------- */
-
 typedef struct {
     double f, kappa, cx, cy, aspect, width, height, skew, rmax;
 } Cam;
@@ -487,9 +474,7 @@ static int get_cam(const double *v, Cam *c)
     return 1;
 }
 
-/* camera.CameraModel.project of one camera-frame point (eq. 3, then the distorted radius of eq. 4 by the
- * same closed forms and Newton polish); 0 for a point the Python code refuses (z <= 0, beyond the lens's
- * fold), which the caller then hands to it */
+/* CameraModel.project of a camera-frame point (eqs. 3, 4, as there); 0 where it refuses (z <= 0, beyond the fold) */
 static int project(const Cam *c, const double p[3], double uv[2])
 {
     if (!(p[2] > 0))
@@ -525,8 +510,7 @@ static int in_image(const Cam *c, const double u[2], double margin)
            u[1] <= c->height - 0.5 - margin;
 }
 
-/* silhouette._blocked for one ray o + t d: whether it passes through the box (lo, hi) before t = 1 (an axis
- * where the ray runs in a face's plane, 0 / 0, bounds nothing, as in the reference) */
+/* silhouette._blocked for one ray o + t d: through the box (lo, hi) before t = 1 (0 / 0: no bound, as there) */
 static int blocked(const double o[3], const double d[3], const double *lo, const double *hi)
 {
     double tn = -INFINITY, tf = 1.0;
@@ -542,12 +526,10 @@ static int blocked(const double o[3], const double d[3], const double *lo, const
 
 #define MAX_PER_EDGE 400
 
-/* sample(a_G, b_G, d_in, finger, box, H, cam, margin, step, p, edge, uv, nrm) -> S, or -1: points every step px
- * along the edges a_G -> b_G (E, 3) [mm, G] whose ends lie 1 mm or more in front of the camera at H (C_H_G), kept
- * when in the picture margin px inside its border and not behind the other finger's box (box (2, 2, 3): finger,
- * lo/hi; finger (E,)), with unit normals towards each edge's first face (d_in (E, 3): into it). Writes the first
- * S rows of p (Smax, 3) [G], edge, uv [px], nrm; Smax at least MAX_PER_EDGE per edge. */
-static PyObject *py_sample(PyObject *self, PyObject *args)
+/* sample(a_G, b_G, d_in, finger, box, H, cam, margin, step, p, edge, uv, nrm) -> S, or -1: points every step px along
+ * edges a_G -> b_G (E, 3) [mm, G] over 1 mm in front of H (C_H_G), margin px in the picture, not behind the other
+ * finger's box (2, 2, 3); normals into the first face (d_in (E, 3)); writes p (Smax >= 400 E, 3), edge, uv [px], nrm */
+static PyObject *py_sample(PyObject *Py_UNUSED(self), PyObject *args)
 {
     PyObject *o_a, *o_b, *o_d, *o_fin, *o_box, *o_H, *o_cam, *o_p, *o_e, *o_uv, *o_n;
     double margin, step;
@@ -652,9 +634,7 @@ out:
     return ret;
 }
 
-/* cv2.remap's bilinear sample of a float32 picture (INTER_LINEAR, BORDER_REPLICATE): the position rounded
- * to 1/32 px, the four weights products of 1 - a/32 and a/32 in single precision (an 8-bit picture: its
- * levels as float32, the same numbers) */
+/* cv2.remap's sample (INTER_LINEAR, BORDER_REPLICATE): the position rounded to 1/32 px, weights in single precision */
 #define PIX(row, x) (img8 ? (float)img8[(row) + (x)] : img[(row) + (x)])
 static inline float bilinear(const float *img, const uint8_t *img8, int H, int W, float x, float y)
 {
@@ -674,11 +654,10 @@ static inline float bilinear(const float *img, const uint8_t *img8, int H, int W
 
 static inline int sgnf(float v) { return (v > 0) - (v < 0); }
 
-/* candidates(img, uv, nrm, lev1, lev2, R, gates, cam, off, face, contrast, q): img (H, W) float32 or uint8; per
- * sample uv, nrm (S, 2), the levels of its first and second face lev1, lev2 (S,) (NaN: none learnt); R the range
- * [px]; gates: the plateau [px], the least contrast, the level tolerance (fraction) and its floor [grey]. Writes
- * (S, C): off [px along nrm], face, contrast (NaN: none), q (S, C, 2) undistorted sensor coordinates. */
-static PyObject *py_candidates(PyObject *self, PyObject *args)
+/* candidates(img, uv, nrm, lev1, lev2, R, gates, cam, off, face, contrast, q): img (H, W) float32 or uint8; uv, nrm
+ * (S, 2); lev1, lev2 (S,) the first and second face's levels (NaN: none); R [px]; gates: plateau [px], least contrast,
+ * level tolerance and its floor [grey]. Writes (S, C) off [px along nrm], face, contrast (NaN: none), q (S, C, 2). */
+static PyObject *py_candidates(PyObject *Py_UNUSED(self), PyObject *args)
 {
     PyObject *o_img, *o_uv, *o_n, *o_l1, *o_l2, *o_g, *o_cam, *o_off, *o_face, *o_con, *o_q;
     double R;
@@ -719,8 +698,7 @@ static PyObject *py_candidates(PyObject *self, PyObject *args)
     const int Ri = (int)ceil(R), L = 2 * Ri + 2 * P + 3, M = L - 4;
     float *work;
     ALLOC(work, sizeof(float) * (size_t)(4 * L) + sizeof(double) * (size_t)M);
-    /* per sample: the profile at offsets -Ri-P-1 .. Ri+P+1, its derivative D (at offsets -Ri-P .. Ri+P), and per
-     * step m (at offset m - Ri - P + 1, D's m + 1) the mean levels 2..P px on its face side and on the other */
+    /* profile at offsets -Ri-P-1..Ri+P+1, D at -Ri-P..Ri+P; per step m (D's m + 1) the mean levels 2..P px each side */
     float *prof = work, *D = work + L, *face = D + L, *other = face + L;
     double *score = (double *)(other + L);
     const int is8 = buf_kind(b_img) == T_U8;
@@ -792,61 +770,10 @@ out:
     return ret;
 }
 
-/* points(p_G, other, box, H, cam, margin, uv, inside, hidden) -> 1, or 0: the points p_G (N, 3) at H (C_H_G):
- * their pixels uv (N, 2), whether in the picture margin px inside its border, whether behind the box of finger
- * other (N,) (int64 0/1 each) */
-static PyObject *py_points(PyObject *self, PyObject *args)
-{
-    PyObject *o_p, *o_oth, *o_box, *o_H, *o_cam, *o_uv, *o_in, *o_hid;
-    double margin;
-    BufSet bs = {.n = 0};
-    PyObject *ret = NULL;
-    Py_buffer *b_p, *b_oth, *b_box, *b_H, *b_cam, *b_uv, *b_in, *b_hid;
-    if (!PyArg_ParseTuple(args, "OOOOOdOOO:points", &o_p, &o_oth, &o_box, &o_H, &o_cam, &margin, &o_uv, &o_in, &o_hid))
-        return NULL;
-    GET(b_p, o_p, "p_G", T_F64, 0, 2, -1, 3);
-    const Py_ssize_t N = b_p->shape[0];
-    GET(b_oth, o_oth, "other", T_I64, 0, 1, N);
-    GET(b_box, o_box, "box", T_F64, 0, 3, 2, 2, 3);
-    GET(b_H, o_H, "H", T_F64, 0, 2, 4, 4);
-    GET(b_cam, o_cam, "cam", T_F64, 0, 1, 8);
-    GET(b_uv, o_uv, "uv", T_F64, 1, 2, N, 2);
-    GET(b_in, o_in, "inside", T_I64, 1, 1, N);
-    GET(b_hid, o_hid, "hidden", T_I64, 1, 1, N);
-    const int64_t *oth = b_oth->buf;
-    if (!indices_ok(oth, N, 2, "other", "point", "finger"))
-        goto out;
-    REQUIRE(isfinite(margin), PyExc_ValueError, "margin: expected a finite number");
-    Cam c;
-    if (!get_cam(b_cam->buf, &c))
-        goto out;
-    const double *pG = b_p->buf, *H = b_H->buf, *box = b_box->buf;
-    double *uv = b_uv->buf;
-    int64_t *ins = b_in->buf, *hid = b_hid->buf;
-    double o[3];
-    cam_origin(H, o);
-    for (Py_ssize_t i = 0; i < N; i++) {
-        const double *p = pG + 3 * i, *lo = box + 6 * oth[i], d[3] = {p[0] - o[0], p[1] - o[1], p[2] - o[2]};
-        double pc[3];
-        apply_H(H, p, pc);
-        if (!project(&c, pc, uv + 2 * i)) {
-            ret = PyLong_FromLong(0);
-            goto out;
-        }
-        ins[i] = in_image(&c, uv + 2 * i, margin);
-        hid[i] = blocked(o, d, lo, lo + 3);
-    }
-    ret = PyLong_FromLong(1);
-out:
-    bufs_release(&bs);
-    return ret;
-}
-
 static PyMethodDef methods[] = {
     {"solve", py_solve, METH_VARARGS, "silhouette._solve_py's IRLS (see _csil.c)."},
     {"vote", py_vote, METH_VARARGS, "silhouette._votes_py's vote (see _csil.c)."},
     {"sample", py_sample, METH_VARARGS, "silhouette._sample_py (see _csil.c)."},
-    {"points", py_points, METH_VARARGS, "silhouette._points_seen_py (see _csil.c)."},
     {"candidates", py_candidates, METH_VARARGS, "silhouette._candidates_np and camera.undistort_pixels (see _csil.c)."},
     {NULL, NULL, 0, NULL},
 };

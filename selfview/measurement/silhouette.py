@@ -1,14 +1,8 @@
 """Model-based fingertip measurement: the visible silhouette of both finger prisms fitted at once.
 
-Every visible box edge is sampled every ``STEP_PX``; each sample looks along its image normal for steps with the
-finger's polarity and face levels (``Appearance``); the camera motion that brings the model lines onto the nearest
-candidates is found by IRLS with Tukey weights in undistorted sensor coordinates, over rounds of shrinking search
-ranges (a vote for the image shift first when the start may be far off). The corners are the model's points at the
-fitted pose; a fit below the quality thresholds is reported as lost with the reason, never as a pose
-(``fingers.SilhouetteTracker`` follows the fit from frame to frame). The sampling, candidates, IRLS and vote run in
-the compiled kernel ``selfview.measurement._csil`` when built, else in the numpy code here (the tests hold the two
-to stated tolerances).
-"""
+Samples every ``STEP_PX`` along the visible box edges seek steps of the finger's polarity and face levels along their
+normals; IRLS with Tukey weights fits the camera motion over rounds of shrinking ranges; the corners are the model's
+points at the fit, a fit below the quality gates is lost with the reason. ``_csil`` runs the inner steps when built."""
 
 from __future__ import annotations
 
@@ -38,19 +32,13 @@ ROUNDS = (24.0, 10.0, 5.0, 3.0)  # the search range R of each round of sampling 
 SCALE_FLOOR_PX = 0.35  # robust scale's floor in the last round
 MIN_GOOD_FRACTION = 0.5  # of the samples (and of each finger's), that support the fit
 MAX_RMS_PX = 0.6  # of the supporting samples' distances, until this gripper's level is learnt (``rms_limit``)
-#: A real finger is off its nominal faces (0.1 mm a face, an edge break of 0.2 mm): a right fit of the nominal model
-#: to it leaves 0.36-0.83 px on the grasping study's world 2 (under 0.1 px on the ideal cell). The residual level of
-#: a fit known good (``SilhouetteTracker``'s first fit from the calibrated pose) is learnt up to this bound ...
+#: Bound of a good fit's learnt residual level: the nominal model on real fingers (faces off 0.1 mm) leaves 0.36-0.83 px
 MAX_LEARNT_RMS_PX = 1.0
-#: ... and a later frame is lost when its residual is over the learnt level by more than this factor: on world 2's
-#: grasps the residual of right fits moves with what lies behind the fingers (more of their edges contrasted), up
-#: to 1.38 times the first frame's level (0.58 -> 0.81 px); a fit that leaves more is not these fingers. The TCP's
-#: standard deviation scales with the residual, so its limit grows alike.
+#: A frame is lost over this factor of the learnt level: right fits on world 2's grasps reach 1.38 times (0.58-0.81 px)
 RMS_MARGIN = 1.5
 MAX_TCP_SD_MM = 0.02  # the fitted pose's TCP standard deviation (any camera axis)
 BORDER_PX = 3.0
-#: A face's samples spreading over more than this share of their level (and FACE_SPREAD_GREY), interquartile,
-#: are not one face: a rendered face spreads by 2 grey levels, one half off the face by 20-130.
+#: Interquartile spread (of the level, and grey) over which samples are not one face: a face 2, half off one 20-130.
 FACE_SPREAD, FACE_SPREAD_GREY = 0.15, 8.0
 MIN_FINGER_SAMPLES = 25  # a finger with fewer samples in the picture is not judged on its own
 
@@ -67,13 +55,11 @@ class Appearance:
 
 @dataclass
 class SilhouetteFit:
-    """The fitted silhouette: ``C_H_G`` (4, 4) the pose that fits (None if it could not be fitted), ``uv`` (6, 2)
-    the model's points there (distorted pixels), ``found`` (6,) in the picture and not hidden, when ``ok``; ``ok``
-    whether the fit is believed; ``reason`` why not; ``good_fraction`` of the samples that support it,
-    ``finger_fraction`` (2,) per finger (of its samples in the picture; NaN for a finger with too few there to
-    judge); ``finger_visible`` (2,) the share of each finger's edge samples that lie in the picture and are not
-    hidden by the other finger; ``rms_px``; ``tcp_sd_mm`` (3,) the TCP's standard deviation (camera axes);
-    ``n_samples``; ``appearance`` the faces' levels measured at the fit (for the next frame); ``reasons`` per point."""
+    """The fitted silhouette: ``C_H_G`` (4, 4) the fitted pose (None: not fitted); ``uv`` (6, 2) its points [distorted
+    px] and ``found`` (6,) in the picture and not hidden, when ``ok``; ``reason`` why not ok; ``good_fraction`` of the
+    ``n_samples`` supporting it, ``finger_fraction`` (2,) per finger (NaN: too few to judge); ``finger_visible`` (2,)
+    each finger's edge samples' share in the picture, not hidden; ``rms_px``; ``tcp_sd_mm`` (3,) the TCP's standard
+    deviation (camera axes); ``appearance`` the faces' levels at the fit (for the next frame); ``reasons`` per point."""
 
     C_H_G: np.ndarray | None
     uv: np.ndarray
@@ -106,7 +92,6 @@ class SilhouetteFit:
         }
 
 
-# --- the model's edges -----------------------------------------------------------------------------
 @dataclass
 class _EdgeSet:
     a_G: np.ndarray  # (E, 3) one end
@@ -121,8 +106,7 @@ _EDGE_CACHE: dict = {}
 
 
 def _visible_edges(boxes, C_H_G) -> _EdgeSet:
-    """The edges of the boxes that show from the camera at ``C_H_G`` (cached: they change only when the camera
-    crosses the plane of a face)."""
+    """The boxes' edges seen from the camera at ``C_H_G`` (cached: they change only as it crosses a face's plane)."""
     cam_G = inv_H(C_H_G)[:3, 3]
     b = np.asarray(boxes, float).reshape(-1, 3)
     key = (b.tobytes(), tuple(np.sign(cam_G[None, :] - b).ravel().astype(int)))
@@ -140,8 +124,7 @@ def _visible_edges(boxes, C_H_G) -> _EdgeSet:
 
 
 def _blocked(o, d, lo, hi) -> np.ndarray:
-    """(M,) whether rays o + t d (G, t in (0, 1)) pass through the box (lo, hi) (each (3,), or (M, 3): one
-    box per ray) before t = 1 (an axis the ray runs along and lies in, 0 / 0, bounds nothing)."""
+    """(M,) whether rays o + t d (G) cross the box (lo, hi) ((3,) or (M, 3)) before t = 1 (0 / 0 bounds nothing)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         t1 = (lo - o) / d
         t2 = (hi - o) / d
@@ -165,16 +148,14 @@ _CAM_FIELDS = ("f", "kappa", "cx", "cy", "aspect", "width", "height", "skew")
 
 
 def _cam_params(cam) -> np.ndarray | None:
-    """The camera as the compiled kernel takes it (8,), or None when ``cam`` is not the model the kernel
-    mirrors (``CameraModel`` with exactly these parameters: any other goes the Python way)."""
+    """The camera as the kernel takes it (8,), or None unless ``cam`` is the ``CameraModel`` the kernel mirrors."""
     if type(cam) is not CameraModel or tuple(f.name for f in dataclasses.fields(cam)) != _CAM_FIELDS:
         return None
     return np.array([float(getattr(cam, k)) for k in _CAM_FIELDS])
 
 
 def _sample(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _Samples:
-    """Points every STEP_PX along the visible edges, in the picture and not hidden by the other finger
-    (``_sample_py``, in the compiled kernel when built: the same edges sampled, positions within 1e-6 px)."""
+    """Points every STEP_PX along the visible edges, in the picture and not hidden by the other finger."""
     kernel = _native.sil
     cp = None if kernel is None else _cam_params(cam)
     if cp is not None and len(es.a_G):
@@ -196,7 +177,7 @@ def _sample_py(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _
     if not len(fe):
         return empty
     nf = len(fe)
-    # one projection: the ends, and per edge its middle and a point a step into its first face (the face's side)
+    # one projection: the ends, each edge's middle and a point a step into its first face (its side)
     m_G = 0.5 * (es.a_G[fe] + es.b_G[fe])
     mid = transform_points(C_H_G, np.vstack([m_G, m_G + 0.05 * es.d_in[fe]]))
     uv_e = cam.project(np.vstack([ends[fe], ends[E + fe], mid]))
@@ -208,14 +189,13 @@ def _sample_py(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _
     t = (np.arange(len(k)) - starts[k] + 0.5) / counts[k]
     p = es.a_G[edge] + t[:, None] * (es.b_G - es.a_G)[edge]
     uv = cam.project(transform_points(C_H_G, p))
-    # tangents from neighbouring samples of the same edge (forward differences, an edge's last one backward)
+    # tangents: forward differences along an edge, its last one backward
     tan = np.empty_like(uv)
     tan[:-1] = uv[1:] - uv[:-1]
     last = starts + counts - 1
     tan[last] = tan[last - 1]
     keep = np.flatnonzero(cam.in_image(uv, margin=margin))
     if len(keep):
-        # each sample against the other finger's box (one call: the same arithmetic row by row)
         o = inv_H(C_H_G)[:3, 3]
         box = np.asarray(boxes, float)  # (2, 2, 3): finger, lo/hi
         other = 1 - es.finger[edge[keep]]
@@ -231,8 +211,7 @@ def _sample_py(cam: CameraModel, es: _EdgeSet, boxes, C_H_G, margin: float) -> _
 
 
 def _finger_visible(cam: CameraModel, es: _EdgeSet, C_H_G, s: _Samples) -> np.ndarray:
-    """(2,) of each finger's edge samples (as ``_sample`` spaces them along the whole edge), the share
-    that ``s`` kept: in the picture and not hidden by the other finger."""
+    """(2,) the share of each finger's edge samples (as ``_sample`` spaces them) that ``s`` kept."""
     ends = transform_points(C_H_G, np.vstack([es.a_G, es.b_G]))
     E = len(es.a_G)
     front = (ends[:E, 2] > 1.0) & (ends[E:, 2] > 1.0)
@@ -246,10 +225,8 @@ def _finger_visible(cam: CameraModel, es: _EdgeSet, C_H_G, s: _Samples) -> np.nd
 
 
 def _remap(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``img`` (float32) at (x, y) of any shape (border replicated), the positions on a
-    1/32 px grid: OpenCV 4's INTER_LINEAR rounds them so, OpenCV 5's does not; rounding here gives the same
-    samples on both, and the ones the C kernel takes (``bilinear`` in ``_csil.c``). The maps go to cv2 as rows of
-    4096 (its maps are at most 32767 a side; each output pixel depends on its own map entries only)."""
+    """Bilinear samples of ``img`` (float32) at (x, y) of any shape (border replicated), rounded to 1/32 px as
+    OpenCV 4 and ``_csil.c`` round (OpenCV 5 does not). Maps go in rows of 4096 (cv2 takes at most 32767 a side)."""
     shape = x.shape
     x = np.rint(np.asarray(x, np.float32) * np.float32(32)) / np.float32(32)
     y = np.rint(np.asarray(y, np.float32) * np.float32(32)) / np.float32(32)
@@ -268,9 +245,8 @@ def _level_ok(measured, level) -> np.ndarray:
 
 
 def _profiles(img, s: _Samples, R: float):
-    """The grey-level profile along each sample's normal, reaching R + PLATEAU_PX + 1 px either side:
-    (S, L) profile, (S, L - 2) its derivative D at positions ``pos`` (L - 2,) [px], A = |D|, and the peaks
-    of A within R of the sample as (rows, m): sample and index into D[:, 1:-1], row by row, m ascending."""
+    """Profiles along the samples' normals, R + PLATEAU_PX + 1 px either side: (S, L) profile, (S, L - 2) its
+    derivative D at ``pos`` (L - 2,) [px], A = |D|, A's peaks within R as (rows, m) (m indexes D[:, 1:-1])."""
     Ri = int(math.ceil(R))
     P = PLATEAU_PX
     offs = np.arange(-Ri - P - 1, Ri + P + 2, dtype=np.float32)  # profile positions
@@ -288,15 +264,11 @@ def _profiles(img, s: _Samples, R: float):
 
 
 def _gate_and_rank(face, other, rows, m, S: int, D, A, pos, lev1, lev2, n_cand: int):
-    """The candidates among the peaks (``rows``, ``m`` as ``_profiles`` gives them; ``face``/``other`` the two sides'
-    levels at each) of the derivative D (S, M + 2), A = |D|, at profile positions ``pos`` (M + 2,): the gates
-    (contrast, the faces' levels ``lev1``/``lev2`` (S,), polarity), the ranking (closeness to the face's level, else
-    contrast; ties by position), the best ``n_cand`` with their sub-pixel offsets: (S, C) offsets, face levels,
-    contrasts (NaN: none)."""
+    """``_profiles``'s best ``n_cand`` peaks through the gates (contrast, levels ``lev1``/``lev2`` (S,) of ``face``/
+    ``other``, polarity), ranked by face level, else contrast: (S, C) offsets [px], levels, contrasts (NaN: none)."""
     contrast = face - other
     j = m + 1  # index into D and A
     ok = np.abs(contrast) >= MIN_CONTRAST
-    # appearance: the face's level on the face side (at a crease the second face's on the other)
     l1, l2 = lev1[rows], lev2[rows]
     has1 = np.isfinite(l1)
     ok &= ~has1 | _level_ok(face, l1)
@@ -305,7 +277,7 @@ def _gate_and_rank(face, other, rows, m, S: int, D, A, pos, lev1, lev2, n_cand: 
     ok &= np.sign(D[rows, j]) == np.sign(contrast)
     k = np.flatnonzero(ok)
     rows, j, face, contrast = rows[k], j[k], face[k], contrast[k]
-    # rank: closeness to the face's level (without a level learnt: contrast); a stable sort keeps position order
+    # a stable sort: ties rank by position
     score = np.where(has1[k], np.abs(face - np.where(has1[k], l1[k], 0)), -np.abs(contrast))
     o = np.lexsort((score, rows))
     rows, j, face, contrast = rows[o], j[o], face[o], contrast[o]
@@ -314,7 +286,7 @@ def _gate_and_rank(face, other, rows, m, S: int, D, A, pos, lev1, lev2, n_cand: 
     C = min(n_cand, D.shape[1] - 2)
     t = np.flatnonzero(rank < C)
     rows, j, rank = rows[t], j[t], rank[t]
-    # sub-pixel: parabola through |D| at the peak and its neighbours
+    # sub-pixel: a parabola through |D| at the peak and its neighbours
     a0, a1, a2 = A[rows, j - 1], A[rows, j], A[rows, j + 1]
     den = a0 - 2 * a1 + a2
     big = np.abs(den) > 1e-9
@@ -327,13 +299,12 @@ def _gate_and_rank(face, other, rows, m, S: int, D, A, pos, lev1, lev2, n_cand: 
 
 
 def _motion(xi) -> np.ndarray:
-    # geometry.R_from_rotvec's formula compiled (OpenCV's Rodrigues): a tenth of its time per call in the IRLS
+    # OpenCV's Rodrigues: a tenth of geometry.R_from_rotvec's time per call
     return make_H(cv2.Rodrigues(np.asarray(xi[:3], float))[0], xi[3:])
 
 
 def _gauss_newton_step(J, w, r):
-    """(J^T W J, the step) of weighted residuals ``r`` (S,) with Jacobian ``J`` (S, 6) and weights ``w``: the
-    normal equations scaled to a unit diagonal, a 1e-6 ridge, solved; the step is None when singular."""
+    """(J^T W J, step) of residuals ``r`` (S,), Jacobian ``J`` (S, 6), weights ``w``; step None when singular."""
     Jw = J * w[:, None]
     JtWJ = Jw.T @ J
     g = Jw.T @ r
@@ -345,8 +316,7 @@ def _gauss_newton_step(J, w, r):
 
 
 def _candidates(img, s: _Samples, R: float, app: Appearance, n_cand: int = CANDIDATES):
-    """Per sample up to ``n_cand`` offsets [px] along its normal (NaN: none): (S, C) offsets, (S, C) face
-    levels seen beside them, (S, C) contrasts; in the compiled kernel when built."""
+    """Up to ``n_cand`` candidates along each normal: (S, C) offsets [px], face levels, contrasts (NaN: none)."""
     return _candidates_q(img, s, R, app, None, n_cand)[:3]
 
 
@@ -362,9 +332,7 @@ _NO_CAMERA = np.array([1.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0])  # the kernel's 
 
 
 def _candidates_q(img, s: _Samples, R: float, app: Appearance, cam, n_cand: int = CANDIDATES):
-    """``_candidates`` and the candidates' undistorted sensor coordinates q (S, C, 2) (NaN: none; only
-    with ``cam``), in the compiled kernel when built (``_candidates_np`` and ``cam.undistort_pixels`` the
-    reference: the same gates and ranking, the profile read as ``cv2.remap`` reads it)."""
+    """``_candidates`` and, with ``cam``, their undistorted sensor coordinates q (S, C, 2) (NaN: none)."""
     kernel = _native.sil
     cp = None if kernel is None else _NO_CAMERA if cam is None else _cam_params(cam)
     if cp is not None and img.dtype in (np.float32, np.uint8) and img.ndim == 2 and img.flags.c_contiguous:
@@ -390,8 +358,7 @@ def _candidates_np(img, s: _Samples, R: float, app: Appearance, n_cand: int = CA
     P = PLATEAU_PX
     prof, D, A, pos, rows, m = _profiles(img, s, R)
     L = prof.shape[1]
-    # the two sides of the peak at D[:, m + 1] (profile index m + 2): profile m + 2 + k and m + 2 - k, k = 2..P,
-    # the profile's ends replicated
+    # the sides of the peak at D[:, m + 1]: profile m + 2 +- k, k = 2..P, the ends replicated
     flat = prof.ravel()
     base = rows * L
     face = np.zeros(len(rows), np.float32)
@@ -414,19 +381,13 @@ def _cross3(a, b):
 
 
 def _solve(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, start_floor: float | None = None):
-    """IRLS of the camera motion on the candidates q (S, C, 2) (undistorted sensor coordinates, NaN: none). The
-    scale's floor falls from ``start_floor`` (default ``floor``) by half each iteration down to ``floor``, so that
-    far candidates are weighed before the fit settles on the nearest ones. Returns (C_H_G, weights (S,), residuals
-    (S,), picked candidate (S,), J^T W J (6, 6), scale).
-
-    In homogeneous form: the model line of an edge with camera-frame ends A, B is l = A x B (undistorted sensor
-    coordinates (x, y, f) lie on it when l . (x, y, f) = 0), a sample's distance r = l . (x, y, f) / |l_12|, and
-    under the camera motion (w, t) on the left dl = w x l + t x (B - A), so a sample's row of the Jacobian is
-    [l x q, (B - A) x q] / |l_12| - r V, V the derivative of |l_12| over |l_12|. In the compiled kernel when
-    built, else ``_solve_py``."""
+    """IRLS of the camera motion on the candidates q (S, C, 2) (undistorted sensor coordinates, NaN: none), the
+    scale's floor halving each iteration from ``start_floor`` (default ``floor``) to ``floor``: far candidates weigh
+    first. Returns (C_H_G, weights (S,), residuals (S,), picked candidate (S,), J^T W J (6, 6), scale). An edge with
+    camera-frame ends A, B has the line l = A x B, r = l . (x, y, f) / |l_12|; under the motion (w, t) on the left
+    dl = w x l + t x (B - A), so a row of the Jacobian is [l x q, (B - A) x q] / |l_12| - r V, V = d|l_12| / |l_12|."""
     kernel = _native.sil
     if kernel is not None:
-        # every edge's line (an edge no sample names is left alone): the samples name their edges directly
         S = len(s.edge)
         H = np.empty((4, 4))
         w, r = np.empty(S), np.empty(S)
@@ -504,9 +465,8 @@ def _solve_py(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, star
 
 
 def _coarse_shift(off: np.ndarray, nrm: np.ndarray, R: float, cell: float = 2.0, tol: float = 1.5) -> np.ndarray:
-    """The image shift (2,) [px] within +-R that the most samples agree with: sample i agrees with d when
-    one of its candidates lies at n_i . d (within ``tol``). A vote over a grid of ``cell`` px (in the
-    compiled kernel when built), then the least squares of the agreeing samples around the best cell."""
+    """The image shift (2,) [px] within +-R most samples agree with (a candidate within ``tol`` of n_i . d): a vote
+    over a grid of ``cell`` px, then the least squares of the samples agreeing around the best cell."""
     g = np.arange(-R, R + cell / 2, cell)
     dx, dy = np.meshgrid(g, g)
     d = np.column_stack([dx.ravel(), dy.ravel()])
@@ -521,8 +481,7 @@ def _coarse_shift(off: np.ndarray, nrm: np.ndarray, R: float, cell: float = 2.0,
 
 
 def _votes_py(off, has, proj, tol):
-    """The vote of ``_coarse_shift`` in numpy (the compiled kernel's reference): (D,) per grid cell the
-    samples with a candidate within ``tol`` of proj (S, D)."""
+    """``_coarse_shift``'s vote in numpy: (D,) per cell the samples with a candidate within ``tol`` of proj (S, D)."""
     agree = np.zeros(proj.shape, bool)
     tmp = np.empty(proj.shape)
     hit = np.empty(proj.shape, bool)
@@ -559,22 +518,8 @@ _OTHER6 = np.array([1, 1, 0, 0, 1, 0], np.int64)  # the other finger of each fin
 
 
 def _points_seen(camera: CameraModel, H, p_G6, box):
-    """The fingertip points p_G6 (6, 3) at ``H``: their pixels (6, 2) (NaN when one lies behind the camera), whether
-    each is in the picture (half a pixel inside its border) and whether the other finger hides it
-    (``box`` (2, 2, 3): the fingers' boxes, lo/hi); in the compiled kernel when built (``_points_seen_py`` the
-    reference)."""
-    kernel = _native.sil
-    cp = None if kernel is None else _cam_params(camera)
-    if cp is not None:
-        uv, inside, hidden = np.empty((6, 2)), np.empty(6, np.int64), np.empty(6, np.int64)
-        if kernel.points(np.ascontiguousarray(p_G6, float), _OTHER6, np.ascontiguousarray(box, float),
-                         np.ascontiguousarray(H, float), cp, 0.5, uv, inside, hidden):
-            return uv, inside.astype(bool), hidden.astype(bool)
-    return _points_seen_py(camera, H, p_G6, box)
-
-
-def _points_seen_py(camera: CameraModel, H, p_G6, box):
-    """``_points_seen`` in numpy."""
+    """The fingertip points p_G6 (6, 3) at ``H``: pixels (6, 2) (NaN when one is behind the camera), whether each is
+    half a pixel inside the picture, whether the other finger hides it (``box`` (2, 2, 3): finger, lo/hi)."""
     uv6 = np.full((6, 2), np.nan)
     pts_C = transform_points(H, p_G6)
     if np.all(pts_C[:, 2] > 0):
@@ -587,8 +532,7 @@ def _points_seen_py(camera: CameraModel, H, p_G6, box):
 
 
 def _points_found(camera: CameraModel, H, p_G6, box, points):
-    """The fingertip points at ``H`` that a fit reports: (uv (6, 2), found (6,): requested, in the picture
-    and not hidden by the other finger, reasons (6,): why not, None where found)."""
+    """The points a fit at ``H`` reports: uv (6, 2), found (6,) (requested, in the picture, unhidden), reasons (6,)."""
     uv6, inside6, hidden6 = _points_seen(camera, H, p_G6, box)
     want = {int(k) for k in points}
     found = np.zeros(6, bool)
@@ -606,10 +550,8 @@ def _points_found(camera: CameraModel, H, p_G6, box, points):
 
 
 def rms_limit(level_px: float | None) -> float:
-    """The edge residual [px] over which a fit is lost, given this gripper's residual level ``level_px`` at a
-    fit known good (None: not learnt): ``MAX_RMS_PX`` until learnt, then ``RMS_MARGIN`` times the level (not
-    under ``MAX_RMS_PX``: a level learnt below it does not tighten the gate). A level over
-    ``MAX_LEARNT_RMS_PX`` is not a fit of these fingers: ``ValueError``."""
+    """The edge residual [px] over which a fit is lost: ``RMS_MARGIN`` times a good fit's level ``level_px``, not under
+    ``MAX_RMS_PX`` (None: not learnt, ``MAX_RMS_PX``). Raises ``ValueError`` over ``MAX_LEARNT_RMS_PX``."""
     if level_px is None:
         return MAX_RMS_PX
     if not (0.0 <= float(level_px) <= MAX_LEARNT_RMS_PX):
@@ -618,11 +560,8 @@ def rms_limit(level_px: float | None) -> float:
 
 
 def learn_appearance(image, camera: CameraModel, C_H_G, gripper: GripperSpec, gap_mm: float) -> Appearance:
-    """The grey level of every visible finger face at ``C_H_G``: the median over its part within the picture, 2 px
-    inside its edges (use a pose that fits, e.g. where the fingertips were found). A face whose samples there spread
-    over more than ``FACE_SPREAD`` of their level (interquartile) is not one face there (the pose is off by more
-    than the face is wide, as for a finger cut by the picture's border to a sliver): it is left unlearnt, and the
-    fit matches its edges by contrast alone."""
+    """The grey level of every visible finger face at ``C_H_G`` (a pose that fits): the median in the picture, 2 px
+    inside its edges; a face spreading over ``FACE_SPREAD`` stays unlearnt (its edges matched by contrast alone)."""
     img = as_gray(image, camera).astype(np.float32)
     boxes = np.asarray(gripper.finger_boxes_G(gap_mm), float)  # (2, 2, 3): finger, lo/hi
     cam_G = inv_H(np.asarray(C_H_G, float))[:3, 3]
@@ -648,15 +587,14 @@ def learn_appearance(image, camera: CameraModel, C_H_G, gripper: GripperSpec, ga
                 if inside.sum() < 10:
                     continue
                 q1, med, q3 = np.percentile(_remap(img, uv[inside, 0], uv[inside, 1]), [25, 50, 75])
-                if q3 - q1 <= max(FACE_SPREAD_GREY, FACE_SPREAD * med):  # else not one face there: left unlearnt
+                if q3 - q1 <= max(FACE_SPREAD_GREY, FACE_SPREAD * med):
                     app.levels[(f, ax, side)] = float(med)
     return app
 
 
 def _fit_image(image, camera: CameraModel, frame: bool) -> np.ndarray:
-    """``image`` as ``fit_silhouette`` reads it: a float32 picture of the camera's size as it is (a tracker's frame,
-    checked by the caller); with ``frame`` an 8-bit one of that size unchecked, as it is for the compiled kernel (the
-    same levels as float32); else ``as_gray``'s."""
+    """The picture ``fit_silhouette`` reads: as it is if float32 (8-bit with ``frame``) of the camera's size, else
+    ``as_gray``'s."""
     a = np.asarray(image)
     size = (int(camera.height), int(camera.width))
     if a.dtype == np.float32 and a.shape == size:
@@ -667,13 +605,12 @@ def _fit_image(image, camera: CameraModel, frame: bool) -> np.ndarray:
 
 
 def _fit_rounds(img, camera: CameraModel, boxes, H, app: Appearance, rounds):
-    """``fit_silhouette``'s rounds of sampling and IRLS from ``H``: (H, edges, samples, (levels seen, weights,
-    residuals, picks, J^T W J)) of the last round, or (H, edges, samples, None) when a round finds fewer than 20
-    edge samples in the picture."""
+    """``fit_silhouette``'s rounds from ``H``: the last round's (H, edges, samples, (levels seen, weights, residuals,
+    picks, J^T W J)); the last item None when a round finds under 20 edge samples in the picture."""
     es = _visible_edges(boxes, H)
     rounds = tuple(rounds)
     if rounds[0] >= 16.0:
-        # far from the start: first the image shift most samples agree with (a vote), as a small turn
+        # far from the start: first the image shift most samples vote for, as a small turn
         s = _sample(camera, es, boxes, H, margin=BORDER_PX)
         if len(s.edge) < 20:
             return H, es, s, None
@@ -695,8 +632,8 @@ def _fit_rounds(img, camera: CameraModel, boxes, H, app: Appearance, rounds):
 
 
 def _tcp_sd(H, JtWJ, w, r):
-    """The motion's covariance (6, 6) from the supporting samples' weights ``w`` and residuals ``r`` [px], and the
-    TCP's standard deviation (3,) [mm, camera axes]; None and NaN from 6 samples or fewer or a singular J^T W J."""
+    """The motion's covariance (6, 6) from the supporting samples' weights ``w``, residuals ``r`` [px], and the TCP's
+    standard deviation (3,) [mm, camera axes]; None and NaN from 6 samples or fewer or a singular J^T W J."""
     if len(r) <= 6:
         return None, np.full(3, np.nan)
     try:
@@ -729,14 +666,9 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
                    frame: bool = False, max_rms_px: float = MAX_RMS_PX) -> SilhouetteFit:
     """Fit the fingers' silhouette to ``image`` from the pose ``C_H_G_pred`` (4, 4), jaw gap ``gap_mm``.
 
-    ``appearance`` the faces' grey levels (``learn_appearance``, or the last fit's); without one they are read at
-    the prediction (good enough when it is within a few px). ``rounds`` the search ranges [px] of the rounds of
-    sampling (the first must reach as far as the prediction may be off). ``points``: the fingertip points reported
-    as found when the fit holds. ``frame``: ``image`` is a tracker's frame (grey, of the camera's size), which the
-    compiled kernel reads as it is when 8-bit, without the picture's checks. ``max_rms_px``: the edge residual over
-    which the fit is lost (``rms_limit``); the TCP's standard deviation limit, ``MAX_TCP_SD_MM`` at ``MAX_RMS_PX``,
-    grows with it (that sd scales with the residual). Returns a ``SilhouetteFit``; never raises for a fit that
-    fails (``ok`` False and the reason)."""
+    ``appearance`` the faces' levels (else read at the prediction); ``rounds`` the search ranges [px], the first
+    reaching the prediction's error; ``points`` those reported; ``frame``: a tracker's grey frame, unchecked;
+    ``max_rms_px`` the residual limit (``rms_limit``; the TCP's sd limit grows alike). A failed fit: ``ok`` False."""
     img = _fit_image(image, camera, frame)
     H0 = np.asarray(C_H_G_pred, float)
     boxes = gripper.finger_boxes_G(gap_mm)
@@ -772,7 +704,7 @@ def fit_silhouette(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec,
         res = fail(why, n_s, gf, ff, rms, H)
         res.tcp_sd_mm, res.covariance, res.finger_visible = tcp_sd, cov, visible
         return res
-    # the faces' levels at the fit, for the next frame: the mean beside each edge's supporting samples
+    # the faces' levels for the next frame: the mean beside each edge's supporting samples
     new_app = app.copy()
     seen = lev[np.arange(n_s), pick]
     m = good & np.isfinite(seen)
