@@ -1,9 +1,6 @@
-"""Disc detection on the calibration plate (the off-line calibration's first step, paper section 3).
-
-The plate is a ``rows x cols`` array of dark discs at ``pitch`` mm on a light sheet (CONVENTIONS.md).
-``detect_discs`` finds the whole discs in a picture, gives each a sub-pixel centre and indexes it on the grid;
-``correct_disc_bias`` removes the perspective (and lens) bias of those centres once a pose of the plate is known.
-"""
+"""Disc detection on the calibration plate (the off-line calibration's first step, paper section 3): a ``rows x cols``
+array of dark discs at ``pitch`` mm on a light sheet (CONVENTIONS.md). ``detect_discs`` measures and indexes the whole
+discs of a picture; ``correct_disc_bias`` removes their centres' perspective and lens bias for a pose of the plate."""
 
 from __future__ import annotations
 
@@ -27,15 +24,13 @@ DARK_FRACTION = 0.3
 SOLIDITY = 0.9
 #: Ring test: a ring pixel deviating from the fitted paper plane by more than this (relative) is not paper.
 RING_TOLERANCE = 0.12
-#: Ring test: a ring whose paper departs from one plane by more than this rms (relative) lies across a
-#: shadow's edge (a picture's noise gives 0.01-0.02).
+#: Ring test: paper off one plane by more than this rms (relative) lies across a shadow's edge (noise: 0.01-0.02).
 SLOPE_RMS = 0.025
 #: ... or when a quadratic leaves less than this share of the plane's mean square residual there.
 CURVED_SHARE = 0.6
 #: Size test: a disc's area over its lattice cell's, relative to the plate's pi/4 (d/pitch)^2, lies in this range.
 DISC_SHARE = (0.5, 2.0)
-#: Square test: the plate's axes as the camera sees the lattice within this cosine of a right angle, their
-#: lengths within this share of each other.
+#: Square test: the plate's axes as seen within this cosine of a right angle, their lengths within this share.
 SQUARE_TOLERANCE = 0.3
 #: Lattice test: a disc off the midpoint of its two neighbours on a line by more than this (of a step).
 LATTICE_TOLERANCE = 0.15
@@ -43,15 +38,11 @@ LATTICE_TOLERANCE = 0.15
 
 @dataclass
 class DiscDetections:
-    """Discs found in one picture, sorted by (row, col).
-
-    ``uv`` (N, 2) sub-pixel centres as measured (distorted pixels, centroid of each disc's image); ``rc`` (N, 2)
-    int grid indices (row, col), 0-based; ``p_W`` (N, 3) disc centres in W [mm], z = 0, origin at the grid
-    centre; ``area_px`` (N,) pixels above the darkness threshold; ``n_blobs`` the candidate blobs in the picture;
-    ``rejected`` how many of them were dropped, by reason; ``index_basis`` how the grid index was anchored per
-    axis (see ``_anchor``); ``ambiguous`` per axis that nothing seen pins on the plate, the sentence naming the
-    indices it may take. While that is not empty the grid's origin, so ``p_W`` and any ``C_H_W``, is a guess.
-    """
+    """Discs found in one picture, sorted by (row, col): ``uv`` (N, 2) sub-pixel centres [px, distorted: each disc
+    image's centroid]; ``rc`` (N, 2) int (row, col), 0-based; ``p_W`` (N, 3) centres in W [mm], z = 0, origin at the
+    grid centre; ``area_px`` (N,) pixels above the darkness threshold; ``n_blobs`` candidate blobs; ``rejected`` the
+    dropped ones by reason; ``index_basis`` how each axis was anchored (``_anchor``); ``ambiguous`` per axis nothing
+    pins, the indices it may take (while not empty, the grid's origin, so ``p_W`` and any ``C_H_W``, is a guess)."""
 
     uv: np.ndarray
     rc: np.ndarray
@@ -71,11 +62,9 @@ class DiscDetections:
         return len(self.uv)
 
 
-# --- picture checks -------------------------------------------------------------------------------
 def as_gray(image, camera: CameraModel | None = None, what: str = "picture") -> np.ndarray:
-    """The picture as a (H, W) float32 grey image (0..255 scale), checked: (H, W), (H, W, 1), BGR or BGRA arrays
-    of uint8, uint16 (scaled to 0..255) or float. Raises ``ImageError`` for a picture that is not an image, of
-    the wrong size for ``camera``, or blank (its grey levels span less than 12 levels)."""
+    """The picture as a (H, W) float32 grey image (0..255) from (H, W), (H, W, 1), BGR or BGRA uint8, uint16 (scaled)
+    or float. ``ImageError`` for no image, the wrong size for ``camera``, or blank (grey levels spanning < 12)."""
     a = np.asarray(image)
     if a.ndim == 3 and a.shape[2] == 1:
         a = a[..., 0]
@@ -100,8 +89,7 @@ def as_gray(image, camera: CameraModel | None = None, what: str = "picture") -> 
 
 
 def _paper_level(work: np.ndarray) -> np.ndarray:
-    """Local level (H, W) of the light background: a grey closing wider than a disc or a finger, at a quarter of
-    the resolution, smoothed."""
+    """Local level (H, W) of the light background: a smoothed grey closing wider than a disc, at quarter resolution."""
     h, w = work.shape
     small = cv2.resize(work, (max(8, w // 4), max(8, h // 4)), interpolation=cv2.INTER_AREA)
     k = max(5, (max(small.shape) // 6) | 1)
@@ -110,7 +98,6 @@ def _paper_level(work: np.ndarray) -> np.ndarray:
     return cv2.resize(closed, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
-# --- one blob -------------------------------------------------------------------------------------
 def _ellipse_misfit(blob: np.ndarray) -> tuple[float, float]:
     """(solidity, max distance [px] of the outline from its fitted ellipse) of a blob mask."""
     contours, _ = cv2.findContours(blob.view(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
@@ -125,8 +112,7 @@ def _ellipse_misfit(blob: np.ndarray) -> tuple[float, float]:
     if min(da, db) <= 0:
         return solidity, np.inf
     ct, st = math.cos(math.radians(ang)), math.sin(math.radians(ang))
-    # the outline in the ellipse's axes over its semi-axes (by hand: a (n, 2) @ (2, 2) costs more in numpy's calls)
-    dx, dy = c[:, 0, 0] - ex, c[:, 0, 1] - ey
+    dx, dy = c[:, 0, 0] - ex, c[:, 0, 1] - ey  # by hand: a (n, 2) @ (2, 2) costs more in numpy's calls
     rho = np.hypot((dx * ct + dy * st) / (da / 2), (dy * ct - dx * st) / (db / 2))
     return solidity, float(np.abs(rho - 1).max()) * (da + db) / 4
 
@@ -154,8 +140,7 @@ def _round_blobs(labels, stats, reject) -> list[int]:
 
 
 def _measure_discs(work, labels, stats, round_: list[int], reject) -> tuple[list, list]:
-    """(centres, areas [px]) of the round blobs of the plate's disc size (``_typical_area``), measured by
-    ``_centroid``; the others ``reject``ed by reason."""
+    """(centres, areas [px]) of round blobs of the plate's disc size (``_typical_area``), the others ``reject``ed."""
     typical = _typical_area(stats[round_, cv2.CC_STAT_AREA]) if round_ else 0.0
     small = stats[:, cv2.CC_STAT_AREA] < 0.25 * typical
     uv, areas = [], []
@@ -174,15 +159,10 @@ def _measure_discs(work, labels, stats, round_: list[int], reject) -> tuple[list
 
 
 def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarray | None]:
-    """(None, sub-pixel centre (2,) [px]) of blob ``k``, or (the reason it is not a whole, clean disc, None).
-
-    The centroid of the contrast ``1 - I / I_paper`` over a support around the blob, the paper level a plane
-    fitted to the ring around the support: a symmetric blur keeps ink's first moment (edge-based ellipse fits
-    shift with it), and the division cancels a multiplicative light gradient. It is the centroid of the disc's
-    distorted image: ``correct_disc_bias`` supplies its difference from the image of the centre.
-    Pixels nearer another dark blob, or beside one, are in neither support nor ring, so a label shrinks the
-    support instead of refusing the disc; a blob larger than a mark (``small[label]`` False) within 2 px makes
-    it "crowded". Where the ring's paper is no plane (a shadow's edge), the paper level is ``_edge_level``'s."""
+    """(None, sub-pixel centre (2,) [px]) of blob ``k``, or (why it is no whole, clean disc, None): the centroid of
+    ``1 - I / I_paper`` over a support around the blob, I_paper a plane fitted to the ring beyond it (``_edge_level``
+    across a shadow's edge). A symmetric blur keeps ink's first moment (edge-based ellipse fits shift) and the division
+    cancels a light gradient; it is the distorted image's centroid, ``correct_disc_bias`` removes the difference."""
     x, y, w, h = bbox
     H, W = work.shape
     d = 2 * np.sqrt(area / np.pi)
@@ -233,9 +213,8 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
 
 
 def _support_and_ring(lab, k, area, small, m_in, m):
-    """(distance from blob ``k`` [px], support, ring, halo of the other blobs) in the crop ``lab`` of the labels,
-    for ``_centroid``: the support holds the blurred edge, the ring beyond it is paper. None when the disc is
-    crowded (a blob larger than a mark beside it, or too little of its support or ring its own)."""
+    """(distance from blob ``k`` [px], support, ring, halo of other blobs) in the label crop ``lab``; pixels nearer or
+    beside another blob are in neither. None when crowded (a blob larger than a mark beside it, too little its own)."""
     not_k = lab != k
     dist = cv2.distanceTransform(not_k.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
     other = not_k & (lab > 0)
@@ -261,8 +240,7 @@ def _support_and_ring(lab, k, area, small, m_in, m):
 
 
 def _weighted_centre(crop, support, level, centre, corner, area) -> tuple[str | None, np.ndarray | None]:
-    """``_centroid``'s answer: the centroid [px] of ``crop``'s ``support`` weighted by ``1 - grey / level(u, v)``
-    (u, v from the crop's ``centre``, its ``corner`` in the picture), or "occluded" when too little ink is left."""
+    """``_centroid``'s answer: centroid [px] of ``support`` weighted by ``1 - grey / level(u, v)``, or "occluded"."""
     sv, su = np.nonzero(support)
     wgt = 1.0 - crop[sv, su].astype(np.float64) / level(su - centre[0], sv - centre[1])
     s = wgt.sum()
@@ -272,16 +250,13 @@ def _weighted_centre(crop, support, level, centre, corner, area) -> tuple[str | 
 
 
 def _least_squares(A: np.ndarray, z: np.ndarray) -> np.ndarray | None:
-    """The least-squares solution of ``A x = z`` from the normal equations (LU, as ``np.linalg.solve`` but
-    without its per-call cost, which dominated on a disc's small ring), or None when they are singular."""
+    """Least-squares ``A x = z`` by the normal equations (cheaper per call than numpy's); None when singular."""
     ok, x = cv2.solve(A.T @ A, (A.T @ z)[:, None], flags=cv2.DECOMP_LU)
     return x[:, 0] if ok else None
 
 
 def _curved(A, z, r, level) -> bool:
-    """Whether the ring's paper (``z`` at the rows (1, x, y) of ``A``) departs from its plane (residuals ``r``,
-    ``level`` at the crop's centre) by more than ``SLOPE_RMS`` rms, or a quadratic fits it much better (a soft
-    shadow's knee)."""
+    """Whether ring paper ``z`` (``A``: rows (1, x, y)) is off its plane by > ``SLOPE_RMS`` ``level`` rms, or curved."""
     mse = float(r @ r) / len(z)
     if mse > (SLOPE_RMS * level) ** 2:
         return True
@@ -294,16 +269,12 @@ def _curved(A, z, r, level) -> bool:
 
 
 def _edge_level(x, y, z, angle):
-    """The paper's level across a disc as a function of one direction only (a straight shadow edge, sharp or
-    soft, or an even slope), fitted to the ring's pixels at (``x``, ``y``) [px from the crop's centre] of grey
-    ``z``: a profile along the normal (1 px bins, linear between), the normal the direction that fits best
-    (every 15 deg from ``angle``, the ring's slope, then refined to 1 deg by halving steps). Returns the level
-    as a function of (x, y), or None when the ring is not paper under such a light (a mark, an occluder)."""
+    """The paper's level across a disc varying along one direction only (a shadow's edge, a slope): a 1 px-binned
+    profile of the ring's grey ``z`` at (``x``, ``y``) [px from the crop's centre] along the best-fitting normal (15 deg
+    steps from ``angle``, refined to 1 deg). Returns level(x, y), or None when the ring is not such paper (a mark)."""
 
     def fit(angles):
-        """(mse per angle, the function giving (share of bad pixels, cos, sin, bin centres, profile) of the
-        ``i``-th) for all ``angles`` in one interpolation, each angle's bins shifted clear of the others' and its
-        positions clamped to its bins as ``np.interp`` clamps them."""
+        """(mse per angle, ``detail(i)``) of all ``angles`` in one ``np.interp``, each angle's bins apart."""
         a = np.asarray(angles, float)
         c, s = np.cos(a), np.sin(a)
         u = np.multiply.outer(c, x)  # in place from here: each temporary costs as much as the arithmetic
@@ -339,8 +310,7 @@ def _edge_level(x, y, z, angle):
     coarse = angle + np.radians(np.arange(0, 180, 15))
     mse, detail = fit(coarse)
     i = int(np.argmin(mse))  # the first of equals
-    # a search halving its step about the best (8, 4, 2, 1 deg: the better of the two sides when better
-    # still), two steps at a time: one fit of every offset [deg] the two may reach, then read
+    # halving the step about the best (8, 4, 2, 1 deg), two steps to one fit of every offset [deg] they may reach
     off, best, chosen = 0, float(mse[i]), (detail, i)
     for steps in REFINE_STEPS_DEG:
         reach = sorted({off + sum(p) for p in itertools.product(*[(-d, 0, d) for d in steps])} - {off})
@@ -360,7 +330,6 @@ def _edge_level(x, y, z, angle):
 REFINE_STEPS_DEG = ((8, 4), (2, 1))
 
 
-# --- lattice --------------------------------------------------------------------------------------
 def _seed(P: np.ndarray, dist: np.ndarray) -> tuple[int, np.ndarray, np.ndarray] | None:
     """A disc near the middle whose neighbours confirm two lattice steps (a, b) both ways."""
     order = np.argsort(np.linalg.norm(P - np.median(P, axis=0), axis=1), kind="stable")
@@ -382,8 +351,7 @@ def _seed(P: np.ndarray, dist: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]
 
 
 def _propagate(P: np.ndarray) -> dict[int, tuple[int, int]]:
-    """Lattice index (i, j) of the points P (N, 2) reachable from a seed; steps are re-estimated
-    locally as the walk goes, so perspective and lens distortion are followed."""
+    """Lattice index (i, j) of points P (N, 2) reachable from a seed, local steps following perspective and lens."""
     dist = np.linalg.norm(P[:, None, :] - P[None, :, :], axis=2)
     seed = _seed(P, dist)
     if seed is None:
@@ -418,9 +386,8 @@ def _propagate(P: np.ndarray) -> dict[int, tuple[int, int]]:
 
 
 def _parallel_step(P, at, ij, d) -> np.ndarray | None:
-    """The lattice step ``d`` (di, dj) at place ``ij`` as the lines beside it measure it (perspective shrinks a
-    step across the lines): the mean of the two neighbouring lines' steps, or the one neighbouring line's
-    extrapolated by the next line's; None when no neighbouring line has it."""
+    """The step ``d`` (di, dj) at ``ij`` as the neighbouring lines measure it (perspective shrinks steps across lines):
+    their mean, or one line's extrapolated by the next's; None when no neighbouring line has it."""
     (i, j), (di, dj) = ij, d
     side = []
     for s in (1, -1):
@@ -455,8 +422,7 @@ def _lattice_outliers(P, index) -> set[int]:
 
 
 def _cell_share(P, index, areas) -> dict[int, float]:
-    """Per lattice point with a neighbour along each axis: its blob's area over its cell's (|a x b| of the local
-    steps), which a perspective view keeps, locally, at pi/4 (d/pitch)^2."""
+    """Per point with neighbours on both axes: its blob's area over its cell's |a x b|, locally pi/4 (d/pitch)^2."""
     at = {v: k for k, v in index.items()}
     share = {}
     for k, (i, j) in index.items():
@@ -471,8 +437,7 @@ def _cell_share(P, index, areas) -> dict[int, float]:
 
 
 def _off_size(P, index, areas, plate: PlateSpec) -> set[int]:
-    """Lattice points whose blob is far smaller or larger than the plate's discs at that place (labels,
-    marks, background blobs that happen to sit on the lattice); ``ImageError`` when most are."""
+    """Lattice points whose blob is far off the plate's disc size there (labels, marks); ``ImageError`` if most are."""
     share = _cell_share(P, index, areas)
     if not share:
         return set()
@@ -485,17 +450,14 @@ def _off_size(P, index, areas, plate: PlateSpec) -> set[int]:
     return bad
 
 
-#: The changes of lattice basis tried for the plate's axes: the integer 2 x 2 matrices with entries of at
-#: most 2 and determinant +-1, which turn a reduced basis of a lattice into any other of it.
+#: Changes of lattice basis tried for the plate's axes: integer 2 x 2, entries within +-2, determinant +-1.
 _BASES = np.array([m for m in itertools.product(range(-2, 3), repeat=4)
                    if abs(m[0] * m[3] - m[1] * m[2]) == 1]).reshape(-1, 2, 2)
 
 
 def _plate_axes(P, index) -> dict[int, tuple[int, int]]:
-    """``index`` re-expressed in the lattice's own axes: the basis in which the indexed discs take the smallest
-    box, whatever two steps the seed took (a plate turned and foreshortened can make a diagonal as short as a
-    step, and a seed on it indexes a sheared lattice: a 10 x 8 grid as 17 x 10). Of bases whose boxes tie,
-    the one whose mean image steps are nearest a right angle (the seed's first)."""
+    """``index`` in the lattice's own axes: the basis giving the smallest box (a seed on a foreshortened diagonal
+    indexes a sheared lattice: 10 x 8 as 17 x 10); of ties, the first whose image steps are nearest a right angle."""
     ids = list(index)
     keys = np.array([index[k] for k in ids])
     K = np.einsum("mij,nj->mni", _BASES, keys)  # (bases, N, 2)
@@ -515,8 +477,7 @@ def _plate_axes(P, index) -> dict[int, tuple[int, int]]:
 
 
 def _plate_window(index, plate: PlateSpec) -> dict[int, tuple[int, int]]:
-    """``index`` cut to the plate's ``rows x cols`` window holding the most lattice points when the lattice is
-    larger than the plate (blobs beyond the sheet) and one window holds more than any other; else ``index``."""
+    """``index`` cut to the plate-sized window holding the most points if larger (blobs beyond the sheet); tie: all."""
     keys = np.array(list(index.values()))
     lo, ext = keys.min(0), keys.max(0) - keys.min(0) + 1
     shapes = {(plate.cols, plate.rows), (plate.rows, plate.cols)}
@@ -544,8 +505,7 @@ def _mean_step(P, index, axis: int) -> np.ndarray:
 
 
 def _orient(P, index, plate: PlateSpec) -> np.ndarray:
-    """(N, 2) (col, row) lattice coordinates oriented as W: x to growing u, (x, y, z) right-handed with z away
-    from the camera, the column axis chosen so the extents fit the plate."""
+    """(N, 2) (col, row) lattice coordinates as W: x to growing u, z away from the camera, extents fitting the plate."""
     keys = np.array([index[k] for k in sorted(index)])
     A, B = _mean_step(P, index, 0), _mean_step(P, index, 1)
     choices = [(0, A, 1, B), (1, B, 0, A)]
@@ -563,10 +523,8 @@ def _orient(P, index, plate: PlateSpec) -> np.ndarray:
 
 
 def _check_square(xy: np.ndarray, cr: np.ndarray) -> None:
-    """``ImageError`` unless the lattice indices ``cr`` (N, 2) (col, row) and the discs' rays ``xy`` (N, 2)
-    (undistorted, over f) are a square grid seen by the camera: the homography's first two columns (the plate's
-    axes) at right angles and of one length to ``SQUARE_TOLERANCE``; a lattice indexed along a diagonal under
-    strong perspective has them 45 deg apart."""
+    """``ImageError`` unless indices ``cr`` (N, 2) (col, row) and rays ``xy`` (N, 2) (undistorted, over f) form a square
+    grid: the homography's axes square and equal within ``SQUARE_TOLERANCE`` (indexed along a diagonal: 45 deg)."""
     Hm, _ = cv2.findHomography(cr.astype(np.float64), xy.astype(np.float64))
     if Hm is None:
         return
@@ -580,10 +538,9 @@ def _check_square(xy: np.ndarray, cr: np.ndarray) -> None:
 
 
 def _grid_end(P_img, cr, axis, side, dark, r_px) -> str | None:
-    """What the picture shows one lattice step beyond the last column/row (``axis`` 0/1, ``side`` -1 low, +1
-    high): 'disc' when a dark spot ringed by paper lies at one of those places (the grid goes on), 'blank' when
-    blank paper lies at two or more and nothing dark at any, None otherwise (outside the picture, or under a
-    finger or shadow). A place the border cuts counts when a third of a disc or more of it is in the picture."""
+    """What lies one step beyond the last column/row (``axis`` 0/1, ``side`` -1 low, +1 high): 'disc' (a dark spot
+    ringed by paper), 'blank' (blank paper at two or more places, nothing dark), else None (out of the picture, a
+    finger, a shadow). A place the border cuts counts when a third of a disc is in the picture."""
     at = {tuple(k): n for n, k in enumerate(cr)}
     edge = cr[:, axis].min() if side < 0 else cr[:, axis].max()
     H, W = dark.shape
@@ -616,8 +573,7 @@ def _grid_end(P_img, cr, axis, side, dark, r_px) -> str | None:
 
 
 def _typical_area(area: np.ndarray) -> float:
-    """The plate's disc area [px]: the centre of the factor-4 band of blob areas holding the most dark area (the
-    discs, rather than many small marks or a few large blobs)."""
+    """The plate's disc area [px]: the median of the factor-4 band of blob areas holding the most ink (not marks)."""
     la = np.log(np.asarray(area, float))
     band = (la[None, :] >= la[:, None] - np.log(2)) & (la[None, :] <= la[:, None] + np.log(2))  # row: one band
     ink = band @ np.asarray(area)
@@ -626,22 +582,12 @@ def _typical_area(area: np.ndarray) -> float:
     return float(np.exp(np.median(la[inside])))
 
 
-# --- the detector ---------------------------------------------------------------------------------
 def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, min_discs: int = 12) -> DiscDetections:
-    """Find, measure and index the whole discs of the calibration plate in a picture.
-
-    ``image`` (H, W) grey or BGR; ``camera`` (optional) checks the picture's size and straightens the lattice
-    (its kappa) before indexing. Returns ``DiscDetections`` (centres in distorted pixels, not yet
-    bias-corrected: see ``correct_disc_bias``). Raises ``ImageError`` for a blank picture, one of the wrong
-    size, one with fewer than ``min_discs`` whole discs or one whose discs form no lattice.
-
-    Discs are the round blobs of the plate's size (the band of areas holding the most ink, then each disc's
-    share of its lattice cell against pi/4 (d/pitch)^2) on the lattice, inside one plate-sized window of it.
-    Indices are propagated from a seed disc along the lattice's neighbour steps, then expressed in the
-    lattice's own axes (the basis giving the smallest box). An axis whose lines are not all seen is placed on
-    the plate by ``_anchor``; when nothing pins it, ``DiscDetections.ambiguous`` says so and the plate's origin
-    is a guess, which the hand/eye result does not depend on (it cancels in ``C_H_G = C_H_W W_H_G``).
-    """
+    """Find, measure and index the whole discs of the calibration plate in ``image`` ((H, W) grey or BGR); ``camera``
+    (optional) checks its size and straightens the lattice (kappa) for indexing. Returns ``DiscDetections`` (distorted
+    pixels, not yet bias-corrected: ``correct_disc_bias``). Raises ``ImageError`` for a blank picture, one of the wrong
+    size, with fewer than ``min_discs`` whole discs or whose discs form no lattice. An origin nothing pins
+    (``DiscDetections.ambiguous``) does not change the hand/eye result: it cancels in ``C_H_G = C_H_W W_H_G``."""
     img = as_gray(image, camera)
     work = img if plate.polarity == "dark_on_light" else (float(img.max()) - img)
     dark = cv2.divide(work, cv2.max(_paper_level(work), 1.0))  # compiled: a third of numpy's time
@@ -690,14 +636,10 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
 
 
 def _anchor(cr, uv, plate: PlateSpec, dark, r_px: float) -> tuple[dict, dict]:
-    """Shift the seen (col, row) indices ``cr`` (in place) onto the plate's grid; returns (how each axis was
-    anchored, per unpinned axis the sentence naming the indices it may take).
-
-    An axis is pinned when all its lines are seen ('all seen'), or by blank paper one pitch beyond its outer
-    line on one side with the grid seen to go on beyond the other ('low end seen', 'high end seen'). Blank
-    paper on one side with the other side's next line beyond the picture is the likely end ('low end
-    assumed', ...) but does not pin it: the grid may run out of the picture with the blank line's discs
-    missing. Blank paper on both sides (a line missing) or on neither leaves the lines 'centred'."""
+    """Shift the (col, row) indices ``cr`` (in place) onto the plate's grid; returns (basis per axis, per unpinned axis
+    the indices it may take). An axis is pinned when all its lines are seen, or by blank paper a pitch beyond one end
+    with the grid going on beyond the other ('low/high end seen'); with the other end out of the picture it is only
+    'assumed' (the blank line's discs may be missing); blank at both ends or neither leaves it 'centred'."""
     basis, ambiguous = {}, {}
     for axis, name, count in ((0, "cols", plate.cols), (1, "rows", plate.rows)):
         ext = cr[:, axis].max() + 1
@@ -732,12 +674,10 @@ def _span(first: int, n: int) -> str:
     return f"{first}-{first + n - 1}"
 
 
-# --- perspective bias -----------------------------------------------------------------------------
 def disc_image_bias(camera: CameraModel, C_H_W, p_W, radius_mm: float, n_boundary: int = 256) -> np.ndarray:
-    """(N, 2) [px] centroid of each disc's distorted image minus the image of its centre, for disc centres ``p_W``
-    (N, 3) [mm] of radius ``radius_mm`` seen at ``C_H_W`` (4, 4): the shoelace centroid of the polygon through
-    ``n_boundary`` projected boundary points. ``CalibrationError`` (the camera model's) for discs behind the camera.
-    """
+    """(N, 2) [px] centroid of each disc's distorted image minus the image of its centre ``p_W`` (N, 3) [mm], radius
+    ``radius_mm``, pose ``C_H_W`` (4, 4): the shoelace centroid of ``n_boundary`` projected boundary points.
+    ``CalibrationError`` (the camera model's) for discs behind the camera."""
     p_W = np.atleast_2d(np.asarray(p_W, float))
     t = np.arange(n_boundary) * (2 * np.pi / n_boundary)
     ring = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)]) * radius_mm

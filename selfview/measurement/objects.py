@@ -1,11 +1,6 @@
-"""Objects to grasp: their description (YAML), their printed target, and their pose from one picture.
-
-An object is a block lying on the table with a small printed target on its top face. Its frame O has
-its origin at the target's centre, x and y along the target's squares, z into the block (as the plate's
-W, CONVENTIONS.md). The object file gives the target (a ``plate:``-style section: ``{pattern: charuco,
-squares: [NX, NY], square: MM, marker: MM, dictionary: DICT_4X4_50}``) and the rest of an ``ObjectSpec``;
-``object_pose`` measures ``C_H_O`` from a picture with the project's camera model.
-"""
+"""Objects to grasp: a block on the table with a printed ChArUco target on its top face, its description (YAML, the
+target a ``plate:``-style section) and its pose ``C_H_O`` from one picture. Frame O: origin at the target's centre, x
+and y along its squares, z into the block (as the plate's W, CONVENTIONS.md)."""
 
 from __future__ import annotations
 
@@ -51,10 +46,9 @@ class TargetSpec:
 
 @dataclass(frozen=True)
 class ObjectSpec:
-    """An object to grasp. ``block`` (x, y, height) [mm], x between the jaws; ``target`` its ``TargetSpec``;
-    ``O_H_Gstar`` (4, 4) the grasp frame in O; ``approach_mm`` the stand-off along G*'s z where the servo
-    aims before the last descent; ``placement`` (simulation) ranges of the block's centre on the table
-    ``x``, ``y`` [mm, base frame] and ``yaw_deg``; ``source`` where it was read."""
+    """An object to grasp: ``block`` (x, y, height) [mm], x between the jaws; ``target``; ``O_H_Gstar`` (4, 4) the grasp
+    frame in O; ``approach_mm`` the stand-off along G*'s z the servo aims at before the last descent; ``placement``
+    (simulation) ranges of the block's centre ``x``, ``y`` [mm, base frame] and ``yaw_deg``; ``source`` where read."""
 
     name: str
     block: tuple[float, float, float]
@@ -148,7 +142,6 @@ def load_object(path=None) -> ObjectSpec:
     return parse_object(load_yaml_file(p, what="object file"), f"object file {str(p)!r}")
 
 
-# --- the target in a picture -------------------------------------------------------------------------
 def target_board(target: TargetSpec):
     """The ``cv2.aruco.CharucoBoard`` of ``target`` (board frame: origin at a corner, mm; shared, do not modify it)."""
     return make_charuco_board(tuple(target.squares), target.square, target.marker, target.dictionary,
@@ -179,10 +172,8 @@ def _grey_u8(image) -> np.ndarray:
 
 
 def detect_target(image: np.ndarray, target: TargetSpec) -> TargetDetection:
-    """The ChArUco corners of ``target`` in a grey picture (OpenCV's aruco API of 4.10 and later).
-
-    Raises ``CalibrationError`` when the target is not seen (too few corners) or seen twice (a marker id
-    decoded more than once: two targets in view), ``ImageError`` for an array that is no 8-bit picture."""
+    """The ChArUco corners of ``target`` in a grey picture (OpenCV 4.10+ aruco). ``CalibrationError`` when the target is
+    not seen (too few corners) or seen twice (a marker id decoded twice); ``ImageError`` for no 8-bit picture."""
     board = target_board(target)
     warn_if_charuco_biased()
     corners, ids, _, marker_ids = cv2.aruco.CharucoDetector(board).detectBoard(_grey_u8(image))
@@ -200,12 +191,10 @@ def detect_target(image: np.ndarray, target: TargetSpec) -> TargetDetection:
                            ids.reshape(-1).astype(int), n_markers)
 
 
-# --- the object's pose ------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ObjectPose:
-    """``C_H_O`` (4, 4) the object in the camera frame; ``sigma_mm`` (3,) and ``sigma_deg`` (3,) standard deviations of
-    its translation and rotation (camera axes) from the residual; ``rms_px`` residual of the chosen solution,
-    ``rms_px_other`` of IPPE's flipped one; ``corners`` how many were used; ``detection`` the corners used."""
+    """``C_H_O`` (4, 4); ``sigma_mm``, ``sigma_deg`` (3,) standard deviations of translation and rotation (camera axes);
+    ``rms_px``, ``rms_px_other`` residuals of the chosen and IPPE's flipped pose; ``corners``, ``detection`` used."""
 
     C_H_O: np.ndarray
     sigma_mm: np.ndarray
@@ -237,13 +226,10 @@ def _check_detection(det: TargetDetection) -> None:
 
 def object_pose(image: np.ndarray, camera: CameraModel, obj: ObjectSpec | TargetSpec,
                 detection: TargetDetection | None = None) -> ObjectPose:
-    """``C_H_O`` of the object's target in ``image`` through ``camera`` (eq. 3-4: the corners undistorted by the
-    camera model, then IPPE on the normalised rays and a Levenberg-Marquardt refinement).
-
-    Raises ``CalibrationError``: target not seen or seen twice (``detect_target``), a given ``detection`` with
-    fewer than ``MIN_CORNERS`` corners, non-finite ones or corners on one line, or ambiguous (IPPE's flipped
-    solution fits within ``AMBIGUITY_RATIO`` times the chosen one's residual); ``ValueError`` for a ``detection``
-    whose arrays do not match ((N, 2) pixels, (N, 3) points)."""
+    """``C_H_O`` (4, 4) of the object's target in ``image`` (eq. 3-4: corners undistorted by ``camera``, IPPE on the
+    normalised rays, Levenberg-Marquardt refinement). Raises ``CalibrationError``: target not seen or seen twice, a
+    ``detection`` of fewer than ``MIN_CORNERS``, non-finite or collinear corners, or ambiguous (IPPE's flip fits within
+    ``AMBIGUITY_RATIO`` times the chosen residual); ``ValueError`` for ``detection`` arrays not (N, 2) and (N, 3)."""
     target = obj.target if isinstance(obj, ObjectSpec) else obj
     det = detection if detection is not None else detect_target(image, target)
     _check_detection(det)
@@ -266,7 +252,6 @@ def object_pose(image: np.ndarray, camera: CameraModel, obj: ObjectSpec | Target
     if other < AMBIGUITY_RATIO * max(rms, 0.02):
         raise CalibrationError(f"target pose ambiguous: the flipped solution fits with {other:.3f} px against "
                                f"{rms:.3f} px (needs {AMBIGUITY_RATIO:g} times more); seen too small or too frontal")
-    # standard deviations from the residual and the Jacobian of the normalised projections
     _, J = cv2.projectPoints(p, rv, tv, np.eye(3), None)
     J = J[:, :6] * f
     s2 = (rms ** 2) * 2 * len(p) / max(2 * len(p) - 6, 1)  # per degree of freedom

@@ -1,19 +1,8 @@
-"""The plate seam: one ``detect_plate`` for every printed pattern, and what its points need afterwards.
-
-A plate (``cell.PlateSpec``) is a ``rows x cols`` lattice of plate points at ``pitch`` mm centred on W's origin
-(x along the columns, y along the rows, z into the plate; CONVENTIONS.md), printed as one of ``PLATE_PATTERNS``:
-
-- ``discs``: dark discs whose centres are the points (``discs.detect_discs``); a disc's image centroid is not
-  the image of its centre, ``plate_image_bias`` gives the difference for a pose;
-- ``chessboard``: NX x NY squares, the (NX-1) x (NY-1) inner corners the points (OpenCV's
-  ``findChessboardCornersSB``; a board the fingers cut grown along its lattice and placed by its border and
-  colours); square (0, 0), on W's -x -y corner, is dark; NX + NY even is refused (a half turn looks the same);
-- ``charuco``: a chessboard with ArUco markers in its light squares (``cv2.aruco.CharucoDetector``), the inner
-  corners numbered by OpenCV's ids (row-major), so a partial view is indexed.
-
-A corner has no perspective bias. ``board_ink`` and ``board_edges_W`` draw a board for the simulated camera
-(``mocks/render.py``). A new pattern: its detector and drawing here, its keys in ``cell._parse_board``.
-"""
+"""The plate seam: one ``detect_plate`` for every pattern of ``PLATE_PATTERNS`` (a new one: its detector and drawing
+here, its keys in ``cell._parse_board``). A plate is a ``rows x cols`` lattice of points at ``pitch`` mm centred on W's
+origin (x along columns, y along rows, z into the plate; CONVENTIONS.md): disc centres, or a board's inner corners
+(chessboard: square (0, 0), on W's -x -y corner, dark, NX + NY odd; ChArUco: OpenCV's ids, row-major). Only discs
+have an image bias (``plate_image_bias``). ``board_ink`` and ``board_edges_W`` draw a board for ``mocks/render.py``."""
 
 from __future__ import annotations
 
@@ -39,12 +28,10 @@ PlateDetections = DiscDetections
 
 def detect_plate(image, plate: PlateSpec, *, camera: CameraModel | None = None,
                  min_points: int = 12) -> PlateDetections:
-    """The plate points seen in ``image`` (any picture ``discs.as_gray`` takes), indexed on the plate's lattice and
-    sorted by (row, col): pixels (distorted, as measured), grid indices and W points [mm].
-
-    Raises ``ImageError`` (no plate, fewer than ``min_points`` points, a chessboard of ambiguous orientation,
-    markers of another board), ``ConfigError`` (an unknown pattern or dictionary) or ``ValueError``
-    (``min_points`` not a whole number >= 1)."""
+    """The plate points seen in ``image`` (any picture ``as_gray`` takes), sorted by (row, col): pixels (distorted, as
+    measured), grid indices and W points [mm]. Raises ``ImageError`` (no plate, fewer than ``min_points`` points, a
+    chessboard of ambiguous orientation, another board's markers), ``ConfigError`` (an unknown pattern or dictionary)
+    or ``ValueError`` (``min_points`` not a whole number >= 1)."""
     if isinstance(min_points, bool) or not isinstance(min_points, (int, np.integer)) or min_points < 1:
         raise ValueError(f"min_points: expected a whole number of plate points >= 1, got {min_points!r}")
     if plate.pattern == "discs":
@@ -81,17 +68,14 @@ def correct_plate_bias(det: PlateDetections, camera: CameraModel, C_H_W, plate: 
     return det.uv - plate_image_bias(plate, camera, C_H_W, det.p_W)
 
 
-# --- chessboard -------------------------------------------------------------------------------------
-#: A lattice corner is taken when its four cells alternate: the two dark ones and the two light ones each
-#: agree within this share of the contrast between them, which must be at least ``X_MIN_CONTRAST``.
+#: A corner's dark cells, and its light ones, agree within this share of their contrast, which needs X_MIN_CONTRAST.
 X_AGREE = 0.3
 X_MIN_CONTRAST = 40.0
 
 
 def _chessboard(u8: np.ndarray, plate: PlateSpec) -> tuple[np.ndarray, np.ndarray, int, dict, dict]:
-    """The board's inner corners: the whole board (``findChessboardCornersSB``), else (fingers over it, its edge
-    out of the picture) the corners grown from 2 x 2 alternating squares (``_grow_lattice``) and placed on the
-    plate (``_place_lattice``). Returns (uv, ids, corners found, index basis, ambiguous)."""
+    """(uv, ids, corners found, index basis, ambiguous) of the board's inner corners: the whole board's, else (fingers,
+    the picture's edge) a lattice grown from 2 x 2 alternating squares and placed on the plate."""
     nx, ny = plate.squares
     if (nx + ny) % 2 == 0:
         raise ImageError(f"a {nx}x{ny}-square chessboard looks the same turned by a half turn: its orientation in the "
@@ -116,8 +100,7 @@ def _chessboard(u8: np.ndarray, plate: PlateSpec) -> tuple[np.ndarray, np.ndarra
 
 
 def _alternating(u8: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """(R, C) bool: the corners of the whole board's grid g (R, C, 2) whose four cells alternate dark and
-    light with the board's parity (``_x_corner``; the grid extended by a line of corners all round)."""
+    """(R, C) bool: the corners of the whole board's grid g (R, C, 2) whose cells alternate with the board's parity."""
     G = np.pad(g, ((1, 1), (1, 1), (0, 0)))
     G[0, 1:-1], G[-1, 1:-1] = 2 * g[0] - g[1], 2 * g[-1] - g[-2]
     G[:, 0], G[:, -1] = 2 * G[:, 1] - G[:, 2], 2 * G[:, -2] - G[:, -3]
@@ -134,8 +117,7 @@ def _seed_block(u8: np.ndarray, g: np.ndarray) -> np.ndarray:
     for r, c in blocks:
         if _x_corner(u8, g[r : r + 3, c : c + 3]) is not None:
             return g[r : r + 3, c : c + 3]
-    # every corner OpenCV gave is a corner of the board: a block around one of them, along the lattice
-    # vectors its nearest neighbours give, refined
+    # every corner OpenCV gave is the board's: a block around one, along its nearest neighbours' steps, refined
     pool = g.reshape(-1, 2)
     for p in pool[np.argsort(np.linalg.norm(pool - pool.mean(0), axis=1))]:
         d = pool - p
@@ -156,16 +138,14 @@ def _seed_block(u8: np.ndarray, g: np.ndarray) -> np.ndarray:
 
 
 def _refined_block(u8: np.ndarray, p, a, b) -> np.ndarray | None:
-    """(3, 3, 2) the corners p + i a + j b (i, j in -1..1) refined by ``cv2.cornerSubPix``; None when the
-    block reaches beyond the picture."""
+    """(3, 3, 2) the corners p + i a + j b (i, j in -1..1), refined; None when they reach beyond the picture."""
     j, i = np.mgrid[-1:2, -1:2]
     sub = p + i[..., None] * a + j[..., None] * b
     return _subpix(u8, sub, int(np.clip(min(np.linalg.norm(a), np.linalg.norm(b)) / 4, 2, 15)))
 
 
 def _subpix(u8: np.ndarray, pts: np.ndarray, win: int) -> np.ndarray | None:
-    """Corners ``pts`` (..., 2) [px] refined by ``cv2.cornerSubPix`` in a (2 win + 1) px window, same shape; None
-    when a window comes within 2 px of the picture's border."""
+    """Corners ``pts`` (..., 2) [px] refined in a (2 win + 1) px window; None when one is within 2 px of the border."""
     h, w = u8.shape
     if not np.all((pts >= win + 2) & (pts < (w - win - 2, h - win - 2))):
         return None
@@ -175,10 +155,9 @@ def _subpix(u8: np.ndarray, pts: np.ndarray, win: int) -> np.ndarray | None:
 
 
 def _x_corner(u8: np.ndarray, sub: np.ndarray, levels=None) -> int | None:
-    """The dark cells' parity (0: the cell at the block's (0, 0) dark, 1: light) of a 3 x 3 block of corners (3, 3, 2)
-    whose four cells alternate dark and light, else None. ``levels`` (dark, light): the grey levels the squares
-    must show (within ``X_AGREE`` of their difference). The cells are read in their middles and again near the
-    middle corner (a finger beside a square's outer corner may darken a cell's middle only)."""
+    """The dark cells' parity (0: the block's cell (0, 0) dark, 1: light) of a 3 x 3 block of corners (3, 3, 2) whose
+    four cells alternate, else None; ``levels`` (dark, light) the grey levels they must show (within ``X_AGREE``).
+    Read in the middles and near the middle corner (a finger at a square's outer corner may darken its middle only)."""
     near = sub[1, 1] + 0.4 * (sub - sub[1, 1])
     parities = {_x_cells(u8, sub, levels), _x_cells(u8, near, levels)}
     return parities.pop() if len(parities) == 1 else None
@@ -222,10 +201,9 @@ def _at(H: np.ndarray, c, r) -> np.ndarray:
 
 
 def _grow_lattice(u8: np.ndarray, g: np.ndarray) -> dict:
-    """{(r, c): uv} the board's corners reached from a seed block of ``g`` (``_seed_block``) through neighbours:
-    each predicted by the homography of the nearest corners taken, refined, and taken when it stays within a
-    quarter square of the prediction and its four cells alternate with the seed's parity (a corner under a
-    finger or beyond the board does not)."""
+    """{(r, c): uv} the board's corners grown from a seed block of ``g``: each predicted by the homography of the
+    nearest corners, refined, and taken within a quarter square of the prediction when its four cells alternate with the
+    seed's parity (a corner under a finger or beyond the board does not)."""
     seed = _seed_block(u8, g)
     found = {(i, j): seed[i, j] for i in range(3) for j in range(3)}
     parity, levels = _x_corner(u8, seed), _block_levels(u8, seed)
@@ -257,8 +235,7 @@ def _grow_lattice(u8: np.ndarray, g: np.ndarray) -> dict:
 
 
 def _end_seen(u8: np.ndarray, H: np.ndarray, rows, cols, light: float, dark: float) -> bool:
-    """Whether the board's border shows beyond the last lattice line ``rows`` (one value) along ``cols`` (or
-    ``cols`` one value along ``rows``): the cells one square beyond it all in the picture, 80 % of them light."""
+    """Whether the board's border shows beyond lattice line ``rows`` (or ``cols``): cells all in view, 80 % light."""
     rr, cc = np.broadcast_arrays(np.asarray(rows, float), np.asarray(cols, float))
     h, w = u8.shape
     lv = []
@@ -271,17 +248,15 @@ def _end_seen(u8: np.ndarray, H: np.ndarray, rows, cols, light: float, dark: flo
 
 
 def _place_lattice(u8: np.ndarray, found: dict, plate: PlateSpec) -> tuple[np.ndarray, np.ndarray, int, dict, dict]:
-    """The grown lattice ``found`` {(r, c): uv} on the plate's grid: turned so that W's x, y, z are right-handed,
-    placed by the board's border seen beyond the corners found and by the squares' colours (square (0, 0) dark).
-    Of several placements these allow, the most central is returned, the origin said ambiguous.
-    Returns (uv, ids, corners found, index basis per axis, ambiguous per axis)."""
+    """(uv, ids, corners found, basis per axis, ambiguous per axis) of the grown lattice ``found`` {(r, c): uv} on the
+    plate: turned so W's x, y, z are right-handed, placed by the board's border beyond it and the squares' colours
+    (square (0, 0) dark); of several placements, the most central, its origin said ambiguous."""
     nx, ny = plate.squares
     H = _lattice_H(found)
     a, b = _at(H, [1, 0], [0, 1]) - _at(H, [0], [0])
     mirror = a[0] * b[1] - a[1] * b[0] < 0
     rc = np.array(list(found), int)
     uv = np.array(list(found.values()), float)
-    # cells with four corners found, and whether each is dark
     cells = [(r, c) for r, c in found if {(r + 1, c), (r, c + 1), (r + 1, c + 1)} <= found.keys()]
     lv = np.array([_cell_level(u8, found, r, c) for r, c in cells])
     if len(lv) < 2:
@@ -339,8 +314,7 @@ def _basis(lo_seen: bool, hi_seen: bool) -> str:
 
 
 def _cell_level(u8: np.ndarray, g: np.ndarray | dict, r: int, c: int) -> float:
-    """Mean grey level in the middle of the cell between corners (r, c) and (r + 1, c + 1) of the grid g (an
-    (R, C, 2) array or a {(r, c): uv} dict)."""
+    """Mean grey in the middle of cell (r, c)..(r + 1, c + 1) of the grid g ((R, C, 2) array or {(r, c): uv} dict)."""
     return _quad_level(u8, np.array([g[r, c], g[r, c + 1], g[r + 1, c + 1], g[r + 1, c]]))
 
 
@@ -358,9 +332,7 @@ def _quad_level(u8: np.ndarray, quad: np.ndarray) -> float:
     return float(u8[lo[1] : hi[1], lo[0] : hi[0]][mask > 0].mean())
 
 
-# --- ChArUco ----------------------------------------------------------------------------------------
-#: OpenCV releases whose ChArUco corners were measured about 0.5 px off in u and v against the simulated
-#: cell's truth (4.10, 4.11; 4.14 and 5.1 within 0.1 px); 4.12 and 4.13 were not measured.
+#: OpenCV before this: ChArUco corners 0.5 px off (4.10, 4.11; 4.14, 5.1 within 0.1 px; 4.12, 4.13 not measured).
 CHARUCO_BIASED_BEFORE = (4, 12)
 
 
@@ -379,9 +351,8 @@ def warn_if_charuco_biased() -> None:
 @functools.lru_cache(maxsize=8)
 def make_charuco_board(squares: tuple[int, int], square: float, marker: float, dictionary: str,
                        legacy: bool = False, what: str = "plate.dictionary"):
-    """A ``cv2.aruco.CharucoBoard`` of ``squares`` (NX, NY) of ``square`` mm with ``marker`` mm markers of the
-    predefined ``dictionary`` (shared, cached: do not modify it). ``ConfigError`` naming ``what`` for an unknown
-    dictionary."""
+    """A shared, cached ``cv2.aruco.CharucoBoard`` (do not modify it): ``squares`` (NX, NY) of ``square`` mm, ``marker``
+    mm markers of the predefined ``dictionary``. ``ConfigError`` naming ``what`` for an unknown dictionary."""
     board = cv2.aruco.CharucoBoard(tuple(int(v) for v in squares), float(square), float(marker),
                                    cv2.aruco.getPredefinedDictionary(aruco_dictionary(dictionary, what)))
     board.setLegacyPattern(bool(legacy))
@@ -413,7 +384,6 @@ def _charuco(u8: np.ndarray, plate: PlateSpec, min_points: int) -> tuple[np.ndar
     return corners.reshape(-1, 2), np.ravel(ids).astype(int), n_markers
 
 
-# --- drawing (the simulated camera) -----------------------------------------------------------------
 def _require_board(plate: PlateSpec) -> None:
     if plate.pattern not in ("chessboard", "charuco"):
         raise ConfigError(f"plate.pattern: {plate.pattern!r} is not a board; a board's print is drawn for "
@@ -464,8 +434,7 @@ def board_ink(plate: PlateSpec, xw: np.ndarray, yw: np.ndarray) -> np.ndarray:
 
 
 def board_edges_W(plate: PlateSpec) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Segments (p0, p1) in W [mm] holding every edge of the board's print (lines across the whole board:
-    square sides, and for ChArUco every marker cell's sides). ``ConfigError`` for a plate that is no board."""
+    """Segments (p0, p1) in W [mm] holding every edge of the board's print; ``ConfigError`` if the plate is no board."""
     _require_board(plate)
     nx, ny = plate.squares
     sq = plate.pitch
