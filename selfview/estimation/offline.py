@@ -1,9 +1,5 @@
-"""Off-line calibration from one picture (paper, section 3).
-
-The gripper is parked on the plate of discs. Tsai's coplanar method gives f, kappa and ``C_H_W``; the
-fingertip corners, back-projected onto the plate plane, give ``W_H_G`` by the Plane Coincidence
-Constraint, and ``C_H_G = C_H_W W_H_G``. No robot kinematics is involved.
-"""
+"""Off-line calibration from one picture of the gripper parked on the plate of discs (paper, section 3): Tsai's method
+gives f, kappa and ``C_H_W``, the Plane Coincidence Constraint ``W_H_G``, and ``C_H_G = C_H_W W_H_G``."""
 
 from __future__ import annotations
 
@@ -31,17 +27,14 @@ __all__ = ["OfflineResult", "check_picture", "calibrate_offline", "predict_parke
 MIN_CONTRAST_GRAY = 20.0
 #: Largest angle [deg] between the plate's normal and the mount guess's approach axis with the gripper parked on it.
 MAX_PLANE_DISAGREEMENT_DEG = 25.0
-#: A PCC residual more than this many times what the picture's own noise gives (the fingertip edges'
-#: scatter about their fitted lines, in mm at the TCP's depth) is a warning: a corner measured off its
-#: place (on a printed disc, a mark, a shadow's edge) bends the fingertip rectangle. Measured on the
-#: realistic simulated cell (seeds 0-5): at most 3.1 times, 4.9 times with the pictures 1.5 px out of focus.
+#: Warn when the PCC residual exceeds this multiple of the picture's noise at the TCP (a corner off its place bends the
+#: rectangle); the simulated cell gives at most 3.1, 4.9 with pictures 1.5 px out of focus.
 PCC_NOISE_FACTOR = 6.0
 
 
 @dataclass
 class OfflineResult:
-    """Everything one off-line calibration found; ``calibration`` is what gets saved; ``warnings`` what the
-    picture could not tell (shown by the command line, kept in the calibration's residuals)."""
+    """One off-line calibration's findings: ``calibration`` is saved, ``warnings`` what the picture could not tell."""
 
     calibration: Calibration
     tsai: TsaiResult
@@ -54,13 +47,11 @@ class OfflineResult:
     warnings: list[str] = field(default_factory=list)
 
     def disc_residuals_px(self) -> np.ndarray:
-        """(N, 2) each disc's model projection minus the bias-corrected centre the fit used [px], in the
-        order of ``discs``: the residuals behind ``rms_px`` and ``max_px`` (Tsai's own, in pixels with the
-        camera's skew taken off as the fit took it)."""
+        """(N, 2) [px] each disc's model projection minus the bias-corrected, deskewed centre Tsai's fit used."""
         return -np.asarray(self.tsai.residuals_px, float)
 
     def summary(self) -> dict:
-        """The figures a person or a script reads (plain types; units in the key names)."""
+        """The figures a person or a script reads (plain types, units in the key names)."""
         cal = self.calibration
         return {
             "f": cal.camera.f, "kappa": cal.camera.kappa, "principal_point": [cal.camera.cx, cal.camera.cy],
@@ -75,7 +66,7 @@ class OfflineResult:
 
 
 def check_picture(image, width: int, height: int) -> np.ndarray:
-    """Return the picture as a 2-D uint8 array, or raise ``ImageError`` naming what is wrong."""
+    """The picture as a 2-D uint8 array; ``ImageError`` naming what is wrong."""
     if image is None:
         raise ImageError("no picture (the grabber or the file gave nothing)")
     img = np.asarray(image)
@@ -95,11 +86,8 @@ def check_picture(image, width: int, height: int) -> np.ndarray:
 
 
 def predict_parked_C_H_G(C_H_W: np.ndarray, C_H_G_guess: np.ndarray) -> np.ndarray:
-    """Where the gripper is, given the plate pose and a rough ``C_H_G`` (mount guess or last calibration).
-
-    Parked, G's x-y plane is W's (eq. 5-7), so the guess is projected onto that constraint: keep its turn
-    about z and its in-plane position, drop its tilt and height. Raises ``CalibrationError`` when the
-    plate plane and the guessed gripper plane disagree by more than ``MAX_PLANE_DISAGREEMENT_DEG``."""
+    """(4, 4) the parked gripper: the rough ``C_H_G_guess`` put into the plate's plane (eq. 5-7; its turn about z and
+    in-plane position kept). Raises ``CalibrationError`` if the planes differ by over ``MAX_PLANE_DISAGREEMENT_DEG``."""
     W_H_Gg = inv_H(C_H_W) @ np.asarray(C_H_G_guess, float)
     tilt = np.degrees(np.arccos(np.clip(W_H_Gg[2, 2], -1.0, 1.0)))
     if tilt > MAX_PLANE_DISAGREEMENT_DEG:
@@ -112,8 +100,7 @@ def predict_parked_C_H_G(C_H_W: np.ndarray, C_H_G_guess: np.ndarray) -> np.ndarr
 
 def _parked_fingertips(img, camera: CameraModel, C_H_G_pred, cell: Cell, gap: float, search_px: float,
                        measurement: str) -> tuple[FingertipResult, str]:
-    """The parked fingertips' corners (``calibrate_offline``'s ``measurement``) and how they were measured
-    ('corners' or 'model'); ``CalibrationError`` when fewer than 2 are found."""
+    """The fingertips' corners and how measured ('corners' or 'model'); ``CalibrationError`` for fewer than 2."""
     how = {"corners": False, "model": True, "auto": "auto"}[measurement]
     ft = find_fingertips(img, camera, C_H_G_pred, cell.gripper, gap, search_px=search_px, model=how)
     measured_by = "corners" if ft.quality is None else "model"
@@ -125,8 +112,7 @@ def _parked_fingertips(img, camera: CameraModel, C_H_G_pred, cell: Cell, gap: fl
 
 
 def _gripper_points(ft: FingertipResult, camera: CameraModel, C_H_W, cell: Cell, state: str, points: str):
-    """(dims or None, {state: (6, 3) points in G [mm]}): measured in the picture (``points`` 'measured' and
-    the inner four corners found: back-projected onto the plate, ``measure_points_G``), else the cell's."""
+    """(dims or None, {state: (6, 3) points in G [mm]}): measured in the picture if asked and the inner four found."""
     found = np.asarray(ft.found, bool)
     if points == "measured" and found[:4].all():
         p_W, _ = camera.backproject_to_plane(ft.uv[found], C_H_W, 0.0)
@@ -138,22 +124,19 @@ def _gripper_points(ft: FingertipResult, camera: CameraModel, C_H_W, cell: Cell,
 
 
 def _tsai_bias_corrected(det, nominal: CameraModel, cell: Cell, mode: str):
-    """Tsai's fit of the plate points, their bias corrected at its pose and fitted again: (the second
-    ``TsaiResult``, the corrected pixels)."""
+    """(``TsaiResult``, corrected pixels) of Tsai's fit refitted with the disc bias corrected at its first pose."""
     kw = dict(cx=nominal.cx, cy=nominal.cy, aspect=nominal.aspect, mode=mode, width=cell.camera.width,
               height=cell.camera.height)
-    # Tsai's method takes (cx, cy, aspect): a measured camera's skew is taken off the pixels first
-    # (CameraModel.deskew_pixels: the same rays in the camera without skew) and given back to its result
+    # Tsai's method has no skew: take it off the pixels (the same rays), give it back to the result
     ts = calibrate_coplanar(det.p_W, nominal.deskew_pixels(det.uv), **kw)
-    # the image of a disc's centre is not the centroid of its ellipse: correct with the first pose, refit
+    # the image of a disc's centre is not the centroid of its ellipse
     uv_c = correct_plate_bias(det, ts.camera.with_(skew=nominal.skew), ts.C_H_W, cell.plate)
     return calibrate_coplanar(det.p_W, nominal.deskew_pixels(uv_c), **kw), uv_c
 
 
 def _residuals(mode: str, ts, det, ft: FingertipResult, pcc, dims, measured_by: str, camera_file, noise_mm: float,
                warnings: list[str]) -> dict:
-    """The calibration file's ``residuals``: Tsai's fit, the plate points and corners used, the PCC's (and the
-    picture's own noise at the TCP), whether the plate's origin is pinned, the warnings."""
+    """The calibration file's ``residuals``: Tsai's, the points used, the PCC's, the picture's noise, the warnings."""
     found = np.asarray(ft.found, bool)
     return {
         "tsai_mode": mode, "rms_px": float(ts.rms_px), "max_px": float(ts.max_px), "discs_used": int(len(det.uv)),
@@ -180,8 +163,7 @@ def _check_offline_args(cell: Cell, camera: CameraModel | None, points: str, mea
 
 
 def _mount_guess(cell: Cell, C_H_G_guess) -> np.ndarray:
-    """(4, 4) where to look for the fingertips: ``C_H_G_guess``, else the cell's mount guess; ``ValueError``
-    for a guess that is no finite (4, 4) transform."""
+    """``C_H_G_guess``, else the cell's mount guess; ``ValueError`` unless a finite (4, 4) transform."""
     guess = cell.mount_guess_C_H_G if C_H_G_guess is None else np.asarray(C_H_G_guess, float)
     if guess.shape != (4, 4) or not np.all(np.isfinite(guess)):
         raise ValueError(f"C_H_G_guess: expected a finite (4, 4) transform, got shape {guess.shape}")
@@ -192,19 +174,11 @@ def calibrate_offline(image, cell: Cell, *, state: str | None = None, mode: str 
                       C_H_G_guess: np.ndarray | None = None, points: str = "measured", search_px: float = 60.0,
                       image_sha256: str | None = None, camera: CameraModel | None = None,
                       camera_file: dict | None = None, measurement: str = "auto") -> OfflineResult:
-    """Off-line calibration of one picture of the gripper parked on the plate.
-
-    ``image`` (H, W) uint8; ``state`` the gripper state of the picture (default ``calibrate_in``); ``mode`` Tsai's
-    refinement ('tsai', 'full', 'full+centre'); ``C_H_G_guess`` where to look for the fingertips (default the cell's
-    mount guess); ``points``: 'measured' takes the gripper points' G coordinates from the picture (the paper's way: the
-    inner four form a rectangle centred on the TCP), 'cell' takes them from the cell description. ``camera`` a measured
-    camera (``selfview intrinsics``): its principal point, aspect and skew replace the cell's nominal ones (f and kappa
-    are still measured from the picture, it only starts them); ``camera_file`` {path, sha256} of the file it came from,
-    recorded in the calibration's residuals under ``camera_file`` (absent: the cell's nominal camera). ``measurement``:
-    how the fingertip corners are measured: 'corners' the corner search (``find_fingertips``), 'model' the model-based
-    measurement (the whole silhouette of both fingers fitted, ``find_fingertips(..., model=True)``), 'auto' (default)
-    the corner search, and the model where the corner search misses a corner in the picture (a fingertip beside a disc,
-    a weak tip edge) and the model's fit holds: then the model's corners (the found ones are not mixed with them).
+    """Off-line calibration of one picture ``image`` (H, W) uint8 of the gripper parked in ``state`` (default
+    ``calibrate_in``). ``mode`` Tsai's refinement; ``points`` 'measured' (the paper's way) or 'cell': where the G
+    coordinates come from. ``camera`` a measured camera whose principal point, aspect and skew replace the nominal ones,
+    ``camera_file`` {path, sha256} its file, recorded in the residuals. ``measurement``: 'corners' the corner search,
+    'model' the fingers' silhouette fit, 'auto' the model only where the search misses a corner.
     Raises ``ImageError`` (unusable picture), ``ConfigError`` (a camera for another picture size), ``CalibrationError``
     (too few discs or corners, degenerate) or ``ValueError`` (a bad ``C_H_G_guess``)."""
     t0 = time.perf_counter()
@@ -248,17 +222,14 @@ def calibrate_offline(image, cell: Cell, *, state: str | None = None, mode: str 
 
 
 def _picture_noise_mm(ft: FingertipResult, found: np.ndarray, camera: CameraModel, C_H_G: np.ndarray) -> float:
-    """What the picture's own noise makes of a corner [mm]: the median scatter of the found corners' edge
-    samples about their lines [px] (at least 0.02 px) at the TCP's depth."""
+    """The picture's noise at the TCP's depth [mm]: the corners' median edge scatter [px], at least 0.02 px."""
     rms_px = float(np.median(np.asarray(ft.edge_rms_px, float)[found])) if found.any() else np.nan
     rms_px = max(rms_px if np.isfinite(rms_px) else 0.0, 0.02)
     return rms_px * float(C_H_G[2, 3]) / float(camera.f)
 
 
 def _warnings(det: DiscDetections, pcc: PCCResult, noise_mm: float, ft: FingertipResult) -> list[str]:
-    """What the picture could not tell: the plate's origin not pinned (``C_H_W`` is then a guess up to whole
-    pitches; ``C_H_G`` does not depend on it), a PCC residual far above the picture's noise ``noise_mm``, a
-    fingertip corner left out as off the fingers' shape."""
+    """What the picture could not tell: the plate's origin, a PCC residual far above ``noise_mm``, a corner left out."""
     out = []
     if not det.origin_pinned:
         out.append("the plate's origin is not pinned by the picture, so C_H_W is not known (it may be off by whole "
@@ -268,8 +239,7 @@ def _warnings(det: DiscDetections, pcc: PCCResult, noise_mm: float, ft: Fingerti
                    f"noise gives ({noise_mm:.4f} mm): a fingertip corner is measured off its place (on a printed disc, "
                    "a mark or a shadow's edge?), or the gripper points used are not this gripper's; park the gripper "
                    "elsewhere on the plate and calibrate again")
-    # a corner the search left out, whether or not the fingers' model measured the points after it (the
-    # model's nominal boxes miss a real finger's faces by their tolerances: tenths of a pixel)
+    # also when the model measured the corners: its nominal boxes miss a real finger's faces by tenths of a pixel
     out += [f"the fingertip corner {nm} was left out of the corner search: {r}"
             + ("; the fingers' model measured the corners instead" if ft.found[POINT_NAMES.index(nm)] else "")
             for nm, r in ft.left_out.items()]

@@ -1,13 +1,8 @@
-"""On-line calibration (paper, section 4): how far the camera moved on its mount, from the fingertips.
-
-From N fingertip points ``p_G`` (N, 3) [mm] and their observed, distorted pixels ``uv`` (N, 2), starting from the
-current ``C_H_G``: ``differential_update`` (NP-U, the paper's linear update, eq. 11-17), ``iterative_update`` (NP-I,
-Gauss-Newton on SE(3) over the same residuals) and ``recalibrate`` (NP-R, exterior orientation by OpenCV's IPPE refined
-by the same Gauss-Newton). The motion (eq. 11-12, 16): ``C'p = Delta* Cp``, (delta_x, delta_y, delta_z) [rad] the small
-rotation and (d_x, d_y, d_z) [mm] the translation of that map in the old camera frame. Every estimator works in
-undistorted sensor coordinates (eq. 3-4) and reports its reprojection residuals in distorted pixels. Degenerate input
-raises ``CalibrationError`` naming the cause.
-"""
+"""On-line calibration (paper, section 4): how far the camera moved on its mount, from fingertip points ``p_G`` (N, 3)
+[mm] and their distorted pixels ``uv`` (N, 2), from the current ``C_H_G``: NP-U the paper's linear update (eq. 11-17),
+NP-I Gauss-Newton on SE(3), NP-R OpenCV's exterior orientation refined likewise. The motion ``C'p = Delta* Cp`` (eq.
+11-12, 16): (delta_x, delta_y, delta_z) [rad], (d_x, d_y, d_z) [mm] in the old camera frame. Solved in undistorted
+sensor coordinates (eq. 3-4); residuals in distorted pixels."""
 
 from __future__ import annotations
 
@@ -28,11 +23,8 @@ __all__ = [
 
 METHODS: tuple[str, ...] = ("3P-U", "4P-U", "5P-U", "3P-I", "4P-I", "5P-I", "4P-R", "5P-R")
 
-#: Largest condition number accepted for the column-scaled normal matrix of the six motion parameters.
-#: The reference cell's configurations give 5e3 (4P) to 3e4 (3P); the condition grows as the inverse
-#: square of the points' distance from a line, and three points 0.1 mm off a 56 mm line give 9e7, where
-#: 0.05 px of pixel noise already moves the TCP estimate by 0.7 mm (one standard deviation; 0.01 mm with
-#: the four inner corners): beyond 1e8 the estimate tells more about the noise than about the camera.
+#: Largest condition number of the column-scaled normal matrix of the motion: the reference cell gives 5e3 (4P) to 3e4
+#: (3P); at 9e7 (three points 0.1 mm off a 56 mm line) 0.05 px of noise moves the TCP by 0.7 mm.
 MAX_CONDITION = 1e8
 
 _MIN_POINTS = {"U": 3, "I": 3, "R": 4}
@@ -41,16 +33,11 @@ _KIND_NAME = {"U": "differential update", "I": "iterative update", "R": "recalib
 
 @dataclass(frozen=True, repr=True, eq=False)
 class MotionEstimate:
-    """One on-line estimate of the gripper-to-camera transform (immutable).
-
-    ``C_H_G`` (4, 4) the updated transform (NP-U: ``Delta* C_H_G`` of eq. 13, not orthogonal); ``C_H_G_orth`` the same
-    with its rotation re-orthonormalised (identical for NP-I and NP-R); ``motion`` (6,) (delta_x, delta_y, delta_z
-    [rad], d_x, d_y, d_z [mm]) of ``C'p = Delta* Cp`` (NP-I and NP-R: the rotation vector and translation of
-    ``C'_H_G C_H_G^-1``); ``delta_deg``, ``d_mm`` the measures of eq. 14; ``residuals_px`` (N, 2) observed minus
-    reprojected distorted pixels; ``rms_px`` the root mean square of their lengths; ``covariance`` (6, 6) of ``motion``
-    as ``sigma^2 (J^T J)^-1`` with sigma^2 from the residuals (NaN when N = 3 leaves no redundancy, unless a prior pixel
-    noise was given); ``condition`` of the column-scaled normal matrix; ``points_used`` the point names; ``iterations``
-    Gauss-Newton steps (1 for NP-U); ``C_H_G_prior`` (4, 4) where the estimate started."""
+    """One on-line estimate: ``C_H_G`` (4, 4) updated (NP-U: ``Delta* C_H_G`` of eq. 13, not orthogonal), ``C_H_G_orth``
+    its rotation re-orthonormalised; ``motion`` (6,) (delta [rad], d [mm]) of ``C'p = Delta* Cp`` (NP-I, NP-R: rotation
+    vector and translation of ``C'_H_G C_H_G^-1``); ``delta_deg``, ``d_mm`` of eq. 14; ``residuals_px`` (N, 2) observed
+    minus reprojected distorted px, ``rms_px``; ``covariance`` (6, 6) of ``motion`` (NaN for N = 3 without a prior
+    noise); ``condition``; ``points_used`` names; ``iterations`` (1 for NP-U); ``C_H_G_prior`` (4, 4) the start."""
 
     method: str
     C_H_G: np.ndarray
@@ -82,8 +69,7 @@ class MotionEstimate:
 
 
 def _estimate(label, H, H_orth, motion, res_px, N, cond, rss, names, iters, H0, prior_sigma_px) -> MotionEstimate:
-    """The ``MotionEstimate`` of a solve: ``N`` its normal matrix (6, 6) and ``cond`` its condition,
-    ``rss`` its residual sum of squares."""
+    """The ``MotionEstimate`` of a solve: normal matrix ``N`` (6, 6), its condition, residual sum of squares ``rss``."""
     rms = float(np.sqrt(np.mean(np.sum(res_px**2, axis=1))))
     if prior_sigma_px is not None:
         sigma2 = float(prior_sigma_px) ** 2
@@ -96,11 +82,9 @@ def _estimate(label, H, H_orth, motion, res_px, N, cond, rss, names, iters, H0, 
                           float(np.linalg.norm(motion[3:])), res_px, rms, cov, cond, names, iters, H0)
 
 
-# --- input checks and shared pieces ------------------------------------------------------------------
 def _prepare(C_H_G, p_G, uv, camera, names, kind: str, prior_sigma_px=None):
-    """Validated input: H (4, 4), P (N, 3), uv (N, 2) float arrays, the camera the estimators take (which
-    use its (cx, cy, aspect) alone: a camera with skew becomes the same camera without it, seeing
-    ``deskew_pixels(uv)``, the same rays and so the same motion), the point names and the method label."""
+    """Validated (H (4, 4), P (N, 3), uv (N, 2), camera, names, label); a camera with skew becomes the camera without
+    it seeing ``deskew_pixels(uv)``: the same rays, so the same motion."""
     if not isinstance(camera, CameraModel):
         raise TypeError(f"camera: expected a selfview.maths.camera.CameraModel, got {type(camera).__name__}")
     H, P, uv = (np.asarray(a, dtype=float) for a in (C_H_G, p_G, uv))
@@ -134,7 +118,7 @@ def _prepare(C_H_G, p_G, uv, camera, names, kind: str, prior_sigma_px=None):
 
 
 def _point_names(names, n: int) -> tuple[str, ...]:
-    """The names of n points: ``names`` as strings, or by default those of ``POINT_NAMES``."""
+    """``names`` as strings, by default those of ``POINT_NAMES``."""
     if names is None:
         return POINT_NAMES[:n] if n <= len(POINT_NAMES) else tuple(f"point-{i + 1}" for i in range(n))
     names = tuple(str(s) for s in names)
@@ -144,7 +128,7 @@ def _point_names(names, n: int) -> tuple[str, ...]:
 
 
 def _pixel_residuals(camera: CameraModel, uv: np.ndarray, XY_pred: np.ndarray) -> np.ndarray:
-    """(N, 2) observed pixels minus the distorted pixels of the predicted undistorted sensor points."""
+    """(N, 2) observed pixels minus those of the predicted undistorted sensor points ``XY_pred``."""
     d = camera.pixel_to_sensor(uv) - distort(XY_pred, camera.kappa)
     return np.column_stack([d[:, 0] / camera.aspect, d[:, 1]])
 
@@ -174,8 +158,8 @@ def _scaled(N: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _check_conditioning(N: np.ndarray, P: np.ndarray, label: str) -> float:
-    """The condition number of the column-scaled normal matrix N (6, 6), inf if singular;
-    ``CalibrationError`` when it exceeds ``MAX_CONDITION``, naming collinear points when that is the cause."""
+    """Condition number of the column-scaled normal matrix N (6, 6), inf if singular; ``CalibrationError`` above
+    ``MAX_CONDITION``, naming collinear points when that is the cause."""
     if not np.min(N.diagonal()) > 0.0:
         raise CalibrationError(f"{label}: a motion parameter does not affect any observation")
     s = np.linalg.svd(_scaled(N)[0], compute_uv=False)
@@ -187,10 +171,9 @@ def _check_conditioning(N: np.ndarray, P: np.ndarray, label: str) -> float:
     return cond
 
 
-# --- NP-U -------------------------------------------------------------------------------------------
 def _eq17(p_C: np.ndarray, XY: np.ndarray, f: float) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 17: (A (2N, 6), b (2N,)), rows X_i then Y_i per point, each divided by the point's depth z_i so that its
-    residual is a pixel (to first order) and the least squares weighs the points as the reprojection error does."""
+    """Eq. 17: (A (2N, 6), b (2N,)), rows X_i, Y_i per point, divided by its depth z_i: residuals in pixels (to first
+    order), weighed as the reprojection error."""
     x, y, z = p_C.T
     X, Y = XY.T
     zero = np.zeros_like(x)
@@ -203,15 +186,9 @@ def _eq17(p_C: np.ndarray, XY: np.ndarray, f: float) -> tuple[np.ndarray, np.nda
 
 def differential_update(C_H_G, p_G, uv, camera: CameraModel, names=None, *,
                         prior_sigma_px: float | None = None) -> MotionEstimate:
-    """``NP-U``: the paper's differential update from N >= 3 points (eq. 13-17).
-
-    ``C p_i = C_H_G G p_i`` (eq. 15); two rows of eq. 17 per point with the undistorted sensor coordinates (X_i, Y_i) of
-    ``uv``; least squares for (delta, d) (eq. 11-12); delta and d of eq. 14; ``C'_H_G = Delta* C_H_G`` (eq. 13, left
-    non-orthogonal as the paper leaves it). The residuals are those of eq. 16, ``Delta* C p_i``, reprojected.
-    ``prior_sigma_px`` replaces the residuals' estimate of the pixel noise in the covariance.
-
-    Raises ``CalibrationError`` for fewer than 3 points, non-finite input, points behind the camera, collinear points or
-    an ill-conditioned system; ``ValueError`` for arrays of the wrong shape."""
+    """``NP-U``: the paper's differential update from N >= 3 points (eq. 13-17); ``prior_sigma_px`` replaces the
+    residuals' pixel noise in the covariance. Raises ``CalibrationError`` for fewer than 3 points, non-finite input,
+    points behind the camera, collinear points or an ill-conditioned system; ``ValueError`` for wrong shapes."""
     H0, P, uv, camera, names, label = _prepare(C_H_G, p_G, uv, camera, names, "U", prior_sigma_px)
     f = camera.f
     XY = camera.undistort_pixels(uv)
@@ -229,11 +206,9 @@ def differential_update(C_H_G, p_G, uv, camera: CameraModel, names=None, *,
     return _estimate(label, H, orthonormalize(H), x, res, N, cond, float(r @ r), names, 1, H0, prior_sigma_px)
 
 
-# --- NP-I (and the refinement of NP-R) --------------------------------------------------------------
 def _linearise(H: np.ndarray, P: np.ndarray, XY: np.ndarray, f: float, label: str):
-    """At the pose H: the camera points p (N, 3), the Jacobian J (2N, 6) of the undistorted projections
-    (eq. 3) under the left perturbation p -> p + omega x p + v, and the residuals r (2N,) observed minus
-    projected; rows X, Y per point."""
+    """At pose H: camera points p (N, 3), Jacobian J (2N, 6) of the projections (eq. 3) under p -> p + omega x p + v,
+    residuals r (2N,) observed minus projected; rows X, Y per point."""
     p = _camera_points(H, P, label)
     x, y, z = p.T
     u, v = f * x / z, f * y / z
@@ -245,9 +220,8 @@ def _linearise(H: np.ndarray, P: np.ndarray, XY: np.ndarray, f: float, label: st
 
 
 def _gauss_newton(H0, H_start, P, uv, camera, names, label, tol, max_iter, prior_sigma_px) -> MotionEstimate:
-    """Minimise the undistorted-sensor reprojection error of the points P (N, 3) over C_H_G from
-    ``H_start`` by Gauss-Newton on SE(3) (left perturbation: the motion parameters of NP-U), damped
-    (Levenberg) only after a step that raised the cost. Stops when no point moves ``tol`` mm in a step."""
+    """Gauss-Newton on SE(3) from ``H_start`` (NP-U's left perturbation), damped only after a step that raised the
+    cost, until no point moves ``tol`` mm in a step."""
     import cv2  # here, not at the top: ``METHODS`` is read by the command line, which does not load OpenCV
 
     if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0.0):
@@ -293,30 +267,18 @@ def _gauss_newton(H0, H_start, P, uv, camera, names, label, tol, max_iter, prior
 
 def iterative_update(C_H_G, p_G, uv, camera: CameraModel, names=None, tol: float = 1e-9, max_iter: int = 50, *,
                      prior_sigma_px: float | None = None) -> MotionEstimate:
-    """``NP-I``: the exact update, Gauss-Newton on SE(3) from the current ``C_H_G`` (4, 4).
-
-    Minimises the residuals NP-U linearises, in undistorted sensor coordinates (eq. 3-4), so NP-I is the exact solution
-    of the same problem. Iterates until no point moves more than ``tol`` mm in a step; orthogonal by construction.
-    ``motion`` is the rotation vector and translation of ``C'_H_G C_H_G^-1``.
-
-    Raises ``CalibrationError`` for fewer than 3 points, non-finite input, a mirroring ``C_H_G``, points behind the
-    camera, collinear points, an ill-conditioned system or no convergence in ``max_iter`` steps."""
+    """``NP-I``: NP-U's problem solved exactly, Gauss-Newton to steps under ``tol`` mm. Raises ``CalibrationError``
+    for fewer than 3 points, non-finite input, a mirroring ``C_H_G``, points behind the camera, collinear points, an
+    ill-conditioned system or no convergence in ``max_iter`` steps."""
     H0, P, uv, camera, names, label = _prepare(C_H_G, p_G, uv, camera, names, "I", prior_sigma_px)
     return _gauss_newton(H0, orthonormalize(H0), P, uv, camera, names, label, tol, max_iter, prior_sigma_px)
 
 
-# --- NP-R -------------------------------------------------------------------------------------------
 def recalibrate(C_H_G, p_G, uv, camera: CameraModel, names=None, *, tol: float = 1e-9, max_iter: int = 50,
                 prior_sigma_px: float | None = None) -> MotionEstimate:
-    """``NP-R``: exterior orientation of the camera with respect to the gripper from N >= 4 points.
-
-    Coplanar points (the fingertips all lie in z = 0 of G) go to OpenCV's IPPE (``solvePnPGeneric``)
-    as undistorted normalised coordinates (X/f, Y/f; identity camera matrix, no OpenCV distortion); of
-    its two solutions the one nearest the current ``C_H_G`` (mean distance of the points) is refined by
-    the Gauss-Newton of NP-I over all the points. Points that are not coplanar start from SQPnP instead.
-
-    Raises ``CalibrationError`` for fewer than 4 points, non-finite input, a mirroring ``C_H_G``,
-    collinear points, no solution, an ill-conditioned system or no convergence."""
+    """``NP-R``: exterior orientation from N >= 4 points (OpenCV's IPPE, SQPnP if not coplanar), the solution nearest
+    ``C_H_G`` refined as NP-I. Raises ``CalibrationError`` for fewer than 4 points, non-finite input, a mirroring
+    ``C_H_G``, collinear points, no solution, an ill-conditioned system or no convergence."""
     import cv2  # see _gauss_newton
 
     H0, P, uv, camera, names, label = _prepare(C_H_G, p_G, uv, camera, names, "R", prior_sigma_px)
@@ -324,9 +286,8 @@ def recalibrate(C_H_G, p_G, uv, camera: CameraModel, names=None, *, tol: float =
     if why:
         raise CalibrationError(f"{label}: {why}; the exterior orientation is undetermined")
     s = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
-    # OpenCV gets the points in a frame F turned like the camera's current estimate, p_F = R0 p_G, so that
-    # the pose it solves for is a small rotation: its IPPE turns garbage for exact data within ~0.01 deg
-    # of a half turn, and the reference cell's mount guess is exactly a half turn.
+    # OpenCV solves in a frame F turned like the estimate (p_F = R0 p_G) for a small rotation: its IPPE fails on exact
+    # data within ~0.01 deg of a half turn, which the reference cell's mount guess is.
     H_ref = orthonormalize(H0)
     R0 = H_ref[:3, :3]
     obj = (P @ R0.T).reshape(-1, 1, 3)
@@ -347,7 +308,6 @@ def recalibrate(C_H_G, p_G, uv, camera: CameraModel, names=None, *, tol: float =
     return _gauss_newton(H0, min(cands, key=distance), P, uv, camera, names, label, tol, max_iter, prior_sigma_px)
 
 
-# --- methods by name ---------------------------------------------------------------------------------
 def parse_method(method: str) -> tuple[int, str]:
     """(number of points, kind 'U' | 'I' | 'R') of a method name like '4P-U'; ``ConfigError`` if unknown."""
     if method not in METHODS:
@@ -356,11 +316,8 @@ def parse_method(method: str) -> tuple[int, str]:
 
 
 def select_points(method: str, found) -> list[int]:
-    """Indices (0-based, into the six points of ``POINT_NAMES``) that ``method`` uses.
-
-    3P: points 1-3; 4P: 1-4; 5P: 1-5, or 1-4 and 6 when 5 is not found (CONVENTIONS.md). ``method`` may
-    be a full name ('4P-U') or just its count ('4P'); ``found`` (6,) bool. Raises ``CalibrationError``
-    naming the points that are needed but not found."""
+    """Indices into ``POINT_NAMES`` that ``method`` ('4P-U' or '4P') uses given ``found`` (6,) bool: 3P 1-3, 4P 1-4, 5P
+    1-5 or, without 5, 1-4 and 6 (CONVENTIONS.md). Raises ``CalibrationError`` naming the points needed, not found."""
     found = np.asarray(found, dtype=bool)
     if found.shape != (len(POINT_NAMES),):
         raise ValueError(f"found: expected shape ({len(POINT_NAMES)},), got {found.shape}")
@@ -380,15 +337,12 @@ def select_points(method: str, found) -> list[int]:
     return base
 
 
-#: The model's own estimate: the pose the silhouette fit gives (``FingertipResult.C_H_G`` of a model-based
-#: measurement), a method beside ``METHODS``.
+#: The model's own estimate, beside ``METHODS``: the silhouette fit's pose (``FingertipResult.C_H_G``).
 MODEL_METHOD = "E"
 
 
 def model_estimate(C_H_G, C_H_G_model, rms_px: float = float("nan")) -> MotionEstimate:
-    """The estimate 'E': the model-based measurement's fitted pose ``C_H_G_model`` (4, 4) as the new
-    ``C_H_G``; the camera's motion ``C'_H_C = C_H_G_model C_H_G^-1`` gives ``motion``, ``delta_deg`` and
-    ``d_mm`` (eq. 14); ``rms_px`` the fit's residual. No points, no covariance (NaN)."""
+    """Estimate 'E': the model fit's pose ``C_H_G_model`` (4, 4) as the new ``C_H_G`` (eq. 14), no covariance."""
     H0, H = np.asarray(C_H_G, dtype=float), np.asarray(C_H_G_model, dtype=float)
     if H0.shape != (4, 4) or not np.all(np.isfinite(H0)):
         raise ValueError(f"C_H_G: expected a finite (4, 4) transform, got shape {H0.shape}")
@@ -403,12 +357,8 @@ def model_estimate(C_H_G, C_H_G_model, rms_px: float = float("nan")) -> MotionEs
 
 def estimate(method: str, C_H_G, p_G6, uv6, found6, camera: CameraModel, *, model_C_H_G=None,
              model_rms_px: float = float("nan"), **kwargs) -> MotionEstimate:
-    """Run the on-line method named ``method`` (one of ``METHODS``, or ``MODEL_METHOD`` 'E' with the model-based
-    measurement's pose ``model_C_H_G`` and residual ``model_rms_px``) on the six points.
-
-    ``p_G6`` (6, 3) gripper points [mm], ``uv6`` (6, 2) observed distorted pixels (NaN where not found), ``found6`` (6,)
-    bool; the method picks its points by ``select_points``. ``kwargs`` go to the solver (``prior_sigma_px``; ``tol``,
-    ``max_iter`` for I and R). Raises ``ConfigError`` for an unknown method, ``CalibrationError`` as the solvers do."""
+    """Run ``method`` (of ``METHODS``, or 'E' with ``model_C_H_G``) on ``p_G6`` (6, 3) [mm], ``uv6`` (6, 2) px (NaN if
+    not found), ``found6`` (6,). Raises ``ConfigError`` for an unknown method, ``CalibrationError`` as the solvers."""
     if method == MODEL_METHOD:
         if model_C_H_G is None:
             raise ConfigError("on-line method 'E' is the model's own estimate: it needs the model-based "

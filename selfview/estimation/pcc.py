@@ -1,10 +1,7 @@
-"""The Plane Coincidence Constraint (paper, section 3, eq. 5-10).
-
-With the gripper parked on the plate, the fingertip contact plane (G's x-y plane) coincides with the plate's (W's x-y
-plane) and both z axes point the same way, so ``W_H_G`` is a rotation about z plus a translation in x-y (eq. 7). The
-fingertip points' pixels are back-projected onto the plate plane (eq. 8), eq. 10 is solved for (q1, q2, s_x, s_y) by
-least squares, (q1, q2) normalised, and ``C_H_G = C_H_W W_H_G`` (eq. 6). No robot kinematics is involved.
-"""
+"""The Plane Coincidence Constraint (paper, section 3, eq. 5-10), without robot kinematics: with the gripper parked on
+the plate, G's x-y plane is W's, both z axes alike, so ``W_H_G`` is a turn about z and an x-y shift (eq. 7). The
+fingertip pixels back-projected onto the plate (eq. 8) give (q1, q2, s_x, s_y) by least squares of eq. 10, and
+``C_H_G = C_H_W W_H_G`` (eq. 6)."""
 
 from __future__ import annotations
 
@@ -21,10 +18,9 @@ __all__ = ["PCCResult", "solve_pcc", "measure_points_G", "points_G_for_state", "
 
 @dataclass(frozen=True)
 class PCCResult:
-    """Result of the PCC solve: ``W_H_G``, ``C_H_G`` (4, 4); ``p_W`` (N, 3) back-projected fingertip points in W
-    [mm]; ``z_C`` (N,) their depths; ``residuals_mm`` (N, 2) of eq. 10 (back-projected minus modelled, in the
-    plate plane); ``rms_mm``; ``q_norm`` the length of (q1, q2) before normalisation (1 for a consistent gripper
-    model); ``names`` the points used; ``points_G`` (N, 3) the G coordinates used."""
+    """Result of ``solve_pcc``: ``W_H_G``, ``C_H_G`` (4, 4); ``p_W`` (N, 3) back-projected points [mm], ``z_C`` (N,)
+    their depths; ``residuals_mm`` (N, 2) of eq. 10, back-projected minus modelled; ``rms_mm``; ``q_norm`` |(q1, q2)|
+    before normalisation (1 for a consistent gripper); ``names``, ``points_G`` (N, 3) of the points used."""
 
     W_H_G: np.ndarray
     C_H_G: np.ndarray
@@ -45,13 +41,9 @@ def w_h_g_from_params(q1: float, q2: float, sx: float, sy: float) -> np.ndarray:
 
 
 def solve_pcc(uv, points_G, C_H_W, camera: CameraModel, names=None) -> PCCResult:
-    """Solve eq. 8-10 for ``W_H_G`` and compose ``C_H_G = C_H_W W_H_G`` (eq. 6).
-
-    ``uv`` (N, 2) distorted pixels of the fingertip points, ``points_G`` (N, 3) their G coordinates [mm]
-    (z is their distance from the contact plane, normally 0), ``C_H_W`` (4, 4) the plate pose from camera
-    calibration, ``camera`` with the calibrated f and kappa.
-    Raises ``CalibrationError`` with fewer than two points, coincident points or non-finite input;
-    ``ValueError`` for arrays of the wrong shape."""
+    """Eq. 8-10 for ``W_H_G`` from the fingertips' distorted pixels ``uv`` (N, 2) and G coordinates ``points_G`` (N, 3)
+    [mm, z from the contact plane], and ``C_H_G = C_H_W W_H_G`` (eq. 6). Raises ``CalibrationError`` for fewer than
+    two points, coincident points or non-finite input; ``ValueError`` for arrays of the wrong shape."""
     uv, pG, H = (np.asarray(a, dtype=float) for a in (uv, points_G, C_H_W))
     if uv.ndim != 2 or uv.shape[1] != 2:
         raise ValueError(f"PCC: uv: expected shape (N, 2), got {uv.shape}")
@@ -88,13 +80,8 @@ def solve_pcc(uv, points_G, C_H_W, camera: CameraModel, names=None) -> PCCResult
 
 
 def measure_points_G(p_W: np.ndarray, found: np.ndarray) -> dict[str, float]:
-    """Measure the gripper's dimensions from the six points back-projected into the contact plane.
-
-    As the paper notes (section 3), the inner four points form a rectangle centred on the TCP with edges
-    along G's axes, so their mutual distances give the jaw gap g and the finger width w; the outer points
-    give the finger thickness t. ``p_W`` (6, 3) in POINT_NAMES order, ``found`` (6,) bool.
-    Returns {'gap', 'width', 'thickness_A', 'thickness_B'} [mm] (thickness NaN where its point is missing).
-    Raises ``CalibrationError`` unless all four inner points were found."""
+    """Gripper {'gap', 'width', 'thickness_A', 'thickness_B'} [mm] (thickness NaN if missing) from ``p_W`` (6, 3) in the
+    contact plane (section 3: the inner four a rectangle on G's axes); ``CalibrationError`` without all four."""
     p = np.asarray(p_W, float)
     found = np.asarray(found, bool)
     if p.ndim != 2 or p.shape[0] != len(POINT_NAMES) or p.shape[1] not in (2, 3) or found.shape != (len(POINT_NAMES),):
@@ -116,10 +103,8 @@ def jaw_gap_of(points_G) -> float:
 
 
 def points_G_for_state(dims: dict[str, float], measured_state: str, gripper: GripperSpec) -> dict[str, np.ndarray]:
-    """(6, 3) G coordinates per gripper state from dimensions measured in ``measured_state``.
-
-    The other states' gaps are derived by the nominal difference of jaw gaps (the valve's end stops),
-    width and thickness are the same in every state. A thickness not measured falls back to the cell's."""
+    """(6, 3) G coordinates per gripper state from ``dims`` measured in ``measured_state``: other gaps shifted by the
+    nominal differences (the valve's end stops), a thickness not measured the cell's."""
     t_nom = gripper.finger_thickness
     tA = dims["thickness_A"] if np.isfinite(dims.get("thickness_A", np.nan)) else t_nom
     tB = dims["thickness_B"] if np.isfinite(dims.get("thickness_B", np.nan)) else t_nom

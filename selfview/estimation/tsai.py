@@ -1,11 +1,8 @@
-"""Tsai's coplanar camera calibration (the paper's reference [8]), after Reg Willson's implementation.
+"""Tsai's coplanar camera calibration (the paper's reference [8]), stage by stage as Willson's v3.0b3 ``cal_main.c``.
 
-From N >= 5 plate points ``p_W`` (z = 0, mm) and their pictures ``uv`` (pixels), with the principal
-point and the aspect ratio known, find f [px], kappa [px^-2] and ``C_H_W`` (the paper's eq. 1-4 in the
-pixel units of ``selfview.maths.camera``: ``X^ = aspect (u - cx)``, ``Y^ = v - cy``, ``X = X^ (1 + kappa r^2)``).
-The stages follow Willson's v3.0b3 (``cal_main.c``): linear stages 1-4, then a refinement by mode
-(5a ``tsai``, 5b ``full`` / ``full+centre``, 5c ``willson``), each function naming its stage.
-"""
+From N >= 5 plate points ``p_W`` (z = 0, mm) and their pixels ``uv``, principal point and aspect known: f [px], kappa
+[px^-2] and ``C_H_W`` (eq. 1-4 in ``selfview.maths.camera``'s units: ``X^ = aspect (u - cx)``, ``Y^ = v - cy``,
+``X = X^ (1 + kappa r^2)``). Stages 1-4 are linear, then by mode 5a ``tsai``, 5b ``full*`` or 5c ``willson``."""
 
 from __future__ import annotations
 
@@ -28,18 +25,15 @@ __all__ = ["FREE_CENTRE_MODES", "MODES", "TsaiResult", "calibrate_coplanar", "lo
 MODES = ("tsai", "full", "full+centre", "willson")
 #: The modes that calibrate the principal point (the given one only starts them).
 FREE_CENTRE_MODES = ("full+centre", "willson")
-
 #: A plate tilted further than this from square-on (its normal against the optical axis) is refused as edge-on.
 EDGE_ON_LIMIT_DEG = 85.0
 #: Largest condition number of the column-equilibrated linear f/Tz system (above: all points at one depth, square-on).
 F_TZ_COND_LIMIT = 1.0e6
-#: Largest relative standard error of f the f/Tz/kappa stage may imply: above it the points' depths differ too little
-#: (plate nearly square-on, or far for its size) to separate f from Tz. Willson's far-away data (6.6 m) give 2.8 %.
+#: Largest relative standard error of f after stage 5a (above: f and Tz inseparable); Willson's 6.6 m data give 2.8 %.
 F_REL_SD_LIMIT = 0.05
-#: The same limit on the final refinement (pose, f, kappa and perhaps the principal point): one view of a plane
-#: hardly separates the principal point from f and the tilt unless the lens distorts.
+#: The same on the final refinement: one view of a plane hardly separates the principal point from f and the tilt.
 FULL_REL_SD_LIMIT = 0.10
-#: Smallest image noise [px] assumed in judging that separation, so that exact data of a square-on plate do not pass.
+#: Smallest image noise [px] assumed in judging separation, so that exact data of a square-on plate do not pass.
 SEPARABILITY_NOISE_PX = 0.02
 #: Willson's lmdif tolerances (cal_main.h): relative cost reduction and relative step.
 WILLSON_FTOL, WILLSON_XTOL = 1.0e-5, 1.0e-7
@@ -49,7 +43,7 @@ WILLSON_MAXFEV_PER_PARAM = 1000
 INIT_FTOL, INIT_XTOL = 1.0e-8, 1.0e-8
 #: Tolerances of the full refinements, tight enough to reach the minimum to machine precision.
 FULL_FTOL, FULL_XTOL = 1.0e-12, 1.0e-10
-#: Residual evaluations the full refinement may spend (it needs 10 to 30 when the data determine it).
+#: Residual evaluations the full refinement may spend (10 to 30 when the data determine it).
 FULL_MAX_NFEV = 400
 #: Smallest ratio of the second to the first singular value of the centred points (collinearity).
 COLLINEAR_LIMIT = 1.0e-3
@@ -57,10 +51,9 @@ COLLINEAR_LIMIT = 1.0e-3
 
 @dataclass(frozen=True)
 class TsaiResult:
-    """Result of ``calibrate_coplanar``: ``camera`` the calibrated model (f [px], kappa [px^-2], principal point,
-    aspect, size); ``C_H_W`` (4, 4) plate -> camera, mm; ``residuals_px`` (N, 2) observed minus model in
-    distorted pixels; ``rms_px``, ``mean_px``, ``max_px``, ``sse_px2`` statistics of the per-point distances;
-    ``mode`` the refinement used; ``iterations`` Levenberg-Marquardt iterations over all stages."""
+    """Result of ``calibrate_coplanar``: ``camera`` (f [px], kappa [px^-2], principal point, aspect, size); ``C_H_W``
+    (4, 4) plate -> camera [mm]; ``residuals_px`` (N, 2) observed minus model, distorted px; ``rms_px``, ``mean_px``,
+    ``max_px``, ``sse_px2`` of the per-point distances; ``mode``; ``iterations`` of Levenberg-Marquardt, all stages."""
 
     camera: CameraModel
     C_H_W: np.ndarray
@@ -78,7 +71,7 @@ class TsaiResult:
         return np.hypot(self.residuals_px[:, 0], self.residuals_px[:, 1])
 
     def to_dict(self) -> dict:
-        """Plain numbers and lists for JSON and YAML: the camera, ``C_H_W`` (4x4 nested list), the error statistics."""
+        """Plain numbers and lists for JSON and YAML."""
         return {
             **self.camera.to_dict(), "C_H_W": np.asarray(self.C_H_W, dtype=float).tolist(),
             "rms_px": float(self.rms_px), "mean_px": float(self.mean_px), "max_px": float(self.max_px),
@@ -94,7 +87,6 @@ def residual_stats(residuals) -> tuple[float, float, float, float]:
     return float(np.sqrt(d2.mean())), float(d.mean()), float(d.max()), float(d2.sum())
 
 
-# --- input checks ------------------------------------------------------------------------------------
 def _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height, f_guess=None):
     try:
         p, q = np.asarray(p_W, dtype=float), np.asarray(uv, dtype=float)
@@ -146,10 +138,9 @@ def _sensor(uv, cx, cy, aspect, kappa):
     return Xh, Yh, Xh * a, Yh * a
 
 
-# --- linear stages (Willson's cc_compute_U ... cc_compute_approximate_f_and_Tz) ------------------------
 def _rpy_paul(r: np.ndarray) -> tuple[float, float, float]:
-    """Roll, pitch, yaw (rad) of a nearly orthonormal R = Rz Ry Rx by Paul's formulas, as Willson
-    reads them (rows 1-2 and r7 only, so an unnormalised third row does not enter)."""
+    """Roll, pitch, yaw [rad] of a nearly orthonormal R = Rz Ry Rx by Paul's formulas from rows 1-2 and r7 (Willson's
+    reading: an unnormalised third row does not enter)."""
     r1, r2, r3, r4, r5, r6, r7 = r.ravel()[:7]
     rz = np.arctan2(r4, r1)
     sg, cg = np.sin(rz), np.cos(rz)
@@ -159,12 +150,9 @@ def _rpy_paul(r: np.ndarray) -> tuple[float, float, float]:
 
 
 def _radial_alignment(xw, yw, Xd, Yd):
-    """Stages 1-3: (Tx, Ty, r (3, 3) as Willson forms it, not exactly orthonormal).
-
-    1. radial alignment: five unknowns ``U = (r1, r2, Tx, r4, r5) / Ty`` by linear least squares from
-       ``Y^ (r1 x + r2 y + Tx) = X^ (r4 x + r5 y + Ty)``;
-    2. ``|Ty|`` from U, its sign from the point farthest from the image centre;
-    3. R: r3, r6 from unit rows, the sign of r6 from ``r1 r4 + r2 r5``, the third row as the cross product."""
+    """Stages 1-3: (Tx, Ty, r (3, 3) not quite orthonormal, as Willson's). 1: ``U = (r1, r2, Tx, r4, r5) / Ty`` from
+    ``Y^ (r1 x + r2 y + Tx) = X^ (r4 x + r5 y + Ty)``; 2: ``|Ty|`` from U, its sign from the point farthest from the
+    image centre; 3: r3, r6 from unit rows, r6's sign from ``r1 r4 + r2 r5``."""
     A = np.column_stack([Yd * xw, Yd * yw, Yd, -Xd * xw, -Xd * yw])
     U, *_ = np.linalg.lstsq(A, Xd, rcond=None)
     r1p, r2p, _, r4p, r5p = U
@@ -180,7 +168,6 @@ def _radial_alignment(xw, yw, Xd, Yd):
         ty2 = (sr - np.sqrt(max(sr * sr - 4.0 * det * det, 0.0))) / (2.0 * det * det)
     if not np.isfinite(ty2) or ty2 <= 0:
         raise CalibrationError("radial alignment stage failed: no real Ty (points degenerate or mislabelled)")
-    # Sign of Ty: the point farthest from the image centre must project on the side it was seen.
     k = int(np.argmax(Xd * Xd + Yd * Yd))
     ty = np.sqrt(ty2)
     x = (U[0] * xw[k] + U[1] * yw[k] + U[2]) * ty
@@ -198,8 +185,8 @@ def _radial_alignment(xw, yw, Xd, Yd):
 
 
 def _approximate_f_Tz(xw, yw, Yd, r, ty, with_cond=True):
-    """Stage 4, f and Tz by linear least squares from ``f y - Y^ Tz = Y^ w``, kappa taken as 0: (f, Tz, condition
-    number of the column-equilibrated system (NaN unless ``with_cond``)); f < 0 asks for the other solution for R."""
+    """Stage 4: (f, Tz, condition of the column-equilibrated system or NaN) by least squares from
+    ``f y - Y^ Tz = Y^ w``, kappa = 0; f < 0 asks for the other solution for R."""
     yc = r[1, 0] * xw + r[1, 1] * yw + ty
     w = r[2, 0] * xw + r[2, 1] * yw
     A = np.column_stack([yc, -Yd])
@@ -215,7 +202,7 @@ def _approximate_f_Tz(xw, yw, Yd, r, ty, with_cond=True):
 
 
 def _linear_pose(xw, yw, Xd, Yd, with_cond=True):
-    """Stages 1-4 in the given plate frame: (Tx, Ty, r, f, Tz, cond (NaN unless ``with_cond``))."""
+    """Stages 1-4 in the given plate frame: (Tx, Ty, r, f, Tz, cond)."""
     tx, ty, r = _radial_alignment(xw, yw, Xd, Yd)
     f, tz, cond = _approximate_f_Tz(xw, yw, Yd, r, ty, with_cond)
     if not f >= 0:  # also NaN: the other solution for R (Willson), r3, r6, r7, r8 negated
@@ -228,8 +215,8 @@ def _linear_pose(xw, yw, Xd, Yd, with_cond=True):
 
 
 def _linear_stages(xy, Xd, Yd):
-    """Stages 1-4, in the given plate frame unless its origin lies too near the camera's y-z plane: (origin (2,) of the
-    stages' frame in W, xy in it, Tx, Ty, r, f, Tz, R_lin, tilt [deg]); refuses a plate edge-on or a singular f/Tz."""
+    """Stages 1-4, in a plate frame moved off the camera's y-z plane if need be (Willson's FAQ 3.3): (its origin (2,) in
+    W, xy in it, Tx, Ty, r, f, Tz, R_lin, tilt [deg]); ``CalibrationError`` for a plate edge-on or a singular f/Tz."""
     origin = np.zeros(2)
     try:
         tx, ty, r, f_lin, tz, cond = _linear_pose(xy[:, 0], xy[:, 1], Xd, Yd)
@@ -250,10 +237,9 @@ def _linear_stages(xy, Xd, Yd):
     return origin, xy, tx, ty, r, f_lin, tz, R_lin, tilt
 
 
-# --- non-linear stages ---------------------------------------------------------------------------------
 class _FTzKappa:
-    """Stage 5a's model: residuals in undistorted sensor coordinates of the distorted points (``Xd``, ``Yd``) as
-    functions of (f, Tz, kappa), pose from stages 1-3 (camera x, y of each point ``xc``, ``yc``, depth - Tz ``w``)."""
+    """Stage 5a's model: undistorted sensor residuals [px] of (``Xd``, ``Yd``) in (f, Tz, kappa), the pose of stages 1-3
+    (camera x, y ``xc``, ``yc`` and depth - Tz ``w`` of each point)."""
 
     def __init__(self, xc, yc, w, Xd, Yd):
         self.xy = np.concatenate([xc, yc])
@@ -262,7 +248,7 @@ class _FTzKappa:
         self.r2 = np.concatenate([Xd * Xd + Yd * Yd] * 2)
 
     def residuals(self, x):
-        """(2N,) model minus observation: x residuals of all points, then y."""
+        """(2N,) model minus observation, x of all points, then y."""
         return x[0] * self.xy / (self.w2 + x[1]) - self.XYd * (1.0 + x[2] * self.r2)
 
     def jacobian(self, x):
@@ -275,24 +261,22 @@ class _FTzKappa:
         return np.hypot(e[0], e[1])
 
     def f_relative_sd(self, x) -> float:
-        """Standard error of f relative to f at ``x``, from this stage's Jacobian and the residual
-        level (at least ``SEPARABILITY_NOISE_PX``): large when f and Tz trade against each other."""
+        """Relative standard error of f at ``x`` (noise >= ``SEPARABILITY_NOISE_PX``): large when f and Tz trade."""
         e = self.residuals(x)
         sigma2 = max(float(e @ e) / max(len(e) - 3, 1), SEPARABILITY_NOISE_PX**2)
         return _relative_sd(covariance(self.jacobian(x), sigma2), x, 0)
 
 
 def _relative_sd(C: np.ndarray, x, i: int) -> float:
-    """Standard error of parameter i relative to its value, from covariance C (inf if undetermined)."""
+    """Standard error of x[i] relative to it, from covariance C (inf if undetermined)."""
     with np.errstate(all="ignore"):
         v = float(np.sqrt(C[i, i]) / abs(x[i]))
     return v if np.isfinite(v) else np.inf
 
 
 def _refine_tsai(model: _FTzKappa, f, tz, kappa, willson: bool):
-    """Stage 5a: f, Tz, kappa minimising the undistorted sensor-plane error, pose from stages 1-3.
-    ``willson``: his path (``cc_compute_exact_f_and_Tz``: per-point distances, forward differences, his
-    tolerances; kappa's step relative to 1 / r_max^2); otherwise x and y residuals, analytic Jacobian."""
+    """Stage 5a: f, Tz, kappa minimising the undistorted sensor-plane error. ``willson``: as his
+    ``cc_compute_exact_f_and_Tz`` (per-point distances, forward differences, his tolerances, kappa step 1 / r_max^2)."""
     if willson:
         return levenberg_marquardt(model.distances, [f, tz, kappa], "forward", ftol=WILLSON_FTOL, xtol=WILLSON_XTOL,
                                    scale=[1.0, 1.0, 1.0 / model.r2.max()])
@@ -300,8 +284,8 @@ def _refine_tsai(model: _FTzKappa, f, tz, kappa, willson: bool):
 
 
 class _FullModel:
-    """Stage 5b's model: parameters x = (omega (3), t (3) [mm], f [px], kappa [px^-2] [, cx, cy]), R = exp(omega) R0;
-    residuals in distorted pixels, model minus observation (u of all points, then v), and their analytic Jacobian."""
+    """Stage 5b's model: x = (omega (3), t (3) [mm], f [px], kappa [px^-2] [, cx, cy]), R = exp(omega) R0; residuals in
+    distorted pixels, model minus observation (u of all points, then v), and their analytic Jacobian."""
 
     def __init__(self, p_W, uv, R0, cx, cy, aspect, free_centre):
         self.q = np.asarray(p_W, dtype=float) @ R0.T  # plate points rotated by R0, (N, 3)
@@ -310,8 +294,7 @@ class _FullModel:
         self._key, self._m = None, None
 
     def model(self, x):
-        """Per-point arrays at ``x`` (cached for the Jacobian), or None where a point is behind the
-        camera or beyond the lens's fold."""
+        """``_project_full`` at ``x``, cached for the Jacobian."""
         key = x.tobytes()
         if key != self._key:
             self._key, self._m = key, _project_full(self.q, x, self.cx, self.cy, self.aspect, self.free_centre)
@@ -347,8 +330,8 @@ class _FullModel:
 
 
 def _refine_full(p_W, uv, C_H_W, f, kappa, cx, cy, aspect, free_centre):
-    """Stage 5b, ``full``/``full+centre``: pose, f, kappa [, cx, cy] minimising the distorted pixel
-    error from ``C_H_W``. Returns (C_H_W, f, kappa, cx, cy, residuals (N, 2) [px], iterations)."""
+    """Stage 5b: pose, f, kappa [, cx, cy] minimising the distorted pixel error from ``C_H_W``. Returns (C_H_W, f,
+    kappa, cx, cy, residuals (N, 2) [px], iterations)."""
     R0 = C_H_W[:3, :3]
     model = _FullModel(p_W, uv, R0, cx, cy, aspect, free_centre)
     x0 = np.concatenate([np.zeros(3), C_H_W[:3, 3], [f, kappa], [cx, cy] if free_centre else []])
@@ -365,8 +348,7 @@ def _refine_full(p_W, uv, C_H_W, f, kappa, cx, cy, aspect, free_centre):
 
 
 def _project_full(q, x, cx, cy, aspect, free_centre):
-    """Model of ``_refine_full`` at parameters ``x``: dict of per-point arrays, or None where the
-    model cannot see a point (behind the camera, beyond the lens's fold)."""
+    """Per-point arrays of ``_FullModel`` at ``x``; None where a point is behind the camera or past the lens's fold."""
     R = R_from_rotvec(x[:3])
     d = q @ R.T
     pc = d + x[3:6]
@@ -383,11 +365,9 @@ def _project_full(q, x, cx, cy, aspect, free_centre):
             "u": XYh[:, 0] / aspect + ccx, "v": XYh[:, 1] + ccy}
 
 
-# --- Willson's full optimisation (mode "willson") --------------------------------------------------------
 class _LastTrial:
-    """Residuals of one of Willson's stages, ``fun(x)`` -> (residuals (N,), state), that remember the
-    state of their recent calls: his stages leave the pose of their last evaluation (the last trial
-    step, taken or not) in global state, and that pose starts the next stage."""
+    """Residuals of one of Willson's stages, ``fun(x)`` -> (residuals (N,), state), remembering recent states: his
+    stages leave the pose of their last evaluation (the last trial step, taken or not) to start the next stage."""
 
     def __init__(self, fun, n_params: int):
         self.fun = fun
@@ -399,8 +379,8 @@ class _LastTrial:
         return r
 
     def last_trial_state(self, x):
-        """State of the last call that was not a forward-difference column at the solution ``x``
-        (``levenberg_marquardt`` differences once more after its last step; lmdif does not)."""
+        """State of the last call that was no forward-difference column at ``x`` (``levenberg_marquardt`` differences
+        once more after its last step; lmdif does not)."""
         for xc, state in reversed(self.calls):
             if np.count_nonzero(xc != x) != 1:
                 return state
@@ -408,17 +388,15 @@ class _LastTrial:
 
 
 class _WillsonStages:
-    """The residuals of Willson's stages after the f/Tz/kappa one, for plate points ``xy`` (N, 2) [mm,
-    z = 0] and distorted pixels ``uv`` (N, 2): per point, the distance between the projection and the
-    undistorted observation in the undistorted sensor plane [px] (his ``err[i] = hypot(...)``)."""
+    """Residuals of Willson's stages after f/Tz/kappa for plate points ``xy`` (N, 2) [mm] and pixels ``uv`` (N, 2): per
+    point, the distance [px] of the projection from the undistorted observation (his ``err[i] = hypot(...)``)."""
 
     def __init__(self, xy, uv, aspect):
         self.xy, self.uv, self.aspect = xy, uv, aspect
 
     def five(self, p, early: bool):
-        """``p`` = (f [px], Tz [mm], kappa [px^-2], cx, cy [px]); Tx, Ty and R re-solved by stages 1-4
-        for this centre from the distorted (``early`` False) or undistorted observations. State: the
-        (Tx, Ty, r) it solved, None (and NaN residuals) where the linear stages fail."""
+        """``p`` = (f [px], Tz [mm], kappa [px^-2], cx, cy [px]); Tx, Ty, R by stages 1-4 from the distorted (``early``
+        False) or undistorted observations. State: (Tx, Ty, r), or None with NaN residuals if those stages fail."""
         f, tz, kappa, cx, cy = p
         Xh, Yh, X, Y = _sensor(self.uv, cx, cy, self.aspect, kappa)
         try:
@@ -430,8 +408,7 @@ class _WillsonStages:
         return np.hypot(f * xc / zc - X, f * yc / zc - Y), (tx, ty, r)
 
     def pose(self, p, cx=None, cy=None):
-        """``p`` = (Rx, Ry, Rz [rad] of R = Rz Ry Rx, Tx, Ty, Tz [mm], kappa [px^-2], f [px][, cx, cy
-        [px]]); the centre (``cx``, ``cy``) unless ``p`` has it. State: None."""
+        """``p`` = (Rx, Ry, Rz [rad] of R = Rz Ry Rx, Tx, Ty, Tz [mm], kappa [px^-2], f [px][, cx, cy]); state None."""
         if len(p) == 10:
             cx, cy = p[8], p[9]
         R = R_from_rpy(p[0], p[1], p[2])
@@ -441,19 +418,17 @@ class _WillsonStages:
 
 
 def _willson_stage(fun, x0):
-    """One lmdif call as Willson makes it (forward differences, his tolerances and budget, scaling by the
-    Jacobian's column norms); like him it takes the point where lmdif stopped, also out of budget."""
+    """One lmdif call as Willson's (forward differences, his tolerances and budget, scaled by the Jacobian's columns);
+    like him it takes the point where lmdif stopped, also out of budget."""
     n = len(x0)
     return levenberg_marquardt(fun, x0, "forward", ftol=WILLSON_FTOL, xtol=WILLSON_XTOL,
                                max_nfev=WILLSON_MAXFEV_PER_PARAM * n, scale=np.ones(n))
 
 
 def _willson_full(p, uv, xy, origin, aspect, f, tz, kappa, cx, cy):
-    """Stages after Willson's f/Tz/kappa one (his ``coplanar_calibration_with_full_optimization``, the
-    four stages of ``docs/tsai-willson.md``), from its f [px], Tz [mm], kappa [px^-2] and the given centre;
-    plate points ``p`` (N, 3), the same in the stages' frame ``xy`` (N, 2) whose origin is ``origin`` in W.
-    Returns (C_H_W (4, 4), f, kappa, cx, cy, iterations); ``CalibrationError`` if the linear stages fail,
-    f <= 0, a point lies behind the camera or one view does not determine the centre."""
+    """Stage 5c, Willson's ``coplanar_calibration_with_full_optimization`` (``docs/tsai-willson.md``), from stage 5a;
+    ``xy`` (N, 2) [mm]: ``p`` (N, 3) in the stages' frame at ``origin``. Returns (C_H_W, f, kappa, cx, cy, iterations);
+    ``CalibrationError`` if the linear stages fail, f <= 0, a point is behind the camera or the centre undetermined."""
     stages = _WillsonStages(xy, uv, aspect)
     x, iterations = np.array([f, tz, kappa, cx, cy], dtype=float), 0
     for early in (False, True):
@@ -476,7 +451,7 @@ def _willson_full(p, uv, xy, origin, aspect, f, tz, kappa, cx, cy):
     if not (f > 0 and np.all(depth > 0)):
         raise CalibrationError(f"Willson's full optimisation failed: f = {f:.4g} px, nearest point at depth "
                                f"{depth.min():.4g} mm")
-    # whether one view determines the centre: judged on the distorted pixel error, as for full+centre
+    # one view may not determine the centre: judged on the distorted pixel error, as for full+centre
     model = _FullModel(p, uv, R, cx, cy, aspect, True)
     xf = np.concatenate([np.zeros(3), C_H_W[:3, 3], [f, kappa, cx, cy]])
     e = model.residuals(xf)
@@ -485,23 +460,16 @@ def _willson_full(p, uv, xy, origin, aspect, f, tz, kappa, cx, cy):
     return C_H_W, f, kappa, cx, cy, iterations
 
 
-# --- the calibration -----------------------------------------------------------------------------------
 def calibrate_coplanar(p_W, uv, *, cx: float, cy: float, aspect: float = 1.0, mode: str = "full", width: int = 768,
                        height: int = 576, f_guess: float | None = None, kappa_guess: float = 0.0) -> TsaiResult:
-    """Tsai's coplanar calibration from plate points ``p_W`` (N, 3) [mm, z = 0] and their pixels ``uv`` (N, 2), with
-    the principal point (``cx``, ``cy``) [px] and ``aspect`` known.
-
-    ``mode``: ``tsai`` refines f, Tz, kappa as Tsai published it; ``full`` (default) pose, f and kappa; ``full+centre``
-    also the principal point; ``willson`` reproduces where Willson's full optimisation (centre free, his v3.0b3)
-    stops, not a minimum (``docs/tsai-willson.md``). ``width``, ``height`` [px] pass through to the camera. With the
-    plate's origin near the camera's y-z plane (his FAQ 3.3) the linear stages run in a plate frame moved to the point
-    farthest from the centre row. ``kappa_guess`` [px^-2] is removed from the observations before the linear stages
-    and starts the refinement (0 reproduces Willson); ``f_guess`` [px] starts it in place of the linear f (Tz
-    re-solved for it).
-
-    Raises ``CalibrationError`` naming the cause (bad points, the plate edge-on, f not separable from Tz, plate
-    coordinates mirrored against ``CONVENTIONS.md``, no pose with f > 0, no convergence); ``ConfigError`` for a bad
-    mode, principal point, aspect or ``f_guess``."""
+    """Tsai's coplanar calibration from plate points ``p_W`` (N, 3) [mm, z = 0] and their pixels ``uv`` (N, 2), the
+    principal point (``cx``, ``cy``) [px] and ``aspect`` known; ``width``, ``height`` [px] go to the camera. ``mode``:
+    ``tsai`` refines f, Tz, kappa as Tsai published it; ``full`` pose, f, kappa; ``full+centre`` also the principal
+    point; ``willson`` stops where Willson's full optimisation does, not at a minimum. ``kappa_guess`` [px^-2] is
+    taken off the observations and starts the refinement (0 as Willson); ``f_guess`` [px] replaces the linear f.
+    Raises ``CalibrationError`` naming the cause (bad points, plate edge-on, f not separable from Tz, plate coordinates
+    mirrored against ``CONVENTIONS.md``, no pose with f > 0, no convergence); ``ConfigError`` for a bad mode,
+    principal point, aspect or ``f_guess``."""
     p, q = _check_inputs(p_W, uv, cx, cy, aspect, mode, width, height, f_guess)
     Xh, Yh, Xd, Yd = _sensor(q, cx, cy, aspect, kappa_guess)
     _check_spread(np.column_stack([Xh, Yh]), "image points", "image points collinear: the plate is seen edge-on")
@@ -512,7 +480,7 @@ def calibrate_coplanar(p_W, uv, *, cx: float, cy: float, aspect: float = 1.0, mo
         f_lin = float(f_guess)
         tz = float(Yd @ (f_lin * yc - w * Yd) / (Yd @ Yd))
 
-    # Stage 5a: Willson's three-parameter refinement, with the linear R as he keeps it.
+    # stage 5a keeps the linear R, as Willson does
     stage = _FTzKappa(xc, yc, w, Xh, Yh)
     lm = _refine_tsai(stage, f_lin, tz, kappa_guess, willson=mode in ("tsai", "willson"))
     f, tz, kappa = (float(v) for v in lm.x)
@@ -551,9 +519,8 @@ def _camera(f, kappa, cx, cy, aspect, width, height) -> CameraModel:
 
 
 def _check_full_separable(J, cost: float, x, free: bool) -> None:
-    """Refuse a full refinement whose Jacobian ``J`` (2N, P) of the distorted pixel residuals at ``x``
-    (``_FullModel``'s parameters) and ``cost`` [px^2] imply a standard error of f above
-    ``FULL_REL_SD_LIMIT`` (``free``: the principal point was calibrated too)."""
+    """``CalibrationError`` if ``_FullModel``'s Jacobian ``J`` (2N, P) and ``cost`` [px^2] at ``x`` give a relative
+    standard error of f above ``FULL_REL_SD_LIMIT`` (``free``: the principal point was calibrated too)."""
     m, n = J.shape
     rel_sd = _relative_sd(covariance(J, max(cost / (m - n), SEPARABILITY_NOISE_PX**2)), x, 6)
     if not rel_sd <= FULL_REL_SD_LIMIT:
@@ -570,11 +537,8 @@ def _inseparable(tilt: float, detail: str) -> CalibrationError:
 
 
 def load_willson_points(path) -> tuple[np.ndarray, np.ndarray]:
-    """Read correspondences in Willson's format, one per line ``xw yw zw u v`` (mm, mm, mm, px, px);
-    blank lines and ``#`` comments are skipped. Returns (p_W (N, 3), uv (N, 2)).
-
-    Raises ``CalibrationFileError`` for a missing or unreadable file, a malformed line (naming its
-    number) or a file without points."""
+    """(p_W (N, 3) [mm], uv (N, 2) [px]) from Willson's format, ``xw yw zw u v`` a line, ``#`` comments. Raises
+    ``CalibrationFileError`` for a missing or unreadable file, a malformed line (naming it) or no points."""
     path = Path(path)
     blob = read_bounded(path, 16 << 20, error=CalibrationFileError, what="points file", missing="no such points file")
     try:
@@ -603,8 +567,8 @@ _WILLSON_NUM = r"([-+]?\d+\.\d+(?:e[-+]?\d+)?)"
 
 
 def parse_willson_log(log_text: str) -> dict[str, dict[str, float]]:
-    """The calibration sections of a Willson log, by title, each as name -> value: f, kappa1, Tx, Ty,
-    Tz, Rx, Ry, Rz [deg], Cx, Cy and '<kind>_<stat>' for the error blocks (e.g. 'distorted_mean')."""
+    """The calibration sections of a Willson log by title, each name -> value: f, kappa1, Tx, Ty, Tz, Rx, Ry, Rz [deg],
+    Cx, Cy and '<kind>_<stat>' for the error blocks (e.g. 'distorted_mean')."""
     out = {}
     for block in log_text.split("-" * 40):
         m = re.search(r"^(Coplanar calibration.*?)\s*$", block, re.M)
