@@ -1,8 +1,7 @@
 """The on-line policy (paper, section 4): update, recalibrate or raise the alarm.
 
-While the robot works each picture of the fingertips gives a differential estimate of how far the camera moved on
-its mount; the limits of ``monitor`` in the cell description decide what to do (``Policy``), and a ``Monitor``
-applies that rule frame by frame, telling a missed frame from an alarm.
+Each picture of the fingertips gives a differential estimate of the camera's motion on its mount; ``Policy`` judges it
+against the cell's ``monitor`` limits and ``Monitor`` applies that frame by frame, telling a missed frame from an alarm.
 """
 
 from __future__ import annotations
@@ -30,21 +29,15 @@ ACTIONS: tuple[str, ...] = ("update", "recalibrate", "alarm", "missed")
 
 #: A picture whose grey levels span less than this (1st to 99th percentile) shows nothing: a blank frame.
 BLANK_CONTRAST_GREY = 8.0
-#: Poses measured this many frames in a row, each beyond the update limit from the one before and within it of
-#: the one before that, alternate between two values: the alarm.
+#: Frames over which poses alternating between two values (a loose mount, two cameras) raise the alarm.
 ALTERNATION_WINDOW = 6
-#: Upper 0.1 % point of chi-square with 6 degrees of freedom: an update whose motion (delta, d) scores under it
-#: against its covariance is within the measurement's noise (a still camera exceeds it once in a thousand
-#: frames) and is not applied.
+#: Upper 0.1 % point of chi-square with 6 dof: an update whose motion scores under it against its covariance is
+#: noise and is not applied (a still camera exceeds it once in a thousand frames).
 CHI2_SIGNIFICANT = 22.458
-#: Frame-to-frame pixel noise of the silhouette tracker's fingertip corners, the background changing behind the
-#: fingers: the grasping servo on the realistic simulated cell (bench/positioning.py, two approaches of 9 and 10
-#: frames, the camera still) scatters them by 0.13-0.15 px pooled, 0.29 px on the worst coordinate, taken here.
+#: Frame-to-frame pixel noise of the tracker's fingertip corners, camera still: 0.29 px on the worst coordinate.
 TRACKER_NOISE_PX = 0.3
-#: The fingertips as a measurement sees them against the nominal ``p_G6``: real fingers are made to ISO 2768-1 m
-#: (+-0.2 mm a face, 0.1 mm one sd) with an edge break, 0.1 mm at the fingertips' 110 mm is 0.9 px; a measurement
-#: other than the calibration's (the silhouette fit, not the corner search) sees them up to about a pixel apart.
-#: The first picture after a calibration is compared at this noise.
+#: Noise of the first picture after a calibration against the nominal ``p_G6``: fingers made to ISO 2768-1 m
+#: (0.1 mm sd, 0.9 px at 110 mm), seen by another measurement than the calibration's, differ by up to a pixel.
 MODEL_TOLERANCE_PX = 1.0
 
 _LOG = logging.getLogger("selfview.estimation.policy")
@@ -56,13 +49,10 @@ _LEVEL = {"update": logging.INFO, "recalibrate": logging.WARNING, "alarm": loggi
 class Decision:
     """What the policy decided for one picture, and the measures that led to it.
 
-    ``action`` one of ``ACTIONS``; ``reason`` a sentence naming the measure and the limit; ``delta_deg``, ``d_mm``
-    the change since the last calibration compared with the limits (NaN without an estimate); ``rms_px`` the
-    residual of the estimate judged last (NaN if none); ``C_H_G`` (4, 4) the transform to use from now on: new
-    for update (NP-U's result re-orthonormalised, so that no error accumulates in a non-rigid matrix; eq. 13's
-    own is ``estimate.C_H_G``) and recalibrate, unchanged for an alarm (None if the policy was not told the
-    current one); ``method``, ``points_used`` and ``estimate``: the estimate ``C_H_G`` comes from (or that was
-    judged); ``n_found`` fingertips found in the picture.
+    ``action`` in ``ACTIONS``; ``reason`` naming measure and limit; ``delta_deg``, ``d_mm`` the change since the last
+    calibration and ``rms_px`` the judged estimate's residual (NaN without); ``C_H_G`` (4, 4) the transform from now
+    on, re-orthonormalised so no error accumulates (eq. 13's own: ``estimate.C_H_G``), unchanged on an alarm (None if
+    unknown); ``method``, ``points_used``, ``estimate``: the estimate judged; ``n_found`` fingertips found.
     """
 
     action: str
@@ -79,7 +69,7 @@ class Decision:
     @classmethod
     def of(cls, action: str, reason: str, C_H_G, est: MotionEstimate | None = None, n_found: int = 0,
            delta: float = math.nan, d: float = math.nan) -> "Decision":
-        """The decision with the residual, method and points of the estimate ``est`` it judged (if any)."""
+        """The decision with the residual, method and points of the judged estimate ``est`` (if any)."""
         if est is None:
             return cls(action, reason, delta, d, math.nan, C_H_G, None, int(n_found))
         return cls(action, reason, delta, d, est.rms_px, C_H_G, est.method, int(n_found), est.points_used, est)
@@ -102,16 +92,13 @@ class Decision:
 
 
 def _pose_about(est: MotionEstimate, C_H_G) -> np.ndarray:
-    """The estimate's pose about ``C_H_G`` as (rotation vector, translation) (6,): what the monitor's fusion
-    averages and its outlier test weighs against the estimate's covariance."""
+    """The estimate's pose about ``C_H_G`` as (rotation vector, translation) (6,), for fusion and outlier tests."""
     M = orthonormalize(np.asarray(est.C_H_G_orth, float)) @ inv_H(np.asarray(C_H_G, float))
     return np.concatenate([rotvec_from_R(M[:3, :3]), M[:3, 3]])
 
 
 def significance(est: MotionEstimate) -> float:
-    """The chi-square ``m^T C^-1 m`` of an estimate's motion ``m`` (6,) against its covariance ``C`` (6, 6): how
-    many sigmas (squared, summed over the six) the measured camera motion is from none. NaN when the covariance
-    is unknown (the model's 'E', or NP-U from 3 points without a prior pixel noise)."""
+    """The chi-square ``m^T C^-1 m`` of an estimate's motion (6,) against its covariance (6, 6); NaN if unknown."""
     C = np.asarray(est.covariance, float)
     m = np.asarray(est.motion, float)
     if C.shape != (6, 6) or m.shape != (6,) or not (np.isfinite(C).all() and np.isfinite(m).all()):
@@ -130,23 +117,14 @@ def _selectable(points: str, found: np.ndarray) -> bool:
 
 
 class Policy:
-    """The update / recalibrate / alarm rule of section 4 for the limits of one cell.
+    """The update / recalibrate / alarm rule of section 4 for one cell's limits.
 
-    ``limits``: ``Cell.monitor`` (update_limit, alarm_limit: angle [deg] and shift [mm]; max_rms_px). A limit is
-    exceeded when its angle or its shift is. Within ``update_limit``: update; beyond it but within
-    ``alarm_limit``: recalibrate (NP-R); beyond ``alarm_limit``, fewer than 3 fingertips found, or a residual over
-    ``max_rms_px`` (the model no longer fits): the alarm, ``C_H_G`` unchanged.
-
-    The change is delta and d of eq. 14 (the rotation angle and translation of ``C'_H_G C_H_G^-1``, the camera's
-    motion, not the TCP's shift) since the LAST CALIBRATION (off-line, or the last recalibration), not since the
-    previous frame: a camera that creeps 0.3 degrees per frame is recalibrated once the sum passes the limit.
-
-    ``chi2_limit`` (e.g. ``CHI2_SIGNIFICANT``): a calibration must not follow noise. An estimate whose motion since
-    the current ``C_H_G`` scores under this chi-square against its own covariance (``significance``, computed with
-    the measurement's pixel noise as its prior) is within the noise, however large its poorly determined part (a
-    turn and a shift that move the fingertips' pixels alike): 'update' with ``C_H_G`` kept, before the limits are
-    looked at; a creeping camera is followed once the motion since the kept ``C_H_G`` becomes significant. None
-    (default): every update within the limit is applied.
+    ``limits``: ``Cell.monitor`` (update_limit, alarm_limit: angle [deg] and shift [mm], either exceeding; max_rms_px).
+    Within ``update_limit``: update; within ``alarm_limit``: recalibrate (NP-R); beyond it, fewer than 3 fingertips or
+    a residual over ``max_rms_px``: the alarm, ``C_H_G`` unchanged. The change is delta and d of eq. 14 (the camera's
+    motion ``C'_H_G C_H_G^-1``) since the last calibration, not the previous frame, so a creeping camera is caught.
+    ``chi2_limit`` (e.g. ``CHI2_SIGNIFICANT``; None: off): an estimate whose motion since the current ``C_H_G`` scores
+    under it (``significance``) is noise, however large its poorly determined part: 'update' with ``C_H_G`` kept.
     """
 
     def __init__(self, limits: MonitorLimits, *, chi2_limit: float | None = None):
@@ -160,8 +138,7 @@ class Policy:
 
     @staticmethod
     def change(C_H_G_new, C_H_G_ref) -> tuple[float, float]:
-        """(delta [deg], d [mm]) of eq. 14 for the motion ``C'_H_C = C_H_G_new C_H_G_ref^-1`` between two (4, 4)
-        transforms: its rotation angle and the length of its translation."""
+        """(delta [deg], d [mm]) of eq. 14: rotation angle and shift of ``C_H_G_new C_H_G_ref^-1``, both (4, 4)."""
         new = orthonormalize(np.asarray(C_H_G_new, dtype=float))
         M = new @ inv_H(orthonormalize(np.asarray(C_H_G_ref, dtype=float)))
         return math.degrees(rotation_angle(M)), float(np.linalg.norm(M[:3, 3]))
@@ -182,12 +159,10 @@ class Policy:
                error: str | None = None) -> Decision:
         """Decide for one picture.
 
-        ``estimate_U`` the differential (NP-U, or NP-I) estimate from the current ``C_H_G`` (None when it could not
-        be computed: ``error`` says why); ``n_found`` fingertips found; ``C_H_G`` (4, 4) the current transform
-        (default: the estimate's starting one), returned unchanged on an alarm; ``C_H_G_calibrated`` (4, 4) the
-        last calibrated transform the limits refer to (default: the current one); ``recalibration`` an NP-R
-        estimate, or a callable computing it (called only when needed; a ``CalibrationError`` it raises becomes
-        an alarm). Without one a 'recalibrate' decision leaves ``C_H_G`` unchanged.
+        ``estimate_U`` the NP-U or NP-I estimate (None: ``error`` says why); ``C_H_G`` (4, 4) the current transform
+        (default the estimate's prior); ``C_H_G_calibrated`` (4, 4) the one the limits refer to (default the current);
+        ``recalibration`` an NP-R estimate or a callable computing it when needed (its ``CalibrationError``: an alarm;
+        none: 'recalibrate' leaves ``C_H_G`` unchanged).
         """
         lim = self.limits
         if C_H_G is None and estimate_U is not None:
@@ -249,32 +224,17 @@ class Policy:
 class Monitor:
     """Keeps ``C_H_G`` true while the robot works: one policy decision per picture.
 
-    ``C_H_G`` (4, 4) the calibrated transform to start from; ``camera`` its interior orientation; ``p_G6`` (6, 3)
-    the fingertip points [mm] for the gripper state in use (``GripperSpec.points_G``); ``limits`` the cell's
-    ``MonitorLimits`` or a ``Policy``. ``update_method`` an NP-U or NP-I method (default '4P-U' as the paper; the
-    same kind with fewer points, down to 3P, when its points are not all found), or 'E': the model-based
-    measurement's own pose (``step``'s ``model_C_H_G``). ``recalibration_method`` '4P-R', '5P-R' or 'auto' (5P-R
-    when a fifth point is found). ``raise_on_alarm``: raise ``AlarmError`` after logging an alarm instead of
-    returning the decision. Every decision is logged (``logger``, default 'selfview.estimation.policy') and kept
-    in ``records`` (plain dicts with the frame number).
-
-    A missed frame is never an update (``C_H_G`` unchanged): the measurement lost the fingertips (``lost``), fewer
-    than 3 were found, no picture came (``missed``), or the source lies (a picture bit-identical to the previous
-    one, or blank: ``frame_problem``). ``max_missed_frames`` in a row (default the limits'; ``missed_in_a_row``
-    counts them) raise the alarm, as do poses alternating between two values over ``ALTERNATION_WINDOW`` frames
-    (a loose mount, or two cameras on one input).
-
-    ``noise_px`` (e.g. ``TRACKER_NOISE_PX``): the measurement's pixel noise between frames; given, every
-    estimate's covariance is computed with it, an update whose motion is not significant (``CHI2_SIGNIFICANT``,
-    unless ``limits`` is a ``Policy``) keeps ``C_H_G``, and the pictures within the noise after a followed move
-    (an applied update or recalibration) are fused with it (``_fuse``): a move is followed at once and its
-    single-picture noise then averages out. ``learn_view``: compare like with like. The first picture after each
-    calibration is its reference: each found point back-projected onto the fingertips' plane through ``C_H_G``
-    replaces its nominal ``p_G6`` row (a point first found later, through that frame's ``C_H_G``), so that what a
-    measurement other than the calibration's sees differently of the real fingers (the silhouette fit against
-    the corner search, fingers made within their tolerance) cancels in the differential instead of moving
-    ``C_H_G``. An estimate using a point not yet learned is judged at ``MODEL_TOLERANCE_PX``: a change beyond it
-    (the camera moved since the calibration) is applied as usual and the points learned after.
+    ``C_H_G`` (4, 4) the calibrated start; ``camera`` its interior orientation; ``p_G6`` (6, 3) fingertip points [mm];
+    ``limits`` ``MonitorLimits`` or a ``Policy``. ``update_method`` NP-U or NP-I (default '4P-U', down to 3P when not
+    all are found) or 'E' (``step``'s ``model_C_H_G``); ``recalibration_method`` '4P-R', '5P-R' or 'auto'.
+    ``raise_on_alarm``: raise ``AlarmError`` after logging. Decisions are logged and kept in ``records``.
+    A missed frame (``lost``, under 3 points, ``missed``, ``frame_problem``) never updates; ``max_missed_frames`` in a
+    row raise the alarm, as do poses alternating over ``ALTERNATION_WINDOW`` frames (loose mount, two cameras).
+    ``noise_px`` (e.g. ``TRACKER_NOISE_PX``): the pixel noise between frames; given, an insignificant update keeps
+    ``C_H_G`` (``CHI2_SIGNIFICANT`` unless ``limits`` is a ``Policy``) and pictures within the noise after a followed
+    move are fused with it (``_fuse``). ``learn_view``: the first picture after each calibration replaces the found
+    points' nominal rows by their back-projection onto the fingertips' plane, so a measurement's own view of the real
+    fingers cancels in the differential; an estimate using a point not yet learned is judged at ``MODEL_TOLERANCE_PX``.
     """
 
     def __init__(self, C_H_G, camera: CameraModel, p_G6, limits: MonitorLimits | Policy, *,
@@ -373,8 +333,7 @@ class Monitor:
         return self._seen
 
     def _learn(self, uv: np.ndarray, found: np.ndarray) -> None:
-        """``learn_view``: the found points not yet learned, back-projected onto their plane in G (z of the
-        nominal points) through the current ``C_H_G``."""
+        """``learn_view``: learn the found points not yet learned, back-projected onto their plane in G."""
         new = found & ~self._learned
         if not self.learn_view or not new.any():
             return
@@ -385,9 +344,7 @@ class Monitor:
         self._seen[new], self._learned[new] = p, True
 
     def _prior(self, method: str, found: np.ndarray) -> dict:
-        """The estimator's keyword for the prior pixel noise of an estimate by ``method`` on the ``found`` points
-        (none for 'E' or without ``noise_px``): ``noise_px``, or at least ``MODEL_TOLERANCE_PX`` while one of its
-        points is nominal, not yet learned (``learn_view``)."""
+        """The estimator's prior pixel noise: ``noise_px``, at least ``MODEL_TOLERANCE_PX`` with an unlearned point."""
         if method == MODEL_METHOD:
             return {}
         sigma = self.noise_px
@@ -412,9 +369,7 @@ class Monitor:
         return "5P-R" if _selectable("5P", found) else "4P-R"
 
     def frame_problem(self, image) -> str | None:
-        """Why the picture ``image`` (H, W) cannot be measured, or None: blank (its grey levels span less than
-        ``BLANK_CONTRAST_GREY``), or bit-identical to the previous picture given (the grabber or its source is
-        stuck: a camera's noise never repeats). Such a frame is to be counted as ``missed``."""
+        """Why ``image`` (H, W) cannot be measured (blank, or the previous one again: a stuck source), or None."""
         img = np.asarray(image)
         digest = hashlib.blake2b(np.ascontiguousarray(img).tobytes(), digest_size=16).digest()
         same, self._last_picture = digest == self._last_picture, digest
@@ -437,9 +392,8 @@ class Monitor:
                 and not any(ex(lim, *self.policy.change(a, b)) for a, b in zip(P, P[2:])))
 
     def missed(self, reason: str) -> Decision:
-        """A frame without the fingertips (no picture, or the measurement lost them: ``reason``): never an update;
-        the alarm once ``max_missed_frames`` such frames came in a row. Logs and keeps the decision and returns
-        it (raises ``AlarmError`` on the alarm if ``raise_on_alarm``)."""
+        """A frame without the fingertips: never an update; after ``max_missed_frames`` in a row the alarm
+        (``AlarmError`` if ``raise_on_alarm``)."""
         self.frame += 1
         return self._missed(str(reason), 0)
 
@@ -454,13 +408,10 @@ class Monitor:
 
     def step(self, uv6, found6, p_G6=None, *, lost: str | None = None, model_C_H_G=None,
              model_rms_px: float = float("nan")) -> Decision:
-        """Judge one picture: ``uv6`` (6, 2) observed distorted pixels of the fingertips (NaN where not found),
-        ``found6`` (6,) bool, ``p_G6`` the points if the gripper state changed, ``lost`` why the measurement says it
-        lost the fingertips (its quality under its thresholds; None: it did not). A lost frame, or one with fewer than 3
-        points found, is a missed frame (``missed``). Otherwise applies the decision (update: new ``C_H_G``;
-        recalibrate: new ``C_H_G`` and new reference), logs and keeps it, and returns it. Raises ``AlarmError`` on an
-        alarm if ``raise_on_alarm``. ``model_C_H_G`` (4, 4) and ``model_rms_px``: the model-based measurement's pose and
-        residual (``FingertipResult.C_H_G``, ``quality['rms_px']``), the update when ``update_method`` is 'E'."""
+        """Judge and apply one picture: ``uv6`` (6, 2) distorted pixels (NaN where not found), ``found6`` (6,) bool,
+        ``p_G6`` new points if the gripper state changed, ``lost`` why the measurement lost the fingertips (a missed
+        frame, as is one with under 3 points). ``model_C_H_G`` (4, 4), ``model_rms_px``: the model-based pose and
+        residual, for 'E'. Raises ``ValueError`` for bad shapes, ``AlarmError`` on an alarm if ``raise_on_alarm``."""
         self.frame += 1
         p = self._view_points(self.p_G6 if p_G6 is None else self._points(p_G6))
         uv = np.asarray(uv6, dtype=float)
@@ -519,12 +470,8 @@ class Monitor:
         self._before_jump = None
 
     def _fuse(self, decision: Decision) -> Decision:
-        """An 'update' decision as applied. A followed (significant) move starts a fusion (``_moved_to``); a picture
-        within the noise after it gives the mean pose (rotation vector and translation about the move's) of the pictures
-        since (the decision's ``C_H_G`` and reason say so); after a calibration ``C_H_G`` stays. When the picture after
-        a jump is back within the noise of the pose before it, the jump was that one picture's outlier: the fusion
-        before it (or the kept C_H_G) goes on. (With the grasping servo's camera moved mid-approach, one such picture
-        put its own pose in place of the mean: the TCP's 0.01 mm became 0.02-0.09 mm.)"""
+        """An 'update' decision as applied: a significant move starts a fusion, later pictures within the noise give the
+        mean pose since; a picture back within the noise of the pose before a jump makes that jump an outlier."""
         est = decision.estimate
         lim = self.policy.chi2_limit
         if est is None or lim is None or not np.isfinite(est.covariance).all():
@@ -551,5 +498,5 @@ class Monitor:
                        "pictures since the last move")
 
     def _within_noise(self, est: MotionEstimate, C_H_G) -> bool:
-        """Is the estimate's pose within its noise (``CHI2_SIGNIFICANT``, the policy's chi-square) of ``C_H_G``?"""
+        """Is the estimate's pose within its noise (the policy's chi-square) of ``C_H_G``?"""
         return bool(wald_chi2(_pose_about(est, C_H_G), np.asarray(est.covariance, float)) < self.policy.chi2_limit)

@@ -1,24 +1,17 @@
 """Multi-view calibration of the interior orientation: f, kappa, principal point, aspect and skew.
 
-Several pictures of the plate from different poses separate the principal point and the aspect from f and the
-plate's tilt, which one picture (Tsai's method, as the paper uses it) cannot. The modules, one concept each:
-``model`` (the projection and the joint least-squares problem), ``plate`` (the printed plate's shape), ``fit``
-(the joint fit of the views), ``advice`` (the stop rule and how many more views of which kind), ``checks`` (two
-halves against each other; one picture against the assumed camera; the TCP's sigma) and ``calibrate``
-(``calibrate_intrinsics``, all of it as one result).
+Pictures of the plate from several poses separate the principal point and the aspect from f and the plate's tilt,
+which one picture (Tsai's method, as the paper uses it) cannot.
 """
 
 from selfview.estimation.intrinsics.advice import (MAX_MORE_VIEWS, STOP_ASPECT_REL, STOP_CENTRE_PX, VIEW_KINDS,
                                                    more_views_advice)
 from selfview.estimation.intrinsics.calibrate import IntrinsicsResult, calibrate_intrinsics
-from selfview.estimation.intrinsics.checks import (
-    AGREE_SIGMAS, CAMERA_CHI2_LIMIT, CAMERA_FILE_MAX_EXCESS_PX, TARGET_ACROSS_MM, TARGET_ALONG_MM, camera_check,
-    camera_file_fit, tcp_sigma,
-)
-from selfview.estimation.intrinsics.fit import (
-    INTRINSIC_NAMES, MIN_VIEWS, ViewFit, detect_views, fit_views, guess_camera, initial_pose, projection_sigma_px,
-    view_tilt_distance,
-)
+from selfview.estimation.intrinsics.checks import (AGREE_SIGMAS, CAMERA_CHI2_LIMIT, CAMERA_FILE_MAX_EXCESS_PX,
+                                                   TARGET_ACROSS_MM, TARGET_ALONG_MM, camera_check, camera_file_fit,
+                                                   tcp_sigma)
+from selfview.estimation.intrinsics.fit import (INTRINSIC_NAMES, MIN_VIEWS, ViewFit, detect_views, fit_views,
+                                                guess_camera, initial_pose, projection_sigma_px, view_tilt_distance)
 from selfview.estimation.intrinsics.plate import PLATE_MODELS
 
 __all__ = [

@@ -1,5 +1,4 @@
-"""The stop rule (are the centre and the aspect pinned?) and the advice on how many more views of which kind
-would pin them: each further view's information on the intrinsics, its own pose eliminated."""
+"""The stop rule (are the centre and the aspect pinned?) and how many more views of which kind would pin them."""
 
 from __future__ import annotations
 
@@ -29,12 +28,9 @@ def stop_met(sig: dict, aspect: float) -> bool:
 
 def _views_information(camera: CameraModel, plate: PlateSpec, distance: float, tilt_deg: float, azimuths,
                        s2: float, ni: int = 5, shape: "PlateShape | None" = None, y=None) -> dict:
-    """{azimuth: (ni, ni) information on the intrinsics that one view of the plate adds, its pose eliminated, or
-    None when fewer than 8 discs fall in the picture}: the plate's centre at ``distance`` on the optical axis,
-    tilted ``tilt_deg`` about an in-plane axis at each of ``azimuths`` [deg]; the discs that fall in the picture.
-    With the plate's shape (``shape`` at parameters ``y``): (ni + n_shape) square, on the intrinsics and the
-    shape (the same printed plate in every view). One joint problem of all the views, without the shape's prior
-    rows, gives their Jacobian at once."""
+    """{azimuth: (ni, ni) information one view adds on the intrinsics, its pose eliminated; None under 8 discs in the
+    picture}: the plate's centre at ``distance`` [mm] on the optical axis, tilted ``tilt_deg`` about an in-plane axis
+    at each of ``azimuths`` [deg]. With ``shape`` (at parameters ``y``): (ni + n_shape) square, intrinsics and shape."""
     p = plate.disc_centres_W()
     x = intrinsics_vector(camera, ni)
     out, P, UV, H_in, idx, az_in = {}, [], [], [], [], []
@@ -64,13 +60,8 @@ def _views_information(camera: CameraModel, plate: PlateSpec, distance: float, t
 
 
 def more_views_advice(fit: JointFit, plate: PlateSpec) -> dict:
-    """How many more views of each kind (``VIEW_KINDS``) would meet the stop rule, from the covariance: {distance_mm,
-    views_needed {label: number or None}}.
-
-    With the plate's shape fitted, on the joint information of the intrinsics and the shape: a further view sees
-    the same printed plate, whose uncertain shape it shares with the views taken (counting only the intrinsics'
-    marginal information, as if the new view's plate were known, promised the stop rule after one more view
-    where six did not reach it)."""
+    """How many more views of each kind (``VIEW_KINDS``) would meet the stop rule: {distance_mm, views_needed {label:
+    number or None}}; with a fitted plate shape on the joint information, as a further view shares that plate."""
     ni, ns = len(fit.cov5), len(fit.shape) if fit.plate_model != "flat" else 0
     shape = PlateShape(plate, fit.plate_model, fit.prior_noise_px, fit.dot_sd_mm) if ns else None
     if shape is not None and shape.n == ns:
@@ -90,8 +81,7 @@ def more_views_advice(fit: JointFit, plate: PlateSpec) -> dict:
     out = {}
     azimuths = [(90.0 * (n - 1) + 45.0 * ((n - 1) // 4)) % 360.0 for n in range(1, MAX_MORE_VIEWS + 1)]
     for label, tilt in VIEW_KINDS:
-        # the azimuths repeat (8 of them): each one's information computed once, all in one Jacobian (one
-        # view square-on, where the azimuth turns nothing)
+        # the 8 azimuths repeat: each one's information computed once (square-on, the azimuth turns nothing)
         seen = _views_information(fit.camera, plate, dist, tilt, sorted(set(azimuths)) if tilt else [0.0], fit.s2,
                                   ni, shape, fit.shape if shape is not None else None)
         adds = []
@@ -110,8 +100,7 @@ def more_views_advice(fit: JointFit, plate: PlateSpec) -> dict:
             return bool(np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0)
                         and stop_met(sigmas_of(cov), fit.camera.aspect))
 
-        # each view adds information (positive semi-definite), so the sigmas only fall as views are added:
-        # the fewest views that meet the rule by bisection
+        # each view adds positive semi-definite information, so the sigmas only fall: bisection for the fewest
         lo, hi = 0, len(adds)
         while lo < hi:
             mid = (lo + hi) // 2

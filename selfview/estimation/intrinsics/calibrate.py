@@ -1,5 +1,4 @@
-"""``calibrate_intrinsics``: the joint calibration from pictures of the plate, with its stop rule, advice and
-cross-check, as one result."""
+"""``calibrate_intrinsics``: the joint calibration from the plate's pictures, with stop rule, advice and cross-check."""
 
 from __future__ import annotations
 
@@ -16,23 +15,14 @@ from selfview.estimation.intrinsics.checks import halves_cross_check
 from selfview.estimation.intrinsics.plate import PLATE_MODELS
 from selfview.estimation.intrinsics.evidence import chi2_3_sf, heldout_test, sign_test_p
 from selfview.maths.lm import wald_chi2
-from selfview.estimation.intrinsics.fit import (
-    MIN_VIEWS, UNDETERMINED_CENTRE_PX, VIEW_MAX_RMS_PX, JointFit, sigmas_of, detect_views, fit_views, leave_views_out,
-    projection_sigma_px,
-)
+from selfview.estimation.intrinsics.fit import (MIN_VIEWS, UNDETERMINED_CENTRE_PX, VIEW_MAX_RMS_PX, JointFit, sigmas_of,
+                                                detect_views, fit_views, leave_views_out, projection_sigma_px)
 
-#: The skew is kept only when the views pin it: its estimate at least this many sigmas from 0 (a grabber without
-#: shear shows one as large in 0.3 % of calibrations) by its formal sigma *and* by the spread of its estimates
-#: with each view left out in turn (a jackknife, to first order: ``fit.leave_views_out``), which sees what the
-#: formal sigma cannot: a skew that stands for something the model lacks (distortion beyond kappa, a plate not
-#: as modelled) changes from view to view. Otherwise it is held at 0, the spec's model.
+#: The skew is kept only this many sigmas from 0 (0.3 % false alarms) by its formal sigma and by its jackknife's,
+#: which sees a skew standing for something the model lacks change from view to view; else it is held at 0.
 SKEW_SIGNIFICANCE = 3.0
-#: The plate model (``plate_model='auto'``) by evidence, one step at a time (``PLATE_STEPS``): a step is taken only when
-#: the richer model predicts the views left out in turn better than the simpler one (``evidence.heldout_test``: a
-#: one-sided sign test over the views) at this level. The bow's chi-square against 0 at the same level says whether the
-#: views measure a bow at all (one they measure but are too few to confirm is what a skew would take up).
+#: Level for a richer plate model ('auto'): the held-out sign test and the bow's chi-square against 0.
 PLATE_TEST_LEVEL = 0.01
-#: the plate models in the order the evidence must take them
 PLATE_STEPS = ("flat", "bow", "bow+dots")
 
 
@@ -71,9 +61,8 @@ class IntrinsicsResult:
 
 
 def _plate_summary(fit: JointFit) -> dict:
-    """What the fit found of the printed plate: its model, the bow's coefficients [mm] (z at the grid's
-    half-width: xx, xy, yy) with their 1-sigma, the discs' position error sd [mm] and rms of their fitted
-    corrections, each view's turn of its disc indices onto the plate's grid [deg] (None: kept as found)."""
+    """The fitted plate: model, bow coefficients [mm] (xx, xy, yy at the half-width) and 1-sigma, the discs' error sd
+    and correction rms [mm], each view's turn onto the plate's grid [deg] (None: kept as found)."""
     out = {"model": fit.plate_model, "turns_deg": list(fit.turns)}
     if fit.plate_model == "flat":
         return out
@@ -89,18 +78,12 @@ def _plate_summary(fit: JointFit) -> dict:
 def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, names=None, *,
                          skip_unusable: bool = False, cross_check: bool = True, detections=None,
                          plate_model: str = "auto", skew: bool | str = "auto") -> IntrinsicsResult:
-    """Joint calibration of f, kappa, cx, cy, aspect, the grabber's skew and each view's ``C_H_W`` from the plate's
-    pictures.
+    """Joint calibration of f, kappa, cx, cy, aspect, skew and each view's ``C_H_W`` from the plate's pictures.
 
-    ``images`` (H, W) pictures (or ``detections``, a list of ``DiscDetections``, instead); ``plate`` the plate;
-    ``camera_guess`` the starting camera (the cell's nominal one: its size checks the pictures); ``names`` per picture,
-    for messages; ``skip_unusable``: a picture without the plate is skipped (and listed) instead of refused. ``skew``:
-    'auto' fits the skew and keeps it only when the views pin it (``SKEW_SIGNIFICANCE``), else refits with it held at 0
-    (``skew_fit`` says which and why); True always fits it; False holds it at ``camera_guess``'s, the spec's model.
-    ``plate_model`` ('auto' or one of ``PLATE_MODELS``): 'auto' takes each richer plate model only when it predicts the
-    views left out in turn better (``PLATE_TEST_LEVEL``); ``plate_shape`` says which and why. Raises ``ImageError`` (a
-    picture without the plate, of the wrong size) or ``CalibrationError`` (fewer than ``MIN_VIEWS`` usable views; views
-    that do not determine the centre, all seen square-on; no convergence).
+    ``images`` (H, W) (or ``detections``); ``camera_guess`` the start (its size checks the pictures); ``skip_unusable``:
+    skip and list a picture without the plate. ``skew`` 'auto': kept only when pinned (``SKEW_SIGNIFICANCE``), else
+    held at 0; True: fitted; False: held at the guess's. ``plate_model`` 'auto' or one of ``PLATE_MODELS``. Raises
+    ``ImageError`` (no plate, wrong size), ``CalibrationError`` (under ``MIN_VIEWS`` views, no centre, no convergence).
     """
     if detections is None:
         dets, names, skipped = detect_views(images, plate, camera_guess, names, skip_unusable=skip_unusable)
@@ -145,10 +128,8 @@ def calibrate_intrinsics(images, plate: PlateSpec, camera_guess: CameraModel, na
 
 def _decide_skew(fit: JointFit, skew, bow_unconfirmed: bool, dets, names, plate, plate_model: str,
                  held: JointFit | None = None):
-    """(fit, skew_fit): with ``skew`` 'auto', the skew kept only when the views pin it (``SKEW_SIGNIFICANCE`` by
-    its formal sigma and by the jackknife's, each view left out in turn), else the fit redone with it held at 0
-    (``held``, when given: that fit, already made on the same views and plate model from another start, which
-    converges to the same solution); ``skew_fit`` says which and why."""
+    """(fit, skew_fit): with ``skew`` 'auto', the skew kept only when pinned, else the fit redone with it held at 0
+    (or ``held``, that fit already made on the same views); ``skew_fit`` says which and why."""
     skew_fit = {"fitted": skew is not False, "note": "skew fitted" if skew is True else "skew held at the guess's"}
     if skew is False:
         return fit, skew_fit
@@ -198,8 +179,7 @@ def _check_options(skew, plate_model: str) -> None:
 
 
 def _drop_misfits(fit: JointFit, dets, names, plate: PlateSpec, plate_model: str, fit_skew: bool, skipped: list):
-    """A view that does not fit the others (residual rms over ``VIEW_MAX_RMS_PX``) dropped, listed in
-    ``skipped``, and the rest refitted (while ``MIN_VIEWS`` remain): (fit, detections, names)."""
+    """(fit, detections, names) without the views over ``VIEW_MAX_RMS_PX`` (listed in ``skipped``), refitted."""
     bad = {v.name: v.rms_px for v in fit.views if v.rms_px > VIEW_MAX_RMS_PX}
     if not bad or len(fit.views) - len(bad) < MIN_VIEWS:
         return fit, dets, names
@@ -211,8 +191,7 @@ def _drop_misfits(fit: JointFit, dets, names, plate: PlateSpec, plate_model: str
 
 
 def _stop_rule(fit: JointFit, plate: PlateSpec, sig: dict) -> dict:
-    """Whether the views pin the centre and the aspect (``stop_met``), the sigmas against the limits and, if
-    not, how many more views of which kind would (``more_views_advice``)."""
+    """Whether the views pin the centre and the aspect, the sigmas against the limits and, if not, the advice."""
     met = stop_met(sig, fit.camera.aspect)
     stop = {"met": met, "sigma_centre_px": max(sig["cx"], sig["cy"]),
             "sigma_aspect_pct": 100 * sig["aspect"] / fit.camera.aspect, "limit_centre_px": STOP_CENTRE_PX,
@@ -233,9 +212,8 @@ def _stop_rule(fit: JointFit, plate: PlateSpec, sig: dict) -> dict:
 
 
 def _jackknife_sigma(fit: JointFit, i: int) -> float | None:
-    """The jackknife sigma of the fit's shared parameter ``i`` (an intrinsic, then the plate's shape) over its
-    views, each left out in turn to first order (``leave_views_out``); None when the views are too few (each
-    set left needs ``MIN_VIEWS``) or the others do not determine the camera without one of them."""
+    """The jackknife sigma of the fit's shared parameter ``i`` (intrinsics, then shape), views left out to first
+    order; None when too few views or the others do not determine the camera without one."""
     V = len(fit.views)
     if V - 1 < MIN_VIEWS:
         return None
@@ -247,12 +225,8 @@ def _jackknife_sigma(fit: JointFit, i: int) -> float | None:
 
 
 def _choose_plate_model(dets, names, plate, camera_guess: CameraModel):
-    """(model, why, its fit with the skew held at the guess's or None, bow_unconfirmed): the plate's model by evidence
-    (``PLATE_TEST_LEVEL``, ``PLATE_STEPS``): from the flat plate, each richer model only when it predicts the views left
-    out in turn better (``heldout_test``); ``bow_unconfirmed`` when the plate stays flat though the views measure a bow
-    (its chi-square against 0 significant) and are too few for the held-out check to confirm it at all (a bow they could
-    confirm and do not is no shape of the plate, and no reason to hold the skew). A view the bent plate cannot tie to
-    the printed grid is left out of it (the fit's ``dropped``)."""
+    """(model, why, its fit with the skew held or None, bow_unconfirmed): each richer model only when it predicts the
+    views left out better; ``bow_unconfirmed``: a bow measured, too few views to confirm it (a skew takes it up)."""
     try:
         fits = {"flat": fit_views(dets, plate, camera_guess, names, plate_model="flat", fit_skew=False)}
     except CalibrationError as e:

@@ -1,5 +1,5 @@
-"""Consistency checks: two halves of the views against each other; one picture's evidence against the assumed
-camera; the TCP's uncertainty from the camera calibration and the PCC together."""
+"""Consistency checks: two halves of the views against each other; one picture against the assumed camera; the TCP's
+uncertainty from the camera calibration and the PCC together."""
 
 from __future__ import annotations
 
@@ -21,9 +21,8 @@ AGREE_SIGMAS = 3.0
 
 
 def halves_cross_check(fit: JointFit) -> dict:
-    """Do two halves of the fit's views (alternate ones, in its order) give the same intrinsics within
-    ``AGREE_SIGMAS`` combined sigmas? Each half's fit is the joint fit with the other half left out, to first
-    order about ``fit``'s solution (``ReducedSystem.fit_without``: no refits), with its own residual variance."""
+    """Do two halves of the fit's views (alternate ones) give the same intrinsics within ``AGREE_SIGMAS`` combined
+    sigmas? Each half to first order about ``fit`` (``ReducedSystem.fit_without``), with its own residual variance."""
     n = len(fit.views)
     if n < 2 * MIN_VIEWS_HALF:
         return {"done": False, "why": f"{n} views; the cross-check needs {2 * MIN_VIEWS_HALF} (two halves of "
@@ -43,29 +42,22 @@ def halves_cross_check(fit: JointFit) -> dict:
             "ratio": named(ratio), "limit_sigmas": AGREE_SIGMAS}
 
 
-# --- one picture: is the nominal camera wrong? how sure is the TCP? --------------------------------
 #: Accuracy targets of the off-line calibration [mm]: TCP across and along the optical axis.
 TARGET_ACROSS_MM = 0.02
 TARGET_ALONG_MM = 0.08
-#: The picture shows the camera's centre and aspect differ from the assumed ones when the chi-square of
-#: the difference (3 degrees of freedom) exceeds this (p = 1e-4 for a right camera).
+#: Chi-square (3 dof) over which a picture's centre and aspect differ from the assumed (p = 1e-4 if right).
 CAMERA_CHI2_LIMIT = 21.1
-#: A camera file fits a picture when the plate's disc residual with all of its intrinsics held (the plate's
-#: pose alone fitted) stays within this of the residual with f and kappa the picture's own [px]: with the
-#: right camera both are the discs' own scatter (centroid noise 0.02 px, a laser print's dot errors 0.05-0.2
-#: px) and differ by under 0.02 px; another camera's f or centre leaves a pattern over the plate that the
-#: pose cannot take up (another camera of the same size: 0.3 px and more).
+#: Most excess [px] of the disc residual with a camera file's intrinsics over that with the picture's own f and
+#: kappa: under 0.02 px for the right camera, 0.3 px and more for another of the same size.
 CAMERA_FILE_MAX_EXCESS_PX = 0.1
-#: The least error [px] (u, v) of a fingertip corner from the corner search, whatever its edges' noise says:
-#: the corner search's RMS error against the known corners of rendered parked pictures (8 seeds, 48 corners:
-#: 0.036 px in u, 0.062 px in v, where the edge points' own scatter over sqrt(n/2) says 0.009 px). Left out,
-#: the TCP's sigma across the picture came out 2.6 to 5.7 times below its error.
+#: Least error [px] (u, v) of a found fingertip corner: the corner search's RMS error on rendered pictures (its
+#: edges' scatter says 0.009 px; without it the TCP's sigma was 2.6-5.7 times too small).
 CORNER_FLOOR_PX = (0.036, 0.062)
 
 
 def _one_view(result, camera: CameraModel, ni: int = 5):
-    """(model, x) of the one-view problem at the off-line result: the intrinsics (f and kappa the picture's,
-    the rest ``camera``'s; ``ni`` 5: the skew held at ``camera``'s, 6: free) and the pose."""
+    """(model, x) of the one-view problem at the off-line result: f and kappa the picture's, the rest ``camera``'s
+    (``ni`` 5: skew held, 6: free), and the pose."""
     ts = result.tsai
     H = ts.C_H_W
     model = JointProblem([result.discs.p_W], [result.disc_uv_corrected], [H[:3, :3]], ni=ni, skew=camera.skew)
@@ -75,8 +67,8 @@ def _one_view(result, camera: CameraModel, ni: int = 5):
 
 
 def _tcp_of(result):
-    """``tcp(camera, C_H_W, uv=None)``: the TCP [mm, camera axes] by ``solve_pcc`` from the picture's found
-    fingertips (their pixels ``uv`` (n, 2) when given) with the plate's pose ``C_H_W``."""
+    """``tcp(camera, C_H_W, uv=None)``: the TCP [mm, camera axes] by ``solve_pcc`` from the found fingertips (pixels
+    ``uv`` (n, 2) when given)."""
     ft, cal = result.fingertips, result.calibration
     found = np.asarray(ft.found, bool)
     pG = cal.points_G[cal.state][found]
@@ -88,10 +80,9 @@ def _tcp_of(result):
 
 
 def camera_file_fit(result, camera: CameraModel, source: str = "the camera file") -> dict:
-    """Does ``camera`` (from a camera file: f, kappa, centre, aspect, skew) fit the picture of an off-line
-    calibration (``selfview.estimation.offline.OfflineResult``)? The plate's pose alone is fitted to the disc
-    centres with every intrinsic held at ``camera``'s. Returns {rms_px, own_rms_px (f and kappa the picture's),
-    excess_px, limit_px, fits, refusal (why it does not fit, naming ``source``; None when it fits)}."""
+    """Does ``camera`` (from a camera file) fit an off-line calibration's picture (``OfflineResult``), the plate's pose
+    alone fitted? {rms_px, own_rms_px (f and kappa the picture's), excess_px, limit_px, fits, refusal (naming
+    ``source``; None when it fits)}."""
     model, x = _one_view(result, camera, ni=6)
     x[:6] = intrinsics_vector(camera, 6)
     own = float(result.tsai.rms_px)
@@ -112,15 +103,9 @@ def camera_file_fit(result, camera: CameraModel, source: str = "the camera file"
 
 
 def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
-    """Does the picture of an off-line calibration (``selfview.estimation.offline.OfflineResult``) show that the
-    assumed camera's principal point or aspect (``camera``, default the cell's nominal one) is wrong by enough to
-    cost more than the accuracy targets?
-
-    One view with f, kappa, cx, cy, aspect and the pose free (the skew held at the assumed camera's: one view does
-    not pin it); the difference of (cx, cy, aspect) from the assumed ones is significant when its chi-square
-    exceeds ``CAMERA_CHI2_LIMIT``; its cost is how far the TCP moves when the picture is calibrated again with
-    its own centre and aspect. Returns {significant, chi2, centre_offset_px [dx, dy], aspect, aspect_sigma,
-    centre_sigma_px, tcp_shift_mm [3], costly, warning (str or None)}.
+    """Does an off-line calibration's picture show the assumed camera's (default the cell's) centre or aspect wrong
+    (chi-square over ``CAMERA_CHI2_LIMIT``) and costly (the TCP's move when recalibrated with its own)? {significant,
+    chi2, centre_offset_px, aspect, aspect_sigma, centre_sigma_px, tcp_shift_mm [3], costly, warning (or None)}.
     """
     cam0 = camera or cell.camera.guess()
     model, x0 = _one_view(result, cam0)
@@ -166,16 +151,10 @@ def camera_check(result, cell, camera: CameraModel | None = None) -> dict:
 
 
 def tcp_sigma(result, cell, camera_cov3: np.ndarray | None = None, camera_error: dict | None = None) -> dict:
-    """1-sigma of the TCP in camera axes [mm] of an off-line calibration, from the covariance of the camera calibration
-    and the PCC together, propagated to ``C_H_G``'s translation by its derivatives (central differences through Tsai's
-    pose and ``selfview.estimation.pcc.solve_pcc``). The parts: ``picture``, the noise of its disc centres (the
-    covariance of f, kappa and the plate pose, scaled by the residual); ``camera_file``, the uncertainty of the
-    principal point and aspect (``camera_cov3`` (3, 3) of cx, cy, aspect, or (4, 4) with the skew, from a camera file;
-    None: taken as exact), through the pose and f they shift and directly; ``corners``, the fingertip corners' (each
-    from two line fits: the edge points' RMS over sqrt(n/2) per axis, at least ``CORNER_FLOOR_PX``); ``camera_model``,
-    when ``camera_error`` (``camera_check``'s answer for this picture) shows the assumed centre and aspect wrong, its
-    ``tcp_shift_mm`` (the error of the camera model the sigma would otherwise leave out). Returns {tcp_sigma_mm [3],
-    parts {...}}; ``ValueError`` for a ``camera_cov3`` of another shape.
+    """1-sigma [mm, camera axes] of an off-line calibration's TCP by central differences. Parts: ``picture`` (disc
+    noise), ``camera_file`` (``camera_cov3`` (3, 3) of cx, cy, aspect, or (4, 4) with the skew; None: exact),
+    ``corners`` (at least ``CORNER_FLOOR_PX``), ``camera_model`` (``camera_error``'s ``tcp_shift_mm`` when significant).
+    Returns {tcp_sigma_mm [3], parts}; ``ValueError`` for a ``camera_cov3`` of another shape.
     """
     cal = result.calibration
     cam = cal.camera

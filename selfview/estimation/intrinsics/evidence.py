@@ -1,6 +1,5 @@
-"""What the views say about a richer model: the held-out check (each view left out in turn, to first order,
-``fit.leave_views_out``) as a one-sided sign test over the views, and the chi-square test of parameters
-against 0 with the pixel noise estimated. Both without refits."""
+"""Evidence for a richer model without refits: the held-out check (each view left out in turn, to first order) as a
+one-sided sign test over the views, and a chi-square test of parameters against 0."""
 
 from __future__ import annotations
 
@@ -12,8 +11,7 @@ from selfview.estimation.intrinsics.fit import JointFit, leave_views_out
 
 
 def sign_test_p(better: int, worse: int) -> float:
-    """One-sided p-value of the sign test: the chance of ``better`` or more successes in ``better + worse``
-    fair coin tosses."""
+    """One-sided p-value of the sign test: P(``better`` or more successes in ``better + worse`` fair tosses)."""
     n = better + worse
     if n == 0:
         return 1.0
@@ -27,11 +25,8 @@ def chi2_3_sf(x: float) -> float:
 
 
 def heldout_test(simple: JointFit, rich: JointFit) -> dict:
-    """Does ``rich`` predict the views left out better than ``simple``? Per view common to both (by name):
-    the mean square of its residuals predicted from the other views (its pose refitted to it), by each
-    model; ``p`` the one-sided sign test's p-value of the views ``rich`` predicts better (small: it predicts
-    more of them better than chance allows; a test that needs no model of how the views' errors are
-    distributed, and one odd view weighs as one). {views, better, p, rms_simple_px, rms_rich_px}."""
+    """Does ``rich`` predict each view left out (by name) better than ``simple``? ``p`` the sign test's p-value (no
+    model of the errors' distribution; one odd view weighs as one). {views, better, p, rms_simple_px, rms_rich_px}."""
     hs, hr = leave_views_out(simple)[1], leave_views_out(rich)[1]
     ns, nr = [v.name for v in simple.views], [v.name for v in rich.views]
     common = [nm for nm in nr if nm in ns]

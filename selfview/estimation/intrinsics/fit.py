@@ -1,5 +1,4 @@
-"""The joint fit of several views' disc centres: first poses, the bias-corrected refits with the plate's shape,
-outlying discs dropped; the fit's uncertainty figures."""
+"""The joint fit of several views' disc centres (bias-corrected, with the plate's shape) and its uncertainty."""
 
 from __future__ import annotations
 
@@ -31,22 +30,16 @@ MIN_VIEWS_HALF = 3
 #: A disc centre this many residual RMS (and at least ``OUTLIER_MIN_PX``) from the model is dropped.
 OUTLIER_RMS = 4.0
 OUTLIER_MIN_PX = 0.5
-#: A view whose residual RMS exceeds this [px] after the fit does not belong to the set (another
-#: plate, a moved camera, a blurred picture) and is dropped.
+#: A view whose residual RMS exceeds this [px] does not belong (another plate, moved camera, blur): dropped.
 VIEW_MAX_RMS_PX = 1.5
-#: Bias-correction rounds (centroid -> image of the centre) after the first fit. One: the bias (0.05-0.2 px)
-#: depends on the camera only weakly, so a second round by the corrected fit's camera moved f, cx, cy by under
-#: 0.004 of their sigmas on every real set of discs (the fits started from this one correct by it again).
+#: Bias-correction rounds after the first fit: a second moved f, cx, cy by under 0.004 sigma on every real set.
 BIAS_ROUNDS = 1
 #: Further refits, at most, until the noise that weighs the plate's prior settles (within 20 %).
 NOISE_ROUNDS = 4
-#: The joint LM stops when a step would lower the cost by less than this part of it: a step that moves the
-#: parameters by e of their sigmas lowers it by about e^2 / (m - n) of it (m - n, the residuals' degrees
-#: of freedom, 10^2 to 10^4 here), so 1e-10 stops within 1e-3 sigma of the minimum.
+#: The joint LM's relative cost decrease to stop: a step of e sigmas lowers it by about e^2 / (m - n), m - n up to
+#: 10^4 here, so it stops within 1e-3 sigma of the minimum.
 FTOL = 1e-10
-#: Views whose plate normals (in the camera frame) all lie within this of their mean direction [deg] see
-#: parallel planes (the gripper straight down, only lifted and turned; or all square-on): they cannot pin
-#: the principal point (Zhang: parallel planes add no constraint on the interior orientation).
+#: Plate normals all within this [deg] of their mean: parallel planes cannot pin the principal point (Zhang).
 PARALLEL_DEG = 5.0
 #: Above this sigma of the centre [px] the views do not determine it at all.
 UNDETERMINED_CENTRE_PX = 5.0
@@ -54,9 +47,8 @@ UNDETERMINED_CENTRE_PX = 5.0
 
 @dataclass
 class ViewFit:
-    """One view in the joint fit: ``name``; ``C_H_W`` (4, 4); ``discs`` used; ``rms_px`` of its residuals;
-    ``tilt_deg`` angle between the plate's normal and the optical axis; ``distance_mm`` to the plate's
-    origin; ``dropped`` disc centres dropped as outliers."""
+    """One view in the joint fit: ``name``; ``C_H_W`` (4, 4); ``discs`` used; ``rms_px`` residual; ``tilt_deg`` plate
+    normal to optical axis; ``distance_mm`` to the plate's origin; ``dropped`` outlying disc centres."""
 
     name: str
     C_H_W: np.ndarray
@@ -74,9 +66,8 @@ class ViewFit:
 
 @dataclass
 class JointFit:
-    """A joint fit: its ``camera``, the Jacobian ``jac`` and residual variance ``s2`` at its solution, whose
-    covariance (``cov_full``; ``cov5`` of the ``ni`` intrinsics fitted, INTRINSIC_NAMES[:ni]; ``shape_cov``
-    of the plate's shape) is computed when first asked for (most intermediate fits never are)."""
+    """A joint fit: ``camera``, Jacobian ``jac`` and residual variance ``s2`` at its solution; its covariance
+    (``cov_full``; ``cov5`` of INTRINSIC_NAMES[:ni]; ``shape_cov``) computed when first asked for."""
 
     camera: CameraModel
     ni: int
@@ -93,8 +84,7 @@ class JointFit:
     turns: list = field(default_factory=list)
     dropped: list = field(default_factory=list)  # [(view name, why)] left out of the fit
     residuals: np.ndarray = field(default_factory=lambda: np.zeros(0))  # at the solution, rows as ``jac``'s
-    # the views' centroids bias-corrected by this fit's camera and poses (``_bias_corrected``), computed once
-    # for the fits that start from it (the richer plate models, the skew, the halves)
+    # the centroids bias-corrected by this fit (``_bias_corrected``), once for every fit started from it
     bias_memo: dict = field(default_factory=dict, repr=False, compare=False)
 
     @cached_property
@@ -103,8 +93,7 @@ class JointFit:
 
     @cached_property
     def reduced(self) -> "ReducedSystem":
-        """Its normal equations on the shared parameters, each view's pose eliminated (``ReducedSystem``): for
-        the views left out to first order (the plate model's evidence, the skew's jackknife, the halves)."""
+        """Its normal equations with each view's pose eliminated, for views left out to first order."""
         return ReducedSystem(self)
 
     @property
@@ -118,11 +107,8 @@ class JointFit:
 
 
 class ReducedSystem:
-    """A fit's normal equations on its shared parameters (the ``ni`` intrinsics then the plate's shape), each view's
-    6 pose parameters eliminated from its rows (Schur complement), about its solution: per view its rows with its
-    own pose projected out (``Jh``, ``rh``) and its share of the reduced matrix and gradient (``Sk``, ``gk``); the
-    shape's prior rows (``jp``, ``rp``) in the totals (``S``, ``g``); the shared columns scaled by ``sc`` (their
-    norms). What leaving views out of the fit does, to first order, without refits."""
+    """A fit's normal equations on its shared parameters (intrinsics, shape), each view's pose eliminated (Schur): per
+    view its rows (``Jh``, ``rh``) and share (``Sk``, ``gk``); totals ``S``, ``g`` with the prior; scales ``sc``."""
 
     def __init__(self, fit: JointFit):
         J, r, ni, V = fit.jac, fit.residuals, fit.ni, len(fit.views)
@@ -156,9 +142,7 @@ class ReducedSystem:
                                    "camera") from None
 
     def fit_without(self, drop) -> tuple[np.ndarray, np.ndarray, float]:
-        """The fit of the views left when ``drop`` (indices) are left out, to first order about this one (each
-        view's pose refitted to it): (shared parameters, their covariance, the residual variance of the
-        views left, the shape's prior rows counted as observations as in the fit)."""
+        """(shared parameters, covariance, residual variance) of the fit without views ``drop``, to first order."""
         d, Sd = self.without(drop)
         keep = [k for k in range(len(self.n)) if k not in set(drop)]
         e = [self.rh[k] + self.Jh[k] @ d for k in keep] + [self.rp + self.jp @ d]
@@ -173,11 +157,8 @@ class ReducedSystem:
 
 
 def leave_views_out(fit: JointFit) -> tuple[np.ndarray, np.ndarray]:
-    """The fit's views left out one at a time, to first order about its solution (``ReducedSystem``, no refit):
-    (``delta`` (V, P) the change of the shared parameters, the ``ni`` intrinsics then the plate's shape, when
-    view k is left out; ``heldout`` (V,) the mean square [px^2] of view k's residuals predicted by the other
-    views' parameters, with its own pose refitted to it). ``CalibrationError`` when the views left do not
-    determine the shared parameters."""
+    """Each view left out in turn, to first order: (``delta`` (V, P) change of the shared parameters, ``heldout`` (V,)
+    mean square [px^2] of view k's residuals predicted by the others). ``CalibrationError`` when undetermined."""
     rs, V = fit.reduced, len(fit.views)
     delta, heldout = np.zeros((V, len(rs.sc))), np.zeros(V)
     for k in range(V):
@@ -188,8 +169,7 @@ def leave_views_out(fit: JointFit) -> tuple[np.ndarray, np.ndarray]:
 
 
 def view_tilt_distance(C_H_W) -> tuple[float, float]:
-    """(tilt [deg], distance [mm]) of a view of the plate: the angle between the plate's normal and the
-    optical axis, and the distance from the camera to W's origin (``ViewFit``'s)."""
+    """(tilt [deg] of the plate's normal from the optical axis, distance [mm] to W's origin) of a view."""
     H = np.asarray(C_H_W, float)
     return float(np.degrees(np.arccos(min(1.0, abs(H[2, 2]))))), float(np.linalg.norm(H[:3, 3]))
 
@@ -210,10 +190,8 @@ def initial_pose(p_W, uv, camera: CameraModel) -> np.ndarray:
 def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list, *, rc: list | None = None,
            plate: PlateSpec | None = None, plate_model: str = "flat", shape0=None, noise_px: float = 0.05,
            dot_sd_mm: float = PLATE_DOT_PRIOR_MM, fit_skew: bool = True) -> JointFit:
-    """Joint LM from ``camera0``, ``poses0`` (and the plate's shape ``shape0``); drops outlying discs once and
-    refits. ``plate_model`` (``PLATE_MODELS``; needs ``rc`` and ``plate``): what of the plate's shape is fitted;
-    ``noise_px`` the disc centres' noise that weighs the shape's prior against the pixels; ``fit_skew``: the skew
-    is fitted (else held at ``camera0``'s)."""
+    """Joint LM from ``camera0``, ``poses0``, ``shape0``, outlying discs dropped once. ``plate_model`` needs ``rc`` and
+    ``plate``; ``noise_px`` weighs the shape's prior against the pixels; ``fit_skew`` else held at ``camera0``'s."""
     ni = 6 if fit_skew else 5
     shape = None
     if plate_model != "flat":
@@ -254,9 +232,8 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
 
 
 def _bias_corrected(dets, camera, poses, plate, memo: dict | None = None) -> list:
-    """Each view's centroids less their perspective and lens bias for ``camera`` and its pose; ``memo`` (a fit's
-    ``bias_memo``): each view's answer kept by its exact inputs, so a fit's correction is computed once for every
-    fit started from it."""
+    """Each view's centroids less their perspective and lens bias; ``memo`` (a fit's ``bias_memo``) keeps each by its
+    exact inputs."""
     if memo is None:
         return [d.uv - plate_image_bias(plate, camera, H, d.p_W) for d, H in zip(dets, poses)]
     out = []
@@ -270,8 +247,7 @@ def _bias_corrected(dets, camera, poses, plate, memo: dict | None = None) -> lis
 
 
 def _dot_sd(fit: JointFit) -> float:
-    """The discs' position error sd [mm] a 'bow+dots' fit's corrections say (their mean square plus their
-    posterior variance, within ``PLATE_DOT_SD_RANGE_MM``); the fit's own for another model."""
+    """The discs' error sd [mm] a 'bow+dots' fit's corrections say (within ``PLATE_DOT_SD_RANGE_MM``)."""
     if fit.plate_model != "bow+dots":
         return fit.dot_sd_mm
     u, cu = fit.shape[3:], fit.shape_cov[3:, 3:]
@@ -280,9 +256,8 @@ def _dot_sd(fit: JointFit) -> float:
 
 
 def _first_poses(dets, names, camera0: CameraModel, start: JointFit | None, fit_skew: bool):
-    """(camera, poses, warm) to start ``fit_views`` from: ``start``'s camera (with ``camera0``'s skew when the
-    skew is held) and poses when it fitted every view named (warm), else ``camera0`` and planar PnP. A view
-    whose indices ``start`` turned onto its grid has the start's pose of the turned grid: PnP for it."""
+    """(camera, poses, warm): ``start``'s when it fitted every view named (a turned view's pose by PnP), else
+    ``camera0`` and planar PnP."""
     turned = {v.name for v, t in zip(start.views, start.turns) if t} if start is not None else set()
     known = {v.name: v.C_H_W for v in start.views if v.name not in turned} if start is not None else {}
     warm = bool(known) and all(nm in known or nm in turned for nm in names)
@@ -293,8 +268,7 @@ def _first_poses(dets, names, camera0: CameraModel, start: JointFit | None, fit_
 
 
 def _check_directions(poses) -> None:
-    """``CalibrationError`` when the views' plate poses ``poses`` all see the plate from one direction (its
-    normal within ``PARALLEL_DEG`` in every view): they do not determine the principal point."""
+    """``CalibrationError`` when ``poses`` all see the plate from one direction (within ``PARALLEL_DEG``)."""
     normals = np.array([H[:3, 2] for H in poses])
     mean = normals.sum(0) / np.linalg.norm(normals.sum(0))
     spread = float(np.degrees(np.arccos(np.clip(normals @ mean, -1, 1))).max())
@@ -311,14 +285,10 @@ def _check_directions(poses) -> None:
 def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel, names: list[str] | None = None,
               *, bias: bool = True, plate_model: str = "bow+dots", fit_skew: bool = True,
               start: JointFit | None = None) -> JointFit:
-    """The joint fit of views' disc detections from ``camera0`` (a starting camera): first poses by planar PnP, a fit on
-    the centroids, then ``BIAS_ROUNDS`` rounds of bias correction and refit (``bias=False``: the centroids as measured).
-    ``plate_model`` (``PLATE_MODELS``): what of the printed plate's shape is fitted with the camera; ``fit_skew``: the
-    grabber's skew too. The shape's prior is weighed with the previous fit's noise (its residual sigma); the fit is
-    repeated (at most ``NOISE_ROUNDS`` times) until that noise settles. ``start``: a fit of these views (or more, named
-    alike) to start warm from (``_first_poses``), the centroids bias-corrected by it at once instead of ``BIAS_ROUNDS``
-    rounds (its correction has settled), its noise figures when of the same plate model. ``CalibrationError`` for fewer
-    than ``MIN_VIEWS_HALF`` views, ``ValueError`` for names not one per view."""
+    """The joint fit of views' disc detections from ``camera0``: PnP poses, a fit, ``BIAS_ROUNDS`` of bias correction
+    (``bias=False``: none), refits until the noise weighing the shape's prior settles (``NOISE_ROUNDS``). ``start``: a
+    fit of these views to start warm from, its bias correction taken at once. ``CalibrationError`` for an unknown
+    ``plate_model`` or under ``MIN_VIEWS_HALF`` views, ``ValueError`` for names not one per view."""
     if plate_model not in PLATE_MODELS:
         raise CalibrationError(f"intrinsics: plate model {plate_model!r}: expected one of {', '.join(PLATE_MODELS)}")
     if len(dets) < MIN_VIEWS_HALF:  # the fewest a half of the cross-check fits
@@ -333,22 +303,17 @@ def fit_views(dets: list[DiscDetections], plate: PlateSpec, camera0: CameraModel
     rounds = BIAS_ROUNDS if bias and not warm else 0
     turns, dropped = [0.0] * len(dets), []
     if plate_model != "flat":
-        # a first camera (the start's when it fitted these views on their grids as found, else one on the plate
-        # as specified), then the discs on one physical grid
+        # a first camera on the plate as specified (or the start's), then the discs on one physical grid
         reuse = warm and [v.name for v in start.views] == list(names) and not any(start.turns)
         fit = start if reuse else _solve([d.p_W for d in dets], uv, camera0, poses, names, fit_skew=fit_skew)
         uv = _bias_corrected(dets, fit.camera, [v.C_H_W for v in fit.views], plate, fit.bias_memo)
         dets, turns = align_views(dets, uv, fit, plate)
         if plate_model == "bow+dots" and sum(t is not None for t in turns) < max(2, (len(dets) + 1) // 2):
-            # the dot pattern is not seen in most views (a print better than the noise shows): per-disc
-            # corrections could not be tied to the physical discs, and on the pictures' own grids they
-            # would take up what is fixed in the picture (a grabber's shear) as a deformation of the plate
+            # dots not seen in most views: per-disc corrections on the pictures' own grids would take up a shear
             plate_model = "bow"
         unaligned = [k for k, t in enumerate(turns) if t is None]
         if plate_model == "bow+dots" and unaligned and len(dets) - len(unaligned) >= MIN_VIEWS:
-            # a view whose discs could not be tied to the physical grid would give the dots' corrections
-            # to the wrong discs (in the picture: a fixed pattern the fit cannot explain, which biases the
-            # centre by pixels while its sigma stays small): left out, and said
+            # an untied view's dot corrections go to the wrong discs: the centre off by pixels, its sigma small
             keep = [k for k in range(len(dets)) if k not in unaligned]
             dropped = [(names[k], "its discs could not be tied to the plate's grid (the printed dot pattern is "
                                   "not recognised in it), so the plate's per-disc corrections cannot apply")
@@ -397,10 +362,8 @@ def detect_views(images, plate: PlateSpec, camera: CameraModel, names=None, *, s
 
 
 def guess_camera(dets: list[DiscDetections], width: int, height: int) -> CameraModel:
-    """A starting camera for pictures of ``width`` x ``height`` px without a cell file: the principal point
-    at the picture's centre, aspect 1, kappa 0 and f from the views' plate-to-picture homographies (Zhang's
-    two constraints per view with the centre known, least squares in 1/f^2). Raises ``CalibrationError``
-    when the views do not determine f (all square-on)."""
+    """A starting camera for ``width`` x ``height`` px pictures: centre in the middle, aspect 1, kappa 0, f from the
+    homographies (Zhang's constraints, least squares in 1/f^2). ``CalibrationError`` when f is undetermined."""
     cx, cy = (width - 1) / 2, (height - 1) / 2
     A, b = [], []
     for d in dets:
@@ -418,10 +381,8 @@ def guess_camera(dets: list[DiscDetections], width: int, height: int) -> CameraM
     return CameraModel(f=1 / np.sqrt(w), kappa=0.0, cx=cx, cy=cy, aspect=1.0, width=int(width), height=int(height))
 
 
-# --- uncertainty figures --------------------------------------------------------------------------
 def _pixel_jacobians(camera: CameraModel, uv, ni: int = 5) -> np.ndarray:
-    """(N, 2, ni) derivative of where the rays of pixels ``uv`` (N, 2) land, w.r.t. (f, kappa, cx, cy, aspect[,
-    skew]): central differences, every pixel's ray projected at once for each step."""
+    """(N, 2, ni) derivative of where the rays of pixels ``uv`` (N, 2) land w.r.t. the intrinsics."""
     uv = np.atleast_2d(np.asarray(uv, float))
     xy = camera.undistort_pixels(uv) / camera.f
     p = np.column_stack([xy, np.ones(len(xy))])
@@ -431,8 +392,7 @@ def _pixel_jacobians(camera: CameraModel, uv, ni: int = 5) -> np.ndarray:
 
 
 def projection_sigma_px(camera: CameraModel, cov5: np.ndarray) -> dict:
-    """1-sigma [px] of the projection at the picture's centre and its four corners (see the module);
-    ``cov5`` the covariance of ``INTRINSIC_NAMES[:n]``, n 5 or 6."""
+    """1-sigma [px] of the projection at the centre and the corners; ``cov5`` (n, n) of ``INTRINSIC_NAMES[:n]``."""
     W, H = camera.width, camera.height
     pts = {"centre": ((W - 1) / 2, (H - 1) / 2), "top_left": (0.0, 0.0), "top_right": (W - 1.0, 0.0),
            "bottom_left": (0.0, H - 1.0), "bottom_right": (W - 1.0, H - 1.0)}

@@ -1,5 +1,5 @@
-"""The camera model of the joint fit: the projection of plate points with the intrinsics as a vector, and the
-joint least-squares problem of all views (residuals and analytic Jacobian)."""
+"""The joint fit's camera model: plate points projected with the intrinsics as a vector, and the joint least-squares
+problem of all views (residuals and analytic Jacobian)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,7 @@ from selfview.errors import CalibrationError
 from selfview.maths.geometry import R_from_rotvec, R_from_rotvecs, cross_rows, make_H, so3_left_jacobians
 
 
-#: Central-difference steps: f (relative), kappa [px^-2], cx, cy [px], aspect, skew; of a pose: rotation [rad],
-#: translation [mm].
+#: Central-difference steps: f (relative), kappa [px^-2], cx, cy [px], aspect, skew; pose: rotation [rad], shift [mm].
 STEP = np.array([1e-6, 1e-12, 1e-4, 1e-4, 1e-7, 1e-7])
 POSE_STEP = np.array([1e-7, 1e-7, 1e-7, 1e-5, 1e-5, 1e-5])
 
@@ -28,9 +27,8 @@ def central_differences(fun, x, steps) -> np.ndarray:
 
 
 def project_points(intr, R, t, p_W, skew: float = 0.0) -> np.ndarray:
-    """(N, 2) distorted pixels of plate points ``p_W`` (N, 3) seen at pose (R, t) by intrinsics ``intr`` =
-    (f, kappa, cx, cy, aspect[, skew]) (``skew`` when ``intr`` has five); NaN throughout where any point is behind
-    the camera or beyond the fold."""
+    """(N, 2) distorted pixels of plate points ``p_W`` (N, 3) at pose (R, t) by ``intr`` = (f, kappa, cx, cy, aspect[,
+    skew]) (else ``skew``); all NaN when any point is behind the camera or beyond the fold."""
     XYh = _distorted_sensor(intr, p_W @ R.T + t)
     if XYh is None:
         return np.full((len(p_W), 2), np.nan)
@@ -38,8 +36,8 @@ def project_points(intr, R, t, p_W, skew: float = 0.0) -> np.ndarray:
 
 
 def _distorted_sensor(intr, pc) -> np.ndarray | None:
-    """(N, 2) distorted sensor coordinates X^, Y^ of camera-frame points ``pc`` (N, 3) by intrinsics ``intr``;
-    None where any point is behind the camera or beyond the fold (or f, aspect not positive)."""
+    """(N, 2) distorted sensor X^, Y^ of camera-frame points ``pc`` (N, 3); None when any is behind the camera or
+    beyond the fold (or f, aspect not positive)."""
     f, kappa, aspect = intr[0], intr[1], intr[4]
     z = pc[:, 2]
     if np.any(z <= 0) or f <= 0 or aspect <= 0:
@@ -70,11 +68,9 @@ def with_intrinsics(camera: CameraModel, x) -> CameraModel:
 
 
 class JointProblem:
-    """Parameters x = (f, kappa, cx, cy, aspect, [skew,] then per view omega (3), t (3), then the plate's shape
-    (``PlateShape``: bow, disc corrections) if ``shape``) with view k's rotation exp(omega_k) R0_k; ``ni``
-    intrinsics: 6 with the skew free, 5 with it held at ``skew``. Residuals model minus observation, per view (u
-    then v of its points), then the shape's prior rows. Every view's points are projected at once (stacked, each
-    with its view's pose); a view's pose parameters touch only its own rows of the Jacobian."""
+    """x = (f, kappa, cx, cy, aspect[, skew], per view omega (3), t (3), then ``shape``'s parameters); view k's rotation
+    exp(omega_k) R0_k; ``ni`` 6 with the skew free, 5 with it held at ``skew``. Residuals model minus observation, per
+    view (u then v), then the shape's prior rows. Raises ``ValueError`` for another ``ni``."""
 
     def __init__(self, p_W: list, uv: list, R0: list, shape=None, idx: list | None = None,
                  *, ni: int = 5, skew: float = 0.0):
@@ -87,7 +83,7 @@ class JointProblem:
         self.shape = shape if shape is not None and shape.n else None
         self.idx = idx
         self.m_data = int(self.off[-1])
-        # the stacked points: each one's view, its u and v rows in the residuals, its pose columns
+        # each stacked point's view, its u and v rows in the residuals, its pose columns
         self.vid = np.repeat(np.arange(len(p_W)), self.n)
         first = np.repeat(self.off[:-1], self.n)
         local = np.arange(len(self.vid)) - np.repeat(np.cumsum([0, *self.n[:-1]]), self.n)
@@ -114,9 +110,8 @@ class JointProblem:
         return (m - self.uv[k]).T.ravel()
 
     def _camera_points(self, x):
-        """(each point's rotation, d = R p, its camera-frame position, its distorted sensor coordinates or None
-        when any point is behind the camera or beyond the fold) at ``x``; the last ones kept: the solver asks
-        for the Jacobian at the parameters whose residuals it has just evaluated and accepted."""
+        """(rotations, d = R p, camera-frame points, distorted sensor coordinates or None) at ``x``; the last kept,
+        as the solver asks for the Jacobian where it has just evaluated the residuals."""
         if self._last is not None and np.array_equal(self._last[0], x):
             return self._last[1]
         poses = x[self.ni : self.ni + 6 * len(self.p_W)].reshape(-1, 6)
@@ -129,8 +124,8 @@ class JointProblem:
         return out
 
     def residuals(self, x) -> np.ndarray:
-        """Every view's residuals from one projection of all points (NaN throughout where any point is behind
-        the camera or beyond the fold: no step the solver takes to such parameters is accepted)."""
+        """Every view's residuals; all NaN when a point is behind the camera or beyond the fold (no such step is
+        accepted)."""
         XYh = self._camera_points(x)[3]
         if XYh is None:
             m = np.full((len(self.vid), 2), np.nan)
@@ -141,8 +136,8 @@ class JointProblem:
         return np.concatenate([r, self.shape.w * self._y(x)]) if self.shape else r
 
     def jacobian(self, x) -> np.ndarray:
-        """Analytic (as ``selfview.estimation.tsai``'s full model, with cx, cy, the aspect, the skew and the
-        plate's shape added: u = X^ / aspect + skew Y^ + cx)."""
+        """Analytic (as ``tsai``'s full model, with cx, cy, aspect, skew and shape: u = X^ / aspect + skew Y^ + cx);
+        ``CalibrationError`` when a disc is behind the camera or the Jacobian is not finite."""
         f, kappa, cx, cy, aspect = x[:5]
         ni = self.ni
         skew = x[5] if ni > 5 else self.skew
@@ -182,8 +177,7 @@ class JointProblem:
         return J
 
     def normal_matrix(self, J) -> np.ndarray:
-        """J^T J of this problem's Jacobian ``J`` without its zero blocks: view k's pose columns meet only its
-        own rows, so the poses' block is block-diagonal; the intrinsics and the shape meet every row."""
+        """J^T J skipping the zero blocks: view k's pose columns meet only its own rows (block-diagonal poses)."""
         shared = np.r_[0 : self.ni, self.ni + 6 * len(self.p_W) : J.shape[1]]
         Js = J[:, shared]
         A = np.zeros((J.shape[1], J.shape[1]))

@@ -1,5 +1,4 @@
-"""The printed plate's shape in the joint fit: a bow and each disc's in-plane error (gauge-fixed against the
-grid's similarity transforms), and the turn of each view's disc indices onto one physical grid."""
+"""The printed plate's shape in the joint fit (a bow, each disc's in-plane error) and each view's grid turn."""
 
 from __future__ import annotations
 
@@ -13,24 +12,19 @@ from selfview.errors import CalibrationError
 from selfview.estimation.intrinsics.model import intrinsics_vector, project_points
 
 
-#: Plate models of the joint fit (``plate_model``): 'flat' (every disc exactly where the spec puts it), 'bow'
-#: (plus a smooth out-of-plane deformation), 'bow+dots' (plus each disc's in-plane position; the default).
+#: Plate models: 'flat' (as specified), 'bow' (plus a bow), 'bow+dots' (plus each disc's in-plane position; default).
 PLATE_MODELS = ("flat", "bow", "bow+dots")
-#: Prior 1-sigma of each disc's in-plane position error per axis [mm], to start with: a laser print places a
-#: disc's edge to about half a 600-dpi dot (10-20 um). The fit then estimates it from the discs' corrections (a
-#: variance component by expectation-maximisation: their mean square plus their posterior variance), within
-#: ``PLATE_DOT_SD_RANGE_MM``: a well-printed plate is not given freedom it does not need (which would cost the
-#: centre's precision), a poorly printed one gets what it needs.
+#: Starting prior 1-sigma of a disc's in-plane error per axis [mm] (half a 600-dpi dot), then estimated from the
+#: corrections (EM) within ``PLATE_DOT_SD_RANGE_MM``.
 PLATE_DOT_PRIOR_MM = 0.02
 PLATE_DOT_SD_RANGE_MM = (0.0005, 0.05)
-#: Prior 1-sigma of each bow coefficient [mm] (the height the bow reaches at the grid's half-width):
-#: paper on a board cockles by 0.1-0.5 mm; 1 mm is weak.
+#: Prior 1-sigma of each bow coefficient [mm] at the grid's half-width: paper cockles 0.1-0.5 mm; 1 mm is weak.
 PLATE_BOW_PRIOR_MM = 1.0
 
 
 def _similarity_complement(p0: np.ndarray) -> np.ndarray:
-    """(2N, 2N - 4) orthonormal basis of the in-plane corrections (dx, dy interleaved per disc) that do not
-    move, turn or scale the grid as a whole: the complement of its similarity transforms about its centre."""
+    """(2N, 2N - 4) orthonormal basis of in-plane corrections (dx, dy per disc) that do not move, turn or scale
+    the grid as a whole."""
     c = p0[:, :2] - p0[:, :2].mean(0)
     n = len(c)
     modes = np.zeros((2 * n, 4))
@@ -91,21 +85,15 @@ class PlateShape:
         return D
 
 
-#: Alignment of the views' disc indices: the disc detector orients each picture's grid by the picture (x
-#: towards growing u), so on a square grid without a marker one view's disc (r, c) may be another's turned
-#: by 90, 180 or 270 deg. A printed plate's dot errors are the same in every view: a view's turn is the one
-#: under which its high-passed disc errors correlate best with the other views' (at least
-#: ``ALIGN_MIN_CORR``, and by ``ALIGN_MIN_MARGIN`` over the next turn); else its indices are kept as found
-#: (the dots are then below the noise and a turn matters little). When fewer than half the views can be
-#: turned so, 'bow+dots' falls back to 'bow' (the summary's ``plate_shape['model']`` says which was fitted).
+#: A view's grid turn (a square grid's indices follow the picture) is the one whose high-passed disc errors correlate
+#: best with the other views' (at least ``ALIGN_MIN_CORR``, by ``ALIGN_MIN_MARGIN`` over the next); else kept.
 ALIGN_MIN_CORR = 0.4
 ALIGN_MIN_MARGIN = 0.2
 ALIGN_MIN_COMMON = 10
 
 
 def _dot_field(det, uv, camera: CameraModel, H) -> np.ndarray | None:
-    """(N, 2) a view's residuals carried back onto the plate [mm] (each disc's apparent in-plane position error), less
-    their fit by a quadratic field (pose, camera and bow errors are smooth over the plate); None with too few discs."""
+    """(N, 2) a view's residuals on the plate [mm] less a quadratic field (smooth errors); None under 15 discs."""
     if len(uv) < 15:
         return None
     x = intrinsics_vector(camera)
@@ -128,8 +116,7 @@ def _dot_field(det, uv, camera: CameraModel, H) -> np.ndarray | None:
 
 
 def _turned(det, k: int, plate: PlateSpec, p0=None):
-    """``det`` with its grid turned by k * 90 deg about the grid's centre (None when it leaves the grid);
-    ``p0`` the plate's disc centres (``plate.disc_centres_W()``, when the caller has them)."""
+    """``det`` with its grid turned by k * 90 deg about its centre (None off the grid); ``p0`` the disc centres."""
     mid = np.array([(plate.cols - 1) / 2, (plate.rows - 1) / 2])
     cr = _turn90(det.rc[:, ::-1] - mid, k) + mid  # (col, row): whole or half numbers, exact
     whole = np.round(cr)
