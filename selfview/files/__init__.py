@@ -1,2 +1,1 @@
-"""Files: the cell description (``cell``), calibration and camera files (``calfile``, ``camfile``), the atomic,
-bounded reading and writing under them (``io_safe``) and the lock folder (``lockdir``)."""
+"""Files: cell description, calibration and camera files, bounded reads and atomic writes (``io_safe``), locks."""

@@ -1,9 +1,5 @@
-"""Calibration files: what an off-line calibration found, kept safe.
-
-A calibration file is a YAML document (``format: selfview-calibration``, ``version: 1``) holding a ``Calibration`` and a
-checksum over all of it. Nothing is lost: writes are atomic and keep the previous file (``save_calibration``); a file
-that is not what a calibration writes is refused and never overwritten (``load_calibration``).
-"""
+"""Calibration files: YAML (``format: selfview-calibration``, ``version: 1``) of a ``Calibration`` and a checksum over
+all of it; writes are atomic and keep the previous file; a file not a calibration's is refused, never overwritten."""
 
 from __future__ import annotations
 
@@ -37,12 +33,10 @@ VERSION = 1
 
 @dataclass
 class Calibration:
-    """An off-line calibration and its later on-line updates: ``camera`` the interior orientation; ``C_H_W``,
-    ``C_H_G`` (4, 4) [mm]; ``points_G`` state -> (6, 3) gripper points in G [mm] (POINT_NAMES order); ``state``
-    the gripper state of the picture; ``residuals`` a mapping of figures (rms_px, max_px, discs_used, ...);
-    ``image_sha256`` of the picture; ``cell_sha256`` of the cell file; ``created`` ISO time; ``software``
-    version; ``updates`` the on-line changes applied since (method, time, delta_deg, d_mm)."""
-
+    """An off-line calibration and its on-line updates: ``camera``; ``C_H_W``, ``C_H_G`` (4, 4) [mm]; ``points_G``
+    state -> (6, 3) points in G [mm] (POINT_NAMES order); ``state`` the picture's jaw state; ``residuals`` figures
+    (rms_px, max_px, ...); ``image_sha256``, ``cell_sha256``; ``created`` ISO time; ``software`` version; ``updates``
+    (method, time, delta_deg, d_mm); ``pictures`` role -> file name beside this file."""
     camera: CameraModel
     C_H_W: np.ndarray
     C_H_G: np.ndarray
@@ -54,9 +48,8 @@ class Calibration:
     created: str = ""
     software: str = __version__
     updates: list[dict[str, Any]] = field(default_factory=list)
-    pictures: dict[str, str] = field(default_factory=dict)  # role -> file name beside this file
-    #: SHA-256 of the file this was read from ("" if not read from one): what a save passing it as
-    #: ``expected`` may replace. Not a field: where it was read is not part of the calibration.
+    pictures: dict[str, str] = field(default_factory=dict)
+    #: SHA-256 of the file read from ("" if none), what a save passing this as ``expected`` may replace; not a field.
     file_sha256: ClassVar[str] = ""
 
     def to_document(self) -> dict:
@@ -105,8 +98,7 @@ class Calibration:
                                        f"({short_repr(what, 200)[1:-1]})") from None
 
 
-#: Far beyond any self-viewing cell (a wrist camera sees its fingertips from a few hundred mm): a length
-#: over this in a calibration file is a corrupted number, not a measurement.
+#: A length [mm] over this is a corrupted number: a wrist camera sees its fingertips from a few hundred mm.
 MAX_LENGTH_MM = 10_000.0
 
 
@@ -131,8 +123,7 @@ def _is_number(x) -> bool:
 
 
 def _check_types(doc: dict) -> None:
-    """Every field of a calibration document of the type it is written with (a re-checksummed file whose
-    number became a flag, a list grew an element or a state name became a list is refused): ``ValueError``."""
+    """``ValueError`` unless each field has its written type (a re-checksummed file may have changed one)."""
     cam = doc["camera"]
     for k in ("f", "kappa", "aspect") + (("skew",) if "skew" in cam else ()):
         if not _is_number(cam[k]):
@@ -158,8 +149,7 @@ def _check_types(doc: dict) -> None:
             raise ValueError(f"gripper points_G {short_repr(st, 30)} is not the six named points of three numbers")
     if not isinstance(grip["state"], str) or grip["state"] not in pts:
         raise ValueError(f"gripper state {short_repr(grip['state'], 40)} is not one of the jaw states {sorted(pts)}")
-    # where the calibration came from: recorded, never computed with, but a file whose hash became another
-    # string or whose version became a flag is not the file it was
+    # provenance is never computed with, but a file whose hash or version changed type is not the file it was
     if type(doc.get("version")) is not int:  # True == 1 in Python
         raise ValueError(f"version is {short_repr(doc.get('version'), 40)}, not a whole number")
     for k in ("image_sha256", "cell_sha256"):
@@ -175,15 +165,12 @@ def _check_types(doc: dict) -> None:
     _figure_types(doc.get("residuals", {}), "residuals")
 
 
-#: How far the fingertip points may be from the shape CONVENTIONS gives them (two mirrored blocks, the
-#: six corners in the tip plane z = 0, points 1-4 a rectangle centred on the TCP) [mm]: measured fingers
-#: differ from it by tenths of a millimetre; a point replaced by another number moves by millimetres.
+#: Tolerance [mm] on CONVENTIONS' fingertip shape: measured fingers differ by tenths of a mm, a replaced number by mm.
 SHAPE_TOLERANCE_MM = 2.0
 
 
 def _check_fingertip_shape(table: np.ndarray, where: str) -> None:
-    """``ValueError`` naming what is off unless the six points (6x3, in CONVENTIONS' order) of one jaw state
-    have the shape CONVENTIONS defines, within ``SHAPE_TOLERANCE_MM``."""
+    """``ValueError`` naming what is off unless the (6, 3) points of one jaw state have that shape."""
     aif, aib, bif, bib, aof, bof = P = np.asarray(table, dtype=float).reshape(6, 3)
     checks = (("the points out of the tip plane z = 0", float(np.max(np.abs(P[:, 2])))),
               ("the rectangle of points 1-4 off the TCP", float(np.linalg.norm((aif + aib + bif + bib)[:2] / 4))),
@@ -198,8 +185,7 @@ def _check_fingertip_shape(table: np.ndarray, where: str) -> None:
 
 
 def _figure_types(res: dict, where: str) -> None:
-    """The figures the off-line calibration writes, each of its type (other keys, from other tools or
-    later versions, are taken as they are: they are shown, never computed with)."""
+    """``ValueError`` unless the figures the calibration writes have their types (others are only shown)."""
     if not isinstance(res, dict):
         raise ValueError(f"{where} is not a table of figures")
     names = set(POINT_NAMES)
@@ -274,8 +260,8 @@ def history_dir(path) -> Path:
 
 
 def load_calibration(path) -> Calibration:
-    """Read and verify a calibration file; raises ``CalibrationFileError`` naming the fault: corrupt, altered, foreign,
-    of an unknown version, hostile (YAML aliases, deep nesting, huge numbers) or holding non-finite numbers."""
+    """Read and verify a calibration file; ``CalibrationFileError`` if corrupt, altered, foreign, of another version,
+    hostile (YAML aliases, deep nesting, huge numbers) or holding non-finite numbers."""
     p = Path(path)
     blob = read_bounded(p, MAX_YAML_BYTES, error=CalibrationFileError, what="calibration file",
                         missing="no such calibration file (run 'selfview calibrate' first)")
@@ -287,10 +273,8 @@ def load_calibration(path) -> Calibration:
 
 def save_calibration(cal: Calibration, path, *, keep_history: bool = True,
                      expected: "Calibration | str | None" = None) -> Path:
-    """Write ``cal`` to ``path`` by ``replace_keeping_history``, once the new document reads back. ``expected``:
-    the version ``cal`` was derived from (the Calibration as loaded, or its file's SHA-256); the file is replaced
-    only if it still is that version, so a recalibration saved meanwhile is never overwritten (the refusal names
-    both). Returns the path of the history copy, or None."""
+    """Write ``cal`` by ``replace_keeping_history`` once it reads back; with ``expected`` (the loaded Calibration or its
+    file's SHA-256) only over that version (a recalibration saved meanwhile stays). Returns the history copy or None."""
     p = Path(path)
     text = yaml.safe_dump(cal.to_document(), sort_keys=False, default_flow_style=None, width=120)
     # check what we are about to write reads back, before it replaces anything
@@ -304,11 +288,9 @@ def save_calibration(cal: Calibration, path, *, keep_history: bool = True,
 
 def replace_keeping_history(p: Path, text: str, load_existing, *, what: str, keep_history: bool = True,
                             expected_sha256: str | None = None) -> Path | None:
-    """Replace ``p`` with ``text`` atomically, the previous file first checked with ``load_existing`` (it
-    raises for a corrupt or foreign file: it may be somebody else's) and kept in ``<name>.history/``.
-    Writers of one file take turns (``file_lock``); with ``expected_sha256`` the file must still hash to it
-    when its turn comes. A symlink's target is replaced (the link stays). Every failure is
-    ``CalibrationFileError`` naming the path and the cause, ``p`` unchanged. Returns the history copy, or None."""
+    """Replace ``p`` with ``text`` atomically under ``file_lock``, the previous file first checked by ``load_existing``
+    (it raises for a corrupt or foreign file: it may be somebody else's), kept in ``<name>.history/`` and, with
+    ``expected_sha256``, still of that hash. ``CalibrationFileError`` naming the path and cause, ``p`` unchanged."""
     p = Path(os.path.realpath(p)) if Path(p).is_symlink() else Path(p)
     check_folder(p, error=CalibrationFileError, what=what)
     with file_lock(p, error=CalibrationFileError, what=what):

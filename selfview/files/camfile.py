@@ -1,10 +1,5 @@
-"""Camera files: a camera's measured interior orientation, its uncertainty and where it came from.
-
-A YAML document (``format: selfview-camera``, ``version: 1``) written by ``selfview intrinsics`` (its contents:
-``CameraFile``; a file without ``skew``, as written before it was measured, reads as skew 0 with the 5 x 5 covariance of
-the others) and a checksum over all of it. Written like a calibration file (``calfile``): atomically, the previous file
-kept in ``<name>.history/``; a foreign or altered file is refused (``CalibrationFileError``) and never overwritten.
-"""
+"""Camera files (``CameraFile``, by ``selfview intrinsics``): checksummed YAML (``format: selfview-camera``,
+``version: 1``), written and refused like calibration files; without ``skew`` (older): skew 0, a 5 x 5 covariance."""
 
 from __future__ import annotations
 
@@ -33,11 +28,9 @@ INTRINSIC_NAMES = ("f", "kappa", "cx", "cy", "aspect", "skew")
 
 @dataclass
 class CameraFile:
-    """A measured camera: ``camera``; ``sigma`` name -> 1-sigma (f, kappa, cx, cy, aspect[, skew]);
-    ``covariance`` (n, n) in that order (n = 6 with the skew measured, 5 without); ``figures`` what the
-    calibration reported (rms_px, views_used, stop rule, cross-check, projection uncertainty);
-    ``provenance`` (the pictures' SHA-256, created, software, Python/NumPy/OpenCV versions, the cell's hash)."""
-
+    """A measured camera: ``camera``; ``sigma`` name -> 1-sigma (f, kappa, cx, cy, aspect[, skew]); ``covariance``
+    (n, n) in that order (n = 6 with the skew measured, else 5); ``figures`` reported (rms_px, views_used, ...);
+    ``provenance`` (pictures' SHA-256, created, software, Python/NumPy/OpenCV versions, the cell's hash)."""
     camera: CameraModel
     sigma: dict
     covariance: np.ndarray
@@ -117,8 +110,7 @@ def file_sha256(path) -> str:
 
 
 def save_camera_file(cf: CameraFile, path, *, keep_history: bool = True) -> Path | None:
-    """Write ``cf`` to ``path`` atomically, the previous file kept in ``<name>.history/``; refuses
-    (nothing written) to replace a file that is not a valid camera file. Returns the history copy."""
+    """Write ``cf`` by ``replace_keeping_history`` (never over a file that is not a camera file); the history copy."""
     p = Path(path)
     text = yaml.safe_dump(cf.to_document(), sort_keys=False, default_flow_style=None, width=120)
     # what we are about to write must read back, before it replaces anything

@@ -1,9 +1,5 @@
-"""The cell description (``cell.yaml``) as typed, validated objects.
-
-The file is read through ``selfview.files.io_safe.load_yaml`` (safe YAML, no aliases, bounded size and depth).
-Unknown keys, missing keys, wrong types and impossible values raise ``ConfigError`` naming the key path, the
-value and what was expected. Keys this project adds beyond the shared reference file have defaults.
-"""
+"""The cell description (``cell.yaml``) as typed, validated objects. Unknown, missing, mistyped or impossible values
+raise ``ConfigError`` naming the key path, value and what was expected; keys beyond the reference file have defaults."""
 
 from __future__ import annotations
 
@@ -28,16 +24,12 @@ PLATE_PATTERNS = ("discs", "chessboard", "charuco")
 #: The six fingertip calibration points of CONVENTIONS.md, in their order.
 POINT_NAMES: tuple[str, ...] = ("A-inner-front", "A-inner-back", "B-inner-front", "B-inner-back", "A-outer-front",
                                 "B-outer-front")
-
-
-# --- validation helpers ---------------------------------------------------------------------------
-#: The largest magnitude any number of a cell file may have (lengths in mm, angles in degrees, grey levels).
+#: The largest magnitude of any number of a cell file (mm, degrees, grey levels); a larger one is corrupted.
 MAX_NUMBER = 1e9
 
+
 class Section:
-    """Reads one mapping of a YAML document (a cell file's section, an object file's), tracking which keys
-    were used: each reader checks its value and raises ``ConfigError`` naming the key path; ``done()``
-    refuses the keys no reader took."""
+    """One YAML mapping, each key checked (``ConfigError`` naming its path); ``done()`` refuses keys not read."""
 
     def __init__(self, data: Any, path: str):
         if not isinstance(data, dict):
@@ -104,8 +96,7 @@ class Section:
         return tuple(self._plausible(key, x) for x in v)
 
     def _plausible(self, key: str, v) -> float:
-        """``v`` as a finite float of at most ``MAX_NUMBER``: no length, angle, level or limit of a cell comes
-        near, a larger number is a corrupted one."""
+        """``v`` as a finite float of at most ``MAX_NUMBER`` (no value of a cell comes near); else ``ConfigError``."""
         try:
             v = float(v)
         except OverflowError:
@@ -133,7 +124,6 @@ class Section:
                               f"expected only {', '.join(sorted(self.used))}")
 
 
-# --- the typed description ------------------------------------------------------------------------
 @dataclass(frozen=True)
 class CameraSpec:
     model: str
@@ -152,11 +142,9 @@ class CameraSpec:
 
 @dataclass(frozen=True)
 class PlateSpec:
-    """The calibration plate. ``rows`` x ``cols`` plate points (disc centres; a board's inner corners) at
-    ``pitch`` mm, centred on W's origin; ``pattern`` ('discs', 'chessboard', 'charuco';
-    ``selfview.measurement.plates``); a board's ``squares`` (NX, NY) of ``pitch`` mm, its ArUco ``marker`` side
-    [mm], ``dictionary`` and ``legacy_pattern``; ``disc_diameter`` 0 for a board."""
-
+    """The calibration plate: ``rows`` x ``cols`` plate points (disc centres; a board's inner corners) at ``pitch``
+    mm, centred on W's origin; ``pattern`` one of ``PLATE_PATTERNS``; a board's ``squares`` (NX, NY) of ``pitch`` mm,
+    its ArUco ``marker`` side [mm], ``dictionary`` and ``legacy_pattern``; ``disc_diameter`` [mm], 0 for a board."""
     rows: int
     cols: int
     pitch: float
@@ -178,8 +166,7 @@ class PlateSpec:
 
 
 def fingertip_points_G(gap: float, width: float, thickness_A: float, thickness_B: float) -> np.ndarray:
-    """(6, 3) the fingertip points in G [mm], in the order of ``POINT_NAMES`` (CONVENTIONS.md), for a jaw
-    ``gap``, finger ``width`` and the fingers' thicknesses [mm]."""
+    """(6, 3) fingertip points in G in ``POINT_NAMES`` order for a jaw ``gap``, finger ``width``, thicknesses [mm]."""
     g, w = gap, width
     return np.array([[g / 2, -w / 2, 0.0], [g / 2, w / 2, 0.0], [-g / 2, -w / 2, 0.0], [-g / 2, w / 2, 0.0],
                      [g / 2 + thickness_A, -w / 2, 0.0], [-g / 2 - thickness_B, -w / 2, 0.0]])
@@ -207,9 +194,8 @@ class GripperSpec:
     def finger_boxes_G(self, gap: float) -> list[tuple[np.ndarray, np.ndarray]]:
         """[(min corner, max corner)] of fingers A and B in G [mm] for a jaw gap."""
         g, w, t, L = gap, self.finger_width, self.finger_thickness, self.finger_length
-        a = (np.array([g / 2, -w / 2, -L]), np.array([g / 2 + t, w / 2, 0.0]))
-        b = (np.array([-g / 2 - t, -w / 2, -L]), np.array([-g / 2, w / 2, 0.0]))
-        return [a, b]
+        return [(np.array([g / 2, -w / 2, -L]), np.array([g / 2 + t, w / 2, 0.0])),
+                (np.array([-g / 2 - t, -w / 2, -L]), np.array([-g / 2, w / 2, 0.0]))]
 
 
 @dataclass(frozen=True)
@@ -223,8 +209,7 @@ class MonitorLimits:
     update_limit: Limit
     alarm_limit: Limit
     max_rms_px: float = 1.5  # residual above which the model no longer fits (project default)
-    # consecutive frames without the fingertips (not found, lost, or no picture) before the alarm
-    max_missed_frames: int = 3
+    max_missed_frames: int = 3  # frames in a row without the fingertips (not found, lost, no picture) before the alarm
 
 
 @dataclass(frozen=True)
@@ -259,10 +244,7 @@ class SimulationSpec:
 
 @dataclass(frozen=True)
 class RobotSpec:
-    """The optional ``robot:`` section: settings files of the robot's driver (``drivers/robot.open_robot``),
-    paths resolved against the cell file's folder: ``dialect``, ``limits``, ``kinematics``; ``max_speed``
-    [%] a lower speed limit than the limits file's."""
-
+    """The optional ``robot:`` section: the driver's settings files (relative to the cell file), ``max_speed`` [%]."""
     dialect: str | None = None
     limits: str | None = None
     kinematics: str | None = None
@@ -289,7 +271,6 @@ def _parse_robot(s: Section, source: str) -> RobotSpec:
 @dataclass(frozen=True)
 class Cell:
     """The whole cell description. ``source`` is the file it came from, ``sha256`` its hash."""
-
     camera: CameraSpec
     plate: PlateSpec
     gripper: GripperSpec
@@ -342,9 +323,7 @@ def _parse_plate(s: Section) -> PlateSpec:
 
 
 def _parse_board(s: Section, pattern: str) -> PlateSpec:
-    """A chessboard or ChArUco plate: ``squares: [NX, NY]``, ``square`` [mm]; ChArUco also ``marker`` [mm],
-    ``dictionary`` (an OpenCV predefined one) and ``legacy_pattern``; ``size`` [mm] the sheet (default:
-    the board and a square's margin round it)."""
+    """Chessboard or ChArUco plate: ``squares``, ``square``; ChArUco ``marker``, ``dictionary``, ``legacy_pattern``."""
     sq = s.raw("squares")
     if not (isinstance(sq, (list, tuple)) and len(sq) == 2
             and all(isinstance(v, int) and not isinstance(v, bool) for v in sq)):
@@ -376,8 +355,7 @@ def _parse_board(s: Section, pattern: str) -> PlateSpec:
 
 
 def aruco_dictionary(name: str, what: str = "plate.dictionary") -> int:
-    """OpenCV's code of the predefined ArUco dictionary ``name`` ('DICT_4X4_50', ...); ``ConfigError``
-    naming ``what`` and the known names for any other."""
+    """OpenCV's code of the predefined ArUco dictionary ``name`` ('DICT_4X4_50', ...); else ``ConfigError``."""
     import cv2
 
     code = getattr(cv2.aruco, name, None) if isinstance(name, str) and name.startswith("DICT_") else None
@@ -406,8 +384,7 @@ def parse_plate(data: Any) -> PlateSpec:
 
 
 def load_plate(path) -> PlateSpec:
-    """The plate of a YAML file holding a ``plate:`` section (a plate file, or a cell file: its other
-    sections are not read). Raises ``ConfigError`` naming the file and what is wrong."""
+    """The plate of a YAML file with a ``plate:`` section (a plate or cell file); ``ConfigError`` naming the file."""
     p = Path(path)
     data = load_yaml_file(p, error=ConfigError, what="plate file")
     if not isinstance(data, dict) or "plate" not in data:

@@ -1,8 +1,5 @@
-"""Reading and writing files that may be hostile or may fail half-way: YAML documents, pictures, atomic writes.
-
-Every refusal names the file and the cause, as the caller's error class (``ConfigError``, ``CalibrationFileError``,
-``ImageError``); nothing is read past a bound, and a write leaves either the old file or the new one, never half a file.
-"""
+"""Reading and writing files that may be hostile or fail half-way (YAML, pictures): each refusal names the file and
+cause as the caller's error class; nothing is read past a bound; a write leaves the old or the new file, never half."""
 
 from __future__ import annotations
 
@@ -39,7 +36,6 @@ MAX_PICTURE_PIXELS = 64_000_000
 MAX_PICTURE_BYTES = MAX_PICTURE_PIXELS + (1 << 16)
 
 
-# --- bounded reads --------------------------------------------------------------------------------
 _KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
           (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"), (lambda m: not stat.S_ISREG(m), "not a file"))
 
@@ -50,9 +46,8 @@ def _not_regular(mode: int) -> str:
 
 def read_bounded(path, limit: int, *, error: type[CellError] = ConfigError, what: str = "file",
                  source: str | None = None, missing: str | None = None) -> bytes:
-    """The bytes of the regular file ``path`` of at most ``limit`` bytes: a FIFO, device or folder is refused naming its
-    kind before it is read (and opened without blocking), a larger file from its size; at most ``limit + 1`` bytes are
-    read. ``error`` names ``source`` (default: the path); ``missing``: the message for a file that does not exist."""
+    """The regular file ``path``'s bytes, at most ``limit`` (``limit + 1`` read): a FIFO, device or folder is refused by
+    kind (opened without blocking), a larger one by size. ``error`` names ``source``; ``missing``: message if absent."""
     src = str(path) if source is None else source
     refuse = lambda why: error(f"{src}: cannot read the {what}: {why}")  # noqa: E731
     try:
@@ -80,7 +75,6 @@ def read_bounded(path, limit: int, *, error: type[CellError] = ConfigError, what
     return data
 
 
-# --- YAML -----------------------------------------------------------------------------------------
 class _Refused(Exception):
     pass
 
@@ -112,8 +106,7 @@ def _strict(base: type) -> type:
 
 
 def _digits_only(construct):
-    """A YAML 1.1 number constructor that refuses the forms a person does not mean as one number:
-    ``1_0`` (read as 10) and ``1:30`` (sexagesimal, read as 90)."""
+    """A YAML 1.1 number constructor refusing ``1_0`` (read as 10) and ``1:30`` (sexagesimal, read as 90)."""
     def checked(loader, node):
         text = str(node.value)
         if "_" in text or ":" in text:
@@ -129,9 +122,8 @@ _INTEGER = re.compile(r"[+-]?[0-9]+")
 
 def parse_number(text: str, *, integer: bool = False, lo: float | None = None, hi: float | None = None,
                  lo_open: bool = False) -> float | int:
-    """A number in ASCII digits (``12``, ``-1.5``, ``2e-3``; with ``integer`` a whole number), finite and in
-    ``lo``..``hi`` (``lo`` excluded with ``lo_open``); ``ValueError`` saying why. (Python's ``float`` also
-    takes ``1_0``, full-width digits, ``inf`` and ``nan``.)"""
+    """A number in ASCII digits (``12``, ``-1.5``, ``2e-3``; whole with ``integer``), finite, in ``lo``..``hi`` (``lo``
+    excluded with ``lo_open``); ``ValueError`` saying why. (``float`` also takes ``1_0``, full-width digits, nan.)"""
     s = str(text).strip()
     if s.lower().lstrip("+-") in ("inf", "infinity", "nan"):
         raise ValueError(f"non-finite: {s} (expected a finite number)")
@@ -149,13 +141,10 @@ _LOADERS = {"safe": _strict(yaml.SafeLoader), "base": _strict(yaml.BaseLoader)}
 
 def load_yaml(data: bytes | str, source: str, *, error: type[CellError] = ConfigError, text_only: bool = False,
               what: str = "file"):
-    """Parse one YAML document with no aliases, at most ``MAX_YAML_BYTES`` and ``MAX_YAML_DEPTH`` deep: a
-    491-byte alias bomb expands to gigabytes in anything that walks it (a checksum's ``json.dumps``, an error
-    message's ``repr``); deep nesting would end in RecursionError. ``text_only`` keeps every scalar as text
-    (``yaml.BaseLoader``). Raises ``error`` naming ``source``, the line and the cause."""
-    size = len(data)
-    if size > MAX_YAML_BYTES:
-        raise error(f"{source}: {what} of {size} bytes, more than the {MAX_YAML_BYTES} accepted")
+    """One YAML document, no aliases (a 491-byte alias bomb expands to gigabytes), at most ``MAX_YAML_BYTES`` and
+    ``MAX_YAML_DEPTH`` deep (RecursionError); ``text_only``: text scalars. ``error`` names ``source``, line, cause."""
+    if len(data) > MAX_YAML_BYTES:
+        raise error(f"{source}: {what} of {len(data)} bytes, more than the {MAX_YAML_BYTES} accepted")
     if isinstance(data, bytes):
         try:
             data = data.decode("utf-8")
@@ -163,15 +152,13 @@ def load_yaml(data: bytes | str, source: str, *, error: type[CellError] = Config
             raise error(f"{source}: {what} is not UTF-8 text (byte {exc.start})") from None
     loader = None
     try:
-        # the reader refuses non-printable characters as it is built: inside the try, like every YAML error
-        loader = _LOADERS["base" if text_only else "safe"](data)
+        loader = _LOADERS["base" if text_only else "safe"](data)  # refuses non-printable characters: inside the try
         return loader.get_single_data()
     except _Refused as exc:
         raise error(f"{source}: {what} refused: {exc}") from None
     except yaml.YAMLError as exc:
         raise error(f"{source}: {what} is not valid YAML ({_short(str(exc), 300)})") from None
-    except (ValueError, OverflowError, RecursionError, MemoryError) as exc:
-        # e.g. an integer of more digits than Python converts, a date out of range
+    except (ValueError, OverflowError, RecursionError, MemoryError) as exc:  # e.g. a too long integer, a bad date
         raise error(f"{source}: {what} holds a value that cannot be read ({type(exc).__name__}: "
                     f"{_short(str(exc), 200)})") from None
     finally:
@@ -196,10 +183,8 @@ def short_repr(value, n: int = 80) -> str:
     return _short(repr(value), n)
 
 
-# --- pictures -------------------------------------------------------------------------------------
 def picture_size(head: bytes) -> tuple[str, int, int]:
-    """(format, width, height) from the first bytes of a PNG, JPEG, BMP or PGM/PPM file; raises
-    ValueError saying why it cannot tell."""
+    """(format, width, height) from the first bytes of a PNG, JPEG, BMP or PGM/PPM file; else ``ValueError``."""
     if not head:
         raise ValueError("the file is empty")
     if head[:8] == b"\x89PNG\r\n\x1a\n":
@@ -251,9 +236,8 @@ def picture_size(head: bytes) -> tuple[str, int, int]:
 
 def read_picture(path, *, max_side: int = MAX_PICTURE_SIDE, max_pixels: int = MAX_PICTURE_PIXELS,
                  what: str = "picture") -> tuple[np.ndarray, str]:
-    """(grey picture as a 2-D uint8 array, SHA-256 of the file); ``PictureFileError`` (an ``ImageError``)
-    naming the file for an unreadable, empty, unknown, oversized or undecodable one. The size is checked in
-    the header, before decoding: a small file that would decode to 30000 x 30000 pixels is refused at once."""
+    """(2-D uint8 grey picture, SHA-256 of the file); ``PictureFileError`` naming an unreadable, empty, unknown,
+    oversized or undecodable file. The header's size is checked first: a small file may decode to 30000 x 30000 px."""
     import cv2
 
     p = Path(path)
@@ -285,7 +269,6 @@ def read_picture(path, *, max_side: int = MAX_PICTURE_SIDE, max_pixels: int = MA
     return img, hashlib.sha256(blob).hexdigest()
 
 
-# --- atomic writes --------------------------------------------------------------------------------
 def _write_all(fd: int, data: bytes) -> None:
     view = memoryview(data)
     while view:
@@ -294,8 +277,7 @@ def _write_all(fd: int, data: bytes) -> None:
 
 
 def remove_leftovers(folder, name: str | None = None) -> None:
-    """Remove the temporary files (``.NAME.PID.TOKEN.tmp``) that writers of ``name`` (or of any file) left
-    in ``folder`` when they were killed: only those whose pid no longer runs."""
+    """Remove the temporary files (``.NAME.PID.TOKEN.tmp``) of ``name`` (or any) in ``folder`` whose pid is gone."""
     pattern = re.compile(rf"\.{re.escape(name) if name else '.+'}\.([0-9]+)\.[0-9a-f]{{12}}\.tmp")
     with contextlib.suppress(OSError):
         for entry in os.scandir(folder):
@@ -310,10 +292,8 @@ def remove_leftovers(folder, name: str | None = None) -> None:
 
 @contextlib.contextmanager
 def file_lock(path, *, error: type[CellError] = ConfigError, what: str = "file", timeout_s: float = 10.0):
-    """Hold an exclusive flock for writing ``path`` (writers of one file take turns), waiting at most
-    ``timeout_s``; ``error`` naming the file if another process holds it longer. The lock file is in the
-    user's lock folder (``selfview.files.lockdir``), keyed on the file's folder as the kernel knows it (device
-    and inode: two spellings of one folder share the lock), never beside the user's files."""
+    """Hold an exclusive flock for writing ``path`` (writers take turns), waiting at most ``timeout_s``, else ``error``;
+    the lock file in ``lockdir``'s folder is keyed on the folder's device and inode (two spellings, one lock)."""
     path = Path(path)
     try:
         st = os.stat(path.parent)
@@ -347,11 +327,9 @@ def check_folder(path, *, error: type[CellError] = ConfigError, what: str = "fil
 
 def atomic_write(path, data: bytes, *, error: type[CellError] = ConfigError, what: str = "file",
                  mode: int | None = None) -> None:
-    """Replace ``path`` with ``data``: written to a temporary file in the same folder (named with the
-    writer's pid; killed writers' leftovers removed first), flushed to disk and renamed over the old file.
-    Permission bits: the replaced file's, else ``mode``, else 0o666 less the umask. A symlink's target is
-    replaced (the link stays); a missing folder, a device, FIFO or socket is refused. Raises ``error``
-    naming the path and the cause, the old file untouched and no temporary file left."""
+    """Replace ``path`` with ``data``: a temporary file in its folder (named by pid; dead writers' leftovers removed),
+    flushed to disk, renamed over it; mode: the old file's, else ``mode``, else 0o666 less umask. A symlink's target is
+    replaced; a device, FIFO, socket or missing folder refused. ``error`` naming path and cause; old file untouched."""
     path = Path(os.path.realpath(path)) if Path(path).is_symlink() else Path(path)
     folder = path.parent
     fail = lambda why: error(f"{path}: cannot write the {what}: {why}")  # noqa: E731
@@ -399,9 +377,8 @@ PICTURE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", 
 
 
 def write_picture(path, image, *, error: type[CellError] = ConfigError, what: str = "picture") -> None:
-    """Write ``image`` (8-bit grey or BGR(A): OpenCV would convert any other to 8 bits by itself) to ``path``
-    in the format its extension names (``PICTURE_EXTENSIONS``): encoded in memory (OpenCV never sees the
-    path, whatever bytes it holds), then ``atomic_write``. Raises ``error`` naming the path and the cause."""
+    """Write 8-bit grey or BGR(A) ``image`` (OpenCV would silently convert others) in the format of ``path``'s
+    extension, encoded in memory (OpenCV never sees the path), then ``atomic_write``; ``error`` naming the cause."""
     import cv2
 
     path = Path(path)

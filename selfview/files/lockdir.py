@@ -1,11 +1,6 @@
-"""The folder of this user's lock files, and the lock files in it.
-
-Every lock of selfview (a device's, a file writer's) is an ``flock`` on a file in one folder: ``$SELFVIEW_LOCK_DIR``,
-else ``$XDG_RUNTIME_DIR/selfview``, else ``selfview-UID`` in the temporary directory. The folder must be the user's
-own with mode 0700 (a folder another user can write lets them plant a link or hold a lock; it is refused, named,
-not repaired), and a lock file is opened without following links, so a planted link cannot make a lock truncate
-the file it points to. No lock file is ever made beside the user's own files.
-"""
+"""The user's lock folder: every selfview lock is an ``flock`` on a file there, never beside the user's files. It is
+``$SELFVIEW_LOCK_DIR``, else ``$XDG_RUNTIME_DIR/selfview``, else ``selfview-UID`` in the temp directory, mode 0700 and
+the user's (others could plant a link or hold a lock); no link is followed (it could make a lock truncate a file)."""
 
 from __future__ import annotations
 
@@ -32,8 +27,7 @@ def os_cause(exc: OSError) -> str:
 
 
 def lock_dir(*, error: type[CellError]) -> Path:
-    """Where the lock files are: created (mode 0700) if missing, then checked to be a real folder (not a
-    link) owned by this user with no access for anyone else. Raises ``error`` naming the folder."""
+    """The lock folder, made 0700 if missing; ``error`` unless a real folder (no link) of this user, shut to others."""
     if os.environ.get("SELFVIEW_LOCK_DIR"):
         d = Path(os.environ["SELFVIEW_LOCK_DIR"])
     elif os.environ.get("XDG_RUNTIME_DIR") and Path(os.environ["XDG_RUNTIME_DIR"]).is_dir():
@@ -67,8 +61,7 @@ def lock_slug(*parts: str) -> str:
 
 
 def open_lock_file(name: str, *, error: type[CellError], what: str) -> tuple[int, Path]:
-    """(descriptor, path) of the lock file ``name`` in ``lock_dir()``: created 0600 if missing, never
-    through a link, and only a regular file. ``what`` names the thing locked in the error."""
+    """(fd, path) of lock file ``name`` in ``lock_dir()``: made 0600, never through a link, regular; else ``error``."""
     path = lock_dir(error=error) / name
     try:
         fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK, 0o600)
