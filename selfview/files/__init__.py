@@ -1,2 +1,1 @@
-"""Files: the cell description (``cell``), calibration and camera files (``calfile``, ``camfile``), the atomic,
-bounded reading and writing under them (``io_safe``) and the lock folder (``lockdir``)."""
+"""Files: the cell, calibration and camera files, safe bounded reading and writing, the lock folder."""
