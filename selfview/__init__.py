@@ -1,17 +1,10 @@
-"""selfview: calibration toolkit for self-viewing eye-on-hand robot cells.
-
-The numerical core: camera model (paper eq. 1-4), Tsai's coplanar calibration, the Plane Coincidence Constraint
-(eq. 5-10), the on-line update (eq. 11-17), feature extraction and calibration files. It imports nothing from
-``drivers``, ``mocks`` or ``procedures``.
-"""
+"""selfview: calibration toolkit for self-viewing eye-on-hand robot cells. Its numerical core (camera model, eq. 1-4;
+Tsai; PCC, eq. 5-10; on-line update, eq. 11-17; features; files) imports nothing from drivers, mocks or procedures."""
 
 from importlib import metadata as _metadata
 from pathlib import Path as _Path
 
-# The repository keeps drivers/, mocks/, procedures/ and bench/ beside selfview/ (a layout its users fixed); an
-# install maps them to selfview.drivers, .mocks, .procedures and .bench (pyproject.toml, [tool.setuptools.package-dir]).
-# From a source tree (a checkout or a copy, installed or not) the same names resolve to the folders beside this one,
-# so that a copy of the tree runs its own code.
+# the folders beside selfview/ (drivers/, mocks/, ...) are selfview.drivers etc.: a copy of the tree runs its own code
 _TREE = _Path(__file__).resolve().parent.parent
 if not (_Path(__file__).resolve().parent / "drivers").is_dir() and (_TREE / "pyproject.toml").is_file() \
         and (_TREE / "drivers" / "__init__.py").is_file():
@@ -35,7 +28,7 @@ _API = ("PictureCalibration", "TrackResult", "calibrate_picture", "track")
 
 
 def __getattr__(name):
-    """The one-call API (``selfview.api``), imported when first used: ``import selfview`` stays light."""
+    """``selfview.api``'s names, imported when first used so that ``import selfview`` stays light."""
     if name in _API:
         from selfview import api
 

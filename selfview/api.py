@@ -1,7 +1,5 @@
-"""One call per task for lab scripts: ``calibrate_picture`` (the off-line calibration of one picture of the gripper
-parked on the plate, with its uncertainty and a verdict) and ``track`` (the on-line estimate from one picture of the
-fingertips). Pictures, cells, cameras and calibrations are given as files or as the loaded objects; the
-``selfview calibrate`` and ``selfview track`` commands print what these return."""
+"""One call per task for lab scripts and ``selfview calibrate`` / ``track``: ``calibrate_picture`` (off-line, with
+uncertainty and verdict) and ``track`` (on-line), each from one picture, taking files or loaded objects."""
 
 from __future__ import annotations
 
@@ -28,7 +26,7 @@ __all__ = ["PictureCalibration", "TrackResult", "assess_offline", "calibrate_pic
 
 #: A disc residual RMS [px] above this says the picture is out of focus or badly lit.
 RMS_LIMIT_PX = 0.5
-#: what ``track`` takes as ``method``: an on-line method, the model's own estimate 'E', or the policy 'auto'
+#: ``track``'s methods: an on-line method, the model's own estimate 'E', or the policy 'auto'
 METHODS = (*ONLINE_METHODS, MODEL_METHOD, "auto")
 
 
@@ -47,13 +45,9 @@ def _picture(image) -> tuple[np.ndarray, str | None]:
 
 @dataclass
 class PictureCalibration:
-    """An off-line calibration with its uncertainty and verdict.
-
-    ``calibration`` what ``save`` writes; ``offline`` every intermediate (discs, Tsai, fingertips, PCC);
-    ``C_H_G`` (4, 4) gripper -> camera [mm]; ``tcp_sigma_mm`` the TCP's 1-sigma along the camera's x, y, z [mm],
-    every part included (``sigma_parts_mm``: the picture's noise, the camera file's uncertainty, the corners', and
-    ``camera_model`` when the picture shows the assumed camera wrong); ``verdict`` 'go' or 'no-go' and ``reason``;
-    ``warnings`` for the operator; ``camera_check`` and ``camera_file_fit`` the checks behind them."""
+    """An off-line calibration: ``calibration`` what ``save`` writes; ``offline`` every intermediate; ``C_H_G`` (4, 4)
+    gripper -> camera [mm]; ``tcp_sigma_mm`` the TCP's 1-sigma along camera x, y, z [mm] of all ``sigma_parts_mm``;
+    ``verdict`` 'go'/'no-go', ``reason``, ``warnings``; ``camera_check``, ``camera_file_fit`` the checks behind them."""
 
     calibration: Calibration
     offline: OfflineResult
@@ -74,15 +68,15 @@ class PictureCalibration:
         return self.verdict == "go"
 
     def save(self, path, *, force: bool = False) -> Path | None:
-        """Write the calibration to ``path`` atomically (previous file kept in its history; returns that copy).
-        Raises ``CalibrationError`` when the camera file does not fit the picture, unless ``force``."""
+        """Write to ``path`` atomically, returning the history copy of the previous file; ``CalibrationError`` when
+        the camera file does not fit the picture, unless ``force``."""
         fit = self.camera_file_fit
         if fit and not fit["fits"] and not force:
             raise CalibrationError(f"{fit['refusal']}; nothing written")
         return save_calibration(self.calibration, path)
 
     def to_dict(self) -> dict:
-        """Plain JSON-ready figures (``OfflineResult.summary`` and the sigma, verdict, warnings)."""
+        """JSON-ready figures: ``OfflineResult.summary`` and the sigma, verdict, warnings."""
         return {**self.offline.summary(), "tcp_sigma_mm": list(self.tcp_sigma_mm),
                 "tcp_sigma_parts_mm": dict(self.sigma_parts_mm), "verdict": self.verdict, "reason": self.reason,
                 "warnings": list(self.warnings),
@@ -91,9 +85,7 @@ class PictureCalibration:
 
 
 def calibration_change(previous: Calibration, new: Calibration) -> dict:
-    """What moved from ``previous`` to ``new``: the TCP in camera axes [mm] (``tcp_moved_mm`` x y z and its length),
-    the rotation of ``C_H_G`` [deg], f [px] and kappa [px^-2], and whether both saw the same picture and gripper
-    state. Two calibrations of one mount differ by their sigmas; more means the camera moved or one is wrong."""
+    """From ``previous`` to ``new``: TCP move [mm, camera axes], rotation [deg], f [px], kappa; same picture, state."""
     d = np.asarray(new.C_H_G, float)[:3, 3] - np.asarray(previous.C_H_G, float)[:3, 3]
     deg, mm = pose_difference(new.C_H_G, previous.C_H_G)
     return {"previous_created": previous.created, "tcp_moved_mm": [float(v) for v in d], "tcp_moved_norm_mm": mm,
@@ -105,15 +97,10 @@ def calibration_change(previous: Calibration, new: Calibration) -> dict:
 
 def assess_offline(res: OfflineResult, cell: Cell, camera: CameraModel | None = None, camera_cov3=None,
                    camera_name: str | None = None, fit: dict | None = None) -> PictureCalibration:
-    """The uncertainty and the verdict of an off-line calibration ``res``.
-
-    ``camera`` the measured camera it used (None: the cell's nominal one), ``camera_cov3`` the covariance of its
-    centre and aspect (skew) from its file, ``camera_name`` how to name it in a warning, ``fit`` its
-    ``camera_file_fit`` (computed when None and ``camera`` is given). The TCP's sigma includes the camera model's
-    error when the picture shows the assumed centre or aspect wrong (``camera_check``). Verdict no-go: the camera
-    file does not fit, a fingertip corner is missing, the disc residual is above ``RMS_LIMIT_PX``, or the TCP's
-    sigma is over ``TARGET_ACROSS_MM`` across or ``TARGET_ALONG_MM`` along the optical axis. The calibration's
-    residuals record the sigma (``tcp_sigma_mm``), which ``track`` adds to its own."""
+    """Uncertainty and verdict of off-line calibration ``res`` (sigma recorded in its residuals for ``track``).
+    ``camera`` the camera used (None: the cell's), ``camera_cov3`` its file's centre and aspect (skew) covariance,
+    ``fit`` its ``camera_file_fit`` (None: computed). No-go: the camera file does not fit, a corner is missing, disc
+    rms > ``RMS_LIMIT_PX``, or the TCP's sigma over ``TARGET_ACROSS_MM`` across or ``TARGET_ALONG_MM`` along."""
     from selfview.estimation.intrinsics import (TARGET_ACROSS_MM, TARGET_ALONG_MM, camera_check, camera_file_fit,
                                                 tcp_sigma)
 
@@ -123,7 +110,7 @@ def assess_offline(res: OfflineResult, cell: Cell, camera: CameraModel | None = 
     sig = tcp_sigma(res, cell, camera_cov3, camera_error=chk)
     sg = sig["tcp_sigma_mm"]
     res.calibration.residuals["tcp_sigma_mm"] = [float(v) for v in sg]
-    warnings = list(res.warnings)  # what the picture cannot tell (the plate's origin, a PCC residual over its noise)
+    warnings = list(res.warnings)  # what the picture cannot tell (the plate's origin, a PCC residual over noise)
     if fit and not fit["fits"]:
         warnings.append(f"{fit['refusal']}; measure this camera with 'selfview intrinsics'")
     if chk.get("warning"):
@@ -157,13 +144,10 @@ def assess_offline(res: OfflineResult, cell: Cell, camera: CameraModel | None = 
 
 def calibrate_picture(image, cell=None, camera=None, *, state: str | None = None, mode: str = "full",
                       points: str = "measured") -> PictureCalibration:
-    """Off-line calibration of one picture of the gripper parked on the plate, with its sigma and verdict.
-
-    ``image`` a picture file or a (H, W) uint8 array; ``cell`` a cell file or ``Cell`` (None: the reference cell);
-    ``camera`` a camera file from ``selfview intrinsics`` or a ``CameraModel`` (None: the cell's nominal camera);
-    ``state``, ``mode``, ``points`` as ``calibrate_offline``. Nothing is written: call ``save(path)`` on the
-    result. Raises ``ImageError`` (unusable picture), ``ConfigError`` / ``CalibrationFileError`` (cell or camera
-    file), ``CalibrationError`` (too few discs or corners)."""
+    """Off-line calibration of one picture of the gripper parked on the plate; nothing written (``save`` the result).
+    ``image`` a file or (H, W) uint8 array; ``cell`` a file or ``Cell`` (None: the reference); ``camera`` a ``selfview
+    intrinsics`` file or ``CameraModel`` (None: the cell's); the rest as ``calibrate_offline``. Raises ``ImageError``,
+    ``ConfigError`` / ``CalibrationFileError`` (cell or camera file), ``CalibrationError`` (too few discs, corners)."""
     from selfview.estimation.offline import calibrate_offline
 
     c = _cell(cell)
@@ -185,15 +169,10 @@ def calibrate_picture(image, cell=None, camera=None, *, state: str | None = None
 
 @dataclass
 class TrackResult:
-    """One on-line estimate from one picture.
-
-    ``C_H_G`` (4, 4) the estimate [mm] (NP-U: eq. 13's own, not orthonormal; the calibration's own after an alarm);
-    ``C_H_G_orthonormal`` the transform to use from now on (its rotation re-orthonormalised); ``decision`` update,
-    recalibrate or alarm and ``reason``; ``verdict`` 'go' unless alarm; ``delta_deg``, ``d_mm`` how far the camera
-    moved on its mount; ``rms_px`` the estimate's residual; ``tcp_sigma_mm`` the new TCP's 1-sigma in camera axes
-    [mm], the estimate's own (from its covariance) and the calibration's (recorded by ``calibrate_picture``)
-    together, None where the estimate has no redundancy (3 points) or no covariance (method E); ``points_used``,
-    ``points_found`` names; ``quality`` the measurement's; ``fingertips`` what was found."""
+    """One on-line estimate: ``C_H_G`` (4, 4) [mm] (NP-U: eq. 13's, not orthonormal; after an alarm the calibration's);
+    ``C_H_G_orthonormal`` the one to use; ``decision`` update/recalibrate/alarm, ``reason``; ``delta_deg``, ``d_mm``
+    the camera's move; ``rms_px``; ``tcp_sigma_mm`` the TCP's 1-sigma in camera axes [mm] (with the calibration's),
+    None for 3 points or method E; ``points_used``, ``points_found`` names; ``quality``; ``fingertips``."""
 
     C_H_G: np.ndarray
     method: str
@@ -226,8 +205,7 @@ class TrackResult:
 
 
 def tcp_sigma_after(est, H, cal: Calibration) -> list | None:
-    """1-sigma [mm] of the TCP at ``H`` (4, 4) after the motion ``est`` (its covariance over rotation [rad] and
-    shift [mm]; ``dp = -[p]x d_rot + d_shift``), with the calibration's recorded sigma added."""
+    """TCP 1-sigma [mm] at ``H`` (4, 4) from motion ``est``'s covariance (rotation [rad], shift [mm]) and ``cal``'s."""
     if est is None or not np.all(np.isfinite(est.covariance)):
         return None
     p = np.asarray(H, float)[:3, 3]
@@ -241,15 +219,11 @@ def tcp_sigma_after(est, H, cal: Calibration) -> list | None:
 
 def track(image, calibration, method: str = "auto", *, cell=None, state: str | None = None,
           measure: str = "model") -> TrackResult:
-    """On-line estimate of where the camera moved on its mount, from one picture of the fingertips.
-
-    ``image`` a picture file or a (H, W) uint8 array; ``calibration`` a calibration file or ``Calibration``;
-    ``method`` one of NP-U / NP-I / NP-R (``selfview.estimation.online``), E (the fingers' model fitted directly,
-    ``measure='model'``) or 'auto' (the cell's monitor policy: update, recalibrate or alarm); ``cell`` a cell file
-    or ``Cell`` (None: the reference cell); ``state`` the gripper state (default the calibration's); ``measure``
-    'model' (the fingers' silhouette) or 'corners'. Nothing is written. An alarm is a result (``decision``
-    'alarm', verdict no-go), not an exception. Raises ``ImageError``, ``ConfigError`` (a method, state or measure
-    unknown), ``CalibrationError`` (the fingertips not found)."""
+    """Where the camera moved on its mount, from one picture of the fingertips; nothing written, an alarm is a result.
+    ``image``, ``cell`` as ``calibrate_picture``; ``calibration`` a file or ``Calibration``; ``method`` NP-U/NP-I/NP-R,
+    E (the fingers' model, ``measure='model'``) or 'auto' (the cell's policy); ``state`` default the calibration's;
+    ``measure`` 'model' or 'corners'. Raises ``ImageError``, ``ConfigError`` (unknown method, state, measure),
+    ``CalibrationError`` (fingertips not found)."""
     from selfview.measurement.fingers import find_fingertips
     from selfview.estimation.offline import check_picture
     from selfview.estimation.online import estimate

@@ -1,8 +1,4 @@
-"""The project's exception tree, mixed with builtins so callers can catch either: a device that does not answer
-raises ``DeviceTimeout``, also a ``TimeoutError``; a move out of limits raises ``LimitError``, also a ``ValueError``.
-Vendor errors (pyserial, pymodbus, OpenCV) are translated at the driver boundary with ``raise ... from``."""
-
-from __future__ import annotations
+"""The project's exceptions, mixed with builtins so callers can catch either; drivers translate vendor errors."""
 
 
 class CellError(Exception):

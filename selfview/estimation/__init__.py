@@ -1,1 +1,1 @@
-"""Estimation from measurements: Tsai's method (``tsai``), the Plane Coincidence Constraint (``pcc``), the off-line and on-line calibrations (``offline``, ``online``), the policy (``policy``) and the multi-view interior orientation (``intrinsics``)."""
+"""Estimation: Tsai's method, the PCC, off-line and on-line calibration, the policy, the interior orientation."""

@@ -1,1 +1,1 @@
-"""Shared mathematics below the rest: rigid transforms (``geometry``), the camera model (``camera``) and the least-squares solver (``lm``)."""
+"""Shared mathematics: rigid transforms (``geometry``), the camera model (``camera``), least squares (``lm``)."""

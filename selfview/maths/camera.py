@@ -1,15 +1,7 @@
-"""The paper's camera model (eq. 1-4) in the pixel units of ``CONVENTIONS.md``.
-
-Pixel (u, v) with integer values is the centre of a pixel (OpenCV convention). Sensor coordinates
-relative to the principal point (cx, cy), in pixel units:
-
-    X^ = aspect * (u - cx - skew (v - cy)),  Y^ = v - cy     (distorted, what the picture shows)
-    X = X^ (1 + kappa r^2),  Y = Y^ (1 + kappa r^2)          (eq. 4, r^2 = X^^2 + Y^^2)
-    X = f x / z,             Y = f y / z                     (eq. 3, camera coordinates in mm)
-
-The correction is explicit from distorted to undistorted; ``distort`` inverts it exactly by solving the cubic
-``kappa r^3 + r - R = 0`` for the distorted radius r of an undistorted radius R.
-"""
+"""The paper's camera model (eq. 1-4) in the pixel units of ``CONVENTIONS.md``; integer (u, v) is a pixel's centre.
+Distorted sensor coordinates [px]: X^ = aspect (u - cx - skew (v - cy)), Y^ = v - cy; undistorted (eq. 4):
+X = X^ (1 + kappa r^2), Y = Y^ (1 + kappa r^2), r^2 = X^^2 + Y^^2; eq. 3: X = f x / z, Y = f y / z (camera frame, mm).
+``distort`` inverts eq. 4 exactly by solving kappa r^3 + r - R = 0 for the distorted radius r."""
 
 from __future__ import annotations
 
@@ -21,8 +13,7 @@ from selfview.errors import CalibrationError, ConfigError
 
 __all__ = ["CameraModel", "undistort", "distort", "max_undistorted_radius", "MAX_SKEW"]
 
-#: Largest |skew| a camera may have: 0.01 shifts the bottom line of a CCIR picture 5.8 px against the top one,
-#: ten times the worst PLL shear reported for analogue grabbers; more is a wrong file or a wrong fit.
+#: Largest |skew|: 0.01 shears a CCIR picture 5.8 px top to bottom, ten times the worst analogue grabber's PLL shear.
 MAX_SKEW = 0.01
 
 
@@ -43,8 +34,7 @@ def undistort(XY_hat, kappa: float) -> np.ndarray:
 
 
 def max_undistorted_radius(kappa: float) -> float:
-    """Largest undistorted radius a real distorted radius maps to (inf for kappa >= 0). For kappa < 0,
-    R(r) = r + kappa r^3 peaks at r = sqrt(-1 / (3 kappa)); beyond it no pixel sees the ray."""
+    """Largest undistorted radius [px] a pixel sees: inf for kappa >= 0, else R(r) = r + kappa r^3 at its peak."""
     if kappa >= 0:
         return np.inf
     r = np.sqrt(-1.0 / (3.0 * kappa))
@@ -52,17 +42,16 @@ def max_undistorted_radius(kappa: float) -> float:
 
 
 def _distorted_radius(R: np.ndarray, kappa: float) -> np.ndarray:
-    """Solve kappa r^3 + r - R = 0 for the root r of the branch through r = 0 (vectorised)."""
+    """The root r of kappa r^3 + r - R = 0 on the branch through r = 0."""
     R = np.asarray(R, dtype=float)
     if kappa == 0.0:
         return R.copy()
     if kappa > 0:
-        # One real root (the cubic is monotonic): Cardano, depressed cubic r^3 + p r + q = 0.
+        # monotonic: one real root, by Cardano
         p, q = 1.0 / kappa, -R / kappa
         disc = np.sqrt((q / 2) ** 2 + (p / 3) ** 3)
         r = np.cbrt(-q / 2 + disc) + np.cbrt(-q / 2 - disc)
     else:
-        # Three real roots when R < R_max: take the one on the rising branch, trigonometric form.
         Rmax = max_undistorted_radius(kappa)
         if np.any(R > Rmax * (1 + 1e-12)):
             raise CalibrationError(f"point beyond the lens's field of view: undistorted radius {float(np.max(R)):.1f} "
@@ -70,17 +59,16 @@ def _distorted_radius(R: np.ndarray, kappa: float) -> np.ndarray:
         p = 1.0 / kappa  # negative
         m = 2.0 * np.sqrt(-p / 3.0)
         arg = np.clip(3.0 * (-R / kappa) / (p * m), -1.0, 1.0)
-        # root k=1 of the trigonometric solution is the one on the branch through r = 0
+        # three real roots: k=1 of the trigonometric form is on the rising branch through r = 0
         r = m * np.cos(np.arccos(arg) / 3.0 - 2.0 * np.pi / 3.0)
-    # Newton polish: the closed forms lose digits through cancellation for small kappa r^2.
+    # Newton polish: the closed forms lose digits to cancellation for small kappa r^2
     for _ in range(3):
         r = r - (kappa * r**3 + r - R) / (3 * kappa * r**2 + 1.0)
     return r
 
 
 def distort(XY, kappa: float) -> np.ndarray:
-    """Inverse of eq. 4: undistorted sensor coordinates (N, 2) -> distorted (N, 2), pixel units.
-    ``CalibrationError`` for a point the lens cannot image (kappa < 0, beyond the fold)."""
+    """Inverse of eq. 4, (N, 2) -> (N, 2) px; ``CalibrationError`` for a point beyond the lens's fold (kappa < 0)."""
     XY = np.asarray(XY, dtype=float)
     R = np.sqrt(np.sum(XY * XY, axis=-1, keepdims=True))
     r = _distorted_radius(R, kappa)
@@ -91,14 +79,10 @@ def distort(XY, kappa: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class CameraModel:
-    """Interior orientation of the camera (eq. 3-4).
-
-    ``f`` effective focal length [px]; ``kappa`` radial coefficient [px^-2]; ``cx, cy`` principal point [px];
-    ``aspect`` horizontal sampling factor (X^ = aspect (u - cx)); ``width, height`` picture size [px]; ``skew``
-    the grabber's shear (px of u per px of v below cy, |skew| <= ``MAX_SKEW``; 0, the default, is the spec's
-    model): a PLL whose line-sync phase drifts linearly down the picture (Beyer 1992: tenths of a pixel over the
-    frame), the skew term of OpenCV's and Heikkilae's pinhole models (``K[0, 1] = skew * fy``, ``fy = f``,
-    ``fx = f / aspect``), which Tsai's lacks; ``selfview intrinsics`` measures it."""
+    """Interior orientation (eq. 3-4): ``f`` focal length [px]; ``kappa`` [px^-2]; ``cx, cy`` principal point [px];
+    ``aspect`` horizontal sampling factor; ``width, height`` [px]; ``skew`` the grabber's PLL shear [px of u per px of v
+    below cy], |skew| <= ``MAX_SKEW``, 0 in the spec (OpenCV's ``K[0, 1] = skew * fy``, fy = f, fx = f / aspect).
+    ``ConfigError`` for impossible values."""
 
     f: float
     kappa: float = 0.0
@@ -157,8 +141,7 @@ class CameraModel:
         return out[0] if single else out
 
     def deskew_pixels(self, uv) -> np.ndarray:
-        """Pixels (N, 2) -> the pixels of the same rays in this camera without its skew
-        (``self.without_skew()``): u - skew (v - cy). The identity when skew is 0."""
+        """Pixels (N, 2) -> the pixels of the same rays in ``without_skew()``: u - skew (v - cy)."""
         uv, single = _as_points(uv, 2, "uv")
         out = uv.copy()
         if self.skew:
@@ -166,8 +149,7 @@ class CameraModel:
         return out[0] if single else out
 
     def without_skew(self) -> "CameraModel":
-        """This camera with skew 0: the model of code that takes (cx, cy, aspect) alone (Tsai's method, the
-        on-line estimators), fed with ``deskew_pixels``."""
+        """This camera with skew 0, for code that takes (cx, cy, aspect) alone, fed with ``deskew_pixels``."""
         return self if not self.skew else replace(self, skew=0.0)
 
     def undistort_pixels(self, uv) -> np.ndarray:
@@ -183,8 +165,7 @@ class CameraModel:
         return self.sensor_to_pixel(self.undistort_pixels(uv))
 
     def project_undistorted(self, p_C) -> np.ndarray:
-        """Camera-frame points (N, 3) [mm] -> undistorted sensor coordinates (N, 2) by eq. 3;
-        ``CalibrationError`` for a point not in front of the camera (z <= 0)."""
+        """Camera-frame points (N, 3) [mm] -> undistorted sensor coords (N, 2), eq. 3; CalibrationError if z <= 0."""
         p, single = _as_points(p_C, 3, "p_C")
         z = p[:, 2]
         if np.any(z <= 0):
@@ -213,17 +194,15 @@ class CameraModel:
         return d[0] if single else d
 
     def backproject_to_plane(self, uv, C_H_P, z_P=0.0, min_cos: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
-        """Eq. 8: intersect the rays of pixels (N, 2) with the plane z = ``z_P`` of frame P.
-
-        ``C_H_P`` (4, 4) maps P to the camera; ``z_P`` is a scalar or (N,) per point [mm]. Returns (p_P (N, 3) in
-        frame P with the given z, z_C (N,) depth of each point in the camera frame). ``CalibrationError`` when a
-        ray runs parallel to the plane (seen edge-on) or meets it behind the camera."""
+        """Eq. 8: where the rays of pixels (N, 2) meet the plane z = ``z_P`` [mm, scalar or (N,)] of frame P.
+        ``C_H_P`` (4, 4) maps P to the camera. Returns (p_P (N, 3) in frame P, z_C (N,) depths in the camera frame);
+        ``CalibrationError`` for a plane seen edge-on or met behind the camera."""
         uv, single = _as_points(uv, 2, "uv")
         H = np.asarray(C_H_P, dtype=float)
         R, t = H[:3, :3], H[:3, 3]
         XY = self.undistort_pixels(uv)
         zP = np.broadcast_to(np.asarray(z_P, dtype=float), (len(uv),))
-        # Eq. 8, one 3x3 system per point: [r1 r2 -X/f; r4 r5 -Y/f; r7 r8 -1] [x y zc]^T = -r3 z - t
+        # eq. 8 per point: [r1 r2 -X/f; r4 r5 -Y/f; r7 r8 -1] [x y zc]^T = -r3 z - t
         A = np.empty((len(uv), 3, 3))
         A[:, :, :2] = R[:, :2]
         A[:, :2, 2] = -XY / self.f
@@ -242,8 +221,7 @@ class CameraModel:
 
     @classmethod
     def from_dict(cls, d: dict) -> "CameraModel":
-        """The camera of a ``to_dict`` mapping (no ``skew``: 0); ``KeyError``, ``TypeError`` or ``ValueError`` for a
-        malformed one, ``ConfigError`` for impossible values."""
+        """From a ``to_dict`` mapping; KeyError, TypeError or ValueError if malformed, ConfigError if impossible."""
         pp = d["principal_point"]
         return cls(f=float(d["f"]), kappa=float(d["kappa"]), cx=float(pp[0]), cy=float(pp[1]),
                    aspect=float(d["aspect"]), width=int(d["width"]), height=int(d["height"]),

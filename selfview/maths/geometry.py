@@ -1,9 +1,5 @@
-"""Homogeneous transforms and rotation parametrisations.
-
-Conventions (``CONVENTIONS.md``): ``A_H_B`` is a (4, 4) matrix mapping coordinates in frame B to frame A,
-``p_A = A_H_B p_B``; translations in mm. Functions here take and return radians; degrees belong to the interfaces a
-person sees, and the ``*_deg`` helpers convert at those interfaces.
-"""
+"""Homogeneous transforms and rotation parametrisations (``CONVENTIONS.md``): ``A_H_B`` (4, 4) maps frame B to frame A,
+``p_A = A_H_B p_B``; translations in mm, angles in radians (degrees: controller poses, ``pose_difference``)."""
 
 from __future__ import annotations
 
@@ -74,10 +70,9 @@ def rot_axis(axis, angle: float, point=(0.0, 0.0, 0.0)) -> np.ndarray:
 
 
 def delta_star(delta, d) -> np.ndarray:
-    """Differential transform Delta* of eq. 12 from rotations ``delta`` = (dx, dy, dz) (rad) and translations
-    ``d`` = (dx, dy, dz) (mm). Not orthogonal: first order in the rotations."""
+    """Delta* of eq. 12 from rotations ``delta`` (3,) [rad] and translations ``d`` (3,) [mm]; first order in delta."""
     dx, dy, dz = map(float, delta)
-    # np.fromiter on a flat tuple: a third cheaper than np.array on nested lists (NP-U: one per picture, 50 us budget)
+    # np.fromiter on a flat tuple: a third cheaper than np.array (NP-U's 50 us budget per picture)
     rows = (
         1.0, -dz, dy, float(d[0]),
         dz, 1.0, -dx, float(d[1]),
@@ -88,8 +83,7 @@ def delta_star(delta, d) -> np.ndarray:
 
 
 def orthonormalize(M: np.ndarray) -> np.ndarray:
-    """Nearest rotation (Frobenius norm, polar decomposition by SVD) to a (3, 3) matrix, or the same for the
-    rotation block of a (4, 4) transform (translation kept)."""
+    """Nearest rotation (Frobenius norm, by SVD) to a (3, 3) matrix, or to a (4, 4) transform's rotation block."""
     M = np.asarray(M, dtype=float)
     if M.shape == (4, 4):
         return make_H(orthonormalize(M[:3, :3]), M[:3, 3])
@@ -108,8 +102,8 @@ def is_rigid(H, tol: float = 1e-6) -> bool:
 
 
 def check_rigid(H, name: str = "transform", tol: float = 1e-3) -> np.ndarray:
-    """``H`` as a float (4, 4) array, its rotation re-orthonormalised; ``ConfigError`` naming ``name`` and the
-    fault. ``tol`` admits matrices printed to 4 digits."""
+    """``H`` as a float (4, 4) array, rotation re-orthonormalised; ``ConfigError`` naming ``name`` and the fault.
+    ``tol`` admits matrices printed to 4 digits."""
     try:
         A = np.asarray(H, dtype=float)
     except (TypeError, ValueError) as exc:
@@ -129,7 +123,7 @@ def check_rigid(H, name: str = "transform", tol: float = 1e-3) -> np.ndarray:
 
 
 def hat(v) -> np.ndarray:
-    """(3, 3) cross-product matrix [v]x of a vector v (3,): hat(v) @ p = v x p."""
+    """(3, 3) cross-product matrix of v (3,): hat(v) @ p = v x p."""
     return _hats(np.asarray(v, dtype=float).reshape(1, 3))[0]
 
 
@@ -139,7 +133,6 @@ def R_from_rotvec(v) -> np.ndarray:
 
 
 def _hats(V: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) cross-product matrices of the rows of ``V`` (N, 3) (``hat`` of each)."""
     K = np.zeros((len(V), 3, 3))
     K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -V[:, 2], V[:, 1], -V[:, 0]
     K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = V[:, 2], -V[:, 1], V[:, 0]
@@ -147,7 +140,7 @@ def _hats(V: np.ndarray) -> np.ndarray:
 
 
 def R_from_rotvecs(V) -> np.ndarray:
-    """(N, 3, 3) rotations from the rotation vectors (N, 3) (``R_from_rotvec`` of each row, at once)."""
+    """(N, 3, 3) rotations from rotation vectors (N, 3), ``R_from_rotvec`` of each row."""
     V = np.asarray(V, dtype=float).reshape(-1, 3)
     th = np.linalg.norm(V, axis=1)
     small = th < 1e-12
@@ -197,10 +190,9 @@ def rpy_from_R(R) -> tuple[float, float, float]:
 
 @dataclass(frozen=True)
 class EulerConvention:
-    """How a controller's three orientation angles (VAL's O, A, T) map to a rotation:
-    ``R = base @ E(sequence[0], s0*(a0+o0)) @ E(sequence[1], s1*(a1+o1)) @ E(sequence[2], s2*(a2+o2)) @ tool``
-    with intrinsic (moving-axes) rotations, signs ``s`` and offsets ``o`` in degrees. The default is VAL's ZYZ
-    set: O about z, A about the new y, T about the new z; another controller's is in its dialect file."""
+    """How a controller's three angles (VAL's O, A, T) [deg] map to a rotation, with intrinsic rotations E:
+    ``R = base @ E(sequence[0], s0*(a0+o0)) @ E(sequence[1], s1*(a1+o1)) @ E(sequence[2], s2*(a2+o2)) @ tool``,
+    ``signs`` s, ``offsets_deg`` o, ``base``, ``tool`` (3, 3). Default: VAL's ZYZ (O about z, A new y, T new z)."""
 
     sequence: str = "zyz"
     signs: tuple[float, float, float] = (1.0, 1.0, 1.0)
@@ -234,9 +226,8 @@ class EulerConvention:
 
 
 def _third_angle(R, a, b, i, j, k):
-    """The last angle c of R = E_i(a) E_j(b) E_k(c), from what is left of R after a and b: near the middle
-    angle's singularity (Tait-Bryan b = +-90, proper b = 0 or 180) a and c separately rest on rounding noise,
-    and taking both from R gave O/A/T up to 18 degrees away from R with the tool pointing straight down."""
+    """The last angle c of R = E_i(a) E_j(b) E_k(c), from R after a and b: near gimbal lock a and c each rest on
+    rounding noise, and taking both from R gave errors up to 18 degrees."""
     M = (_rot3(i, a) @ _rot3(j, b)).T @ R
     u, v = (k + 1) % 3, (k + 2) % 3
     return np.arctan2(M[v, u], M[u, u])
@@ -254,8 +245,7 @@ def _proper_euler(R, i, j):
 
 def _tait_bryan(R, i, j, k):
     par = 1.0 if (i, j, k) in ((0, 1, 2), (1, 2, 0), (2, 0, 1)) else -1.0
-    # R = E_i(a) E_j(b) E_k(c). b from atan2, not arcsin: arcsin of an entry that rounding left at
-    # 1 - 1e-16 puts b 1e-8 rad short of 90 degrees, so a gimbal lock was never recognised
+    # R = E_i(a) E_j(b) E_k(c); b by atan2: arcsin of 1 - 1e-16 falls 1e-8 rad short of 90 deg, missing gimbal lock
     cb = np.hypot(R[i, i], R[i, j])
     b = np.arctan2(par * R[i, k], cb)
     a = np.arctan2(par * R[k, j], R[j, j]) if cb < 1e-9 else np.arctan2(-par * R[j, k], R[k, k])  # gimbal lock: c = 0
@@ -292,8 +282,7 @@ def rotation_angle(R) -> float:
 
 def pose_difference(A_H_B, A_H_B_ref) -> tuple[float, float]:
     """(rotation angle in degrees, translation distance in mm) between two estimates of one transform."""
-    A = np.asarray(A_H_B, dtype=float)
-    B = np.asarray(A_H_B_ref, dtype=float)
+    A, B = np.asarray(A_H_B, dtype=float), np.asarray(A_H_B_ref, dtype=float)
     dR = orthonormalize(A[:3, :3]) @ B[:3, :3].T
     return float(np.degrees(rotation_angle(dR))), float(np.linalg.norm(A[:3, 3] - B[:3, 3]))
 
@@ -316,9 +305,6 @@ def so3_left_jacobians(Omega) -> np.ndarray:
 
 
 def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of (N, 3) arrays (np.cross costs more than the arithmetic here)."""
-    return np.column_stack([
-        a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
-        a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-        a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
-    ])
+    """Row-wise cross product of (N, 3) arrays (cheaper than np.cross)."""
+    return np.column_stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]])

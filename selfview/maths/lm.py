@@ -1,9 +1,5 @@
-"""A small Levenberg-Marquardt least-squares solver on numpy.
-
-Minimises ``sum(fun(x)**2)`` over ``x`` (P,) for a residual function returning (M,) with M >= P, in the trust-region
-form that Moré described (1978) and MINPACK's ``lmder``/``lmdif`` implement, which Willson's Tsai calibration uses: with
-the same residuals and tolerances, it stops where ``lmdif`` stops.
-"""
+"""Levenberg-Marquardt least squares on numpy: minimises ``sum(fun(x)**2)``, x (P,), residuals (M,), M >= P, in Moré's
+(1978) trust-region form of MINPACK's ``lmder``/``lmdif`` (Willson's Tsai code): it stops where ``lmdif`` stops."""
 
 from __future__ import annotations
 
@@ -28,9 +24,8 @@ _NORMAL_FLOOR = 1e-7
 
 @dataclass(frozen=True)
 class LMResult:
-    """Outcome of ``levenberg_marquardt``: ``x`` (P,) solution; ``residuals`` (M,) and ``jacobian`` (M, P) at ``x``;
-    ``cost`` the sum of squared residuals; ``iterations`` Jacobian evaluations; ``nfev`` residual evaluations;
-    ``converged`` whether a tolerance was met (False: the budget ran out); ``message`` which test stopped it."""
+    """Outcome of ``levenberg_marquardt``: ``x`` (P,); ``residuals`` (M,), ``jacobian`` (M, P) at x; ``cost`` sum of
+    squares; ``iterations``, ``nfev`` Jacobian, residual calls; ``converged`` (False: out of budget); ``message``."""
 
     x: np.ndarray
     residuals: np.ndarray
@@ -42,20 +37,18 @@ class LMResult:
     message: str
 
     def covariance(self, sigma2: float | None = None, *, normal: bool = False) -> np.ndarray:
-        """(P, P) covariance of ``x`` (see ``covariance``), by default with the residual variance ``cost / (M - P)``."""
+        """(P, P) covariance of ``x`` (``covariance``), by default with residual variance ``cost / (M - P)``."""
         m, p = self.jacobian.shape
         return covariance(self.jacobian, self.cost / max(m - p, 1) if sigma2 is None else sigma2, normal=normal)
 
 
 def _r_factor(A) -> np.ndarray:
-    """The triangular factor R of A = Q R ((P, P), or (M, P) for M < P rows): a tall matrix's SVD is its R's,
-    whose factorisation costs far less than an SVD of all M rows (thousands of residuals)."""
+    """R of A = Q R: a tall matrix's SVD is its R's, far cheaper than an SVD of thousands of rows."""
     return np.linalg.qr(A, mode="r")
 
 
 def _normal_matrix(J, d, normal) -> np.ndarray:
-    """``D^-1 J^T J D^-1`` of the column scales ``d``: the dense product, or ``normal(J)`` scaled (a callable: the
-    problem's own J^T J, which skips the blocks it knows are zero)."""
+    """``D^-1 J^T J D^-1``, column scales ``d``; a callable ``normal(J)`` gives the problem's own (sparse) J^T J."""
     if callable(normal):
         return np.asarray(normal(J), dtype=float) / np.outer(d, d)
     Js = J / d
@@ -63,10 +56,8 @@ def _normal_matrix(J, d, normal) -> np.ndarray:
 
 
 def covariance(J, sigma2: float, *, normal=False) -> np.ndarray:
-    """(P, P) covariance ``sigma2 (J^T J)^-1`` of a least-squares estimate with Jacobian ``J`` (M, P) and
-    residual variance ``sigma2``, from the SVD of the column-scaled Jacobian (inverting J^T J would square its
-    condition); every entry infinite if the data leave some direction undetermined. ``normal``: from the normal
-    equations (see ``levenberg_marquardt``; a function of J: the problem's own J^T J)."""
+    """(P, P) covariance ``sigma2 (J^T J)^-1``, ``J`` (M, P), by the SVD of the scaled J (inverting J^T J squares its
+    condition) or J^T J if ``normal`` (as ``levenberg_marquardt``); all inf if a direction is undetermined."""
     J = np.asarray(J, dtype=float)
     m, p = J.shape
     cn = np.linalg.norm(J, axis=0)
@@ -94,12 +85,9 @@ def wald_chi2(value, cov) -> float:
 
 def numeric_jacobian(fun: Residuals, x, *, r0=None, method: str = "central", scale=None,
                      rel_step: float | None = None) -> np.ndarray:
-    """(M, P) Jacobian of ``fun`` at ``x`` (P,) by finite differences.
-
-    ``method``: ``central`` (step eps^(1/3) relative) or ``forward`` (step sqrt(eps) relative, MINPACK's
-    ``fdjac2``; ``r0`` = ``fun(x)`` saves one evaluation). The step of parameter j is ``rel_step * |x_j|``, or
-    ``rel_step * scale_j`` where x_j is 0 (``scale`` (P,): each parameter's typical size, default 1). Raises
-    ``ValueError`` for an unknown method, ``CalibrationError`` if a residual near ``x`` is not finite."""
+    """(M, P) Jacobian of ``fun`` at ``x`` (P,): ``central`` differences (relative step eps^(1/3)) or ``forward``
+    (sqrt(eps), MINPACK's ``fdjac2``; ``r0`` = fun(x) saves a call); step j ``rel_step * |x_j|``, or ``* scale_j``
+    (default 1) where x_j = 0. ValueError for an unknown method, CalibrationError for non-finite residuals."""
     x = np.asarray(x, dtype=float).ravel()
     p = x.size
     if method not in ("central", "forward"):
@@ -125,11 +113,9 @@ def numeric_jacobian(fun: Residuals, x, *, r0=None, method: str = "central", sca
 
 
 class _ScaledSVD:
-    """The SVD of the column-scaled Jacobian ``J D^-1 = U S V^T`` and ``c = U^T r``: every damped step ``x(par)``
-    solving ``min ||J x - r||^2 + par ||D x||^2`` and every quantity of Moré's iteration then costs O(P), so the
-    many damping trials of an iteration need no factorisation. ``z(par)`` the scaled step D x in the basis V for
-    damping ``par``; ``step(zv)`` the parameter step x (P,) of it; ``gradient_norm()`` ||(J D^-1)^T r||; ``jnorm(zv)``
-    ||J x||; ``newton_norm2(zv, par)`` ||y||^2 of Moré's Newton correction, y = S_par^-T D^2 x / ||D x||."""
+    """``J D^-1 = U S V^T`` and ``c = U^T r``, so each damping trial of Moré's iteration costs O(P): ``z(par)`` the
+    scaled step D x in basis V minimising ``||J x - r||^2 + par ||D x||^2``, ``step(zv)`` x (P,), ``gradient_norm()``
+    ||(J D^-1)^T r||, ``jnorm(zv)`` ||J x||, ``newton_norm2(zv, par)`` ||y||^2 of y = S_par^-T D^2 x / ||D x||."""
 
     def __init__(self, J, r, d):
         p = J.shape[1]
@@ -137,7 +123,7 @@ class _ScaledSVD:
         U, s, Vt = np.linalg.svd(R[:p, :p])
         self.c = U.T @ R[:p, p]
         self.s, self.Vt, self.d = s, Vt, d
-        # MINPACK's rank test is an exact zero on R's diagonal; a relative floor plays its part here.
+        # MINPACK tests R's diagonal for an exact zero; a relative floor does it here
         self.rank_ok = s > _EPS * max(J.shape) * (s[0] if s.size else 0.0)
         self.full_rank = bool(np.all(self.rank_ok))
 
@@ -162,10 +148,8 @@ class _ScaledSVD:
 
 
 class _ScaledNormal:
-    """``_ScaledSVD``'s quantities from the normal equations ``A = D^-1 J^T J D^-1`` (P-square), each damped step a
-    solve with ``A + par I`` (the basis V is the identity): for thousands of residuals on well-scaled parameters,
-    where factoring J itself costs far more. ``LinAlgError`` when A is not positive definite to ``_NORMAL_FLOOR``
-    (the caller then takes the SVD)."""
+    """``_ScaledSVD``'s quantities from ``A = D^-1 J^T J D^-1`` (V = I), cheaper for thousands of residuals;
+    ``LinAlgError`` if A is not positive definite to ``_NORMAL_FLOOR`` (the caller then takes the SVD)."""
 
     def __init__(self, J, r, d, normal=True):
         self.A, self.g, self.d = _normal_matrix(J, d, normal), (J.T @ r) / d, d
@@ -175,7 +159,7 @@ class _ScaledNormal:
         self.full_rank = True
 
     def _solve(self, par, b):
-        # a solve per right-hand side (Moré's two per damping) costs far less than an inverse per damping
+        # two solves per damping cost far less than an inverse
         return np.linalg.solve(self.A + par * np.eye(len(self.A)), b)
 
     def z(self, par):
@@ -203,8 +187,7 @@ def _factor(J, r, d, normal):
 
 
 def _lm_parameter(svd, delta, par):
-    """Moré's safeguarded Newton iteration for the damping ``par`` whose step has ||D x|| within 10 % of ``delta``
-    (MINPACK's ``lmpar``, on the SVD); returns (par, scaled step in the V basis)."""
+    """(damping, scaled step in basis V) with ||D x|| within 10 % of ``delta``: MINPACK's ``lmpar``."""
     zv = svd.z(0.0)
     dxnorm = float(np.linalg.norm(zv))
     fp = dxnorm - delta
@@ -249,8 +232,7 @@ def _start(fun: Residuals, x0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _jacobian_function(fun: Residuals, jac, m: int, n: int, scale):
-    """(jacobian(x, r) -> (M, P) checked, residual evaluations each call costs) for ``jac``: a callable, 'central'
-    or 'forward' differences (``r`` the residuals at x, which forward differences reuse)."""
+    """(jacobian(x, r) -> checked (M, P), residual calls per use) for ``jac``: a callable, 'central' or 'forward'."""
     numeric = isinstance(jac, str)
     if numeric and jac not in ("central", "forward"):
         raise ValueError(f"levenberg_marquardt: jac must be a callable, 'central' or 'forward', got {jac!r}")
@@ -268,9 +250,7 @@ def _jacobian_function(fun: Residuals, jac, m: int, n: int, scale):
 
 
 def _stop_test(actred, prered, ratio, delta, xnorm, gnorm, ftol, xtol, out_of_budget: bool):
-    """MINPACK's tests after a trial step, in its order: ``ftol`` on the actual and predicted relative cost
-    reductions, ``xtol`` on the step bound relative to the scaled parameters' norm, the budget, machine
-    precision. (converged, message; None for the budget's) or None to go on."""
+    """MINPACK's tests after a trial step, in its order: (converged, message or None for the budget's) or None."""
     small_f = abs(actred) <= ftol and prered <= ftol and ratio <= 2.0
     small_x = delta <= xtol * xnorm
     if small_f or small_x:
@@ -298,16 +278,10 @@ def _new_bound(ratio, actred, dirder, fnorm, fnorm1, delta, pnorm, par):
 def levenberg_marquardt(fun: Residuals, x0, jac: Jacobian | str | None = None, *, ftol: float = 1e-12,
                         xtol: float = 1e-12, gtol: float = 0.0, max_nfev: int | None = None, factor: float = 100.0,
                         scale=None, normal=False) -> LMResult:
-    """Minimise ``sum(fun(x)**2)`` from ``x0`` (P,).
-
-    ``jac(x)`` returns the (M, P) Jacobian, or ``None``/``"central"``/``"forward"`` differences as in
-    ``numeric_jacobian`` (forward: ``lmdif``'s). MINPACK's tests and constants (``_stop_test``), ``factor * ||D x0||``
-    the first step bound, ``converged`` False after ``max_nfev`` evaluations (default 200 (P + 1)); ``normal``: factor
-    the P-square normal equations instead of J (``_factor``); a function of J instead of True gives their J^T J (a
-    problem's own product, which skips the blocks it knows are zero). A trial step whose residuals are not finite (a
-    point behind the camera) is rejected and the bound shrinks. Raises ``ValueError`` for M < P or a Jacobian of the
-    wrong shape, ``CalibrationError`` when the residuals are not finite at ``x0``.
-    """
+    """Minimise ``sum(fun(x)**2)`` from ``x0`` (P,); ``jac(x)`` the (M, P) Jacobian or None/'central'/'forward';
+    first step bound ``factor * ||D x0||``; ``normal`` (True, or a function of J giving J^T J): factor J^T J, not J.
+    A trial step with non-finite residuals (a point behind the camera) is rejected. ValueError for M < P or a
+    Jacobian of the wrong shape, CalibrationError for non-finite residuals at ``x0``."""
     x, r = _start(fun, x0)
     m, n = r.size, x.size
     max_nfev = 200 * (n + 1) if max_nfev is None else int(max_nfev)
@@ -342,7 +316,6 @@ def levenberg_marquardt(fun: Residuals, x0, jac: Jacobian | str | None = None, *
             nfev += 1
             fnorm1 = float(np.linalg.norm(r_new)) if np.all(np.isfinite(r_new)) else np.inf
             actred = 1.0 - (fnorm1 / fnorm) ** 2 if 0.1 * fnorm1 < fnorm else -1.0
-            # the predicted relative reduction of the cost and the directional derivative (t1 = ||J p|| / ||r||)
             t1, t2 = svd.jnorm(zv) / fnorm, np.sqrt(par) * pnorm / fnorm
             prered, dirder = t1 * t1 + 2.0 * t2 * t2, -(t1 * t1 + t2 * t2)
             ratio = actred / prered if prered != 0 else 0.0

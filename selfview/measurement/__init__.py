@@ -1,1 +1,1 @@
-"""Image measurement: the plate detectors (``plates``, ``discs``), the finger model and corner search (``fingertips``), the silhouette fit (``silhouette``, with its compiled kernel ``_csil``) and their entry points (``fingers``), and the pose of an object's printed target (``objects``)."""
+"""Image measurement: plates and discs, fingertips and silhouettes (``_csil`` kernel), objects' targets."""

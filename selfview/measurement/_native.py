@@ -1,8 +1,4 @@
-"""The optional compiled kernel of the silhouette fit, ``selfview.measurement._csil`` (built by ``pip install`` when a
-C compiler is present; see ``selfview.measurement.silhouette``). ``SELFVIEW_PURE_PYTHON=1`` selects the numpy code.
-``sil`` is the module or None, read at each call (a test may set it to None)."""
-
-from __future__ import annotations
+"""``sil``: the silhouette fit's compiled kernel or None (not built, or SELFVIEW_PURE_PYTHON=1); read at each call."""
 
 import importlib
 import os
