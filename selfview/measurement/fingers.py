@@ -1,10 +1,6 @@
-"""The finger-measurement layer's entry points: the fingertip corners of a picture from a predicted pose.
-
-``find_fingertips`` (one picture) and ``SilhouetteTracker`` (a sequence) take a prediction
-(``fingertips.PredictedFingers``: camera, ``C_H_G``, gripper, jaw gap) and measure by the corner search
-(``selfview.measurement.fingertips``), the model-based silhouette fit (``selfview.measurement.silhouette``) or both
-(``measure_model``); every result is a ``fingertips.FingertipResult``.
-"""
+"""The finger-measurement layer's entry points: the fingertip corners of a picture (``find_fingertips``) or of a
+sequence (``SilhouetteTracker``) from a predicted pose, by the corner search (``fingertips``), the model-based
+silhouette fit (``silhouette``) or both; every result is a ``fingertips.FingertipResult``."""
 
 from __future__ import annotations
 
@@ -24,8 +20,7 @@ __all__ = ["find_fingertips", "misses_a_corner", "model_measurement", "measure_m
 
 #: The corner search's range [px] around a silhouette fit's pose (``find_fingertips``, model 'auto').
 REFINE_SEARCH_PX = 4.0
-#: A searched corner this far [px] from where the other corners' pose puts it is not the fingers'
-#: (``find_fingertips``; the realistic cell's finger tolerances move a corner about 1 px).
+#: A searched corner this far [px] from where the other corners' pose puts it is not the fingers' (tolerances: ~1 px).
 OFF_SHAPE_PX = 3.0
 
 
@@ -33,27 +28,17 @@ def find_fingertips(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec
                     search_px: float = 60.0, points=range(6), model: bool | str = False,
                     appearance=None) -> FingertipResult:
     """Locate the fingertip corners ``points`` (indices into POINT_NAMES) within ``search_px`` [px] of their
-    prediction from ``C_H_G_pred`` (4, 4) with jaw gap ``gap_mm`` [mm]. ``camera`` projects the prediction
-    and undistorts the edge points (off-line the one Tsai's method just calibrated, on-line the last
-    calibration's); corners come back in distorted pixels.
-
-    ``model=False``: the corner search only. ``model=True``: the model-based measurement
-    (``selfview.measurement.silhouette``): the silhouette of both fingers fitted from the best start (the
-    prediction, or the pose of the corners found here), the corners the model's points at the fitted pose;
-    the result's ``quality``, ``lost`` and ``C_H_G`` say how well it fits, and a fit below the thresholds
-    reports every point as not found with the reason. ``appearance`` (``silhouette.Appearance``): the faces'
-    grey levels, if known (else read at the start). ``model='auto'``: the corner search, and where it misses
-    a corner in the picture (``misses_a_corner``: a fingertip beside a disc, a weak tip edge, a busy plate
-    such as a chessboard or ChArUco board whose square edges outscore the fingers' own in the coarse
-    alignment) the model's corners if its fit holds and finds more (never mixed with the searched ones);
-    if the fit found the fingers (half its samples or more support it) but is not believed, the corner
-    search again from the fit's pose within ``REFINE_SEARCH_PX``, if it finds more corners.
-
-    Returns a ``FingertipResult``; points not found carry a reason and are NaN. Raises ``ImageError`` for a
-    blank picture or one of the wrong size, ``CalibrationError`` if the prediction puts the fingertips
-    behind the camera or is not finite, ``ValueError`` for a transform that is not (4, 4), a jaw gap that is
-    not a positive number or another ``model``.
-    """
+    prediction from ``C_H_G_pred`` (4, 4) and jaw gap ``gap_mm`` [mm]; ``camera`` projects it and undistorts the
+    edge points. Returns a ``FingertipResult`` in distorted px; points not found carry a reason and are NaN.
+    ``model``: False, the corner search only; True, the model-based measurement (``measure_model``: the fitted
+    silhouette's corners, ``quality``, ``lost`` and ``C_H_G``); 'auto', the corner search, and where it misses a
+    corner in the picture (``misses_a_corner``: a tip beside a disc, a weak tip edge, a busy board) the model's
+    corners if its fit holds and finds more (never mixed), else, if the fit found the fingers (``MIN_GOOD_FRACTION``)
+    but is not believed, the search again within ``REFINE_SEARCH_PX`` of its pose. ``appearance``
+    (``silhouette.Appearance``): the faces' grey levels, if known. Raises ``ImageError`` for a blank picture or one
+    of the wrong size, ``CalibrationError`` if the prediction puts the fingertips behind the camera or is not
+    finite, ``ValueError`` for a transform that is not (4, 4), a jaw gap that is not a positive number or another
+    ``model``."""
     if not (model is False or model is True or model == "auto"):  # 0 and 1 compare equal to False and True
         raise ValueError(f"model: expected False (the corner search), True (the model) or 'auto', got {model!r}")
     pred = PredictedFingers(camera, C_H_G_pred, gripper, gap_mm)
@@ -67,8 +52,7 @@ def find_fingertips(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec
     if model is True or (fit.ok and fitted.found.sum() > result.found.sum()):
         return fitted
     if model == "auto" and fit.C_H_G is not None and fit.good_fraction >= MIN_GOOD_FRACTION:
-        # its nominal boxes miss the real fingers' corners by their tolerances: search a few px around its pose
-        # (a busy print outscores the fingers' edges over the prediction's wider range)
+        # its nominal boxes miss the real corners by their tolerances; a busy print outscores them over a wider range
         again = search_corners(image, PredictedFingers(pred.camera, fit.C_H_G, pred.gripper, pred.gap_mm),
                                min(float(search_px), REFINE_SEARCH_PX), points)
         _drop_off_shape(pred, again)
@@ -85,9 +69,8 @@ def misses_a_corner(result: FingertipResult) -> bool:
 
 
 def _drop_off_shape(pred: PredictedFingers, res: FingertipResult) -> None:
-    """Mark not found (in ``res``), the worst first and one at a time, a searched corner more than
-    ``OFF_SHAPE_PX`` from where the pose of the other found corners (five or more) projects it: the
-    search may take the edge of a print or a board's square running beside a finger's for its edge."""
+    """Mark not found in ``res``, worst first, one at a time, a corner over ``OFF_SHAPE_PX`` from where the pose of
+    the other found corners (five or more) puts it: the search may take a print's edge beside a finger's for it."""
     p_G = pred.gripper.points_G(gap=pred.gap_mm)
     while res.found.sum() >= 5:
         k_all = np.flatnonzero(res.found)
@@ -109,8 +92,7 @@ def _drop_off_shape(pred: PredictedFingers, res: FingertipResult) -> None:
 
 
 def _pose_from_corners(pred: PredictedFingers, res: FingertipResult, k=None):
-    """C_H_G (4, 4) that the corners ``k`` of ``res`` (default: the found ones) give, by NP-I from the
-    prediction, or None (fewer than 3, or NP-I fails)."""
+    """C_H_G (4, 4) by NP-I from the prediction with corners ``k`` of ``res`` (default: found); None: < 3 or failed."""
     from selfview.estimation.online import iterative_update
 
     k = np.flatnonzero(res.found) if k is None else k
@@ -151,10 +133,9 @@ def model_measurement(image, camera, C_H_G_pred, gripper, gap_mm, points=range(6
 
 def measure_model(image, pred: PredictedFingers, points=range(6), searched=None, appearance=None, starts=None,
                   rounds=None, max_rms_px: float = MAX_RMS_PX):
-    """The model-based measurement: silhouette fits from ``starts`` (default the prediction), first from the
-    pose of the corners the search ``searched`` found (three or more), each lost over the edge residual
-    ``max_rms_px``; the believed fit with the larger share of good samples wins (the first over 0.8 stops).
-    Returns (FingertipResult, SilhouetteFit)."""
+    """The model-based measurement: silhouette fits from ``starts`` (default the prediction), first from the pose of
+    the corners ``searched`` found (three or more), lost over the residual ``max_rms_px``; the believed fit with the
+    most good samples wins (the first over 0.8 stops). Returns (FingertipResult, SilhouetteFit)."""
     cands = list(starts) if starts is not None else [pred.C_H_G]
     if searched is not None:
         H = _pose_from_corners(pred, searched)
@@ -184,22 +165,16 @@ WIDE_ROUNDS = (60.0, 24.0, 10.0, 5.0, 3.0)  # a search's fit from a start that m
 class SilhouetteTracker:
     """The fingertips of a sequence of pictures by the model-based measurement (``selfview.measurement.silhouette``).
 
-    ``find(image, C_H_G_pred, gap_mm)`` returns a ``FingertipResult`` (``tracked`` when it followed the last
-    frame) carrying the fit's ``quality``; ``searches``, ``tracked_frames``, ``lost_frames`` count the kinds
-    of frame; ``last_failure`` says why the last frame was searched (None: tracked); ``reset()`` forgets the
-    last pose. Each frame fits the silhouette of both fingers from the last fitted pose with the short
-    ranges ``track_rounds`` [px] and the last fit's grey levels, once more within 3 px of the new pose when
-    the fingertips moved more than ``refine_px`` [px]. A fit not believed (the reason is ``last_failure``)
-    makes the frame searched: full-range fits from the last pose and from ``C_H_G_pred``, then from the
-    corner search's pose. A frame where none holds reports every point as not found, the reason in
-    ``result.lost``: a missed frame, never a pose.
-
-    A right fit's edge residual depends on the gripper (a real finger is off its nominal faces), so it is
-    learnt: the first frame is fitted from ``C_H_G_pred`` (the calibration's pose) with the short ranges and
-    a residual up to ``MAX_LEARNT_RMS_PX``; if that fit holds, its residual is ``rms_level_px`` and later
-    frames are lost over ``rms_limit(rms_level_px)``; until then over ``MAX_RMS_PX``. ``rms_level_px``
-    given: that level, nothing learnt. ``reset()`` keeps the level (it is the gripper's).
-    """
+    ``find(image, C_H_G_pred, gap_mm)`` returns a ``FingertipResult`` (``tracked`` when it followed the last frame);
+    ``searches``, ``tracked_frames``, ``lost_frames`` count the kinds of frame; ``last_failure`` says why the last
+    frame was searched (None: tracked); ``reset()`` forgets the last pose. A frame is fitted from the last pose with
+    ``track_rounds`` [px] and the last grey levels, again within 3 px when the tips moved over ``refine_px`` [px]; a
+    fit not believed makes it searched (full-range fits from the last pose and ``C_H_G_pred``, then the corner
+    search's pose); where none holds, a missed frame (reason in ``result.lost``), never a pose. The residual limit
+    is the gripper's: the first frame's fit from ``C_H_G_pred`` (up to ``MAX_LEARNT_RMS_PX``) gives ``rms_level_px``
+    (unless given), later frames are lost over ``rms_limit(rms_level_px)``, over ``MAX_RMS_PX`` until then; ``reset()``
+    keeps it. Raises ``TypeError`` for a camera that is not a ``CameraModel``, ``ValueError`` for bad ``points`` or
+    ``track_rounds``."""
 
     def __init__(self, camera: CameraModel, gripper: GripperSpec, *, points=range(4), search_px: float = 60.0,
                  track_rounds=(8.0,), refine_px: float = 2.0, appearance=None, rms_level_px: float | None = None):
@@ -240,10 +215,9 @@ class SilhouetteTracker:
         pred = PredictedFingers(self.camera, C_H_G_pred, self.gripper, gap_mm)
         gap_mm = pred.gap_mm
         a = np.asarray(image)
-        if a.dtype == np.uint8 and a.shape == (int(self.camera.height), int(self.camera.width)):
-            img = a  # a grabber's frame: no other check needed per frame (float32 where the search needs it)
-        else:
-            img = as_gray(image, self.camera)  # float32, checked
+        # a grabber's frame needs no other check per frame (float32 where the search needs it); else float32, checked
+        grabbed = a.dtype == np.uint8 and a.shape == (int(self.camera.height), int(self.camera.width))
+        img = a if grabbed else as_gray(image, self.camera)
         why = None
         if self._H is not None and self._gap is not None and abs(gap_mm - self._gap) > 1e-6:
             why = f"the jaw gap changed ({self._gap:.2f} -> {gap_mm:.2f} mm)"

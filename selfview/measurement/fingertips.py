@@ -1,15 +1,11 @@
-"""The six fingertip corners of CONVENTIONS.md in a picture, searched from a predicted mount (off-line
-calibration, and the silhouette tracker's recovery).
-
-A template of the finger boxes' visible edges at the prediction is slid over the smoothed gradient (quarter,
-then full resolution); profiles across each edge locate its step by the area method (the peak of the rise
-over a textured background), twice; a robust line fits each edge's undistorted crossings, and the corner is
-the weighted intersection of its lines. A corner outside the picture, hidden, or whose edges yield too few
-points is reported as not found with the reason, never extrapolated.
-"""
+"""The six fingertip corners of CONVENTIONS.md in a picture, searched from a predicted mount: a template of the
+visible box edges slid over the gradient, profiles across each edge located by the area method (the rise's peak on
+texture), a robust line per edge through its undistorted crossings, the corner their weighted intersection. A corner
+outside the picture, hidden or with too few edge points is reported not found with the reason, never extrapolated."""
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field, replace
 
@@ -25,8 +21,7 @@ from selfview.maths.geometry import inv_H, transform_points
 __all__ = ["FingertipResult", "PredictedFingers", "box_edges", "predict_fingertips", "search_corners", "visible_edges"]
 
 FINGERS = ("A", "B")
-#: finger of each point, in POINT_NAMES order
-POINT_FINGER = (0, 0, 1, 1, 0, 1)
+POINT_FINGER = (0, 0, 1, 1, 0, 1)  # finger of each point, in POINT_NAMES order
 COARSE_CANDIDATES = 4  # best shifts at a quarter resolution refined at full resolution
 RIDGE_CANDIDATES = 8  # at most so many more, along ridges of the quarter-resolution score (_ridge_cells)
 RIDGE_FRACTION = 0.75  # of the best score, that they reach
@@ -36,25 +31,18 @@ MIN_CONTRAST = 8.0  # grey levels between the two sides of an edge
 BLUR_MARGIN = 4  # px a step's window keeps from any other edge
 PLATEAU_PX = 3  # pixels on either side of an edge's transition that measure its grey levels
 MAX_EDGE_RMS_PX = 0.5  # edge points of a corner scattering more about its lines (typically 0.1) mean a wrong edge
-# the fraction 2 Phi(1.5 / sigma) - 1 = erf(1.5 / (sigma sqrt 2)) of a Gaussian-blurred step that lies
-# within +-1.5 px of it, for blurs sigma (px), increasing fraction order for np.interp
+# fraction erf(1.5 / (sigma sqrt 2)) of a Gaussian step within +-1.5 px, per blur sigma (px), increasing for np.interp
 _BLUR_SIGMA = np.linspace(4.0, 0.3, 38)
 _BLUR_F = np.array([math.erf(1.5 / (s_ * math.sqrt(2))) for s_ in _BLUR_SIGMA])
 
 
 @dataclass
 class FingertipResult:
-    """Fingertip corners found in a picture, in ``POINT_NAMES`` order (``names``).
-
-    ``uv`` (6, 2) distorted pixels, NaN where not found; ``found`` (6,); ``reasons`` why a point was not
-    found (None where found); ``edge_rms_px`` (6,) RMS distance of the edge points from their lines
-    (undistorted pixels), NaN if not found; ``n_edge_points`` (6,) edge points the corner's lines rest on;
-    ``tracked`` True when a tracker followed the corners from the previous frame. The model-based
-    measurement (``fingers``) also sets ``quality`` (``silhouette.SilhouetteFit.quality``: share of good
-    edge samples, residual, the TCP's standard deviation), ``lost`` why the frame says "not found" (None:
-    it does not) and ``C_H_G`` the fitted pose (None if none was believed). ``left_out``: {point name:
-    why} of corners the search found but left out as off the fingers' shape, whatever measured after it.
-    """
+    """Fingertip corners in a picture, ``POINT_NAMES`` order (``names``): ``uv`` (6, 2) distorted px, NaN where not
+    found; ``found`` (6,); ``reasons`` why not (None if found); ``edge_rms_px`` (6,) RMS of the edge points about
+    their lines (undistorted px), NaN if not found; ``n_edge_points`` (6,) edge points used; ``tracked``: followed
+    from the last frame. The model-based measurement also sets ``quality`` (``SilhouetteFit.quality``), ``lost`` why
+    the frame is missed (None: not), ``C_H_G`` the fitted pose (None: none believed), ``left_out`` {name: why}."""
 
     uv: np.ndarray
     found: np.ndarray
@@ -74,7 +62,6 @@ class FingertipResult:
         return self.lost is None
 
 
-# --- geometry -------------------------------------------------------------------------------------
 @dataclass
 class _Edge:
     key: tuple  # (finger, axis, side of the first other axis, side of the second)
@@ -148,10 +135,9 @@ def _hidden_by(p_C, boxes, C_H_G, skip: int) -> int | None:
 
 @dataclass(frozen=True, eq=False)
 class PredictedFingers:
-    """Where the fingers are expected in a picture: the ``camera`` that sees them, the gripper in its frame
-    ``C_H_G`` (4, 4), the ``gripper`` and its jaw gap ``gap_mm``. Checked on construction: ``ValueError``
-    for a transform of another shape or a jaw gap that is not a positive finite number,
-    ``CalibrationError`` for a non-finite transform."""
+    """Where the fingers are expected in a picture: the ``camera``, the gripper in its frame ``C_H_G`` (4, 4), the
+    ``gripper`` and its jaw gap ``gap_mm``. Raises ``ValueError`` for a transform of another shape or a jaw gap that
+    is not a positive finite number, ``CalibrationError`` for a non-finite transform."""
 
     camera: CameraModel
     C_H_G: np.ndarray
@@ -184,9 +170,8 @@ class _Model:
         self.boxes = pred.gripper.finger_boxes_G(pred.gap_mm)
         self.points_G = pred.gripper.points_G(gap=pred.gap_mm)
         cam_G = inv_H(self.C_H_G)[:3, 3]
-        self.edges: dict[tuple, _Edge] = {}
-        for f, (lo, hi) in enumerate(self.boxes):
-            self.edges.update(box_edges(lo, hi, cam_G, f))
+        self.edges: dict[tuple, _Edge] = {k: e for f, (lo, hi) in enumerate(self.boxes)
+                                          for k, e in box_edges(lo, hi, cam_G, f).items()}
         pts_C = transform_points(self.C_H_G, self.points_G)
         if np.any(pts_C[:, 2] <= 0):
             raise CalibrationError("C_H_G puts fingertip points behind the camera")
@@ -196,9 +181,7 @@ class _Model:
         self.hidden = [_hidden_by(pts_C[k], self.boxes, self.C_H_G, POINT_FINGER[k]) for k in range(6)]
 
     def profile_dir(self, edge: _Edge, at_G) -> np.ndarray:
-        """Unit image direction (2,) to sample across ``edge`` near ``at_G``: into its visible face (the
-        way a face's shading stays nearly constant near the edge, e.g. along a specular strip), or from
-        one face into the other for a crease."""
+        """Unit image direction (2,) across ``edge`` near ``at_G``: into its seen face (steady shading) or a crease."""
         dirs = []
         for d in edge.into:
             uv = self.cam.project(transform_points(self.C_H_G, np.vstack([at_G, at_G + d])))
@@ -208,8 +191,7 @@ class _Model:
         return out / (np.linalg.norm(out) + 1e-12)
 
     def polyline(self, start_G, end_G, max_px: float) -> np.ndarray:
-        """(M, 2) distorted pixels along the 3-D segment from ``start_G``, about 1 px apart, at most
-        ``max_px`` long in the picture; only the part in front of the camera."""
+        """(M, 2) distorted px ~1 px apart along the 3-D segment from ``start_G``, at most ``max_px`` long, in front."""
         ends_C = transform_points(self.C_H_G, np.vstack([start_G, end_G]))
         if ends_C[0, 2] <= 0:
             return np.zeros((0, 2))
@@ -241,21 +223,16 @@ def visible_edges(camera: CameraModel, C_H_G, gripper: GripperSpec, gap_mm: floa
 
 def predict_fingertips(camera: CameraModel, C_H_G, gripper: GripperSpec,
                        gap_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Predicted fingertip points: (uv (6, 2) distorted pixels, in_view (6,) bool), POINT_NAMES order, from
-    ``C_H_G`` (4, 4) the gripper in the camera frame and the jaw gap ``gap_mm``. A point is in view when it
-    lies in the picture, the other finger does not hide it and at least two of its edges show. Raises
-    ``CalibrationError`` if a point lies behind the camera."""
+    """Predicted fingertip points: (uv (6, 2) distorted px, in_view (6,) bool: in the picture, not hidden, two or more
+    of its edges shown), POINT_NAMES order. Raises ``CalibrationError`` if a point lies behind the camera."""
     m = _Model(PredictedFingers(camera, C_H_G, gripper, gap_mm))
     shown = [m.hidden[k] is None and len(m.corner_edges[k]) >= 2 for k in range(6)]
     return m.uv, camera.in_image(m.uv) & np.array(shown)
 
 
-# --- coarse alignment -----------------------------------------------------------------------------
 def _template_score(G: np.ndarray, pts: list[np.ndarray], normals: np.ndarray, groups: list, span: int):
-    """Score (2 span + 1, 2 span + 1) of the shifts (dx, dy) in [0, 2 span]^2 of integer template points
-    ``pts`` over a gradient image G (2, H, W): per edge the sum of its normal gradient along it; edges of
-    one group (the silhouette of one face, normals turned into the face) add up with their signs, and the
-    groups' magnitudes add. The points already carry the offset that puts shift 0 at index ``span``."""
+    """Score (2 span + 1, 2 span + 1) of the shifts in [0, 2 span]^2 of integer template points ``pts`` (offset so
+    that shift 0 is at index ``span``) over a gradient G (2, H, W): per edge the sum of its normal gradient."""
     n = 2 * span + 1
     sums = np.zeros((len(pts), n, n), np.float32)
     for e, q in enumerate(pts):
@@ -267,7 +244,7 @@ def _template_score(G: np.ndarray, pts: list[np.ndarray], normals: np.ndarray, g
 
 
 def _group_score(sums: np.ndarray, groups: list) -> np.ndarray:
-    """Per-edge sums (E, ...) -> score (...): summed with their signs within a group, magnitudes added."""
+    """Per-edge sums (E, ...) -> score (...): signed sums within a group (one face's silhouette), magnitudes added."""
     score = np.zeros(sums.shape[1:], np.float32)
     for g in set(groups):
         score += np.abs(sum(sums[e] for e in range(len(sums)) if groups[e] == g))
@@ -275,8 +252,7 @@ def _group_score(sums: np.ndarray, groups: list) -> np.ndarray:
 
 
 def _padded_gradient(img: np.ndarray, lo: np.ndarray, hi: np.ndarray, s: int, smooth: float) -> np.ndarray:
-    """(2, h, w) x and y gradient of the picture at 1/s of its resolution over the window [lo, hi) (in
-    those units; it may reach beyond the picture, where the gradient is zero), after a Gaussian blur."""
+    """(2, h, w) x and y gradient, blurred, at 1/s resolution over [lo, hi) in those units (zero beyond the picture)."""
     H, W = img.shape
     clo = np.maximum(lo * s, 0)
     chi = np.minimum(hi * s, (W, H))
@@ -293,7 +269,7 @@ def _padded_gradient(img: np.ndarray, lo: np.ndarray, hi: np.ndarray, s: int, sm
 
 
 def _unique_rows(a: np.ndarray) -> np.ndarray:
-    """``np.unique(a, axis=0)`` of integer points a (M, 2), faster (one integer key per row)."""
+    """``np.unique(a, axis=0)`` of integer points a (M, 2), faster."""
     if len(a) == 0:
         return np.unique(a, axis=0)
     mn = a.min(0)
@@ -303,12 +279,9 @@ def _unique_rows(a: np.ndarray) -> np.ndarray:
 
 
 def _ridge_cells(score: np.ndarray, taken: np.ndarray) -> np.ndarray:
-    """The cells (row, col) of the quarter-resolution score map to refine: ``taken`` (K, 2), its best local
-    maxima, then, best first, at most ``RIDGE_CANDIDATES`` cells scoring ``RIDGE_FRACTION`` of the best or
-    more, none next to a cell already chosen (their +-6 px refinement reaches the neighbours'). A template
-    slid along a finger's long sides keeps their score: a ridge of the map, on which only the short tip
-    edges (which fix the corners) tell the shifts apart, at a quarter resolution less than a rim of ink
-    beside them; its local maximum need not be the right point, so the ridge is sampled along its length."""
+    """Cells (row, col) of the quarter-resolution score to refine: ``taken`` (K, 2) its best maxima, then, best first,
+    up to ``RIDGE_CANDIDATES`` scoring ``RIDGE_FRACTION`` of the best, none next to one chosen (the +-6 px refinements
+    overlap). Sliding along a finger's long sides keeps their score: a ridge, its maximum not always right."""
     flat = score.ravel()
     best = float(flat.max())
     idx = np.nonzero(flat >= RIDGE_FRACTION * best)[0]
@@ -325,21 +298,15 @@ def _ridge_cells(score: np.ndarray, taken: np.ndarray) -> np.ndarray:
 
 
 def _coarse_shift(img: np.ndarray, polys: list[np.ndarray], search_px: float, into: np.ndarray, groups: list):
-    """Best common 2-D shift (px) of the polylines over the picture's gradient within +-search_px, and
-    the sign of each polyline's normal gradient there (+1: brighter towards its left-hand normal), or None
-    if the template does not meet the picture.
-
-    Polarity is not known, but the silhouette of one face has one polarity all round it (against a fairly
-    uniform background): ``into`` (E, 2) the image direction into each edge's face, ``groups`` (E,) which
-    face's silhouette each edge belongs to (a crease: a group of its own). ``_template_score`` at a quarter
-    of the resolution over the whole range, then at full resolution within +-6 px of its best maxima."""
+    """Best common shift (2,) px of the polylines over the gradient within +-search_px, and each one's sign of normal
+    gradient there (+1: brighter to its left-hand normal); None if the template misses the picture. ``into`` (E, 2)
+    image direction into each edge's face; ``groups`` (E,) the face whose silhouette (one polarity all round) it is."""
     H, W = img.shape
     pts = np.vstack(polys)
     left = np.array([_left_normal(p) for p in polys])
     flip = np.array([-1.0 if nrm @ d < 0 else 1.0 for nrm, d in zip(left, into)])  # every normal into its face
     normals = (left * flip[:, None]).astype(np.float32)
-    # a quarter of the resolution over the whole range: the score map over shifts 4 (i - span)
-    s = 4
+    s = 4  # quarter resolution over the whole range: scores of shifts 4 (i - span)
     span = int(np.ceil(search_px / s)) + 1
     lo = np.floor(pts.min(0) / s).astype(int) - span - 2
     hi = np.ceil(pts.max(0) / s).astype(int) + span + 3
@@ -355,15 +322,13 @@ def _coarse_shift(img: np.ndarray, polys: list[np.ndarray], search_px: float, in
     if len(order) == 0:
         return None
     cells = _ridge_cells(score, np.column_stack([iy[order], ix[order]]))
-    # full resolution: one gradient image over every candidate's reach
     centres = 4.0 * np.column_stack([cells[:, 1] - span, cells[:, 0] - span])
-    r = 6
+    r = 6  # full resolution, +-r px around each: one gradient image over every candidate's reach
     lo = np.floor(pts.min(0) + centres.min(0)).astype(int) - r - 2
     hi = np.ceil(pts.max(0) + centres.max(0)).astype(int) + r + 3
     G = _padded_gradient(img, lo, hi, 1, 1.5)
     dv, du = np.mgrid[-r : r + 1, -r : r + 1]
     shifts = np.column_stack([du.ravel(), dv.ravel()])
-    # each edge's normal gradient over the window (the same float32 values as at the gathered points alone)
     Gn = [(normals[e, 0] * G[0] + normals[e, 1] * G[1]).ravel() for e in range(len(polys))]
     gw = G.shape[2]
     flat_shifts = shifts[:, 1] * gw + shifts[:, 0]
@@ -392,7 +357,6 @@ def _left_normal(poly: np.ndarray) -> np.ndarray:
     return np.array([-t[1], t[0]]) / (np.linalg.norm(t) + 1e-12)
 
 
-# --- fine edge points -----------------------------------------------------------------------------
 @dataclass
 class _Shading:
     """An edge's blur and the slopes of its two plateaus along its profiles (from a first pass)."""
@@ -425,9 +389,7 @@ class _Steps:
                       self.stations, self.pdir, self.peaks[keep])
 
     def blur(self) -> float:
-        """The edge's blur sigma along the profile (samples), from the fraction of the step that the
-        four samples around the steepest rise span (2 Phi(1.5 / sigma) - 1 for a Gaussian edge); the
-        median over the crossings. Only sizes the windows: the area estimates do not need it."""
+        """Median blur sigma (samples) from the step's share in the rise's middle four samples; only sizes windows."""
         m = self.win_val.shape[1] // 2  # the step lies between samples m - 1 and m
         span = (self.win_val[:, m + 1] - self.win_val[:, m - 2]) / (self.levels[:, 1] - self.levels[:, 0])
         f = float(np.clip(np.median(span), 0.05, 0.999))
@@ -444,7 +406,7 @@ class _Steps:
 
 
 def _bilinear(img: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Grey levels at sub-pixel positions p (..., 2), bilinear; p must lie within [0, W-1) x [0, H-1)."""
+    """Bilinear grey levels at positions p (..., 2) px, which must lie within [0, W-1) x [0, H-1)."""
     x, y = p[..., 0], p[..., 1]
     x0, y0 = np.floor(x).astype(np.intp), np.floor(y).astype(np.intp)
     fx, fy = x - x0, y - y0
@@ -454,14 +416,9 @@ def _bilinear(img: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 
 def _edge_steps(img, poly, pdir, sign, others, search, shading: _Shading, both_signs=False, P=PLATEAU_PX) -> _Steps:
-    """Where the edge along ``poly`` (M, 2) crosses profiles sampled along ``pdir`` (2,), one per pixel of
-    its length (bilinear samples 1 px apart).
-
-    ``sign`` +1/-1: the grey level grows towards the polyline's left-hand normal (``both_signs``: either
-    way, as where ink lies behind a finger); ``others`` (K, 2) points of every other edge, whose profiles
-    are skipped (``_stations``); the step is looked for ``search`` px either side of the polyline (where
-    ``shading.expect`` names a face's grey level for a side, only steps that show it there) and located by
-    ``_step_estimates`` over +-(3 sigma + 1) px around the strongest one, with ``P`` plateau samples."""
+    """Where the edge along ``poly`` (M, 2) crosses profiles along ``pdir`` (2,), one per px. ``sign`` +1/-1: grey
+    level grows to the left-hand normal (``both_signs``: either way, as over ink); ``others`` (K, 2) other edges'
+    points, whose profiles are skipped; steps ``search`` px either side, showing ``shading.expect`` where given."""
     n = _left_normal(poly)
     cos = float(n @ pdir)
     if abs(cos) < 0.5:  # a face seen too obliquely: sample straight across instead, towards the same side
@@ -478,16 +435,14 @@ def _edge_steps(img, poly, pdir, sign, others, search, shading: _Shading, both_s
         none, no_win = np.zeros((0, 2)), np.zeros((0, 2 * (h + P)))
         return _Steps(none, none, no_win, no_win, P, none, pdir, none)
     j = np.arange(-R, R + 1)
-    # dither the profiles' sample phase along the edge (golden-ratio sequence), so that whatever bias a
-    # phase has averages out over the crossings instead of repeating on an edge the prediction fits
+    # dithered sample phase (golden-ratio sequence): a phase's bias averages out instead of repeating on every profile
     ph = (np.arange(len(st)) * 0.6180339887) % 1.0 - 0.5
     pos = st[:, None, :] + (j[None, :] + ph[:, None])[..., None] * pdir[None, None, :]
     prof = _bilinear(img, pos)
     mid = slice(R - sr, R + sr + 1)
     diff = prof[:, mid][:, 1:] - prof[:, mid][:, :-1]
     score = np.abs(diff) if both_signs else diff * step_sign
-    # a step between samples i and i + 1 of ``mid``; where a face must show on a side, only steps that
-    # have its grey level there (the plateaus' middles) count
+    # where a face must show on a side, only steps with its grey level there (the plateaus' middles) count
     i = np.arange(diff.shape[1]) + (R - sr)
     for side, off in ((0, -h - P // 2), (1, h + 1 + P // 2)):
         if shading.expect[side] is not None:
@@ -508,8 +463,8 @@ def _edge_steps(img, poly, pdir, sign, others, search, shading: _Shading, both_s
 
 
 def _stations(shape: tuple, poly: np.ndarray, pdir: np.ndarray, R: int, others: np.ndarray) -> np.ndarray:
-    """(S, 2) points 1 px apart along ``poly`` (M, 2) whose profiles of +-R samples along ``pdir`` (2,) lie
-    in a picture of ``shape`` (H, W) and pass no point of ``others`` (K, 2) within ``BLUR_MARGIN``."""
+    """(S, 2) points 1 px apart along ``poly`` (M, 2) whose +-R sample profiles along ``pdir`` lie in the picture
+    (H, W) and pass no point of ``others`` (K, 2) within ``BLUR_MARGIN``."""
     H, W = shape
     run = _arc_length(poly)
     if run[-1] < 2:
@@ -530,13 +485,10 @@ def _stations(shape: tuple, poly: np.ndarray, pdir: np.ndarray, R: int, others: 
 
 
 def _step_estimates(win, at, h: int, P: int, shading: _Shading, diff, k, sgn):
-    """The plateau levels (Am, Bm) and two estimates (e, e_peak) of where the step chosen between samples
-    ``at`` and ``at + 1`` crosses, in profile coordinates, for windows ``win`` (M, 2 (h + P)) of samples
-    around it (``P`` at each end on the plateaus). e, the area (zeroth-moment) estimate: where an ideal
-    step between the plateau levels, sloped by ``shading.g_lo``, ``g_hi`` (grey levels per sample), holds
-    the grey-level sum of the transition (Newton, three steps). e_peak, the peak of the rise: a Gaussian
-    through the three largest sample differences ``diff`` (M, D) around the chosen one ``k`` (M,) of sign
-    ``sgn`` (indifferent to a textured background's level beside the edge); NaN where they make no peak."""
+    """Plateau levels (Am, Bm) and crossings (e, e_peak), profile coordinates, of the step between samples ``at``,
+    ``at + 1`` in windows ``win`` (M, 2 (h + P)). e (area): the ideal step between the plateaus sloped by ``shading``
+    (grey levels/sample) holding the transition's sum (Newton). e_peak: a Gaussian through the three differences
+    ``diff`` (M, D) around ``k`` (M,) of sign ``sgn`` (robust to texture), NaN where they make no peak."""
     g_lo, g_hi = shading.g_lo, shading.g_hi
     Am = win[:, :P].mean(1)
     Bm = win[:, -P:].mean(1)
@@ -559,8 +511,8 @@ def _step_estimates(win, at, h: int, P: int, shading: _Shading, diff, k, sgn):
 
 
 def _plausible(win, Am, Bm, at, e, e_peak, peak, sgn, shading: _Shading, P: int) -> np.ndarray:
-    """(M,) whether each window holds one clean step (no ink or other edge) of polarity ``sgn``, enough
-    contrast and the sides' levels ``shading`` expects, whose estimates lie near the chosen step."""
+    """(M,) whether each window holds one clean step of polarity ``sgn``, with enough contrast, the sides' levels
+    ``shading`` expects and estimates near the chosen step."""
     contrast = np.abs(Bm - Am)
     rough = np.maximum(np.ptp(win[:, :P], axis=1), np.ptp(win[:, -P:], axis=1))
     slope_allow = (abs(shading.g_lo) + abs(shading.g_hi)) * P
@@ -587,10 +539,9 @@ def _line_tls(q: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def tukey_weights(r: np.ndarray, floor: float) -> tuple[np.ndarray, float]:
-    """Tukey's biweights of residuals r (N,) and their robust scale: 1.4826 times the median |r|, at
-    least ``floor``; a residual beyond 4.685 scales weighs 0."""
-    # the median as np.median takes it (the mean of the middle two), by partition: 7-9 us against np.median's
-    # 17 us on 20-200 residuals, for a function called per edge and per reweighting step of every frame
+    """Tukey's biweights of residuals r (N,) and their robust scale: 1.4826 median |r|, at least ``floor``; a
+    residual beyond 4.685 scales weighs 0."""
+    # np.median's value by partition: 7-9 us against 17 us, called per edge and reweighting step of every frame
     a, k = np.abs(r), len(r) // 2
     med = float(np.partition(a, k)[k] if len(a) % 2 else np.mean(np.partition(a, (k - 1, k))[k - 1:k + 1]))
     s = max(1.4826 * med, floor)
@@ -598,27 +549,19 @@ def tukey_weights(r: np.ndarray, floor: float) -> tuple[np.ndarray, float]:
     return np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0), s
 
 
-_PAIR_DRAWS: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-
-
+@functools.lru_cache(maxsize=4096)
 def _pair_draws(N: int) -> tuple[np.ndarray, np.ndarray]:
-    """The 40 pairs of point indices (i, j) that ``_fit_line`` tries for N points: drawn from a
-    generator seeded with N (deterministic), so kept once drawn (read-only)."""
-    ij = _PAIR_DRAWS.get(N)
-    if ij is None:
-        rng = np.random.default_rng(N)
-        ij = (rng.integers(0, N, 40), rng.integers(0, N, 40))
-        for a in ij:
-            a.flags.writeable = False
-        if len(_PAIR_DRAWS) < 4096:
-            _PAIR_DRAWS[N] = ij
+    """The 40 index pairs (i, j) ``_fit_line`` tries for N points; seeded with N, so cached (read-only)."""
+    rng = np.random.default_rng(N)
+    ij = (rng.integers(0, N, 40), rng.integers(0, N, 40))
+    for a in ij:
+        a.flags.writeable = False
     return ij
 
 
 def _fit_line(q: np.ndarray, t_pred: np.ndarray, iters: int = 3):
-    """Robust line through points q (N, 2) running near direction ``t_pred`` (2,): the pair of points
-    (within 10 degrees of it) with most points within 0.25 px, then Tukey reweighting (scale >= 0.05 px).
-    Returns (n, c, inlier mask) with n.q = c."""
+    """Robust line n.q = c through q (N, 2) near direction ``t_pred`` (2,): the point pair (within 10 degrees) with
+    most points within 0.25 px, then Tukey reweighting (scale >= 0.05 px). Returns (n, c, inlier mask)."""
     N = len(q)
     t_pred = t_pred / np.linalg.norm(t_pred)
     i, j = _pair_draws(N)
@@ -653,10 +596,8 @@ class _Fit:
 
 
 def _fit_edge(img, cam, poly, pdir, sign, others, shading: _Shading, first: bool, both: bool, crease: bool):
-    """Crossings of one edge and a robust line through them (undistorted pixels): (_Fit, None) or (None, the
-    reason). First pass: wide windows and search; the blur and the plateau slopes found on its inliers become
-    the fit's shading. Second pass: with that shading. ``both``: steps of either polarity (ink behind the
-    edge reverses it), else only of the polarity ``sign``."""
+    """Crossings of one edge and a robust line through them (undistorted px): (_Fit, None) or (None, the reason). The
+    first pass searches wide and measures the second's shading; ``both``: either polarity (ink reverses it)."""
     search, plateau = (8.0, 5) if first else (3.0, PLATEAU_PX)
     st = _edge_steps(img, poly, pdir, sign, others, search, shading, both, plateau)
     need = max(6, int((0.15 if first else 0.3) * st.scanned))  # the first pass sees one polarity only
@@ -664,8 +605,7 @@ def _fit_edge(img, cam, poly, pdir, sign, others, shading: _Shading, first: bool
         return None, f"too few edge points ({len(st.pts)} of {st.scanned} crossings)"
     pred_q = cam.undistorted_pixels(poly[[0, -1]])
     t = pred_q[1] - pred_q[0]
-    # the area estimates are exact for flat plateaus, the peaks hold up on a textured background: how much
-    # the background's level (the profiles' low side) wanders along the edge, beyond the face's own (noise)
+    # areas are exact on flat plateaus, peaks hold on texture: does the background (low side) wander beyond noise?
     textured = first
     if not first and not crease and len(st.levels) >= 12:
         wander = np.median(np.abs(st.levels[6:] - st.levels[:-6]), axis=0) * 1.4826 / np.sqrt(2)
@@ -686,15 +626,15 @@ def _fit_edge(img, cam, poly, pdir, sign, others, shading: _Shading, first: bool
 
 
 def _move_poly(cam, poly, fit: _Fit) -> np.ndarray:
-    """The polyline projected (undistorted) onto a fitted line and distorted back."""
+    """The polyline projected onto a fitted line (undistorted) and distorted back."""
     q = cam.undistorted_pixels(poly)
     q = q - ((q @ fit.n) - fit.c)[:, None] * fit.n[None, :]
     return cam.distort_to_pixels(cam.pixel_to_sensor(q))
 
 
 def search_corners(image, pred: PredictedFingers, search_px, points):
-    """The corner search of ``find_fingertips``: a ``FingertipResult``. ``ValueError`` for a ``search_px``
-    that is not a positive number of pixels or ``points`` outside 0..5."""
+    """The corner search of ``find_fingertips``: a ``FingertipResult``. Raises ``ValueError`` for a ``search_px``
+    that is not a positive number of px or ``points`` outside 0..5."""
     if isinstance(search_px, bool) or not isinstance(search_px, (int, float, np.number)) \
             or not (math.isfinite(search_px) and search_px > 0):
         raise ValueError(f"search_px: expected a positive number of pixels, got {search_px!r}")
@@ -737,11 +677,8 @@ def search_corners(image, pred: PredictedFingers, search_px, points):
 
 
 def _locate_edges(img, camera, model: _Model, f: int, todo: list[int], search_px: float):
-    """Fit the visible edges of finger ``f`` at the corners ``todo``: coarse alignment, then two passes
-    of crossings (the second around the first's lines, with their shading, either polarity).
-    Returns ({edge key: _Fit}, {edge key: reason it failed}, the coarse shift (2,)) or None if no corner
-    is to be searched or the finger is not in the picture."""
-    # the finger's edges at the wanted corners, each as a polyline from a corner outwards
+    """Fit the visible edges of finger ``f`` at the corners ``todo``: coarse alignment, then two passes. Returns
+    ({edge key: _Fit}, {edge key: why it failed}, coarse shift (2,)) or None (nothing to search, or out of view)."""
     polys: dict[tuple, np.ndarray] = {}
     pdirs: dict[tuple, np.ndarray] = {}
     for k in todo:
@@ -776,15 +713,13 @@ def _locate_edges(img, camera, model: _Model, f: int, todo: list[int], search_px
         others = np.vstack([p for kk, p in all_other.items() if kk != key] or [np.zeros((0, 2))])
         crease = model.edges[key].crease
         fit, fails[key] = _fit_edge(img, camera, poly, pdirs[key], sign[key], others, shading, first, both, crease)
-        if fit is None:
-            fits.pop(key, None)
-        else:
+        fits.pop(key, None)
+        if fit is not None:
             fits[key] = fit
 
     for key in keys:
         run(key, True, _Shading(), False)
-    # each face shows near the tip on about three edges: an edge whose face side disagrees with the others
-    # found something else (a rim of ink), one not found may lie over ink: look again, either polarity
+    # an edge whose face level the face's other edges contradict found ink, one not found may lie over it: look again
     expect = _face_levels(model, fits)
     for key in keys:
         exp, tol = _expected_sides(model.edges[key], expect, fits.get(key))
@@ -815,9 +750,8 @@ def _face_levels(model: _Model, fits: dict) -> dict[tuple, list[tuple]]:
 
 
 def _expected_sides(edge: _Edge, levels: dict, fit: _Fit | None) -> tuple[tuple, float]:
-    """The grey levels the low and high side of an edge's profiles should show: the level of the face
-    there as the face's other edges see it (the median weighted by their crossings), and the tolerance
-    (from the edge's own contrast, or its faces' levels against the background's)."""
+    """Grey levels the low and high side of an edge's profiles should show (the face's other edges' median,
+    weighted by crossings), and the tolerance from the contrast."""
     exp = [None, None]
     for face, side in zip(edge.faces, (1, 0)):
         others = sorted((lv, n) for k, lv, n in levels.get(face, []) if k != edge.key and lv == lv)
@@ -825,7 +759,6 @@ def _expected_sides(edge: _Edge, levels: dict, fit: _Fit | None) -> tuple[tuple,
             lv = np.array([o[0] for o in others])
             cw = np.cumsum([o[1] for o in others])
             exp[side] = float(lv[np.searchsorted(cw, cw[-1] / 2)])
-    # the contrast of the expected face against what lies beside it (the edge's other side)
     if fit is not None and exp[1] is not None:
         contrast = abs(exp[1] - float(fit.levels[0])) if exp[0] is None else abs(exp[1] - exp[0])
     elif fit is not None:
@@ -837,9 +770,8 @@ def _expected_sides(edge: _Edge, levels: dict, fit: _Fit | None) -> tuple[tuple,
 
 
 def _faces_reach_corner(img, camera, fit: _Fit, crease: bool, q_corner, gap: float) -> bool:
-    """Whether the face(s) beside an edge show their usual grey level all the way to the corner, where
-    no edge points were found (ink behind the edge rather than something in front of the corner).
-    ``crease``: the edge has a lit face on both sides (both are checked), else on its profiles' high side."""
+    """Whether the face(s) beside an edge keep their grey level up to the corner where no edge points were found
+    (ink behind the edge, not something in front). ``crease``: check both sides, else the profiles' high side."""
     t = np.array([-fit.n[1], fit.n[0]])
     if (fit.q.mean(0) - q_corner) @ t < 0:
         t = -t
@@ -860,8 +792,7 @@ def _faces_reach_corner(img, camera, fit: _Fit, crease: bool, q_corner, gap: flo
 
 
 def _corner(img, camera, model, k, fits, fails, search_px, aligned):
-    """Intersect the fitted edges at corner k: (uv (2,), rms, n points) or the reason it failed.
-    ``aligned`` (2,) where the coarse alignment put the corner."""
+    """Intersect the fitted edges at corner k: (uv (2,) px, rms, n points) or why not; ``aligned`` (2,) coarse guess."""
     H, W = img.shape
     lines = [(fits[e.key], e) for e, _ in model.corner_edges[k] if e.key in fits]
     if len(lines) < 2:
