@@ -88,10 +88,6 @@ def environment() -> dict:
     return out
 
 
-def file_sha256(path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
 # --- annotated pictures ---------------------------------------------------------------------------
 def _bgr(img):
     import cv2

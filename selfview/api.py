@@ -156,12 +156,12 @@ def calibrate_picture(image, cell=None, camera=None, *, state: str | None = None
     if isinstance(camera, CameraModel):
         cam = camera
     elif camera is not None:
-        from selfview.files.camfile import file_sha256, load_camera_file
+        from selfview.files.camfile import load_camera_file
 
         cf = load_camera_file(camera)
         cf.check_size(c.camera.width, c.camera.height, f"camera file {camera}")
         cam, cov3, name = cf.camera, cf.centre_covariance(), str(camera)
-        camera_file = {"path": name, "sha256": file_sha256(camera)}
+        camera_file = {"path": name, "sha256": cf.file_sha256}
     res = calibrate_offline(img, c, state=state, mode=mode, points=points, image_sha256=sha, camera=cam,
                             camera_file=camera_file)
     return assess_offline(res, c, cam, cov3, name)

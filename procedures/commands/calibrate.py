@@ -66,11 +66,11 @@ def register(sub):
 def camera_file_arg(path, cell):
     """(camera model, {path, sha256}, covariance of cx, cy, aspect (3, 3), and skew (4, 4) when the file
     has it) of a camera file, checked against the cell's picture size."""
-    from selfview.files.camfile import file_sha256, load_camera_file
+    from selfview.files.camfile import load_camera_file
 
     cf = load_camera_file(path)
     cf.check_size(cell.camera.width, cell.camera.height, f"camera file {path}")
-    return cf.camera, {"path": str(path), "sha256": file_sha256(path)}, cf.centre_covariance()
+    return cf.camera, {"path": str(path), "sha256": cf.file_sha256}, cf.centre_covariance()
 
 
 def _previous(out):

@@ -8,14 +8,14 @@ import hashlib
 import platform
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import yaml
 
 from selfview import __version__
 from selfview.files.calfile import check_document, doc_checksum, plain_data, replace_keeping_history
-from selfview.files.io_safe import load_yaml, load_yaml_file
+from selfview.files.io_safe import MAX_YAML_BYTES, load_yaml, read_bounded
 from selfview.maths.camera import CameraModel
 from selfview.errors import CalibrationFileError, ConfigError
 
@@ -36,6 +36,7 @@ class CameraFile:
     covariance: np.ndarray
     figures: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
+    file_sha256: ClassVar[str] = ""
 
     def to_document(self) -> dict:
         prov = dict(self.provenance)
@@ -98,15 +99,15 @@ def _versions() -> dict:
 
 
 def load_camera_file(path) -> CameraFile:
-    """Read and verify a camera file; ``CalibrationFileError`` naming the fault."""
+    """Read and verify a camera file; ``CalibrationFileError`` naming the fault. ``file_sha256``: of the bytes parsed
+    (a provenance hash read again later could name a file replaced meanwhile)."""
     p = Path(path)
-    doc = load_yaml_file(p, error=CalibrationFileError, what="camera file",
-                         missing=f"no such camera file (run 'selfview intrinsics --out {p.name}' first)")
-    return CameraFile.from_document(doc, source=str(p))
-
-
-def file_sha256(path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    blob = read_bounded(p, MAX_YAML_BYTES, error=CalibrationFileError, what="camera file",
+                        missing=f"no such camera file (run 'selfview intrinsics --out {p.name}' first)")
+    doc = load_yaml(blob, str(p), error=CalibrationFileError, what="camera file")
+    cf = CameraFile.from_document(doc, source=str(p))
+    cf.file_sha256 = hashlib.sha256(blob).hexdigest()
+    return cf
 
 
 def save_camera_file(cf: CameraFile, path, *, keep_history: bool = True) -> Path | None:

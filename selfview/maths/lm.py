@@ -11,7 +11,7 @@ import numpy as np
 
 from selfview.errors import CalibrationError
 
-__all__ = ["LMResult", "covariance", "levenberg_marquardt", "numeric_jacobian"]
+__all__ = ["LMResult", "covariance", "levenberg_marquardt", "numeric_jacobian", "wald_chi2"]
 
 Residuals = Callable[[np.ndarray], np.ndarray]
 Jacobian = Callable[[np.ndarray], np.ndarray]

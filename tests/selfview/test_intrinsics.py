@@ -3,6 +3,7 @@ the one-picture camera check and TCP uncertainty; camera files; the simulated wo
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import replace
 
 import numpy as np
@@ -304,6 +305,21 @@ def test_camera_file_round_trip_history_and_refusals(tmp_path):
     assert foreign.read_text() == "hello: world\n"
     with pytest.raises(ConfigError, match="another camera"):
         back.check_size(640, 480)
+
+
+def test_a_camera_files_hash_is_of_the_bytes_it_was_read_from(tmp_path):
+    """The provenance hash a calibration records for its camera file is that of the bytes parsed, not of the file
+    read again later: a file replaced in between would be named by the other file's hash."""
+    cf = CameraFile(TRUE, {"f": 0.1, "kappa": 1e-10, "cx": 0.05, "cy": 0.06, "aspect": 2e-5},
+                    np.diag([0.1, 1e-10, 0.05, 0.06, 2e-5]) ** 2)
+    p = tmp_path / "camera.yaml"
+    save_camera_file(cf, p)
+    first = p.read_bytes()
+    back = load_camera_file(p)
+    assert back.file_sha256 == hashlib.sha256(first).hexdigest()
+    save_camera_file(CameraFile(TRUE.with_(f=TRUE.f + 1.0), cf.sigma, cf.covariance), p)
+    assert p.read_bytes() != first and back.file_sha256 == hashlib.sha256(first).hexdigest()
+    assert load_camera_file(p).file_sha256 == hashlib.sha256(p.read_bytes()).hexdigest()
 
 
 def test_a_camera_file_whose_covariance_holds_nan_is_refused(tmp_path):
