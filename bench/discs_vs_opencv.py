@@ -7,7 +7,9 @@ at 45 % light), uneven light (a 2:1 ramp). The three detectors run interleaved o
 times, so that the machine's load falls on all of them alike. Prints one JSON object: per picture the
 discs each found (0 where OpenCV returns no grid), the median time of each, our centres against
 OpenCV's where both found the grid, our median time over each OpenCV mode's (``time_ratio_ours_to``), and
-the medians over the set (``median_time_ratio_ours_to_findCirclesGrid`` is issue 31's measure).
+the medians over the set (``median_time_ratio_ours_to_findCirclesGrid`` is issue 31's measure). A changed
+picture's truth is known: each detector's centres in the unchanged photograph, turned as it was turned;
+``moved_px`` is how far each detector's centres are from its own truth (the largest over the discs).
 
     python bench/discs_vs_opencv.py [--repeat 5] [--quick]
 """
@@ -34,7 +36,7 @@ from selfview.errors import ImageError  # noqa: E402
 
 if str(Path(__file__).resolve().parents[1]) not in sys.path:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the picture changes live beside the tests
-from tests.photo_variants import ramp, shadowed, turned  # noqa: E402
+from tests.photo_variants import ramp, shadowed, turn_matrix, turned  # noqa: E402
 
 SET = Path(__file__).resolve().parents[1] / "tests" / "data" / "visp-circles"
 TURNS_DEG = (15, 30, 55, 80)
@@ -50,12 +52,13 @@ def pictures(quick: bool):
     for name in names:
         img = cv2.imread(str(SET / name), cv2.IMREAD_GRAYSCALE)
         plate = load_cell(SET / ("cell-640x480.yaml" if name.endswith(".png") else "cell.yaml")).plate
-        yield name, img, plate
+        same = np.eye(2, 3)
+        yield name, img, plate, None
         for d in (TURNS_DEG[2:3] if quick else TURNS_DEG):
-            yield f"{name} turned {d}", turned(img, d), plate
-        yield f"{name} shadow", shadowed(img), plate
+            yield f"{name} turned {d}", turned(img, d), plate, turn_matrix(img.shape, d)[0]
+        yield f"{name} shadow", shadowed(img), plate, same
         if not quick:
-            yield f"{name} ramp", ramp(img), plate
+            yield f"{name} ramp", ramp(img), plate, same
 
 
 def run_ours(img, plate):
@@ -79,7 +82,8 @@ def study(repeat: int, quick: bool) -> dict:
         "findCirclesGrid_clustering": lambda i, p: run_opencv(i, p, True),
     }
     rows = []
-    for name, img, plate in pictures(quick):
+    plain = {}
+    for name, img, plate, M in pictures(quick):
         times = {k: [] for k in runners}
         found = {}
         for _ in range(repeat):
@@ -92,6 +96,14 @@ def study(repeat: int, quick: bool) -> dict:
                "ms": {k: round(float(np.median(v)), 2) for k, v in times.items()}}
         row["time_ratio_ours_to"] = {k: round(float(np.median(times["ours"]) / np.median(times[k])), 2)
                                      for k in runners if k != "ours"}
+        if M is None:
+            plain = found
+        else:  # a changed photograph: its truth is each detector's own centres in the photograph, moved as it was
+            row["moved_px"] = {}
+            for k in runners:
+                if found[k] is not None and plain[k] is not None:
+                    d = np.linalg.norm(found[k][:, None] - (plain[k] @ M[:, :2].T + M[:, 2])[None], axis=2).min(1)
+                    row["moved_px"][k] = round(float(d[d <= 3.0].max()), 3)
         ours = found["ours"]
         for k in ("findCirclesGrid", "findCirclesGrid_clustering"):
             ref = found[k]
@@ -118,6 +130,8 @@ def study(repeat: int, quick: bool) -> dict:
         "median_time_ratio_ours_to_clustering": round(float(np.median(ratio_c)), 2),
         "max_centre_difference_px": max((c["max"] for c in centres), default=None),
         "median_centre_difference_px": round(float(np.median([c["median"] for c in centres])), 3) if centres else None,
+        "max_moved_px": {k: max((r["moved_px"][k] for r in rows if k in r.get("moved_px", {})), default=None)
+                         for k in runners},
     }
     return {"repeat": repeat, "quick": quick, "opencv": cv2.__version__, "summary": summary, "pictures": rows}
 

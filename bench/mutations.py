@@ -101,6 +101,38 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("tests/selfview/test_discs.py::test_the_minimum_disc_count", "tests/selfview/test_offline.py::test_robustness"),
         "the minimum disc count raised from 12 to 60: the standard pictures are refused",
     ),
+    Mutation(
+        "disc-merged-with-a-shadow-not-split",
+        "selfview/measurement/discs.py",
+        "    if t < 1.5 * DARK_FRACTION:\n",
+        "    if True:\n",
+        ("tests/selfview/test_discs_photos_boofcv.py::test_a_hands_shadow_over_the_grid_keeps_every_disc_where_opencv_puts_it",),
+        "a disc merged with a shadow's edge by the contrast threshold dropped as 'not elliptical' again",
+    ),
+    Mutation(
+        "disc-centre-weight-without-the-ink-ramp",
+        "selfview/measurement/discs.py",
+        "    wgt -= INK_RAMP[0] / (INK_RAMP[1] - INK_RAMP[0])\n",
+        "    wgt = c.copy()\n",
+        ("tests/selfview/test_discs_photos_boofcv.py::test_a_hands_shadow_over_the_grid_keeps_every_disc_where_opencv_puts_it",),
+        "the disc centre weighted by the raw contrast 1 - I / I_paper again, not the share of the disc's ink",
+    ),
+    Mutation(
+        "shadow-edge-level-not-fitted-past-a-mark",
+        "selfview/measurement/discs.py",
+        "level = again and _edge_level(ru - cu, rv - cv_, z, np.arctan2(coef[2], coef[1]), marks=True)",
+        "level = again and _edge_level(ru - cu, rv - cv_, z, np.arctan2(coef[2], coef[1]), marks=False)",
+        ("tests/selfview/test_shadows.py::test_a_shadow_across_a_real_photograph_keeps_its_discs",),
+        "a disc on a shadow's edge beside a printed mark dropped as 'occluded'",
+    ),
+    Mutation(
+        "grabber-lock-kept-until-the-source-is-collected",
+        "drivers/frame_grabber_v4l2/grabber.py",
+        "                if claim is not None:\n                    claim.release()\n",
+        "                pass\n",
+        ("tests/drivers/test_grabber_v4l2.py::test_the_devices_lock_is_released_on_close_and_on_a_failed_open_whoever_holds_the_source",),
+        "the grabber's device lock released only when the source object is collected (a traceback keeps it)",
+    ),
     # --- the independence of the test renderer and the off-line pipeline's steps ----------------------------
     Mutation(
         "camera-half-pixel-shift",

@@ -9,13 +9,19 @@ import numpy as np
 
 def turned(img: np.ndarray, deg: float) -> np.ndarray:
     """The photograph turned by ``deg`` about its centre on a canvas that holds all of it."""
-    h, w = img.shape
+    M, (W, H) = turn_matrix(img.shape, deg)
+    return cv2.warpAffine(img, M, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                          borderValue=float(np.percentile(img, 75)))
+
+
+def turn_matrix(shape, deg: float):
+    """(2 x 3 affine from the photograph's pixels to ``turned``'s, the turned canvas's (width, height))."""
+    h, w = shape
     M = cv2.getRotationMatrix2D((w / 2, h / 2), deg, 1.0)
     c, s = abs(M[0, 0]), abs(M[0, 1])
     W, H = int(np.ceil(w * c + h * s)), int(np.ceil(w * s + h * c))
     M[:, 2] += ((W - w) / 2, (H - h) / 2)
-    return cv2.warpAffine(img, M, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                          borderValue=float(np.percentile(img, 75)))
+    return M, (W, H)
 
 
 def shadowed(img: np.ndarray, share: float = 0.45, soft_px: float = 3.0) -> np.ndarray:

@@ -100,6 +100,7 @@ class FrameGrabber:
         self.height = height if height is not None else self.url.height
         self._sources = sources
         self.source: FrameSource | None = None
+        self._claim = None  # the device's lock while connected
         self._index = 0
         self.dropped_last = 0  # frames dropped by the last grab as exposed too early
         self._lock = threading.Lock()
@@ -110,18 +111,28 @@ class FrameGrabber:
         with self._lock:
             if self.source is None:
                 src = source_for(self.url, self._sources, timeout_s=self.timeout_s)
-                claim_for(src, "frame grabber", self.url.path if self.url.scheme == "v4l2" else None)
-                src.open()
-                self.source = src
+                claim = claim_for(src, "frame grabber", self.url.path if self.url.scheme == "v4l2" else None)
+                try:
+                    src.open()
+                except BaseException:  # released now, not when the traceback holding ``src`` is freed
+                    if claim is not None:
+                        claim.release()
+                    raise
+                self.source, self._claim = src, claim
                 self._index = 0
         return self
 
     def close(self) -> None:
-        """Release the source (safe to call twice)."""
+        """Release the source and its lock (safe to call twice), whoever still holds the source object."""
         with self._lock:
             src, self.source = self.source, None
-            if src is not None:
-                src.close()
+            claim, self._claim = self._claim, None
+            try:
+                if src is not None:
+                    src.close()
+            finally:
+                if claim is not None:
+                    claim.release()
 
     def __enter__(self) -> "FrameGrabber":
         return self.connect()

@@ -28,6 +28,8 @@ RING_TOLERANCE = 0.12
 SLOPE_RMS = 0.025
 #: ... or when a quadratic leaves less than this share of the plane's mean square residual there.
 CURVED_SHARE = 0.6
+#: Centre weight: the share of a disc's own ink contrast where a pixel's weight starts (0) and saturates (1).
+INK_RAMP = (0.1, 0.9)
 #: Size test: a disc's area over its lattice cell's, relative to the plate's pi/4 (d/pitch)^2, lies in this range.
 DISC_SHARE = (0.5, 2.0)
 #: Square test: the plate's axes as seen within this cosine of a right angle, their lengths within this share.
@@ -117,26 +119,51 @@ def _ellipse_misfit(blob: np.ndarray) -> tuple[float, float]:
     return solidity, float(np.abs(rho - 1).max()) * (da + db) / 4
 
 
-def _round_blobs(labels, stats, reject) -> list[int]:
-    """The labels of the elliptical blobs clear of the picture's border, the others ``reject``ed by reason."""
+def _round_blobs(labels, stats, reject, smooth) -> tuple[list[int], np.ndarray]:
+    """(labels of the elliptical blobs clear of the picture's border, ``stats`` with the cores split off blobs that
+    are not: ``_split``), the others ``reject``ed by reason; ``labels`` gets the split cores' labels in place."""
     H, W = labels.shape
     x, y, w, h, area = stats[1:].T
     speck = area < 20
     edge = ~speck & ((x == 0) | (y == 0) | (x + w == W) | (y + h == H))
     reject("speck", np.count_nonzero(speck))
     reject("picture edge", np.count_nonzero(edge))
-    round_ = []
-    for k in np.flatnonzero(~(speck | edge)) + 1:
+    round_, todo, split = [], list(np.flatnonzero(~(speck | edge)) + 1), set()
+    while todo:
+        k = todo.pop(0)
         x, y, w, h, area = (int(v) for v in stats[k])
-        if area > 0.05 * H * W:
-            reject("too large")
-            continue
-        solidity, misfit = _ellipse_misfit(labels[y : y + h, x : x + w] == k)
-        if solidity < SOLIDITY or misfit > max(1.6, 0.035 * np.sqrt(area)):
-            reject("not elliptical")
-        else:
+        solidity, misfit = (0.0, np.inf) if area > 0.05 * H * W else _ellipse_misfit(labels[y : y + h, x : x + w] == k)
+        if solidity >= SOLIDITY and misfit <= max(1.6, 0.035 * np.sqrt(area)):
             round_.append(k)
-    return round_
+            continue
+        cores = [] if k in split else _split(smooth, labels, k, (x, y, w, h), len(stats))
+        if cores:
+            new = range(len(stats), len(stats) + len(cores))
+            split.update(new)
+            todo += [j for j in new if cores[j - new[0]][4] >= 20]
+            stats = np.vstack([stats, cores])
+        else:
+            reject("too large" if area > 0.05 * H * W else "not elliptical")
+    return round_, stats
+
+
+def _split(smooth, labels, k, bbox, first: int) -> list:
+    """Stats rows of the cores of blob ``k`` (discs merged with a shadow's edge by the threshold) darker than midway
+    from ``DARK_FRACTION`` to its ink (95th percentile), labelled from ``first`` in ``labels``; the rest of ``k``
+    becomes paper (``_centroid``'s ring sees the shadow). Empty when no core is distinctly darker than the rest."""
+    x, y, w, h = bbox
+    sub, lab = smooth[y : y + h, x : x + w], labels[y : y + h, x : x + w]
+    own = lab == k
+    t = (DARK_FRACTION + float(np.percentile(sub[own], 95))) / 2
+    if t < 1.5 * DARK_FRACTION:
+        return []
+    n, cl, st, _ = cv2.connectedComponentsWithStats((own & (sub > t)).view(np.uint8), connectivity=8)
+    if n < 2:
+        return []
+    lab[own] = 0
+    for j in range(1, n):
+        lab[cl == j] = first + j - 1
+    return [[x + a, y + b, c, d, e] for a, b, c, d, e in st[1:]]
 
 
 def _measure_discs(work, labels, stats, round_: list[int], reject) -> tuple[list, list]:
@@ -160,9 +187,9 @@ def _measure_discs(work, labels, stats, round_: list[int], reject) -> tuple[list
 
 def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarray | None]:
     """(None, sub-pixel centre (2,) [px]) of blob ``k``, or (why it is no whole, clean disc, None): the centroid of
-    ``1 - I / I_paper`` over a support around the blob, I_paper a plane fitted to the ring beyond it (``_edge_level``
-    across a shadow's edge). A symmetric blur keeps ink's first moment (edge-based ellipse fits shift) and the division
-    cancels a light gradient; it is the distorted image's centroid, ``correct_disc_bias`` removes the difference."""
+    ink (``_weighted_centre``) over a support around the blob, against paper I_paper a plane fitted to the ring beyond
+    it (``_edge_level`` across a shadow's edge). A symmetric blur keeps ink's first moment (edge-based ellipse fits
+    shift); it is the distorted image's centroid, ``correct_disc_bias`` removes the difference."""
     x, y, w, h = bbox
     H, W = work.shape
     d = 2 * np.sqrt(area / np.pi)
@@ -192,24 +219,30 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
         level = _edge_level(ru - cu, rv - cv_, z, np.arctan2(coef[2], coef[1]))
         if level is not None:
             return _weighted_centre(crop, support, level, (cu, cv_), (x0, y0), area)
-    if coef[0] > 0 and 0.01 < share_off < 0.3:
-        # a mark or the sheet's edge in the ring: refit on the paper; the disc is kept if the thing is clear of it
+    level = None
+    if coef[0] > 0 and share_off > 0.01:
+        # a mark or the sheet's edge in the ring: refit on the paper, or a shadow's edge without the mark (the second
+        # try); the disc is kept if the thing is clear of it
         coef = np.linalg.lstsq(A[~off], z[~off], rcond=None)[0]
         gu, gv = np.meshgrid(np.arange(x1 - x0) - cu, np.arange(y1 - y0) - cv_)
-        paper = coef[0] + coef[1] * gu + coef[2] * gv
-        resid = cv2.blur((crop.astype(np.float64) - paper).astype(np.float32), (3, 3))  # noise-proof
-        foreign = (np.abs(resid) > RING_TOLERANCE * coef[0]) & (dist > 2)
-        _, flab, fst, _ = cv2.connectedComponentsWithStats(foreign.astype(np.uint8), connectivity=8)
-        # a thing touching the disc hides part of it, unless it is another dark blob's halo or a pixel or two of noise
-        near = set(np.unique(flab[foreign & (dist <= 3)])) - set(np.unique(flab[foreign & halo])) - {0}
-        near = {j for j in near if fst[j, cv2.CC_STAT_AREA] > 3}
-        if near:
-            return "occluded", None
+        for again in (False, True):
+            level = again and _edge_level(ru - cu, rv - cv_, z, np.arctan2(coef[2], coef[1]), marks=True)
+            if again and not level:
+                return "occluded", None
+            paper = level(gu, gv) if level else coef[0] + coef[1] * gu + coef[2] * gv
+            resid = cv2.blur((crop.astype(np.float64) - paper).astype(np.float32), (3, 3))  # noise-proof
+            foreign = (np.abs(resid) > RING_TOLERANCE * coef[0]) & (dist > 2)
+            _, flab, fst, _ = cv2.connectedComponentsWithStats(foreign.astype(np.uint8), connectivity=8)
+            # a thing touching the disc hides part of it, unless it is another blob's halo or a pixel or two of noise
+            near = set(np.unique(flab[foreign & (dist <= 3)])) - set(np.unique(flab[foreign & halo])) - {0}
+            if not {j for j in near if fst[j, cv2.CC_STAT_AREA] > 3}:
+                break
         share_off = np.count_nonzero(foreign[rv, ru]) / len(rv)
         support &= ~foreign
     if coef[0] <= 0 or share_off >= 0.3:
         return "occluded", None
-    return _weighted_centre(crop, support, lambda u, v: coef[0] + coef[1] * u + coef[2] * v, (cu, cv_), (x0, y0), area)
+    level = level or (lambda u, v: coef[0] + coef[1] * u + coef[2] * v)
+    return _weighted_centre(crop, support, level, (cu, cv_), (x0, y0), area)
 
 
 def _support_and_ring(lab, k, area, small, m_in, m):
@@ -240,12 +273,18 @@ def _support_and_ring(lab, k, area, small, m_in, m):
 
 
 def _weighted_centre(crop, support, level, centre, corner, area) -> tuple[str | None, np.ndarray | None]:
-    """``_centroid``'s answer: centroid [px] of ``support`` weighted by ``1 - grey / level(u, v)``, or "occluded"."""
+    """``_centroid``'s answer, or "occluded": centroid [px] of ``support`` weighted by the ink share of contrast
+    ``c = 1 - grey / level(u, v)``, a ramp from 0 at ``INK_RAMP[0]`` to 1 at ``INK_RAMP[1]`` of the disc's own
+    contrast (the mean c of its dark pixels): a symmetric blur keeps the ramp's first moment, and a shadow or
+    glare misread in ``level`` shifts only the edge, not the ink inside nor the paper outside."""
     sv, su = np.nonzero(support)
-    wgt = 1.0 - crop[sv, su].astype(np.float64) / level(su - centre[0], sv - centre[1])
-    s = wgt.sum()
-    if s <= 0.25 * area * DARK_FRACTION:
+    c = 1.0 - crop[sv, su].astype(np.float64) / level(su - centre[0], sv - centre[1])
+    ink = c[c > DARK_FRACTION]
+    if c.sum() <= 0.25 * area * DARK_FRACTION or not ink.size:
         return "occluded", None
+    wgt = c * (1.0 / ((INK_RAMP[1] - INK_RAMP[0]) * ink.mean()))
+    wgt -= INK_RAMP[0] / (INK_RAMP[1] - INK_RAMP[0])
+    s = np.minimum(np.maximum(wgt, 0.0, out=wgt), 1.0, out=wgt).sum()  # in place: the clip costs more than the sums
     return None, np.array([float(wgt @ su) / s + corner[0], float(wgt @ sv) / s + corner[1]])
 
 
@@ -268,10 +307,11 @@ def _curved(A, z, r, level) -> bool:
     return float(r @ r) / len(z) < CURVED_SHARE * mse
 
 
-def _edge_level(x, y, z, angle):
+def _edge_level(x, y, z, angle, marks: bool = False):
     """The paper's level across a disc varying along one direction only (a shadow's edge, a slope): a 1 px-binned
     profile of the ring's grey ``z`` at (``x``, ``y``) [px from the crop's centre] along the best-fitting normal (15 deg
-    steps from ``angle``, refined to 1 deg). Returns level(x, y), or None when the ring is not such paper (a mark)."""
+    steps from ``angle``, refined to 1 deg); with ``marks``, fitted again without the ring's pixels off it (a mark, up
+    to 30 %). Returns level(x, y), or None when the ring is not such paper."""
 
     def fit(angles):
         """(mse per angle, ``detail(i)``) of all ``angles`` in one ``np.interp``, each angle's bins apart."""
@@ -302,8 +342,7 @@ def _edge_level(x, y, z, angle):
         mse = np.einsum("ij,ij->i", r, r) / len(z)
 
         def detail(i):
-            bad = np.count_nonzero(np.abs(r[i]) > RING_TOLERANCE * lev[i]) / len(z)
-            return float(bad), c[i], s[i], centres[have[i]] + t0[i], prof[i, have[i]]
+            return np.abs(r[i]) > RING_TOLERANCE * lev[i], c[i], s[i], centres[have[i]] + t0[i], prof[i, have[i]]
 
         return mse, detail
 
@@ -320,9 +359,9 @@ def _edge_level(x, y, z, angle):
             j = min((off - d, off + d), key=got.get)
             if got[j] < best:
                 off, best, chosen = j, float(got[j]), (fine_detail, reach.index(j))
-    bad, c, s, at, prof = chosen[0](chosen[1])
-    if bad > 0.01:
-        return None
+    off, c, s, at, prof = chosen[0](chosen[1])
+    if np.mean(off) > 0.01:
+        return None if not marks or np.mean(off) >= 0.3 else _edge_level(x[~off], y[~off], z[~off], np.arctan2(s, c))
     return lambda u, v: np.interp(u * c + v * s, at, prof)
 
 
@@ -593,7 +632,8 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     dark = cv2.divide(work, cv2.max(_paper_level(work), 1.0))  # compiled: a third of numpy's time
     np.subtract(1.0, dark, out=dark)
     # the blobs' outlines from a lightly smoothed contrast, so pixel noise does not fray them
-    mask = cv2.compare(cv2.GaussianBlur(dark, (0, 0), 0.7), DARK_FRACTION, cv2.CMP_GT)
+    smooth = cv2.GaussianBlur(dark, (0, 0), 0.7)
+    mask = cv2.compare(smooth, DARK_FRACTION, cv2.CMP_GT)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     rejected: dict[str, int] = {}
 
@@ -601,7 +641,8 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
         if count:
             rejected[reason] = rejected.get(reason, 0) + count
 
-    uv, areas = _measure_discs(work, labels, stats, _round_blobs(labels, stats, reject), reject)
+    round_, stats = _round_blobs(labels, stats, reject, smooth)
+    uv, areas = _measure_discs(work, labels, stats, round_, reject)
     n_blobs = n - 1
     if len(uv) < min_discs:
         why = ", ".join(f"{v} {k}" for k, v in sorted(rejected.items())) or "none"

@@ -428,3 +428,30 @@ def test_field_order_is_read_and_checked(monkeypatch, field, height, buffer_s, e
 def test_field_order_and_buffers_on_a_node_that_is_not_v4l2():
     with V4L2Device("/dev/null") as dev:
         assert dev.field_order() is None and dev.buffers() == (0, None)
+
+
+def test_the_devices_lock_is_released_on_close_and_on_a_failed_open_whoever_holds_the_source(monkeypatch):
+    """The lock went with the source object's collection, so a failing test (or a lab script's saved error),
+    whose traceback still held the source, left the device 'in use' by its own process: the next
+    ``FrameGrabber`` was refused with DeviceBusy (seen in the VM stage under load). It is released by
+    ``close`` and by a failed ``connect``, whoever still holds the source."""
+    from selfview.drivers._ownership import DeviceLock
+
+    monkeypatch.setattr(V4L2Source, "open", lambda self: None)
+    monkeypatch.setattr(V4L2Source, "close", lambda self: None)
+    url, lock = "v4l2:///dev/video9", lambda: DeviceLock.for_path("frame grabber", "/dev/video9")
+    g = FrameGrabber(url)
+    kept = g.connect().source  # as a traceback's frame keeps it
+    with pytest.raises(DeviceError, match="in use"):
+        lock().acquire()
+    g.close()
+    lock().acquire().release()
+
+    def fails(self):
+        raise DeviceError("/dev/video9: no such device")
+
+    monkeypatch.setattr(V4L2Source, "open", fails)
+    with pytest.raises(DeviceError, match="no such device") as err:
+        FrameGrabber(url).connect()
+    assert err.value.__traceback__ is not None and kept is not None
+    lock().acquire().release()

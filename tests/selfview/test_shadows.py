@@ -24,7 +24,7 @@ from selfview.mocks.world import SimWorld
 from selfview.estimation.offline import calibrate_offline
 from selfview.mocks.render import disc_image_centroids
 from selfview.procedures.cli import main
-from tests.photo_variants import camera_turned, plate_tilted, shadowed, turned
+from tests.photo_variants import camera_turned, plate_tilted, shadowed, turn_matrix, turned
 
 VISP = Path(__file__).resolve().parents[1] / "data" / "visp-circles"
 PHOTOS = sorted(p.name for p in VISP.glob("*.*g"))
@@ -202,14 +202,19 @@ def test_discs_across_a_shadows_edge_are_measured_at_their_centre(cell):
 
 @pytest.mark.parametrize("name", PHOTOS)
 def test_a_shadow_across_a_real_photograph_keeps_its_discs(name):
-    """ViSP's photographs with a lamp's shadow across the grid: every disc of a soft-edged shadow is
-    kept, and of a sharp one (3 px) all but at most two that the edge grazes (measured: 323 of the nine
-    pictures' 324; before: 266, 27-33 per picture), their centres a median 0.14 px from OpenCV's."""
+    """ViSP's photographs with a lamp's shadow across the grid: every disc of a soft-edged shadow and of a
+    sharp one (3 px) is kept (before: 323 of the nine pictures' 324, the one lost where the edge crosses a disc
+    beside a printed mark in circles-01; earlier 266), their centres a median 0.03 px from OpenCV's. The
+    shadow is drawn, so the truth is each disc's centre in the photograph without it: ours move by at most
+    0.157 px (that disc beside the mark; the others 0.123 px), OpenCV's by up to 0.82 px, which is why its
+    centres are no truth here."""
     img, plate = _photo(name)
     assert len(detect_discs(shadowed(img, soft_px=8.0), plate)) == plate.rows * plate.cols
     sharp = shadowed(img)
     det = detect_discs(sharp, plate)
-    assert len(det) >= plate.rows * plate.cols - 2
+    assert len(det) == plate.rows * plate.cols, det.rejected
+    moved = np.linalg.norm(det.uv[:, None] - detect_discs(img, plate).uv[None], axis=2).min(axis=1)
+    assert moved.max() < 0.2, np.round(moved, 3)
     ref = _opencv(sharp, plate)
     if ref is not None:
         d = np.linalg.norm(ref[:, None, :] - det.uv[None], axis=2).min(axis=1)
@@ -220,15 +225,21 @@ def test_a_shadow_across_a_real_photograph_keeps_its_discs(name):
 @pytest.mark.parametrize("name", PHOTOS[::2])
 @pytest.mark.parametrize("deg", [30, 55, 80])
 def test_a_plate_turned_in_the_picture(name, deg):
-    """The plate turned by any angle in the picture: every disc, centres within 0.4 px of OpenCV's."""
+    """The plate turned by any angle in the picture: every disc, each where the turn puts the photograph's
+    (measured: at most 0.096 px over the nine photographs turned 15-80 deg; OpenCV's own move by up to 0.66 px),
+    and a median 0.03 px from OpenCV's (one disc of uneven ink in circles-05 lies 0.38-0.40 px from it)."""
     img, plate = _photo(name)
     pic = turned(img, deg)
     det = detect_discs(pic, plate)
     assert len(det) == plate.rows * plate.cols and det.origin_pinned
+    M, _ = turn_matrix(img.shape, deg)
+    truth = detect_discs(img, plate).uv @ M[:, :2].T + M[:, 2]
+    moved = np.linalg.norm(det.uv[:, None] - truth[None], axis=2).min(axis=1)
+    assert moved.max() < 0.15, np.round(moved, 3)
     ref = _opencv(pic, plate)
     assert ref is not None
     d = np.linalg.norm(ref[:, None, :] - det.uv[None], axis=2).min(axis=1)
-    assert np.max(d) < 0.4 and np.median(d) < 0.2
+    assert np.max(d) < 0.5 and np.median(d) < 0.1
 
 
 @pytest.mark.parametrize("name, axis", [("circles-02.jpg", "x"), ("grid36-01.png", "y"), ("grid36-04.png", "x")])

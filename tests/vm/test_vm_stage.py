@@ -219,28 +219,30 @@ def guest(cell):
     if not (out / "guest.xml").exists():
         tail = (out / "console.log").read_text(errors="replace")[-3000:]
         pytest.fail(f"the guest wrote no results (status {status}); guest log:\n{log[-3000:]}\nconsole:\n{tail}")
-    cases = {}
+    cases, why = {}, {}
     for tc in ET.parse(out / "guest.xml").getroot().iter("testcase"):
-        outcome = "passed"
+        outcome, name = "passed", f"{tc.get('classname')}::{tc.get('name')}"
         for child in tc:
             if child.tag in ("failure", "error", "skipped"):
                 outcome = child.tag
-        cases[f"{tc.get('classname')}::{tc.get('name')}"] = (outcome, float(tc.get("time") or 0))
+                if child.tag != "skipped":  # each failure whole, whatever the log's length
+                    why[name] = f"{child.get('message', '')}\n{child.text or ''}"
+        cases[name] = (outcome, float(tc.get("time") or 0))
     timing = (out / "timing").read_text() if (out / "timing").exists() else ""
     print(f"\nvm stage ({out}): {wall:.0f} s wall; guest uptime {' '.join(timing.split())}; {len(cases)} cases, status {status}")
     for name, (outcome, t) in cases.items():
         print(f"  {outcome:8s} {t:6.1f} s  {name}")
     print(f"  robot line: {relay.pauses} XOFF-wrapped reply chunks, {relay.negotiations} telnet options stripped, "
           f"BREAKs {relay.breaks}")
-    return {"cases": cases, "status": status, "log": log, "received": received, "out": out,
+    return {"cases": cases, "why": why, "status": status, "log": log, "received": received, "out": out,
             "pauses": relay.pauses, "breaks": relay.breaks, "negotiations": relay.negotiations}
 
 
 def _suite(guest, module: str, least: int):
     cases = {k: v for k, v in guest["cases"].items() if f".{module}::" in k or k.startswith(f"{module}::")}
     bad = {k: v[0] for k, v in cases.items() if v[0] != "passed"}
-    assert len(cases) >= least and not bad, (f"{len(cases)} cases of {module}, not passed: {bad}\n"
-                                             f"{guest['log'][-4000:]}")
+    failures = "\n".join(f"--- {k}\n{guest['why'].get(k, '')}" for k in bad)
+    assert len(cases) >= least and not bad, f"{len(cases)} cases of {module}, not passed: {bad}\n{failures}"
 
 
 def test_the_grabber_contract_against_vivid(guest):
