@@ -131,7 +131,7 @@ def _round_blobs(labels, stats, reject, smooth) -> tuple[list[int], np.ndarray]:
     round_, todo, split = [], list(np.flatnonzero(~(speck | edge)) + 1), set()
     while todo:
         k = todo.pop(0)
-        x, y, w, h, area = (int(v) for v in stats[k])
+        x, y, w, h, area = stats[k].tolist()
         solidity, misfit = (0.0, np.inf) if area > 0.05 * H * W else _ellipse_misfit(labels[y : y + h, x : x + w] == k)
         if solidity >= SOLIDITY and misfit <= max(1.6, 0.035 * np.sqrt(area)):
             round_.append(k)
@@ -172,7 +172,7 @@ def _measure_discs(work, labels, stats, round_: list[int], reject) -> tuple[list
     small = stats[:, cv2.CC_STAT_AREA] < 0.25 * typical
     uv, areas = [], []
     for k in round_:
-        x, y, w, h, area = (int(v) for v in stats[k])
+        x, y, w, h, area = stats[k].tolist()
         if area < 0.25 * typical or area > 4 * typical:
             reject("speck" if area < 0.25 * typical else "too large")
             continue
@@ -192,7 +192,7 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     shift); it is the distorted image's centroid, ``correct_disc_bias`` removes the difference."""
     x, y, w, h = bbox
     H, W = work.shape
-    d = 2 * np.sqrt(area / np.pi)
+    d = 2 * math.sqrt(area / math.pi)
     m_in = min(max(round(0.2 * d), 3), 10)
     m_ring = min(max(round(0.15 * d), 2), 8)
     m = m_in + m_ring
@@ -203,30 +203,29 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     if masks is None:
         return "crowded", None
     dist, support, ring, halo = masks
-    crop = work[y0:y1, x0:x1]
-    rv, ru = np.nonzero(ring)
-    cu, cv_ = (x1 - x0 - 1) / 2, (y1 - y0 - 1) / 2
-    A = np.column_stack([np.ones(len(ru)), ru - cu, rv - cv_])
-    z = crop[rv, ru].astype(np.float64)
-    coef = _least_squares(A, z)
+    crop, cu, cv_ = work[y0:y1, x0:x1], (x1 - x0 - 1) / 2, (y1 - y0 - 1) / 2
+    gu, gv = np.repeat([np.arange(x1 - x0) - cu], y1 - y0, 0), np.repeat(np.arange(y1 - y0)[:, None] - cv_, x1 - x0, 1)
+    z, u, v = crop[ring].astype(np.float64), gu[ring], gv[ring]
+    A = np.array([np.ones(len(z)), u, v, u * u, u * v, v * v])  # a quadratic's rows; the plane's the first three
+    N, b = A @ A.T, A @ z
+    coef = _least_squares(N[:3, :3], b[:3])
     if coef is None:  # ring pixels on one line: no paper around the disc
         return "crowded", None
-    r_ring = z - A @ coef
+    r_ring = z - coef @ A[:3]
     off = np.abs(r_ring) > RING_TOLERANCE * coef[0]
     share_off = np.count_nonzero(off) / len(off)
-    if coef[0] > 0 and (share_off > 0.01 or _curved(A, z, r_ring, coef[0])):
+    if coef[0] > 0 and (share_off > 0.01 or _curved(A, z, r_ring, coef[0], (N, b))):
         # a shadow's edge across the disc changes the paper's level along one direction only; a mark does not
-        level = _edge_level(ru - cu, rv - cv_, z, np.arctan2(coef[2], coef[1]))
+        level = _edge_level(A[1], A[2], z, np.arctan2(coef[2], coef[1]))
         if level is not None:
-            return _weighted_centre(crop, support, level, (cu, cv_), (x0, y0), area)
+            return _weighted_centre(crop, support, level, (gu, gv), (x0 + cu, y0 + cv_), area)
     level = None
     if coef[0] > 0 and share_off > 0.01:
         # a mark or the sheet's edge in the ring: refit on the paper, or a shadow's edge without the mark (the second
         # try); the disc is kept if the thing is clear of it
-        coef = np.linalg.lstsq(A[~off], z[~off], rcond=None)[0]
-        gu, gv = np.meshgrid(np.arange(x1 - x0) - cu, np.arange(y1 - y0) - cv_)
+        coef = np.linalg.lstsq(A[:3, ~off].T, z[~off], rcond=None)[0]
         for again in (False, True):
-            level = again and _edge_level(ru - cu, rv - cv_, z, np.arctan2(coef[2], coef[1]), marks=True)
+            level = again and _edge_level(A[1], A[2], z, np.arctan2(coef[2], coef[1]), marks=True)
             if again and not level:
                 return "occluded", None
             paper = level(gu, gv) if level else coef[0] + coef[1] * gu + coef[2] * gv
@@ -237,12 +236,12 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
             near = set(np.unique(flab[foreign & (dist <= 3)])) - set(np.unique(flab[foreign & halo])) - {0}
             if not {j for j in near if fst[j, cv2.CC_STAT_AREA] > 3}:
                 break
-        share_off = np.count_nonzero(foreign[rv, ru]) / len(rv)
+        share_off = np.count_nonzero(foreign[ring]) / len(z)
         support &= ~foreign
     if coef[0] <= 0 or share_off >= 0.3:
         return "occluded", None
     level = level or (lambda u, v: coef[0] + coef[1] * u + coef[2] * v)
-    return _weighted_centre(crop, support, level, (cu, cv_), (x0, y0), area)
+    return _weighted_centre(crop, support, level, (gu, gv), (x0 + cu, y0 + cv_), area)
 
 
 def _support_and_ring(lab, k, area, small, m_in, m):
@@ -261,7 +260,7 @@ def _support_and_ring(lab, k, area, small, m_in, m):
     else:  # no other blob in reach (about half the discs): every pixel is this blob's
         mine, clear, halo = True, True, False
     in_sup = dist <= m_in
-    band = (dist <= m) & ~in_sup
+    band = (dist <= m) ^ in_sup
     support = in_sup & mine
     ring = band & clear
     n_ring = np.count_nonzero(ring)
@@ -272,38 +271,38 @@ def _support_and_ring(lab, k, area, small, m_in, m):
     return dist, support, ring, halo
 
 
-def _weighted_centre(crop, support, level, centre, corner, area) -> tuple[str | None, np.ndarray | None]:
+def _weighted_centre(crop, support, level, grid, centre, area) -> tuple[str | None, np.ndarray | None]:
     """``_centroid``'s answer, or "occluded": centroid [px] of ``support`` weighted by the ink share of contrast
     ``c = 1 - grey / level(u, v)``, a ramp from 0 at ``INK_RAMP[0]`` to 1 at ``INK_RAMP[1]`` of the disc's own
     contrast (the mean c of its dark pixels): a symmetric blur keeps the ramp's first moment, and a shadow or
     glare misread in ``level`` shifts only the edge, not the ink inside nor the paper outside."""
-    sv, su = np.nonzero(support)
-    c = 1.0 - crop[sv, su].astype(np.float64) / level(su - centre[0], sv - centre[1])
+    su, sv = grid[0][support], grid[1][support]  # [px from the crop's centre, ``centre`` in the picture]
+    c = 1.0 - crop[support] / level(su, sv)
     ink = c[c > DARK_FRACTION]
     if c.sum() <= 0.25 * area * DARK_FRACTION or not ink.size:
         return "occluded", None
-    wgt = c * (1.0 / ((INK_RAMP[1] - INK_RAMP[0]) * ink.mean()))
+    wgt = c * (1.0 / ((INK_RAMP[1] - INK_RAMP[0]) * (ink.sum() / ink.size)))
     wgt -= INK_RAMP[0] / (INK_RAMP[1] - INK_RAMP[0])
     s = np.minimum(np.maximum(wgt, 0.0, out=wgt), 1.0, out=wgt).sum()  # in place: the clip costs more than the sums
-    return None, np.array([float(wgt @ su) / s + corner[0], float(wgt @ sv) / s + corner[1]])
+    return None, np.array([float(wgt @ su) / s + centre[0], float(wgt @ sv) / s + centre[1]])
 
 
-def _least_squares(A: np.ndarray, z: np.ndarray) -> np.ndarray | None:
-    """Least-squares ``A x = z`` by the normal equations (cheaper per call than numpy's); None when singular."""
-    ok, x = cv2.solve(A.T @ A, (A.T @ z)[:, None], flags=cv2.DECOMP_LU)
+def _least_squares(N: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+    """Least squares from their normal equations ``N x = b`` (cheaper per call than numpy's); None when singular."""
+    ok, x = cv2.solve(N, b[:, None], flags=cv2.DECOMP_LU)
     return x[:, 0] if ok else None
 
 
-def _curved(A, z, r, level) -> bool:
-    """Whether ring paper ``z`` (``A``: rows (1, x, y)) is off its plane by > ``SLOPE_RMS`` ``level`` rms, or curved."""
+def _curved(A, z, r, level, normal) -> bool:
+    """Whether ring paper ``z`` (``A``: rows 1, x, y, x^2, xy, y^2, ``normal`` its normal equations) is off its plane
+    by > ``SLOPE_RMS`` ``level`` rms, or curved."""
     mse = float(r @ r) / len(z)
     if mse > (SLOPE_RMS * level) ** 2:
         return True
-    Q = np.column_stack([A, A[:, 1] * A[:, 1], A[:, 1] * A[:, 2], A[:, 2] * A[:, 2]])
-    q = _least_squares(Q, z)
+    q = _least_squares(*normal)
     if q is None:  # a ring too small to tell
         return False
-    r = z - Q @ q
+    r = z - q @ A
     return float(r @ r) / len(z) < CURVED_SHARE * mse
 
 
@@ -448,16 +447,11 @@ def _parallel_step(P, at, ij, d) -> np.ndarray | None:
 def _lattice_outliers(P, index) -> set[int]:
     """Points off the midpoint of their two lattice neighbours on a line by > ``LATTICE_TOLERANCE`` steps."""
     at = {v: k for k, v in index.items()}
-    bad = set()
-    for k, (i, j) in index.items():
-        for di, dj in ((1, 0), (0, 1)):
-            lo, hi = at.get((i - di, j - dj)), at.get((i + di, j + dj))
-            if lo is None or hi is None:
-                continue
-            step = np.linalg.norm(P[hi] - P[lo]) / 2
-            if np.linalg.norm(P[k] - (P[lo] + P[hi]) / 2) > LATTICE_TOLERANCE * step:
-                bad.add(k)
-    return bad
+    k, lo, hi = np.array([(k, at[i - di, j - dj], at[i + di, j + dj]) for k, (i, j) in index.items()
+                          for di, dj in ((1, 0), (0, 1)) if (i - di, j - dj) in at and (i + di, j + dj) in at],
+                         int).reshape(-1, 3).T  # a point with both neighbours on a line, once per line
+    step = np.linalg.norm(P[hi] - P[lo], axis=1) / 2
+    return set(k[np.linalg.norm(P[k] - (P[lo] + P[hi]) / 2, axis=1) > LATTICE_TOLERANCE * step].tolist())
 
 
 def _cell_share(P, index, areas) -> dict[int, float]:
@@ -492,6 +486,8 @@ def _off_size(P, index, areas, plate: PlateSpec) -> set[int]:
 #: Changes of lattice basis tried for the plate's axes: integer 2 x 2, entries within +-2, determinant +-1.
 _BASES = np.array([m for m in itertools.product(range(-2, 3), repeat=4)
                    if abs(m[0] * m[3] - m[1] * m[2]) == 1]).reshape(-1, 2, 2)
+#: ``_BASES``' distinct rows, and which each of their rows is: a box's extent per row, not per basis (16, not 208).
+_ROWS, _ROW_OF = np.unique(_BASES.reshape(-1, 2), axis=0, return_inverse=True)
 
 
 def _plate_axes(P, index) -> dict[int, tuple[int, int]]:
@@ -499,15 +495,15 @@ def _plate_axes(P, index) -> dict[int, tuple[int, int]]:
     indexes a sheared lattice: 10 x 8 as 17 x 10); of ties, the first whose image steps are nearest a right angle."""
     ids = list(index)
     keys = np.array([index[k] for k in ids])
-    K = np.einsum("mij,nj->mni", _BASES, keys)  # (bases, N, 2)
-    ext = K.max(1) - K.min(1) + 1
+    along = _ROWS @ keys.T  # (rows, N)
+    ext = (along.max(1) - along.min(1) + 1)[_ROW_OF].reshape(-1, 2)  # (bases, 2)
     area = ext[:, 0] * ext[:, 1]
     own = (keys.max(0) - keys.min(0) + 1).prod()
     if area.min() == own:
         return index
     best, best_cos = None, None
     for m in np.flatnonzero(area == area.min()):
-        trial = dict(zip(ids, map(tuple, K[m].tolist())))
+        trial = dict(zip(ids, map(tuple, (keys @ _BASES[m].T).tolist())))
         a, b = _mean_step(P, trial, 0), _mean_step(P, trial, 1)
         cos = abs(a @ b) / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-12)
         if best_cos is None or cos < best_cos - 1e-9:
