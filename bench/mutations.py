@@ -120,8 +120,8 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "shadow-edge-level-not-fitted-past-a-mark",
         "selfview/measurement/discs.py",
-        "level = again and _edge_level(ru - cu, rv - cv_, z, np.arctan2(coef[2], coef[1]), marks=True)",
-        "level = again and _edge_level(ru - cu, rv - cv_, z, np.arctan2(coef[2], coef[1]), marks=False)",
+        "level = again and _edge_level(A[1], A[2], z, np.arctan2(coef[2], coef[1]), marks=True)",
+        "level = again and _edge_level(A[1], A[2], z, np.arctan2(coef[2], coef[1]), marks=False)",
         ("tests/selfview/test_shadows.py::test_a_shadow_across_a_real_photograph_keeps_its_discs",),
         "a disc on a shadow's edge beside a printed mark dropped as 'occluded'",
     ),
