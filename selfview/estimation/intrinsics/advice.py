@@ -26,17 +26,18 @@ def stop_met(sig: dict, aspect: float) -> bool:
     return bool(max(sig["cx"], sig["cy"]) < STOP_CENTRE_PX and sig["aspect"] / aspect < STOP_ASPECT_REL)
 
 
-def _views_information(camera: CameraModel, plate: PlateSpec, distance: float, tilt_deg: float, azimuths,
-                       s2: float, ni: int = 5, shape: "PlateShape | None" = None, y=None) -> dict:
-    """{azimuth: (ni, ni) information one view adds on the intrinsics, its pose eliminated; None under 8 discs in the
-    picture}: the plate's centre at ``distance`` [mm] on the optical axis, tilted ``tilt_deg`` about an in-plane axis
-    at each of ``azimuths`` [deg]. With ``shape`` (at parameters ``y``): (ni + n_shape) square, intrinsics and shape."""
+def _views_information(camera: CameraModel, plate: PlateSpec, distance: float, views, s2: float, ni: int = 5,
+                       shape: "PlateShape | None" = None, y=None) -> dict:
+    """{(tilt, azimuth): (ni, ni) information one view adds on the intrinsics, its pose eliminated; None under 8 discs
+    in the picture}: the plate's centre at ``distance`` [mm] on the optical axis, tilted by each of ``views`` (tilt,
+    azimuth) [deg] about an in-plane axis, all in one Jacobian. With ``shape`` (at parameters ``y``): (ni + n_shape)
+    square, intrinsics and shape."""
     p = plate.disc_centres_W()
     x = intrinsics_vector(camera, ni)
     out, P, UV, H_in, idx, az_in = {}, [], [], [], [], []
-    for az in azimuths:
-        a = np.radians(az)
-        H = trans(0, 0, distance) @ rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(tilt_deg))
+    for az in views:
+        a = np.radians(az[1])
+        H = trans(0, 0, distance) @ rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(az[0]))
         uv = project_points(x, H[:3, :3], H[:3, 3], p, camera.skew)
         ok = np.all(np.isfinite(uv), axis=1)
         ok[ok] = camera.in_image(uv[ok], margin=10)
@@ -80,13 +81,14 @@ def more_views_advice(fit: JointFit, plate: PlateSpec) -> dict:
     dist = float(np.median([v.distance_mm for v in fit.views]))
     out = {}
     azimuths = [(90.0 * (n - 1) + 45.0 * ((n - 1) // 4)) % 360.0 for n in range(1, MAX_MORE_VIEWS + 1)]
+    # the 8 azimuths repeat: each one's information computed once (square-on, the azimuth turns nothing)
+    seen = _views_information(fit.camera, plate, dist, [(t, a if t else 0.0) for _, t in VIEW_KINDS
+                                                        for a in (sorted(set(azimuths)) if t else [0.0])],
+                              fit.s2, ni, shape, fit.shape if shape is not None else None)
     for label, tilt in VIEW_KINDS:
-        # the 8 azimuths repeat: each one's information computed once (square-on, the azimuth turns nothing)
-        seen = _views_information(fit.camera, plate, dist, tilt, sorted(set(azimuths)) if tilt else [0.0], fit.s2,
-                                  ni, shape, fit.shape if shape is not None else None)
         adds = []
         for azimuth in azimuths:  # the views up to the first that does not see the plate
-            add = seen[azimuth if tilt else 0.0]
+            add = seen[tilt, azimuth if tilt else 0.0]
             if add is None:
                 break
             adds.append(add)
