@@ -3,8 +3,9 @@
 The pictures are ViSP's photographs of a printed 6 x 6 disc grid (``tests/data/visp-circles``), as taken
 and changed the ways real pictures differ: turned in the picture by 15..80 deg (on a canvas that holds the
 whole photograph, the new corners the paper's grey), a lamp's shadow across the grid (a soft-edged band
-at 45 % light), uneven light (a 2:1 ramp). The three detectors run interleaved on each picture, ``--repeat``
-times, so that the machine's load falls on all of them alike. Prints one JSON object: per picture the
+at 45 % light), uneven light (a 2:1 ramp), glare (``hazed``: 100 grey levels over a fifth of the light).
+The three detectors run interleaved on each picture, ``--repeat`` times, so that the machine's load falls
+on all of them alike. Prints one JSON object: per picture the
 discs each found (0 where OpenCV returns no grid), the median time of each, our centres against
 OpenCV's where both found the grid, our median time over each OpenCV mode's (``time_ratio_ours_to``), and
 the medians over the set (``median_time_ratio_ours_to_findCirclesGrid`` is issue 31's measure). A changed
@@ -36,7 +37,7 @@ from selfview.errors import ImageError  # noqa: E402
 
 if str(Path(__file__).resolve().parents[1]) not in sys.path:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the picture changes live beside the tests
-from tests.photo_variants import ramp, shadowed, turn_matrix, turned  # noqa: E402
+from tests.photo_variants import hazed, ramp, shadowed, turn_matrix, turned  # noqa: E402
 
 SET = Path(__file__).resolve().parents[1] / "tests" / "data" / "visp-circles"
 TURNS_DEG = (15, 30, 55, 80)
@@ -59,6 +60,7 @@ def pictures(quick: bool):
         yield f"{name} shadow", shadowed(img), plate, same
         if not quick:
             yield f"{name} ramp", ramp(img), plate, same
+            yield f"{name} glare", hazed(img), plate, same
 
 
 def run_ours(img, plate):

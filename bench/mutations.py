@@ -126,6 +126,14 @@ MUTATIONS: tuple[Mutation, ...] = (
         "a disc on a shadow's edge beside a printed mark dropped as 'occluded'",
     ),
     Mutation(
+        "faint-discs-measured-with-the-glare-left-on",
+        "selfview/measurement/discs.py",
+        "    if contrast < FAINT:",
+        "    if False:",
+        ("tests/selfview/test_shadows.py::test_glare_over_a_real_photograph_keeps_its_discs",),
+        "a picture under glare or haze (a grey pedestal) measured as it is: its faint discs under the threshold",
+    ),
+    Mutation(
         "grabber-lock-kept-until-the-source-is-collected",
         "drivers/frame_grabber_v4l2/grabber.py",
         "                if claim is not None:\n                    claim.release()\n",

@@ -1,5 +1,5 @@
 """Real photographs changed the ways real pictures differ: turned in the picture, a lamp's shadow across
-them, uneven light. Shared by the tests and ``bench/discs_vs_opencv.py``."""
+them, uneven light, glare. Shared by the tests and ``bench/discs_vs_opencv.py``."""
 
 from __future__ import annotations
 
@@ -90,3 +90,10 @@ def plate_tilted(img: np.ndarray, p_W: np.ndarray, uv: np.ndarray, f: float, axi
     out = cv2.warpPerspective(img, H, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                               borderValue=float(np.percentile(img, 75)))
     return out, H
+
+
+def hazed(img: np.ndarray, pedestal: float = 100.0, gain: float = 0.2) -> np.ndarray:
+    """Glare or haze, a raised black level: ``pedestal`` grey levels on ink and paper alike, the picture's own light
+    scaled by ``gain`` (at the defaults the print's 0.75-0.8 contrast falls to about 0.25), in 8 bits as a camera
+    gives it."""
+    return np.clip(pedestal + gain * img.astype(np.float32), 0, 255).astype(np.uint8)

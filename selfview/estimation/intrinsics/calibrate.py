@@ -41,7 +41,6 @@ class IntrinsicsResult:
     cross_check: dict
     residual_sigma_px: float = 0.0
     plate_shape: dict = field(default_factory=dict)
-    extras: dict = field(default_factory=dict)
     skew_fit: dict = field(default_factory=dict)
 
     @property

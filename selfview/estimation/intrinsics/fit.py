@@ -76,7 +76,6 @@ class JointFit:
     rms_px: float
     views: list
     uv_used: list
-    p_W_used: list
     plate_model: str = "flat"
     shape: np.ndarray = field(default_factory=lambda: np.zeros(0))
     prior_noise_px: float = 0.0
@@ -227,7 +226,7 @@ def _solve(p_W: list, uv: list, camera0: CameraModel, poses0: list, names: list,
     s2 = res.cost / max(m - n, 1)  # the prior rows count as observations of the shape's parameters
     views = [ViewFit(names[k], H, int(keep[k].sum()), float(np.sqrt(np.mean(dist[k] ** 2))),
                      *view_tilt_distance(H), int((~keep[k]).sum())) for k, H in enumerate(poses0)]
-    return JointFit(camera0, ni, res.jacobian, float(s2), rms, views, U, P, plate_model, np.asarray(y0, float),
+    return JointFit(camera0, ni, res.jacobian, float(s2), rms, views, U, plate_model, np.asarray(y0, float),
                     float(noise_px), float(dot_sd_mm), residuals=res.residuals)
 
 
