@@ -50,10 +50,9 @@ class Decision:
     """What the policy decided for one picture, and the measures that led to it.
 
     ``action`` in ``ACTIONS``; ``reason`` naming measure and limit; ``delta_deg``, ``d_mm`` the change since the last
-    calibration and ``rms_px`` the judged estimate's residual (NaN without); ``C_H_G`` (4, 4) the transform from now
-    on, re-orthonormalised so no error accumulates (eq. 13's own: ``estimate.C_H_G``), unchanged on an alarm (None if
-    unknown); ``method``, ``points_used``, ``estimate``: the estimate judged; ``n_found`` fingertips found.
-    """
+    calibration, ``rms_px`` the judged estimate's residual (NaN without); ``C_H_G`` (4, 4) the transform from now on,
+    re-orthonormalised so no error accumulates (eq. 13's own: ``estimate.C_H_G``), unchanged on an alarm (None if
+    unknown); ``method``, ``points_used``, ``estimate``: the estimate judged; ``n_found`` fingertips found."""
 
     action: str
     reason: str
@@ -81,14 +80,11 @@ class Decision:
             return None if v is None or not math.isfinite(v) else float(v)
 
         est = self.estimate
-        return {
-            "action": self.action, "reason": self.reason, "delta_deg": num(self.delta_deg), "d_mm": num(self.d_mm),
-            "rms_px": num(self.rms_px), "method": self.method, "n_found": int(self.n_found),
-            "points_used": list(self.points_used),
-            "condition": num(est.condition) if est is not None else None,
-            "chi2": num(significance(est)) if est is not None else None,
-            "C_H_G": None if self.C_H_G is None else np.asarray(self.C_H_G).tolist(),
-        }
+        return {"action": self.action, "reason": self.reason, "delta_deg": num(self.delta_deg), "d_mm": num(self.d_mm),
+                "rms_px": num(self.rms_px), "method": self.method, "n_found": int(self.n_found),
+                "points_used": list(self.points_used), "condition": num(est.condition) if est is not None else None,
+                "chi2": num(significance(est)) if est is not None else None,
+                "C_H_G": None if self.C_H_G is None else np.asarray(self.C_H_G).tolist()}
 
 
 def _pose_about(est: MotionEstimate, C_H_G) -> np.ndarray:
@@ -124,8 +120,7 @@ class Policy:
     a residual over ``max_rms_px``: the alarm, ``C_H_G`` unchanged. The change is delta and d of eq. 14 (the camera's
     motion ``C'_H_G C_H_G^-1``) since the last calibration, not the previous frame, so a creeping camera is caught.
     ``chi2_limit`` (e.g. ``CHI2_SIGNIFICANT``; None: off): an estimate whose motion since the current ``C_H_G`` scores
-    under it (``significance``) is noise, however large its poorly determined part: 'update' with ``C_H_G`` kept.
-    """
+    under it (``significance``) is noise, however large its poorly determined part: 'update', ``C_H_G`` kept."""
 
     def __init__(self, limits: MonitorLimits, *, chi2_limit: float | None = None):
         if not isinstance(limits, MonitorLimits):
@@ -162,8 +157,7 @@ class Policy:
         ``estimate_U`` the NP-U or NP-I estimate (None: ``error`` says why); ``C_H_G`` (4, 4) the current transform
         (default the estimate's prior); ``C_H_G_calibrated`` (4, 4) the one the limits refer to (default the current);
         ``recalibration`` an NP-R estimate or a callable computing it when needed (its ``CalibrationError``: an alarm;
-        none: 'recalibrate' leaves ``C_H_G`` unchanged).
-        """
+        none: 'recalibrate' leaves ``C_H_G`` unchanged)."""
         lim = self.limits
         if C_H_G is None and estimate_U is not None:
             C_H_G = estimate_U.C_H_G_prior
@@ -187,10 +181,8 @@ class Policy:
             return Decision.of("update", f"the motion since the current C_H_G ({est.delta_deg:.3f} deg / "
                                f"{est.d_mm:.3f} mm, {est.method}) is within the measurement's noise (chi-square "
                                f"{chi2:.1f} under {self.chi2_limit:g}): C_H_G kept", unchanged, est, n_found, *kept)
-        if C_H_G_calibrated is None:
-            delta, d = est.delta_deg, est.d_mm
-        else:
-            delta, d = self.change(est.C_H_G_orth, C_H_G_calibrated)
+        delta, d = (self.change(est.C_H_G_orth, C_H_G_calibrated) if C_H_G_calibrated is not None
+                    else (est.delta_deg, est.d_mm))
         where = f"change since the last calibration {delta:.3f} deg / {d:.3f} mm ({est.method})"
         action = self.classify(delta, d)
         if action == "alarm":
@@ -227,15 +219,14 @@ class Monitor:
     ``C_H_G`` (4, 4) the calibrated start; ``camera`` its interior orientation; ``p_G6`` (6, 3) fingertip points [mm];
     ``limits`` ``MonitorLimits`` or a ``Policy``. ``update_method`` NP-U or NP-I (default '4P-U', down to 3P when not
     all are found) or 'E' (``step``'s ``model_C_H_G``); ``recalibration_method`` '4P-R', '5P-R' or 'auto'.
-    ``raise_on_alarm``: raise ``AlarmError`` after logging. Decisions are logged and kept in ``records``.
-    A missed frame (``lost``, under 3 points, ``missed``, ``frame_problem``) never updates; ``max_missed_frames`` in a
-    row raise the alarm, as do poses alternating over ``ALTERNATION_WINDOW`` frames (loose mount, two cameras).
-    ``noise_px`` (e.g. ``TRACKER_NOISE_PX``): the pixel noise between frames; given, an insignificant update keeps
-    ``C_H_G`` (``CHI2_SIGNIFICANT`` unless ``limits`` is a ``Policy``) and pictures within the noise after a followed
-    move are fused with it (``_fuse``). ``learn_view``: the first picture after each calibration replaces the found
-    points' nominal rows by their back-projection onto the fingertips' plane, so a measurement's own view of the real
-    fingers cancels in the differential; an estimate using a point not yet learned is judged at ``MODEL_TOLERANCE_PX``.
-    """
+    ``raise_on_alarm``: raise ``AlarmError`` after logging. Decisions are logged and kept in ``records``. A missed
+    frame (``lost``, under 3 points, ``missed``, ``frame_problem``) never updates; ``max_missed_frames`` in a row raise
+    the alarm, as do poses alternating over ``ALTERNATION_WINDOW`` frames. ``noise_px`` (e.g. ``TRACKER_NOISE_PX``):
+    the pixel noise between frames; given, an insignificant update keeps ``C_H_G`` (``CHI2_SIGNIFICANT`` unless
+    ``limits`` is a ``Policy``) and pictures within the noise after a followed move are fused with it (``_fuse``).
+    ``learn_view``: the first picture after each calibration replaces the found points' nominal rows by their
+    back-projection onto the fingertips' plane, so a measurement's own view of the real fingers cancels in the
+    differential; an estimate using a point not yet learned is judged at ``MODEL_TOLERANCE_PX``."""
 
     def __init__(self, C_H_G, camera: CameraModel, p_G6, limits: MonitorLimits | Policy, *,
                  update_method: str = "4P-U", recalibration_method: str = "auto", raise_on_alarm: bool = False,
@@ -246,10 +237,8 @@ class Monitor:
             raise ConfigError(f"noise_px: expected a positive pixel noise or None, got {noise_px!r}")
         self.noise_px = None if noise_px is None else float(noise_px)
         self.learn_view = bool(learn_view)
-        if isinstance(limits, Policy):
-            self.policy = limits
-        else:
-            self.policy = Policy(limits, chi2_limit=CHI2_SIGNIFICANT if self.noise_px is not None else None)
+        chi2_limit = CHI2_SIGNIFICANT if self.noise_px is not None else None
+        self.policy = limits if isinstance(limits, Policy) else Policy(limits, chi2_limit=chi2_limit)
         n_miss = getattr(self.policy.limits, "max_missed_frames", 3) if max_missed_frames is None else max_missed_frames
         if isinstance(n_miss, bool) or not isinstance(n_miss, (int, np.integer)) or n_miss < 1:
             raise ConfigError(f"max_missed_frames: expected a positive whole number of frames, got {n_miss!r}")

@@ -72,12 +72,10 @@ class TsaiResult:
 
     def to_dict(self) -> dict:
         """Plain numbers and lists for JSON and YAML."""
-        return {
-            **self.camera.to_dict(), "C_H_W": np.asarray(self.C_H_W, dtype=float).tolist(),
-            "rms_px": float(self.rms_px), "mean_px": float(self.mean_px), "max_px": float(self.max_px),
-            "sse_px2": float(self.sse_px2), "mode": self.mode, "n_points": int(len(self.residuals_px)),
-            "iterations": int(self.iterations),
-        }
+        return {**self.camera.to_dict(), "C_H_W": np.asarray(self.C_H_W, dtype=float).tolist(),
+                "rms_px": float(self.rms_px), "mean_px": float(self.mean_px), "max_px": float(self.max_px),
+                "sse_px2": float(self.sse_px2), "mode": self.mode, "n_points": int(len(self.residuals_px)),
+                "iterations": int(self.iterations)}
 
 
 def residual_stats(residuals) -> tuple[float, float, float, float]:

@@ -83,24 +83,23 @@ def box_edges(lo, hi, cam_G, finger: int) -> dict[tuple, _Edge]:
     eye = np.eye(3)
     for axis in range(3):
         b, c = [k for k in range(3) if k != axis]
-        for sb in (-1, 1):
-            for sc in (-1, 1):
-                into, faces = [], []
-                # the face normal to b (side sb) spans the edge's axis and c; likewise for c
-                for ax, side, other, oside in ((b, sb, c, sc), (c, sc, b, sb)):
-                    plane = hi[ax] if side > 0 else lo[ax]
-                    if side * (cam_G[ax] - plane) > 1e-9:
-                        into.append(-oside * eye[other])
-                        faces.append((finger, ax, side))
-                if not into:
-                    continue
-                a_G = np.where(np.arange(3) == axis, lo, 0.0)
-                a_G[b] = hi[b] if sb > 0 else lo[b]
-                a_G[c] = hi[c] if sc > 0 else lo[c]
-                b_G = a_G.copy()
-                b_G[axis] = hi[axis]
-                key = (finger, axis, sb, sc)
-                edges[key] = _Edge(key, finger, a_G, b_G, into, faces)
+        for sb, sc in ((-1, -1), (-1, 1), (1, -1), (1, 1)):
+            into, faces = [], []
+            # the face normal to b (side sb) spans the edge's axis and c; likewise for c
+            for ax, side, other, oside in ((b, sb, c, sc), (c, sc, b, sb)):
+                plane = hi[ax] if side > 0 else lo[ax]
+                if side * (cam_G[ax] - plane) > 1e-9:
+                    into.append(-oside * eye[other])
+                    faces.append((finger, ax, side))
+            if not into:
+                continue
+            a_G = np.where(np.arange(3) == axis, lo, 0.0)
+            a_G[b] = hi[b] if sb > 0 else lo[b]
+            a_G[c] = hi[c] if sc > 0 else lo[c]
+            b_G = a_G.copy()
+            b_G[axis] = hi[axis]
+            key = (finger, axis, sb, sc)
+            edges[key] = _Edge(key, finger, a_G, b_G, into, faces)
     return edges
 
 
@@ -283,8 +282,7 @@ def _ridge_cells(score: np.ndarray, taken: np.ndarray) -> np.ndarray:
     up to ``RIDGE_CANDIDATES`` scoring ``RIDGE_FRACTION`` of the best, none next to one chosen (the +-6 px refinements
     overlap). Sliding along a finger's long sides keeps their score: a ridge, its maximum not always right."""
     flat = score.ravel()
-    best = float(flat.max())
-    idx = np.nonzero(flat >= RIDGE_FRACTION * best)[0]
+    idx = np.nonzero(flat >= RIDGE_FRACTION * float(flat.max()))[0]
     idx = idx[np.argsort(flat[idx], kind="stable")[::-1]]
     rows, cols = np.divmod(idx, score.shape[1])
     out = [tuple(t) for t in np.asarray(taken, int)]
@@ -456,10 +454,8 @@ def _edge_steps(img, poly, pdir, sign, others, search, shading: _Shading, both_s
     win = prof[rows[:, None], wi].astype(np.float64)
     Am, Bm, e, e_peak = _step_estimates(win, at, h, P, shading, diff, k, sgn)
     good = _plausible(win, Am, Bm, at, e, e_peak, peak, sgn, shading, P)
-    return _Steps(
-        st[good] + (e + ph)[good, None] * pdir[None, :], np.column_stack([Am, Bm])[good], win[good],
-        (wi - R)[good].astype(float), P, st, pdir, st[good] + (e_peak + ph)[good, None] * pdir[None, :],
-    )
+    return _Steps(st[good] + (e + ph)[good, None] * pdir[None, :], np.column_stack([Am, Bm])[good], win[good],
+                  (wi - R)[good].astype(float), P, st, pdir, st[good] + (e_peak + ph)[good, None] * pdir[None, :])
 
 
 def _stations(shape: tuple, poly: np.ndarray, pdir: np.ndarray, R: int, others: np.ndarray) -> np.ndarray:
@@ -516,16 +512,12 @@ def _plausible(win, Am, Bm, at, e, e_peak, peak, sgn, shading: _Shading, P: int)
     contrast = np.abs(Bm - Am)
     rough = np.maximum(np.ptp(win[:, :P], axis=1), np.ptp(win[:, -P:], axis=1))
     slope_allow = (abs(shading.g_lo) + abs(shading.g_hi)) * P
-    return (
-        ((Bm - Am) * sgn >= max(MIN_CONTRAST, 0.35 * shading.contrast))
-        & (np.abs(Am - (shading.expect[0] if shading.expect[0] is not None else Am)) <= shading.tol)
-        & (np.abs(Bm - (shading.expect[1] if shading.expect[1] is not None else Bm)) <= shading.tol)
-        & (rough <= 0.08 * contrast + 8 + slope_allow)
-        & (np.ptp(win, axis=1) <= 1.15 * contrast + 10 + slope_allow)  # one step only: no ink or other edge
-        & (np.abs(e - (at + 0.5)) < 1.5)
-        & (np.abs(e_peak - (at + 0.5)) < 1.0)
-        & (peak * sgn > 0)
-    )
+    return (((Bm - Am) * sgn >= max(MIN_CONTRAST, 0.35 * shading.contrast))
+            & (np.abs(Am - (shading.expect[0] if shading.expect[0] is not None else Am)) <= shading.tol)
+            & (np.abs(Bm - (shading.expect[1] if shading.expect[1] is not None else Bm)) <= shading.tol)
+            & (rough <= 0.08 * contrast + 8 + slope_allow)
+            & (np.ptp(win, axis=1) <= 1.15 * contrast + 10 + slope_allow)  # one step only: no ink or other edge
+            & (np.abs(e - (at + 0.5)) < 1.5) & (np.abs(e_peak - (at + 0.5)) < 1.0) & (peak * sgn > 0))
 
 
 def _line_tls(q: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float]:
@@ -700,11 +692,8 @@ def _locate_edges(img, camera, model: _Model, f: int, todo: list[int], search_px
     sign = dict(zip(keys, signs))
     # every visible edge of the finger that reaches the tip plane, from there as far as the scans go
     reach = TEMPLATE_PX + 2 * search_px + 20
-    all_other = {
-        e.key: model.polyline(*((e.b_G, e.a_G) if e.b_G[2] > e.a_G[2] else (e.a_G, e.b_G)), reach) + shift
-        for e in model.edges.values()
-        if e.finger == f and max(e.a_G[2], e.b_G[2]) > -1e-9
-    }
+    all_other = {e.key: model.polyline(*((e.b_G, e.a_G) if e.b_G[2] > e.a_G[2] else (e.a_G, e.b_G)), reach) + shift
+                 for e in model.edges.values() if e.finger == f and max(e.a_G[2], e.b_G[2]) > -1e-9}
     fits: dict[tuple, _Fit] = {}
     fails: dict[tuple, str | None] = {}  # read only for edges not in fits
 

@@ -18,7 +18,7 @@ from selfview.maths.camera import CameraModel
 from selfview.files.cell import GripperSpec
 from selfview.measurement.discs import as_gray
 from selfview.measurement.fingertips import FingertipResult, PredictedFingers, box_edges, tukey_weights
-from selfview.maths.geometry import inv_H, make_H, transform_points
+from selfview.maths.geometry import cross_rows, inv_H, make_H, transform_points
 
 __all__ = ["Appearance", "SilhouetteFit", "fit_silhouette", "learn_appearance", "rms_limit", "MIN_GOOD_FRACTION"]
 
@@ -80,16 +80,10 @@ class SilhouetteFit:
         def num(v):
             return None if v is None or not math.isfinite(v) else round(float(v), 5)
 
-        return {
-            "ok": bool(self.ok),
-            "reason": self.reason,
-            "good_fraction": num(self.good_fraction),
-            "finger_fraction": [num(v) for v in self.finger_fraction],
-            "finger_visible": [num(v) for v in self.finger_visible],
-            "rms_px": num(self.rms_px),
-            "tcp_sd_mm": [num(v) for v in self.tcp_sd_mm],
-            "n_samples": int(self.n_samples),
-        }
+        return {"ok": bool(self.ok), "reason": self.reason, "good_fraction": num(self.good_fraction),
+                "finger_fraction": [num(v) for v in self.finger_fraction],
+                "finger_visible": [num(v) for v in self.finger_visible], "rms_px": num(self.rms_px),
+                "tcp_sd_mm": [num(v) for v in self.tcp_sd_mm], "n_samples": int(self.n_samples)}
 
 
 @dataclass
@@ -232,8 +226,7 @@ def _remap(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     y = np.rint(np.asarray(y, np.float32) * np.float32(32)) / np.float32(32)
     n, cols = x.size, 4096
     rows = max(1, -(-n // cols))
-    mx = np.zeros(rows * cols, np.float32)
-    my = np.zeros(rows * cols, np.float32)
+    mx, my = np.zeros(rows * cols, np.float32), np.zeros(rows * cols, np.float32)
     mx[:n], my[:n] = x.ravel(), y.ravel()
     out = cv2.remap(img, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR,
                     borderMode=cv2.BORDER_REPLICATE)
@@ -361,23 +354,12 @@ def _candidates_np(img, s: _Samples, R: float, app: Appearance, n_cand: int = CA
     # the sides of the peak at D[:, m + 1]: profile m + 2 +- k, k = 2..P, the ends replicated
     flat = prof.ravel()
     base = rows * L
-    face = np.zeros(len(rows), np.float32)
-    other = np.zeros(len(rows), np.float32)
+    face, other = np.zeros(len(rows), np.float32), np.zeros(len(rows), np.float32)
     for k in range(2, P + 1):
         face += flat[base + np.minimum(m + 2 + k, L - 1)]
         other += flat[base + np.maximum(m + 2 - k, 0)]
-    face /= P - 1
-    other /= P - 1
+    face, other = face / (P - 1), other / (P - 1)
     return _gate_and_rank(face, other, rows, m, len(s.edge), D, A, pos, *_levels(s, app), n_cand)
-
-
-def _cross3(a, b):
-    """Row-wise cross products of (N, 3) arrays (np.cross costs more on small arrays)."""
-    out = np.empty_like(a)
-    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-    return out
 
 
 def _solve(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, start_floor: float | None = None):
@@ -389,10 +371,8 @@ def _solve(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, start_f
     kernel = _native.sil
     if kernel is not None:
         S = len(s.edge)
-        H = np.empty((4, 4))
-        w, r = np.empty(S), np.empty(S)
-        pick = np.empty(S, np.int64)
-        JtWJ = np.empty((6, 6))
+        H, JtWJ = np.empty((4, 4)), np.empty((6, 6))
+        w, r, pick = np.empty(S), np.empty(S), np.empty(S, np.int64)
         code, sigma = kernel.solve(np.ascontiguousarray(q, float), s.edge.astype(np.int64, copy=False), es.a_G, es.b_G,
                                    np.ascontiguousarray(C_H_G, float), float(cam.f), float(floor), int(iters),
                                    -1.0 if start_floor is None else float(start_floor), H, w, r, pick, JtWJ)
@@ -415,9 +395,7 @@ def _solve_py(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, star
     f = float(cam.f)
     H = np.array(C_H_G, float)
     S, C = q.shape[:2]
-    r = np.full(S, np.nan)
-    pick = np.zeros(S, int)
-    JtWJ = np.zeros((6, 6))
+    r, pick, JtWJ = np.full(S, np.nan), np.zeros(S, int), np.zeros((6, 6))
     sigma, sel, wh = floor, np.zeros(0, int), np.zeros(0)
     rows = np.arange(S)
     bad = ~np.isfinite(q).all(axis=2)  # (S, C) no candidate
@@ -429,7 +407,7 @@ def _solve_py(cam, es, s: _Samples, q, C_H_G, floor: float, iters: int = 6, star
         for it in range(iters):
             P = ab @ H[:3, :3].T + H[:3, 3]
             PA, PB = P[:E], P[E:]
-            l = _cross3(PA, PB)
+            l = cross_rows(PA, PB)
             N = np.hypot(l[:, 0], l[:, 1])[:, None]
             m = np.divide(l, N, out=V[:, :3])
             Dn = np.divide(PB - PA, N, out=V[:, 3:6])
@@ -483,8 +461,7 @@ def _coarse_shift(off: np.ndarray, nrm: np.ndarray, R: float, cell: float = 2.0,
 def _votes_py(off, has, proj, tol):
     """``_coarse_shift``'s vote in numpy: (D,) per cell the samples with a candidate within ``tol`` of proj (S, D)."""
     agree = np.zeros(proj.shape, bool)
-    tmp = np.empty(proj.shape)
-    hit = np.empty(proj.shape, bool)
+    tmp, hit = np.empty(proj.shape), np.empty(proj.shape, bool)
     for c in range(off.shape[1]):
         m = has[:, c]
         if not m.any():
@@ -593,8 +570,7 @@ def learn_appearance(image, camera: CameraModel, C_H_G, gripper: GripperSpec, ga
 
 
 def _fit_image(image, camera: CameraModel, frame: bool) -> np.ndarray:
-    """The picture ``fit_silhouette`` reads: as it is if float32 (8-bit with ``frame``) of the camera's size, else
-    ``as_gray``'s."""
+    """What ``fit_silhouette`` reads: float32 (8-bit with ``frame``) of the camera's size as is, else ``as_gray``'s."""
     a = np.asarray(image)
     size = (int(camera.height), int(camera.width))
     if a.dtype == np.float32 and a.shape == size:
