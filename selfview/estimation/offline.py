@@ -144,7 +144,7 @@ def _residuals(mode: str, ts, det, ft: FingertipResult, pcc, dims, measured_by: 
         "corner_edge_rms_px": {nm: float(ft.edge_rms_px[i]) for i, nm in enumerate(POINT_NAMES) if found[i]},
         "pcc_rms_mm": float(pcc.rms_mm), "pcc_q_norm": float(pcc.q_norm), "pcc_noise_mm": float(noise_mm),
         "points_from": "picture" if dims is not None else "cell", "corners_measured_by": measured_by,
-        "plate_origin": "pinned" if det.origin_pinned else "ambiguous",
+        "plate_origin": "pinned" if det.origin_pinned else "ambiguous", "disc_pedestal_grey": float(det.pedestal),
         **({"warnings": warnings} if warnings else {}),
         **({"camera_file": dict(camera_file)} if camera_file else {}),
     }

@@ -237,6 +237,21 @@ def test_glare_over_a_real_photograph_keeps_its_discs(name):
     assert moved.max() < 0.3 and np.median(moved) < 0.02, np.round(moved, 3)
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_parked_picture_under_glare_calibrates_as_a_clear_one(cell, seed):
+    """The parked cell under glare (100 grey levels over a fifth of the light): the off-line calibration finds the
+    plate with the pedestal off and says so in its residuals, and ``C_H_G`` is the clear picture's (measured: within
+    0.006 deg and 0.006 mm; before, "no calibration plate in the picture")."""
+    w = SimWorld(cell, seed=seed)
+    w.park()
+    img = render(w, seed=seed).image
+    clear, faint = calibrate_offline(img, cell), calibrate_offline(hazed(img), cell)
+    assert clear.calibration.residuals["disc_pedestal_grey"] == 0.0
+    assert faint.calibration.residuals["disc_pedestal_grey"] > 50 and not faint.warnings
+    deg, mm = pose_difference(faint.calibration.C_H_G, clear.calibration.C_H_G)
+    assert deg < 0.03 and mm < 0.03, (deg, mm)
+
+
 @pytest.mark.parametrize("name", PHOTOS[::2])
 @pytest.mark.parametrize("deg", [30, 55, 80])
 def test_a_plate_turned_in_the_picture(name, deg):
