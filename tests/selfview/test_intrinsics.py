@@ -189,6 +189,21 @@ def test_stop_rule_advises_more_views_when_too_few_pin_the_centre(cell):
     assert r2.stop_rule["sigma_aspect_pct"] < 1.3 * r2.stop_rule["limit_aspect_pct"]
 
 
+def test_the_advice_weighs_each_further_view_alone_when_some_see_past_the_lens_fold(cell):
+    """The advice projects all its further views at once; a view with a disc past the fold of a strong barrel
+    (kappa -2e-6 px^-2, the plate 160 mm away: 12 of 17 views) adds no information, and the others each add what
+    they would alone (not all of them none)."""
+    from selfview.estimation.intrinsics.advice import _views_information
+
+    cam = cell.camera.guess().with_(kappa=-2e-6)
+    views = [(t, a) for t in (35.0, 20.0) for a in range(0, 360, 45)] + [(0.0, 0.0)]
+    info = _views_information(cam, cell.plate, 160.0, views, 0.01)
+    assert sum(v is None for v in info.values()) == 12
+    for v in views:
+        alone = _views_information(cam, cell.plate, 160.0, [v], 0.01)[v]
+        assert (info[v] is None) == (alone is None) and (alone is None or np.allclose(info[v], alone, rtol=1e-9))
+
+
 def test_refusals_too_few_views_and_all_square_on(cell):
     with pytest.raises(CalibrationError, match="3 usable view.*at least 4"):
         calibrate_intrinsics(None, cell.plate, cell.camera.guess(), detections=_views(cell, TRUE, n=12)[:3])

@@ -6,7 +6,7 @@ import numpy as np
 
 from selfview.maths.camera import CameraModel
 from selfview.files.cell import PlateSpec
-from selfview.maths.geometry import rot_axis, trans
+from selfview.maths.geometry import R_from_rotvecs
 from selfview.estimation.intrinsics.fit import JointFit, sigmas_of
 from selfview.estimation.intrinsics.model import JointProblem, intrinsics_vector, project_points
 from selfview.estimation.intrinsics.plate import PlateShape
@@ -34,23 +34,25 @@ def _views_information(camera: CameraModel, plate: PlateSpec, distance: float, v
     square, intrinsics and shape."""
     p = plate.disc_centres_W()
     x = intrinsics_vector(camera, ni)
-    out, P, UV, H_in, idx, az_in = {}, [], [], [], [], []
-    for az in views:
-        a = np.radians(az[1])
-        H = trans(0, 0, distance) @ rot_axis((np.cos(a), np.sin(a), 0.0), np.radians(az[0]))
-        uv = project_points(x, H[:3, :3], H[:3, 3], p, camera.skew)
+    out, P, UV, R_in, idx, az_in = {}, [], [], [], [], []
+    tilt, a = np.radians(views).T
+    Rs, t = R_from_rotvecs(np.column_stack([np.cos(a), np.sin(a), np.zeros_like(a)]) * tilt[:, None]), (0, 0, distance)
+    uvs = project_points(x, np.eye(3), np.zeros(3), (Rs @ p.T).transpose(0, 2, 1).reshape(-1, 3) + t,
+                         camera.skew).reshape(len(Rs), len(p), 2)  # all views in one projection
+    for az, R, uv in zip(views, Rs, uvs):
+        if np.isnan(uvs).all():  # a disc behind the camera or past the lens's fold in some view: each by itself
+            uv = project_points(x, R, t, p, camera.skew)
         ok = np.all(np.isfinite(uv), axis=1)
         ok[ok] = camera.in_image(uv[ok], margin=10)
         out[az] = None
         if ok.sum() >= 8:
-            P.append(p[ok]), UV.append(uv[ok]), H_in.append(H), idx.append(np.flatnonzero(ok)), az_in.append(az)
+            P.append(p[ok]), UV.append(uv[ok]), R_in.append(R), idx.append(np.flatnonzero(ok)), az_in.append(az)
     if not az_in:
         return out
     V = len(az_in)
-    model = JointProblem(P, UV, [H[:3, :3] for H in H_in], shape, idx if shape is not None else None, ni=ni,
-                         skew=camera.skew)
-    poses = [np.r_[np.zeros(3), H[:3, 3]] for H in H_in]
-    J = model.jacobian(np.concatenate([x, *poses, y if shape is not None else []]))[: model.m_data]
+    model = JointProblem(P, UV, R_in, shape, idx if shape is not None else None, ni=ni, skew=camera.skew)
+    J = model.jacobian(np.concatenate([x, *[np.r_[0.0, 0.0, 0.0, t] for _ in R_in], y if shape is not None else []]))
+    J = J[: model.m_data]
     keep = np.r_[0:ni, ni + 6 * V : J.shape[1]]
     for k, az in enumerate(az_in):
         rows = slice(model.off[k], model.off[k + 1])
