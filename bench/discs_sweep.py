@@ -25,9 +25,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))  # the picture changes live beside the tests
 
-from selfview.errors import ImageError  # noqa: E402
+from selfview.bench.discs_vs_opencv import run_opencv, run_ours  # noqa: E402
 from selfview.files.cell import load_cell, load_plate  # noqa: E402
-from selfview.measurement.discs import detect_discs  # noqa: E402
 from tests.photo_variants import hazed  # noqa: E402
 
 DATA = ROOT / "tests" / "data"
@@ -64,19 +63,10 @@ def photographs(quick: bool):
             yield f"{folder.name}/{f.name}", cv2.imread(str(f), cv2.IMREAD_GRAYSCALE), p
 
 
-def _ours(img, plate):
-    try:
-        return detect_discs(img, plate).uv
-    except ImageError:
-        return None
-
-
 def _opencv(img, plate):
-    for flags in (cv2.CALIB_CB_SYMMETRIC_GRID, cv2.CALIB_CB_SYMMETRIC_GRID | cv2.CALIB_CB_CLUSTERING):
-        ok, c = cv2.findCirclesGrid(img, (plate.cols, plate.rows), flags=flags)
-        if ok:
-            return c.reshape(-1, 2).astype(float)
-    return None
+    """OpenCV's grid in either of its modes (findCirclesGrid's plain mode first), or None."""
+    found = run_opencv(img, plate, False)
+    return found if found is not None else run_opencv(img, plate, True)
 
 
 def _moved(found, truth) -> float | None:
@@ -88,7 +78,7 @@ def _moved(found, truth) -> float | None:
 
 
 def study(quick: bool) -> dict:
-    detectors = {"ours": _ours, "opencv": _opencv}
+    detectors = {"ours": run_ours, "opencv": _opencv}
     out = {k: {"discs_on_plates": 0, "found": dict.fromkeys(detectors, 0), "fewer": [],
                "max_moved_px": dict.fromkeys(detectors)} for k in CHANGES}
     for name, img, plate in photographs(quick):

@@ -225,7 +225,7 @@ def test_a_shadow_across_a_real_photograph_keeps_its_discs(name):
 @pytest.mark.parametrize("name", PHOTOS)
 def test_glare_over_a_real_photograph_keeps_its_discs(name):
     """ViSP's photographs under glare (100 grey levels on ink and paper, the light at a fifth: the discs' contrast
-    0.25, under the 0.3 threshold; before, no disc was found, where OpenCV finds the grid): every disc, measured with
+    0.25, under the 0.3 threshold; before, no disc was found; OpenCV finds the grid in 7): every disc, measured with
     the pedestal off and said so, each where it is in the photograph (measured: at most 0.25 px after 8-bit
     rounding of a fifth of the light, median at most 0.008 px). An unchanged photograph has no pedestal."""
     img, plate = _photo(name)

@@ -34,31 +34,31 @@ def _views_information(camera: CameraModel, plate: PlateSpec, distance: float, v
     square, intrinsics and shape."""
     p = plate.disc_centres_W()
     x = intrinsics_vector(camera, ni)
-    out, P, UV, R_in, idx, az_in = {}, [], [], [], [], []
+    out, P, UV, R_in, idx, used = {}, [], [], [], [], []
     tilt, a = np.radians(views).T
     Rs, t = R_from_rotvecs(np.column_stack([np.cos(a), np.sin(a), np.zeros_like(a)]) * tilt[:, None]), (0, 0, distance)
     uvs = project_points(x, np.eye(3), np.zeros(3), (Rs @ p.T).transpose(0, 2, 1).reshape(-1, 3) + t,
                          camera.skew).reshape(len(Rs), len(p), 2)  # all views in one projection
-    for az, R, uv in zip(views, Rs, uvs):
+    for view, R, uv in zip(views, Rs, uvs):
         if np.isnan(uvs).all():  # a disc behind the camera or past the lens's fold in some view: each by itself
             uv = project_points(x, R, t, p, camera.skew)
         ok = np.all(np.isfinite(uv), axis=1)
         ok[ok] = camera.in_image(uv[ok], margin=10)
-        out[az] = None
+        out[view] = None
         if ok.sum() >= 8:
-            P.append(p[ok]), UV.append(uv[ok]), R_in.append(R), idx.append(np.flatnonzero(ok)), az_in.append(az)
-    if not az_in:
+            P.append(p[ok]), UV.append(uv[ok]), R_in.append(R), idx.append(np.flatnonzero(ok)), used.append(view)
+    if not used:
         return out
-    V = len(az_in)
+    V = len(used)
     model = JointProblem(P, UV, R_in, shape, idx if shape is not None else None, ni=ni, skew=camera.skew)
     J = model.jacobian(np.concatenate([x, *[np.r_[0.0, 0.0, 0.0, t] for _ in R_in], y if shape is not None else []]))
     J = J[: model.m_data]
     keep = np.r_[0:ni, ni + 6 * V : J.shape[1]]
-    for k, az in enumerate(az_in):
+    for k, view in enumerate(used):
         rows = slice(model.off[k], model.off[k + 1])
         Jk, Jp = J[rows][:, keep], J[rows, ni + 6 * k : ni + 6 * k + 6]
         Ak, Akp, App = Jk.T @ Jk / s2, Jk.T @ Jp / s2, Jp.T @ Jp / s2
-        out[az] = Ak - Akp @ np.linalg.solve(App, Akp.T)
+        out[view] = Ak - Akp @ np.linalg.solve(App, Akp.T)
     return out
 
 
@@ -84,7 +84,7 @@ def more_views_advice(fit: JointFit, plate: PlateSpec) -> dict:
     out = {}
     azimuths = [(90.0 * (n - 1) + 45.0 * ((n - 1) // 4)) % 360.0 for n in range(1, MAX_MORE_VIEWS + 1)]
     # the 8 azimuths repeat: each one's information computed once (square-on, the azimuth turns nothing)
-    seen = _views_information(fit.camera, plate, dist, [(t, a if t else 0.0) for _, t in VIEW_KINDS
+    seen = _views_information(fit.camera, plate, dist, [(t, a) for _, t in VIEW_KINDS
                                                         for a in (sorted(set(azimuths)) if t else [0.0])],
                               fit.s2, ni, shape, fit.shape if shape is not None else None)
     for label, tilt in VIEW_KINDS:
