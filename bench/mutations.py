@@ -112,7 +112,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "disc-centre-weight-without-the-ink-ramp",
         "selfview/measurement/discs.py",
-        "    wgt -= INK_RAMP[0] / (INK_RAMP[1] - INK_RAMP[0])\n",
+        "    wgt -= start / (full - start)\n",
         "    wgt = c.copy()\n",
         ("tests/selfview/test_discs_photos_boofcv.py::test_a_hands_shadow_over_the_grid_keeps_every_disc_where_opencv_puts_it",),
         "the disc centre weighted by the raw contrast 1 - I / I_paper again, not the share of the disc's ink",
@@ -120,8 +120,8 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "shadow-edge-level-not-fitted-past-a-mark",
         "selfview/measurement/discs.py",
-        "level = again and _edge_level(A[1], A[2], z, np.arctan2(coef[2], coef[1]), marks=True)",
-        "level = again and _edge_level(A[1], A[2], z, np.arctan2(coef[2], coef[1]), marks=False)",
+        "level = again and _edge_level(A[1], A[2], z, np.arctan2(coef[2], coef[1]), tol, marks=True)",
+        "level = again and _edge_level(A[1], A[2], z, np.arctan2(coef[2], coef[1]), tol, marks=False)",
         ("tests/selfview/test_shadows.py::test_a_shadow_across_a_real_photograph_keeps_its_discs",),
         "a disc on a shadow's edge beside a printed mark dropped as 'occluded'",
     ),
@@ -132,6 +132,22 @@ MUTATIONS: tuple[Mutation, ...] = (
         "    if False:",
         ("tests/selfview/test_shadows.py::test_glare_over_a_real_photograph_keeps_its_discs",),
         "a picture under glare or haze (a grey pedestal) measured as it is: its faint discs under the threshold",
+    ),
+    Mutation(
+        "ring-tolerance-blind-to-pixel-noise",
+        "selfview/measurement/discs.py",
+        "    floor = NOISE_SIGMAS * noise / coef[0] if coef[0] > 0 else 0.0",
+        "    floor = 0.0",
+        ("tests/selfview/test_discs_photos_boofcv.py::test_sensor_noise_over_a_real_photograph_keeps_its_discs",),
+        "a noisy picture's rings judged by the fixed tolerance: discs on paper noisier than it dropped as 'occluded'",
+    ),
+    Mutation(
+        "outlines-smoothed-the-same-in-a-noisy-picture",
+        "selfview/measurement/discs.py",
+        "    blur = max(OUTLINE_BLUR_PX, rel / (2 * math.sqrt(math.pi) * OUTLINE_NOISE))",
+        "    blur = OUTLINE_BLUR_PX",
+        ("tests/selfview/test_discs_photos_boofcv.py::test_sensor_noise_over_a_real_photograph_keeps_its_discs",),
+        "noise specks in a shadow joined to a disc's blob or cutting its ring: the disc left out",
     ),
     Mutation(
         "grabber-lock-kept-until-the-source-is-collected",

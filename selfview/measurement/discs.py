@@ -20,6 +20,8 @@ __all__ = ["DiscDetections", "detect_discs", "correct_disc_bias", "disc_image_bi
 
 #: A pixel belongs to a disc candidate when it is this much darker than the paper around it (relative).
 DARK_FRACTION = 0.3
+#: Outlines: the contrast smoothed by a Gaussian of at least this sigma [px], more where pixel noise stays above this.
+OUTLINE_BLUR_PX, OUTLINE_NOISE = 0.7, 0.01
 #: Round test: a blob's area over its convex hull's at least this.
 SOLIDITY = 0.9
 #: Ring test: a ring pixel deviating from the fitted paper plane by more than this (relative) is not paper.
@@ -28,6 +30,8 @@ RING_TOLERANCE = 0.12
 SLOPE_RMS = 0.025
 #: ... or when a quadratic leaves less than this share of the plane's mean square residual there.
 CURVED_SHARE = 0.6
+#: Pixel noise: a ring pixel's tolerance at least this many sigmas of it; it is taken out of the rms SLOPE_RMS judges.
+NOISE_SIGMAS = 4.0
 #: Centre weight: the share of a disc's own ink contrast where a pixel's weight starts (0) and saturates (1).
 INK_RAMP = (0.1, 0.9)
 #: Size test: a disc's area over its lattice cell's, relative to the plate's pi/4 (d/pitch)^2, lies in this range.
@@ -171,7 +175,7 @@ def _split(smooth, labels, k, bbox, first: int) -> list:
     return [[x + a, y + b, c, d, e] for a, b, c, d, e in st[1:]]
 
 
-def _measure_discs(work, labels, stats, round_: list[int], reject) -> tuple[list, list]:
+def _measure_discs(work, labels, stats, round_: list[int], reject, noise: float) -> tuple[list, list]:
     """(centres, areas [px]) of round blobs of the plate's disc size (``_typical_area``), the others ``reject``ed."""
     typical = _typical_area(stats[round_, cv2.CC_STAT_AREA]) if round_ else 0.0
     small = stats[:, cv2.CC_STAT_AREA] < 0.25 * typical
@@ -181,7 +185,7 @@ def _measure_discs(work, labels, stats, round_: list[int], reject) -> tuple[list
         if area < 0.25 * typical or area > 4 * typical:
             reject("speck" if area < 0.25 * typical else "too large")
             continue
-        why, c = _centroid(work, labels, k, (x, y, w, h), area, small)
+        why, c = _centroid(work, labels, k, (x, y, w, h), area, small, noise)
         if why:
             reject(why)
             continue
@@ -190,7 +194,7 @@ def _measure_discs(work, labels, stats, round_: list[int], reject) -> tuple[list
     return uv, areas
 
 
-def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarray | None]:
+def _centroid(work, labels, k, bbox, area, small, noise) -> tuple[str | None, np.ndarray | None]:
     """(None, sub-pixel centre (2,) [px]) of blob ``k``, or (why it is no whole, clean disc, None): the centroid of
     ink (``_weighted_centre``) over a support around the blob, against paper I_paper a plane fitted to the ring beyond
     it (``_edge_level`` across a shadow's edge). A symmetric blur keeps ink's first moment (edge-based ellipse fits
@@ -217,25 +221,28 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     if coef is None:  # ring pixels on one line: no paper around the disc
         return "crowded", None
     r_ring = z - coef @ A[:3]
-    off = np.abs(r_ring) > RING_TOLERANCE * coef[0]
+    # the pixel noise widens a ring pixel's tolerance, starts the centre's weights above it, and is taken out of the rms
+    floor = NOISE_SIGMAS * noise / coef[0] if coef[0] > 0 else 0.0
+    tol, slope = max(RING_TOLERANCE, floor), math.hypot(SLOPE_RMS * coef[0], noise)
+    off = np.abs(r_ring) > tol * coef[0]
     share_off = np.count_nonzero(off) / len(off)
-    if coef[0] > 0 and (share_off > 0.01 or _curved(A, z, r_ring, coef[0], (N, b))):
+    if coef[0] > 0 and (share_off > 0.01 or _curved(A, z, r_ring, slope, (N, b))):
         # a shadow's edge across the disc changes the paper's level along one direction only; a mark does not
-        level = _edge_level(A[1], A[2], z, np.arctan2(coef[2], coef[1]))
+        level = _edge_level(A[1], A[2], z, np.arctan2(coef[2], coef[1]), tol)
         if level is not None:
-            return _weighted_centre(crop, support, level, (gu, gv), (x0 + cu, y0 + cv_), area)
+            return _weighted_centre(crop, support, level, (gu, gv), (x0 + cu, y0 + cv_), area, floor)
     level = None
     if coef[0] > 0 and share_off > 0.01:
         # a mark or the sheet's edge in the ring: refit on the paper, or a shadow's edge without the mark (the second
         # try); the disc is kept if the thing is clear of it
         coef = np.linalg.lstsq(A[:3, ~off].T, z[~off], rcond=None)[0]
         for again in (False, True):
-            level = again and _edge_level(A[1], A[2], z, np.arctan2(coef[2], coef[1]), marks=True)
+            level = again and _edge_level(A[1], A[2], z, np.arctan2(coef[2], coef[1]), tol, marks=True)
             if again and not level:
                 return "occluded", None
             paper = level(gu, gv) if level else coef[0] + coef[1] * gu + coef[2] * gv
             resid = cv2.blur((crop.astype(np.float64) - paper).astype(np.float32), (3, 3))  # noise-proof
-            foreign = (np.abs(resid) > RING_TOLERANCE * coef[0]) & (dist > 2)
+            foreign = (np.abs(resid) > tol * coef[0]) & (dist > 2)
             _, flab, fst, _ = cv2.connectedComponentsWithStats(foreign.astype(np.uint8), connectivity=8)
             # a thing touching the disc hides part of it, unless it is another blob's halo or a pixel or two of noise
             near = set(np.unique(flab[foreign & (dist <= 3)])) - set(np.unique(flab[foreign & halo])) - {0}
@@ -246,7 +253,7 @@ def _centroid(work, labels, k, bbox, area, small) -> tuple[str | None, np.ndarra
     if coef[0] <= 0 or share_off >= 0.3:
         return "occluded", None
     level = level or (lambda u, v: coef[0] + coef[1] * u + coef[2] * v)
-    return _weighted_centre(crop, support, level, (gu, gv), (x0 + cu, y0 + cv_), area)
+    return _weighted_centre(crop, support, level, (gu, gv), (x0 + cu, y0 + cv_), area, floor)
 
 
 def _support_and_ring(lab, k, area, small, m_in, m):
@@ -276,20 +283,30 @@ def _support_and_ring(lab, k, area, small, m_in, m):
     return dist, support, ring, halo
 
 
-def _weighted_centre(crop, support, level, grid, centre, area) -> tuple[str | None, np.ndarray | None]:
+def _weighted_centre(crop, support, level, grid, centre, area, floor=0.0) -> tuple[str | None, np.ndarray | None]:
     """``_centroid``'s answer, or "occluded": centroid [px] of ``support`` weighted by the ink share of contrast
-    ``c = 1 - grey / level(u, v)``, a ramp from 0 at ``INK_RAMP[0]`` to 1 at ``INK_RAMP[1]`` of the disc's own
-    contrast (the mean c of its dark pixels): a symmetric blur keeps the ramp's first moment, and a shadow or
-    glare misread in ``level`` shifts only the edge, not the ink inside nor the paper outside."""
+    ``c = 1 - grey / level(u, v)``, a ramp from 0 at ``INK_RAMP[0]`` (or ``floor``, pixel noise's reach) to 1 at
+    ``INK_RAMP[1]`` of the disc's own contrast (the mean c of its dark pixels): a symmetric blur keeps the ramp's first
+    moment; a shadow or glare misread in ``level`` shifts only the edge, not the ink inside nor the paper outside."""
     su, sv = grid[0][support], grid[1][support]  # [px from the crop's centre, ``centre`` in the picture]
     c = 1.0 - crop[support] / level(su, sv)
     ink = c[c > DARK_FRACTION]
     if c.sum() <= 0.25 * area * DARK_FRACTION or not ink.size:
         return "occluded", None
-    wgt = c * (1.0 / ((INK_RAMP[1] - INK_RAMP[0]) * (ink.sum() / ink.size)))
-    wgt -= INK_RAMP[0] / (INK_RAMP[1] - INK_RAMP[0])
+    full = INK_RAMP[1] * (ink.sum() / ink.size)
+    start = min(max(INK_RAMP[0] / INK_RAMP[1] * full, floor), full / 2)  # paper's noise gets no weight: it is clipped
+    wgt = c * (1.0 / (full - start))
+    wgt -= start / (full - start)
     s = np.minimum(np.maximum(wgt, 0.0, out=wgt), 1.0, out=wgt).sum()  # in place: the clip costs more than the sums
     return None, np.array([float(wgt @ su) / s + centre[0], float(wgt @ sv) / s + centre[1]])
+
+
+def _noise_sigma(a: np.ndarray, on: np.ndarray, step: int = 1) -> float:
+    """The pixel noise's sigma in ``a`` over the pixels ``on`` (a mask of ``a[::step, ::step]``): their median absolute
+    response to Immerkaer's kernel, blind to planes (noise of sigma s: 6 s rms), which a shadow's or a disc's edge
+    moves at a few pixels, not at the median."""
+    r = cv2.filter2D(a, cv2.CV_32F, np.float32([[1, -2, 1], [-2, 4, -2], [1, -2, 1]]))[::step, ::step][on]
+    return float(np.median(np.abs(r))) * (1.4826 / 6) if r.size else 0.0
 
 
 def _least_squares(N: np.ndarray, b: np.ndarray) -> np.ndarray | None:
@@ -298,11 +315,11 @@ def _least_squares(N: np.ndarray, b: np.ndarray) -> np.ndarray | None:
     return x[:, 0] if ok else None
 
 
-def _curved(A, z, r, level, normal) -> bool:
-    """Whether ring paper ``z`` (``A``: rows 1, x, y, x^2, xy, y^2, ``normal`` its normal equations) is off its plane
-    by > ``SLOPE_RMS`` ``level`` rms, or curved."""
+def _curved(A, z, r, limit, normal) -> bool:
+    """Whether ring paper ``z`` (``A``: rows 1, x, y, x^2, xy, y^2, ``normal`` its normal equations; ``r`` its plane's
+    residuals) is off its plane by > ``limit`` rms, or curved."""
     mse = float(r @ r) / len(z)
-    if mse > (SLOPE_RMS * level) ** 2:
+    if mse > limit**2:
         return True
     q = _least_squares(*normal)
     if q is None:  # a ring too small to tell
@@ -311,11 +328,11 @@ def _curved(A, z, r, level, normal) -> bool:
     return float(r @ r) / len(z) < CURVED_SHARE * mse
 
 
-def _edge_level(x, y, z, angle, marks: bool = False):
+def _edge_level(x, y, z, angle, tol: float = RING_TOLERANCE, marks: bool = False):
     """The paper's level across a disc varying along one direction only (a shadow's edge, a slope): a 1 px-binned
     profile of the ring's grey ``z`` at (``x``, ``y``) [px from the crop's centre] along the best-fitting normal (15 deg
-    steps from ``angle``, refined to 1 deg); with ``marks``, fitted again without the ring's pixels off it (a mark, up
-    to 30 %). Returns level(x, y), or None when the ring is not such paper."""
+    steps from ``angle``, refined to 1 deg); with ``marks``, fitted again without the ring's pixels off it by more than
+    ``tol`` of it (a mark, up to 30 %). Returns level(x, y), or None when the ring is not such paper."""
 
     def fit(angles):
         """(mse per angle, ``detail(i)``) of all ``angles`` in one ``np.interp``, each angle's bins apart."""
@@ -346,7 +363,7 @@ def _edge_level(x, y, z, angle, marks: bool = False):
         mse = np.einsum("ij,ij->i", r, r) / len(z)
 
         def detail(i):
-            return np.abs(r[i]) > RING_TOLERANCE * lev[i], c[i], s[i], centres[have[i]] + t0[i], prof[i, have[i]]
+            return np.abs(r[i]) > tol * lev[i], c[i], s[i], centres[have[i]] + t0[i], prof[i, have[i]]
 
         return mse, detail
 
@@ -365,7 +382,7 @@ def _edge_level(x, y, z, angle, marks: bool = False):
                 off, best, chosen = j, float(got[j]), (fine_detail, reach.index(j))
     off, c, s, at, prof = chosen[0](chosen[1])
     if np.mean(off) > 0.01:
-        return None if not marks or np.mean(off) >= 0.3 else _edge_level(x[~off], y[~off], z[~off], np.arctan2(s, c))
+        return _edge_level(x[~off], y[~off], z[~off], np.arctan2(s, c), tol) if marks and np.mean(off) < 0.3 else None
     return lambda u, v: np.interp(u * c + v * s, at, prof)
 
 
@@ -652,10 +669,16 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
 def _detect(work, plate: PlateSpec, camera: CameraModel | None, min_discs: int) -> tuple[DiscDetections, float]:
     """``detect_discs``'s one pass on ``work`` (H, W) float32, dark on light: (detections, the median contrast at
     their centres)."""
-    dark = cv2.divide(work, cv2.max(_paper_level(work), 1.0))  # compiled: a third of numpy's time
+    paper = _paper_level(work)
+    dark = cv2.divide(work, cv2.max(paper, 1.0))  # compiled: a third of numpy's time
     np.subtract(1.0, dark, out=dark)
-    # the blobs' outlines from a lightly smoothed contrast, so pixel noise does not fray them
-    smooth = cv2.GaussianBlur(dark, (0, 0), 0.7)
+    # the blobs' outlines from a smoothed contrast, so pixel noise neither frays them nor joins specks to them
+    lit = paper[::3, ::3]
+    on = (lit >= 0.5 * float(lit.max())) & (np.abs(dark[::3, ::3]) < DARK_FRACTION / 2)  # the plate's bare paper
+    noise = _noise_sigma(work, on, 3)  # [grey levels]
+    rel = noise / float(np.median(lit[on])) if on.any() else 0.0
+    blur = max(OUTLINE_BLUR_PX, rel / (2 * math.sqrt(math.pi) * OUTLINE_NOISE))  # a Gaussian's gain on white noise
+    smooth = cv2.GaussianBlur(dark, (0, 0), blur)
     mask = cv2.compare(smooth, DARK_FRACTION, cv2.CMP_GT)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     rejected: dict[str, int] = {}
@@ -665,7 +688,7 @@ def _detect(work, plate: PlateSpec, camera: CameraModel | None, min_discs: int) 
             rejected[reason] = rejected.get(reason, 0) + count
 
     round_, stats = _round_blobs(labels, stats, reject, smooth)
-    uv, areas = _measure_discs(work, labels, stats, round_, reject)
+    uv, areas = _measure_discs(work, labels, stats, round_, reject, noise)
     n_blobs = n - 1
     if len(uv) < min_discs:
         why = ", ".join(f"{v} {k}" for k, v in sorted(rejected.items())) or "none"

@@ -15,7 +15,7 @@ from selfview.maths.geometry import transform_points
 from selfview.measurement.silhouette import (MAX_LEARNT_RMS_PX, MAX_RMS_PX, MIN_GOOD_FRACTION, fit_silhouette,
                                              learn_appearance, rms_limit)
 
-__all__ = ["find_fingertips", "misses_a_corner", "model_measurement", "measure_model", "fit_result",
+__all__ = ["find_fingertips", "missed_corners", "model_measurement", "measure_model", "fit_result",
            "SilhouetteTracker", "WIDE_ROUNDS"]
 
 #: The corner search's range [px] around a silhouette fit's pose (``find_fingertips``, model 'auto').
@@ -32,7 +32,7 @@ def find_fingertips(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec
     edge points. Returns a ``FingertipResult`` in distorted px; points not found carry a reason and are NaN.
     ``model``: False, the corner search only; True, the model-based measurement (``measure_model``: the fitted
     silhouette's corners, ``quality``, ``lost`` and ``C_H_G``); 'auto', the corner search, and where it misses a
-    corner in the picture (``misses_a_corner``: a tip beside a disc, a weak tip edge, a busy board) the model's
+    corner in the picture (``missed_corners``: a tip beside a disc, a weak tip edge, a busy board) the model's
     corners if its fit holds and finds more (never mixed), else, if the fit found the fingers (``MIN_GOOD_FRACTION``)
     but is not believed, the search again within ``REFINE_SEARCH_PX`` of its pose. ``appearance``
     (``silhouette.Appearance``): the faces' grey levels, if known. Raises ``ImageError`` for a blank picture or one
@@ -45,11 +45,13 @@ def find_fingertips(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec
     result = search_corners(image, pred, search_px, points)
     if model is not False:
         _drop_off_shape(pred, result)
-    if model is False or (model == "auto" and not misses_a_corner(result)):
+    if model is False or (model == "auto" and not missed_corners(result)):
         return result
     fitted, fit = measure_model(image, pred, points, result, appearance)
     fitted.left_out.update(result.left_out)
     if model is True or (fit.ok and fitted.found.sum() > result.found.sum()):
+        if model == "auto":  # the corners the search missed in the picture, named as those it left out
+            fitted.left_out.update({nm: f"not found there ({r})" for nm, r in missed_corners(result).items()})
         return fitted
     if model == "auto" and fit.C_H_G is not None and fit.good_fraction >= MIN_GOOD_FRACTION:
         # its nominal boxes miss the real corners by their tolerances; a busy print outscores them over a wider range
@@ -62,10 +64,10 @@ def find_fingertips(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec
     return result
 
 
-def misses_a_corner(result: FingertipResult) -> bool:
-    """Whether a measurement left a requested corner unfound that is neither outside the picture nor hidden."""
-    return any(not ok and not (r and (r.startswith(("outside", "occluded")) or r == "not requested"))
-               for ok, r in zip(result.found, result.reasons))
+def missed_corners(result: FingertipResult) -> dict:
+    """{name: why} of the requested corners a measurement left unfound, neither outside the picture nor hidden."""
+    return {nm: r for nm, ok, r in zip(result.names, result.found, result.reasons)
+            if not ok and not (r and (r.startswith(("outside", "occluded")) or r == "not requested"))}
 
 
 def _drop_off_shape(pred: PredictedFingers, res: FingertipResult) -> None:

@@ -216,6 +216,21 @@ def test_a_foreshortened_plate_turned_in_the_picture(name, deg):
     assert _same_as(det.rc, straight.rc[k], plate)
 
 
+@pytest.mark.parametrize("name", ["image00002.jpg", "image00005.jpg"])
+def test_sensor_noise_over_a_real_photograph_keeps_its_discs(name):
+    """White sensor noise of sigma 10 grey levels over stills whose paper lies at 100-160 (6-10 % of it; the hand's
+    shadow over 00005): every disc, each where it is in the photograph (measured: at most 0.11 and 0.20 px, median
+    0.03). Before, 75 and 74 discs: rings noisier than the fixed 0.12 tolerance were 'occluded'; and noise specks
+    in the hand's shadow, joined to a disc or cutting its ring, left it out (with the tolerance alone widened to
+    the noise, they moved it by 0.9 px)."""
+    img, plate = _load("stills", name), _plate("stills")
+    noisy = np.clip(img + np.random.default_rng(1).normal(0.0, 10.0, img.shape), 0, 255).astype(np.uint8)
+    det = detect_discs(noisy, plate)
+    assert len(det) == plate.rows * plate.cols, det.rejected
+    _, moved = nearest(det.uv, detect_discs(img, plate).uv)
+    assert moved.max() < 0.3 and np.median(moved) < 0.05, np.round(np.sort(moved)[-5:], 3)
+
+
 @pytest.mark.parametrize("name, axis, deg", [("image00001.jpg", "y", 60), ("image00002.jpg", "y", 60),
                                              ("image00003.jpg", "x", 60)])
 def test_a_plate_seen_60_deg_off_square_on(name, axis, deg):
