@@ -150,6 +150,14 @@ MUTATIONS: tuple[Mutation, ...] = (
         "noise specks in a shadow joined to a disc's blob or cutting its ring: the disc left out",
     ),
     Mutation(
+        "paper-level-smoothed-across-the-sheets-edge",
+        "selfview/measurement/discs.py",
+        "    closed = cv2.max(closed, cv2.blur(closed, (k // 3 | 1, k // 3 | 1)))",
+        "    closed = cv2.blur(closed, (k // 3 | 1, k // 3 | 1))",
+        ("tests/selfview/test_discs_photos_boofcv.py::test_a_defocused_frame_keeps_the_discs_by_the_sheets_edge",),
+        "the paper's level taken darker by the sheet's edge: a blurred picture's outer discs under the threshold",
+    ),
+    Mutation(
         "grabber-lock-kept-until-the-source-is-collected",
         "drivers/frame_grabber_v4l2/grabber.py",
         "                if claim is not None:\n                    claim.release()\n",

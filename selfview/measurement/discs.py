@@ -100,12 +100,13 @@ def as_gray(image, camera: CameraModel | None = None, what: str = "picture") -> 
 
 
 def _paper_level(work: np.ndarray) -> np.ndarray:
-    """Local level (H, W) of the light background: a smoothed grey closing wider than a disc, at quarter resolution."""
+    """Local level (H, W) of the light background: a grey closing wider than a disc, at quarter resolution, smoothed but
+    never below it (the smoothing would darken the paper by the sheet's edge, and the discs beside it)."""
     h, w = work.shape
     small = cv2.resize(work, (max(8, w // 4), max(8, h // 4)), interpolation=cv2.INTER_AREA)
     k = max(5, (max(small.shape) // 6) | 1)
     closed = cv2.morphologyEx(small, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
-    closed = cv2.blur(closed, (k // 3 | 1, k // 3 | 1))
+    closed = cv2.max(closed, cv2.blur(closed, (k // 3 | 1, k // 3 | 1)))
     return cv2.resize(closed, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
