@@ -26,7 +26,7 @@ OUTLINE_BLUR_PX, OUTLINE_NOISE = 0.7, 0.01
 SOLIDITY = 0.9
 #: Ring test: a ring pixel deviating from the fitted paper plane by more than this (relative) is not paper.
 RING_TOLERANCE = 0.12
-#: Ring test: paper off one plane by more than this rms (relative) lies across a shadow's edge (noise: 0.01-0.02).
+#: Ring test: paper off one plane by more than this rms (relative; pixel noise taken out) lies across a shadow's edge.
 SLOPE_RMS = 0.025
 #: ... or when a quadratic leaves less than this share of the plane's mean square residual there.
 CURVED_SHARE = 0.6
@@ -302,7 +302,7 @@ def _weighted_centre(crop, support, level, grid, centre, area, floor=0.0) -> tup
     return None, np.array([float(wgt @ su) / s + centre[0], float(wgt @ sv) / s + centre[1]])
 
 
-def _noise_sigma(a: np.ndarray, on: np.ndarray, step: int = 1) -> float:
+def _noise_sigma(a: np.ndarray, on: np.ndarray, step: int) -> float:
     """The pixel noise's sigma in ``a`` over the pixels ``on`` (a mask of ``a[::step, ::step]``): their median absolute
     response to Immerkaer's kernel, blind to planes (noise of sigma s: 6 s rms), which a shadow's or a disc's edge
     moves at a few pixels, not at the median."""
