@@ -284,7 +284,7 @@ def _support_and_ring(lab, k, area, small, m_in, m):
     return dist, support, ring, halo
 
 
-def _weighted_centre(crop, support, level, grid, centre, area, floor=0.0) -> tuple[str | None, np.ndarray | None]:
+def _weighted_centre(crop, support, level, grid, centre, area, floor) -> tuple[str | None, np.ndarray | None]:
     """``_centroid``'s answer, or "occluded": centroid [px] of ``support`` weighted by the ink share of contrast
     ``c = 1 - grey / level(u, v)``, a ramp from 0 at ``INK_RAMP[0]`` (or ``floor``, pixel noise's reach) to 1 at
     ``INK_RAMP[1]`` of the disc's own contrast (the mean c of its dark pixels): a symmetric blur keeps the ramp's first
@@ -329,7 +329,7 @@ def _curved(A, z, r, limit, normal) -> bool:
     return float(r @ r) / len(z) < CURVED_SHARE * mse
 
 
-def _edge_level(x, y, z, angle, tol: float = RING_TOLERANCE, marks: bool = False):
+def _edge_level(x, y, z, angle, tol: float, marks: bool = False):
     """The paper's level across a disc varying along one direction only (a shadow's edge, a slope): a 1 px-binned
     profile of the ring's grey ``z`` at (``x``, ``y``) [px from the crop's centre] along the best-fitting normal (15 deg
     steps from ``angle``, refined to 1 deg); with ``marks``, fitted again without the ring's pixels off it by more than

@@ -48,10 +48,10 @@ def find_fingertips(image, camera: CameraModel, C_H_G_pred, gripper: GripperSpec
     if model is False or (model == "auto" and not missed_corners(result)):
         return result
     fitted, fit = measure_model(image, pred, points, result, appearance)
-    fitted.left_out.update(result.left_out)
+    # with 'auto', the corners the search missed in the picture are named as those it left out, which keep their reason
+    missed = {nm: f"not found there ({r})" for nm, r in missed_corners(result).items()} if model == "auto" else {}
+    fitted.left_out.update({**missed, **result.left_out})
     if model is True or (fit.ok and fitted.found.sum() > result.found.sum()):
-        if model == "auto":  # the corners the search missed in the picture, named as those it left out
-            fitted.left_out.update({nm: f"not found there ({r})" for nm, r in missed_corners(result).items()})
         return fitted
     if model == "auto" and fit.C_H_G is not None and fit.good_fraction >= MIN_GOOD_FRACTION:
         # its nominal boxes miss the real corners by their tolerances; a busy print outscores them over a wider range

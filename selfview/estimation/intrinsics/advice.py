@@ -39,9 +39,9 @@ def _views_information(camera: CameraModel, plate: PlateSpec, distance: float, v
     Rs, t = R_from_rotvecs(np.column_stack([np.cos(a), np.sin(a), np.zeros_like(a)]) * tilt[:, None]), (0, 0, distance)
     uvs = project_points(x, np.eye(3), np.zeros(3), (Rs @ p.T).transpose(0, 2, 1).reshape(-1, 3) + t,
                          camera.skew).reshape(len(Rs), len(p), 2)  # all views in one projection
+    alone = np.isnan(uvs).all()  # a disc behind the camera or past the lens's fold in some view: each by itself
     for view, R, uv in zip(views, Rs, uvs):
-        if np.isnan(uvs).all():  # a disc behind the camera or past the lens's fold in some view: each by itself
-            uv = project_points(x, R, t, p, camera.skew)
+        uv = project_points(x, R, t, p, camera.skew) if alone else uv
         ok = np.all(np.isfinite(uv), axis=1)
         ok[ok] = camera.in_image(uv[ok], margin=10)
         out[view] = None
