@@ -158,6 +158,14 @@ MUTATIONS: tuple[Mutation, ...] = (
         "the paper's level taken darker by the sheet's edge: a blurred picture's outer discs under the threshold",
     ),
     Mutation(
+        "left-out-corner-reason-overwritten",
+        "selfview/measurement/fingers.py",
+        "    fitted.left_out.update({**missed, **result.left_out})\n",
+        "    fitted.left_out.update({**result.left_out, **missed})\n",
+        ("tests/selfview/test_boards_under_gripper.py::test_offline_calibration_over_a_chessboard_under_the_gripper",),
+        "a corner left out off the fingers' shape named as one the search did not find there",
+    ),
+    Mutation(
         "grabber-lock-kept-until-the-source-is-collected",
         "drivers/frame_grabber_v4l2/grabber.py",
         "                if claim is not None:\n                    claim.release()\n",
