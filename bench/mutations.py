@@ -166,6 +166,23 @@ MUTATIONS: tuple[Mutation, ...] = (
         "a corner left out off the fingers' shape named as one the search did not find there",
     ),
     Mutation(
+        "12-bit-pixels-taken-as-16-bit",
+        "selfview/files/io_safe.py",
+        "    return 255.0 / ((1 << next(b for b in (8, 10, 12, 14, 16) if int(a.max()) < 1 << b)) - 1)\n",
+        "    return 255.0 / 65535\n",
+        ("tests/selfview/test_io_safe.py::test_a_16_bit_picture_reads_as_its_cameras_8_bits",
+         "tests/selfview/test_discs.py::test_colour_and_16_bit_pictures_are_accepted"),
+        "a 10- or 12-bit camera's unshifted pixels read as 16 bits: its pictures 1/16 as bright, or refused as blank",
+    ),
+    Mutation(
+        "grasp-window-on-blank-paper-fails-the-grasp",
+        "procedures/grasp.py",
+        "            except (CalibrationError, ImageError):\n",
+        "            except CalibrationError:\n",
+        ("tests/procedures/test_grasp.py::test_a_window_on_a_blank_part_of_the_picture_falls_back_to_the_whole_picture",),
+        "a windowed target search on a blank part of the picture ends the grasp instead of searching the whole",
+    ),
+    Mutation(
         "grabber-lock-kept-until-the-source-is-collected",
         "drivers/frame_grabber_v4l2/grabber.py",
         "                if claim is not None:\n                    claim.release()\n",

@@ -28,7 +28,7 @@ import numpy as np
 
 from selfview.maths.camera import CameraModel
 from selfview.files.cell import Cell
-from selfview.errors import AlarmError, CalibrationError, ConfigError
+from selfview.errors import AlarmError, CalibrationError, ConfigError, ImageError
 from selfview.maths.geometry import H_from_rotvec, check_rigid, inv_H, rotation_angle, rotvec_from_R, transform_points
 from selfview.measurement.objects import ObjectSpec, TargetDetection, detect_target, object_pose
 from selfview.estimation.policy import TRACKER_NOISE_PX, Monitor
@@ -182,8 +182,8 @@ class _TargetWindow:
                 pose = object_pose(img, self.camera, self.obj, TargetDetection(det.uv + (x0, y0), det.p_O, det.ids,
                                                                                det.markers))
                 self.windowed += 1
-            except CalibrationError:
-                pose = None  # not (wholly) in the window: the whole picture
+            except (CalibrationError, ImageError):
+                pose = None  # not (wholly) in the window (or the window blank): the whole picture
         if pose is None:
             pose = object_pose(img, self.camera, self.obj)
         self.C_H_O = pose.C_H_O

@@ -13,6 +13,7 @@ import numpy as np
 from selfview.files.calfile import Calibration, load_calibration, save_calibration
 from selfview.maths.camera import CameraModel
 from selfview.files.cell import POINT_NAMES, Cell, default_cell_path, load_cell
+from selfview.files.io_safe import read_picture
 from selfview.errors import CalibrationError, ConfigError
 from selfview.maths.geometry import hat, pose_difference
 from selfview.estimation.online import METHODS as ONLINE_METHODS, MODEL_METHOD
@@ -37,8 +38,6 @@ def _cell(cell) -> Cell:
 def _picture(image) -> tuple[np.ndarray, str | None]:
     """(grey uint8 picture, SHA-256 of its file or None for an array)."""
     if isinstance(image, (str, Path)):
-        from selfview.files.io_safe import read_picture
-
         return read_picture(image)
     return np.asarray(image), None
 

@@ -38,7 +38,7 @@ class ImageError(CellError, ValueError):
 
 
 class PictureFileError(ImageError):
-    """A picture file is missing, unreadable, not a picture or not 8-bit (a file fault, not the scene's)."""
+    """A picture file is missing, unreadable, not a picture or not 8- or 16-bit (a file fault, not the scene's)."""
 
 
 class AlarmError(CellError):

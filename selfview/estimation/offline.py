@@ -12,6 +12,7 @@ import numpy as np
 from selfview.files.calfile import Calibration
 from selfview.maths.camera import CameraModel
 from selfview.files.cell import POINT_NAMES, Cell
+from selfview.files.io_safe import uint16_gain
 from selfview.measurement.discs import DiscDetections
 from selfview.measurement.plates import correct_plate_bias, detect_plate
 from selfview.errors import CalibrationError, ImageError
@@ -66,18 +67,18 @@ class OfflineResult:
 
 
 def check_picture(image, width: int, height: int) -> np.ndarray:
-    """The picture as a 2-D uint8 array; ``ImageError`` naming what is wrong."""
+    """The picture as a 2-D uint8 array (a uint16 one by ``uint16_gain``); ``ImageError`` naming what is wrong."""
     if image is None:
         raise ImageError("no picture (the grabber or the file gave nothing)")
     img = np.asarray(image)
-    if img.ndim == 3 and img.shape[2] in (3, 4):
-        raise ImageError(f"picture has {img.shape[2]} colour channels; expected a grey picture")
     if img.ndim != 2:
-        raise ImageError(f"picture has shape {img.shape}; expected a 2-D grey picture")
+        raise ImageError(f"picture has shape {img.shape}; expected a 2-D grey picture (no colour channels)")
     if img.shape != (height, width):
         raise ImageError(f"picture is {img.shape[1]}x{img.shape[0]} pixels; the cell's camera gives {width}x{height}")
+    if img.dtype == np.uint16:  # a 10- to 16-bit camera's
+        img = np.rint(img * uint16_gain(img)).astype(np.uint8)
     if img.dtype != np.uint8:
-        raise ImageError(f"picture has {img.dtype} pixels; expected 8-bit grey")
+        raise ImageError(f"picture has {img.dtype} pixels; expected 8- or 16-bit grey")
     lo, hi = np.percentile(img[::4, ::4], [1, 99])
     if hi - lo < MIN_CONTRAST_GRAY:
         raise ImageError(f"picture is blank (grey levels {lo:.0f}..{hi:.0f}): check the light, the lens cap and the "

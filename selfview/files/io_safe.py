@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from selfview.errors import CellError, ConfigError, ImageError, PictureFileError
+from selfview.errors import CellError, ConfigError, PictureFileError
 from selfview.files.lockdir import lock_slug, open_lock_file, os_cause
 
-__all__ = ["load_yaml", "load_yaml_file", "read_bounded", "parse_number", "read_picture", "picture_size",
+__all__ = ["load_yaml", "load_yaml_file", "read_bounded", "parse_number", "read_picture", "uint16_gain", "picture_size",
            "atomic_write", "write_picture", "MAX_YAML_BYTES", "MAX_YAML_DEPTH", "MAX_PICTURE_SIDE",
            "MAX_PICTURE_PIXELS"]
 
@@ -234,10 +234,16 @@ def picture_size(head: bytes) -> tuple[str, int, int]:
     raise ValueError(f"not a PNG, JPEG, BMP or PGM/PPM picture (starts with {head[:8].hex(' ')})")
 
 
+def uint16_gain(a: np.ndarray) -> float:
+    """255 over the full scale of the fewest bits (8 to 16, even) that hold a uint16 picture's brightest pixel."""
+    return 255.0 / ((1 << next(b for b in (8, 10, 12, 14, 16) if int(a.max()) < 1 << b)) - 1)
+
+
 def read_picture(path, *, max_side: int = MAX_PICTURE_SIDE, max_pixels: int = MAX_PICTURE_PIXELS,
                  what: str = "picture") -> tuple[np.ndarray, str]:
-    """(2-D uint8 grey picture, SHA-256 of the file); ``PictureFileError`` naming an unreadable, empty, unknown,
-    oversized or undecodable file. The header's size is checked first: a small file may decode to 30000 x 30000 px."""
+    """(2-D uint8 grey picture, a 16-bit one by ``uint16_gain``; SHA-256 of the file); ``PictureFileError`` naming an
+    unreadable, empty, unknown, oversized or undecodable file. The header's size is checked first: a small file may
+    decode to 30000 x 30000 px."""
     import cv2
 
     p = Path(path)
@@ -262,8 +268,10 @@ def read_picture(path, *, max_side: int = MAX_PICTURE_SIDE, max_pixels: int = MA
         if img.shape[2] not in (3, 4):
             raise PictureFileError(f"{p}: {img.shape[2]} channels; expected a grey or colour picture")
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    if img.dtype == np.uint16:  # a 10- to 16-bit camera's picture (PNG, PGM)
+        img = cv2.convertScaleAbs(img, alpha=uint16_gain(img))
     if img.dtype != np.uint8:
-        raise PictureFileError(f"{p}: {img.dtype} pixels; expected an 8-bit grey picture")
+        raise PictureFileError(f"{p}: {img.dtype} pixels; expected an 8- or 16-bit grey picture")
     if img.shape != (h, w):
         raise PictureFileError(f"{p}: decoded to {img.shape[1]} x {img.shape[0]}, but its header says {w} x {h}")
     return img, hashlib.sha256(blob).hexdigest()

@@ -13,10 +13,11 @@ import numpy as np
 
 from selfview.maths.camera import CameraModel
 from selfview.files.cell import PlateSpec
+from selfview.files.io_safe import uint16_gain
 from selfview.errors import ImageError
 from selfview.maths.geometry import transform_points
 
-__all__ = ["DiscDetections", "detect_discs", "correct_disc_bias", "disc_image_bias", "as_gray"]
+__all__ = ["DiscDetections", "detect_discs", "correct_disc_bias", "disc_image_bias", "as_gray", "gray_u8"]
 
 #: A pixel belongs to a disc candidate when it is this much darker than the paper around it (relative).
 DARK_FRACTION = 0.3
@@ -34,6 +35,8 @@ CURVED_SHARE = 0.6
 NOISE_SIGMAS = 4.0
 #: Centre weight: the share of a disc's own ink contrast where a pixel's weight starts (0) and saturates (1).
 INK_RAMP = (0.1, 0.9)
+#: Shadow's edge: the halving steps [deg], two to a fit, that refine the best of ``_edge_level``'s 15 deg steps.
+REFINE_STEPS_DEG = ((8, 4), (2, 1))
 #: Size test: a disc's area over its lattice cell's, relative to the plate's pi/4 (d/pitch)^2, lies in this range.
 DISC_SHARE = (0.5, 2.0)
 #: Square test: the plate's axes as seen within this cosine of a right angle, their lengths within this share.
@@ -74,13 +77,14 @@ class DiscDetections:
 
 
 def as_gray(image, camera: CameraModel | None = None, what: str = "picture") -> np.ndarray:
-    """The picture as a (H, W) float32 grey image (0..255) from (H, W), (H, W, 1), BGR or BGRA uint8, uint16 (scaled)
-    or float. ``ImageError`` for no image, the wrong size for ``camera``, or blank (grey levels spanning < 12)."""
+    """The picture as a (H, W) float32 grey image (0..255) from (H, W), (H, W, 1), BGR or BGRA uint8, uint16
+    (``uint16_gain``) or float. ``ImageError`` for no image, the wrong size for ``camera``, or blank (span < 12)."""
     a = np.asarray(image)
-    if a.ndim == 3 and a.shape[2] == 1:
-        a = a[..., 0]
-    elif a.ndim == 3 and a.shape[2] in (3, 4):
-        a = a[..., :3].astype(np.float32) @ np.array([0.114, 0.587, 0.299], np.float32)  # BGR weights
+    if a.ndim == 3 and a.shape[2] in (1, 3, 4):
+        a = a[..., 0] if a.shape[2] == 1 else a[..., :3]
+    gain = uint16_gain(a) if a.dtype == np.uint16 and a.size else 1.0
+    if a.ndim == 3 and a.shape[2] == 3:
+        a = a.astype(np.float32) @ np.array([0.114, 0.587, 0.299], np.float32)  # BGR weights
     if a.ndim != 2 or a.size == 0:
         raise ImageError(f"{what}: expected a grey or BGR image, got an array of shape {np.shape(image)}")
     if a.dtype.kind not in "iuf":  # not bool, complex or object
@@ -88,15 +92,18 @@ def as_gray(image, camera: CameraModel | None = None, what: str = "picture") -> 
     h, w = a.shape
     if camera is not None and (h, w) != (int(camera.height), int(camera.width)):
         raise ImageError(f"{what} is {w}x{h} px but the camera model expects {int(camera.width)}x{int(camera.height)}")
-    g = a.astype(np.float32)
-    if a.dtype == np.uint16:
-        g /= 257.0
+    g = np.multiply(a, gain, dtype=np.float32)
     if a.dtype.kind == "f" and not np.all(np.isfinite(g)):
         raise ImageError(f"{what}: contains NaN or infinite pixels")
     lo, hi = np.percentile(a[::3, ::3] if a.dtype == np.uint8 else g[::3, ::3], [1, 99])
     if hi - lo < 12:
         raise ImageError(f"blank {what}: its grey levels span only {lo:.0f}..{hi:.0f}")
     return g
+
+
+def gray_u8(image, camera: CameraModel | None = None, what: str = "picture") -> np.ndarray:
+    """``as_gray``'s picture rounded to uint8, for OpenCV's board and marker detectors."""
+    return np.clip(np.rint(as_gray(image, camera, what)), 0, 255).astype(np.uint8)
 
 
 def _paper_level(work: np.ndarray) -> np.ndarray:
@@ -387,10 +394,6 @@ def _edge_level(x, y, z, angle, tol: float, marks: bool = False):
     return lambda u, v: np.interp(u * c + v * s, at, prof)
 
 
-#: ``_edge_level``'s refinement of the best of its 15 deg steps: the halving steps [deg], two to a fit.
-REFINE_STEPS_DEG = ((8, 4), (2, 1))
-
-
 def _seed(P: np.ndarray, dist: np.ndarray) -> tuple[int, np.ndarray, np.ndarray] | None:
     """A disc near the middle whose neighbours confirm two lattice steps (a, b) both ways."""
     order = np.argsort(np.linalg.norm(P - np.median(P, axis=0), axis=1), kind="stable")
@@ -605,9 +608,7 @@ def _grid_end(P_img, cr, axis, side, dark, r_px) -> str | None:
     rr = int(np.ceil(1.5 * r_px))
     empty, covered = 0, False
     for n in np.nonzero(cr[:, axis] == edge)[0]:
-        inner = cr[n].copy()
-        inner[axis] -= side
-        q = at.get(tuple(inner))
+        q = at.get(tuple(cr[n] - side * (np.arange(2) == axis)))  # its neighbour inside
         if q is None:
             continue
         pred = 2 * P_img[n] - P_img[q]
@@ -690,11 +691,10 @@ def _detect(work, plate: PlateSpec, camera: CameraModel | None, min_discs: int) 
 
     round_, stats = _round_blobs(labels, stats, reject, smooth)
     uv, areas = _measure_discs(work, labels, stats, round_, reject, noise)
-    n_blobs = n - 1
     if len(uv) < min_discs:
         why = ", ".join(f"{v} {k}" for k, v in sorted(rejected.items())) or "none"
         raise ImageError(f"no calibration plate in the picture: {len(uv)} whole disc(s) found, at least {min_discs} "
-                         f"needed ({n_blobs} dark blobs; rejected: {why})")
+                         f"needed ({n - 1} dark blobs; rejected: {why})")
     uv, areas = np.array(uv), np.array(areas)
     P = camera.undistorted_pixels(uv) if camera is not None else uv
     index = _propagate(P)
@@ -716,11 +716,10 @@ def _detect(work, plate: PlateSpec, camera: CameraModel | None, min_discs: int) 
         _check_square(camera.undistort_pixels(uv[ids]) / camera.f, cr)
     basis, ambiguous = _anchor(cr, uv[ids], plate, dark, float(np.sqrt(np.median(areas) / np.pi)))
     order = np.lexsort((cr[:, 0], cr[:, 1]))
-    cr, ids = cr[order], ids[order]
-    rc = cr[:, ::-1].astype(int)
+    rc, ids = cr[order, ::-1].astype(int), ids[order]
     p_W = plate.disc_centres_W()[rc[:, 0] * plate.cols + rc[:, 1]]
     at = np.clip(np.rint(uv[ids]).astype(int), 0, np.array(dark.shape[::-1]) - 1)
-    return (DiscDetections(uv=uv[ids], rc=rc, p_W=p_W, area_px=areas[ids].astype(float), n_blobs=n_blobs,
+    return (DiscDetections(uv=uv[ids], rc=rc, p_W=p_W, area_px=areas[ids].astype(float), n_blobs=n - 1,
                            rejected=rejected, index_basis=basis, ambiguous=ambiguous),
             float(np.median(dark[at[:, 1], at[:, 0]])))
 

@@ -11,10 +11,11 @@ import cv2
 import numpy as np
 
 from selfview.maths.camera import CameraModel
-from selfview.errors import CalibrationError, ConfigError, ImageError
+from selfview.errors import CalibrationError, ConfigError
 from selfview.maths.geometry import H_from_rotvec, R_from_rpy, inv_H, make_H
 from selfview.files.cell import Section
 from selfview.files.io_safe import load_yaml_file
+from selfview.measurement.discs import gray_u8
 from selfview.measurement.plates import make_charuco_board, warn_if_charuco_biased
 
 __all__ = ["TargetSpec", "ObjectSpec", "TargetDetection", "ObjectPose", "load_object", "parse_object",
@@ -159,24 +160,12 @@ class TargetDetection:
     markers: int
 
 
-def _grey_u8(image) -> np.ndarray:
-    """The (H, W) uint8 grey picture of a grey, BGR or BGRA uint8 array; ``ImageError`` for anything else."""
-    a = np.asarray(image)
-    if a.ndim == 3 and a.shape[2] in (1, 3, 4) and a.size:
-        code = cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
-        a = a[..., 0] if a.shape[2] == 1 else cv2.cvtColor(a, code)
-    if a.ndim != 2 or a.size == 0 or a.dtype != np.uint8:
-        raise ImageError(f"target picture: expected an 8-bit grey or BGR image, got an array of shape "
-                         f"{np.shape(image)} and dtype {a.dtype}")
-    return np.ascontiguousarray(a)
-
-
 def detect_target(image: np.ndarray, target: TargetSpec) -> TargetDetection:
-    """The ChArUco corners of ``target`` in a grey picture (OpenCV 4.10+ aruco). ``CalibrationError`` when the target is
-    not seen (too few corners) or seen twice (a marker id decoded twice); ``ImageError`` for no 8-bit picture."""
+    """The ChArUco corners of ``target`` in a picture (as ``as_gray`` takes; OpenCV 4.10+ aruco). ``CalibrationError``
+    when not seen (too few corners) or seen twice (a marker decoded twice); ``ImageError`` for no or a blank picture."""
     board = target_board(target)
     warn_if_charuco_biased()
-    corners, ids, _, marker_ids = cv2.aruco.CharucoDetector(board).detectBoard(_grey_u8(image))
+    corners, ids, _, marker_ids = cv2.aruco.CharucoDetector(board).detectBoard(gray_u8(image, what="target picture"))
     n_markers = 0 if marker_ids is None else len(marker_ids)
     if marker_ids is not None and len(np.unique(marker_ids)) < n_markers:
         raise CalibrationError(f"target seen twice: {n_markers - len(np.unique(marker_ids))} marker id(s) decoded "

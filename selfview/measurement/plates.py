@@ -14,7 +14,7 @@ import numpy as np
 
 from selfview.maths.camera import CameraModel
 from selfview.files.cell import PLATE_PATTERNS, PlateSpec, aruco_dictionary
-from selfview.measurement.discs import DiscDetections, as_gray, detect_discs, disc_image_bias
+from selfview.measurement.discs import DiscDetections, detect_discs, disc_image_bias, gray_u8
 from selfview.errors import ConfigError, ImageError
 
 __all__ = ["PLATE_PATTERNS", "PlateDetections", "detect_plate", "plate_image_bias", "correct_plate_bias",
@@ -36,7 +36,7 @@ def detect_plate(image, plate: PlateSpec, *, camera: CameraModel | None = None,
         raise ValueError(f"min_points: expected a whole number of plate points >= 1, got {min_points!r}")
     if plate.pattern == "discs":
         return detect_discs(image, plate, camera=camera, min_discs=min_points)
-    u8 = np.clip(np.rint(as_gray(image, camera)), 0, 255).astype(np.uint8)
+    u8 = gray_u8(image, camera)
     basis, ambiguous = {"x": "board", "y": "board"}, {}
     if plate.pattern == "chessboard":
         uv, ids, n_raw, basis, ambiguous = _chessboard(u8, plate)

@@ -148,6 +148,24 @@ def test_a_picture_whose_target_is_not_decoded_is_missed_and_the_next_one_taken(
     assert np.linalg.norm(res.true_error_mm) < 0.15
 
 
+def test_a_window_on_a_blank_part_of_the_picture_falls_back_to_the_whole_picture(scene):
+    """The target is searched first where the last pose puts it. A window on a blank part of the picture (there an
+    ImageError, not 'not seen': the one grey conversion refuses a blank picture) is searched whole, as a window
+    without the target is, and the pose is the whole picture's."""
+    from selfview.procedures.grasp import _TargetWindow
+
+    world, obj = scene
+    img = render(world, seed=1).image
+    whole = _TargetWindow(world.camera, obj).pose(img).C_H_O
+    win = _TargetWindow(world.camera, obj)
+    win.C_H_O = trans(80.0, 80.0, 0.0) @ whole  # the last pose 113 mm off: its window beside the target
+    x0, y0, x1, y1 = win._window(img.shape)
+    assert x0 > 508 and y0 > 278  # clear of the target's own window (267-508, 81-278)
+    img[y0:y1, x0:x1] = 128
+    assert np.allclose(win.pose(img).C_H_O, whole, atol=1e-6) and win.windowed == 0
+    assert win.pose(img) and win.windowed == 1  # the next picture: the window where the target is
+
+
 def test_a_grasp_pose_far_off_is_refused_without_a_correction(near):
     world, obj = near
     arm = SlippingArm(world, (4.0, 0.0, 0.0))

@@ -52,6 +52,22 @@ def test_colour_pictures_become_grey(tmp_path, grey):
     assert np.array_equal(img, grey)
 
 
+@pytest.mark.parametrize("ext", [".png", ".pgm"])
+@pytest.mark.parametrize("bits", [10, 12, 16])
+def test_a_16_bit_picture_reads_as_its_cameras_8_bits(tmp_path, grey, ext, bits):
+    """A 10-, 12- or 16-bit camera's picture in a 16-bit file (its pixels unshifted: 0..2^bits - 1) reads as the
+    8-bit picture of the same light, within rounding; a 12-bit picture with no pixel at 2^10 or above reads as 10 bits
+    (brighter: the measures are relative). A 12-bit one taken as 16 bits (/257) would read 0..16 and be 'blank'."""
+    full = (1 << bits) - 1
+    p = tmp_path / f"x{ext}"
+    assert cv2.imwrite(str(p), np.rint(grey * (full / 255)).astype(np.uint16))
+    img, _ = read_picture(p)
+    assert img.dtype == np.uint8 and np.abs(img.astype(int) - grey).max() <= 1
+    dark = (grey // 8).astype(np.uint16) * 16  # 12-bit levels under 2^10 (at most 496): the gain of 10 bits
+    assert cv2.imwrite(str(p), dark)
+    assert np.abs(read_picture(p)[0].astype(int) - np.rint(dark * (255 / 1023))).max() <= 1
+
+
 def test_a_huge_png_is_refused_from_its_header(tmp_path):
     small = tmp_path / "over_a_small_bound.png"  # the bound is the caller's: checked first, cheaply
     small.write_bytes(png_header_only(2000, 1000, zlib.compress(b"\0" * 1000)))
@@ -100,6 +116,34 @@ def test_a_truncated_picture_is_an_image_error(tmp_path, grey):
     with pytest.raises(ImageError, match="header says 0 x"):
         p.write_bytes(png_header_only(0, 10))
         read_picture(p)
+
+
+def test_the_command_line_calibrates_from_a_12_bit_cameras_16_bit_file(cell, tmp_path, capsys):
+    """A 12-bit camera's parked picture in a 16-bit PNG (pixels 0..4095, unshifted): ``selfview calibrate`` gives
+    the 8-bit file's calibration (its pixels read back exactly), as ``calibrate_offline`` does given the array; a
+    16-bit file was refused, a 12-bit array taken as 16 bits would read 0..16 and be blank."""
+    import json
+
+    from selfview.estimation.offline import calibrate_offline
+    from selfview.mocks.render import render
+    from selfview.mocks.world import SimWorld
+    from selfview.procedures.cli import main
+
+    w = SimWorld(cell, seed=3)
+    w.park()
+    img = render(w, seed=1).image
+    img12 = np.rint(img * (4095 / 255)).astype(np.uint16)
+    C_H_G = calibrate_offline(img, cell).calibration.C_H_G
+    assert np.array_equal(calibrate_offline(img12, cell).calibration.C_H_G, C_H_G)
+    with pytest.raises(ImageError, match=r"shape \(576, 768, 3\); expected a 2-D grey picture \(no colour channels\)"):
+        calibrate_offline(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR), cell)
+    docs = []
+    for name, pic in (("p8.png", img), ("p16.png", img12)):
+        assert cv2.imwrite(str(tmp_path / name), pic)
+        assert main(["calibrate", "--image", str(tmp_path / name), "--out", str(tmp_path / f"{name}.yaml"),
+                     "--json"]) == 0
+        docs.append(json.loads(capsys.readouterr().out))
+    assert docs[1]["C_H_G"] == docs[0]["C_H_G"] and docs[1]["f"] == docs[0]["f"]
 
 
 def test_cli_exit_3_for_bad_picture_files(tmp_path, capsys):

@@ -1,5 +1,6 @@
 """Objects to grasp: the object file, the target's detection and the object's pose from a picture."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -62,7 +63,11 @@ def test_a_target_seen_twice_is_refused():
 
 
 def test_a_picture_without_the_target_is_refused():
+    """A picture of something else (a textured table) is not seen; a blank one is a blank picture (an ImageError)."""
+    table = np.random.default_rng(3).integers(60, 200, (576, 768)).astype(np.uint8)
     with pytest.raises(CalibrationError, match="target not seen"):
+        detect_target(cv2.GaussianBlur(table, (0, 0), 2.0), load_object().target)
+    with pytest.raises(ImageError, match="blank target picture"):
         detect_target(np.full((576, 768), 120, np.uint8), load_object().target)
 
 
@@ -129,10 +134,19 @@ def test_a_given_detection_that_cannot_fix_a_pose_is_refused_naming_why(cell):
         object_pose(None, cam, obj, detection=TargetDetection(uv, p_O[:, :2], ids, 8))
 
 
-def test_a_target_picture_that_is_no_8_bit_image_is_an_image_error():
+def test_a_target_picture_is_read_as_every_picture_is():
+    """The target's picture goes through the one grey conversion (``as_gray``): no picture, or a blank one, is an
+    ``ImageError`` naming it; a colour or 12-bit camera's picture (pixels 0..4095) gives the grey picture's corners."""
     t = load_object().target
-    for bad in (np.zeros((10,), np.uint8), np.zeros((0, 0), np.uint8), np.zeros((576, 768), np.float32), None):
-        with pytest.raises(ImageError, match="target picture: expected an 8-bit grey or BGR image"):
+    for bad, why in ((np.zeros((10,), np.uint8), r"target picture: expected a grey or BGR image, got .* \(10,\)"),
+                     (np.zeros((0, 0), np.uint8), r"target picture: expected a grey or BGR image, got .* \(0, 0\)"),
+                     (np.zeros((576, 768), np.float32), "blank target picture"),
+                     (np.zeros((576, 768, 2), np.uint8), r"expected a grey or BGR image, got .* \(576, 768, 2\)"),
+                     (None, r"target picture: expected a grey or BGR image, got an array of shape \(\)")):
+        with pytest.raises(ImageError, match=why):
             detect_target(bad, t)
-    bgr = np.repeat(_board_picture(t)[..., None], 3, axis=2)
-    assert len(detect_target(bgr, t).ids) == len(detect_target(_board_picture(t), t).ids) > 0
+    grey = _board_picture(t)
+    ids = detect_target(grey, t).ids
+    assert len(ids) > 0
+    for same in (np.repeat(grey[..., None], 3, axis=2), np.rint(grey * (4095 / 255)).astype(np.uint16)):
+        assert np.array_equal(detect_target(same, t).ids, ids)
