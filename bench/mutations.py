@@ -183,6 +183,23 @@ MUTATIONS: tuple[Mutation, ...] = (
         "a windowed target search on a blank part of the picture ends the grasp instead of searching the whole",
     ),
     Mutation(
+        "defocused-discs-not-measured-again",
+        "selfview/measurement/discs.py",
+        "        for pedestal in (ink, DEFOCUS_PEDESTAL * paper):  # the one that finds most discs, until one finds all\n",
+        "        for pedestal in (ink,):\n",
+        ("tests/selfview/test_discs_photos_boofcv.py::test_a_badly_defocused_frame_is_measured_with_its_spread_ink",
+         "tests/selfview/test_discs_photos_boofcv.py::test_an_over_exposed_frame_keeps_its_discs"),
+        "a badly defocused or over-exposed frame's faint discs, under the darkness threshold, left unfound",
+    ),
+    Mutation(
+        "faint-pictures-paper-taken-with-the-bench",
+        "selfview/measurement/discs.py",
+        "        lit = level >= 0.5 * float(level.max())  # the plate's paper, not a dark bench beside it\n",
+        "        lit = level >= 0.0\n",
+        ("tests/selfview/test_discs_photos_boofcv.py::test_a_badly_defocused_frame_is_measured_with_its_spread_ink",),
+        "a faint picture's paper level and darkest ink taken over the dark bench beside the sheet: no pedestal fits",
+    ),
+    Mutation(
         "grabber-lock-kept-until-the-source-is-collected",
         "drivers/frame_grabber_v4l2/grabber.py",
         "                if claim is not None:\n                    claim.release()\n",

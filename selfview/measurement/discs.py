@@ -4,6 +4,7 @@ discs of a picture; ``correct_disc_bias`` removes their centres' perspective and
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 from dataclasses import dataclass, field
@@ -43,9 +44,10 @@ DISC_SHARE = (0.5, 2.0)
 SQUARE_TOLERANCE = 0.3
 #: Lattice test: a disc off the midpoint of its two neighbours on a line by more than this (of a step).
 LATTICE_TOLERANCE = 0.15
-#: Faint discs (their centres' median contrast under this): measured again with a grey pedestal (glare, haze, a
-#: raised black level) taken off, so that the picture's 1st-percentile ink is ``INK_CONTRAST`` below its paper.
-FAINT, INK_CONTRAST = 0.5, 0.6
+#: Faint discs (their centres' median contrast under this): measured again with a grey pedestal taken off, glare's
+#: (haze, a raised black level: the plate's 1st-percentile ink ``INK_CONTRAST`` below its paper), then a defocus's
+#: (its ink spread: the discs' contrast falls, not the paper's) at ``DEFOCUS_PEDESTAL`` of the paper's level.
+FAINT, INK_CONTRAST, DEFOCUS_PEDESTAL = 0.5, 0.6, 0.5
 
 
 @dataclass
@@ -646,7 +648,7 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     (optional) checks its size and straightens the lattice (kappa) for indexing. Returns ``DiscDetections`` (distorted
     pixels, not yet bias-corrected: ``correct_disc_bias``). Raises ``ImageError`` for a blank picture, one of the wrong
     size, with fewer than ``min_discs`` whole discs or whose discs form no lattice. Faint discs are measured again with
-    a grey pedestal off (``FAINT``; ``DiscDetections.pedestal``), as glare adds one. An origin nothing pins
+    a grey pedestal off (``FAINT``; ``DiscDetections.pedestal``): glare's, a defocus's. An origin nothing pins
     (``DiscDetections.ambiguous``) does not change the hand/eye result: it cancels in ``C_H_G = C_H_W W_H_G``."""
     img = as_gray(image, camera)
     work = img if plate.polarity == "dark_on_light" else (float(img.max()) - img)
@@ -655,14 +657,16 @@ def detect_discs(image, plate: PlateSpec, *, camera: CameraModel | None = None, 
     except ImageError as e:
         det, contrast, error = None, 0.0, e
     if contrast < FAINT:  # glare or haze adds a grey level to ink and paper alike: off, the ink has the print's contrast
-        paper = float(np.median(_paper_level(work)))
-        pedestal = (float(np.percentile(work, 1)) - (1 - INK_CONTRAST) * paper) / INK_CONTRAST
-        try:
-            again = _detect(work - pedestal, plate, camera, min_discs)[0] if pedestal > 0.05 * paper else None
-        except ImageError:
-            again = None
-        if again is not None and (det is None or len(again) > len(det)):
-            det, again.pedestal = again, pedestal
+        level = _paper_level(work)
+        lit = level >= 0.5 * float(level.max())  # the plate's paper, not a dark bench beside it
+        paper = float(np.median(level[lit]))
+        ink = (float(np.percentile(work[lit], 1)) - (1 - INK_CONTRAST) * paper) / INK_CONTRAST
+        for pedestal in (ink, DEFOCUS_PEDESTAL * paper):  # the one that finds most discs, until one finds all
+            if pedestal > 0.05 * paper and (det is None or len(det) < plate.rows * plate.cols):
+                with contextlib.suppress(ImageError):
+                    again = _detect(work - pedestal, plate, camera, min_discs)[0]
+                    if det is None or len(again) > len(det):
+                        det, again.pedestal = again, pedestal
     if det is None:
         raise error
     return det
