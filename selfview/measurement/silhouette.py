@@ -17,7 +17,7 @@ from selfview.measurement import _native
 from selfview.maths.camera import CameraModel
 from selfview.files.cell import GripperSpec
 from selfview.measurement.discs import as_gray
-from selfview.measurement.fingertips import FingertipResult, PredictedFingers, box_edges, tukey_weights
+from selfview.measurement.fingertips import box_edges, tukey_weights
 from selfview.maths.geometry import cross_rows, inv_H, make_H, transform_points
 
 __all__ = ["Appearance", "SilhouetteFit", "fit_silhouette", "learn_appearance", "rms_limit", "MIN_GOOD_FRACTION"]
