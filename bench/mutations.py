@@ -200,6 +200,14 @@ MUTATIONS: tuple[Mutation, ...] = (
         "a faint picture's paper level and darkest ink taken over the dark bench beside the sheet: no pedestal fits",
     ),
     Mutation(
+        "integer-pixels-on-another-scale-read-as-grey-levels",
+        "selfview/measurement/discs.py",
+        "                                     and not 0 <= a.min() <= a.max() <= 255):",
+        "                                     and False):",
+        ("tests/selfview/test_discs.py::test_integer_pixels_on_another_scale_are_refused_by_name",),
+        "a 12-bit picture handed over as int32 read as 0..255 grey levels: a board or target detector sees it clipped",
+    ),
+    Mutation(
         "grabber-lock-kept-until-the-source-is-collected",
         "drivers/frame_grabber_v4l2/grabber.py",
         "                if claim is not None:\n                    claim.release()\n",

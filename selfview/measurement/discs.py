@@ -89,8 +89,9 @@ def as_gray(image, camera: CameraModel | None = None, what: str = "picture") -> 
         a = a.astype(np.float32) @ np.array([0.114, 0.587, 0.299], np.float32)  # BGR weights
     if a.ndim != 2 or a.size == 0:
         raise ImageError(f"{what}: expected a grey or BGR image, got an array of shape {np.shape(image)}")
-    if a.dtype.kind not in "iuf":  # not bool, complex or object
-        raise ImageError(f"{what}: expected integer or float pixels, got dtype {a.dtype}")
+    if a.dtype.kind not in "iuf" or (a.dtype.kind in "iu" and a.dtype not in (np.uint8, np.uint16)
+                                     and not 0 <= a.min() <= a.max() <= 255):  # not bool, object, or a wider scale
+        raise ImageError(f"{what}: expected uint8, uint16, float or 0..255 integer pixels, got dtype {a.dtype}")
     h, w = a.shape
     if camera is not None and (h, w) != (int(camera.height), int(camera.width)):
         raise ImageError(f"{what} is {w}x{h} px but the camera model expects {int(camera.width)}x{int(camera.height)}")

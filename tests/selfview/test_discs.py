@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from selfview.measurement.discs import as_gray, correct_disc_bias, detect_discs, disc_image_bias
+from selfview.measurement.discs import as_gray, correct_disc_bias, detect_discs, disc_image_bias, gray_u8
 from selfview.errors import ImageError
 from selfview.maths.geometry import make_H, rot_z, transform_points
 from tests.alt_render import case, grid_symmetry, render
@@ -167,6 +167,18 @@ def test_bad_pictures_fail_clearly(cell, cell_path):
     img[:, 230:] = 205
     with pytest.raises(ImageError, match="at least 12 needed"):
         detect_discs(img, cell.plate, camera=cam)
+
+
+def test_integer_pixels_on_another_scale_are_refused_by_name(cell_path):
+    """A 12-bit picture handed over as int32 (0..4095) or a signed one: refused by name, not read as 0..255 grey
+    levels (a board or target detector would see it clipped white); int32 within 0..255 is read as uint8 is."""
+    c = case(str(cell_path), 0)
+    for bad in (np.rint(c.pic.image * (4095 / 255)).astype(np.int32), c.pic.image.astype(np.int16) - 128):
+        with pytest.raises(ImageError, match=f"uint8, uint16, float or 0..255 integer pixels, got dtype {bad.dtype}"):
+            as_gray(bad)
+        with pytest.raises(ImageError, match="0..255 integer pixels"):
+            gray_u8(bad)
+    assert np.array_equal(as_gray(c.pic.image.astype(np.int32)), as_gray(c.pic.image))
 
 
 def test_scattered_blobs_form_no_lattice(cell):

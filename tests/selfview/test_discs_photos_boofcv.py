@@ -232,8 +232,8 @@ def test_a_defocused_frame_keeps_the_discs_by_the_sheets_edge(name):
 @pytest.mark.parametrize("name, least", [("frame210.jpg", 80), ("frame285.jpg", 75), ("frame510.jpg", 79)])
 def test_a_badly_defocused_frame_is_measured_with_its_spread_ink(name, least):
     """Video frames blurred by a Gaussian of sigma 3.5 px (discs 7-9 px across, 14-16 px apart: each disc's ink
-    spread until its contrast, 0.22-0.33, lies about the 0.3 darkness threshold), measured again with half the
-    paper's level taken off (``DEFOCUS_PEDESTAL``): 80, 75 and 79 discs (OpenCV 80 each), each indexed as in the
+    spread until its contrast lies about the 0.3 darkness threshold; frame 285: 0.22-0.33), measured again with half
+    the paper's level taken off (``DEFOCUS_PEDESTAL``): 80, 75 and 79 discs (OpenCV 80 each), each indexed as in the
     frame and within 0.6 px of where it is there (measured: at most 0.52, 0.32, 0.52 px). Before, 36, none and 48:
     the glare pedestal, from the picture's darkest percentile (the bench beside the sheet), was none."""
     img, plate = _load("video", name), _plate("video")
