@@ -11,8 +11,9 @@ OpenCV's where both found the grid, our median time over each OpenCV mode's (``t
 the medians over the set (``median_time_ratio_ours_to_findCirclesGrid`` is issue 31's measure). A changed
 picture's truth is known: each detector's centres in the unchanged photograph, turned as it was turned;
 ``moved_px`` is how far each detector's centres are from its own truth (the largest over the discs).
+``--floor`` times instead what the detector would take if a stage cost nothing (``floor_study``).
 
-    python bench/discs_vs_opencv.py [--repeat 5] [--quick]
+    python bench/discs_vs_opencv.py [--repeat 5] [--quick] [--floor]
 """
 
 from __future__ import annotations
@@ -138,15 +139,76 @@ def study(repeat: int, quick: bool) -> dict:
     return {"repeat": repeat, "quick": quick, "opencv": cv2.__version__, "summary": summary, "pictures": rows}
 
 
+def _box_centres(work, labels, stats, round_, reject, noise):
+    """The refinement at no cost: each round blob's box centre, its area."""
+    rows = stats[round_].tolist()
+    return [np.array([x + (w - 1) / 2, y + (h - 1) / 2]) for x, y, w, h, _ in rows], [r[4] for r in rows]
+
+
+def _all_round(labels, stats, reject, smooth):
+    """The ellipse tests at no cost: every blob of 20 px or more, clear of the border, under 5 % of the picture."""
+    H, W = labels.shape
+    x, y, w, h, area = stats[1:].T
+    ok = (area >= 20) & (area <= 0.05 * H * W) & (x > 0) & (y > 0) & (x + w < W) & (y + h < H)
+    return list(np.flatnonzero(ok) + 1), stats
+
+
+FREE_STAGES = {"as_is": {},
+               "refinement_free": {"_measure_discs": _box_centres},
+               "refinement_and_ellipse_tests_free": {"_measure_discs": _box_centres, "_round_blobs": _all_round}}
+
+
+def floor_study(repeat: int, quick: bool) -> dict:
+    """Our detector's time with a stage made free (``FREE_STAGES``: the per-disc refinement, a blob's box centre
+    instead; and the per-blob ellipse tests, every blob of a disc's size taken), beside findCirclesGrid, interleaved
+    per picture: how much of our time each stage is, and the time per disc (``per_disc_budget_us``) the per-disc
+    stages may take together for the detector to match findCirclesGrid's median time. A study of where the time
+    goes, not a detector: the free stages' centres are not measured."""
+    from selfview.measurement import discs
+
+    saved = {name: getattr(discs, name) for v in FREE_STAGES.values() for name in v}
+    times = {k: [] for k in (*FREE_STAGES, "findCirclesGrid")}
+    blobs = []
+    try:
+        for _, img, plate, _ in pictures(quick):
+            t_pic = {k: [] for k in times}
+            for _ in range(repeat):
+                for k, stages in FREE_STAGES.items():
+                    for name, fn in saved.items():
+                        setattr(discs, name, stages.get(name, fn))
+                    t = time.perf_counter()
+                    run_ours(img, plate)
+                    t_pic[k].append((time.perf_counter() - t) * 1e3)
+                t = time.perf_counter()
+                run_opencv(img, plate, False)
+                t_pic["findCirclesGrid"].append((time.perf_counter() - t) * 1e3)
+            for k in times:
+                times[k].append(float(np.median(t_pic[k])))
+            blobs.append(plate.rows * plate.cols)
+    finally:
+        for name, fn in saved.items():
+            setattr(discs, name, fn)
+    cv = np.array(times["findCirclesGrid"])
+    ms = {k: round(float(np.median(v)), 2) for k, v in times.items()}
+    free = np.array(times["refinement_and_ellipse_tests_free"])
+    return {"repeat": repeat, "quick": quick, "opencv": cv2.__version__, "pictures": len(cv), "median_ms": ms,
+            "median_time_ratio_to_findCirclesGrid": {k: round(float(np.median(np.array(v) / cv)), 2)
+                                                     for k, v in times.items() if k != "findCirclesGrid"},
+            "per_disc_budget_us": round(float(np.median((cv - free) / np.array(blobs))) * 1e3, 1),
+            "per_disc_now_us": round(float(np.median((np.array(times["as_is"]) - free) / np.array(blobs))) * 1e3, 1)}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=5, help="runs of each detector per picture (interleaved)")
     ap.add_argument("--quick", action="store_true", help="4 photographs, one turn each, no ramp")
+    ap.add_argument("--floor", action="store_true", help="our time with the per-disc stages made free (floor_study)")
     args = ap.parse_args(argv)
     if args.repeat < 1:
         print("discs_vs_opencv: --repeat must be at least 1", file=sys.stderr)
         return 2
-    print(json.dumps(study(args.repeat, args.quick), indent=1))
+    run = floor_study if args.floor else study
+    print(json.dumps(run(args.repeat, args.quick), indent=1))
     return 0
 
 
