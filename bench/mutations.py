@@ -359,6 +359,23 @@ MUTATIONS: tuple[Mutation, ...] = (
         "a picture is decoded whatever size its header declares",
     ),
     Mutation(
+        "tiff-directory-looked-for-in-the-first-64-kib",
+        "selfview/files/io_safe.py",
+        "        fmt, w, h = picture_size(blob)\n",
+        "        fmt, w, h = picture_size(blob[:65536])\n",
+        ("tests/selfview/test_io_safe.py::test_a_tiff_is_sized_from_its_directory_after_the_pixels",),
+        "a large TIFF (its directory written after its pixels, as libtiff does) refused as truncated",
+    ),
+    Mutation(
+        "tiff-read-in-one-byte-order",
+        "selfview/files/io_safe.py",
+        '        num = lambda at, n=2: int.from_bytes(head[at : at + n], "little" if head[:1] == b"I" else "big")'
+        "  # noqa: E731\n",
+        '        num = lambda at, n=2: int.from_bytes(head[at : at + n], "little")  # noqa: E731\n',
+        ("tests/selfview/test_io_safe.py::test_a_tiff_is_sized_from_its_directory_after_the_pixels",),
+        "a big-endian TIFF (a Motorola-order camera's) sized from its bytes read backwards: refused or misread",
+    ),
+    Mutation(
         "end-of-frame-stamp-as-exposure",
         "drivers/frame_grabber_v4l2/capture.py",
         '    return ts if tstamp == "start" else ts - buffer_s\n',

@@ -58,7 +58,7 @@ EXIT_INTERRUPTED = 130
 _EXIT_FOR = [
     (Cancelled, EXIT_INTERRUPTED, "the run was interrupted; the cell was left as stated above"),
     (AlarmError, EXIT_ALARM, "stop the cell and check the camera mount"),
-    (PictureFileError, EXIT_CONFIG, "give the path of a picture file (PNG, JPEG, BMP or PGM; 8- or 16-bit)"),
+    (PictureFileError, EXIT_CONFIG, "give the path of a picture file (PNG, JPEG, BMP, PGM or TIFF; 8- or 16-bit)"),
     ((CalibrationError, ImageError), EXIT_CALIBRATION, "check the picture (light, focus, plate and fingers in view)"),
     ((ConfigError, CalibrationFileError), EXIT_CONFIG, "correct the file or argument named above"),
     ((DeviceTimeout, ProtocolError, DeviceError, LimitError), EXIT_DEVICE, "check the device's cable, power and URL"),

@@ -37,9 +37,7 @@ def _cell(cell) -> Cell:
 
 def _picture(image) -> tuple[np.ndarray, str | None]:
     """(grey uint8 picture, SHA-256 of its file or None for an array)."""
-    if isinstance(image, (str, Path)):
-        return read_picture(image)
-    return np.asarray(image), None
+    return read_picture(image) if isinstance(image, (str, Path)) else (np.asarray(image), None)
 
 
 @dataclass

@@ -184,7 +184,8 @@ def short_repr(value, n: int = 80) -> str:
 
 
 def picture_size(head: bytes) -> tuple[str, int, int]:
-    """(format, width, height) from the first bytes of a PNG, JPEG, BMP or PGM/PPM file; else ``ValueError``."""
+    """(format, width, height) from the header of a PNG, JPEG, BMP, PGM/PPM or TIFF file (its directory may follow the
+    pixels: ``head`` is the whole file); else ``ValueError``."""
     if not head:
         raise ValueError("the file is empty")
     if head[:8] == b"\x89PNG\r\n\x1a\n":
@@ -222,7 +223,7 @@ def picture_size(head: bytes) -> tuple[str, int, int]:
         return "BMP", abs(w), abs(h)
     if head[:1] == b"P" and head[1:2] in (b"2", b"3", b"5", b"6"):
         fields: list[bytes] = []
-        for line in head[2:].split(b"\n"):
+        for line in head[2:65536].split(b"\n"):
             line = line.split(b"#", 1)[0]
             fields += line.split()
             if len(fields) >= 2:
@@ -231,7 +232,15 @@ def picture_size(head: bytes) -> tuple[str, int, int]:
             return "PNM", int(fields[0]), int(fields[1])
         except (IndexError, ValueError):
             raise ValueError("PGM/PPM header without a width and height") from None
-    raise ValueError(f"not a PNG, JPEG, BMP or PGM/PPM picture (starts with {head[:8].hex(' ')})")
+    if head[:4] in (b"II*\0", b"MM\0*"):  # TIFF: ImageWidth (256), ImageLength (257) in the first directory
+        num = lambda at, n=2: int.from_bytes(head[at : at + n], "little" if head[:1] == b"I" else "big")  # noqa: E731
+        at = num(4, 4) + 2  # the first entry (tag, type, count, value), after the entry count
+        ent = [(num(i), num(i + 2), i + 8) for i in range(at, min(at + 12 * num(at - 2), len(head) - 11), 12)]
+        size = {t: num(v, 2 * k - 4) for t, k, v in ent if t in (256, 257) and k in (3, 4)}  # SHORT or LONG
+        if len(size) < 2:
+            raise ValueError(f"TIFF without its width and height in its first directory (at byte {at - 2}; truncated?)")
+        return "TIFF", size[256], size[257]
+    raise ValueError(f"not a PNG, JPEG, BMP, PGM/PPM or TIFF picture (starts with {head[:8].hex(' ')})")
 
 
 def uint16_gain(a: np.ndarray) -> float:
@@ -249,7 +258,7 @@ def read_picture(path, *, max_side: int = MAX_PICTURE_SIDE, max_pixels: int = MA
     p = Path(path)
     blob = read_bounded(p, MAX_PICTURE_BYTES, error=PictureFileError, what=what)
     try:
-        fmt, w, h = picture_size(blob[:65536])
+        fmt, w, h = picture_size(blob)
     except ValueError as exc:
         raise PictureFileError(f"{p}: not a usable {what}: {exc}") from None
     if w <= 0 or h <= 0:
@@ -268,7 +277,7 @@ def read_picture(path, *, max_side: int = MAX_PICTURE_SIDE, max_pixels: int = MA
         if img.shape[2] not in (3, 4):
             raise PictureFileError(f"{p}: {img.shape[2]} channels; expected a grey or colour picture")
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-    if img.dtype == np.uint16:  # a 10- to 16-bit camera's picture (PNG, PGM)
+    if img.dtype == np.uint16:  # a 10- to 16-bit camera's picture (PNG, PGM, TIFF)
         img = cv2.convertScaleAbs(img, alpha=uint16_gain(img))
     if img.dtype != np.uint8:
         raise PictureFileError(f"{p}: {img.dtype} pixels; expected an 8- or 16-bit grey picture")

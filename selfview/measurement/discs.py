@@ -289,9 +289,7 @@ def _support_and_ring(lab, k, area, small, m_in, m):
     n_ring = np.count_nonzero(ring)
     fr_ring = n_ring / max(np.count_nonzero(band), 1)
     fr_sup = np.count_nonzero(support & not_k) / max(np.count_nonzero(in_sup) - area, 1)
-    if fr_ring < 0.05 or n_ring < 12 or fr_sup < 0.5:
-        return None
-    return dist, support, ring, halo
+    return None if fr_ring < 0.05 or n_ring < 12 or fr_sup < 0.5 else (dist, support, ring, halo)
 
 
 def _weighted_centre(crop, support, level, grid, centre, area, floor) -> tuple[str | None, np.ndarray | None]:

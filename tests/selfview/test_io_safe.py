@@ -33,7 +33,7 @@ def grey():
     return rng.integers(0, 256, size=(37, 53), dtype=np.uint8)
 
 
-@pytest.mark.parametrize("ext", [".png", ".jpg", ".bmp", ".pgm"])
+@pytest.mark.parametrize("ext", [".png", ".jpg", ".bmp", ".pgm", ".tif"])
 def test_header_sizes_of_real_files(tmp_path, grey, ext):
     p = tmp_path / f"x{ext}"
     assert cv2.imwrite(str(p), grey)
@@ -52,17 +52,22 @@ def test_colour_pictures_become_grey(tmp_path, grey):
     assert np.array_equal(img, grey)
 
 
-@pytest.mark.parametrize("ext", [".png", ".pgm"])
+@pytest.mark.parametrize("ext", [".png", ".pgm", ".tif"])
 @pytest.mark.parametrize("bits", [10, 12, 16])
 def test_a_16_bit_picture_reads_as_its_cameras_8_bits(tmp_path, grey, ext, bits):
     """A 10-, 12- or 16-bit camera's picture in a 16-bit file (its pixels unshifted: 0..2^bits - 1) reads as the
-    8-bit picture of the same light, within rounding; a 12-bit picture with no pixel at 2^10 or above reads as 10 bits
-    (brighter: the measures are relative). A 12-bit one taken as 16 bits (/257) would read 0..16 and be 'blank'."""
+    8-bit picture of the same light, within rounding. A 12-bit one taken as 16 bits (/257) would read 0..16 and be
+    'blank'."""
     full = (1 << bits) - 1
     p = tmp_path / f"x{ext}"
     assert cv2.imwrite(str(p), np.rint(grey * (full / 255)).astype(np.uint16))
     img, _ = read_picture(p)
     assert img.dtype == np.uint8 and np.abs(img.astype(int) - grey).max() <= 1
+
+
+def test_a_dim_16_bit_picture_reads_by_the_bits_its_brightest_pixel_needs(tmp_path, grey):
+    """A 12-bit picture with no pixel at 2^10 or above reads as 10 bits (brighter: the measures are relative)."""
+    p = tmp_path / "dim.png"
     dark = (grey // 8).astype(np.uint16) * 16  # 12-bit levels under 2^10 (at most 496): the gain of 10 bits
     assert cv2.imwrite(str(p), dark)
     assert np.abs(read_picture(p)[0].astype(int) - np.rint(dark * (255 / 1023))).max() <= 1
@@ -90,12 +95,14 @@ def test_a_huge_png_is_refused_from_its_header(tmp_path):
     "content, message",
     [
         (b"", "empty"),
-        (b"hello, this is text\n", "not a PNG, JPEG, BMP or PGM/PPM"),
+        (b"hello, this is text\n", "not a PNG, JPEG, BMP, PGM/PPM or TIFF"),
         (b"\x89PNG\r\n\x1a\n\0\0", "IHDR"),
         (b"\xff\xd8\xff\xe0\x00\x10JFIF", "frame header"),
         (b"P5\n# only a comment\n", "width and height"),
+        (b"II*\0\xff\0\0\0", "TIFF without its width and height in its first directory"),
+        (b"II+\0\x08\0\0\0", "not a PNG, JPEG, BMP, PGM/PPM or TIFF"),
     ],
-    ids=["empty", "text", "png-cut", "jpeg-cut", "pgm-cut"],
+    ids=["empty", "text", "png-cut", "jpeg-cut", "pgm-cut", "tiff-cut", "bigtiff"],
 )
 def test_unreadable_pictures_name_the_file(tmp_path, content, message):
     p = tmp_path / "bad.png"
@@ -103,6 +110,42 @@ def test_unreadable_pictures_name_the_file(tmp_path, content, message):
     with pytest.raises(ImageError, match=message) as e:
         read_picture(p)
     assert str(p) in str(e.value)
+
+
+def tiff(pixels: np.ndarray, order: str = ">", width: int | None = None) -> bytes:
+    """An uncompressed one-strip grey TIFF of uint8 or big/little-endian uint16 ``pixels``, its directory after the
+    pixels (as libtiff writes it), its ImageWidth a SHORT (``width``: what it claims) and its ImageLength a LONG."""
+    h, w = pixels.shape
+    data = pixels.astype(pixels.dtype.newbyteorder(order)).tobytes()
+    bits, at = 8 * pixels.itemsize, 8 + len(data)
+    entries = [(256, 3, width or w), (257, 4, h), (258, 3, bits), (259, 3, 1), (262, 3, 1), (273, 4, 8),
+               (277, 3, 1), (278, 4, h), (279, 4, len(data))]
+    ifd = struct.pack(order + "H", len(entries))
+    for tag, kind, value in entries:
+        ifd += struct.pack(order + "HHI", tag, kind, 1)
+        ifd += struct.pack(order + ("HH" if kind == 3 else "I"), *((value, 0) if kind == 3 else (value,)))
+    head = (b"MM\0*" if order == ">" else b"II*\0") + struct.pack(order + "I", at)
+    return head + data + ifd + b"\0\0\0\0"
+
+
+@pytest.mark.parametrize("order", [">", "<"])
+def test_a_tiff_is_sized_from_its_directory_after_the_pixels(tmp_path, grey, order):
+    """A TIFF (a lab camera's usual file; ``write_picture`` writes one) keeps its directory after its pixels, beyond
+    the first 64 KiB of a large picture: its size is read there, in either byte order, its SHORT and LONG entries;
+    12-bit pixels read as the camera's 8 bits; a header claiming 40000 px is refused before decoding, a directory
+    beyond the file's end by name."""
+    big = np.tile(grey, (8, 4))  # 296 x 212: 125 KB of 16-bit pixels before the directory
+    p = tmp_path / "x.tif"
+    p.write_bytes(tiff(np.rint(big * (4095 / 255)).astype(np.uint16), order))
+    assert picture_size(p.read_bytes()) == ("TIFF", 212, 296)
+    img, _ = read_picture(p)
+    assert img.dtype == np.uint8 and np.abs(img.astype(int) - big).max() <= 1
+    p.write_bytes(tiff(big, order, width=40000))
+    with pytest.raises(ImageError, match="TIFF header says 40000 x 296 pixels.*refused before decoding"):
+        read_picture(p)
+    p.write_bytes(tiff(big, order)[:-100])
+    with pytest.raises(ImageError, match="TIFF without its width and height"):
+        read_picture(p)
 
 
 def test_a_truncated_picture_is_an_image_error(tmp_path, grey):
@@ -119,9 +162,9 @@ def test_a_truncated_picture_is_an_image_error(tmp_path, grey):
 
 
 def test_the_command_line_calibrates_from_a_12_bit_cameras_16_bit_file(cell, tmp_path, capsys):
-    """A 12-bit camera's parked picture in a 16-bit PNG (pixels 0..4095, unshifted): ``selfview calibrate`` gives
-    the 8-bit file's calibration (its pixels read back exactly), as ``calibrate_offline`` does given the array; a
-    16-bit file was refused, a 12-bit array taken as 16 bits would read 0..16 and be blank."""
+    """A 12-bit camera's parked picture in a 16-bit PNG or TIFF (pixels 0..4095, unshifted): ``selfview calibrate``
+    gives the 8-bit file's calibration (its pixels read back exactly), as ``calibrate_offline`` does given the array;
+    a 16-bit file was refused, a 12-bit array taken as 16 bits would read 0..16 and be blank."""
     import json
 
     from selfview.estimation.offline import calibrate_offline
@@ -138,12 +181,12 @@ def test_the_command_line_calibrates_from_a_12_bit_cameras_16_bit_file(cell, tmp
     with pytest.raises(ImageError, match=r"shape \(576, 768, 3\); expected a 2-D grey picture \(no colour channels\)"):
         calibrate_offline(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR), cell)
     docs = []
-    for name, pic in (("p8.png", img), ("p16.png", img12)):
+    for name, pic in (("p8.png", img), ("p16.png", img12), ("p16.tif", img12)):  # a lab camera's TIFF too
         assert cv2.imwrite(str(tmp_path / name), pic)
         assert main(["calibrate", "--image", str(tmp_path / name), "--out", str(tmp_path / f"{name}.yaml"),
                      "--json"]) == 0
         docs.append(json.loads(capsys.readouterr().out))
-    assert docs[1]["C_H_G"] == docs[0]["C_H_G"] and docs[1]["f"] == docs[0]["f"]
+    assert all(d["C_H_G"] == docs[0]["C_H_G"] and d["f"] == docs[0]["f"] for d in docs[1:])
 
 
 def test_cli_exit_3_for_bad_picture_files(tmp_path, capsys):

@@ -13,9 +13,7 @@ from selfview.estimation.intrinsics.fit import JointFit, leave_views_out
 def sign_test_p(better: int, worse: int) -> float:
     """One-sided p-value of the sign test: P(``better`` or more successes in ``better + worse`` fair tosses)."""
     n = better + worse
-    if n == 0:
-        return 1.0
-    return sum(math.comb(n, k) for k in range(better, n + 1)) / 2.0**n
+    return sum(math.comb(n, k) for k in range(better, n + 1)) / 2.0**n if n else 1.0
 
 
 def chi2_3_sf(x: float) -> float:

@@ -30,9 +30,7 @@ def project_points(intr, R, t, p_W, skew: float = 0.0) -> np.ndarray:
     """(N, 2) distorted pixels of plate points ``p_W`` (N, 3) at pose (R, t) by ``intr`` = (f, kappa, cx, cy, aspect[,
     skew]) (else ``skew``); all NaN when any point is behind the camera or beyond the fold."""
     XYh = _distorted_sensor(intr, p_W @ R.T + t)
-    if XYh is None:
-        return np.full((len(p_W), 2), np.nan)
-    return _sensor_pixels(intr, XYh, skew)
+    return np.full((len(p_W), 2), np.nan) if XYh is None else _sensor_pixels(intr, XYh, skew)
 
 
 def _distorted_sensor(intr, pc) -> np.ndarray | None:
@@ -99,9 +97,7 @@ class JointProblem:
         return x[self.ni + 6 * len(self.p_W) :]
 
     def points(self, x, k) -> np.ndarray:
-        if not self.shape:
-            return self.p_W[k]
-        return self.p_W[k] + self.shape.offsets(self._y(x), self.idx[k])
+        return self.p_W[k] + self.shape.offsets(self._y(x), self.idx[k]) if self.shape else self.p_W[k]
 
     def view(self, x, k) -> np.ndarray:
         j = self.ni + 6 * k
