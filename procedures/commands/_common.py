@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 from selfview.files.cell import Cell, default_cell_path, load_cell
 
@@ -94,12 +95,10 @@ def serve_until(url: str, duration_s: float | None) -> None:
         pass
 
 
-def output_file(value: str, option: str, suffixes: tuple[str, ...] = ()) -> "Path":
+def output_file(value: str, option: str, suffixes: tuple[str, ...] = ()) -> Path:
     """The file an option names for writing, checked before anything runs (nothing moves for a name that
     cannot be written): a name (not empty, not a folder), in a folder that exists, ending in one of
     ``suffixes`` when given. ``ConfigError`` (exit 3) naming the option and the value otherwise."""
-    from pathlib import Path
-
     from selfview.errors import ConfigError
 
     shown = repr(value) if not value else value

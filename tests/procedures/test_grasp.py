@@ -163,7 +163,7 @@ def test_a_window_on_a_blank_part_of_the_picture_falls_back_to_the_whole_picture
     assert x0 > 508 and y0 > 278  # clear of the target's own window (267-508, 81-278)
     img[y0:y1, x0:x1] = 128
     assert np.allclose(win.pose(img).C_H_O, whole, atol=1e-6) and win.windowed == 0
-    assert win.pose(img) and win.windowed == 1  # the next picture: the window where the target is
+    assert np.allclose(win.pose(img).C_H_O, whole, atol=1e-6) and win.windowed == 1  # the next: the target's window
 
 
 def test_a_grasp_pose_far_off_is_refused_without_a_correction(near):
