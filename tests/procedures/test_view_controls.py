@@ -86,7 +86,10 @@ class DevTools:
         pytest.fail(f"never true on the page: {expr}")
 
     def click(self, element_id):
-        """A mouse click (press and release) at the middle of the element, as a person's."""
+        """A mouse click (press and release) at the middle of the element, as a person's: on the element as shown
+        (a hidden one has no place on the page, and a click there would be lost, not refused)."""
+        self.wait_js(f"(()=>{{const e=document.getElementById('{element_id}');return e!==null&&!e.closest('[hidden]')"
+                     "&&e.getBoundingClientRect().width>0})()")
         r = self.js(f"(()=>{{const r=document.getElementById('{element_id}').getBoundingClientRect();"
                     "return [r.x+r.width/2,r.y+r.height/2]})()")
         for kind in ("mousePressed", "mouseReleased"):
@@ -250,9 +253,13 @@ def test_views_are_rejected_recalibrated_and_saved_by_clicks(tmp_path):
         assert {"view": "view 3", "used": "no: rejected on the page"}.items() <= next(
             v for v in s["views"] if v["view"] == "view 3").items()
         assert not (tmp_path / "cam.yaml").exists()
-        b.wait_js("document.getElementById('ask-save')!==null && document.getElementById('reject-view-3').checked")
+        # the page shows the new question once it has drawn the new state (until then the first question's buttons
+        # stay in the page, hidden since the click: a click on them would be lost)
+        b.wait_js("!document.getElementById('askbox').hidden && document.getElementById('ask-save')!==null"
+                  " && document.getElementById('views').textContent.includes('no: rejected on the page')"
+                  " && document.getElementById('reject-view-3').checked")
         b.click("ask-save")
-        out, err = p.communicate(timeout=120)
+        out, err = p.communicate(timeout=60)
     finally:
         _close(b, p)
     assert p.returncode == 0, err[-2000:]
