@@ -168,7 +168,7 @@ def floor_study(repeat: int, quick: bool) -> dict:
 
     saved = {name: getattr(discs, name) for v in FREE_STAGES.values() for name in v}
     times = {k: [] for k in (*FREE_STAGES, "findCirclesGrid")}
-    blobs = []
+    on_plate = []  # discs on each picture's plate
     try:
         for _, img, plate, _ in pictures(quick):
             t_pic = {k: [] for k in times}
@@ -184,7 +184,7 @@ def floor_study(repeat: int, quick: bool) -> dict:
                 t_pic["findCirclesGrid"].append((time.perf_counter() - t) * 1e3)
             for k in times:
                 times[k].append(float(np.median(t_pic[k])))
-            blobs.append(plate.rows * plate.cols)
+            on_plate.append(plate.rows * plate.cols)
     finally:
         for name, fn in saved.items():
             setattr(discs, name, fn)
@@ -194,8 +194,8 @@ def floor_study(repeat: int, quick: bool) -> dict:
     return {"repeat": repeat, "quick": quick, "opencv": cv2.__version__, "pictures": len(cv), "median_ms": ms,
             "median_time_ratio_to_findCirclesGrid": {k: round(float(np.median(np.array(v) / cv)), 2)
                                                      for k, v in times.items() if k != "findCirclesGrid"},
-            "per_disc_budget_us": round(float(np.median((cv - free) / np.array(blobs))) * 1e3, 1),
-            "per_disc_now_us": round(float(np.median((np.array(times["as_is"]) - free) / np.array(blobs))) * 1e3, 1)}
+            "per_disc_budget_us": round(float(np.median((cv - free) / np.array(on_plate))) * 1e3, 1),
+            "per_disc_now_us": round(float(np.median((np.array(times["as_is"]) - free) / np.array(on_plate))) * 1e3, 1)}
 
 
 def main(argv=None) -> int:

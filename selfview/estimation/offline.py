@@ -12,7 +12,7 @@ import numpy as np
 from selfview.files.calfile import Calibration
 from selfview.maths.camera import CameraModel
 from selfview.files.cell import POINT_NAMES, Cell
-from selfview.files.io_safe import uint16_gain
+from selfview.files.io_safe import uint16_to_u8
 from selfview.measurement.discs import DiscDetections
 from selfview.measurement.plates import correct_plate_bias, detect_plate
 from selfview.errors import CalibrationError, ImageError
@@ -75,8 +75,7 @@ def check_picture(image, width: int, height: int) -> np.ndarray:
         raise ImageError(f"picture has shape {img.shape}; expected a 2-D grey picture (no colour channels)")
     if img.shape != (height, width):
         raise ImageError(f"picture is {img.shape[1]}x{img.shape[0]} pixels; the cell's camera gives {width}x{height}")
-    if img.dtype == np.uint16:  # a 10- to 16-bit camera's
-        img = np.rint(img * uint16_gain(img)).astype(np.uint8)
+    img = uint16_to_u8(img)  # a 10- to 16-bit camera's
     if img.dtype != np.uint8:
         raise ImageError(f"picture has {img.dtype} pixels; expected 8- or 16-bit grey")
     lo, hi = np.percentile(img[::4, ::4], [1, 99])

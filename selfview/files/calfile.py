@@ -227,9 +227,7 @@ def plain_data(x):
         return {str(k): plain_data(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
         return [plain_data(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return plain_data(x.tolist())
-    return x.item() if isinstance(x, np.generic) else x
+    return x.tolist() if isinstance(x, (np.ndarray, np.generic)) else x  # plain Python numbers, nested lists
 
 
 def check_document(doc, fmt: str, version: int, kind: str, source: str, *, redo: str, hint: str = "") -> None:

@@ -21,8 +21,8 @@ import yaml
 from selfview.errors import CellError, ConfigError, PictureFileError
 from selfview.files.lockdir import lock_slug, open_lock_file, os_cause
 
-__all__ = ["load_yaml", "load_yaml_file", "read_bounded", "parse_number", "read_picture", "uint16_gain", "picture_size",
-           "atomic_write", "write_picture", "MAX_YAML_BYTES", "MAX_YAML_DEPTH", "MAX_PICTURE_SIDE",
+__all__ = ["load_yaml", "load_yaml_file", "read_bounded", "parse_number", "read_picture", "uint16_gain", "uint16_to_u8",
+           "picture_size", "atomic_write", "write_picture", "MAX_YAML_BYTES", "MAX_YAML_DEPTH", "MAX_PICTURE_SIDE",
            "MAX_PICTURE_PIXELS"]
 
 #: Largest YAML document read (cell and calibration files are a few kB).
@@ -184,8 +184,7 @@ def short_repr(value, n: int = 80) -> str:
 
 
 def picture_size(head: bytes) -> tuple[str, int, int]:
-    """(format, width, height) from the header of a PNG, JPEG, BMP, PGM/PPM or TIFF file (its directory may follow the
-    pixels: ``head`` is the whole file); else ``ValueError``."""
+    """(format, width, height) from a PNG, JPEG, BMP, PGM/PPM or TIFF file (``head``: all of it), else ValueError."""
     if not head:
         raise ValueError("the file is empty")
     if head[:8] == b"\x89PNG\r\n\x1a\n":
@@ -248,6 +247,11 @@ def uint16_gain(a: np.ndarray) -> float:
     return 255.0 / ((1 << next(b for b in (8, 10, 12, 14, 16) if int(a.max()) < 1 << b)) - 1)
 
 
+def uint16_to_u8(a: np.ndarray) -> np.ndarray:
+    """A (non-empty) uint16 picture as uint8 by ``uint16_gain``, rounded; a picture of any other type as it is."""
+    return np.rint(a * uint16_gain(a)).astype(np.uint8) if a.dtype == np.uint16 else a
+
+
 def read_picture(path, *, max_side: int = MAX_PICTURE_SIDE, max_pixels: int = MAX_PICTURE_PIXELS,
                  what: str = "picture") -> tuple[np.ndarray, str]:
     """(2-D uint8 grey picture, a 16-bit one by ``uint16_gain``; SHA-256 of the file); ``PictureFileError`` naming an
@@ -277,8 +281,7 @@ def read_picture(path, *, max_side: int = MAX_PICTURE_SIDE, max_pixels: int = MA
         if img.shape[2] not in (3, 4):
             raise PictureFileError(f"{p}: {img.shape[2]} channels; expected a grey or colour picture")
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-    if img.dtype == np.uint16:  # a 10- to 16-bit camera's picture (PNG, PGM, TIFF)
-        img = cv2.convertScaleAbs(img, alpha=uint16_gain(img))
+    img = uint16_to_u8(img)  # a 10- to 16-bit camera's picture (PNG, PGM, TIFF)
     if img.dtype != np.uint8:
         raise PictureFileError(f"{p}: {img.dtype} pixels; expected an 8- or 16-bit grey picture")
     if img.shape != (h, w):

@@ -138,11 +138,11 @@ def test_colour_and_16_bit_pictures_are_accepted(cell_path):
     det8 = detect_discs(c.pic.image, c.cell.plate, camera=c.world.camera)
     assert np.allclose(det.uv, det8.uv, atol=1e-3) and np.allclose(det16.uv, det8.uv, atol=1e-3)
     # a 12-bit camera's pixels stored unshifted (0..4095): as bright as the 8-bit picture, not 1/16 of it ('blank')
-    g12 = as_gray(np.rint(c.pic.image * (4095 / 255)).astype(np.uint16))
-    assert np.abs(g12 - c.pic.image).max() < 0.032  # rounding to 12 bits: half of 255/4095
-    bgr12 = cv2.cvtColor(np.rint(c.pic.image * (4095 / 255)).astype(np.uint16), cv2.COLOR_GRAY2BGR)
+    img12 = np.rint(c.pic.image * (4095 / 255)).astype(np.uint16)
+    assert np.abs(as_gray(img12) - c.pic.image).max() < 0.032  # rounding to 12 bits: half of 255/4095
+    bgr12 = cv2.cvtColor(img12, cv2.COLOR_GRAY2BGR)
     assert np.abs(as_gray(bgr12) - c.pic.image).max() < 0.04  # a colour one too (it was mixed before it was scaled)
-    det12 = detect_discs(np.rint(c.pic.image * (4095 / 255)).astype(np.uint16), c.cell.plate, camera=c.world.camera)
+    det12 = detect_discs(img12, c.cell.plate, camera=c.world.camera)
     assert np.allclose(det12.uv, det8.uv, atol=1e-3)
 
 

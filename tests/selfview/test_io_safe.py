@@ -151,7 +151,7 @@ def test_a_tiff_is_sized_from_its_directory_after_the_pixels(tmp_path, grey, ord
 def test_a_jpeg_whose_frame_header_follows_large_metadata_is_read(tmp_path, grey):
     """A camera's JPEG may carry 64 KiB segments (EXIF thumbnails, colour profiles) before its frame header: it is
     sized there (the first 64 KiB alone would call it truncated); a run of fill bytes is walked to a bound, not on."""
-    ok, buf = cv2.imencode(".jpg", grey)
+    buf = cv2.imencode(".jpg", grey)[1]
     meta = (b"\xff\xef" + struct.pack(">H", 65535) + bytes(65533)) * 2  # two APP15 segments of the largest size
     p = tmp_path / "meta.jpg"
     p.write_bytes(buf.tobytes()[:2] + meta + buf.tobytes()[2:])
